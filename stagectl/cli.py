@@ -1,0 +1,76 @@
+"""``stagectl`` command-line entry point.
+
+Every subcommand lives in ``stagectl.commands.<module>`` and registers itself through
+``add_parser(subparsers)``, setting ``func(args) -> int`` as its handler. Errors the user can fix
+(:class:`~stagectl.errors.StageError`: bad config, bad data, device errors) are printed as
+``stagectl: error: ...`` with exit code 2 and never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+#: command modules, in the order they appear in ``--help``
+COMMAND_MODULES = (
+    "run",
+    "simulate",
+    "check_config",
+    "tune",
+    "sim_plant",
+    "daemon",
+    "clients",
+    "model",
+    "identify",
+    "discover",
+    "bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from stagectl import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="stagectl",
+        description="Friction-compensating controller for precision linear stages (SI units throughout).",
+    )
+    parser.add_argument("--version", action="version", version=f"stagectl {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(f"stagectl.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"stagectl.commands.{name}":
+                continue  # not built yet
+            raise
+        mod.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from stagectl.errors import StageError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except StageError as exc:
+        msg = str(exc)
+        lines = msg.splitlines() or [type(exc).__name__]
+        print(f"stagectl: error: {lines[0]}", file=sys.stderr)
+        for line in lines[1:]:
+            print(f"  {line}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The service shell: lifecycle, signals, sd_notify, control socket, telemetry."""

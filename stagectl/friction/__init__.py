@@ -1,0 +1,156 @@
+"""Friction models (pure math) and the stage model file.
+
+Public API (stable; other tools build on it):
+
+* :func:`build` -- a model from the mapping found under ``friction:`` in YAML (``model:`` selects it).
+* ``model.force_along(x, t)`` -- friction force [N] along a prescribed trajectory (see ``base``).
+* :class:`StageModel` / :func:`load_model_file` / :func:`save_model_file` -- the model file format
+  shared by the plant, the feed-forward, ``identify`` and ``discover``::
+
+      mass_kg: 2.0            # optional rigid-body mass [kg]
+      friction: {model: gms, ...}
+      effects: {offset: {force_n: 0.1}, ...}   # optional, see stagectl.friction.effects
+      meta: {...}             # optional free-form provenance (fit quality, source, notes)
+
+Models register themselves with :func:`stagectl.friction.base.register`; importing this package
+imports every model module so that all tags are available.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stagectl.errors import ConfigError
+from stagectl.friction.base import FrictionKernel, FrictionModel, register, registry
+from stagectl.friction.effects import Effects
+from stagectl.schema import load, load_yaml_file, param
+
+__all__ = [
+    "Effects",
+    "FrictionKernel",
+    "FrictionModel",
+    "StageModel",
+    "build",
+    "load_model_file",
+    "parse_friction",
+    "register",
+    "registry",
+    "save_model_file",
+]
+
+#: modules that define models; each registers its classes on import
+_MODEL_MODULES = ("static", "maxwell", "gms", "lugre", "dahl", "hsieh")
+
+
+def _import_models() -> None:
+    for name in _MODEL_MODULES:
+        try:
+            importlib.import_module(f"stagectl.friction.{name}")
+        except ModuleNotFoundError as exc:  # a model module not written yet
+            if exc.name != f"stagectl.friction.{name}":
+                raise
+
+
+def build(spec: Mapping[str, Any], path: str = "friction") -> FrictionModel:
+    """Build a friction model from its YAML mapping.
+
+    Parameters
+    ----------
+    spec : mapping
+        ``{"model": <tag>, <parameter>: <value>, ...}`` in SI units.
+    path : str
+        Key path used in error messages.
+
+    Raises
+    ------
+    ConfigError
+        Unknown tag, unknown keys, missing keys or out-of-range values, all at once, each naming its key.
+    """
+    problems: list[str] = []
+    model = parse_friction(spec, path, problems)
+    if problems or model is None:
+        raise ConfigError(problems or [f"{path}: invalid friction model"])
+    return model
+
+
+def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel | None:
+    """``stagectl.schema`` parse hook for a ``friction:`` field (returns a built model)."""
+    _import_models()
+    if isinstance(value, FrictionModel):
+        return value
+    if not isinstance(value, Mapping):
+        problems.append(f"{path}: expected a mapping with a 'model:' tag, got {value!r}")
+        return None
+    tag = value.get("model")
+    reg = registry()
+    if tag not in reg:
+        problems.append(f"{path}.model: unknown friction model {tag!r} (known: {', '.join(sorted(reg))})")
+        return None
+    cls = reg[tag]
+    rest = {k: v for k, v in value.items() if k != "model"}
+    n_before = len(problems)
+    try:
+        params = load(cls.Params, rest, path)
+    except ConfigError as exc:
+        problems.extend(exc.problems)
+        return None
+    if len(problems) > n_before:
+        return None
+    return cls(params)
+
+
+def _parse_effects(value: Any, path: str, problems: list[str]) -> Effects | None:
+    try:
+        return load(Effects, value, path)
+    except ConfigError as exc:
+        problems.extend(exc.problems)
+        return None
+
+
+@dataclass(frozen=True)
+class StageModel:
+    """A stage's physical model: rigid-body mass, friction model and additional effects."""
+
+    friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
+    effects: Effects = param(default_factory=Effects, desc="additional effects", parse=_parse_effects)
+    mass_kg: float | None = param(None, unit="kg", desc="moving mass", gt=0.0)
+    meta: dict[str, Any] = param(default_factory=dict, desc="free-form provenance (fit quality, source)")
+
+    def spec(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.mass_kg is not None:
+            out["mass_kg"] = float(self.mass_kg)
+        out["friction"] = self.friction.spec()
+        eff = self.effects.spec()
+        if eff:
+            out["effects"] = eff
+        if self.meta:
+            out["meta"] = self.meta
+        return out
+
+
+def load_model_file(path: str | Path) -> StageModel:
+    """Load a model file (see module docstring). A bare friction mapping (with ``model:``) is accepted too."""
+    data = load_yaml_file(path)
+    if isinstance(data, Mapping) and "model" in data and "friction" not in data:
+        data = {"friction": data}
+    try:
+        return load(StageModel, data, "")
+    except ConfigError as exc:
+        raise ConfigError([f"{path}: {p}" for p in exc.problems]) from None
+
+
+def save_model_file(model: StageModel, path: str | Path, header: str = "") -> None:
+    """Write a model file that :func:`load_model_file` reads back to an equal model."""
+    import yaml
+
+    text = yaml.safe_dump(model.spec(), sort_keys=False, default_flow_style=None)
+    if header:
+        text = "".join(f"# {line}\n" for line in header.splitlines()) + text
+    Path(path).write_text(text, encoding="utf-8")
+
+

@@ -1,0 +1,1 @@
+"""Offline analysis: recordings I/O, friction identification and the discovery workflow."""

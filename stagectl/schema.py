@@ -1,0 +1,326 @@
+"""Typed configuration: YAML mapping -> frozen dataclasses, all errors reported at once.
+
+Every configurable object in stagectl is a frozen dataclass whose fields are declared with
+:func:`param`, which records the unit, a one-line description and the bounds. :func:`load`
+turns a plain mapping (from ``yaml.safe_load``) into such a dataclass:
+
+* unknown keys are rejected with their full path (Klipper's unused-option check);
+* missing required keys, wrong types, NaN/inf and out-of-bounds values are reported with the
+  path and the unit, e.g. ``controller.pid.kp_n_m: must be > 0 N/m (got -3)``;
+* **every** problem found is collected and raised together as one :class:`ConfigError`.
+
+Supported field types: ``float``, ``int``, ``bool``, ``str``, ``Enum`` subclasses (by value),
+``X | None``, ``tuple[float, ...]`` / ``tuple[int, ...]`` / ``tuple[str, ...]``, nested frozen
+dataclasses, ``dict[str, Any]`` (passed through, e.g. the ``can:`` block handed to ``can.Bus``),
+and any type with a custom ``parse=`` hook (used for the polymorphic ``friction:`` block).
+
+Example::
+
+    @dataclass(frozen=True)
+    class PidConfig:
+        kp_n_m: float = param(unit="N/m", desc="proportional gain", gt=0)
+        cutoff_hz: float = param(500.0, unit="Hz", desc="derivative filter cut-off", gt=0)
+
+    cfg = load(PidConfig, {"kp_n_m": 1e5}, path="controller.pid")
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import enum
+import math
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from stagectl.errors import ConfigError
+
+T = TypeVar("T")
+
+_MISSING = dataclasses.MISSING
+
+#: signature of a custom parse hook: (value, path, problems) -> parsed value (or None on error,
+#: after appending messages to ``problems``)
+ParseHook = Callable[[Any, str, list[str]], Any]
+
+
+def param(
+    default: Any = _MISSING,
+    *,
+    unit: str = "",
+    desc: str,
+    gt: float | None = None,
+    ge: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+    allow_inf: bool = False,
+    parse: ParseHook | None = None,
+    default_factory: Callable[[], Any] | None = None,
+) -> Any:
+    """Declare a configuration field with its unit, description and bounds.
+
+    Parameters
+    ----------
+    default : optional
+        Default value; omit for a required key.
+    unit : str
+        SI unit shown in messages and docs ("" for dimensionless).
+    desc : str
+        One-line description (a meta-test checks every field has one).
+    gt, ge, lt, le : float, optional
+        Bounds (strictly greater, greater-equal, ...). Applied to numbers and to every element of
+        numeric tuples.
+    choices : tuple, optional
+        Allowed values (strings).
+    allow_inf : bool
+        Accept ``inf`` / ``-inf`` (e.g. "no limit"); NaN is never accepted.
+    parse : callable, optional
+        Custom hook ``(value, path, problems) -> object`` for polymorphic fields.
+    """
+    meta = {
+        "unit": unit,
+        "desc": desc,
+        "gt": gt,
+        "ge": ge,
+        "lt": lt,
+        "le": le,
+        "choices": choices,
+        "allow_inf": allow_inf,
+        "parse": parse,
+    }
+    if default_factory is not None:
+        return dataclasses.field(default_factory=default_factory, metadata=meta)
+    if default is _MISSING:
+        return dataclasses.field(metadata=meta)
+    if isinstance(default, (list, dict, set)):
+        raise TypeError("mutable default; use default_factory")
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _unit(meta: Mapping[str, Any]) -> str:
+    u = meta.get("unit") or ""
+    return f" {u}" if u else ""
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    return repr(v)
+
+
+def _check_number(value: Any, path: str, meta: Mapping[str, Any], problems: list[str], *, integer: bool) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        # accept numeric strings like "1e-3" that YAML 1.1 leaves as str
+        if isinstance(value, str):
+            try:
+                value = int(value) if integer else float(value)
+            except ValueError:
+                problems.append(f"{path}: expected a number{_unit(meta)}, got {value!r}")
+                return None
+        else:
+            problems.append(f"{path}: expected a number{_unit(meta)}, got {type(value).__name__} {value!r}")
+            return None
+    if integer:
+        if isinstance(value, float):
+            if not value.is_integer():
+                problems.append(f"{path}: expected an integer, got {value!r}")
+                return None
+            value = int(value)
+    else:
+        value = float(value)
+        if math.isnan(value):
+            problems.append(f"{path}: must be a finite number{_unit(meta)}, got NaN")
+            return None
+        if math.isinf(value) and not meta.get("allow_inf"):
+            problems.append(f"{path}: must be finite{_unit(meta)}, got {value}")
+            return None
+    u = _unit(meta)
+    for key, ok, word in (
+        ("gt", lambda a, b: a > b, ">"),
+        ("ge", lambda a, b: a >= b, ">="),
+        ("lt", lambda a, b: a < b, "<"),
+        ("le", lambda a, b: a <= b, "<="),
+    ):
+        bound = meta.get(key)
+        if bound is not None and not ok(value, bound):
+            problems.append(f"{path}: must be {word} {_fmt(bound)}{u} (got {_fmt(value)}{u})")
+            return None
+    return value
+
+
+def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], problems: list[str]) -> Any:
+    hook = meta.get("parse")
+    if hook is not None:
+        return hook(value, path, problems)
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    # Optional / unions with None
+    if origin in (typing.Union, types.UnionType):
+        non_none = [a for a in args if a is not type(None)]
+        if value is None and len(non_none) < len(args):
+            return None
+        if len(non_none) == 1:
+            return _parse_value(non_none[0], value, path, meta, problems)
+        problems.append(f"{path}: unsupported union type {tp}")
+        return None
+    if origin is typing.Literal:
+        if value not in args:
+            problems.append(f"{path}: must be one of {', '.join(map(str, args))} (got {value!r})")
+            return None
+        return value
+    if tp is float:
+        return _check_number(value, path, meta, problems, integer=False)
+    if tp is int:
+        return _check_number(value, path, meta, problems, integer=True)
+    if tp is bool:
+        if not isinstance(value, bool):
+            problems.append(f"{path}: expected true or false, got {value!r}")
+            return None
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            problems.append(f"{path}: expected a string, got {value!r}")
+            return None
+        choices = meta.get("choices")
+        if choices and value not in choices:
+            problems.append(f"{path}: must be one of {', '.join(choices)} (got {value!r})")
+            return None
+        return value
+    if tp is Path:
+        if not isinstance(value, str):
+            problems.append(f"{path}: expected a path string, got {value!r}")
+            return None
+        return Path(value)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        for member in tp:
+            if value == member.value or (isinstance(value, str) and value.lower() == member.name.lower()):
+                return member
+        allowed = ", ".join(str(m.value) for m in tp)
+        problems.append(f"{path}: must be one of {allowed} (got {value!r})")
+        return None
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            problems.append(f"{path}: expected a list, got {value!r}")
+            return None
+        elem_t = args[0] if args else Any
+        out = []
+        n_before = len(problems)
+        for i, item in enumerate(value):
+            out.append(_parse_value(elem_t, item, f"{path}[{i}]", meta, problems))
+        return tuple(out) if len(problems) == n_before else None
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            problems.append(f"{path}: expected a mapping, got {value!r}")
+            return None
+        return dict(value)
+    if tp is Any:
+        return value
+    if dataclasses.is_dataclass(tp):
+        return _load_into(tp, value, path, problems)
+    problems.append(f"{path}: unsupported field type {tp}")
+    return None
+
+
+def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | None:
+    where = path or "<top>"
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        problems.append(f"{where}: expected a mapping, got {type(data).__name__} {data!r}")
+        return None
+    hints = typing.get_type_hints(cls)
+    flds = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    prefix = f"{path}." if path else ""
+    for key in data:
+        if key not in flds:
+            close = difflib.get_close_matches(str(key), list(flds), n=2, cutoff=0.6)
+            hint = f" (did you mean {', '.join(close)}?)" if close else f" (known keys: {', '.join(flds)})"
+            problems.append(f"{prefix}{key}: unknown key{hint}")
+    kwargs: dict[str, Any] = {}
+    ok = True
+    for name, f in flds.items():
+        sub = f"{prefix}{name}"
+        if name in data:
+            n_before = len(problems)
+            val = _parse_value(hints[name], data[name], sub, f.metadata, problems)
+            if len(problems) > n_before:
+                ok = False
+                continue
+            kwargs[name] = val
+        elif f.default is _MISSING and f.default_factory is _MISSING:  # type: ignore[misc]
+            problems.append(f"{sub}: required key missing{_unit(f.metadata)} ({f.metadata.get('desc', '')})")
+            ok = False
+    if not ok:
+        return None
+    try:
+        obj = cls(**kwargs)
+    except (ConfigError, ValueError, TypeError) as exc:  # __post_init__ cross-field checks
+        msgs = exc.problems if isinstance(exc, ConfigError) else [str(exc)]
+        for m in msgs:
+            problems.append(m if m.startswith(prefix) and prefix else f"{where}: {m}")
+        return None
+    return obj
+
+
+def load(cls: type[T], data: Any, path: str = "") -> T:
+    """Build the frozen dataclass ``cls`` from a plain mapping.
+
+    Raises
+    ------
+    ConfigError
+        With every problem found (unknown keys, missing keys, bad types, bounds), each prefixed
+        by its key path.
+    """
+    problems: list[str] = []
+    obj = _load_into(cls, data, path, problems)
+    if problems or obj is None:
+        raise ConfigError(problems or [f"{path or '<top>'}: invalid"])
+    return obj
+
+
+def load_yaml_file(path: str | Path) -> Any:
+    """Read a YAML file with ``yaml.safe_load``; file and syntax errors become :class:`ConfigError`."""
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{p}: YAML syntax error{where}: {getattr(exc, 'problem', exc)}") from exc
+
+
+def describe(cls: type) -> list[tuple[str, str, str, str]]:
+    """Flatten a config dataclass into rows ``(key path, unit, default, description)`` for docs/tests."""
+    rows: list[tuple[str, str, str, str]] = []
+    hints = typing.get_type_hints(cls)
+
+    def walk(c: type, prefix: str) -> None:
+        h = typing.get_type_hints(c)
+        for f in dataclasses.fields(c):
+            key = f"{prefix}{f.name}"
+            tp = h[f.name]
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            inner = args[0] if (typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1) else tp
+            if f.default is not _MISSING:
+                d = _fmt(f.default.value if isinstance(f.default, enum.Enum) else f.default)
+            elif f.default_factory is not _MISSING:  # type: ignore[misc]
+                d = "(section)"
+            else:
+                d = "required"
+            rows.append((key, f.metadata.get("unit", ""), d, f.metadata.get("desc", "")))
+            if dataclasses.is_dataclass(inner) and f.metadata.get("parse") is None:
+                walk(inner, key + ".")  # type: ignore[arg-type]
+
+    del hints
+    walk(cls, "")
+    return rows
