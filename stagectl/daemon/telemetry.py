@@ -1,0 +1,522 @@
+"""Telemetry that loses nothing: a preallocated ring buffer written by the loop, drained by a writer thread.
+
+Data path::
+
+    loop thread --append(row)--> TelemetryRing (numpy, capacity C rows, single producer / single consumer)
+                                        |
+    writer thread (non-RT) <--drain-----+--> continuous CSV files (rotated, oldest deleted)
+                                        +--> named recording ``<dir>/<NAME>.csv`` (``record start NAME``)
+
+CSV follows RECORDINGS.md: one header row with the loop's column names (``t, x, u, x_ref, v_ref, ...``,
+the same columns as ``stagectl simulate``), ``,`` separator, one row per control sample, SI units. Every file
+(each rotated piece and each recording) has its own header and feeds ``stagectl identify`` unchanged.
+
+Ring protocol (lock-free under the GIL): the producer owns ``_head`` (rows written so far), the consumer
+owns ``_tail`` (rows consumed so far); row k lives at ``buf[k mod C]``. The producer writes the row first
+and then publishes ``_head = k + 1``; when ``_head - _tail == C`` the ring is full and the row is counted in
+``dropped`` instead of overwriting unread data. No lock, no allocation beyond numpy's row assignment, no
+syscall: :meth:`TelemetryRing.append` is real-time safe and never raises.
+
+A write error (full disk, unwritable or missing directory) never reaches the loop: the writer keeps draining
+the ring (counting ``lost`` rows), reports the error in :meth:`TelemetryWriter.status`, and retries opening
+a file every ``retry_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+log = logging.getLogger("stagectl.telemetry")
+
+#: a recording name: letters, digits, ``._-``; no path separators, no leading dot (so no ``..``)
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
+
+
+class TelemetryRing:
+    """Preallocated single-producer/single-consumer ring of float64 rows.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        Column names (one per element of every row).
+    capacity_rows : int
+        Minimum capacity [rows]; rounded up to a power of two. At 1 kHz, 65536 rows hold 65 s of backlog.
+    """
+
+    def __init__(self, columns: Sequence[str], capacity_rows: int = 65536) -> None:
+        if not columns:
+            raise ValueError("columns: at least one column is needed")
+        if capacity_rows < 2:
+            raise ValueError(f"capacity_rows: must be >= 2 (got {capacity_rows})")
+        cap = 1 << (int(capacity_rows) - 1).bit_length()
+        self.columns: tuple[str, ...] = tuple(columns)
+        self.capacity = cap
+        self._mask = cap - 1
+        self._buf = np.zeros((cap, len(self.columns)), dtype=np.float64)
+        self._head = 0  # written by the producer only
+        self._tail = 0  # written by the consumer only
+        self.dropped = 0  # producer only: rows not stored because the ring was full
+        self.bad_rows = 0  # producer only: rows of the wrong length / not numbers
+
+    # ------------------------------------------------------------------ producer (loop thread)
+    def append(self, row: Sequence[float]) -> None:
+        """Store one row. Real-time safe: no lock, no syscall, never blocks, never raises."""
+        h = self._head
+        if h - self._tail > self._mask:
+            self.dropped += 1
+            return
+        try:
+            self._buf[h & self._mask] = row
+        except (ValueError, TypeError):
+            self.bad_rows += 1
+            return
+        self._head = h + 1
+
+    # ------------------------------------------------------------------ consumer (writer thread)
+    @property
+    def head(self) -> int:
+        """Index of the next row the producer will write (= rows written so far)."""
+        return self._head
+
+    @property
+    def backlog(self) -> int:
+        """Rows written but not yet consumed."""
+        return self._head - self._tail
+
+    def drain(self, max_rows: int | None = None) -> tuple[int, np.ndarray]:
+        """Copy out the unread rows (oldest first) and release them.
+
+        Returns ``(first_index, rows)`` where ``first_index`` is the ring index of ``rows[0]``.
+        Consumer side only (one thread).
+        """
+        t = self._tail
+        h = self._head
+        n = h - t
+        if max_rows is not None:
+            n = min(n, max_rows)
+        if n <= 0:
+            return t, self._buf[:0].copy()
+        i0 = t & self._mask
+        i1 = i0 + n
+        if i1 <= self.capacity:
+            out = self._buf[i0:i1].copy()
+        else:
+            out = np.concatenate((self._buf[i0:], self._buf[: i1 - self.capacity]))
+        self._tail = t + n  # publish after the copy: the producer may now reuse these slots
+        return t, out
+
+
+@dataclass(frozen=True)
+class WriterSettings:
+    """How the writer stores telemetry (built from :class:`stagectl.daemon.config.TelemetryConfig`)."""
+
+    directory: Path
+    continuous: bool = True
+    prefix: str = "telemetry"
+    rotate_bytes: int = 100_000_000
+    rotate_s: float = 3600.0
+    keep_files: int = 48
+    flush_interval_s: float = 0.2
+    retry_s: float = 5.0
+    float_format: str = "%.12g"
+    chunk_rows: int = 256
+
+
+class _CsvFile:
+    """One open CSV file with a header; counts bytes and rows."""
+
+    def __init__(self, path: Path, columns: Sequence[str], *, exclusive: bool) -> None:
+        self.path = path
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else os.O_TRUNC),
+                     0o640)
+        self.fh: IO[str] = os.fdopen(fd, "w", buffering=1 << 16, encoding="ascii", newline="")
+        header = ",".join(columns) + "\n"
+        self.fh.write(header)
+        self.bytes = len(header)
+        self.rows = 0
+        self.opened_mono = time.monotonic()
+
+    def write(self, text: str, rows: int) -> None:
+        self.fh.write(text)
+        self.bytes += len(text)
+        self.rows += rows
+
+    def flush(self, sync: bool = False) -> None:
+        self.fh.flush()
+        if sync:
+            os.fsync(self.fh.fileno())
+
+    def close(self) -> None:
+        try:
+            self.fh.close()
+        except OSError:
+            pass
+
+
+class _Recording:
+    def __init__(self, name: str, csv: _CsvFile, start_index: int) -> None:
+        self.name = name
+        self.csv = csv
+        self.start_index = start_index
+        self.stop_index: int | None = None
+        self.error: str | None = None
+
+
+class TelemetryWriter:
+    """Writer thread: drains a :class:`TelemetryRing` into CSV files.
+
+    Not real-time; runs at normal priority (it demotes itself from SCHED_FIFO if the process was started
+    with it, so it never competes with the loop). Thread-safe public methods: :meth:`record_start`,
+    :meth:`record_stop`, :meth:`flush`, :meth:`status`, :meth:`stop`.
+    """
+
+    def __init__(self, ring: TelemetryRing, settings: WriterSettings) -> None:
+        self.ring = ring
+        self.settings = settings
+        self.columns = ring.columns
+        n = len(self.columns)
+        self._row_fmt = ",".join([settings.float_format] * n) + "\n"
+        self._lock = threading.Lock()  # guards the recording and the status fields (never the ring)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._flush_req = 0
+        self._flush_done = 0
+        self._flush_cv = threading.Condition(self._lock)
+        self._thread: threading.Thread | None = None
+        self._cont: _CsvFile | None = None
+        self._cont_files: list[Path] = []
+        self._rec: _Recording | None = None
+        self._last_recording: dict[str, object] | None = None
+        self._next_retry = 0.0
+        self._seq = 0
+        self.rows_written = 0  # rows consumed from the ring and written to the continuous file
+        self.rows_drained = 0
+        self.lost = 0  # rows drained but not written (write error)
+        self.error: str | None = None
+        self.error_count = 0
+        self.files_rotated = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="stagectl-telemetry", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> bool:
+        """Drain everything still in the ring, close all files (fsync). Returns True if the thread ended."""
+        self._stop.set()
+        self._wake.set()
+        th = self._thread
+        if th is None:
+            self._final_drain()
+            return True
+        th.join(timeout)
+        return not th.is_alive()
+
+    def flush(self, timeout: float = 2.0) -> bool:
+        """Ask the writer to drain the ring now and fsync its files; wait until done (True) or timeout."""
+        if self._thread is None or not self._thread.is_alive():
+            self._drain_all(sync=True)
+            return True
+        with self._flush_cv:
+            self._flush_req += 1
+            want = self._flush_req
+            self._wake.set()
+            return self._flush_cv.wait_for(lambda: self._flush_done >= want, timeout)
+
+    # ------------------------------------------------------------------ recordings
+    def record_start(self, name: str) -> Path:
+        """Start capturing every row from now on into ``<dir>/<name>.csv``.
+
+        Raises
+        ------
+        ValueError
+            ``name`` is not a plain file name (path traversal, separators, empty), a recording is already
+            running, or the file exists. The message starts with the field name ``name``.
+        OSError
+            The file cannot be created (reported as is).
+        """
+        if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
+            raise ValueError(f"name: must be a plain file name of letters, digits, '._-' (got {name!r})")
+        fname = name if name.endswith(".csv") else name + ".csv"
+        path = self.settings.directory / fname
+        with self._lock:
+            if self._rec is not None and self._rec.stop_index is None:
+                raise ValueError(f"name: recording {self._rec.name!r} is already running; stop it first")
+        self.settings.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            csv = _CsvFile(path, self.columns, exclusive=True)
+        except FileExistsError:
+            raise ValueError(f"name: {fname} already exists in {self.settings.directory}") from None
+        with self._lock:
+            old = self._rec
+            if old is not None and old.stop_index is None:  # raced with another start
+                csv.close()
+                path.unlink(missing_ok=True)
+                raise ValueError(f"name: recording {old.name!r} is already running; stop it first")
+            if old is not None:  # stopped but not yet finished by the writer: finish it here
+                self._finish_recording_locked(old)
+            self._rec = _Recording(name, csv, self.ring.head)
+        self._wake.set()
+        log.info("recording %s started: %s", name, path)
+        return path
+
+    def record_stop(self, timeout: float = 2.0) -> dict[str, object]:
+        """Stop the running recording; its rows up to now are written and the file is closed (fsync).
+
+        Returns ``{"name", "path", "rows", "error"}``. Raises ValueError (field ``action``) if none runs.
+        """
+        with self._lock:
+            rec = self._rec
+            if rec is None or rec.stop_index is not None:
+                raise ValueError("action: no recording is running")
+            rec.stop_index = self.ring.head
+        self.flush(timeout)
+        with self._lock:
+            if self._rec is rec:
+                self._finish_recording_locked(rec)
+            return dict(self._last_recording or {})
+
+    def _finish_recording_locked(self, rec: _Recording) -> None:
+        try:
+            rec.csv.flush(sync=True)
+        except OSError as exc:
+            rec.error = rec.error or _describe(exc, rec.csv.path)
+        rec.csv.close()
+        self._last_recording = {"name": rec.name, "path": str(rec.csv.path), "rows": rec.csv.rows,
+                                "error": rec.error}
+        log.info("recording %s stopped: %d rows in %s", rec.name, rec.csv.rows, rec.csv.path)
+        if self._rec is rec:
+            self._rec = None
+
+    # ------------------------------------------------------------------ status
+    def status(self) -> dict[str, object]:
+        """Snapshot (thread-safe): rows written, dropped (ring full), lost (write errors), error, files."""
+        with self._lock:
+            rec = self._rec
+            recording = None
+            if rec is not None:
+                recording = {"name": rec.name, "path": str(rec.csv.path), "rows": rec.csv.rows,
+                             "error": rec.error}
+            return {
+                "directory": str(self.settings.directory),
+                "continuous": self.settings.continuous,
+                "file": str(self._cont.path) if self._cont else None,
+                "recording": recording,
+                "last_recording": self._last_recording,
+                "rows_written": self.rows_written,
+                "dropped": self.ring.dropped,
+                "bad_rows": self.ring.bad_rows,
+                "lost": self.lost,
+                "backlog": self.ring.backlog,
+                "capacity": self.ring.capacity,
+                "error": self.error,
+                "error_count": self.error_count,
+                "files_rotated": self.files_rotated,
+            }
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        _demote_to_normal_priority()
+        s = self.settings
+        try:
+            while not self._stop.is_set():
+                self._wake.wait(s.flush_interval_s)
+                self._wake.clear()
+                with self._lock:
+                    want = self._flush_req
+                self._drain_all(sync=want > self._flush_done)
+                if want > self._flush_done:
+                    with self._flush_cv:
+                        self._flush_done = want
+                        self._flush_cv.notify_all()
+        except Exception:  # pragma: no cover - a bug here must not kill telemetry silently
+            log.exception("telemetry writer crashed")
+            with self._lock:
+                self.error = "writer thread crashed (see log)"
+        finally:
+            self._final_drain()
+            with self._flush_cv:
+                self._flush_done = self._flush_req
+                self._flush_cv.notify_all()
+
+    def _final_drain(self) -> None:
+        self._drain_all(sync=True)
+        with self._lock:
+            rec = self._rec
+            if rec is not None:
+                if rec.stop_index is None:
+                    rec.stop_index = self.ring.head
+                self._finish_recording_locked(rec)
+            if self._cont is not None:
+                try:
+                    self._cont.flush(sync=True)
+                except OSError as exc:
+                    self._set_error(_describe(exc, self._cont.path))
+                self._cont.close()
+                self._cont = None
+
+    def _drain_all(self, sync: bool) -> None:
+        s = self.settings
+        while True:
+            first, rows = self.ring.drain(s.chunk_rows)
+            n = len(rows)
+            if n:
+                self.rows_drained += n
+                text = "".join([self._row_fmt % tuple(r) for r in rows.tolist()])
+                self._write_continuous(text, n)
+                self._write_recording(first, rows, text, n)
+            if n < s.chunk_rows:
+                break
+            time.sleep(0)  # let the loop thread take the GIL between chunks
+        if sync:
+            with self._lock:
+                for f in (self._cont, self._rec.csv if self._rec else None):
+                    if f is None:
+                        continue
+                    try:
+                        f.flush(sync=True)
+                    except OSError as exc:
+                        self._set_error(_describe(exc, f.path))
+        else:
+            # push Python's buffer to the kernel each interval: a crash loses at most flush_interval_s
+            with self._lock:
+                for f in (self._cont, self._rec.csv if self._rec else None):
+                    if f is None:
+                        continue
+                    try:
+                        f.flush()
+                    except OSError as exc:
+                        self._set_error(_describe(exc, f.path))
+                        if f is self._cont:
+                            self._drop_continuous()
+
+    def _write_continuous(self, text: str, n: int) -> None:
+        s = self.settings
+        if not s.continuous:
+            self.rows_written += n
+            return
+        with self._lock:
+            f = self._cont
+            if f is not None and (f.bytes >= s.rotate_bytes or (s.rotate_s > 0 and
+                                                                 time.monotonic() - f.opened_mono >= s.rotate_s)):
+                self._rotate_locked()
+                f = self._cont
+            if f is None:
+                now = time.monotonic()
+                if now < self._next_retry:
+                    self.lost += n
+                    return
+                f = self._open_continuous_locked()
+                if f is None:
+                    self.lost += n
+                    return
+            try:
+                f.write(text, n)
+                self.rows_written += n
+            except OSError as exc:
+                self._set_error(_describe(exc, f.path))
+                self.lost += n
+                self._drop_continuous()
+
+    def _write_recording(self, first: int, rows: np.ndarray, text: str, n: int) -> None:
+        with self._lock:
+            rec = self._rec
+            if rec is None or rec.error is not None:
+                return
+            lo = max(rec.start_index - first, 0)
+            hi = n if rec.stop_index is None else min(max(rec.stop_index - first, 0), n)
+            if hi <= lo:
+                return
+            part = text if (lo == 0 and hi == n) else "".join(
+                [self._row_fmt % tuple(r) for r in rows[lo:hi].tolist()])
+            try:
+                rec.csv.write(part, hi - lo)
+            except OSError as exc:
+                rec.error = _describe(exc, rec.csv.path)
+                self._set_error(rec.error)
+
+    def _open_continuous_locked(self) -> _CsvFile | None:
+        s = self.settings
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        try:
+            s.directory.mkdir(parents=True, exist_ok=True)
+            while True:
+                self._seq += 1
+                path = s.directory / f"{s.prefix}-{stamp}-{self._seq:04d}.csv"
+                try:
+                    f = _CsvFile(path, self.columns, exclusive=True)
+                    break
+                except FileExistsError:
+                    continue
+        except OSError as exc:
+            self._set_error(_describe(exc, s.directory))
+            self._next_retry = time.monotonic() + s.retry_s
+            return None
+        if self.error is not None:
+            log.warning("telemetry: writing again to %s after error: %s", path, self.error)
+            self.error = None
+        self._cont = f
+        self._cont_files.append(path)
+        self._prune_locked()
+        return f
+
+    def _rotate_locked(self) -> None:
+        f = self._cont
+        if f is None:
+            return
+        try:
+            f.flush(sync=True)
+        except OSError as exc:
+            self._set_error(_describe(exc, f.path))
+        f.close()
+        self._cont = None
+        self.files_rotated += 1
+
+    def _prune_locked(self) -> None:
+        keep = self.settings.keep_files
+        while keep > 0 and len(self._cont_files) > keep:
+            old = self._cont_files.pop(0)
+            try:
+                old.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                log.warning("telemetry: cannot delete old file %s: %s", old, exc)
+
+    def _drop_continuous(self) -> None:
+        if self._cont is not None:
+            self._cont.close()
+            self._cont = None
+        self._next_retry = time.monotonic() + self.settings.retry_s
+
+    def _set_error(self, msg: str) -> None:
+        if msg != self.error:
+            log.error("telemetry: %s (the loop keeps running; samples are counted as lost)", msg)
+        self.error = msg
+        self.error_count += 1
+
+
+def _describe(exc: OSError, path: Path) -> str:
+    what = exc.strerror or type(exc).__name__
+    return f"{exc.filename or path}: {what}"
+
+
+def _demote_to_normal_priority() -> None:
+    """Run the calling thread at SCHED_OTHER if the process inherited SCHED_FIFO/RR (Linux: per thread)."""
+    try:
+        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
