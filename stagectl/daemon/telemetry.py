@@ -36,6 +36,8 @@ from typing import IO
 
 import numpy as np
 
+from stagectl.daemon._sched import demote_to_normal_priority
+
 log = logging.getLogger("stagectl.telemetry")
 
 #: a recording name: letters, digits, ``._-``; no path separators, no leading dot (so no ``..``)
@@ -328,7 +330,7 @@ class TelemetryWriter:
 
     # ------------------------------------------------------------------ writer thread
     def _run(self) -> None:
-        _demote_to_normal_priority()
+        demote_to_normal_priority()
         s = self.settings
         try:
             while not self._stop.is_set():
@@ -511,12 +513,3 @@ class TelemetryWriter:
 def _describe(exc: OSError, path: Path) -> str:
     what = exc.strerror or type(exc).__name__
     return f"{exc.filename or path}: {what}"
-
-
-def _demote_to_normal_priority() -> None:
-    """Run the calling thread at SCHED_OTHER if the process inherited SCHED_FIFO/RR (Linux: per thread)."""
-    try:
-        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (OSError, AttributeError):
-        pass

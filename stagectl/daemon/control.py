@@ -1,0 +1,502 @@
+"""Control socket: a Unix-domain stream socket speaking JSON lines (no network listener).
+
+Protocol: one JSON object per line in each direction. A request names its kind in ``"request"`` and may carry
+an ``"id"`` that is echoed in the reply::
+
+    -> {"request": "move", "target_m": 0.001, "id": 7}
+    <- {"ok": true, "id": 7, ...}
+    -> {"request": "move", "target_m": "far"}
+    <- {"ok": false, "error": "target_m: expected a number in m, got 'far'", "field": "target_m"}
+
+Replies on one connection come in request order. Errors never close the connection; the client may go on.
+
+Bounds (nothing a client does can block or crash the loop; the loop never touches this thread):
+
+* one selector thread at normal priority serves every client with non-blocking sockets;
+* at most ``max_clients`` connections (extra ones get an error line and are closed);
+* a line longer than ``max_line_bytes`` gets an error reply (field ``line``) and is discarded;
+* a client that does not read its replies is disconnected once ``max_out_bytes`` are queued for it;
+* a connection idle for ``idle_timeout_s`` (half-open, stalled mid-line) is closed;
+* a request whose answer needs the loop (move, stop, reset) is answered when the loop has applied it, or
+  with a timeout error after ``reply_timeout_s``; meanwhile that connection's further requests wait, others
+  are served.
+
+The socket file is created with mode ``0660`` (owner and group only); the group is the daemon's group (the
+unit's ``Group=``) unless ``group`` names another.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import enum
+import errno
+import grp
+import json
+import logging
+import math
+import os
+import selectors
+import socket
+import stat
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from stagectl.daemon._sched import demote_to_normal_priority
+
+log = logging.getLogger("stagectl.control")
+
+Reply = dict[str, Any]
+#: handler(request) -> reply dict, or a Future resolving to one; raises RequestError/ValueError for bad input
+Handler = Callable[[dict[str, Any]], "Reply | concurrent.futures.Future[Reply]"]
+
+
+class RequestError(ValueError):
+    """A request the daemon refuses; ``field`` names the offending key (``request``, ``target_m``...)."""
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+def error_reply(exc: BaseException) -> Reply:
+    """Turn an exception into ``{"ok": false, "error": ..., "field": ...}``.
+
+    ``ValueError("target_m: ...")`` (the loop's convention) gives ``field = "target_m"``.
+    """
+    msg = str(exc) or type(exc).__name__
+    field = getattr(exc, "field", None)
+    if field is None and isinstance(exc, ValueError):
+        head, sep, _ = msg.partition(":")
+        if sep and head and " " not in head.strip() and len(head) < 64:
+            field = head.strip()
+    out: Reply = {"ok": False, "error": msg}
+    if field:
+        out["field"] = field
+    return out
+
+
+def to_json(obj: Any) -> Any:
+    """Plain-JSON view: NaN/inf -> None, enums -> value, dataclasses -> dict, numpy scalars -> Python."""
+    if obj is None or isinstance(obj, (bool, int, str)):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, enum.Enum):
+        return to_json(obj.value)
+    if isinstance(obj, dict):
+        return {str(k): to_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [to_json(v) for v in obj]
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "item"):  # numpy scalar
+        try:
+            return to_json(obj.item())
+        except Exception:  # noqa: BLE001
+            pass
+    return str(obj)
+
+
+def encode(reply: Reply) -> bytes:
+    return (json.dumps(to_json(reply), allow_nan=False, separators=(",", ":")) + "\n").encode()
+
+
+class _Conn:
+    __slots__ = ("sock", "rbuf", "wbuf", "discarding", "pending", "last_active", "closed", "peer")
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.rbuf = bytearray()
+        self.wbuf = bytearray()
+        self.discarding = False
+        self.pending: tuple[concurrent.futures.Future[Reply], Any, float] | None = None
+        self.last_active = time.monotonic()
+        self.closed = False
+        self.peer = ""
+
+
+class ControlServer:
+    """JSON-lines server on a Unix socket, served by one background thread (see module docstring)."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        handler: Handler,
+        *,
+        mode: int = 0o660,
+        group: str | int | None = None,
+        max_clients: int = 32,
+        max_line_bytes: int = 65536,
+        max_out_bytes: int = 1 << 20,
+        idle_timeout_s: float = 600.0,
+        reply_timeout_s: float = 5.0,
+    ) -> None:
+        self.path = Path(path)
+        self.handler = handler
+        self.mode = mode
+        self.group = group
+        self.max_clients = max_clients
+        self.max_line_bytes = max_line_bytes
+        self.max_out_bytes = max_out_bytes
+        self.idle_timeout_s = idle_timeout_s
+        self.reply_timeout_s = reply_timeout_s
+        self._sel = selectors.DefaultSelector()
+        self._listen: socket.socket | None = None
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._conns: dict[int, _Conn] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.stats = {"accepted": 0, "rejected": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
+                      "kicked_idle": 0, "long_lines": 0}
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Bind (replacing a stale socket file), set mode/group, start serving in a thread."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists() or self.path.is_symlink():
+            st = self.path.lstat()
+            if not stat.S_ISSOCK(st.st_mode):
+                raise OSError(errno.EEXIST, f"{self.path} exists and is not a socket")
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.settimeout(0.5)
+                probe.connect(str(self.path))
+            except OSError:
+                self.path.unlink()  # stale socket from a previous run
+            else:
+                raise OSError(errno.EADDRINUSE, f"{self.path}: another daemon is serving this socket")
+            finally:
+                probe.close()
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+        old_umask = os.umask(0o177)  # no window in which the socket is world-accessible
+        try:
+            s.bind(str(self.path))
+        finally:
+            os.umask(old_umask)
+        if self.group is not None:
+            gid = self.group if isinstance(self.group, int) else grp.getgrnam(self.group).gr_gid
+            os.chown(self.path, -1, gid)
+        os.chmod(self.path, self.mode)
+        s.listen(64)
+        s.setblocking(False)
+        self._listen = s
+        self._sel.register(s, selectors.EVENT_READ, "listen")
+        self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self._thread = threading.Thread(target=self._run, name="stagectl-control", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop serving, close every connection and remove the socket file."""
+        self._stop.set()
+        self._wakeup()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        try:
+            if self.path.exists() and stat.S_ISSOCK(self.path.lstat().st_mode):
+                self.path.unlink()
+        except OSError:
+            pass
+
+    def _wakeup(self) -> None:
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass  # buffer full: a wake-up is already pending
+
+    @property
+    def clients(self) -> int:
+        return len(self._conns)
+
+    # ------------------------------------------------------------------ thread
+    def _run(self) -> None:
+        demote_to_normal_priority()
+        try:
+            while not self._stop.is_set():
+                for key, events in self._sel.select(timeout=self._next_timeout()):
+                    tag = key.data
+                    if tag == "listen":
+                        self._accept()
+                    elif tag == "wake":
+                        try:
+                            while self._wake_r.recv(4096):
+                                pass
+                        except BlockingIOError:
+                            pass
+                    else:
+                        conn: _Conn = tag
+                        if conn.closed:
+                            continue
+                        if events & selectors.EVENT_WRITE:
+                            self._flush(conn)
+                        if events & selectors.EVENT_READ and not conn.closed:
+                            self._read(conn)
+                self._check_pending()
+                self._check_idle()
+        except Exception:  # pragma: no cover - keep the loop alive; the daemon reports control as down
+            log.exception("control socket thread crashed")
+        finally:
+            for conn in list(self._conns.values()):
+                self._close(conn)
+            for s in (self._listen, self._wake_r, self._wake_w):
+                if s is not None:
+                    try:
+                        s.close()
+                    except OSError:
+                        pass
+            self._sel.close()
+
+    def _next_timeout(self) -> float:
+        t = 1.0
+        now = time.monotonic()
+        for conn in self._conns.values():
+            if conn.pending is not None:
+                t = min(t, max(conn.pending[2] - now, 0.0))
+        return t
+
+    def _accept(self) -> None:
+        assert self._listen is not None
+        while True:
+            try:
+                sock, _ = self._listen.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # EMFILE etc.: keep serving the others
+                log.warning("control: accept failed: %s", exc)
+                return
+            sock.setblocking(False)
+            if len(self._conns) >= self.max_clients:
+                self.stats["rejected"] += 1
+                try:
+                    sock.send(encode({"ok": False, "error": f"too many clients (max {self.max_clients})",
+                                      "field": "connection"}))
+                except OSError:
+                    pass
+                sock.close()
+                continue
+            conn = _Conn(sock)
+            self._conns[sock.fileno()] = conn
+            self._sel.register(sock, selectors.EVENT_READ, conn)
+            self.stats["accepted"] += 1
+
+    def _read(self, conn: _Conn) -> None:
+        try:
+            data = conn.sock.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self._close(conn)
+            return
+        if not data:
+            self._close(conn)
+            return
+        conn.last_active = time.monotonic()
+        conn.rbuf += data
+        self._process_lines(conn)
+
+    def _process_lines(self, conn: _Conn) -> None:
+        while conn.pending is None and not conn.closed:
+            nl = conn.rbuf.find(b"\n")
+            if nl < 0:
+                if len(conn.rbuf) > self.max_line_bytes:
+                    if not conn.discarding:
+                        self.stats["long_lines"] += 1
+                        self._send(conn, {"ok": False, "field": "line",
+                                          "error": f"line: longer than {self.max_line_bytes} bytes; discarded"})
+                    conn.discarding = True
+                    conn.rbuf.clear()
+                return
+            line = bytes(conn.rbuf[:nl])
+            del conn.rbuf[: nl + 1]
+            if conn.discarding:  # the tail of an over-long line
+                conn.discarding = False
+                continue
+            if len(line) > self.max_line_bytes:
+                self.stats["long_lines"] += 1
+                self._send(conn, {"ok": False, "field": "line",
+                                  "error": f"line: longer than {self.max_line_bytes} bytes; discarded"})
+                continue
+            if line.strip():
+                self._handle_line(conn, line)
+        self._update_interest(conn)
+
+    def _handle_line(self, conn: _Conn, line: bytes) -> None:
+        self.stats["requests"] += 1
+        rid: Any = None
+        try:
+            try:
+                req = json.loads(line)
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise RequestError("json", f"not valid JSON ({exc})") from None
+            if not isinstance(req, dict):
+                raise RequestError("request", "each line must be a JSON object like {\"request\": \"status\"}")
+            rid = req.get("id")
+            result = self.handler(req)
+        except Exception as exc:  # noqa: BLE001 - every error becomes a reply, never a crash
+            self.stats["errors"] += 1
+            if not isinstance(exc, ValueError):
+                log.exception("control: request failed")
+            self._send(conn, error_reply(exc), rid)
+            return
+        if isinstance(result, concurrent.futures.Future):
+            conn.pending = (result, rid, time.monotonic() + self.reply_timeout_s)
+            result.add_done_callback(lambda _f: self._wakeup())
+            return
+        self._send(conn, result, rid)
+
+    def _check_pending(self) -> None:
+        now = time.monotonic()
+        for conn in list(self._conns.values()):
+            p = conn.pending
+            if p is None:
+                continue
+            fut, rid, deadline = p
+            if fut.done():
+                conn.pending = None
+                try:
+                    reply = fut.result()
+                    if not isinstance(reply, dict):
+                        reply = {"ok": True, "result": reply}
+                except Exception as exc:  # noqa: BLE001
+                    self.stats["errors"] += 1
+                    reply = error_reply(exc)
+                self._send(conn, reply, rid)
+            elif now >= deadline:
+                conn.pending = None
+                fut.cancel()
+                self.stats["errors"] += 1
+                self._send(conn, {"ok": False, "field": "request",
+                                  "error": f"request: not applied by the loop within {self.reply_timeout_s:g} s"},
+                           rid)
+            else:
+                continue
+            if not conn.closed:
+                self._process_lines(conn)  # requests that queued up behind this one
+
+    def _check_idle(self) -> None:
+        now = time.monotonic()
+        for conn in list(self._conns.values()):
+            if conn.pending is None and now - conn.last_active > self.idle_timeout_s:
+                self.stats["kicked_idle"] += 1
+                self._close(conn)
+
+    def _send(self, conn: _Conn, reply: Reply, rid: Any = None) -> None:
+        if conn.closed:
+            return
+        if "ok" not in reply:
+            reply = {"ok": True, **reply}
+        if rid is not None:
+            reply = {**reply, "id": rid}
+        try:
+            data = encode(reply)
+        except (TypeError, ValueError) as exc:
+            data = encode({"ok": False, "error": f"reply not serialisable: {exc}"})
+        conn.wbuf += data
+        if len(conn.wbuf) > self.max_out_bytes:
+            self.stats["kicked_slow"] += 1
+            log.warning("control: client does not read its replies (%d bytes queued); disconnected",
+                        len(conn.wbuf))
+            self._close(conn)
+            return
+        self._flush(conn)
+
+    def _flush(self, conn: _Conn) -> None:
+        while conn.wbuf:
+            try:
+                n = conn.sock.send(conn.wbuf)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self._close(conn)
+                return
+            del conn.wbuf[:n]
+            conn.last_active = time.monotonic()
+        self._update_interest(conn)
+
+    def _update_interest(self, conn: _Conn) -> None:
+        """Read only when no reply is pending (keeps replies in order); write while output is queued."""
+        if conn.closed:
+            return
+        ev = (selectors.EVENT_READ if conn.pending is None else 0) | (selectors.EVENT_WRITE if conn.wbuf else 0)
+        try:
+            key = self._sel.get_key(conn.sock)
+        except (KeyError, ValueError):
+            key = None
+        try:
+            if ev == 0:
+                if key is not None:
+                    self._sel.unregister(conn.sock)
+            elif key is None:
+                self._sel.register(conn.sock, ev, conn)
+            elif key.events != ev:
+                self._sel.modify(conn.sock, ev, conn)
+        except (KeyError, ValueError, OSError):
+            self._close(conn)
+
+    def _close(self, conn: _Conn) -> None:
+        if conn.closed:
+            return
+        conn.closed = True
+        if conn.pending is not None:
+            conn.pending = None
+        try:
+            self._sel.unregister(conn.sock)
+        except (KeyError, ValueError):
+            pass
+        self._conns.pop(conn.sock.fileno(), None)
+        try:
+            conn.sock.close()
+        except OSError:
+            pass
+
+
+class ControlClient:
+    """Blocking JSON-lines client for the CLI and tests: ``request({"request": "status"}) -> dict``."""
+
+    def __init__(self, path: str | os.PathLike[str], timeout_s: float = 10.0) -> None:
+        self.path = Path(path)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+        self.sock.settimeout(timeout_s)
+        self.sock.connect(str(self.path))
+        self._buf = bytearray()
+
+    def send_raw(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def read_reply(self) -> Reply:
+        while True:
+            nl = self._buf.find(b"\n")
+            if nl >= 0:
+                line = bytes(self._buf[:nl])
+                del self._buf[: nl + 1]
+                out = json.loads(line)
+                if not isinstance(out, dict):
+                    raise ConnectionError(f"{self.path}: unexpected reply {line[:200]!r}")
+                return out
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError(f"{self.path}: the daemon closed the connection")
+            self._buf += chunk
+
+    def request(self, req: dict[str, Any]) -> Reply:
+        self.send_raw(encode(req))
+        return self.read_reply()
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    def __enter__(self) -> ControlClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
