@@ -146,7 +146,7 @@ def test_link_budget():
 
 
 # ------------------------------------------------------------------ property tests
-SETTINGS = settings(max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=300, deadline=None, derandomize=True, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @SETTINGS

@@ -1,0 +1,241 @@
+"""The real serial driver against the virtual interferometer over a real pty and over TCP (socket://), lock-step."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from stagectl.drivers.base import DeviceState, FaultKind
+from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
+from stagectl.errors import ConfigError, DriverError, DriverInitError
+from stagectl.schema import load
+from stagectl.sim.interferometer import SimInterferometer, SimInterferometerConfig
+
+RES_M = 1e-9
+
+
+class ScriptedPlant:
+    """Minimal plant with the StagePlant sensor interface: a deterministic trajectory."""
+
+    def __init__(self) -> None:
+        self.t_s = 0.0
+        self.x_m = 0.0
+
+    def step(self, dt_s: float) -> None:
+        self.t_s += dt_s
+        # 5 mm amplitude sine plus a slow drift: exercises sign changes and sub-count fractions
+        self.x_m = 5e-3 * math.sin(2 * math.pi * 3.0 * self.t_s) + 1e-4 * self.t_s + 0.37e-9
+
+    def measure(self) -> float:
+        return self.x_m
+
+
+@pytest.fixture(params=["pty", "tcp"])
+def transport(request):
+    return request.param
+
+
+def make_sim(transport, tmp_path, plant, **kw) -> SimInterferometer:
+    link = str(tmp_path / "ifm0") if transport == "pty" else None
+    return SimInterferometer(plant, SimInterferometerConfig(transport=transport, link_path=link,
+                                                            resolution_m=RES_M, **kw))
+
+
+@pytest.fixture
+def rig(transport, tmp_path):
+    plant = ScriptedPlant()
+    sim = make_sim(transport, tmp_path, plant)
+    dut = SerialInterferometer(InterferometerConfig(url=sim.url, resolution_m=RES_M, max_step_m=1e-4))
+    dut.set_pump(sim.pump)
+    dut.open()
+    dut.configure()
+    dut.enable()
+    yield plant, sim, dut
+    dut.close()
+    sim.close()
+
+
+def cycle(plant, dut):
+    plant.step(1e-3)
+    return dut.read()
+
+
+def test_url_forms(transport, tmp_path):
+    with make_sim(transport, tmp_path, ScriptedPlant()) as sim:
+        if transport == "pty":
+            assert sim.url == str(tmp_path / "ifm0")
+            assert (tmp_path / "ifm0").is_symlink()
+        else:
+            assert sim.url.startswith("socket://127.0.0.1:") and not sim.url.endswith(":0")
+    assert not (tmp_path / "ifm0").exists()
+
+
+def test_1000_lockstep_cycles_equal_quantised_plant(rig):
+    plant, sim, dut = rig
+    for _ in range(1000):
+        m = cycle(plant, dut)
+        assert m.fresh and m.fault is None
+        assert m.counts == round(plant.measure() / RES_M) == sim.last_counts
+        assert m.position_m == m.counts * RES_M
+        assert abs(m.position_m - plant.measure()) <= RES_M / 2 + 1e-18
+    s = dut.stats
+    assert (s.frames, s.crc_errors, s.sequence_gaps, s.bytes_discarded) == (1000, 0, 0, 0)
+    assert dut.last_frame is not None and dut.last_frame.seq == 999
+    assert dut.last_frame.timestamp_ns == round(plant.t_s * 1e9)
+    dut.disable()
+    assert dut.state is DeviceState.CONFIGURED
+
+
+FAULTS = [
+    # (inject kwargs, driver fault kind)
+    (dict(kind="corrupt", count=3), FaultKind.CRC_ERRORS),
+    (dict(kind="drop", count=1), FaultKind.SEQUENCE_GAP),
+    (dict(kind="signal_lost"), FaultKind.SENSOR_ERROR),
+    (dict(kind="laser_unlocked"), FaultKind.SENSOR_ERROR),
+    (dict(kind="glitch", glitch_m=2e-6), FaultKind.SENSOR_ERROR),
+    (dict(kind="glitch", glitch_m=1e-3, flag=False), FaultKind.SENSOR_ERROR),  # caught by max_step_m
+    (dict(kind="stop", count=50), FaultKind.MISSED_FRAME),
+    (dict(kind="disconnect"), FaultKind.DISCONNECTED),
+]
+
+
+@pytest.mark.parametrize("inject,kind", FAULTS, ids=[f"{i['kind']}{'-noflag' if 'flag' in i else ''}" for i, _ in FAULTS])
+def test_injected_fault_detected_within_3_cycles(rig, inject, kind):
+    plant, sim, dut = rig
+    for _ in range(10):
+        assert cycle(plant, dut).fault is None
+    sim.inject(**inject)
+    seen = []
+    for _ in range(3):
+        m = cycle(plant, dut)
+        seen.append(m.fault)
+        if m.fault is not None:
+            break
+    assert seen[-1] is not None, f"{inject} not detected in 3 cycles"
+    assert seen[-1].kind is kind, seen
+    assert dut.fault is not None and dut.fault.kind is kind
+    assert dut.state is DeviceState.FAULT
+
+
+def test_low_signal_threshold(transport, tmp_path):
+    plant = ScriptedPlant()
+    with make_sim(transport, tmp_path, plant) as sim:
+        with SerialInterferometer(InterferometerConfig(url=sim.url, min_signal=50)) as dut:
+            dut.set_pump(sim.pump)
+            dut.configure()
+            assert cycle(plant, dut).fault is None
+            sim.inject("low_signal", signal=20)
+            m = cycle(plant, dut)
+            assert m.fault is not None and m.fault.kind is FaultKind.SENSOR_ERROR and "20/255" in m.fault.detail
+
+
+def test_garbage_is_resynchronised_without_fault(rig):
+    plant, sim, dut = rig
+    sim.inject("garbage", count=20, garbage_bytes=13)
+    for _ in range(30):
+        m = cycle(plant, dut)
+        assert m.fresh and m.counts == sim.last_counts
+    assert dut.stats.bytes_discarded >= 20 * 13 - 20 * 2  # a trailing A5 may be held, then dropped
+    assert dut.fault is None
+
+
+def test_transient_fault_clears_with_fault_reset(rig):
+    plant, sim, dut = rig
+    cycle(plant, dut)
+    sim.inject("signal_lost", count=2)
+    assert cycle(plant, dut).fault.kind is FaultKind.SENSOR_ERROR
+    cycle(plant, dut)
+    dut.fault_reset()
+    assert dut.state is DeviceState.CONFIGURED
+    m = cycle(plant, dut)
+    assert m.fault is None and m.fresh and m.counts == sim.last_counts
+
+
+def test_scripted_faults_from_config_mapping(transport, tmp_path):
+    data = {"transport": transport, "resolution_m": RES_M, "faults": [{"kind": "drop", "at_frame": 5, "count": 2}]}
+    if transport == "pty":
+        data["link_path"] = str(tmp_path / "ifm-yaml")
+    cfg = load(SimInterferometerConfig, data, path="interferometer_sim")
+    plant = ScriptedPlant()
+    with SimInterferometer(plant, cfg) as sim, SerialInterferometer(
+        load(InterferometerConfig, {"url": sim.url, "max_sequence_gap": 1}, path="serial")
+    ) as dut:
+        dut.set_pump(sim.pump)
+        dut.configure()
+        kinds = [cycle(plant, dut).fault for _ in range(8)]
+    assert kinds[:5] == [None] * 5
+    assert kinds[7] is not None and kinds[7].kind is FaultKind.SEQUENCE_GAP and "2 frames missing" in kinds[7].detail
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(ConfigError) as ei:
+        load(InterferometerConfig, {"url": "x", "resolution_m": -1, "stale_cyles": 3}, path="serial")
+    msg = str(ei.value)
+    assert "serial.resolution_m: must be > 0 m" in msg and "serial.stale_cyles: unknown key" in msg
+    with pytest.raises(ConfigError, match="interferometer_sim.faults\\[0\\].kind"):
+        load(SimInterferometerConfig, {"faults": [{"kind": "explode"}]}, path="interferometer_sim")
+
+
+def test_plant_time_lockstep_emits_one_frame_per_elapsed_period(tmp_path):
+    plant = ScriptedPlant()
+    with make_sim("pty", tmp_path, plant, rate_hz=500.0, lockstep="plant_time") as sim:
+        with SerialInterferometer(InterferometerConfig(url=sim.url, resolution_m=RES_M, stale_cycles=2)) as dut:
+            dut.set_pump(sim.pump)
+            dut.configure()
+            fresh = [cycle(plant, dut).fresh for _ in range(20)]  # 1 kHz loop, 500 Hz sensor
+    # first read at t = 1 ms gets the t = 0 sample; then one sample per 2 ms (t = 2, 4, ... 20 ms)
+    assert fresh == [True, True] + [False, True] * 9
+    assert sim.seq == 11
+
+
+def test_close_idempotent_and_read_after_close(transport, tmp_path):
+    with make_sim(transport, tmp_path, ScriptedPlant()) as sim:
+        dut = SerialInterferometer(InterferometerConfig(url=sim.url))
+        with dut:
+            assert dut.state is DeviceState.OPEN
+        dut.close()
+        dut.close()
+        assert dut.state is DeviceState.CLOSED
+        with pytest.raises(DriverError):
+            dut.read()
+    sim.close()
+    sim.close()
+
+
+@pytest.mark.parametrize("url", ["/nonexistent/stagectl-ifm", "socket://127.0.0.1:1", "bogus://x"])
+def test_bad_url_gives_driver_init_error_naming_it(url):
+    dut = SerialInterferometer(InterferometerConfig(url=url))
+    with pytest.raises(DriverInitError, match=url.replace("/", ".")):
+        dut.open()
+    assert dut.state is DeviceState.CLOSED
+
+
+def test_disconnect_mid_stream_reports_disconnected_not_exception(rig):
+    plant, sim, dut = rig
+    held = cycle(plant, dut).counts
+    sim.disconnect()
+    m = cycle(plant, dut)
+    assert m.fault is not None and m.fault.kind is FaultKind.DISCONNECTED and not m.fresh
+    assert m.counts == held  # last good value held
+
+
+def test_streaming_thread_delivers_contiguous_frames(transport, tmp_path):
+    """Real-time mode: the sim thread streams; the consumer waits on select (timeouts are only guards)."""
+    plant = ScriptedPlant()
+    plant.step(0.01)
+    with make_sim(transport, tmp_path, plant, rate_hz=2000.0) as sim:
+        with SerialInterferometer(InterferometerConfig(url=sim.url, resolution_m=RES_M)) as dut:
+            dut.configure()
+            sim.start()
+            frames = []
+            guard = time.monotonic() + 10.0
+            while len(frames) < 200 and time.monotonic() < guard:
+                frames += dut.read_frames(0.5)
+            sim.stop()
+    assert len(frames) >= 200
+    seqs = [f.seq for f in frames]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    assert all(f.counts == round(plant.measure() / RES_M) for f in frames)
+    assert all(f.timestamp_ns <= dut.last_rx_ns for f in frames)
