@@ -1,0 +1,207 @@
+"""PlantIO: the simulated plant wrapped directly as a position sensor, force actuator and SYNC producer.
+
+The fast simulated twin of a drive + encoder: no bus, no protocol, just the plant. Used by benchmarks,
+unit tests and the embedded simulation when no virtual CANopen devices are wanted. It is lock-step by
+construction: the plant only moves when the loop calls :meth:`PlantIO.sync`.
+
+Timing (mirrors a CANopen drive in cyclic synchronous torque mode)::
+
+    sync() at t_k:  advance the plant from its time to t_k with the force being applied,
+                    then apply the command latched ``delay_cycles`` SYNCs ago, then sample x_k
+    read()      :   Measurement(x_k) taken at this SYNC (fresh once per SYNC)
+    write(u_k)  :   latched; with delay_cycles = 1 it acts from the next SYNC, i.e. over [t_{k+1}, t_{k+2})
+                    (one cycle of I/O delay, like a sync RPDO); with 0 it acts from t_k on (zero-order hold)
+
+Time comes from ``clock.now()`` when a clock is given (real time: the plant follows the wall clock, in
+sub-steps of at most ``period_s``), otherwise each SYNC advances the plant by exactly ``period_s``.
+
+Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY), :meth:`drop_samples`
+(the next N reads are stale), :meth:`glitch` (the next read returns a given value, e.g. NaN).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any, Protocol
+
+from stagectl.drivers.base import (
+    DeviceFault,
+    DeviceState,
+    FaultKind,
+    ForceActuator,
+    Measurement,
+    PositionSensor,
+    SyncProducer,
+)
+from stagectl.errors import DriverError
+
+
+class Plant(Protocol):
+    """What PlantIO needs from :class:`stagectl.sim.plant.StagePlant`."""
+
+    def step(self, u_n: float, dt_s: float) -> Any: ...
+
+    def measure(self) -> float: ...
+
+
+class _Clock(Protocol):
+    def now(self) -> float: ...
+
+
+class PlantIO(PositionSensor, ForceActuator, SyncProducer):
+    """The plant as a lock-step device (see module docstring).
+
+    Parameters
+    ----------
+    plant : Plant
+        ``step(u_n, dt_s)`` advances the plant by ``dt_s`` [s] with force ``u_n`` [N];
+        ``measure()`` returns the sensed position [m] (quantised, with noise); optional
+        ``measure_counts()`` [counts] and ``resolution_m``.
+    period_s : float
+        Nominal loop period [s] (advance per SYNC without a clock; sub-step size with one).
+    delay_cycles : int
+        Actuation delay in SYNC periods (0 or more; 1 mimics a sync RPDO).
+    clock : optional
+        Time source; None = exactly one period per SYNC.
+    """
+
+    name = "plant_io"
+
+    def __init__(self, plant: Plant, period_s: float, *, delay_cycles: int = 1, clock: _Clock | None = None) -> None:
+        PositionSensor.__init__(self)
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ValueError(f"period_s: must be > 0 s (got {period_s})")
+        if delay_cycles < 0:
+            raise ValueError(f"delay_cycles: must be >= 0 (got {delay_cycles})")
+        self.plant = plant
+        self.period_s = float(period_s)
+        self.delay_cycles = int(delay_cycles)
+        self.clock = clock
+        self.resolution_m = float(getattr(plant, "resolution_m", 1e-9) or 1e-9)
+        self._pipe: deque[float] = deque([0.0] * self.delay_cycles)
+        self._u_applied = 0.0
+        self._u_latched = 0.0
+        self._stopped = False
+        self._t_plant: float | None = None
+        self._meas = Measurement(0.0, False)
+        self._drop = 0
+        self._glitch: float | None = None
+        self._inject: DeviceFault | None = None
+        self.n_sync = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def _do_open(self) -> None:
+        return None
+
+    def _do_configure(self) -> None:
+        return None
+
+    def _do_enable(self) -> None:
+        self._stopped = False
+        self._zero()
+
+    def _do_disable(self) -> None:
+        self._zero()
+
+    def _do_fault_reset(self) -> None:
+        self._inject = None
+        self._zero()
+
+    def _do_close(self) -> None:
+        self._zero()
+
+    def _zero(self) -> None:
+        self._u_applied = 0.0
+        self._u_latched = 0.0
+        for i in range(len(self._pipe)):
+            self._pipe[i] = 0.0
+
+    # ------------------------------------------------------------------ fault injection
+    def inject_fault(self, kind: FaultKind = FaultKind.EMCY, detail: str = "injected", code: int = 0) -> None:
+        """Latch a device fault now (reported with the next read); output goes to zero, like a drive."""
+        self._inject = DeviceFault(kind, detail, code)
+
+    def drop_samples(self, n: int) -> None:
+        """The next ``n`` reads return stale (not fresh) measurements."""
+        self._drop = int(n)
+
+    def glitch(self, value_m: float) -> None:
+        """The next read reports ``value_m`` (e.g. NaN or a jump) as a fresh sample."""
+        self._glitch = float(value_m)
+
+    # ------------------------------------------------------------------ cyclic
+    def sync(self) -> None:
+        """Advance the plant to this SYNC, apply the latched command, sample the position. Real-time safe."""
+        if self._state is DeviceState.CLOSED:
+            raise DriverError(f"{self.name}: sync on a closed device")
+        period = self.period_s
+        if self.clock is None:
+            self._advance(period)
+        else:
+            now = self.clock.now()
+            if self._t_plant is None:
+                self._t_plant = now
+            rest = now - self._t_plant
+            while rest > 1e-12:
+                h = period if rest > period else rest
+                self._advance(h)
+                rest -= h
+            self._t_plant = now
+        self.n_sync += 1
+        # the command latched delay_cycles SYNCs ago takes effect now
+        if self.delay_cycles:
+            self._pipe.append(self._u_latched)
+            self._u_applied = self._pipe.popleft()
+        if self._stopped or self._state is not DeviceState.ENABLED:
+            self._u_applied = 0.0
+        plant = self.plant
+        mc = getattr(plant, "measure_counts", None)
+        if mc is not None:
+            counts = int(mc())
+            x = counts * self.resolution_m
+        else:
+            x = float(plant.measure())
+            counts = round(x / self.resolution_m)
+        fault = None
+        if self._inject is not None and self._fault is None:
+            fault = self._latch(self._inject)
+            self._zero()
+        fresh = True
+        if self._drop > 0:
+            self._drop -= 1
+            fresh = False
+            x = self._meas.position_m
+        if self._glitch is not None:
+            x, self._glitch = self._glitch, None
+        self._meas = Measurement(x, fresh, counts, 0, fault)
+
+    def _advance(self, dt: float) -> None:
+        self.plant.step(self._u_applied, dt)
+
+    def read(self) -> Measurement:
+        """The sample taken at the last SYNC (``fresh`` only the first time it is read)."""
+        m = self._meas
+        if m.fresh:
+            self._meas = Measurement(m.position_m, False, m.counts, m.status, None)
+        return m
+
+    def write(self, force_n: float) -> None:
+        """Latch ``force_n`` [N]; ignored unless enabled and not quick-stopped. Real-time safe."""
+        if self._state is DeviceState.CLOSED:
+            raise DriverError(f"{self.name}: write on a closed device")
+        if self._state is not DeviceState.ENABLED or self._stopped:
+            return
+        self._u_latched = force_n
+        if not self.delay_cycles:
+            self._u_applied = force_n
+
+    def quick_stop(self) -> None:
+        """Output to zero at once and ignore writes until re-enabled."""
+        self._stopped = True
+        self._zero()
+
+    @property
+    def applied_force_n(self) -> float:
+        """The force acting on the plant now [N]."""
+        return self._u_applied

@@ -1,0 +1,225 @@
+"""Safety supervisor: limits and watchdogs that latch a named fault (a stage must never run away).
+
+Checks, run by the loop every cycle (all real-time safe: scalar arithmetic, no allocation on the
+good path):
+
+=====================  ===============================================================================
+fault name             condition
+=====================  ===============================================================================
+``not_finite``         NaN/inf in the measured position, the reference or the controller output
+``<device kind>``      a device reports a fault (``Measurement.fault`` / ``device.fault``): the name is
+                       the :class:`~stagectl.drivers.base.FaultKind` value (``drive_fault``, ``emcy``,
+                       ``heartbeat_lost``, ``bus_off``, ``sensor_error``, ...)
+``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample
+``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
+``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s``
+``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/T low-passed at
+                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/T − v̂), α = 1 − e^{−2π f T})
+``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
+                       for longer than ``force_saturation_time_s`` (a blocked stage) is a fault
+``loop_error``         an unexpected exception in the cycle (raised by the loop, recorded here)
+=====================  ===============================================================================
+
+The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
+overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
+latched fault by commanding the drive's quick stop in the same cycle (well within the 3-cycle budget).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from stagectl.errors import ConfigError
+from stagectl.schema import param
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Limits and watchdog settings (SI units)."""
+
+    min_position_m: float = param(unit="m", desc="soft limit: lowest allowed measured position")
+    max_position_m: float = param(unit="m", desc="soft limit: highest allowed measured position")
+    following_error_m: float = param(1e-4, unit="m", desc="following-error window |x_ref - x|", gt=0)
+    following_error_time_s: float = param(
+        0.0, unit="s", desc="how long the following error may stay outside the window", ge=0
+    )
+    max_force_n: float = param(20.0, unit="N", desc="hard clamp of the commanded force", gt=0)
+    force_saturation_time_s: float = param(
+        0.5, unit="s", desc="continuous clamping longer than this latches force_limit", gt=0
+    )
+    max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
+    velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
+    stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+
+    def __post_init__(self) -> None:
+        if not self.min_position_m < self.max_position_m:
+            raise ConfigError(
+                f"safety.max_position_m: must be > min_position_m ({self.min_position_m:g} m), "
+                f"got {self.max_position_m:g} m"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyFault:
+    """A latched fault: ``name`` (see module table), human-readable ``cause``, time [s] and cycle."""
+
+    name: str
+    cause: str
+    t_s: float
+    cycle: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "cause": self.cause, "t_s": self.t_s, "cycle": self.cycle}
+
+    def __str__(self) -> str:
+        return f"{self.name}: {self.cause} (t={self.t_s:.6f} s, cycle {self.cycle})"
+
+
+_isfinite = math.isfinite
+
+
+class Safety:
+    """Stateful supervisor for one loop (see module docstring). Not thread-safe: loop thread only.
+
+    Parameters
+    ----------
+    cfg : SafetyConfig
+    period_s : float
+        Loop period T [s]; the velocity filter coefficient α is derived from it once here.
+    """
+
+    def __init__(self, cfg: SafetyConfig, period_s: float) -> None:
+        self.cfg = cfg
+        self.period_s = float(period_s)
+        self._alpha = 1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * period_s)
+        self.fault: SafetyFault | None = None
+        self.n_faults = 0
+        self.v_est_m_s = 0.0
+        self._x_prev: float | None = None
+        self._stale = 0
+        self._fe_since: float | None = None
+        self._sat_since: float | None = None
+
+    # ----------------------------------------------------------------- latch / clear
+    def latch(self, name: str, cause: str, t_s: float, cycle: int) -> SafetyFault:
+        """Latch ``name`` unless a fault is already latched; returns the latched fault."""
+        if self.fault is None:
+            self.fault = SafetyFault(name, cause, t_s, cycle)
+            self.n_faults += 1
+        return self.fault
+
+    def clear(self) -> None:
+        """Explicit reset: forget the latched fault and the watchdog timers."""
+        self.fault = None
+        self.restart(None)
+
+    def restart(self, x_m: float | None) -> None:
+        """Reset the estimators and timers (at start and on reset) without touching a latched fault."""
+        self.v_est_m_s = 0.0
+        self._x_prev = x_m
+        self._stale = 0
+        self._fe_since = None
+        self._sat_since = None
+
+    # ----------------------------------------------------------------- per-cycle checks
+    def check_measurement(self, t_s: float, cycle: int, x_m: float, fresh: bool, device_fault: object) -> bool:
+        """Position, freshness and device-fault checks. Returns True when a fault is latched."""
+        cfg = self.cfg
+        if device_fault is not None:
+            kind = getattr(device_fault, "kind", None)
+            name = getattr(kind, "value", None) or "device_fault"
+            self.latch(name, f"device reported {device_fault}", t_s, cycle)
+            return True
+        if not _isfinite(x_m):
+            self.latch("not_finite", f"measured position is {x_m}", t_s, cycle)
+            return True
+        if not fresh:
+            self._stale += 1
+            if self._stale >= cfg.stale_cycles:
+                self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles", t_s, cycle)
+                return True
+            return self.fault is not None
+        self._stale = 0
+        if x_m < cfg.min_position_m or x_m > cfg.max_position_m:
+            self.latch(
+                "position_limit",
+                f"x = {x_m:.9g} m outside soft limits [{cfg.min_position_m:g}, {cfg.max_position_m:g}] m",
+                t_s,
+                cycle,
+            )
+            return True
+        xp = self._x_prev
+        self._x_prev = x_m
+        if xp is not None:
+            v_raw = (x_m - xp) / self.period_s
+            self.v_est_m_s += self._alpha * (v_raw - self.v_est_m_s)
+            if abs(self.v_est_m_s) > cfg.max_velocity_m_s:
+                self.latch(
+                    "velocity_limit",
+                    f"|v| = {abs(self.v_est_m_s):.6g} m/s > max_velocity_m_s {cfg.max_velocity_m_s:g} m/s",
+                    t_s,
+                    cycle,
+                )
+                return True
+        return self.fault is not None
+
+    def check_tracking(self, t_s: float, cycle: int, x_m: float, x_ref_m: float) -> bool:
+        """Reference finiteness and following-error window. Returns True when a fault is latched."""
+        if not _isfinite(x_ref_m):
+            self.latch("not_finite", f"reference position is {x_ref_m}", t_s, cycle)
+            return True
+        e = x_ref_m - x_m
+        if abs(e) > self.cfg.following_error_m:
+            if self._fe_since is None:
+                self._fe_since = t_s
+            if t_s - self._fe_since >= self.cfg.following_error_time_s:
+                self.latch(
+                    "following_error",
+                    f"|x_ref - x| = {abs(e):.6g} m > following_error_m {self.cfg.following_error_m:g} m",
+                    t_s,
+                    cycle,
+                )
+                return True
+        else:
+            self._fe_since = None
+        return self.fault is not None
+
+    def limit_force(self, t_s: float, cycle: int, u_n: float) -> float:
+        """Clamp ``u_n`` to ±max_force_n; latch ``not_finite`` / ``force_limit``. Returns the force to write
+        (0.0 when a fault is latched by this call)."""
+        if not _isfinite(u_n):
+            self.latch("not_finite", f"controller output is {u_n}", t_s, cycle)
+            return 0.0
+        lim = self.cfg.max_force_n
+        if -lim <= u_n <= lim:
+            self._sat_since = None
+            return u_n
+        if self._sat_since is None:
+            self._sat_since = t_s
+        elif t_s - self._sat_since >= self.cfg.force_saturation_time_s:
+            self.latch(
+                "force_limit",
+                f"force clamped at ±{lim:g} N for {t_s - self._sat_since:.3f} s "
+                f"(force_saturation_time_s {self.cfg.force_saturation_time_s:g} s)",
+                t_s,
+                cycle,
+            )
+            return 0.0
+        return lim if u_n > 0 else -lim
+
+    # ----------------------------------------------------------------- request validation
+    def check_target(self, x_m: float, field: str = "target_m") -> float:
+        """Validate a commanded position against the soft limits; ValueError names ``field``."""
+        try:
+            x = float(x_m)
+        except (TypeError, ValueError):
+            raise ValueError(f"{field}: expected a number in m, got {x_m!r}") from None
+        if not _isfinite(x):
+            raise ValueError(f"{field}: must be finite (m), got {x_m!r}")
+        if x < self.cfg.min_position_m or x > self.cfg.max_position_m:
+            raise ValueError(
+                f"{field}: {x:g} m outside soft limits [{self.cfg.min_position_m:g}, {self.cfg.max_position_m:g}] m"
+            )
+        return x

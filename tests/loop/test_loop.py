@@ -1,0 +1,177 @@
+"""ControlLoop scheduling, telemetry, requests and teardown in simulated time (no wall-clock sleeps)."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from stagectl.clock import SimClock
+from stagectl.drivers.base import DeviceState
+from stagectl.loop import BASE_COLUMNS, LoopStateError
+
+
+def test_absolute_deadlines_and_columns(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    res = loop.run(cycles=250)
+    assert res.cycles == 250 and res.overruns == 0 and res.ended_by == "cycles"
+    t = np.array([r[0] for r in sink.rows])
+    assert len(t) == 250
+    np.testing.assert_allclose(t, np.arange(250) * 1e-3, rtol=0, atol=1e-12)  # t_k = k·T exactly
+    assert loop.columns == BASE_COLUMNS + ("u_pid", "u_inertia")
+    assert all(len(r) == len(loop.columns) for r in sink.rows)
+    assert io.n_sync == 251  # one priming SYNC at start + one per cycle
+    assert io.state is DeviceState.CONFIGURED  # disabled on the way out
+    assert loop.status()["state"] == "configured"
+
+
+def test_duration_runs_exact_cycle_count(rig):
+    loop, *_ = rig
+    res = loop.run(duration_s=0.5)
+    assert res.cycles == 500 and res.ended_by == "duration"
+
+
+class StallingClock(SimClock):
+    """Simulated time where chosen cycles take longer than a period (an overrun)."""
+
+    def __init__(self, stalls: dict[int, float]):
+        super().__init__()
+        self.stalls = stalls
+        self.k = 0
+
+    def on_cycle(self) -> None:
+        self.t_s += self.stalls.get(self.k, 0.0)
+        self.k += 1
+
+
+def test_overruns_are_counted_and_skipped_not_caught_up(make, rows):
+    loop, io, plant, ctl, _ = make()
+    clock = StallingClock({10: 3.5e-3, 50: 1.6e-3})
+    loop.clock = clock
+    loop.on_cycle = clock.on_cycle
+    loop.add_sink(rows)
+    res = loop.run(cycles=100)
+    t = np.array([r[0] for r in rows.rows]) * 1e3  # ms
+    # cycle 10 starts at 10 ms and ends at 13.5 ms: slots 11 and 12 are skipped (counted), slot 13 runs
+    # 0.5 ms late, then the loop is back on the grid at 14 ms: one late cycle, no catch-up burst
+    assert res.overruns == 2
+    assert t[11] == pytest.approx(13.5, abs=1e-9) and t[12] == pytest.approx(14.0, abs=1e-9)
+    assert np.sum(np.diff(t) < 1.0 - 1e-9) == 2  # only the two late cycles are closer than T to the next
+    grid = t[12:] - np.round(t[12:])
+    assert np.count_nonzero(np.abs(grid) > 1e-9) == 1  # every other cycle sits on its deadline
+    # cycle 50 (slot 52) ends at 53.6 ms: 0.6 ms late, within one period -> not an overrun
+    assert t[51] == pytest.approx(53.6, abs=1e-9)
+    st = loop.status()
+    assert st["lateness_us"]["max"] == pytest.approx(600.0, rel=1e-6)
+    assert st["overruns"] == 2
+
+
+def test_move_request_tracks_and_reports(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    fut = loop.request("move", target_m=50e-6, max_velocity_m_s=1e-3)
+    res = loop.run(cycles=200)
+    assert fut.result(timeout=0)["target_m"] == 50e-6
+    assert fut.result()["duration_s"] == pytest.approx(0.05, rel=1e-6)
+    assert res.fault is None
+    st = loop.status()
+    assert abs(st["x_m"] - 50e-6) < 1e-6
+    e = np.array([r[loop.columns.index("e")] for r in sink.rows])
+    assert np.max(np.abs(e)) < 5e-6
+
+
+def test_request_validation_names_the_field(rig):
+    loop = rig[0]
+    with pytest.raises(ValueError, match="target_m.*soft limits"):
+        loop.request("move", target_m=0.5)
+    with pytest.raises(ValueError, match="max_velocity_m_s"):
+        loop.request("move", target_m=1e-6, max_velocity_m_s=10.0)
+    with pytest.raises(ValueError, match="relative_m"):
+        loop.request("move", relative_m=math.nan)
+    with pytest.raises(ValueError, match="kind"):
+        loop.request("jump")
+    with pytest.raises(ValueError, match="speed"):
+        loop.request("move", target_m=0.0, speed=1)
+    with pytest.raises(ValueError, match="exactly one"):
+        loop.request("move", target_m=0.0, relative_m=0.0)
+    # relative target only known in the loop: rejected on the future
+    fut = loop.request("move", relative_m=0.02)
+    loop.run(cycles=3)
+    with pytest.raises(ValueError, match="relative_m.*soft limits"):
+        fut.result(timeout=0)
+
+
+def test_shutdown_stop_and_pending_futures(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    f_move = loop.request("move", relative_m=1e-3)
+    f_stop = loop.request("stop")
+    f_shut = loop.request("shutdown")
+    res = loop.run(cycles=1000)
+    assert res.ended_by == "shutdown" and res.cycles == 1
+    assert "x_m" in f_stop.result(timeout=0)
+    assert f_move.done() and f_shut.result(timeout=0) == {"cycles": 0}
+    late = loop.request("stop")  # queued after run: fails when the next run ends without serving it?
+    loop.run(cycles=1)
+    assert late.result(timeout=0)["x_m"] == pytest.approx(loop.status()["x_ref_m"])
+
+
+def test_retune_applied_at_cycle_boundary_and_bad_tuning_rejected(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    good = loop.request("retune", controller_config={"kp": 1e4})
+    bad = loop.request("retune", controller_config={"kp": -1.0})
+    loop.run(cycles=2)
+    assert good.result(timeout=0) == {"retuned": True} and ctl.kp == 1e4
+    with pytest.raises(ValueError, match="kp"):
+        bad.result(timeout=0)
+    assert loop.status()["state"] == "configured" and loop.status()["fault"] is None
+
+
+def test_failing_sink_is_removed_and_loop_continues(rig):
+    loop, io, plant, ctl, clock, sink = rig
+
+    class Broken:
+        def append(self, row):
+            raise OSError("disk full")
+
+    loop.add_sink(Broken())
+    res = loop.run(cycles=20)
+    assert res.cycles == 20 and res.fault is None and len(sink.rows) == 20
+
+
+def test_status_from_another_thread_while_running(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    stop = threading.Event()
+    result = {}
+    th = threading.Thread(target=lambda: result.setdefault("r", loop.run(stop=stop)))
+    th.start()
+    try:
+        fut = loop.request("move", target_m=1e-6)
+        fut.result(timeout=30)  # served at a cycle boundary in the loop thread
+        st = loop.status()
+        assert st["running"] and st["healthy"] and st["state"] == "active"
+        assert st["cycle"] >= 1
+    finally:
+        stop.set()
+        th.join(timeout=30)
+    assert result["r"].ended_by == "stop"
+    assert not loop.status()["running"] and not loop.status()["healthy"]
+
+
+def test_run_disables_drive_even_when_start_fails(make):
+    loop, io, plant, ctl, clock = make()
+    io.glitch(math.nan)
+    with pytest.raises(Exception, match="initial position"):
+        loop.run(cycles=5)
+    assert io.state is DeviceState.CONFIGURED
+
+
+def test_requests_pending_when_run_ends_fail(make):
+    loop, io, plant, ctl, clock = make()
+    fut = loop.request("move", target_m=1e-6)
+    stop = threading.Event()
+    stop.set()  # the run ends before its first cycle boundary: the request is never served
+    res = loop.run(stop=stop)
+    assert res.cycles == 0 and res.ended_by == "stop"
+    with pytest.raises(LoopStateError, match="not running"):
+        fut.result(timeout=0)
