@@ -1,0 +1,538 @@
+"""The simulated stage plant: rigid body + any friction model + additional effects + sensor/actuator.
+
+Equations (SI units; friction and F_other oppose motion, see ``stagectl.friction.effects``)::
+
+    m·dv/dt = u_a(t) − F'(x, v, z) − F_other(x),     dx/dt = v
+    u_a(t)  = sat(u(t − τ), ±max_force_n)              actuator: force limit, delay τ = effects.delay.delay_s
+    F'      = effects.modify_friction(F, x)            position ripple, then asymmetry
+    F_other = effects.other_force(x)                   cogging + offset + spring
+
+``u`` is the commanded force, held constant over each ``step(u, dt)`` call (zero-order hold). The delayed
+force ``u(t − τ)`` is exact for any τ, including sub-sample τ: each sub-step uses the time average of the
+delayed piecewise-constant command over the sub-step. Before the first command u = 0.
+
+Integration (fused, compiled with numba; the friction kernel is passed in as a first-class function):
+``step(dt)`` uses ``n = ceil(dt/substep_s)`` equal sub-steps h = dt/n of semi-implicit (symplectic) Euler::
+
+    v ← v + h·(u_a − F' − F_other(x))/m ;  Δx = h·v ;  x ← x + Δx ;  F ← friction.step(state, Δx, v, h)
+
+Friction state updates are the models' own exact updates (elastic clipping, exponential slip), so the
+only stability limits are the explicit mechanical ones. With K the pre-sliding stiffness (Σk_i, σ0)
+and c the total damping (viscous + micro-damping)::
+
+    h·√(K/m) < 2      and      h·c/m < 1      (stable; keep h·√(K/m) < 0.2 for < 0.2 % frequency error)
+
+The default ``substep_s = 1e-5`` s satisfies this up to K = 2e6 N/m at m = 0.5 kg (h·ω = 0.02).
+
+Static models (kernel ``breakaway_n > 0``) get a Karnopp zero-velocity band: while ``|v| <
+stick_velocity_m_s`` (or right after v changes sign within a sub-step) the stage is held (v = 0, x
+frozen) as long as ``|u_a − F_other| <= Fs`` (ripple/asymmetry applied to Fs); the friction then equals
+``u_a − F_other``. Above, it breaks away with ``F = ±Fs``.
+
+Sensor: ``measure()`` returns the position after the last ``step`` (delayed by ``delay_steps`` calls),
+plus white Gaussian noise (std ``noise_std_m``, drawn once per step), quantised to ``resolution_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit, types
+from numba.typed import List
+
+from stagectl.errors import ConfigError
+from stagectl.friction import Effects, FrictionModel, load_model_file, parse_friction
+from stagectl.friction._numba import STEP_FN
+from stagectl.friction.effects import pack_layout
+from stagectl.schema import load, param
+
+FloatArray = npt.NDArray[np.float64]
+
+_EFFECTS_LAYOUT = (
+    "asym_ratio", "ripple_amplitude", "ripple_wavelength_m", "ripple_phase_rad", "cogging_amplitude_n",
+    "cogging_wavelength_m", "cogging_phase_rad", "offset_n", "spring_n_m", "spring_x0_m", "delay_s",
+)
+if pack_layout() != _EFFECTS_LAYOUT:  # the compiled effects math below depends on this order
+    raise ImportError("stagectl.friction.effects.pack_layout() changed; update sim/plant.py")
+
+
+# ================================================================================================ config
+@dataclass(frozen=True)
+class SensorConfig:
+    """Position sensor model: noise, then quantisation, then a delay in whole plant steps."""
+
+    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", gt=0.0)
+    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0)
+    delay_steps: int = param(0, unit="", desc="measurement delay in plant.step() calls", ge=0, le=100000)
+
+
+@dataclass(frozen=True)
+class ActuatorConfig:
+    """Force actuator limit (its delay is ``effects.delay``, the single source of truth)."""
+
+    max_force_n: float = param(math.inf, unit="N", desc="force saturation |u| <= max_force_n", gt=0.0,
+                               allow_inf=True)
+
+
+def _parse_effects(value: Any, path: str, problems: list[str]) -> Effects | None:
+    if isinstance(value, Effects):
+        return value
+    try:
+        return load(Effects, value, path)
+    except ConfigError as exc:
+        problems.extend(exc.problems)
+        return None
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """Stage plant configuration (YAML block, e.g. ``plant:``). Build from YAML with :meth:`from_mapping`."""
+
+    mass_kg: float = param(unit="kg", desc="moving mass m", gt=0.0)
+    friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
+    effects: Effects = param(default_factory=Effects, desc="additional effects (stagectl.friction.effects)",
+                             parse=_parse_effects)
+    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", gt=0.0, le=1e-2)
+    sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
+    actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
+    x0_m: float = param(0.0, unit="m", desc="initial position")
+    seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
+    model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
+                                   "inline keys override; relative to the YAML file's directory")
+
+    @classmethod
+    def from_mapping(cls, data: Any, path: str = "plant", base_dir: str | Path | None = None) -> PlantConfig:
+        """Validate a YAML mapping into a :class:`PlantConfig`, resolving ``model_file``.
+
+        With ``model_file``, the file's ``mass_kg``, ``friction`` and ``effects`` are the defaults; inline
+        keys override them. An inline ``friction`` mapping without ``model:`` updates the file's friction
+        parameters; an inline ``effects`` mapping updates the file's effects one effect at a time.
+
+        Raises
+        ------
+        ConfigError
+            Every problem at once, each prefixed with its key path.
+        """
+        if data is None:
+            data = {}
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {data!r}")
+        merged: dict[str, Any] = dict(data)
+        mf = merged.get("model_file")
+        if mf is not None:
+            if not isinstance(mf, str):
+                raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
+            p = Path(mf)
+            if not p.is_absolute() and base_dir is not None:
+                p = Path(base_dir) / p
+            try:
+                sm = load_model_file(p)
+            except ConfigError as exc:
+                raise ConfigError([f"{path}.model_file: {msg}" for msg in exc.problems]) from None
+            if "mass_kg" not in merged and sm.mass_kg is not None:
+                merged["mass_kg"] = sm.mass_kg
+            fr = merged.get("friction")
+            if fr is None:
+                merged["friction"] = sm.friction
+            elif isinstance(fr, Mapping) and "model" not in fr:
+                merged["friction"] = {**sm.friction.spec(), **fr}
+            eff = merged.get("effects")
+            if eff is None:
+                merged["effects"] = sm.effects
+            elif isinstance(eff, Mapping):
+                merged["effects"] = {**sm.effects.spec(), **eff}
+        return load(cls, merged, path)
+
+
+# ================================================================================================ kernels
+@njit(cache=True, inline="always")
+def _modify(ep: FloatArray, f: float, x: float) -> float:  # pragma: no cover - compiled
+    """ripple then asymmetry (effects.modify_friction)."""
+    a = ep[1]
+    if a != 0.0:
+        f *= 1.0 + a * math.sin(2.0 * math.pi * x / ep[2] + ep[3])
+    r = ep[0]
+    if r != 0.0 and f != 0.0:
+        f *= 1.0 + r * (1.0 if f > 0.0 else -1.0)
+    return f
+
+
+@njit(cache=True, inline="always")
+def _other(ep: FloatArray, x: float) -> float:  # pragma: no cover - compiled
+    """cogging + offset + spring (effects.other_force)."""
+    out = ep[7]
+    if ep[4] != 0.0:
+        out += ep[4] * math.sin(2.0 * math.pi * x / ep[5] + ep[6])
+    if ep[8] != 0.0:
+        out += ep[8] * (x - ep[9])
+    return out
+
+
+@njit(cache=True)
+def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float:  # pragma: no cover
+    """Time average over [a, b] of the command u(s) = hu[j] on [ht[j], ht[j+1]) (0 before ht[0])."""
+    if nh == 0 or b <= ht[0]:
+        return 0.0
+    j = np.searchsorted(ht[:nh], a, side="right") - 1
+    acc = 0.0
+    s = a
+    while s < b:
+        if j < 0:
+            end = ht[0]
+            val = 0.0
+        else:
+            end = ht[j + 1] if j + 1 < nh else np.inf
+            val = hu[j]
+        e = end if end < b else b
+        if e > s:
+            acc += val * (e - s)
+            s = e
+        j += 1
+    return acc / (b - a)
+
+
+# ps (plant state) layout
+_T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
+# par layout: [mass, breakaway_n, stick_velocity, delay_s]
+
+_arr = types.float64[::1]
+
+
+_STEP_LIST = types.ListType(STEP_FN)
+
+
+@njit(_STEP_LIST(STEP_FN), cache=True)
+def _wrap_step(f):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """A one-element typed list holding the kernel step function.
+
+    Passing a first-class function from Python costs ~20-30 µs per call (boxing); a typed list holding it
+    unboxes in ~1 µs, which keeps ``StagePlant.step`` cheap.
+    """
+    out = List.empty_list(STEP_FN)
+    out.append(f)
+    return out
+
+
+@njit(types.void(_STEP_LIST, _arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, types.float64,
+                 types.float64, types.int64),
+      cache=True)
+def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh, u, dt, nsub):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Advance the plant by ``dt`` with command ``u`` (already clamped) in ``nsub`` sub-steps."""
+    kstep = kl[0]
+    m = par[0]
+    fb = par[1]
+    dv = par[2]
+    tau = par[3]
+    h = dt / nsub
+    t = ps[_T]
+    x = ps[_X]
+    v = ps[_V]
+    ff = ps[_FF]
+    stuck = ps[_STUCK]
+    win = ps[_WIN]
+    wf = ps[_WF]
+    wo = ps[_WO]
+    ua = u
+    fo = 0.0
+    for i in range(nsub):
+        t0 = t + i * h
+        if tau > 0.0:
+            ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
+        fo = _other(ep, x)
+        fe = ua - fo
+        if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
+            # Karnopp band (static models): hold while the net force stays below break-away
+            lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+            if abs(fe) <= lim:
+                v = 0.0
+                ff = fe
+                stuck = 1.0
+                kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
+                continue
+            stuck = 0.0
+            ff = lim if fe > 0.0 else -lim
+            v = v + h * (fe - ff) / m
+            dx = h * v
+            x += dx
+            win += ua * dx
+            wf += ff * dx
+            wo += fo * dx
+            kstep(kp, fs, dx, v, h)
+            continue
+        v_old = v
+        v = v + h * (fe - ff) / m
+        if fb > 0.0 and v * v_old < 0.0:
+            # velocity crossed zero inside the sub-step: stop here, the stick test follows
+            v = 0.0
+            stuck = 1.0
+            lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+            ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
+            kstep(kp, fs, 0.0, 0.0, h)
+            continue
+        dx = h * v
+        x += dx
+        win += ua * dx
+        wf += ff * dx
+        wo += fo * dx
+        ff = _modify(ep, kstep(kp, fs, dx, v, h), x)
+    ps[_T] = t + dt
+    ps[_X] = x
+    ps[_V] = v
+    ps[_FF] = ff
+    ps[_FO] = _other(ep, x)
+    ps[_UA] = ua
+    ps[_STUCK] = stuck
+    ps[_WIN] = win
+    ps[_WF] = wf
+    ps[_WO] = wo
+
+
+@njit(types.void(_STEP_LIST, _arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr,
+                 types.float64, types.int64, _arr, _arr, _arr, _arr),
+      cache=True)
+def _run(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Open-loop run: ``u[k]`` held for ``dt``; history ``ht/hu`` holds nh0 past + len(u) new commands."""
+    for k in range(u.shape[0]):
+        _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0 + k + 1, u[k], dt, nsub)
+        ot[k] = ps[_T]
+        ox[k] = ps[_X]
+        ov[k] = ps[_V]
+        of[k] = ps[_FF]
+
+
+# ================================================================================================ plant
+class StagePlant:
+    """Rigid-body stage with friction, effects, sensor and actuator models (see module docstring).
+
+    ``step`` and ``measure`` are cheap (one compiled call, a few µs) and allocation-free apart from
+    the delay history; the first use of a friction model compiles or loads its numba cache.
+    """
+
+    _HIST_CAP = 4096
+
+    def __init__(self, cfg: PlantConfig):
+        if not isinstance(cfg, PlantConfig):
+            raise TypeError(f"StagePlant needs a PlantConfig, got {type(cfg).__name__}")
+        self.cfg = cfg
+        kern = cfg.friction.kernel()
+        self._kstep = kern.step
+        self._kforce = kern.force
+        self._kl = _wrap_step(kern.step)
+        self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
+        self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
+        self._tau = float(cfg.effects.delay.delay_s) if cfg.effects.delay is not None else 0.0
+        self._par = np.array([cfg.mass_kg, kern.breakaway_n, kern.stick_velocity_m_s, self._tau])
+        self._umax = float(cfg.actuator.max_force_n)
+        self._res = float(cfg.sensor.resolution_m)
+        self._noise = float(cfg.sensor.noise_std_m)
+        self._nd = int(cfg.sensor.delay_steps)
+        self._ps = np.zeros(10)
+        self._ht = np.zeros(self._HIST_CAP)
+        self._hu = np.zeros(self._HIST_CAP)
+        self._nh = 0
+        self._ring = np.zeros(self._nd + 1, dtype=np.int64)
+        self._ri = 0
+        self.reset()
+
+    # ------------------------------------------------------------------------------------ lifecycle
+    def reset(self, x0_m: float | None = None, seed: int | None = None) -> None:
+        """Relaxed friction state, v = 0, t = 0, empty delay history, sensor ring filled with x0."""
+        x0 = self.cfg.x0_m if x0_m is None else float(x0_m)
+        if not math.isfinite(x0):
+            raise ValueError(f"x0_m must be finite (got {x0})")
+        self._rng = np.random.default_rng(self.cfg.seed if seed is None else seed)
+        self._fs = np.ascontiguousarray(self.cfg.friction.initial_state(), dtype=np.float64)
+        ps = self._ps
+        ps[:] = 0.0
+        ps[_X] = x0
+        f0 = float(self._kforce(self._kp, self._fs, 0.0))
+        ps[_FF] = f0
+        ps[_FO] = self.cfg.effects.other_force(x0)
+        self._nh = 0
+        self._ring[:] = self._counts_of(x0)
+        self._ri = 0
+
+    # ------------------------------------------------------------------------------------ stepping
+    def _nsub(self, dt_s: float) -> int:
+        if not (dt_s > 0.0 and math.isfinite(dt_s)):
+            raise ValueError(f"dt_s must be > 0 and finite (got {dt_s})")
+        return max(1, math.ceil(dt_s / self.cfg.substep_s - 1e-9))
+
+    def _clamp(self, u_n: float) -> float:
+        u = float(u_n)
+        if not math.isfinite(u):
+            raise ValueError(f"u_n must be finite (got {u_n})")
+        return min(max(u, -self._umax), self._umax)
+
+    def _push_command(self, t: float, u: float) -> None:
+        if self._nh >= self._HIST_CAP:
+            self._prune(t)
+        self._ht[self._nh] = t
+        self._hu[self._nh] = u
+        self._nh += 1
+
+    def _prune(self, t_now: float) -> None:
+        """Drop commands that can no longer be applied (ended before t_now − τ)."""
+        n = self._nh
+        keep_from = int(np.searchsorted(self._ht[:n], t_now - self._tau, side="right")) - 1
+        keep_from = max(keep_from, 0)
+        if keep_from == 0 and n >= self._HIST_CAP:
+            raise RuntimeError("delay history overflow: too many commands within delay_s")
+        m = n - keep_from
+        self._ht[:m] = self._ht[keep_from:n]
+        self._hu[:m] = self._hu[keep_from:n]
+        self._nh = m
+
+    def step(self, u_n: float, dt_s: float) -> None:
+        """Hold the commanded force ``u_n`` [N] for ``dt_s`` [s] (clamped to ±max_force_n, delayed by τ)."""
+        nsub = self._nsub(dt_s)
+        u = self._clamp(u_n)
+        nh = 0
+        if self._tau > 0.0:
+            self._push_command(self._ps[_T], u)
+            nh = self._nh
+        _advance(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, self._ht,
+                 self._hu, nh, u, float(dt_s), nsub)
+        self._sample(self._ps[_X])
+
+    def simulate(self, u: npt.ArrayLike, dt_s: float) -> dict[str, FloatArray]:
+        """Open-loop fast path: equivalent to ``for uk in u: step(uk, dt_s); measure()``.
+
+        Continues from the current state and leaves the plant where the run ends.
+
+        Returns
+        -------
+        dict
+            ``t`` [s], ``x`` [m], ``v`` [m/s], ``friction`` [N] (F', after effects) and ``x_meas`` [m]
+            (sensor reading) after each step; arrays of ``len(u)``.
+        """
+        ua = np.asarray(u, dtype=np.float64).ravel()
+        if not np.all(np.isfinite(ua)):
+            raise ValueError("u must be finite")
+        nsub = self._nsub(dt_s)
+        ua = np.clip(ua, -self._umax, self._umax)
+        n = ua.shape[0]
+        ot, ox, ov, of = (np.empty(n) for _ in range(4))
+        if self._tau > 0.0:
+            if self._nh:
+                self._prune(self._ps[_T])
+            nh0 = self._nh
+            ht = np.empty(nh0 + n)
+            hu = np.empty(nh0 + n)
+            ht[:nh0] = self._ht[:nh0]
+            hu[:nh0] = self._hu[:nh0]
+            ht[nh0:] = self._ps[_T] + dt_s * np.arange(n)
+            hu[nh0:] = ua
+        else:
+            nh0 = -1  # nh = nh0 + k + 1 = k: unused without delay, keeps the signature
+            ht = np.zeros(1)
+            hu = np.zeros(1)
+        _run(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, ht, hu,
+             max(nh0, -1), ua, float(dt_s), nsub, ot, ox, ov, of)
+        if self._tau > 0.0:
+            # keep the tail of the command history for later step() calls
+            keep = int(np.searchsorted(ht, self._ps[_T] - self._tau, side="right")) - 1
+            keep = max(keep, 0)
+            tail_t, tail_u = ht[keep:], hu[keep:]
+            if tail_t.shape[0] > self._HIST_CAP:
+                raise RuntimeError("delay history overflow: too many commands within delay_s")
+            self._nh = tail_t.shape[0]
+            self._ht[: self._nh] = tail_t
+            self._hu[: self._nh] = tail_u
+        # sensor: noise (one draw per step), quantisation, delay
+        xn = ox + self._rng.normal(0.0, self._noise, n) if self._noise > 0.0 else ox
+        counts = np.floor(xn / self._res + 0.5).astype(np.int64)
+        if self._nd > 0:
+            ring = np.concatenate([self._ordered_ring(), counts])
+            meas = ring[1 : n + 1]  # value seen after step k is the one from nd steps before
+            tail = ring[-(self._nd + 1):]
+            self._ring[:] = tail
+            self._ri = 0
+        else:
+            meas = counts
+            self._ring[0] = counts[-1] if n else self._ring[0]
+        return {"t": ot, "x": ox, "v": ov, "friction": of, "x_meas": meas.astype(np.float64) * self._res}
+
+    # ------------------------------------------------------------------------------------ sensor
+    def _counts_of(self, x: float) -> int:
+        if self._noise > 0.0:
+            x = x + float(self._rng.normal(0.0, self._noise))
+        return math.floor(x / self._res + 0.5)
+
+    def _sample(self, x: float) -> None:
+        c = self._counts_of(x)
+        if self._nd == 0:
+            self._ring[0] = c
+        else:
+            self._ri = (self._ri + 1) % (self._nd + 1)
+            self._ring[self._ri] = c  # newest at _ri, oldest at _ri + 1
+
+    def _ordered_ring(self) -> npt.NDArray[np.int64]:
+        """Ring contents oldest → newest (length delay_steps + 1)."""
+        return np.roll(self._ring, -(self._ri + 1))
+
+    def measure_counts(self) -> int:
+        """Sensor reading in counts of ``resolution_m`` (unbounded integer; wrapping is the device's job)."""
+        if self._nd == 0:
+            return int(self._ring[0])
+        return int(self._ring[(self._ri + 1) % (self._nd + 1)])
+
+    def measure(self) -> float:
+        """Sensor reading [m]: position ``delay_steps`` steps ago + noise, quantised to resolution_m."""
+        return self.measure_counts() * self._res
+
+    # ------------------------------------------------------------------------------------ readouts
+    @property
+    def t_s(self) -> float:
+        """Simulated time [s]."""
+        return float(self._ps[_T])
+
+    @property
+    def x_m(self) -> float:
+        """True position [m]."""
+        return float(self._ps[_X])
+
+    @property
+    def v_m_s(self) -> float:
+        """True velocity [m/s]."""
+        return float(self._ps[_V])
+
+    @property
+    def friction_n(self) -> float:
+        """Friction force F' (after ripple/asymmetry) at the end of the last sub-step [N]."""
+        return float(self._ps[_FF])
+
+    @property
+    def other_n(self) -> float:
+        """F_other(x) = cogging + offset + spring at the current position [N]."""
+        return float(self._ps[_FO])
+
+    @property
+    def applied_n(self) -> float:
+        """Force applied by the actuator during the last sub-step (after clamp and delay) [N]."""
+        return float(self._ps[_UA])
+
+    @property
+    def friction_state(self) -> FloatArray:
+        """A copy of the friction model's internal state."""
+        return self._fs.copy()
+
+    def work_j(self) -> dict[str, float]:
+        """Work since reset [J]: by the actuator (∫u_a dx), against friction (∫F' dx) and F_other."""
+        return {"applied": float(self._ps[_WIN]), "friction": float(self._ps[_WF]),
+                "other": float(self._ps[_WO])}
+
+
+def plant_from_model(model_path: str | Path, **overrides: Any) -> StagePlant:
+    """Convenience: a plant from a model file (``mass_kg`` must be in the file or in ``overrides``)."""
+    cfg = PlantConfig.from_mapping({"model_file": str(model_path), **overrides}, path="plant")
+    return StagePlant(cfg)
+
+
+__all__ = ["ActuatorConfig", "PlantConfig", "SensorConfig", "StagePlant", "plant_from_model"]

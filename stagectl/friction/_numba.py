@@ -1,0 +1,181 @@
+"""Shared numba helpers for friction kernels (pure math).
+
+Kernel calling convention (see :class:`stagectl.friction.base.FrictionKernel`)::
+
+    step(p, state, dx, v, dt) -> F      advance ``state`` in place over one interval
+    force(p, state, v) -> F             force for the current state, without advancing
+
+with ``p`` and ``state`` C-contiguous float64 1-D arrays (``state`` may have length 0) and the scalars
+float64. Compiled loops (the plant, :func:`along`, :func:`along_batch`) receive ``step`` / ``force`` as
+*first-class function* arguments of type :data:`STEP_FN` / :data:`FORCE_FN`: numba passes a function
+pointer, so a loop is compiled and cached once for all models (``cache=True`` works; a
+``Dispatcher``-typed argument would defeat the on-disk cache). Any ``@njit`` function with the
+signature :data:`STEP_SIG` / :data:`FORCE_SIG` can be passed, lazily compiled ones included.
+
+Also here: the Stribeck curve, used by every model that has one::
+
+    g(v) = Fc + (Fs − Fc)·exp(−|v/Vs|^δ)       unsigned magnitude [N]
+    s(v) = sgn(v)·g(v)                          signed [N]
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit, types
+
+FloatArray = npt.NDArray[np.float64]
+
+_arr = types.float64[::1]
+#: signature of a kernel ``step(p, state, dx, v, dt) -> F``
+STEP_SIG = types.float64(_arr, _arr, types.float64, types.float64, types.float64)
+#: signature of a kernel ``force(p, state, v) -> F``
+FORCE_SIG = types.float64(_arr, _arr, types.float64)
+#: first-class function types for compiled loops that take kernels as arguments
+STEP_FN = types.FunctionType(STEP_SIG)
+FORCE_FN = types.FunctionType(FORCE_SIG)
+
+
+@njit(cache=True, inline="always")
+def sgn(v: float) -> float:
+    """sgn(v) with sgn(0) = 0."""
+    if v > 0.0:
+        return 1.0
+    if v < 0.0:
+        return -1.0
+    return 0.0
+
+
+@njit(cache=True, inline="always")
+def stribeck_g(v: float, fc: float, fs: float, vs: float, delta: float) -> float:
+    """Unsigned Stribeck magnitude g(v) = Fc + (Fs − Fc)·exp(−|v/Vs|^δ) [N]."""
+    return fc + (fs - fc) * math.exp(-(abs(v / vs) ** delta))
+
+
+@njit(
+    types.void(STEP_FN, FORCE_FN, _arr, _arr, _arr, _arr, _arr),
+    cache=True,
+)
+def along(step: Any, force: Any, p: FloatArray, state: FloatArray, x: FloatArray, t: FloatArray,
+          out: FloatArray) -> None:  # pragma: no cover - compiled
+    """``force_along`` convention of ``stagectl.friction.base`` into ``out`` (state advanced in place)."""
+    n = x.shape[0]
+    v0 = (x[1] - x[0]) / (t[1] - t[0]) if n > 1 else 0.0
+    out[0] = force(p, state, v0)
+    for k in range(1, n):
+        dx = x[k] - x[k - 1]
+        dt = t[k] - t[k - 1]
+        out[k] = step(p, state, dx, dx / dt, dt)
+
+
+@njit(
+    types.void(STEP_FN, FORCE_FN, types.float64[:, ::1], types.float64[:, ::1], _arr, _arr,
+               types.float64[:, ::1]),
+    cache=True,
+)
+def along_batch(step: Any, force: Any, P: FloatArray, S: FloatArray, x: FloatArray, t: FloatArray,
+                out: FloatArray) -> None:  # pragma: no cover - compiled
+    """:func:`along` for every row of the packed-parameter matrix ``P`` (states in rows of ``S``)."""
+    n = x.shape[0]
+    for j in range(P.shape[0]):
+        p = P[j]
+        st = S[j]
+        v0 = (x[1] - x[0]) / (t[1] - t[0]) if n > 1 else 0.0
+        out[j, 0] = force(p, st, v0)
+        for k in range(1, n):
+            dx = x[k] - x[k - 1]
+            dt = t[k] - t[k - 1]
+            out[j, k] = step(p, st, dx, dx / dt, dt)
+
+
+def run_along(kstep: Any, kforce: Any, p: FloatArray, state: FloatArray, x: FloatArray,
+              t: FloatArray) -> FloatArray:
+    """Python entry to :func:`along` (arrays already checked)."""
+    out = np.empty(x.shape[0])
+    along(kstep, kforce, p, state, x, t, out)
+    return out
+
+
+def run_along_batch(kstep: Any, kforce: Any, packed: Sequence[FloatArray], states: Sequence[FloatArray],
+                    x: FloatArray, t: FloatArray) -> FloatArray:
+    """Python entry to :func:`along_batch`; all packed vectors (and states) must have equal length."""
+    P = np.ascontiguousarray(np.stack(packed), dtype=np.float64)
+    ns = len(states[0]) if len(states) else 0
+    S = np.zeros((len(packed), ns)) if ns == 0 else np.ascontiguousarray(np.stack(states), dtype=np.float64)
+    out = np.empty((P.shape[0], x.shape[0]))
+    along_batch(kstep, kforce, P, S, x, t, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- mixin
+from stagectl.friction.base import FrictionKernel, FrictionModel, _check_xt  # noqa: E402
+
+
+class KernelModel(FrictionModel):
+    """Base for models whose every path runs on one compiled kernel.
+
+    A subclass provides ``_pack(params) -> ndarray`` (static), ``_relaxed(params) -> ndarray`` (static),
+    the module-level ``@njit`` functions ``_kstep`` / ``_kforce`` (class attributes holding the
+    dispatchers) and the Karnopp values through :meth:`_stick`. :meth:`step`, :meth:`force`,
+    :meth:`force_along` and :meth:`force_along_batch` then all run the same compiled equations; the tests
+    cross-check them against independent plain-Python references.
+    """
+
+    _kstep: Any
+    _kforce: Any
+
+    def __init__(self, params: Any):
+        super().__init__(params)
+        self._p = self._pack(params)
+        self._s0 = self._relaxed(params)
+
+    # subclass hooks ---------------------------------------------------------------------------
+    @staticmethod
+    def _pack(params: Any) -> FloatArray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def _relaxed(params: Any) -> FloatArray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _stick(self) -> tuple[float, float]:
+        """(breakaway_n, stick_velocity_m_s) for a plant's Karnopp band; (0, 0) for dynamic models."""
+        return 0.0, 0.0
+
+    # FrictionModel ----------------------------------------------------------------------------
+    @property
+    def n_states(self) -> int:
+        return int(self._s0.shape[0])
+
+    def initial_state(self) -> FloatArray:
+        return self._s0.copy()
+
+    def step(self, state: FloatArray, dx: float, v: float, dt: float) -> float:
+        """Advance ``state`` in place over one interval; real-time safe (one compiled call, ~1 µs)."""
+        return float(type(self)._kstep(self._p, state, float(dx), float(v), float(dt)))
+
+    def force(self, state: FloatArray, v: float) -> float:
+        return float(type(self)._kforce(self._p, state, float(v)))
+
+    def kernel(self) -> FrictionKernel:
+        fb, dv = self._stick()
+        return FrictionKernel(type(self)._kstep, type(self)._kforce, self._p.copy(), fb, dv)
+
+    def force_along(self, x: npt.ArrayLike, t: npt.ArrayLike) -> FloatArray:
+        xa, ta = _check_xt(x, t)
+        return run_along(type(self)._kstep, type(self)._kforce, self._p, self.initial_state(), xa, ta)
+
+    @classmethod
+    def force_along_batch(cls, params: Sequence[Any], x: npt.ArrayLike, t: npt.ArrayLike) -> FloatArray:
+        xa, ta = _check_xt(x, t)
+        models = [cls(p) for p in params]
+        if not models:
+            return np.empty((0, xa.shape[0]))
+        if len({m._p.shape[0] for m in models}) != 1:  # e.g. GMS sets with different N
+            return np.stack([m.force_along(xa, ta) for m in models])
+        return run_along_batch(cls._kstep, cls._kforce, [m._p for m in models],
+                               [m.initial_state() for m in models], xa, ta)

@@ -1,0 +1,116 @@
+"""Static friction: Coulomb + viscous + Stribeck, with a Karnopp band and an optional frictional lag.
+
+Equations (FRICTION_MODELS.md §1)::
+
+    g(v)  = Fc + (Fs − Fc)·exp(−|v/Vs|^δ)               Stribeck magnitude [N]
+    F(v)  = sgn(v)·(Fc + e) + σ2·v,   e = e_ss(v) = (Fs − Fc)·exp(−|v/Vs|^δ)
+
+Frictional lag (``lag_s`` = T_l > 0): the Stribeck excess ``e`` follows its steady value through a
+first-order lag, ``de/dt = (e_ss(v) − e)/T_l``, integrated exactly for v frozen over a step:
+``e ← e_ss + (e − e_ss)·exp(−dt/T_l)``. The relaxed state is ``e = Fs − Fc`` (at rest). With
+``lag_s = 0`` the model has **no state** (``n_states == 0``) and is exactly the static map; with
+``lag_s > 0`` it has one state ``[e]``.
+
+Symbols → parameters: Fc = ``fc_n`` [N], Fs = ``fs_n`` [N] (>= Fc), Vs = ``vs_m_s`` [m/s],
+δ = ``delta`` [–], σ2 = ``viscous_n_s_m`` [N·s/m], T_l = ``lag_s`` [s].
+``fs_n = fc_n`` gives plain Coulomb + viscous.
+
+At v = 0 the map returns 0 (sgn(0) = 0); a plant needs a stick treatment there. The kernel reports
+``breakaway_n = Fs`` and ``stick_velocity_m_s`` (Karnopp band half-width DV): inside ``|v| < DV`` the
+plant holds the stage while ``|F_ext| <= Fs`` and the friction balances ``F_ext`` (§1.2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn
+from stagectl.friction.base import register
+from stagectl.schema import param
+
+# packed layout: [fc, fs, vs, delta, viscous, lag_s, stick_v]
+
+
+@njit(STEP_SIG, cache=True)
+def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
+    fc = p[0]
+    ess = (p[1] - fc) * math.exp(-(abs(v / p[2]) ** p[3]))
+    lag = p[5]
+    if lag > 0.0:
+        # exact first-order lag of the Stribeck excess for v frozen over dt
+        e = ess + (state[0] - ess) * math.exp(-dt / lag)
+        state[0] = e
+    else:
+        e = ess
+    return sgn(v) * (fc + e) + p[4] * v
+
+
+@njit(FORCE_SIG, cache=True)
+def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
+    fc = p[0]
+    if p[5] > 0.0:
+        e = state[0]
+    else:
+        e = (p[1] - fc) * math.exp(-(abs(v / p[2]) ** p[3]))
+    return sgn(v) * (fc + e) + p[4] * v
+
+
+@dataclass(frozen=True)
+class StribeckParams:
+    """Parameters of the static Coulomb + viscous + Stribeck model (SI units)."""
+
+    fc_n: float = param(unit="N", desc="Coulomb (kinetic) friction level Fc", ge=0.0)
+    fs_n: float = param(unit="N", desc="static (break-away) level Fs, >= fc_n", ge=0.0)
+    vs_m_s: float = param(1e-3, unit="m/s", desc="Stribeck velocity Vs", gt=0.0)
+    delta: float = param(2.0, unit="", desc="Stribeck shape exponent δ", gt=0.0, le=10.0)
+    viscous_n_s_m: float = param(0.0, unit="N·s/m", desc="viscous coefficient σ2", ge=0.0)
+    stick_velocity_m_s: float = param(1e-6, unit="m/s", desc="Karnopp zero-velocity band half-width DV",
+                                      gt=0.0)
+    lag_s: float = param(0.0, unit="s", desc="frictional lag time constant of the Stribeck excess (0 = none)",
+                         ge=0.0)
+
+    def __post_init__(self) -> None:
+        if self.fs_n < self.fc_n:
+            raise ValueError(f"fs_n: must be >= fc_n ({self.fc_n:g} N) (got {self.fs_n:g} N)")
+
+
+@register
+class StribeckFriction(KernelModel):
+    """Coulomb + viscous + Stribeck (+ optional frictional lag); tag ``stribeck``."""
+
+    tag = "stribeck"
+    Params = StribeckParams
+    params: StribeckParams
+    _kstep = staticmethod(_kstep)
+    _kforce = staticmethod(_kforce)
+
+    @staticmethod
+    def _pack(params: StribeckParams) -> FloatArray:
+        q = params
+        return np.array([q.fc_n, q.fs_n, q.vs_m_s, q.delta, q.viscous_n_s_m, q.lag_s, q.stick_velocity_m_s])
+
+    @staticmethod
+    def _relaxed(params: StribeckParams) -> FloatArray:
+        if params.lag_s > 0.0:
+            return np.array([params.fs_n - params.fc_n])
+        return np.zeros(0)
+
+    def _stick(self) -> tuple[float, float]:
+        return float(self.params.fs_n), float(self.params.stick_velocity_m_s)
+
+    def stribeck(self, v: float) -> float:
+        """Steady-state friction F(v) = sgn(v)·g(v) + σ2·v [N] at velocity ``v`` [m/s]."""
+        return float(_kforce(self._p, np.zeros(0) if self.n_states == 0 else np.array([self._ess(v)]), float(v)))
+
+    def _ess(self, v: float) -> float:
+        q = self.params
+        return (q.fs_n - q.fc_n) * math.exp(-(abs(v / q.vs_m_s) ** q.delta))
+
+    def derivative(self, state: FloatArray, v: float) -> FloatArray:
+        if self.n_states == 0:
+            return np.zeros(0)
+        return np.array([(self._ess(v) - state[0]) / self.params.lag_s])
