@@ -1,0 +1,622 @@
+"""The stagectl service: lifecycle, signals, systemd notification, control requests, telemetry.
+
+Lifecycle (``status()["state"]``)::
+
+    unconfigured --config valid, devices opened+configured--> configured
+    configured --loop running, drive enabled, loop healthy--> active      (READY=1 sent here, not before)
+    active <--loop latches a fault / `reset` clears it--> fault
+    any --SIGTERM/SIGINT--> stopping --> stopped                          (STOPPING=1)
+
+Threads: the **loop thread** runs :meth:`ControlLoop.run` (real-time settings applied inside it); the
+**main thread** is the supervisor (signals, watchdog, STATUS=, SIGHUP reload, fault → telemetry flush);
+the control socket, telemetry writer and log listener each have one normal-priority thread. None of them
+takes a lock the loop takes; they talk to the loop only through ``loop.request`` (a queue served at the
+cycle boundary), ``loop.status()`` (a snapshot) and the telemetry ring (lock-free).
+
+Watchdog (PLATFORM_NOTES.md section 5): ``WATCHDOG=1`` is sent from the supervisor's check, never from a
+free-running thread, and only if since the previous check the loop's cycle counter advanced and the recent
+overrun fraction is at or below ``loop.healthy_overrun_fraction``. A latched *fault* does not stop the pings:
+the loop is still cycling and holding the stage safely; restarting the process would only lose the latch.
+A hung or dead loop stops the pings, and systemd kills and restarts the service (``Restart=on-failure``);
+the drive's own heartbeat consumer stops the stage if the process dies.
+
+Signals: SIGTERM/SIGINT → stop motion (decelerate, bounded wait), stop the loop (it writes zero force and
+disables the drive), flush and close telemetry, exit 0. SIGHUP → reload the ``controller`` section with the
+full ``check-config`` validation; apply it through ``loop.request("retune")`` at a cycle boundary, or reject
+it (reason logged and shown in ``status()["reload"]``) and keep the old tuning.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import enum
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from stagectl.daemon.config import DaemonConfig
+from stagectl.daemon.control import ControlServer, RequestError, to_json
+from stagectl.daemon.sdnotify import SdNotifier
+from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
+from stagectl.errors import ConfigError, StageError
+
+log = logging.getLogger("stagectl.daemon")
+
+
+class Lifecycle(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    CONFIGURED = "configured"
+    ACTIVE = "active"
+    FAULT = "fault"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+@dataclass
+class Assembly:
+    """What the service needs from the assembled application (built by :mod:`stagectl.app`).
+
+    ``loop`` is the :class:`stagectl.loop.ControlLoop`; ``close()`` releases devices and buses (idempotent);
+    ``controller_config`` is the tuning in force; ``inject_fault(kind, **kw)`` exists only for simulated
+    plants (the ``fault`` debug request); ``simulated`` says the plant is simulated.
+    """
+
+    loop: Any
+    close: Callable[[], None]
+    controller_config: Any = None
+    simulated: bool = False
+    inject_fault: Callable[..., Any] | None = None
+    describe: dict[str, Any] = field(default_factory=dict)
+
+
+#: config_path -> (app config, daemon config); raises ConfigError (the check-config validation)
+ConfigLoader = Callable[[Path], tuple[Any, DaemonConfig]]
+#: app config -> Assembly (opens and configures the devices)
+Builder = Callable[[Any], Assembly]
+
+_MOVE_KEYS = {"request", "id", "target_m", "relative_m", "max_velocity_m_s"}
+_PLAIN_KEYS = {"request", "id"}
+
+
+class StageService:
+    """The daemon. ``run()`` blocks in the calling (main) thread and returns the process exit code."""
+
+    def __init__(
+        self,
+        config_path: str | os.PathLike[str],
+        runtime_dir: str | os.PathLike[str],
+        *,
+        load_config: ConfigLoader,
+        build: Builder,
+        notifier: SdNotifier | None = None,
+        state_dir: str | os.PathLike[str] | None = None,
+    ) -> None:
+        self.config_path = Path(config_path)
+        self.runtime_dir = Path(runtime_dir)
+        self.state_dir = Path(state_dir) if state_dir else None
+        self._load_config = load_config
+        self._build = build
+        self.notify = notifier if notifier is not None else SdNotifier()
+        self.state = Lifecycle.UNCONFIGURED
+        self.app_cfg: Any = None
+        self.cfg = DaemonConfig()
+        self.asm: Assembly | None = None
+        self.ring: TelemetryRing | None = None
+        self.writer: TelemetryWriter | None = None
+        self.server: ControlServer | None = None
+        self._loop_thread: threading.Thread | None = None
+        self._loop_stop = threading.Event()
+        self._loop_result: Any = None
+        self._loop_error: BaseException | None = None
+        self._wake = threading.Event()
+        self._term_signal: int | None = None
+        self._hup_pending = 0
+        self._started_mono = time.monotonic()
+        self.reload_status: dict[str, Any] | None = None
+        self.fault_flushes = 0
+        self._last_cycle = -1
+        self._watchdog_pings = 0
+        self._watchdog_withheld = 0
+        self._watchdog_reason = ""
+        self.socket_path: Path | None = None
+
+    # ================================================================== main
+    def run(self) -> int:
+        """Start, supervise until a stop signal or a fatal error, shut down. Returns the exit code."""
+        self._install_signals()
+        try:
+            code = self._startup()
+            if code is None:
+                code = self._supervise()
+        except ConfigError as exc:
+            log.error("configuration invalid, not starting:\n%s", exc)
+            self.notify.status(f"configuration invalid: {exc.problems[0] if exc.problems else exc}")
+            code = 2
+        except StageError as exc:
+            log.error("start-up failed: %s", exc)
+            self.notify.status(f"start-up failed: {exc}")
+            code = 1
+        except Exception as exc:  # noqa: BLE001 - report, then shut down safely
+            log.exception("daemon error: %s", exc)
+            code = 1
+        finally:
+            clean = self._shutdown()
+        if code == 0 and not clean:
+            code = 1
+        return code
+
+    def request_stop(self, signum: int = signal.SIGTERM) -> None:
+        """Ask the supervisor to stop (what SIGTERM does). Thread-safe."""
+        if self._term_signal is None:
+            self._term_signal = signum
+        self._wake.set()
+
+    def request_reload(self) -> None:
+        """Ask the supervisor to reload the tuning (what SIGHUP does). Thread-safe."""
+        self._hup_pending += 1
+        self._wake.set()
+
+    def _install_signals(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        signal.signal(signal.SIGTERM, lambda s, f: self.request_stop(s))
+        signal.signal(signal.SIGINT, lambda s, f: self.request_stop(s))
+        signal.signal(signal.SIGHUP, lambda s, f: self.request_reload())
+
+    # ================================================================== start-up
+    def _startup(self) -> int | None:
+        log.info("stagectl daemon starting (pid %d, config %s, runtime dir %s)", os.getpid(), self.config_path,
+                 self.runtime_dir)
+        self.notify.status("loading configuration")
+        self.app_cfg, self.cfg = self._load_config(self.config_path)
+        if self._term_signal is not None:
+            return 0
+        self.notify.status("opening and configuring devices")
+        self.asm = self._build(self.app_cfg)
+        loop = self.asm.loop
+        self.state = Lifecycle.CONFIGURED
+        log.info("configured: %s", ", ".join(f"{k}={v}" for k, v in self.asm.describe.items()) or "ok")
+        self._start_telemetry(loop)
+        self._start_control()
+        if self._term_signal is not None:
+            return 0
+        # ---------------------------------------------------------------- loop thread
+        self._loop_thread = threading.Thread(target=self._loop_main, name="stagectl-loop", daemon=True)
+        self._loop_thread.start()
+        self.notify.status("enabling drive, starting loop")
+        deadline = time.monotonic() + self.cfg.ready_timeout_s
+        first_cycle: int | None = None
+        while True:
+            if self._term_signal is not None:
+                return 0
+            st = loop.status()
+            if not self._loop_thread.is_alive():
+                raise StageError(f"control loop ended during start-up: {self._loop_end_reason()}")
+            if st.get("state") == "fault":
+                raise StageError(f"fault during start-up: {_fault_text(st.get('fault'))}")
+            if st.get("healthy") and self._drive_enabled():
+                cyc = int(st.get("cycle", 0))
+                if first_cycle is None:
+                    first_cycle = cyc
+                elif cyc > first_cycle:  # advancing, not just started
+                    break
+            if time.monotonic() > deadline:
+                raise StageError(
+                    f"loop not healthy within {self.cfg.ready_timeout_s:g} s (state {st.get('state')}, "
+                    f"cycle {st.get('cycle')}, drive enabled {self._drive_enabled()})")
+            self._wake.wait(0.01)
+        self.state = Lifecycle.ACTIVE
+        self._last_cycle = int(loop.status().get("cycle", 0))
+        self.notify.ready(self._status_line())
+        log.info("ready: drive enabled, loop healthy; control socket %s", self.socket_path)
+        return None
+
+    def _loop_main(self) -> None:
+        try:
+            self._loop_result = self.asm.loop.run(stop=self._loop_stop)  # type: ignore[union-attr]
+        except BaseException as exc:  # noqa: BLE001 - reported by the supervisor
+            self._loop_error = exc
+            log.exception("control loop ended with an error")
+        finally:
+            self._wake.set()
+
+    def _loop_end_reason(self) -> str:
+        if self._loop_error is not None:
+            return f"{type(self._loop_error).__name__}: {self._loop_error}"
+        r = self._loop_result
+        return f"ended by {getattr(r, 'ended_by', '?')}" if r is not None else "unknown"
+
+    def _start_telemetry(self, loop: Any) -> None:
+        tc = self.cfg.telemetry
+        if not tc.enabled:
+            return
+        if tc.directory:
+            directory = Path(tc.directory)
+        elif self.state_dir is not None:
+            directory = self.state_dir / "telemetry"
+        elif os.environ.get("STATE_DIRECTORY"):
+            directory = Path(os.environ["STATE_DIRECTORY"].split(":")[0]) / "telemetry"
+        else:
+            directory = self.runtime_dir / "telemetry"
+        period = float(getattr(loop, "period_s", 1e-3))
+        self.ring = TelemetryRing(loop.columns, max(1024, int(math.ceil(tc.buffer_s / period))))
+        self.writer = TelemetryWriter(self.ring, WriterSettings(
+            directory=directory, continuous=tc.continuous, rotate_bytes=int(tc.rotate_mb * 1e6),
+            rotate_s=tc.rotate_s, keep_files=tc.keep_files, flush_interval_s=tc.flush_interval_s,
+            retry_s=tc.retry_s))
+        self.writer.start()
+        loop.add_sink(self.ring)
+        log.info("telemetry: %s (%d-row ring, %.0f s at %g Hz)", directory, self.ring.capacity,
+                 self.ring.capacity * period, 1.0 / period)
+
+    def _start_control(self) -> None:
+        c = self.cfg
+        self.socket_path = self.runtime_dir / c.socket_name
+        self.server = ControlServer(
+            self.socket_path, self.handle, group=c.socket_group, max_clients=c.max_clients,
+            max_line_bytes=c.max_line_bytes, max_out_bytes=c.max_out_bytes,
+            idle_timeout_s=c.client_idle_timeout_s, reply_timeout_s=c.reply_timeout_s)
+        self.server.start()
+
+    def _drive_enabled(self) -> bool:
+        act = getattr(self.asm.loop, "actuator", None) if self.asm else None
+        st = getattr(act, "state", None)
+        return getattr(st, "value", st) == "enabled"
+
+    # ================================================================== supervision
+    def _supervise(self) -> int:
+        loop = self.asm.loop  # type: ignore[union-attr]
+        wd = self.notify.watchdog_s
+        tick = min(self.cfg.status_interval_s, wd / 2 if wd else 1.0, 0.5)
+        next_status = 0.0
+        last_loop_state = "active"
+        while True:
+            self._wake.wait(tick)
+            self._wake.clear()
+            if self._term_signal is not None:
+                log.info("%s received: stopping", signal.Signals(self._term_signal).name)
+                return 0
+            if self._loop_thread is not None and not self._loop_thread.is_alive():
+                log.error("control loop stopped unexpectedly (%s)", self._loop_end_reason())
+                self.notify.status(f"loop stopped: {self._loop_end_reason()}")
+                return 1
+            st = loop.status()
+            # -------------------------------------------------- fault transitions
+            lstate = st.get("state")
+            if lstate == "fault" and last_loop_state != "fault":
+                self.state = Lifecycle.FAULT
+                log.error("loop fault: %s; flushing telemetry", _fault_text(st.get("fault")))
+                if self.writer is not None:
+                    self.fault_flushes += 1
+                    if not self.writer.flush(timeout=2.0):
+                        log.warning("telemetry flush after fault did not finish within 2 s")
+                self.notify.status(self._status_line(st))
+            elif lstate == "active" and last_loop_state != "active":
+                self.state = Lifecycle.ACTIVE
+                log.info("loop active again")
+            last_loop_state = lstate
+            # -------------------------------------------------- watchdog (health check, not a timer)
+            cyc = int(st.get("cycle", -1))
+            frac = float(st.get("recent_overrun_fraction", 0.0))
+            limit = float(getattr(getattr(loop, "cfg", None), "healthy_overrun_fraction", 0.01))
+            if cyc > self._last_cycle and frac <= limit:
+                if self.notify.watchdog():
+                    self._watchdog_pings += 1
+                self._watchdog_reason = ""
+            else:
+                self._watchdog_withheld += 1
+                reason = ("cycle counter not advancing" if cyc <= self._last_cycle
+                          else f"overrun fraction {frac:.3%} > {limit:.3%}")
+                if reason != self._watchdog_reason:
+                    log.error("watchdog withheld: %s", reason)
+                self._watchdog_reason = reason
+            self._last_cycle = max(self._last_cycle, cyc)
+            # -------------------------------------------------- reload
+            if self._hup_pending:
+                self._hup_pending = 0
+                self._reload()
+            now = time.monotonic()
+            if now >= next_status:
+                self.notify.status(self._status_line(st))
+                next_status = now + self.cfg.status_interval_s
+
+    def _status_line(self, st: dict[str, Any] | None = None) -> str:
+        if st is None:
+            st = self.asm.loop.status() if self.asm else {}
+        late = st.get("lateness_us") or {}
+        tel = self.writer.status() if self.writer else {}
+        parts = [
+            f"{self.state.value}",
+            f"cycle {st.get('cycle', 0)}",
+            f"x {_num(st.get('x_m'), 1e3, '.6f')} mm",
+            f"late p99 {_num(late.get('p99'), 1, '.0f')} us",
+            f"overruns {st.get('overruns', 0)}",
+        ]
+        if tel:
+            parts.append(f"telemetry dropped {tel.get('dropped', 0)}" +
+                         (f" ERROR {tel['error']}" if tel.get("error") else ""))
+        if st.get("fault"):
+            parts.append(f"fault {_fault_text(st.get('fault'))}")
+        return ", ".join(parts)
+
+    # ================================================================== reload (SIGHUP)
+    def _reload(self) -> None:
+        self.notify.reloading()
+        t = time.time()
+        try:
+            new_app, _new_daemon = self._load_config(self.config_path)
+            new_ctl = _controller_section(new_app)
+            if _differs_outside_controller(self.app_cfg, new_app):
+                log.warning("reload: only the controller section is applied at reload; "
+                            "other changes need a restart")
+            fut = self.asm.loop.request("retune", controller_config=new_ctl)  # type: ignore[union-attr]
+            fut.result(timeout=max(2.0, self.cfg.reply_timeout_s))
+        except concurrent.futures.TimeoutError:
+            self._reload_rejected(t, "the loop did not apply the new tuning in time; old tuning kept")
+        except Exception as exc:  # noqa: BLE001 - ConfigError, ValueError from retune...
+            self._reload_rejected(t, str(exc))
+        else:
+            self.app_cfg = new_app
+            if self.asm is not None:
+                self.asm.controller_config = new_ctl
+            self.reload_status = {"ok": True, "time": t, "error": None}
+            log.info("reload: new controller tuning applied at a cycle boundary")
+        self.notify.ready(self._status_line())
+
+    def _reload_rejected(self, t: float, reason: str) -> None:
+        self.reload_status = {"ok": False, "time": t, "error": reason}
+        log.error("reload rejected, old tuning kept:\n%s", reason)
+
+    # ================================================================== shutdown
+    def _shutdown(self) -> bool:
+        """Stop motion, stop the loop (drive disabled), flush telemetry, close. Returns True if clean."""
+        if self.state is Lifecycle.STOPPED:
+            return True
+        prev = self.state
+        self.state = Lifecycle.STOPPING
+        self.notify.stopping("stopping: halting motion, disabling drive, flushing telemetry")
+        clean = True
+        budget_end = time.monotonic() + self.cfg.stop_timeout_s
+        loop = self.asm.loop if self.asm else None
+        th = self._loop_thread
+        if loop is not None and th is not None and th.is_alive():
+            if prev in (Lifecycle.ACTIVE, Lifecycle.CONFIGURED):
+                self._halt_motion(loop, budget_end - 0.5 * self.cfg.stop_timeout_s)
+            self._loop_stop.set()
+            th.join(max(0.1, budget_end - time.monotonic()))
+            if th.is_alive():
+                log.error("control loop did not stop within %.1f s", self.cfg.stop_timeout_s)
+                clean = False
+        drive = "unknown"
+        if self.asm is not None:
+            drive = "disabled" if not self._drive_enabled() else "ENABLED"
+            if drive != "disabled":
+                try:  # the loop could not do it: do it here (safe in any device state)
+                    self.asm.loop.actuator.disable()
+                    drive = "disabled" if not self._drive_enabled() else "ENABLED"
+                except Exception:  # noqa: BLE001
+                    log.exception("disabling the drive failed")
+                if drive != "disabled":
+                    clean = False
+        if self.server is not None:
+            self.server.stop()
+        if self.writer is not None:
+            if self.ring is not None and loop is not None:
+                loop.remove_sink(self.ring)
+            if not self.writer.stop(timeout=max(1.0, budget_end - time.monotonic())):
+                log.error("telemetry writer did not finish")
+                clean = False
+            tst = self.writer.status()
+            log.info("telemetry flushed: %d rows written, %d dropped, %d lost%s", tst["rows_written"],
+                     tst["dropped"], tst["lost"], f", error: {tst['error']}" if tst["error"] else "")
+        if self.asm is not None:
+            try:
+                self.asm.close()
+            except Exception:  # noqa: BLE001
+                log.exception("closing devices failed")
+                clean = False
+        self.state = Lifecycle.STOPPED
+        res = self._loop_result
+        msg = f"stopped: drive {drive}, {getattr(res, 'cycles', 0)} cycles"
+        if self.writer is not None:
+            msg += f", telemetry dropped {self.writer.status()['dropped']}"
+        log.info(msg)
+        self.notify.status(msg)
+        self.notify.close()
+        return clean
+
+    def _halt_motion(self, loop: Any, until: float) -> None:
+        """Decelerate to a stop before disabling (bounded by ``until``); skipped in fault (already stopped)."""
+        try:
+            fut = loop.request("stop")
+            res = fut.result(timeout=max(0.05, until - time.monotonic()))
+        except Exception as exc:  # noqa: BLE001 - fault/not running: the loop stops the drive anyway
+            log.info("stop before shutdown skipped: %s", exc)
+            return
+        x_stop = res.get("x_m") if isinstance(res, dict) else None
+        if x_stop is None:
+            return
+        while time.monotonic() < until:
+            st = loop.status()
+            if st.get("state") != "active" or abs(float(st.get("x_ref_m", x_stop)) - x_stop) <= 1e-12 + 1e-9 * abs(x_stop):
+                return
+            time.sleep(0.005)
+        log.warning("stage still decelerating at shutdown; disabling anyway")
+
+    # ================================================================== status + requests
+    def status(self) -> dict[str, Any]:
+        """Everything an operator needs, as plain JSON-able values."""
+        loop_st = self.asm.loop.status() if self.asm else {}
+        return {
+            "state": self.state.value,
+            "pid": os.getpid(),
+            "uptime_s": time.monotonic() - self._started_mono,
+            "config": str(self.config_path),
+            "loop": loop_st,
+            "drive_enabled": self._drive_enabled(),
+            "telemetry": self.writer.status() if self.writer else None,
+            "reload": self.reload_status,
+            "watchdog": {"interval_s": self.notify.watchdog_s, "pings": self._watchdog_pings,
+                         "withheld": self._watchdog_withheld, "reason": self._watchdog_reason or None},
+            "control": {"clients": self.server.clients if self.server else 0,
+                        **(self.server.stats if self.server else {})},
+            "fault_flushes": self.fault_flushes,
+            "simulated": bool(self.asm.simulated) if self.asm else None,
+        }
+
+    def handle(self, req: dict[str, Any]) -> Any:
+        """Control-socket request → reply dict or Future (runs in the control thread; never blocks)."""
+        kind = req.get("request")
+        if not isinstance(kind, str):
+            raise RequestError("request", "missing; one of status, move, stop, reset, record, gains")
+        fn = getattr(self, f"_req_{kind}", None)
+        if fn is None:
+            raise RequestError("request", f"unknown request {kind!r}; one of status, move, stop, reset, record, "
+                                          "gains")
+        return fn(req)
+
+    def _need_loop(self) -> Any:
+        if self.asm is None or self.state in (Lifecycle.UNCONFIGURED, Lifecycle.STOPPING, Lifecycle.STOPPED):
+            raise RequestError("request", f"daemon is {self.state.value}")
+        return self.asm.loop
+
+    def _req_status(self, req: dict[str, Any]) -> dict[str, Any]:
+        _only(req, _PLAIN_KEYS)
+        return {"status": self.status()}
+
+    def _req_move(self, req: dict[str, Any]) -> Any:
+        _only(req, _MOVE_KEYS)
+        kw = {}
+        for key, unit in (("target_m", "m"), ("relative_m", "m"), ("max_velocity_m_s", "m/s")):
+            if req.get(key) is not None:
+                kw[key] = _number(req, key, unit)
+        if ("target_m" in kw) == ("relative_m" in kw):
+            raise RequestError("target_m", "give exactly one of target_m (absolute, m) or relative_m (m)")
+        return _as_reply(self._need_loop().request("move", **kw))
+
+    def _req_stop(self, req: dict[str, Any]) -> Any:
+        _only(req, _PLAIN_KEYS)
+        return _as_reply(self._need_loop().request("stop"))
+
+    def _req_reset(self, req: dict[str, Any]) -> Any:
+        _only(req, _PLAIN_KEYS)
+        return _as_reply(self._need_loop().request("reset"))
+
+    def _req_gains(self, req: dict[str, Any]) -> dict[str, Any]:
+        _only(req, _PLAIN_KEYS)
+        ctl = self.asm.controller_config if self.asm else None
+        return {"controller": to_json(ctl), "reload": self.reload_status}
+
+    def _req_record(self, req: dict[str, Any]) -> dict[str, Any]:
+        _only(req, {"request", "id", "action", "name"})
+        if self.writer is None:
+            raise RequestError("request", "telemetry is disabled (daemon.telemetry.enabled: false)")
+        action = req.get("action")
+        if action == "start":
+            try:
+                path = self.writer.record_start(req.get("name"))  # type: ignore[arg-type]
+            except OSError as exc:
+                raise RequestError("name", f"cannot create the recording: {exc.strerror or exc}") from None
+            return {"recording": str(path)}
+        if action == "stop":
+            return {"recording": self.writer.record_stop()}
+        raise RequestError("action", f"must be start or stop (got {action!r})")
+
+    def _req_fault(self, req: dict[str, Any]) -> Any:
+        """Debug: inject a fault into the *simulated* plant (``daemon.allow_fault_injection`` and sim only)."""
+        asm = self.asm
+        if asm is None or not (self.cfg.allow_fault_injection and asm.simulated and asm.inject_fault):
+            raise RequestError("request", "fault injection is only available on a simulated plant with "
+                                          "daemon.allow_fault_injection: true")
+        kw = {k: v for k, v in req.items() if k not in ("request", "id")}
+        kind = kw.pop("kind", None)
+        if not isinstance(kind, str):
+            raise RequestError("kind", "name the fault to inject")
+        res = asm.inject_fault(kind, **kw)
+        return {"injected": kind, **(res if isinstance(res, dict) else {})}
+
+
+# ====================================================================== helpers
+def _only(req: dict[str, Any], allowed: set[str]) -> None:
+    for key in req:
+        if key not in allowed:
+            raise RequestError(key, f"unknown field for {req.get('request')!r} (allowed: "
+                                    f"{', '.join(sorted(allowed - {'request', 'id'})) or 'none'})")
+
+
+def _number(req: dict[str, Any], key: str, unit: str) -> float:
+    v = req[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise RequestError(key, f"expected a number in {unit}, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise RequestError(key, f"must be finite ({unit})")
+    return v
+
+
+def _as_reply(fut: concurrent.futures.Future[Any]) -> concurrent.futures.Future[dict[str, Any]]:
+    """Map the loop's future result onto a reply dict (errors stay errors)."""
+    out: concurrent.futures.Future[dict[str, Any]] = concurrent.futures.Future()
+
+    def done(f: concurrent.futures.Future[Any]) -> None:
+        if f.cancelled():
+            out.cancel()
+            return
+        exc = f.exception()
+        if exc is not None:
+            out.set_exception(exc)
+        else:
+            r = f.result()
+            out.set_result(to_json(r) if isinstance(r, dict) else {"result": to_json(r)})
+
+    fut.add_done_callback(done)
+    return out
+
+
+def _controller_section(app_cfg: Any) -> Any:
+    ctl = getattr(app_cfg, "controller", None)
+    if ctl is None:
+        raise ConfigError("controller: section missing")
+    return ctl
+
+
+def _differs_outside_controller(old: Any, new: Any) -> bool:
+    if not (dataclasses.is_dataclass(old) and dataclasses.is_dataclass(new)):
+        return False
+    for f in dataclasses.fields(old):
+        if f.name in ("controller", "source", "path"):
+            continue
+        if getattr(old, f.name, None) != getattr(new, f.name, None):
+            return True
+    return False
+
+
+def _fault_text(fault: Any) -> str:
+    if not fault:
+        return "-"
+    if isinstance(fault, dict):
+        name = fault.get("name") or fault.get("kind") or "fault"
+        cause = fault.get("cause") or fault.get("detail") or ""
+        return f"{name}: {cause}" if cause else str(name)
+    return str(fault)
+
+
+def _num(v: Any, scale: float, fmt: str) -> str:
+    try:
+        f = float(v) * scale
+    except (TypeError, ValueError):
+        return "-"
+    return format(f, fmt) if math.isfinite(f) else "-"
+
+
+def _stderr_fallback(msg: str) -> None:  # pragma: no cover
+    print(msg, file=sys.stderr)
