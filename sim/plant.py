@@ -418,6 +418,9 @@ class StagePlant:
         nsub = self._nsub(dt_s)
         ua = np.clip(ua, -self._umax, self._umax)
         n = ua.shape[0]
+        if n == 0:
+            e = np.empty(0)
+            return {"t": e, "x": e.copy(), "v": e.copy(), "friction": e.copy(), "x_meas": e.copy()}
         ot, ox, ov, of = (np.empty(n) for _ in range(4))
         if self._tau > 0.0:
             if self._nh:
@@ -427,7 +430,8 @@ class StagePlant:
             hu = np.empty(nh0 + n)
             ht[:nh0] = self._ht[:nh0]
             hu[:nh0] = self._hu[:nh0]
-            ht[nh0:] = self._ps[_T] + dt_s * np.arange(n)
+            # the same sequential sums as repeated step() calls (t ← t + dt), so both paths agree bit for bit
+            ht[nh0:] = np.cumsum(np.concatenate([[self._ps[_T]], np.full(n - 1, float(dt_s))]))[:n]
             hu[nh0:] = ua
         else:
             nh0 = -1  # nh = nh0 + k + 1 = k: unused without delay, keeps the signature
