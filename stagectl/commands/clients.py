@@ -1,0 +1,225 @@
+"""Operator commands that talk to a running daemon over its control socket (JSON lines).
+
+::
+
+    stagectl status [--watch [S]] [--json]      state, position, loop timing, telemetry, faults
+    stagectl move (--to M | --by M) [--max-velocity M_S]
+    stagectl stop                               decelerate and hold
+    stagectl reset                              clear a latched fault (re-enables the drive)
+    stagectl record start NAME | stop           capture telemetry to <telemetry dir>/NAME.csv
+    stagectl gains [--json]                     the controller tuning in force
+
+Every command takes ``--socket PATH`` (default ``$STAGECTL_SOCKET``, else ``$RUNTIME_DIRECTORY/control.sock``,
+else ``/run/stagectl/control.sock``). A refused request prints ``stagectl: error: <field>: <reason>`` and
+exits with code 2; an unreachable daemon also exits 2 with the socket path in the message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+DEFAULT_SOCKET = "/run/stagectl/control.sock"
+
+
+def default_socket() -> str:
+    env = os.environ.get("STAGECTL_SOCKET")
+    if env:
+        return env
+    rd = os.environ.get("RUNTIME_DIRECTORY")
+    if rd:
+        return os.path.join(rd.split(":")[0], "control.sock")
+    return DEFAULT_SOCKET
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--socket", metavar="PATH", default=None,
+                   help=f"control socket of the daemon (default: $STAGECTL_SOCKET or {DEFAULT_SOCKET})")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="reply timeout [s] (default 10)")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("status", help="show the daemon's state, position, loop timing and telemetry")
+    _common(p)
+    p.add_argument("--watch", nargs="?", const=1.0, type=float, metavar="S",
+                   help="refresh every S seconds (default 1) until Ctrl-C")
+    p.add_argument("--json", action="store_true", help="print the raw status as JSON")
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("move", help="move the stage to an absolute position or by a distance (metres)")
+    _common(p)
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--to", type=float, metavar="M", help="absolute target [m]")
+    g.add_argument("--by", type=float, metavar="M", help="relative distance [m] from the current target")
+    p.add_argument("--max-velocity", type=float, metavar="M_S", help="velocity limit for this move [m/s]")
+    p.set_defaults(func=cmd_move)
+
+    p = sub.add_parser("stop", help="decelerate and hold position")
+    _common(p)
+    p.set_defaults(func=lambda a: _simple(a, {"request": "stop"}))
+
+    p = sub.add_parser("reset", help="clear a latched fault and re-enable the drive")
+    _common(p)
+    p.set_defaults(func=lambda a: _simple(a, {"request": "reset"}))
+
+    p = sub.add_parser("record", help="start/stop capturing telemetry into a named CSV file")
+    rs = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    ps = rs.add_parser("start", help="start capturing to <telemetry dir>/NAME.csv")
+    _common(ps)
+    ps.add_argument("name", metavar="NAME", help="file name (letters, digits, ._-; no directories)")
+    pe = rs.add_parser("stop", help="stop the running capture and print its file and row count")
+    _common(pe)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("gains", help="show the controller tuning in force")
+    _common(p)
+    p.add_argument("--json", action="store_true", help="print as JSON")
+    p.set_defaults(func=cmd_gains)
+
+
+# ---------------------------------------------------------------------------------------------- plumbing
+def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
+    from stagectl.daemon.control import ControlClient
+    from stagectl.errors import StageError
+
+    path = args.socket or default_socket()
+    try:
+        with ControlClient(path, timeout_s=args.timeout) as c:
+            reply = c.request(req)
+    except FileNotFoundError:
+        raise StageError(f"{path}: no control socket (is the daemon running? use --socket PATH)") from None
+    except PermissionError:
+        raise StageError(f"{path}: permission denied (is your user in the daemon's group?)") from None
+    except (ConnectionError, TimeoutError, OSError) as exc:
+        raise StageError(f"{path}: {exc}") from None
+    if not reply.get("ok"):
+        raise StageError(str(reply.get("error", "request refused")))
+    return reply
+
+
+def _simple(args: argparse.Namespace, req: dict[str, Any]) -> int:
+    reply = _request(args, req)
+    body = {k: v for k, v in reply.items() if k not in ("ok", "id")}
+    print(", ".join(f"{k}: {_fmt(v)}" for k, v in body.items()) or "ok")
+    return 0
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.9g}"
+    if isinstance(v, (dict, list)):
+        return json.dumps(v)
+    return str(v)
+
+
+# ---------------------------------------------------------------------------------------------- commands
+def cmd_move(args: argparse.Namespace) -> int:
+    req: dict[str, Any] = {"request": "move"}
+    if args.to is not None:
+        req["target_m"] = args.to
+    else:
+        req["relative_m"] = args.by
+    if args.max_velocity is not None:
+        req["max_velocity_m_s"] = args.max_velocity
+    reply = _request(args, req)
+    print(f"moving to {reply.get('target_m', float('nan')):.9g} m"
+          + (f" ({reply['duration_s']:.3f} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    if args.action == "start":
+        reply = _request(args, {"request": "record", "action": "start", "name": args.name})
+        print(f"recording to {reply['recording']}")
+    else:
+        rec = _request(args, {"request": "record", "action": "stop"})["recording"] or {}
+        err = f" (error: {rec['error']})" if rec.get("error") else ""
+        print(f"recorded {rec.get('rows', 0)} rows to {rec.get('path')}{err}")
+    return 0
+
+
+def cmd_gains(args: argparse.Namespace) -> int:
+    reply = _request(args, {"request": "gains"})
+    if args.json:
+        json.dump({"controller": reply.get("controller"), "reload": reply.get("reload")}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return 0
+    _print_tree(reply.get("controller"), 0)
+    rl = reply.get("reload")
+    if rl:
+        print(f"last reload: {'applied' if rl.get('ok') else 'REJECTED: ' + str(rl.get('error'))}")
+    return 0
+
+
+def _print_tree(obj: Any, indent: int) -> None:
+    pad = "  " * indent
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if isinstance(v, dict):
+                print(f"{pad}{k}:")
+                _print_tree(v, indent + 1)
+            else:
+                print(f"{pad}{k}: {_fmt(v)}")
+    else:
+        print(f"{pad}{_fmt(obj)}")
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    import time
+
+    while True:
+        st = _request(args, {"request": "status"})["status"]
+        if args.json:
+            print(json.dumps(st, indent=None if args.watch else 2), flush=True)
+        else:
+            if args.watch:
+                print("\033[H\033[2J", end="")
+            print(render_status(st), flush=True)
+        if not args.watch:
+            return 0
+        try:
+            time.sleep(max(0.05, args.watch))
+        except KeyboardInterrupt:
+            return 0
+
+
+def render_status(st: dict[str, Any]) -> str:
+    """Human-readable status (SI units; positions also in mm for reading)."""
+    loop = st.get("loop") or {}
+    late = loop.get("lateness_us") or {}
+    tel = st.get("telemetry") or {}
+    lines = [
+        f"state      {st.get('state')}   (loop {loop.get('state')}, drive {'enabled' if st.get('drive_enabled') else 'disabled'})",
+        f"position   x = {_m(loop.get('x_m'))}   x_ref = {_m(loop.get('x_ref_m'))}   e = {_m(loop.get('e_m'))}",
+        f"force      u = {_n(loop.get('u_n'))} N",
+        f"loop       cycle {loop.get('cycle')}   overruns {loop.get('overruns')}   lateness p50/p99/max "
+        f"{_n(late.get('p50'))}/{_n(late.get('p99'))}/{_n(late.get('max'))} us",
+    ]
+    fault = loop.get("fault")
+    if fault:
+        lines.append(f"FAULT      {fault.get('name', fault) if isinstance(fault, dict) else fault}: "
+                     f"{fault.get('cause', '') if isinstance(fault, dict) else ''}")
+    if tel:
+        rec = tel.get("recording")
+        lines.append(f"telemetry  {tel.get('rows_written')} rows, dropped {tel.get('dropped')}, lost {tel.get('lost')}"
+                     f"{', recording ' + str(rec.get('name')) if rec else ''}   {tel.get('file') or ''}")
+        if tel.get("error"):
+            lines.append(f"TELEMETRY ERROR  {tel['error']}")
+    rl = st.get("reload")
+    if rl and not rl.get("ok"):
+        lines.append(f"reload     REJECTED: {rl.get('error')}")
+    wd = st.get("watchdog") or {}
+    if wd.get("reason"):
+        lines.append(f"watchdog   withheld: {wd['reason']}")
+    return "\n".join(lines)
+
+
+def _m(v: Any) -> str:
+    return f"{v:.9f} m" if isinstance(v, (int, float)) else "-"
+
+
+def _n(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, (int, float)) else "-"

@@ -1,0 +1,197 @@
+"""Real small objects to run the service in-process: a rigid-mass plant behind PlantIO, a PD law, a ramp
+reference, the real ControlLoop on the real monotonic clock (not mocks: the same interfaces as the product).
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from stagectl.control.api import Command, Reference
+from stagectl.errors import ConfigError
+
+
+class MassPlant:
+    """m·a = u − c·v (semi-implicit Euler), position quantised to 1 nm."""
+
+    def __init__(self, mass_kg: float = 1.0, c_n_s_m: float = 5.0) -> None:
+        self.m, self.c = mass_kg, c_n_s_m
+        self.x_m = 0.0
+        self.v_m_s = 0.0
+        self.resolution_m = 1e-9
+
+    def step(self, u_n: float, dt_s: float) -> None:
+        n = max(1, math.ceil(dt_s / 1e-4))
+        h = dt_s / n
+        for _ in range(n):
+            self.v_m_s += (u_n - self.c * self.v_m_s) / self.m * h
+            self.x_m += self.v_m_s * h
+
+    def measure(self) -> float:
+        return round(self.x_m / 1e-9) * 1e-9
+
+    def measure_counts(self) -> int:
+        return round(self.x_m / 1e-9)
+
+
+@dataclass(frozen=True)
+class PDConfig:
+    kp_n_m: float = 4e4
+    kd_n_s_m: float = 400.0
+
+
+@dataclass(frozen=True)
+class RigAppConfig:
+    controller: PDConfig
+
+
+class PD:
+    term_names = ("u_pid", "u_inertia")
+
+    def __init__(self, cfg: PDConfig) -> None:
+        self.cfg = cfg
+        self.x_prev = 0.0
+
+    def reset(self, x_m: float) -> None:
+        self.x_prev = x_m
+
+    def retune(self, cfg: PDConfig) -> None:
+        self.cfg = cfg
+
+    def step(self, dt: float, x: float, ref: Reference) -> Command:
+        v = (x - self.x_prev) / dt
+        self.x_prev = x
+        u = self.cfg.kp_n_m * (ref.x_m - x) + self.cfg.kd_n_s_m * (ref.v_m_s - v)
+        return Command(u + ref.a_m_s2, {"u_pid": u, "u_inertia": ref.a_m_s2})
+
+
+class Ramp:
+    def __init__(self) -> None:
+        self._x0 = self._t0 = self._target = self._v = 0.0
+
+    def hold(self, t_s: float, x_m: float) -> None:
+        self._x0, self._t0, self._target, self._v = x_m, t_s, x_m, 0.0
+
+    def sample(self, t_s: float) -> Reference:
+        if self._v == 0.0:
+            return Reference(self._target)
+        x = self._x0 + self._v * (t_s - self._t0)
+        if (self._v > 0 and x >= self._target) or (self._v < 0 and x <= self._target):
+            self._x0, self._v = self._target, 0.0
+            return Reference(self._target)
+        return Reference(x, self._v)
+
+    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
+        x = self.sample(t_s).x_m
+        v = max_velocity_m_s or 2e-3
+        self._x0, self._t0, self._target = x, t_s, target_m
+        self._v = math.copysign(v, target_m - x) if target_m != x else 0.0
+        return abs(target_m - x) / v
+
+    def stop(self, t_s: float) -> float:
+        x = self.sample(t_s).x_m
+        self.hold(t_s, x)
+        return x
+
+    @property
+    def target_m(self) -> float:
+        return self._target
+
+
+def load_rig_config(path: Path):
+    """The rig's 'check-config': YAML with a controller section and an optional daemon section."""
+    from stagectl.daemon.config import load_daemon_config
+    from stagectl.schema import load_yaml_file
+
+    raw = load_yaml_file(path) or {}
+    ctl = raw.get("controller") or {}
+    problems = []
+    for key in ctl:
+        if key not in ("kp_n_m", "kd_n_s_m"):
+            problems.append(f"controller.{key}: unknown key")
+    for key in ("kp_n_m", "kd_n_s_m"):
+        if key in ctl and not (isinstance(ctl[key], (int, float)) and ctl[key] > 0):
+            problems.append(f"controller.{key}: must be > 0 (got {ctl[key]!r})")
+    if problems:
+        raise ConfigError(problems)
+    return RigAppConfig(PDConfig(**ctl)), load_daemon_config(raw.get("daemon"))
+
+
+def build_rig(app_cfg):
+    from stagectl.clock import MonotonicClock
+    from stagectl.daemon.service import Assembly
+    from stagectl.loop import ControlLoop, LoopConfig
+    from stagectl.safety import Safety, SafetyConfig
+    from stagectl.sim.direct import PlantIO
+
+    clock = MonotonicClock()
+    period = 1e-3
+    io = PlantIO(MassPlant(), period, delay_cycles=1, clock=clock)
+    io.open()
+    io.configure()
+    safety = Safety(SafetyConfig(min_position_m=-0.01, max_position_m=0.01, following_error_m=1e-3,
+                                 max_force_n=50.0, max_velocity_m_s=0.05, stale_cycles=3), period)
+    loop = ControlLoop(clock=clock, sensor=io, actuator=io, controller=PD(app_cfg.controller), reference=Ramp(),
+                       safety=safety, cfg=LoopConfig(period_s=period, healthy_overrun_fraction=0.5), realtime=False)
+
+    def inject(kind: str, **kw):
+        from stagectl.drivers.base import FaultKind
+
+        io.inject_fault(FaultKind(kind), detail="injected by test")
+        return {}
+
+    return Assembly(loop=loop, close=io.close, controller_config=app_cfg.controller, simulated=True,
+                    inject_fault=inject, describe={"plant": "mass"})
+
+
+class NotifySocket:
+    """A bound AF_UNIX datagram socket standing in for systemd's notify socket."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.messages: list[dict[str, str]] = []
+
+    def wait_for(self, key: str, value: str | None = None, timeout: float = 30.0) -> dict[str, str]:
+        """Next datagram containing KEY (=VALUE); the timeout is only a failure guard."""
+        for m in self.messages:
+            if key in m and (value is None or m[key] == value):
+                self.messages.remove(m)
+                return m
+        self.sock.settimeout(timeout)
+        while True:
+            data = self.sock.recv(65536).decode()
+            msg = dict(line.split("=", 1) for line in data.split("\n") if "=" in line)
+            if key in msg and (value is None or msg[key] == value):
+                return msg
+            self.messages.append(msg)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture
+def notify_socket(tmp_path):
+    ns = NotifySocket(tmp_path / "notify.sock")
+    yield ns
+    ns.close()
+
+
+@pytest.fixture
+def rig_loader():
+    return load_rig_config
+
+
+@pytest.fixture
+def rig_builder():
+    return build_rig
+
+
+@pytest.fixture
+def notify_cls():
+    return NotifySocket
