@@ -1,0 +1,116 @@
+"""CAN bus helpers shared by the CANopen drivers (and the virtual devices).
+
+* :func:`open_bus` opens a :class:`can.BusABC` from the YAML ``can:`` mapping, which is passed to
+  ``can.Bus(**mapping)`` unchanged (so ``socketcan``, ``pcan``, ``kvaser``, ``virtual``, ``socketcand`` all
+  work), except that ``tcp_tune`` is forced on for ``socketcand`` (PLATFORM_NOTES §1.2: without it Nagle
+  plus delayed ACK stall two back-to-back frames for ~44 ms). Vendor errors become
+  :class:`~stagectl.errors.DriverInitError`.
+* :func:`quiet_can_loggers` silences python-can's socketcand client, which logs a WARNING on every TCP
+  read that splits a frame.
+* :func:`close_bus` shuts a bus down and never raises (used from ``close()`` paths).
+* :data:`OPEN_BUSES` tracks the buses opened here so tests can fail on a leaked bus.
+
+Error frames: python-can reports controller errors as ``Message(is_error_frame=True)`` whose
+``arbitration_id`` carries the SocketCAN error class (``CAN_ERR_*``); :func:`error_frame_is_bus_off`
+tells bus-off (``CAN_ERR_BUSOFF = 0x40``) from other bus errors.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import weakref
+from collections.abc import Mapping
+from typing import Any
+
+import can
+
+from stagectl.errors import ConfigError, DriverInitError
+
+#: SocketCAN error class bits (linux/can/error.h) carried in an error frame's arbitration id
+CAN_ERR_BUSOFF = 0x00000040
+CAN_ERR_RESTARTED = 0x00000100
+
+#: every bus opened by :func:`open_bus` that has not been closed through :func:`close_bus`
+OPEN_BUSES: weakref.WeakSet[can.BusABC] = weakref.WeakSet()
+_open_lock = threading.Lock()
+_open_names: dict[int, str] = {}
+
+
+def quiet_can_loggers() -> None:
+    """Silence per-read warnings of the socketcand client (it warns on every split TCP read)."""
+    logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+    logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
+
+
+def bus_kwargs(mapping: Mapping[str, Any], *, path: str = "can") -> dict[str, Any]:
+    """Validate the ``can:`` mapping and return the keyword arguments for ``can.Bus``.
+
+    Raises
+    ------
+    ConfigError
+        If ``interface`` is missing, or a socketcand mapping lacks ``host``/``port``.
+    """
+    kw = dict(mapping)
+    problems: list[str] = []
+    iface = kw.get("interface")
+    if not isinstance(iface, str) or not iface:
+        problems.append(f"{path}.interface: required (e.g. socketcan, pcan, virtual, socketcand)")
+    if "channel" not in kw:
+        problems.append(f"{path}.channel: required (e.g. can0, or a virtual channel name)")
+    if iface == "socketcand":
+        for key in ("host", "port"):
+            if key not in kw:
+                problems.append(f"{path}.{key}: required for interface socketcand")
+        kw["tcp_tune"] = True  # mandatory: Nagle stalls otherwise (PLATFORM_NOTES §1.2)
+    if problems:
+        raise ConfigError(problems)
+    return kw
+
+
+def open_bus(mapping: Mapping[str, Any], *, path: str = "can") -> can.BusABC:
+    """Open ``can.Bus(**mapping)``; python-can / OS errors become :class:`DriverInitError`.
+
+    Raises
+    ------
+    ConfigError
+        Bad mapping (see :func:`bus_kwargs`).
+    DriverInitError
+        The interface could not be opened (unknown interface, no such device, connection refused).
+    """
+    kw = bus_kwargs(mapping, path=path)
+    if kw.get("interface") == "socketcand":
+        quiet_can_loggers()
+    try:
+        bus = can.Bus(**kw)
+    except (can.CanError, OSError, ValueError, TypeError, ImportError, TimeoutError) as exc:
+        where = ", ".join(f"{k}={v!r}" for k, v in kw.items() if k in ("interface", "channel", "host", "port"))
+        raise DriverInitError(f"{path}: cannot open CAN bus ({where}): {exc}") from exc
+    with _open_lock:
+        OPEN_BUSES.add(bus)
+        _open_names[id(bus)] = str(kw.get("channel"))
+    return bus
+
+
+def close_bus(bus: can.BusABC | None) -> None:
+    """Shut ``bus`` down; never raises (logs instead), safe to call twice."""
+    if bus is None:
+        return
+    with _open_lock:
+        OPEN_BUSES.discard(bus)
+        _open_names.pop(id(bus), None)
+    try:
+        bus.shutdown()
+    except Exception:  # noqa: BLE001 - close paths must not raise
+        logging.getLogger(__name__).debug("bus shutdown failed", exc_info=True)
+
+
+def open_bus_names() -> list[str]:
+    """Channels of the buses opened by :func:`open_bus` and not yet closed (for leak checks)."""
+    with _open_lock:
+        return [_open_names.get(id(b), "?") for b in list(OPEN_BUSES)]
+
+
+def error_frame_is_bus_off(msg: can.Message) -> bool:
+    """True if the error frame reports bus-off (SocketCAN ``CAN_ERR_BUSOFF`` class bit)."""
+    return bool(msg.arbitration_id & CAN_ERR_BUSOFF)

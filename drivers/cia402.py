@@ -1,0 +1,719 @@
+"""CiA 402 servo drive over CANopen, cyclic synchronous torque (CST), with the loop as SYNC producer.
+
+Start-up (``configure``, SDO only, canopen's Notifier running): NMT pre-operational, check device type
+0x1000 (profile 402) and supported modes 0x6502 (CST bit 9), write the communication cycle period
+0x1006 (= loop ``period_s``), the drive's heartbeat producer 0x1017, the drive's heartbeat consumer 0x1016
+(watching *our* heartbeat, so the drive stops by itself if the controller dies), the PDO mapping
+(TPDO1 = statusword 0x6041 + position actual 0x6064, optional TPDO2 = velocity actual 0x606C;
+RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1), mode of
+operation 0x6060 = 10 (CST); then NMT start and the Notifier is stopped ("pump mode", PLATFORM_NOTES
+§0.2): during cyclic operation the loop thread reads the bus itself.
+
+Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::
+
+    drive.sync()    # drain stale frames, send SYNC (0x080), every N cycles our heartbeat (0x700+ctrl)
+    drive.read()    # wait for the TPDO sent after this SYNC; unwrap position; detect faults
+    drive.write(f)  # RPDO1 (controlword, target torque); the drive applies it at the next SYNC
+
+Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
+``rated force F_r`` [N] one unit is ``F_r / 1000`` newtons, so ``force_per_unit_n = F_r / 1000``::
+
+    target_torque [units] = round(force_n / force_per_unit_n),  clamped to ±min(32767, max_force_n / force_per_unit_n)
+
+Position: ``position_m = counts × resolution_m`` where ``counts`` is 0x6064 (INT32) unwrapped across
+the 32-bit wrap: ``counts_k = counts_{k-1} + ((raw_k − raw_{k−1} + 2³¹) mod 2³² − 2³¹)``.
+
+Faults (``Measurement.fault``, latched in ``drive.fault``): statusword fault bit → ``DRIVE_FAULT`` (code of
+the last EMCY); EMCY → ``EMCY``; drive heartbeat older than ``heartbeat_timeout_s`` → ``HEARTBEAT_LOST``;
+error frame → ``BUS_ERROR`` or ``BUS_OFF``; ``max_missed`` consecutive cycles without a fresh TPDO →
+``MISSED_FRAME``; a position step faster than ``max_speed_m_s`` → ``SENSOR_ERROR``. Time-outs that are
+counted per cycle (heartbeat age) use ``cycles × period_s``, so they hold in lock-step simulated time too.
+Once a fault is latched, ``write()`` sends quick stop (controlword 0x0002) with zero torque.
+
+Lock-step: with ``set_pump(pump)``, waiting for the TPDO is ``pump()`` followed by non-blocking polls;
+during ``configure`` (SDO) a helper thread keeps pumping while the SDO client waits.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from stagectl.drivers.base import (
+    DeviceFault,
+    DeviceState,
+    FaultKind,
+    ForceActuator,
+    Measurement,
+    PositionSensor,
+    SyncProducer,
+)
+from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus
+from stagectl.errors import ConfigError, DriveFault, DriverError, DriverInitError, DriverIOError, DriverTimeoutError
+from stagectl.schema import param
+
+log = logging.getLogger(__name__)
+
+#: directory of the EDS files written for stagectl
+EDS_DIR = Path(__file__).resolve().parents[1] / "config" / "eds"
+DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
+
+SYNC_COB_ID = 0x080
+#: CiA 402 "cyclic synchronous torque" mode of operation (0x6060)
+MODE_CST = 10
+#: 0x6502 bit for CST support
+SUPPORTED_CST_BIT = 1 << 9
+PDO_DISABLED = 0x80000000
+
+_TPDO1 = struct.Struct("<Hi")  # statusword 0x6041 (U16), position actual 0x6064 (INT32)
+_TPDO2 = struct.Struct("<i")  # velocity actual 0x606C (INT32)
+_RPDO1 = struct.Struct("<Hh")  # controlword 0x6040 (U16), target torque 0x6071 (INT16)
+_EMCY = struct.Struct("<HB5s")
+
+
+class State402(enum.Enum):
+    """CiA 402 power state machine states, decoded from the statusword."""
+
+    NOT_READY_TO_SWITCH_ON = "NOT READY TO SWITCH ON"
+    SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
+    READY_TO_SWITCH_ON = "READY TO SWITCH ON"
+    SWITCHED_ON = "SWITCHED ON"
+    OPERATION_ENABLED = "OPERATION ENABLED"
+    QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+    FAULT_REACTION_ACTIVE = "FAULT REACTION ACTIVE"
+    FAULT = "FAULT"
+
+    @classmethod
+    def from_statusword(cls, sw: int) -> State402:
+        """Decode bits 0–3, 5, 6 of the statusword (CiA 402 table of state coding)."""
+        low = sw & 0x4F
+        if low == 0x00:
+            return cls.NOT_READY_TO_SWITCH_ON
+        if low == 0x40:
+            return cls.SWITCH_ON_DISABLED
+        if low == 0x0F:
+            return cls.FAULT_REACTION_ACTIVE
+        if low == 0x08:
+            return cls.FAULT
+        mid = sw & 0x6F
+        if mid == 0x21:
+            return cls.READY_TO_SWITCH_ON
+        if mid == 0x23:
+            return cls.SWITCHED_ON
+        if mid == 0x27:
+            return cls.OPERATION_ENABLED
+        if mid == 0x07:
+            return cls.QUICK_STOP_ACTIVE
+        return cls.NOT_READY_TO_SWITCH_ON
+
+
+class Controlword(enum.IntEnum):
+    """CiA 402 controlword commands (bits: 0 switch on, 1 enable voltage, 2 quick stop (low active),
+    3 enable operation, 7 fault reset)."""
+
+    DISABLE_VOLTAGE = 0x0000
+    QUICK_STOP = 0x0002
+    SHUTDOWN = 0x0006
+    SWITCH_ON = 0x0007
+    ENABLE_OPERATION = 0x000F
+    FAULT_RESET = 0x0080
+
+
+#: next controlword on the way to OPERATION ENABLED
+_TOWARDS_ENABLED = {
+    State402.NOT_READY_TO_SWITCH_ON: Controlword.DISABLE_VOLTAGE,
+    State402.SWITCH_ON_DISABLED: Controlword.SHUTDOWN,
+    State402.READY_TO_SWITCH_ON: Controlword.SWITCH_ON,
+    State402.SWITCHED_ON: Controlword.ENABLE_OPERATION,
+    State402.OPERATION_ENABLED: Controlword.ENABLE_OPERATION,
+    State402.QUICK_STOP_ACTIVE: Controlword.DISABLE_VOLTAGE,
+}
+
+STATUSWORD_FAULT = 1 << 3
+
+
+def _default_can() -> dict[str, Any]:
+    return {"interface": "socketcan", "channel": "can0", "bitrate": 1000000}
+
+
+@dataclass(frozen=True)
+class Cia402Config:
+    """Configuration of a CiA 402 drive in cyclic synchronous torque mode (YAML ``drive:`` section)."""
+
+    node_id: int = param(desc="CANopen node id of the drive", ge=1, le=127)
+    can: dict[str, Any] = param(
+        desc="mapping passed to can.Bus (interface, channel, bitrate, host/port for socketcand, ...)",
+        default_factory=_default_can,
+    )
+    resolution_m: float = param(1e-9, unit="m", desc="position per count of 0x6064 (metres per count)", gt=0)
+    force_per_unit_n: float = param(
+        0.01,
+        unit="N",
+        desc="newtons per unit of target torque 0x6071 (INT16, per-mille of rated torque: rated force / 1000)",
+        gt=0,
+    )
+    max_force_n: float = param(
+        math.inf, unit="N", desc="clamp on the commanded force (inf = only the INT16 range)", gt=0, allow_inf=True
+    )
+    velocity: bool = param(False, desc="also map velocity actual 0x606C into TPDO2")
+    velocity_resolution_m_s: float = param(1e-6, unit="m/s", desc="velocity per unit of 0x606C", gt=0)
+    heartbeat_producer_s: float = param(
+        0.05, unit="s", desc="drive heartbeat producer period written to 0x1017 (0 = off)", ge=0, le=65.535
+    )
+    heartbeat_timeout_s: float = param(
+        0.2, unit="s", desc="drive heartbeat older than this -> HEARTBEAT_LOST", gt=0
+    )
+    controller_node_id: int = param(
+        127, desc="node id under which the controller sends its heartbeat (0x700 + id)", ge=1, le=127
+    )
+    controller_heartbeat_s: float = param(0.02, unit="s", desc="period of the controller's heartbeat", gt=0)
+    drive_consumer_timeout_s: float = param(
+        0.1,
+        unit="s",
+        desc="drive's heartbeat consumer time (0x1016): it stops itself if our heartbeat is older",
+        gt=0,
+        le=65.535,
+    )
+    rx_timeout_s: float = param(
+        0.0008, unit="s", desc="how long read() waits for the TPDO after SYNC (real-time mode)", gt=0
+    )
+    max_missed: int = param(3, desc="consecutive cycles without a fresh TPDO before MISSED_FRAME", ge=1)
+    max_speed_m_s: float = param(
+        2.0, unit="m/s", desc="position steps faster than this are a sensor glitch (SENSOR_ERROR)", gt=0
+    )
+    sdo_timeout_s: float = param(0.3, unit="s", desc="SDO response timeout during configure", gt=0)
+    state_timeout_s: float = param(
+        0.5, unit="s", desc="time allowed for enable/disable/fault reset state changes", gt=0
+    )
+    eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
+
+    def __post_init__(self) -> None:
+        if self.heartbeat_producer_s > 0 and self.heartbeat_timeout_s <= self.heartbeat_producer_s:
+            raise ConfigError(
+                f"heartbeat_timeout_s: must be > heartbeat_producer_s ({self.heartbeat_timeout_s:g} s "
+                f"<= {self.heartbeat_producer_s:g} s)"
+            )
+        if self.drive_consumer_timeout_s <= self.controller_heartbeat_s:
+            raise ConfigError(
+                f"drive_consumer_timeout_s: must be > controller_heartbeat_s ({self.drive_consumer_timeout_s:g} s "
+                f"<= {self.controller_heartbeat_s:g} s)"
+            )
+
+
+def unwrap32(prev_raw: int, prev_counts: int, raw: int) -> int:
+    """Unwrapped counts from a wrapping 32-bit reading: prev + signed 32-bit difference."""
+    return prev_counts + (((raw - prev_raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
+
+
+class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
+    """CiA 402 drive in CST mode: position sensor, force actuator and SYNC producer of the loop.
+
+    Parameters
+    ----------
+    cfg : Cia402Config
+    period_s : float
+        Loop period [s]; written to 0x1006 at ``configure`` and used for per-cycle time-outs.
+    """
+
+    name = "cia402"
+
+    def __init__(self, cfg: Cia402Config, period_s: float = 0.001) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.name = f"cia402[node {cfg.node_id}]"
+        self.resolution_m = cfg.resolution_m
+        self._period_s = 0.0
+        self.set_period(period_s)
+        self._bus: can.BusABC | None = None
+        self._network: Any = None
+        self._node: Any = None
+        self._notifier: can.Notifier | None = None
+        nid = cfg.node_id
+        self._tpdo1_id = 0x180 + nid
+        self._tpdo2_id = 0x280 + nid
+        self._rpdo1_id = 0x200 + nid
+        self._emcy_id = 0x080 + nid
+        self._hb_id = 0x700 + nid
+        self._sync_msg = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+        self._hb_msg = can.Message(arbitration_id=0x700 + cfg.controller_node_id, data=b"\x05", is_extended_id=False)
+        units = cfg.max_force_n / cfg.force_per_unit_n
+        self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
+        self._reset_cyclic()
+        #: statusword and state of the last fresh TPDO
+        self.statusword = 0
+        self.velocity_m_s = 0.0
+
+    # ------------------------------------------------------------------ config helpers
+    def set_period(self, period_s: float) -> None:
+        """Set the loop period [s] (before ``configure``)."""
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ConfigError(f"period_s: must be > 0 s (got {period_s!r})")
+        self._period_s = float(period_s)
+        self._hb_every = max(1, round(self.cfg.controller_heartbeat_s / self._period_s))
+        self._hb_timeout_cycles = math.ceil(self.cfg.heartbeat_timeout_s / self._period_s)
+        self._max_step_counts = self.cfg.max_speed_m_s * self._period_s / self.cfg.resolution_m
+
+    @property
+    def period_s(self) -> float:
+        return self._period_s
+
+    @property
+    def drive_state(self) -> State402:
+        """CiA 402 state decoded from the last statusword received."""
+        return State402.from_statusword(self.statusword)
+
+    def _reset_cyclic(self) -> None:
+        self._cycle = 0
+        self._cw = int(Controlword.SHUTDOWN)
+        self._synced = False
+        self._missed = 0
+        self._hb_age = 0
+        self._hb_seen = False
+        self._pending: DeviceFault | None = None
+        self._last_emcy = 0
+        self._have_pos = False
+        self._raw = 0
+        self._counts = 0
+        self._skipped_since_good = 0
+        self.statusword = 0
+        self.cycles = 0
+        self.missed_total = 0
+
+    # ------------------------------------------------------------------ lifecycle hooks
+    def _do_open(self) -> None:
+        import canopen
+
+        eds = Path(self.cfg.eds_file) if self.cfg.eds_file else DEFAULT_EDS
+        self._bus = open_bus(self.cfg.can, path="drive.can")
+        try:
+            self._network = canopen.Network(self._bus)
+            self._node = canopen.RemoteNode(self.cfg.node_id, str(eds))
+            self._network.add_node(self._node)
+            self._node.sdo.RESPONSE_TIMEOUT = self.cfg.sdo_timeout_s
+            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
+        except Exception as exc:
+            self._teardown()
+            if isinstance(exc, (OSError, ValueError, KeyError)):
+                raise DriverInitError(f"{self.name}: cannot load EDS {eds}: {exc}") from exc
+            raise DriverInitError(f"{self.name}: cannot start CANopen network: {exc}") from exc
+
+    def _do_close(self) -> None:
+        if self._bus is not None and self._state is DeviceState.ENABLED:
+            try:  # best effort: leave the drive switched off
+                self._bus.send(can.Message(arbitration_id=self._rpdo1_id, data=_RPDO1.pack(Controlword.SHUTDOWN, 0),
+                                           is_extended_id=False))
+            except (can.CanError, OSError):
+                pass
+        self._teardown()
+
+    def _teardown(self) -> None:
+        if self._notifier is not None:
+            try:
+                self._notifier.stop(0.5)
+            except Exception:  # noqa: BLE001
+                log.debug("notifier stop failed", exc_info=True)
+            self._notifier = None
+        close_bus(self._bus)
+        self._bus = None
+        self._network = None
+        self._node = None
+
+    # ------------------------------------------------------------------ configure (SDO)
+    @contextmanager
+    def _pumping(self) -> Iterator[None]:
+        """While blocking on SDO in lock-step mode, run ``pump()`` from a helper thread."""
+        pump = self._pump
+        if pump is None:
+            yield
+            return
+        done = threading.Event()
+        errors: list[BaseException] = []
+
+        def run() -> None:
+            while not done.is_set():
+                try:
+                    pump()
+                except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
+                    errors.append(exc)
+                    return
+                done.wait(0.0002)
+
+        t = threading.Thread(target=run, name=f"{self.name}-sdo-pump", daemon=True)
+        t.start()
+        try:
+            yield
+        finally:
+            done.set()
+            t.join(2.0)
+        if errors:
+            raise DriverError(f"{self.name}: simulated peer failed while configuring: {errors[0]}") from errors[0]
+
+    def _sdo_write(self, index: int, sub: int, fmt: str, value: int, what: str) -> None:
+        from canopen.sdo.exceptions import SdoError
+
+        try:
+            self._node.sdo.download(index, sub, struct.pack(fmt, value))
+        except SdoError as exc:
+            raise DriverInitError(
+                f"{self.name}: SDO write {what} 0x{index:04X}:{sub:02X} = {value} failed: {exc}"
+            ) from exc
+        except (can.CanError, OSError) as exc:
+            raise DriverInitError(f"{self.name}: CAN error writing 0x{index:04X}:{sub:02X} ({what}): {exc}") from exc
+
+    def _sdo_read(self, index: int, sub: int, fmt: str, what: str) -> int:
+        from canopen.sdo.exceptions import SdoError
+
+        try:
+            data = self._node.sdo.upload(index, sub)
+            return int(struct.unpack_from(fmt, data)[0])
+        except SdoError as exc:
+            raise DriverInitError(f"{self.name}: SDO read {what} 0x{index:04X}:{sub:02X} failed: {exc}") from exc
+        except struct.error as exc:
+            raise DriverInitError(f"{self.name}: SDO read {what} 0x{index:04X}:{sub:02X}: short answer") from exc
+        except (can.CanError, OSError) as exc:
+            raise DriverInitError(f"{self.name}: CAN error reading 0x{index:04X}:{sub:02X} ({what}): {exc}") from exc
+
+    def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int], what: str) -> None:
+        self._sdo_write(comm, 1, "<I", cob_id | PDO_DISABLED, f"{what} COB-ID (disable)")
+        self._sdo_write(mapping, 0, "<B", 0, f"{what} mapping count")
+        for i, entry in enumerate(entries, 1):
+            self._sdo_write(mapping, i, "<I", entry, f"{what} mapping entry {i}")
+        self._sdo_write(mapping, 0, "<B", len(entries), f"{what} mapping count")
+        self._sdo_write(comm, 2, "<B", 1, f"{what} transmission type (synchronous)")
+        self._sdo_write(comm, 1, "<I", cob_id, f"{what} COB-ID (enable)")
+
+    def _disable_pdo(self, comm: int, cob_id: int) -> None:
+        from canopen.sdo.exceptions import SdoError
+
+        if self._node is None or comm not in self._node.object_dictionary:
+            return
+        try:
+            self._node.sdo.download(comm, 1, struct.pack("<I", cob_id | PDO_DISABLED))
+        except SdoError:
+            pass  # not present on this drive: nothing to disable
+
+    def _do_configure(self) -> None:
+        if self._notifier is None and self._bus is not None and self._network is not None:
+            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
+        nid = self.cfg.node_id
+        with self._pumping():
+            self._node.nmt.send_command(0x80)  # enter PRE-OPERATIONAL (PDOs off while remapping)
+            dtype = self._sdo_read(0x1000, 0, "<I", "device type")
+            if dtype & 0xFFFF != 402:
+                raise DriverInitError(
+                    f"{self.name}: device type 0x1000 = 0x{dtype:08X} is not a CiA 402 drive (profile {dtype & 0xFFFF})"
+                )
+            modes = self._sdo_read(0x6502, 0, "<I", "supported drive modes")
+            if not modes & SUPPORTED_CST_BIT:
+                raise DriverInitError(
+                    f"{self.name}: drive does not support cyclic synchronous torque (0x6502 = 0x{modes:08X})"
+                )
+            self._sdo_write(0x1006, 0, "<I", round(self._period_s * 1e6), "communication cycle period [µs]")
+            self._sdo_write(0x1017, 0, "<H", round(self.cfg.heartbeat_producer_s * 1000), "producer heartbeat [ms]")
+            consumer = (self.cfg.controller_node_id << 16) | round(self.cfg.drive_consumer_timeout_s * 1000)
+            self._sdo_write(0x1016, 1, "<I", consumer, "consumer heartbeat time")
+            self._map_pdo(0x1800, 0x1A00, 0x180 + nid, [0x60410010, 0x60640020], "TPDO1")
+            if self.cfg.velocity:
+                self._map_pdo(0x1801, 0x1A01, 0x280 + nid, [0x606C0020], "TPDO2")
+            else:
+                self._disable_pdo(0x1801, 0x280 + nid)
+            for n in (2, 3):
+                self._disable_pdo(0x1800 + n, 0x180 + 0x100 * n + nid)
+            self._map_pdo(0x1400, 0x1600, 0x200 + nid, [0x60400010, 0x60710010], "RPDO1")
+            for n in (1, 2, 3):
+                self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
+            self._sdo_write(0x6060, 0, "<b", MODE_CST, "mode of operation (CST)")
+            shown = self._sdo_read(0x6061, 0, "<b", "mode of operation display")
+            if shown != MODE_CST:
+                raise DriverInitError(f"{self.name}: drive shows mode {shown} after 0x6060 = {MODE_CST} (CST)")
+            self._node.nmt.send_command(0x01)  # NMT start: OPERATIONAL, PDOs run
+        # pump mode: the loop thread reads the bus itself from now on
+        if self._notifier is not None:
+            self._notifier.stop(0.5)
+            self._notifier = None
+        self._reset_cyclic()
+
+    # ------------------------------------------------------------------ frame handling
+    def _handle(self, msg: can.Message) -> tuple[int, int] | None:
+        """Process one received frame; return (statusword, raw position) for TPDO1."""
+        if msg.is_error_frame:
+            if error_frame_is_bus_off(msg):
+                self._note(DeviceFault(FaultKind.BUS_OFF, "CAN controller reports bus-off"))
+            else:
+                self._note(DeviceFault(FaultKind.BUS_ERROR, f"CAN error frame class 0x{msg.arbitration_id:08X}"))
+            return None
+        cid = msg.arbitration_id
+        if cid == self._tpdo1_id:
+            if len(msg.data) >= 6:
+                sw, raw = _TPDO1.unpack_from(msg.data)
+                return sw, raw
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(msg.data)} bytes, need 6)"))
+        elif cid == self._tpdo2_id and len(msg.data) >= 4:
+            self.velocity_m_s = _TPDO2.unpack_from(msg.data)[0] * self.cfg.velocity_resolution_m_s
+        elif cid == self._emcy_id and len(msg.data) >= 3:
+            code, reg, _ = _EMCY.unpack(bytes(msg.data[:8]).ljust(8, b"\0"))
+            if code != 0:
+                self._last_emcy = code
+                self._note(DeviceFault(FaultKind.EMCY, f"EMCY error register 0x{reg:02X}", code))
+        elif cid == self._hb_id and msg.data:
+            self._hb_age = 0
+            self._hb_seen = True
+            if msg.data[0] == 0 and self._state is DeviceState.ENABLED:
+                self._note(DeviceFault(FaultKind.HEARTBEAT_LOST, "drive sent boot-up (it was reset)"))
+        return None
+
+    def _note(self, fault: DeviceFault) -> None:
+        if self._pending is None:
+            self._pending = fault
+
+    def _drain(self) -> None:
+        bus = self._bus
+        assert bus is not None
+        while True:
+            try:
+                msg = bus.recv(0.0)
+            except can.CanError as exc:
+                raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
+            if msg is None:
+                return
+            self._handle(msg)  # TPDOs received before SYNC are stale: dropped here
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self._bus.send(msg)  # type: ignore[union-attr]
+        except (can.CanError, OSError) as exc:
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"transmit failed: {exc}"))
+
+    # ------------------------------------------------------------------ cyclic API
+    def sync(self) -> None:
+        """Drain stale frames, send SYNC and (every N cycles) the controller heartbeat. Real-time safe."""
+        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if self._pump is not None:
+            self._pump()
+        self._drain()
+        if self._cycle % self._hb_every == 0:
+            self._send(self._hb_msg)
+        self._send(self._sync_msg)
+        self._cycle += 1
+        self._hb_age += 1
+        self._synced = True
+
+    def _wait_tpdo(self) -> tuple[int, int] | None:
+        bus = self._bus
+        assert bus is not None
+        got: tuple[int, int] | None = None
+        try:
+            if self._pump is not None:
+                self._pump()
+                while (msg := bus.recv(0.0)) is not None:
+                    r = self._handle(msg)
+                    if r is not None:
+                        got = r
+                return got
+            deadline = time.monotonic() + self.cfg.rx_timeout_s
+            while got is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                msg = bus.recv(left)
+                if msg is None:
+                    break
+                got = self._handle(msg) or got
+            while (msg := bus.recv(0.0)) is not None:  # newest wins (a late frame may precede it)
+                got = self._handle(msg) or got
+        except can.CanError as exc:
+            raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
+        return got
+
+    def read(self) -> Measurement:
+        """Measurement sampled at this cycle's SYNC (``fresh=False`` if the TPDO missed). Real-time safe."""
+        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if not self._synced:
+            raise DriverError(f"{self.name}: read() before sync() in this cycle")
+        self._synced = False
+        self.cycles += 1
+        got = self._wait_tpdo()
+        fault: DeviceFault | None = None
+        fresh = got is not None
+        if got is not None:
+            sw, raw = got
+            self.statusword = sw
+            self._missed = 0
+            if self._have_pos:
+                counts = unwrap32(self._raw, self._counts, raw)
+                step = abs(counts - self._counts)
+                if step > self._max_step_counts * (1 + self._skipped_since_good):
+                    fault = DeviceFault(
+                        FaultKind.SENSOR_ERROR,
+                        f"position jumped {step * self.cfg.resolution_m:.3g} m in one cycle "
+                        f"(> max_speed_m_s {self.cfg.max_speed_m_s:g} m/s)",
+                    )
+            else:
+                counts = raw
+                self._have_pos = True
+            self._raw, self._counts = raw, counts
+            self._skipped_since_good = 0
+            if sw & STATUSWORD_FAULT:
+                fault = DeviceFault(FaultKind.DRIVE_FAULT, f"drive in {self.drive_state.value}", self._last_emcy)
+        else:
+            self._missed += 1
+            self.missed_total += 1
+            self._skipped_since_good += 1
+            if self._missed >= self.cfg.max_missed:
+                fault = DeviceFault(
+                    FaultKind.MISSED_FRAME,
+                    f"no TPDO after SYNC for {self._missed} consecutive cycles",
+                )
+        if self._pending is not None and (fault is None or fault.kind is FaultKind.MISSED_FRAME):
+            fault = self._pending
+        self._pending = None
+        if fault is None and self.cfg.heartbeat_producer_s > 0 and self._hb_age > self._hb_timeout_cycles:
+            fault = DeviceFault(
+                FaultKind.HEARTBEAT_LOST,
+                f"no drive heartbeat for {self._hb_age} cycles ({self._hb_age * self._period_s:.3g} s)",
+            )
+        if fault is not None and self._state is not DeviceState.CONFIGURED:
+            self._latch(fault)
+        return Measurement(
+            position_m=self._counts * self.cfg.resolution_m,
+            fresh=fresh,
+            counts=self._counts,
+            status=self.statusword,
+            fault=fault,
+        )
+
+    def torque_units(self, force_n: float) -> int:
+        """Force [N] → 0x6071 units: ``round(force_n / force_per_unit_n)``, clamped (NaN → 0)."""
+        if force_n != force_n:
+            return 0
+        u = round(force_n / self.cfg.force_per_unit_n) if math.isfinite(force_n) else (
+            self._max_units if force_n > 0 else -self._max_units
+        )
+        return max(-self._max_units, min(self._max_units, u))
+
+    def write(self, force_n: float) -> None:
+        """Send RPDO1 (controlword, target torque) for the next period. Real-time safe.
+
+        After a latched fault or ``quick_stop()`` the RPDO carries quick stop and zero torque.
+        """
+        if self._state is DeviceState.ENABLED and self._cw == Controlword.ENABLE_OPERATION:
+            self._send_rpdo(self._cw, self.torque_units(force_n))
+        elif self._state is DeviceState.FAULT:
+            self._send_rpdo(Controlword.QUICK_STOP, 0)
+        elif self._state in (DeviceState.ENABLED, DeviceState.CONFIGURED):
+            self._send_rpdo(self._cw, 0)
+        else:
+            raise DriverError(f"{self.name}: write() needs an open, configured drive (state {self._state.value})")
+
+    def _send_rpdo(self, cw: int, torque: int) -> None:
+        self._send(can.Message(arbitration_id=self._rpdo1_id, data=_RPDO1.pack(cw, torque), is_extended_id=False))
+
+    def quick_stop(self) -> None:
+        """Controlword QUICK STOP with zero torque, now and in every following ``write``. Real-time safe."""
+        self._cw = int(Controlword.QUICK_STOP)
+        if self._bus is not None:
+            self._send_rpdo(self._cw, 0)
+
+    # ------------------------------------------------------------------ state machine (cycles)
+    def _step_cycles(self, choose: Callable[[State402 | None], int | None], what: str) -> State402:
+        """Run SYNC/TPDO/RPDO cycles, sending ``choose(state)`` until it returns None."""
+        n_max = max(8, math.ceil(self.cfg.state_timeout_s / self._period_s))
+        next_t = time.monotonic()
+        state: State402 | None = None
+        for _ in range(n_max):
+            self.sync()
+            got = self._wait_tpdo()
+            self._synced = False
+            if got is not None:
+                self.statusword = got[0]
+                state = State402.from_statusword(got[0])
+                if not self._have_pos:
+                    self._raw = self._counts = got[1]
+                    self._have_pos = True
+                else:
+                    self._counts = unwrap32(self._raw, self._counts, got[1])
+                    self._raw = got[1]
+                self._hb_age = 0 if self._hb_seen else self._hb_age
+            cw = choose(state)
+            if cw is None:
+                return state  # type: ignore[return-value]
+            self._cw = cw
+            self._send_rpdo(cw, 0)
+            if self._pump is None:
+                next_t += self._period_s
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                else:
+                    next_t = time.monotonic()
+        raise DriverTimeoutError(
+            f"{self.name}: {what} not reached within {self.cfg.state_timeout_s:g} s "
+            f"(drive state {state.value if state else 'unknown: no TPDO'})"
+        )
+
+    def _do_enable(self) -> None:
+        self._drain()
+        self._pending = None
+        self._last_emcy = 0
+
+        def choose(state: State402 | None) -> int | None:
+            if state is State402.OPERATION_ENABLED:
+                return None
+            if state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+                raise DriveFault(f"{self.name}: drive is in FAULT; call fault_reset()", self._last_emcy)
+            if state is None:
+                return int(Controlword.SHUTDOWN)
+            return int(_TOWARDS_ENABLED[state])
+
+        self._step_cycles(choose, "OPERATION ENABLED")
+        self._cw = int(Controlword.ENABLE_OPERATION)
+        self._missed = 0
+        self._pending = None
+
+    def _do_disable(self) -> None:
+        if self._bus is None:
+            return
+
+        def choose(state: State402 | None) -> int | None:
+            if state in (State402.READY_TO_SWITCH_ON, State402.SWITCH_ON_DISABLED, State402.FAULT):
+                return None
+            return int(Controlword.SHUTDOWN)
+
+        try:
+            self._step_cycles(choose, "READY TO SWITCH ON")
+        finally:
+            self._cw = int(Controlword.SHUTDOWN)
+
+    def _do_fault_reset(self) -> None:
+        self._pending = None
+        self._missed = 0
+        self._hb_age = 0
+        sent_low = [False]
+
+        def choose(state: State402 | None) -> int | None:
+            if state is None:
+                return int(Controlword.DISABLE_VOLTAGE)
+            if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+                return None
+            if not sent_low[0]:  # fault reset acts on the rising edge of bit 7
+                sent_low[0] = True
+                return int(Controlword.DISABLE_VOLTAGE)
+            sent_low[0] = False
+            return int(Controlword.FAULT_RESET)
+
+        self._step_cycles(choose, "fault reset (leave FAULT)")
+        self._cw = int(Controlword.SHUTDOWN)
+        self._pending = None
+        self._last_emcy = 0
+        self._missed = 0

@@ -1,0 +1,122 @@
+"""Fault injection for the virtual CANopen devices, scriptable from tests and from YAML.
+
+YAML (``sim.faults``)::
+
+    faults:
+      - {kind: drive_fault, at_cycle: 500, code: 0x2310}      # FAULT + EMCY 0x2310 at SYNC 500
+      - {kind: heartbeat_stop, device: drive, at_time_s: 1.0} # drive stops producing heartbeats
+      - {kind: drop_tpdo, at_cycle: 100, cycles: 5}           # 5 TPDOs not sent
+      - {kind: late_tpdo, at_cycle: 200, cycles: 10}          # each TPDO sent one cycle late
+      - {kind: bus_off, at_cycle: 300}                        # error frame (bus-off), then silence
+      - {kind: position_jump, device: encoder, at_cycle: 50, jump_m: 0.005}
+
+Tests: ``world.inject(FaultSpec(kind=SimFault.DROP_TPDO, cycles=3))`` (``at_cycle``/``at_time_s`` unset =
+from the device's next SYNC on).
+
+Semantics, per device (``drive`` or ``encoder``); ``cycles`` = how many SYNCs the fault lasts (0 = for
+ever); a fault is active for SYNC number ``n`` (counted by the device from 1) when
+``start <= n < start + cycles``, where ``start`` is ``at_cycle`` or the first SYNC at or after
+``at_time_s`` of simulated time:
+
+* ``drive_fault``   : one-shot; the drive enters FAULT (statusword bit 3) with 0x603F = ``code`` and sends
+  EMCY ``code`` before that SYNC's TPDO.
+* ``heartbeat_stop``: no heartbeat frames while active.
+* ``drop_tpdo``     : TPDOs are not sent while active.
+* ``late_tpdo``     : each TPDO is held and sent at the next SYNC, just before that SYNC's own TPDO.
+* ``bus_off``       : one error frame with the SocketCAN bus-off class (0x40), then the device is silent
+  (no TPDO, heartbeat, EMCY or SDO answer) while active.
+* ``position_jump`` : ``jump_m`` is added to the reported position while active (a step glitch).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+from stagectl.schema import param
+
+
+class SimFault(enum.Enum):
+    DRIVE_FAULT = "drive_fault"
+    HEARTBEAT_STOP = "heartbeat_stop"
+    DROP_TPDO = "drop_tpdo"
+    LATE_TPDO = "late_tpdo"
+    BUS_OFF = "bus_off"
+    POSITION_JUMP = "position_jump"
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One scripted fault (YAML ``sim.faults[i]``)."""
+
+    kind: SimFault = param(desc="drive_fault, heartbeat_stop, drop_tpdo, late_tpdo, bus_off or position_jump")
+    device: str = param("drive", desc="which virtual CANopen device: drive or encoder", choices=("drive", "encoder"))
+    at_cycle: int | None = param(None, desc="first SYNC (counted from 1) affected", ge=1)
+    at_time_s: float | None = param(None, unit="s", desc="first SYNC at or after this simulated time", ge=0)
+    cycles: int = param(0, desc="number of SYNCs the fault lasts (0 = for ever; drive_fault is one-shot)", ge=0)
+    code: int = param(0x2310, desc="drive_fault: CiA 301 error code sent by EMCY and shown in 0x603F", ge=1,
+                      le=0xFFFF)
+    jump_m: float = param(0.005, unit="m", desc="position_jump: offset added to the reported position")
+
+    def __post_init__(self) -> None:
+        if self.at_cycle is not None and self.at_time_s is not None:
+            raise ValueError("give at_cycle or at_time_s, not both")
+
+
+@dataclass
+class _Armed:
+    spec: FaultSpec
+    start: int | None = None  # resolved first SYNC number
+    fired: bool = False
+
+
+@dataclass
+class FaultSchedule:
+    """The faults of one device, resolved against its SYNC counter and simulated time."""
+
+    device: str
+    armed: list[_Armed] = field(default_factory=list)
+
+    def add(self, spec: FaultSpec, next_cycle: int) -> None:
+        a = _Armed(spec)
+        if spec.at_cycle is not None:
+            a.start = spec.at_cycle
+        elif spec.at_time_s is None:
+            a.start = next_cycle
+        self.armed.append(a)
+
+    def clear(self) -> None:
+        self.armed.clear()
+
+    def at_sync(self, cycle: int, t_s: float) -> set[SimFault]:
+        """Kinds active at SYNC number ``cycle`` (simulated time ``t_s``); one-shots fire once."""
+        active: set[SimFault] = set()
+        for a in self.armed:
+            if a.start is None:
+                if a.spec.at_time_s is not None and t_s + 1e-12 >= a.spec.at_time_s:
+                    a.start = cycle
+                else:
+                    continue
+            if cycle < a.start:
+                continue
+            if a.spec.kind is SimFault.DRIVE_FAULT:
+                if not a.fired:
+                    a.fired = True
+                    active.add(SimFault.DRIVE_FAULT)
+                continue
+            if a.spec.cycles == 0 or cycle < a.start + a.spec.cycles:
+                active.add(a.spec.kind)
+        return active
+
+    def spec_of(self, kind: SimFault) -> FaultSpec | None:
+        """The most recently added spec of ``kind`` (for its parameters)."""
+        for a in reversed(self.armed):
+            if a.spec.kind is kind:
+                return a.spec
+        return None
+
+    def jump_m(self, active: set[SimFault]) -> float:
+        if SimFault.POSITION_JUMP not in active:
+            return 0.0
+        spec = self.spec_of(SimFault.POSITION_JUMP)
+        return spec.jump_m if spec else 0.0

@@ -1,0 +1,374 @@
+"""SimWorld: the plant plus the virtual devices around it, built from the ``sim:`` config section.
+
+Two ways to run the virtual devices, switchable at any time:
+
+* **thread mode** (``start()``): one background thread receives the device-side bus and serves the devices
+  (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Used for SDO configuration,
+  real-time runs, ``stagectl sim-plant`` and canopen's own master in tests.
+* **lock-step mode** (``pump()``): the caller's thread drains the device-side bus with ``recv(timeout=0)``
+  and processes every frame synchronously; device time is simulated: each SYNC advances it by the drive's
+  communication cycle period (0x1006), ``advance(dt_s)`` advances it without SYNC (e.g. to let the drive's
+  heartbeat consumer expire). The first ``pump()`` while the thread runs stops the thread (the switch is
+  seamless: simulated time continues from the wall-clock time reached). Give ``world.pump`` to the
+  drivers' ``set_pump`` for deterministic, faster-than-real-time runs.
+
+Transports: ``virtual`` (python-can in-process bus; channel name unique per world unless given, so
+tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
+process connects with python-can's stock socketcand client). ``ready_info()`` says where to connect.
+
+The plant is stepped only by the drive, at each SYNC, by exactly one nominal period; SYNC is dispatched
+to the drive before the encoder so the encoder samples the stepped plant.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import itertools
+import logging
+import os
+import threading
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from stagectl.drivers.canbus import close_bus, open_bus
+from stagectl.errors import ConfigError
+from stagectl.schema import param
+from stagectl.sim.cia402_drive import SimCia402Drive, SimCanopenDevice, SimDriveConfig
+from stagectl.sim.cia406_encoder import SimCia406Encoder, SimEncoderConfig
+from stagectl.sim.faults import FaultSpec, SimFault
+
+log = logging.getLogger(__name__)
+
+#: directory against which relative paths in ``sim.plant`` (model_file) are resolved while parsing
+SIM_BASE_DIR: contextvars.ContextVar[Path | None] = contextvars.ContextVar("SIM_BASE_DIR", default=None)
+_counter = itertools.count(1)
+
+
+@contextmanager
+def sim_base_dir(base_dir: str | Path | None) -> Iterator[None]:
+    """Resolve relative ``sim.plant.model_file`` against ``base_dir`` while loading a config."""
+    token = SIM_BASE_DIR.set(Path(base_dir) if base_dir is not None else None)
+    try:
+        yield
+    finally:
+        SIM_BASE_DIR.reset(token)
+
+
+def _parse_plant(value: Any, path: str, problems: list[str]) -> Any:
+    from stagectl.sim.plant import PlantConfig
+
+    try:
+        return PlantConfig.from_mapping(value, path=path, base_dir=SIM_BASE_DIR.get())
+    except ConfigError as exc:
+        problems.extend(exc.problems)
+        return None
+
+
+def _parse_interferometer(value: Any, path: str, problems: list[str]) -> Any:
+    if value is None:
+        return None
+    try:
+        from stagectl.sim.interferometer import SimInterferometerConfig
+    except ImportError:
+        problems.append(f"{path}: the simulated interferometer is not available in this build")
+        return None
+    from stagectl.schema import load
+
+    try:
+        return load(SimInterferometerConfig, value, path)
+    except ConfigError as exc:
+        problems.extend(exc.problems)
+        return None
+
+
+def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec, ...] | None:
+    from stagectl.schema import load
+
+    if value is None:
+        return ()
+    if not isinstance(value, (list, tuple)):
+        problems.append(f"{path}: expected a list of faults, got {value!r}")
+        return None
+    out: list[FaultSpec] = []
+    n0 = len(problems)
+    for i, item in enumerate(value):
+        try:
+            out.append(load(FaultSpec, item, f"{path}[{i}]"))
+        except ConfigError as exc:
+            problems.extend(exc.problems)
+    return tuple(out) if len(problems) == n0 else None
+
+
+@dataclass(frozen=True)
+class SimTransportConfig:
+    """Where the virtual devices listen (YAML ``sim.transport``)."""
+
+    kind: str = param("virtual", desc="virtual (in-process python-can bus) or socketcand (loopback TCP server)",
+                      choices=("virtual", "socketcand"))
+    channel: str = param("", desc="virtual bus channel name (empty = a unique name per world)")
+    host: str = param("127.0.0.1", desc="socketcand: listen address")
+    port: int = param(0, desc="socketcand: listen port (0 = ephemeral, see ready_info)", ge=0, le=65535)
+    can_name: str = param("can0", desc="socketcand: CAN interface name announced to clients")
+
+
+@dataclass(frozen=True)
+class SimWorldConfig:
+    """The simulated world (YAML ``sim:`` section)."""
+
+    plant: Any = param(desc="stage plant (stagectl.sim.plant.PlantConfig)", parse=_parse_plant)
+    drive: SimDriveConfig = param(default_factory=SimDriveConfig, desc="simulated CiA 402 drive")
+    encoder: SimEncoderConfig | None = param(None, desc="simulated CiA 406 encoder (optional)")
+    interferometer: Any = param(None, desc="simulated serial interferometer (optional; SimInterferometerConfig)",
+                                parse=_parse_interferometer)
+    transport: SimTransportConfig = param(default_factory=SimTransportConfig, desc="how clients connect")
+    faults: tuple[FaultSpec, ...] = param((), desc="scripted faults (list of {kind, device, at_cycle|at_time_s, ...})",
+                                          parse=_parse_faults)
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any] | None, path: str = "sim",
+                     base_dir: str | Path | None = None) -> SimWorldConfig:
+        """Validate the ``sim:`` mapping (all problems at once, as :class:`ConfigError`)."""
+        from stagectl.schema import load
+
+        with sim_base_dir(base_dir):
+            return load(cls, data or {}, path)
+
+
+class SimWorld:
+    """Plant + virtual CANopen drive (+ optional CiA 406 encoder and serial interferometer).
+
+    Use as a context manager or call :meth:`stop` (idempotent) to release the bus, threads and sockets.
+    """
+
+    def __init__(self, cfg: SimWorldConfig, plant: Any, base_dir: str | Path | None = None) -> None:
+        self.cfg = cfg
+        self.plant = plant
+        self.base_dir = Path(base_dir) if base_dir is not None else None
+        tr = cfg.transport
+        self.channel = tr.channel or f"stagectl-sim-{os.getpid()}-{next(_counter)}-{id(self):x}"
+        self._bus: can.BusABC | None = None
+        self._lock = threading.RLock()
+        self._thread: threading.Thread | None = None
+        self._stop_evt = threading.Event()
+        self._sim_t = 0.0
+        self._t0 = 0.0
+        self._closed = False
+        self.drive: SimCia402Drive | None = None
+        self.encoder: SimCia406Encoder | None = None
+        self.interferometer: Any = None
+        self.server: Any = None
+        self.frames_in = 0
+        self._thread_error: BaseException | None = None
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_config(cls, cfg: SimWorldConfig, base_dir: str | Path | None = None) -> SimWorld:
+        """Build the plant (``StagePlant(cfg.plant)``) and the world around it (nothing opened yet)."""
+        from stagectl.sim.plant import StagePlant
+
+        return cls(cfg, StagePlant(cfg.plant), base_dir)
+
+    @property
+    def devices(self) -> list[SimCanopenDevice]:
+        return [d for d in (self.drive, self.encoder) if d is not None]
+
+    def open(self) -> None:
+        """Open the device-side bus, power the devices on (boot-up frames), start servers. Idempotent."""
+        if self._bus is not None:
+            return
+        if self._closed:
+            raise RuntimeError("SimWorld is stopped")
+        self._bus = open_bus({"interface": "virtual", "channel": self.channel}, path="sim.transport")
+        try:
+            send = self._send
+            self.drive = SimCia402Drive(self.plant, self.cfg.drive, send, self.base_dir)
+            if self.cfg.encoder is not None:
+                self.encoder = SimCia406Encoder(self.plant, self.cfg.encoder, send, self.base_dir)
+            for spec in self.cfg.faults:
+                self.inject(spec)
+            if self.cfg.transport.kind == "socketcand":
+                from stagectl.sim.socketcand import SocketcandServer
+
+                tr = self.cfg.transport
+                self.server = SocketcandServer(self.channel, tr.host, tr.port, tr.can_name)
+                self.server.start()
+            if self.cfg.interferometer is not None:
+                from stagectl.sim.interferometer import SimInterferometer
+
+                self.interferometer = SimInterferometer(self.plant, self.cfg.interferometer)
+            for d in self.devices:
+                d.power_on(self.now())
+        except BaseException:
+            self.stop()
+            raise
+
+    def _send(self, msg: can.Message) -> None:
+        bus = self._bus
+        if bus is not None:
+            bus.send(msg)
+
+    # ------------------------------------------------------------------ time
+    @property
+    def running(self) -> bool:
+        """True while the background device thread runs (thread mode)."""
+        return self._thread is not None
+
+    def now(self) -> float:
+        """Device time [s]: wall clock since start in thread mode, simulated time in lock-step."""
+        if self._thread is not None:
+            return time.monotonic() - self._t0
+        return self._sim_t
+
+    # ------------------------------------------------------------------ dispatch
+    def _dispatch(self, msg: can.Message) -> None:
+        self.frames_in += 1
+        if msg.arbitration_id == 0x080 and not msg.is_error_frame and self._thread is None and self.drive:
+            self._sim_t += self.drive.period_s
+        t = self.now()
+        for d in self.devices:
+            d.on_frame(msg, t)
+
+    def _tick(self) -> None:
+        t = self.now()
+        for d in self.devices:
+            d.tick(t)
+
+    # ------------------------------------------------------------------ thread mode
+    def start(self) -> None:
+        """Serve the devices from a background thread in real time (idempotent)."""
+        self.open()
+        if self._thread is not None:
+            return
+        with self._lock:
+            self._t0 = time.monotonic() - self._sim_t
+            self._stop_evt.clear()
+            self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
+            self._thread.start()
+        if self.interferometer is not None:
+            self.interferometer.start()
+
+    def _run(self) -> None:
+        bus = self._bus
+        assert bus is not None
+        try:
+            while not self._stop_evt.is_set():
+                msg = bus.recv(0.002)
+                with self._lock:
+                    while msg is not None:
+                        self._dispatch(msg)
+                        msg = bus.recv(0.0)
+                    self._tick()
+        except Exception as exc:  # noqa: BLE001 - reported by pump()/stop()
+            self._thread_error = exc
+            log.exception("sim world thread failed")
+
+    def _halt_thread(self) -> None:
+        t = self._thread
+        if t is None:
+            return
+        self._stop_evt.set()
+        t.join(5.0)
+        self._sim_t = time.monotonic() - self._t0
+        self._thread = None
+        if self.interferometer is not None:
+            self.interferometer.stop()
+
+    # ------------------------------------------------------------------ lock-step mode
+    def pump(self) -> int:
+        """Process every pending frame synchronously (lock-step); returns the number of frames handled.
+
+        Stops the background thread first if it runs. Never blocks, never sleeps.
+        """
+        if self._thread is not None:
+            self._halt_thread()
+        if self._thread_error is not None:
+            raise RuntimeError(f"sim world thread failed: {self._thread_error}") from self._thread_error
+        self.open()
+        bus = self._bus
+        assert bus is not None
+        n = 0
+        with self._lock:
+            while (msg := bus.recv(0.0)) is not None:
+                self._dispatch(msg)
+                self._tick()
+                n += 1
+            self._tick()
+        if self.interferometer is not None:
+            self.interferometer.pump()
+        return n
+
+    def advance(self, dt_s: float) -> None:
+        """Lock-step: advance device time by ``dt_s`` [s] without SYNC, running the timers (heartbeats)."""
+        if self._thread is not None:
+            raise RuntimeError("SimWorld.advance(): only in lock-step mode (the device thread is running)")
+        self.pump()
+        self._sim_t += float(dt_s)
+        with self._lock:
+            self._tick()
+        self.pump()
+
+    # ------------------------------------------------------------------ faults
+    def inject(self, spec: FaultSpec | SimFault | str, **kw: Any) -> FaultSpec:
+        """Schedule a fault (a :class:`FaultSpec`, or a kind plus FaultSpec fields)."""
+        if not isinstance(spec, FaultSpec):
+            spec = FaultSpec(kind=SimFault(spec) if isinstance(spec, str) else spec, **kw)
+        dev = self.drive if spec.device == "drive" else self.encoder
+        if dev is None:
+            if self._bus is None:
+                raise RuntimeError("SimWorld.inject(): open() or start() the world first")
+            raise ConfigError(f"sim.faults: device {spec.device!r} is not configured")
+        with self._lock:
+            dev.add_fault(spec)
+        return spec
+
+    def clear_faults(self) -> None:
+        with self._lock:
+            for d in self.devices:
+                d.faults.clear()
+
+    # ------------------------------------------------------------------ info / shutdown
+    def ready_info(self) -> dict[str, Any]:
+        """Where clients connect: the ``can:`` mapping for the drivers, node ids, serial URL."""
+        self.open()
+        tr = self.cfg.transport
+        info: dict[str, Any] = {"transport": tr.kind}
+        if tr.kind == "socketcand" and self.server is not None:
+            info["can"] = {"interface": "socketcand", "host": self.server.host, "port": self.server.port,
+                           "channel": tr.can_name}
+        else:
+            info["can"] = {"interface": "virtual", "channel": self.channel}
+        info["drive_node_id"] = self.cfg.drive.node_id
+        if self.cfg.encoder is not None:
+            info["encoder_node_id"] = self.cfg.encoder.node_id
+        if self.interferometer is not None:
+            info["interferometer_url"] = self.interferometer.url
+        return info
+
+    def stop(self) -> None:
+        """Stop the thread, close the servers and the bus. Idempotent."""
+        self._halt_thread()
+        self._closed = True
+        if self.interferometer is not None:
+            try:
+                self.interferometer.close()
+            except Exception:  # noqa: BLE001
+                log.debug("interferometer close failed", exc_info=True)
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        close_bus(self._bus)
+        self._bus = None
+
+    close = stop
+
+    def __enter__(self) -> SimWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
