@@ -23,9 +23,11 @@ DISCONNECTED       the port reports EOF or an I/O error (device unplugged, socke
 
 All of them are detected in the read that sees the cause, so within 3 cycles when ``stale_cycles ≤ 3``.
 
-Lock-step (``set_pump(pump)``): ``read()`` calls ``pump()`` first. If ``pump()`` returns an ``int``, that is
-the number of bytes the simulated device wrote, and ``read()`` waits (``select``) until that many more bytes
-have arrived; if it returns ``None`` it waits for one new frame. ``lockstep_timeout_s`` bounds the wait as a
+Lock-step (``set_pump(pump)``): ``read()`` calls ``pump()`` first. If ``pump()`` returns a
+:class:`~stagectl.drivers.interferometer_protocol.LinkBytes` (as ``SimInterferometer.pump`` does), that is the
+number of bytes the simulated device wrote, and ``read()`` waits (``select``) until that many more bytes have
+arrived (none for 0: a dropped or suppressed frame costs no wait); for any other return value it waits for
+one new frame. ``lockstep_timeout_s`` bounds the wait as a
 failure guard only; the simulated device writes synchronously inside ``pump()``, so a healthy run never
 reaches it and is deterministic.
 """
@@ -41,7 +43,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor
-from stagectl.drivers.interferometer_protocol import Frame, FrameParser, ParserStats, Status
+from stagectl.drivers.interferometer_protocol import Frame, FrameParser, LinkBytes, ParserStats, Status
 from stagectl.errors import DriverInitError, DriverIOError
 from stagectl.schema import param
 
@@ -203,7 +205,7 @@ class SerialInterferometer(PositionSensor):
         expected = pump()
         deadline = time.monotonic() + self.cfg.lockstep_timeout_s
         frames: list[Frame] = []
-        if isinstance(expected, int) and not isinstance(expected, bool):
+        if isinstance(expected, LinkBytes):
             if expected <= 0:
                 return self._recv(0.0)
             while self._bytes_rx - before < expected:

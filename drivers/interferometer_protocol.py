@@ -54,6 +54,7 @@ __all__ = [
     "VERSION",
     "Frame",
     "FrameParser",
+    "LinkBytes",
     "ParserStats",
     "Status",
     "crc16",
@@ -81,6 +82,15 @@ class Status(enum.IntFlag):
     LASER_UNLOCKED = 0x04
     ERROR = 0x08
     OVERSPEED = 0x10
+
+
+class LinkBytes(int):
+    """Return type of a simulated device's lock-step ``pump()``: the number of bytes it has just written to
+    the link. A driver whose pump returns a ``LinkBytes`` waits for exactly that many bytes (0: none), so frames
+    that a fault suppressed cost no waiting; any other return value (e.g. ``SimWorld.pump``'s message count)
+    means "unknown", and the driver waits for one new frame instead."""
+
+    __slots__ = ()
 
 
 def crc16(data: bytes | bytearray | memoryview) -> int:

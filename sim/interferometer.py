@@ -12,7 +12,7 @@ Usage (lock-step, deterministic; the driver calls ``pump`` through ``set_pump``)
 Real time: ``sim.start()`` streams from a thread at ``rate_hz`` (absolute deadlines), ``sim.stop()`` ends it.
 
 Stable API (used by ``SimWorld``): ``SimInterferometer(plant, cfg)``, ``.url``, ``start()``, ``stop()``,
-``pump() -> int``, ``inject(kind, ...)``, ``disconnect()``, ``close()`` (idempotent; also a context manager).
+``pump() -> LinkBytes`` (an int: bytes written), ``inject(kind, ...)``, ``disconnect()``, ``close()`` (idempotent; also a context manager).
 
 Plant interface (duck-typed, see ``sim/plant.py``): ``plant.measure() -> float`` position [m] as seen by the
 sensor model (noise, delay), and ``plant.t_s`` plant time [s]. Each frame carries
@@ -45,6 +45,7 @@ from __future__ import annotations
 import enum
 import os
 import random
+import select
 import socket
 import tempfile
 import threading
@@ -55,7 +56,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol
 
-from stagectl.drivers.interferometer_protocol import Status, encode_frame
+from stagectl.drivers.interferometer_protocol import LinkBytes, Status, encode_frame
 from stagectl.errors import ConfigError
 from stagectl.schema import param
 
@@ -124,6 +125,9 @@ _MAX_PENDING = 64 * 1024
 class SimInterferometer:
     """Virtual interferometer reading ``plant`` (see module docstring). Not real-time safe itself; run it in
     its own thread (``start``) or call ``pump`` from the test/loop thread (lock-step)."""
+
+    #: lock-step failure guard [s]: longest wait for written pty bytes to become readable
+    lockstep_guard_s = 1.0
 
     def __init__(self, plant: Any, cfg: SimInterferometerConfig | None = None) -> None:
         self.plant = plant
@@ -361,16 +365,18 @@ class SimInterferometer:
         self.frames_sent += 1
         return prefix + frame, True
 
-    def pump(self) -> int:
+    def pump(self) -> LinkBytes:
         """Lock-step: emit the frame(s) due now and return the number of bytes written to the link.
 
         ``per_pump``: exactly one sample slot per call. ``plant_time``: one slot per elapsed ``1/rate_hz`` of
-        ``plant.t_s`` since the first call (possibly none). Synchronous, never sleeps.
+        ``plant.t_s`` since the first call (possibly none). Synchronous, never sleeps. pty: returns only once
+        the bytes are readable on the slave side (the kernel moves pty data through a work queue), so a client
+        that polls after ``pump()`` finds them; ``lockstep_guard_s`` bounds that wait as a failure guard.
         """
         if self._thread is not None:
             raise RuntimeError("SimInterferometer.pump(): streaming thread is running (call stop() first)")
         if self._closed:
-            return 0
+            return LinkBytes(0)
         ts = round(float(self.plant.t_s) * 1e9)
         if self.cfg.lockstep == "per_pump":
             due = 1
@@ -384,7 +390,9 @@ class SimInterferometer:
         for _ in range(due):
             data, _adv = self._make(ts)
             n += self._write(data)
-        return n
+        if n and self._slave >= 0:
+            select.select([self._slave], [], [], self.lockstep_guard_s)
+        return LinkBytes(n)
 
     # ------------------------------------------------------------------ streaming thread
     def start(self) -> None:
