@@ -1,0 +1,370 @@
+"""The stage controller the loop steps: PID + disturbance observer + friction and inertia feed-forward.
+
+Per step (dt [s], measured position x [m], reference r = (x_r, v_r, a_r))::
+
+    v̂      = LPF_fv( (x_k − x_{k−1})/dt )                velocity estimate [m/s] (no filter if fv is None)
+    u_ff   = friction feed-forward along the reference     (kind none | coulomb | model)       [N]
+    u_in   = m_ff·a_r                                      inertia feed-forward (if inertia)   [N]
+    d̂      = DOB(x_k, v̂_k, u_obs,k−1)                      (kind none | qfilter | kalman)      [N]
+    u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ , ±max_force_n )
+    u_obs,k = u − u_ff                                      residual form, FRICTION_MODELS.md §6.2
+
+Terms in ``Command.terms`` (newtons): ``u_pid`` (= ``u_p`` + ``u_i`` + ``u_d``), ``u_dob``, ``u_ff``,
+``u_inertia``. ``Command.limited`` holds ``"force"`` when the output was clamped and ``"anti_windup"``
+when the integrator was held.
+
+Masses: ``mass_kg`` is the nominal moving mass; ``dob.nominal_mass_kg`` and ``feedforward.mass_kg`` override
+it for the observer and the inertia feed-forward. If ``mass_kg`` is not set, the model file's ``mass_kg``
+is used.
+
+Real-time safety: ``step`` is (floats only, no allocation beyond the Command). ``StageController(...)``,
+``retune`` and ``prepare_retune`` are not (the Kalman form designs its gain with python-control); for a
+reload from another thread use ``request_retune`` (prepares there, swaps at the next cycle boundary).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from stagectl.control.api import Command, Reference
+from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
+from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
+from stagectl.control.pid import Pid, PidConfig, check_dt
+from stagectl.errors import ConfigError
+from stagectl.friction import StageModel, load_model_file, parse_friction
+from stagectl.friction.base import FrictionModel
+from stagectl.friction.effects import Effects
+from stagectl.schema import param
+
+#: names of the terms in ``Command.terms`` (telemetry columns), all in newtons
+TERM_NAMES = ("u_pid", "u_p", "u_i", "u_d", "u_dob", "u_ff", "u_inertia")
+
+
+@dataclass(frozen=True)
+class FeedforwardConfig:
+    """Feed-forward settings (YAML ``controller.feedforward``)."""
+
+    kind: str = param("model", desc="friction feed-forward: none, coulomb (static baseline) or model (GMS...)",
+                      choices=("none", "coulomb", "model"))
+    model_file: Path | None = param(None, desc="stage model file (friction + effects) for kind: model")
+    friction: FrictionModel | None = param(None, desc="inline friction model (model: tag + parameters)",
+                                           parse=parse_friction)
+    effects: Effects | None = param(None, desc="inline effects (overrides the model file's)")
+    inertia: bool = param(True, desc="add the inertia feed-forward m·a_ref")
+    mass_kg: float | None = param(None, unit="kg", desc="mass of the inertia feed-forward (None: controller mass_kg)",
+                                  gt=0.0)
+    coulomb_n: float = param(0.0, unit="N", desc="kind coulomb: Coulomb level F_c", ge=0.0)
+    viscous_n_s_m: float = param(0.0, unit="N*s/m", desc="kind coulomb: viscous coefficient", ge=0.0)
+    reversal_threshold_m: float = param(5e-9, unit="m", desc="move-back that confirms a reversal", ge=0.0)
+    reversal_velocity_m_s: float = param(1e-5, unit="m/s", desc="reverse velocity that confirms a reversal",
+                                         gt=0.0)
+    lookahead_s: float | None = param(
+        None, unit="s", desc="evaluate the reference this far ahead, plus effects.delay (None: period_s/2, the "
+        "zero-order-hold mid-point; add the I/O delay of the actuator path)", ge=0.0, le=0.1)
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Controller settings (YAML ``controller:``)."""
+
+    mass_kg: float | None = param(None, unit="kg", desc="nominal moving mass (None: the model file's mass_kg)",
+                                  gt=0.0)
+    max_force_n: float = param(10.0, unit="N", desc="output force clamp", gt=0.0)
+    velocity_cutoff_hz: float | None = param(None, unit="Hz", desc="low-pass of the velocity estimate (None: raw)",
+                                             gt=0.0)
+    pid: PidConfig = param(default_factory=PidConfig, desc="PID gains")
+    dob: DobConfig = param(default_factory=DobConfig, desc="disturbance observer")
+    feedforward: FeedforwardConfig = param(default_factory=FeedforwardConfig, desc="feed-forward")
+
+
+@dataclass
+class ControllerState:
+    """Diagnostics of the last step."""
+
+    x_prev_m: float = math.nan
+    v_hat_m_s: float = 0.0
+    u_n: float = 0.0
+    u_obs_prev_n: float = 0.0
+    u_ff_n: float = 0.0
+    u_inertia_n: float = 0.0
+    d_hat_n: float = 0.0
+    steps: int = 0
+    terms: dict[str, float] = field(default_factory=dict)
+
+
+def resolve_model(cfg: ControllerConfig, model: StageModel | FrictionModel | None = None,
+                  base_dir: str | Path | None = None) -> StageModel | None:
+    """The stage model the feed-forward uses: ``model`` argument > inline ``friction`` > ``model_file``.
+
+    Relative ``model_file`` paths are taken relative to ``base_dir`` (the config file's directory) when given.
+    """
+    ff = cfg.feedforward
+    sm: StageModel | None
+    if isinstance(model, FrictionModel):
+        sm = StageModel(friction=model)
+    else:
+        sm = model
+    if sm is None and ff.friction is not None:
+        sm = StageModel(friction=ff.friction)
+    if sm is None and ff.model_file is not None:
+        p = Path(ff.model_file)
+        if base_dir is not None and not p.is_absolute():
+            p = Path(base_dir) / p
+        sm = load_model_file(p)
+    if sm is not None and ff.effects is not None:
+        sm = StageModel(friction=sm.friction, effects=ff.effects, mass_kg=sm.mass_kg, meta=sm.meta)
+    return sm
+
+
+@dataclass
+class _Parts:
+    cfg: ControllerConfig
+    mass_kg: float
+    pid_cfg: PidConfig
+    dob: QFilterDob | KalmanDob | None
+    ff: FrictionFeedforward | CoulombFeedforward | None
+    ff_rebuilt: bool
+    dob_rebuilt: bool
+
+
+class StageController:
+    """PID + DOB + feed-forward (see module docstring).
+
+    Parameters
+    ----------
+    cfg : ControllerConfig
+    period_s : float
+        Nominal control period [s]; discrete coefficients are derived for it once (and re-derived only if a
+        step's ``dt`` differs).
+    model : StageModel or FrictionModel, optional
+        Model for ``feedforward.kind: model`` (takes precedence over the config's friction/model_file).
+    base_dir : path, optional
+        Directory for relative ``feedforward.model_file`` paths.
+
+    Raises
+    ------
+    ConfigError
+        No mass available, or ``kind: model`` without any model.
+    """
+
+    def __init__(self, cfg: ControllerConfig, period_s: float, model: StageModel | FrictionModel | None = None,
+                 *, base_dir: str | Path | None = None):
+        check_dt(period_s)
+        self.period_s = period_s
+        self._model_arg = model
+        self._base_dir = base_dir
+        self.state = ControllerState()
+        self._pending: _Parts | None = None
+        parts = self._build(cfg, None)
+        self.cfg = cfg
+        self.mass_kg = parts.mass_kg
+        self.pid = Pid(cfg.pid)
+        self.dob = parts.dob
+        self.ff = parts.ff
+        self._vbeta = 0.0
+        self._vdt = math.nan
+        self.reset(0.0)
+
+    # ------------------------------------------------------------------ construction
+    def _build(self, cfg: ControllerConfig, old: StageController | None) -> _Parts:
+        problems: list[str] = []
+        sm: StageModel | None = None
+        ffc = cfg.feedforward
+        same_ff = old is not None and old.cfg.feedforward == ffc
+        if ffc.kind == "model" and not same_ff:
+            try:
+                sm = resolve_model(cfg, self._model_arg, self._base_dir)
+            except ConfigError as exc:
+                problems.extend(f"controller.feedforward.model_file: {p}" for p in exc.problems)
+            else:
+                if sm is None:
+                    problems.append("controller.feedforward: kind 'model' needs friction:, model_file: or a model "
+                                    "from the application (or use kind: none / coulomb)")
+        mass = cfg.mass_kg
+        if mass is None:
+            if sm is None and isinstance(self._model_arg, StageModel):
+                sm = self._model_arg
+            if sm is None and ffc.model_file is not None:
+                try:
+                    sm = resolve_model(cfg, None, self._base_dir)
+                except ConfigError:
+                    sm = None
+            mass = sm.mass_kg if sm is not None else None
+        if mass is None:
+            problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
+                            "or give mass_kg in the model file)")
+        if problems or mass is None:
+            raise ConfigError(problems)
+        # feed-forward
+        ff: FrictionFeedforward | CoulombFeedforward | None
+        kw = dict(reversal_threshold_m=ffc.reversal_threshold_m, reversal_velocity_m_s=ffc.reversal_velocity_m_s,
+                  lookahead_s=self.period_s / 2.0 if ffc.lookahead_s is None else ffc.lookahead_s)
+        if same_ff and old is not None:
+            ff = old.ff
+        elif ffc.kind == "model" and sm is not None:
+            ff = FrictionFeedforward(sm.friction, sm.effects, **kw)
+        elif ffc.kind == "coulomb":
+            eff = ffc.effects if ffc.effects is not None else Effects()
+            ff = CoulombFeedforward(ffc.coulomb_n, ffc.viscous_n_s_m, eff, **kw)
+        else:
+            ff = None
+        # observer
+        dob: QFilterDob | KalmanDob | None
+        dob_rebuilt = True
+        if old is not None and old.dob is not None and old.cfg.dob.kind == cfg.dob.kind:
+            dob = old.dob  # retuned at apply time (bumpless)
+            dob_rebuilt = False
+            if isinstance(dob, KalmanDob) and (old.cfg.dob != cfg.dob or old.mass_kg != mass):
+                # design the new gain here (outside the loop), swap it in at apply time
+                dob = KalmanDob(cfg.dob, mass, self.period_s)
+                dob.state = old.dob.state
+                dob_rebuilt = False
+        else:
+            dob = make_dob(cfg.dob, mass, self.period_s)
+        return _Parts(cfg, mass, cfg.pid, dob, ff, not same_ff, dob_rebuilt)
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self, x_m: float, u_n: float = 0.0) -> None:
+        """Bumpless start at the measured position ``x_m`` [m]; the first output is ≈ ``u_n`` [N].
+
+        Resets the integrator (preloaded with ``u_n``), the observer (d̂ = 0 at ``x_m``) and the
+        feed-forward model (relaxed state at ``x_m``).
+        """
+        if not math.isfinite(x_m):
+            raise ValueError(f"x_m must be finite (got {x_m})")
+        self.pid.reset()
+        self.pid.preload(u_n, 0.0)
+        if self.dob is not None:
+            self.dob.reset(x_m)
+        if self.ff is not None:
+            self.ff.reset(x_m)
+        self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
+
+    def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
+        """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
+        return self._build(new_cfg, self)
+
+    def request_retune(self, new_cfg: ControllerConfig) -> None:
+        """Prepare now (caller's thread); the swap happens at the start of the next ``step``."""
+        self._pending = self.prepare_retune(new_cfg)
+
+    def retune(self, new_cfg: ControllerConfig) -> None:
+        """Apply new settings now (call between steps), bumplessly.
+
+        PID: the PID term keeps its value (integrator absorbs the gain change). Observer of the same kind:
+        d̂ keeps its value. Observer switched off: its last d̂ moves into the integrator; switched on: it
+        starts at d̂ = 0. Feed-forward changed: the new one starts relaxed at the current reference and the
+        old one's last force moves into the integrator.
+        """
+        self._apply(self.prepare_retune(new_cfg))
+
+    def _apply(self, parts: _Parts) -> None:
+        st = self.state
+        transfer = 0.0
+        # observer
+        old_dob = self.dob
+        new_dob = parts.dob
+        if old_dob is not None and new_dob is None:
+            transfer += old_dob.state.d_hat_n
+        elif new_dob is not None and parts.dob_rebuilt:
+            d0 = 0.0
+            if old_dob is not None:  # kind changed: keep d̂ continuous
+                d0 = old_dob.state.d_hat_n
+            x_now = st.x_prev_m if not math.isnan(st.x_prev_m) else 0.0
+            new_dob.reset(x_now, d0)
+            if isinstance(new_dob, QFilterDob):
+                new_dob.state.v_hat_m_s = st.v_hat_m_s
+        elif new_dob is not None:
+            new_dob.retune(parts.cfg.dob, parts.mass_kg)
+        # feed-forward
+        if parts.ff_rebuilt:
+            transfer += st.u_ff_n
+            if parts.ff is not None:
+                ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
+                parts.ff.reset(ref_x)
+            st.u_ff_n = 0.0
+            st.u_obs_prev_n = st.u_n
+        self.pid.retune(parts.pid_cfg)
+        if transfer:
+            self.pid.preload(self.pid.state.u_pid_n + transfer)
+        self.cfg = parts.cfg
+        self.mass_kg = parts.mass_kg
+        self.dob = new_dob
+        self.ff = parts.ff
+        self._vdt = math.nan
+
+    _last_ref: Reference | None = None
+
+    # ------------------------------------------------------------------ loop
+    def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command:
+        """One control step (real-time safe). Raises ``ValueError`` on bad dt or non-finite inputs."""
+        check_dt(dt)
+        if not math.isfinite(x_meas_m):
+            raise ValueError(f"x_meas_m must be finite (got {x_meas_m})")
+        if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
+            raise ValueError(f"reference must be finite (got {ref})")
+        pend = self._pending
+        if pend is not None:
+            self._pending = None
+            self._apply(pend)
+        cfg = self.cfg
+        st = self.state
+        # velocity estimate
+        v_raw = 0.0 if math.isnan(st.x_prev_m) else (x_meas_m - st.x_prev_m) / dt
+        if cfg.velocity_cutoff_hz is None:
+            v_hat = v_raw
+        else:
+            if dt != self._vdt:
+                self._vdt = dt
+                self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
+            v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
+        # feed-forward
+        ff = self.ff
+        u_ff = ff.step(dt, ref) if ff is not None else 0.0
+        ffc = cfg.feedforward
+        if ffc.inertia:
+            m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
+            u_in = m_ff * ref.a_m_s2
+        else:
+            u_in = 0.0
+        # observer (residual form: its input is the previous command minus the previous friction FF)
+        dob = self.dob
+        d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
+        # feedback + clamp
+        pid = self.pid
+        u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat, cfg.max_force_n)
+        ps = pid.state
+        st.x_prev_m = x_meas_m
+        st.v_hat_m_s = v_hat
+        st.u_n = u
+        st.u_ff_n = u_ff
+        st.u_inertia_n = u_in
+        st.d_hat_n = d_hat
+        st.u_obs_prev_n = u - u_ff
+        st.steps += 1
+        self._last_ref = ref
+        terms = {"u_pid": ps.u_pid_n, "u_p": ps.p_n, "u_i": ps.i_n, "u_d": ps.d_n, "u_dob": d_hat, "u_ff": u_ff,
+                 "u_inertia": u_in}
+        st.terms = terms
+        if ps.saturated:
+            limited: tuple[str, ...] = ("force", "anti_windup") if not ps.integrating else ("force",)
+        elif not ps.integrating:
+            limited = ("anti_windup",)
+        else:
+            limited = ()
+        return Command(u, terms, limited)
+
+
+def controller_from_mapping(data: Any, period_s: float, model: StageModel | FrictionModel | None = None,
+                            base_dir: str | Path | None = None) -> StageController:
+    """Convenience: ``controller:`` YAML mapping -> :class:`StageController` (errors as ConfigError)."""
+    from stagectl.schema import load
+
+    return StageController(load(ControllerConfig, data, "controller"), period_s, model, base_dir=base_dir)
+
+
+__all__ = ["TERM_NAMES", "ControllerConfig", "ControllerState", "FeedforwardConfig", "StageController",
+           "controller_from_mapping", "resolve_model", "DobConfig", "PidConfig"]

@@ -1,0 +1,270 @@
+"""Start-up / offline gain design and loop analysis (python-control, imported lazily inside functions).
+
+Not real-time: call at start-up (before ``gc.freeze()``) or from ``stagectl tune``. Importing this module
+is cheap; python-control is imported only by the functions that need it.
+
+PID rule ("loop shaping" for a rigid mass m [kg] with target crossover f_c [Hz], ω_c = 2π·f_c)::
+
+    C(s) = Kd·s/(1 + s/ω_f) + Kp + Ki/s,   Kp = Kd·ω_c/3,   Ki = Kp·ω_c/10,   ω_f = 2π·min(5·f_c, 0.2/period_s)
+
+i.e. the PD zero a factor 3 below crossover (≈ 70° of lead), the integral zero a decade below it, the
+derivative filter 5× above; Kd is then scaled so that |L(e^{jω_c T})| = 1 exactly on the *discrete* loop
+(ZOH plant, I/O delay, the PID as implemented). ``bandwidth_hz`` therefore is the open-loop crossover.
+Seed stage (2 kg, 1 kHz, one sample of I/O delay) at 20 Hz: Kp ≈ 9.85e3 N/m, Ki ≈ 1.24e5 N/(m·s),
+Kd ≈ 235 N·s/m, cut-off 100 Hz, phase margin ≈ 49°, gain margin ≈ 14.6 dB.
+
+Loop analysis: discrete plant P(z) = ZOH{1/(m s² + c s)} at ``period_s`` times z^−n for n samples of
+I/O delay, with the discrete PID exactly as implemented in :mod:`stagectl.control.pid` and, if given, the
+Q-filter DOB of :mod:`stagectl.control.dob`. With the DOB, d̂ = H_u·u − H_y·y and the loop opened at the
+plant input is ``L = P·(C + H_y)/(1 − H_u)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stagectl.control.pid import PidConfig
+
+#: ratios of the PID rule: crossover / PD zero, crossover / integral zero, derivative filter / crossover
+PD_RATIO = 3.0
+INTEGRAL_RATIO = 10.0
+DERIV_RATIO = 5.0
+
+
+def design_pid(mass_kg: float, bandwidth_hz: float, period_s: float, delay_samples: int = 1,
+               viscous_n_s_m: float = 0.0, **overrides: Any) -> PidConfig:
+    """PID gains from mass and target crossover (rule in the module docstring; imports python-control)."""
+    if not (mass_kg > 0 and bandwidth_hz > 0 and period_s > 0):
+        raise ValueError("mass_kg, bandwidth_hz and period_s must be > 0")
+    if bandwidth_hz >= 0.5 / period_s:
+        raise ValueError(f"bandwidth_hz {bandwidth_hz:g} Hz must be below the Nyquist frequency {0.5 / period_s:g} Hz")
+    wc = 2.0 * math.pi * bandwidth_hz
+    cut = min(DERIV_RATIO * bandwidth_hz, 0.2 / period_s)
+    unit = PidConfig(kp_n_m=wc / PD_RATIO, ki_n_m_s=wc / PD_RATIO * wc / INTEGRAL_RATIO, kd_n_s_m=1.0,
+                     derivative_cutoff_hz=cut)
+    L = plant_tf(mass_kg, period_s, delay_samples, viscous_n_s_m) * pid_tf(unit, period_s)
+    k = 1.0 / abs(complex(L(np.exp(1j * wc * period_s))))
+    kw: dict[str, Any] = dict(kp_n_m=unit.kp_n_m * k, ki_n_m_s=unit.ki_n_m_s * k, kd_n_s_m=k,
+                              derivative_cutoff_hz=cut)
+    kw.update(overrides)
+    return PidConfig(**kw)
+
+
+# ---------------------------------------------------------------------------------------------- Kalman
+
+
+def _kalman_matrices(mass_kg: float, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    m = mass_kg
+    A = np.array([[1.0, dt, -dt * dt / (2 * m)], [0.0, 1.0, -dt / m], [0.0, 0.0, 1.0]])
+    B = np.array([[dt * dt / (2 * m)], [dt / m], [0.0]])
+    C = np.array([[1.0, 0.0, 0.0]])
+    return A, B, C
+
+
+def kalman_gain_for_noise(mass_kg: float, dt: float, measurement_noise_m: float,
+                          disturbance_noise_n_sqrt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Steady-state *filter-form* gain K (3,) and the a-priori covariance P (3, 3).
+
+    Uses ``control.dlqe`` on the ZOH model of ``dob`` with process noise only on τ (variance
+    q²·dt per step) and measurement variance r². dlqe returns the predictor gain L = A·P·Cᵀ(C·P·Cᵀ + R)⁻¹
+    for x[k+1] = A·x + B·u + L(y − C·x) together with the a-priori P; the filter-form gain for
+    x⁺ = x⁻ + K(z − C·x⁻) is K = P·Cᵀ(C·P·Cᵀ + R)⁻¹ (PLATFORM_NOTES.md §6: plugging L in diverges).
+    """
+    import control
+
+    A, _, C = _kalman_matrices(mass_kg, dt)
+    Q = np.diag([0.0, 0.0, disturbance_noise_n_sqrt_s ** 2 * dt])
+    R = np.array([[measurement_noise_m ** 2]])
+    _L, P, _E = control.dlqe(A, np.eye(3), C, Q, R)
+    P = np.asarray(P)
+    S = float((C @ P @ C.T)[0, 0] + R[0, 0])
+    K = (P @ C.T)[:, 0] / S
+    return K, P
+
+
+def observer_bandwidth_hz(K: np.ndarray, mass_kg: float, dt: float) -> float:
+    """Geometric mean of |s_i|/2π of the filter error poles, s_i = ln(λ_i)/dt, λ_i = eig((I − K·C)·A)."""
+    A, _, C = _kalman_matrices(mass_kg, dt)
+    lam = np.linalg.eigvals((np.eye(3) - np.outer(K, C[0])) @ A)
+    s = np.log(lam.astype(complex)) / dt
+    return float(np.exp(np.mean(np.log(np.abs(s)))) / (2 * math.pi))
+
+
+def kalman_gain(mass_kg: float, dt: float, bandwidth_hz: float, measurement_noise_m: float = 1e-9,
+                disturbance_noise_n_sqrt_s: float | None = None) -> tuple[float, float, float]:
+    """Filter-form steady-state gain (k_x, k_v, k_τ) for the Kalman DOB.
+
+    If ``disturbance_noise_n_sqrt_s`` is None it is found by bisection (in log scale) so that
+    :func:`observer_bandwidth_hz` equals ``bandwidth_hz``.
+    """
+    if disturbance_noise_n_sqrt_s is None:
+        lo, hi = -12.0, 14.0
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, 10.0 ** mid)
+            if observer_bandwidth_hz(K, mass_kg, dt) < bandwidth_hz:
+                lo = mid
+            else:
+                hi = mid
+        q = 10.0 ** (0.5 * (lo + hi))
+    else:
+        q = disturbance_noise_n_sqrt_s
+    K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, q)
+    return float(K[0]), float(K[1]), float(K[2])
+
+
+# ---------------------------------------------------------------------------------------------- analysis
+
+
+@dataclass
+class LoopAnalysis:
+    """Margins of one loop (gain margin [dB], phase margin [deg], crossover frequencies [Hz])."""
+
+    name: str
+    gain_margin_db: float
+    phase_margin_deg: float
+    crossover_hz: float
+    phase_crossover_hz: float
+    stable: bool
+    freq_hz: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    mag_db: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    phase_deg: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "gain_margin_db": self.gain_margin_db,
+            "phase_margin_deg": self.phase_margin_deg,
+            "crossover_hz": self.crossover_hz,
+            "phase_crossover_hz": self.phase_crossover_hz,
+            "closed_loop_stable": self.stable,
+        }
+
+
+def _zinv(dt: float, n: int = 1) -> Any:
+    import control
+
+    return control.tf([1.0], [1.0] + [0.0] * n, dt) if n else control.tf([1.0], [1.0], dt)
+
+
+def pid_tf(pid: PidConfig, dt: float) -> Any:
+    """Discrete PID of :mod:`stagectl.control.pid` (error -> force) as a transfer function in z."""
+    import control
+
+    b = math.exp(-2 * math.pi * pid.derivative_cutoff_hz * dt)
+    z = control.tf([1.0, 0.0], [1.0], dt)
+    integ = pid.ki_n_m_s * dt * z / (z - 1)
+    deriv = pid.kd_n_s_m * (1 - b) / dt * (z - 1) / (z - b)
+    return control.tf([pid.kp_n_m], [1.0], dt) + integ + deriv
+
+
+def plant_tf(mass_kg: float, dt: float, delay_samples: int = 1, viscous_n_s_m: float = 0.0) -> Any:
+    """ZOH-discretised rigid mass (with optional viscous damping) and ``delay_samples`` of I/O delay."""
+    import control
+
+    P = control.c2d(control.tf([1.0], [mass_kg, viscous_n_s_m, 0.0]), dt, "zoh")
+    return P * _zinv(dt, delay_samples) if delay_samples else P
+
+
+def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_samples: int = 0) -> tuple[Any, Any]:
+    """(H_u, H_y) of the Q-filter DOB: d̂ = H_u·u − H_y·y (backward-difference velocity)."""
+    import control
+
+    g = 2 * math.pi * bandwidth_hz
+    a = math.exp(-g * dt)
+    z = control.tf([1.0, 0.0], [1.0], dt)
+    Hu = (1 - a) / (z - a)  # (1-a) z^-1 / (1 - a z^-1)
+    one = control.tf([1.0], [1.0], dt)
+    Hy = mass_kg * g * (one - Hu) * (z - 1) / (z * dt)
+    if command_delay_samples:
+        Hu = Hu * _zinv(dt, command_delay_samples)
+    return Hu, Hy
+
+
+def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
+    """Margins, crossover and frequency response of an open loop L(z); closed-loop stability of 1/(1+L)."""
+    import control
+
+    L = control.minreal(L, verbose=False) if hasattr(control, "minreal") else L
+    f = np.logspace(-1, math.log10(0.5 / dt * 0.999), n_points)
+    w = 2 * math.pi * f
+    resp = L(np.exp(1j * w * dt))
+    mag = np.abs(resp)
+    ph = np.unwrap(np.angle(resp))
+    # margins from the dense response (robust against high-order numerics), checked against control.margin
+    gm_db, pm_deg, wc_hz, wp_hz = _margins_from_response(f, mag, ph)
+    cl = control.feedback(L, 1)
+    stable = bool(np.all(np.abs(control.poles(cl)) < 1.0))
+    return LoopAnalysis(name, gm_db, pm_deg, wc_hz, wp_hz, stable, f, 20 * np.log10(mag), np.degrees(ph))
+
+
+def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tuple[float, float, float, float]:
+    pm, wc = math.inf, math.nan
+    above = mag >= 1.0
+    idx = np.nonzero(above[:-1] & ~above[1:])[0]
+    if idx.size:
+        i = int(idx[-1])
+        t = (0.0 - math.log(mag[i])) / (math.log(mag[i + 1]) - math.log(mag[i]))
+        wc = float(f[i] * (f[i + 1] / f[i]) ** t)
+        p = ph[i] + t * (ph[i + 1] - ph[i])
+        pm = float(math.degrees(p) + 180.0)
+        pm = (pm + 180.0) % 360.0 - 180.0
+    gm, wp = math.inf, math.nan
+    # phase crossings of -180° (mod 360) above the gain crossover
+    phd = np.degrees(ph)
+    k = np.floor((phd + 180.0) / 360.0)
+    cross = np.nonzero(np.diff(k) != 0)[0]
+    for i in cross:
+        if not math.isnan(wc) and f[i] < wc:
+            continue
+        gm_i = -20 * math.log10(max(mag[i], 1e-300))
+        if gm_i < gm:
+            gm, wp = float(gm_i), float(f[i])
+    return gm, pm, wc, wp
+
+
+def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int = 1,
+                   dob_bandwidth_hz: float | None = None, dob_command_delay_samples: int = 0,
+                   viscous_n_s_m: float = 0.0) -> list[LoopAnalysis]:
+    """Margins of PID alone and (if ``dob_bandwidth_hz``) PID + Q-filter DOB on the discrete plant."""
+    P = plant_tf(mass_kg, period_s, delay_samples, viscous_n_s_m)
+    C = pid_tf(pid, period_s)
+    out = [analyse("pid", P * C, period_s)]
+    if dob_bandwidth_hz:
+        Hu, Hy = qfilter_tfs(mass_kg, dob_bandwidth_hz, period_s, dob_command_delay_samples)
+        import control
+
+        one = control.tf([1.0], [1.0], period_s)
+        out.append(analyse("pid+dob", P * (C + Hy) / (one - Hu), period_s))
+    return out
+
+
+def bode_png(analyses: list[LoopAnalysis], path: str, title: str = "") -> None:
+    """Write a Bode plot (magnitude and phase of each open loop) as PNG (Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
+    for a in analyses:
+        lab = f"{a.name}: PM {a.phase_margin_deg:.1f}°, GM {a.gain_margin_db:.1f} dB, fc {a.crossover_hz:.1f} Hz"
+        ax1.semilogx(a.freq_hz, a.mag_db, label=lab)
+        ax2.semilogx(a.freq_hz, a.phase_deg, label=a.name)
+        if not math.isnan(a.crossover_hz):
+            ax1.axvline(a.crossover_hz, ls=":", lw=0.8)
+    ax1.axhline(0.0, color="k", lw=0.6)
+    ax2.axhline(-180.0, color="k", lw=0.6)
+    ax1.set_ylabel("|L| [dB]")
+    ax2.set_ylabel("phase [deg]")
+    ax2.set_xlabel("frequency [Hz]")
+    ax1.legend(fontsize=8)
+    ax1.grid(True, which="both", alpha=0.3)
+    ax2.grid(True, which="both", alpha=0.3)
+    ax1.set_title(title or "open loop at the plant input")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,220 @@
+"""Disturbance observers (DOB): Q-filter form and steady-state Kalman form.
+
+Plant and nominal model (FRICTION_MODELS.md §6.1)::
+
+    m·ẍ = u − F_f − d               lumped disturbance  τ = u − m_n·ẍ  = F_f + d + (m − m_n)·ẍ
+    u   = u_c + d̂                   the estimate is fed back (added to the command)
+
+**Residual form (§6.2).** The observer input ``u_obs`` must be the applied command *minus the friction
+model feed-forward* u_ff (the model is part of the nominal plant); then d̂ = Q·(τ − F̂) and the closed loop
+sees only (1 − Q)(F_f − F̂). Feeding the full u double-compensates. The controller does this; the observer
+only sees ``u_obs``. The inertia feed-forward m·a_ref is *not* subtracted (it really accelerates the mass).
+
+Q-filter form (``kind: qfilter``), Q = g/(s+g), g = 2π·``bandwidth_hz``, velocity-based and ZOH-discretised
+with α = exp(−g·dt)::
+
+    w_{k+1} = α·w_k + (1 − α)·(u_obs,k + m_n·g·v̂_k),       d̂_k = w_k − m_n·g·v̂_k
+
+with v̂ the velocity estimate [m/s] (backward difference, filtered, from the controller).
+
+Kalman form (``kind: kalman``), augmented state s = [x, v, τ] (m, m/s, N)::
+
+    ẋ = v,  v̇ = (u_obs − τ)/m_n,  τ̇ = w  (random walk)       measurement z = x_meas + noise
+
+ZOH-discretised (A, B), steady-state *filter-form* gain K designed once (``design.kalman_gain``, with
+python-control's ``dlqe``, whose predictor gain L = A·K is converted). Per step (pure Python, ~1 µs)::
+
+    s⁻ = A·s⁺ + B·u_obs,k−1,        s⁺ = s⁻ + K·(z_k − x⁻),        d̂_k = τ⁺
+
+If the disturbance noise is not given, it is chosen so that the observer's error poles have a geometric
+mean |s| of 2π·``bandwidth_hz`` (a 3rd-order Butterworth-like observer has all poles at that radius).
+
+``command_delay_samples`` delays u_obs by that many extra samples to match an I/O delay of the actuator path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from stagectl.control.pid import check_dt
+from stagectl.schema import param
+
+
+@dataclass(frozen=True)
+class DobConfig:
+    """Disturbance observer settings (YAML ``controller.dob``)."""
+
+    kind: str = param("qfilter", desc="observer form", choices=("none", "qfilter", "kalman"))
+    bandwidth_hz: float = param(50.0, unit="Hz", desc="observer bandwidth g/2π", gt=0.0)
+    nominal_mass_kg: float | None = param(None, unit="kg", desc="nominal mass m_n (None: controller mass_kg)",
+                                          gt=0.0)
+    command_delay_samples: int = param(0, unit="samples", desc="extra delay of the observer's command input",
+                                       ge=0, le=8)
+    max_estimate_n: float = param(math.inf, unit="N", desc="clamp of the estimate d̂ (inf: none)", gt=0.0,
+                                  allow_inf=True)
+    measurement_noise_m: float = param(1e-9, unit="m", desc="kalman: position noise std (incl. quantisation)",
+                                       gt=0.0)
+    disturbance_noise_n_sqrt_s: float | None = param(
+        None, unit="N/sqrt(s)", desc="kalman: disturbance random-walk intensity (None: from bandwidth_hz)", gt=0.0)
+
+
+@dataclass
+class DobState:
+    """Diagnostics: estimate d̂ [N], filter state, Kalman estimates."""
+
+    d_hat_n: float = 0.0
+    w_n: float = 0.0  # Q-filter state
+    x_hat_m: float = math.nan  # Kalman position estimate
+    v_hat_m_s: float = 0.0  # Kalman velocity estimate (or last v̂ input for the Q-filter)
+    tau_hat_n: float = 0.0
+    u_obs_n: float = 0.0  # last command input (residual form)
+
+
+class QFilterDob:
+    """Velocity-based Q-filter DOB (see module docstring). ``step`` is real-time safe."""
+
+    def __init__(self, cfg: DobConfig, mass_kg: float):
+        self.cfg = cfg
+        self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self.state = DobState()
+        self._dt = math.nan
+        self._alpha = 0.0
+        self._g = 2.0 * math.pi * cfg.bandwidth_hz
+        self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
+        self._have_prev = False
+
+    def reset(self, x_m: float = 0.0, d_hat_n: float = 0.0) -> None:
+        self.state = DobState(d_hat_n=d_hat_n, w_n=d_hat_n, x_hat_m=x_m)
+        self._delay = deque([0.0] * self.cfg.command_delay_samples)
+        self._have_prev = False
+
+    def retune(self, cfg: DobConfig, mass_kg: float) -> None:
+        """New bandwidth/mass, bumpless: w is re-set so that d̂ keeps its value."""
+        st = self.state
+        self.cfg = cfg
+        self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self._g = 2.0 * math.pi * cfg.bandwidth_hz
+        self._dt = math.nan
+        st.w_n = st.d_hat_n + self.mass_kg * self._g * st.v_hat_m_s
+        old = list(self._delay)
+        n = cfg.command_delay_samples
+        self._delay = deque((old + [st.u_obs_n] * n)[:n] if n else [])
+
+    def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
+        """Advance with the previous step's observer input ``u_obs_prev_n`` [N]; return d̂_k [N].
+
+        ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
+        feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
+        """
+        check_dt(dt)
+        if dt != self._dt:
+            self._dt = dt
+            self._alpha = math.exp(-self._g * dt)
+        st = self.state
+        u_in = u_obs_prev_n
+        if self._delay:
+            self._delay.append(u_obs_prev_n)
+            u_in = self._delay.popleft()
+        mg = self.mass_kg * self._g
+        if self._have_prev:
+            a = self._alpha
+            st.w_n = a * st.w_n + (1.0 - a) * (u_in + mg * st.v_hat_m_s)
+        else:
+            st.w_n = st.d_hat_n + mg * v_hat_m_s
+            self._have_prev = True
+        d = st.w_n - mg * v_hat_m_s
+        lim = self.cfg.max_estimate_n
+        d = max(-lim, min(lim, d))
+        st.v_hat_m_s = v_hat_m_s
+        st.u_obs_n = u_obs_prev_n
+        st.x_hat_m = x_meas_m
+        st.d_hat_n = st.tau_hat_n = d
+        return d
+
+
+class KalmanDob:
+    """Steady-state Kalman DOB on [x, v, τ] (see module docstring). ``step`` is real-time safe.
+
+    The gain is designed for ``period_s`` at construction (python-control imported lazily by
+    :func:`stagectl.control.design.kalman_gain`); a different ``dt`` at ``step`` triggers a redesign
+    (not real-time safe, avoid).
+    """
+
+    def __init__(self, cfg: DobConfig, mass_kg: float, period_s: float):
+        check_dt(period_s)
+        self.cfg = cfg
+        self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self.state = DobState()
+        self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
+        self._design(period_s)
+
+    def _design(self, dt: float) -> None:
+        from stagectl.control.design import kalman_gain
+
+        m = self.mass_kg
+        self._dt = dt
+        self.K = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,
+                             self.cfg.disturbance_noise_n_sqrt_s)
+        # A = [[1, dt, -dt²/2m], [0, 1, -dt/m], [0, 0, 1]],  B = [dt²/2m, dt/m, 0]
+        self._a02 = -dt * dt / (2.0 * m)
+        self._a12 = -dt / m
+        self._b0 = dt * dt / (2.0 * m)
+        self._b1 = dt / m
+
+    def reset(self, x_m: float = 0.0, d_hat_n: float = 0.0) -> None:
+        self.state = DobState(d_hat_n=d_hat_n, tau_hat_n=d_hat_n, x_hat_m=x_m)
+        self._delay = deque([0.0] * self.cfg.command_delay_samples)
+
+    def retune(self, cfg: DobConfig, mass_kg: float) -> None:
+        """New gain (redesigned now); the state [x, v, τ] is kept, so d̂ does not jump."""
+        self.cfg = cfg
+        self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self._design(self._dt)
+        n = cfg.command_delay_samples
+        old = list(self._delay)
+        self._delay = deque((old + [self.state.u_obs_n] * n)[:n] if n else [])
+
+    def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
+        """Predict with the previous observer input, correct with ``x_meas_m``; return d̂ = τ⁺ [N].
+
+        ``v_hat_m_s`` is unused (the filter estimates v itself); kept for a common signature.
+        """
+        check_dt(dt)
+        if dt != self._dt:
+            self._design(dt)
+        st = self.state
+        u_in = u_obs_prev_n
+        if self._delay:
+            self._delay.append(u_obs_prev_n)
+            u_in = self._delay.popleft()
+        x, v, tau = st.x_hat_m, st.v_hat_m_s, st.tau_hat_n
+        if math.isnan(x):
+            x = x_meas_m
+        # predict
+        xp = x + dt * v + self._a02 * tau + self._b0 * u_in
+        vp = v + self._a12 * tau + self._b1 * u_in
+        # correct
+        r = x_meas_m - xp
+        k0, k1, k2 = self.K
+        st.x_hat_m = xp + k0 * r
+        st.v_hat_m_s = vp + k1 * r
+        tau = tau + k2 * r
+        lim = self.cfg.max_estimate_n
+        tau = max(-lim, min(lim, tau))
+        st.tau_hat_n = st.d_hat_n = tau
+        st.u_obs_n = u_obs_prev_n
+        return tau
+
+
+Dob = QFilterDob | KalmanDob
+
+
+def make_dob(cfg: DobConfig, mass_kg: float, period_s: float) -> Dob | None:
+    """Build the observer selected by ``cfg.kind`` (None for ``none``)."""
+    if cfg.kind == "none":
+        return None
+    if cfg.kind == "qfilter":
+        return QFilterDob(cfg, mass_kg)
+    return KalmanDob(cfg, mass_kg, period_s)
