@@ -30,6 +30,9 @@ The right-hand side is non-increasing in y, so the root is unique and bracketed 
 unconditionally stable for any dt (ρ·dt → ∞ gives the quasi-static equilibrium x_h = |F_el|^a/ψ), and
 x_h' = x_h + |y − x_p| keeps the ratchet exact. The damper uses the step's elastic rate,
 ``dx_s/dt = v − (x_p' − x_p)/dt`` (= Δx_s/dt when v = Δx/dt, as in ``force_along``).
+Note: FRICTION_MODELS.md §4.4 quotes F = 0.9025 N at the end of a 0.5 µm/s ramp to 28.07 µm; that is
+0.9 N + Cv·dx/dt, a damper on the *total* rate. Following the seed's Cv·dx_s/dt this module gives
+0.9004 N there (most of the motion is plastic); the unloading zero crossing at 22.88 µm agrees.
 
 **Reversal memory with wipe-out.** A stack of branch starts P_0 … P_{n−1} (P_0 = the virgin origin or the
 point where pre-sliding was re-entered). When x_s reverses, (x_s, F_el) is pushed and a new branch of the
