@@ -56,6 +56,8 @@ _SIGNED_TYPES = {0x2, 0x3, 0x4}  # INTEGER8/16/32
 CAN_ERR_BUSOFF = 0x40
 EMCY_HEARTBEAT = 0x8130
 EMCY_RESET = 0x0000
+#: late_tpdo: a held TPDO is due this fraction of a period after its SYNC (after the driver's rx time-out)
+LATE_FRACTION = 0.9
 
 
 def wrap_int32(v: int) -> int:
@@ -116,7 +118,7 @@ class SimCanopenDevice:
         self._latched: list[tuple[int, int, int]] = []
         self._silent = False
         self._hb_stopped = False
-        self._late: list[can.Message] = []
+        self._late: list[tuple[float, can.Message]] = []
         self.error_register = 0
         self.emcy_sent: list[int] = []
         self.heartbeat_lost_events = 0
@@ -248,22 +250,31 @@ class SimCanopenDevice:
     def _send_tpdos(self, active: set[SimFault]) -> None:
         if self.nmt_state != NMT_OPERATIONAL:
             return
-        late = SimFault.LATE_TPDO in active
-        held, self._late = self._late, []
-        for m in held:
-            if not self._silent:
-                self._send_raw(m)
         if SimFault.DROP_TPDO in active:
             return
+        late = SimFault.LATE_TPDO in active
         for pdo in self._tpdos:
             if not 1 <= pdo.trans_type <= 240 or self.sync_count % pdo.trans_type:
                 continue
             vals = [self.live_value(i, s) or 0 for i, s in pdo.fields]
             msg = can.Message(arbitration_id=pdo.cob_id, data=pdo.fmt.pack(*vals), is_extended_id=False)
             if late:
-                self._late.append(msg)
+                self._late.append((self.t_s + LATE_FRACTION * self.period_s, msg))
             elif not self._silent:
                 self._send_raw(msg)
+
+    def release_late(self, t_s: float | None = None) -> None:
+        """Send the TPDOs held by ``late_tpdo`` that are due at ``t_s`` (all of them if None)."""
+        if not self._late:
+            return
+        keep = []
+        for due, msg in self._late:
+            if t_s is None or t_s + 1e-12 >= due:
+                if not self._silent:
+                    self._send_raw(msg)
+            else:
+                keep.append((due, msg))
+        self._late = keep
 
     # ------------------------------------------------------------------ SDO callbacks
     def _on_sdo_read(self, index: int, subindex: int, od: Any) -> int | None:
@@ -334,8 +345,10 @@ class SimCanopenDevice:
         self._send_tpdos(active)
 
     def tick(self, t_s: float) -> None:
-        """Timers: heartbeat producer and consumer, at device time ``t_s``."""
+        """Timers: heartbeat producer and consumer, late TPDOs, at device time ``t_s``."""
         self.t_s = t_s
+        if self._late:
+            self.release_late(t_s)
         if self.nmt_state == NMT_INITIALISING:
             return
         if self._hb_period_s > 0 and t_s + 1e-12 >= self._next_hb_t:

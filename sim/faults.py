@@ -22,7 +22,8 @@ ever); a fault is active for SYNC number ``n`` (counted by the device from 1) wh
   EMCY ``code`` before that SYNC's TPDO.
 * ``heartbeat_stop``: no heartbeat frames while active.
 * ``drop_tpdo``     : TPDOs are not sent while active.
-* ``late_tpdo``     : each TPDO is held and sent at the next SYNC, just before that SYNC's own TPDO.
+* ``late_tpdo``     : each TPDO is held and sent 0.9 period after its SYNC (thread mode), or at the start of
+  the next ``pump()`` (lock-step), i.e. after the controller has stopped waiting for it.
 * ``bus_off``       : one error frame with the SocketCAN bus-off class (0x40), then the device is silent
   (no TPDO, heartbeat, EMCY or SDO answer) while active.
 * ``position_jump`` : ``jump_m`` is added to the reported position while active (a step glitch).

@@ -294,6 +294,8 @@ class SimWorld:
         assert bus is not None
         n = 0
         with self._lock:
+            for d in self.devices:
+                d.release_late()  # lock-step: a late TPDO arrives after the controller gave up on it
             while (msg := bus.recv(0.0)) is not None:
                 self._dispatch(msg)
                 self._tick()

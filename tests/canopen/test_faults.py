@@ -1,0 +1,143 @@
+"""Every injected fault is detected by the driver and reported as the right typed fault within 3 cycles."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from stagectl.drivers.base import DeviceState, FaultKind
+from stagectl.drivers.cia402 import State402
+from stagectl.sim.cia402_drive import DriveState
+from stagectl.sim.faults import FaultSpec, SimFault
+
+
+def run_until_fault(dut, n):
+    for k in range(1, n + 1):
+        dut.sync()
+        m = dut.read()
+        dut.write(1.0)
+        if m.fault is not None:
+            return k, m
+    return None, m
+
+
+@pytest.mark.parametrize(
+    "kind, expected, within",
+    [
+        (SimFault.DRIVE_FAULT, FaultKind.DRIVE_FAULT, 1),
+        (SimFault.DROP_TPDO, FaultKind.MISSED_FRAME, 3),
+        (SimFault.LATE_TPDO, FaultKind.MISSED_FRAME, 3),
+        (SimFault.BUS_OFF, FaultKind.BUS_OFF, 1),
+        (SimFault.POSITION_JUMP, FaultKind.SENSOR_ERROR, 1),
+    ],
+)
+def test_injected_fault_detected_within_3_cycles(lockstep, kind, expected, within):
+    world, dut = lockstep()
+    for _ in range(10):  # healthy first
+        dut.sync()
+        assert dut.read().fault is None
+        dut.write(1.0)
+    world.inject(FaultSpec(kind=kind, code=0x2310))
+    k, m = run_until_fault(dut, 3)
+    assert m.fault is not None and m.fault.kind is expected, m
+    assert k <= within
+    assert dut.state is DeviceState.FAULT and dut.fault == m.fault  # latched
+    if kind is SimFault.DRIVE_FAULT:
+        assert m.fault.code == 0x2310
+        assert dut.drive_state is State402.FAULT
+    # after a latched fault the driver only sends quick stop + zero torque
+    dut.sync()
+    dut.read()
+    dut.write(7.0)
+    world.pump()
+    assert world.drive.target_torque == 0 or world.drive._silent
+
+
+def test_missed_frames_below_threshold_are_not_a_fault(lockstep):
+    world, dut = lockstep()
+    world.inject(FaultSpec(kind=SimFault.DROP_TPDO, cycles=2))
+    dut.sync()
+    m1 = dut.read()
+    dut.sync()
+    m2 = dut.read()
+    dut.sync()
+    m3 = dut.read()
+    assert (m1.fresh, m2.fresh, m3.fresh) == (False, False, True)
+    assert m1.fault is None and m2.fault is None and m3.fault is None
+    assert m1.position_m == m2.position_m  # last good value held
+    assert dut.missed_total == 2
+
+
+def test_late_tpdo_is_never_taken_for_the_next_cycle(lockstep):
+    """A TPDO that arrives after the read gave up is stale: drained, not accepted one cycle later."""
+    world, dut = lockstep(max_missed=100)
+    world.inject(FaultSpec(kind=SimFault.LATE_TPDO, cycles=1))
+    dut.sync()
+    assert not dut.read().fresh
+    dut.write(2.0)
+    for _ in range(5):
+        dut.sync()
+        m = dut.read()
+        assert m.fresh and m.counts == round(world.plant.measure() / 1e-9)
+        dut.write(2.0)
+
+
+def test_emcy_without_fault_state_is_reported(lockstep):
+    world, dut = lockstep()
+    world.drive.send_emcy(0x4210)  # temperature warning: drive keeps running
+    dut.sync()
+    m = dut.read()
+    assert m.fault is not None and m.fault.kind is FaultKind.EMCY and m.fault.code == 0x4210
+
+
+def test_drive_heartbeat_stop_detected(lockstep):
+    world, dut = lockstep(heartbeat_producer_s=0.01, heartbeat_timeout_s=0.025)
+    for _ in range(30):
+        dut.sync()
+        assert dut.read().fault is None
+        dut.write(0.0)
+    world.inject(FaultSpec(kind=SimFault.HEARTBEAT_STOP))
+    timeout_cycles = math.ceil(0.025 / 0.001)
+    k, m = run_until_fault(dut, 100)
+    assert m.fault.kind is FaultKind.HEARTBEAT_LOST
+    # the last heartbeat came at most one producer period (10 cycles) before the stop
+    assert timeout_cycles - 10 < k <= timeout_cycles + 3
+
+
+def test_fault_reset_recovers_drive_fault(lockstep):
+    world, dut = lockstep()
+    world.inject(FaultSpec(kind=SimFault.DRIVE_FAULT, code=0x7500))
+    k, m = run_until_fault(dut, 3)
+    assert m.fault.kind is FaultKind.DRIVE_FAULT and m.fault.code == 0x7500
+    assert world.drive.state is DriveState.FAULT and world.drive.error_code == 0x7500
+    dut.fault_reset()
+    assert dut.fault is None and dut.state is DeviceState.CONFIGURED
+    assert world.drive.state is DriveState.SWITCH_ON_DISABLED
+    dut.enable()
+    dut.sync()
+    assert dut.read().fault is None
+    assert world.drive.state is DriveState.OPERATION_ENABLED
+
+
+def test_faults_from_yaml_schedule(lockstep):
+    world, dut = lockstep(world_kw={"faults": [{"kind": "position_jump", "at_cycle": 40, "jump_m": 0.01}]})
+    n0 = world.drive.sync_count
+    assert n0 < 40
+    k, m = run_until_fault(dut, 60)
+    assert m.fault.kind is FaultKind.SENSOR_ERROR
+    assert world.drive.sync_count == 40
+
+
+def test_fault_yaml_errors_are_reported_with_paths():
+    from stagectl.errors import ConfigError
+    from stagectl.sim.world import SimWorldConfig
+
+    with pytest.raises(ConfigError) as ei:
+        SimWorldConfig.from_mapping({
+            "plant": {"mass_kg": 1.0, "friction": {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.0}},
+            "faults": [{"kind": "explode"}, {"kind": "drop_tpdo", "at_cycle": 0, "cycles": -1}],
+        })
+    text = str(ei.value)
+    assert "sim.faults[0].kind" in text
+    assert "sim.faults[1].at_cycle" in text and "sim.faults[1].cycles" in text

@@ -1,0 +1,129 @@
+"""The simulated drive on its own: heartbeat consumer in simulated time, NMT, EDS, canopen's own master."""
+
+from __future__ import annotations
+
+import threading
+
+import canopen
+import pytest
+
+from stagectl.drivers import canbus
+from stagectl.drivers.base import FaultKind
+from stagectl.sim.cia402_drive import EMCY_HEARTBEAT, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL, DriveState
+
+from stagectl.drivers.cia402 import DEFAULT_EDS, EDS_DIR  # noqa: E402
+
+
+@pytest.mark.parametrize("name, profile", [("stagectl_cia402.eds", 402), ("stagectl_cia406.eds", 406)])
+def test_eds_loads_in_canopens_parser(name, profile):
+    od = canopen.import_od(str(EDS_DIR / name), 5)
+    assert od[0x1000].default & 0xFFFF == profile
+    assert od[0x1A00][1].default >> 16 in (0x6041, 0x6004)
+    assert od[0x1800][1].default == 0x185  # $NODEID+0x180 resolved
+    assert od.device_information.nr_of_TXPDO >= 1
+    if profile == 402:
+        assert od[0x6502].default & (1 << 9)  # CST supported
+        for idx in (0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x6071, 0x1016, 0x1017, 0x1006):
+            assert idx in od
+    else:
+        assert 0x6004 in od
+
+
+def test_drive_heartbeat_consumer_stops_drive_in_simulated_time(lockstep):
+    """The controller goes silent (no SYNC, heartbeat, RPDO): the drive faults itself after 0x1016."""
+    world, dut = lockstep(drive_consumer_timeout_s=0.1, controller_heartbeat_s=0.02)
+    for _ in range(50):
+        dut.sync()
+        dut.read()
+        dut.write(3.0)
+    sim = world.drive
+    assert sim.state is DriveState.OPERATION_ENABLED and sim.force_n == pytest.approx(3.0)
+    world.pump()
+    last = sim._consumer_last_t
+    world.advance(last + 0.099 - world.now())  # just inside the consumer time
+    assert sim.state is DriveState.OPERATION_ENABLED
+    world.advance(0.002)  # just past it
+    assert sim.state is DriveState.FAULT and sim.error_code == EMCY_HEARTBEAT
+    assert sim.force_n == 0.0 and sim.emcy_sent[-1] == EMCY_HEARTBEAT
+    # the controller comes back and sees why
+    dut.sync()
+    m = dut.read()
+    assert m.fault.kind is FaultKind.DRIVE_FAULT and m.fault.code == EMCY_HEARTBEAT
+
+
+def test_nmt_reset_sends_boot_up_and_restores_eds_values(make_world, make_drive):
+    world = make_world()
+    world.pump()
+    bus = canbus.open_bus({"interface": "virtual", "channel": world.channel})
+    try:
+        sim = world.drive
+        sim.node.data_store.setdefault(0x1017, {})[0] = (100).to_bytes(2, "little")
+        bus.send(canopen_msg(0x000, bytes([0x01, 1])))  # NMT start node 1
+        world.pump()
+        assert sim.nmt_state == NMT_OPERATIONAL
+        bus.send(canopen_msg(0x000, bytes([0x81, 0])))  # reset node (broadcast)
+        world.pump()
+        assert sim.nmt_state == NMT_PRE_OPERATIONAL
+        assert 0x1017 not in sim.node.data_store  # restored to the EDS value
+        frames = drain(bus)
+        assert any(m.arbitration_id == 0x701 and bytes(m.data) == b"\x00" for m in frames)  # boot-up
+    finally:
+        canbus.close_bus(bus)
+
+
+def canopen_msg(cid, data):
+    import can
+
+    return can.Message(arbitration_id=cid, data=data, is_extended_id=False)
+
+
+def drain(bus):
+    out = []
+    while (m := bus.recv(0.0)) is not None:
+        out.append(m)
+    return out
+
+
+def test_canopen_basenode402_master_drives_the_sim(make_world):
+    """canopen's own CiA 402 master: OPERATION ENABLED in CST, then torque moves the stage."""
+    world = make_world()
+    world.start()
+    bus = canbus.open_bus({"interface": "virtual", "channel": world.channel})
+    net = canopen.Network(bus)
+    net.notifier = __import__("can").Notifier(bus, net.listeners, 0.05)
+    try:
+        node = canopen.BaseNode402(1, str(DEFAULT_EDS))
+        net.add_node(node)
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.sdo[0x1017].raw = 20
+        node.nmt.wait_for_heartbeat(2.0)
+        node.setup_402_state_machine()
+        assert node.is_op_mode_supported("CYCLIC SYNCHRONOUS TORQUE")
+        node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+        assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
+        node.nmt.state = "OPERATIONAL"
+        net.sync.start(0.002)
+        node.rpdo[1].start(0.002)
+        node.state = "OPERATION ENABLED"
+        assert node.state == "OPERATION ENABLED"
+        assert world.drive.state is DriveState.OPERATION_ENABLED
+        x0 = world.plant.x_m
+        node.rpdo[1]["Target torque"].raw = 500  # 5 N > 1.5 N break-away
+        tpdo = node.tpdo[1]
+        moved = threading.Event()
+        for _ in range(500):  # TPDO receptions, not wall-clock sleeps
+            tpdo.wait_for_reception(1.0)
+            if abs(node.tpdo_values[0x6064] * 1e-9 - x0) > 1e-4:
+                moved.set()
+                break
+        assert moved.is_set(), "the stage did not move under CST torque"
+        assert world.drive.force_n == pytest.approx(5.0)
+        node.rpdo[1]["Target torque"].raw = 0
+        node.state = "SWITCH ON DISABLED"
+        assert world.drive.state is DriveState.SWITCH_ON_DISABLED
+    finally:
+        net.sync.stop()
+        for pdo in (node.rpdo[1],):
+            pdo.stop()
+        net.notifier.stop(1.0)
+        canbus.close_bus(bus)
