@@ -311,13 +311,16 @@ class StageService:
             if cyc > self._last_cycle and frac <= limit:
                 if self.notify.watchdog():
                     self._watchdog_pings += 1
+                if self._watchdog_reason:
+                    log.warning("watchdog pings resumed (loop healthy again)")
                 self._watchdog_reason = ""
             else:
                 self._watchdog_withheld += 1
-                reason = ("cycle counter not advancing" if cyc <= self._last_cycle
-                          else f"overrun fraction {frac:.3%} > {limit:.3%}")
-                if reason != self._watchdog_reason:
-                    log.error("watchdog withheld: %s", reason)
+                stalled = cyc <= self._last_cycle
+                reason = ("cycle counter not advancing" if stalled
+                          else f"recent overrun fraction above loop.healthy_overrun_fraction {limit:.3%}")
+                if reason != self._watchdog_reason:  # log each change of cause once, not every tick
+                    log.error("watchdog withheld: %s (now %.3f%%)", reason, 100 * frac)
                 self._watchdog_reason = reason
             self._last_cycle = max(self._last_cycle, cyc)
             # -------------------------------------------------- reload
