@@ -78,7 +78,10 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self.period_s = float(period_s)
         self.delay_cycles = int(delay_cycles)
         self.clock = clock
-        self.resolution_m = float(getattr(plant, "resolution_m", 1e-9) or 1e-9)
+        res = getattr(plant, "resolution_m", None)
+        if res is None:  # StagePlant: cfg.sensor.resolution_m
+            res = getattr(getattr(getattr(plant, "cfg", None), "sensor", None), "resolution_m", 1e-9)
+        self.resolution_m = float(res)
         self._pipe: deque[float] = deque([0.0] * self.delay_cycles)
         self._u_applied = 0.0
         self._u_latched = 0.0

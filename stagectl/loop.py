@@ -231,6 +231,9 @@ class ControlLoop:
     cfg : LoopConfig
     sync : SyncProducer, optional
         The SYNC producer (defaults to the sensor or actuator if it is one).
+    term_names : tuple of str, optional
+        Controller terms recorded as telemetry columns (default ``controller.term_names`` or
+        ``u_pid, u_dob, u_ff, u_inertia``); a term missing from a step's ``Command.terms`` is recorded as 0.
     realtime : bool
         Apply ``cfg.realtime`` (FIFO, affinity, mlock, timer slack, gc.freeze) in the loop thread at start.
         False for simulated time.
@@ -249,6 +252,7 @@ class ControlLoop:
         sync: SyncProducer | None = None,
         realtime: bool = False,
         on_cycle: Callable[[], None] | None = None,
+        term_names: tuple[str, ...] | None = None,
     ) -> None:
         self.clock = clock
         self.sensor = sensor
@@ -264,7 +268,7 @@ class ControlLoop:
         self.realtime = realtime
         self.on_cycle = on_cycle
         self.devices: tuple[Device, ...] = tuple(dict.fromkeys([sensor, actuator]))  # unique, ordered
-        terms = tuple(getattr(controller, "term_names", DEFAULT_TERMS))
+        terms = tuple(term_names or getattr(controller, "term_names", DEFAULT_TERMS))
         self.term_names: tuple[str, ...] = terms
         self.columns: tuple[str, ...] = BASE_COLUMNS + terms
         self.state = LoopState.CONFIGURED if all(

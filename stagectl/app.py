@@ -1,0 +1,382 @@
+"""Assembly: a validated :class:`~stagectl.config.AppConfig` → a running-ready :class:`Stage`.
+
+``Stage`` holds the devices (real drivers, or the simulated plant: :class:`~stagectl.sim.direct.PlantIO` or the
+virtual CANopen world), the controller, the safety supervisor, the reference generator and the
+:class:`~stagectl.loop.ControlLoop`. It is a context manager whose exit *always* disables the drive and
+closes every device and bus, also after an exception::
+
+    cfg = load_app_config("config/sim.yaml")
+    with build_stage(cfg, clock=SimClock()) as stage:      # simulated time, lock-step devices
+        stage.load_scenario("cosine")
+        result = stage.loop.run(duration_s=4.0)
+
+With :class:`~stagectl.clock.MonotonicClock` (the default) the loop runs in real time and applies the
+``loop.realtime`` settings in its thread. The attributes ``loop``, ``close``, ``controller_config``,
+``simulated``, ``inject_fault`` and ``describe`` are what the daemon's ``Assembly`` needs.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from types import TracebackType
+from typing import Any
+
+from stagectl.clock import Clock, MonotonicClock, SimClock
+from stagectl.config import AppConfig, IoKind, SensorSource
+from stagectl.control.api import Reference
+from stagectl.drivers.base import Device, DeviceFault, FaultKind, ForceActuator, PositionSensor, SyncProducer
+from stagectl.errors import ConfigError, StageError
+from stagectl.loop import ControlLoop
+from stagectl.safety import Safety
+
+log = logging.getLogger("stagectl.app")
+
+#: names accepted by ``--scenario`` (besides the benchmark ones from stagectl.control.trajectory)
+EXTRA_SCENARIOS = ("demo", "hold")
+
+
+def scenario_names() -> tuple[str, ...]:
+    from stagectl.control.trajectory import benchmark_scenarios
+
+    return (*benchmark_scenarios(), *EXTRA_SCENARIOS)
+
+
+def get_scenario(name: str) -> Any:
+    """A trajectory scenario by name (``cosine``, ``triangle``, ``steps``, ``demo``, ``hold``)."""
+    from stagectl.control import trajectory as tr
+
+    if name == "hold":
+        return None
+    if name == "demo":
+        return tr.demo_scenario()
+    sc = tr.benchmark_scenarios()
+    if name not in sc:
+        raise ConfigError(f"scenario: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
+    return sc[name]
+
+
+class TrajectoryReference:
+    """Adapts :class:`stagectl.control.trajectory.TrajectoryGenerator` (``step(dt)``) to the loop's
+    ``ReferenceSource`` (``sample(t)``, ``hold``, ``move``, ``stop``).
+
+    A scenario given with :meth:`set_scenario` starts at the loop's first ``hold`` (from the measured
+    position); with ``repeat`` it restarts whenever it ends, until a ``move``/``stop`` request takes over.
+    Real-time safe apart from ``move``/``stop`` (binding one segment).
+    """
+
+    def __init__(self, default_velocity_m_s: float = 1e-3) -> None:
+        from stagectl.control.trajectory import TrajectoryGenerator
+
+        self.gen = TrajectoryGenerator(0.0)
+        self.default_velocity_m_s = default_velocity_m_s
+        self._t = 0.0
+        self._target = 0.0
+        self._scenario: Any = None
+        self._repeat = False
+        self._started = False
+
+    def set_scenario(self, scenario: Any, repeat: bool = False) -> None:
+        self._scenario = scenario
+        self._repeat = repeat
+        self._started = False
+
+    def hold(self, t_s: float, x_m: float) -> None:
+        self.gen.reset(x_m)
+        self._t = t_s
+        self._target = x_m
+        if self._scenario is not None and not self._started:
+            self._started = True
+            self.gen.load(self._scenario)
+            self._target = math.nan
+
+    def sample(self, t_s: float) -> Reference:
+        dt = t_s - self._t
+        if dt > 0.0:
+            self._t = t_s
+            ref = self.gen.step(dt)
+            if self._repeat and self.gen.done and self._scenario is not None:
+                self.gen.load(self._scenario)
+            return ref
+        return self.gen.sample()
+
+    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
+        self._repeat = False
+        self._scenario = None
+        self.gen.move(target_m, max_velocity_m_s or self.default_velocity_m_s)
+        self._target = target_m
+        return float(self.gen.remaining_s())
+
+    def stop(self, t_s: float) -> float:
+        from stagectl.control.trajectory import Move
+
+        self._repeat = False
+        self._scenario = None
+        self.gen.replace(Move(by_m=0.0))  # bring the reference to rest (jerk-limited), then hold
+        end = self._end_position()
+        self._target = end
+        return end
+
+    def _end_position(self) -> float:
+        cur = getattr(self.gen, "_cur", None)
+        end = getattr(cur, "end", None)
+        return float(end.x_m) if end is not None else float(self.gen.sample().x_m)
+
+    @property
+    def target_m(self) -> float:
+        if math.isnan(self._target):
+            return self._end_position()
+        return self._target
+
+
+class Stage:
+    """Assembled devices + loop (see module docstring). Use as a context manager, or call :meth:`close`."""
+
+    def __init__(self, cfg: AppConfig) -> None:
+        self.cfg = cfg
+        self.clock: Clock = MonotonicClock()
+        self.devices: list[Device] = []
+        self.closers: list[Callable[[], None]] = []
+        self.world: Any = None
+        self.plant: Any = None
+        self.plant_io: Any = None
+        self.sensor: PositionSensor | None = None
+        self.actuator: ForceActuator | None = None
+        self.sync: SyncProducer | None = None
+        self.controller: Any = None
+        self.controller_config: Any = cfg.controller
+        self.reference: TrajectoryReference | None = None
+        self.safety: Safety | None = None
+        self.loop: ControlLoop = None  # type: ignore[assignment]
+        self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
+        self._closed = False
+
+    # ------------------------------------------------------------------ daemon Assembly fields
+    @property
+    def describe(self) -> dict[str, Any]:
+        c = self.cfg
+        return {
+            "config": str(c.path) if c.path else None,
+            "io": c.io.kind.value,
+            "sensor": c.io.sensor.value,
+            "period_s": c.loop.period_s,
+            "simulated": self.simulated,
+            "columns": list(self.loop.columns) if self.loop else [],
+        }
+
+    def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
+        """Debug: inject a device fault into the simulated plant (``emcy``, ``stale``, ``nan``, or any
+        :class:`FaultKind` value). Only for simulated stages."""
+        if not self.simulated:
+            raise StageError("inject_fault: only available on a simulated stage")
+        if self.plant_io is not None:
+            io = self.plant_io
+            if kind == "stale":
+                io.drop_samples(int(kw.get("cycles", 10)))
+            elif kind == "nan":
+                io.glitch(math.nan)
+            else:
+                try:
+                    fk = FaultKind(kind)
+                except ValueError:
+                    raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
+                                     f"{', '.join(k.value for k in FaultKind)})") from None
+                io.inject_fault(fk, str(kw.get("detail", "injected")), int(kw.get("code", 0)))
+            return {"injected": kind}
+        if self.world is not None and hasattr(self.world, "inject_fault"):
+            return {"injected": self.world.inject_fault(kind, **kw)}
+        raise StageError("inject_fault: no fault injection available for this stage")
+
+    def load_scenario(self, name_or_scenario: Any, repeat: bool = False) -> None:
+        """Run a scenario (by name or a Scenario object) from the loop's start."""
+        sc = get_scenario(name_or_scenario) if isinstance(name_or_scenario, str) else name_or_scenario
+        assert self.reference is not None
+        self.reference.set_scenario(sc, repeat)
+
+    # ------------------------------------------------------------------ teardown
+    def close(self) -> None:
+        """Disable the drive and close every device and bus (idempotent; never raises)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.actuator is not None:
+            try:
+                self.actuator.disable()
+            except Exception:  # noqa: BLE001
+                log.exception("disabling the drive failed")
+        for d in reversed(self.devices):
+            try:
+                d.close()
+            except Exception:  # noqa: BLE001
+                log.exception("closing %s failed", d.name)
+        for fn in reversed(self.closers):
+            try:
+                fn()
+            except Exception:  # noqa: BLE001
+                log.exception("closing failed")
+
+    def __enter__(self) -> Stage:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+
+def make_controller(cfg: AppConfig, controller_config: Any = None) -> Any:
+    """The StageController for ``controller_config`` (default: the file's), model paths relative to the file."""
+    from stagectl.control.controller import StageController
+
+    return StageController(controller_config or cfg.controller, cfg.loop.period_s, base_dir=cfg.base_dir)
+
+
+def controller_terms() -> tuple[str, ...]:
+    from stagectl.control.controller import TERM_NAMES
+
+    return tuple(TERM_NAMES)
+
+
+def build_stage(
+    cfg: AppConfig,
+    *,
+    clock: Clock | None = None,
+    realtime: bool | None = None,
+    controller: Any = None,
+) -> Stage:
+    """Open and configure the devices, build controller, safety, reference and loop.
+
+    Parameters
+    ----------
+    clock : Clock, optional
+        :class:`MonotonicClock` (default; real time) or :class:`SimClock` (simulated time: the devices run in
+        lock-step with the loop).
+    realtime : bool, optional
+        Apply ``loop.realtime`` in the loop thread (default: True with a MonotonicClock).
+    controller : optional
+        A ready controller object (benchmarks); default: ``StageController`` from ``cfg.controller``.
+
+    On any error everything opened so far is closed before the exception propagates.
+    """
+    stage = Stage(cfg)
+    stage.clock = clock if clock is not None else MonotonicClock()
+    simulated_time = isinstance(stage.clock, SimClock)
+    if realtime is None:
+        realtime = not simulated_time
+    period = cfg.loop.period_s
+    try:
+        kind = cfg.io.kind
+        if kind is IoKind.PLANT_IO:
+            from stagectl.sim.direct import PlantIO
+            from stagectl.sim.plant import StagePlant
+
+            assert cfg.sim is not None
+            stage.plant = StagePlant(cfg.sim.plant)
+            io = PlantIO(stage.plant, period, delay_cycles=cfg.io.delay_cycles, clock=stage.clock)
+            stage.plant_io = io
+            io.open()
+            stage.devices.append(io)
+            io.configure()
+            stage.sensor = stage.actuator = stage.sync = io
+        elif kind is IoKind.EMBEDDED_CANOPEN:
+            _build_embedded_canopen(stage, simulated_time)
+        else:
+            _build_canopen(stage)
+        stage.controller = controller if controller is not None else make_controller(cfg)
+        stage.safety = Safety(cfg.safety, period)
+        stage.reference = TrajectoryReference()
+        assert stage.sensor is not None and stage.actuator is not None
+        stage.loop = ControlLoop(
+            clock=stage.clock,
+            sensor=stage.sensor,
+            actuator=stage.actuator,
+            controller=stage.controller,
+            reference=stage.reference,
+            safety=stage.safety,
+            cfg=cfg.loop,
+            sync=stage.sync,
+            realtime=realtime,
+            term_names=getattr(stage.controller, "term_names", None) or controller_terms(),
+        )
+    except BaseException:
+        stage.close()
+        raise
+    return stage
+
+
+def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
+    """Virtual CANopen devices in-process (sim.world.SimWorld) + the real drivers on the virtual bus."""
+    from stagectl.sim.world import SimWorld
+
+    cfg = stage.cfg
+    assert cfg.sim is not None and cfg.sim.world is not None
+    world = SimWorld(cfg.sim.world, period_s=cfg.loop.period_s) if _accepts_period(SimWorld) else SimWorld(
+        cfg.sim.world
+    )
+    stage.world = world
+    stage.plant = getattr(world, "plant", None)
+    if simulated_time:
+        world.start(lockstep=True) if _accepts_kw(world.start, "lockstep") else world.start()
+    else:
+        world.start()
+    stage.closers.append(world.stop)
+    drive_cfg = cfg.io.drive or getattr(world, "drive_config", None)
+    if drive_cfg is None:
+        raise ConfigError("io.drive: required (the driver side of the embedded CANopen drive)")
+    _open_drivers(stage, drive_cfg, pump=world.pump if simulated_time else None)
+
+
+def _build_canopen(stage: Stage) -> None:
+    _open_drivers(stage, stage.cfg.io.drive, pump=None)
+
+
+def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None) -> None:
+    from stagectl.drivers.cia402 import Cia402Drive
+
+    cfg = stage.cfg
+    drive = Cia402Drive(drive_cfg, cfg.loop.period_s)
+    if pump is not None:
+        drive.set_pump(pump)
+    drive.open()
+    stage.devices.append(drive)
+    drive.configure()
+    stage.actuator = drive
+    stage.sync = drive
+    src = cfg.io.sensor
+    if src is SensorSource.DRIVE:
+        stage.sensor = drive
+    elif src is SensorSource.INTERFEROMETER:
+        from stagectl.drivers.interferometer import SerialInterferometer
+
+        ifm = SerialInterferometer(cfg.io.interferometer)
+        if pump is not None:
+            ifm.set_pump(pump)
+        ifm.open()
+        stage.devices.append(ifm)
+        ifm.configure()
+        stage.sensor = ifm
+    else:
+        from stagectl.drivers.cia406 import Cia406Encoder  # type: ignore[import-not-found]
+
+        enc = Cia406Encoder(cfg.io.encoder, cfg.loop.period_s)
+        if pump is not None:
+            enc.set_pump(pump)
+        enc.open()
+        stage.devices.append(enc)
+        enc.configure()
+        stage.sensor = enc
+
+
+def _accepts_kw(fn: Callable[..., Any], name: str) -> bool:
+    import inspect
+
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def _accepts_period(cls: type) -> bool:
+    return _accepts_kw(cls, "period_s")
+
+
+__all__ = ["DeviceFault", "Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]

@@ -1,0 +1,34 @@
+"""``stagectl check-config FILE``: the exact validation the daemon runs; prints OK or every problem (exit 2)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("check-config", help="validate a configuration file (exactly as the daemon does)")
+    p.add_argument("file", help="stagectl YAML file")
+    p.add_argument("-q", "--quiet", action="store_true", help="print nothing when the file is valid")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from stagectl.config import load_app_config
+    from stagectl.errors import ConfigError
+
+    try:
+        cfg = load_app_config(args.file)
+    except ConfigError as exc:
+        n = len(exc.problems)
+        print(f"{args.file}: {n} problem{'s' if n != 1 else ''}", file=sys.stderr)
+        for line in exc.problems:
+            print(f"  {line}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        sensor = cfg.io.sensor.value
+        print(
+            f"{args.file}: OK (io {cfg.io.kind.value}, sensor {sensor}, period {cfg.loop.period_s * 1e3:g} ms, "
+            f"limits [{cfg.safety.min_position_m:g}, {cfg.safety.max_position_m:g}] m)"
+        )
+    return 0

@@ -1,0 +1,99 @@
+"""``stagectl run --config FILE [--duration S] [--out DIR]``: the real-time loop in the foreground.
+
+On a simulated stage (``config/sim.yaml``) it runs the configured demo motion on the embedded plant; on a
+real stage it holds the position unless ``--scenario`` is given. One progress line per second goes to
+stderr; at the end the same outputs as ``simulate`` (telemetry.csv, summary.json, tracking.png) are written
+to ``--out`` (default ``./runs/<UTC timestamp>``) and the summary is printed as one JSON line. Ctrl-C stops
+cleanly (zero force, drive disabled).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("run", help="run the real-time control loop (demo motion on a simulated stage)")
+    p.add_argument("--config", required=True, help="stagectl YAML (e.g. config/sim.yaml)")
+    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C)")
+    p.add_argument("--out", default=None, help="output directory (default ./runs/<timestamp>)")
+    p.add_argument("--scenario", default=None,
+                   help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "
+                        "simulated stage, hold on a real one)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import logging
+    import math
+    import sys
+    import threading
+    import time
+    from datetime import datetime, timezone
+    from pathlib import Path
+
+    from stagectl.app import build_stage
+    from stagectl.config import load_app_config
+    from stagectl.errors import ConfigError
+    from stagectl.recorder import Recorder, tracking_summary, write_outputs
+
+    if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ConfigError(f"--duration: must be > 0 s (got {args.duration})")
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    cfg = load_app_config(args.config)
+    out = Path(args.out) if args.out else Path("runs") / datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    with build_stage(cfg) as stage:
+        loop = stage.loop
+        scenario = args.scenario or (cfg.demo.scenario if stage.simulated else "hold")
+        stage.load_scenario(scenario, repeat=cfg.demo.repeat)
+        cap_s = args.duration if args.duration is not None else 600.0
+        rec = Recorder(loop.columns, capacity=int(cap_s / cfg.loop.period_s) + 1024)
+        loop.add_sink(rec)
+        stop = threading.Event()
+        box: dict = {}
+
+        def target() -> None:
+            try:
+                box["result"] = loop.run(duration_s=args.duration, stop=stop)
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the main thread
+                box["error"] = exc
+
+        th = threading.Thread(target=target, name="stagectl-loop", daemon=True)
+        print(f"stagectl run: {cfg.path.name} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
+              f"scenario={scenario} duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
+        th.start()
+        t_next = time.monotonic() + 1.0
+        try:
+            while th.is_alive():
+                th.join(timeout=max(0.0, t_next - time.monotonic()))
+                if th.is_alive() and time.monotonic() >= t_next:
+                    t_next += 1.0
+                    st = loop.status()
+                    lat = st["lateness_us"]
+                    fault = f" FAULT {st['fault']['name']}: {st['fault']['cause']}" if st["fault"] else ""
+                    print(f"t={st['t_s']:7.2f} s  x={st['x_m'] * 1e6:10.4f} um  e={st['e_m'] * 1e9:9.1f} nm  "
+                          f"u={st['u_n']:7.3f} N  late p99={lat['p99']:6.0f} us max={lat['max']:6.0f} us  "
+                          f"overruns={st['overruns']}  {st['state']}{fault}", file=sys.stderr, flush=True)
+        except KeyboardInterrupt:
+            print("stagectl run: stopping (Ctrl-C)", file=sys.stderr)
+            stop.set()
+            th.join(timeout=10.0)
+        if "error" in box:
+            raise box["error"]
+        res = box.get("result")
+    summary = {
+        "command": "run",
+        "config": str(cfg.path),
+        "scenario": scenario,
+        "io": cfg.io.kind.value,
+        "period_s": cfg.loop.period_s,
+        **(tracking_summary(rec) if rec.n else {}),
+        "fault": res.fault if res else None,
+        "loop": res.as_dict() if res else None,
+    }
+    write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=f"run {scenario}")
+    print(json.dumps(summary, default=str, separators=(",", ":")))
+    return 1 if summary["fault"] else 0

@@ -1,0 +1,168 @@
+"""In-memory telemetry recorder for ``simulate``/``run``/benchmarks: CSV (RECORDINGS.md), summary, plots.
+
+:class:`Recorder` is a loop sink (``append(row)``) writing into preallocated float64 arrays (doubling when
+full, which happens only if the run is longer than announced). Afterwards:
+
+* :meth:`Recorder.write_csv` — one header row, one row per control sample, SI units, columns as the
+  loop's (``t`` s, ``x`` m, ``u`` N, ``x_ref`` m, ``v_ref`` m/s, ``a_ref`` m/s², ``e`` m, ``v`` m/s, terms N);
+* :func:`tracking_summary` — RMS and max tracking error, settling time of each point-to-point move;
+* :func:`plot_run` — PNGs of position/reference, error and force terms.
+
+Settling time of a move: with the reference at rest after moving (v_ref = a_ref = 0 from sample i₀ on,
+until it moves again at i₁), the time from i₀ until |e| enters and then stays within ±``tol_m`` for the
+rest of [i₀, i₁). ``None`` when it never settles within that rest interval.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+class Recorder:
+    """A telemetry sink keeping every row in memory (loop thread only while running)."""
+
+    def __init__(self, columns: Sequence[str], capacity: int = 1024) -> None:
+        self.columns = tuple(columns)
+        self._data = np.zeros((max(16, int(capacity)), len(self.columns)))
+        self.n = 0
+
+    def append(self, row: tuple[float, ...]) -> None:
+        n = self.n
+        if n >= self._data.shape[0]:
+            self._data = np.concatenate([self._data, np.zeros_like(self._data)])
+        self._data[n] = row
+        self.n = n + 1
+
+    @property
+    def data(self) -> np.ndarray:
+        return self._data[: self.n]
+
+    def col(self, name: str) -> np.ndarray:
+        return self._data[: self.n, self.columns.index(name)]
+
+    def write_csv(self, path: str | Path) -> Path:
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        np.savetxt(p, self.data, delimiter=",", header=",".join(self.columns), comments="", fmt="%.10g")
+        return p
+
+
+def _rest_intervals(v_ref: np.ndarray, a_ref: np.ndarray) -> list[tuple[int, int]]:
+    """[i0, i1) intervals where the reference is at rest *after having moved*."""
+    moving = (v_ref != 0.0) | (a_ref != 0.0)
+    out: list[tuple[int, int]] = []
+    n = moving.size
+    i = 0
+    seen_motion = False
+    while i < n:
+        if moving[i]:
+            seen_motion = True
+            i += 1
+            continue
+        j = i
+        while j < n and not moving[j]:
+            j += 1
+        if seen_motion:
+            out.append((i, j))
+        i = j
+    return out
+
+
+def tracking_summary(rec: Recorder, *, tol_m: float = 10e-9, skip_s: float = 0.0) -> dict[str, Any]:
+    """Tracking-error figures of a recording (errors in m, times in s).
+
+    ``skip_s`` excludes the first seconds from RMS/max (start-up transient).
+    """
+    t = rec.col("t")
+    e = rec.col("e")
+    out: dict[str, Any] = {"samples": int(rec.n), "duration_s": float(t[-1] - t[0]) if rec.n else 0.0}
+    sel = t >= (t[0] + skip_s) if rec.n else np.zeros(0, bool)
+    es = e[sel]
+    out["rms_error_m"] = float(np.sqrt(np.mean(es * es))) if es.size else math.nan
+    out["max_error_m"] = float(np.max(np.abs(es))) if es.size else math.nan
+    if "u" in rec.columns and rec.n:
+        u = rec.col("u")
+        out["rms_force_n"] = float(np.sqrt(np.mean(u[sel] ** 2)))
+        out["max_force_n"] = float(np.max(np.abs(u[sel])))
+    settle: list[float | None] = []
+    if rec.n and "v_ref" in rec.columns and "a_ref" in rec.columns:
+        for i0, i1 in _rest_intervals(rec.col("v_ref"), rec.col("a_ref")):
+            outside = np.nonzero(np.abs(e[i0:i1]) > tol_m)[0]
+            if outside.size == 0:
+                settle.append(0.0)
+            elif outside[-1] == i1 - i0 - 1:
+                settle.append(None)
+            else:
+                k = i0 + outside[-1] + 1
+                settle.append(float(t[k] - t[i0]))
+    done = [s for s in settle if s is not None]
+    out["settling_tolerance_m"] = tol_m
+    out["moves"] = len(settle)
+    out["moves_settled"] = len(done)
+    out["settling_time_s"] = settle
+    out["settling_time_max_s"] = (max(done) if len(done) == len(settle) else None) if settle else None
+    out["settling_time_mean_s"] = float(np.mean(done)) if done else None
+    return out
+
+
+def plot_run(rec: Recorder, out_dir: str | Path, title: str = "") -> list[Path]:
+    """Write ``tracking.png`` (x and x_ref, error, force terms) into ``out_dir``; returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t = rec.col("t")
+    fig, ax = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    ax[0].plot(t, rec.col("x_ref") * 1e6, label="x_ref", lw=1)
+    ax[0].plot(t, rec.col("x") * 1e6, label="x", lw=0.8)
+    ax[0].set_ylabel("position [µm]")
+    ax[0].legend(loc="best")
+    ax[1].plot(t, rec.col("e") * 1e9, lw=0.7)
+    ax[1].set_ylabel("error x_ref − x [nm]")
+    ax[1].grid(True, alpha=0.3)
+    ax[2].plot(t, rec.col("u"), label="u", lw=1)
+    for name in rec.columns:
+        if name.startswith("u_"):
+            ax[2].plot(t, rec.col(name), label=name, lw=0.7)
+    ax[2].set_ylabel("force [N]")
+    ax[2].set_xlabel("t [s]")
+    ax[2].legend(loc="best", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    p = out / "tracking.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return [p]
+
+
+def write_outputs(rec: Recorder, out_dir: str | Path, summary: dict[str, Any], *, plots: bool = True,
+                  title: str = "") -> dict[str, str]:
+    """CSV + summary.json (+ PNG) into ``out_dir``; returns the written paths by kind."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"csv": str(rec.write_csv(out / "telemetry.csv"))}
+    sp = out / "summary.json"
+    files["summary"] = str(sp)
+    if plots and rec.n > 1:
+        files["plots"] = ",".join(str(p) for p in plot_run(rec, out, title))
+    summary = {**summary, "files": files}
+    sp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    return files
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
