@@ -146,7 +146,11 @@ class SimWorld:
     Use as a context manager or call :meth:`stop` (idempotent) to release the bus, threads and sockets.
     """
 
-    def __init__(self, cfg: SimWorldConfig, plant: Any, base_dir: str | Path | None = None) -> None:
+    def __init__(self, cfg: SimWorldConfig, plant: Any = None, base_dir: str | Path | None = None) -> None:
+        if plant is None:
+            from stagectl.sim.plant import StagePlant
+
+            plant = StagePlant(cfg.plant)
         self.cfg = cfg
         self.plant = plant
         self.base_dir = Path(base_dir) if base_dir is not None else None
@@ -170,9 +174,7 @@ class SimWorld:
     @classmethod
     def from_config(cls, cfg: SimWorldConfig, base_dir: str | Path | None = None) -> SimWorld:
         """Build the plant (``StagePlant(cfg.plant)``) and the world around it (nothing opened yet)."""
-        from stagectl.sim.plant import StagePlant
-
-        return cls(cfg, StagePlant(cfg.plant), base_dir)
+        return cls(cfg, None, base_dir)
 
     @property
     def devices(self) -> list[SimCanopenDevice]:
@@ -328,6 +330,15 @@ class SimWorld:
         with self._lock:
             dev.add_fault(spec)
         return spec
+
+    def inject_fault(self, kind: str, **kw: Any) -> dict[str, Any]:
+        """Control-socket form of :meth:`inject`: returns the scheduled fault as a plain dict."""
+        from stagectl.schema import load
+
+        spec = load(FaultSpec, {"kind": kind, **kw}, "fault")
+        self.inject(spec)
+        return {"kind": spec.kind.value, "device": spec.device, "at_cycle": spec.at_cycle,
+                "at_time_s": spec.at_time_s, "cycles": spec.cycles}
 
     def clear_faults(self) -> None:
         with self._lock:

@@ -1,0 +1,65 @@
+"""``stagectl sim-plant --config FILE``: run the virtual devices of the file's ``sim:`` section as their own
+process, behind a socketcand server on loopback TCP (and the serial interferometer, if configured).
+
+Prints exactly one ready line (JSON) on stdout once everything listens, e.g.::
+
+    {"ready": true, "pid": 1234, "transport": "socketcand",
+     "can": {"interface": "socketcand", "host": "127.0.0.1", "port": 29536, "channel": "can0"},
+     "drive_node_id": 1}
+
+and runs until SIGTERM or SIGINT, then stops cleanly (exit 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("sim-plant", help="run the virtual CANopen/serial devices as their own process")
+    p.add_argument("--config", required=True, help="YAML file with a sim: section")
+    p.add_argument("--port", type=int, default=None, help="override sim.transport.port (0 = ephemeral)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+    import json
+    import os
+    import signal
+    import sys
+    import threading
+    from pathlib import Path
+
+    from stagectl.errors import ConfigError
+    from stagectl.schema import load_yaml_file
+    from stagectl.sim.world import SimWorld, SimWorldConfig
+
+    path = Path(args.config)
+    data = load_yaml_file(path)
+    if not isinstance(data, dict) or "sim" not in data:
+        raise ConfigError(f"{path}: no sim: section (the virtual devices to run)")
+    cfg = SimWorldConfig.from_mapping(data["sim"], "sim", base_dir=path.resolve().parent)
+    tr = cfg.transport
+    if tr.kind != "socketcand" or args.port is not None:
+        port = tr.port if args.port is None else args.port
+        tr = dataclasses.replace(tr, kind="socketcand", port=port)
+        cfg = dataclasses.replace(cfg, transport=tr)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    world = SimWorld.from_config(cfg, base_dir=path.resolve().parent)
+    try:
+        world.start()
+        info = {"ready": True, "pid": os.getpid(), **world.ready_info()}
+        sys.stdout.write(json.dumps(info) + "\n")
+        sys.stdout.flush()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        world.stop()
+    return 0
