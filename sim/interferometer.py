@@ -433,9 +433,11 @@ class SimInterferometer:
             data, _ = self._make(now)
             if baud and data:
                 tx_ns = round(len(data) * 10 * 1e9 / baud)
-                start = max(now, self._link_free_ns)
+                # the line is judged against the sampling schedule (next_ns), not against ``now``: a device
+                # samples at rate_hz whatever its UART does, so a link too slow for the rate drops frames
+                start = max(next_ns, self._link_free_ns)
                 end = start + tx_ns
-                if end - now > 4 * tx_ns:
+                if end - next_ns > 4 * tx_ns:
                     self.frames_overrun += 1
                     data = b""
                 else:
