@@ -69,7 +69,8 @@ class DahlParams:
 
     sigma0_n_m: float = param(unit="N/m", desc="rest stiffness σ0 (slope of the virgin curve at 0)", gt=0.0)
     fc_n: float = param(unit="N", desc="Coulomb level Fc (saturation force)", gt=0.0)
-    exponent: float = param(1.0, unit="", desc="shape exponent i of the Dahl law (1 = classic)", ge=0.0, le=10.0)
+    exponent: float = param(1.0, unit="", desc="shape exponent i of the Dahl law (1 = classic)",
+                            ge=0.0, le=10.0)
     viscous_n_s_m: float = param(0.0, unit="N·s/m", desc="viscous coefficient σ2", ge=0.0)
 
 
@@ -93,7 +94,7 @@ class DahlFriction(KernelModel):
         return np.zeros(1)
 
     def virgin(self, x: np.ndarray) -> np.ndarray:
-        """Virgin curve F_d(x) [N] from the relaxed state, for exponent i = 1: Fc·(1 − exp(−σ0|x|/Fc))·sgn(x)."""
+        """Virgin curve F_d(x) [N] from the relaxed state (exponent i = 1): Fc·(1 − exp(−σ0|x|/Fc))·sgn(x)."""
         if self.params.exponent != 1.0:
             raise ValueError("exponent: the closed-form virgin curve is for exponent = 1")
         q = self.params
@@ -105,4 +106,5 @@ class DahlFriction(KernelModel):
         q = self.params
         s = math.copysign(1.0, v) if v != 0.0 else 0.0
         u = 1.0 - state[0] * s / q.fc_n
-        return np.array([v * q.sigma0_n_m * abs(u) ** q.exponent * (1.0 if u > 0 else -1.0 if u < 0 else 0.0)])
+        su = 1.0 if u > 0 else -1.0 if u < 0 else 0.0
+        return np.array([v * q.sigma0_n_m * abs(u) ** q.exponent * su])

@@ -175,7 +175,8 @@ def _top_force(p: FloatArray, state: FloatArray) -> float:  # pragma: no cover
 
 
 @njit(cache=True)
-def _presliding_step(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
+def _presliding_step(p: FloatArray, state: FloatArray, dx: float, v: float,
+                     dt: float) -> float:  # pragma: no cover
     n = int(state[S_DEPTH])
     dirn = state[S_DIR]
     xs0 = state[S_XS]
@@ -301,8 +302,8 @@ class HsiehParams:
     """Parameters of the Hsieh & Pan model with its sliding model and switch (SI units)."""
 
     k1s_n_m: float = param(unit="N/m", desc="linear spring k1s of the spring module", gt=0.0)
-    k2s_n_m: float = param(unit="N/m", desc="initial stiffness k2s of the saturating spring (saturates at k2s/beta)",
-                           ge=0.0)
+    k2s_n_m: float = param(unit="N/m", ge=0.0,
+                           desc="initial stiffness k2s of the saturating spring (saturates at k2s/beta)")
     beta_1_m: float = param(unit="1/m", desc="decay rate beta of the saturating spring", gt=0.0)
     cv_n_s_m: float = param(unit="N·s/m", desc="damping Cv on the elastic rate dx_s/dt", ge=0.0)
     rho_1_s: float = param(unit="1/s", desc="plastic rate constant rho (0 = no plastic flow)", ge=0.0)
@@ -360,7 +361,8 @@ class HsiehFriction(KernelModel):
         """Spring-module virgin curve F_el(x_s) [N] for elastic displacement ``xs`` [m]."""
         q = self.params
         x = np.asarray(xs, dtype=np.float64)
-        return (q.k1s_n_m * x + np.sign(x) * (q.k2s_n_m / q.beta_1_m) * (1.0 - np.exp(-q.beta_1_m * np.abs(x))))
+        sat = (q.k2s_n_m / q.beta_1_m) * (1.0 - np.exp(-q.beta_1_m * np.abs(x)))
+        return np.asarray(q.k1s_n_m * x + np.sign(x) * sat, dtype=np.float64)
 
     def quasi_static_virgin(self, force_n: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Quasi-static, force-driven virgin curve (x_h at equilibrium), FRICTION_MODELS.md §4.4.
@@ -400,7 +402,8 @@ class HsiehFriction(KernelModel):
     def parts(state: FloatArray) -> dict[str, float]:
         """Named internal quantities: x_s, x_p, x_h [m], F_el [N], depth, sliding."""
         return {"x_s_m": float(state[S_XS]), "x_p_m": float(state[S_XP]), "x_h_m": float(state[S_XH]),
-                "f_el_n": float(state[S_FEL]), "depth": int(state[S_DEPTH]), "sliding": bool(state[S_MODE] == 1.0)}
+                "f_el_n": float(state[S_FEL]), "depth": int(state[S_DEPTH]),
+                "sliding": bool(state[S_MODE] == 1.0)}
 
     def sliding_force(self, v: float) -> float:
         """Steady sliding-model force F_sl(v) = sgn(v)·g(v) + σ2·v [N]."""
