@@ -98,19 +98,23 @@ def kalman_gain(mass_kg: float, dt: float, bandwidth_hz: float, measurement_nois
                 disturbance_noise_n_sqrt_s: float | None = None) -> tuple[float, float, float]:
     """Filter-form steady-state gain (k_x, k_v, k_τ) for the Kalman DOB.
 
-    If ``disturbance_noise_n_sqrt_s`` is None it is found by bisection (in log scale) so that
-    :func:`observer_bandwidth_hz` equals ``bandwidth_hz``.
+    If ``disturbance_noise_n_sqrt_s`` is None it is chosen so that :func:`observer_bandwidth_hz` equals
+    ``bandwidth_hz`` (Butterworth start value, then Newton steps; a few ``dlqe`` calls).
     """
     if disturbance_noise_n_sqrt_s is None:
-        lo, hi = -12.0, 14.0
-        for _ in range(40):
-            mid = 0.5 * (lo + hi)
-            K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, 10.0 ** mid)
-            if observer_bandwidth_hz(K, mass_kg, dt) < bandwidth_hz:
-                lo = mid
-            else:
-                hi = mid
-        q = 10.0 ** (0.5 * (lo + hi))
+        # continuous-time start: the steady-state filter of the chain τ -> v -> x is a 3rd-order Butterworth
+        # with radius ω = (q² / (m²·r²·dt))^(1/6), i.e. q = m·ω³·r·sqrt(dt); then Newton steps on log q
+        # (ω ∝ q^(1/3)) against the discrete poles.
+        w = 2.0 * math.pi * bandwidth_hz
+        log_q = math.log(mass_kg * w ** 3 * measurement_noise_m * math.sqrt(dt))
+        for _ in range(12):
+            K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, math.exp(log_q))
+            bw = observer_bandwidth_hz(K, mass_kg, dt)
+            err = math.log(bandwidth_hz / bw)
+            if abs(err) < 1e-6:
+                break
+            log_q += 3.0 * err
+        q = math.exp(log_q)
     else:
         q = disturbance_noise_n_sqrt_s
     K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, q)
@@ -170,17 +174,24 @@ def plant_tf(mass_kg: float, dt: float, delay_samples: int = 1, viscous_n_s_m: f
 
 
 def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_samples: int = 0) -> tuple[Any, Any]:
-    """(H_u, H_y) of the Q-filter DOB: d̂ = H_u·u − H_y·y (backward-difference velocity)."""
+    """(H_u, H_y) of the Q-filter DOB of :mod:`stagectl.control.dob`: d̂ = H_u·u − H_y·y.
+
+    H_w = (1−α)z⁻¹/(1−αz⁻¹), K_v = m(1−α)/dt, ū = (1+z⁻¹)/2·z^−d·u, v̂ = (1−z⁻¹)/dt·y::
+
+        H_u = H_w·(1+z⁻¹)/2·z^−d,        H_y = K_v·(1 − H_w)·(1−z⁻¹)/dt
+    """
     import control
 
     g = 2 * math.pi * bandwidth_hz
     a = math.exp(-g * dt)
+    kv = mass_kg * (1 - a) / dt
     z = control.tf([1.0, 0.0], [1.0], dt)
-    Hu = (1 - a) / (z - a)  # (1-a) z^-1 / (1 - a z^-1)
     one = control.tf([1.0], [1.0], dt)
-    Hy = mass_kg * g * (one - Hu) * (z - 1) / (z * dt)
+    Hw = (1 - a) / (z - a)  # (1-a) z^-1 / (1 - a z^-1)
+    Hu = Hw * (z + 1) / (2 * z)
     if command_delay_samples:
         Hu = Hu * _zinv(dt, command_delay_samples)
+    Hy = kv * (one - Hw) * (z - 1) / (z * dt)
     return Hu, Hy
 
 
