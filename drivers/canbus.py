@@ -20,12 +20,13 @@ from __future__ import annotations
 import logging
 import threading
 import weakref
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import can
 
-from stagectl.errors import ConfigError, DriverInitError
+from stagectl.errors import ConfigError, DriverError, DriverInitError
 
 #: SocketCAN error class bits (linux/can/error.h) carried in an error frame's arbitration id
 CAN_ERR_BUSOFF = 0x00000040
@@ -114,3 +115,35 @@ def open_bus_names() -> list[str]:
 def error_frame_is_bus_off(msg: can.Message) -> bool:
     """True if the error frame reports bus-off (SocketCAN ``CAN_ERR_BUSOFF`` class bit)."""
     return bool(msg.arbitration_id & CAN_ERR_BUSOFF)
+
+
+@contextmanager
+def pumping(pump: Callable[[], None] | None, name: str) -> Iterator[None]:
+    """Lock-step helper: while the caller blocks (e.g. on SDO), run ``pump()`` from a helper thread.
+
+    No-op when ``pump`` is None (real devices or a simulation running in its own thread).
+    """
+    if pump is None:
+        yield
+        return
+    done = threading.Event()
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        while not done.is_set():
+            try:
+                pump()
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
+                errors.append(exc)
+                return
+            done.wait(0.0002)
+
+    t = threading.Thread(target=run, name=f"{name}-sdo-pump", daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        done.set()
+        t.join(2.0)
+    if errors:
+        raise DriverError(f"{name}: simulated peer failed while configuring: {errors[0]}") from errors[0]

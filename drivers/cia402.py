@@ -40,11 +40,9 @@ import enum
 import logging
 import math
 import struct
-import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +57,7 @@ from stagectl.drivers.base import (
     PositionSensor,
     SyncProducer,
 )
-from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus
+from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus, pumping
 from stagectl.errors import ConfigError, DriveFault, DriverError, DriverInitError, DriverIOError, DriverTimeoutError
 from stagectl.schema import param
 
@@ -192,7 +190,7 @@ class Cia402Config:
     max_speed_m_s: float = param(
         2.0, unit="m/s", desc="position steps faster than this are a sensor glitch (SENSOR_ERROR)", gt=0
     )
-    sdo_timeout_s: float = param(0.3, unit="s", desc="SDO response timeout during configure", gt=0)
+    sdo_timeout_s: float = param(0.5, unit="s", desc="SDO response timeout during configure", gt=0)
     state_timeout_s: float = param(
         0.5, unit="s", desc="time allowed for enable/disable/fault reset state changes", gt=0
     )
@@ -330,35 +328,6 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         self._node = None
 
     # ------------------------------------------------------------------ configure (SDO)
-    @contextmanager
-    def _pumping(self) -> Iterator[None]:
-        """While blocking on SDO in lock-step mode, run ``pump()`` from a helper thread."""
-        pump = self._pump
-        if pump is None:
-            yield
-            return
-        done = threading.Event()
-        errors: list[BaseException] = []
-
-        def run() -> None:
-            while not done.is_set():
-                try:
-                    pump()
-                except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
-                    errors.append(exc)
-                    return
-                done.wait(0.0002)
-
-        t = threading.Thread(target=run, name=f"{self.name}-sdo-pump", daemon=True)
-        t.start()
-        try:
-            yield
-        finally:
-            done.set()
-            t.join(2.0)
-        if errors:
-            raise DriverError(f"{self.name}: simulated peer failed while configuring: {errors[0]}") from errors[0]
-
     def _sdo_write(self, index: int, sub: int, fmt: str, value: int, what: str) -> None:
         from canopen.sdo.exceptions import SdoError
 
@@ -407,7 +376,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         if self._notifier is None and self._bus is not None and self._network is not None:
             self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
         nid = self.cfg.node_id
-        with self._pumping():
+        with pumping(self._pump, self.name):
             self._node.nmt.send_command(0x80)  # enter PRE-OPERATIONAL (PDOs off while remapping)
             dtype = self._sdo_read(0x1000, 0, "<I", "device type")
             if dtype & 0xFFFF != 402:

@@ -1,0 +1,93 @@
+"""CiA 406 encoder driver vs the simulated encoder, sharing the bus with the drive (lock-step)."""
+
+from __future__ import annotations
+
+import pytest
+
+from stagectl.drivers.base import FaultKind
+from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
+from stagectl.errors import DriverInitError
+from stagectl.sim.faults import FaultSpec, SimFault
+
+
+@pytest.fixture
+def rig(lockstep):
+    encoders = []
+
+    def make(**enc_kw):
+        world, drive = lockstep(world_kw={"encoder": {"node_id": 5, "resolution_m": 5e-9}})
+        enc = Cia406Encoder(Cia406Config(node_id=5, can=world.ready_info()["can"], resolution_m=5e-9, sdo_timeout_s=3.0, **enc_kw),
+                            period_s=0.001)
+        encoders.append(enc)
+        enc.set_pump(world.pump)
+        enc.open()
+        enc.configure()
+        return world, drive, enc
+
+    yield make
+    for e in encoders:
+        e.close()
+
+
+def test_encoder_follows_plant_1000_cycles(rig):
+    world, drive, enc = rig()
+    assert world.ready_info()["encoder_node_id"] == 5
+    assert world.encoder.period_s == pytest.approx(0.001)
+    for k in range(1000):
+        drive.sync()
+        drive.read()
+        m = enc.read()
+        assert m.fresh and m.fault is None, (k, m)
+        assert m.counts == round(world.plant.measure() / 5e-9)
+        drive.write(-4.0)
+    assert m.position_m < -1e-3
+
+
+def test_encoder_faults(rig):
+    world, drive, enc = rig()
+    for kind, expected in ((SimFault.DROP_TPDO, FaultKind.MISSED_FRAME), (SimFault.POSITION_JUMP, FaultKind.SENSOR_ERROR)):
+        world.clear_faults()
+        enc.fault_reset()
+        for _ in range(3):
+            drive.sync()
+            drive.read()
+            assert enc.read().fault is None
+        world.inject(FaultSpec(kind=kind, device="encoder"))
+        seen = None
+        for k in range(1, 4):
+            drive.sync()
+            drive.read()
+            m = enc.read()
+            if m.fault:
+                seen = (k, m.fault.kind)
+                break
+        assert seen is not None and seen[1] is expected
+    world.clear_faults()
+
+
+def test_encoder_as_sync_producer(make_world):
+    world = make_world(encoder={"node_id": 9})
+    enc = Cia406Encoder(Cia406Config(node_id=9, can=world.ready_info()["can"], sync_producer=True, sdo_timeout_s=3.0))
+    try:
+        enc.set_pump(world.pump)
+        enc.open()
+        enc.configure()
+        for _ in range(20):
+            enc.sync()
+            m = enc.read()
+            assert m.fresh and m.counts == round(world.plant.measure() / 1e-9)
+        assert world.encoder.sync_count == 20
+    finally:
+        enc.close()
+
+
+def test_encoder_rejects_a_drive(make_world):
+    world = make_world()
+    world.start()
+    enc = Cia406Encoder(Cia406Config(node_id=1, can=world.ready_info()["can"], sdo_timeout_s=3.0))
+    try:
+        enc.open()
+        with pytest.raises(DriverInitError, match="not a CiA 406"):
+            enc.configure()
+    finally:
+        enc.close()
