@@ -1,0 +1,178 @@
+"""Characteristic curves of friction models, and their plots (matplotlib, Agg backend).
+
+Curves (computed with ``model.force_along`` from the relaxed state; any registered model):
+
+* **virgin curve**: quasi-static first loading ``0 → x_max`` at ``v_qs`` (default 1 µm/s);
+* **nested hysteresis loops**: after first loading to A, symmetric cycles of amplitudes A, 0.6·A, 0.3·A
+  (concentric, centred at 0) and one minor loop on the last descending branch, all at ``v_qs``;
+* **Stribeck curve**: steady sliding force at constant velocities ±v (last value of a run long enough
+  to leave pre-sliding and let frictional lag settle).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stagectl.friction.base import FrictionModel
+
+FloatArray = npt.NDArray[np.float64]
+
+UM = 1e-6
+
+
+@dataclass
+class Curves:
+    """The three characteristic curves of one model (SI units)."""
+
+    label: str
+    virgin_x_m: FloatArray
+    virgin_f_n: FloatArray
+    loop_x_m: FloatArray
+    loop_f_n: FloatArray
+    stribeck_v_m_s: FloatArray
+    stribeck_f_n: FloatArray
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _ramp(points: Sequence[float], step_m: float) -> FloatArray:
+    """Piecewise-linear path through ``points`` sampled every ~``step_m``."""
+    out = [np.array([points[0]])]
+    for a, b in zip(points[:-1], points[1:]):
+        n = max(2, int(np.ceil(abs(b - a) / step_m)))
+        out.append(np.linspace(a, b, n + 1)[1:])
+    return np.concatenate(out)
+
+
+def virgin_curve(model: FrictionModel, x_max_m: float = 30 * UM, n: int = 600,
+                 v_qs_m_s: float = 1e-6) -> tuple[FloatArray, FloatArray]:
+    """Quasi-static first-loading curve ``F(x)`` for ``0 <= x <= x_max_m``."""
+    x = np.linspace(0.0, x_max_m, n + 1)
+    t = x / v_qs_m_s
+    return x, model.force_along(x, t)
+
+
+def hysteresis_loops(model: FrictionModel, amplitude_m: float = 20 * UM, v_qs_m_s: float = 1e-6,
+                     step_m: float = 0.02 * UM) -> tuple[FloatArray, FloatArray]:
+    """Nested loops: 0 → A → −A → A, then ±0.6A and ±0.3A cycles, then a minor loop."""
+    a = amplitude_m
+    pts = [0.0, a, -a, a, -0.6 * a, 0.6 * a, -0.3 * a, 0.3 * a, -0.1 * a, 0.1 * a, -0.3 * a]
+    x = _ramp(pts, step_m)
+    t = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(x)) / v_qs_m_s)])
+    # zero-length steps would make t non-increasing; _ramp never produces them
+    return x, model.force_along(x, t)
+
+
+def stribeck_curve(model: FrictionModel, v_max_m_s: float = 0.05, v_min_m_s: float = 1e-6, n_v: int = 41,
+                   samples: int = 2000) -> tuple[FloatArray, FloatArray]:
+    """Steady sliding force at ±v for ``n_v`` log-spaced speeds (returned sorted by v)."""
+    speeds = np.logspace(np.log10(v_min_m_s), np.log10(v_max_m_s), n_v)
+    vs, fs = [], []
+    for sign in (-1.0, 1.0):
+        for v in speeds:
+            vs.append(sign * v)
+            fs.append(steady_force(model, sign * v, samples))
+    order = np.argsort(vs)
+    return np.asarray(vs)[order], np.asarray(fs)[order]
+
+
+def compute_curves(model: FrictionModel, label: str, x_max_m: float = 30 * UM,
+                   loop_amplitude_m: float | None = None) -> Curves:
+    """All three curves for one model."""
+    vx, vf = virgin_curve(model, x_max_m)
+    lx, lf = hysteresis_loops(model, loop_amplitude_m or 2.0 * x_max_m / 3.0)
+    sv, sf = stribeck_curve(model)
+    return Curves(label, vx, vf, lx, lf, sv, sf)
+
+
+def steady_force(model: FrictionModel, v_m_s: float, samples: int = 2000) -> float:
+    """Steady sliding force [N] at constant velocity ``v_m_s`` (as in :func:`stribeck_curve`)."""
+    travel = max(1e-3, abs(v_m_s) * 0.2)
+    x = np.linspace(0.0, np.copysign(travel, v_m_s), samples)
+    return float(model.force_along(x, np.linspace(0.0, travel / abs(v_m_s), samples))[-1])
+
+
+def summary(c: Curves, model: FrictionModel | None = None) -> dict[str, Any]:
+    """Key figures of a model's curves (for ``--json``); exact steady forces when ``model`` is given."""
+    def at(xq: float) -> float:
+        return float(np.interp(xq, c.virgin_x_m, c.virgin_f_n))
+
+    k0 = float((c.virgin_f_n[1] - c.virgin_f_n[0]) / (c.virgin_x_m[1] - c.virgin_x_m[0]))
+    return {
+        "label": c.label,
+        "virgin_n": {f"{x:g}um": at(x * UM) for x in (1, 2, 5, 10, 20, 30) if x * UM <= c.virgin_x_m[-1]},
+        "virgin_end_n": float(c.virgin_f_n[-1]),
+        "initial_stiffness_n_m": k0,
+        "stribeck_n": {f"{v:g}m_s": (steady_force(model, v) if model is not None
+                                     else float(np.interp(v, c.stribeck_v_m_s, c.stribeck_f_n)))
+                       for v in (-1e-3, 1e-4, 1e-3, 1e-2)},
+    }
+
+
+# ------------------------------------------------------------------------------------------------ plots
+def _fig(title: str):  # type: ignore[no-untyped-def]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.0, 4.8), dpi=110)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    return plt, fig, ax
+
+
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_curves(curves: Sequence[Curves], out_dir: str | Path, suffix: str = "") -> list[Path]:
+    """Write ``virgin{suffix}.png``, ``hysteresis{suffix}.png`` and ``stribeck{suffix}.png``; overlay if several."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+
+    plt, fig, ax = _fig("Virgin curve (quasi-static first loading)")
+    for c in curves:
+        ax.plot(c.virgin_x_m / UM, c.virgin_f_n, label=c.label)
+    ax.set_xlabel("displacement x [µm]")
+    ax.set_ylabel("friction force F [N]")
+    ax.legend()
+    written.append(_save(plt, fig, out / f"virgin{suffix}.png"))
+
+    plt, fig, ax = _fig("Nested hysteresis loops (quasi-static)")
+    for c in curves:
+        ax.plot(c.loop_x_m / UM, c.loop_f_n, label=c.label, lw=1.0)
+    ax.set_xlabel("displacement x [µm]")
+    ax.set_ylabel("friction force F [N]")
+    ax.legend()
+    written.append(_save(plt, fig, out / f"hysteresis{suffix}.png"))
+
+    plt, fig, ax = _fig("Stribeck curve (steady sliding)")
+    for c in curves:
+        pos = c.stribeck_v_m_s > 0
+        (line,) = ax.plot(c.stribeck_v_m_s[pos] * 1e3, c.stribeck_f_n[pos], marker=".", label=c.label)
+        ax.plot(c.stribeck_v_m_s[~pos] * 1e3, c.stribeck_f_n[~pos], marker=".", color=line.get_color())
+    ax.set_xscale("symlog", linthresh=1e-3)
+    ax.set_xlabel("velocity v [mm/s] (symlog)")
+    ax.set_ylabel("steady friction force F [N]")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.legend()
+    written.append(_save(plt, fig, out / f"stribeck{suffix}.png"))
+    return written
+
+
+def compare_virgin(a: Curves, b: Curves) -> dict[str, float]:
+    """RMS and max |F_a − F_b| over the common virgin-curve range [N]."""
+    x = a.virgin_x_m[a.virgin_x_m <= b.virgin_x_m[-1]]
+    d = np.interp(x, a.virgin_x_m, a.virgin_f_n) - np.interp(x, b.virgin_x_m, b.virgin_f_n)
+    return {"virgin_rms_diff_n": float(np.sqrt(np.mean(d**2))), "virgin_max_abs_diff_n": float(np.max(np.abs(d))),
+            "range_m": float(x[-1])}
