@@ -127,3 +127,12 @@ def test_canopen_basenode402_master_drives_the_sim(make_world):
             pdo.stop()
         net.notifier.stop(1.0)
         canbus.close_bus(bus)
+
+
+def test_world_includes_interferometer_when_configured(make_world):
+    pytest.importorskip("stagectl.sim.interferometer")
+    world = make_world(interferometer={"transport": "tcp", "lockstep": "plant_time"})
+    info = world.ready_info()
+    assert info["interferometer_url"].startswith("socket://127.0.0.1:")
+    assert world.interferometer.plant is world.plant
+    world.pump()  # lock-step pumps the interferometer too (no client yet: nothing to send, no error)
