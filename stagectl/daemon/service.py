@@ -267,10 +267,13 @@ class StageService:
             idle_timeout_s=c.client_idle_timeout_s, reply_timeout_s=c.reply_timeout_s)
         self.server.start()
 
-    def _drive_enabled(self) -> bool:
+    def _drive_state(self) -> str:
         act = getattr(self.asm.loop, "actuator", None) if self.asm else None
         st = getattr(act, "state", None)
-        return getattr(st, "value", st) == "enabled"
+        return str(getattr(st, "value", st))
+
+    def _drive_enabled(self) -> bool:
+        return self._drive_state() == "enabled"
 
     # ================================================================== supervision
     def _supervise(self) -> int:
@@ -401,15 +404,20 @@ class StageService:
                 clean = False
         drive = "unknown"
         if self.asm is not None:
-            drive = "disabled" if not self._drive_enabled() else "ENABLED"
-            if drive != "disabled":
-                try:  # the loop could not do it: do it here (safe in any device state)
+            drive = self._drive_state()
+            if drive == "enabled":
+                try:  # the loop could not do it: do it here (Device.disable is safe in any state)
                     self.asm.loop.actuator.disable()
-                    drive = "disabled" if not self._drive_enabled() else "ENABLED"
                 except Exception:  # noqa: BLE001
                     log.exception("disabling the drive failed")
-                if drive != "disabled":
-                    clean = False
+                drive = self._drive_state()
+            if drive in ("configured", "open", "closed"):
+                drive = "disabled"
+            elif drive == "fault":
+                drive = "in fault (quick-stopped, not enabled)"
+            else:
+                drive = f"state {drive}"
+                clean = False
         if self.server is not None:
             self.server.stop()
         if self.writer is not None:

@@ -1,0 +1,132 @@
+"""SIGKILL the daemon: the simulated drive (a separate `stagectl sim-plant` process, CiA 402 over socketcand)
+notices the controller's heartbeat is gone (consumer 0x1016) and stops the stage by itself: EMCY 0x8130,
+drive leaves OPERATION ENABLED, torque zero. Observed from outside with a stock canopen client.
+
+Every wait is on a frame, an SDO reply, a notify datagram or process exit; timeouts are failure guards.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+HIL_YAML = REPO / "config" / "hil-canopen.yaml"
+
+can = pytest.importorskip("can")
+canopen = pytest.importorskip("canopen")
+
+
+def _stagectl() -> list[str]:
+    exe = Path(sys.executable).parent / "stagectl"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
+
+
+def _absolutize(node, base: Path):
+    if isinstance(node, dict):
+        return {k: (str(base / v) if isinstance(v, str) and k.endswith("_file") and not os.path.isabs(v)
+                    else _absolutize(v, base)) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_absolutize(v, base) for v in node]
+    return node
+
+
+def _readline(proc: subprocess.Popen, timeout: float) -> str:
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    if not sel.select(timeout):
+        raise TimeoutError("sim-plant printed no ready line")
+    return proc.stdout.readline()
+
+
+@pytest.fixture
+def sim_plant():
+    if not HIL_YAML.exists():
+        pytest.skip("config/hil-canopen.yaml not in the repository")
+    proc = subprocess.Popen([*_stagectl(), "sim-plant", "--config", str(HIL_YAML), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = _readline(proc, 120)
+        info = json.loads(line)
+        assert info["ready"] is True
+        yield proc, info
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+        proc.stdout.close()
+        proc.stderr.close()
+
+
+def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket):
+    plant_proc, info = sim_plant
+    port = info["can"]["port"]
+    cfg = _absolutize(yaml.safe_load(HIL_YAML.read_text()), HIL_YAML.parent)
+    cfg["io"]["drive"]["can"]["port"] = port
+    # a loaded 2-core CI machine misses TPDOs over TCP now and then; this test is about the kill, not timing
+    cfg["io"]["drive"]["max_missed"] = 1000
+    cfg["safety"]["stale_cycles"] = 1000
+    cfg.setdefault("loop", {})["healthy_overrun_fraction"] = 0.5
+    cfg["daemon"] = {"ready_timeout_s": 60, "telemetry": {"directory": str(tmp_path / "telemetry")}}
+    path = tmp_path / "hil.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path)}
+    daemon = subprocess.Popen([*_stagectl(), "daemon", "--config", str(path), "--runtime-dir", str(tmp_path / "run")],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    bus = None
+    network = None
+    try:
+        try:
+            notify_socket.wait_for("READY", "1", timeout=120)
+        except TimeoutError:
+            daemon.kill()
+            pytest.fail("daemon never READY:\n" + daemon.communicate(timeout=30)[1][-4000:])
+        # an observer on the same CAN bus (another socketcand client), connected while the daemon runs
+        bus = can.Bus(interface="socketcand", host=info["can"]["host"], port=port, channel=info["can"]["channel"],
+                      tcp_tune=True)
+        node_id = info.get("drive_node_id", 1)
+        # the drive is enabled and under control: statusword 0x6041 says OPERATION ENABLED (xxxx xxxx x01x 0111)
+        network = canopen.Network(bus)
+        network.notifier = can.Notifier(bus, network.listeners, 0.1)
+        node = canopen.RemoteNode(node_id, canopen.objectdictionary.ObjectDictionary())
+        network.add_node(node)
+        sw = int.from_bytes(node.sdo.upload(0x6041, 0), "little")
+        assert sw & 0x6F == 0x27, hex(sw)
+        emcys: list[tuple[int, float]] = []
+        node.emcy.add_callback(lambda e: emcys.append((e.code, time.monotonic())))
+
+        t_kill = time.monotonic()
+        daemon.send_signal(signal.SIGKILL)
+        daemon.wait(30)
+        assert daemon.returncode == -signal.SIGKILL
+        # wait for the drive's own EMCY 0x8130 (heartbeat consumer timeout); the timeout is a failure guard
+        err = node.emcy.wait(0x8130, timeout=20)
+        assert err is not None, f"no heartbeat EMCY from the drive; EMCYs seen: {emcys}"
+        sw = int.from_bytes(node.sdo.upload(0x6041, 0), "little")
+        assert sw & 0x6F != 0x27, f"drive still OPERATION ENABLED after the controller died: {sw:#06x}"
+        assert sw & 0x08, f"0x6007 = 1 (fault on heartbeat loss) expected the FAULT bit: {sw:#06x}"
+        assert int.from_bytes(node.sdo.upload(0x603F, 0), "little") == 0x8130
+        assert int.from_bytes(node.sdo.upload(0x6077, 0), "little", signed=True) == 0  # no torque
+        print(f"drive stopped itself {emcys[-1][1] - t_kill if emcys else float('nan'):.3f} s after SIGKILL")
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait(30)
+        daemon.stderr.close()
+        if network is not None:
+            network.notifier.stop()
+        if bus is not None:
+            bus.shutdown()
