@@ -242,6 +242,8 @@ class StageController:
         if self.ff is not None:
             self.ff.reset(x_m)
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
+        self._ff_bump = None
+        self._last_ref = None
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -281,7 +283,7 @@ class StageController:
             new_dob.retune(parts.cfg.dob, parts.mass_kg)
         # feed-forward
         if parts.ff_rebuilt:
-            transfer += st.u_ff_n
+            self._ff_bump = st.u_ff_n  # settled against the new feed-forward's first output in step()
             if parts.ff is not None:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
@@ -297,6 +299,7 @@ class StageController:
         self._vdt = math.nan
 
     _last_ref: Reference | None = None
+    _ff_bump: float | None = None
 
     # ------------------------------------------------------------------ loop
     def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command:
@@ -324,6 +327,9 @@ class StageController:
         # feed-forward
         ff = self.ff
         u_ff = ff.step(dt, ref) if ff is not None else 0.0
+        if self._ff_bump is not None:  # feed-forward replaced by retune: the integrator takes the difference
+            self.pid.preload(self.pid.state.u_pid_n + self._ff_bump - u_ff)
+            self._ff_bump = None
         ffc = cfg.feedforward
         if ffc.inertia:
             m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg

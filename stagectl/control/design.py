@@ -1,7 +1,9 @@
 """Start-up / offline gain design and loop analysis (python-control, imported lazily inside functions).
 
 Not real-time: call at start-up (before ``gc.freeze()``) or from ``stagectl tune``. Importing this module
-is cheap; python-control is imported only by the functions that need it.
+is cheap; python-control is imported only by the functions that need it (``design_pid``, the loop
+analysis, ``use_control=True``). The Kalman observer gain built by the controller at start-up uses
+scipy's DARE solver only, so the loop process never imports python-control (HOUSE_STYLE.md §3).
 
 PID rule ("loop shaping" for a rigid mass m [kg] with target crossover f_c [Hz], ω_c = 2π·f_c)::
 
@@ -66,21 +68,33 @@ def _kalman_matrices(mass_kg: float, dt: float) -> tuple[np.ndarray, np.ndarray,
 
 
 def kalman_gain_for_noise(mass_kg: float, dt: float, measurement_noise_m: float,
-                          disturbance_noise_n_sqrt_s: float) -> tuple[np.ndarray, np.ndarray]:
+                          disturbance_noise_n_sqrt_s: float, *, use_control: bool = False
+                          ) -> tuple[np.ndarray, np.ndarray]:
     """Steady-state *filter-form* gain K (3,) and the a-priori covariance P (3, 3).
 
-    Uses ``control.dlqe`` on the ZOH model of ``dob`` with process noise only on τ (variance
-    q²·dt per step) and measurement variance r². dlqe returns the predictor gain L = A·P·Cᵀ(C·P·Cᵀ + R)⁻¹
-    for x[k+1] = A·x + B·u + L(y − C·x) together with the a-priori P; the filter-form gain for
-    x⁺ = x⁻ + K(z − C·x⁻) is K = P·Cᵀ(C·P·Cᵀ + R)⁻¹ (PLATFORM_NOTES.md §6: plugging L in diverges).
-    """
-    import control
+    Model of :mod:`stagectl.control.dob` (ZOH), process noise only on τ (variance q²·dt per step),
+    measurement variance r². The a-priori P solves the filter DARE
+    P = A·P·Aᵀ − A·P·Cᵀ(C·P·Cᵀ + R)⁻¹·C·P·Aᵀ + Q, and the filter-form gain for x⁺ = x⁻ + K(z − C·x⁻) is
+    K = P·Cᵀ(C·P·Cᵀ + R)⁻¹.
 
+    By default P comes from ``scipy.linalg.solve_discrete_are`` (light import, safe in the loop process:
+    HOUSE_STYLE.md keeps python-control out of it). ``use_control=True`` uses ``control.dlqe`` instead (the
+    tuning tool): dlqe returns the **predictor** gain L = A·P·Cᵀ(C·P·Cᵀ + R)⁻¹ for
+    x[k+1] = A·x + B·u + L(y − C·x) together with the same a-priori P, so K is recomputed from P
+    (PLATFORM_NOTES.md §6: plugging L into the filter form diverges).
+    """
     A, _, C = _kalman_matrices(mass_kg, dt)
     Q = np.diag([0.0, 0.0, disturbance_noise_n_sqrt_s ** 2 * dt])
     R = np.array([[measurement_noise_m ** 2]])
-    _L, P, _E = control.dlqe(A, np.eye(3), C, Q, R)
-    P = np.asarray(P)
+    if use_control:
+        import control
+
+        _L, P, _E = control.dlqe(A, np.eye(3), C, Q, R)
+        P = np.asarray(P)
+    else:
+        from scipy.linalg import solve_discrete_are
+
+        P = solve_discrete_are(A.T, C.T, Q, R)
     S = float((C @ P @ C.T)[0, 0] + R[0, 0])
     K = (P @ C.T)[:, 0] / S
     return K, P

@@ -25,8 +25,9 @@ Kalman form (``kind: kalman``), augmented state s = [x, v, τ] (m, m/s, N)::
 
     ẋ = v,  v̇ = (u_obs − τ)/m_n,  τ̇ = w  (random walk)       measurement z = x_meas + noise
 
-ZOH-discretised (A, B), steady-state *filter-form* gain K designed once (``design.kalman_gain``, with
-python-control's ``dlqe``, whose predictor gain L = A·K is converted). Per step (pure Python, ~1 µs)::
+ZOH-discretised (A, B), steady-state *filter-form* gain K designed once at construction
+(``design.kalman_gain``: the a-priori DARE solution with scipy; ``stagectl tune`` cross-checks it with
+python-control's ``dlqe``, whose predictor gain L = A·K must not be used in filter form). Per step (pure Python, ~1 µs)::
 
     s⁻ = A·s⁺ + B·u_obs,k−1,        s⁺ = s⁻ + K·(z_k − x⁻),        d̂_k = τ⁺
 
@@ -151,9 +152,8 @@ class QFilterDob:
 class KalmanDob:
     """Steady-state Kalman DOB on [x, v, τ] (see module docstring). ``step`` is real-time safe.
 
-    The gain is designed for ``period_s`` at construction (python-control imported lazily by
-    :func:`stagectl.control.design.kalman_gain`); a different ``dt`` at ``step`` triggers a redesign
-    (not real-time safe, avoid).
+    The gain is designed for ``period_s`` at construction (:func:`stagectl.control.design.kalman_gain`,
+    scipy imported lazily); a different ``dt`` at ``step`` triggers a redesign (not real-time safe, avoid).
     """
 
     def __init__(self, cfg: DobConfig, mass_kg: float, period_s: float):

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 from stagectl.control.api import Reference
 from stagectl.control.pid import check_dt
-from stagectl.friction.base import FrictionModel
+from stagectl.friction.base import FloatArray, FrictionModel
 from stagectl.friction.effects import NO_EFFECTS, Effects
 
 
@@ -102,6 +102,11 @@ class FrictionFeedforward:
         self.state = FrictionFfState()
         self._mstate = model.initial_state()
         self._f_model = 0.0
+
+    @property
+    def model_state(self) -> FloatArray:
+        """The model copy's internal state (the array itself; do not modify)."""
+        return self._mstate
 
     def reset(self, x_m: float) -> None:
         """Relaxed model state (no pre-sliding memory) at ``x_m``; the plant should be relaxed too (§6.2)."""

@@ -95,6 +95,8 @@ def test_dlqe_predictor_gain_is_converted_to_filter_form():
     from stagectl.control.design import _kalman_matrices, kalman_gain_for_noise
 
     K, _ = kalman_gain_for_noise(M, 1e-3, 1e-9, 50.0)
+    K_ctl, _ = kalman_gain_for_noise(M, 1e-3, 1e-9, 50.0, use_control=True)
+    assert np.allclose(K, K_ctl, rtol=1e-6)  # scipy DARE (loop process) == converted dlqe (tune)
     A, _, C = _kalman_matrices(M, 1e-3)
     L, _, _ = control.dlqe(A, np.eye(3), C, np.diag([0, 0, 2500 * 1e-3]), np.array([[1e-18]]))
     L = np.asarray(L)[:, 0]
