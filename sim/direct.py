@@ -13,7 +13,8 @@ Timing (mirrors a CANopen drive in cyclic synchronous torque mode)::
                     (one cycle of I/O delay, like a sync RPDO); with 0 it acts from t_k on (zero-order hold)
 
 Time comes from ``clock.now()`` when a clock is given (real time: the plant follows the wall clock, in
-sub-steps of at most ``period_s``), otherwise each SYNC advances the plant by exactly ``period_s``.
+sub-steps of at most ``period_s``), otherwise each SYNC after the first advances the plant by exactly
+``period_s``.
 
 Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY), :meth:`drop_samples`
 (the next N reads are stale), :meth:`glitch` (the next read returns a given value, e.g. NaN).
@@ -82,7 +83,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         if res is None:  # StagePlant: cfg.sensor.resolution_m
             res = getattr(getattr(getattr(plant, "cfg", None), "sensor", None), "resolution_m", 1e-9)
         self.resolution_m = float(res)
-        self._pipe: deque[float] = deque([0.0] * self.delay_cycles)
+        # commands latched at earlier SYNCs still waiting (delay_cycles − 1 of them)
+        self._pipe: deque[float] = deque([0.0] * max(0, self.delay_cycles - 1))
         self._u_applied = 0.0
         self._u_latched = 0.0
         self._stopped = False
@@ -140,7 +142,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: sync on a closed device")
         period = self.period_s
         if self.clock is None:
-            self._advance(period)
+            if self.n_sync:  # the first SYNC samples time 0
+                self._advance(period)
         else:
             now = self.clock.now()
             if self._t_plant is None:
@@ -164,8 +167,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             counts = int(mc())
             x = counts * self.resolution_m
         else:
-            x = float(plant.measure())
-            counts = round(x / self.resolution_m)
+            counts = round(float(plant.measure()) / self.resolution_m)
+            x = counts * self.resolution_m
         fault = None
         if self._inject is not None and self._fault is None:
             fault = self._latch(self._inject)

@@ -185,7 +185,7 @@ class Stage:
                 io.inject_fault(fk, str(kw.get("detail", "injected")), int(kw.get("code", 0)))
             return {"injected": kind}
         if self.world is not None and hasattr(self.world, "inject_fault"):
-            return {"injected": self.world.inject_fault(kind, **kw)}
+            return {"injected": self.world.inject_fault(kind, **kw)}  # scheduled on the virtual drive
         raise StageError("inject_fault: no fault injection available for this stage")
 
     def load_scenario(self, name_or_scenario: Any, repeat: bool = False) -> None:
@@ -304,32 +304,44 @@ def build_stage(
 
 
 def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
-    """Virtual CANopen devices in-process (sim.world.SimWorld) + the real drivers on the virtual bus."""
+    """Virtual CANopen devices in-process (:class:`stagectl.sim.world.SimWorld` on python-can's virtual bus)
+    and the real drivers talking to them. Simulated time: the drivers pump the world (lock-step); real
+    time: the world's device thread serves them."""
+    import dataclasses
+
+    from stagectl.drivers.cia402 import Cia402Config
     from stagectl.sim.world import SimWorld
 
     cfg = stage.cfg
     assert cfg.sim is not None and cfg.sim.world is not None
-    world = SimWorld(cfg.sim.world, period_s=cfg.loop.period_s) if _accepts_period(SimWorld) else SimWorld(
-        cfg.sim.world
-    )
+    wcfg = cfg.sim.world
+    if wcfg.transport.kind != "virtual":
+        wcfg = dataclasses.replace(wcfg, transport=dataclasses.replace(wcfg.transport, kind="virtual"))
+    world = SimWorld.from_config(wcfg, cfg.base_dir)
     stage.world = world
-    stage.plant = getattr(world, "plant", None)
-    if simulated_time:
-        world.start(lockstep=True) if _accepts_kw(world.start, "lockstep") else world.start()
-    else:
-        world.start()
+    stage.plant = world.plant
     stage.closers.append(world.stop)
-    drive_cfg = cfg.io.drive or getattr(world, "drive_config", None)
+    world.open()
+    if not simulated_time:
+        world.start()
+    info = world.ready_info()
+    sd = wcfg.drive
+    drive_cfg = cfg.io.drive
     if drive_cfg is None:
-        raise ConfigError("io.drive: required (the driver side of the embedded CANopen drive)")
-    _open_drivers(stage, drive_cfg, pump=world.pump if simulated_time else None)
+        drive_cfg = Cia402Config(node_id=sd.node_id, can=info["can"], resolution_m=sd.resolution_m,
+                                 force_per_unit_n=sd.force_per_unit_n)
+    else:
+        drive_cfg = dataclasses.replace(drive_cfg, can=info["can"])
+    _open_drivers(stage, drive_cfg, pump=world.pump if simulated_time else None,
+                  interferometer_url=info.get("interferometer_url"))
 
 
 def _build_canopen(stage: Stage) -> None:
     _open_drivers(stage, stage.cfg.io.drive, pump=None)
 
 
-def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None) -> None:
+def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
+                  interferometer_url: str | None = None) -> None:
     from stagectl.drivers.cia402 import Cia402Drive
 
     cfg = stage.cfg
@@ -347,7 +359,12 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None)
     elif src is SensorSource.INTERFEROMETER:
         from stagectl.drivers.interferometer import SerialInterferometer
 
-        ifm = SerialInterferometer(cfg.io.interferometer)
+        icfg = cfg.io.interferometer
+        if interferometer_url is not None:
+            import dataclasses
+
+            icfg = dataclasses.replace(icfg, url=interferometer_url)
+        ifm = SerialInterferometer(icfg)
         if pump is not None:
             ifm.set_pump(pump)
         ifm.open()
@@ -364,19 +381,6 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None)
         stage.devices.append(enc)
         enc.configure()
         stage.sensor = enc
-
-
-def _accepts_kw(fn: Callable[..., Any], name: str) -> bool:
-    import inspect
-
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-def _accepts_period(cls: type) -> bool:
-    return _accepts_kw(cls, "period_s")
 
 
 __all__ = ["DeviceFault", "Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]

@@ -105,7 +105,7 @@ class IoConfig:
             problems.append("io.drive: required for io.kind canopen")
         if self.sensor is SensorSource.ENCODER and self.kind is IoKind.CANOPEN and self.encoder is None:
             problems.append("io.encoder: required for io.sensor encoder")
-        if self.sensor is SensorSource.INTERFEROMETER and self.kind is IoKind.CANOPEN and self.interferometer is None:
+        if self.sensor is SensorSource.INTERFEROMETER and self.kind is not IoKind.PLANT_IO and self.interferometer is None:
             problems.append("io.interferometer: required for io.sensor interferometer")
         if self.kind is IoKind.PLANT_IO and self.sensor is not SensorSource.DRIVE:
             problems.append("io.sensor: plant_io measures through the plant itself; use sensor: drive")

@@ -73,7 +73,7 @@ import numpy as np
 
 from stagectl.clock import Clock, apply_realtime
 from stagectl.control.api import Command, Reference
-from stagectl.drivers.base import Device, DeviceState, ForceActuator, PositionSensor, SyncProducer
+from stagectl.drivers.base import Device, DeviceState, ForceActuator, Measurement, PositionSensor, SyncProducer
 from stagectl.errors import StageError
 from stagectl.safety import Safety
 from stagectl.schema import param
@@ -281,6 +281,7 @@ class ControlLoop:
         self._sink_lock = threading.Lock()
         self._running = False
         self._shutdown = False
+        self._just_reset = False
         # statistics (preallocated)
         w = int(cfg.stats_window)
         self._late = np.zeros(w)
@@ -392,6 +393,7 @@ class ControlLoop:
         self.reference.hold(t, x)
         self._u = 0.0
         self.state = LoopState.ACTIVE
+        self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
@@ -560,6 +562,9 @@ class ControlLoop:
                 m = sensor.read()
                 x = m.position_m
                 self._serve_requests(t, x)
+                if self._just_reset:  # this cycle's sample predates the reset: restart cleanly next cycle
+                    self._just_reset = False
+                    m = Measurement(x, False)
                 dev_fault = m.fault
                 if dev_fault is None:
                     for d in self.devices:
