@@ -35,8 +35,9 @@ plus white Gaussian noise (std ``noise_std_m``, drawn once per step), quantised 
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -219,12 +220,18 @@ def _wrap_step(f):  # type: ignore[no-untyped-def]  # pragma: no cover - compile
     return out
 
 
-@njit(types.void(_STEP_LIST, _arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, types.float64,
-                 types.float64, types.int64),
-      cache=True)
-def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh, u, dt, nsub):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Advance the plant by ``dt`` with command ``u`` (already clamped) in ``nsub`` sub-steps."""
-    kstep = kl[0]
+_SIG_LOOP = (_arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr, types.float64, types.int64,
+             _arr, _arr, _arr, _arr)
+
+
+@njit(types.void(STEP_FN, *_SIG_LOOP), cache=True)
+def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The fused loop (see the module docstring): ``u[k]`` held for ``dt`` in ``nsub`` sub-steps each.
+
+    Plant state in ``ps`` (read at the start, written at the end), friction state in ``fs``; the command
+    history ``ht/hu`` holds ``nh0`` earlier commands followed by ``u`` (only used when τ > 0). Outputs
+    after each step: ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N].
+    """
     m = par[0]
     fb = par[1]
     dv = par[2]
@@ -238,50 +245,57 @@ def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh, u, dt, nsub):  # type: ignore[
     win = ps[_WIN]
     wf = ps[_WF]
     wo = ps[_WO]
-    ua = u
-    fo = 0.0
-    for i in range(nsub):
-        t0 = t + i * h
-        if tau > 0.0:
-            ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
-        fo = _other(ep, x)
-        fe = ua - fo
-        if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
-            # Karnopp band (static models): hold while the net force stays below break-away
-            lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-            if abs(fe) <= lim:
-                v = 0.0
-                ff = fe
-                stuck = 1.0
-                kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
+    ua = 0.0
+    for k in range(u.shape[0]):
+        nh = nh0 + k + 1
+        ua = u[k]
+        for i in range(nsub):
+            if tau > 0.0:
+                t0 = t + i * h
+                ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
+            fo = _other(ep, x)
+            fe = ua - fo
+            if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
+                # Karnopp band (static models): hold while the net force stays below break-away
+                lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                if abs(fe) <= lim:
+                    v = 0.0
+                    ff = fe
+                    stuck = 1.0
+                    kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
+                    continue
+                stuck = 0.0
+                ff = lim if fe > 0.0 else -lim
+                v = v + h * (fe - ff) / m
+                dx = h * v
+                x += dx
+                win += ua * dx
+                wf += ff * dx
+                wo += fo * dx
+                kstep(kp, fs, dx, v, h)
                 continue
-            stuck = 0.0
-            ff = lim if fe > 0.0 else -lim
+            v_old = v
             v = v + h * (fe - ff) / m
+            if fb > 0.0 and v * v_old < 0.0:
+                # velocity crossed zero inside the sub-step: stop here, the stick test follows
+                v = 0.0
+                stuck = 1.0
+                lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
+                kstep(kp, fs, 0.0, 0.0, h)
+                continue
             dx = h * v
             x += dx
             win += ua * dx
             wf += ff * dx
             wo += fo * dx
-            kstep(kp, fs, dx, v, h)
-            continue
-        v_old = v
-        v = v + h * (fe - ff) / m
-        if fb > 0.0 and v * v_old < 0.0:
-            # velocity crossed zero inside the sub-step: stop here, the stick test follows
-            v = 0.0
-            stuck = 1.0
-            lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-            ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
-            kstep(kp, fs, 0.0, 0.0, h)
-            continue
-        dx = h * v
-        x += dx
-        win += ua * dx
-        wf += ff * dx
-        wo += fo * dx
-        ff = _modify(ep, kstep(kp, fs, dx, v, h), x)
-    ps[_T] = t + dt
+            ff = _modify(ep, kstep(kp, fs, dx, v, h), x)
+        t = t + dt
+        ot[k] = t
+        ox[k] = x
+        ov[k] = v
+        of[k] = ff
+    ps[_T] = t
     ps[_X] = x
     ps[_V] = v
     ps[_FF] = ff
@@ -293,17 +307,25 @@ def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh, u, dt, nsub):  # type: ignore[
     ps[_WO] = wo
 
 
-@njit(types.void(_STEP_LIST, _arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr,
-                 types.float64, types.int64, _arr, _arr, _arr, _arr),
+@njit(types.void(_STEP_LIST, *_SIG_LOOP), cache=True)
+def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Python entry to :func:`_integrate` (the typed list unboxes fast; see :func:`_wrap_step`)."""
+    _integrate(kl[0], kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of)
+
+
+@njit(types.void(_STEP_LIST, types.float64[:, ::1], types.float64[:, ::1], _arr, types.float64[:, ::1], _arr,
+                 _arr, _arr, types.int64, _arr, types.float64, types.int64, types.float64[:, ::1],
+                 types.float64[:, ::1], types.float64[:, ::1]),
       cache=True)
-def _run(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Open-loop run: ``u[k]`` held for ``dt``; history ``ht/hu`` holds nh0 past + len(u) new commands."""
-    for k in range(u.shape[0]):
-        _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0 + k + 1, u[k], dt, nsub)
-        ot[k] = ps[_T]
-        ox[k] = ps[_X]
-        ov[k] = ps[_V]
-        of[k] = ps[_FF]
+def _run_batch(kl, P, S, ep, PAR, ps0, ht, hu, nh0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """:func:`_integrate` for every packed parameter row of ``P`` (friction states in the rows of ``S``,
+    plant parameters in the rows of ``PAR``)."""
+    ps = np.empty(ps0.shape[0])
+    ot = np.empty(u.shape[0])
+    kstep = kl[0]
+    for j in range(P.shape[0]):
+        ps[:] = ps0
+        _integrate(kstep, P[j], S[j], ep, PAR[j], ps, ht, hu, nh0, u, dt, nsub, ot, ox[j], ov[j], of[j])
 
 
 # ================================================================================================ plant
@@ -333,6 +355,8 @@ class StagePlant:
         self._noise = float(cfg.sensor.noise_std_m)
         self._nd = int(cfg.sensor.delay_steps)
         self._ps = np.zeros(10)
+        self._u1 = np.zeros(1)
+        self._o1 = (np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
         self._ht = np.zeros(self._HIST_CAP)
         self._hu = np.zeros(self._HIST_CAP)
         self._nh = 0
@@ -393,12 +417,14 @@ class StagePlant:
         """Hold the commanded force ``u_n`` [N] for ``dt_s`` [s] (clamped to ±max_force_n, delayed by τ)."""
         nsub = self._nsub(dt_s)
         u = self._clamp(u_n)
-        nh = 0
+        nh0 = -1
         if self._tau > 0.0:
             self._push_command(self._ps[_T], u)
-            nh = self._nh
+            nh0 = self._nh - 1
+        self._u1[0] = u
+        o = self._o1
         _advance(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, self._ht,
-                 self._hu, nh, u, float(dt_s), nsub)
+                 self._hu, nh0, self._u1, float(dt_s), nsub, o[0], o[1], o[2], o[3])
         self._sample(self._ps[_X])
 
     def simulate(self, u: npt.ArrayLike, dt_s: float) -> dict[str, FloatArray]:
@@ -434,11 +460,11 @@ class StagePlant:
             ht[nh0:] = np.cumsum(np.concatenate([[self._ps[_T]], np.full(n - 1, float(dt_s))]))[:n]
             hu[nh0:] = ua
         else:
-            nh0 = -1  # nh = nh0 + k + 1 = k: unused without delay, keeps the signature
+            nh0 = -1  # the history is not used without delay
             ht = np.zeros(1)
             hu = np.zeros(1)
-        _run(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, ht, hu,
-             max(nh0, -1), ua, float(dt_s), nsub, ot, ox, ov, of)
+        _advance(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, ht, hu,
+                 nh0, ua, float(dt_s), nsub, ot, ox, ov, of)
         if self._tau > 0.0:
             # keep the tail of the command history for later step() calls
             keep = int(np.searchsorted(ht, self._ps[_T] - self._tau, side="right")) - 1
@@ -533,10 +559,53 @@ class StagePlant:
                 "other": float(self._ps[_WO])}
 
 
+def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.ArrayLike,
+                   dt_s: float) -> dict[str, FloatArray]:
+    """Open-loop runs of the plant ``cfg`` with each friction model in ``frictions`` (one compiled call).
+
+    For fitting and benchmarks: every run starts from rest at ``cfg.x0_m`` with a relaxed friction state;
+    mass, effects, actuator and sub-step come from ``cfg`` (``cfg.friction`` is not used). All models must
+    be of one class with equally long packed parameters (e.g. GMS sets with the same N).
+
+    Returns
+    -------
+    dict
+        ``x`` [m], ``v`` [m/s], ``friction`` [N]: arrays of shape ``(len(frictions), len(u))``.
+    """
+    if not frictions:
+        raise ValueError("frictions is empty")
+    kerns = [f.kernel() for f in frictions]
+    if len({type(f) for f in frictions}) != 1 or len({k.p.shape[0] for k in kerns}) != 1:
+        raise ValueError("simulate_batch needs models of one class with equal parameter length")
+    plant = StagePlant(dataclasses.replace(cfg, friction=frictions[0]))
+    ua = np.clip(np.asarray(u, dtype=np.float64).ravel(), -plant._umax, plant._umax)
+    if not np.all(np.isfinite(ua)):
+        raise ValueError("u must be finite")
+    nsub = plant._nsub(dt_s)
+    n = ua.shape[0]
+    P = np.ascontiguousarray(np.stack([k.p for k in kerns]), dtype=np.float64)
+    states = [f.initial_state() for f in frictions]
+    S = (np.ascontiguousarray(np.stack(states), dtype=np.float64) if states[0].shape[0]
+         else np.zeros((len(frictions), 0)))
+    if plant._tau > 0.0:
+        ht = np.cumsum(np.concatenate([[0.0], np.full(max(n - 1, 0), float(dt_s))]))[:n]
+        hu = ua.copy()
+        nh0 = 0
+    else:
+        ht, hu, nh0 = np.zeros(1), np.zeros(1), -1
+    ox, ov, of = (np.empty((P.shape[0], n)) for _ in range(3))
+    PAR = np.ascontiguousarray(np.tile(plant._par, (len(kerns), 1)))
+    PAR[:, 1] = [k.breakaway_n for k in kerns]
+    PAR[:, 2] = [k.stick_velocity_m_s for k in kerns]
+    _run_batch(plant._kl, P, S, plant._ep, PAR, plant._ps.copy(), ht, hu, nh0, ua, float(dt_s), nsub,
+               ox, ov, of)
+    return {"x": ox, "v": ov, "friction": of}
+
+
 def plant_from_model(model_path: str | Path, **overrides: Any) -> StagePlant:
     """Convenience: a plant from a model file (``mass_kg`` must be in the file or in ``overrides``)."""
     cfg = PlantConfig.from_mapping({"model_file": str(model_path), **overrides}, path="plant")
     return StagePlant(cfg)
 
 
-__all__ = ["ActuatorConfig", "PlantConfig", "SensorConfig", "StagePlant", "plant_from_model"]
+__all__ = ["ActuatorConfig", "PlantConfig", "SensorConfig", "StagePlant", "plant_from_model", "simulate_batch"]

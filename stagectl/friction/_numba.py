@@ -51,9 +51,25 @@ def sgn(v: float) -> float:
 
 
 @njit(cache=True, inline="always")
+def stribeck_excess(v: float, vs: float, delta: float) -> float:
+    """exp(−|v/Vs|^δ) [–], fast: δ = 2 and δ = 1 avoid ``pow``, and arguments past the underflow
+    threshold return 0 directly (glibc's underflow path of ``exp`` is ~10× slower than a normal call)."""
+    r = abs(v / vs)
+    if delta == 2.0:
+        e = r * r
+    elif delta == 1.0:
+        e = r
+    else:
+        e = r**delta
+    if e > 745.0:
+        return 0.0
+    return math.exp(-e)
+
+
+@njit(cache=True, inline="always")
 def stribeck_g(v: float, fc: float, fs: float, vs: float, delta: float) -> float:
     """Unsigned Stribeck magnitude g(v) = Fc + (Fs − Fc)·exp(−|v/Vs|^δ) [N]."""
-    return fc + (fs - fc) * math.exp(-(abs(v / vs) ** delta))
+    return fc + (fs - fc) * stribeck_excess(v, vs, delta)
 
 
 @njit(

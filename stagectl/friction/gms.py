@@ -40,20 +40,18 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel
+from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, stribeck_excess
 from stagectl.friction.base import register
 from stagectl.schema import param
 
-# packed layout: [N, fc, fs, vs, delta, C, viscous, k_1..k_N, alpha_1..alpha_N, sigma1_1..sigma1_N]
+# packed layout: [N, fc, fs, vs, delta, C, viscous, k_1..k_N, alpha_1..alpha_N, sigma1_1..sigma1_N,
+#                 C/k_1..C/k_N]
 _HDR = 7
 
 
 @njit(cache=True, inline="always")
 def _g(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
-    r = abs(v / p[3])
-    d = p[4]
-    e = r * r if d == 2.0 else r**d
-    return p[1] + (p[2] - p[1]) * math.exp(-e)
+    return p[1] + (p[2] - p[1]) * stribeck_excess(v, p[3], p[4])
 
 
 @njit(STEP_SIG, cache=True)
@@ -66,8 +64,9 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         return tot
     s = 1.0 if v > 0.0 else -1.0
     g = _g(p, v)
+    inv_g = 1.0 / g
     c = p[5]
-    decay = math.exp(-c * dt / g)
+    decay = -1.0  # exp(−C·dt/g), computed on first use (sticking elements need no exponential)
     tot = 0.0
     for i in range(n):
         k = p[_HDR + i]
@@ -80,6 +79,8 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         if m == 0.0:
             if s * f >= lim:  # already at/over the (lowered) threshold while loading: slip from here
                 m = s
+                if decay < 0.0:
+                    decay = math.exp(-c * dt * inv_g)
                 f = s * lim + (f - s * lim) * decay
             else:
                 f = f + k * dx
@@ -87,12 +88,14 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
                     f = s * lim
                     m = s
         else:
+            if decay < 0.0:
+                decay = math.exp(-c * dt * inv_g)
             f = s * lim + (f - s * lim) * decay  # exact exponential slip update
         state[i] = f
         state[n + i] = m
         sig1 = p[_HDR + 2 * n + i]
         if sig1 != 0.0:
-            rate = v if m == 0.0 else c * (s * a - f / g) / k
+            rate = v if m == 0.0 else p[_HDR + 3 * n + i] * (s * a - f * inv_g)  # C/k_i·(sgn(v)α_i − F_i/g)
             tot += f + sig1 * rate
         else:
             tot += f
@@ -193,7 +196,7 @@ class GmsFriction(KernelModel):
         q = params
         return np.array(
             [len(q.k_n_m), q.fc_n, q.fs_n, q.vs_m_s, q.delta, q.c_n_s, q.viscous_n_s_m,
-             *q.k_n_m, *q.alpha, *q.sigma1_n_s_m],
+             *q.k_n_m, *q.alpha, *q.sigma1_n_s_m, *(q.c_n_s / k for k in q.k_n_m)],
             dtype=np.float64,
         )
 

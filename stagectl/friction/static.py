@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn
+from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn, stribeck_excess
 from stagectl.friction.base import register
 from stagectl.schema import param
 
@@ -38,7 +38,7 @@ from stagectl.schema import param
 @njit(STEP_SIG, cache=True)
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     fc = p[0]
-    ess = (p[1] - fc) * math.exp(-(abs(v / p[2]) ** p[3]))
+    ess = (p[1] - fc) * stribeck_excess(v, p[2], p[3])
     lag = p[5]
     if lag > 0.0:
         # exact first-order lag of the Stribeck excess for v frozen over dt
@@ -55,7 +55,7 @@ def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no 
     if p[5] > 0.0:
         e = state[0]
     else:
-        e = (p[1] - fc) * math.exp(-(abs(v / p[2]) ** p[3]))
+        e = (p[1] - fc) * stribeck_excess(v, p[2], p[3])
     return sgn(v) * (fc + e) + p[4] * v
 
 

@@ -311,3 +311,22 @@ def test_bad_step_arguments():
         dut.step(0.0, 0.0)
     with pytest.raises(ValueError, match="u_n"):
         dut.step(float("nan"), 1e-4)
+
+
+def test_simulate_batch_equals_individual_runs():
+    from stagectl.friction import build
+    from stagectl.sim.plant import simulate_batch
+
+    base = PlantConfig.from_mapping({"mass_kg": 2.0, "friction": gms(), "effects": {"delay": {"delay_s": 1.5e-4}}})
+    models = [build(gms(sigma1=s1, viscous=10.0)) for s1 in (0.0, 20.0, 80.0)]
+    u = 1.2 * np.sin(np.arange(2000) * 2 * np.pi * 5e-4)
+    out = simulate_batch(base, models, u, 1e-4)
+    assert out["x"].shape == (3, 2000)
+    for j, m in enumerate(models):
+        single = StagePlant(PlantConfig.from_mapping({"mass_kg": 2.0, "friction": m,
+                                                      "effects": {"delay": {"delay_s": 1.5e-4}}})).simulate(u, 1e-4)
+        np.testing.assert_array_equal(out["x"][j], single["x"])
+        np.testing.assert_array_equal(out["friction"][j], single["friction"])
+    assert np.max(np.abs(out["x"][0] - out["x"][2])) > 1e-7
+    with pytest.raises(ValueError, match="one class"):
+        simulate_batch(base, [models[0], build(VISCOUS_ONLY)], u, 1e-4)
