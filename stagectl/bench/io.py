@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=1000.0, help="CANopen cycle rate [Hz] (default 1000)")
     parser.add_argument("--skip-serial", action="store_true", help="skip the serial streaming cases")
     parser.add_argument("--skip-socketcand", action="store_true", help="skip the cross-process case")
+    parser.add_argument("--fifo", type=int, default=None, metavar="PRIO",
+                        help="run the loop, the sim thread and the sim-plant child under SCHED_FIFO PRIO "
+                             "(needs CAP_SYS_NICE; threads and the child inherit it)")
 
 
 def _pct(xs: list[float], q: float) -> float:
@@ -128,6 +131,34 @@ def _cycle_loop(can_cfg: dict[str, Any], node_id: int, rate_hz: float, duration_
     }
 
 
+def bench_baseline(rate_hz: float, duration_s: float) -> dict[str, Any]:
+    """The same absolute-deadline loop with no I/O: what this machine gives any 1 kHz Python loop now."""
+    from stagectl.clock import MonotonicClock, set_timer_slack
+
+    period = 1.0 / rate_hz
+    clock = MonotonicClock()
+    set_timer_slack(1)
+    n_slots = int(round(duration_s * rate_hz))
+    late: list[float] = []
+    skipped = 0
+    deadline = clock.now() + period
+    slot = 0
+    while slot < n_slots:
+        clock.sleep_until(deadline)
+        late.append((clock.now() - deadline) * 1e6)
+        slot += 1
+        deadline += period
+        now = clock.now()
+        if now > deadline:
+            lost = min(int((now - deadline) / period) + 1, n_slots - slot)
+            skipped += lost
+            slot += lost
+            deadline += lost * period
+    return {"rate_hz": rate_hz, "duration_s": duration_s, "slots": n_slots, "skipped_overrun": skipped,
+            "missed_pct": 100.0 * skipped / n_slots,
+            "wake_late_us": {"p50": _pct(late, 50), "p99": _pct(late, 99), "max": max(late, default=math.nan)}}
+
+
 def bench_virtual(rate_hz: float, duration_s: float) -> dict[str, Any]:
     """In-process: SimWorld thread serving the simulated drive on a ``virtual`` bus."""
     from stagectl.sim.world import SimWorld, SimWorldConfig
@@ -196,7 +227,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         raise ConfigError("bench io: --rate and --duration must be > 0")
     out: dict[str, Any] = {"command": "stagectl bench io " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else
-                           "stagectl bench io", "cpus": os.cpu_count()}
+                           "stagectl bench io", "cpus": os.cpu_count(), "loadavg_at_start": os.getloadavg()}
+    if args.fifo is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.fifo)))
+            out["scheduling"] = f"SCHED_FIFO {args.fifo}"
+        except (OSError, ValueError) as exc:
+            out["scheduling"] = f"SCHED_OTHER (SCHED_FIFO {args.fifo} refused: {exc})"
+    else:
+        out["scheduling"] = "SCHED_OTHER"
+    out["baseline_sleep_loop"] = bench_baseline(rate, min(dur, 5.0))
     out["canopen_virtual"] = bench_virtual(rate, dur)
     if not args.skip_socketcand:
         out["canopen_socketcand"] = bench_socketcand(rate, dur)

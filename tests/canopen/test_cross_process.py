@@ -14,7 +14,7 @@ import textwrap
 
 import pytest
 
-from stagectl.drivers.base import DeviceState
+from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.drivers.cia402 import State402
 
 SIM_YAML = """
@@ -25,6 +25,8 @@ sim:
     sensor: {resolution_m: 1.0e-9}
   drive: {node_id: 3, resolution_m: 1.0e-9, force_per_unit_n: 0.01}
   transport: {kind: socketcand, host: 127.0.0.1, port: 0}
+  faults:
+    - {kind: bus_off, at_cycle: 1300}
 """
 
 
@@ -83,6 +85,43 @@ def test_driver_over_socketcand_1000_cycles(sim_plant, make_drive):
     assert all(b >= a for a, b in zip(positions, positions[1:]))  # pushed one way: never goes back
     dut.disable()
     assert dut.state is DeviceState.CONFIGURED and dut.drive_state is State402.READY_TO_SWITCH_ON
+    # the scripted bus-off at the drive's SYNC 1300 crosses the process boundary as an error frame
+    assert dut._cycle < 1300
+    fault = None
+    while fault is None and dut._cycle < 1303:
+        dut.sync()
+        fault = dut.read().fault
+        dut.write(0.0)
+    assert fault is not None and fault.kind is FaultKind.BUS_OFF
+    assert 1300 <= dut._cycle <= 1302
     dut.close()
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(10.0) == 0
+
+
+def test_socketcand_framing_rules():
+    import can
+
+    from stagectl.sim.socketcand import format_frame, parse_send
+
+    sync = format_frame(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False), ts=1.5)
+    assert sync == b"< frame 080 1.500000  >"  # 0-byte frame keeps the trailing space
+    tpdo = format_frame(can.Message(arbitration_id=0x181, data=b"\x01\x02\xab", is_extended_id=False), ts=2.0)
+    assert tpdo == b"< frame 181 2.000000 0102AB >"  # 3-digit std id, contiguous hex
+    ext = format_frame(can.Message(arbitration_id=0x1ABCDEF, data=b"\x00", is_extended_id=True), ts=0.0)
+    assert ext.startswith(b"< frame 01ABCDEF ")
+    err = format_frame(can.Message(arbitration_id=0x40, is_error_frame=True, data=b""), ts=0.0)
+    assert err.startswith(b"< error 00000040 ")
+    msg = parse_send("< send 601 8 40 0 10 0 0 0 0 0 ")
+    assert msg.arbitration_id == 0x601 and bytes(msg.data) == bytes([0x40, 0, 0x10, 0, 0, 0, 0, 0])
+    assert not msg.is_extended_id
+    assert parse_send("< send 601 3 1 2 >") is None  # length mismatch
+    assert parse_send("< bogus >") is None
+    # the stock client parses what we send
+    from can.interfaces.socketcand.socketcand import convert_ascii_message_to_can_message as parse
+
+    for raw in (sync, tpdo, ext, err):
+        m = parse(raw.decode())
+        assert m is not None
+    assert parse(sync.decode()).dlc == 0 and bytes(parse(tpdo.decode()).data) == b"\x01\x02\xab"
+    assert parse(err.decode()).is_error_frame and parse(err.decode()).arbitration_id == 0x40
