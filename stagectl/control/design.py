@@ -108,30 +108,36 @@ def observer_bandwidth_hz(K: np.ndarray, mass_kg: float, dt: float) -> float:
     return float(np.exp(np.mean(np.log(np.abs(s)))) / (2 * math.pi))
 
 
+def kalman_noise_for_bandwidth(mass_kg: float, dt: float, bandwidth_hz: float, measurement_noise_m: float = 1e-9,
+                               *, use_control: bool = False) -> float:
+    """Disturbance noise intensity q [N/√s] giving :func:`observer_bandwidth_hz` = ``bandwidth_hz``.
+
+    Continuous-time start: the steady-state filter of the chain τ -> v -> x is a 3rd-order Butterworth with
+    radius ω = (q²/(m²·r²·dt))^(1/6), i.e. q = m·ω³·r·√dt; then Newton steps on log q (ω ∝ q^(1/3)) against
+    the discrete poles (a few DARE solutions).
+    """
+    w = 2.0 * math.pi * bandwidth_hz
+    log_q = math.log(mass_kg * w ** 3 * measurement_noise_m * math.sqrt(dt))
+    for _ in range(12):
+        K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, math.exp(log_q), use_control=use_control)
+        err = math.log(bandwidth_hz / observer_bandwidth_hz(K, mass_kg, dt))
+        if abs(err) < 1e-6:
+            break
+        log_q += 3.0 * err
+    return math.exp(log_q)
+
+
 def kalman_gain(mass_kg: float, dt: float, bandwidth_hz: float, measurement_noise_m: float = 1e-9,
-                disturbance_noise_n_sqrt_s: float | None = None) -> tuple[float, float, float]:
+                disturbance_noise_n_sqrt_s: float | None = None, *, use_control: bool = False
+                ) -> tuple[float, float, float]:
     """Filter-form steady-state gain (k_x, k_v, k_τ) for the Kalman DOB.
 
-    If ``disturbance_noise_n_sqrt_s`` is None it is chosen so that :func:`observer_bandwidth_hz` equals
-    ``bandwidth_hz`` (Butterworth start value, then Newton steps; a few ``dlqe`` calls).
+    If ``disturbance_noise_n_sqrt_s`` is None it is chosen with :func:`kalman_noise_for_bandwidth`.
     """
-    if disturbance_noise_n_sqrt_s is None:
-        # continuous-time start: the steady-state filter of the chain τ -> v -> x is a 3rd-order Butterworth
-        # with radius ω = (q² / (m²·r²·dt))^(1/6), i.e. q = m·ω³·r·sqrt(dt); then Newton steps on log q
-        # (ω ∝ q^(1/3)) against the discrete poles.
-        w = 2.0 * math.pi * bandwidth_hz
-        log_q = math.log(mass_kg * w ** 3 * measurement_noise_m * math.sqrt(dt))
-        for _ in range(12):
-            K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, math.exp(log_q))
-            bw = observer_bandwidth_hz(K, mass_kg, dt)
-            err = math.log(bandwidth_hz / bw)
-            if abs(err) < 1e-6:
-                break
-            log_q += 3.0 * err
-        q = math.exp(log_q)
-    else:
-        q = disturbance_noise_n_sqrt_s
-    K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, q)
+    q = disturbance_noise_n_sqrt_s
+    if q is None:
+        q = kalman_noise_for_bandwidth(mass_kg, dt, bandwidth_hz, measurement_noise_m, use_control=use_control)
+    K, _ = kalman_gain_for_noise(mass_kg, dt, measurement_noise_m, q, use_control=use_control)
     return float(K[0]), float(K[1]), float(K[2])
 
 
@@ -213,14 +219,16 @@ def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
     """Margins, crossover and frequency response of an open loop L(z); closed-loop stability of 1/(1+L)."""
     import control
 
-    L = control.minreal(L, verbose=False) if hasattr(control, "minreal") else L
     f = np.logspace(-1, math.log10(0.5 / dt * 0.999), n_points)
     w = 2 * math.pi * f
-    resp = L(np.exp(1j * w * dt))
+    resp = np.array([complex(L(z)) for z in np.exp(1j * w * dt)])
     mag = np.abs(resp)
     ph = np.unwrap(np.angle(resp))
     # margins from the dense response (robust against high-order numerics), checked against control.margin
     gm_db, pm_deg, wc_hz, wp_hz = _margins_from_response(f, mag, ph)
+    # display convention: shift by whole turns so that the phase at the crossover lies in (-360°, 0°]
+    ref = float(np.interp(wc_hz, f, ph)) if not math.isnan(wc_hz) else float(ph[0])
+    ph = ph - 2 * math.pi * math.ceil(ref / (2 * math.pi))
     cl = control.feedback(L, 1)
     stable = bool(np.all(np.abs(control.poles(cl)) < 1.0))
     return LoopAnalysis(name, gm_db, pm_deg, wc_hz, wp_hz, stable, f, 20 * np.log10(mag), np.degrees(ph))
@@ -253,18 +261,29 @@ def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tu
 
 def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int = 1,
                    dob_bandwidth_hz: float | None = None, dob_command_delay_samples: int = 0,
-                   viscous_n_s_m: float = 0.0) -> list[LoopAnalysis]:
+                   viscous_n_s_m: float = 0.0, dob_mass_kg: float | None = None) -> list[LoopAnalysis]:
     """Margins of PID alone and (if ``dob_bandwidth_hz``) PID + Q-filter DOB on the discrete plant."""
+    import control
+
     P = plant_tf(mass_kg, period_s, delay_samples, viscous_n_s_m)
     C = pid_tf(pid, period_s)
-    out = [analyse("pid", P * C, period_s)]
+    out = [analyse("pid", control.ss(P) * control.ss(C), period_s)]
     if dob_bandwidth_hz:
-        Hu, Hy = qfilter_tfs(mass_kg, dob_bandwidth_hz, period_s, dob_command_delay_samples)
-        import control
-
-        one = control.tf([1.0], [1.0], period_s)
-        out.append(analyse("pid+dob", P * (C + Hy) / (one - Hu), period_s))
+        Hu, Hy = qfilter_tfs(dob_mass_kg or mass_kg, dob_bandwidth_hz, period_s, dob_command_delay_samples)
+        out.append(analyse("pid+dob", dob_loop(P, C, Hu, Hy, period_s), period_s))
     return out
+
+
+def dob_loop(P: Any, C: Any, Hu: Any, Hy: Any, dt: float) -> Any:
+    """``L = P·(C + H_y)/(1 − H_u)`` as a state-space interconnection.
+
+    Forming this product as one polynomial ratio loses the roots clustered at z = 1 at short periods
+    (10 kHz); the series/feedback state-space form keeps them.
+    """
+    import control
+
+    one = control.ss(control.tf([1.0], [1.0], dt))
+    return control.ss(P) * control.ss(C + Hy) * control.feedback(one, control.ss(Hu), sign=1)
 
 
 def bode_png(analyses: list[LoopAnalysis], path: str, title: str = "") -> None:

@@ -49,14 +49,19 @@ from stagectl.schema import param
 
 @dataclass(frozen=True)
 class DobConfig:
-    """Disturbance observer settings (YAML ``controller.dob``)."""
+    """Disturbance observer settings (YAML ``controller.dob``).
+
+    Defaults (Q-filter, 100 Hz, command delay 1) with the default PID on the seed stage at 1 kHz with one
+    cycle of I/O delay: phase margin 42°, gain margin 8.9 dB (``stagectl tune``); 60° / 12 dB without the
+    I/O delay.
+    """
 
     kind: str = param("qfilter", desc="observer form", choices=("none", "qfilter", "kalman"))
-    bandwidth_hz: float = param(50.0, unit="Hz", desc="observer bandwidth g/2π", gt=0.0)
+    bandwidth_hz: float = param(100.0, unit="Hz", desc="observer bandwidth g/2π", gt=0.0)
     nominal_mass_kg: float | None = param(None, unit="kg", desc="nominal mass m_n (None: controller mass_kg)",
                                           gt=0.0)
-    command_delay_samples: int = param(0, unit="samples", desc="extra delay of the observer's command input",
-                                       ge=0, le=8)
+    command_delay_samples: int = param(1, unit="samples", desc="delay of the observer's command input (match "
+                                       "the actuator path's I/O delay in periods)", ge=0, le=8)
     max_estimate_n: float = param(math.inf, unit="N", desc="clamp of the estimate d̂ (inf: none)", gt=0.0,
                                   allow_inf=True)
     measurement_noise_m: float = param(1e-9, unit="m", desc="kalman: position noise std (incl. quantisation)",

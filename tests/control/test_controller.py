@@ -48,14 +48,15 @@ def _pid_10k():
 def test_tv9_residual_dob_beats_naive_by_more_than_100x_with_exact_gms():
     sm = seed_model()
     T = 1e-4
-    sec = dict(pid=_pid_10k(), dob={"kind": "qfilter", "bandwidth_hz": 200.0})
+    sec = dict(pid=_pid_10k(), dob={"kind": "qfilter", "bandwidth_hz": 200.0, "command_delay_samples": 0})
     res = {}
     for name, cls in (("residual", StageController), ("naive", NaiveDob)):
         ctl = cls(controller_cfg(**sec), T, sm)
         res[name] = rms_after(run_closed_loop(ctl, make_plant(sm), COSINE_SHORT, T), 0.5)
     pid_only = StageController(controller_cfg(pid=_pid_10k(), dob={"kind": "none"}, feedforward={"kind": "none"}), T)
     res["pid"] = rms_after(run_closed_loop(pid_only, make_plant(sm), COSINE_SHORT, T), 0.5)
-    dob_only = StageController(controller_cfg(pid=_pid_10k(), dob={"kind": "qfilter", "bandwidth_hz": 200.0},
+    dob_only = StageController(controller_cfg(pid=_pid_10k(), dob={"kind": "qfilter", "bandwidth_hz": 200.0,
+                                                                   "command_delay_samples": 0},
                                               feedforward={"kind": "none"}), T)
     res["dob"] = rms_after(run_closed_loop(dob_only, make_plant(sm), COSINE_SHORT, T), 0.5)
     assert res["naive"] > 100 * res["residual"], res
@@ -71,8 +72,7 @@ def test_trend_pid_dob_mismatched_gms_10x_better_than_pid_at_1khz_with_io_delay(
     base = dict(dob={"kind": "none"}, feedforward={"kind": "none"})
     pid = StageController(controller_cfg(**base), T)
     e_pid = rms_after(run_closed_loop(pid, make_plant(sm, io_delay_s=T), COSINE, T), 1.0)
-    full = dict(dob={"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
-                feedforward={"kind": "model", "lookahead_s": 1.5 * T})
+    full = dict(dob={"kind": "qfilter"}, feedforward={"kind": "model", "lookahead_s": 1.5 * T})
     ctl = StageController(controller_cfg(**full), T, mismatched(sm))
     e_full = rms_after(run_closed_loop(ctl, make_plant(sm, io_delay_s=T), COSINE, T), 1.0)
     assert e_pid > 10 * e_full, (e_pid, e_full)

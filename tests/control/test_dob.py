@@ -32,7 +32,7 @@ def _simulate(dut, d_n: float, n: int, u_fn=lambda k: 0.0, m: float = M, dt: flo
 
 @pytest.mark.parametrize("kind", ["qfilter", "kalman"])
 def test_constant_disturbance_is_estimated(kind):
-    dut = make_dob(DobConfig(kind=kind, bandwidth_hz=50.0), M, DT)
+    dut = make_dob(DobConfig(kind=kind, bandwidth_hz=50.0, command_delay_samples=0), M, DT)
     dut.reset(0.0)
     est = _simulate(dut, 0.7, 2000, u_fn=lambda k: 0.3 * math.sin(2 * math.pi * 5 * k * DT))
     assert est[-1] == pytest.approx(0.7, rel=1e-3)
@@ -41,7 +41,7 @@ def test_constant_disturbance_is_estimated(kind):
 
 def test_qfilter_step_response_has_the_configured_bandwidth():
     g = 2 * math.pi * 50.0
-    dut = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=50.0), M)
+    dut = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=50.0, command_delay_samples=0), M)
     dut.reset(0.0)
     est = _simulate(dut, 1.0, 400)
     k = int(round(1.0 / g / DT))  # one time constant 1/g
@@ -52,14 +52,14 @@ def test_qfilter_step_response_has_the_configured_bandwidth():
 
 def test_qfilter_retune_keeps_estimate():
     """Change the bandwidth mid-run while the mass accelerates: d̂ continues without a jump."""
-    dut = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=50.0), M)
+    dut = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=50.0, command_delay_samples=0), M)
     dut.reset(0.0)
     x = v = x_prev = 0.0
     u, d = 1.0, 0.4
     est = []
     for k in range(1000):
         if k == 600:
-            dut.retune(DobConfig(kind="qfilter", bandwidth_hz=120.0), M)
+            dut.retune(DobConfig(kind="qfilter", bandwidth_hz=120.0, command_delay_samples=0), M)
         v_hat = (x - x_prev) / DT if k else 0.0
         est.append(dut.step(DT, x, v_hat, u if k else 0.0))
         a = (u - d) / M
