@@ -157,15 +157,27 @@ class NotifySocket:
         self.sock.bind(str(path))
         self.messages: list[dict[str, str]] = []
 
-    def wait_for(self, key: str, value: str | None = None, timeout: float = 30.0) -> dict[str, str]:
-        """Next datagram containing KEY (=VALUE); the timeout is only a failure guard."""
+    def wait_for(self, key: str, value: str | None = None, timeout: float = 30.0, alive=None) -> dict[str, str]:
+        """Next datagram containing KEY (=VALUE). ``timeout`` is only a failure guard; ``alive()`` returning
+        False (e.g. the daemon process exited) ends the wait at once with TimeoutError."""
+        import time
+
         for m in self.messages:
             if key in m and (value is None or m[key] == value):
                 self.messages.remove(m)
                 return m
-        self.sock.settimeout(timeout)
+        end = time.monotonic() + timeout
         while True:
-            data = self.sock.recv(65536).decode()
+            left = end - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"no {key}={value or '*'} within {timeout} s")
+            self.sock.settimeout(min(left, 0.5) if alive is not None else left)
+            try:
+                data = self.sock.recv(65536).decode()
+            except TimeoutError:
+                if alive is not None and not alive():
+                    raise TimeoutError(f"no {key}={value or '*'}: the process exited") from None
+                continue
             msg = dict(line.split("=", 1) for line in data.split("\n") if "=" in line)
             if key in msg and (value is None or msg[key] == value):
                 return msg

@@ -97,7 +97,7 @@ def _wait_status(ns, prefix: str) -> dict:
 def test_daemon_end_to_end(daemon, tmp_path, capsys):
     proc, cfg, run, ns = daemon
     try:
-        ready = ns.wait_for("READY", "1", timeout=120)
+        ready = ns.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
     except TimeoutError:
         proc.kill()
         pytest.fail("no READY=1; daemon stderr:\n" + proc.communicate(timeout=30)[1][-4000:])

@@ -92,7 +92,7 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
     # (timing and supervision while the daemon lives are tested elsewhere): generous windows so the drive is
     # still enabled and under control at the moment of the kill
     drive = cfg["io"]["drive"]
-    drive.update(max_missed=1000, heartbeat_timeout_s=5.0, drive_consumer_timeout_s=1.0)
+    drive.update(max_missed=1000, heartbeat_timeout_s=5.0, drive_consumer_timeout_s=1.0, rx_timeout_s=0.05)
     cfg["safety"].update(stale_cycles=1000, following_error_m=1e-3)
     cfg.setdefault("loop", {})["healthy_overrun_fraction"] = 0.5
     cfg["daemon"] = {"ready_timeout_s": 60, "telemetry": {"directory": str(tmp_path / "telemetry")}}
@@ -105,7 +105,7 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
     network = None
     try:
         try:
-            notify_socket.wait_for("READY", "1", timeout=120)
+            notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: daemon.poll() is None)
         except TimeoutError:
             daemon.kill()
             pytest.fail("daemon never READY:\n" + daemon.communicate(timeout=30)[1][-4000:])
