@@ -107,6 +107,19 @@ class PlantConfig:
     model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
                                    "inline keys override; relative to the YAML file's directory")
 
+    def __post_init__(self) -> None:
+        # explicit-integration stability (module docstring): h·√(K/m) < 2 and h·c/m < 1, checked with margin
+        # for models that declare their pre-sliding stiffness K / total damping c
+        k = getattr(self.friction, "stiffness_n_m", None)
+        if isinstance(k, float) and k > 0.0 and self.substep_s * math.sqrt(k / self.mass_kg) > 1.0:
+            h_max = 1.0 / math.sqrt(k / self.mass_kg)
+            raise ValueError(f"substep_s: must be <= {h_max:.3g} s for stiffness {k:.4g} N/m and mass "
+                             f"{self.mass_kg:g} kg (h·√(K/m) <= 1; got {self.substep_s:g} s)")
+        c = getattr(self.friction, "damping_n_s_m", None)
+        if isinstance(c, float) and c > 0.0 and self.substep_s * c / self.mass_kg > 0.5:
+            raise ValueError(f"substep_s: must be <= {0.5 * self.mass_kg / c:.3g} s for damping {c:.4g} N·s/m "
+                             f"and mass {self.mass_kg:g} kg (h·c/m <= 0.5; got {self.substep_s:g} s)")
+
     @classmethod
     def from_mapping(cls, data: Any, path: str = "plant", base_dir: str | Path | None = None) -> PlantConfig:
         """Validate a YAML mapping into a :class:`PlantConfig`, resolving ``model_file``.
@@ -313,10 +326,7 @@ def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):
     _integrate(kl[0], kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of)
 
 
-@njit(types.void(_STEP_LIST, types.float64[:, ::1], types.float64[:, ::1], _arr, types.float64[:, ::1], _arr,
-                 _arr, _arr, types.int64, _arr, types.float64, types.int64, types.float64[:, ::1],
-                 types.float64[:, ::1], types.float64[:, ::1]),
-      cache=True)
+@njit(cache=True)  # compiled on first use only (most processes never batch)
 def _run_batch(kl, P, S, ep, PAR, ps0, ht, hu, nh0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
     """:func:`_integrate` for every packed parameter row of ``P`` (friction states in the rows of ``S``,
     plant parameters in the rows of ``PAR``)."""

@@ -88,11 +88,7 @@ def along(step: Any, force: Any, p: FloatArray, state: FloatArray, x: FloatArray
         out[k] = step(p, state, dx, dx / dt, dt)
 
 
-@njit(
-    types.void(STEP_FN, FORCE_FN, types.float64[:, ::1], types.float64[:, ::1], _arr, _arr,
-               types.float64[:, ::1]),
-    cache=True,
-)
+@njit(cache=True)  # compiled on first use only
 def along_batch(step: Any, force: Any, P: FloatArray, S: FloatArray, x: FloatArray, t: FloatArray,
                 out: FloatArray) -> None:  # pragma: no cover - compiled
     """:func:`along` for every row of the packed-parameter matrix ``P`` (states in rows of ``S``)."""

@@ -223,6 +223,11 @@ class GmsFriction(KernelModel):
         w = (np.asarray(self.params.alpha) * self.params.fs_n)[:, None]
         return np.sign(xa) * np.minimum(k * np.abs(xa)[None, :], w).sum(axis=0)
 
+    @property
+    def damping_n_s_m(self) -> float:
+        """Total linear damping σ2 + Σσ1_i [N·s/m] (for integrator step limits)."""
+        return float(self.params.viscous_n_s_m + sum(self.params.sigma1_n_s_m))
+
     def derivative(self, state: FloatArray, v: float) -> FloatArray:
         """dF_i/dt for the current modes (mode flags have derivative 0)."""
         q = self.params

@@ -126,6 +126,11 @@ class MaxwellSlipFriction(KernelModel):
         w = np.asarray(self.params.slip_forces_n)
         return float(np.sum(4.0 * w * np.maximum(amplitude_m - w / k, 0.0)))
 
+    @property
+    def damping_n_s_m(self) -> float:
+        """Viscous coefficient σ2 [N·s/m] (for integrator step limits)."""
+        return float(self.params.viscous_n_s_m)
+
     def derivative(self, state: FloatArray, v: float) -> FloatArray:
         k = np.asarray(self.params.k_n_m)
         w = np.asarray(self.params.slip_forces_n)

@@ -110,6 +110,11 @@ class StribeckFriction(KernelModel):
         q = self.params
         return (q.fs_n - q.fc_n) * math.exp(-(abs(v / q.vs_m_s) ** q.delta))
 
+    @property
+    def damping_n_s_m(self) -> float:
+        """Viscous coefficient σ2 [N·s/m] (for integrator step limits)."""
+        return float(self.params.viscous_n_s_m)
+
     def derivative(self, state: FloatArray, v: float) -> FloatArray:
         if self.n_states == 0:
             return np.zeros(0)

@@ -26,7 +26,7 @@ def make(friction=None, **kw) -> StagePlant:
 
 
 def gms(sigma1=0.0, viscous=0.0, k=K_TABLE1):
-    return {"model": "gms", "k_n_m": list(k), "alpha": ALPHA_TABLE1, "fc_n": 0.8, "fs_n": 0.9,
+    return {"model": "gms", "k_n_m": list(k), "alpha": ALPHA_TABLE1 if len(k) == 6 else [1.0 / len(k)] * len(k), "fc_n": 0.8, "fs_n": 0.9,
             "c_n_s": 1e4, "sigma1_n_s_m": sigma1, "viscous_n_s_m": viscous}
 
 
@@ -330,3 +330,12 @@ def test_simulate_batch_equals_individual_runs():
     assert np.max(np.abs(out["x"][0] - out["x"][2])) > 1e-7
     with pytest.raises(ValueError, match="one class"):
         simulate_batch(base, [models[0], build(VISCOUS_ONLY)], u, 1e-4)
+
+
+def test_substep_too_large_for_stiffness_or_damping_is_rejected():
+    with pytest.raises(ConfigError, match=r"plant: substep_s: must be <= 0.0005 s for stiffness 2e\+06 N/m"):
+        PlantConfig.from_mapping({"mass_kg": 0.5, "friction": gms(k=[2e6]), "substep_s": 1e-3})
+    with pytest.raises(ConfigError, match="substep_s: .*damping 1e\\+04 N·s/m"):
+        PlantConfig.from_mapping({"mass_kg": 0.5, "friction": {**VISCOUS_ONLY, "viscous_n_s_m": 1e4},
+                                  "substep_s": 1e-4})
+    PlantConfig.from_mapping({"mass_kg": 0.5, "friction": gms(k=[2e6]), "substep_s": 1e-5})  # fine
