@@ -465,6 +465,13 @@ class TrajectoryGenerator:
             ref = b.end
         return rest
 
+    def final_reference(self) -> Reference:
+        """The reference state where the current motion and every queued segment end (binds the queue)."""
+        ref = self._cur.end
+        for spec in self._queue:
+            ref = _bind(spec, ref).end
+        return ref
+
     @property
     def done(self) -> bool:
         return math.isinf(self._cur.duration) and not self._queue

@@ -163,3 +163,12 @@ def test_step_rejects_bad_dt(dt):
 def test_hold_when_empty():
     dut = TrajectoryGenerator(3e-6)
     assert dut.step(1e-3) == Reference(3e-6, 0.0, 0.0)
+
+
+def test_final_reference_reports_where_the_queue_ends():
+    dut = TrajectoryGenerator(0.0)
+    dut.move(10e-6)
+    dut.queue([Dwell(0.1), Move(by_m=5e-6)])
+    assert dut.final_reference() == Reference(15e-6, 0.0, 0.0)
+    _run(dut, 1e-3)
+    assert dut.sample().x_m == 15e-6 and dut.done
