@@ -169,6 +169,7 @@ def test_final_reference_reports_where_the_queue_ends():
     dut = TrajectoryGenerator(0.0)
     dut.move(10e-6)
     dut.queue([Dwell(0.1), Move(by_m=5e-6)])
-    assert dut.final_reference() == Reference(15e-6, 0.0, 0.0)
+    end = dut.final_reference()
+    assert end == Reference(10e-6 + 5e-6, 0.0, 0.0)  # by_m is added to the segment's start position
     _run(dut, 1e-3)
-    assert dut.sample().x_m == 15e-6 and dut.done
+    assert dut.sample() == end and dut.done
