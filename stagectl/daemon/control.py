@@ -259,6 +259,8 @@ class ControlServer:
         for conn in self._conns.values():
             if conn.pending is not None:
                 t = min(t, max(conn.pending[2] - now, 0.0))
+            else:
+                t = min(t, max(conn.last_active + self.idle_timeout_s - now, 0.0) + 1e-3)
         return t
 
     def _accept(self) -> None:

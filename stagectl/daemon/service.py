@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.daemon.config import DaemonConfig
 from stagectl.daemon.control import ControlServer, RequestError, to_json
 from stagectl.daemon.sdnotify import SdNotifier
@@ -192,6 +193,9 @@ class StageService:
         # ---------------------------------------------------------------- loop thread
         self._loop_thread = threading.Thread(target=self._loop_main, name="stagectl-loop", daemon=True)
         self._loop_thread.start()
+        # the loop thread inherited the process's policy (SCHED_FIFO under the unit); the supervisor (YAML
+        # reloads, JSON) steps down so it can never hold a CPU the loop needs
+        demote_to_normal_priority()
         self.notify.status("enabling drive, starting loop")
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         first_cycle: int | None = None

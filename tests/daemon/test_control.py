@@ -180,3 +180,20 @@ def test_stale_socket_file_is_replaced(tmp_path):
     finally:
         dut.stop()
     assert not path.exists()
+
+
+def test_stalled_half_line_connection_is_closed_after_idle_timeout(tmp_path):
+    dut = ControlServer(tmp_path / "c.sock", _Handler(), idle_timeout_s=0.2)
+    dut.start()
+    try:
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.connect(str(dut.path))
+        s.sendall(b'{"request": "sta')  # never finished: a stuck or half-open client
+        s.settimeout(20)  # failure guard; the server closes after 0.2 s idle
+        assert s.recv(100) == b""
+        s.close()
+        assert dut.stats["kicked_idle"] == 1
+        with ControlClient(dut.path) as c:  # the server is fine
+            assert c.request({"request": "status"})["ok"]
+    finally:
+        dut.stop()
