@@ -1,0 +1,247 @@
+"""Recordings: the one CSV format of stagectl (``../shared/reference/RECORDINGS.md``).
+
+A recording is a CSV file with one header row, one row per control sample, SI units. Canonical columns:
+
+==========  ====  ==========================================================
+``t``       s     sample time, strictly increasing
+``x``       m     measured position, sampled at ``t[k]``
+``u``       N     force commanded to the drive; acts over ``[t[k], t[k+1])`` (zero-order hold)
+``x_ref``   m     optional position reference
+``v``       m/s   optional velocity estimate
+==========  ====  ==========================================================
+
+Other column names are mapped with ``columns={"t": "t_s", "x": "position_m", "u": "force_N"}`` (the CLI's
+``--columns t=t_s,x=position_m,u=force_N``). Every problem raises :class:`~stagectl.errors.DataError`
+naming the file, the row (1-based line number in the file, header = line 1) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from stagectl.errors import DataError
+
+FloatArray = npt.NDArray[np.float64]
+
+#: canonical column -> unit (for messages)
+UNITS = {"t": "s", "x": "m", "u": "N", "x_ref": "m", "v": "m/s", "v_ref": "m/s", "a_ref": "m/s^2", "e": "m"}
+REQUIRED = ("t", "x", "u")
+OPTIONAL = ("x_ref", "v")
+
+
+@dataclass
+class Recording:
+    """A loaded recording (arrays of equal length, SI units).
+
+    Attributes
+    ----------
+    t, x, u : ndarray
+        Time [s], measured position [m], commanded force [N] (zero-order hold over ``[t[k], t[k+1])``).
+    x_ref, v : ndarray or None
+        Optional reference position [m] and velocity estimate [m/s].
+    source : str
+        File name (or a description) for reports.
+    extra : dict
+        Any other numeric columns found (by their file name).
+    """
+
+    t: FloatArray
+    x: FloatArray
+    u: FloatArray
+    x_ref: FloatArray | None = None
+    v: FloatArray | None = None
+    source: str = "<memory>"
+    extra: dict[str, FloatArray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def dt_s(self) -> float:
+        """Median sample period [s]."""
+        return float(np.median(np.diff(self.t)))
+
+    def slice(self, start: int, stop: int) -> Recording:
+        """Samples ``start:stop`` as a new recording."""
+        return Recording(
+            self.t[start:stop].copy(),
+            self.x[start:stop].copy(),
+            self.u[start:stop].copy(),
+            None if self.x_ref is None else self.x_ref[start:stop].copy(),
+            None if self.v is None else self.v[start:stop].copy(),
+            f"{self.source}[{start}:{stop}]",
+            {k: v[start:stop].copy() for k, v in self.extra.items()},
+        )
+
+    def save_csv(self, path: str | Path) -> None:
+        """Write the recording with canonical column names (full float precision)."""
+        cols: dict[str, FloatArray] = {"t": self.t, "x": self.x, "u": self.u}
+        if self.x_ref is not None:
+            cols["x_ref"] = self.x_ref
+        if self.v is not None:
+            cols["v"] = self.v
+        cols.update(self.extra)
+        data = np.column_stack(list(cols.values()))
+        np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+
+
+def parse_columns(spec: str | None) -> dict[str, str]:
+    """Parse ``"t=t_s,x=position_m,u=force_N"`` into ``{"t": "t_s", ...}``.
+
+    Raises
+    ------
+    DataError
+        Malformed entry or an unknown canonical name.
+    """
+    out: dict[str, str] = {}
+    if not spec:
+        return out
+    for item in spec.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        if "=" not in item:
+            raise DataError(f"--columns: entry {item!r} is not of the form canonical=file_column (e.g. t=t_s)")
+        key, _, name = item.partition("=")
+        key, name = key.strip(), name.strip()
+        if key not in UNITS:
+            raise DataError(f"--columns: unknown canonical column {key!r} (known: {', '.join(UNITS)})")
+        if not name:
+            raise DataError(f"--columns: empty file column name for {key!r}")
+        out[key] = name
+    return out
+
+
+def load_recording(
+    path: str | Path,
+    columns: Mapping[str, str] | str | None = None,
+    min_rows: int = 3,
+    required: Sequence[str] = REQUIRED,
+) -> Recording:
+    """Load and validate a recording CSV.
+
+    Parameters
+    ----------
+    path : path
+        CSV file with a header row.
+    columns : mapping or str, optional
+        Canonical name -> column name in the file (or the ``--columns`` string).
+    min_rows : int
+        Fewest data rows the calling analysis needs.
+    required : sequence of str
+        Canonical columns that must be present.
+
+    Raises
+    ------
+    DataError
+        Unreadable file, missing column, non-numeric cell, NaN/inf, time not strictly increasing, too few
+        rows; the message names the file, the row (file line number) and the column.
+    """
+    p = Path(path)
+    cmap = parse_columns(columns) if isinstance(columns, str) or columns is None else dict(columns)
+    try:
+        fh = p.open(newline="", encoding="utf-8")
+    except OSError as exc:
+        raise DataError(f"{p}: cannot open recording ({exc.strerror or exc})") from None
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise DataError(f"{p}: empty file (expected a header row with columns {', '.join(required)})") from None
+        except csv.Error as exc:
+            raise DataError(f"{p}: line 1: malformed CSV ({exc})") from None
+        header = [h.strip() for h in header]
+        index = {name: i for i, name in enumerate(header)}
+        wanted: dict[str, str] = {}
+        for key in (*required, *OPTIONAL):
+            name = cmap.get(key, key)
+            if name in index:
+                wanted[key] = name
+            elif key in required:
+                hint = f" (mapped from {key!r} by --columns)" if key in cmap else ""
+                raise DataError(
+                    f"{p}: missing required column {name!r}{hint} [{UNITS.get(key, '')}]; "
+                    f"header has: {', '.join(header)}"
+                    + ("" if key in cmap else f"; map another name with --columns {key}=NAME")
+                )
+        for key, name in cmap.items():
+            if key not in wanted and name not in index:
+                raise DataError(f"{p}: column {name!r} given for {key!r} by --columns is not in the header")
+        used = set(wanted.values())
+        extra_names = [h for h in header if h and h not in used]
+        rows: list[list[float]] = []
+        extra_rows: list[list[float]] = []
+        extra_ok = {h: True for h in extra_names}
+        order = list(wanted)
+        cols_idx = [index[wanted[k]] for k in order]
+        extra_idx = [index[h] for h in extra_names]
+        line = 1
+        try:
+            for row in reader:
+                line += 1
+                if not row or all(not c.strip() for c in row):
+                    continue
+                vals: list[float] = []
+                for key, ci in zip(order, cols_idx):
+                    if ci >= len(row):
+                        raise DataError(f"{p}: row {line}, column {wanted[key]!r}: missing value (row too short)")
+                    cell = row[ci].strip()
+                    try:
+                        val = float(cell)
+                    except ValueError:
+                        raise DataError(
+                            f"{p}: row {line}, column {wanted[key]!r}: non-numeric value {cell!r} "
+                            f"(expected a number in {UNITS.get(key, 'SI units')})"
+                        ) from None
+                    if not math.isfinite(val):
+                        raise DataError(f"{p}: row {line}, column {wanted[key]!r}: {cell} is not a finite number")
+                    vals.append(val)
+                rows.append(vals)
+                ev: list[float] = []
+                for h, ci in zip(extra_names, extra_idx):
+                    try:
+                        ev.append(float(row[ci]) if ci < len(row) else math.nan)
+                    except ValueError:
+                        extra_ok[h] = False
+                        ev.append(math.nan)
+                extra_rows.append(ev)
+        except csv.Error as exc:
+            raise DataError(f"{p}: row {line + 1}: malformed CSV ({exc})") from None
+    n = len(rows)
+    if n < min_rows:
+        raise DataError(f"{p}: {n} data rows, this analysis needs at least {min_rows}")
+    arr = np.asarray(rows, dtype=np.float64)
+    data = {k: np.ascontiguousarray(arr[:, i]) for i, k in enumerate(order)}
+    t = data["t"]
+    dt = np.diff(t)
+    bad = np.flatnonzero(~(dt > 0))
+    if bad.size:
+        k = int(bad[0]) + 1
+        # line numbers: data row k is on line k + 2 when no blank lines were skipped (header = line 1)
+        raise DataError(
+            f"{p}: row {k + 2}, column {wanted['t']!r}: time not strictly increasing "
+            f"({t[k]:.9g} s after {t[k - 1]:.9g} s)"
+        )
+    extra: dict[str, FloatArray] = {}
+    if extra_rows:
+        earr = np.asarray(extra_rows, dtype=np.float64)
+        for j, h in enumerate(extra_names):
+            if extra_ok[h] and np.all(np.isfinite(earr[:, j])):
+                extra[h] = np.ascontiguousarray(earr[:, j])
+    return Recording(
+        t=t,
+        x=data["x"],
+        u=data["u"],
+        x_ref=data.get("x_ref"),
+        v=data.get("v"),
+        source=str(p),
+        extra=extra,
+    )

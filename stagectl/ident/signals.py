@@ -1,0 +1,260 @@
+"""Inverse-dynamics signals for identification (zero-order-hold consistent, noise-filtered).
+
+Plant ``m·a = u(t) − F_fric − F_other`` with ``u`` held over ``[t[k], t[k+1])`` (RECORDINGS.md). For a
+rigid body driven by a piecewise-constant force the second difference of the sampled position is exact::
+
+    x[k+1] − 2·x[k] + x[k−1] = dt² · (a_{k−1} + a_k) / 2
+
+where ``a_j`` is the (constant) acceleration over ``[t[j], t[j+1])``. So the second difference at ``k`` is
+paired with the **average** commanded force ``ū[k] = (u[k−1] + u[k]) / 2``, never with ``u[k]`` alone
+(that pairing invents half a sample of delay, DISCOVERY_NOTES §3). A delay τ = (n + f)·dt of the applied
+force shifts ``u`` by linear interpolation between samples, which is exact for a zero-order hold.
+
+Noise: the raw second difference of a quantised position is very noisy, so every term of the linear
+relation ``ū = m·a + F`` is passed through the *same* zero-phase low-pass filter ``L`` (Butterworth,
+``filtfilt``). Because ``L`` is linear and identical on both sides, the relation still holds for the
+filtered signals (Gautier-style parallel filtering) and no phase lag is introduced.
+
+Stick phases (DISCOVERY_NOTES §5): while the stage is at rest the friction force is anywhere in ±Fs, so the
+inverse-dynamics residual says nothing there. Samples whose raw central displacement ``x[k+1] − x[k−1]`` is within the noise band (6·√2 noise std or 2.5
+counts), or with ``|v| <= v_stick``, are *stuck*; the raw residual
+is set to zero there **before** filtering (so it does not leak into neighbouring samples) and the samples
+within ``guard`` samples of a stuck one are not evaluated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy import ndimage, signal
+
+from stagectl.errors import DataError
+from stagectl.ident.recording import Recording
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def lowpass_sos(cutoff_hz: float, fs_hz: float, order: int = 4) -> FloatArray:
+    """Butterworth low-pass in second-order sections (cut-off clipped below Nyquist)."""
+    wn = min(cutoff_hz / (0.5 * fs_hz), 0.95)
+    return np.asarray(signal.butter(order, wn, output="sos"), dtype=np.float64)
+
+
+@dataclass
+class Signals:
+    """Pre-processed recording (all arrays length ``n``, SI units).
+
+    Attributes
+    ----------
+    t, x, u : raw time [s], position [m], commanded force [N]
+    dt_s : sample period [s] (median)
+    xf : zero-phase filtered position [m]
+    v : velocity of ``xf`` by central difference [m/s]
+    acc_f : filtered acceleration ``L[a_raw]`` [m/s²] (ZOH-consistent second difference)
+    acc_raw : raw second difference / dt² [m/s²] (0 at the two ends)
+    moving : |v| > v_stick (and not at the ends)
+    evaluate : moving and at least ``guard`` samples away from any stuck sample or end
+    v_stick : stick threshold [m/s]
+    sos : the filter ``L``
+    x_rev_dist : |x − x at the last velocity reversal| [m] (displacement since the last reversal)
+    direction : sgn(x[k+1] − x[k−1]) on moving samples, 0 when stuck (the models' sgn(v))
+    """
+
+    t: FloatArray
+    x: FloatArray
+    u: FloatArray
+    dt_s: float
+    cutoff_hz: float
+    sos: FloatArray
+    xf: FloatArray
+    v: FloatArray
+    acc_raw: FloatArray
+    acc_f: FloatArray
+    moving: BoolArray
+    evaluate: BoolArray
+    v_stick: float
+    guard: int
+    quantum_m: float
+    noise_m: float
+    x_rev_dist: FloatArray
+    direction: FloatArray
+    source: str = ""
+    cache: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    def filt(self, raw: FloatArray) -> FloatArray:
+        """``L[moving · raw]``: zero stuck samples, then zero-phase low-pass."""
+        return np.asarray(signal.sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
+
+    def filt_many(self, raw: FloatArray) -> FloatArray:
+        """:meth:`filt` applied to every column of ``raw`` (shape ``(n, k)``) in one call."""
+        m = self.moving[:, None]
+        return np.asarray(signal.sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
+
+    def ubar(self, delay_s: float = 0.0) -> FloatArray:
+        """Average applied force over [t[k−1], t[k+1]] for an actuation delay ``delay_s`` [N]."""
+        key = f"ubar:{delay_s:.6e}"
+        hit = self.cache.get(key)
+        if hit is not None:
+            return hit  # type: ignore[return-value]
+        ud = shift_zoh(self.u, delay_s / self.dt_s)
+        ub = np.empty_like(ud)
+        ub[1:] = 0.5 * (ud[:-1] + ud[1:])
+        ub[0] = ud[0]
+        self.cache[key] = ub
+        return ub
+
+
+def shift_zoh(u: FloatArray, shift_samples: float) -> FloatArray:
+    """Held force delayed by ``shift_samples`` (fractional): mean over each sample interval.
+
+    With τ = (n + f)·dt, over ``[t[k], t[k+1])`` the delayed force is ``u[k−n−1]`` for ``f·dt`` and
+    ``u[k−n]`` for ``(1−f)·dt``; its interval mean is ``f·u[k−n−1] + (1−f)·u[k−n]`` (``u[j<0] = u[0]``).
+    """
+    if shift_samples <= 0.0:
+        return np.asarray(u, dtype=np.float64)
+    n = int(math.floor(shift_samples))
+    f = shift_samples - n
+    pad = np.concatenate([np.full(n + 1, u[0]), u])
+    m = u.shape[0]
+    a = pad[1 : 1 + m]  # u[k-n]
+    b = pad[0:m]  # u[k-n-1]
+    return np.asarray((1.0 - f) * a + f * b, dtype=np.float64)
+
+
+def _robust_std(a: FloatArray) -> float:
+    if a.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(a - np.median(a))))
+
+
+def _quantum(x: FloatArray) -> float:
+    d = np.abs(np.diff(x))
+    d = d[d > 0]
+    if d.size == 0:
+        return 0.0
+    q = float(np.min(d))
+    # measurement noise makes the smallest step meaningless if it is below 1e-6 of the median step
+    return q if q > 1e-6 * float(np.median(d)) else float(np.percentile(d, 1))
+
+
+def prepare(
+    rec: Recording,
+    cutoff_hz: float | None = None,
+    v_stick_m_s: float | None = None,
+    min_rows: int = 200,
+) -> Signals:
+    """Build :class:`Signals` from a recording.
+
+    Parameters
+    ----------
+    cutoff_hz : float, optional
+        Cut-off of ``L`` [Hz]; default ``fs/10`` (100 Hz at 1 kHz).
+    v_stick_m_s : float, optional
+        Stick threshold [m/s]; default from the measured position noise and quantum.
+
+    Raises
+    ------
+    DataError
+        Too few rows, or a sample period that varies by more than 5 %.
+    """
+    n = len(rec)
+    if n < min_rows:
+        raise DataError(f"{rec.source}: {n} rows; identification needs at least {min_rows} samples")
+    dts = np.diff(rec.t)
+    dt = float(np.median(dts))
+    jitter = float(np.max(np.abs(dts - dt)) / dt)
+    if jitter > 0.05:
+        k = int(np.argmax(np.abs(dts - dt))) + 1
+        raise DataError(
+            f"{rec.source}: row {k + 2}, column 't': sample period {dts[k - 1]:.6g} s differs from the median "
+            f"{dt:.6g} s by {100 * jitter:.0f} % (identification needs uniform sampling)"
+        )
+    fs = 1.0 / dt
+    fc = float(cutoff_hz) if cutoff_hz else 0.1 * fs
+    sos = lowpass_sos(fc, fs)
+    x = rec.x
+    x0 = float(x[0])
+    xf = np.asarray(signal.sosfiltfilt(sos, x - x0), dtype=np.float64) + x0
+    v = np.gradient(xf, dt)
+    acc_raw = np.zeros(n)
+    acc_raw[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (dt * dt)
+    # noise and quantum of the position
+    q = _quantum(x)
+    noise = _robust_std(x - xf)
+    # velocity noise gain of the pipeline for unit white position noise
+    rng = np.random.default_rng(12345)
+    w = rng.standard_normal(4096)
+    gain_v = float(np.std(np.gradient(signal.sosfiltfilt(sos, w), dt)[64:-64]))
+    sigma_x = max(noise, q / math.sqrt(12.0))
+    v_th = float(v_stick_m_s) if v_stick_m_s is not None else max(6.0 * sigma_x * gain_v, 1e-12)
+    guard = max(2, int(math.ceil(0.5 * fs / fc)))
+    # stuck: the raw central displacement x[k+1] − x[k−1] is within the noise band (the zero-phase filtered
+    # velocity anticipates a break-away by about the filter length, so it cannot decide stick). The
+    # direction of motion used by the models is the sign of that raw displacement.
+    dxc = np.zeros(n)
+    dxc[1:-1] = x[2:] - x[:-2]
+    thr = max(6.0 * math.sqrt(2.0) * noise, 2.5 * q)
+    moving = (np.abs(dxc) > thr) & (np.abs(v) > v_th)
+    moving[0] = moving[-1] = False
+    stuck = ~moving
+    near = np.convolve(stuck.astype(np.float64), np.ones(2 * guard + 1), mode="same") > 0
+    evaluate = moving & ~near
+    evaluate[: 4 * guard] = False
+    evaluate[-4 * guard :] = False
+    sig = Signals(
+        t=rec.t,
+        x=x,
+        u=rec.u,
+        dt_s=dt,
+        cutoff_hz=fc,
+        sos=sos,
+        xf=xf,
+        v=v,
+        acc_raw=acc_raw,
+        acc_f=np.zeros(n),
+        moving=moving,
+        evaluate=evaluate,
+        v_stick=v_th,
+        guard=guard,
+        quantum_m=q,
+        noise_m=noise,
+        x_rev_dist=_reversal_distance(xf, v, v_th),
+        direction=np.where(moving, np.sign(dxc), 0.0),
+        source=rec.source,
+    )
+    sig.acc_f = sig.filt(acc_raw)
+    if int(evaluate.sum()) < 50:
+        raise DataError(
+            f"{rec.source}: only {int(evaluate.sum())} samples in motion (|v| > {v_th:.3g} m/s); "
+            "identification needs a recording with motion"
+        )
+    return sig
+
+
+def _reversal_distance(xf: FloatArray, v: FloatArray, v_th: float) -> FloatArray:
+    """|x − x_r| with x_r the position at the last change of the direction of motion."""
+    n = xf.shape[0]
+    out = np.empty(n)
+    direction = 0.0
+    xr = float(xf[0])
+    big = np.inf
+    started = False
+    for k in range(n):
+        vk = v[k]
+        d = 1.0 if vk > v_th else (-1.0 if vk < -v_th else 0.0)
+        if d != 0.0 and d != direction:
+            if direction != 0.0:
+                started = True
+            # reversal point: extreme position since the last direction change
+            xr = float(xf[k - 1]) if k > 0 else float(xf[k])
+            direction = d
+        out[k] = abs(float(xf[k]) - xr) if started else big
+    return out
