@@ -101,22 +101,22 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     ctl = inp["controller"]
     if ctl is not None:
         dob = ctl.dob
-        dob_bw = dob.bandwidth_hz if dob.kind == "qfilter" else None
         m_dob = dob.nominal_mass_kg if dob.nominal_mass_kg is not None else m
-        loops = design.analyse_design(m, T, ctl.pid, nd, dob_bw, dob.command_delay_samples, dob_mass_kg=m_dob)
+        K = None
+        if dob.kind == "kalman":
+            K, _ = design.kalman_gain_for_noise(m_dob, T, dob.measurement_noise_m, _kalman_q(m_dob, T, dob),
+                                                use_control=True)
+        loops = design.analyse_design(m, T, ctl.pid, nd, None if dob.kind == "none" else dob.bandwidth_hz,
+                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind, kalman_k=K)
         conf: dict[str, Any] = {
             "pid": _pid_dict(ctl.pid),
             "dob": {"kind": dob.kind, "bandwidth_hz": dob.bandwidth_hz,
-                    "command_delay_samples": dob.command_delay_samples},
+                    "command_delay_samples": dob.command_delay_samples, "nominal_mass_kg": m_dob},
             "loops": {a.name: a.summary() for a in loops},
         }
-        if dob.kind == "kalman":
-            K, _ = design.kalman_gain_for_noise(
-                m_dob, T, dob.measurement_noise_m,
-                _kalman_q(m_dob, T, dob), use_control=True)
+        if K is not None:
             conf["dob"]["kalman_gain"] = [float(k) for k in K]
             conf["dob"]["observer_bandwidth_hz"] = design.observer_bandwidth_hz(K, m_dob, T)
-            conf["dob"]["note"] = "loop margins shown without the Kalman observer (PID only)"
         for a in loops:
             a.name = f"configured {a.name}"
         analyses += loops
@@ -197,9 +197,10 @@ def run(args: argparse.Namespace) -> int:
               f"(command delay {c['dob']['command_delay_samples']})")
         for name, s in c["loops"].items():
             print(_fmt_loop(name, s))
-        if "note" in c["dob"]:
-            print(f"  kalman gain {c['dob']['kalman_gain']}, observer bandwidth "
-                  f"{c['dob']['observer_bandwidth_hz']:.1f} Hz ({c['dob']['note']})")
+        if "kalman_gain" in c["dob"]:
+            kg = ", ".join(f"{k:.4g}" for k in c["dob"]["kalman_gain"])
+            print(f"  kalman filter gain [{kg}] (x, v, d), observer bandwidth "
+                  f"{c['dob']['observer_bandwidth_hz']:.1f} Hz")
     d = result["designed"]
     p = d["pid"]
     print(f"designed for a {d['target_crossover_hz']:g} Hz crossover: Kp {p['kp_n_m']:.4g} N/m, "

@@ -215,6 +215,28 @@ def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_sa
     return Hu, Hy
 
 
+def kalman_tfs(mass_kg: float, dt: float, K: Any, command_delay_samples: int = 0) -> tuple[Any, Any]:
+    """(H_u, H_y) of the steady-state Kalman DOB of :mod:`stagectl.control.dob`: d̂ = H_u·u − H_y·y.
+
+    With F = (I − K·C)·A and G = (I − K·C)·B, the filter s⁺_k = F·s⁺_{k−1} + G·u_{k−1} + K·y_k gives
+    (zI − F)·s⁺ = G·u + z·K·y, d̂ = e₃ᵀ·s⁺; so H_u = e₃ᵀ(zI − F)⁻¹G and
+    −H_y = e₃ᵀ(zI − F)⁻¹·z·K = e₃ᵀ(zI − F)⁻¹·F·K + K₃.
+    """
+    import control
+
+    A, B, C = _kalman_matrices(mass_kg, dt)
+    Kv = np.asarray(K, dtype=float).reshape(3, 1)
+    ImKC = np.eye(3) - Kv @ C
+    F = ImKC @ A
+    G = ImKC @ B
+    e3 = np.array([[0.0, 0.0, 1.0]])
+    Hu = control.ss(F, G, e3, np.zeros((1, 1)), dt)
+    Hy = control.ss(F, -(F @ Kv), e3, -Kv[2:3, :], dt)
+    if command_delay_samples:
+        Hu = Hu * control.ss(_zinv(dt, command_delay_samples))
+    return Hu, Hy
+
+
 def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
     """Margins, crossover and frequency response of an open loop L(z); closed-loop stability of 1/(1+L)."""
     import control
@@ -261,15 +283,25 @@ def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tu
 
 def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int = 1,
                    dob_bandwidth_hz: float | None = None, dob_command_delay_samples: int = 0,
-                   viscous_n_s_m: float = 0.0, dob_mass_kg: float | None = None) -> list[LoopAnalysis]:
-    """Margins of PID alone and (if ``dob_bandwidth_hz``) PID + Q-filter DOB on the discrete plant."""
+                   viscous_n_s_m: float = 0.0, dob_mass_kg: float | None = None,
+                   dob_kind: str = "qfilter", kalman_k: Any = None) -> list[LoopAnalysis]:
+    """Margins of PID alone and (if ``dob_bandwidth_hz``) PID + DOB on the discrete plant.
+
+    ``dob_kind`` ``qfilter`` (default) or ``kalman`` (then ``kalman_k``, the filter-form gain, is used, or
+    designed for ``dob_bandwidth_hz``).
+    """
     import control
 
     P = plant_tf(mass_kg, period_s, delay_samples, viscous_n_s_m)
     C = pid_tf(pid, period_s)
     out = [analyse("pid", control.ss(P) * control.ss(C), period_s)]
     if dob_bandwidth_hz:
-        Hu, Hy = qfilter_tfs(dob_mass_kg or mass_kg, dob_bandwidth_hz, period_s, dob_command_delay_samples)
+        md = dob_mass_kg or mass_kg
+        if dob_kind == "kalman":
+            K = kalman_k if kalman_k is not None else kalman_gain(md, period_s, dob_bandwidth_hz)
+            Hu, Hy = kalman_tfs(md, period_s, K, dob_command_delay_samples)
+        else:
+            Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz, period_s, dob_command_delay_samples)
         out.append(analyse("pid+dob", dob_loop(P, C, Hu, Hy, period_s), period_s))
     return out
 
@@ -283,7 +315,8 @@ def dob_loop(P: Any, C: Any, Hu: Any, Hy: Any, dt: float) -> Any:
     import control
 
     one = control.ss(control.tf([1.0], [1.0], dt))
-    return control.ss(P) * control.ss(C + Hy) * control.feedback(one, control.ss(Hu), sign=1)
+    CH = control.ss(C) + control.ss(Hy)
+    return control.ss(P) * CH * control.feedback(one, control.ss(Hu), sign=1)
 
 
 def bode_png(analyses: list[LoopAnalysis], path: str, title: str = "") -> None:

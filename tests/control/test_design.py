@@ -45,20 +45,23 @@ def _mass_sim(cfg_ctl, T: float, delay: int, n: int = 3000) -> float:
     return peak
 
 
-@pytest.mark.parametrize("pid_hz,dob_hz,cd,expect_stable", [(20.0, 100.0, 1, True), (80.0, 200.0, 0, False)])
-def test_analysis_predicts_time_domain_stability(pid_hz, dob_hz, cd, expect_stable):
+@pytest.mark.parametrize("kind,pid_hz,dob_hz,cd,expect_stable", [
+    ("qfilter", 20.0, 100.0, 1, True), ("qfilter", 80.0, 200.0, 0, False),
+    ("kalman", 20.0, 60.0, 1, True), ("kalman", 60.0, 120.0, 0, False),
+])
+def test_analysis_predicts_time_domain_stability(kind, pid_hz, dob_hz, cd, expect_stable):
     """The discrete loop model (plant, delay, PID and Q-filter DOB as implemented) agrees with a simulation."""
     from stagectl.control.controller import ControllerConfig
 
     T = 1e-3
     pid = design_pid(2.0, pid_hz, T, 1)
-    loops = analyse_design(2.0, T, pid, 1, dob_hz, cd)
+    loops = analyse_design(2.0, T, pid, 1, dob_hz, cd, dob_kind=kind)
     assert loops[1].stable is expect_stable
     cfg = load(ControllerConfig, {
         "mass_kg": 2.0, "max_force_n": 1e9,
         "pid": {"kp_n_m": pid.kp_n_m, "ki_n_m_s": pid.ki_n_m_s, "kd_n_s_m": pid.kd_n_s_m,
                 "derivative_cutoff_hz": pid.derivative_cutoff_hz, "derivative_on": "error"},
-        "dob": {"kind": "qfilter", "bandwidth_hz": dob_hz, "command_delay_samples": cd},
+        "dob": {"kind": kind, "bandwidth_hz": dob_hz, "command_delay_samples": cd},
         "feedforward": {"kind": "none", "inertia": False}}, "controller")
     peak = _mass_sim(cfg, T, 1)
     if expect_stable:
