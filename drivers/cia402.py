@@ -505,14 +505,30 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
             raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
         return got
 
+    def _poll_tpdo(self) -> tuple[int, int] | None:
+        """Non-blocking: the TPDO if it has arrived already (pump first in lock-step)."""
+        bus = self._bus
+        assert bus is not None
+        got: tuple[int, int] | None = None
+        try:
+            if self._pump is not None:
+                self._pump()
+            while (msg := bus.recv(0.0)) is not None:
+                got = self._handle(msg) or got
+        except can.CanError as exc:
+            raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
+        return got
+
     def read(self) -> Measurement:
         """Measurement sampled at this cycle's SYNC (``fresh=False`` if the TPDO missed). Real-time safe."""
         self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if not self._synced:
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
+        return self._evaluate(self._wait_tpdo())
+
+    def _evaluate(self, got: tuple[int, int] | None) -> Measurement:
         self.cycles += 1
-        got = self._wait_tpdo()
         fault: DeviceFault | None = None
         fresh = got is not None
         if got is not None:
@@ -574,8 +590,13 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
     def write(self, force_n: float) -> None:
         """Send RPDO1 (controlword, target torque) for the next period. Real-time safe.
 
-        After a latched fault or ``quick_stop()`` the RPDO carries quick stop and zero torque.
+        After a latched fault or ``quick_stop()`` the RPDO carries quick stop and zero torque. If ``read()``
+        was not called in this cycle (another device is the position sensor), the drive's TPDO is taken
+        here without waiting, so drive faults (statusword, EMCY, heartbeat, missed TPDOs) are still latched.
         """
+        if self._synced and self._state in (DeviceState.ENABLED, DeviceState.FAULT):
+            self._synced = False
+            self._evaluate(self._poll_tpdo())
         if self._state is DeviceState.ENABLED and self._cw == Controlword.ENABLE_OPERATION:
             self._send_rpdo(self._cw, self.torque_units(force_n))
         elif self._state is DeviceState.FAULT:

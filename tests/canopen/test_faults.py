@@ -141,3 +141,18 @@ def test_fault_yaml_errors_are_reported_with_paths():
     text = str(ei.value)
     assert "sim.faults[0].kind" in text
     assert "sim.faults[1].at_cycle" in text and "sim.faults[1].cycles" in text
+
+
+def test_drive_faults_latched_when_drive_is_only_the_actuator(lockstep):
+    """Another device is the sensor (read() never called): write() still picks up the drive's faults."""
+    world, dut = lockstep()
+    for _ in range(5):
+        dut.sync()
+        dut.write(1.0)
+        assert dut.fault is None
+    world.inject(FaultSpec(kind=SimFault.DRIVE_FAULT, code=0x3210))
+    for _ in range(2):
+        dut.sync()
+        dut.write(1.0)
+    assert dut.fault is not None and dut.fault.kind is FaultKind.DRIVE_FAULT and dut.fault.code == 0x3210
+    assert dut.state is DeviceState.FAULT
