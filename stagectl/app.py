@@ -166,8 +166,12 @@ class Stage:
         }
 
     def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
-        """Debug: inject a device fault into the simulated plant (``emcy``, ``stale``, ``nan``, or any
-        :class:`FaultKind` value). Only for simulated stages."""
+        """Debug: inject a device fault into the simulated stage. Only for simulated stages.
+
+        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan`` or any :class:`FaultKind` value. Virtual CANopen
+        devices: any :class:`stagectl.sim.faults.SimFault` (``drive_fault``, ``heartbeat_stop``, ``drop_tpdo``,
+        ``late_tpdo``, ``bus_off``, ``position_jump``) with its FaultSpec fields; ``emcy``, ``stale``,
+        ``heartbeat_lost`` and ``nan`` are accepted as aliases."""
         if not self.simulated:
             raise StageError("inject_fault: only available on a simulated stage")
         if self.plant_io is not None:
@@ -185,7 +189,12 @@ class Stage:
                 io.inject_fault(fk, str(kw.get("detail", "injected")), int(kw.get("code", 0)))
             return {"injected": kind}
         if self.world is not None and hasattr(self.world, "inject_fault"):
-            return {"injected": self.world.inject_fault(kind, **kw)}  # scheduled on the virtual drive
+            # loop-level names mapped onto the virtual devices' faults (stagectl.sim.faults.SimFault)
+            alias = {"emcy": "drive_fault", "stale": "drop_tpdo", "heartbeat_lost": "heartbeat_stop",
+                     "nan": "position_jump"}
+            if kind == "stale":
+                kw.setdefault("cycles", 10)
+            return {"injected": self.world.inject_fault(alias.get(kind, kind), **kw)}
         raise StageError("inject_fault: no fault injection available for this stage")
 
     def load_scenario(self, name_or_scenario: Any, repeat: bool = False) -> None:
@@ -258,7 +267,7 @@ def build_stage(
     On any error everything opened so far is closed before the exception propagates.
     """
     stage = Stage(cfg)
-    stage.clock = clock if clock is not None else MonotonicClock()
+    stage.clock = clock if clock is not None else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
     simulated_time = isinstance(stage.clock, SimClock)
     if realtime is None:
         realtime = not simulated_time
@@ -305,8 +314,8 @@ def build_stage(
 
 def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
     """Virtual CANopen devices in-process (:class:`stagectl.sim.world.SimWorld` on python-can's virtual bus)
-    and the real drivers talking to them. Simulated time: the drivers pump the world (lock-step); real
-    time: the world's device thread serves them."""
+    and the real drivers talking to them through the bus; the drivers pump the world (lock-step) in
+    simulated and in real time."""
     import dataclasses
 
     from stagectl.drivers.cia402 import Cia402Config
@@ -322,8 +331,9 @@ def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
     stage.plant = world.plant
     stage.closers.append(world.stop)
     world.open()
-    if not simulated_time:
-        world.start()
+    # The virtual devices are served synchronously by the loop thread (drivers' set_pump) in simulated AND
+    # real time: each SYNC steps the plant by exactly one period, no thread hop can make a TPDO late.
+    # A device thread (world.start()) would be needed only for peers that talk on their own (sim-plant).
     info = world.ready_info()
     sd = wcfg.drive
     drive_cfg = cfg.io.drive
@@ -332,8 +342,7 @@ def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
                                  force_per_unit_n=sd.force_per_unit_n)
     else:
         drive_cfg = dataclasses.replace(drive_cfg, can=info["can"])
-    _open_drivers(stage, drive_cfg, pump=world.pump if simulated_time else None,
-                  interferometer_url=info.get("interferometer_url"))
+    _open_drivers(stage, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"))
 
 
 def _build_canopen(stage: Stage) -> None:

@@ -105,6 +105,8 @@ class RealtimeConfig:
     mlock: bool = param(False, desc="mlockall(MCL_CURRENT|MCL_FUTURE) at start")
     timer_slack_ns: int | None = param(1, unit="ns", desc="PR_SET_TIMERSLACK for the loop thread", ge=1)
     gc_freeze: bool = param(True, desc="gc.collect() + gc.freeze() after start-up")
+    spin_us: float = param(0.0, unit="us", desc="busy-wait the last part of each sleep (hybrid wake-up; costs CPU)",
+                           ge=0, le=500)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,8 @@ def test_every_shipped_config_loads(path):
 
 def test_sim_yaml_is_the_seed_stage():
     cfg = load_app_config(REPO / "config" / "sim.yaml")
-    assert cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
+    assert cfg.io.kind is IoKind.EMBEDDED_CANOPEN  # the real CiA 402 driver against the virtual drive
+    assert cfg.sim.world is not None and cfg.sim.world.transport.kind == "virtual"
     plant = cfg.sim.plant
     assert plant.mass_kg == 2.0
     assert plant.sensor.resolution_m == 1e-9
@@ -147,6 +148,7 @@ def test_check_config_cli_exit_code(tmp_path):
 
 def test_sensor_choice_for_plant_io_rejected(tmp_path):
     data = _sim_mapping()
+    data["io"]["kind"] = "plant_io"
     data["io"]["sensor"] = "interferometer"
     probs = "\n".join(_problems(data, tmp_path))
     assert "io.sensor: plant_io measures through the plant itself" in probs

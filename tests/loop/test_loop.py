@@ -175,3 +175,15 @@ def test_requests_pending_when_run_ends_fail(make):
     assert res.cycles == 0 and res.ended_by == "stop"
     with pytest.raises(LoopStateError, match="not running"):
         fut.result(timeout=0)
+
+
+def test_monotonic_clock_uses_absolute_sleep_and_never_sleeps_for_past_deadlines():
+    from stagectl.clock import MonotonicClock, apply_realtime
+
+    clk = MonotonicClock()
+    assert clk.absolute  # clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME) found through ctypes
+    t = clk.now()
+    clk.sleep_until(t - 1.0)  # a deadline in the past returns at once (an overrun is the loop's business)
+    assert clk.now() >= t
+    rep = apply_realtime(fifo_priority=None, cpus=None, mlock=False, timer_slack_ns=None, gc_freeze=False)
+    assert rep.notes == [] and rep.fifo_priority is None  # nothing requested, nothing changed, never raises
