@@ -151,6 +151,16 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert "target_m" in capsys.readouterr().err
     assert main(["gains", "--socket", str(sock)]) == 0
     assert "kp_n_m" in capsys.readouterr().out
+    assert main(["record", "start", "cli-rec", "--socket", str(sock)]) == 0
+    assert "cli-rec.csv" in capsys.readouterr().out
+    assert main(["record", "stop", "--socket", str(sock)]) == 0
+    assert "rows to" in capsys.readouterr().out
+    assert main(["stop", "--socket", str(sock)]) == 0
+    assert main(["reset", "--socket", str(sock)]) == 0  # no fault latched: a no-op, still ok
+    assert main(["status", "--json", "--socket", str(sock)]) == 0
+    assert '"state": "active"' in capsys.readouterr().out
+    assert main(["status", "--socket", str(tmp_path / "nowhere.sock")]) == 2
+    assert "no control socket" in capsys.readouterr().err
     # ------------------------------------------------------------- SIGTERM
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=30)

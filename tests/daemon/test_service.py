@@ -33,7 +33,7 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
     th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
     th.start()
     try:
-        ready = notify_socket.wait_for("READY", "1")
+        ready = notify_socket.wait_for("READY", "1", alive=th.is_alive)
         assert "active" in ready["STATUS"]
         notify_socket.wait_for("WATCHDOG", "1")  # the supervisor saw the cycle counter advance
         with ControlClient(tmp_path / "run" / "control.sock") as c:
@@ -100,3 +100,33 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
     assert np.all(np.diff(data[:, 0]) > 0)
     with open(tmp_path / "tel" / "capture.csv", newline="") as fh:
         assert next(csv.reader(fh)) == list(dut.asm.loop.columns)
+
+
+def test_unwritable_telemetry_directory_reported_while_loop_runs(tmp_path, notify_socket, rig_loader, rig_builder):
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("x")  # a file where the telemetry directory should be (fails even as root)
+    cfg = tmp_path / "stagectl.yaml"
+    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  status_interval_s: 0.05\n"
+                   f"  telemetry: {{directory: {blocker / 'tel'}, flush_interval_s: 0.05}}\n")
+    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=rig_builder,
+                       notifier=SdNotifier(str(notify_socket.path)))
+    result: dict = {}
+    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
+    th.start()
+    try:
+        notify_socket.wait_for("READY", "1", alive=th.is_alive)
+        msg = notify_socket.wait_for("STATUS")
+        while "ERROR" not in msg["STATUS"]:  # STATUS= carries the telemetry error
+            msg = notify_socket.wait_for("STATUS")
+        with ControlClient(tmp_path / "run" / "control.sock") as c:
+            st1 = c.request({"request": "status"})["status"]
+            assert st1["state"] == "active" and "not-a-dir" in st1["telemetry"]["error"]
+            notify_socket.wait_for("WATCHDOG", "1")
+            notify_socket.wait_for("WATCHDOG", "1")
+            st2 = c.request({"request": "status"})["status"]
+            assert st2["loop"]["cycle"] > st1["loop"]["cycle"]  # the loop keeps running
+            assert st2["telemetry"]["lost"] > 0 and st2["telemetry"]["dropped"] == 0
+    finally:
+        dut.request_stop()
+        th.join(30)
+    assert result["code"] == 0
