@@ -45,11 +45,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from numba import njit, types
-from numba.typed import List
 
 from stagectl.errors import ConfigError
 from stagectl.friction import Effects, FrictionModel, load_model_file, parse_friction
-from stagectl.friction._numba import STEP_FN
+from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
 from stagectl.friction.effects import pack_layout
 from stagectl.schema import load, param
 
@@ -218,19 +217,7 @@ _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
 _arr = types.float64[::1]
 
 
-_STEP_LIST = types.ListType(STEP_FN)
-
-
-@njit(_STEP_LIST(STEP_FN), cache=True)
-def _wrap_step(f):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """A one-element typed list holding the kernel step function.
-
-    Passing a first-class function from Python costs ~20-30 µs per call (boxing); a typed list holding it
-    unboxes in ~1 µs, which keeps ``StagePlant.step`` cheap.
-    """
-    out = List.empty_list(STEP_FN)
-    out.append(f)
-    return out
+_STEP_LIST = STEP_LIST
 
 
 _SIG_LOOP = (_arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr, types.float64, types.int64,
@@ -322,7 +309,7 @@ def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov,
 
 @njit(types.void(_STEP_LIST, *_SIG_LOOP), cache=True)
 def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Python entry to :func:`_integrate` (the typed list unboxes fast; see :func:`_wrap_step`)."""
+    """Python entry to :func:`_integrate` (the typed list unboxes fast; see ``_numba.kernel_lists``)."""
     _integrate(kl[0], kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of)
 
 
@@ -355,7 +342,7 @@ class StagePlant:
         kern = cfg.friction.kernel()
         self._kstep = kern.step
         self._kforce = kern.force
-        self._kl = _wrap_step(kern.step)
+        self._kl = kernel_lists(kern.step, kern.force)[0]
         self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
         self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
         self._tau = float(cfg.effects.delay.delay_s) if cfg.effects.delay is not None else 0.0
