@@ -411,7 +411,11 @@ class StagePlant:
         self._nh = m
 
     def step(self, u_n: float, dt_s: float) -> None:
-        """Hold the commanded force ``u_n`` [N] for ``dt_s`` [s] (clamped to ±max_force_n, delayed by τ)."""
+        """Hold the commanded force ``u_n`` [N] for ``dt_s`` [s] (clamped to ±max_force_n, delayed by τ).
+
+        Real-time safe: one compiled call (~1-4 µs for 10 sub-steps of GMS N = 6); no allocation except
+        an occasional compaction of the delay history when τ > 0.
+        """
         nsub = self._nsub(dt_s)
         u = self._clamp(u_n)
         nh0 = -1
