@@ -129,6 +129,8 @@ class StageService:
         self._watchdog_withheld = 0
         self._watchdog_reason = ""
         self.socket_path: Path | None = None
+        self._status_lock = threading.Lock()
+        self._status_cache: tuple[float, dict[str, Any]] | None = None
 
     # ================================================================== main
     def run(self) -> int:
@@ -270,6 +272,15 @@ class StageService:
             max_line_bytes=c.max_line_bytes, max_out_bytes=c.max_out_bytes,
             idle_timeout_s=c.client_idle_timeout_s, reply_timeout_s=c.reply_timeout_s)
         self.server.start()
+
+    def _loop_status_cached(self, max_age_s: float = 0.05) -> dict[str, Any]:
+        """``loop.status()`` at most every ``max_age_s`` for clients: computing percentiles holds the GIL, so
+        a client flooding ``status`` requests must not translate into loop lateness."""
+        now = time.monotonic()
+        with self._status_lock:
+            if self._status_cache is None or now - self._status_cache[0] > max_age_s:
+                self._status_cache = (now, self.asm.loop.status())  # type: ignore[union-attr]
+            return self._status_cache[1]
 
     def _drive_state(self) -> str:
         act = getattr(self.asm.loop, "actuator", None) if self.asm else None
@@ -470,7 +481,7 @@ class StageService:
     # ================================================================== status + requests
     def status(self) -> dict[str, Any]:
         """Everything an operator needs, as plain JSON-able values."""
-        loop_st = self.asm.loop.status() if self.asm else {}
+        loop_st = self._loop_status_cached() if self.asm else {}
         return {
             "state": self.state.value,
             "pid": os.getpid(),
