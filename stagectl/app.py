@@ -305,6 +305,7 @@ def build_stage(
             sync=stage.sync,
             realtime=realtime,
             term_names=getattr(stage.controller, "term_names", None) or controller_terms(),
+            device_time=stage.world is not None,  # virtual CANopen devices step one period per SYNC
         )
     except BaseException:
         stage.close()

@@ -236,6 +236,12 @@ class ControlLoop:
     term_names : tuple of str, optional
         Controller terms recorded as telemetry columns (default ``controller.term_names`` or
         ``u_pid, u_dob, u_ff, u_inertia``); a term missing from a step's ``Command.terms`` is recorded as 0.
+    device_time : bool
+        The devices' time advances exactly one period per SYNC (virtual devices served by the loop thread):
+        loop time is then ``executed cycles × T`` and every step gets ``dt = T``, so skipped slots slow the
+        simulation down instead of desynchronising reference and plant. False (default): loop time is
+        ``clock.now() − start`` and ``dt = T·(1 + skipped)``, right for real devices and for PlantIO with a
+        clock (its plant follows the clock).
     realtime : bool
         Apply ``cfg.realtime`` (FIFO, affinity, mlock, timer slack, gc.freeze) in the loop thread at start.
         False for simulated time.
@@ -255,6 +261,7 @@ class ControlLoop:
         realtime: bool = False,
         on_cycle: Callable[[], None] | None = None,
         term_names: tuple[str, ...] | None = None,
+        device_time: bool = False,
     ) -> None:
         self.clock = clock
         self.sensor = sensor
@@ -268,6 +275,7 @@ class ControlLoop:
             sync = sensor if isinstance(sensor, SyncProducer) else actuator if isinstance(actuator, SyncProducer) else None
         self.sync = sync
         self.realtime = realtime
+        self.device_time = device_time
         self.on_cycle = on_cycle
         self.devices: tuple[Device, ...] = tuple(dict.fromkeys([sensor, actuator]))  # unique, ordered
         terms = tuple(term_names or getattr(controller, "term_names", DEFAULT_TERMS))
@@ -543,6 +551,8 @@ class ControlLoop:
         max_cycles = self.cycle + cycles if cycles is not None else -1
         t_end = duration_s if duration_s is not None else math.inf
         k = self.cycle
+        k0 = k
+        device_time = self.device_time
         x_prev_ref = Reference(self._snap[2])
         while True:
             # ------------------------------------------------------ stop conditions
@@ -552,8 +562,10 @@ class ControlLoop:
                 return "stop"
             if self._shutdown:
                 return "shutdown"
-            now = clock.now()
-            t = now - t0
+            if device_time:
+                t = (k - k0) * period
+            else:
+                t = clock.now() - t0
             if t >= t_end - 1e-6 * period:
                 return "duration"
             c0 = perf()
@@ -637,7 +649,7 @@ class ControlLoop:
                 slot += skipped
                 late -= skipped * period
                 self.overruns += skipped
-            dt = period * (1 + skipped)
+            dt = period if device_time else period * (1 + skipped)
             if (late > warn_late or skipped) and self.realtime:
                 warn_count += 1
                 if t >= next_warn:
