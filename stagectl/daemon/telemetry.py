@@ -318,6 +318,7 @@ class TelemetryWriter:
                 "recording": recording,
                 "last_recording": self._last_recording,
                 "rows_written": self.rows_written,
+                "rows_drained": self.rows_drained,
                 "dropped": self.ring.dropped,
                 "bad_rows": self.ring.bad_rows,
                 "lost": self.lost,
@@ -394,7 +395,8 @@ class TelemetryWriter:
         else:
             # push Python's buffer to the kernel each interval: a crash loses at most flush_interval_s
             with self._lock:
-                for f in (self._cont, self._rec.csv if self._rec else None):
+                rec = self._rec
+                for f in (self._cont, rec.csv if rec and rec.error is None else None):
                     if f is None:
                         continue
                     try:
@@ -403,11 +405,12 @@ class TelemetryWriter:
                         self._set_error(_describe(exc, f.path))
                         if f is self._cont:
                             self._drop_continuous()
+                        elif rec is not None:
+                            rec.error = _describe(exc, f.path)
 
     def _write_continuous(self, text: str, n: int) -> None:
         s = self.settings
         if not s.continuous:
-            self.rows_written += n
             return
         with self._lock:
             f = self._cont
