@@ -198,7 +198,11 @@ class SimWorld:
                 from stagectl.sim.socketcand import SocketcandServer
 
                 tr = self.cfg.transport
-                self.server = SocketcandServer(self.channel, tr.host, tr.port, tr.can_name)
+                try:
+                    self.server = SocketcandServer(self.channel, tr.host, tr.port, tr.can_name)
+                except OSError as exc:
+                    raise ConfigError(f"sim.transport.port: cannot listen on {tr.host}:{tr.port} "
+                                      f"({exc.strerror or exc})") from exc
                 self.server.start()
             if self.cfg.interferometer is not None:
                 from stagectl.sim.interferometer import SimInterferometer

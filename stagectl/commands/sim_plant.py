@@ -23,12 +23,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    # first thing: a SIGTERM during the (seconds long) start-up must also end cleanly with exit 0
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
     import dataclasses
     import json
     import os
-    import signal
     import sys
-    import threading
     from pathlib import Path
 
     from stagectl.errors import ConfigError
@@ -45,14 +55,9 @@ def run(args: argparse.Namespace) -> int:
         port = tr.port if args.port is None else args.port
         tr = dataclasses.replace(tr, kind="socketcand", port=port)
         cfg = dataclasses.replace(cfg, transport=tr)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
     world = SimWorld.from_config(cfg, base_dir=path.resolve().parent)
+    if stop.is_set():  # terminated during start-up
+        return 0
     try:
         world.start()
         info = {"ready": True, "pid": os.getpid(), **world.ready_info()}

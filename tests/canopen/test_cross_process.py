@@ -125,3 +125,19 @@ def test_socketcand_framing_rules():
         assert m is not None
     assert parse(sync.decode()).dlc == 0 and bytes(parse(tpdo.decode()).data) == b"\x01\x02\xab"
     assert parse(err.decode()).is_error_frame and parse(err.decode()).arbitration_id == 0x40
+
+
+def test_socketcand_port_in_use_is_a_clear_error(make_world):
+    import socket
+
+    from stagectl.errors import ConfigError
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    try:
+        world = make_world(transport={"kind": "socketcand", "port": busy.getsockname()[1]})
+        with pytest.raises(ConfigError, match="sim.transport.port: cannot listen"):
+            world.start()
+    finally:
+        busy.close()
