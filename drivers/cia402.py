@@ -634,7 +634,6 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
                 else:
                     self._counts = unwrap32(self._raw, self._counts, got[1])
                     self._raw = got[1]
-                self._hb_age = 0 if self._hb_seen else self._hb_age
             cw = choose(state)
             if cw is None:
                 return state  # type: ignore[return-value]
@@ -668,8 +667,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
 
         self._step_cycles(choose, "OPERATION ENABLED")
         self._cw = int(Controlword.ENABLE_OPERATION)
-        self._missed = 0
-        self._pending = None
+        self._missed = 0  # an EMCY that came while enabling stays pending: the first read() reports it
 
     def _do_disable(self) -> None:
         if self._bus is None:
