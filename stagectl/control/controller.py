@@ -279,8 +279,16 @@ class StageController:
             new_dob.reset(x_now, d0)
             if isinstance(new_dob, QFilterDob):
                 new_dob.state.v_hat_m_s = st.v_hat_m_s
+        elif new_dob is not None and new_dob is not old_dob and isinstance(new_dob, KalmanDob):
+            # prepared off-loop with the new gain; take over the running state and command history
+            if isinstance(old_dob, KalmanDob):
+                new_dob.state = old_dob.state
+                n = new_dob.cfg.command_delay_samples
+                hist = list(old_dob._delay)
+                new_dob._delay.clear()
+                new_dob._delay.extend((hist + [old_dob.state.u_obs_n] * n)[:n] if n else [])
         elif new_dob is not None:
-            new_dob.retune(parts.cfg.dob, parts.mass_kg)
+            new_dob.retune(parts.cfg.dob, parts.mass_kg)  # Q-filter: cheap, bumpless
         # feed-forward
         if parts.ff_rebuilt:
             self._ff_bump = st.u_ff_n  # settled against the new feed-forward's first output in step()

@@ -127,7 +127,7 @@ def _run_and_retune(new: ControllerConfig, old: ControllerConfig, sm, steps_befo
     return jump, typical, dut
 
 
-@pytest.mark.parametrize("change", ["gains", "dob_off", "dob_on", "ff_model"])
+@pytest.mark.parametrize("change", ["gains", "dob_off", "dob_on", "ff_model", "kalman_gain", "dob_kind"])
 def test_retune_is_bumpless_in_closed_loop(change):
     sm = seed_model()
     old = controller_cfg(dob={"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
@@ -140,11 +140,22 @@ def test_retune_is_bumpless_in_closed_loop(change):
         new = controller_cfg(dob={"kind": "none"}, feedforward={"kind": "model", "lookahead_s": 1.5e-3})
     elif change == "dob_on":
         old, new = (controller_cfg(dob={"kind": "none"}, feedforward={"kind": "model", "lookahead_s": 1.5e-3}), old)
+    elif change == "kalman_gain":
+        ff = {"kind": "model", "lookahead_s": 1.5e-3}
+        old = controller_cfg(dob={"kind": "kalman", "bandwidth_hz": 30.0}, feedforward=ff)
+        new = controller_cfg(dob={"kind": "kalman", "bandwidth_hz": 50.0}, feedforward=ff)
+    elif change == "dob_kind":
+        new = controller_cfg(dob={"kind": "kalman", "bandwidth_hz": 40.0}, feedforward={"kind": "model",
+                                                                                     "lookahead_s": 1.5e-3})
     else:
         new = controller_cfg(dob={"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
                              feedforward={"kind": "coulomb", "coulomb_n": 0.8, "lookahead_s": 1.5e-3})
     jump, typical, dut = _run_and_retune(new, old, sm)
     assert dut.cfg == new
+    if change == "kalman_gain":
+        from stagectl.control.design import observer_bandwidth_hz
+
+        assert observer_bandwidth_hz(np.array(dut.dob.K), 2.0, 1e-3) == pytest.approx(50.0, rel=1e-3)
     assert jump <= 3 * typical + 1e-4, (jump, typical)
 
 
