@@ -109,12 +109,22 @@ class TrajectoryReference:
         return float(self.gen.remaining_s())
 
     def stop(self, t_s: float) -> float:
-        from stagectl.control.trajectory import Move
+        """Decelerate (jerk-limited, the generator's default move limits) and hold where the reference comes
+        to rest; returns that position [m]."""
+        from stagectl.control import trajectory as tr
 
         self._repeat = False
         self._scenario = None
-        self.gen.replace(Move(by_m=0.0))  # bring the reference to rest (jerk-limited), then hold
-        end = self._end_position()
+        self.sample(t_s)
+        x0, v0, a0 = self.gen.sample()
+        if v0 == 0.0 and a0 == 0.0:
+            end = x0
+        else:
+            lim = tr.Move(by_m=0.0)
+            # where a jerk-limited stop from (x0, v0, a0) ends (TrajectoryGenerator has no public stop yet)
+            phases = tr._stop_phases(v0, a0, lim.max_acceleration_m_s2, lim.max_jerk_m_s3)
+            end = float(tr._Phases(x0, v0, a0, phases).end.x_m)
+        self.gen.replace(tr.Move(to_m=end))
         self._target = end
         return end
 

@@ -138,3 +138,25 @@ def test_run_command_smoke(tmp_path, capsys):
     assert rows[0].startswith("t,x,u,x_ref,v_ref,a_ref,e")
     assert len(rows) > 10
     assert json.loads((tmp_path / "summary.json").read_text())["scenario"] == "demo"
+
+
+def test_stop_decelerates_and_holds_without_going_back():
+    from stagectl.app import TrajectoryReference
+
+    ref = TrajectoryReference()
+    ref.hold(0.0, 0.0)
+    assert ref.move(0.0, 100e-6, 1e-3) > 0.1
+    t = 0.0
+    for _ in range(30):
+        t += 1e-3
+        before = ref.sample(t)
+    assert before.v_m_s > 0
+    end = ref.stop(t)
+    assert end > before.x_m and ref.target_m == end
+    path = []
+    for _ in range(300):
+        t += 1e-3
+        path.append(ref.sample(t))
+    assert min(r.v_m_s for r in path) >= 0.0  # decelerates, never reverses
+    assert path[-1] == (end, 0.0, 0.0)
+    assert max(r.x_m for r in path) <= end + 1e-15

@@ -187,3 +187,15 @@ def test_monotonic_clock_uses_absolute_sleep_and_never_sleeps_for_past_deadlines
     assert clk.now() >= t
     rep = apply_realtime(fifo_priority=None, cpus=None, mlock=False, timer_slack_ns=None, gc_freeze=False)
     assert rep.notes == [] and rep.fifo_priority is None  # nothing requested, nothing changed, never raises
+
+
+def test_device_time_mode_skips_slots_without_desynchronising(make, rows):
+    """Virtual devices stepping one period per SYNC: loop time = executed cycles × T, dt = T."""
+    loop, io, plant, ctl, _ = make()
+    clock = StallingClock({10: 3.5e-3})
+    loop.clock, loop.on_cycle, loop.device_time = clock, clock.on_cycle, True
+    loop.add_sink(rows)
+    res = loop.run(cycles=50)
+    t = np.array([r[0] for r in rows.rows])
+    assert res.overruns == 2  # still counted (wall-clock lateness)
+    np.testing.assert_allclose(t, np.arange(50) * 1e-3, atol=1e-12)  # but the simulation just slowed down
