@@ -28,6 +28,7 @@ When the queue is empty the generator holds the last position at rest.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -153,14 +154,15 @@ class Scenario:
 # ------------------------------------------------------------------------------------------ bound segments
 
 
-class _Bound:
+class _Bound(ABC):
     """A segment bound to its start state. ``sample(tau)`` with 0 <= tau <= duration."""
 
     duration: float
     end: Reference
 
-    def sample(self, tau: float) -> Reference:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def sample(self, tau: float) -> Reference:
+        """Reference at ``tau`` [s] after the segment start."""
 
 
 class _Phases(_Bound):
