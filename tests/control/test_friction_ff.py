@@ -151,3 +151,27 @@ def _stribeck_params() -> dict:
     names = {f.name for f in dataclasses.fields(cls.Params)}
     p = {"fc_n": 0.8, "fs_n": 0.9, "vs_m_s": 1e-3}
     return {k: v for k, v in p.items() if k in names}
+
+
+@pytest.mark.parametrize("name", ["kamenar2016_gms.yaml", "kamenar2016_hsieh.yaml"])
+def test_any_library_model_drives_the_feedforward(name):
+    from control_harness import REPO
+
+    from stagectl.friction import load_model_file
+
+    path = REPO / "config" / "models" / name
+    if not path.exists():
+        pytest.skip(f"{name} not shipped")
+    model = load_model_file(path).friction
+    dut = FrictionFeedforward(model)
+    dut.reset(0.0)
+    out = []
+    for k in range(1, 1001):  # one 10 µm raised-cosine period at 1 kHz
+        t = k * DT
+        x = 5e-6 * (1 - math.cos(2 * math.pi * t))
+        v = 5e-6 * 2 * math.pi * math.sin(2 * math.pi * t)
+        out.append(dut.step(DT, Reference(x, v, 0.0)))
+    f = np.array(out)
+    assert np.all(np.isfinite(f))
+    assert f.max() > 0.3 and f.min() < -0.3  # pre-sliding force of both signs (Fs ≈ 0.9 N)
+    assert dut.state.reversals == 1
