@@ -367,6 +367,8 @@ class StageService:
                          (f" ERROR {tel['error']}" if tel.get("error") else ""))
         if st.get("fault"):
             parts.append(f"fault {_fault_text(st.get('fault'))}")
+        if self._watchdog_reason:
+            parts.append(f"WATCHDOG WITHHELD: {self._watchdog_reason}")
         return ", ".join(parts)
 
     # ================================================================== reload (SIGHUP)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import socket
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,6 +56,8 @@ class PD:
     def __init__(self, cfg: PDConfig) -> None:
         self.cfg = cfg
         self.x_prev = 0.0
+        self.hang = threading.Event()  # set: the next step blocks (a hung loop) until `release` is set
+        self.release = threading.Event()
 
     def reset(self, x_m: float) -> None:
         self.x_prev = x_m
@@ -63,6 +66,9 @@ class PD:
         self.cfg = cfg
 
     def step(self, dt: float, x: float, ref: Reference) -> Command:
+        if self.hang.is_set():
+            self.release.wait(60)
+            self.hang.clear()
         v = (x - self.x_prev) / dt
         self.x_prev = x
         u = self.cfg.kp_n_m * (ref.x_m - x) + self.cfg.kd_n_s_m * (ref.v_m_s - v)

@@ -130,3 +130,33 @@ def test_unwritable_telemetry_directory_reported_while_loop_runs(tmp_path, notif
         dut.request_stop()
         th.join(30)
     assert result["code"] == 0
+
+
+def test_watchdog_withheld_while_the_loop_hangs(tmp_path, notify_socket, rig_loader, rig_builder):
+    cfg = tmp_path / "stagectl.yaml"
+    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  status_interval_s: 0.05\n"
+                   f"  telemetry: {{directory: {tmp_path / 'tel'}}}\n")
+    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=rig_builder,
+                       notifier=SdNotifier(str(notify_socket.path)))
+    result: dict = {}
+    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
+    th.start()
+    try:
+        notify_socket.wait_for("READY", "1", alive=th.is_alive)
+        notify_socket.wait_for("WATCHDOG", "1")
+        ctl = dut.asm.loop.controller
+        ctl.hang.set()  # the loop thread blocks inside the controller: cycle counter stops
+        while "WATCHDOG WITHHELD: cycle counter not advancing" not in notify_socket.wait_for("STATUS")["STATUS"]:
+            pass
+        notify_socket.messages.clear()
+        for _ in range(3):  # three more supervisor reports, and no WATCHDOG=1 among the datagrams
+            notify_socket.wait_for("STATUS")
+        assert not any("WATCHDOG" in m for m in notify_socket.messages)
+        ctl.release.set()
+        notify_socket.wait_for("WATCHDOG", "1")  # pings resume once the loop cycles again
+        assert dut.status()["watchdog"]["withheld"] >= 3
+    finally:
+        dut.asm.loop.controller.release.set()
+        dut.request_stop()
+        th.join(30)
+    assert result["code"] == 0
