@@ -39,7 +39,10 @@ Daemon API (stable; thread-safe unless noted)
     * ``stop()`` decelerate and hold → ``{"x_m"}``.
     * ``reset()`` clear a latched fault, re-enable the drive, restart the controller bumplessly at the
       measured position → ``{"state"}``. A no-op when no fault is latched.
-    * ``retune(controller_config=CFG)`` → ``{"retuned": True}`` (applied between two cycles).
+    * ``retune(controller_config=CFG)`` → ``{"retuned": True}``. With a controller offering
+      ``request_retune`` (StageController) the new tuning is designed in the *caller's* thread (a bad tuning
+      raises there) and swapped in by the controller at its next step; otherwise ``retune`` runs in the loop
+      thread between two cycles. Either way bumpless (the controller's job).
     * ``shutdown()`` → ``{"cycles": n}``, the loop returns after this cycle.
 
     Bad arguments raise ``ValueError`` naming the field at once (unknown kind or key, non-finite
@@ -339,8 +342,15 @@ class ControlLoop:
                 if not 0.0 < v <= vmax:
                     raise ValueError(f"max_velocity_m_s: must be > 0 and <= {vmax:g} m/s (got {v:g} m/s)")
                 kw["max_velocity_m_s"] = v
-        if kind == "retune" and kw.get("controller_config") is None:
-            raise ValueError("controller_config: required for retune")
+        if kind == "retune":
+            if kw.get("controller_config") is None:
+                raise ValueError("controller_config: required for retune")
+            prepare = getattr(self.controller, "request_retune", None)
+            if prepare is not None:
+                # design (observer gains, model) here in the caller's thread; the controller swaps the prepared
+                # parts in at its next step. Bad tunings raise here (ConfigError is a ValueError).
+                prepare(kw["controller_config"])
+                kw = {"controller_config": kw["controller_config"], "prepared": True}
         fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
         self._requests.put((kind, kw, fut))
         return fut
@@ -366,7 +376,8 @@ class ControlLoop:
         if kind == "reset":
             return self._reset(t, x)
         if kind == "retune":
-            self.controller.retune(kw["controller_config"])
+            if not kw.get("prepared"):
+                self.controller.retune(kw["controller_config"])
             return {"retuned": True}
         if self.state is not LoopState.ACTIVE:
             fault = self.safety.fault

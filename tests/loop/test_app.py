@@ -160,3 +160,24 @@ def test_stop_decelerates_and_holds_without_going_back():
     assert min(r.v_m_s for r in path) >= 0.0  # decelerates, never reverses
     assert path[-1] == (end, 0.0, 0.0)
     assert max(r.x_m for r in path) <= end + 1e-15
+
+
+def test_retune_with_the_stage_controller(plant_io_cfg):
+    """A good tuning is designed in the requesting thread and swapped in at the next step; a bad one raises
+    at the request (the loop keeps its old tuning)."""
+    import dataclasses
+
+    from stagectl.errors import ConfigError
+
+    with build_stage(plant_io_cfg, clock=SimClock()) as stage:
+        loop, ctl = stage.loop, stage.controller
+        old = ctl.cfg
+        new = dataclasses.replace(old, pid=dataclasses.replace(old.pid, kp_n_m=old.pid.kp_n_m * 0.5))
+        bad = dataclasses.replace(old, feedforward=dataclasses.replace(old.feedforward, model_file=Path("nope.yaml")))
+        with pytest.raises(ConfigError, match="nope.yaml"):
+            loop.request("retune", controller_config=bad)
+        fut = loop.request("retune", controller_config=new)
+        loop.run(cycles=5)
+        assert fut.result(timeout=0) == {"retuned": True}
+        assert ctl.cfg.pid.kp_n_m == pytest.approx(old.pid.kp_n_m * 0.5)
+        assert loop.status()["fault"] is None
