@@ -13,6 +13,7 @@ and runs until SIGTERM or SIGINT, then stops cleanly (exit 0).
 from __future__ import annotations
 
 import argparse
+import threading
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -24,7 +25,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 def run(args: argparse.Namespace) -> int:
     import signal
-    import threading
 
     stop = threading.Event()
 
@@ -32,9 +32,15 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     # first thing: a SIGTERM during the (seconds long) start-up must also end cleanly with exit 0
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return _serve(args, stop)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
+
+def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     import dataclasses
     import json
     import os

@@ -141,3 +141,22 @@ def test_socketcand_port_in_use_is_a_clear_error(make_world):
             world.start()
     finally:
         busy.close()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("io: {}\n", "no sim: section"),
+    ("sim:\n  plant: {mass_kg: -1, friction: {model: stribeck, fc_n: 1, fs_n: 1}}\n  bogus: 1\n",
+     "sim.plant.mass_kg"),
+])
+def test_sim_plant_config_errors_are_clear(tmp_path, capsys, text, message):
+    import signal as _signal
+
+    from stagectl.cli import main
+
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(text)
+    before = _signal.getsignal(_signal.SIGTERM)
+    assert main(["sim-plant", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("stagectl: error:") and message in err and "Traceback" not in err
+    assert _signal.getsignal(_signal.SIGTERM) is before  # handlers restored
