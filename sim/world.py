@@ -17,7 +17,19 @@ tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socket
 process connects with python-can's stock socketcand client). ``ready_info()`` says where to connect.
 
 The plant is stepped only by the drive, at each SYNC, by exactly one nominal period; SYNC is dispatched
-to the drive before the encoder so the encoder samples the stepped plant.
+to the drive before the encoder so the encoder samples the stepped plant. The optional serial
+interferometer (``stagectl.sim.interferometer.SimInterferometer``) streams from its own thread in thread
+mode and is pumped at the end of every ``pump()`` in lock-step (configure it with
+``lockstep: plant_time`` there, since drivers may pump more than once per cycle).
+
+Example::
+
+    world = SimWorld.from_config(SimWorldConfig.from_mapping(yaml_mapping["sim"], base_dir=cfg_dir))
+    world.start()                                   # devices served in real time
+    drive = Cia402Drive(Cia402Config(node_id=1, can=world.ready_info()["can"]), period_s=1e-3)
+    drive.set_pump(world.pump)                      # optional: lock-step from now on
+    with drive: drive.configure(); drive.enable(); ...
+    world.stop()
 """
 
 from __future__ import annotations

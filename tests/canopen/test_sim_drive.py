@@ -32,11 +32,12 @@ def test_eds_loads_in_canopens_parser(name, profile):
 def test_drive_heartbeat_consumer_stops_drive_in_simulated_time(lockstep):
     """The controller goes silent (no SYNC, heartbeat, RPDO): the drive faults itself after 0x1016."""
     world, dut = lockstep(drive_consumer_timeout_s=0.1, controller_heartbeat_s=0.02)
-    for _ in range(50):
+    for _ in range(300):  # 0.3 s of simulated time > 0.1 s: our heartbeat keeps the drive alive
         dut.sync()
-        dut.read()
+        assert dut.read().fault is None
         dut.write(3.0)
     sim = world.drive
+    assert sim.heartbeat_lost_events == 0 and sim._consumer_armed
     assert sim.state is DriveState.OPERATION_ENABLED and sim.force_n == pytest.approx(3.0)
     world.pump()
     last = sim._consumer_last_t
