@@ -14,8 +14,10 @@ Decision rule (DISCOVERY_NOTES §4): each round every catalogue effect not in th
 refitted on estimation data and scored on validation data. An effect is *acceptable* if
 
 1. the validation gap shrinks by at least ``MIN_REL_GAIN`` (relative), a margin above what noise-only
-   recordings with a complete model reach (the null tests in ``tests/ident`` measure it), and
-2. the mean per-sample reduction of the squared residual is positive at the 97.5 % level of a circular
+   recordings with a complete model reach (the null tests in ``tests/ident`` measure it),
+2. the force it explains, ``sqrt(gap_before² − gap_after²)``, is at least ``MIN_EXPLAINED_FRACTION`` of
+   the RMS commanded force (smaller effects are negligible for compensation), and
+3. the mean per-sample reduction of the squared residual is positive at the 97.5 % level of a circular
    block bootstrap (block length from the autocorrelation of the per-sample gain, >= 0.1 s).
 
 Among acceptable effects the one with the largest gain is named, except that a richer effect that contains
@@ -50,6 +52,10 @@ GAP_METRIC = (
 )
 #: minimum relative reduction of the validation gap for an effect to be accepted
 MIN_REL_GAIN = 0.20
+#: minimum force an effect must explain on validation data, sqrt(gap_before² − gap_after²), as a fraction of
+#: the RMS commanded force: effects below 0.5 % of the force level are physically negligible (and at that
+#: level sampling/discretisation residue, not physics, is what a flexible effect would fit)
+MIN_EXPLAINED_FRACTION = 0.005
 #: bootstrap confidence for the "gap reduced" test
 BOOT_QUANTILE = 0.025
 BOOT_SAMPLES = 400
@@ -156,8 +162,9 @@ def fit_candidate(ds: Dataset, cur: FitResult, name: str) -> FitResult:
         h.nl.update(vs_m_s=vs, delta=dl)
     if name == "frictional_lag":
         dt = sig.dt_s
-        grid = list(np.geomspace(0.1 * dt, 0.5, 10))
-        lag, _ = rg._best_scalar(lambda s: _fit_with(ds, h, lag_s=s).rss, grid, 0.05 * dt, 1.0)
+        # a lag shorter than one sample cannot be told from the sampling itself: search from dt up
+        grid = list(np.geomspace(dt, 0.5, 10))
+        lag, _ = rg._best_scalar(lambda s: _fit_with(ds, h, lag_s=s).rss, grid, dt, 1.0)
         # re-tune vs with the lag in place
         vs0 = h.nl["vs_m_s"]
         vs, _ = rg._best_scalar(lambda v: _fit_with(ds, h, lag_s=lag, vs_m_s=v).rss,
@@ -235,18 +242,24 @@ class Comparison:
     rel_gain: float
     boot_lower: float
     block: int
+    explained_n: float
+    min_explained_n: float
 
     @property
     def significant(self) -> bool:
-        return self.rel_gain >= MIN_REL_GAIN and self.boot_lower > 0.0
+        return (self.rel_gain >= MIN_REL_GAIN and self.boot_lower > 0.0
+                and self.explained_n >= self.min_explained_n)
 
 
-def compare(r_before: FloatArray, r_after: FloatArray, dt_s: float) -> Comparison:
+def compare(r_before: FloatArray, r_after: FloatArray, dt_s: float, force_rms_n: float = 0.0) -> Comparison:
+    """Validation comparison of two residuals (same samples). ``force_rms_n``: RMS commanded force [N]."""
     d = r_before**2 - r_after**2
     blk = block_length(d, dt_s)
     gb = float(np.sqrt(np.mean(r_before**2)))
     ga = float(np.sqrt(np.mean(r_after**2)))
-    return Comparison(gb, ga, (gb - ga) / gb if gb > 0 else 0.0, bootstrap_lower(d, blk), blk)
+    expl = math.sqrt(max(gb * gb - ga * ga, 0.0))
+    return Comparison(gb, ga, (gb - ga) / gb if gb > 0 else 0.0, bootstrap_lower(d, blk), blk, expl,
+                      MIN_EXPLAINED_FRACTION * force_rms_n)
 
 
 # ================================================================================================ localisation
@@ -469,6 +482,8 @@ def discover(
     start_fit = cur
     g0, r0 = gap(ds.val, ds.val_rows, cur.hyp)
     dis_before = localise(ds.val, ds.val_rows, rg.residual(ds.val, cur.hyp))
+    uf = ds.val.filt(ds.val.ubar())[ds.val_rows]
+    force_rms = float(np.sqrt(np.mean(uf * uf)))
     effects: list[dict[str, Any]] = []
     rejected: list[dict[str, Any]] = []
     rounds: list[Round] = []
@@ -486,13 +501,14 @@ def discover(
                 info.append({"name": name, "error": str(exc)})
                 continue
             _, r_new = gap(ds.val, ds.val_rows, fr.hyp)
-            cmp = compare(r_cur, r_new, ds.est.dt_s)
+            cmp = compare(r_cur, r_new, ds.est.dt_s, force_rms)
             est_gain = 1.0 - math.sqrt(fr.rss / max(cur.rss, 1e-300))
             cands[name] = (fr, cmp, r_new)
             info.append({
                 "name": name, "parameters": describe_params(fr.hyp, name), "estimation_rel_gain": est_gain,
                 "gap_before": cmp.gap_before, "gap_after": cmp.gap_after, "rel_gain": cmp.rel_gain,
-                "bootstrap_lower_n2": cmp.boot_lower, "block_samples": cmp.block, "acceptable": cmp.significant,
+                "bootstrap_lower_n2": cmp.boot_lower, "block_samples": cmp.block, "explained_n": cmp.explained_n,
+                "min_explained_n": cmp.min_explained_n, "acceptable": cmp.significant,
             })
         ok = {k: v for k, v in cands.items() if v[1].significant}
         chosen: str | None = None
@@ -501,7 +517,7 @@ def discover(
             chosen = order[0]
             for simpler in NESTED.get(chosen, ()):
                 if simpler in ok and not cur.hyp.has(simpler):
-                    c2 = compare(ok[simpler][2], ok[chosen][2], ds.est.dt_s)
+                    c2 = compare(ok[simpler][2], ok[chosen][2], ds.est.dt_s, force_rms)
                     if not c2.significant:
                         note = (f"{chosen} did not beat the nested, simpler {simpler} significantly on validation data "
                                 f"({100 * c2.rel_gain:.1f} % further gain)")
@@ -519,7 +535,9 @@ def discover(
                     rejected.append({**item, "reason": "fits the estimation data "
                                      f"({100 * item['estimation_rel_gain']:.0f} % smaller residual) but the validation "
                                      f"gap shrinks only {100 * item['rel_gain']:.1f} % "
-                                     f"(needs >= {100 * MIN_REL_GAIN:.0f} % and a positive bootstrap bound)"})
+                                     f"(needs >= {100 * MIN_REL_GAIN:.0f} %, a positive bootstrap bound and at "
+                                     f"least {item['min_explained_n']:.3g} N explained; got "
+                                     f"{item['explained_n']:.3g} N)"})
             break
         fr, cmp, _ = cands[chosen]
         effects.append({

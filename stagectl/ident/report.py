@@ -1,0 +1,207 @@
+"""Discovery outputs: ``report.json``, ``report.md`` with PNG plots, and the augmented model file."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stagectl.friction import save_model_file
+from stagectl.ident import discover as dsc
+from stagectl.ident import regress as rg
+from stagectl.ident.modelio import hyp_to_model, hyp_to_spec
+
+
+def _clean(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str, Any]:
+    """The ``report.json`` mapping."""
+    start_spec = hyp_to_spec(res.start.hyp)
+    final_spec = hyp_to_spec(res.final.hyp)
+    ds = res.dataset
+    assert ds is not None
+    return _clean({
+        "gap_metric": dsc.GAP_METRIC,
+        "gap_before": res.gap_before,
+        "gap_after": res.gap_after,
+        "gap_unit": "N",
+        "effects": res.effects,
+        "rejected": res.rejected,
+        "disagreement": res.disagreement_before,
+        "disagreement_after": res.disagreement_after,
+        "validation": res.split,
+        "acceptance_rule": {
+            "min_relative_gap_reduction": dsc.MIN_REL_GAIN,
+            "min_explained_force_fraction_of_rms_u": dsc.MIN_EXPLAINED_FRACTION,
+            "bootstrap": f"circular block bootstrap of the mean per-sample squared-residual reduction, "
+                         f"{dsc.BOOT_SAMPLES} resamples, lower {100 * dsc.BOOT_QUANTILE:.1f} % quantile > 0",
+            "nested": {k: list(v) for k, v in dsc.NESTED.items()},
+        },
+        "rounds": [{"chosen": r.chosen, "candidates": r.candidates} for r in res.rounds],
+        "start_model": start_spec,
+        "final_model": final_spec,
+        "samples": {"estimation": int(ds.est_rows.sum()), "validation": int(ds.val_rows.sum())},
+        "filter_cutoff_hz": ds.est.cutoff_hz,
+        "stick_threshold_m_s": ds.est.v_stick,
+        "sources": sources,
+        "elapsed_s": res.elapsed_s,
+    })
+
+
+def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[str, str],
+                  plots: bool = True) -> dict[str, Any]:
+    """Write report.json, report.md, plots and ``model.yaml`` into ``out_dir``; return the report."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = build_report(res, sources)
+    meta = {
+        "source": "stagectl discover",
+        "data": sources,
+        "effects_found": [e["name"] for e in res.effects],
+        "gap_metric": "force_residual_rms_n (validation)",
+        "gap_before_n": rep["gap_before"],
+        "gap_after_n": rep["gap_after"],
+    }
+    model = hyp_to_model(res.final.hyp, meta)
+    save_model_file(model, out / "model.yaml",
+                    header="augmented model written by `stagectl discover` (see report.md)")
+    rep["model_file"] = str(out / "model.yaml")
+    pngs = _plots(res, out) if plots else []
+    rep["plots"] = pngs
+    (out / "report.json").write_text(json.dumps(rep, indent=2), encoding="utf-8")
+    (out / "report.md").write_text(_markdown(rep, pngs), encoding="utf-8")
+    return rep
+
+
+def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ds = res.dataset
+    assert ds is not None
+    sig, rows = ds.val, ds.val_rows
+    r0 = rg.residual(sig, res.start.hyp)
+    r1 = rg.residual(sig, res.final.hyp)
+    files: list[str] = []
+    t = sig.t
+
+    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    r0p = np.where(rows, r0, np.nan)
+    r1p = np.where(rows, r1, np.nan)
+    ax[0].plot(t, r0p, lw=0.6, label=f"start model (RMS {res.gap_before:.4g} N)")
+    ax[0].plot(t, r1p, lw=0.6, label=f"final model (RMS {res.gap_after:.4g} N)")
+    ax[0].set_ylabel("force residual [N]")
+    ax[0].legend(loc="upper right", fontsize=8)
+    ax[0].set_title("validation residual over time")
+    ax[1].plot(t, sig.xf, lw=0.8, color="k")
+    ax[1].set_ylabel("position [m]")
+    ax[1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(out / "residual_time.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_time.png")
+
+    regs = dsc.regimes(sig, rows)
+    names = [k for k, m in regs.items() if m.any()]
+    b = [float(np.sqrt(np.mean(r0[regs[k]] ** 2))) for k in names]
+    a = [float(np.sqrt(np.mean(r1[regs[k]] ** 2))) for k in names]
+    fig, ax = plt.subplots(figsize=(10, 4))
+    y = np.arange(len(names))
+    ax.barh(y - 0.2, b, 0.4, label="start model")
+    ax.barh(y + 0.2, a, 0.4, label="final model")
+    ax.set_yticks(y, [n.split(" (")[0] for n in names], fontsize=8)
+    ax.set_xlabel("RMS force residual [N]")
+    ax.set_title("validation residual by regime")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "residual_regimes.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_regimes.png")
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for rr, lab in ((r0, "start"), (r1, "final")):
+        ax[0].plot(sig.xf[rows], rr[rows], ".", ms=1, label=lab)
+        ax[1].plot(sig.v[rows], rr[rows], ".", ms=1, label=lab)
+    ax[0].set_xlabel("position [m]")
+    ax[1].set_xlabel("velocity [m/s]")
+    for a_ in ax:
+        a_.set_ylabel("force residual [N]")
+        a_.legend(fontsize=8, markerscale=8)
+    ax[0].set_title("residual by position")
+    ax[1].set_title("residual by velocity")
+    fig.tight_layout()
+    fig.savefig(out / "residual_position_velocity.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_position_velocity.png")
+    return files
+
+
+def _markdown(rep: dict[str, Any], pngs: list[str]) -> str:
+    lines = ["# stagectl discover report", ""]
+    lines.append(f"- estimation data: `{rep['sources'].get('estimation')}`")
+    lines.append(f"- validation: {rep['validation']}")
+    lines.append(f"- gap metric: {rep['gap_metric']}")
+    lines.append(f"- **validation gap: {rep['gap_before']:.5g} N (start) → {rep['gap_after']:.5g} N (final)**")
+    lines.append(f"- run time: {rep['elapsed_s']:.1f} s")
+    lines.append("")
+    lines.append("## Effects found (in order)")
+    if not rep["effects"]:
+        lines.append("No effect was accepted: no catalogue effect reduced the validation gap by the required "
+                     f"margin ({100 * rep['acceptance_rule']['min_relative_gap_reduction']:.0f} % and a "
+                     "positive block-bootstrap bound).")
+    for i, e in enumerate(rep["effects"], 1):
+        params = ", ".join(f"{k} = {v:.6g}" if isinstance(v, float) else f"{k} = {v}"
+                           for k, v in e["parameters"].items())
+        lines.append(f"{i}. **{e['name']}** ({params}): gap {e['gap_before']:.5g} → {e['gap_after']:.5g} N.  ")
+        lines.append(f"   Evidence: {e['evidence']}")
+    lines.append("")
+    lines.append("## Rejected")
+    if not rep["rejected"]:
+        lines.append("None fitted the estimation data markedly without validating.")
+    for e in rep["rejected"]:
+        lines.append(f"- {e['name']}: {e['reason']}")
+    lines.append("")
+    lines.append("## Where the start model disagrees (validation data)")
+    lines.append("| kind | where | share of samples | RMS [N] | mean [N] | share of squared residual |")
+    lines.append("|---|---|---|---|---|---|")
+    for d in rep["disagreement"]:
+        lines.append(f"| {d['kind']} | {d['regime']} | {d['share_of_samples']:.3f} | {d['rms_n']:.4g} | "
+                     f"{d['mean_n']:+.4g} | {d['share_of_squared_residual']:.3f} |")
+    lines.append("")
+    lines.append("## Candidates per round (validation gap)")
+    for i, r in enumerate(rep["rounds"], 1):
+        lines.append(f"Round {i}: chosen **{r['chosen'] or 'none'}**")
+        lines.append("")
+        lines.append("| effect | gap before [N] | gap after [N] | relative gain | bootstrap lower [N²] | acceptable |")
+        lines.append("|---|---|---|---|---|---|")
+        for c in r["candidates"]:
+            if "error" in c:
+                lines.append(f"| {c['name']} | – | – | – | – | error: {c['error']} |")
+                continue
+            lines.append(f"| {c['name']} | {c['gap_before']:.5g} | {c['gap_after']:.5g} | {100 * c['rel_gain']:.1f} % | "
+                         f"{c['bootstrap_lower_n2']:.3g} | {'yes' if c['acceptable'] else 'no'} |")
+        lines.append("")
+    lines.append("## Plots")
+    for p in pngs:
+        lines.append(f"![{p}]({p})")
+    lines.append("")
+    lines.append(f"Augmented model: `{rep.get('model_file')}` (loadable by `stagectl.friction.load_model_file`).")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,81 @@
+"""Recording I/O: the CSV convention and its errors (row and column named)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stagectl.errors import DataError
+from stagectl.ident.recording import Recording, load_recording, parse_columns
+
+
+def _write(tmp_path: Path, text: str, name: str = "rec.csv") -> Path:
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+GOOD = "t,x,u\n0.000,0.0,1.0\n0.001,1e-6,1.5\n0.002,3e-6,2.0\n0.003,6e-6,2.5\n"
+
+
+def test_loads_canonical_columns(tmp_path: Path) -> None:
+    dut = load_recording(_write(tmp_path, GOOD))
+    assert len(dut) == 4
+    np.testing.assert_allclose(dut.x, [0.0, 1e-6, 3e-6, 6e-6])
+    np.testing.assert_allclose(dut.u, [1.0, 1.5, 2.0, 2.5])
+    assert dut.dt_s == pytest.approx(1e-3)
+    assert dut.x_ref is None
+
+
+def test_columns_mapping_and_extra_columns(tmp_path: Path) -> None:
+    text = "t_s,position_m,force_N,reference_m,u_V\n0,0,1,0,0.1\n0.001,1e-6,2,1e-6,0.2\n0.002,2e-6,3,2e-6,0.3\n"
+    dut = load_recording(_write(tmp_path, text), "t=t_s,x=position_m,u=force_N,x_ref=reference_m")
+    np.testing.assert_allclose(dut.u, [1, 2, 3])
+    np.testing.assert_allclose(dut.x_ref, [0, 1e-6, 2e-6])
+    np.testing.assert_allclose(dut.extra["u_V"], [0.1, 0.2, 0.3])
+
+
+def test_round_trip_save_csv(tmp_path: Path) -> None:
+    rec = Recording(t=np.arange(5) * 1e-3, x=np.linspace(0, 1e-5, 5), u=np.ones(5), x_ref=np.zeros(5))
+    rec.save_csv(tmp_path / "r.csv")
+    back = load_recording(tmp_path / "r.csv")
+    np.testing.assert_array_equal(back.x, rec.x)
+    np.testing.assert_array_equal(back.x_ref, rec.x_ref)
+
+
+@pytest.mark.parametrize(
+    ("text", "columns", "fragments"),
+    [
+        ("t,x\n0,0\n0.001,0\n0.002,0\n", None, ["missing required column 'u'", "--columns u=NAME"]),
+        ("t_s,x,u\n0,0,0\n0.001,0,0\n0.002,0,0\n", "t=time", ["missing required column 'time'"]),
+        ("t,x,u\n0,0,0\n0.001,abc,0\n0.002,0,0\n", None, ["row 3", "column 'x'", "non-numeric", "'abc'"]),
+        ("t,x,u\n0,0,0\n0.001,0,nan\n0.002,0,0\n", None, ["row 3", "column 'u'", "not a finite number"]),
+        ("t,x,u\n0,0,0\n0.001,inf,0\n0.002,0,0\n", None, ["row 3", "column 'x'", "not a finite"]),
+        ("t,x,u\n0,0,0\n0.001,0,0\n0.001,0,0\n", None, ["row 4", "column 't'", "not strictly increasing"]),
+        ("t,x,u\n0,0,0\n0.002,0,0\n0.001,0,0\n", None, ["row 4", "column 't'", "not strictly increasing"]),
+        ("t,x,u\n0,0,0\n", None, ["1 data rows", "at least 3"]),
+        ("t,x,u\n0,0,0\n0.001,0\n0.002,0,0\n", None, ["row 3", "column 'u'", "row too short"]),
+        ("", None, ["empty file"]),
+    ],
+)
+def test_bad_files_name_row_and_column(tmp_path: Path, text: str, columns: str | None, fragments: list[str]) -> None:
+    p = _write(tmp_path, text)
+    with pytest.raises(DataError) as exc:
+        load_recording(p, columns)
+    msg = str(exc.value)
+    assert str(p) in msg
+    for frag in fragments:
+        assert frag in msg, msg
+
+
+def test_missing_file_is_a_data_error(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="cannot open"):
+        load_recording(tmp_path / "nope.csv")
+
+
+@pytest.mark.parametrize("spec", ["t", "q=x", "t="])
+def test_bad_columns_spec(spec: str) -> None:
+    with pytest.raises(DataError, match="--columns"):
+        parse_columns(spec)
