@@ -23,7 +23,8 @@ Controllers, all measured in the same run:
 
 Every variant is tuned the same way, in this run: the PID crossover (``--pid-bandwidths``, gains from
 :func:`stagectl.control.design.design_pid`, plus the config's own PID), the Coulomb level F_c
-(``--coulomb-levels``) or the DOB bandwidth (``--dob-bandwidths``) are swept and the tuning with the lowest
+(``--coulomb-levels``) or the DOB bandwidth (``--dob-bandwidths``, default up to 200 Hz = ω_sample/5 at
+1 kHz; FRICTION_MODELS.md §6.1 recommends ω_sample/10–20 for margin on real hardware) are swept and the tuning with the lowest
 sum of the two tracking RMS errors is kept; one tuning per variant serves all three scenarios.
 
 Targets: ``pid_dob_gms_20`` ≥ 10× lower RMS than ``pid`` and ≥ 3× lower than ``pid_coulomb`` in both tracking
@@ -45,7 +46,7 @@ REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=str(REPO_CONFIG), help="stage config (default config/sim.yaml)")
-    p.add_argument("--pid-bandwidths", default="20,40,60,80,100,120",
+    p.add_argument("--pid-bandwidths", default="20,40,60,80,100",
                    help="PID crossover frequencies [Hz] tried for the PID-only baselines (comma list)")
     p.add_argument("--dob-bandwidths", default="50,100,150,200",
                    help="DOB bandwidths [Hz] tried for the DOB variants (comma list)")
