@@ -1,7 +1,8 @@
 """``stagectl simulate --config FILE --scenario NAME --out DIR [--duration S]``.
 
 Closed loop in simulated time (SimClock; the devices in lock-step: PlantIO, or the real CANopen drivers
-against the virtual devices). Writes ``telemetry.csv`` (RECORDINGS.md columns), ``summary.json`` (RMS/max
+against the virtual devices; a ``canopen`` config with a ``sim:`` section, e.g. config/hil-canopen.yaml, is
+simulated with its virtual devices in-process). Writes ``telemetry.csv`` (RECORDINGS.md columns), ``summary.json`` (RMS/max
 tracking error, settling times to ±10 nm, faults, loop statistics) and ``tracking.png`` into DIR, and
 prints the summary as one JSON line on stdout.
 """
@@ -34,6 +35,15 @@ def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: fl
     from stagectl.errors import ConfigError
     from stagectl.recorder import Recorder, tracking_summary, write_outputs
 
+    import dataclasses
+
+    from stagectl.config import IoKind
+
+    if cfg.io.kind is IoKind.CANOPEN:
+        if cfg.sim is None or cfg.sim.world is None:
+            raise ConfigError(f"{cfg.path}: simulate needs a sim: section (the simulated stage) for io.kind canopen")
+        # same drivers, the virtual devices of the sim: section in-process (lock-step)
+        cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
     sc = get_scenario(scenario)
     if duration_s is None:
         x0 = cfg.sim.plant.x0_m if cfg.sim is not None else 0.0
