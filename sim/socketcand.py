@@ -1,9 +1,10 @@
-"""A socketcand-protocol TCP server bridging TCP clients to an in-process python-can ``virtual`` bus.
+"""A socketcand-protocol TCP server: the virtual devices' CAN bus, seen from other processes.
 
 A stock python-can ``socketcand`` client (``can.Bus(interface="socketcand", host=..., port=...,
-channel="can0", tcp_tune=True)``) connects to it as to a real socketcand daemon in raw mode. Each client
-gets its own ``virtual`` bus instance on ``channel``, so clients see each other's frames and the virtual
-devices' frames, as on a real bus.
+channel="can0", tcp_tune=True)``) connects to it as to a real socketcand daemon in raw mode. The server is
+the CAN "port" of a :class:`~stagectl.sim.world.SimWorld` (``recv``/``send``, like a bus): the world
+receives every client frame and its devices' frames go to every client; client frames are also forwarded
+to the other clients, so two drivers (drive + encoder) see each other's SYNC as on a real bus.
 
 Protocol (rawmode subset; PLATFORM_NOTES §1.2 lists the client's parsing rules we must honour)::
 
@@ -23,13 +24,12 @@ exactly, so replies must not be coalesced); TCP_NODELAY on every accepted socket
 from __future__ import annotations
 
 import logging
+import queue
 import socket
 import threading
 import time
 
 import can
-
-from stagectl.drivers.canbus import close_bus, open_bus
 
 log = logging.getLogger(__name__)
 
@@ -63,128 +63,158 @@ class _Client:
     def __init__(self, server: SocketcandServer, sock: socket.socket) -> None:
         self.server = server
         self.sock = sock
-        self.bus: can.BusABC | None = None
-        self.stop = threading.Event()
-        self.threads: list[threading.Thread] = []
+        self.raw = False
+        self.lock = threading.Lock()
+        self.alive = True
+
+    def send(self, data: bytes) -> None:
+        if not (self.raw and self.alive):
+            return
+        try:
+            with self.lock:
+                self.sock.sendall(data)
+        except OSError:
+            self.alive = False  # the reader notices the closed socket and cleans up
 
     def run(self) -> None:
         sock = self.sock
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.settimeout(0.2)
             sock.sendall(b"< hi >")
             buf = b""
-            opened = raw = False
-            while not raw:
-                chunk = sock.recv(256)
+            opened = False
+            while not self.raw:
+                chunk = self._recv()
+                if chunk is None:
+                    continue
                 if not chunk:
                     return
                 buf += chunk
-                while b">" in buf:
+                while b">" in buf and not self.raw:
                     line, buf = buf.split(b">", 1)
                     cmd = line.decode("ascii", "replace").strip("< \r\n")
                     if cmd.startswith("open "):
                         opened = True
                         sock.sendall(b"< ok >")
                     elif cmd == "rawmode" and opened:
-                        raw = True
                         sock.sendall(b"< ok >")
-                        break
+                        self.raw = True
                     else:
                         sock.sendall(b"< error unknown command >")
-            self.bus = open_bus({"interface": "virtual", "channel": self.server.channel}, path="socketcand")
-            w = threading.Thread(target=self._writer, name="socketcand-tx", daemon=True)
-            w.start()
-            self.threads.append(w)
             self._reader(buf)
         except OSError:
             pass
         except Exception:  # noqa: BLE001 - a server bug must be visible
             log.exception("socketcand client handler failed")
         finally:
-            self.stop.set()
-            for t in self.threads:
-                t.join(1.0)
-            close_bus(self.bus)
-            self.bus = None
+            self.alive = False
             try:
                 sock.close()
             except OSError:
                 pass
 
+    def _recv(self) -> bytes | None:
+        """One socket read; None on time-out (to check for shutdown), b"" at EOF."""
+        if self.server.stopping:
+            return b""
+        try:
+            return self.sock.recv(4096)
+        except TimeoutError:
+            return None
+
     def _reader(self, buf: bytes) -> None:
-        sock, bus = self.sock, self.bus
-        assert bus is not None
-        sock.settimeout(0.2)
-        while not self.stop.is_set():
+        server = self.server
+        while self.alive:
             while b">" in buf:
                 line, buf = buf.split(b">", 1)
                 msg = parse_send(line.decode("ascii", "replace"))
                 if msg is not None:
-                    bus.send(msg)
-            try:
-                chunk = sock.recv(4096)
-            except TimeoutError:
+                    msg.timestamp = time.time()
+                    server.from_client(msg, self)
+            chunk = self._recv()
+            if chunk is None:
                 continue
             if not chunk:
                 return
             buf += chunk
 
-    def _writer(self) -> None:
-        bus, sock = self.bus, self.sock
-        assert bus is not None
-        while not self.stop.is_set():
-            try:
-                msg = bus.recv(0.1)
-                if msg is None:
-                    continue
-                out = [format_frame(msg)]
-                while (more := bus.recv(0.0)) is not None:
-                    out.append(format_frame(more))
-                sock.sendall(b"".join(out))
-            except (OSError, can.CanError):
-                self.stop.set()
-                return
-
 
 class SocketcandServer:
-    """socketcand rawmode server on ``host:port`` (port 0 = ephemeral) for the virtual bus ``channel``."""
+    """socketcand rawmode server on ``host:port`` (port 0 = ephemeral): the CAN "port" of a SimWorld.
 
-    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0") -> None:
+    The world reads what clients send with :meth:`recv` and answers with :meth:`send` (to every client);
+    frames from one client are also forwarded to the other clients, as on a shared bus. Threads: one
+    accept thread and one reader per client; the world's thread writes to the sockets directly.
+    """
+
+    def __init__(self, channel: str = "", host: str = "127.0.0.1", port: int = 0, can_name: str = "can0") -> None:
         self.channel = channel
         self.can_name = can_name
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._sock.bind((host, port))
-        self._sock.listen(8)
+        try:
+            self._sock.bind((host, port))
+            self._sock.listen(8)
+        except OSError:
+            self._sock.close()
+            raise
         self._sock.settimeout(0.2)
         self.host, self.port = self._sock.getsockname()[:2]
-        self._stop = threading.Event()
+        self.stopping = False
+        self._incoming: queue.Queue[can.Message] = queue.Queue()
         self._clients: list[tuple[_Client, threading.Thread]] = []
+        self._clients_lock = threading.Lock()
         self._thread: threading.Thread | None = None
 
+    # ------------------------------------------------------------------ bus-like side for the world
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """Next frame sent by a client (None after ``timeout`` [s]; 0 = poll)."""
+        try:
+            if not timeout:
+                return self._incoming.get_nowait()
+            return self._incoming.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def send(self, msg: can.Message) -> None:
+        """Send a device frame to every connected client."""
+        self._broadcast(format_frame(msg), None)
+
+    def from_client(self, msg: can.Message, origin: _Client) -> None:
+        self._incoming.put(msg)
+        self._broadcast(format_frame(msg, msg.timestamp), origin)
+
+    def _broadcast(self, data: bytes, exclude: _Client | None) -> None:
+        with self._clients_lock:
+            clients = [c for c, _ in self._clients if c is not exclude]
+        for c in clients:
+            c.send(data)
+
+    # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         if self._thread is None:
             self._thread = threading.Thread(target=self._accept, name="socketcand-accept", daemon=True)
             self._thread.start()
 
     def _accept(self) -> None:
-        while not self._stop.is_set():
+        while not self.stopping:
             try:
                 conn, _ = self._sock.accept()
             except TimeoutError:
                 continue
             except OSError:
                 return
-            conn.settimeout(None)
             c = _Client(self, conn)
-            t = threading.Thread(target=c.run, name="socketcand-rx", daemon=True)
-            self._clients = [(cl, th) for cl, th in self._clients if th.is_alive()]
-            self._clients.append((c, t))
+            t = threading.Thread(target=c.run, name="socketcand-client", daemon=True)
+            with self._clients_lock:
+                self._clients = [(cl, th) for cl, th in self._clients if th.is_alive()]
+                self._clients.append((c, t))
             t.start()
 
     def stop(self) -> None:
         """Close the listening socket and every client connection (idempotent)."""
-        self._stop.set()
+        self.stopping = True
         if self._thread is not None:
             self._thread.join(2.0)
             self._thread = None
@@ -192,11 +222,14 @@ class SocketcandServer:
             self._sock.close()
         except OSError:
             pass
-        for c, t in self._clients:
-            c.stop.set()
+        with self._clients_lock:
+            clients, self._clients = self._clients, []
+        for c, t in clients:
+            c.alive = False
             try:
                 c.sock.shutdown(socket.SHUT_RDWR)
             except OSError:
                 pass
             t.join(2.0)
-        self._clients.clear()
+
+    close = stop

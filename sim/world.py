@@ -168,7 +168,7 @@ class SimWorld:
         self.base_dir = Path(base_dir) if base_dir is not None else None
         tr = cfg.transport
         self.channel = tr.channel or f"stagectl-sim-{os.getpid()}-{next(_counter)}-{id(self):x}"
-        self._bus: can.BusABC | None = None
+        self._bus: Any = None  # a virtual can.Bus, or the SocketcandServer (same recv/send)
         self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
         self._stop_evt = threading.Event()
@@ -198,14 +198,7 @@ class SimWorld:
             return
         if self._closed:
             raise RuntimeError("SimWorld is stopped")
-        self._bus = open_bus({"interface": "virtual", "channel": self.channel}, path="sim.transport")
         try:
-            send = self._send
-            self.drive = SimCia402Drive(self.plant, self.cfg.drive, send, self.base_dir)
-            if self.cfg.encoder is not None:
-                self.encoder = SimCia406Encoder(self.plant, self.cfg.encoder, send, self.base_dir)
-            for spec in self.cfg.faults:
-                self.inject(spec)
             if self.cfg.transport.kind == "socketcand":
                 from stagectl.sim.socketcand import SocketcandServer
 
@@ -215,7 +208,16 @@ class SimWorld:
                 except OSError as exc:
                     raise ConfigError(f"sim.transport.port: cannot listen on {tr.host}:{tr.port} "
                                       f"({exc.strerror or exc})") from exc
+                self._bus = self.server  # the server is the devices' bus (recv/send)
                 self.server.start()
+            else:
+                self._bus = open_bus({"interface": "virtual", "channel": self.channel}, path="sim.transport")
+            send = self._send
+            self.drive = SimCia402Drive(self.plant, self.cfg.drive, send, self.base_dir)
+            if self.cfg.encoder is not None:
+                self.encoder = SimCia406Encoder(self.plant, self.cfg.encoder, send, self.base_dir)
+            for spec in self.cfg.faults:
+                self.inject(spec)
             if self.cfg.interferometer is not None:
                 from stagectl.sim.interferometer import SimInterferometer
 
@@ -391,7 +393,8 @@ class SimWorld:
         if self.server is not None:
             self.server.stop()
             self.server = None
-        close_bus(self._bus)
+        else:
+            close_bus(self._bus)
         self._bus = None
 
     close = stop

@@ -160,3 +160,31 @@ def test_sim_plant_config_errors_are_clear(tmp_path, capsys, text, message):
     err = capsys.readouterr().err
     assert err.startswith("stagectl: error:") and message in err and "Traceback" not in err
     assert _signal.getsignal(_signal.SIGTERM) is before  # handlers restored
+
+
+def test_two_socketcand_clients_share_the_bus(make_world, make_drive):
+    """Drive and encoder drivers on separate socketcand connections: the encoder sees the drive's SYNC."""
+    from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
+
+    world = make_world(transport={"kind": "socketcand", "port": 0}, encoder={"node_id": 4})
+    world.start()
+    can_cfg = world.ready_info()["can"]
+    dut = make_drive(can_cfg, rx_timeout_s=0.5, heartbeat_timeout_s=30.0, drive_consumer_timeout_s=2.0)
+    enc = Cia406Encoder(Cia406Config(node_id=4, can=can_cfg, rx_timeout_s=0.5, heartbeat_timeout_s=30.0,
+                                     sdo_timeout_s=3.0))
+    try:
+        dut.open()
+        enc.open()
+        dut.configure()
+        enc.configure()
+        dut.enable()
+        for k in range(200):
+            dut.sync()
+            m = dut.read()
+            e = enc.read()
+            assert m.fresh and e.fresh and m.fault is None and e.fault is None, (k, m, e)
+            assert e.counts == m.counts  # same plant, same resolution, same SYNC
+            dut.write(3.0)
+        assert m.counts > 0
+    finally:
+        enc.close()
