@@ -26,7 +26,7 @@ from typing import Any
 from stagectl.clock import Clock, MonotonicClock, SimClock
 from stagectl.config import AppConfig, IoKind, SensorSource
 from stagectl.control.api import Reference
-from stagectl.drivers.base import Device, DeviceFault, FaultKind, ForceActuator, PositionSensor, SyncProducer
+from stagectl.drivers.base import Device, FaultKind, ForceActuator, PositionSensor, SyncProducer
 from stagectl.errors import ConfigError, StageError
 from stagectl.loop import ControlLoop
 from stagectl.safety import Safety
@@ -403,4 +403,4 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
         stage.sensor = enc
 
 
-__all__ = ["DeviceFault", "Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]
+__all__ = ["Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]
