@@ -16,7 +16,7 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 1. the validation gap shrinks by at least ``MIN_REL_GAIN`` (relative), a margin above what noise-only
    recordings with a complete model reach (the null tests in ``tests/ident`` measure it),
 2. the force it explains, ``sqrt(gap_before² − gap_after²)``, is at least ``MIN_EXPLAINED_FRACTION`` of
-   the RMS commanded force (smaller effects are negligible for compensation), and
+   the RMS commanded force and ``MIN_EXPLAINED_NOISE`` times the sensor-noise floor of the metric, and
 3. the mean per-sample reduction of the squared residual is positive at the 97.5 % level of a circular
    block bootstrap (block length from the autocorrelation of the per-sample gain, >= 0.1 s).
 
@@ -52,10 +52,12 @@ GAP_METRIC = (
 )
 #: minimum relative reduction of the validation gap for an effect to be accepted
 MIN_REL_GAIN = 0.20
-#: minimum force an effect must explain on validation data, sqrt(gap_before² − gap_after²), as a fraction of
-#: the RMS commanded force: effects below 0.5 % of the force level are physically negligible (and at that
-#: level sampling/discretisation residue, not physics, is what a flexible effect would fit)
-MIN_EXPLAINED_FRACTION = 0.005
+#: minimum force an effect must explain on validation data, sqrt(gap_before² − gap_after²): the larger of
+#: MIN_EXPLAINED_FRACTION of the RMS commanded force (physically negligible below) and MIN_EXPLAINED_NOISE
+#: times the sensor-noise floor of the metric (m·σ_x·gain; at a few times that floor, sampling and
+#: discretisation residue, not physics, is what a flexible effect fits)
+MIN_EXPLAINED_FRACTION = 0.002
+MIN_EXPLAINED_NOISE = 10.0
 #: bootstrap confidence for the "gap reduced" test
 BOOT_QUANTILE = 0.025
 BOOT_SAMPLES = 400
@@ -251,15 +253,15 @@ class Comparison:
                 and self.explained_n >= self.min_explained_n)
 
 
-def compare(r_before: FloatArray, r_after: FloatArray, dt_s: float, force_rms_n: float = 0.0) -> Comparison:
-    """Validation comparison of two residuals (same samples). ``force_rms_n``: RMS commanded force [N]."""
+def compare(r_before: FloatArray, r_after: FloatArray, dt_s: float, min_explained_n: float = 0.0) -> Comparison:
+    """Validation comparison of two residuals (same samples); ``min_explained_n``: explained-force floor [N]."""
     d = r_before**2 - r_after**2
     blk = block_length(d, dt_s)
     gb = float(np.sqrt(np.mean(r_before**2)))
     ga = float(np.sqrt(np.mean(r_after**2)))
     expl = math.sqrt(max(gb * gb - ga * ga, 0.0))
     return Comparison(gb, ga, (gb - ga) / gb if gb > 0 else 0.0, bootstrap_lower(d, blk), blk, expl,
-                      MIN_EXPLAINED_FRACTION * force_rms_n)
+                      min_explained_n)
 
 
 # ================================================================================================ localisation
@@ -444,6 +446,55 @@ def evidence(name: str, sig: Signals, rows: BoolArray, r_before: FloatArray, aft
 
 
 # ================================================================================================ workflow
+PAIR_CANDIDATES = 4
+
+
+def _try_pairs(
+    ds: Dataset, cur: FitResult, cands: dict[str, tuple[FitResult, Comparison, FloatArray]], r_cur: FloatArray,
+    force_rms: float,
+) -> tuple[tuple[str, str], FitResult, Comparison] | None:
+    """Interacting effects: when no single effect validates, try pairs of the candidates that fit the
+    estimation data best (e.g. an offset plus a cogging whose position coverage differs between estimation
+    and validation blocks, where each alone absorbs part of the other). The pair must pass the same test."""
+    est = sorted(cands, key=lambda k: cands[k][0].rss)
+    top = [k for k in est if 1.0 - math.sqrt(cands[k][0].rss / max(cur.rss, 1e-300)) >= 0.5 * MIN_REL_GAIN]
+    top = top[:PAIR_CANDIDATES]
+    best: tuple[tuple[str, str], FitResult, Comparison] | None = None
+    for i, a in enumerate(top):
+        for b in top[i + 1:]:
+            if b in NESTED.get(a, ()) or a in NESTED.get(b, ()):
+                continue
+            try:
+                fr = fit_candidate(ds, cands[a][0], b)
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            _, r_new = gap(ds.val, ds.val_rows, fr.hyp)
+            cmp = compare(r_cur, r_new, ds.est.dt_s, force_rms)
+            if cmp.significant and (best is None or cmp.gap_after < best[2].gap_after):
+                best = ((a, b), fr, cmp)
+    if best is None:
+        return None
+    # nested effects: a pair with the simpler member is preferred unless the richer pair is significantly better
+    (a, b), fr, cmp = best
+    for rich, other in ((a, b), (b, a)):
+        for simpler in NESTED.get(rich, ()):
+            if cur.hyp.has(simpler) or simpler == other:
+                continue
+            try:
+                base = cands[other][0] if other in cands else fit_candidate(ds, cur, other)
+                fr2 = fit_candidate(ds, base, simpler)
+            except (ValueError, np.linalg.LinAlgError, KeyError):
+                continue
+            _, r2 = gap(ds.val, ds.val_rows, fr2.hyp)
+            c2 = compare(r_cur, r2, ds.est.dt_s, force_rms)
+            if not c2.significant:
+                continue
+            _, r_rich = gap(ds.val, ds.val_rows, fr.hyp)
+            if not compare(r2, r_rich, ds.est.dt_s, force_rms).significant:
+                return (other, simpler), fr2, c2
+    return best
+
+
 @dataclass
 class Round:
     candidates: list[dict[str, Any]]
@@ -465,6 +516,8 @@ class DiscoveryResult:
     elapsed_s: float
     history: list[Hyp] = field(default_factory=list)
     dataset: Dataset | None = None
+    noise_floor_n: float = 0.0
+    min_explained_n: float = 0.0
 
 
 def discover(
@@ -483,7 +536,9 @@ def discover(
     g0, r0 = gap(ds.val, ds.val_rows, cur.hyp)
     dis_before = localise(ds.val, ds.val_rows, rg.residual(ds.val, cur.hyp))
     uf = ds.val.filt(ds.val.ubar())[ds.val_rows]
-    force_rms = float(np.sqrt(np.mean(uf * uf)))
+    m_hat = float(cur.hyp.theta.get("m", cur.hyp.fixed_mass_kg or 0.0))
+    noise_floor = ds.val.noise_floor_n(m_hat)
+    force_rms = max(MIN_EXPLAINED_FRACTION * float(np.sqrt(np.mean(uf * uf))), MIN_EXPLAINED_NOISE * noise_floor)
     effects: list[dict[str, Any]] = []
     rejected: list[dict[str, Any]] = []
     rounds: list[Round] = []
@@ -528,6 +583,21 @@ def discover(
                         break
         rounds.append(Round(info, chosen))
         if chosen is None:
+            pair = _try_pairs(ds, cur, cands, r_cur, force_rms)
+            if pair is not None:
+                (a, b), fr, cmp = pair
+                rounds[-1].chosen = f"{a}+{b}"
+                r_before = rg.residual(ds.val, cur.hyp)
+                for name in (a, b):
+                    effects.append({
+                        "name": name, "parameters": describe_params(fr.hyp, name), "gap_before": cmp.gap_before,
+                        "gap_after": cmp.gap_after, "accepted_jointly_with": b if name == a else a,
+                        "evidence": evidence(name, ds.val, ds.val_rows, r_before, fr.hyp, cmp)
+                        + f" (neither {a} nor {b} validated alone: each biases the other's fit; accepted as a pair)",
+                    })
+                cur = fr
+                history.append(cur.hyp)
+                continue
             for item in info:
                 if "error" in item:
                     continue
@@ -553,6 +623,6 @@ def discover(
         start=start_fit, final=cur, gap_before=g0, gap_after=g1,
         effects=effects, rejected=rejected, rounds=rounds, disagreement_before=dis_before,
         disagreement_after=dis_after, split=ds.split, elapsed_s=time.perf_counter() - t0, history=history,
-        dataset=ds,
+        dataset=ds, noise_floor_n=noise_floor, min_explained_n=force_rms,
     )
     return res

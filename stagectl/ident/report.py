@@ -49,6 +49,9 @@ def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str,
         "acceptance_rule": {
             "min_relative_gap_reduction": dsc.MIN_REL_GAIN,
             "min_explained_force_fraction_of_rms_u": dsc.MIN_EXPLAINED_FRACTION,
+            "min_explained_force_times_noise_floor": dsc.MIN_EXPLAINED_NOISE,
+            "min_explained_force_n": res.min_explained_n,
+            "noise_floor_n": res.noise_floor_n,
             "bootstrap": f"circular block bootstrap of the mean per-sample squared-residual reduction, "
                          f"{dsc.BOOT_SAMPLES} resamples, lower {100 * dsc.BOOT_QUANTILE:.1f} % quantile > 0",
             "nested": {k: list(v) for k, v in dsc.NESTED.items()},

@@ -60,6 +60,8 @@ class Signals:
     evaluate : moving and at least ``guard`` samples away from any stuck sample or end
     v_stick : stick threshold [m/s]
     sos : the filter ``L``
+    accel_noise_gain : std of L[second difference]/dt² for unit white position noise [1/s²]; the force-residual
+        floor of the sensor noise is m·σ_x·accel_noise_gain
     x_rev_dist : |x − x at the last velocity reversal| [m] (displacement since the last reversal)
     direction : sgn(x[k+1] − x[k−1]) on moving samples, 0 when stuck (the models' sgn(v))
     """
@@ -80,6 +82,7 @@ class Signals:
     guard: int
     quantum_m: float
     noise_m: float
+    accel_noise_gain: float
     x_rev_dist: FloatArray
     direction: FloatArray
     source: str = ""
@@ -92,6 +95,11 @@ class Signals:
     def filt(self, raw: FloatArray) -> FloatArray:
         """``L[moving · raw]``: zero stuck samples, then zero-phase low-pass."""
         return np.asarray(signal.sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
+
+    def noise_floor_n(self, mass_kg: float) -> float:
+        """Force-residual RMS [N] that white position noise (and quantisation) alone produce."""
+        sx = math.sqrt(self.noise_m**2 + self.quantum_m**2 / 12.0)
+        return float(mass_kg) * sx * self.accel_noise_gain
 
     def filt_many(self, raw: FloatArray) -> FloatArray:
         """:meth:`filt` applied to every column of ``raw`` (shape ``(n, k)``) in one call."""
@@ -150,6 +158,7 @@ def prepare(
     cutoff_hz: float | None = None,
     v_stick_m_s: float | None = None,
     min_rows: int = 200,
+    require_motion: bool = True,
 ) -> Signals:
     """Build :class:`Signals` from a recording.
 
@@ -159,6 +168,8 @@ def prepare(
         Cut-off of ``L`` [Hz]; default ``fs/10`` (100 Hz at 1 kHz).
     v_stick_m_s : float, optional
         Stick threshold [m/s]; default from the measured position noise and quantum.
+    require_motion : bool
+        Raise if fewer than 50 samples are in motion (quasi-static identification data pass False).
 
     Raises
     ------
@@ -193,6 +204,9 @@ def prepare(
     rng = np.random.default_rng(12345)
     w = rng.standard_normal(4096)
     gain_v = float(np.std(np.gradient(signal.sosfiltfilt(sos, w), dt)[64:-64]))
+    w2 = np.zeros_like(w)
+    w2[1:-1] = w[2:] - 2.0 * w[1:-1] + w[:-2]
+    gain_a = float(np.std(signal.sosfiltfilt(sos, w2)[64:-64])) / (dt * dt)
     sigma_x = max(noise, q / math.sqrt(12.0))
     v_th = float(v_stick_m_s) if v_stick_m_s is not None else max(6.0 * sigma_x * gain_v, 1e-12)
     guard = max(2, int(math.ceil(0.5 * fs / fc)))
@@ -226,12 +240,13 @@ def prepare(
         guard=guard,
         quantum_m=q,
         noise_m=noise,
+        accel_noise_gain=gain_a,
         x_rev_dist=_reversal_distance(xf, v, v_th),
         direction=np.where(moving, np.sign(dxc), 0.0),
         source=rec.source,
     )
     sig.acc_f = sig.filt(acc_raw)
-    if int(evaluate.sum()) < 50:
+    if require_motion and int(evaluate.sum()) < 50:
         raise DataError(
             f"{rec.source}: only {int(evaluate.sum())} samples in motion (|v| > {v_th:.3g} m/s); "
             "identification needs a recording with motion"

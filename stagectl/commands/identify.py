@@ -1,0 +1,122 @@
+"""``stagectl identify DATA.csv --model NAME --out MODEL.yaml [--plot DIR] [--columns ...] [--elements N] [--json]``.
+
+Identifies a friction model (gms, maxwell_slip, stribeck, lugre, dahl, hsieh) from a recording and writes a
+model file (``mass_kg`` when the data excite it, ``friction``, ``meta`` with the fit quality) that
+``stagectl.friction.load_model_file`` and the plant load. See :mod:`stagectl.ident.identify`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+MODELS = ("gms", "maxwell_slip", "stribeck", "lugre", "dahl", "hsieh")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("identify", help="fit a friction model to a recording and write a model file",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data", help="recording CSV (columns t [s], x [m], u [N]; see --columns)")
+    p.add_argument("--model", required=True, choices=MODELS, help="friction model to identify")
+    p.add_argument("--out", required=True, help="model file to write (YAML)")
+    p.add_argument("--plot", metavar="DIR", help="write measured-vs-model plots (PNG) into DIR")
+    p.add_argument("--columns", help="column mapping, e.g. t=t_s,x=position_m,u=force_N")
+    p.add_argument("--elements", type=int, default=None,
+                   help="number of Maxwell-slip/GMS elements (default: chosen by BIC, 1..8)")
+    p.add_argument("--mass-kg", type=float, default=None, help="known moving mass [kg] (default: estimated)")
+    p.add_argument("--cutoff-hz", type=float, default=None, help="inverse-dynamics low-pass cut-off [Hz]")
+    p.add_argument("--json", action="store_true", help="print the fit quality as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from stagectl.errors import ConfigError
+    from stagectl.friction import StageModel, save_model_file
+    from stagectl.ident.identify import identify
+    from stagectl.ident.recording import load_recording
+    from stagectl.ident.report import _clean
+    from stagectl.schema import load
+
+    if args.elements is not None and not 1 <= args.elements <= 32:
+        raise ConfigError(f"--elements: must be between 1 and 32 (got {args.elements})")
+    rec = load_recording(args.data, args.columns, min_rows=50)
+    res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
+    quality = _clean(res.quality)
+    spec = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
+                                           "data": args.data, "fit": quality.get("fit", {})}}
+    if res.mass_kg is not None:
+        spec = {"mass_kg": res.mass_kg, **spec}
+    model = load(StageModel, _clean(spec), "")
+    save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
+    out = {"model_file": args.out, "model": _clean(res.spec), "mass_kg": res.mass_kg, "quality": quality}
+    if args.plot:
+        out["plots"] = _plots(res, args.plot)
+    if args.json:
+        json.dump(out, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        fit = quality.get("fit", {})
+        print(f"wrote {args.out}: {args.model}, force RMS error {fit.get('force_rms_error_n', float('nan')):.4g} N "
+              f"({100 * fit.get('relative_error', float('nan')):.2f} % of the RMS friction force)")
+        for note in quality.get("notes", []):
+            print(f"note: {note}")
+    return 0
+
+
+def _plots(res, out_dir: str) -> list[str]:  # type: ignore[no-untyped-def]
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from scipy import signal
+
+    from stagectl.friction import build
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sig = res.meas.sig
+    fm = signal.sosfiltfilt(sig.sos, build(res.spec).force_along(sig.xf, sig.t))
+    files = []
+    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    ax[0].plot(sig.t, res.meas.force, lw=0.7, label="measured (inverse dynamics)")
+    ax[0].plot(sig.t, fm, lw=0.7, label=f"model ({res.spec['model']})")
+    ax[0].set_ylabel("friction force [N]")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(sig.t, res.meas.force - fm, lw=0.7, color="C3")
+    ax[1].set_ylabel("error [N]")
+    ax[1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(out / "force_time.png", dpi=90)
+    plt.close(fig)
+    files.append(str(out / "force_time.png"))
+    fig, ax = plt.subplots(figsize=(6, 5))
+    ax.plot(sig.xf, res.meas.force, lw=0.7, label="measured")
+    ax.plot(sig.xf, fm, lw=0.7, label="model")
+    ax.set_xlabel("position [m]")
+    ax.set_ylabel("friction force [N]")
+    ax.legend(fontsize=8)
+    ax.set_title("hysteresis: force vs position")
+    fig.tight_layout()
+    fig.savefig(out / "force_position.png", dpi=90)
+    plt.close(fig)
+    files.append(str(out / "force_position.png"))
+    if res.virgin is not None:
+        d, f = res.virgin
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.plot(d * 1e6, f, ".", ms=2, label="measured virgin points")
+        model = build(res.spec)
+        dd = np.linspace(0, float(d.max()), 400)
+        tt = np.arange(dd.size) * 1.0
+        ax.plot(dd * 1e6, model.force_along(dd, tt), label="model virgin curve (slow ramp)")
+        ax.set_xlabel("displacement [µm]")
+        ax.set_ylabel("force [N]")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "virgin_curve.png", dpi=90)
+        plt.close(fig)
+        files.append(str(out / "virgin_curve.png"))
+    return files
