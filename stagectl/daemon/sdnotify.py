@@ -8,7 +8,8 @@ datagram each: ``READY=1``, ``STATUS=...``, ``WATCHDOG=1``, ``WATCHDOG=trigger``
 The watchdog interval comes from ``WATCHDOG_USEC`` (microseconds), valid only if ``WATCHDOG_PID`` is absent
 or equals our PID. The service must ping at least every ``WATCHDOG_USEC``; stagectl pings at half of it.
 
-Every method **never raises** and is a no-op (returning False) when ``NOTIFY_SOCKET`` is not set, so the
+Every method **never blocks** (non-blocking socket: if the receiver's queue is full the datagram is dropped
+and counted in ``errors``), **never raises**, and is a no-op (returning False) when ``NOTIFY_SOCKET`` is not set, so the
 same code runs from a shell and under systemd. Not real-time critical, but cheap (one ``sendto``).
 """
 
@@ -93,7 +94,10 @@ class SdNotifier:
             # one assignment per line; a newline inside a value would start a bogus assignment
             payload = "\n".join(a.replace("\n", " ") for a in assignments).encode("utf-8", "replace")
             if self._sock is None:
-                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                # non-blocking: a receiver that does not read (its queue is full) must never stall the
+                # supervisor; the datagram is dropped and counted instead
+                self._sock = socket.socket(socket.AF_UNIX,
+                                           socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK)
             self._sock.sendto(payload, self._addr)
             return True
         except Exception as exc:  # noqa: BLE001 - must never raise (a missing systemd is not our fault)

@@ -77,3 +77,11 @@ def test_noop_without_notify_socket_and_never_raises(tmp_path):
 def test_watchdog_usec_parsing(env, expected):
     assert watchdog_interval_s(env) == expected
     assert SdNotifier(environ=env).watchdog_s == expected
+
+
+def test_never_blocks_when_the_receiver_does_not_read(path_socket):
+    addr, s = path_socket  # bound, never read: its datagram queue fills up
+    dut = SdNotifier(environ={"NOTIFY_SOCKET": addr})
+    results = [dut.status("x" * 200) for _ in range(2000)]  # would hang forever with a blocking socket
+    assert results[0] is True and results[-1] is False
+    assert dut.errors > 0 and "BlockingIOError" in dut.last_error
