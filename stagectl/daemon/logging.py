@@ -139,6 +139,11 @@ class DaemonLogging:
             self.root.removeHandler(h)
         self.root.addHandler(self.handler)
         self.root.setLevel(level)
+        # third-party protocol stacks are chatty at INFO (every SDO transfer); keep them to warnings
+        self._quiet = {name: logging.getLogger(name).level for name in ("canopen", "can")}
+        if level > logging.DEBUG:
+            for name in self._quiet:
+                logging.getLogger(name).setLevel(logging.WARNING)
         self.listener.start()
 
     @property
@@ -155,6 +160,8 @@ class DaemonLogging:
         for h in self._old_handlers:
             self.root.addHandler(h)
         self.root.setLevel(self._old_level)
+        for name, lvl in self._quiet.items():
+            logging.getLogger(name).setLevel(lvl)
         try:
             self.stream_handler.flush()
         except Exception:  # noqa: BLE001
