@@ -35,7 +35,6 @@ import logging
 import math
 import os
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -645,6 +644,3 @@ def _num(v: Any, scale: float, fmt: str) -> str:
         return "-"
     return format(f, fmt) if math.isfinite(f) else "-"
 
-
-def _stderr_fallback(msg: str) -> None:  # pragma: no cover
-    print(msg, file=sys.stderr)
