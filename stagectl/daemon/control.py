@@ -160,7 +160,10 @@ class ControlServer:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Bind (replacing a stale socket file), set mode/group, start serving in a thread."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if len(os.fsencode(self.path)) > 107:  # sun_path is 108 bytes including the NUL
+            raise OSError(errno.ENAMETOOLONG, f"{self.path}: a Unix socket path must be at most 107 bytes; "
+                                              "use a shorter runtime directory")
+        self.path.parent.mkdir(parents=True, mode=0o750, exist_ok=True)
         if self.path.exists() or self.path.is_symlink():
             st = self.path.lstat()
             if not stat.S_ISSOCK(st.st_mode):

@@ -143,7 +143,7 @@ class StageService:
             log.error("configuration invalid, not starting:\n%s", exc)
             self.notify.status(f"configuration invalid: {exc.problems[0] if exc.problems else exc}")
             code = 2
-        except StageError as exc:
+        except (StageError, OSError) as exc:  # devices, socket path, permissions: no traceback needed
             log.error("start-up failed: %s", exc)
             self.notify.status(f"start-up failed: {exc}")
             code = 1

@@ -197,3 +197,8 @@ def test_stalled_half_line_connection_is_closed_after_idle_timeout(tmp_path):
             assert c.request({"request": "status"})["ok"]
     finally:
         dut.stop()
+
+
+def test_too_long_socket_path_is_a_clear_error(tmp_path):
+    with pytest.raises(OSError, match="at most 107 bytes"):
+        ControlServer(tmp_path / ("d" * 120) / "control.sock", _Handler()).start()
