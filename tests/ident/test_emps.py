@@ -1,0 +1,42 @@
+"""Sanity check on the real EMPS recordings (Janot, Gautier, Brunot 2019); skipped when the data are absent.
+
+The published inverse-dynamics reference model (EMPS README): M = 95.1089 kg, Fv = 203.5034 N·s/m,
+Fc = 20.3935 N, offset = −3.1648 N. Our start model (mass + Coulomb + viscous, ZOH-consistent filtered inverse
+dynamics, estimation file) and the offset it finds must agree with it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from stagectl.ident import discover as dsc
+from stagectl.ident.recording import load_recording
+
+COLUMNS = "t=t_s,x=position_m,u=force_N,x_ref=reference_m"
+
+
+@pytest.fixture(scope="module")
+def emps(emps_dir: Path) -> dsc.Dataset:
+    est = load_recording(emps_dir / "DATA_EMPS.csv", COLUMNS)
+    val = load_recording(emps_dir / "DATA_EMPS_PULSES.csv", COLUMNS)
+    return dsc.make_dataset(est, val)
+
+
+def test_start_model_matches_published_reference(emps: dsc.Dataset) -> None:
+    fit = dsc.fit_start(emps)
+    th = fit.hyp.theta
+    assert th["m"] == pytest.approx(95.1089, rel=0.02)
+    assert th["fv"] == pytest.approx(203.5034, rel=0.05)
+    assert th["fc"] == pytest.approx(20.3935, rel=0.03)
+
+
+def test_offset_candidate_matches_published_offset_and_validates(emps: dsc.Dataset) -> None:
+    cur = dsc.fit_start(emps)
+    fr = dsc.fit_candidate(emps, cur, "offset")
+    assert fr.hyp.theta["f0"] == pytest.approx(-3.1648, rel=0.05)
+    _, r0 = dsc.gap(emps.val, emps.val_rows, cur.hyp)
+    _, r1 = dsc.gap(emps.val, emps.val_rows, fr.hyp)
+    c = dsc.compare(r0, r1, emps.est.dt_s)
+    assert c.significant and c.rel_gain > 0.25
