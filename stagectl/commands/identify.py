@@ -45,11 +45,14 @@ def run(args: argparse.Namespace) -> int:
     quality = _clean(res.quality)
     spec = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
                                            "data": args.data, "fit": quality.get("fit", {})}}
+    if res.effects:
+        spec["effects"] = res.effects
     if res.mass_kg is not None:
         spec = {"mass_kg": res.mass_kg, **spec}
     model = load(StageModel, _clean(spec), "")
     save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
-    out = {"model_file": args.out, "model": _clean(res.spec), "mass_kg": res.mass_kg, "quality": quality}
+    out = {"model_file": args.out, "model": _clean(res.spec), "effects": _clean(res.effects), "mass_kg": res.mass_kg,
+           "quality": quality}
     if args.plot:
         out["plots"] = _plots(res, args.plot)
     if args.json:

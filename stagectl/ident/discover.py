@@ -57,7 +57,7 @@ MIN_REL_GAIN = 0.20
 #: times the sensor-noise floor of the metric (m·σ_x·gain; at a few times that floor, sampling and
 #: discretisation residue, not physics, is what a flexible effect fits)
 MIN_EXPLAINED_FRACTION = 0.002
-MIN_EXPLAINED_NOISE = 10.0
+MIN_EXPLAINED_NOISE = 3.0
 #: bootstrap confidence for the "gap reduced" test
 BOOT_QUANTILE = 0.025
 BOOT_SAMPLES = 400
@@ -159,6 +159,14 @@ def fit_candidate(ds: Dataset, cur: FitResult, name: str) -> FitResult:
         vs, delta, _ = best
         dl, _ = rg._best_scalar(lambda d: _fit_with(ds, h_s, vs_m_s=vs, delta=d).rss, [0.7, 1.0, 1.5, 2.0, 3.0],
                                 0.5, 4.0, log=False, maxiter=8)
+        # joint refinement of (log vs, δ): the two trade off, separate line searches stop short
+        from scipy.optimize import minimize
+
+        res = minimize(lambda p: _fit_with(ds, h_s, vs_m_s=math.exp(p[0]), delta=float(np.clip(p[1], 0.5, 4.0))).rss,
+                       np.array([math.log(vs), dl]), method="Nelder-Mead",
+                       options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-12, "initial_simplex": np.array(
+                           [[math.log(vs), dl], [math.log(vs) + 0.2, dl], [math.log(vs), dl + 0.2]])})
+        vs, dl = math.exp(float(res.x[0])), float(np.clip(res.x[1], 0.5, 4.0))
         if name == "stribeck":
             return _fit_with(ds, h_s, vs_m_s=vs, delta=dl)
         h.nl.update(vs_m_s=vs, delta=dl)
@@ -167,6 +175,13 @@ def fit_candidate(ds: Dataset, cur: FitResult, name: str) -> FitResult:
         # a lag shorter than one sample cannot be told from the sampling itself: search from dt up
         grid = list(np.geomspace(dt, 0.5, 10))
         lag, _ = rg._best_scalar(lambda s: _fit_with(ds, h, lag_s=s).rss, grid, dt, 1.0)
+        if lag < 2.0 * dt:
+            # the optimum sits at the search bound: no lag longer than a sample is supported by the data
+            if cur.hyp.has("stribeck"):
+                return cur
+            h_s = cur.hyp.with_effect("stribeck")
+            h_s.nl.update(vs_m_s=h.nl["vs_m_s"], delta=h.nl["delta"])
+            return rg.fit_linear(sig, h_s, rows)
         # re-tune vs with the lag in place
         vs0 = h.nl["vs_m_s"]
         vs, _ = rg._best_scalar(lambda v: _fit_with(ds, h, lag_s=lag, vs_m_s=v).rss,

@@ -302,8 +302,19 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     assert best is not None
     fc, ds, lvs, dl, fv, off = best.x
     rms = float(np.sqrt(np.mean(best.fun ** 2)))
+    # plain Coulomb + viscous + offset: preferred unless the Stribeck terms reduce the RMS by 20 % and the
+    # segments cover at least 3 distinct speeds (otherwise vs and Fs are not identifiable)
+    a = np.column_stack([s, v, np.ones_like(v)])
+    lin, *_ = np.linalg.lstsq(a, f, rcond=None)
+    rms_lin = float(np.sqrt(np.mean((a @ lin - f) ** 2)))
+    levels = np.unique(np.round(np.log(av) / 0.1))
+    if levels.size < 3 or rms > 0.8 * rms_lin:
+        return {"fc_n": float(max(lin[0], 0.0)), "fs_n": float(max(lin[0], 0.0)), "vs_m_s": 1e-3, "delta": 2.0,
+                "viscous_n_s_m": float(max(lin[1], 0.0)), "offset_n": float(lin[2]), "rms_n": rms_lin,
+                "segments": float(v.size), "stribeck_identified": False}
     return {"fc_n": float(fc), "fs_n": float(fc + ds), "vs_m_s": float(math.exp(lvs)), "delta": float(dl),
-            "viscous_n_s_m": float(fv), "offset_n": float(off), "rms_n": rms, "segments": float(v.size)}
+            "viscous_n_s_m": float(fv), "offset_n": float(off), "rms_n": rms, "segments": float(v.size),
+            "stribeck_identified": True}
 
 
 # ================================================================================================ driver
@@ -314,13 +325,17 @@ class Identified:
     quality: dict[str, Any]
     meas: Measured
     virgin: tuple[FloatArray, FloatArray] | None = None
+    effects: dict[str, Any] = field(default_factory=dict)
 
 
-def _fit_quality(meas: Measured, spec: dict[str, Any], rows: npt.NDArray[np.bool_]) -> dict[str, float]:
+def _fit_quality(meas: Measured, spec: dict[str, Any], rows: npt.NDArray[np.bool_],
+                 effects: dict[str, Any] | None = None) -> dict[str, float]:
     from stagectl.friction import build
 
     model = build(spec)
     fm = model.force_along(meas.sig.xf, meas.sig.t)
+    if effects and "offset" in effects:
+        fm = fm + effects["offset"]["force_n"]
     fm = signal.sosfiltfilt(meas.sig.sos, fm)
     e = (meas.force - fm)[rows]
     ref = meas.force[rows]
@@ -375,8 +390,13 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
                             "needs steady motion at several speeds")
         spec = {"model": "stribeck", "fc_n": stri["fc_n"], "fs_n": stri["fs_n"], "vs_m_s": stri["vs_m_s"],
                 "delta": stri["delta"], "viscous_n_s_m": stri["viscous_n_s_m"]}
-        quality["fit"] = _fit_quality(meas, spec, meas.sig.evaluate)
-        return Identified(spec, meas.mass_kg, quality, meas, virgin)
+        effects = {}
+        if abs(stri["offset_n"]) > 0.02 * max(stri["fc_n"], 1e-12):
+            effects["offset"] = {"force_n": stri["offset_n"]}
+            quality["notes"].append(f"constant force {stri['offset_n']:.4g} N found with the friction curve; "
+                                    "written as effects.offset")
+        quality["fit"] = _fit_quality(meas, spec, meas.sig.evaluate, effects)
+        return Identified(spec, meas.mass_kg, quality, meas, virgin, effects)
 
     assert virgin is not None or model == "lugre"
     best: tuple[float, dict[str, Any], dict[str, Any]] | None = None

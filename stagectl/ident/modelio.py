@@ -12,6 +12,7 @@ A hypothesis becomes a :class:`stagectl.friction.StageModel` (``mass_kg`` + ``fr
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -36,7 +37,9 @@ def hyp_to_spec(h: Hyp, meta: dict[str, Any] | None = None) -> dict[str, Any]:
     delta = float(nl.get("delta", 2.0))
     lag = float(nl.get("lag_s", 0.0)) if h.has("frictional_lag") else 0.0
     friction: dict[str, Any]
-    if h.has("presliding"):
+    if "given_spec" in nl:
+        friction = scale_friction_spec(nl["given_spec"], max(float(th.get("given", 1.0)), 1e-9))
+    elif h.has("presliding"):
         d = np.asarray(nl["deltas_m"], float)
         w = np.array([max(th.get(f"w{i}", 0.0), 0.0) for i in range(d.size)])
         sig1 = np.array([max(th.get(f"s{i}", 0.0), 0.0) for i in range(d.size)])
@@ -83,6 +86,28 @@ def hyp_to_spec(h: Hyp, meta: dict[str, Any] | None = None) -> dict[str, Any]:
         out["effects"] = effects
     if meta:
         out["meta"] = meta
+    return out
+
+
+def scale_friction_spec(spec: dict[str, Any], c: float) -> dict[str, Any]:
+    """A friction spec whose force is ``c`` times the original's for every trajectory.
+
+    Every force-valued parameter (keys ending in ``_n``, ``_n_m``, ``_n_s_m``, ``_n_s``) is multiplied by ``c``;
+    displacement and velocity scales are unchanged. Hsieh's plastic law ``x_h = |F|^a/ψ`` needs ``ψ·c^a``.
+    """
+    out: dict[str, Any] = {}
+    for k, v in spec.items():
+        if k != "model" and k.endswith(("_n", "_n_m", "_n_s_m", "_n_s")) and v is not None:
+            if isinstance(v, (list, tuple)):
+                out[k] = [float(x) * c for x in v]
+            elif isinstance(v, (int, float)) and math.isfinite(float(v)):
+                out[k] = float(v) * c
+            else:
+                out[k] = v
+        else:
+            out[k] = v
+    if spec.get("model") == "hsieh" and "psi" in spec:
+        out["psi"] = float(spec["psi"]) * c ** float(spec.get("a", 1.0))
     return out
 
 
