@@ -155,20 +155,30 @@ def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     cfg.write_text(yaml.safe_dump(data))
     ns = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     ns.bind(str(d / "notify.sock"))
-    ns.settimeout(300)
+    ns.settimeout(0.5)
     exe = Path(sys.executable).parent / "stagectl"
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
+    errlog = open(d / "daemon.stderr", "w+")  # a file, not a pipe: nobody reads it for 10 minutes
     proc = subprocess.Popen([*cmd, "daemon", "--config", str(cfg), "--runtime-dir", str(d / "run")],
                             env={**os.environ, "NOTIFY_SOCKET": str(d / "notify.sock")},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    while b"READY=1" not in ns.recv(65536):
-        pass
+                            stdout=subprocess.DEVNULL, stderr=errlog, text=True)
+    while True:
+        try:
+            if b"READY=1" in ns.recv(65536):
+                break
+        except TimeoutError:
+            if proc.poll() is not None:
+                errlog.seek(0)
+                raise RuntimeError(f"daemon exited ({proc.returncode}) before READY:\n{errlog.read()[-3000:]}")
     t_ready = time.monotonic()
     time.sleep(duration_s)
     with ControlClient(d / "run" / "control.sock") as c:
         st = c.request({"request": "status"})["status"]
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
+    proc.wait(60)
+    errlog.seek(0)
+    err = errlog.read()
+    errlog.close()
     wall = time.monotonic() - t_ready
     files = sorted((d / "telemetry").glob("telemetry-*.csv"))
     rows = 0

@@ -14,8 +14,8 @@ takes a lock the loop takes; they talk to the loop only through ``loop.request``
 cycle boundary), ``loop.status()`` (a snapshot) and the telemetry ring (lock-free).
 
 Watchdog (PLATFORM_NOTES.md section 5): ``WATCHDOG=1`` is sent from the supervisor's check, never from a
-free-running thread, and only if since the previous check the loop's cycle counter advanced and the recent
-overrun fraction is at or below ``loop.healthy_overrun_fraction``. A latched *fault* does not stop the pings:
+free-running thread, and only if since the previous check the loop's cycle counter advanced and the overrun
+fraction over the last 10 s (:class:`HealthWindow`) is at or below ``loop.healthy_overrun_fraction``. A latched *fault* does not stop the pings:
 the loop is still cycling and holding the stage safely; restarting the process would only lose the latch.
 A hung or dead loop stops the pings, and systemd kills and restarts the service (``Restart=on-failure``);
 the drive's own heartbeat consumer stops the stage if the process dies.
@@ -37,6 +37,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,6 +60,39 @@ class Lifecycle(enum.Enum):
     FAULT = "fault"
     STOPPING = "stopping"
     STOPPED = "stopped"
+
+
+class HealthWindow:
+    """Loop health as the supervisor sees it, over a sliding time window.
+
+    Samples ``(t, cycle, overruns)`` from ``loop.status()``; the overrun fraction over the window is
+
+        f = Δoverruns / (Δcycles + Δoverruns)        (skipped slots / all slots in the last ``window_s``)
+
+    A time window (not "since start") keeps one start-up stall (JIT compile, first GC) from making a young
+    process look unhealthy for minutes, and keeps a long-running one sensitive to a new problem.
+    """
+
+    def __init__(self, window_s: float = 10.0) -> None:
+        self.window_s = window_s
+        self.samples: deque[tuple[float, int, int]] = deque()
+
+    def add(self, t_s: float, cycle: int, overruns: int) -> None:
+        self.samples.append((t_s, int(cycle), int(overruns)))
+        while len(self.samples) > 2 and self.samples[1][0] <= t_s - self.window_s:
+            self.samples.popleft()
+
+    def advancing(self) -> bool:
+        """The cycle counter increased between the last two samples."""
+        return len(self.samples) >= 2 and self.samples[-1][1] > self.samples[-2][1]
+
+    def overrun_fraction(self) -> float:
+        if len(self.samples) < 2:
+            return 0.0
+        _, c0, o0 = self.samples[0]
+        _, c1, o1 = self.samples[-1]
+        slots = (c1 - c0) + (o1 - o0)
+        return (o1 - o0) / slots if slots > 0 else 0.0
 
 
 @dataclass
@@ -123,7 +157,7 @@ class StageService:
         self._started_mono = time.monotonic()
         self.reload_status: dict[str, Any] | None = None
         self.fault_flushes = 0
-        self._last_cycle = -1
+        self.health = HealthWindow()
         self._watchdog_pings = 0
         self._watchdog_withheld = 0
         self._watchdog_reason = ""
@@ -199,7 +233,7 @@ class StageService:
         demote_to_normal_priority()
         self.notify.status("enabling drive, starting loop")
         deadline = time.monotonic() + self.cfg.ready_timeout_s
-        first_cycle: int | None = None
+        limit = self._overrun_limit()
         while True:
             if self._term_signal is not None:
                 return 0
@@ -208,19 +242,19 @@ class StageService:
                 raise StageError(f"control loop ended during start-up: {self._loop_end_reason()}")
             if st.get("state") == "fault":
                 raise StageError(f"fault during start-up: {_fault_text(st.get('fault'))}")
-            if st.get("healthy") and self._drive_enabled():
-                cyc = int(st.get("cycle", 0))
-                if first_cycle is None:
-                    first_cycle = cyc
-                elif cyc > first_cycle:  # advancing, not just started
+            if st.get("state") == "active" and st.get("running"):
+                self.health.add(time.monotonic(), st.get("cycle", 0), st.get("overruns", 0))
+                # READY: drive enabled, loop cycling, and few overruns since we started watching it
+                if (self._drive_enabled() and self.health.advancing() and len(self.health.samples) >= 5
+                        and self.health.overrun_fraction() <= limit):
                     break
             if time.monotonic() > deadline:
                 raise StageError(
                     f"loop not healthy within {self.cfg.ready_timeout_s:g} s (state {st.get('state')}, "
-                    f"cycle {st.get('cycle')}, drive enabled {self._drive_enabled()})")
-            self._wake.wait(0.01)
+                    f"cycle {st.get('cycle')}, overrun fraction {self.health.overrun_fraction():.2%} "
+                    f"(limit {limit:.2%}), drive enabled {self._drive_enabled()})")
+            self._wake.wait(0.02)
         self.state = Lifecycle.ACTIVE
-        self._last_cycle = int(loop.status().get("cycle", 0))
         self.notify.ready(self._status_line())
         log.info("ready: drive enabled, loop healthy; control socket %s", self.socket_path)
         return None
@@ -272,6 +306,10 @@ class StageService:
             idle_timeout_s=c.client_idle_timeout_s, reply_timeout_s=c.reply_timeout_s)
         self.server.start()
 
+    def _overrun_limit(self) -> float:
+        cfg = getattr(self.asm.loop, "cfg", None) if self.asm else None
+        return float(getattr(cfg, "healthy_overrun_fraction", 0.01))
+
     def _loop_status_cached(self, max_age_s: float = 0.05) -> dict[str, Any]:
         """``loop.status()`` at most every ``max_age_s`` for clients: computing percentiles holds the GIL, so
         a client flooding ``status`` requests must not translate into loop lateness."""
@@ -322,10 +360,10 @@ class StageService:
                 log.info("loop active again")
             last_loop_state = lstate
             # -------------------------------------------------- watchdog (health check, not a timer)
-            cyc = int(st.get("cycle", -1))
-            frac = float(st.get("recent_overrun_fraction", 0.0))
-            limit = float(getattr(getattr(loop, "cfg", None), "healthy_overrun_fraction", 0.01))
-            if cyc > self._last_cycle and frac <= limit:
+            self.health.add(time.monotonic(), st.get("cycle", 0), st.get("overruns", 0))
+            frac = self.health.overrun_fraction()
+            limit = self._overrun_limit()
+            if self.health.advancing() and frac <= limit:
                 if self.notify.watchdog():
                     self._watchdog_pings += 1
                 if self._watchdog_reason:
@@ -333,13 +371,12 @@ class StageService:
                 self._watchdog_reason = ""
             else:
                 self._watchdog_withheld += 1
-                stalled = cyc <= self._last_cycle
-                reason = ("cycle counter not advancing" if stalled
-                          else f"recent overrun fraction above loop.healthy_overrun_fraction {limit:.3%}")
+                reason = ("cycle counter not advancing" if not self.health.advancing()
+                          else f"overruns in the last {self.health.window_s:g} s above "
+                               f"loop.healthy_overrun_fraction {limit:.3%}")
                 if reason != self._watchdog_reason:  # log each change of cause once, not every tick
                     log.error("watchdog withheld: %s (now %.3f%%)", reason, 100 * frac)
                 self._watchdog_reason = reason
-            self._last_cycle = max(self._last_cycle, cyc)
             # -------------------------------------------------- reload
             if self._hup_pending:
                 self._hup_pending = 0
@@ -493,6 +530,7 @@ class StageService:
             "telemetry": self.writer.status() if self.writer else None,
             "reload": self.reload_status,
             "watchdog": {"interval_s": self.notify.watchdog_s, "pings": self._watchdog_pings,
+                         "overrun_fraction_10s": self.health.overrun_fraction(),
                          "withheld": self._watchdog_withheld, "reason": self._watchdog_reason or None},
             "control": {"clients": self.server.clients if self.server else 0,
                         **(self.server.stats if self.server else {})},

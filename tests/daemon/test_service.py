@@ -160,3 +160,17 @@ def test_watchdog_withheld_while_the_loop_hangs(tmp_path, notify_socket, rig_loa
         dut.request_stop()
         th.join(30)
     assert result["code"] == 0
+
+
+def test_health_window_fraction_over_time_not_since_start():
+    from stagectl.daemon.service import HealthWindow
+
+    dut = HealthWindow(window_s=10.0)
+    dut.add(0.0, 0, 0)
+    dut.add(1.0, 900, 100)  # a start-up stall: 100 of 1000 slots skipped
+    assert dut.advancing() and dut.overrun_fraction() == 0.1
+    for k in range(2, 13):  # then 11 s of clean cycling
+        dut.add(float(k), 900 + 1000 * (k - 1), 100)
+    assert dut.overrun_fraction() == 0.0  # the stall left the window
+    dut.add(13.0, 900 + 11000, 100)  # no cycles in the last second: stalled
+    assert not dut.advancing()
