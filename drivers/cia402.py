@@ -59,12 +59,11 @@ from stagectl.drivers.base import (
 )
 from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus, pumping
 from stagectl.errors import ConfigError, DriveFault, DriverError, DriverInitError, DriverIOError, DriverTimeoutError
+from stagectl.resources import EDS_DIR
 from stagectl.schema import param
 
 log = logging.getLogger(__name__)
 
-#: directory of the EDS files written for stagectl
-EDS_DIR = Path(__file__).resolve().parents[1] / "config" / "eds"
 DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 
 SYNC_COB_ID = 0x080

@@ -43,12 +43,12 @@ from typing import Any
 
 import can
 
+from stagectl.resources import EDS_DIR
 from stagectl.schema import param
 from stagectl.sim.faults import FaultSchedule, FaultSpec, SimFault
 
 log = logging.getLogger(__name__)
 
-EDS_DIR = Path(__file__).resolve().parents[1] / "config" / "eds"
 
 NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0, 4, 5, 127
 _FMT = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h", (32, False): "I", (32, True): "i"}
