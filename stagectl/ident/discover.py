@@ -22,8 +22,21 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 
 Among acceptable effects the one with the largest gain is named, except that a richer effect that contains
 a simpler acceptable one (spring ⊃ offset, asymmetry ⊃ offset, frictional_lag ⊃ stribeck) is named only if it
-beats the simpler one by the same two tests. Rejected candidates (fit on estimation data but fail on
+beats the simpler one by the same tests. Rejected candidates (fit on estimation data but fail on
 validation data) are reported with their figures. Rounds repeat until nothing more is accepted.
+
+Two refinements of the greedy search:
+
+* **pairs**: when no single effect validates, pairs of the best-fitting candidates are tried (interacting
+  effects, e.g. an offset and a cogging whose position coverage differs between estimation and validation
+  blocks, each biasing the other's fit alone); a pair must pass the same test;
+* **pruning**: at the end, an accepted effect that later, richer effects made redundant (an offset accepted
+  before the asymmetry or spring that contains it) is removed when the model without it is not
+  significantly worse; it is then listed under ``rejected`` with the reason.
+
+Stick phases (DISCOVERY_NOTES §5) are excluded explicitly (see :mod:`stagectl.ident.signals`); a frictional lag
+shorter than two samples is treated as no lag; ripple/cogging phases are fitted on estimation data only, so a
+phase-locked ripple that does not transfer fails validation and is rejected (§6).
 """
 
 from __future__ import annotations
@@ -461,6 +474,27 @@ def evidence(name: str, sig: Signals, rows: BoolArray, r_before: FloatArray, aft
 
 
 # ================================================================================================ workflow
+def _refresh(ds: Dataset, fr: FitResult) -> FitResult:
+    """Re-search the cheap nonlinear parameters that trade off with effects added later (asymmetry ratio,
+    delay) around their current values; keep the result only if the estimation fit improves."""
+    h = fr.hyp
+    best = fr
+    if h.has("asymmetry"):
+        r0 = float(h.nl.get("r", 0.0))
+        r, f = rg._best_scalar(lambda r: _fit_with(ds, best.hyp, r=r).rss, [r0 - 0.05, r0, r0 + 0.05], -0.95, 0.95,
+                               log=False, maxiter=10)
+        if f < best.rss:
+            best = _fit_with(ds, best.hyp, r=r)
+    if h.has("delay"):
+        dt = ds.est.dt_s
+        t0 = float(h.nl.get("delay_s", 0.0))
+        tau, f = rg._best_scalar(lambda s: _fit_with(ds, best.hyp, delay_s=s).rss,
+                                 [max(t0 - 0.5 * dt, 0.0), t0, t0 + 0.5 * dt], 0.0, 20 * dt, log=False, maxiter=10)
+        if f < best.rss:
+            best = _fit_with(ds, best.hyp, delay_s=tau)
+    return best
+
+
 def _prune(ds: Dataset, cur: FitResult, effects: list[dict[str, Any]], rejected: list[dict[str, Any]],
            min_explained: float) -> FitResult:
     """Backward check: an accepted effect that a later, richer one made redundant (e.g. an offset accepted
@@ -647,7 +681,7 @@ def discover(
                         "evidence": evidence(name, ds.val, ds.val_rows, r_before, fr.hyp, cmp)
                         + f" (neither {a} nor {b} validated alone: each biases the other's fit; accepted as a pair)",
                     })
-                cur = fr
+                cur = _refresh(ds, fr)
                 history.append(cur.hyp)
                 continue
             for item in info:
@@ -667,7 +701,7 @@ def discover(
             "gap_after": cmp.gap_after, "evidence": evidence(chosen, ds.val, ds.val_rows,
                                                               rg.residual(ds.val, cur.hyp), fr.hyp, cmp),
         })
-        cur = fr
+        cur = _refresh(ds, fr)
         history.append(cur.hyp)
     cur = _prune(ds, cur, effects, rejected, force_rms)
     g1, _ = gap(ds.val, ds.val_rows, cur.hyp)

@@ -38,6 +38,10 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
+#: samples on each side of a stick phase also treated as stuck (they contain the transition)
+ERODE = 2
+
+
 def lowpass_sos(cutoff_hz: float, fs_hz: float, order: int = 4) -> FloatArray:
     """Butterworth low-pass in second-order sections (cut-off clipped below Nyquist)."""
     wn = min(cutoff_hz / (0.5 * fs_hz), 0.95)
@@ -107,17 +111,33 @@ class Signals:
         return np.asarray(signal.sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
 
     def ubar(self, delay_s: float = 0.0) -> FloatArray:
-        """Average applied force over [t[k−1], t[k+1]] for an actuation delay ``delay_s`` [N]."""
+        """Applied force seen by the second difference at ``t[k]`` for an actuation delay ``delay_s`` [N].
+
+        ``x[k+1] − 2x[k] + x[k−1] = ∫ Λ(t − t[k])·a(t) dt`` with the hat kernel Λ (height dt, support
+        ±dt), so the force to pair with it is ``(1/dt²)∫Λ·u(t − τ)dt``. For a held command delayed by
+        τ = (n + f)·dt this is the quadratic B-spline
+        ``f²/2·u[k−n−2] + (1/2 + f − f²)·u[k−n−1] + (1−f)²/2·u[k−n]`` (τ = 0: ``(u[k−1] + u[k])/2``).
+        """
         key = f"ubar:{delay_s:.6e}"
         hit = self.cache.get(key)
         if hit is not None:
             return hit  # type: ignore[return-value]
-        ud = shift_zoh(self.u, delay_s / self.dt_s)
-        ub = np.empty_like(ud)
-        ub[1:] = 0.5 * (ud[:-1] + ud[1:])
-        ub[0] = ud[0]
+        ub = hat_average(self.u, delay_s / self.dt_s)
         self.cache[key] = ub
         return ub
+
+
+def hat_average(u: FloatArray, shift_samples: float) -> FloatArray:
+    """Hat-kernel average of a held command delayed by ``shift_samples`` (see :meth:`Signals.ubar`)."""
+    s = max(float(shift_samples), 0.0)
+    n = int(math.floor(s))
+    f = s - n
+    m = u.shape[0]
+    pad = np.concatenate([np.full(n + 2, u[0]), u])
+    u_n = pad[2 : 2 + m]  # u[k-n]
+    u_n1 = pad[1 : 1 + m]  # u[k-n-1]
+    u_n2 = pad[0:m]  # u[k-n-2]
+    return np.asarray(0.5 * f * f * u_n2 + (0.5 + f - f * f) * u_n1 + 0.5 * (1 - f) ** 2 * u_n, dtype=np.float64)
 
 
 def shift_zoh(u: FloatArray, shift_samples: float) -> FloatArray:
@@ -218,6 +238,17 @@ def prepare(
     thr = max(6.0 * math.sqrt(2.0) * noise, 2.5 * q)
     moving = (np.abs(dxc) > thr) & (np.abs(v) > v_th)
     moving[0] = moving[-1] = False
+    # a reversal without a stick phase happens inside an interval: the friction changes sign mid-interval,
+    # which no per-sample model column represents; those samples are treated like stick samples
+    sd = np.sign(dxc)
+    turn = moving[:-1] & moving[1:] & (sd[:-1] != sd[1:])
+    moving[:-1] &= ~turn
+    moving[1:] &= ~turn
+    # the samples next to a stick phase contain the stick/slip transition somewhere inside the interval
+    # (acceleration not constant over it): treat ERODE samples on each side as stuck too
+    for _ in range(ERODE):
+        moving[1:] &= moving[:-1].copy()
+        moving[:-1] &= moving[1:].copy()
     stuck = ~moving
     near = np.convolve(stuck.astype(np.float64), np.ones(2 * guard + 1), mode="same") > 0
     evaluate = moving & ~near

@@ -115,6 +115,7 @@ def closed_loop(
     bandwidth_hz: float = 20.0,
     mass_estimate_kg: float | None = None,
     source: str = "synth",
+    x_ref: FloatArray | None = None,
 ) -> Recording:
     """Simulate a closed-loop recording.
 
@@ -127,6 +128,8 @@ def closed_loop(
         Reference design.
     bandwidth_hz : float
         PID bandwidth [Hz]: kp = m̂ω², kd = 1.4·m̂ω, ki = kp·ω/8.
+    x_ref : array, optional
+        A reference position [m] per sample to use instead of :func:`reference` (``motion`` is then ignored).
 
     Returns
     -------
@@ -138,7 +141,12 @@ def closed_loop(
     cfg = PlantConfig.from_mapping({**dict(plant_cfg), "seed": int(seed)})
     plant = StagePlant(cfg)
     m_hat = float(mass_estimate_kg if mass_estimate_kg is not None else cfg.mass_kg)
-    x_ref, v_ref, a_ref = reference(motion or Motion(), dt_s, seed)
+    if x_ref is None:
+        x_ref, v_ref, a_ref = reference(motion or Motion(), dt_s, seed)
+    else:
+        x_ref = np.asarray(x_ref, dtype=np.float64)
+        v_ref = np.gradient(x_ref, dt_s)
+        a_ref = np.gradient(v_ref, dt_s)
     w = 2 * math.pi * bandwidth_hz
     kp, kd, ki = m_hat * w * w, 1.4 * m_hat * w, m_hat * w**3 / 8.0
     n = x_ref.size

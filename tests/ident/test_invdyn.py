@@ -7,28 +7,31 @@ import pytest
 
 from stagectl.ident import discover as dsc
 from stagectl.ident.recording import Recording
-from stagectl.ident.signals import prepare, shift_zoh
+from stagectl.ident.signals import hat_average, prepare
 
 
 def _rigid_body(n: int = 6000, dt: float = 1e-3, m: float = 2.5, fv: float = 8.0, delay_samples: float = 0.0,
-                seed: int = 3) -> Recording:
-    """Exact ZOH simulation of m·a = u(t − τ) − fv·v (no friction jump, no noise): u[k] held over [t_k, t_k+1)."""
+                seed: int = 3, sub: int = 10) -> Recording:
+    """Exact simulation of m·a = u(t − τ) − fv·v (no friction jump, no noise): u[k] held over [t_k, t_k+1),
+    applied τ later (so it switches inside an interval for fractional τ); ``sub`` exact sub-steps per sample."""
     rng = np.random.default_rng(seed)
     # smooth random force: band-limited noise plus a slow sine keeps the stage moving
     u = np.convolve(rng.standard_normal(n), np.ones(15) / 15, mode="same") * 4.0 + 3.0 * np.sin(
         2 * np.pi * 0.7 * np.arange(n) * dt)
-    ua = shift_zoh(u, delay_samples)
+    h = dt / sub
+    a_ = fv / m
+    e = np.exp(-a_ * h)
     x = np.zeros(n)
     v = 0.0
     xk = 0.0
+    tau = delay_samples * dt
     for k in range(n - 1):
-        # exact solution of m·dv/dt = ua − fv·v over one interval with ua held
-        a_ = fv / m
-        e = np.exp(-a_ * dt)
-        v_inf = ua[k] / fv
-        x_next = xk + v_inf * dt + (v - v_inf) * (1 - e) / a_
-        v = v_inf + (v - v_inf) * e
-        xk = x_next
+        for j in range(sub):
+            idx = int(np.floor(k + (j + 0.5) / sub - tau / dt))  # the command applied in this sub-step
+            ua = u[max(idx, 0)]
+            v_inf = ua / fv
+            xk += v_inf * h + (v - v_inf) * (1 - e) / a_
+            v = v_inf + (v - v_inf) * e
         x[k + 1] = xk
     return Recording(t=np.arange(n) * dt, x=x, u=u, source="rigid-body")
 
@@ -57,6 +60,25 @@ def test_fractional_delay_is_recovered() -> None:
     cur = dsc.fit_start(ds)
     fit = dsc.fit_candidate(ds, cur, "delay")
     assert fit.hyp.nl["delay_s"] == pytest.approx(1.4e-3, abs=0.05e-3)
+
+
+def test_hat_average_pairs_delayed_zoh_force_exactly() -> None:
+    """Second difference of an exactly integrated double integrator = hat-kernel average of the delayed force."""
+    rng = np.random.default_rng(0)
+    n, dt, m, sub = 200, 1e-3, 2.0, 40
+    u = rng.standard_normal(n)
+    for s in (0.0, 0.4, 1.4, 2.7):
+        x, v, xs = 0.0, 0.0, [0.0]
+        h = dt / sub
+        for k in range(n - 1):
+            for j in range(sub):
+                ua = u[max(int(np.floor(k + (j + 0.5) / sub - s)), 0)]
+                x += v * h + 0.5 * ua / m * h * h
+                v += ua / m * h
+            xs.append(x)
+        xa = np.array(xs)
+        acc = (xa[2:] - 2 * xa[1:-1] + xa[:-2]) / dt**2
+        np.testing.assert_allclose(m * acc[10:-2], hat_average(u, s)[1:-1][10:-2], atol=1e-8)
 
 
 def test_prepare_marks_rest_as_stuck() -> None:
