@@ -105,6 +105,11 @@ def _elements(sig: Signals, deltas: Sequence[float]) -> FloatArray:
     return np.column_stack([_element(sig, d) for d in deltas])
 
 
+def min_damped_delta(sig: Signals) -> float:
+    """Smallest break displacement [m] that gets a micro-damping column: 20 noise levels, 5 counts."""
+    return max(20.0 * sig.noise_m, 5.0 * sig.quantum_m, 1e-8)
+
+
 def _element_rate(sig: Signals, delta: float) -> FloatArray:
     """Element deflection rate dz/dt [m/s] (micro-damping column: force σ1_i·dz_i/dt)."""
     return _cached(sig, f"rate:{delta:.6e}", lambda: np.asarray(
@@ -122,16 +127,15 @@ def _given(sig: Signals, spec: dict[str, Any]) -> FloatArray:
 
 
 def _gated_position(sig: Signals) -> FloatArray:
-    """Position that advances only on moving samples and only in the measured direction of motion.
+    """Position that drives the pre-sliding elements: the **raw** measured position.
 
-    The zero-phase filtered position anticipates a reversal by a few samples; pre-sliding elements driven
-    by it would flip before the stage does. Gating its increments with the raw direction keeps the element
-    states consistent with ``sgn(v)`` used elsewhere.
+    The zero-phase filtered position anticipates a reversal by a few samples (elements driven by it would flip
+    before the stage does), and gating out slow samples would lose the sub-threshold creep that stiff
+    pre-sliding elements respond to. The raw position has neither problem; its noise only toggles elements
+    far smaller than any resolvable break displacement (the grid starts at 4 noise levels).
     """
     def make() -> FloatArray:
-        inc = np.zeros(sig.n)
-        inc[1:-1] = 0.5 * (sig.x[2:] - sig.x[:-2])  # raw central displacement: sign = direction when moving
-        return np.ascontiguousarray(sig.xf[0] + np.cumsum(np.where(sig.moving, inc, 0.0)))
+        return np.ascontiguousarray(sig.x, dtype=np.float64)
 
     return _cached(sig, "xgated", make)
 
@@ -155,8 +159,12 @@ def friction_columns(sig: Signals, h: Hyp) -> list[tuple[str, FloatArray]]:
         for i, d in enumerate(h.nl["deltas_m"]):
             cols.append((f"w{i}", _element(sig, d)))
         if h.nl.get("damped", True):
+            # micro-damping only on elements that stay elastic over more than a sample at typical reversal
+            # speeds; on the stiffest ones dz/dt is a one-sample spike that would fit transients, not physics
+            d_min = min_damped_delta(sig)
             for i, d in enumerate(h.nl["deltas_m"]):
-                cols.append((f"s{i}", _element_rate(sig, d)))
+                if d >= d_min:
+                    cols.append((f"s{i}", _element_rate(sig, d)))
     if h.has("stribeck"):
         lag = float(h.nl.get("lag_s", 0.0)) if h.has("frictional_lag") else 0.0
         cols.append(("ds", _stribeck_col(sig, h.nl["vs_m_s"], h.nl.get("delta", 2.0), lag)))
