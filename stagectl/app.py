@@ -111,32 +111,25 @@ class TrajectoryReference:
     def stop(self, t_s: float) -> float:
         """Decelerate (jerk-limited, the generator's default move limits) and hold where the reference comes
         to rest; returns that position [m]."""
-        from stagectl.control import trajectory as tr
+        from stagectl.control.trajectory import Move
 
         self._repeat = False
         self._scenario = None
         self.sample(t_s)
-        x0, v0, a0 = self.gen.sample()
-        if v0 == 0.0 and a0 == 0.0:
-            end = x0
-        else:
-            lim = tr.Move(by_m=0.0)
-            # where a jerk-limited stop from (x0, v0, a0) ends (TrajectoryGenerator has no public stop yet)
-            phases = tr._stop_phases(v0, a0, lim.max_acceleration_m_s2, lim.max_jerk_m_s3)
-            end = float(tr._Phases(x0, v0, a0, phases).end.x_m)
-        self.gen.replace(tr.Move(to_m=end))
+        lim = Move(by_m=0.0)
+        end = float(self.gen.stop(lim.max_acceleration_m_s2, lim.max_jerk_m_s3))
         self._target = end
         return end
 
-    def _end_position(self) -> float:
-        cur = getattr(self.gen, "_cur", None)
-        end = getattr(cur, "end", None)
-        return float(end.x_m) if end is not None else float(self.gen.sample().x_m)
+    @property
+    def scenario(self) -> Any:
+        """The scenario set with :meth:`set_scenario` (None after a move/stop request took over)."""
+        return self._scenario
 
     @property
     def target_m(self) -> float:
         if math.isnan(self._target):
-            return self._end_position()
+            return float(self.gen.final_reference().x_m)
         return self._target
 
 

@@ -82,7 +82,7 @@ def run_case(cfg: Any, ctl_cfg: Any, scenario: str, *, model: Any = None, skip_s
     ctl = StageController(ctl_cfg, cfg.loop.period_s, model=model, base_dir=cfg.base_dir)
     with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
         stage.load_scenario(scenario)
-        sc = stage.reference._scenario  # type: ignore[union-attr]
+        sc = stage.reference.scenario  # type: ignore[union-attr]
         duration = sc.duration_s(0.0) + 0.2
         rec = Recorder(stage.loop.columns, int(duration / cfg.loop.period_s) + 16)
         stage.loop.add_sink(rec)

@@ -282,11 +282,7 @@ class StageController:
         elif new_dob is not None and new_dob is not old_dob and isinstance(new_dob, KalmanDob):
             # prepared off-loop with the new gain; take over the running state and command history
             if isinstance(old_dob, KalmanDob):
-                new_dob.state = old_dob.state
-                n = new_dob.cfg.command_delay_samples
-                hist = list(old_dob._delay)
-                new_dob._delay.clear()
-                new_dob._delay.extend((hist + [old_dob.state.u_obs_n] * n)[:n] if n else [])
+                new_dob.take_over(old_dob)
         elif new_dob is not None:
             new_dob.retune(parts.cfg.dob, parts.mass_kg)  # Q-filter: cheap, bumpless
         # feed-forward

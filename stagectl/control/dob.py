@@ -195,6 +195,13 @@ class KalmanDob:
         old = list(self._delay)
         self._delay = deque((old + [self.state.u_obs_n] * n)[:n] if n else [])
 
+    def take_over(self, old: KalmanDob) -> None:
+        """Continue from ``old``'s running estimate [x, v, τ] and command history (bumpless gain swap)."""
+        self.state = old.state
+        n = self.cfg.command_delay_samples
+        hist = list(old._delay)
+        self._delay = deque((hist + [old.state.u_obs_n] * n)[:n] if n else [])
+
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Predict with the previous observer input, correct with ``x_meas_m``; return d̂ = τ⁺ [N].
 

@@ -430,6 +430,30 @@ class TrajectoryGenerator:
                     max_acceleration_m_s2=max_acceleration_m_s2, max_jerk_m_s3=max_jerk_m_s3)
         (self.replace if replace else self.queue)(spec)
 
+    def stop(self, max_acceleration_m_s2: float = 0.1, max_jerk_m_s3: float = 100.0) -> float:
+        """Abandon the current motion and queue; bring the reference to rest (jerk-limited) and hold there.
+
+        From the current reference state (x0, v0, a0): first ramp a to 0 at ±J_max, then a symmetric
+        velocity change to v = 0 with |a| <= A_max, |j| <= J_max. No jump in x, v or a, and no move back:
+        the reference holds where it comes to rest. Returns that position [m].
+        """
+        if not (max_acceleration_m_s2 > 0.0 and max_jerk_m_s3 > 0.0
+                and math.isfinite(max_acceleration_m_s2) and math.isfinite(max_jerk_m_s3)):
+            raise ValueError("stop: max_acceleration_m_s2 and max_jerk_m_s3 must be > 0 and finite")
+        x0, v0, a0 = self.state.ref
+        self._queue.clear()
+        if v0 == 0.0 and a0 == 0.0:
+            self._advance_segment(Reference(x0))
+            return x0
+        phases = _stop_phases(v0, a0, max_acceleration_m_s2, max_jerk_m_s3)
+        b = _Phases(x0, v0, a0, phases, x_end=_Phases(x0, v0, a0, phases).end.x_m)  # snap v, a to exact rest
+        self._cur = b
+        self._name = "stop"
+        self.state.queued = 0
+        self.state.tau_s = 0.0
+        self.state.segment = self._name
+        return b.end.x_m
+
     # ---------------------------------------------------------------- stepping
     def sample(self) -> Reference:
         return self.state.ref

@@ -173,3 +173,32 @@ def test_final_reference_reports_where_the_queue_ends():
     assert end == Reference(10e-6 + 5e-6, 0.0, 0.0)  # by_m is added to the segment's start position
     _run(dut, 1e-3)
     assert dut.sample() == end and dut.done
+
+
+@pytest.mark.parametrize("n_steps", [5, 40, 120])  # accelerating (a ≠ 0), cruising, decelerating
+def test_stop_is_jerk_limited_and_holds_where_it_comes_to_rest(n_steps):
+    dut = TrajectoryGenerator(0.0)
+    dut.move(200e-6, max_velocity_m_s=2e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0)
+    dut.queue(Dwell(0.5))
+    dt = 1e-4
+    for _ in range(n_steps * 10):
+        dut.step(dt)
+    x0, v0, a0 = dut.sample()
+    assert v0 > 0
+    end = dut.stop(max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0)
+    assert end >= x0 and dut.remaining_s() > 0 and dut.final_reference() == Reference(end, 0.0, 0.0)
+    tr = _run(dut, dt)
+    assert np.all(tr[:, 1] >= -1e-15)  # never reverses
+    assert np.max(np.abs(tr[:, 2])) <= 0.05 * (1 + 1e-9)
+    assert np.max(np.abs(np.diff(tr[:, 2]))) <= 20.0 * dt * (1 + 1e-6)  # jerk bound: no step in a
+    assert abs(tr[1, 0] - x0) < 2e-3 * dt * 1.01  # continuous in x from the stop request
+    assert dut.done and tuple(dut.sample()) == (end, 0.0, 0.0)
+
+
+def test_stop_at_rest_holds_in_place():
+    dut = TrajectoryGenerator(7e-6)
+    dut.queue(Dwell(1.0))
+    dut.step(1e-3)
+    assert dut.stop() == 7e-6 and dut.done
+    with pytest.raises(ValueError, match="max_jerk_m_s3"):
+        dut.stop(max_jerk_m_s3=0.0)
