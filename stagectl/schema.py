@@ -30,6 +30,7 @@ import dataclasses
 import difflib
 import enum
 import math
+import re
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -104,6 +105,11 @@ def param(
 def _unit(meta: Mapping[str, Any]) -> str:
     u = meta.get("unit") or ""
     return f" {u}" if u else ""
+
+
+def _unit_of_list(meta: Mapping[str, Any]) -> str:
+    u = meta.get("unit") or ""
+    return f" (values in {u})" if u else ""
 
 
 def _fmt(v: Any) -> str:
@@ -204,7 +210,7 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
         return None
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            problems.append(f"{path}: expected a list, got {value!r}")
+            problems.append(f"{path}: expected a list{_unit_of_list(meta)}, got {value!r}")
             return None
         elem_t = args[0] if args else Any
         out = []
@@ -261,9 +267,24 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
     except (ConfigError, ValueError, TypeError) as exc:  # __post_init__ cross-field checks
         msgs = exc.problems if isinstance(exc, ConfigError) else [str(exc)]
         for m in msgs:
-            problems.append(m if m.startswith(prefix) and prefix else f"{where}: {m}")
+            problems.append(_post_init_message(m, prefix, where, flds))
         return None
     return obj
+
+
+def _post_init_message(msg: str, prefix: str, where: str, names: Mapping[str, Any]) -> str:
+    """Give a ``__post_init__`` message its full key path.
+
+    ``"fs_n: must be >= fc_n ..."`` raised by the dataclass at ``friction`` becomes
+    ``"friction.fs_n: must be >= fc_n ..."``; a message that names no field of the class is put under the
+    class's own path (``"friction: ..."``).
+    """
+    if prefix and msg.startswith(prefix):
+        return msg
+    head = re.split(r"[\[.:\s]", msg, maxsplit=1)[0]
+    if head in names and msg[len(head):len(head) + 1] in (":", "[", "."):
+        return f"{prefix}{msg}"
+    return f"{where}: {msg}"
 
 
 def load(cls: type[T], data: Any, path: str = "") -> T:
@@ -291,6 +312,8 @@ def load_yaml_file(path: str | Path) -> Any:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file (byte {exc.start}: {exc.reason})") from exc
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -87,7 +87,11 @@ def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel 
         return None
     tag = value.get("model")
     reg = registry()
-    if tag not in reg:
+    if tag is None:
+        problems.append(f"{path}.model: required key missing (the friction model tag, one of: "
+                        f"{', '.join(sorted(reg))})")
+        return None
+    if not isinstance(tag, str) or tag not in reg:
         problems.append(f"{path}.model: unknown friction model {tag!r} (known: {', '.join(sorted(reg))})")
         return None
     cls = reg[tag]
@@ -136,6 +140,9 @@ class StageModel:
 def load_model_file(path: str | Path) -> StageModel:
     """Load a model file (see module docstring). A bare friction mapping (with ``model:``) is accepted too."""
     data = load_yaml_file(path)
+    if data is not None and not isinstance(data, Mapping):
+        raise ConfigError(f"{path}: expected a model file mapping (mass_kg, friction, effects, meta), "
+                          f"got {type(data).__name__} {data!r:.60}")
     if isinstance(data, Mapping) and "model" in data and "friction" not in data:
         data = {"friction": data}
     try:

@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from stagectl.errors import ConfigError
 from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, stribeck_excess
 from stagectl.friction.base import register
 from stagectl.schema import param
@@ -164,7 +165,7 @@ class GmsParams:
 
     def __post_init__(self) -> None:
         n = len(self.k_n_m)
-        problems = []
+        problems: list[str] = []
         if n == 0:
             problems.append("k_n_m: needs at least one element")
         if len(self.alpha) != n:
@@ -178,7 +179,7 @@ class GmsParams:
         elif len(self.sigma1_n_s_m) != n:
             problems.append(f"sigma1_n_s_m: needs 1 or {n} entries (got {len(self.sigma1_n_s_m)})")
         if problems:
-            raise ValueError("; ".join(problems))
+            raise ConfigError(problems)
 
 
 @register

@@ -333,7 +333,7 @@ def test_simulate_batch_equals_individual_runs():
 
 
 def test_substep_too_large_for_stiffness_or_damping_is_rejected():
-    with pytest.raises(ConfigError, match=r"plant: substep_s: must be <= 0.0005 s for stiffness 2e\+06 N/m"):
+    with pytest.raises(ConfigError, match=r"plant.substep_s: must be <= 0.0005 s for stiffness 2e\+06 N/m"):
         PlantConfig.from_mapping({"mass_kg": 0.5, "friction": gms(k=[2e6]), "substep_s": 1e-3})
     with pytest.raises(ConfigError, match="substep_s: .*damping 1e\\+04 N·s/m"):
         PlantConfig.from_mapping({"mass_kg": 0.5, "friction": {**VISCOUS_ONLY, "viscous_n_s_m": 1e4},
