@@ -128,39 +128,54 @@ def _fig(title: str):  # type: ignore[no-untyped-def]
 
 
 def _save(plt: Any, fig: Any, path: Path) -> Path:
+    from stagectl.errors import ConfigError
+
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        fig.savefig(path)
+    except OSError as exc:
+        raise ConfigError(f"--out: cannot write {path} ({exc.strerror or exc})") from exc
+    finally:
+        plt.close(fig)
     return path
 
 
 def plot_curves(curves: Sequence[Curves], out_dir: str | Path, suffix: str = "") -> list[Path]:
     """Write ``virgin{suffix}.png``, ``hysteresis{suffix}.png`` and ``stribeck{suffix}.png``; overlay if several."""
+    from stagectl.errors import ConfigError
+
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out: cannot create output directory {out} ({exc.strerror or exc})") from exc
     written = []
+    # overlaid curves can coincide (e.g. two models with the same sliding parameters): later curves are
+    # dashed with other markers so that every one stays visible
+    styles = [("-", "."), ("--", "x"), (":", "+"), ("-.", "1")]
 
     plt, fig, ax = _fig("Virgin curve (quasi-static first loading)")
-    for c in curves:
-        ax.plot(c.virgin_x_m / UM, c.virgin_f_n, label=c.label)
+    for j, c in enumerate(curves):
+        ax.plot(c.virgin_x_m / UM, c.virgin_f_n, ls=styles[j % 4][0], label=c.label)
     ax.set_xlabel("displacement x [µm]")
     ax.set_ylabel("friction force F [N]")
     ax.legend()
     written.append(_save(plt, fig, out / f"virgin{suffix}.png"))
 
     plt, fig, ax = _fig("Nested hysteresis loops (quasi-static)")
-    for c in curves:
-        ax.plot(c.loop_x_m / UM, c.loop_f_n, label=c.label, lw=1.0)
+    for j, c in enumerate(curves):
+        ax.plot(c.loop_x_m / UM, c.loop_f_n, ls=styles[j % 4][0], label=c.label, lw=1.0)
     ax.set_xlabel("displacement x [µm]")
     ax.set_ylabel("friction force F [N]")
     ax.legend()
     written.append(_save(plt, fig, out / f"hysteresis{suffix}.png"))
 
     plt, fig, ax = _fig("Stribeck curve (steady sliding)")
-    for c in curves:
+    for j, c in enumerate(curves):
+        ls, mk = styles[j % 4]
         pos = c.stribeck_v_m_s > 0
-        (line,) = ax.plot(c.stribeck_v_m_s[pos] * 1e3, c.stribeck_f_n[pos], marker=".", label=c.label)
-        ax.plot(c.stribeck_v_m_s[~pos] * 1e3, c.stribeck_f_n[~pos], marker=".", color=line.get_color())
+        (line,) = ax.plot(c.stribeck_v_m_s[pos] * 1e3, c.stribeck_f_n[pos], ls=ls, marker=mk, label=c.label)
+        ax.plot(c.stribeck_v_m_s[~pos] * 1e3, c.stribeck_f_n[~pos], ls=ls, marker=mk, color=line.get_color())
     ax.set_xscale("symlog", linthresh=1e-3)
     ax.set_xlabel("velocity v [mm/s] (symlog)")
     ax.set_ylabel("steady friction force F [N]")

@@ -51,3 +51,48 @@ def test_model_plot_bad_file_is_a_clean_error(tmp_path, capsys):
     assert "stagectl: error:" in err and "friction.cc: unknown key" in err and "Traceback" not in err
     assert main(["model", "plot", str(tmp_path / "missing.yaml"), "--out", str(tmp_path)]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+GOOD_GMS = "friction:\n  model: gms\n  k_n_m: [1.0e5, 2.0e4]\n  alpha: [0.5, 0.5]\n  fc_n: 0.8\n  fs_n: 0.9\n"
+
+
+@pytest.mark.parametrize(
+    "text,expected",
+    [
+        (None, ["cannot read configuration file"]),  # missing file
+        ("friction:\n  model: gms\n  k_n_m: [1.0\n", ["YAML syntax error at line"]),
+        (b"\xff\xfe\x00", ["not a UTF-8 text file"]),
+        ("- 1\n- 2\n", ["expected a model file mapping"]),
+        ("friction:\n  model: gmz\n", ["friction.model: unknown friction model 'gmz'", "gms"]),
+        ("friction:\n  k_n_m: [1.0]\n", ["friction.model: required key missing"]),
+        (GOOD_GMS + "  c_n_s: -5\n", ["friction.c_n_s: must be > 0 N/s (got -5 N/s)"]),
+        (GOOD_GMS + "  viscous_n_s_m: abc\n", ["friction.viscous_n_s_m: expected a number N·s/m"]),
+        (GOOD_GMS.replace("[1.0e5, 2.0e4]", "1.0e5"), ["friction.k_n_m: expected a list (values in N/m)"]),
+        (GOOD_GMS.replace("fs_n: 0.9", "fs_n: .nan"), ["friction.fs_n: must be a finite number N, got NaN"]),
+        (GOOD_GMS.replace("fs_n: 0.9", "fs_n: 0.7"), ["friction.fs_n: must be >= fc_n (0.8 N) (got 0.7 N)"]),
+        (GOOD_GMS.replace("[0.5, 0.5]", "[1.0]") + "mass_kg: -2\neffects: {offset: {force_n: x}}\n",
+         ["friction.alpha: needs 2 entries", "mass_kg: must be > 0 kg", "effects.offset.force_n: expected a number N"]),
+    ],
+)
+def test_bad_model_files_give_one_clean_line_per_problem(tmp_path, capsys, text, expected):
+    f = tmp_path / "m.yaml"
+    if isinstance(text, bytes):
+        f.write_bytes(text)
+    elif text is not None:
+        f.write_text(text, encoding="utf-8")
+    assert main(["model", "plot", str(f), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert lines and all(line.startswith("stagectl: error: ") for line in lines), err
+    assert len(lines) == max(1, sum(":" in e for e in expected))  # one line per problem (key: message)
+    for e in expected:
+        assert e in err
+    assert "Traceback" not in err
+
+
+def test_unwritable_out_dir_is_a_clean_error(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["model", "plot", str(GMS_FILE), "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("stagectl: error: --out: cannot create output directory") and "Traceback" not in err
