@@ -3,7 +3,7 @@
 Every subcommand lives in ``stagectl.commands.<module>`` and registers itself through
 ``add_parser(subparsers)``, setting ``func(args) -> int`` as its handler. Errors the user can fix
 (:class:`~stagectl.errors.StageError`: bad config, bad data, device errors) are printed as
-``stagectl: error: ...`` with exit code 2 and never as a traceback.
+``stagectl: error: ...`` (one line per problem) with exit code 2 and never as a traceback.
 """
 
 from __future__ import annotations
@@ -61,10 +61,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except StageError as exc:
         msg = str(exc)
-        lines = msg.splitlines() or [type(exc).__name__]
-        print(f"stagectl: error: {lines[0]}", file=sys.stderr)
-        for line in lines[1:]:
-            print(f"  {line}", file=sys.stderr)
+        lines = [line for line in msg.splitlines() if line.strip()] or [type(exc).__name__]
+        for line in lines:  # one line per problem, each greppable as an error
+            print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
