@@ -18,16 +18,17 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from stagectl.resources import config_dir
 
 TARGET_SINGLE_STEPS_S = 2_000_000.0
 TARGET_RATIO = 20.0
 TARGET_PER_SAMPLE_US = 10.0
 
-_MODELS_DIR = Path(__file__).resolve().parents[2] / "config" / "models"
+_MODELS_DIR = config_dir() / "models"  # repo checkout or the wheel's share/stagectl/config
 
 K6 = [454610.0, 111088.0, 45601.0, 16402.0, 6899.0, 4295.0]
 A6 = [0.378, 0.138, 0.148, 0.177, 0.112, 0.046]

@@ -309,3 +309,25 @@ def test_scalar_sigma1_broadcasts_and_spec_round_trips():
     assert build(dut.spec()).params == dut.params
     model = load_model_file(MODEL_FILE)
     assert build(model.friction.spec()).params == model.friction.params
+
+
+# ---------------------------------------------------------------------------------------------- Masing / energy
+@pytest.mark.parametrize("amp,f_a,f_zero,energy_uj", [(2.0, 0.610794, -0.438176, 2.141429),
+                                                       (10.0, 0.867290, -0.603870, 21.017056)])
+def test_gms_quasi_static_masing_loop_and_energy_per_cycle(amp, f_a, f_zero, energy_uj):
+    # at v -> 0 the GMS is the Maxwell-slip model with W_i = α_i·Fs (TV2): Masing branches, E(A) per cycle
+    dut = build({**TV3, "viscous_n_s_m": 0.0})
+    n = 20000
+    a = amp * UM
+    x = np.concatenate([np.linspace(0, a, n + 1), np.linspace(a, -a, 2 * n + 1)[1:], np.linspace(-a, a, 2 * n + 1)[1:]])
+    t = np.arange(x.size) * (a / n) / 1e-8  # 10 nm/s: g(v) = Fs within 1e-10 N
+    f = dut.force_along(x, t)
+    assert f[n] == pytest.approx(f_a, abs=1e-6)
+    assert f[2 * n] == pytest.approx(f_zero, abs=1e-6)  # x = 0 descending: F_v(A) − 2·F_v(A/2)
+    assert f[3 * n] == pytest.approx(-f_a, abs=1e-6)
+    assert f[-1] == pytest.approx(f_a, abs=1e-6)  # the loop closes at the reversal force
+    desc = slice(n, 3 * n + 1)
+    np.testing.assert_allclose(f[desc], f_a - 2 * dut.virgin((a - x[desc]) / 2), atol=1e-6)
+    xl, fl = x[n:], f[n:]
+    area = float(np.sum(0.5 * (fl[1:] + fl[:-1]) * np.diff(xl)))
+    assert area / 1e-6 == pytest.approx(energy_uj, rel=1e-4)

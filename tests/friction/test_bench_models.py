@@ -1,0 +1,29 @@
+"""``stagectl bench models``: result structure and targets (smoke run; speed is judged by the benchmark)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from stagectl.bench import models as bench
+
+
+def test_bench_models_quick_run_reports_every_figure_and_target(capsys):
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(["--quick", "--steps", "3000", "--sets", "4", "--repeat", "1",
+                              "--models", "gms,hsieh,stribeck"])
+    out = bench.run(args)
+    json.dumps(out)  # --json must be able to print it
+    assert out["baseline_python_gms_steps_per_s"] > 0
+    assert set(out["models"]) == {"gms", "hsieh", "stribeck"}
+    for tag, entry in out["models"].items():
+        assert "skipped" not in entry, (tag, entry)
+        for key in ("single_steps_per_s", "batch_steps_per_s", "per_sample_step_us", "plant_step_100us_us",
+                    "single_vs_baseline", "warmup_s"):
+            assert entry[key] > 0, (tag, key)
+        assert entry["batch_sets"] == 4
+    t = out["targets"]
+    assert set(t) == {"gms_single_steps_per_s", "gms_single_vs_baseline", "gms_per_sample_step_us"}
+    assert t["gms_single_steps_per_s"]["target"] == 2_000_000.0 and t["gms_single_vs_baseline"]["target"] == 20.0
+    assert t["gms_per_sample_step_us"]["met"] == (t["gms_per_sample_step_us"]["value"] <= 10.0)
