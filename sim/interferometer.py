@@ -30,7 +30,9 @@ Transports:
 Optional baud pacing (``baudrate``): each frame reaches the wire no earlier than ``10·len/baudrate`` s after
 the previous one ended (8N1), and it is written when its last byte would arrive; frames that would queue more
 than 4 frame-times are dropped (counted in ``frames_overrun``; the sequence counter still advances, as on a
-device whose UART FIFO overflows).
+device whose UART FIFO overflows). Without pacing the device keeps no backlog either: while the link has not
+taken the previous frame completely (a pty or socket nobody reads), new frames are dropped and counted in
+``frames_overrun``, so a client that opens late and flushes its input reads current, contiguous frames.
 
 Fault kinds (``SerialFaultKind``), each from sample slot ``at_frame`` for ``count`` slots:
 ``corrupt`` (one bit flipped → CRC error), ``drop`` (frame not sent, sequence advances → gap),
@@ -117,9 +119,6 @@ class SimInterferometerConfig:
                           "per elapsed 1/rate_hz of plant time", choices=("per_pump", "plant_time"))
     seed: int = param(0, desc="seed of the garbage generator")
     faults: tuple[SimInterferometerFault, ...] = param((), desc="scripted faults")
-
-
-_MAX_PENDING = 64 * 1024
 
 
 class SimInterferometer:
@@ -244,12 +243,18 @@ class SimInterferometer:
                     return 0
         elif self._master < 0:
             return 0
-        if len(self._pending) + len(data) > _MAX_PENDING:
-            self.frames_overrun += 1
-            data = b""
+        n = self._flush() if self._pending else 0
+        if self._pending:
+            # the link has not taken the previous frame yet (nobody reads): a UART keeps no backlog, the
+            # bytes are lost, so a reader that flushes its input starts on current, contiguous frames
+            if data:
+                self.frames_overrun += 1
+            return n
         self._pending += data
-        if not self._pending:
-            return 0
+        return n + (self._flush() if data else 0)
+
+    def _flush(self) -> int:
+        """Write as much of the pending bytes as the link takes now; returns the bytes written."""
         try:
             client = self._client
             if client is not None:
@@ -262,7 +267,7 @@ class SimInterferometer:
             if self.cfg.transport == "tcp" and self._client is not None:
                 self._client.close()
                 self._client = None
-                self._pending.clear()
+            self._pending.clear()
             return 0
         del self._pending[:n]
         self.bytes_sent += n
