@@ -1,7 +1,7 @@
 """Control socket: a Unix-domain stream socket speaking JSON lines (no network listener).
 
 Protocol: one JSON object per line in each direction. A request names its kind in ``"request"`` and may carry
-an ``"id"`` that is echoed in the reply::
+an ``"id"`` (a string of at most 256 characters or a number) that is echoed in the reply::
 
     -> {"request": "move", "target_m": 0.001, "id": 7}
     <- {"ok": true, "id": 7, ...}
@@ -17,6 +17,8 @@ Bounds (nothing a client does can block or crash the loop; the loop never touche
 * a line longer than ``max_line_bytes`` gets an error reply (field ``line``) and is discarded;
 * a client that does not read its replies is disconnected once ``max_out_bytes`` are queued for it;
 * a connection idle for ``idle_timeout_s`` (half-open, stalled mid-line) is closed;
+* JSON nested too deeply is a ``json`` error; an internal error while serving one connection closes that
+  connection only (logged), never the serving thread;
 * a request whose answer needs the loop (move, stop, reset) is answered when the loop has applied it, or
   with a timeout error after ``reply_timeout_s``; meanwhile that connection's further requests wait, others
   are served.
@@ -107,6 +109,23 @@ def encode(reply: Reply) -> bytes:
     return (json.dumps(to_json(reply), allow_nan=False, separators=(",", ":")) + "\n").encode()
 
 
+#: longest request ``id`` string echoed back [characters]
+MAX_ID_CHARS = 256
+
+
+def _check_id(rid: Any) -> Any:
+    """A request ``id`` is echoed in the reply, so only a short scalar is accepted (never a deep structure)."""
+    if rid is None or isinstance(rid, bool):
+        return rid
+    if isinstance(rid, int) and -(2**63) <= rid < 2**63:
+        return rid
+    if isinstance(rid, float) and math.isfinite(rid):
+        return rid
+    if isinstance(rid, str) and len(rid) <= MAX_ID_CHARS:
+        return rid
+    raise RequestError("id", f"must be a string of at most {MAX_ID_CHARS} characters or a 64-bit/finite number")
+
+
 class _Conn:
     __slots__ = ("sock", "rbuf", "wbuf", "discarding", "pending", "last_active", "closed", "peer")
 
@@ -155,7 +174,7 @@ class ControlServer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.stats = {"accepted": 0, "rejected": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
-                      "kicked_idle": 0, "long_lines": 0}
+                      "kicked_idle": 0, "long_lines": 0, "internal_errors": 0}
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -218,6 +237,11 @@ class ControlServer:
     def clients(self) -> int:
         return len(self._conns)
 
+    @property
+    def alive(self) -> bool:
+        """The serving thread is running (False before ``start`` and after ``stop`` or a crash)."""
+        return self._thread is not None and self._thread.is_alive()
+
     # ------------------------------------------------------------------ thread
     def _run(self) -> None:
         demote_to_normal_priority()
@@ -237,10 +261,15 @@ class ControlServer:
                         conn: _Conn = tag
                         if conn.closed:
                             continue
-                        if events & selectors.EVENT_WRITE:
-                            self._flush(conn)
-                        if events & selectors.EVENT_READ and not conn.closed:
-                            self._read(conn)
+                        try:
+                            if events & selectors.EVENT_WRITE:
+                                self._flush(conn)
+                            if events & selectors.EVENT_READ and not conn.closed:
+                                self._read(conn)
+                        except Exception:  # a bug triggered by one client costs that connection only
+                            self.stats["internal_errors"] += 1
+                            log.exception("control: connection dropped after an internal error")
+                            self._close(conn)
                 self._check_pending()
                 self._check_idle()
         except Exception:  # pragma: no cover - keep the loop alive; the daemon reports control as down
@@ -340,9 +369,11 @@ class ControlServer:
                 req = json.loads(line)
             except (ValueError, UnicodeDecodeError) as exc:
                 raise RequestError("json", f"not valid JSON ({exc})") from None
+            except RecursionError:
+                raise RequestError("json", "nested too deeply") from None
             if not isinstance(req, dict):
                 raise RequestError("request", "each line must be a JSON object like {\"request\": \"status\"}")
-            rid = req.get("id")
+            rid = _check_id(req.get("id"))
             result = self.handler(req)
         except Exception as exc:  # noqa: BLE001 - every error becomes a reply, never a crash
             self.stats["errors"] += 1
@@ -401,8 +432,9 @@ class ControlServer:
             reply = {**reply, "id": rid}
         try:
             data = encode(reply)
-        except (TypeError, ValueError) as exc:
-            data = encode({"ok": False, "error": f"reply not serialisable: {exc}"})
+        except Exception as exc:  # noqa: BLE001 - TypeError, ValueError, RecursionError: a bug, not the client's
+            log.error("control: reply not serialisable: %s: %s", type(exc).__name__, exc)
+            data = encode({"ok": False, "error": f"reply not serialisable: {type(exc).__name__}"})
         conn.wbuf += data
         if len(conn.wbuf) > self.max_out_bytes:
             self.stats["kicked_slow"] += 1

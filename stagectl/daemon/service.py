@@ -161,6 +161,7 @@ class StageService:
         self._watchdog_pings = 0
         self._watchdog_withheld = 0
         self._watchdog_reason = ""
+        self._control_down = False
         self.socket_path: Path | None = None
         self._status_lock = threading.Lock()
         self._status_cache: tuple[float, dict[str, Any]] | None = None
@@ -377,6 +378,11 @@ class StageService:
                 if reason != self._watchdog_reason:  # log each change of cause once, not every tick
                     log.error("watchdog withheld: %s (now %.3f%%)", reason, 100 * frac)
                 self._watchdog_reason = reason
+            # -------------------------------------------------- control socket (the loop does not need it)
+            if self.server is not None and not self.server.alive and not self._control_down:
+                self._control_down = True
+                log.error("control socket thread ended; the loop keeps running (restart the service to "
+                          "get the socket back)")
             # -------------------------------------------------- reload
             if self._hup_pending:
                 self._hup_pending = 0
@@ -405,6 +411,8 @@ class StageService:
             parts.append(f"fault {_fault_text(st.get('fault'))}")
         if self._watchdog_reason:
             parts.append(f"WATCHDOG WITHHELD: {self._watchdog_reason}")
+        if self._control_down:
+            parts.append("CONTROL SOCKET DOWN")
         return ", ".join(parts)
 
     # ================================================================== reload (SIGHUP)
@@ -532,7 +540,8 @@ class StageService:
             "watchdog": {"interval_s": self.notify.watchdog_s, "pings": self._watchdog_pings,
                          "overrun_fraction_10s": self.health.overrun_fraction(),
                          "withheld": self._watchdog_withheld, "reason": self._watchdog_reason or None},
-            "control": {"clients": self.server.clients if self.server else 0,
+            "control": {"alive": self.server.alive if self.server else False,
+                        "clients": self.server.clients if self.server else 0,
                         **(self.server.stats if self.server else {})},
             "fault_flushes": self.fault_flushes,
             "simulated": bool(self.asm.simulated) if self.asm else None,
@@ -622,7 +631,10 @@ def _number(req: dict[str, Any], key: str, unit: str) -> float:
     v = req[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise RequestError(key, f"expected a number in {unit}, got {v!r}")
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:  # an integer literal with hundreds of digits
+        raise RequestError(key, f"must be finite ({unit}); got an integer too large for a float") from None
     if not math.isfinite(v):
         raise RequestError(key, f"must be finite ({unit})")
     return v

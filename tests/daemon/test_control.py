@@ -202,3 +202,35 @@ def test_stalled_half_line_connection_is_closed_after_idle_timeout(tmp_path):
 def test_too_long_socket_path_is_a_clear_error(tmp_path):
     with pytest.raises(OSError, match="at most 107 bytes"):
         ControlServer(tmp_path / ("d" * 120) / "control.sock", _Handler()).start()
+
+
+def test_hostile_lines_get_field_errors_and_the_server_survives(tmp_path, caplog):
+    """Found by the issue-5 audit: a deeply nested `id` (echoed in the reply) crashed the serving thread, and
+    deeply nested JSON produced a traceback. Each must be a plain error naming the field."""
+    dut = ControlServer(tmp_path / "c.sock", _Handler())  # default 64 KiB lines: room for deep nesting
+    dut.start()
+    try:
+        _hostile_lines(dut, caplog)
+    finally:
+        dut.stop()
+
+
+def _hostile_lines(dut: ControlServer, caplog) -> None:
+    with ControlClient(dut.path) as c:
+        for line, field in [
+            (b'{"request": "status", "id": ' + b"[" * 900 + b"]" * 900 + b"}\n", "id"),
+            (b'{"request": "status", "id": {"a": 1}}\n', "id"),
+            (b'{"request": "status", "id": "' + b"i" * 300 + b'"}\n', "id"),
+            (b"[" * 1000 + b"\n", "json"),  # RecursionError inside the decoder
+            (b"\xff\xfe\xfd\n", "json"),  # not UTF-8
+            (b"\x00\x01garbage\n", "json"),
+            (b"42\n", "request"),
+            (b"NaN\n", "request"),
+        ]:
+            c.send_raw(line)
+            r = c.read_reply()
+            assert r["ok"] is False and r["field"] == field and "id" not in r, (line[:40], r)
+        assert c.request({"request": "status", "id": 2**62})["id"] == 2**62  # scalars are still echoed
+        assert c.request({"request": "status", "id": "tag-1"})["id"] == "tag-1"
+    assert dut.alive and dut.stats["internal_errors"] == 0
+    assert "Traceback" not in caplog.text and not any(r.exc_info for r in caplog.records)

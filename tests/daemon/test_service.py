@@ -10,6 +10,7 @@ import csv
 import threading
 
 import numpy as np
+import pytest
 
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.sdnotify import SdNotifier
@@ -174,3 +175,19 @@ def test_health_window_fraction_over_time_not_since_start():
     assert dut.overrun_fraction() == 0.0  # the stall left the window
     dut.add(13.0, 900 + 11000, 100)  # no cycles in the last second: stalled
     assert not dut.advancing()
+
+
+@pytest.mark.parametrize("key", ["target_m", "relative_m", "max_velocity_m_s"])
+@pytest.mark.parametrize("value", [10**400, float("nan"), float("inf"), "1e-3", True, [1e-3]])
+def test_move_numbers_checked_before_the_loop_with_the_field_named(tmp_path, rig_loader, rig_builder, key, value):
+    """A 400-digit integer is valid JSON; float() of it raised OverflowError, a traceback in the log (audit)."""
+    from stagectl.daemon.control import RequestError
+
+    dut = StageService(tmp_path / "none.yaml", tmp_path / "run", load_config=rig_loader, build=rig_builder,
+                       notifier=SdNotifier(environ={}))
+    req = {"request": "move", key: value}
+    if key == "max_velocity_m_s":
+        req["target_m"] = 1e-4
+    with pytest.raises(RequestError) as ei:
+        dut.handle(req)
+    assert ei.value.field == key
