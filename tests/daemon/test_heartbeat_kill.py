@@ -42,6 +42,23 @@ def _absolutize(node, base: Path):
     return node
 
 
+def _observer_bus(info: dict) -> can.BusABC:
+    """A second socketcand client on the plant's bus.
+
+    python-can's socketcand client reads the ``< ok >`` of its ``rawmode`` handshake with one ``recv(256)`` and
+    fails if the server's first forwarded frame arrives in the same segment (``'< ok >< frame ... >'``); with
+    frames flowing that is a race, so the handshake is retried (each attempt is a fresh connection).
+    """
+    for attempt in range(10):
+        try:
+            return can.Bus(interface="socketcand", host=info["can"]["host"], port=info["can"]["port"],
+                           channel=info["can"]["channel"], tcp_tune=True)
+        except can.CanError:
+            if attempt == 9:
+                raise
+    raise AssertionError("unreachable")
+
+
 def _readline(proc: subprocess.Popen, timeout: float) -> str:
     sel = selectors.DefaultSelector()
     sel.register(proc.stdout, selectors.EVENT_READ)
@@ -99,23 +116,21 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
     path = tmp_path / "hil.yaml"
     path.write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path)}
+    # the observer (another socketcand client) connects before the daemon: little traffic yet on the bus; it
+    # reads from the start (the plant's server drops a client that stops reading)
+    bus = _observer_bus(info)
+    network = canopen.Network(bus)
+    network.notifier = can.Notifier(bus, network.listeners, 0.1)
     daemon = subprocess.Popen([*_stagectl(), "daemon", "--config", str(path), "--runtime-dir", str(tmp_path / "run")],
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    bus = None
-    network = None
     try:
         try:
             notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: daemon.poll() is None)
         except TimeoutError:
             daemon.kill()
             pytest.fail("daemon never READY:\n" + daemon.communicate(timeout=30)[1][-4000:])
-        # an observer on the same CAN bus (another socketcand client), connected while the daemon runs
-        bus = can.Bus(interface="socketcand", host=info["can"]["host"], port=port, channel=info["can"]["channel"],
-                      tcp_tune=True)
         node_id = info.get("drive_node_id", 1)
         # the drive is enabled and under control: statusword 0x6041 says OPERATION ENABLED (xxxx xxxx x01x 0111)
-        network = canopen.Network(bus)
-        network.notifier = can.Notifier(bus, network.listeners, 0.1)
         node = canopen.RemoteNode(node_id, canopen.objectdictionary.ObjectDictionary())
         node.sdo.RESPONSE_TIMEOUT = 10.0  # failure guard on a loaded machine (default 0.3 s)
         network.add_node(node)
@@ -145,7 +160,5 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
             daemon.kill()
             daemon.wait(30)
         daemon.stderr.close()
-        if network is not None:
-            network.notifier.stop()
-        if bus is not None:
-            bus.shutdown()
+        network.notifier.stop()
+        bus.shutdown()
