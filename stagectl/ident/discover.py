@@ -70,7 +70,7 @@ MIN_REL_GAIN = 0.20
 #: times the sensor-noise floor of the metric (m·σ_x·gain; at a few times that floor, sampling and
 #: discretisation residue, not physics, is what a flexible effect fits)
 MIN_EXPLAINED_FRACTION = 0.002
-MIN_EXPLAINED_NOISE = 3.0
+MIN_EXPLAINED_NOISE = 1.5
 #: bootstrap confidence for the "gap reduced" test
 BOOT_QUANTILE = 0.025
 BOOT_SAMPLES = 400
