@@ -20,7 +20,8 @@ The plant is stepped only by the drive, at each SYNC, by exactly one nominal per
 to the drive before the encoder so the encoder samples the stepped plant. The optional serial
 interferometer (``stagectl.sim.interferometer.SimInterferometer``) streams from its own thread in thread
 mode and is pumped at the end of every ``pump()`` in lock-step (configure it with
-``lockstep: plant_time`` there, since drivers may pump more than once per cycle).
+``lockstep: plant_time`` there, since drivers may pump more than once per cycle); give its driver
+``world.serial_pump`` (returns the bytes written as ``LinkBytes``) rather than ``world.pump``.
 
 Example::
 
@@ -49,6 +50,7 @@ from typing import Any
 import can
 
 from stagectl.drivers.canbus import close_bus, open_bus
+from stagectl.drivers.interferometer_protocol import LinkBytes
 from stagectl.errors import ConfigError
 from stagectl.schema import param
 from stagectl.sim.cia402_drive import SimCia402Drive, SimCanopenDevice, SimDriveConfig
@@ -180,6 +182,7 @@ class SimWorld:
         self.interferometer: Any = None
         self.server: Any = None
         self.frames_in = 0
+        self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._thread_error: BaseException | None = None
 
     # ------------------------------------------------------------------ construction
@@ -322,8 +325,17 @@ class SimWorld:
                 n += 1
             self._tick()
         if self.interferometer is not None:
-            self.interferometer.pump()
+            self._serial_bytes += int(self.interferometer.pump())
         return n
+
+    def serial_pump(self) -> LinkBytes:
+        """Lock-step pump for the serial interferometer's driver: :meth:`pump`, then the bytes the simulated
+        interferometer wrote to its link during this call, as :class:`LinkBytes`. The driver waits for exactly
+        those bytes, so a dropped or stopped frame costs no waiting (with :meth:`pump`, whose count is of CAN
+        frames, it would wait for one new frame up to its ``lockstep_timeout_s``)."""
+        before = self._serial_bytes
+        self.pump()
+        return LinkBytes(self._serial_bytes - before)
 
     def advance(self, dt_s: float) -> None:
         """Lock-step: advance device time by ``dt_s`` [s] without SYNC, running the timers (heartbeats)."""

@@ -137,3 +137,38 @@ def test_world_includes_interferometer_when_configured(make_world):
     assert info["interferometer_url"].startswith("socket://127.0.0.1:")
     assert world.interferometer.plant is world.plant
     world.pump()  # lock-step pumps the interferometer too (no client yet: nothing to send, no error)
+
+
+def test_world_serial_pump_lets_the_interferometer_driver_skip_a_stopped_frame(lockstep, tmp_path):
+    """Drive + serial interferometer in one lock-step world: with ``world.serial_pump`` (LinkBytes) a frame
+    the device does not send costs no wait; the driver's lock-step guard (10 s here) is never reached."""
+    import time
+
+    from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
+    from stagectl.drivers.interferometer_protocol import LinkBytes
+
+    world, dut = lockstep(world_kw={"interferometer": {"transport": "pty", "link_path": str(tmp_path / "ifm"),
+                                                       "lockstep": "plant_time"}})
+    ifm = SerialInterferometer(InterferometerConfig(url=world.ready_info()["interferometer_url"],
+                                                    lockstep_timeout_s=10.0, stale_cycles=5))
+    ifm.set_pump(world.serial_pump)
+    with ifm:
+        ifm.configure()
+        assert isinstance(world.serial_pump(), LinkBytes)
+        for _ in range(5):
+            dut.sync()
+            m = ifm.read()
+            dut.write(2.0)
+            assert m.fresh and m.counts == round(world.plant.measure() / 1e-9)
+        world.interferometer.inject("stop", count=2)
+        t0 = time.monotonic()
+        fresh = []
+        for _ in range(4):
+            dut.sync()
+            m = ifm.read()
+            dut.write(2.0)
+            fresh.append(m.fresh)
+            assert m.fault is None
+        assert time.monotonic() - t0 < 5.0  # failure guard: a regression waits 10 s per stopped frame
+        assert fresh == [False, False, True, True]
+        assert m.counts == round(world.plant.measure() / 1e-9)
