@@ -346,7 +346,8 @@ def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
                                  force_per_unit_n=sd.force_per_unit_n)
     else:
         drive_cfg = dataclasses.replace(drive_cfg, can=info["can"])
-    _open_drivers(stage, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"))
+    _open_drivers(stage, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"),
+                  serial_pump=world.serial_pump)
 
 
 def _build_canopen(stage: Stage) -> None:
@@ -354,7 +355,7 @@ def _build_canopen(stage: Stage) -> None:
 
 
 def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
-                  interferometer_url: str | None = None) -> None:
+                  interferometer_url: str | None = None, serial_pump: Callable[[], Any] | None = None) -> None:
     from stagectl.drivers.cia402 import Cia402Drive
 
     cfg = stage.cfg
@@ -378,8 +379,8 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
 
             icfg = dataclasses.replace(icfg, url=interferometer_url)
         ifm = SerialInterferometer(icfg)
-        if pump is not None:
-            ifm.set_pump(pump)
+        if pump is not None:  # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
+            ifm.set_pump(serial_pump or pump)
         ifm.open()
         stage.devices.append(ifm)
         ifm.configure()
