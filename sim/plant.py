@@ -47,7 +47,7 @@ import numpy.typing as npt
 from numba import njit, types
 
 from stagectl.errors import ConfigError
-from stagectl.friction import Effects, FrictionModel, load_model_file, parse_friction
+from stagectl.friction import Effects, FrictionModel, load_model_file, parse_effects, parse_friction
 from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
 from stagectl.friction.effects import pack_layout
 from stagectl.schema import load, param
@@ -80,16 +80,6 @@ class ActuatorConfig:
                                allow_inf=True)
 
 
-def _parse_effects(value: Any, path: str, problems: list[str]) -> Effects | None:
-    if isinstance(value, Effects):
-        return value
-    try:
-        return load(Effects, value, path)
-    except ConfigError as exc:
-        problems.extend(exc.problems)
-        return None
-
-
 @dataclass(frozen=True)
 class PlantConfig:
     """Stage plant configuration (YAML block, e.g. ``plant:``). Build from YAML with :meth:`from_mapping`."""
@@ -97,7 +87,7 @@ class PlantConfig:
     mass_kg: float = param(unit="kg", desc="moving mass m", gt=0.0)
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
     effects: Effects = param(default_factory=Effects, desc="additional effects (stagectl.friction.effects)",
-                             parse=_parse_effects)
+                             parse=parse_effects)
     substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", gt=0.0, le=1e-2)
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
     actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")

@@ -303,6 +303,23 @@ def load(cls: type[T], data: Any, path: str = "") -> T:
     return obj
 
 
+def section_parser(cls: type[T]) -> ParseHook:
+    """A ``parse=`` hook for a field holding the dataclass ``cls``, built with :func:`load` under the field's
+    path (its problems are collected with the caller's). An instance of ``cls`` passes through unchanged.
+    Use it where a section needs a hook, e.g. to pass a ready-made object from Python."""
+
+    def hook(value: Any, path: str, problems: list[str]) -> T | None:
+        if isinstance(value, cls):
+            return value
+        try:
+            return load(cls, value, path)
+        except ConfigError as exc:
+            problems.extend(exc.problems)
+            return None
+
+    return hook
+
+
 def load_yaml_file(path: str | Path) -> Any:
     """Read a YAML file with ``yaml.safe_load``; file and syntax errors become :class:`ConfigError`."""
     import yaml

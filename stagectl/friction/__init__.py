@@ -27,7 +27,7 @@ from typing import Any
 from stagectl.errors import ConfigError
 from stagectl.friction.base import FrictionKernel, FrictionModel, register, registry
 from stagectl.friction.effects import Effects
-from stagectl.schema import load, load_yaml_file, param
+from stagectl.schema import load, load_yaml_file, param, section_parser
 
 __all__ = [
     "Effects",
@@ -36,6 +36,7 @@ __all__ = [
     "StageModel",
     "build",
     "load_model_file",
+    "parse_effects",
     "parse_friction",
     "register",
     "registry",
@@ -107,12 +108,8 @@ def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel 
     return cls(params)
 
 
-def _parse_effects(value: Any, path: str, problems: list[str]) -> Effects | None:
-    try:
-        return load(Effects, value, path)
-    except ConfigError as exc:
-        problems.extend(exc.problems)
-        return None
+#: ``stagectl.schema`` parse hook for an ``effects:`` field (an :class:`Effects` instance passes through)
+parse_effects = section_parser(Effects)
 
 
 @dataclass(frozen=True)
@@ -120,7 +117,7 @@ class StageModel:
     """A stage's physical model: rigid-body mass, friction model and additional effects."""
 
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
-    effects: Effects = param(default_factory=Effects, desc="additional effects", parse=_parse_effects)
+    effects: Effects = param(default_factory=Effects, desc="additional effects", parse=parse_effects)
     mass_kg: float | None = param(None, unit="kg", desc="moving mass", gt=0.0)
     meta: dict[str, Any] = param(default_factory=dict, desc="free-form provenance (fit quality, source)")
 

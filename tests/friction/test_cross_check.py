@@ -81,7 +81,7 @@ def ref_maxwell(k, w, sigma2, x, t):
 
 
 @pytest.mark.parametrize("delta,lag", [(2.0, 0.0), (1.5, 0.0), (1.0, 3e-3), (0.7, 2e-4)])
-def test_stribeck_compiled_paths_equal_plain_python(delta, lag):
+def test_stribeck_compiled_paths_equal_plain_python(delta, lag, paths):
     spec = {**SPECS["stribeck"], "delta": delta, "lag_s": lag}
     dut = build(spec)
     x, t = trajectory(11)
@@ -89,10 +89,9 @@ def test_stribeck_compiled_paths_equal_plain_python(delta, lag):
     ref = ref_stribeck(0.8, 0.9, 1e-3, delta, 10.0, lag, x.tolist(), t.tolist())
     np.testing.assert_allclose(f, ref, rtol=1e-12, atol=1e-12)
     assert np.any(f == 0.0) and np.any(f > 0.5) and np.any(f < -0.5)  # pauses and sliding both ways
-    s = dut.initial_state()
-    scalar = [dut.step(s, x[k] - x[k - 1], (x[k] - x[k - 1]) / (t[k] - t[k - 1]), t[k] - t[k - 1])
-              for k in range(1, x.size)]
-    np.testing.assert_array_equal(f[1:], scalar)
+    scalar, by_kernel = paths(dut, x, t)
+    np.testing.assert_array_equal(f, scalar)
+    np.testing.assert_array_equal(f, by_kernel)
     kern = dut.kernel()
     assert (kern.breakaway_n, kern.stick_velocity_m_s) == (0.9, 1e-6)  # Karnopp band values for the plant
 
@@ -133,7 +132,7 @@ def test_every_model_of_issue_2_is_registered():
 
 
 @pytest.mark.parametrize("tag", sorted(SPECS))
-def test_interface_sign_convention_relaxed_start_and_paths(tag):
+def test_interface_sign_convention_relaxed_start_and_paths(tag, paths):
     dut = build(SPECS[tag])
     assert dataclass_is_frozen(dut.params)
     s0 = dut.initial_state()
@@ -148,11 +147,9 @@ def test_interface_sign_convention_relaxed_start_and_paths(tag):
     x, t = trajectory(5, 800)
     f1, f2 = dut.force_along(x, t), dut.force_along(x, t)
     np.testing.assert_array_equal(f1, f2)
-    s = dut.initial_state()
-    f_sc = [dut.force(s, (x[1] - x[0]) / (t[1] - t[0]))]
-    f_sc += [dut.step(s, x[k] - x[k - 1], (x[k] - x[k - 1]) / (t[k] - t[k - 1]), t[k] - t[k - 1])
-             for k in range(1, x.size)]
+    f_sc, f_kern = paths(dut, x, t)
     np.testing.assert_array_equal(f1, f_sc)
+    np.testing.assert_array_equal(f1, f_kern)
     np.testing.assert_array_equal(type(dut).force_along_batch([dut.params], x, t)[0], f1)
     assert build(dut.spec()).params == dut.params
 

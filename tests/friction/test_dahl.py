@@ -63,23 +63,13 @@ def test_exponent_matches_ode_integration(dut):
     assert got == pytest.approx(f, abs=1e-9)
 
 
-def test_paths_agree_and_viscous_sign(dut):
+def test_paths_agree_and_viscous_sign(dut, paths):
     m = dut.replace(viscous_n_s_m=2.0)
     rng = np.random.default_rng(5)
     t = np.linspace(0.0, 1.0, 3001)
     x = np.cumsum(rng.normal(0.0, 1e-6, t.size))
     fa = m.force_along(x, t)
-    s = m.initial_state()
-    sc = [m.force(s, (x[1] - x[0]) / (t[1] - t[0]))]
-    for k in range(1, t.size):
-        dx, dt = x[k] - x[k - 1], t[k] - t[k - 1]
-        sc.append(m.step(s, dx, dx / dt, dt))
-    kern = m.kernel()
-    ks = m.initial_state()
-    kf = [kern.force(kern.p, ks, (x[1] - x[0]) / (t[1] - t[0]))]
-    for k in range(1, t.size):
-        dx, dt = x[k] - x[k - 1], t[k] - t[k - 1]
-        kf.append(kern.step(kern.p, ks, dx, dx / dt, dt))
+    sc, kf = paths(m, x, t)
     batch = type(m).force_along_batch([m.params, dut.params], x, t)
     np.testing.assert_allclose(sc, fa, rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(kf, fa, rtol=1e-13, atol=1e-15)

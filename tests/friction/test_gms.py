@@ -181,19 +181,12 @@ def test_frictional_lag_time_constant_g_over_c():
 
 # ---------------------------------------------------------------------------------------------- paths agree
 @pytest.mark.parametrize("seed", [0, 1])
-def test_scalar_kernel_along_batch_and_reference_agree(seed):
+def test_scalar_kernel_along_batch_and_reference_agree(seed, paths):
     spec = {**TV3, "sigma1_n_s_m": [40.0, 10.0, 5.0, 2.0, 1.0, 1.0]}
     dut = build(spec)
     x, t = random_trajectory(seed)
     f_along = dut.force_along(x, t)
-    kern = dut.kernel()
-    s_scalar, s_kern = dut.initial_state(), dut.initial_state()
-    v0 = (x[1] - x[0]) / (t[1] - t[0])
-    f_scalar, f_kern = [dut.force(s_scalar, v0)], [kern.force(kern.p, s_kern, v0)]
-    for i in range(1, x.size):
-        dx, dt = x[i] - x[i - 1], t[i] - t[i - 1]
-        f_scalar.append(dut.step(s_scalar, dx, dx / dt, dt))
-        f_kern.append(kern.step(kern.p, s_kern, dx, dx / dt, dt))
+    f_scalar, f_kern = paths(dut, x, t)
     np.testing.assert_array_equal(f_along, f_scalar)
     np.testing.assert_array_equal(f_along, f_kern)
     other = build({**spec, "c_n_s": 3e3}).params

@@ -9,11 +9,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from numba import njit, types
 
 from stagectl.errors import ConfigError
 from stagectl.friction import build, load_model_file
-from stagectl.friction._numba import STEP_FN
 from stagectl.friction.hsieh import STACK_CAP, HsiehFriction
 
 MODEL_FILE = Path(__file__).resolve().parents[2] / "config" / "models" / "kamenar2016_hsieh.yaml"
@@ -266,19 +264,14 @@ def test_presliding_distance_switch(table):
 
 
 # ---------------------------------------------------------------------------------------------- paths
-def test_paths_agree(table):
+def test_paths_agree(table, paths):
     rng = np.random.default_rng(11)
     pts = np.concatenate([[0.0], rng.uniform(-40, 40, 8), [0.0]]) * UM
     x = _path(pts, 300)
     t = np.cumsum(np.full(x.size, 2e-4)) - 2e-4
-    f_scalar, _ = _run(table, x, t)
     fa = table.force_along(x, t)
+    f_scalar, kf = paths(table, x, t)
     kern = table.kernel()
-    ks = table.initial_state()
-    kf = [kern.force(kern.p, ks, (x[1] - x[0]) / (t[1] - t[0]))]
-    for k in range(1, x.size):
-        dx, dt = x[k] - x[k - 1], t[k] - t[k - 1]
-        kf.append(kern.step(kern.p, ks, dx, dx / dt, dt))
     other = table.replace(fs_n=1.0, rho_1_s=100.0)
     batch = HsiehFriction.force_along_batch([table.params, other.params], x, t)
     np.testing.assert_array_equal(fa, f_scalar)
@@ -305,29 +298,11 @@ def test_force_without_advancing(table):
 
 
 # ---------------------------------------------------------------------------------------------- plant
-@njit(types.void(STEP_FN, types.float64[::1], types.float64[::1], types.float64, types.float64,
-                 types.float64, types.float64, types.int64, types.float64[::1]), cache=True)
-def _mass_loop(step, p, state, dt, m, u0, ua, n, xs):  # pragma: no cover - compiled
-    """m·a = u − F, u = u0 + ua·sin(2πt), symplectic Euler with the friction kernel fused in."""
-    x = 0.0
-    v = 0.0
-    f = 0.0
-    for k in range(n):
-        u = u0 + ua * math.sin(2.0 * math.pi * k * dt)
-        v += dt * (u - f) / m
-        dx = v * dt
-        x += dx
-        f = step(p, state, dx, v, dt)
-        xs[k] = x
-
-
-def test_plant_loop_no_drift_below_breakaway_and_slides_above(table):
-    kern = table.kernel()
+def test_plant_loop_no_drift_below_breakaway_and_slides_above(table, driven_mass):
     dt = 5e-5
     per = int(round(1.0 / dt))
-    xs = np.empty(10 * per)
     st_ = table.initial_state()
-    _mass_loop(kern.step, kern.p, st_, dt, 2.0, 0.35, 0.3, xs.size, xs)
+    xs = driven_mass(table, dt, 2.0, 0.35, 0.3, 10 * per, state=st_)
     assert not HsiehFriction.sliding(st_)
     drift = np.array([xs[(c + 1) * per - 1] - xs[c * per - 1] for c in range(2, 9)])
     # plastic ratchet only at new force maxima: the creep per cycle dies out (x_h converges to its
@@ -336,8 +311,7 @@ def test_plant_loop_no_drift_below_breakaway_and_slides_above(table):
     assert abs(drift[-1]) < 1e-3 * UM
     assert 0.0 < xs.max() < 20 * UM
     # above break-away the stage slides (macroscopic motion) and stays bounded
-    st2 = table.initial_state()
-    _mass_loop(kern.step, kern.p, st2, dt, 2.0, 0.0, 1.2, xs.size, xs)
+    xs = driven_mass(table, dt, 2.0, 0.0, 1.2, 10 * per)
     assert np.all(np.isfinite(xs))
     assert 100 * UM < np.ptp(xs) < 10e-3
 

@@ -8,11 +8,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from numba import njit, types
 
 from stagectl.errors import ConfigError
 from stagectl.friction import build
-from stagectl.friction._numba import STEP_FN
 
 TABLE_I = {"model": "lugre", "sigma0_n_m": 1e5, "sigma1_n_s_m": math.sqrt(1e5), "viscous_n_s_m": 0.4,
            "fc_n": 1.0, "fs_n": 1.5, "vs_m_s": 1e-3}
@@ -72,25 +70,14 @@ def test_exact_update_is_step_size_independent_for_constant_velocity(dut):
     assert s3[0] == pytest.approx(dut.steady_state(1e3)[0], rel=1e-12)
 
 
-def test_paths_agree_with_reference(dut):
+def test_paths_agree_with_reference(dut, paths):
     rng = np.random.default_rng(3)
     t = np.linspace(0.0, 0.2, 2001)
     x = np.cumsum(rng.normal(0.0, 2e-7, t.size)) + 1e-5 * np.sin(2 * np.pi * 10 * t)
     ref = _ref_force_along(x, t, TABLE_I)
     fa = dut.force_along(x, t)
-    # scalar per-sample path
-    s = dut.initial_state()
-    sc = [dut.force(s, (x[1] - x[0]) / (t[1] - t[0]))]
-    for k in range(1, t.size):
-        dx, dt = x[k] - x[k - 1], t[k] - t[k - 1]
-        sc.append(dut.step(s, dx, dx / dt, dt))
-    # kernel called directly
+    sc, kf = paths(dut, x, t)  # scalar per-sample path, kernel called directly
     kern = dut.kernel()
-    ks = dut.initial_state()
-    kf = [kern.force(kern.p, ks, (x[1] - x[0]) / (t[1] - t[0]))]
-    for k in range(1, t.size):
-        dx, dt = x[k] - x[k - 1], t[k] - t[k - 1]
-        kf.append(kern.step(kern.p, ks, dx, dx / dt, dt))
     other = dut.replace(fs_n=1.2)
     batch = type(dut).force_along_batch([dut.params, other.params], x, t)
     np.testing.assert_allclose(fa, ref, rtol=1e-10, atol=1e-12)
@@ -111,28 +98,10 @@ def test_derivative_matches_step(dut):
     assert (s2[0] - s[0]) / h == pytest.approx(d, rel=1e-5)
 
 
-@njit(types.void(STEP_FN, types.float64[::1], types.float64[::1], types.float64, types.float64,
-                 types.int64, types.float64[::1]), cache=True)
-def _mass_loop(step, p, state, dt, m, n, xs):  # pragma: no cover - compiled
-    """m·a = u − F with u = 0.6 + 0.35·sin(2πt), symplectic Euler, friction fused as in a plant."""
-    x = 0.0
-    v = 0.0
-    f = 0.0
-    for k in range(n):
-        u = 0.6 + 0.35 * math.sin(2.0 * math.pi * k * dt)
-        v += dt * (u - f) / m
-        dx = v * dt
-        x += dx
-        f = step(p, state, dx, v, dt)
-        xs[k] = x
-
-
-def test_tv8_lugre_drifts_in_plant_loop(dut):
-    kern = dut.kernel()
+def test_tv8_lugre_drifts_in_plant_loop(dut, driven_mass):
     dt = 1e-4
     per = int(round(1.0 / dt))
-    xs = np.empty(4 * per)
-    _mass_loop(kern.step, kern.p, dut.initial_state(), dt, 1.0, xs.size, xs)
+    xs = driven_mass(dut, dt, 1.0, 0.6, 0.35, 4 * per)  # m = 1 kg, u = 0.6 + 0.35·sin(2πt)
     drift = [xs[(c + 1) * per - 1] - xs[c * per - 1] for c in (1, 2)]
     # FRICTION_MODELS.md TV8: ~7.28 um per cycle, and it must be > 0
     assert drift[0] == pytest.approx(7.28e-6, abs=0.01e-6)

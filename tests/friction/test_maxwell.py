@@ -102,21 +102,13 @@ def test_wipe_out_returns_to_the_outer_branch():
     np.testing.assert_allclose(fi[sel_i], fp[81:][sel_p][-sel_i.sum():], atol=1e-12)
 
 
-def test_viscous_term_and_kernel_paths_agree():
+def test_viscous_term_and_kernel_paths_agree(paths):
     dut = build({**SPEC, "viscous_n_s_m": 10.0})
     rng = np.random.default_rng(4)
     x = np.cumsum(rng.normal(0, 0.5 * UM, 500))
     t = np.cumsum(rng.uniform(1e-4, 2e-3, 500))
     f = dut.force_along(x, t)
-    k = dut.kernel()
-    s = dut.initial_state()
-    f_scalar = [dut.force(s, (x[1] - x[0]) / (t[1] - t[0]))]
-    s_k = dut.initial_state()
-    f_kern = [f_scalar[0]]
-    for i in range(1, x.size):
-        dx, dt = x[i] - x[i - 1], t[i] - t[i - 1]
-        f_scalar.append(dut.step(s, dx, dx / dt, dt))
-        f_kern.append(k.step(k.p, s_k, dx, dx / dt, dt))
+    f_scalar, f_kern = paths(dut, x, t)
     np.testing.assert_array_equal(f, f_scalar)
     np.testing.assert_array_equal(f, f_kern)
     batch = type(dut).force_along_batch([dut.params, build(SPEC).params], x, t)
