@@ -125,9 +125,10 @@ class DemoConfig:
 class SimSection:
     """Simulated stage. ``plant`` always; ``world`` (virtual devices) when the sim world is available."""
 
-    plant: Any  # stagectl.sim.plant.PlantConfig
-    world: Any = None  # stagectl.sim.world.SimWorldConfig (embedded_canopen, sim-plant)
-    raw: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    plant: Any = param(desc="the stage plant (stagectl.sim.plant.PlantConfig)")
+    world: Any = param(None, desc="virtual devices (stagectl.sim.world.SimWorldConfig; embedded_canopen, "
+                                  "sim-plant)")
+    raw: Mapping[str, Any] = param(default_factory=dict, desc="the sim: mapping as written in the file")
 
 
 @dataclass(frozen=True)
