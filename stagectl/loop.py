@@ -126,6 +126,10 @@ class LoopConfig:
     healthy_overrun_fraction: float = param(
         0.01, desc="watchdog health: largest recent fraction of skipped cycles", ge=0, le=1
     )
+    startup_cycles: int = param(
+        200, unit="cycles", desc="at start, SYNC periods to wait for the first fresh position (a loaded machine or "
+        "a late first TPDO); the stale-position check applies from the first active cycle on", ge=1, le=100000
+    )
 
 
 # ------------------------------------------------------------------------------------------ protocols
@@ -461,25 +465,57 @@ class ControlLoop:
         log.error("FAULT %s; drive quick-stopped", fault)
 
     # ------------------------------------------------------------------ run
+    def _first_sample(self, t0: float, n_max: int) -> tuple[Measurement, float, int]:
+        """SYNC + read on absolute deadlines until a fresh sample (or a non-finite one, or a device fault)
+        arrives, at most ``n_max`` times; returns (measurement, time of its SYNC, attempts − 1)."""
+        period = self.period_s
+        for i in range(n_max):
+            if i:
+                t0 += period
+                self.clock.sleep_until(t0)
+            if self.sync is not None:
+                self.sync.sync()
+            m = self.sensor.read()
+            if m.fresh or not math.isfinite(m.position_m) or m.fault is not None:
+                return m, t0, i
+        return m, t0, n_max - 1
+
     def _start(self) -> float:
+        """Enable the devices and take the first position.
+
+        Start-up grace (``loop.startup_cycles``): while the devices are still *configured* (not enabled, so
+        missed frames do not latch driver faults) the loop SYNCs until the sensor delivers a fresh sample
+        (a loaded machine, a late first TPDO or interferometer frame); after enabling it again waits for
+        the first fresh sample. The steady-state checks (stale_cycles, max_missed) apply from the first
+        active cycle on, unchanged.
+        """
         clock = self.clock
         faulted = self.safety.fault is not None
-        if not faulted:
+        n_max = 1 if faulted else int(self.cfg.startup_cycles)
+        t0 = clock.now()
+        waited = 0
+        if not faulted and any(d.state is DeviceState.CONFIGURED for d in self.devices):
+            m, t0, waited = self._first_sample(t0, n_max)
+            if not m.fresh:
+                raise StageError(f"no position from {self.sensor.name} within loop.startup_cycles {n_max} cycles "
+                                 f"(devices configured, not yet enabled)")
             for d in self.devices:
                 if d.state is DeviceState.CONFIGURED:
                     d.enable()
-        t0 = clock.now()
+            t0 = max(t0 + self.period_s, clock.now())  # the next SYNC slot after the warm-up one
+            clock.sleep_until(t0)
+        m, t0, i = self._first_sample(t0, n_max)
+        if waited or i:
+            log.info("first fresh position after %d + %d start-up cycles", waited, i)
         self._t0 = t0
-        if self.sync is not None:
-            self.sync.sync()
-        m = self.sensor.read()
         x0 = m.position_m
         if faulted:  # a latched fault survives a restart of the loop: only reset clears it
             self.state = LoopState.FAULT
             self._snap = (0.0, x0, self._snap[2], 0.0, self.cycle)
             return t0
         if not (m.fresh and math.isfinite(x0)):
-            raise StageError(f"no valid initial position from {self.sensor.name} (fresh={m.fresh}, x={x0})")
+            raise StageError(f"no valid initial position from {self.sensor.name} (fresh={m.fresh}, x={x0} m) "
+                             f"within loop.startup_cycles {n_max} cycles")
         self.safety.restart(x0)
         self.controller.reset(x0)
         self.reference.hold(0.0, x0)

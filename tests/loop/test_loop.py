@@ -10,6 +10,7 @@ import pytest
 
 from stagectl.clock import SimClock
 from stagectl.drivers.base import DeviceState
+from stagectl.errors import StageError
 from stagectl.loop import BASE_COLUMNS, LoopStateError
 
 
@@ -22,7 +23,7 @@ def test_absolute_deadlines_and_columns(rig):
     np.testing.assert_allclose(t, np.arange(250) * 1e-3, rtol=0, atol=1e-12)  # t_k = k·T exactly
     assert loop.columns == BASE_COLUMNS + ("u_pid", "u_inertia")
     assert all(len(r) == len(loop.columns) for r in sink.rows)
-    assert io.n_sync == 251  # one priming SYNC at start + one per cycle
+    assert io.n_sync == 252  # a warm-up SYNC before enabling, one priming SYNC at start, one per cycle
     assert io.state is DeviceState.CONFIGURED  # disabled on the way out
     assert loop.status()["state"] == "configured"
 
@@ -159,9 +160,9 @@ def test_status_from_another_thread_while_running(rig):
 
 
 def test_run_disables_drive_even_when_start_fails(make):
-    loop, io, plant, ctl, clock = make()
-    io.glitch(math.nan)
-    with pytest.raises(Exception, match="initial position"):
+    loop, io, plant, ctl, clock = make(startup_cycles=3)
+    io.drop_samples(10)  # no position within the start-up grace
+    with pytest.raises(StageError, match="no position from plant_io within loop.startup_cycles 3"):
         loop.run(cycles=5)
     assert io.state is DeviceState.CONFIGURED
 
@@ -199,3 +200,30 @@ def test_device_time_mode_skips_slots_without_desynchronising(make, rows):
     t = np.array([r[0] for r in rows.rows])
     assert res.overruns == 2  # still counted (wall-clock lateness)
     np.testing.assert_allclose(t, np.arange(50) * 1e-3, atol=1e-12)  # but the simulation just slowed down
+
+
+def test_start_waits_for_a_late_first_sample_then_stale_checks_apply(make, rows):
+    """Start-up grace: stale samples before the first fresh one are waited for (loop.startup_cycles);
+    afterwards the steady-state stale-position check (stale_cycles = 3) is unchanged."""
+    loop, io, plant, ctl, clock = make(startup_cycles=50)
+    loop.add_sink(rows)
+    io.drop_samples(20)  # the first 20 SYNCs bring no fresh position (e.g. a late first TPDO under load)
+    calls = []
+
+    def on_cycle():
+        calls.append(1)
+        if len(calls) == 10:
+            io.drop_samples(3)  # in steady state, 3 stale cycles still latch the fault
+
+    loop.on_cycle = on_cycle
+    res = loop.run(cycles=20)
+    assert ctl.resets == [0.0] and rows.rows[0][0] == 0.0  # loop time starts at the first fresh sample
+    assert res.fault is not None and res.fault["name"] == "stale_position" and res.fault["cycle"] == 12
+
+
+def test_start_gives_up_after_startup_cycles(make):
+    loop, io, plant, ctl, clock = make(startup_cycles=5)
+    io.drop_samples(10)
+    with pytest.raises(StageError, match="startup_cycles 5"):
+        loop.run(cycles=3)
+    assert io.state is DeviceState.CONFIGURED and clock.now() == pytest.approx(4e-3)
