@@ -30,6 +30,7 @@ import dataclasses
 import difflib
 import enum
 import math
+import operator
 import re
 import types
 import typing
@@ -145,12 +146,13 @@ def _check_number(value: Any, path: str, meta: Mapping[str, Any], problems: list
             problems.append(f"{path}: must be finite{_unit(meta)}, got {value}")
             return None
     u = _unit(meta)
-    for key, ok, word in (
-        ("gt", lambda a, b: a > b, ">"),
-        ("ge", lambda a, b: a >= b, ">="),
-        ("lt", lambda a, b: a < b, "<"),
-        ("le", lambda a, b: a <= b, "<="),
-    ):
+    checks: tuple[tuple[str, Callable[[float, float], bool], str], ...] = (
+        ("gt", operator.gt, ">"),
+        ("ge", operator.ge, ">="),
+        ("lt", operator.lt, "<"),
+        ("le", operator.le, "<="),
+    )
+    for key, ok, word in checks:
         bound = meta.get(key)
         if bound is not None and not ok(value, bound):
             problems.append(f"{path}: must be {word} {_fmt(bound)}{u} (got {_fmt(value)}{u})")
@@ -225,7 +227,7 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
         return dict(value)
     if tp is Any:
         return value
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _load_into(tp, value, path, problems)
     problems.append(f"{path}: unsupported field type {tp}")
     return None
@@ -257,7 +259,7 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
                 ok = False
                 continue
             kwargs[name] = val
-        elif f.default is _MISSING and f.default_factory is _MISSING:  # type: ignore[misc]
+        elif f.default is _MISSING and f.default_factory is _MISSING:
             problems.append(f"{sub}: required key missing{_unit(f.metadata)} ({f.metadata.get('desc', '')})")
             ok = False
     if not ok:
@@ -353,7 +355,7 @@ def describe(cls: type) -> list[tuple[str, str, str, str]]:
             inner = args[0] if (typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1) else tp
             if f.default is not _MISSING:
                 d = _fmt(f.default.value if isinstance(f.default, enum.Enum) else f.default)
-            elif f.default_factory is not _MISSING:  # type: ignore[misc]
+            elif f.default_factory is not _MISSING:
                 d = "(section)"
             else:
                 d = "required"

@@ -76,8 +76,8 @@ def stribeck_g(v: float, fc: float, fs: float, vs: float, delta: float) -> float
 
 #: typed lists holding one kernel function each. Passing a first-class function from Python costs
 #: ~20-30 µs per call (boxing); a typed list holding it unboxes in ~1 µs (plant step, short force_along).
-STEP_LIST = types.ListType(STEP_FN)
-FORCE_LIST = types.ListType(FORCE_FN)
+STEP_LIST = types.ListType(STEP_FN)  # type: ignore[no-untyped-call]  # numba types are unannotated
+FORCE_LIST = types.ListType(FORCE_FN)  # type: ignore[no-untyped-call]
 
 
 @njit(STEP_LIST(STEP_FN), cache=True)

@@ -72,12 +72,12 @@ class FrictionModel(ABC):
     #: registry tag used as ``model:`` in YAML
     tag: ClassVar[str]
     #: the frozen parameter dataclass type (fields declared with ``stagectl.schema.param``)
-    Params: ClassVar[type]
+    Params: ClassVar[type[Any]]
 
     def __init__(self, params: Any):
         if not isinstance(params, self.Params):
             raise TypeError(f"{type(self).__name__} needs {self.Params.__name__}, got {type(params).__name__}")
-        self.params = params
+        self.params: Any = params  # subclasses narrow it to their Params dataclass
 
     # ----------------------------------------------------------------- state
     @property

@@ -55,12 +55,14 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
                 au = w ** (1.0 / (1.0 - i)) if w > 0.0 else 0.0
             u = au if u > 0.0 else -au
         state[0] = d * fc * (1.0 - u)
-    return state[0] + p[3] * v
+    f: float = state[0] + p[3] * v
+    return f
 
 
 @njit(FORCE_SIG, cache=True)
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
-    return state[0] + p[3] * v
+    f: float = state[0] + p[3] * v
+    return f
 
 
 @dataclass(frozen=True)

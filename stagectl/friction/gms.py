@@ -52,7 +52,8 @@ _HDR = 7
 
 @njit(cache=True, inline="always")
 def _g(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
-    return p[1] + (p[2] - p[1]) * stribeck_excess(v, p[3], p[4])
+    g: float = p[1] + (p[2] - p[1]) * stribeck_excess(v, p[3], p[4])
+    return g
 
 
 @njit(STEP_SIG, cache=True)
@@ -100,7 +101,8 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
             tot += f + sig1 * rate
         else:
             tot += f
-    return tot + p[6] * v
+    total: float = tot + p[6] * v
+    return total
 
 
 @njit(FORCE_SIG, cache=True)
@@ -126,7 +128,8 @@ def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no 
             tot += f + sig1 * rate
         else:
             tot += f
-    return tot + p[6] * v
+    total: float = tot + p[6] * v
+    return total
 
 
 def _parse_float_or_tuple(value: Any, path: str, problems: list[str]) -> tuple[float, ...] | None:
@@ -222,7 +225,7 @@ class GmsFriction(KernelModel):
         xa = np.asarray(x, dtype=np.float64)
         k = np.asarray(self.params.k_n_m)[:, None]
         w = (np.asarray(self.params.alpha) * self.params.fs_n)[:, None]
-        return np.sign(xa) * np.minimum(k * np.abs(xa)[None, :], w).sum(axis=0)
+        return np.asarray(np.sign(xa) * np.minimum(k * np.abs(xa)[None, :], w).sum(axis=0), dtype=np.float64)
 
     @property
     def damping_n_s_m(self) -> float:

@@ -163,7 +163,8 @@ def _phi(p: FloatArray, f: float, xh: float, c: float) -> tuple[float, float]:  
 
 @njit(cache=True)
 def _sliding_force(p: FloatArray, v: float) -> float:  # pragma: no cover
-    return sgn(v) * stribeck_g(v, p[P_FC], p[P_FS], p[P_VS], p[P_DELTA]) + p[P_SIGMA2] * v
+    f: float = sgn(v) * stribeck_g(v, p[P_FC], p[P_FS], p[P_VS], p[P_DELTA]) + p[P_SIGMA2] * v
+    return f
 
 
 @njit(cache=True)
@@ -249,7 +250,8 @@ def _presliding_step(p: FloatArray, state: FloatArray, dx: float, v: float,
     state[S_FEL] = f1
 
     vs_el = v - (y - xp0) / dt if dt > 0.0 else v
-    return f1 + p[P_CV] * vs_el
+    f: float = f1 + p[P_CV] * vs_el
+    return f
 
 
 @njit(STEP_SIG, cache=True)
@@ -259,7 +261,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         if dx * sd > 0.0:
             s = state[S_SLID] + abs(dx)
             state[S_SLID] = s
-            f = _sliding_force(p, v) + state[S_OFFSET] * math.exp(-s / p[P_LTR])
+            f: float = _sliding_force(p, v) + state[S_OFFSET] * math.exp(-s / p[P_LTR])
             state[S_FPREV] = f
             return f
         # stop or velocity reversal: re-enter pre-sliding at the current force
@@ -289,12 +291,15 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     if state[S_MODE] == 1.0:
         if v * state[S_SLDIR] > 0.0:
-            return _sliding_force(p, v) + state[S_OFFSET] * math.exp(-state[S_SLID] / p[P_LTR])
-        return state[S_FPREV]
+            f: float = _sliding_force(p, v) + state[S_OFFSET] * math.exp(-state[S_SLID] / p[P_LTR])
+            return f
+        f_last: float = state[S_FPREV]
+        return f_last
     fel = _top_force(p, state)
     h = abs(fel) ** p[P_A] / p[P_PSI]
     vp = sgn(fel) * p[P_RHO] * (h - state[S_XH]) if h > state[S_XH] else 0.0
-    return fel + p[P_CV] * (v - vp)
+    f_total: float = fel + p[P_CV] * (v - vp)
+    return f_total
 
 
 @dataclass(frozen=True)

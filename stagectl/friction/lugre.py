@@ -41,9 +41,10 @@ from stagectl.schema import param
 @njit(cache=True, inline="always")
 def _sigma1(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
     vd = p[7]
+    s1: float = p[1]
     if math.isinf(vd):
-        return p[1]
-    return p[1] * math.exp(-((v / vd) ** 2))
+        return s1
+    return s1 * math.exp(-((v / vd) ** 2))
 
 
 @njit(STEP_SIG, cache=True)
@@ -57,7 +58,8 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         z = zss + (z - zss) * math.exp(-s0 * abs(v) * dt / g)
         state[0] = z
     zdot = v - s0 * abs(v) * z / g
-    return s0 * z + _sigma1(p, v) * zdot + p[2] * v
+    f: float = s0 * z + _sigma1(p, v) * zdot + p[2] * v
+    return f
 
 
 @njit(FORCE_SIG, cache=True)
@@ -66,7 +68,8 @@ def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no 
     g = stribeck_g(v, p[3], p[4], p[5], p[6])
     z = state[0]
     zdot = v - s0 * abs(v) * z / g
-    return s0 * z + _sigma1(p, v) * zdot + p[2] * v
+    f: float = s0 * z + _sigma1(p, v) * zdot + p[2] * v
+    return f
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,8 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
             f = -w
         state[i] = f
         tot += f
-    return tot + p[1] * v
+    total: float = tot + p[1] * v
+    return total
 
 
 @njit(FORCE_SIG, cache=True)
@@ -51,7 +52,8 @@ def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no 
     tot = 0.0
     for i in range(n):
         tot += state[i]
-    return tot + p[1] * v
+    total: float = tot + p[1] * v
+    return total
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,7 @@ class MaxwellSlipFriction(KernelModel):
         xa = np.asarray(x, dtype=np.float64)
         k = np.asarray(self.params.k_n_m)[:, None]
         w = np.asarray(self.params.slip_forces_n)[:, None]
-        return np.sign(xa) * np.minimum(k * np.abs(xa)[None, :], w).sum(axis=0)
+        return np.asarray(np.sign(xa) * np.minimum(k * np.abs(xa)[None, :], w).sum(axis=0), dtype=np.float64)
 
     def cycle_energy(self, amplitude_m: float) -> float:
         """Energy dissipated per symmetric cycle of amplitude A: Σ 4·W_i·max(A − W_i/k_i, 0) [J]."""

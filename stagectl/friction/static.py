@@ -46,7 +46,8 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         state[0] = e
     else:
         e = ess
-    return sgn(v) * (fc + e) + p[4] * v
+    f: float = sgn(v) * (fc + e) + p[4] * v
+    return f
 
 
 @njit(FORCE_SIG, cache=True)
@@ -56,7 +57,8 @@ def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no 
         e = state[0]
     else:
         e = (p[1] - fc) * stribeck_excess(v, p[2], p[3])
-    return sgn(v) * (fc + e) + p[4] * v
+    f: float = sgn(v) * (fc + e) + p[4] * v
+    return f
 
 
 @dataclass(frozen=True)
