@@ -399,7 +399,7 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
         return Identified(spec, meas.mass_kg, quality, meas, virgin, effects)
 
     assert virgin is not None or model == "lugre"
-    best: tuple[float, dict[str, Any], dict[str, Any]] | None = None
+    best: tuple[float, dict[str, Any], dict[str, Any], Measured] | None = None
     # the sliding terms from constant-velocity segments are kept only if they improve the fit of the whole
     # record (pre-sliding-only data can show spurious "constant-velocity" segments)
     for use_stri in ((True, False) if stri is not None else (False,)):
@@ -408,11 +408,18 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
         if model in REFINE_KEYS:
             spec, note = refine_by_simulation(meas, spec, REFINE_KEYS[model], all_rows)
             q["joint_refinement"] = note
-        fq = _fit_quality(meas, spec, all_rows)
+        m_q = meas
+        if "mass_kg_from_loops" in q and mass_kg is None:
+            m_q = measure(rec, q["mass_kg_from_loops"], cutoff_hz)
+            m_q.notes = [f"mass {q['mass_kg_from_loops']:.6g} kg from the regression over all hysteresis loops"]
+        fq = _fit_quality(m_q, spec, all_rows)
         if best is None or fq["force_rms_error_n"] < best[0]:
-            best = (fq["force_rms_error_n"], spec, {**q, "fit": fq, "sliding_terms_from_segments": use_stri})
+            best = (fq["force_rms_error_n"], spec, {**q, "fit": fq, "sliding_terms_from_segments": use_stri}, m_q)
     assert best is not None
     spec = best[1]
+    if best[3] is not meas:
+        meas = best[3]
+        quality["notes"] = list(meas.notes)
     notes = quality["notes"] + best[2].pop("notes", [])
     quality.update(best[2])
     quality["notes"] = notes
@@ -432,6 +439,16 @@ def _build_spec(model: str, meas: Measured, virgin: tuple[FloatArray, FloatArray
         deltas, w, rss = fit_virgin(d, f, n_el)
         quality["virgin_fit"] = {"rms_n": math.sqrt(rss / d.size), "points": int(d.size),
                                  "breakpoints_m": [float(x) for x in deltas]}
+        reg = _refine_by_regression(meas, deltas, stri)
+        if reg is not None:
+            spec, mass, note = reg
+            quality["loop_refinement"] = note
+            quality["mass_kg_from_loops"] = mass
+            if model == "maxwell_slip":
+                w_el = np.array(spec["alpha"]) * spec["fc_n"]
+                spec = {"model": "maxwell_slip", "k_n_m": spec["k_n_m"], "w_n": [float(x) for x in w_el],
+                        "viscous_n_s_m": spec["viscous_n_s_m"]}
+            return spec
         deltas, w, loop_note = _refine_on_loops(meas, deltas, w)
         if loop_note:
             quality["loop_refinement"] = loop_note
@@ -537,6 +554,54 @@ def _initial_slope(d: FloatArray, f: FloatArray) -> float:
     dd, ff = d[pos], f[pos]
     k = max(3, dd.size // 50)
     return float(max(np.polyfit(dd[:k], ff[:k], 1)[0], 1e-3))
+
+
+def _refine_by_regression(meas: Measured, deltas: FloatArray, stri: dict[str, float] | None
+                          ) -> tuple[dict[str, Any], float, str] | None:
+    """Closed-loop data (enough moving samples): least squares over all hysteresis loops with the
+    inverse-dynamics regression of ``discover`` (mass, Coulomb, Maxwell-slip elements with micro-damping,
+    viscous, Stribeck excess if identified), starting from the virgin-curve breakpoints; the breakpoints are
+    refined by coordinate descent on log Δ_i. Returns (GMS spec, mass, note) or None for quasi-static data."""
+    from stagectl.ident.modelio import hyp_to_spec
+
+    sig = meas.sig
+    rows = sig.evaluate
+    if rows.sum() < 500:
+        return None
+    effects: tuple[str, ...] = ("presliding",)
+    nl: dict[str, Any] = {"deltas_m": tuple(float(d) for d in deltas)}
+    if stri is not None and stri.get("stribeck_identified"):
+        effects = ("presliding", "stribeck")
+        nl.update(vs_m_s=stri["vs_m_s"], delta=stri["delta"])
+    h = rg.Hyp(effects=effects, nl=nl)
+    first = rg.fit_linear(sig, h, rows)
+    best = first
+    ds_ = list(nl["deltas_m"])
+    for _sweep in range(2):
+        for j in range(len(ds_)):
+            def cost(lv: float, j: int = j) -> float:
+                trial = list(ds_)
+                trial[j] = math.exp(lv)
+                hh = h.copy()
+                hh.nl["deltas_m"] = tuple(trial)
+                return rg.fit_linear(sig, hh, rows).rss
+
+            dj = ds_[j]
+            res = minimize_scalar(cost, bounds=(math.log(dj / 2.5), math.log(dj * 2.5)), method="bounded",
+                                  options={"maxiter": 10})
+            if res.fun < best.rss:
+                ds_[j] = math.exp(float(res.x))
+                hh = h.copy()
+                hh.nl["deltas_m"] = tuple(ds_)
+                best = rg.fit_linear(sig, hh, rows)
+    spec = hyp_to_spec(best.hyp)["friction"]
+    if spec.get("model") != "gms":
+        return None
+    mass = float(best.hyp.theta.get("m", 0.0))
+    n = int(rows.sum())
+    note = (f"inverse-dynamics least squares over {n} moving samples (all loops): RMS "
+            f"{math.sqrt(first.rss / n):.4g} N -> {math.sqrt(best.rss / n):.4g} N, mass {mass:.6g} kg")
+    return spec, mass, note
 
 
 def _refine_on_loops(meas: Measured, deltas: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray, str]:

@@ -133,3 +133,22 @@ def test_hsieh_module_by_module_then_joint() -> None:
     assert res.spec["k1s_n_m"] == pytest.approx(51540.0, rel=0.1)
     assert res.spec["cv_n_s_m"] == pytest.approx(5000.0, rel=0.1)
     assert res.quality["fit"]["relative_error"] < 0.1
+
+
+def test_gms_from_closed_loop_plant_recording() -> None:
+    """A GMS stage (4 random elements, micro-damping) under the closed-loop synth motion: virgin-curve start,
+    then least squares over all loops. Tolerances: Fs 2 %, mass 3 %, force RMS error < 3 %, and the most
+    compliant element (largest break displacement) within 15 % in stiffness."""
+    rng = np.random.default_rng(11)
+    st = synth.hide(synth.draw_stage(rng), "presliding", rng)
+    rec = synth.closed_loop(st, seed=11, motion=synth.Motion(duration_s=10.0))
+    res = identify(rec, "gms")
+    fr = st["friction"]
+    assert res.spec["fs_n"] == pytest.approx(fr["fs_n"], rel=0.02)
+    assert res.mass_kg == pytest.approx(st["mass_kg"], rel=0.03)
+    assert res.quality["fit"]["relative_error"] < 0.03
+    d_true = np.array(fr["alpha"]) * fr["fs_n"] / np.array(fr["k_n_m"])
+    k_true = np.array(fr["k_n_m"])[np.argmax(d_true)]
+    k = np.array(res.spec["k_n_m"])
+    d = np.array(res.spec["alpha"]) * res.spec["fs_n"] / k
+    assert k[np.argmax(d)] == pytest.approx(k_true, rel=0.15)
