@@ -8,7 +8,8 @@ and crossover frequency of the *configured* controller and of the *designed* one
 Inputs: the application config (``stagectl.config.load_app_config``: ``loop.period_s``,
 ``controller.*``, ``controller.mass_kg`` or the simulated plant's mass, ``io.delay_cycles``); flags
 override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
-Exit code 1 when the configured loop is unstable, 2 on bad input.
+Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 6 dB, else shown as
+thin. Exit code 1 when the configured loop is unstable, 2 on bad input.
 """
 
 from __future__ import annotations
@@ -19,6 +20,16 @@ import math
 import sys
 from pathlib import Path
 from typing import Any
+
+
+#: margins below these are reported as thin (typical robustness targets for a motion loop)
+HEALTHY_PHASE_MARGIN_DEG = 40.0
+HEALTHY_GAIN_MARGIN_DB = 6.0
+
+
+def _healthy(s: dict[str, Any]) -> bool:
+    return bool(s["closed_loop_stable"] and s["phase_margin_deg"] >= HEALTHY_PHASE_MARGIN_DEG
+                and s["gain_margin_db"] >= HEALTHY_GAIN_MARGIN_DB)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -112,7 +123,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
             "pid": _pid_dict(ctl.pid),
             "dob": {"kind": dob.kind, "bandwidth_hz": dob.bandwidth_hz,
                     "command_delay_samples": dob.command_delay_samples, "nominal_mass_kg": m_dob},
-            "loops": {a.name: a.summary() for a in loops},
+            "loops": {a.name: {**a.summary(), "healthy": _healthy(a.summary())} for a in loops},
         }
         if K is not None:
             conf["dob"]["kalman_gain"] = [float(k) for k in K]
@@ -136,7 +147,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         "target_crossover_hz": bw,
         "pid": _pid_dict(pid),
         "dob": {"kind": "qfilter", "bandwidth_hz": dbw, "command_delay_samples": nd},
-        "loops": {a.name.removeprefix("designed "): a.summary() for a in loops},
+        "loops": {a.name.removeprefix("designed "): {**a.summary(), "healthy": _healthy(a.summary())} for a in loops},
         "yaml": _yaml_snippet(m, pid, dbw, nd),
     }
     if args.out:
@@ -176,7 +187,12 @@ def _yaml_snippet(m: float, pid: Any, dbw: float, nd: int) -> str:
 def _fmt_loop(name: str, s: dict[str, Any]) -> str:
     gm = s["gain_margin_db"]
     gm_s = "inf" if math.isinf(gm) else f"{gm:.1f} dB"
-    st = "" if s["closed_loop_stable"] else "   ** UNSTABLE **"
+    if not s["closed_loop_stable"]:
+        st = "   ** UNSTABLE **"
+    elif not _healthy(s):
+        st = f"   (thin: below PM {HEALTHY_PHASE_MARGIN_DEG:g} deg / GM {HEALTHY_GAIN_MARGIN_DB:g} dB)"
+    else:
+        st = ""
     return (f"  {name:<10s} crossover {s['crossover_hz']:7.2f} Hz   phase margin {s['phase_margin_deg']:6.1f} deg   "
             f"gain margin {gm_s:>8s} (at {s['phase_crossover_hz']:.1f} Hz){st}")
 

@@ -100,3 +100,16 @@ def test_tune_cli_bad_input_is_a_clear_error(capsys):
     assert "--mass-kg: must be > 0 kg" in err and "Nyquist" in err
     rc = main(["tune"])
     assert rc == 2 and "--mass-kg: required" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["sim", "hil-canopen", "hil-serial", "stage-canopen"])
+def test_tune_reports_margins_of_every_shipped_config(repo_root, capsys, name):
+    rc = main(["tune", "--config", str(repo_root / "config" / f"{name}.yaml"), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["configured"]["stable"] is True
+    loops = out["configured"]["loops"]
+    assert set(loops) == {"pid", "pid+dob"}
+    for s in loops.values():
+        assert s["closed_loop_stable"] and s["gain_margin_db"] >= 6.0 and s["phase_margin_deg"] >= 25.0
+        assert s["healthy"] == (s["phase_margin_deg"] >= 40.0 and s["gain_margin_db"] >= 6.0)
+    assert 30.0 < loops["pid"]["crossover_hz"] < 70.0
