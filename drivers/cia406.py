@@ -228,13 +228,15 @@ class Cia406Encoder(PositionSensor, SyncProducer):
                 while (msg := bus.recv(0.0)) is not None:
                     take(msg)
                 return got
+            # drain everything that has arrived (a backlog, e.g. the drive's enable cycles, ends with the newest
+            # SYNC); wait only while no TPDO follows the newest SYNC seen
             deadline = time.monotonic() + self.cfg.rx_timeout_s
-            while got is None:
-                left = deadline - time.monotonic()
-                if left <= 0 or (msg := bus.recv(left)) is None:
-                    break
-                take(msg)
-            while (msg := bus.recv(0.0)) is not None:
+            while True:
+                msg = bus.recv(0.0)
+                if msg is None:
+                    left = deadline - time.monotonic()
+                    if got is not None or left <= 0 or (msg := bus.recv(left)) is None:
+                        break
                 take(msg)
         except can.CanError as exc:
             raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc

@@ -182,8 +182,10 @@ class SocketcandServer:
         self._broadcast(format_frame(msg), None)
 
     def from_client(self, msg: can.Message, origin: _Client) -> None:
-        self._incoming.put(msg)
+        # forward first: the other clients must see a SYNC before the devices' answers to it (on a real bus
+        # the SYNC is on the wire before any TPDO it triggers)
         self._broadcast(format_frame(msg, msg.timestamp), origin)
+        self._incoming.put(msg)
 
     def _broadcast(self, data: bytes, exclude: _Client | None) -> None:
         with self._clients_lock:

@@ -188,3 +188,58 @@ def test_two_socketcand_clients_share_the_bus(make_world, make_drive):
         assert m.counts > 0
     finally:
         enc.close()
+
+
+CHILD = """
+import os, signal, sys, threading
+from stagectl.cli import main
+
+def fire():  # SIGTERM as soon as sim-plant's handler is in place (no sleeps: poll the handler)
+    while signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        threading.Event().wait(0.0005)
+    sys.stderr.write("heavy=%d\\n" % ("numpy" in sys.modules))
+    os.kill(os.getpid(), signal.SIGTERM)
+
+threading.Thread(target=fire, daemon=True).start()
+sys.exit(main(["sim-plant", "--config", sys.argv[1]]))
+"""
+
+
+def test_sigterm_during_sim_plant_start_up_exits_cleanly(tmp_path):
+    """SIGTERM while the plant is still being built: exit 0, and the handler is installed before any heavy
+    import (the CLI builds only the sim-plant parser), which keeps the unprotected start-up window short."""
+    cfg = tmp_path / "hil.yaml"
+    cfg.write_text(textwrap.dedent(SIM_YAML))
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(cfg)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "heavy=0" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_socketcand_server_forwards_a_client_frame_before_the_devices_see_it():
+    """Other clients must receive a SYNC before any device answer to it (as on a real bus); the world reads
+    client frames from the server's queue, so the forward has to happen before the frame is queued."""
+    import can
+
+    from stagectl.sim.socketcand import SocketcandServer
+
+    server = SocketcandServer()
+    try:
+        seen: list[bytes] = []
+
+        class Peer:
+            def send(self, data):
+                seen.append(data)
+
+        class Checked:
+            def put(self, msg):
+                assert seen, "frame queued for the devices before it was forwarded to the other clients"
+                seen.append(b"queued")
+
+        server._clients = [(Peer(), None)]
+        server._incoming = Checked()
+        server.from_client(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False, timestamp=1.0),
+                           origin=object())
+        assert seen == [b"< frame 080 1.000000  >", b"queued"]
+    finally:
+        server._clients = []
+        server.stop()
