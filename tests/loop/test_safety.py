@@ -151,3 +151,21 @@ def test_safety_unit_checks():
     assert s.fault is first  # the first fault stays latched
     with pytest.raises(ValueError, match="target_m"):
         s.check_target(2e-3)
+
+
+def test_not_finite_anywhere_latches():
+    """NaN/inf in the measurement, the reference or the controller output each latch ``not_finite``."""
+    cfg = SafetyConfig(min_position_m=-1e-3, max_position_m=1e-3)
+    for bad in (math.nan, math.inf, -math.inf):
+        s = Safety(cfg, 1e-3)
+        s.restart(0.0)
+        assert s.check_measurement(0.0, 0, bad, True, None) and s.fault.name == "not_finite"
+        s = Safety(cfg, 1e-3)
+        s.restart(0.0)
+        assert s.check_tracking(0.0, 0, 0.0, bad) and s.fault.name == "not_finite"
+        assert "reference" in s.fault.cause
+        s = Safety(cfg, 1e-3)
+        assert s.limit_force(0.0, 0, bad) == 0.0 and s.fault.name == "not_finite"
+        assert "controller output" in s.fault.cause
+        s.clear()
+        assert s.fault is None
