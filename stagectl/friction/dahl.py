@@ -95,6 +95,16 @@ class DahlFriction(KernelModel):
     def _relaxed(params: DahlParams) -> FloatArray:
         return np.zeros(1)
 
+    @property
+    def stiffness_n_m(self) -> float:
+        """Rest stiffness σ0 [N/m] (for integrator step limits)."""
+        return float(self.params.sigma0_n_m)
+
+    @property
+    def damping_n_s_m(self) -> float:
+        """Viscous coefficient σ2 [N·s/m] (for integrator step limits)."""
+        return float(self.params.viscous_n_s_m)
+
     def virgin(self, x: np.ndarray) -> np.ndarray:
         """Virgin curve F_d(x) [N] from the relaxed state (exponent i = 1): Fc·(1 − exp(−σ0|x|/Fc))·sgn(x)."""
         if self.params.exponent != 1.0:

@@ -361,6 +361,16 @@ class HsiehFriction(KernelModel):
         s[S_DEPTH] = 1.0  # P_0 = virgin origin (0, 0)
         return s
 
+    @property
+    def stiffness_n_m(self) -> float:
+        """Initial spring-module stiffness k1s + k2s [N/m] (for integrator step limits)."""
+        return float(self.params.k1s_n_m + self.params.k2s_n_m)
+
+    @property
+    def damping_n_s_m(self) -> float:
+        """Largest linear damping Cv + σ2 [N·s/m] (for integrator step limits)."""
+        return float(self.params.cv_n_s_m + self.params.viscous_n_s_m)
+
     # ------------------------------------------------------------------ closed forms and inspection
     def virgin_force(self, xs: npt.ArrayLike) -> FloatArray:
         """Spring-module virgin curve F_el(x_s) [N] for elastic displacement ``xs`` [m]."""

@@ -111,6 +111,16 @@ class LuGreFriction(KernelModel):
     def _relaxed(params: LuGreParams) -> FloatArray:
         return np.zeros(1)
 
+    @property
+    def stiffness_n_m(self) -> float:
+        """Bristle (pre-sliding) stiffness σ0 [N/m] (for integrator step limits)."""
+        return float(self.params.sigma0_n_m)
+
+    @property
+    def damping_n_s_m(self) -> float:
+        """Largest linear damping σ1 + σ2 [N·s/m] (for integrator step limits)."""
+        return float(self.params.sigma1_n_s_m + self.params.viscous_n_s_m)
+
     def g(self, v: float) -> float:
         """Unsigned Stribeck magnitude g(v) [N]."""
         q = self.params

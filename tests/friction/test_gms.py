@@ -324,3 +324,21 @@ def test_gms_quasi_static_masing_loop_and_energy_per_cycle(amp, f_a, f_zero, ene
     xl, fl = x[n:], f[n:]
     area = float(np.sum(0.5 * (fl[1:] + fl[:-1]) * np.diff(xl)))
     assert area / 1e-6 == pytest.approx(energy_uj, rel=1e-4)
+
+
+@pytest.mark.parametrize("c_n_s,dt", [(1e9, 1e-2), (1e3, 1e-2), (1e9, 1e-8)])
+def test_slip_update_is_unconditionally_stable(c_n_s, dt):
+    # C·dt/g up to 1e7 (explicit Euler would need C·dt/g < 2): no overshoot, monotone approach to α·s(v)
+    dut = build({**TV3, "c_n_s": c_n_s, "viscous_n_s_m": 0.0})
+    s = dut.initial_state()
+    for _ in range(200):  # slide forward at 1 mm/s into slip
+        dut.step(s, 1e-3 * 1e-4, 1e-3, 1e-4)
+    g = 0.8 + 0.1 * math.exp(-((5e-3 / 1e-3) ** 2))
+    prev = dut.force(s, 5e-3)
+    for _ in range(50):  # jump to 5 mm/s: g drops, elements relax towards α_i·g(5 mm/s)
+        f = dut.step(s, 5e-3 * dt, 5e-3, dt)
+        assert np.all(np.abs(s[:6]) <= np.array(ALPHA) * 0.9 + 1e-12)
+        assert g * 0.999 - 1e-12 <= f <= prev + 1e-12
+        prev = f
+    if c_n_s * dt / g > 50:
+        assert f == pytest.approx(0.999 * g, abs=1e-9)

@@ -339,3 +339,43 @@ def test_substep_too_large_for_stiffness_or_damping_is_rejected():
         PlantConfig.from_mapping({"mass_kg": 0.5, "friction": {**VISCOUS_ONLY, "viscous_n_s_m": 1e4},
                                   "substep_s": 1e-4})
     PlantConfig.from_mapping({"mass_kg": 0.5, "friction": gms(k=[2e6]), "substep_s": 1e-5})  # fine
+
+
+# ---------------------------------------------------------------------------------------------- every model
+ALL_MODELS = {
+    "stribeck": {"model": "stribeck", "fc_n": 0.8, "fs_n": 0.9, "viscous_n_s_m": 10.0},
+    "maxwell_slip": {"model": "maxwell_slip", "k_n_m": K_TABLE1, "alpha": ALPHA_TABLE1, "fs_n": 0.9,
+                     "viscous_n_s_m": 10.0},
+    "gms": gms(sigma1=30.0, viscous=10.0),
+    "lugre": {"model": "lugre", "sigma0_n_m": 1e5, "sigma1_n_s_m": 316.2, "viscous_n_s_m": 0.4, "fc_n": 0.8,
+              "fs_n": 0.9},
+    "dahl": {"model": "dahl", "sigma0_n_m": 1e5, "fc_n": 0.8, "viscous_n_s_m": 1.0},
+    "hsieh": None,  # the shipped model file
+}
+
+
+@pytest.mark.parametrize("tag", sorted(ALL_MODELS))
+def test_every_model_in_the_plant_balances_energy_and_dissipates(tag):
+    from stagectl.friction import load_model_file, registry
+
+    fric = ALL_MODELS[tag] or load_model_file(MODELS / "kamenar2016_hsieh.yaml").friction.spec()
+    dut = make(fric, mass_kg=2.0)
+    assert set(ALL_MODELS) == set(registry())  # every registered model runs in the plant
+    rng = np.random.default_rng(2)
+    u = 1.5 * np.sin(2 * np.pi * 2.0 * np.arange(12000) * 1e-4) + np.repeat(rng.uniform(-0.3, 0.3, 30), 400)
+    r = dut.simulate(u, 1e-4)
+    w = dut.work_j()
+    ke = 0.5 * 2.0 * r["v"][-1] ** 2
+    assert np.ptp(r["x"]) > 1e-4  # slid (both pre-sliding and gross motion were visited)
+    assert w["friction"] > 0.0  # friction dissipated energy
+    assert w["applied"] == pytest.approx(ke + w["friction"] + w["other"], abs=2e-3 * abs(w["applied"]) + 1e-9)
+
+
+@pytest.mark.parametrize("tag,mass", [("hsieh", 2.0), ("lugre", 1.0), ("dahl", 0.01)])
+def test_substep_limit_applies_to_every_stiff_or_damped_model(tag, mass):
+    from stagectl.friction import load_model_file
+
+    fric = ALL_MODELS[tag] or load_model_file(MODELS / "kamenar2016_hsieh.yaml").friction.spec()
+    with pytest.raises(ConfigError, match="plant.substep_s: must be <="):
+        PlantConfig.from_mapping({"mass_kg": mass, "friction": fric, "substep_s": 5e-3})
+    PlantConfig.from_mapping({"mass_kg": mass, "friction": fric, "substep_s": 1e-5})
