@@ -17,7 +17,7 @@ TABLE1_K = [454610.0, 111088.0, 45601.0, 16402.0, 6899.0, 4295.0]
 TABLE1_ALPHA = [0.378, 0.138, 0.148, 0.177, 0.112, 0.046]
 
 
-def _loops(n: int = 20000, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+def _loops(n: int = 12000, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """Nested hysteresis loops: 20-30 µm amplitude-modulated sine (pre-sliding only)."""
     t = np.arange(n) * dt
     return t, 20e-6 * np.sin(2 * np.pi * 0.5 * t) * (1 + 0.5 * np.sin(2 * np.pi * 0.13 * t))
@@ -60,7 +60,7 @@ def test_table1_round_trip() -> None:
 
 
 def test_element_count_chosen_by_bic() -> None:
-    d = np.linspace(0, 40e-6, 3000)
+    d = np.linspace(0, 40e-6, 1500)
     deltas = np.array([1e-6, 5e-6, 20e-6])
     w = np.array([0.3, 0.4, 0.3])
     f = (np.minimum(d[:, None] / deltas, 1.0) * w).sum(axis=1)
