@@ -16,5 +16,6 @@ def test_bench_io_smoke():
     assert v["slots"] == 50 and v["cycles_run"] + v["skipped_overrun"] == 50
     assert v["round_trip_us"]["p50"] > 0 and v["response_us"]["p50"] > 0
     assert 0.0 <= v["missed_pct"] <= 100.0
+    assert 0 <= v["max_consecutive_missed_tpdo"] <= v["missed_tpdo"]
     assert set(out["targets"]["met"]) == {"canopen_virtual_missed_pct", "round_trip_p99_us"}
     assert out["baseline_sleep_loop"]["slots"] == 50
