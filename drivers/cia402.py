@@ -274,6 +274,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
+        self._unread = False
         self._missed = 0
         self._hb_age = 0
         self._hb_seen = False
@@ -445,17 +446,19 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         if self._pending is None:
             self._pending = fault
 
-    def _drain(self) -> None:
+    def _drain(self) -> tuple[int, int] | None:
+        """Handle every frame that has arrived; return the newest TPDO1 among them (None if none)."""
         bus = self._bus
         assert bus is not None
+        got: tuple[int, int] | None = None
         while True:
             try:
                 msg = bus.recv(0.0)
             except can.CanError as exc:
                 raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
             if msg is None:
-                return
-            self._handle(msg)  # TPDOs received before SYNC are stale: dropped here
+                return got
+            got = self._handle(msg) or got
 
     def _send(self, msg: can.Message) -> None:
         try:
@@ -469,7 +472,10 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if self._pump is not None:
             self._pump()
-        self._drain()
+        got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
+            self._unread = False
+            self._evaluate(got)
         if self._cycle % self._hb_every == 0:
             self._send(self._hb_msg)
         self._send(self._sync_msg)
@@ -499,20 +505,6 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
                     break
                 got = self._handle(msg) or got
             while (msg := bus.recv(0.0)) is not None:  # newest wins (a late frame may precede it)
-                got = self._handle(msg) or got
-        except can.CanError as exc:
-            raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
-        return got
-
-    def _poll_tpdo(self) -> tuple[int, int] | None:
-        """Non-blocking: the TPDO if it has arrived already (pump first in lock-step)."""
-        bus = self._bus
-        assert bus is not None
-        got: tuple[int, int] | None = None
-        try:
-            if self._pump is not None:
-                self._pump()
-            while (msg := bus.recv(0.0)) is not None:
                 got = self._handle(msg) or got
         except can.CanError as exc:
             raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
@@ -590,12 +582,13 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         """Send RPDO1 (controlword, target torque) for the next period. Real-time safe.
 
         After a latched fault or ``quick_stop()`` the RPDO carries quick stop and zero torque. If ``read()``
-        was not called in this cycle (another device is the position sensor), the drive's TPDO is taken
-        here without waiting, so drive faults (statusword, EMCY, heartbeat, missed TPDOs) are still latched.
+        was not called in this cycle (another device is the position sensor), the drive's answer to this
+        SYNC is evaluated at the next ``sync()`` (whatever arrived within the period, no waiting here), so
+        drive faults (statusword, EMCY, heartbeat, missed TPDOs) are still latched, one cycle later.
         """
         if self._synced and self._state in (DeviceState.ENABLED, DeviceState.FAULT):
             self._synced = False
-            self._evaluate(self._poll_tpdo())
+            self._unread = True
         if self._state is DeviceState.ENABLED and self._cw == Controlword.ENABLE_OPERATION:
             self._send_rpdo(self._cw, self.torque_units(force_n))
         elif self._state is DeviceState.FAULT:
@@ -618,6 +611,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
     def _step_cycles(self, choose: Callable[[State402 | None], int | None], what: str) -> State402:
         """Run SYNC/TPDO/RPDO cycles, sending ``choose(state)`` until it returns None."""
         n_max = max(8, math.ceil(self.cfg.state_timeout_s / self._period_s))
+        self._unread = False  # state changes read the statusword themselves
         next_t = time.monotonic()
         state: State402 | None = None
         for _ in range(n_max):

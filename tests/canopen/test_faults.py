@@ -156,3 +156,25 @@ def test_drive_faults_latched_when_drive_is_only_the_actuator(lockstep):
         dut.write(1.0)
     assert dut.fault is not None and dut.fault.kind is FaultKind.DRIVE_FAULT and dut.fault.code == 0x3210
     assert dut.state is DeviceState.FAULT
+
+
+def test_actuator_only_drive_takes_a_tpdo_that_arrives_after_write(lockstep):
+    """Across processes the drive's TPDO may arrive after write() (the interferometer was the sensor): it is
+    the answer to this SYNC and is evaluated at the next sync(), not counted as missed. Here the devices are
+    pumped only after write(), i.e. they answer late in the period."""
+    world, dut = lockstep()
+    dut.set_pump(lambda: None)  # the devices run only when the test pumps them, after write()
+    for _ in range(20):
+        dut.sync()
+        dut.write(1.0)
+        world.pump()
+        assert dut.fault is None
+    assert dut.missed_total == 0
+    world.inject(FaultSpec(kind=SimFault.DROP_TPDO))
+    for k in range(1, 6):
+        dut.sync()
+        dut.write(1.0)
+        world.pump()
+        if dut.fault is not None:
+            break
+    assert dut.fault.kind is FaultKind.MISSED_FRAME and k <= 4  # max_missed 3, seen one cycle later
