@@ -43,8 +43,9 @@ def scenario_names() -> tuple[str, ...]:
     return (*benchmark_scenarios(), *EXTRA_SCENARIOS)
 
 
-def get_scenario(name: str) -> Any:
-    """A trajectory scenario by name (``cosine``, ``triangle``, ``steps``, ``demo``, ``hold``)."""
+def get_scenario(name: str, field: str = "--scenario") -> Any:
+    """A trajectory scenario by name (``cosine``, ``triangle``, ``steps``, ``demo``, ``hold``); an unknown name
+    is a ConfigError naming ``field``."""
     from stagectl.control import trajectory as tr
 
     if name == "hold":
@@ -53,7 +54,7 @@ def get_scenario(name: str) -> Any:
         return tr.demo_scenario()
     sc = tr.benchmark_scenarios()
     if name not in sc:
-        raise ConfigError(f"scenario: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
+        raise ConfigError(f"{field}: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
     return sc[name]
 
 

@@ -231,7 +231,7 @@ def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
     if "path" in rest:
         problems.append("path: unknown key")
     if cfg is not None:
-        problems.extend(_cross_checks(cfg, sim, base_dir))
+        problems.extend(_cross_checks(cfg, sim, base_dir, sim_given=data.get("sim") is not None))
     if problems:
         prefix = f"{p.name}: " if p is not None else ""
         raise ConfigError([prefix + m for m in problems])
@@ -239,10 +239,15 @@ def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
     return dataclasses.replace(cfg, sim=sim, path=p)
 
 
-def _cross_checks(cfg: AppConfig, sim: SimSection | None, base_dir: Path | None) -> list[str]:
+def _cross_checks(cfg: AppConfig, sim: SimSection | None, base_dir: Path | None, *,
+                  sim_given: bool = True) -> list[str]:
     problems: list[str] = []
     kind = cfg.io.kind
-    if kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN) and sim is None:
+    from stagectl.app import scenario_names
+
+    if cfg.demo.scenario not in scenario_names():
+        problems.append(f"demo.scenario: unknown scenario {cfg.demo.scenario!r} (known: {', '.join(scenario_names())})")
+    if kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN) and sim is None and not sim_given:
         problems.append(f"sim: required for io.kind {kind.value} (the simulated stage)")
     if kind is IoKind.EMBEDDED_CANOPEN and sim is not None and sim.world is None:
         problems.append("io.kind: embedded_canopen needs the virtual-device world (stagectl.sim.world), "

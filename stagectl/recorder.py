@@ -24,6 +24,27 @@ from typing import Any
 import numpy as np
 
 
+def prepare_out_dir(path: str | Path, flag: str = "--out") -> Path:
+    """Create the output directory now (before a run) and check it is writable.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``flag`` and the reason (not a directory, permission, read-only file system ...).
+    """
+    from stagectl.errors import ConfigError
+
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        probe = p / ".stagectl-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{flag}: cannot write to directory {str(p)!r} ({exc.strerror or exc})") from None
+    return p
+
+
 class Recorder:
     """A telemetry sink keeping every row in memory (loop thread only while running)."""
 
@@ -148,15 +169,20 @@ def plot_run(rec: Recorder, out_dir: str | Path, title: str = "") -> list[Path]:
 def write_outputs(rec: Recorder, out_dir: str | Path, summary: dict[str, Any], *, plots: bool = True,
                   title: str = "") -> dict[str, str]:
     """CSV + summary.json (+ PNG) into ``out_dir``; returns the written paths by kind."""
+    from stagectl.errors import StageError
+
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    files = {"csv": str(rec.write_csv(out / "telemetry.csv"))}
-    sp = out / "summary.json"
-    files["summary"] = str(sp)
-    if plots and rec.n > 1:
-        files["plots"] = ",".join(str(p) for p in plot_run(rec, out, title))
-    summary = {**summary, "files": files}
-    sp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        files = {"csv": str(rec.write_csv(out / "telemetry.csv"))}
+        sp = out / "summary.json"
+        files["summary"] = str(sp)
+        if plots and rec.n > 1:
+            files["plots"] = ",".join(str(p) for p in plot_run(rec, out, title))
+        summary = {**summary, "files": files}
+        sp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise StageError(f"--out: writing the results to {str(out)!r} failed ({exc.strerror or exc})") from None
     return files
 
 

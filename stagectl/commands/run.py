@@ -34,10 +34,10 @@ def run(args: argparse.Namespace) -> int:
     from datetime import datetime, timezone
     from pathlib import Path
 
-    from stagectl.app import build_stage
+    from stagectl.app import build_stage, get_scenario
     from stagectl.config import load_app_config
     from stagectl.errors import ConfigError
-    from stagectl.recorder import Recorder, tracking_summary, write_outputs
+    from stagectl.recorder import Recorder, prepare_out_dir, tracking_summary, write_outputs
 
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ConfigError(f"--duration: must be > 0 s (got {args.duration})")
@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = load_app_config(args.config)
     out = Path(args.out) if args.out else Path("runs") / datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    if args.scenario is not None:
+        get_scenario(args.scenario)  # unknown names fail before any device is opened
+    prepare_out_dir(out)
     with build_stage(cfg) as stage:
         loop = stage.loop
         scenario = args.scenario or (cfg.demo.scenario if stage.simulated else "hold")

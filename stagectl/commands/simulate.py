@@ -30,14 +30,13 @@ def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: fl
     """Run one simulation and write its outputs; returns the summary dict."""
     import math
 
-    from stagectl.app import build_stage, get_scenario
-    from stagectl.clock import SimClock
-    from stagectl.errors import ConfigError
-    from stagectl.recorder import Recorder, tracking_summary, write_outputs
-
     import dataclasses
 
+    from stagectl.app import build_stage, get_scenario
+    from stagectl.clock import SimClock
     from stagectl.config import IoKind
+    from stagectl.errors import ConfigError
+    from stagectl.recorder import Recorder, prepare_out_dir, tracking_summary, write_outputs
 
     if cfg.io.kind is IoKind.CANOPEN:
         if cfg.sim is None or cfg.sim.world is None:
@@ -45,6 +44,7 @@ def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: fl
         # same drivers, the virtual devices of the sim: section in-process (lock-step)
         cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
     sc = get_scenario(scenario)
+    prepare_out_dir(out_dir)
     if duration_s is None:
         x0 = cfg.sim.plant.x0_m if cfg.sim is not None else 0.0
         duration_s = (sc.duration_s(x0) if sc is not None else 1.0) + 0.2

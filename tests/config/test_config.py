@@ -153,3 +153,36 @@ def test_sensor_choice_for_plant_io_rejected(tmp_path):
     probs = "\n".join(_problems(data, tmp_path))
     assert "io.sensor: plant_io measures through the plant itself" in probs
     assert SensorSource("drive") is SensorSource.DRIVE
+
+
+def test_missing_model_file_named_for_each_key_without_follow_up_noise(tmp_path):
+    data = _sim_mapping()
+    data["sim"]["plant"]["model_file"] = "models/nope.yaml"
+    data["controller"]["feedforward"]["model_file"] = "models/nope.yaml"
+    probs = _problems(data, tmp_path)
+    assert any(p.startswith("bad.yaml: sim.plant.model_file:") and "nope.yaml" in p for p in probs)
+    assert any("controller.feedforward.model_file:" in p and "nope.yaml" in p for p in probs)
+    assert not any("sim: required" in p for p in probs)  # the sim section was given; its own error says why
+
+
+def test_demo_scenario_is_validated(tmp_path):
+    data = _sim_mapping()
+    data["demo"] = {"scenario": "dmeo"}
+    probs = "\n".join(_problems(data, tmp_path))
+    assert "demo.scenario: unknown scenario 'dmeo' (known: cosine, triangle, steps, demo, hold)" in probs
+
+
+@pytest.mark.parametrize("command", ["simulate", "run"])
+def test_cli_bad_scenario_and_unwritable_out_fail_before_running(tmp_path, capsys, command):
+    from stagectl.cli import main
+
+    cfg = str(REPO / "config" / "sim.yaml")
+    assert main([command, "--config", cfg, "--scenario", "nope", "--out", str(tmp_path / "o")]) == 2
+    assert "stagectl: error: --scenario: unknown scenario 'nope'" in capsys.readouterr().err
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    assert main([command, "--config", cfg, "--scenario", "hold", "--duration", "0.05",
+                 "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert "stagectl: error: --out: cannot write to directory" in err and "Not a directory" in err
+    assert not (tmp_path / "o").exists()  # nothing was run or written
