@@ -259,7 +259,8 @@ class StageController:
         PID: the PID term keeps its value (integrator absorbs the gain change). Observer of the same kind:
         d̂ keeps its value. Observer switched off: its last d̂ moves into the integrator; switched on: it
         starts at d̂ = 0. Feed-forward changed: the new one starts relaxed at the current reference and the
-        old one's last force moves into the integrator.
+        difference Δ (old − new force) moves into the observer's estimate (``dob.shift``) or, without an
+        observer, into the integrator.
         """
         self._apply(self.prepare_retune(new_cfg))
 
@@ -292,7 +293,6 @@ class StageController:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
             st.u_ff_n = 0.0
-            st.u_obs_prev_n = st.u_n
         self.pid.retune(parts.pid_cfg)
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
@@ -331,9 +331,14 @@ class StageController:
         # feed-forward
         ff = self.ff
         u_ff = ff.step(dt, ref) if ff is not None else 0.0
-        if self._ff_bump is not None:  # feed-forward replaced by retune: the integrator takes the difference
-            self.pid.preload(self.pid.state.u_pid_n + self._ff_bump - u_ff)
-            self._ff_bump = None
+        if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
+            delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
+            self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
+            if self.dob is not None:
+                self.dob.shift(delta)
+                st.u_obs_prev_n += delta
+            else:
+                self.pid.preload(self.pid.state.u_pid_n + delta)
         ffc = cfg.feedforward
         if ffc.inertia:
             m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg

@@ -122,6 +122,20 @@ class QFilterDob:
         n = cfg.command_delay_samples
         self._delay = deque((old + [st.u_obs_n] * n)[:n] if n else [])
 
+    def shift(self, delta_n: float) -> None:
+        """Move the estimate and the command history by ``delta_n`` [N] (bumpless feed-forward change).
+
+        The observer input is u_obs = u − u_ff; when the friction feed-forward drops by Δ, the same command
+        gives u_obs + Δ and the residual the observer must carry grows by Δ: d̂, w, the held input and the
+        delayed inputs all move by Δ, so the estimate is already at its new steady state (no transient).
+        """
+        st = self.state
+        st.d_hat_n += delta_n
+        st.w_n += delta_n
+        st.u_obs_n += delta_n
+        self._u_last += delta_n
+        self._delay = deque(u + delta_n for u in self._delay)
+
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Advance with the previous step's observer input ``u_obs_prev_n`` [N]; return d̂_k [N].
 
@@ -201,6 +215,14 @@ class KalmanDob:
         n = self.cfg.command_delay_samples
         hist = list(old._delay)
         self._delay = deque((hist + [old.state.u_obs_n] * n)[:n] if n else [])
+
+    def shift(self, delta_n: float) -> None:
+        """Move τ̂ and the command history by ``delta_n`` [N] (bumpless feed-forward change; see QFilterDob)."""
+        st = self.state
+        st.tau_hat_n += delta_n
+        st.d_hat_n += delta_n
+        st.u_obs_n += delta_n
+        self._delay = deque(u + delta_n for u in self._delay)
 
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Predict with the previous observer input, correct with ``x_meas_m``; return d̂ = τ⁺ [N].

@@ -122,12 +122,15 @@ def _run_and_retune(new: ControllerConfig, old: ControllerConfig, sm, steps_befo
         plant.step(cmd.force_n, T)
         ref = gen.step(T)
     f = np.array(forces)
-    jump = abs(f[steps_before] - f[steps_before - 1])
+    # the switch step and the steps after it: a transfer the observer undoes later shows up there (issue-5 audit:
+    # a feed-forward change moved into the integrator was re-learnt by the DOB, +0.4 N over 5 ms)
+    jump = np.max(np.abs(np.diff(f[steps_before - 1:])))
     typical = np.max(np.abs(np.diff(f[steps_before - 100:steps_before])))
     return jump, typical, dut
 
 
-@pytest.mark.parametrize("change", ["gains", "dob_off", "dob_on", "ff_model", "kalman_gain", "dob_kind"])
+@pytest.mark.parametrize("change", ["gains", "dob_off", "dob_on", "ff_model", "kalman_gain", "dob_kind", "ff_drop",
+                                    "ff_drop_kalman", "ff_drop_no_dob"])
 def test_retune_is_bumpless_in_closed_loop(change):
     sm = seed_model()
     old = controller_cfg(dob={"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
@@ -147,6 +150,12 @@ def test_retune_is_bumpless_in_closed_loop(change):
     elif change == "dob_kind":
         new = controller_cfg(dob={"kind": "kalman", "bandwidth_hz": 40.0}, feedforward={"kind": "model",
                                                                                      "lookahead_s": 1.5e-3})
+    elif change.startswith("ff_drop"):  # the feed-forward loses ~0.4 N mid-motion: the DOB (or I) takes it over
+        dob = {"ff_drop": {"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
+               "ff_drop_kalman": {"kind": "kalman", "bandwidth_hz": 40.0},
+               "ff_drop_no_dob": {"kind": "none"}}[change]
+        old = controller_cfg(dob=dob, feedforward={"kind": "model", "lookahead_s": 1.5e-3})
+        new = controller_cfg(dob=dob, feedforward={"kind": "coulomb", "coulomb_n": 0.4, "lookahead_s": 1.5e-3})
     else:
         new = controller_cfg(dob={"kind": "qfilter", "bandwidth_hz": 40.0, "command_delay_samples": 1},
                              feedforward={"kind": "coulomb", "coulomb_n": 0.8, "lookahead_s": 1.5e-3})
