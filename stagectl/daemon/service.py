@@ -348,6 +348,10 @@ class StageService:
             st = loop.status()
             # -------------------------------------------------- fault transitions
             lstate = st.get("state")
+            if lstate != last_loop_state:
+                # a client's cached loop snapshot (up to 50 ms old) must not contradict the new state
+                with self._status_lock:
+                    self._status_cache = None
             if lstate == "fault" and last_loop_state != "fault":
                 self.state = Lifecycle.FAULT
                 log.error("loop fault: %s; flushing telemetry", _fault_text(st.get("fault")))
