@@ -155,42 +155,68 @@ def build_rig(app_cfg):
 
 
 class NotifySocket:
-    """A bound AF_UNIX datagram socket standing in for systemd's notify socket."""
+    """A bound AF_UNIX datagram socket standing in for systemd's notify socket.
+
+    A reader thread drains it continuously, like systemd does: the kernel queues only
+    ``net.unix.max_dgram_qlen`` (often 10) datagrams for an unread socket, and the daemon's non-blocking
+    sender drops what does not fit, so a test that reads only when it waits would lose e.g. ``STOPPING=1``
+    behind a backlog of ``STATUS=`` updates.
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(path))
-        self.messages: list[dict[str, str]] = []
+        self.messages: list[dict[str, str]] = []  # received, not yet consumed by wait_for
+        self.history: list[dict[str, str]] = []  # everything received, in order
+        self._cv = threading.Condition()
+        self._closed = False
+        self._reader = threading.Thread(target=self._read, name="notify-reader", daemon=True)
+        self._reader.start()
 
-    def wait_for(self, key: str, value: str | None = None, timeout: float = 30.0, alive=None) -> dict[str, str]:
-        """Next datagram containing KEY (=VALUE). ``timeout`` is only a failure guard; ``alive()`` returning
-        False (e.g. the daemon process exited) ends the wait at once with TimeoutError."""
-        import time
-
-        for m in self.messages:
-            if key in m and (value is None or m[key] == value):
-                self.messages.remove(m)
-                return m
-        end = time.monotonic() + timeout
+    def _read(self) -> None:
         while True:
-            left = end - time.monotonic()
-            if left <= 0:
-                raise TimeoutError(f"no {key}={value or '*'} within {timeout} s")
-            self.sock.settimeout(min(left, 0.5) if alive is not None else left)
             try:
                 data = self.sock.recv(65536).decode()
-            except TimeoutError:
-                if alive is not None and not alive():
-                    raise TimeoutError(f"no {key}={value or '*'}: the process exited") from None
-                continue
+            except OSError:
+                return
+            if not data and self._closed:
+                return
             msg = dict(line.split("=", 1) for line in data.split("\n") if "=" in line)
-            if key in msg and (value is None or msg[key] == value):
-                return msg
-            self.messages.append(msg)
+            with self._cv:
+                self.messages.append(msg)
+                self.history.append(msg)
+                self._cv.notify_all()
+
+    def wait_for(self, key: str, value: str | None = None, timeout: float = 30.0, alive=None) -> dict[str, str]:
+        """Oldest unconsumed datagram containing KEY (=VALUE); the ones before it are consumed too. ``timeout``
+        is only a failure guard; ``alive()`` returning False (e.g. the daemon process exited) ends the wait at
+        once with TimeoutError."""
+        import time
+
+        end = time.monotonic() + timeout
+        with self._cv:
+            while True:
+                for i, m in enumerate(self.messages):
+                    if key in m and (value is None or m[key] == value):
+                        del self.messages[: i + 1]
+                        return m
+                self.messages.clear()
+                left = end - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"no {key}={value or '*'} within {timeout} s")
+                if alive is not None and not alive():
+                    raise TimeoutError(f"no {key}={value or '*'}: the process exited")
+                self._cv.wait(min(left, 0.5))
 
     def close(self) -> None:
+        self._closed = True
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
         self.sock.close()
+        self._reader.join(5)
 
 
 @pytest.fixture

@@ -45,7 +45,7 @@ def _base_config() -> dict:
     return _absolutize(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
 
 
-def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False) -> Path:
+def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tuning: dict | None = None) -> Path:
     cfg = _base_config()
     loop = cfg.setdefault("loop", {})
     # a shared 2-core CI machine misses cycles; health here means "cycling", timing is judged in benchmarks
@@ -54,12 +54,16 @@ def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False) -> 
     cfg.setdefault("demo", {})
     daemon = cfg.setdefault("daemon", {}) or {}
     daemon.update({"allow_fault_injection": True, "status_interval_s": 0.1, "ready_timeout_s": 60,
-                   "telemetry": {"directory": str(tmp_path / "telemetry"), "flush_interval_s": 0.05}})
+                   # a long writer interval: rows reach the disk early only through the flushes under test
+                   # (fault, record stop, shutdown)
+                   "telemetry": {"directory": str(tmp_path / "telemetry"), "flush_interval_s": 10.0}})
     cfg["daemon"] = daemon
     ctl = cfg.setdefault("controller", {})
     pid = ctl.setdefault("pid", {})
     kp0 = float(pid.get("kp_n_m", 9.85e3))
     pid["kp_n_m"] = -1.0 if bad else kp0 * kp_scale
+    for key, value in (tuning or {}).items():  # e.g. {"feedforward": {...}, "dob": {...}}
+        ctl[key] = {**(ctl.get(key) or {}), **value}
     path = tmp_path / "stagectl.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -94,6 +98,63 @@ def _wait_status(ns, prefix: str) -> dict:
             return m
 
 
+def _listening_inet_sockets(pid: int) -> list[str]:
+    """TCP sockets in LISTEN state (and bound UDP sockets) among the process's open file descriptors."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for table in ("tcp", "tcp6", "udp", "udp6"):
+        path = Path(f"/proc/{pid}/net/{table}")
+        if not path.exists():
+            continue
+        for line in path.read_text().splitlines()[1:]:
+            f = line.split()
+            listening = f[3] == "0A" if table.startswith("tcp") else True
+            if f[9] in inodes and listening:
+                found.append(f"{table} {f[1]}")
+    return found
+
+
+def _wait_loop(c: ControlClient, cond, guard_s: float = 60.0) -> dict:
+    """Poll ``status`` replies until ``cond(loop_status)``; ``guard_s`` is a failure guard only."""
+    import time
+
+    end = time.monotonic() + guard_s
+    while time.monotonic() < end:
+        lp = c.request({"request": "status"})["status"]["loop"]
+        if cond(lp):
+            return lp
+    raise TimeoutError(f"loop condition not reached within {guard_s} s")
+
+
+def _assert_bumpless(path: Path) -> None:
+    """The feed-forward switch (u_ff jumps by ~0.45 N) lies in the cruise, and u and e stay continuous there."""
+    from stagectl.ident.recording import load_recording  # the identification loader reads daemon recordings
+
+    rec = load_recording(path)
+    u, uff = rec.u, rec.extra["u_ff"]
+    a_ref, v_ref, e = rec.extra["a_ref"], rec.extra["v_ref"], rec.extra["e"]
+    jumps = np.flatnonzero(np.abs(np.diff(uff)) > 0.2)
+    assert len(jumps) == 1, f"expected one feed-forward switch in {path.name}, found {len(jumps)}"
+    k = int(jumps[0]) + 1  # first row with the new tuning
+    assert k >= 50 and k + 200 <= len(u), "switch too close to the recording's ends"
+    win = slice(k - 50, k + 200)
+    cruise = (a_ref[win] == 0.0) & (np.abs(v_ref[win] - 1e-3) < 1e-12)
+    assert cruise.all(), "the reload did not land in the constant-velocity part of the move"
+    du = np.abs(np.diff(u[win]))
+    step = abs(uff[k] - uff[k - 1])
+    # a naive swap would step u by the feed-forward change (~0.45 N); bumpless keeps the per-cycle change at the
+    # level of the noise-driven cycle-to-cycle variation
+    assert du.max() < 0.1 * step, (du.max(), step)
+    assert np.abs(e[win]).max() < 1e-6  # position follows the reference through the switch (< 1 um)
+
+
 def test_daemon_end_to_end(daemon, tmp_path, capsys):
     proc, cfg, run, ns = daemon
     try:
@@ -102,6 +163,7 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         proc.kill()
         pytest.fail("no READY=1; daemon stderr:\n" + proc.communicate(timeout=30)[1][-4000:])
     assert int(ready["MAINPID"]) == proc.pid
+    assert _listening_inet_sockets(proc.pid) == []  # no network listener (the control socket is AF_UNIX)
     ns.wait_for("WATCHDOG", "1")
     sock = run / "control.sock"
     assert oct(sock.stat().st_mode & 0o777) == "0o660"
@@ -122,6 +184,11 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         _wait_status(ns, "fault")
         st = c.request({"request": "status"})["status"]
         assert st["state"] == "fault" and st["loop"]["fault"] and st["fault_flushes"] >= 1
+        # flushed on fault: the continuous file on disk already holds the row of the faulting cycle
+        (cont,) = (tmp_path / "telemetry").glob("telemetry-*.csv")
+        with open(cont, newline="") as fh:
+            on_disk = sum(1 for line in fh if line.endswith("\n")) - 1
+        assert on_disk >= st["loop"]["fault"]["cycle"], (on_disk, st["loop"]["fault"])
         r = c.request({"request": "reset"})
         assert r["ok"] and r["state"] == "active", r
         # ------------------------------------------------------------- SIGHUP: bad, then good tuning
@@ -132,14 +199,29 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         st = c.request({"request": "status"})["status"]
         assert st["reload"]["ok"] is False and "controller.pid.kp_n_m" in st["reload"]["error"]
         assert c.request({"request": "gains"})["controller"]["pid"]["kp_n_m"] == kp_old
-        _config(tmp_path, kp_scale=1.1)
+        rec = c.request({"request": "record", "action": "stop"})["recording"]
+        assert rec["rows"] > 0 and rec["error"] is None
+        # good tuning applied during a constant-velocity move (friction ~0.85 N carried by the GMS feed-forward):
+        # the new tuning replaces it with a 0.4 N Coulomb feed-forward, raises kp, lowers the DOB bandwidth.
+        # Bumpless = the commanded force and the position stay continuous at the switch.
+        x_start = c.request({"request": "status"})["status"]["loop"]["x_ref_m"]
+        assert c.request({"request": "record", "action": "start", "name": "reload"})["ok"]
+        assert c.request({"request": "move", "relative_m": 3e-3, "max_velocity_m_s": 1e-3})["ok"]
+        _wait_loop(c, lambda lp: lp["x_ref_m"] > x_start + 100e-6)  # cruising (acceleration takes 10 ms)
+        _config(tmp_path, kp_scale=1.1, tuning={"feedforward": {"kind": "coulomb", "coulomb_n": 0.4},
+                                                "dob": {"bandwidth_hz": 80.0}})
         proc.send_signal(signal.SIGHUP)
         ns.wait_for("READY", "1")
         g = c.request({"request": "gains"})
         assert g["reload"]["ok"] is True and g["controller"]["pid"]["kp_n_m"] == pytest.approx(kp_old * 1.1)
-        assert c.request({"request": "status"})["status"]["state"] == "active"
-        rec = c.request({"request": "record", "action": "stop"})["recording"]
-        assert rec["rows"] > 0 and rec["error"] is None
+        assert g["controller"]["feedforward"]["kind"] == "coulomb"
+        st = c.request({"request": "status"})["status"]
+        assert st["state"] == "active"
+        assert st["loop"]["x_ref_m"] < x_start + 3e-3 - 50e-6, "reload not applied during the move"
+        _wait_loop(c, lambda lp: lp["cycle"] > st["loop"]["cycle"] + 300)  # rows after the switch
+        reload_rec = c.request({"request": "record", "action": "stop"})["recording"]
+        assert reload_rec["error"] is None
+        _assert_bumpless(Path(reload_rec["path"]))
     # ------------------------------------------------------------- the CLI clients (in-process, real socket)
     from stagectl.cli import main
 
