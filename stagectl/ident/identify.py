@@ -87,7 +87,7 @@ def measure(rec: Recording, mass_kg: float | None = None, cutoff_hz: float | Non
 
 
 # ================================================================================================ virgin curve
-def virgin_points(meas: Measured, rule: str = "masing", max_points: int = 4000) -> tuple[FloatArray, FloatArray]:
+def virgin_points(meas: Measured, rule: str = "masing", max_points: int = 2000) -> tuple[FloatArray, FloatArray]:
     """Virgin-curve samples (d [m], F_v [N]) from the first loading (from rest) and the reversal branches.
 
     ``rule``: ``"masing"`` (Maxwell-slip/GMS: ``F_v(δ/2) = |F − F_r|/2``), ``"same"`` (Hsieh: branches have the
@@ -243,7 +243,12 @@ def choose_elements(d: FloatArray, f: FloatArray, n_max: int = 8) -> tuple[int, 
         table.append({"elements": float(k), "rss_n2": rss, "bic": bic})
         if bic < best_bic - 1e-9:
             best_n, best_bic = k, bic
+        elif k >= best_n + 2:
+            break  # BIC rose twice in a row: more elements will not pay
     return best_n, table
+
+
+_VIRGIN_CACHE: dict[tuple[int, int, int | None], tuple[int, Any, FloatArray, FloatArray, float]] = {}
 
 
 # ================================================================================================ stribeck
@@ -431,12 +436,17 @@ def _build_spec(model: str, meas: Measured, virgin: tuple[FloatArray, FloatArray
     quality.setdefault("notes", [])
     if model in ("gms", "maxwell_slip"):
         d, f = virgin  # type: ignore[misc]
-        if n_elements is None:
-            n_el, table = choose_elements(d, f)
+        key = (id(d), id(f), n_elements)
+        if key not in _VIRGIN_CACHE:  # the virgin fit does not depend on the sliding terms: compute once
+            _VIRGIN_CACHE.clear()
+            if n_elements is None:
+                n_el, table = choose_elements(d, f)
+            else:
+                n_el, table = int(n_elements), None
+            _VIRGIN_CACHE[key] = (n_el, table, *fit_virgin(d, f, n_el))
+        n_el, table, deltas, w, rss = _VIRGIN_CACHE[key]
+        if table is not None:
             quality["element_selection"] = {"criterion": "BIC", "table": table, "chosen": n_el}
-        else:
-            n_el = int(n_elements)
-        deltas, w, rss = fit_virgin(d, f, n_el)
         quality["virgin_fit"] = {"rms_n": math.sqrt(rss / d.size), "points": int(d.size),
                                  "breakpoints_m": [float(x) for x in deltas]}
         reg = _refine_by_regression(meas, deltas, stri)

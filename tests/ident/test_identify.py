@@ -73,16 +73,22 @@ def test_element_count_chosen_by_bic() -> None:
 
 
 def test_maxwell_slip_from_noisy_loops() -> None:
+    """Nested loops with 2 mN force noise. Tolerances: total slip force 1 %, initial stiffness Σk 3 %, virgin
+    curve within 5 mN everywhere up to saturation, force RMS error < 1 %. (Noisy Masing branches may split
+    an element in two nearby ones; the curve, not the split, is what is identifiable.)"""
     t, x = _loops()
     spec = {"model": "maxwell_slip", "k_n_m": [4e5, 1e5, 2e4], "w_n": [0.3, 0.3, 0.3]}
     res = identify(_recording(spec, t, x), "maxwell_slip")
     w = np.array(res.spec["w_n"])
     k = np.array(res.spec["k_n_m"])
-    main = np.argsort(w)[-3:]
-    main = main[np.argsort(-k[main])]
-    np.testing.assert_allclose(k[main], [4e5, 1e5, 2e4], rtol=0.03)
-    np.testing.assert_allclose(w[main], [0.3, 0.3, 0.3], atol=0.01)
     assert w.sum() == pytest.approx(0.9, rel=0.01)
+    assert k.sum() == pytest.approx(5.2e5, rel=0.03)
+    ramp = np.linspace(0, 30e-6, 3001)
+    tt = np.arange(ramp.size) * 1.0
+    f_true = build(spec).force_along(ramp, tt)
+    f_id = build({**res.spec, "viscous_n_s_m": 0.0}).force_along(ramp, tt)
+    assert np.max(np.abs(f_id - f_true)) < 5e-3
+    assert res.quality["element_selection"]["chosen"] in (3, 4)
     assert res.quality["fit"]["relative_error"] < 0.01
 
 
