@@ -105,6 +105,10 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     from stagectl.control import design
 
     inp = _load_inputs(args)
+    if args.out:
+        from stagectl.recorder import prepare_out_dir
+
+        prepare_out_dir(args.out)
     m, T, nd = float(inp["mass_kg"]), float(inp["period_s"]), int(inp["delay_samples"])
     result: dict[str, Any] = {"mass_kg": m, "period_s": T, "delay_samples": nd}
     analyses = []
@@ -151,9 +155,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         "yaml": _yaml_snippet(m, pid, dbw, nd),
     }
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        png = out / "tune_bode.png"
+        png = Path(args.out) / "tune_bode.png"
         design.bode_png(analyses, str(png), f"open loop at the plant input: m = {m:g} kg, T = {T * 1e3:g} ms, "
                         f"{nd} sample(s) I/O delay")
         result["bode_png"] = str(png)
