@@ -6,7 +6,8 @@ the socket). Bytes are read with ``select()`` on the port's file descriptor and 
 (pyserial's ``in_waiting`` is only 0/1 on ``socket://``), then decoded by the pure
 :class:`~stagectl.drivers.interferometer_protocol.FrameParser` (frame format in that module).
 
-``read()`` (real-time safe: never blocks in streaming mode) drains what has arrived and returns the
+``read()`` (real-time safe: never blocks in streaming mode, or at most ``rx_timeout_s`` when no new frame has
+arrived yet, for a device triggered by the loop's SYNC) drains what has arrived and returns the
 **newest** valid frame's position, ``position_m = counts × resolution_m``, ``fresh = True`` if a frame newer
 than the previous read arrived. Faults (reported in ``Measurement.fault`` and latched in ``fault``):
 
@@ -66,6 +67,8 @@ class InterferometerConfig:
     min_signal: int = param(0, desc="lowest acceptable signal strength byte (0..255)", ge=0, le=255)
     max_step_m: float | None = param(None, unit="m", desc="largest plausible position change per frame "
                                      "(None: not checked)", gt=0)
+    rx_timeout_s: float = param(0.0, unit="s", desc="real time: how long read() waits for a new frame when none "
+                                "has arrived (0 = never wait; e.g. 0.0008 for a device triggered by the SYNC)", ge=0)
     lockstep_timeout_s: float = param(2.0, unit="s", desc="lock-step failure guard: longest wait for the "
                                       "simulated device's bytes", gt=0)
 
@@ -225,13 +228,17 @@ class SerialInterferometer(PositionSensor):
         """Newest position (see module docstring). Real-time safe in streaming mode (no blocking)."""
         self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         fault: DeviceFault | None = None
+        cfg = self.cfg
         try:
             pump = self._pump
             frames = self._lockstep_recv(pump) if pump is not None else self._recv(0.0)
+            if not frames and pump is None and cfg.rx_timeout_s > 0:
+                deadline = time.monotonic() + cfg.rx_timeout_s
+                while not frames and (left := deadline - time.monotonic()) > 0:
+                    frames = self._recv(left)
         except DriverIOError as exc:
             frames = []
             fault = DeviceFault(FaultKind.DISCONNECTED, str(exc))
-        cfg = self.cfg
         # CRC errors in the window
         crc_now = self.parser.crc_errors
         new_crc = crc_now - self._crc_seen

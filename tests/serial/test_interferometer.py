@@ -311,3 +311,32 @@ def test_reader_that_opens_late_gets_current_contiguous_frames(tmp_path):
                 if k >= 2:  # at most the tail of one torn frame may precede the first full frame
                     assert m.fresh and m.counts == sim.last_counts
             assert dut.stats.sequence_gaps == 0
+
+
+def test_rx_timeout_waits_for_a_triggered_frame(transport, tmp_path):
+    """Real time, device triggered by the loop (``trigger: sync``): with ``rx_timeout_s`` read() waits for the
+    frame instead of returning the previous one. The trigger fires once read() is waiting (no sleeps)."""
+    import threading
+
+    plant = ScriptedPlant()
+    with make_sim(transport, tmp_path, plant, trigger="sync") as sim, SerialInterferometer(
+        InterferometerConfig(url=sim.url, resolution_m=RES_M, rx_timeout_s=5.0)
+    ) as dut:
+        dut.configure()
+        waiting = threading.Event()
+        recv = dut._recv
+
+        def spy(timeout_s):
+            if timeout_s > 0:
+                waiting.set()
+            return recv(timeout_s)
+
+        dut._recv = spy
+        for _ in range(3):
+            waiting.clear()
+            plant.step(1e-3)
+            t = threading.Thread(target=lambda: waiting.wait(5.0) and sim.trigger())
+            t.start()
+            m = dut.read()
+            t.join()
+            assert m.fresh and m.counts == round(plant.measure() / RES_M) and m.fault is None
