@@ -10,6 +10,10 @@ Usage (lock-step, deterministic; the driver calls ``pump`` through ``set_pump``)
     sim.close()
 
 Real time: ``sim.start()`` streams from a thread at ``rate_hz`` (absolute deadlines), ``sim.stop()`` ends it.
+Triggered (``trigger: sync``): ``trigger()`` emits one frame now; :class:`~stagectl.sim.world.SimWorld` calls it
+on every SYNC right after the drive stepped the plant, in thread and lock-step mode. Use it across processes
+(``stagectl sim-plant``): the simulated plant moves only at SYNC, so a free-running stream samples it at a
+random phase and adds up to one period of extra, jittering delay that a real (continuous) stage does not have.
 
 Stable API (used by ``SimWorld``): ``SimInterferometer(plant, cfg)``, ``.url``, ``start()``, ``stop()``,
 ``pump() -> LinkBytes`` (an int: bytes written), ``inject(kind, ...)``, ``disconnect()``, ``close()`` (idempotent; also a context manager).
@@ -117,6 +121,9 @@ class SimInterferometerConfig:
     baudrate: int | None = param(None, unit="bit/s", desc="pace frames as on an 8N1 line (None: unpaced)", gt=0)
     lockstep: str = param("per_pump", desc="pump(): per_pump = one frame per call; plant_time = one frame "
                           "per elapsed 1/rate_hz of plant time", choices=("per_pump", "plant_time"))
+    trigger: str = param("rate", desc="rate = free-running at rate_hz; sync = one frame per CANopen SYNC, sampled "
+                         "right after the drive stepped the plant (external trigger input; SimWorld only)",
+                         choices=("rate", "sync"))
     seed: int = param(0, desc="seed of the garbage generator")
     faults: tuple[SimInterferometerFault, ...] = param((), desc="scripted faults")
 
@@ -395,6 +402,21 @@ class SimInterferometer:
         for _ in range(due):
             data, _adv = self._make(ts)
             n += self._write(data)
+        if n and self._slave >= 0:
+            select.select([self._slave], [], [], self.lockstep_guard_s)
+        return LinkBytes(n)
+
+    def trigger(self) -> LinkBytes:
+        """External trigger (``trigger: sync``; SimWorld calls it on each SYNC, after the drive stepped the
+        plant): emit one frame sampled now, stamped with plant time. Returns the bytes written. No baud pacing."""
+        if self._thread is not None:
+            raise RuntimeError("SimInterferometer.trigger(): streaming thread is running (call stop() first)")
+        if self._closed:
+            return LinkBytes(0)
+        if self.cfg.transport == "tcp":
+            self._accept()
+        data, _adv = self._make(round(float(self.plant.t_s) * 1e9))
+        n = self._write(data)
         if n and self._slave >= 0:
             select.select([self._slave], [], [], self.lockstep_guard_s)
         return LinkBytes(n)

@@ -18,7 +18,8 @@ process connects with python-can's stock socketcand client). ``ready_info()`` sa
 
 The plant is stepped only by the drive, at each SYNC, by exactly one nominal period; SYNC is dispatched
 to the drive before the encoder so the encoder samples the stepped plant. The optional serial
-interferometer (``stagectl.sim.interferometer.SimInterferometer``) streams from its own thread in thread
+interferometer (``stagectl.sim.interferometer.SimInterferometer``) is either triggered by each SYNC right after
+the drive stepped the plant (``trigger: sync``, both modes), or streams from its own thread in thread
 mode and is pumped at the end of every ``pump()`` in lock-step (configure it with
 ``lockstep: plant_time`` there, since drivers may pump more than once per cycle); give its driver
 ``world.serial_pump`` (returns the bytes written as ``LinkBytes``) rather than ``world.pump``.
@@ -183,6 +184,7 @@ class SimWorld:
         self.server: Any = None
         self.frames_in = 0
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
+        self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
 
     # ------------------------------------------------------------------ construction
@@ -225,6 +227,7 @@ class SimWorld:
                 from stagectl.sim.interferometer import SimInterferometer
 
                 self.interferometer = SimInterferometer(self.plant, self.cfg.interferometer)
+                self._ifm_on_sync = self.cfg.interferometer.trigger == "sync"
             for d in self.devices:
                 d.power_on(self.now())
         except BaseException:
@@ -256,6 +259,8 @@ class SimWorld:
         t = self.now()
         for d in self.devices:
             d.on_frame(msg, t)
+        if self._ifm_on_sync and msg.arbitration_id == 0x080 and not msg.is_error_frame:
+            self._serial_bytes += int(self.interferometer.trigger())  # after the drive stepped the plant
 
     def _tick(self) -> None:
         t = self.now()
@@ -273,7 +278,7 @@ class SimWorld:
             self._stop_evt.clear()
             self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
             self._thread.start()
-        if self.interferometer is not None:
+        if self.interferometer is not None and not self._ifm_on_sync:
             self.interferometer.start()
 
     def _run(self) -> None:
@@ -324,7 +329,7 @@ class SimWorld:
                 self._tick()
                 n += 1
             self._tick()
-        if self.interferometer is not None:
+        if self.interferometer is not None and not self._ifm_on_sync:
             self._serial_bytes += int(self.interferometer.pump())
         return n
 

@@ -172,3 +172,24 @@ def test_world_serial_pump_lets_the_interferometer_driver_skip_a_stopped_frame(l
         assert time.monotonic() - t0 < 5.0  # failure guard: a regression waits 10 s per stopped frame
         assert fresh == [False, False, True, True]
         assert m.counts == round(world.plant.measure() / 1e-9)
+
+
+def test_sync_triggered_interferometer_samples_with_the_drive(lockstep, tmp_path):
+    """``trigger: sync``: one frame per SYNC, sampled right after the drive stepped the plant, so the
+    interferometer and the drive's TPDO report the same sample."""
+    from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
+
+    world, dut = lockstep(world_kw={"interferometer": {"transport": "tcp", "trigger": "sync"}})
+    ifm = SerialInterferometer(InterferometerConfig(url=world.ready_info()["interferometer_url"]))
+    ifm.set_pump(world.serial_pump)
+    with ifm:
+        ifm.configure()
+        n0 = world.interferometer.frames_sent
+        for k in range(50):
+            dut.sync()
+            m = dut.read()
+            i = ifm.read()
+            dut.write(3.0)
+            assert i.fresh and i.counts == m.counts, k
+        assert world.interferometer.frames_sent - n0 == 50  # exactly one frame per SYNC
+        assert m.counts > 0
