@@ -285,10 +285,7 @@ def build_stage(
             assert cfg.sim is not None
             stage.plant = StagePlant(cfg.sim.plant)
             io = PlantIO(stage.plant, period, delay_cycles=cfg.io.delay_cycles, clock=stage.clock)
-            stage.plant_io = io
-            io.open()
-            stage.devices.append(io)
-            io.configure()
+            stage.plant_io = _open_device(stage, io, None)
             stage.sensor = stage.actuator = stage.sync = io
         elif kind is IoKind.EMBEDDED_CANOPEN:
             _build_embedded_canopen(stage, simulated_time)
@@ -360,12 +357,7 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
     from stagectl.drivers.cia402 import Cia402Drive
 
     cfg = stage.cfg
-    drive = Cia402Drive(drive_cfg, cfg.loop.period_s)
-    if pump is not None:
-        drive.set_pump(pump)
-    drive.open()
-    stage.devices.append(drive)
-    drive.configure()
+    drive = _open_device(stage, Cia402Drive(drive_cfg, cfg.loop.period_s), pump)
     stage.actuator = drive
     stage.sync = drive
     src = cfg.io.sensor
@@ -379,23 +371,22 @@ def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
             import dataclasses
 
             icfg = dataclasses.replace(icfg, url=interferometer_url)
-        ifm = SerialInterferometer(icfg)
-        if pump is not None:  # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
-            ifm.set_pump(serial_pump or pump)
-        ifm.open()
-        stage.devices.append(ifm)
-        ifm.configure()
-        stage.sensor = ifm
+        # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
+        stage.sensor = _open_device(stage, SerialInterferometer(icfg), (serial_pump or pump) if pump else None)
     else:
         from stagectl.drivers.cia406 import Cia406Encoder  # type: ignore[import-not-found]
 
-        enc = Cia406Encoder(cfg.io.encoder, cfg.loop.period_s)
-        if pump is not None:
-            enc.set_pump(pump)
-        enc.open()
-        stage.devices.append(enc)
-        enc.configure()
-        stage.sensor = enc
+        stage.sensor = _open_device(stage, Cia406Encoder(cfg.io.encoder, cfg.loop.period_s), pump)
+
+
+def _open_device(stage: Stage, dev: Any, pump: Callable[[], Any] | None) -> Any:
+    """Lock-step pump (virtual devices), open, register for closing, configure; returns ``dev``."""
+    if pump is not None:
+        dev.set_pump(pump)
+    dev.open()
+    stage.devices.append(dev)
+    dev.configure()
+    return dev
 
 
 __all__ = ["Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]

@@ -220,30 +220,19 @@ def apply_realtime(
     Call from the loop thread after every import and allocation is done.
     """
     rep = RealtimeReport()
-    if timer_slack_ns is not None:
-        note = set_timer_slack(timer_slack_ns)
-        if note:
-            rep.notes.append(note)
-        else:
-            rep.timer_slack_ns = timer_slack_ns
-    if cpus:
-        note = set_affinity(cpus)
-        if note:
-            rep.notes.append(note)
-        else:
-            rep.cpus = tuple(cpus)
-    if mlock:
-        note = lock_memory()
-        if note:
-            rep.notes.append(note)
-        else:
-            rep.mlocked = True
-    if fifo_priority is not None:
-        note = set_fifo(fifo_priority)
-        if note:
-            rep.notes.append(note)
-        else:
-            rep.fifo_priority = fifo_priority
+    steps = (  # (requested, apply -> note or None, report field, value when applied); FIFO last
+        (timer_slack_ns is not None, lambda: set_timer_slack(timer_slack_ns), "timer_slack_ns", timer_slack_ns),
+        (bool(cpus), lambda: set_affinity(tuple(cpus or ())), "cpus", tuple(cpus or ())),
+        (mlock, lock_memory, "mlocked", True),
+        (fifo_priority is not None, lambda: set_fifo(int(fifo_priority or 0)), "fifo_priority", fifo_priority),
+    )
+    for wanted, apply, name, value in steps:
+        if wanted:
+            note = apply()
+            if note:
+                rep.notes.append(note)
+            else:
+                setattr(rep, name, value)
     if gc_freeze:
         freeze_gc()
         rep.gc_frozen = True

@@ -32,7 +32,7 @@ from typing import Any
 from stagectl.errors import ConfigError
 from stagectl.loop import LoopConfig
 from stagectl.safety import SafetyConfig
-from stagectl.schema import load, load_yaml_file, param
+from stagectl.schema import load, load_yaml_file, param, section_parser
 
 __all__ = ["AppConfig", "DemoConfig", "IoConfig", "IoKind", "SensorSource", "load_app_config", "parse_app_config"]
 
@@ -48,13 +48,7 @@ def _lazy(module: str, cls_name: str, what: str) -> Callable[[Any, str, list[str
         except (ModuleNotFoundError, AttributeError):
             problems.append(f"{path}: {what} is not available in this build ({module}.{cls_name})")
             return None
-        if isinstance(value, cls):
-            return value
-        try:
-            return load(cls, value, path)
-        except ConfigError as exc:
-            problems.extend(exc.problems)
-            return None
+        return section_parser(cls)(value, path, problems)
 
     return hook
 
