@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         "fault": res.fault if res else None,
         "loop": res.as_dict() if res else None,
     }
-    write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=f"run {scenario}")
+    title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"
+    write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0
