@@ -67,13 +67,18 @@ def test_discover_cli_writes_report_plots_and_loadable_model(spring_stage, tmp_p
     StagePlant(PlantConfig.from_mapping({"model_file": str(out / "model.yaml")}))
 
 
-def test_identify_cli_writes_model_and_plots(spring_stage, tmp_path: Path) -> None:
+def test_identify_cli_writes_model_and_plots(spring_stage, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """In-process ``stagectl.cli.main`` (the discover test above covers the real subprocess)."""
+    from stagectl.cli import main
+
     est, _, st = spring_stage
     out = tmp_path / "m.yaml"
-    p = _cli("identify", str(est), "--model", "stribeck", "--columns", "t=t_s,x=position_m,u=force_N",
-             "--out", str(out), "--plot", str(tmp_path / "plots"), "--json")
-    assert p.returncode == 0, p.stderr
-    q = json.loads(p.stdout)
+    rc = main(["identify", str(est), "--model", "stribeck", "--columns", "t=t_s,x=position_m,u=force_N",
+               "--out", str(out), "--plot", str(tmp_path / "plots"), "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    q = json.loads(cap.out)
     assert q["quality"]["fit"]["force_rms_error_n"] >= 0
     model = load_model_file(out)
     assert model.friction.tag == "stribeck"
@@ -95,11 +100,12 @@ def test_cli_bad_recording_names_row_and_column(tmp_path: Path, capsys: pytest.C
         assert "Traceback" not in err
 
 
-def test_cli_missing_column_suggests_mapping(tmp_path: Path) -> None:
-    """Through a real subprocess: exit code 2 and a one-line error, no traceback."""
+def test_cli_missing_column_suggests_mapping(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from stagectl.cli import main
+
     bad = tmp_path / "bad.csv"
     bad.write_text("t_s,position_m,force_N\n0,0,0\n", encoding="utf-8")
-    p = _cli("discover", str(bad), "--out", str(tmp_path / "o"))
-    assert p.returncode == 2
-    assert "missing required column 't'" in p.stderr and "--columns" in p.stderr
-    assert "Traceback" not in p.stderr
+    assert main(["discover", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "missing required column 't'" in err and "--columns" in err
+    assert "Traceback" not in err
