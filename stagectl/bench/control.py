@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         assert best is not None
         _, params, ctl_cfg, model, res = best
         res["steps"] = run_case(cfg, ctl_cfg, "steps", model=model)
-        return {"tuning": params, "swept": tried if len(tried) > 1 else None, "results": res}
+        return {"tuning": params, "swept": tried if len(tried) > 1 else None, "results": res, "config": ctl_cfg}
 
     out: dict[str, Any] = {}
     out["pid"] = sweep("pid", [({"pid": k}, _variant(base, pid=p, dob=False, ff="none"), None)
@@ -190,6 +190,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for v in out:
         table[v]["steps"]["settling_time_s"] = out[v]["results"]["steps"]["settling_time_s"]
         table[v]["steps"]["settled"] = out[v]["results"]["steps"]["settled"]
+    # linear margins of each chosen tuning (discrete plant, one cycle of I/O delay): "best-tuned" by tracking
+    # error can sit close to instability, which the tracking figures alone do not show
+    from stagectl.control.design import analyse_design
+
+    margins = {}
+    for v in out:
+        c = out[v]["config"]
+        loops = analyse_design(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles,
+                               c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples)
+        a = loops[-1]
+        margins[v] = {"loop": a.name, "phase_margin_deg": a.phase_margin_deg, "gain_margin_db": a.gain_margin_db,
+                      "crossover_hz": a.crossover_hz, "closed_loop_stable": a.stable}
     return {
         "benchmark": "control",
         "stage": {"config": str(cfg.path), "mass_kg": plant.mass_kg, "friction": exact.tag,
@@ -201,6 +213,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "targets": targets,
         "all_targets_met": all(t["met_10x_vs_pid"] and t["met_3x_vs_pid_coulomb"] for t in targets.values()),
         "tuning": {v: out[v]["tuning"] for v in out},
+        "margins": margins,
         "sweeps": {v: out[v]["swept"] for v in out if out[v]["swept"]},
         "wall_s": time.perf_counter() - t_start,
     }

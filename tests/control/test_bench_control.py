@@ -1,0 +1,24 @@
+"""``stagectl bench control --quick``: result structure, margins of the chosen tunings, the trend targets."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from stagectl.bench import control as bench
+
+
+def test_bench_control_quick_reports_errors_margins_and_targets():
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    res = bench.run(p.parse_args(["--quick"]))
+    json.dumps(res)  # JSON-serialisable as printed by --json
+    assert set(res["table"]) == {"pid", "pid_coulomb", "pid_dob", "pid_dob_gms", "pid_dob_gms_20"}
+    for v, row in res["table"].items():
+        assert set(row) == {"cosine", "triangle", "steps"}
+        assert all(row[s]["rms_error_nm"] > 0 for s in row)
+        m = res["margins"][v]
+        assert m["closed_loop_stable"] and m["loop"] == ("pid+dob" if "dob" in v else "pid")
+    for s in ("cosine", "triangle"):  # simulated, deterministic: the issue's trend targets
+        t = res["targets"][s]
+        assert t["met_10x_vs_pid"] and t["met_3x_vs_pid_coulomb"], t
