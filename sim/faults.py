@@ -22,8 +22,9 @@ ever); a fault is active for SYNC number ``n`` (counted by the device from 1) wh
   EMCY ``code`` before that SYNC's TPDO.
 * ``heartbeat_stop``: no heartbeat frames while active.
 * ``drop_tpdo``     : TPDOs are not sent while active.
-* ``late_tpdo``     : each TPDO is held and sent 0.9 period after its SYNC (thread mode), or at the start of
-  the next ``pump()`` (lock-step), i.e. after the controller has stopped waiting for it.
+* ``late_tpdo``     : each TPDO is held and sent 0.9 period after its SYNC (thread mode), or (lock-step) at
+  the next ``pump()`` that finds a controller frame on the bus (its RPDO, or the next SYNC when it writes
+  none), i.e. after the controller has stopped waiting for it.
 * ``bus_off``       : one error frame with the SocketCAN bus-off class (0x40), then the device is silent
   (no TPDO, heartbeat, EMCY or SDO answer) while active.
 * ``position_jump`` : ``jump_m`` is added to the reported position while active (a step glitch).

@@ -322,12 +322,17 @@ class SimWorld:
         assert bus is not None
         n = 0
         with self._lock:
-            for d in self.devices:
-                d.release_late()  # lock-step: a late TPDO arrives after the controller gave up on it
-            while (msg := bus.recv(0.0)) is not None:
+            msg = bus.recv(0.0)
+            if msg is not None:
+                # lock-step late TPDO: it arrives once the controller has moved on (its RPDO or the next SYNC
+                # is on the bus), not at a sensor's own pump in the same cycle
+                for d in self.devices:
+                    d.release_late()
+            while msg is not None:
                 self._dispatch(msg)
                 self._tick()
                 n += 1
+                msg = bus.recv(0.0)
             self._tick()
         if self.interferometer is not None and not self._ifm_on_sync:
             self._serial_bytes += int(self.interferometer.pump())

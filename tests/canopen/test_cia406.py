@@ -91,3 +91,46 @@ def test_encoder_rejects_a_drive(make_world):
             enc.configure()
     finally:
         enc.close()
+
+
+@pytest.mark.parametrize("kind, expected", [
+    (SimFault.DRIVE_FAULT, FaultKind.EMCY),  # encoder error: status bit + EMCY
+    (SimFault.BUS_OFF, FaultKind.BUS_OFF),
+    (SimFault.LATE_TPDO, FaultKind.MISSED_FRAME),
+])
+def test_more_encoder_faults_within_3_cycles(rig, kind, expected):
+    world, drive, enc = rig()
+    for _ in range(3):
+        drive.sync()
+        drive.read()
+        assert enc.read().fault is None
+        drive.write(0.0)  # as the loop does: the RPDO closes the cycle (lock-step late TPDOs arrive after it)
+    world.inject(FaultSpec(kind=kind, device="encoder", code=0x5030))
+    seen = None
+    for k in range(1, 4):
+        drive.sync()
+        drive.read()
+        m = enc.read()
+        drive.write(0.0)
+        if m.fault:
+            seen = (k, m.fault)
+            break
+    assert seen is not None and seen[1].kind is expected, seen
+    if kind is SimFault.DRIVE_FAULT:
+        assert seen[1].code == 0x5030
+
+
+def test_heartbeat_stop_on_encoder(rig):
+    world, drive, enc = rig(heartbeat_producer_s=0.01, heartbeat_timeout_s=0.025)
+    for _ in range(30):
+        drive.sync()
+        drive.read()
+        assert enc.read().fault is None
+    world.inject(FaultSpec(kind=SimFault.HEARTBEAT_STOP, device="encoder"))
+    for k in range(1, 60):
+        drive.sync()
+        drive.read()
+        m = enc.read()
+        if m.fault:
+            break
+    assert m.fault is not None and m.fault.kind is FaultKind.HEARTBEAT_LOST and 15 < k <= 28

@@ -178,3 +178,23 @@ def test_actuator_only_drive_takes_a_tpdo_that_arrives_after_write(lockstep):
         if dut.fault is not None:
             break
     assert dut.fault.kind is FaultKind.MISSED_FRAME and k <= 4  # max_missed 3, seen one cycle later
+
+
+def test_can_error_frame_is_a_bus_error_and_bus_off_is_bus_off(lockstep):
+    """Controller error frames (SocketCAN error class in the id) become BUS_ERROR, bus-off BUS_OFF."""
+    import can
+
+    from stagectl.drivers import canbus
+
+    for cls, expected in ((0x04, FaultKind.BUS_ERROR), (0x40, FaultKind.BUS_OFF)):
+        world, dut = lockstep()
+        peer = canbus.open_bus({"interface": "virtual", "channel": world.channel})
+        try:
+            dut.sync()
+            assert dut.read().fault is None
+            peer.send(can.Message(arbitration_id=cls, is_error_frame=True, is_extended_id=True, data=b"\0" * 8))
+            dut.sync()
+            m = dut.read()
+            assert m.fault is not None and m.fault.kind is expected, m
+        finally:
+            canbus.close_bus(peer)
