@@ -39,9 +39,9 @@ def read_line(proc, timeout_s):
 
 
 @pytest.fixture
-def sim_plant(tmp_path):
+def sim_plant(tmp_path, request):
     cfg = tmp_path / "hil.yaml"
-    cfg.write_text(textwrap.dedent(SIM_YAML))
+    cfg.write_text(textwrap.dedent(getattr(request, "param", SIM_YAML)))
     proc = subprocess.Popen(
         [sys.executable, "-m", "stagectl.cli", "sim-plant", "--config", str(cfg)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -243,3 +243,55 @@ def test_socketcand_server_forwards_a_client_frame_before_the_devices_see_it():
     finally:
         server._clients = []
         server.stop()
+
+
+PLAIN_YAML = SIM_YAML.replace("node_id: 3", "node_id: 1").split("  faults:")[0]
+
+
+@pytest.mark.parametrize("sim_plant", [PLAIN_YAML], indirect=True)
+def test_stock_canopen_master_over_socketcand_drives_sim_plant(sim_plant):
+    """Clients no one here wrote, from outside: python-can's socketcand client + canopen's RemoteNode SDO and
+    BaseNode402 master against ``stagectl sim-plant``: read 0x1000/0x1018, OPERATION ENABLED in CST, move."""
+    import can
+    import canopen
+
+    from stagectl.drivers.cia402 import DEFAULT_EDS
+
+    proc, info = sim_plant
+    c = info["can"]
+    bus = can.Bus(interface="socketcand", host=c["host"], port=c["port"], channel=c["channel"], tcp_tune=True)
+    net = canopen.Network(bus)
+    net.notifier = can.Notifier(bus, net.listeners, 0.05)
+    node = canopen.BaseNode402(1, str(DEFAULT_EDS))
+    net.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = 3.0  # failure guard (loaded machine)
+    try:
+        node.nmt.state = "PRE-OPERATIONAL"
+        assert int.from_bytes(node.sdo.upload(0x1000, 0), "little") == 0x00020192
+        assert node.sdo[0x1018][2].raw == node.object_dictionary[0x1018][2].default  # product code
+        assert node.sdo[0x1008].raw.startswith("stagectl")
+        node.sdo[0x1017].raw = 20
+        node.nmt.wait_for_heartbeat(5.0)
+        node.setup_402_state_machine()
+        node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+        node.nmt.state = "OPERATIONAL"
+        net.sync.start(0.002)
+        node.rpdo[1].start(0.002)
+        node.state = "OPERATION ENABLED"
+        assert node.state == "OPERATION ENABLED"
+        x0 = None
+        node.rpdo[1]["Target torque"].raw = 500  # 5 N > 1.5 N break-away
+        for _ in range(2000):  # TPDO receptions, not sleeps
+            node.tpdo[1].wait_for_reception(2.0)
+            x = node.tpdo_values[0x6064]
+            x0 = x if x0 is None else x0
+            if x - x0 > 10_000:
+                break
+        assert x - x0 > 10_000, "the stage did not move under CST torque"
+        node.rpdo[1]["Target torque"].raw = 0
+        node.state = "SWITCH ON DISABLED"
+    finally:
+        net.sync.stop()
+        node.rpdo[1].stop()
+        net.notifier.stop(1.0)
+        bus.shutdown()
