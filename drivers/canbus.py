@@ -9,6 +9,8 @@
   read that splits a frame.
 * :func:`close_bus` shuts a bus down and never raises (used from ``close()`` paths).
 * :data:`OPEN_BUSES` tracks the buses opened here so tests can fail on a leaked bus.
+* :class:`CanopenNode` is the CANopen plumbing shared by the CiA 402 and CiA 406 drivers: bus, canopen
+  ``Network`` with one ``RemoteNode``, and the Notifier that runs only while SDO configuration needs it.
 
 Error frames: python-can reports controller errors as ``Message(is_error_frame=True)`` whose
 ``arbitration_id`` carries the SocketCAN error class (``CAN_ERR_*``); :func:`error_frame_is_bus_off`
@@ -22,6 +24,7 @@ import threading
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import can
@@ -147,3 +150,53 @@ def pumping(pump: Callable[[], None] | None, name: str) -> Iterator[None]:
         t.join(2.0)
     if errors:
         raise DriverError(f"{name}: simulated peer failed while configuring: {errors[0]}") from errors[0]
+
+
+class CanopenNode:
+    """Mixin for drivers of one CANopen node: bus + canopen ``Network`` + ``RemoteNode`` (SDO), and a
+    ``can.Notifier`` that runs only while canopen has to receive (configuration over SDO); during cyclic
+    operation it is stopped and the loop thread reads the bus itself ("pump mode", PLATFORM_NOTES §0.2)."""
+
+    name: str
+    _bus: can.BusABC | None = None
+    _network: Any = None
+    _node: Any = None
+    _notifier: can.Notifier | None = None
+
+    def _open_canopen(self, can_cfg: Mapping[str, Any], path: str, node_id: int, eds: Path,
+                      sdo_timeout_s: float) -> None:
+        """Open the bus and the node, start the Notifier; errors become :class:`DriverInitError`."""
+        import canopen
+
+        self._bus = open_bus(can_cfg, path=path)
+        try:
+            self._network = canopen.Network(self._bus)
+            self._node = canopen.RemoteNode(node_id, str(eds))
+            self._network.add_node(self._node)
+            self._node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+            self._start_notifier()
+        except Exception as exc:
+            self._teardown()
+            if isinstance(exc, (OSError, ValueError, KeyError)):
+                raise DriverInitError(f"{self.name}: cannot load EDS {eds}: {exc}") from exc
+            raise DriverInitError(f"{self.name}: cannot start CANopen network: {exc}") from exc
+
+    def _start_notifier(self) -> None:
+        if self._notifier is None and self._bus is not None and self._network is not None:
+            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
+
+    def _stop_notifier(self) -> None:
+        if self._notifier is not None:
+            try:
+                self._notifier.stop(0.5)
+            except Exception:  # noqa: BLE001 - close paths must not raise
+                logging.getLogger(__name__).debug("notifier stop failed", exc_info=True)
+            self._notifier = None
+
+    def _teardown(self) -> None:
+        """Stop the Notifier and close the bus; never raises."""
+        self._stop_notifier()
+        close_bus(self._bus)
+        self._bus = None
+        self._network = None
+        self._node = None

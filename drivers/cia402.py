@@ -57,7 +57,7 @@ from stagectl.drivers.base import (
     PositionSensor,
     SyncProducer,
 )
-from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus, pumping
+from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
 from stagectl.errors import ConfigError, DriveFault, DriverError, DriverInitError, DriverIOError, DriverTimeoutError
 from stagectl.resources import EDS_DIR
 from stagectl.schema import param
@@ -213,7 +213,7 @@ def unwrap32(prev_raw: int, prev_counts: int, raw: int) -> int:
     return prev_counts + (((raw - prev_raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
 
 
-class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
+class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     """CiA 402 drive in CST mode: position sensor, force actuator and SYNC producer of the loop.
 
     Parameters
@@ -232,10 +232,6 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
         self.resolution_m = cfg.resolution_m
         self._period_s = 0.0
         self.set_period(period_s)
-        self._bus: can.BusABC | None = None
-        self._network: Any = None
-        self._node: Any = None
-        self._notifier: can.Notifier | None = None
         nid = cfg.node_id
         self._tpdo1_id = 0x180 + nid
         self._tpdo2_id = 0x280 + nid
@@ -290,21 +286,8 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
 
     # ------------------------------------------------------------------ lifecycle hooks
     def _do_open(self) -> None:
-        import canopen
-
         eds = Path(self.cfg.eds_file) if self.cfg.eds_file else DEFAULT_EDS
-        self._bus = open_bus(self.cfg.can, path="drive.can")
-        try:
-            self._network = canopen.Network(self._bus)
-            self._node = canopen.RemoteNode(self.cfg.node_id, str(eds))
-            self._network.add_node(self._node)
-            self._node.sdo.RESPONSE_TIMEOUT = self.cfg.sdo_timeout_s
-            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
-        except Exception as exc:
-            self._teardown()
-            if isinstance(exc, (OSError, ValueError, KeyError)):
-                raise DriverInitError(f"{self.name}: cannot load EDS {eds}: {exc}") from exc
-            raise DriverInitError(f"{self.name}: cannot start CANopen network: {exc}") from exc
+        self._open_canopen(self.cfg.can, "drive.can", self.cfg.node_id, eds, self.cfg.sdo_timeout_s)
 
     def _do_close(self) -> None:
         if self._bus is not None and self._state is DeviceState.ENABLED:
@@ -314,18 +297,6 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
             except (can.CanError, OSError):
                 pass
         self._teardown()
-
-    def _teardown(self) -> None:
-        if self._notifier is not None:
-            try:
-                self._notifier.stop(0.5)
-            except Exception:  # noqa: BLE001
-                log.debug("notifier stop failed", exc_info=True)
-            self._notifier = None
-        close_bus(self._bus)
-        self._bus = None
-        self._network = None
-        self._node = None
 
     # ------------------------------------------------------------------ configure (SDO)
     def _sdo_write(self, index: int, sub: int, fmt: str, value: int, what: str) -> None:
@@ -373,8 +344,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
             pass  # not present on this drive: nothing to disable
 
     def _do_configure(self) -> None:
-        if self._notifier is None and self._bus is not None and self._network is not None:
-            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
+        self._start_notifier()
         nid = self.cfg.node_id
         with pumping(self._pump, self.name):
             self._node.nmt.send_command(0x80)  # enter PRE-OPERATIONAL (PDOs off while remapping)
@@ -407,10 +377,7 @@ class Cia402Drive(PositionSensor, ForceActuator, SyncProducer):
             if shown != MODE_CST:
                 raise DriverInitError(f"{self.name}: drive shows mode {shown} after 0x6060 = {MODE_CST} (CST)")
             self._node.nmt.send_command(0x01)  # NMT start: OPERATIONAL, PDOs run
-        # pump mode: the loop thread reads the bus itself from now on
-        if self._notifier is not None:
-            self._notifier.stop(0.5)
-            self._notifier = None
+        self._stop_notifier()  # pump mode: the loop thread reads the bus itself from now on
         self._reset_cyclic()
 
     # ------------------------------------------------------------------ frame handling

@@ -29,7 +29,7 @@ from typing import Any
 import can
 
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor, SyncProducer
-from stagectl.drivers.canbus import close_bus, error_frame_is_bus_off, open_bus, pumping
+from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
 from stagectl.drivers.cia402 import EDS_DIR, PDO_DISABLED, SYNC_COB_ID, _default_can, unwrap32
 from stagectl.errors import ConfigError, DriverInitError, DriverIOError
 from stagectl.schema import param
@@ -63,7 +63,7 @@ class Cia406Config:
                               f"<= {self.heartbeat_producer_s:g} s)")
 
 
-class Cia406Encoder(PositionSensor, SyncProducer):
+class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
     """CiA 406 encoder node (see module docstring)."""
 
     def __init__(self, cfg: Cia406Config, period_s: float = 0.001) -> None:
@@ -74,10 +74,6 @@ class Cia406Encoder(PositionSensor, SyncProducer):
         self.name = f"cia406[node {cfg.node_id}]"
         self.resolution_m = cfg.resolution_m
         self.period_s = float(period_s)
-        self._bus: can.BusABC | None = None
-        self._network: Any = None
-        self._node: Any = None
-        self._notifier: can.Notifier | None = None
         self._tpdo_id = 0x180 + cfg.node_id
         self._emcy_id = 0x080 + cfg.node_id
         self._hb_id = 0x700 + cfg.node_id
@@ -99,30 +95,8 @@ class Cia406Encoder(PositionSensor, SyncProducer):
 
     # ------------------------------------------------------------------ lifecycle
     def _do_open(self) -> None:
-        import canopen
-
         eds = Path(self.cfg.eds_file) if self.cfg.eds_file else DEFAULT_EDS
-        self._bus = open_bus(self.cfg.can, path="encoder.can")
-        try:
-            self._network = canopen.Network(self._bus)
-            self._node = canopen.RemoteNode(self.cfg.node_id, str(eds))
-            self._network.add_node(self._node)
-            self._node.sdo.RESPONSE_TIMEOUT = self.cfg.sdo_timeout_s
-            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
-        except Exception as exc:
-            self._teardown()
-            raise DriverInitError(f"{self.name}: cannot load EDS {eds} / start CANopen network: {exc}") from exc
-
-    def _teardown(self) -> None:
-        if self._notifier is not None:
-            try:
-                self._notifier.stop(0.5)
-            except Exception:  # noqa: BLE001
-                log.debug("notifier stop failed", exc_info=True)
-            self._notifier = None
-        close_bus(self._bus)
-        self._bus = None
-        self._network = self._node = None
+        self._open_canopen(self.cfg.can, "encoder.can", self.cfg.node_id, eds, self.cfg.sdo_timeout_s)
 
     def _do_close(self) -> None:
         self._teardown()
@@ -140,8 +114,7 @@ class Cia406Encoder(PositionSensor, SyncProducer):
             raise DriverInitError(f"{self.name}: SDO {op} {what} 0x{index:04X}:{sub:02X} failed: {exc}") from exc
 
     def _do_configure(self) -> None:
-        if self._notifier is None and self._bus is not None:
-            self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
+        self._start_notifier()
         nid = self.cfg.node_id
         with pumping(self._pump, self.name):
             self._node.nmt.send_command(0x80)
@@ -158,9 +131,7 @@ class Cia406Encoder(PositionSensor, SyncProducer):
             self._sdo(0x1800, 2, "<B", 1, "TPDO1 transmission type (synchronous)")
             self._sdo(0x1800, 1, "<I", cob, "TPDO1 COB-ID (enable)")
             self._node.nmt.send_command(0x01)
-        if self._notifier is not None:
-            self._notifier.stop(0.5)
-            self._notifier = None
+        self._stop_notifier()  # pump mode: the loop thread reads the bus itself from now on
         self._reset_cyclic()
 
     def _do_fault_reset(self) -> None:
