@@ -84,16 +84,17 @@ class _Client:
             sock.sendall(b"< hi >")
             buf = b""
             opened = False
-            while not self.raw:
-                chunk = self._recv()
-                if chunk is None:
-                    continue
-                if not chunk:
-                    return
-                buf += chunk
-                while b">" in buf and not self.raw:
+            while self.alive:
+                while b">" in buf:
                     line, buf = buf.split(b">", 1)
-                    cmd = line.decode("ascii", "replace").strip("< \r\n")
+                    text = line.decode("ascii", "replace")
+                    if self.raw:
+                        msg = parse_send(text)
+                        if msg is not None:
+                            msg.timestamp = time.time()
+                            self.server.from_client(msg, self)
+                        continue
+                    cmd = text.strip("< \r\n")  # handshake: one reply per request, never coalesced
                     if cmd.startswith("open "):
                         opened = True
                         sock.sendall(b"< ok >")
@@ -102,7 +103,12 @@ class _Client:
                         self.raw = True
                     else:
                         sock.sendall(b"< error unknown command >")
-            self._reader(buf)
+                chunk = self._recv()
+                if chunk is None:
+                    continue
+                if not chunk:
+                    return
+                buf += chunk
         except OSError:
             pass
         except Exception:  # noqa: BLE001 - a server bug must be visible
@@ -122,22 +128,6 @@ class _Client:
             return self.sock.recv(4096)
         except TimeoutError:
             return None
-
-    def _reader(self, buf: bytes) -> None:
-        server = self.server
-        while self.alive:
-            while b">" in buf:
-                line, buf = buf.split(b">", 1)
-                msg = parse_send(line.decode("ascii", "replace"))
-                if msg is not None:
-                    msg.timestamp = time.time()
-                    server.from_client(msg, self)
-            chunk = self._recv()
-            if chunk is None:
-                continue
-            if not chunk:
-                return
-            buf += chunk
 
 
 class SocketcandServer:
