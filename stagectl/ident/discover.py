@@ -495,6 +495,44 @@ def _refresh(ds: Dataset, fr: FitResult) -> FitResult:
     return best
 
 
+def _upgrade_nested(ds: Dataset, cur: FitResult, effects: list[dict[str, Any]], rejected: list[dict[str, Any]],
+                    min_explained: float) -> FitResult:
+    """A simpler effect named while a richer one could not yet be told apart (e.g. offset vs asymmetry before
+    the Stribeck curve was in the model) is replaced by the richer one if, with everything else found since,
+    the richer one is now significantly better on validation data."""
+    richer_of = {s: [r for r, ss in NESTED.items() if s in ss] for s in ("offset", "stribeck")}
+    for item in list(effects):
+        simple = item["name"]
+        for rich in richer_of.get(simple, []):
+            if cur.hyp.has(rich):
+                continue
+            h = cur.hyp.copy()
+            h.effects = tuple(e for e in h.effects if e != simple)
+            h.theta = {}
+            try:
+                base = rg.fit_linear(ds.est, h, ds.est_rows)
+                fr = fit_candidate(ds, base, rich)
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            _, r_cur = gap(ds.val, ds.val_rows, cur.hyp)
+            _, r_new = gap(ds.val, ds.val_rows, fr.hyp)
+            c = compare(r_cur, r_new, ds.est.dt_s, min_explained)
+            if c.significant:
+                idx = effects.index(item)
+                effects[idx] = {
+                    "name": rich, "parameters": describe_params(fr.hyp, rich), "gap_before": item["gap_before"],
+                    "gap_after": c.gap_after, "replaces": simple,
+                    "evidence": evidence(rich, ds.val, ds.val_rows, r_cur, fr.hyp, c)
+                    + f" (replaces {simple}, named earlier when the two could not yet be told apart)",
+                }
+                rejected.append({**item, "reason": f"replaced by the richer {rich}, significantly better on "
+                                 f"validation data once the other effects were in the model "
+                                 f"({c.gap_before:.4g} N -> {c.gap_after:.4g} N)"})
+                cur = fr
+                break
+    return cur
+
+
 def _prune(ds: Dataset, cur: FitResult, effects: list[dict[str, Any]], rejected: list[dict[str, Any]],
            min_explained: float) -> FitResult:
     """Backward check: an accepted effect that a later, richer one made redundant (e.g. an offset accepted
@@ -704,6 +742,7 @@ def discover(
         cur = _refresh(ds, fr)
         history.append(cur.hyp)
     cur = _prune(ds, cur, effects, rejected, force_rms)
+    cur = _upgrade_nested(ds, cur, effects, rejected, force_rms)
     g1, _ = gap(ds.val, ds.val_rows, cur.hyp)
     dis_after = localise(ds.val, ds.val_rows, rg.residual(ds.val, cur.hyp))
     res = DiscoveryResult(
