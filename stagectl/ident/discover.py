@@ -61,7 +61,8 @@ BoolArray = npt.NDArray[np.bool_]
 GAP_METRIC = (
     "force_residual_rms_n: RMS [N] of the zero-phase low-pass filtered inverse-dynamics force residual "
     "L[ū_τ − m·a − F_friction(x,v) − F_other(x)] on validation data, moving samples outside stick phases "
-    "(ZOH-consistent: the second difference of x is paired with (u[k−1]+u[k])/2)"
+    "(ZOH-consistent: the second difference of x is paired with the hat-kernel average of the held, possibly "
+    "delayed force; (u[k−1]+u[k])/2 without delay)"
 )
 #: minimum relative reduction of the validation gap for an effect to be accepted
 MIN_REL_GAIN = 0.20

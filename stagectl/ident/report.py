@@ -186,7 +186,8 @@ def _markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     lines.append("| kind | where | share of samples | RMS [N] | mean [N] | share of squared residual |")
     lines.append("|---|---|---|---|---|---|")
     for d in rep["disagreement"]:
-        lines.append(f"| {d['kind']} | {d['regime']} | {d['share_of_samples']:.3f} | {d['rms_n']:.4g} | "
+        where = d["regime"].replace("|", "\\|")
+        lines.append(f"| {d['kind']} | {where} | {d['share_of_samples']:.3f} | {d['rms_n']:.4g} | "
                      f"{d['mean_n']:+.4g} | {d['share_of_squared_residual']:.3f} |")
     lines.append("")
     lines.append("## Candidates per round (validation gap)")
