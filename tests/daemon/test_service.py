@@ -191,3 +191,34 @@ def test_move_numbers_checked_before_the_loop_with_the_field_named(tmp_path, rig
     with pytest.raises(RequestError) as ei:
         dut.handle(req)
     assert ei.value.field == key
+
+
+def test_no_ready_while_the_loop_is_not_healthy(tmp_path, notify_socket, rig_loader, rig_builder):
+    """READY=1 only once the loop cycles: a loop stuck in its first step never gets READY, start-up fails (exit 1)
+    with the reason in STATUS= after ``ready_timeout_s`` (here the behaviour under test, not a wait)."""
+    def build_stuck(app_cfg):
+        asm = rig_builder(app_cfg)
+        asm.loop.controller.hang.set()  # the first controller step blocks: cycle counter never advances
+        return asm
+
+    cfg = tmp_path / "stagectl.yaml"
+    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  ready_timeout_s: 0.5\n  stop_timeout_s: 10\n"
+                   f"  telemetry: {{directory: {tmp_path / 'tel'}}}\n")
+    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=build_stuck,
+                       notifier=SdNotifier(str(notify_socket.path)))
+    result: dict = {}
+    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
+    th.start()
+    try:
+        while True:
+            msg = notify_socket.wait_for("STATUS", alive=th.is_alive)
+            assert not any("READY" in m for m in notify_socket.history), "READY=1 sent for a stuck loop"
+            if msg["STATUS"].startswith("start-up"):
+                break
+        assert "loop not healthy within 0.5 s" in msg["STATUS"]
+    finally:
+        dut.asm.loop.controller.release.set()  # let the stuck step finish so the loop can stop
+        th.join(30)
+    assert result["code"] == 1
+    assert not any("READY" in m for m in notify_socket.history)
+    assert dut.asm.loop.actuator.state.value != "enabled"
