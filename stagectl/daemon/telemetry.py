@@ -362,13 +362,7 @@ class TelemetryWriter:
                 if rec.stop_index is None:
                     rec.stop_index = self.ring.head
                 self._finish_recording_locked(rec)
-            if self._cont is not None:
-                try:
-                    self._cont.flush(sync=True)
-                except OSError as exc:
-                    self._set_error(_describe(exc, self._cont.path))
-                self._cont.close()
-                self._cont = None
+            self._close_continuous_locked()
 
     def _drain_all(self, sync: bool) -> None:
         s = self.settings
@@ -383,30 +377,23 @@ class TelemetryWriter:
             if n < s.chunk_rows:
                 break
             time.sleep(0)  # let the loop thread take the GIL between chunks
-        if sync:
-            with self._lock:
-                for f in (self._cont, self._rec.csv if self._rec else None):
-                    if f is None:
-                        continue
-                    try:
-                        f.flush(sync=True)
-                    except OSError as exc:
-                        self._set_error(_describe(exc, f.path))
-        else:
-            # push Python's buffer to the kernel each interval: a crash loses at most flush_interval_s
-            with self._lock:
-                rec = self._rec
-                for f in (self._cont, rec.csv if rec and rec.error is None else None):
-                    if f is None:
-                        continue
-                    try:
-                        f.flush()
-                    except OSError as exc:
-                        self._set_error(_describe(exc, f.path))
-                        if f is self._cont:
-                            self._drop_continuous()
-                        elif rec is not None:
-                            rec.error = _describe(exc, f.path)
+        # every interval Python's buffers go to the kernel (a crash loses at most flush_interval_s); on request
+        # (flush(): fault, recording stop, shutdown) they are fsync'ed. An error drops the continuous file (retried
+        # after retry_s) or latches on the recording, like a write error.
+        with self._lock:
+            rec = self._rec
+            for f in (self._cont, rec.csv if rec and rec.error is None else None):
+                if f is None:
+                    continue
+                try:
+                    f.flush(sync=sync)
+                except OSError as exc:
+                    msg = _describe(exc, f.path)
+                    self._set_error(msg)
+                    if f is self._cont:
+                        self._drop_continuous()
+                    elif rec is not None:
+                        rec.error = msg
 
     def _write_continuous(self, text: str, n: int) -> None:
         s = self.settings
@@ -478,6 +465,12 @@ class TelemetryWriter:
         return f
 
     def _rotate_locked(self) -> None:
+        if self._cont is not None:
+            self._close_continuous_locked()
+            self.files_rotated += 1
+
+    def _close_continuous_locked(self) -> None:
+        """fsync and close the continuous file (the next rows open a new one)."""
         f = self._cont
         if f is None:
             return
@@ -487,7 +480,6 @@ class TelemetryWriter:
             self._set_error(_describe(exc, f.path))
         f.close()
         self._cont = None
-        self.files_rotated += 1
 
     def _prune_locked(self) -> None:
         keep = self.settings.keep_files
