@@ -17,24 +17,46 @@ from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.service import StageService
 
 
-def _write_cfg(path, kp, tmp_path):
-    path.write_text(
-        f"controller: {{kp_n_m: {kp}, kd_n_s_m: 400.0}}\n"
-        f"daemon:\n  allow_fault_injection: true\n  status_interval_s: 0.05\n"
-        f"  telemetry: {{directory: {tmp_path / 'tel'}, flush_interval_s: 0.05}}\n"
-    )
+def _write_cfg(path, kp, tmp_path, telemetry_dir=None, **daemon):
+    """The rig's YAML: controller gains, a ``daemon:`` section (status every 50 ms + ``daemon``), telemetry
+    into ``telemetry_dir`` (default ``tmp_path/tel``) flushed every 50 ms."""
+    import yaml
+
+    tel = {"directory": str(telemetry_dir or tmp_path / "tel"), "flush_interval_s": 0.05}
+    path.write_text(yaml.safe_dump({"controller": {"kp_n_m": kp, "kd_n_s_m": 400.0},
+                                    "daemon": {"status_interval_s": 0.05, **daemon, "telemetry": tel}}))
+    return path
+
+
+class _Running:
+    """``StageService.run()`` in a thread (it is the main thread of a real daemon), with the rig devices."""
+
+    def __init__(self, cfg, tmp_path, notify_socket, loader, builder) -> None:
+        self.dut = StageService(cfg, tmp_path / "run", load_config=loader, build=builder,
+                                notifier=SdNotifier(str(notify_socket.path)))
+        self._result: dict = {}
+        self.thread = threading.Thread(target=lambda: self._result.setdefault("code", self.dut.run()))
+        self.thread.start()
+
+    def alive(self) -> bool:
+        return self.thread.is_alive()
+
+    def stop(self) -> int | None:
+        """SIGTERM's path; returns the exit code (None if run() did not return within the failure guard)."""
+        self.dut.request_stop()
+        return self.join()
+
+    def join(self) -> int | None:
+        self.thread.join(30)
+        return self._result.get("code")
 
 
 def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_loader, rig_builder):
-    cfg = tmp_path / "stagectl.yaml"
-    _write_cfg(cfg, 4e4, tmp_path)
-    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=rig_builder,
-                       notifier=SdNotifier(str(notify_socket.path)))
-    result: dict = {}
-    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
-    th.start()
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path, allow_fault_injection=True)
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    dut = svc.dut
     try:
-        ready = notify_socket.wait_for("READY", "1", alive=th.is_alive)
+        ready = notify_socket.wait_for("READY", "1", alive=svc.alive)
         assert "active" in ready["STATUS"]
         notify_socket.wait_for("WATCHDOG", "1")  # the supervisor saw the cycle counter advance
         with ControlClient(tmp_path / "run" / "control.sock") as c:
@@ -64,13 +86,13 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
             r = c.request({"request": "reset"})
             assert r["ok"] and r["state"] == "active", r
             # ---------------------------------------------------------------- reload: bad, then good
-            _write_cfg(cfg, -1.0, tmp_path)
+            _write_cfg(cfg, -1.0, tmp_path, allow_fault_injection=True)
             dut.request_reload()
             notify_socket.wait_for("READY", "1")
             st = c.request({"request": "status"})["status"]
             assert st["reload"]["ok"] is False and "controller.kp_n_m" in st["reload"]["error"]
             assert c.request({"request": "gains"})["controller"]["kp_n_m"] == 4e4  # old tuning kept
-            _write_cfg(cfg, 5e4, tmp_path)
+            _write_cfg(cfg, 5e4, tmp_path, allow_fault_injection=True)
             dut.request_reload()
             notify_socket.wait_for("READY", "1")
             g = c.request({"request": "gains"})
@@ -79,9 +101,8 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
             info = c.request({"request": "record", "action": "stop"})["recording"]
             assert info["rows"] > 0 and info["error"] is None
     finally:
-        dut.request_stop()
-        th.join(30)
-    assert result["code"] == 0
+        code = svc.stop()
+    assert code == 0
     notify_socket.wait_for("STOPPING", "1")
     final = notify_socket.wait_for("STATUS")
     while not final["STATUS"].startswith("stopped"):
@@ -106,16 +127,11 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
 def test_unwritable_telemetry_directory_reported_while_loop_runs(tmp_path, notify_socket, rig_loader, rig_builder):
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("x")  # a file where the telemetry directory should be (fails even as root)
-    cfg = tmp_path / "stagectl.yaml"
-    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  status_interval_s: 0.05\n"
-                   f"  telemetry: {{directory: {blocker / 'tel'}, flush_interval_s: 0.05}}\n")
-    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=rig_builder,
-                       notifier=SdNotifier(str(notify_socket.path)))
-    result: dict = {}
-    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
-    th.start()
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path, telemetry_dir=blocker / "tel")
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    dut = svc.dut
     try:
-        notify_socket.wait_for("READY", "1", alive=th.is_alive)
+        notify_socket.wait_for("READY", "1", alive=svc.alive)
         msg = notify_socket.wait_for("STATUS")
         while "ERROR" not in msg["STATUS"]:  # STATUS= carries the telemetry error
             msg = notify_socket.wait_for("STATUS")
@@ -128,22 +144,16 @@ def test_unwritable_telemetry_directory_reported_while_loop_runs(tmp_path, notif
             assert st2["loop"]["cycle"] > st1["loop"]["cycle"]  # the loop keeps running
             assert st2["telemetry"]["lost"] > 0 and st2["telemetry"]["dropped"] == 0
     finally:
-        dut.request_stop()
-        th.join(30)
-    assert result["code"] == 0
+        code = svc.stop()
+    assert code == 0
 
 
 def test_watchdog_withheld_while_the_loop_hangs(tmp_path, notify_socket, rig_loader, rig_builder):
-    cfg = tmp_path / "stagectl.yaml"
-    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  status_interval_s: 0.05\n"
-                   f"  telemetry: {{directory: {tmp_path / 'tel'}}}\n")
-    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=rig_builder,
-                       notifier=SdNotifier(str(notify_socket.path)))
-    result: dict = {}
-    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
-    th.start()
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path)
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    dut = svc.dut
     try:
-        notify_socket.wait_for("READY", "1", alive=th.is_alive)
+        notify_socket.wait_for("READY", "1", alive=svc.alive)
         notify_socket.wait_for("WATCHDOG", "1")
         ctl = dut.asm.loop.controller
         ctl.hang.set()  # the loop thread blocks inside the controller: cycle counter stops
@@ -158,9 +168,8 @@ def test_watchdog_withheld_while_the_loop_hangs(tmp_path, notify_socket, rig_loa
         assert dut.status()["watchdog"]["withheld"] >= 3
     finally:
         dut.asm.loop.controller.release.set()
-        dut.request_stop()
-        th.join(30)
-    assert result["code"] == 0
+        code = svc.stop()
+    assert code == 0
 
 
 def test_health_window_fraction_over_time_not_since_start():
@@ -201,24 +210,19 @@ def test_no_ready_while_the_loop_is_not_healthy(tmp_path, notify_socket, rig_loa
         asm.loop.controller.hang.set()  # the first controller step blocks: cycle counter never advances
         return asm
 
-    cfg = tmp_path / "stagectl.yaml"
-    cfg.write_text(f"controller: {{kp_n_m: 40000.0}}\ndaemon:\n  ready_timeout_s: 0.5\n  stop_timeout_s: 10\n"
-                   f"  telemetry: {{directory: {tmp_path / 'tel'}}}\n")
-    dut = StageService(cfg, tmp_path / "run", load_config=rig_loader, build=build_stuck,
-                       notifier=SdNotifier(str(notify_socket.path)))
-    result: dict = {}
-    th = threading.Thread(target=lambda: result.setdefault("code", dut.run()))
-    th.start()
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path, ready_timeout_s=0.5, stop_timeout_s=10)
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, build_stuck)
+    dut = svc.dut
     try:
         while True:
-            msg = notify_socket.wait_for("STATUS", alive=th.is_alive)
+            msg = notify_socket.wait_for("STATUS", alive=svc.alive)
             assert not any("READY" in m for m in notify_socket.history), "READY=1 sent for a stuck loop"
             if msg["STATUS"].startswith("start-up"):
                 break
         assert "loop not healthy within 0.5 s" in msg["STATUS"]
     finally:
         dut.asm.loop.controller.release.set()  # let the stuck step finish so the loop can stop
-        th.join(30)
-    assert result["code"] == 1
+        code = svc.join()
+    assert code == 1
     assert not any("READY" in m for m in notify_socket.history)
     assert dut.asm.loop.actuator.state.value != "enabled"
