@@ -33,12 +33,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.set_defaults(func=run)
 
 
+def check_out_dir(path: str, option: str = "--out") -> None:
+    """Create the output directory up front (a clear error before a long analysis, not a traceback after)."""
+    from pathlib import Path
+
+    from stagectl.errors import ConfigError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{option} {path}: exists and is not a directory")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{option} {path}: cannot create directory ({exc.strerror or exc})") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from stagectl.ident.discover import discover
     from stagectl.ident.modelio import load_start
     from stagectl.ident.recording import load_recording
     from stagectl.ident.report import write_outputs
 
+    check_out_dir(args.out)
     rec = load_recording(args.data, args.columns, min_rows=200)
     val = load_recording(args.validate, args.columns, min_rows=200) if args.validate else None
     start = load_start(args.model) if args.model else None

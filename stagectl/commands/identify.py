@@ -40,6 +40,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.elements is not None and not 1 <= args.elements <= 32:
         raise ConfigError(f"--elements: must be between 1 and 32 (got {args.elements})")
+    from pathlib import Path
+
+    from stagectl.commands.discover import check_out_dir
+
+    out_parent = Path(args.out).resolve().parent
+    if Path(args.out).is_dir() or not out_parent.is_dir():
+        raise ConfigError(f"--out {args.out}: must be a file path in an existing directory")
+    if args.plot:
+        check_out_dir(args.plot, "--plot")
     rec = load_recording(args.data, args.columns, min_rows=50)
     res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
     quality = _clean(res.quality)

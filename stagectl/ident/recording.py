@@ -147,7 +147,9 @@ def load_recording(
     p = Path(path)
     cmap = parse_columns(columns) if isinstance(columns, str) or columns is None else dict(columns)
     try:
-        fh = p.open(newline="", encoding="utf-8")
+        # utf-8-sig: spreadsheet exports start with a byte-order mark, which would otherwise become part of
+        # the first column name
+        fh = p.open(newline="", encoding="utf-8-sig")
     except OSError as exc:
         raise DataError(f"{p}: cannot open recording ({exc.strerror or exc})") from None
     with fh:
@@ -158,6 +160,8 @@ def load_recording(
             raise DataError(f"{p}: empty file (expected a header row with columns {', '.join(required)})") from None
         except csv.Error as exc:
             raise DataError(f"{p}: line 1: malformed CSV ({exc})") from None
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{p}: line 1: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
         header = [h.strip() for h in header]
         index = {name: i for i, name in enumerate(header)}
         wanted: dict[str, str] = {}
@@ -215,6 +219,9 @@ def load_recording(
                 extra_rows.append(ev)
         except csv.Error as exc:
             raise DataError(f"{p}: row {line + 1}: malformed CSV ({exc})") from None
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{p}: row {line + 1}: not UTF-8 text ({exc.reason}); save the recording as UTF-8 "
+                            "CSV") from None
     n = len(rows)
     if n < min_rows:
         raise DataError(f"{p}: {n} data rows, this analysis needs at least {min_rows}")

@@ -109,3 +109,28 @@ def test_cli_missing_column_suggests_mapping(tmp_path: Path, capsys: pytest.Capt
     err = capsys.readouterr().err
     assert "missing required column 't'" in err and "--columns" in err
     assert "Traceback" not in err
+
+
+def test_cli_non_utf8_bom_and_bad_out_are_one_line_errors(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Audit: a latin-1/binary file and an --out that is a file gave tracebacks; a spreadsheet BOM hid 't'."""
+    from stagectl.cli import main
+    from stagectl.ident.recording import load_recording
+
+    lat = tmp_path / "latin1.csv"
+    lat.write_bytes(b"t,x,u\n0,0,1\n0.001,\xe9,1\n")
+    assert main(["discover", str(lat), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "stagectl: error:" in err and "UTF-8" in err and "Traceback" not in err
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbft,x,u\n0,0,1\n0.001,0,1\n0.002,0,1\n")
+    rec = load_recording(bom)
+    assert rec.t.tolist() == [0.0, 0.001, 0.002]
+    ofile = tmp_path / "ofile"
+    ofile.write_text("", encoding="utf-8")
+    assert main(["discover", str(bom), "--out", str(ofile)]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "not a directory" in err and "Traceback" not in err
+    assert main(["identify", str(bom), "--model", "stribeck", "--out", str(tmp_path / "no" / "m.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "existing directory" in err and "Traceback" not in err
