@@ -218,7 +218,10 @@ def render_status(st: dict[str, Any]) -> str:
 
 
 def _m(v: Any) -> str:
-    return f"{v:.9f} m" if isinstance(v, (int, float)) else "-"
+    """Metres with nm resolution; a value that rounds to zero prints as 0 (never "-0.000000000")."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return "-"
+    return f"{(round(v, 9) or 0.0):.9f} m"
 
 
 def _n(v: Any) -> str:
