@@ -85,3 +85,20 @@ def test_unit_keeps_what_the_loop_needs():
     assert "PrivateDevices" not in s and "PrivateNetwork" not in s
     # the loop's syscalls stay allowed: sched_setscheduler/affinity (@resources), mlockall (@memlock)
     assert "@resources" in " ".join(s["SystemCallFilter"])
+
+
+def test_daemon_stops_within_the_units_stop_timeout():
+    """SIGTERM → exit 0 within TimeoutStopSec: the daemon's own stop budget (halt, disable, flush) must fit in it,
+    with room for the Python interpreter's exit; the watchdog is pinged at most every WatchdogSec/2."""
+    from stagectl.daemon.config import DaemonConfig
+
+    s = _settings()
+
+    def seconds(v: str) -> float:
+        m = re.fullmatch(r"(\d+(?:\.\d+)?)\s*(ms|s|min)?", v.strip())
+        assert m, v
+        return float(m.group(1)) * {"ms": 1e-3, "s": 1.0, "min": 60.0, None: 1.0}[m.group(2)]
+
+    assert DaemonConfig().stop_timeout_s + 5.0 <= seconds(s["TimeoutStopSec"][0])
+    assert s["KillMode"] == ["mixed"]  # SIGTERM to the daemon only; SIGKILL to everything after the timeout
+    assert seconds(s["WatchdogSec"][0]) >= 2 * 0.5  # the supervisor checks health every <= 0.5 s
