@@ -8,7 +8,8 @@ Lifecycle (``status()["state"]``)::
     any --SIGTERM/SIGINT--> stopping --> stopped                          (STOPPING=1)
 
 Threads: the **loop thread** runs :meth:`ControlLoop.run` (real-time settings applied inside it); the
-**main thread** is the supervisor (signals, watchdog, STATUS=, SIGHUP reload, fault → telemetry flush);
+**main thread** is the supervisor (signals, watchdog, STATUS=, fault → telemetry flush) and starts a short-lived
+**reload thread** per SIGHUP (YAML + design may take longer than the watchdog interval);
 the control socket, telemetry writer and log listener each have one normal-priority thread. None of them
 takes a lock the loop takes; they talk to the loop only through ``loop.request`` (a queue served at the
 cycle boundary), ``loop.status()`` (a snapshot) and the telemetry ring (lock-free).
@@ -154,6 +155,7 @@ class StageService:
         self._wake = threading.Event()
         self._term_signal: int | None = None
         self._hup_pending = 0
+        self._reload_thread: threading.Thread | None = None
         self._started_mono = time.monotonic()
         self.reload_status: dict[str, Any] | None = None
         self.fault_flushes = 0
@@ -332,7 +334,7 @@ class StageService:
     def _supervise(self) -> int:
         loop = self.asm.loop  # type: ignore[union-attr]
         wd = self.notify.watchdog_s
-        tick = min(self.cfg.status_interval_s, wd / 2 if wd else 1.0, 0.5)
+        tick = min(self.cfg.status_interval_s, wd / 4 if wd else 1.0, 0.5)
         next_status = 0.0
         last_loop_state = "active"
         while True:
@@ -346,25 +348,8 @@ class StageService:
                 self.notify.status(f"loop stopped: {self._loop_end_reason()}")
                 return 1
             st = loop.status()
-            # -------------------------------------------------- fault transitions
-            lstate = st.get("state")
-            if lstate != last_loop_state:
-                # a client's cached loop snapshot (up to 50 ms old) must not contradict the new state
-                with self._status_lock:
-                    self._status_cache = None
-            if lstate == "fault" and last_loop_state != "fault":
-                self.state = Lifecycle.FAULT
-                log.error("loop fault: %s; flushing telemetry", _fault_text(st.get("fault")))
-                if self.writer is not None:
-                    self.fault_flushes += 1
-                    if not self.writer.flush(timeout=2.0):
-                        log.warning("telemetry flush after fault did not finish within 2 s")
-                self.notify.status(self._status_line(st))
-            elif lstate == "active" and last_loop_state != "active":
-                self.state = Lifecycle.ACTIVE
-                log.info("loop active again")
-            last_loop_state = lstate
-            # -------------------------------------------------- watchdog (health check, not a timer)
+            # -------------------------------------------------- watchdog (health check, not a timer; first,
+            # so that the fault handling below cannot delay a due ping)
             self.health.add(time.monotonic(), st.get("cycle", 0), st.get("overruns", 0))
             frac = self.health.overrun_fraction()
             limit = self._overrun_limit()
@@ -382,15 +367,39 @@ class StageService:
                 if reason != self._watchdog_reason:  # log each change of cause once, not every tick
                     log.error("watchdog withheld: %s (now %.3f%%)", reason, 100 * frac)
                 self._watchdog_reason = reason
+            # -------------------------------------------------- fault transitions
+            lstate = st.get("state")
+            if lstate != last_loop_state:
+                # a client's cached loop snapshot (up to 50 ms old) must not contradict the new state
+                with self._status_lock:
+                    self._status_cache = None
+            if lstate == "fault" and last_loop_state != "fault":
+                self.state = Lifecycle.FAULT
+                log.error("loop fault: %s; flushing telemetry", _fault_text(st.get("fault")))
+                if self.writer is not None:
+                    # bounded so the next watchdog ping stays in time (pinged just above; tick <= interval/4)
+                    wait_s = min(2.0, wd / 2) if wd else 2.0
+                    self.fault_flushes += 1
+                    if not self.writer.flush(timeout=wait_s):
+                        log.warning("telemetry flush after fault did not finish within %.1f s", wait_s)
+                self.notify.status(self._status_line(st))
+            elif lstate == "active" and last_loop_state != "active":
+                self.state = Lifecycle.ACTIVE
+                log.info("loop active again")
+            last_loop_state = lstate
             # -------------------------------------------------- control socket (the loop does not need it)
             if self.server is not None and not self.server.alive and not self._control_down:
                 self._control_down = True
                 log.error("control socket thread ended; the loop keeps running (restart the service to "
                           "get the socket back)")
             # -------------------------------------------------- reload
-            if self._hup_pending:
+            if self._hup_pending and not (self._reload_thread and self._reload_thread.is_alive()):
+                # in its own thread: loading the YAML and designing the new tuning (observer gain, feed-forward
+                # model) may take longer than the watchdog interval; the supervisor keeps pinging meanwhile.
+                # SIGHUPs arriving during a reload are served by one more reload after it.
                 self._hup_pending = 0
-                self._reload()
+                self._reload_thread = threading.Thread(target=self._reload, name="stagectl-reload", daemon=True)
+                self._reload_thread.start()
             now = time.monotonic()
             if now >= next_status:
                 self.notify.status(self._status_line(st))
@@ -400,7 +409,9 @@ class StageService:
         if st is None:
             st = self.asm.loop.status() if self.asm else {}
         late = st.get("lateness_us") or {}
-        tel = self.writer.status() if self.writer else {}
+        # lock-free reads (ints/str under the GIL): the writer holds its lock during file I/O, and a stalled
+        # disk must not stall the supervisor (and with it the watchdog)
+        tel = {"dropped": self.writer.ring.dropped, "error": self.writer.error} if self.writer else {}
         parts = [
             f"{self.state.value}",
             f"cycle {st.get('cycle', 0)}",
@@ -421,6 +432,7 @@ class StageService:
 
     # ================================================================== reload (SIGHUP)
     def _reload(self) -> None:
+        """Runs in the reload thread (normal priority, like the supervisor that starts it)."""
         self.notify.reloading()
         t = time.time()
         try:

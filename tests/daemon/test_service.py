@@ -226,3 +226,37 @@ def test_no_ready_while_the_loop_is_not_healthy(tmp_path, notify_socket, rig_loa
     assert code == 1
     assert not any("READY" in m for m in notify_socket.history)
     assert dut.asm.loop.actuator.state.value != "enabled"
+
+
+def test_watchdog_pinged_during_a_slow_reload(tmp_path, notify_socket, rig_loader, rig_builder):
+    """Loading + designing a new tuning can outlast WatchdogSec (first use of a model compiles kernels): the
+    reload runs beside the supervisor, whose health-checked pings go on. The reload here blocks until released."""
+    entered, release = threading.Event(), threading.Event()
+    calls = []
+
+    def slow_loader(path):
+        calls.append(path)
+        if len(calls) > 1:  # the reload, not the start-up
+            entered.set()
+            assert release.wait(60)  # failure guard
+        return rig_loader(path)
+
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path)
+    svc = _Running(cfg, tmp_path, notify_socket, slow_loader, rig_builder)
+    try:
+        notify_socket.wait_for("READY", "1", alive=svc.alive)
+        _write_cfg(cfg, 5e4, tmp_path)
+        since = len(notify_socket.history)
+        svc.dut.request_reload()
+        assert entered.wait(30)
+        notify_socket.wait_for("RELOADING", "1")
+        for _ in range(3):  # pings while the reload is stuck in the loader
+            notify_socket.wait_for("WATCHDOG", "1")
+        assert not any("READY" in m for m in notify_socket.history[since:])  # the reload has not finished
+        release.set()
+        notify_socket.wait_for("READY", "1")  # reload finished
+        assert svc.dut.asm.loop.controller.cfg.kp_n_m == 5e4
+    finally:
+        release.set()
+        code = svc.stop()
+    assert code == 0
