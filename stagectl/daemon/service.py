@@ -606,7 +606,7 @@ class StageService:
         ctl = self.asm.controller_config if self.asm else None
         return {"controller": to_json(ctl), "reload": self.reload_status}
 
-    def _req_record(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _req_record(self, req: dict[str, Any]) -> Any:
         _only(req, {"request", "id", "action", "name"})
         if self.writer is None:
             raise RequestError("request", "telemetry is disabled (daemon.telemetry.enabled: false)")
@@ -618,7 +618,18 @@ class StageService:
                 raise RequestError("name", f"cannot create the recording: {exc.strerror or exc}") from None
             return {"recording": str(path)}
         if action == "stop":
-            return {"recording": self.writer.record_stop()}
+            # waits for the writer to drain and fsync: off the control thread, so other clients are served
+            writer = self.writer
+            fut: concurrent.futures.Future[dict[str, Any]] = concurrent.futures.Future()
+
+            def stop_recording() -> None:
+                try:
+                    fut.set_result({"recording": writer.record_stop()})
+                except Exception as exc:  # noqa: BLE001 - "action: no recording is running" -> error reply
+                    fut.set_exception(exc)
+
+            threading.Thread(target=stop_recording, name="stagectl-record-stop", daemon=True).start()
+            return fut
         raise RequestError("action", f"must be start or stop (got {action!r})")
 
     def _req_fault(self, req: dict[str, Any]) -> Any:

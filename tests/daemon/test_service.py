@@ -71,6 +71,8 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
             r = c.request({"request": "move", "relative_m": 1e-5, "speed": 3})
             assert r["ok"] is False and r["field"] == "speed"
             assert c.request({"request": "record", "action": "start", "name": "../x"})["field"] == "name"
+            r = c.request({"request": "record", "action": "stop", "id": 9})  # answered from a helper thread
+            assert r["ok"] is False and r["field"] == "action" and r["id"] == 9
             rec = c.request({"request": "record", "action": "start", "name": "capture"})
             assert rec["ok"], rec
             assert c.request({"request": "stop"})["ok"]
