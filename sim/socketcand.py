@@ -18,7 +18,10 @@ Protocol (rawmode subset; PLATFORM_NOTES §1.2 lists the client's parsing rules 
 
 Rules: standard ids are exactly 3 hex digits (the client decides "extended" from the length), extended ids 8;
 each handshake reply is sent on its own after the client's request (the client compares one ``recv(256)``
-exactly, so replies must not be coalesced); TCP_NODELAY on every accepted socket.
+exactly, so replies must not be coalesced), and no frame follows the final ``< ok >`` until the client has
+sent a frame or ``RAW_SETTLE_S`` (50 ms) has passed (a frame in the same read would fail its handshake on a
+busy machine; a pure listener misses the first 50 ms of traffic, as an adapter that just joined the bus);
+TCP_NODELAY on every accepted socket.
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ import time
 import can
 
 log = logging.getLogger(__name__)
+
+#: after the rawmode "< ok >", a client that has not sent anything yet gets no frames for this long [s]
+RAW_SETTLE_S = 0.05
 
 
 def format_frame(msg: can.Message, ts: float | None = None) -> bytes:
@@ -66,10 +72,19 @@ class _Client:
         self.raw = False
         self.lock = threading.Lock()
         self.alive = True
+        #: frames are held back until the client has surely read the final "< ok >" (see ``send``)
+        self.quiet_until: float | None = None
 
     def send(self, data: bytes) -> None:
         if not (self.raw and self.alive):
             return
+        if self.quiet_until is not None:
+            # python-can's client reads the rawmode "< ok >" with one recv(256) and compares it exactly: a
+            # frame in the same read fails its handshake. So nothing is sent until the client has sent its
+            # first frame (it has read the ok by then) or RAW_SETTLE_S has passed (a pure listener).
+            if time.monotonic() < self.quiet_until:
+                return
+            self.quiet_until = None
         try:
             with self.lock:
                 self.sock.sendall(data)
@@ -90,6 +105,7 @@ class _Client:
                     text = line.decode("ascii", "replace")
                     if self.raw:
                         msg = parse_send(text)
+                        self.quiet_until = None
                         if msg is not None:
                             msg.timestamp = time.time()
                             self.server.from_client(msg, self)
@@ -99,6 +115,7 @@ class _Client:
                         opened = True
                         sock.sendall(b"< ok >")
                     elif cmd == "rawmode" and opened:
+                        self.quiet_until = time.monotonic() + RAW_SETTLE_S
                         sock.sendall(b"< ok >")
                         self.raw = True
                     else:

@@ -295,3 +295,39 @@ def test_stock_canopen_master_over_socketcand_drives_sim_plant(sim_plant):
         node.rpdo[1].stop()
         net.notifier.stop(1.0)
         bus.shutdown()
+
+
+def test_socketcand_handshake_ok_is_never_coalesced_with_a_frame():
+    """python-can's client reads the rawmode ``< ok >`` with one recv(256) and an exact compare: traffic on
+    the bus must not land in that read, even if the client is slow to read it."""
+    import select
+    import socket
+
+    import can
+
+    from stagectl.sim.socketcand import SocketcandServer
+
+    server = SocketcandServer()
+    server.start()
+    sock = socket.create_connection((server.host, server.port), timeout=5.0)
+    try:
+        assert sock.recv(256) == b"< hi >"
+        sock.sendall(b"< open can0 >")
+        assert sock.recv(256) == b"< ok >"
+        sock.sendall(b"< rawmode >")
+        for _ in range(10_000):  # until the server has sent its ok (poll the server state; no sleeps)
+            clients = [c for c, _ in server._clients]
+            if clients and clients[0].raw:
+                break
+            select.select([], [], [], 0.001)
+        hb = can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False)
+        server.send(hb)  # bus traffic while the client has not read the ok yet
+        assert sock.recv(256) == b"< ok >"
+        sock.sendall(b"< send 080 0 >")  # the client talks: it has read the ok, frames flow from now on
+        assert server.recv(5.0).arbitration_id == 0x080
+        server.send(hb)
+        assert select.select([sock], [], [], 5.0)[0]
+        assert sock.recv(256).startswith(b"< frame 701 ")
+    finally:
+        sock.close()
+        server.stop()
