@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--columns", help="column mapping, e.g. t=t_s,x=position_m,u=force_N,x_ref=reference_m")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, PNGs, model.yaml)")
     p.add_argument("--cutoff-hz", type=float, default=None,
-                   help="zero-phase low-pass cut-off for the inverse dynamics [Hz] (default fs/10)")
+                   help="zero-phase low-pass cut-off for the inverse dynamics [Hz] (default min(fs/10, 100 Hz))")
     p.add_argument("--max-rounds", type=int, default=6, help="maximum number of effects to add")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")

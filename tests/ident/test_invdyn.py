@@ -90,3 +90,23 @@ def test_prepare_marks_rest_as_stuck() -> None:
     assert not sig.moving[100:900].any()
     assert sig.moving[1020:1200].all()  # the sine peaks (v = 0) at t = 1.25 s
     assert not sig.evaluate[:1000].any()
+
+
+def test_default_cutoff_is_a_stage_property_not_a_sample_rate_fraction() -> None:
+    """Audit: fs/10 at 5 kHz (500 Hz) raised the metric's noise floor ~56-fold and buried effects that
+    are plain at 1 kHz (blind set: a 5 kHz offset case was missed). Default: min(fs/10, 100 Hz)."""
+    import numpy as np
+
+    from stagectl.ident.recording import Recording
+    from stagectl.ident.signals import prepare
+
+    floors = {}
+    for fs in (500.0, 1000.0, 5000.0):
+        t = np.arange(int(8 * fs)) / fs
+        rng = np.random.default_rng(0)
+        x = 1e-3 * np.sin(2 * np.pi * 0.5 * t) + 5e-9 * rng.standard_normal(t.size)
+        sig = prepare(Recording(t=t, x=x, u=np.zeros_like(t)))
+        assert sig.cutoff_hz == pytest.approx(min(fs / 10, 100.0))
+        floors[fs] = sig.noise_floor_n(1.0)
+    # same noise, same cut-off: the floor no longer grows with the sample rate (it did by (fs ratio)^2.5)
+    assert floors[5000.0] < 3.0 * floors[1000.0]
