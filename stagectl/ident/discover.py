@@ -16,7 +16,7 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 1. the validation gap shrinks by at least ``MIN_REL_GAIN`` (relative), a margin above what noise-only
    recordings with a complete model reach (the null tests in ``tests/ident`` measure it),
 2. the force it explains, ``sqrt(gap_before² − gap_after²)``, is at least ``MIN_EXPLAINED_FRACTION`` of
-   the RMS commanded force and ``MIN_EXPLAINED_NOISE`` times the sensor-noise floor of the metric, and
+   the RMS non-inertial force ``ū − m̂·a`` and ``MIN_EXPLAINED_NOISE`` times the sensor-noise floor of the metric, and
 3. the mean per-sample reduction of the squared residual is positive at the 97.5 % level of a circular
    block bootstrap (block length from the autocorrelation of the per-sample gain, >= 0.1 s).
 
@@ -67,7 +67,7 @@ GAP_METRIC = (
 #: minimum relative reduction of the validation gap for an effect to be accepted
 MIN_REL_GAIN = 0.20
 #: minimum force an effect must explain on validation data, sqrt(gap_before² − gap_after²): the larger of
-#: MIN_EXPLAINED_FRACTION of the RMS commanded force (physically negligible below) and MIN_EXPLAINED_NOISE
+#: MIN_EXPLAINED_FRACTION of the RMS non-inertial force ū − m̂·a (physically negligible below) and MIN_EXPLAINED_NOISE
 #: times the sensor-noise floor of the metric (m·σ_x·gain; at a few times that floor, sampling and
 #: discretisation residue, not physics, is what a flexible effect fits)
 MIN_EXPLAINED_FRACTION = 0.002
@@ -660,8 +660,11 @@ def discover(
     start_fit = cur
     g0, r0 = gap(ds.val, ds.val_rows, cur.hyp)
     dis_before = localise(ds.val, ds.val_rows, rg.residual(ds.val, cur.hyp))
-    uf = ds.val.filt(ds.val.ubar())[ds.val_rows]
     m_hat = float(cur.hyp.theta.get("m", cur.hyp.fixed_mass_kg or 0.0))
+    # the non-inertial force ū − m̂·a (friction and other forces): the physical scale an effect is judged
+    # against. The commanded force itself scales with how hard the motion accelerates (a fast point-to-point
+    # recording of a heavy stage has an RMS force hundreds of times its friction), not with the physics sought.
+    uf = (ds.val.filt(ds.val.ubar()) - m_hat * ds.val.acc_f)[ds.val_rows]
     noise_floor = ds.val.noise_floor_n(m_hat)
     force_rms = max(MIN_EXPLAINED_FRACTION * float(np.sqrt(np.mean(uf * uf))), MIN_EXPLAINED_NOISE * noise_floor)
     effects: list[dict[str, Any]] = []

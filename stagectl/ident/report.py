@@ -48,7 +48,7 @@ def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str,
         "validation": res.split,
         "acceptance_rule": {
             "min_relative_gap_reduction": dsc.MIN_REL_GAIN,
-            "min_explained_force_fraction_of_rms_u": dsc.MIN_EXPLAINED_FRACTION,
+            "min_explained_force_fraction_of_rms_u_minus_ma": dsc.MIN_EXPLAINED_FRACTION,
             "min_explained_force_times_noise_floor": dsc.MIN_EXPLAINED_NOISE,
             "min_explained_force_n": res.min_explained_n,
             "noise_floor_n": res.noise_floor_n,
