@@ -533,7 +533,7 @@ def refine_by_simulation(meas: Measured, spec: dict[str, Any], keys: tuple[str, 
     def force(p: FloatArray) -> FloatArray:
         trial = dict(base)
         for k, lv in zip(keys, p):
-            trial[k] = float(math.exp(lv))
+            trial[k] = float(math.exp(min(lv, 600.0)))  # an optimiser step may overshoot: no OverflowError
         if "fs_n" in trial and "fc_n" in trial and trial["fs_n"] < trial["fc_n"]:
             trial["fs_n"] = trial["fc_n"]
         fm = build(trial).force_along(sig.xf, sig.t)
