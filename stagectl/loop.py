@@ -49,6 +49,10 @@ Daemon API (stable; thread-safe unless noted)
     numbers, targets outside the soft limits, velocity above the limit); conditions known only in the loop
     (a relative target outside the limits, a move while in fault) are set on the future as ``ValueError`` /
     :class:`LoopStateError`. Futures still pending when ``run`` returns fail with :class:`LoopStateError`.
+``loop.latch_fault(name, cause) -> dict``
+    Before ``run`` only: latch fault ``name`` with ``cause``. ``run`` then starts in state ``fault`` without
+    enabling the devices (SYNC and reads go on), and only a ``reset`` request clears it and enables them,
+    like any latched fault. The daemon uses it to come up latched (``unclean_shutdown``) after an unclean end.
 ``loop.status() -> dict``
     Snapshot: ``state`` (unconfigured/configured/active/fault), ``fault`` (name, cause, t_s, cycle or None),
     ``x_m``, ``x_ref_m``, ``e_m``, ``u_n``, ``t_s``, ``cycle``, ``overruns``, ``lateness_us``
@@ -422,6 +426,14 @@ class ControlLoop:
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
+    def latch_fault(self, name: str, cause: str) -> dict[str, Any]:
+        """Latch fault ``name`` (``cause``: human-readable text) before :meth:`run` (see the module docstring).
+        A fault already latched is kept (the first one wins, as in :meth:`Safety.latch`); returns the latched
+        fault. Raises :class:`LoopStateError` while the loop runs (faults are latched in the loop thread then)."""
+        if self._running:
+            raise LoopStateError("latch_fault: only before run (the loop is running)")
+        return self.safety.latch(name, cause, 0.0, self.cycle).as_dict()
+
     # ------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
         """Thread-safe snapshot (see module docstring)."""
@@ -511,7 +523,8 @@ class ControlLoop:
         x0 = m.position_m
         if faulted:  # a latched fault survives a restart of the loop: only reset clears it
             self.state = LoopState.FAULT
-            self._snap = (0.0, x0, self._snap[2], 0.0, self.cycle)
+            x_ref = self._snap[2] if math.isfinite(self._snap[2]) else x0  # latched before the first run: x0
+            self._snap = (0.0, x0, x_ref, 0.0, self.cycle)
             return t0
         if not (m.fresh and math.isfinite(x0)):
             raise StageError(f"no valid initial position from {self.sensor.name} (fresh={m.fresh}, x={x0} m) "
