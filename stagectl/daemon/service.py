@@ -6,6 +6,17 @@ Lifecycle (``status()["state"]``)::
     configured --loop running, drive enabled, loop healthy--> active      (READY=1 sent here, not before)
     active <--loop latches a fault / `reset` clears it--> fault
     any --SIGTERM/SIGINT--> stopping --> stopped                          (STOPPING=1)
+    unclean end of the previous run --> fault (latched ``unclean_shutdown``, drive NOT enabled; READY=1)
+
+Unclean-end latch (:class:`RunMarker`, file ``stagectl.running`` in the state directory: ``--state-dir`` /
+``$STATE_DIRECTORY``, else the runtime directory): written (fsynced) before the loop thread may enable the
+drive, removed on a clean stop (SIGTERM/SIGINT) once the drive is disabled and telemetry flushed, and after a
+start-up failure that left the drive disabled; kept after a failure while running (the loop died). If it exists
+at start, the previous run ended abnormally (SIGKILL, watchdog SIGABRT, crash, power loss) and systemd's
+``Restart=on-failure`` restarted us: the loop starts latched in fault ``unclean_shutdown``
+(:meth:`ControlLoop.latch_fault`), READY=1 is still sent (the service answers), and only an explicit ``reset``
+request enables the drive, as for any latched fault. The marker (with the old run's pid and start time) is kept
+until that reset, so a stop or a start-up failure before it does not lose the latch.
 
 Threads: the **loop thread** runs :meth:`ControlLoop.run` (real-time settings applied inside it); the
 **main thread** is the supervisor (signals, watchdog, STATUS=, fault → telemetry flush) and starts a short-lived
@@ -31,7 +42,9 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import datetime
 import enum
+import json
 import logging
 import math
 import os
@@ -94,6 +107,70 @@ class HealthWindow:
         _, c1, o1 = self.samples[-1]
         slots = (c1 - c0) + (o1 - o0)
         return (o1 - o0) / slots if slots > 0 else 0.0
+
+
+UNCLEAN_FAULT = "unclean_shutdown"
+
+
+class RunMarker:
+    """``<dir>/stagectl.running``: present while a run may have the drive enabled (see the module docstring).
+
+    Content: one JSON object ``{"pid", "started_utc", "config"}``. Written atomically (temporary file, fsync,
+    rename, fsync of the directory) so that it survives a power loss; removal is not fsynced (a marker that
+    reappears after a power loss only latches once more: the safe side).
+    """
+
+    NAME = "stagectl.running"
+
+    def __init__(self, directory: Path) -> None:
+        self.path = Path(directory) / self.NAME
+
+    def read(self) -> dict[str, Any] | None:
+        """The marker's content, None if there is no marker. An unreadable or garbled marker still counts."""
+        try:
+            text = self.path.read_text(encoding="utf-8", errors="replace")
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            return {"unreadable": f"{exc.strerror or exc}"}
+        try:
+            data = json.loads(text)
+        except ValueError:
+            data = None
+        return data if isinstance(data, dict) else {"content": text[:200]}
+
+    def write(self, config_path: Path) -> None:
+        """Record this run (raises OSError: start-up must not go on without the marker)."""
+        info = {"pid": os.getpid(), "started_utc": _utc_now(), "config": str(config_path)}
+        self.path.parent.mkdir(parents=True, mode=0o750, exist_ok=True)
+        tmp = self.path.with_name(self.NAME + ".tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
+        try:
+            os.write(fd, (json.dumps(info) + "\n").encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, self.path)
+        dfd = os.open(self.path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def _utc_now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _unclean_cause(info: dict[str, Any]) -> str:
+    who = f"pid {info.get('pid', '?')}, started {info.get('started_utc', '?')}"
+    if "pid" not in info:
+        who = f"marker {json.dumps(info)}"
+    return (f"the previous run ({who}) did not stop cleanly (killed, crashed, watchdog abort or power loss); "
+            f"detected at start {_utc_now()}; check the stage, then `stagectl reset` to enable the drive")
 
 
 @dataclass
@@ -167,6 +244,10 @@ class StageService:
         self.socket_path: Path | None = None
         self._status_lock = threading.Lock()
         self._status_cache: tuple[float, dict[str, Any]] | None = None
+        self.marker = RunMarker(self._state_directory())
+        self._unclean: dict[str, Any] | None = None  # the previous run's marker, until `reset` acknowledges it
+        self._unclean_latched = False
+        self._ready = False  # READY=1 sent (start-up finished)
 
     # ================================================================== main
     def run(self) -> int:
@@ -215,6 +296,11 @@ class StageService:
     def _startup(self) -> int | None:
         log.info("stagectl daemon starting (pid %d, config %s, runtime dir %s)", os.getpid(), self.config_path,
                  self.runtime_dir)
+        self._unclean = self.marker.read()
+        if self._unclean is not None:
+            log.warning("previous run did not stop cleanly (marker %s: %s): starting LATCHED in fault %s, "
+                        "drive not enabled until `stagectl reset`", self.marker.path, json.dumps(self._unclean),
+                        UNCLEAN_FAULT)
         self.notify.status("loading configuration")
         self.app_cfg, self.cfg = self._load_config(self.config_path)
         if self._term_signal is not None:
@@ -228,6 +314,12 @@ class StageService:
         self._start_control()
         if self._term_signal is not None:
             return 0
+        # ---------------------------------------------------------------- unclean-end latch, marker
+        if self._unclean is not None:
+            loop.latch_fault(UNCLEAN_FAULT, _unclean_cause(self._unclean))
+            self._unclean_latched = True  # the old marker stays until reset (see _track_unclean)
+        else:
+            self.marker.write(self.config_path)  # before the loop thread can enable the drive
         # ---------------------------------------------------------------- loop thread
         self._loop_thread = threading.Thread(target=self._loop_main, name="stagectl-loop", daemon=True)
         self._loop_thread.start()
@@ -243,13 +335,16 @@ class StageService:
             st = loop.status()
             if not self._loop_thread.is_alive():
                 raise StageError(f"control loop ended during start-up: {self._loop_end_reason()}")
-            if st.get("state") == "fault":
+            # latched at start (unclean end of the previous run): ready = cycling in fault, drive not enabled
+            latched = (self._unclean_latched and st.get("state") == "fault"
+                       and (st.get("fault") or {}).get("name") == UNCLEAN_FAULT)
+            if st.get("state") == "fault" and not latched:
                 raise StageError(f"fault during start-up: {_fault_text(st.get('fault'))}")
-            if st.get("state") == "active" and st.get("running"):
+            if (st.get("state") == "active" or latched) and st.get("running"):
                 self.health.add(time.monotonic(), st.get("cycle", 0), st.get("overruns", 0))
                 # READY: drive enabled, loop cycling, and few overruns since we started watching it
-                if (self._drive_enabled() and self.health.advancing() and len(self.health.samples) >= 5
-                        and self.health.overrun_fraction() <= limit):
+                if ((latched or self._drive_enabled()) and self.health.advancing()
+                        and len(self.health.samples) >= 5 and self.health.overrun_fraction() <= limit):
                     break
             if time.monotonic() > deadline:
                 raise StageError(
@@ -257,6 +352,13 @@ class StageService:
                     f"cycle {st.get('cycle')}, overrun fraction {self.health.overrun_fraction():.2%} "
                     f"(limit {limit:.2%}), drive enabled {self._drive_enabled()})")
             self._wake.wait(0.02)
+        self._ready = True
+        if latched:
+            self.state = Lifecycle.FAULT
+            self.notify.ready(self._status_line())
+            log.warning("ready, LATCHED in fault %s (drive not enabled; `stagectl reset` enables it); "
+                        "control socket %s", UNCLEAN_FAULT, self.socket_path)
+            return None
         self.state = Lifecycle.ACTIVE
         self.notify.ready(self._status_line())
         log.info("ready: drive enabled, loop healthy; control socket %s", self.socket_path)
@@ -336,7 +438,7 @@ class StageService:
         wd = self.notify.watchdog_s
         tick = min(self.cfg.status_interval_s, wd / 4 if wd else 1.0, 0.5)
         next_status = 0.0
-        last_loop_state = "active"
+        last_loop_state = "fault" if self.state is Lifecycle.FAULT else "active"
         while True:
             self._wake.wait(tick)
             self._wake.clear()
@@ -367,6 +469,7 @@ class StageService:
                 if reason != self._watchdog_reason:  # log each change of cause once, not every tick
                     log.error("watchdog withheld: %s (now %.3f%%)", reason, 100 * frac)
                 self._watchdog_reason = reason
+            self._track_unclean(st)
             # -------------------------------------------------- fault transitions
             lstate = st.get("state")
             if lstate != last_loop_state:
@@ -404,6 +507,36 @@ class StageService:
             if now >= next_status:
                 self.notify.status(self._status_line(st))
                 next_status = now + self.cfg.status_interval_s
+
+    def _unclean_pending(self, st: dict[str, Any] | None = None) -> bool:
+        """The previous run's unclean end is not acknowledged yet: no ``reset`` has cleared the latch (or the
+        latch was never applied, e.g. start-up failed before it)."""
+        if self._unclean is None:
+            return False
+        if not self._unclean_latched or self.asm is None:
+            return True
+        if st is None:
+            st = self.asm.loop.status()
+        return (st.get("fault") or {}).get("name") == UNCLEAN_FAULT
+
+    def _track_unclean(self, st: dict[str, Any]) -> None:
+        """After the ``reset`` that cleared ``unclean_shutdown``: the marker now stands for this run."""
+        if self._unclean is not None and self._unclean_latched and not self._unclean_pending(st):
+            try:
+                self.marker.write(self.config_path)
+            except OSError as exc:  # the old marker is still there: a crash still latches the next start
+                log.error("cannot rewrite the run marker %s: %s", self.marker.path, exc.strerror or exc)
+                return
+            log.warning("fault %s cleared by reset; marker %s now records this run", UNCLEAN_FAULT,
+                        self.marker.path)
+            self._unclean = None
+
+    def _state_directory(self) -> Path:
+        if self.state_dir is not None:
+            return self.state_dir
+        if os.environ.get("STATE_DIRECTORY"):
+            return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+        return self.runtime_dir
 
     def _status_line(self, st: dict[str, Any] | None = None) -> str:
         if st is None:
@@ -506,6 +639,7 @@ class StageService:
             tst = self.writer.status()
             log.info("telemetry flushed: %d rows written, %d dropped, %d lost%s", tst["rows_written"],
                      tst["dropped"], tst["lost"], f", error: {tst['error']}" if tst["error"] else "")
+        self._settle_marker(th, drive)
         if self.asm is not None:
             try:
                 self.asm.close()
@@ -521,6 +655,30 @@ class StageService:
         self.notify.status(msg)
         self.notify.close()
         return clean
+
+    def _settle_marker(self, th: threading.Thread | None, drive: str) -> None:
+        """Remove the run marker if this stop is clean for the drive: a stop request (SIGTERM/SIGINT) or a failed
+        start-up, the loop has ended and the drive is not enabled; kept while an inherited ``unclean_shutdown``
+        was not cleared by ``reset``, and after a failure once running (the loop died: a crash)."""
+        if self._ready and self._term_signal is None:
+            log.error("run marker %s kept: the service failed while running; the next start is latched",
+                      self.marker.path)
+            return
+        if th is not None and th.is_alive():
+            log.error("run marker %s kept: the control loop did not stop", self.marker.path)
+            return
+        if self.asm is not None and self._drive_enabled():
+            log.error("run marker %s kept: the drive is still enabled (%s)", self.marker.path, drive)
+            return
+        if self._unclean_pending():
+            log.warning("run marker %s kept: fault %s was not cleared by reset; the next start is latched too",
+                        self.marker.path, UNCLEAN_FAULT)
+            return
+        try:
+            self.marker.remove()
+        except OSError as exc:
+            log.error("cannot remove the run marker %s: %s (the next start will be latched)", self.marker.path,
+                      exc.strerror or exc)
 
     def _halt_motion(self, loop: Any, until: float) -> None:
         """Decelerate to a stop before disabling (bounded by ``until``); skipped in fault (already stopped)."""

@@ -264,3 +264,51 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert np.all(np.diff(data[:, 0]) > 0) and np.all(np.isfinite(data))
     with open(tmp_path / "telemetry" / "e2e.csv", newline="") as fh:
         assert len(list(csv.reader(fh))) == rec["rows"] + 1
+
+
+def test_sigkilled_daemon_restarts_latched_until_reset(tmp_path, notify_socket):
+    """What systemd's Restart=on-failure does after SIGKILL: the same command with the same state directory. The
+    new process answers (READY=1) but stays latched in fault unclean_shutdown, drive not enabled, until reset."""
+    cfg = _config(tmp_path)
+    run, state = tmp_path / "run", tmp_path / "state"
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "PYTHONUNBUFFERED": "1"}
+    for key in ("WATCHDOG_PID", "WATCHDOG_USEC", "STATE_DIRECTORY", "RUNTIME_DIRECTORY"):
+        env.pop(key, None)
+    cmd = [*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run), "--state-dir", str(state)]
+    marker = state / "stagectl.running"
+    procs = []
+    try:
+        for attempt in range(2):
+            proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            procs.append(proc)
+            try:
+                ready = notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
+            except TimeoutError:
+                proc.kill()
+                pytest.fail("no READY=1; daemon stderr:\n" + proc.communicate(timeout=30)[1][-4000:])
+            with ControlClient(run / "control.sock", timeout_s=30) as c:
+                st = c.request({"request": "status"})["status"]
+                if attempt == 0:
+                    assert ready["STATUS"].startswith("active") and st["drive_enabled"] is True
+                    assert f'"pid": {proc.pid}' in marker.read_text()
+                    proc.send_signal(signal.SIGKILL)
+                    assert proc.wait(30) == -signal.SIGKILL
+                    continue
+                assert ready["STATUS"].startswith("fault") and "unclean_shutdown" in ready["STATUS"]
+                assert st["state"] == "fault" and st["drive_enabled"] is False
+                assert st["loop"]["fault"]["name"] == "unclean_shutdown"
+                assert f"pid {procs[0].pid}" in st["loop"]["fault"]["cause"]
+                r = c.request({"request": "reset"})
+                assert r["ok"] and r["state"] == "active", r
+                assert c.request({"request": "status"})["status"]["drive_enabled"] is True
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err[-4000:]
+        assert "did not stop cleanly" in err and f'"pid": {procs[0].pid}' in err  # the warning, with the marker
+        assert not marker.exists()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait(30)
+            p.stderr.close()

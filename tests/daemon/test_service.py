@@ -31,9 +31,9 @@ def _write_cfg(path, kp, tmp_path, telemetry_dir=None, **daemon):
 class _Running:
     """``StageService.run()`` in a thread (it is the main thread of a real daemon), with the rig devices."""
 
-    def __init__(self, cfg, tmp_path, notify_socket, loader, builder) -> None:
+    def __init__(self, cfg, tmp_path, notify_socket, loader, builder, state_dir=None) -> None:
         self.dut = StageService(cfg, tmp_path / "run", load_config=loader, build=builder,
-                                notifier=SdNotifier(str(notify_socket.path)))
+                                notifier=SdNotifier(str(notify_socket.path)), state_dir=state_dir)
         self._result: dict = {}
         self.thread = threading.Thread(target=lambda: self._result.setdefault("code", self.dut.run()))
         self.thread.start()
@@ -262,3 +262,117 @@ def test_watchdog_pinged_during_a_slow_reload(tmp_path, notify_socket, rig_loade
         release.set()
         code = svc.stop()
     assert code == 0
+
+
+# ---------------------------------------------------------------------------- unclean end of the previous run
+def _stale_marker(directory, pid=4242):
+    import json
+
+    directory.mkdir(parents=True, exist_ok=True)
+    marker = directory / "stagectl.running"
+    marker.write_text(json.dumps({"pid": pid, "started_utc": "2026-01-02T03:04:05Z", "config": "x.yaml"}) + "\n")
+    return marker
+
+
+def test_restart_after_unclean_end_comes_up_latched_until_reset(tmp_path, notify_socket, rig_loader, rig_builder,
+                                                                 caplog):
+    """A marker left by a killed run: READY=1 (the service answers) but latched in fault unclean_shutdown with the
+    drive not enabled; a stop without reset keeps the marker (the next start is latched again); `reset` enables
+    the drive, the marker then records this run, and a clean stop removes it."""
+    import json
+    import logging
+    import os
+
+    state = tmp_path / "state"
+    marker = _stale_marker(state)
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path)
+    caplog.set_level(logging.WARNING, logger="stagectl.daemon")
+    for attempt in range(2):
+        caplog.clear()
+        svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder, state_dir=state)
+        dut = svc.dut
+        try:
+            ready = notify_socket.wait_for("READY", "1", alive=svc.alive)
+            assert ready["STATUS"].startswith("fault") and "unclean_shutdown" in ready["STATUS"]
+            assert any("did not stop cleanly" in r.getMessage() and '"pid": 4242' in r.getMessage()
+                       for r in caplog.records)
+            notify_socket.wait_for("WATCHDOG", "1")  # latched, still cycling and supervised
+            with ControlClient(tmp_path / "run" / "control.sock") as c:
+                st = c.request({"request": "status"})["status"]
+                assert st["state"] == "fault" and st["drive_enabled"] is False
+                fault = st["loop"]["fault"]
+                assert fault["name"] == "unclean_shutdown" and st["loop"]["state"] == "fault"
+                assert "did not stop cleanly" in fault["cause"] and "pid 4242" in fault["cause"]
+                assert "2026-01-02T03:04:05Z" in fault["cause"]
+                assert c.request({"request": "move", "relative_m": 1e-5})["ok"] is False  # refused while latched
+                if attempt == 1:
+                    r = c.request({"request": "reset"})
+                    assert r["ok"] and r["state"] == "active" and r["cleared"]["name"] == "unclean_shutdown", r
+                    while not notify_socket.wait_for("STATUS")["STATUS"].startswith("active"):
+                        pass
+                    st = c.request({"request": "status"})["status"]
+                    assert st["state"] == "active" and st["drive_enabled"] is True and st["loop"]["fault"] is None
+                    assert c.request({"request": "move", "relative_m": 1e-5})["ok"]
+                    assert json.loads(marker.read_text())["pid"] == os.getpid()  # now records this run
+        finally:
+            code = svc.stop()
+        assert code == 0
+        assert dut.asm.loop.actuator.state.value != "enabled"
+        if attempt == 0:
+            assert json.loads(marker.read_text())["pid"] == 4242  # not acknowledged: kept as it was
+    assert not marker.exists()
+
+
+def test_clean_stop_removes_the_marker_and_the_next_start_is_clean(tmp_path, notify_socket, rig_loader,
+                                                                   rig_builder):
+    """No --state-dir: the marker lives in the runtime directory while the drive may be enabled; SIGTERM's path
+    removes it after disabling the drive and flushing telemetry, so the next start enables the drive."""
+    import json
+    import os
+
+    marker = tmp_path / "run" / "stagectl.running"
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path)
+    for _ in range(2):
+        svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+        try:
+            ready = notify_socket.wait_for("READY", "1", alive=svc.alive)
+            assert ready["STATUS"].startswith("active")
+            assert svc.dut.status()["drive_enabled"] is True
+            info = json.loads(marker.read_text())
+            assert info["pid"] == os.getpid() and info["started_utc"].endswith("Z")
+        finally:
+            code = svc.stop()
+        assert code == 0
+        assert not marker.exists()
+
+
+def test_start_up_failure_keeps_an_unacknowledged_marker(tmp_path, notify_socket, rig_loader, rig_builder):
+    """Invalid configuration on a restart after a crash (exit 2): the marker stays, so a later start is latched."""
+    marker = _stale_marker(tmp_path / "run")
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", -1.0, tmp_path)
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    assert svc.join() == 2
+    assert marker.exists() and "4242" in marker.read_text()
+
+
+def test_loop_ending_by_itself_keeps_the_marker(tmp_path, notify_socket, rig_loader, rig_builder):
+    """The loop ends without a stop request (exit 1, a crash for systemd): drive disabled, but the marker stays and
+    the restart comes up latched."""
+    marker = tmp_path / "run" / "stagectl.running"
+    cfg = _write_cfg(tmp_path / "stagectl.yaml", 4e4, tmp_path)
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    try:
+        notify_socket.wait_for("READY", "1", alive=svc.alive)
+        svc.dut.asm.loop.request("shutdown").result(timeout=30)
+    finally:
+        code = svc.join()
+    assert code == 1 and marker.exists()
+    assert svc.dut.asm.loop.actuator.state.value != "enabled"
+    svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
+    try:
+        ready = notify_socket.wait_for("READY", "1", alive=svc.alive)
+        assert ready["STATUS"].startswith("fault") and "unclean_shutdown" in ready["STATUS"]
+        assert svc.dut.status()["drive_enabled"] is False
+    finally:
+        assert svc.stop() == 0
+    assert marker.exists()  # not reset: still latched next time
