@@ -25,7 +25,11 @@ Every variant is tuned the same way, in this run: the PID crossover (``--pid-ban
 :func:`stagectl.control.design.design_pid`, plus the config's own PID), the Coulomb level F_c
 (``--coulomb-levels``) or the DOB bandwidth (``--dob-bandwidths``, default up to 200 Hz = ω_sample/5 at
 1 kHz; FRICTION_MODELS.md §6.1 recommends ω_sample/10–20 for margin on real hardware) are swept and the tuning with the lowest
-sum of the two tracking RMS errors is kept; one tuning per variant serves all three scenarios.
+sum of the two tracking RMS errors is kept; one tuning per variant serves all three scenarios. Only tunings
+whose linear loop (discrete plant with the I/O delay; PID + DOB when the DOB is on) keeps a phase margin
+>= ``--min-phase-margin`` (25 deg) and a gain margin >= ``--min-gain-margin`` (6 dB) take part: without that
+floor the sweep picks tunings a few degrees from instability that only work because the simulation's delay is
+exact. Rejected tunings are listed in ``sweeps``; the margins of each chosen one are in ``margins``.
 
 Targets: ``pid_dob_gms_20`` ≥ 10× lower RMS than ``pid`` and ≥ 3× lower than ``pid_coulomb`` in both tracking
 scenarios; reported as measured, met or not.
@@ -53,6 +57,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--coulomb-levels", default="0.2,0.4,0.6,0.8", help="Coulomb FF levels F_c [N] tried")
     p.add_argument("--skip", type=float, default=1.0, help="seconds excluded from tracking RMS/max (default 1)")
     p.add_argument("--quick", action="store_true", help="only the config's PID (no sweeps)")
+    p.add_argument("--min-phase-margin", type=float, default=25.0,
+                   help="sweeps keep only tunings with at least this linear phase margin [deg] (default 25)")
+    p.add_argument("--min-gain-margin", type=float, default=6.0,
+                   help="sweeps keep only tunings with at least this linear gain margin [dB] (default 6)")
 
 
 def _floats(text: str) -> list[float]:
@@ -143,10 +151,35 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     def score(results: dict[str, dict[str, Any]]) -> float:
         return sum(results[s]["rms_error_nm"] for s in TRACKING)
 
+    from stagectl.control.design import analyse_design
+
+    margin_cache: dict[Any, Any] = {}
+
+    def margins(c: Any) -> dict[str, Any]:
+        """Linear margins (discrete plant, the config's I/O delay) of PID, or PID + DOB when the DOB is on."""
+        key = (c.pid, c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples)
+        if key not in margin_cache:
+            a = analyse_design(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, key[1], key[2])[-1]
+            margin_cache[key] = {"loop": a.name, "phase_margin_deg": a.phase_margin_deg,
+                                 "gain_margin_db": a.gain_margin_db, "crossover_hz": a.crossover_hz,
+                                 "closed_loop_stable": a.stable}
+        return margin_cache[key]
+
+    def robust(c: Any) -> bool:
+        m = margins(c)
+        return bool(m["closed_loop_stable"] and m["phase_margin_deg"] >= args.min_phase_margin
+                    and m["gain_margin_db"] >= args.min_gain_margin)
+
     def sweep(label: str, candidates: list[tuple[dict[str, Any], Any, Any]]) -> dict[str, Any]:
         best = None
         tried = []
-        for params, ctl_cfg, model in candidates:
+        kept = [cand for cand in candidates if robust(cand[1])] or candidates[:1]
+        for params, ctl_cfg, _ in candidates:
+            if not any(ctl_cfg is k[1] for k in kept):
+                m = margins(ctl_cfg)
+                tried.append({**params, "rejected": f"margins PM {m['phase_margin_deg']:.1f} deg, "
+                              f"GM {m['gain_margin_db']:.1f} dB"})
+        for params, ctl_cfg, model in kept:
             res = {s: run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip) for s in TRACKING}
             sc = score(res) if not any(r["fault"] for r in res.values()) else float("inf")
             tried.append({**params, "tracking_rms_sum_nm": sc})
@@ -190,18 +223,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for v in out:
         table[v]["steps"]["settling_time_s"] = out[v]["results"]["steps"]["settling_time_s"]
         table[v]["steps"]["settled"] = out[v]["results"]["steps"]["settled"]
-    # linear margins of each chosen tuning (discrete plant, one cycle of I/O delay): "best-tuned" by tracking
-    # error can sit close to instability, which the tracking figures alone do not show
-    from stagectl.control.design import analyse_design
-
-    margins = {}
-    for v in out:
-        c = out[v]["config"]
-        loops = analyse_design(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles,
-                               c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples)
-        a = loops[-1]
-        margins[v] = {"loop": a.name, "phase_margin_deg": a.phase_margin_deg, "gain_margin_db": a.gain_margin_db,
-                      "crossover_hz": a.crossover_hz, "closed_loop_stable": a.stable}
     return {
         "benchmark": "control",
         "stage": {"config": str(cfg.path), "mass_kg": plant.mass_kg, "friction": exact.tag,
@@ -213,7 +234,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "targets": targets,
         "all_targets_met": all(t["met_10x_vs_pid"] and t["met_3x_vs_pid_coulomb"] for t in targets.values()),
         "tuning": {v: out[v]["tuning"] for v in out},
-        "margins": margins,
+        "margins": {v: margins(out[v]["config"]) for v in out},
+        "margin_floor": {"phase_margin_deg": args.min_phase_margin, "gain_margin_db": args.min_gain_margin},
         "sweeps": {v: out[v]["swept"] for v in out if out[v]["swept"]},
         "wall_s": time.perf_counter() - t_start,
     }
