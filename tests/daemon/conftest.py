@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from support import RampReference
 from stagectl.control.api import Command, Reference
 from stagectl.errors import ConfigError
 
@@ -75,39 +76,6 @@ class PD:
         return Command(u + ref.a_m_s2, {"u_pid": u, "u_inertia": ref.a_m_s2})
 
 
-class Ramp:
-    def __init__(self) -> None:
-        self._x0 = self._t0 = self._target = self._v = 0.0
-
-    def hold(self, t_s: float, x_m: float) -> None:
-        self._x0, self._t0, self._target, self._v = x_m, t_s, x_m, 0.0
-
-    def sample(self, t_s: float) -> Reference:
-        if self._v == 0.0:
-            return Reference(self._target)
-        x = self._x0 + self._v * (t_s - self._t0)
-        if (self._v > 0 and x >= self._target) or (self._v < 0 and x <= self._target):
-            self._x0, self._v = self._target, 0.0
-            return Reference(self._target)
-        return Reference(x, self._v)
-
-    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
-        x = self.sample(t_s).x_m
-        v = max_velocity_m_s or 2e-3
-        self._x0, self._t0, self._target = x, t_s, target_m
-        self._v = math.copysign(v, target_m - x) if target_m != x else 0.0
-        return abs(target_m - x) / v
-
-    def stop(self, t_s: float) -> float:
-        x = self.sample(t_s).x_m
-        self.hold(t_s, x)
-        return x
-
-    @property
-    def target_m(self) -> float:
-        return self._target
-
-
 def load_rig_config(path: Path):
     """The rig's 'check-config': YAML with a controller section and an optional daemon section."""
     from stagectl.daemon.config import load_daemon_config
@@ -141,7 +109,7 @@ def build_rig(app_cfg):
     io.configure()
     safety = Safety(SafetyConfig(min_position_m=-0.01, max_position_m=0.01, following_error_m=1e-3,
                                  max_force_n=50.0, max_velocity_m_s=0.05, stale_cycles=3), period)
-    loop = ControlLoop(clock=clock, sensor=io, actuator=io, controller=PD(app_cfg.controller), reference=Ramp(),
+    loop = ControlLoop(clock=clock, sensor=io, actuator=io, controller=PD(app_cfg.controller), reference=RampReference(v_default=2e-3),
                        safety=safety, cfg=LoopConfig(period_s=period, healthy_overrun_fraction=0.5), realtime=False)
 
     def inject(kind: str, **kw):

@@ -10,6 +10,7 @@ import math
 
 import pytest
 
+from support import RampReference
 from stagectl.clock import SimClock
 from stagectl.control.api import Command, Reference
 from stagectl.loop import ControlLoop, LoopConfig
@@ -72,45 +73,6 @@ class PD:
         u_pid = self.kp * (ref.x_m - x) + self.kd * (ref.v_m_s - v)
         u_in = self.mass * ref.a_m_s2
         return Command(u_pid + u_in, {"u_pid": u_pid, "u_inertia": u_in})
-
-
-class RampReference:
-    """Constant-velocity moves; implements the loop's ReferenceSource protocol."""
-
-    def __init__(self, v_default: float = 1e-3):
-        self.v_default = v_default
-        self._x0 = 0.0
-        self._t0 = 0.0
-        self._target = 0.0
-        self._v = 0.0
-
-    def hold(self, t_s: float, x_m: float) -> None:
-        self._x0, self._t0, self._target, self._v = x_m, t_s, x_m, 0.0
-
-    def sample(self, t_s: float) -> Reference:
-        if self._v == 0.0:
-            return Reference(self._target)
-        x = self._x0 + self._v * (t_s - self._t0)
-        if (self._v > 0 and x >= self._target) or (self._v < 0 and x <= self._target):
-            self._x0, self._v = self._target, 0.0
-            return Reference(self._target)
-        return Reference(x, self._v)
-
-    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
-        x = self.sample(t_s).x_m
-        v = max_velocity_m_s or self.v_default
-        self._x0, self._t0, self._target = x, t_s, target_m
-        self._v = math.copysign(v, target_m - x) if target_m != x else 0.0
-        return abs(target_m - x) / v
-
-    def stop(self, t_s: float) -> float:
-        x = self.sample(t_s).x_m
-        self.hold(t_s, x)
-        return x
-
-    @property
-    def target_m(self) -> float:
-        return self._target
 
 
 def make_loop(*, safety: dict | None = None, period_s: float = 1e-3, delay_cycles: int = 1, **kw):
