@@ -98,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
         "loop": res.as_dict() if res else None,
     }
     title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"
+    summary["out"] = str(out)
     write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)
+    print(f"stagectl run: telemetry, summary.json and plots in {out}", file=sys.stderr)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0
