@@ -57,6 +57,7 @@ from stagectl.schema import param
 from stagectl.sim.cia402_drive import SimCia402Drive, SimCanopenDevice, SimDriveConfig
 from stagectl.sim.cia406_encoder import SimCia406Encoder, SimEncoderConfig
 from stagectl.sim.faults import FaultSpec, SimFault
+from stagectl.sim.interferometer import SimInterferometer, SimInterferometerConfig
 
 log = logging.getLogger(__name__)
 
@@ -80,23 +81,6 @@ def _parse_plant(value: Any, path: str, problems: list[str]) -> Any:
 
     try:
         return PlantConfig.from_mapping(value, path=path, base_dir=SIM_BASE_DIR.get())
-    except ConfigError as exc:
-        problems.extend(exc.problems)
-        return None
-
-
-def _parse_interferometer(value: Any, path: str, problems: list[str]) -> Any:
-    if value is None:
-        return None
-    try:
-        from stagectl.sim.interferometer import SimInterferometerConfig
-    except ImportError:
-        problems.append(f"{path}: the simulated interferometer is not available in this build")
-        return None
-    from stagectl.schema import load
-
-    try:
-        return load(SimInterferometerConfig, value, path)
     except ConfigError as exc:
         problems.extend(exc.problems)
         return None
@@ -139,8 +123,8 @@ class SimWorldConfig:
     plant: Any = param(desc="stage plant (stagectl.sim.plant.PlantConfig)", parse=_parse_plant)
     drive: SimDriveConfig = param(default_factory=SimDriveConfig, desc="simulated CiA 402 drive")
     encoder: SimEncoderConfig | None = param(None, desc="simulated CiA 406 encoder (optional)")
-    interferometer: Any = param(None, desc="simulated serial interferometer (optional; SimInterferometerConfig)",
-                                parse=_parse_interferometer)
+    interferometer: SimInterferometerConfig | None = param(
+        None, desc="simulated serial interferometer (optional; SimInterferometerConfig)")
     transport: SimTransportConfig = param(default_factory=SimTransportConfig, desc="how clients connect")
     faults: tuple[FaultSpec, ...] = param((), desc="scripted faults (list of {kind, device, at_cycle|at_time_s, ...})",
                                           parse=_parse_faults)
@@ -224,8 +208,6 @@ class SimWorld:
             for spec in self.cfg.faults:
                 self.inject(spec)
             if self.cfg.interferometer is not None:
-                from stagectl.sim.interferometer import SimInterferometer
-
                 self.interferometer = SimInterferometer(self.plant, self.cfg.interferometer)
                 self._ifm_on_sync = self.cfg.interferometer.trigger == "sync"
             for d in self.devices:
