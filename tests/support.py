@@ -48,3 +48,20 @@ class RampReference:
     @property
     def target_m(self) -> float:
         return self._target
+
+
+def stop_process(proc, timeout_s: float) -> None:
+    """Stop a test subprocess: SIGTERM, wait up to ``timeout_s``, then SIGKILL; close its pipes."""
+    import signal
+    import subprocess
+
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(10)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()

@@ -13,6 +13,7 @@ import sys
 import textwrap
 
 import pytest
+from support import stop_process
 
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.drivers.cia402 import State402
@@ -51,15 +52,7 @@ def sim_plant(tmp_path, request):
         info = json.loads(line)
         yield proc, info
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
-        proc.stderr.close()
+        stop_process(proc, 10.0)
 
 
 def test_driver_over_socketcand_1000_cycles(sim_plant, make_drive):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from support import stop_process
 
 from stagectl.daemon.control import ControlClient
 
@@ -89,15 +90,7 @@ def sim_plant():
             pytest.fail(f"sim-plant not ready (last line {line!r}):\n" + proc.stderr.read()[-4000:])
         yield proc, info
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-        proc.stdout.close()
-        proc.stderr.close()
+        stop_process(proc, 30)
 
 
 def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket):
