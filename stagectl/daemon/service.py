@@ -449,7 +449,9 @@ class StageService:
                 log.error("control loop stopped unexpectedly (%s)", self._loop_end_reason())
                 self.notify.status(f"loop stopped: {self._loop_end_reason()}")
                 return 1
-            st = loop.status()
+            # the percentiles (lateness, exec time) only when a STATUS= line is due: they cost ~2 ms of GIL
+            want_timing = time.monotonic() >= next_status
+            st = loop.status(timing=want_timing)
             # -------------------------------------------------- watchdog (health check, not a timer; first,
             # so that the fault handling below cannot delay a due ping)
             self.health.add(time.monotonic(), st.get("cycle", 0), st.get("overruns", 0))
@@ -485,7 +487,7 @@ class StageService:
                     self.fault_flushes += 1
                     if not self.writer.flush(timeout=wait_s):
                         log.warning("telemetry flush after fault did not finish within %.1f s", wait_s)
-                self.notify.status(self._status_line(st))
+                self.notify.status(self._status_line(st if want_timing else loop.status()))
             elif lstate == "active" and last_loop_state != "active":
                 self.state = Lifecycle.ACTIVE
                 log.info("loop active again")
@@ -503,10 +505,9 @@ class StageService:
                 self._hup_pending = 0
                 self._reload_thread = threading.Thread(target=self._reload, name="stagectl-reload", daemon=True)
                 self._reload_thread.start()
-            now = time.monotonic()
-            if now >= next_status:
+            if want_timing:
                 self.notify.status(self._status_line(st))
-                next_status = now + self.cfg.status_interval_s
+                next_status = time.monotonic() + self.cfg.status_interval_s
 
     def _unclean_pending(self, st: dict[str, Any] | None = None) -> bool:
         """The previous run's unclean end is not acknowledged yet: no ``reset`` has cleared the latch (or the

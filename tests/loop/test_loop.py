@@ -67,6 +67,10 @@ def test_overruns_are_counted_and_skipped_not_caught_up(make, rows):
     st = loop.status()
     assert st["lateness_us"]["max"] == pytest.approx(600.0, rel=1e-6)
     assert st["overruns"] == 2
+    light = loop.status(timing=False)  # the supervisor's cheap form: same counters, no percentiles
+    assert "lateness_us" not in light and "exec_us" not in light
+    assert {k: light[k] for k in ("cycle", "overruns", "recent_overrun_fraction", "healthy", "state")} == {
+        k: st[k] for k in ("cycle", "overruns", "recent_overrun_fraction", "healthy", "state")}
 
 
 def test_move_request_tracks_and_reports(rig):
