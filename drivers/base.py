@@ -1,4 +1,4 @@
-"""Driver interface shared by real devices and their simulated twins (HOUSE_STYLE.md section 1.3).
+"""Driver interface shared by real devices and their simulated twins (docs/architecture.md section 1.3).
 
 Lifecycle (explicit, checked)::
 

@@ -2,7 +2,7 @@
 
 * :func:`open_bus` opens a :class:`can.BusABC` from the YAML ``can:`` mapping, which is passed to
   ``can.Bus(**mapping)`` unchanged (so ``socketcan``, ``pcan``, ``kvaser``, ``virtual``, ``socketcand`` all
-  work), except that ``tcp_tune`` is forced on for ``socketcand`` (PLATFORM_NOTES §1.2: without it Nagle
+  work), except that ``tcp_tune`` is forced on for ``socketcand`` (docs/platform.md §1.2: without it Nagle
   plus delayed ACK stall two back-to-back frames for ~44 ms). Vendor errors become
   :class:`~stagectl.errors.DriverInitError`.
 * :func:`quiet_can_loggers` silences python-can's socketcand client, which logs a WARNING on every TCP
@@ -66,7 +66,7 @@ def bus_kwargs(mapping: Mapping[str, Any], *, path: str = "can") -> dict[str, An
         for key in ("host", "port"):
             if key not in kw:
                 problems.append(f"{path}.{key}: required for interface socketcand")
-        kw["tcp_tune"] = True  # mandatory: Nagle stalls otherwise (PLATFORM_NOTES §1.2)
+        kw["tcp_tune"] = True  # mandatory: Nagle stalls otherwise (docs/platform.md §1.2)
     if problems:
         raise ConfigError(problems)
     return kw
@@ -155,7 +155,7 @@ def pumping(pump: Callable[[], None] | None, name: str) -> Iterator[None]:
 class CanopenNode:
     """Mixin for drivers of one CANopen node: bus + canopen ``Network`` + ``RemoteNode`` (SDO), and a
     ``can.Notifier`` that runs only while canopen has to receive (configuration over SDO); during cyclic
-    operation it is stopped and the loop thread reads the bus itself ("pump mode", PLATFORM_NOTES §0.2)."""
+    operation it is stopped and the loop thread reads the bus itself ("pump mode", docs/platform.md §0.2)."""
 
     name: str
     _bus: can.BusABC | None = None

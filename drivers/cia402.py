@@ -6,7 +6,7 @@ Start-up (``configure``, SDO only, canopen's Notifier running): NMT pre-operatio
 (watching *our* heartbeat, so the drive stops by itself if the controller dies), the PDO mapping
 (TPDO1 = statusword 0x6041 + position actual 0x6064, optional TPDO2 = velocity actual 0x606C;
 RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1), mode of
-operation 0x6060 = 10 (CST); then NMT start and the Notifier is stopped ("pump mode", PLATFORM_NOTES
+operation 0x6060 = 10 (CST); then NMT start and the Notifier is stopped ("pump mode", docs/platform.md
 §0.2): during cyclic operation the loop thread reads the bus itself.
 
 Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::

@@ -1,6 +1,6 @@
 """Simulated CiA 402 drive (and the CANopen device glue shared with the simulated CiA 406 encoder).
 
-canopen's ``LocalNode`` only provides the object dictionary and the SDO server (PLATFORM_NOTES §2.2);
+canopen's ``LocalNode`` only provides the object dictionary and the SDO server (docs/platform.md §2.2);
 :class:`SimCanopenDevice` adds what a device needs:
 
 * **NMT** (own implementation; NmtSlave does not reboot): boot-up ``0x700+id [00]`` at power-on and after

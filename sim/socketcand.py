@@ -6,7 +6,7 @@ the CAN "port" of a :class:`~stagectl.sim.world.SimWorld` (``recv``/``send``, li
 receives every client frame and its devices' frames go to every client; client frames are also forwarded
 to the other clients, so two drivers (drive + encoder) see each other's SYNC as on a real bus.
 
-Protocol (rawmode subset; PLATFORM_NOTES §1.2 lists the client's parsing rules we must honour)::
+Protocol (rawmode subset; docs/platform.md §1.2 lists the client's parsing rules we must honour)::
 
     server: < hi >                       client: < open can0 >
     server: < ok >                       client: < rawmode >

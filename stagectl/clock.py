@@ -2,7 +2,7 @@
 
 The loop never sleeps for a *relative* interval. It computes the next deadline as
 ``deadline[k+1] = deadline[k] + period_s`` and asks its clock to sleep until that absolute time
-(PLATFORM_NOTES.md section 4: a relative ``time.sleep(T)`` runs 11 % slow at 1 kHz and drifts).
+(docs/platform.md section 4: a relative ``time.sleep(T)`` runs 11 % slow at 1 kHz and drifts).
 
 Two clocks share one interface (``now() -> float`` seconds, ``sleep_until(t_s)``):
 
@@ -64,7 +64,7 @@ class MonotonicClock:
     ``now()`` is ``time.monotonic_ns() * 1e-9`` [s] (same clock as ``clock_nanosleep(CLOCK_MONOTONIC)``).
     ``sleep_until(t_s)`` returns at or after ``t_s``; returns at once if ``t_s`` is already past.
     With ``spin_s > 0`` it sleeps until ``t_s − spin_s`` and busy-waits the rest ("hybrid": sub-µs median
-    lateness for ~5–10 % more CPU at 1 kHz, PLATFORM_NOTES.md section 4; never spin under SCHED_FIFO when
+    lateness for ~5–10 % more CPU at 1 kHz, docs/platform.md section 4; never spin under SCHED_FIFO when
     other threads of the process must run). Real-time safe (one reused ctypes struct).
     """
 
@@ -201,7 +201,7 @@ def freeze_gc() -> None:
     """Collect, then move every existing object to the permanent generation (``gc.freeze``).
 
     After this a full collection no longer walks the ~10⁵ start-up objects (numpy, scipy, canopen),
-    which otherwise costs 3–50 ms per gen-2 collection (PLATFORM_NOTES.md section 4).
+    which otherwise costs 3–50 ms per gen-2 collection (docs/platform.md section 4).
     """
     gc.collect()
     gc.freeze()

@@ -1,4 +1,4 @@
-"""One error hierarchy for the whole project (HOUSE_STYLE.md section 4).
+"""One error hierarchy for the whole project (docs/architecture.md section 4).
 
 ``StageError`` is the root. Subclasses also derive from the matching built-in where one fits,
 so callers can catch either (``ConfigError`` is a ``ValueError``, ``DriverTimeoutError`` a

@@ -24,7 +24,7 @@ a SimClock, ``sleep_until`` only advances time, so lateness is 0 and runs are de
 Daemon API (stable; thread-safe unless noted)
 ---------------------------------------------
 ``loop.columns``
-    Telemetry column names (SI, RECORDINGS.md): ``t`` s, ``x`` m, ``u`` N, ``x_ref`` m, ``v_ref`` m/s,
+    Telemetry column names (SI, docs/recordings.md): ``t`` s, ``x`` m, ``u`` N, ``x_ref`` m, ``v_ref`` m/s,
     ``a_ref`` m/s², ``e`` m (x_ref − x), ``v`` m/s (filtered measured velocity), then the controller terms
     in N (``u_pid``, ``u_dob``, ``u_ff``, ``u_inertia``, ...).
 ``loop.run(cycles=None, duration_s=None, stop=None) -> LoopResult``

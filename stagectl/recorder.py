@@ -1,4 +1,4 @@
-"""In-memory telemetry recorder for ``simulate``/``run``/benchmarks: CSV (RECORDINGS.md), summary, plots.
+"""In-memory telemetry recorder for ``simulate``/``run``/benchmarks: CSV (docs/recordings.md), summary, plots.
 
 :class:`Recorder` is a loop sink (``append(row)``) writing into preallocated float64 arrays (doubling when
 full, which happens only if the run is longer than announced). Afterwards:

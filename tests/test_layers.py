@@ -1,4 +1,4 @@
-"""Imports point down the architecture chain only (HOUSE_STYLE.md section 1)."""
+"""Imports point down the architecture chain only (docs/architecture.md section 1)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Meta-test over every configuration dataclass (HOUSE_STYLE.md §2, §5): each field has a description, and
+"""Meta-test over every configuration dataclass (docs/architecture.md §2, §5): each field has a description, and
 every numeric key with a physical dimension carries a unit suffix matching its declared unit.
 
 Classes checked: everything :func:`stagectl.schema.describe` reaches from ``stagectl.config.AppConfig``, the

@@ -19,12 +19,12 @@ Controllers, all measured in the same run:
 * ``pid_dob``         PID + Q-filter DOB (residual form)
 * ``pid_dob_gms``     PID + DOB + GMS feed-forward, exact model (plant = model)
 * ``pid_dob_gms_20``  PID + DOB + GMS feed-forward, 20 %-mismatched model (k ×0.8, Fs 0.8 N, Fc 0.72 N,
-                      Vs 1.2 mm/s, σ2 ×0.8; FRICTION_MODELS.md §6.3)
+                      Vs 1.2 mm/s, σ2 ×0.8; docs/friction-models.md §6.3)
 
 Every variant is tuned the same way, in this run: the PID crossover (``--pid-bandwidths``, gains from
 :func:`stagectl.control.design.design_pid`, plus the config's own PID), the Coulomb level F_c
 (``--coulomb-levels``) or the DOB bandwidth (``--dob-bandwidths``, default up to 200 Hz = ω_sample/5 at
-1 kHz; FRICTION_MODELS.md §6.1 recommends ω_sample/10–20 for margin on real hardware) are swept and the tuning with the lowest
+1 kHz; docs/friction-models.md §6.1 recommends ω_sample/10–20 for margin on real hardware) are swept and the tuning with the lowest
 sum of the two tracking RMS errors is kept; one tuning per variant serves all three scenarios. Only tunings
 whose linear loop (discrete plant with the I/O delay; PID + DOB when the DOB is on) keeps a phase margin
 >= ``--min-phase-margin`` (25 deg) and a gain margin >= ``--min-gain-margin`` (6 dB) take part: without that
@@ -68,7 +68,7 @@ def _floats(text: str) -> list[float]:
 
 
 def mismatched(model: Any) -> Any:
-    """The 20 %-off GMS model of FRICTION_MODELS.md §6.3: k ×0.8, Fs 0.8, Fc 0.72, Vs 1.2 mm/s, σ2 ×0.8."""
+    """The 20 %-off GMS model of docs/friction-models.md §6.3: k ×0.8, Fs 0.8, Fc 0.72, Vs 1.2 mm/s, σ2 ×0.8."""
     from stagectl.friction import build
 
     spec = dict(model.spec())

@@ -2,7 +2,7 @@
 
 Closed loop in simulated time (SimClock; the devices in lock-step: PlantIO, or the real CANopen drivers
 against the virtual devices; a ``canopen`` config with a ``sim:`` section, e.g. config/hil-canopen.yaml, is
-simulated with its virtual devices in-process). Writes ``telemetry.csv`` (RECORDINGS.md columns), ``summary.json`` (RMS/max
+simulated with its virtual devices in-process). Writes ``telemetry.csv`` (docs/recordings.md columns), ``summary.json`` (RMS/max
 tracking error, settling times to ±10 nm, faults, loop statistics) and ``tracking.png`` into DIR, and
 prints the summary as one JSON line on stdout.
 """

@@ -1,6 +1,6 @@
 """Types shared by the control laws and the loop.
 
-Contract for every law (HOUSE_STYLE.md section 1.4): a frozen ``Config`` (fields declared with
+Contract for every law (docs/architecture.md section 1.4): a frozen ``Config`` (fields declared with
 ``stagectl.schema.param``, physical units), a mutable ``State`` holding the diagnostic terms,
 ``step(dt, ...)`` that checks ``dt > 0`` and finite and never reads a clock or does I/O, and ``reset()``.
 

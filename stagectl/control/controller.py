@@ -7,7 +7,7 @@ Per step (dt [s], measured position x [m], reference r = (x_r, v_r, a_r))::
     u_in   = m_ff·a_r                                      inertia feed-forward (if inertia)   [N]
     d̂      = DOB(x_k, v̂_k, u_obs,k−1)                      (kind none | qfilter | kalman)      [N]
     u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ , ±max_force_n )
-    u_obs,k = u − u_ff                                      residual form, FRICTION_MODELS.md §6.2
+    u_obs,k = u − u_ff                                      residual form, docs/friction-models.md §6.2
 
 Terms in ``Command.terms`` (newtons): ``u_pid`` (= ``u_p`` + ``u_i`` + ``u_d``), ``u_dob``, ``u_ff``,
 ``u_inertia``. ``Command.limited`` holds ``"force"`` when the output was clamped and ``"anti_windup"``

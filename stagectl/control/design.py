@@ -3,7 +3,7 @@
 Not real-time: call at start-up (before ``gc.freeze()``) or from ``stagectl tune``. Importing this module
 is cheap; python-control is imported only by the functions that need it (``design_pid``, the loop
 analysis, ``use_control=True``). The Kalman observer gain built by the controller at start-up uses
-scipy's DARE solver only, so the loop process never imports python-control (HOUSE_STYLE.md §3).
+scipy's DARE solver only, so the loop process never imports python-control (docs/architecture.md §3).
 
 PID rule ("loop shaping" for a rigid mass m [kg] with target crossover f_c [Hz], ω_c = 2π·f_c)::
 
@@ -78,10 +78,10 @@ def kalman_gain_for_noise(mass_kg: float, dt: float, measurement_noise_m: float,
     K = P·Cᵀ(C·P·Cᵀ + R)⁻¹.
 
     By default P comes from ``scipy.linalg.solve_discrete_are`` (light import, safe in the loop process:
-    HOUSE_STYLE.md keeps python-control out of it). ``use_control=True`` uses ``control.dlqe`` instead (the
+    docs/architecture.md keeps python-control out of it). ``use_control=True`` uses ``control.dlqe`` instead (the
     tuning tool): dlqe returns the **predictor** gain L = A·P·Cᵀ(C·P·Cᵀ + R)⁻¹ for
     x[k+1] = A·x + B·u + L(y − C·x) together with the same a-priori P, so K is recomputed from P
-    (PLATFORM_NOTES.md §6: plugging L into the filter form diverges).
+    (docs/platform.md §6: plugging L into the filter form diverges).
     """
     A, _, C = _kalman_matrices(mass_kg, dt)
     Q = np.diag([0.0, 0.0, disturbance_noise_n_sqrt_s ** 2 * dt])

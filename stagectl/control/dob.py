@@ -1,6 +1,6 @@
 """Disturbance observers (DOB): Q-filter form and steady-state Kalman form.
 
-Plant and nominal model (FRICTION_MODELS.md §6.1)::
+Plant and nominal model (docs/friction-models.md §6.1)::
 
     m·ẍ = u − F_f − d               lumped disturbance  τ = u − m_n·ẍ  = F_f + d + (m − m_n)·ẍ
     u   = u_c + d̂                   the estimate is fed back (added to the command)

@@ -1,4 +1,4 @@
-"""Friction feed-forward driven by the *reference* motion (FRICTION_MODELS.md §3.5, §6.2).
+"""Friction feed-forward driven by the *reference* motion (docs/friction-models.md §3.5, §6.2).
 
 Model feed-forward (``kind: model``): a copy of any library friction model (GMS by default) is advanced
 with the reference motion and its force, with the model file's effects, is commanded::

@@ -34,7 +34,7 @@ from stagectl.schema import load, param
 
 @dataclass(frozen=True)
 class TelemetryConfig:
-    """Telemetry recording (CSV per RECORDINGS.md)."""
+    """Telemetry recording (CSV per docs/recordings.md)."""
 
     enabled: bool = param(True, desc="record telemetry at all")
     directory: str | None = param(

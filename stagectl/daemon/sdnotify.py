@@ -1,4 +1,4 @@
-"""Hand-written ``sd_notify`` client (no dependency; PLATFORM_NOTES.md section 5).
+"""Hand-written ``sd_notify`` client (no dependency; docs/platform.md section 5).
 
 systemd passes ``NOTIFY_SOCKET`` (a filesystem path, or ``@name`` for the Linux abstract namespace) to a
 ``Type=notify`` service; the service sends newline-separated ``KEY=VALUE`` assignments as one AF_UNIX

@@ -25,7 +25,7 @@ the control socket, telemetry writer and log listener each have one normal-prior
 takes a lock the loop takes; they talk to the loop only through ``loop.request`` (a queue served at the
 cycle boundary), ``loop.status()`` (a snapshot) and the telemetry ring (lock-free).
 
-Watchdog (PLATFORM_NOTES.md section 5): ``WATCHDOG=1`` is sent from the supervisor's check, never from a
+Watchdog (docs/platform.md section 5): ``WATCHDOG=1`` is sent from the supervisor's check, never from a
 free-running thread, and only if since the previous check the loop's cycle counter advanced and the overrun
 fraction over the last 10 s (:class:`HealthWindow`) is at or below ``loop.healthy_overrun_fraction``. A latched *fault* does not stop the pings:
 the loop is still cycling and holding the stage safely; restarting the process would only lose the latch.

@@ -7,7 +7,7 @@ Data path::
     writer thread (non-RT) <--drain-----+--> continuous CSV files (rotated, oldest deleted)
                                         +--> named recording ``<dir>/<NAME>.csv`` (``record start NAME``)
 
-CSV follows RECORDINGS.md: one header row with the loop's column names (``t, x, u, x_ref, v_ref, ...``,
+CSV follows docs/recordings.md: one header row with the loop's column names (``t, x, u, x_ref, v_ref, ...``,
 the same columns as ``stagectl simulate``), ``,`` separator, one row per control sample, SI units. Every file
 (each rotated piece and each recording) has its own header and feeds ``stagectl identify`` unchanged.
 

@@ -18,7 +18,7 @@ Three paths, one set of equations
 * :meth:`kernel` -- numba-jitted ``step``/``force`` functions plus a packed parameter vector, which the
   plant (``stagectl.sim``) fuses into its compiled integration loop, and fitting uses for batches.
 * :meth:`force_along` / :meth:`force_along_batch` -- a whole prescribed trajectory (fast path).
-A test checks that all paths agree (HOUSE_STYLE.md section 1).
+A test checks that all paths agree (docs/architecture.md section 1).
 
 ``force_along(x, t)`` semantics: starting from the relaxed state, for k >= 1 the sample interval
 has ``dx = x[k] − x[k−1]``, ``dt = t[k] − t[k−1]``, ``v = dx/dt`` (constant over the interval) and

@@ -1,6 +1,6 @@
 """Dahl friction model (Dahl 1968/1976), rate-independent, plus an optional viscous term.
 
-Equations (FRICTION_MODELS.md §5.2)::
+Equations (docs/friction-models.md §5.2)::
 
     u      = 1 − (F_d/Fc)·sgn(v)                          normalised distance to saturation [–]
     dF_d/dx = σ0·|u|^i·sgn(u)                              (i = 1:  dF_d/dt = σ0·(v − |v|·F_d/Fc))

@@ -1,6 +1,6 @@
 """Generalized Maxwell-slip (GMS) model, Al-Bender, Lampaert & Swevers, IEEE TAC 50(11), 2005.
 
-Force formulation with a single attraction parameter C (FRICTION_MODELS.md §3.1, §3.3, §3.5)::
+Force formulation with a single attraction parameter C (docs/friction-models.md §3.1, §3.3, §3.5)::
 
     s(v) = sgn(v)·g(v),  g(v) = Fc + (Fs − Fc)·exp(−|v/Vs|^δ)        signed Stribeck curve [N]
     STICK (element i):  dF_i/dt = k_i·v

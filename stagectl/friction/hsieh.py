@@ -1,6 +1,6 @@
 """Hsieh & Pan (2000) pre-sliding model (HM) with a sliding model and a force-continuous switch.
 
-Pre-sliding (FRICTION_MODELS.md §4.1, the equations as Kamenar & Zelenika give them)
+Pre-sliding (docs/friction-models.md §4.1, the equations as Kamenar & Zelenika give them)
 ----------------------------------------------------------------------------------
 The displacement splits into an elastic part x_s (spring module) and a plastic part x_p (plastic module)
 in series, ``x = x_s + x_p``. With (x_r, σ_r) the start of the current branch (last reversal point)::
@@ -18,7 +18,7 @@ of the saturating spring, which saturates at k2s/β), β = ``beta_1_m`` [1/m], C
 compliance scale: equilibrium x_h = |F|^a/ψ), a = ``a`` [–] (plastic exponent), x_h [m] hardening
 variable (largest equilibrium plastic displacement reached so far).
 
-**Algebraic loop.** Cv·dx_s/dt depends on dx_p/dt, which depends on the force. As FRICTION_MODELS.md §4.3
+**Algebraic loop.** Cv·dx_s/dt depends on dx_p/dt, which depends on the force. As docs/friction-models.md §4.3
 suggests, the plastic law is driven by the *elastic* force F_el (not by F including the damper), which
 breaks the loop. Per step, with the total displacement prescribed (``x_s + x_p`` advances by Δx), the
 plastic increment is solved *implicitly* with the exact exponential factor c = 1 − exp(−ρ·dt)::
@@ -30,7 +30,7 @@ The right-hand side is non-increasing in y, so the root is unique and bracketed 
 unconditionally stable for any dt (ρ·dt → ∞ gives the quasi-static equilibrium x_h = |F_el|^a/ψ), and
 x_h' = x_h + |y − x_p| keeps the ratchet exact. The damper uses the step's elastic rate,
 ``dx_s/dt = v − (x_p' − x_p)/dt`` (= Δx_s/dt when v = Δx/dt, as in ``force_along``).
-Note: FRICTION_MODELS.md §4.4 quotes F = 0.9025 N at the end of a 0.5 µm/s ramp to 28.07 µm; that is
+Note: docs/friction-models.md §4.4 quotes F = 0.9025 N at the end of a 0.5 µm/s ramp to 28.07 µm; that is
 0.9 N + Cv·dx/dt, a damper on the *total* rate. Following the seed's Cv·dx_s/dt this module gives
 0.9004 N there (most of the motion is plastic); the unloading zero crossing at 22.88 µm agrees.
 
@@ -44,7 +44,7 @@ inside the state vector with a fixed capacity of 64 points; when it is full the 
 points above P_0 are discarded (the current branch, hence the force, is unchanged; only the memory of
 the outermost loop is lost).
 
-Sliding model and switching (FRICTION_MODELS.md §4.5)
+Sliding model and switching (docs/friction-models.md §4.5)
 -----------------------------------------------------
 ::
 
@@ -380,7 +380,7 @@ class HsiehFriction(KernelModel):
         return np.asarray(q.k1s_n_m * x + np.sign(x) * sat, dtype=np.float64)
 
     def quasi_static_virgin(self, force_n: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Quasi-static, force-driven virgin curve (x_h at equilibrium), FRICTION_MODELS.md §4.4.
+        """Quasi-static, force-driven virgin curve (x_h at equilibrium), docs/friction-models.md §4.4.
 
         For each force F [N]: x_s solves F_el(x_s) = F on the virgin branch, x_p = sgn(F)·|F|^a/ψ.
         Returns ``(x_s, x_p, x = x_s + x_p)`` in metres.

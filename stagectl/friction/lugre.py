@@ -1,6 +1,6 @@
 """LuGre friction model (Canudas de Wit, Olsson, Åström, Lischinsky, IEEE TAC 40(3), 1995).
 
-Equations (FRICTION_MODELS.md §5.1)::
+Equations (docs/friction-models.md §5.1)::
 
     g(v)   = Fc + (Fs − Fc)·exp(−|v/Vs|^δ)             Stribeck magnitude [N]
     dz/dt  = v − σ0·|v|·z / g(v)                         bristle deflection rate [m/s]

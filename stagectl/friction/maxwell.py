@@ -1,6 +1,6 @@
 """Maxwell-slip model: N rate-independent elasto-slip (Jenkins) elements in parallel.
 
-Equations (FRICTION_MODELS.md §2)::
+Equations (docs/friction-models.md §2)::
 
     element i: spring k_i in series with a block that slips at |F_i| = W_i
     exact discrete update (any step size):  F_i ← clip(F_i + k_i·Δx, −W_i, +W_i)

@@ -1,6 +1,6 @@
 """Static friction: Coulomb + viscous + Stribeck, with a Karnopp band and an optional frictional lag.
 
-Equations (FRICTION_MODELS.md §1)::
+Equations (docs/friction-models.md §1)::
 
     g(v)  = Fc + (Fs − Fc)·exp(−|v/Vs|^δ)               Stribeck magnitude [N]
     F(v)  = sgn(v)·(Fc + e) + σ2·v,   e = e_ss(v) = (Fs − Fc)·exp(−|v/Vs|^δ)

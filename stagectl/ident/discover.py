@@ -10,7 +10,7 @@ integration of the plant (an open-loop replay of a double integrator drifts) and
 controller. Validation data is the ``--validate`` recording, or contiguous held-out blocks of the same file
 (block ``k`` of ``HOLDOUT_BLOCKS`` equal blocks, with a guard of filter length removed at each boundary).
 
-Decision rule (DISCOVERY_NOTES §4): each round every catalogue effect not in the model is added in turn,
+Decision rule (docs/discovery.md §4): each round every catalogue effect not in the model is added in turn,
 refitted on estimation data and scored on validation data. An effect is *acceptable* if
 
 1. the validation gap shrinks by at least ``MIN_REL_GAIN`` (relative), a margin above what noise-only
@@ -34,7 +34,7 @@ Two refinements of the greedy search:
   before the asymmetry or spring that contains it) is removed when the model without it is not
   significantly worse; it is then listed under ``rejected`` with the reason.
 
-Stick phases (DISCOVERY_NOTES §5) are excluded explicitly (see :mod:`stagectl.ident.signals`); a frictional lag
+Stick phases (docs/discovery.md §5) are excluded explicitly (see :mod:`stagectl.ident.signals`); a frictional lag
 shorter than two samples is treated as no lag; ripple/cogging phases are fitted on estimation data only, so a
 phase-locked ripple that does not transfer fails validation and is rejected (§6).
 """

@@ -8,7 +8,7 @@ Measured friction force (inverse dynamics, zero-order hold, see :mod:`stagectl.i
 with ``m`` from the recording (regression of ``ū`` on ``a``, sgn(v), v over moving samples) when the data
 excite it, otherwise 0 (quasi-static data).
 
-**GMS / Maxwell-slip (Kamenar–Zelenika / Lampaert–Al-Bender piecewise-linear method, FRICTION_MODELS §2.3).**
+**GMS / Maxwell-slip (Kamenar–Zelenika / Lampaert–Al-Bender piecewise-linear method, docs/friction-models.md §2.3).**
 Virgin-curve points come from the first loading from rest (``F_v(d) = |F|``, ``d = |x − x0|``) and from every
 branch after a reversal by the Masing rule (``F_v(d/2) = |F − F_r|/2``). The virgin curve of N elements is
 ``F_v(d) = Σ W_i·min(d/Δ_i, 1)``: piecewise linear with breakpoints Δ_i, segment slopes

@@ -1,4 +1,4 @@
-"""Recordings: the one CSV format of stagectl (``../shared/reference/RECORDINGS.md``).
+"""Recordings: the one CSV format of stagectl (``docs/recordings.md``).
 
 A recording is a CSV file with one header row, one row per control sample, SI units. Canonical columns:
 

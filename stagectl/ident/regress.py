@@ -45,7 +45,7 @@ CATALOGUE = (
     "spring",
     "delay",
 )
-#: nested effects: richer -> simpler effects it contains (DISCOVERY_NOTES §1-2)
+#: nested effects: richer -> simpler effects it contains (docs/discovery.md §1-2)
 NESTED = {"spring": ("offset",), "asymmetry": ("offset",), "frictional_lag": ("stribeck",)}
 #: effects whose presence implies another one in the model
 IMPLIES = {"frictional_lag": ("stribeck",)}

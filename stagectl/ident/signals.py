@@ -1,13 +1,13 @@
 """Inverse-dynamics signals for identification (zero-order-hold consistent, noise-filtered).
 
-Plant ``m·a = u(t) − F_fric − F_other`` with ``u`` held over ``[t[k], t[k+1])`` (RECORDINGS.md). For a
+Plant ``m·a = u(t) − F_fric − F_other`` with ``u`` held over ``[t[k], t[k+1])`` (docs/recordings.md). For a
 rigid body driven by a piecewise-constant force the second difference of the sampled position is exact::
 
     x[k+1] − 2·x[k] + x[k−1] = dt² · (a_{k−1} + a_k) / 2
 
 where ``a_j`` is the (constant) acceleration over ``[t[j], t[j+1])``. So the second difference at ``k`` is
 paired with the **average** commanded force ``ū[k] = (u[k−1] + u[k]) / 2``, never with ``u[k]`` alone
-(that pairing invents half a sample of delay, DISCOVERY_NOTES §3). A delay τ = (n + f)·dt of the applied
+(that pairing invents half a sample of delay, docs/discovery.md §3). A delay τ = (n + f)·dt of the applied
 force shifts ``u`` by linear interpolation between samples, which is exact for a zero-order hold.
 
 Noise: the raw second difference of a quantised position is very noisy, so every term of the linear
@@ -15,7 +15,7 @@ relation ``ū = m·a + F`` is passed through the *same* zero-phase low-pass filt
 ``filtfilt``). Because ``L`` is linear and identical on both sides, the relation still holds for the
 filtered signals (Gautier-style parallel filtering) and no phase lag is introduced.
 
-Stick phases (DISCOVERY_NOTES §5): while the stage is at rest the friction force is anywhere in ±Fs, so the
+Stick phases (docs/discovery.md §5): while the stage is at rest the friction force is anywhere in ±Fs, so the
 inverse-dynamics residual says nothing there. Samples whose raw central displacement ``x[k+1] − x[k−1]`` is within the noise band (6·√2 noise std or 2.5
 counts), or with ``|v| <= v_stick``, are *stuck*; the raw residual
 is set to zero there **before** filtering (so it does not leak into neighbouring samples) and the samples

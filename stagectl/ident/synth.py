@@ -2,7 +2,7 @@
 
 A PID position loop with mass feed-forward (``u = m̂·a_ref + kp·e + ki·∫e + kd·ė``, bandwidth
 ``bandwidth_hz``, derivative on the measured position) runs at ``1/dt_s`` (1 kHz default) against
-:class:`stagectl.sim.plant.StagePlant`; the recording follows RECORDINGS.md (``u[k]`` is computed from
+:class:`stagectl.sim.plant.StagePlant`; the recording follows docs/recordings.md (``u[k]`` is computed from
 ``x[k]`` and held over ``[t[k], t[k+1])``).
 
 The reference (:func:`reference`) is built to excite every catalogue effect: jerk-limited back-and-forth

@@ -32,7 +32,7 @@ COSINE_SHORT = Scenario(name="cos", segments=(Cosine(amplitude_m=10e-6, frequenc
 
 
 class NaiveDob(StageController):
-    """The *wrong* combination of FRICTION_MODELS.md §6.2: the observer is fed the full command."""
+    """The *wrong* combination of docs/friction-models.md §6.2: the observer is fed the full command."""
 
     def step(self, dt, x_meas_m, ref):  # type: ignore[no-untyped-def]
         cmd = super().step(dt, x_meas_m, ref)

@@ -1,4 +1,4 @@
-"""Telemetry ring + writer: wraparound, drop counting, flush, rotation, write errors, RECORDINGS.md CSV."""
+"""Telemetry ring + writer: wraparound, drop counting, flush, rotation, write errors, docs/recordings.md CSV."""
 
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def test_writer_writes_recordings_csv_and_flushes_on_stop(tmp_path):
     assert header == list(COLS)
     assert data.shape == (1700, len(COLS))
     np.testing.assert_allclose(data, np.array([_row(k) for k in range(1700)]), rtol=1e-11, atol=0)
-    assert np.all(np.diff(data[:, 0]) > 0)  # RECORDINGS.md: time strictly increasing
+    assert np.all(np.diff(data[:, 0]) > 0)  # docs/recordings.md: time strictly increasing
 
 
 def test_named_recording_captures_exactly_between_start_and_stop(tmp_path):

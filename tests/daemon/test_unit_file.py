@@ -79,7 +79,7 @@ def test_unit_keeps_what_the_loop_needs():
     assert {"AF_CAN", "AF_UNIX", "AF_NETLINK"} <= set(" ".join(s["RestrictAddressFamilies"]).split())
     for key in ("User", "Group", "RuntimeDirectory", "StateDirectory", "LogsDirectory", "ConfigurationDirectory"):
         assert s[key] == ["stagectl"], key
-    # PLATFORM_NOTES.md section 5: these break a real-time Python daemon
+    # docs/platform.md section 5: these break a real-time Python daemon
     assert s.get("RestrictRealtime", ["no"]) == ["no"]
     assert s.get("MemoryDenyWriteExecute", ["no"]) == ["no"]
     assert "PrivateDevices" not in s and "PrivateNetwork" not in s

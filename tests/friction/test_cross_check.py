@@ -2,7 +2,7 @@
 
 Every fast path (``step``, ``force_along``, ``force_along_batch``, the plant's fused loop) runs the same
 compiled kernel, so agreement between them proves nothing about the equations. Here each model's kernel is
-compared with an independent plain-Python implementation written from FRICTION_MODELS.md in this file
+compared with an independent plain-Python implementation written from docs/friction-models.md in this file
 (Stribeck with Karnopp values and frictional lag, Maxwell-slip); the GMS reference lives in
 ``test_gms.py::RefGms`` (``test_scalar_kernel_along_batch_and_reference_agree``). The compiled plant is
 checked against the pure-Python GMS + rigid-body loop that ``stagectl bench models`` uses as its baseline.

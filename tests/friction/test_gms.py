@@ -24,7 +24,7 @@ TV3 = {"model": "gms", "k_n_m": K, "alpha": ALPHA, "fc_n": 0.8, "fs_n": 0.9, "vs
 
 # ---------------------------------------------------------------------------------------------- reference
 class RefGms:
-    """Independent plain-Python GMS (TAC 2005 force form), written from FRICTION_MODELS.md §3.1/§3.3."""
+    """Independent plain-Python GMS (TAC 2005 force form), written from docs/friction-models.md §3.1/§3.3."""
 
     def __init__(self, k, alpha, fc, fs, vs, delta, c, sigma1, sigma2):
         self.k, self.alpha = list(k), list(alpha)

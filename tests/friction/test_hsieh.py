@@ -86,7 +86,7 @@ def test_tv4_virgin_by_slow_displacement_ramp(presliding):
 
 
 def test_tv4_displacement_ramp_and_unloading(presliding):
-    # FRICTION_MODELS.md §4.4: ramp at 0.5 um/s to 28.07 um, then unload at 0.5 um/s
+    # docs/friction-models.md §4.4: ramp at 0.5 um/s to 28.07 um, then unload at 0.5 um/s
     dt = 1e-2
     t_up = np.arange(0.0, 28.0686 / 0.5, dt)
     t_dn = t_up[-1] + np.arange(1, 2000) * dt
@@ -164,7 +164,7 @@ def test_tv4_loop_width_and_plastic_ratchet(presliding):
     assert xp[0] / UM == pytest.approx(22.830, abs=2e-3)
     # ratchet: cycling at the same amplitude adds no plastic displacement
     assert np.all(np.abs(xp - xp[0]) < 1e-15)
-    # loops are not centred on the origin: x_s in [-17.46, +5.24] um (FRICTION_MODELS.md §4.3)
+    # loops are not centred on the origin: x_s in [-17.46, +5.24] um (docs/friction-models.md §4.3)
     assert xs.max() / UM == pytest.approx(5.2386, abs=2e-3)
     assert xs.min() / UM == pytest.approx(5.2386 - 22.7008, abs=3e-3)
     # a larger amplitude does add plastic displacement

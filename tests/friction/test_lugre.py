@@ -22,7 +22,7 @@ def dut():
 
 
 def _ref_force_along(x: np.ndarray, t: np.ndarray, q: dict) -> np.ndarray:
-    """Independent plain-Python LuGre with the exact frozen-v update (FRICTION_MODELS.md §5.1)."""
+    """Independent plain-Python LuGre with the exact frozen-v update (docs/friction-models.md §5.1)."""
     s0, s1, s2, fc, fs, vs = (q[k] for k in ("sigma0_n_m", "sigma1_n_s_m", "viscous_n_s_m", "fc_n", "fs_n",
                                                "vs_m_s"))
 
@@ -103,7 +103,7 @@ def test_tv8_lugre_drifts_in_plant_loop(dut, driven_mass):
     per = int(round(1.0 / dt))
     xs = driven_mass(dut, dt, 1.0, 0.6, 0.35, 4 * per)  # m = 1 kg, u = 0.6 + 0.35·sin(2πt)
     drift = [xs[(c + 1) * per - 1] - xs[c * per - 1] for c in (1, 2)]
-    # FRICTION_MODELS.md TV8: ~7.28 um per cycle, and it must be > 0
+    # docs/friction-models.md TV8: ~7.28 um per cycle, and it must be > 0
     assert drift[0] == pytest.approx(7.28e-6, abs=0.01e-6)
     assert drift[1] == pytest.approx(drift[0], rel=1e-6)
 

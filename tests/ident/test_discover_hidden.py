@@ -32,7 +32,7 @@ def _stage(seed: int, effects: tuple[str, ...]) -> dict[str, Any]:
 def _run(seed: int, effects: tuple[str, ...], start: Hyp | None = None) -> tuple[DiscoveryResult, dict[str, Any]]:
     st = _stage(seed, effects)
     if start is None and "frictional_lag" in effects:
-        # frictional lag presupposes a Stribeck curve (DISCOVERY_NOTES §2): start from the Stribeck model
+        # frictional lag presupposes a Stribeck curve (docs/discovery.md §2): start from the Stribeck model
         fr = st["friction"]
         start = Hyp(effects=("stribeck",), nl={"vs_m_s": fr["vs_m_s"], "delta": fr["delta"]})
     rec = synth.closed_loop(st, motion=MOTION, seed=seed)
@@ -76,7 +76,7 @@ def test_complete_model_names_nothing(null_results: list[DiscoveryResult]) -> No
 
 
 def test_null_gains_stay_below_the_acceptance_margin(null_results: list[DiscoveryResult]) -> None:
-    """DISCOVERY_NOTES §4: with a complete model and noise only, no candidate comes near the margin."""
+    """docs/discovery.md §4: with a complete model and noise only, no candidate comes near the margin."""
     gains = [c["rel_gain"] for res in null_results for c in res.rounds[0].candidates if "rel_gain" in c]
     assert len(gains) == 2 * len(CATALOGUE)
     assert max(gains) < 0.5 * MIN_REL_GAIN, gains
@@ -91,7 +91,7 @@ def test_two_hidden_effects_are_found_in_sequence() -> None:
 
 
 def test_phase_locked_ripple_that_does_not_validate_is_rejected() -> None:
-    """DISCOVERY_NOTES §6: the ripple phase depends on homing; a second recording homed elsewhere does not share it."""
+    """docs/discovery.md §6: the ripple phase depends on homing; a second recording homed elsewhere does not share it."""
     st = _stage(2400, ("position_ripple",))
     est = synth.closed_loop(st, motion=MOTION, seed=2400)
     st2 = dict(st)

@@ -1,4 +1,4 @@
-"""Inverse dynamics respects the zero-order-hold convention (RECORDINGS.md, DISCOVERY_NOTES §3)."""
+"""Inverse dynamics respects the zero-order-hold convention (docs/recordings.md, docs/discovery.md §3)."""
 
 from __future__ import annotations
 
