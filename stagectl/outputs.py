@@ -1,0 +1,81 @@
+"""One of each for what commands write: the output directory check and the plain-data converter.
+
+* :func:`prepare_out_dir` -- create an ``--out`` directory *before* a long run and prove it writable, so a
+  bad path is one clear :class:`~stagectl.errors.ConfigError` line up front, not a traceback afterwards.
+* :func:`plain` -- dataclasses, enums, tuples, numpy scalars/arrays and paths as plain Python (dict, list,
+  float, int, str, bool, None) for YAML and JSON; ``json=True`` also maps NaN/inf to ``None`` (JSON has no
+  non-finite numbers).
+
+Foundation layer: imports nothing of stagectl but :mod:`stagectl.errors`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from stagectl.errors import ConfigError
+
+__all__ = ["plain", "prepare_out_dir"]
+
+
+def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
+    """Create the output directory now and check that a file can be written in it.
+
+    Parameters
+    ----------
+    path : str or Path
+        The directory (created with its parents).
+    option : str
+        The command-line option or config key named in the error.
+
+    Raises
+    ------
+    ConfigError
+        ``"{option}: cannot write to directory '...' (reason)"``: exists as a file, permission denied,
+        read-only file system, ...
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{option}: {str(p)!r} exists and is not a directory")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        probe = p / ".stagectl-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{option}: cannot write to directory {str(p)!r} ({exc.strerror or exc})") from None
+    return p
+
+
+def plain(obj: Any, *, json: bool = False) -> Any:
+    """``obj`` as plain Python data (recursively).
+
+    Dataclass instances become dicts of their fields, enums their ``value``, tuples/lists/sets lists,
+    mappings dicts with ``str`` keys, numpy scalars Python numbers, numpy arrays lists, paths strings.
+    With ``json=True`` a non-finite float (NaN, ±inf) becomes ``None``.
+    """
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, enum.Enum):
+        return plain(obj.value, json=json)
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return None if json and not math.isfinite(obj) else float(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: plain(getattr(obj, f.name), json=json) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(k): plain(v, json=json) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [plain(v, json=json) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    tolist = getattr(obj, "tolist", None)  # numpy scalar or array
+    if callable(tolist):
+        return plain(tolist(), json=json)
+    return obj
