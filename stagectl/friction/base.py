@@ -36,6 +36,8 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.schema import load
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -142,12 +144,17 @@ class FrictionModel(ABC):
         return out
 
     def replace(self, **changes: Any) -> FrictionModel:
-        """A new model of the same kind with some parameters changed (validated again)."""
-        from stagectl.friction import build
+        """A new model of the same kind with some parameters changed (validated again).
 
+        Raises
+        ------
+        ConfigError
+            An unknown parameter name or a value out of range, naming the key.
+        """
         spec = self.spec()
+        del spec["model"]
         spec.update({k: _plain(v) for k, v in changes.items()})
-        return build(spec)
+        return type(self)(load(self.Params, spec, "friction"))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.params!r})"
