@@ -98,10 +98,10 @@ class SimCanopenDevice:
         self.node = canopen.LocalNode(node_id, str(eds))
         # NmtSlave is not used (it cannot reboot and its heartbeat runs on a wall-clock thread)
         self.node._write_callbacks.remove(self.node.nmt.on_write)
-        self.node.add_read_callback(self._on_sdo_read)
-        self.node.add_write_callback(self._on_sdo_write)
+        self.node.add_read_callback(self._on_sdo_read)  # type: ignore[no-untyped-call]  # canopen untyped
+        self.node.add_write_callback(self._on_sdo_write)  # type: ignore[no-untyped-call]
         # the SDO server answers through node.sdo.network.send_message
-        self.node.sdo.network = _SendOnly(self._send_sdo)
+        self.node.sdo.network = _SendOnly(self._send_sdo)  # type: ignore[assignment]  # duck-typed send
         self.faults = FaultSchedule(name)
         self.nmt_state = NMT_INITIALISING
         self.sync_count = 0
@@ -315,7 +315,7 @@ class SimCanopenDevice:
         elif cid == 0x600 + self.node_id:
             if not self._silent and self.nmt_state in (NMT_PRE_OPERATIONAL, NMT_OPERATIONAL):
                 try:
-                    self.node.sdo.on_request(cid, data, msg.timestamp)
+                    self.node.sdo.on_request(cid, data, msg.timestamp)  # type: ignore[no-untyped-call]
                 except Exception:  # noqa: BLE001 - canopen only logs str(e); keep the traceback
                     log.exception("%s: SDO request failed", self.name)
         elif self._consumer_node and cid == 0x700 + self._consumer_node:
@@ -453,7 +453,7 @@ class SimCia402Drive(SimCanopenDevice):
             self.mode = value
 
     def _on_sdo_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
-        from canopen.sdo import SdoAbortedError
+        from canopen.sdo.exceptions import SdoAbortedError
 
         if index == 0x6060:
             mode = struct.unpack_from("<b", bytes(data))[0]

@@ -21,7 +21,8 @@ from typing import Any
 import can
 
 from stagectl.schema import param
-from stagectl.sim.cia402_drive import EDS_DIR, SimCanopenDevice
+from stagectl.resources import EDS_DIR
+from stagectl.sim.cia402_drive import SimCanopenDevice
 from stagectl.sim.faults import SimFault
 
 

@@ -25,6 +25,7 @@ import errno
 import gc
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -220,8 +221,10 @@ def apply_realtime(
     Call from the loop thread after every import and allocation is done.
     """
     rep = RealtimeReport()
-    steps = (  # (requested, apply -> note or None, report field, value when applied); FIFO last
-        (timer_slack_ns is not None, lambda: set_timer_slack(timer_slack_ns), "timer_slack_ns", timer_slack_ns),
+    # (requested, apply -> note or None, report field, value when applied); FIFO last
+    steps: tuple[tuple[bool, Callable[[], str | None], str, object], ...] = (
+        (timer_slack_ns is not None, lambda: set_timer_slack(int(timer_slack_ns or 0)), "timer_slack_ns",
+         timer_slack_ns),
         (bool(cpus), lambda: set_affinity(tuple(cpus or ())), "cpus", tuple(cpus or ())),
         (mlock, lock_memory, "mlocked", True),
         (fifo_priority is not None, lambda: set_fifo(int(fifo_priority or 0)), "fifo_priority", fifo_priority),

@@ -272,7 +272,7 @@ def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tu
     phd = np.degrees(ph)
     k = np.floor((phd + 180.0) / 360.0)
     cross = np.nonzero(np.diff(k) != 0)[0]
-    for i in cross:
+    for i in cross.tolist():
         if not math.isnan(wc) and f[i] < wc:
             continue
         gm_i = -20 * math.log10(max(mag[i], 1e-300))
