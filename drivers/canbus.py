@@ -1,5 +1,7 @@
 """CAN bus helpers shared by the CANopen drivers (and the virtual devices).
 
+* :func:`can_key_problems` checks the ``can:`` keys against what the chosen python-can interface accepts
+  (its bus class's ``__init__`` parameters plus python-can's common keys), with a did-you-mean hint.
 * :func:`open_bus` opens a :class:`can.BusABC` from the YAML ``can:`` mapping, which is passed to
   ``can.Bus(**mapping)`` unchanged (so ``socketcan``, ``pcan``, ``kvaser``, ``virtual``, ``socketcand`` all
   work), except that ``tcp_tune`` is forced on for ``socketcand`` (docs/platform.md §1.2: without it Nagle
@@ -19,8 +21,12 @@ tells bus-off (``CAN_ERR_BUSOFF = 0x40``) from other bus errors.
 
 from __future__ import annotations
 
+import difflib
+import importlib
+import inspect
 import logging
 import threading
+import typing
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -47,16 +53,77 @@ def quiet_can_loggers() -> None:
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
 
 
+#: keys ``can.Bus`` itself or python-can's configuration handling (``can.util``) accepts for every interface
+COMMON_BUS_KEYS = frozenset({
+    "interface", "channel", "config_context", "ignore_config", "can_filters", "receive_own_messages",
+    "bitrate", "data_bitrate", "fd", "timing", "state",
+})
+
+
+def _timing_keys() -> frozenset[str]:
+    """Bit-timing keys python-can turns into a ``BitTiming`` / ``BitTimingFd`` (``can.util._dict2timing``)."""
+    from can import typechecking
+
+    keys: set[str] = set()
+    for td in (typechecking.BitTimingDict, typechecking.BitTimingFdDict):
+        keys.update(typing.get_type_hints(td))
+    return frozenset(keys)
+
+
+def accepted_bus_keys(interface: str) -> frozenset[str] | None:
+    """The ``can:`` keys the python-can ``interface`` accepts: the named parameters of its bus class's
+    ``__init__`` (found through ``can.interfaces.BACKENDS``), the common keys and the bit-timing keys.
+    None when the interface is unknown or its module cannot be imported here (then nothing is checked)."""
+    from can.interfaces import BACKENDS
+
+    where = BACKENDS.get(interface)
+    if where is None:
+        return None
+    module, cls_name = where
+    try:
+        cls = getattr(importlib.import_module(module), cls_name)
+    except Exception:  # noqa: BLE001 - vendor libraries missing on this machine: the bus would not open either
+        return None
+    params = inspect.signature(cls.__init__).parameters.values()
+    named = {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
+    return frozenset(named) | COMMON_BUS_KEYS | _timing_keys()
+
+
+def can_key_problems(mapping: Mapping[str, Any], *, path: str = "can") -> list[str]:
+    """Unknown keys (and an unknown ``interface``) of a ``can:`` mapping, one line each with a did-you-mean,
+    e.g. ``io.drive.can.bitrat: unknown key for interface socketcan (did you mean bitrate?)``."""
+    from can.interfaces import VALID_INTERFACES
+
+    iface = mapping.get("interface")
+    if not isinstance(iface, str) or not iface:
+        return []
+    if iface not in VALID_INTERFACES:
+        close = difflib.get_close_matches(iface, sorted(VALID_INTERFACES), n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(sorted(VALID_INTERFACES))}"
+        return [f"{path}.interface: unknown python-can interface {iface!r} ({hint})"]
+    accepted = accepted_bus_keys(iface)
+    if accepted is None:
+        return []
+    problems = []
+    for key in mapping:
+        if key not in accepted:
+            close = difflib.get_close_matches(str(key), sorted(accepted), n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            problems.append(f"{path}.{key}: unknown key for interface {iface}{hint}")
+    return problems
+
+
 def bus_kwargs(mapping: Mapping[str, Any], *, path: str = "can") -> dict[str, Any]:
     """Validate the ``can:`` mapping and return the keyword arguments for ``can.Bus``.
 
     Raises
     ------
     ConfigError
-        If ``interface`` is missing, or a socketcand mapping lacks ``host``/``port``.
+        If ``interface`` is missing, a socketcand mapping lacks ``host``/``port``, or a key is not one the
+        interface accepts (:func:`can_key_problems`; an unknown interface is left to ``can.Bus``).
     """
     kw = dict(mapping)
-    problems: list[str] = []
+    problems: list[str] = [p for p in can_key_problems(mapping, path=path) if not p.startswith(f"{path}.interface")]
     iface = kw.get("interface")
     if not isinstance(iface, str) or not iface:
         problems.append(f"{path}.interface: required (e.g. socketcan, pcan, virtual, socketcand)")

@@ -48,6 +48,7 @@ from typing import Any
 
 import can
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import (
     DeviceFault,
     DeviceState,
@@ -219,19 +220,20 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     Parameters
     ----------
     cfg : Cia402Config
-    period_s : float
-        Loop period [s]; written to 0x1006 at ``configure`` and used for per-cycle time-outs.
+    timing : Timing or float
+        The loop's timing (or its period [s]); the period is written to 0x1006 at ``configure`` and the
+        per-cycle time-outs are derived from it.
     """
 
     name = "cia402"
 
-    def __init__(self, cfg: Cia402Config, period_s: float = 0.001) -> None:
+    def __init__(self, cfg: Cia402Config, timing: Timing | float = 0.001) -> None:
         super().__init__()
         self.cfg = cfg
         self.name = f"cia402[node {cfg.node_id}]"
         self.resolution_m = cfg.resolution_m
         self._period_s = 0.0
-        self.set_period(period_s)
+        self.set_period(timing)
         nid = cfg.node_id
         self._tpdo1_id = 0x180 + nid
         self._tpdo2_id = 0x280 + nid
@@ -248,14 +250,20 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self.velocity_m_s = 0.0
 
     # ------------------------------------------------------------------ config helpers
-    def set_period(self, period_s: float) -> None:
-        """Set the loop period [s] (before ``configure``)."""
-        if not (period_s > 0 and math.isfinite(period_s)):
-            raise ConfigError(f"period_s: must be > 0 s (got {period_s!r})")
-        self._period_s = float(period_s)
-        self._hb_every = max(1, round(self.cfg.controller_heartbeat_s / self._period_s))
-        self._hb_timeout_cycles = math.ceil(self.cfg.heartbeat_timeout_s / self._period_s)
-        self._max_step_counts = self.cfg.max_speed_m_s * self._period_s / self.cfg.resolution_m
+    def set_period(self, timing: Timing | float) -> None:
+        """Set the loop timing (or its period [s]) before ``configure``; re-derives the cycle counts.
+
+        Raises
+        ------
+        ConfigError
+            A period that is not a finite number > 0.
+        """
+        t = Timing.of(timing)
+        self.timing = t
+        self._period_s = t.period_s
+        self._hb_every = t.every(self.cfg.controller_heartbeat_s)
+        self._hb_timeout_cycles = t.cycles(self.cfg.heartbeat_timeout_s)
+        self._max_step_counts = t.per_cycle(self.cfg.max_speed_m_s) / self.cfg.resolution_m
 
     @property
     def period_s(self) -> float:
@@ -577,7 +585,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     # ------------------------------------------------------------------ state machine (cycles)
     def _step_cycles(self, choose: Callable[[State402 | None], int | None], what: str) -> State402:
         """Run SYNC/TPDO/RPDO cycles, sending ``choose(state)`` until it returns None."""
-        n_max = max(8, math.ceil(self.cfg.state_timeout_s / self._period_s))
+        n_max = max(8, self.timing.cycles(self.cfg.state_timeout_s))
         self._unread = False  # state changes read the statusword themselves
         next_t = time.monotonic()
         state: State402 | None = None

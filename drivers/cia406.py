@@ -28,6 +28,7 @@ from typing import Any
 
 import can
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor, SyncProducer
 from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
 from stagectl.resources import EDS_DIR
@@ -67,20 +68,22 @@ class Cia406Config:
 class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
     """CiA 406 encoder node (see module docstring)."""
 
-    def __init__(self, cfg: Cia406Config, period_s: float = 0.001) -> None:
+    def __init__(self, cfg: Cia406Config, timing: Timing | float = 0.001) -> None:
+        """``timing``: the loop's timing (or its period [s]); written to 0x1006, per-cycle time-outs derive
+        from it. Raises ConfigError for a period that is not a finite number > 0."""
         super().__init__()
-        if not (period_s > 0 and math.isfinite(period_s)):
-            raise ConfigError(f"period_s: must be > 0 s (got {period_s!r})")
+        t = Timing.of(timing)
+        self.timing = t
         self.cfg = cfg
         self.name = f"cia406[node {cfg.node_id}]"
         self.resolution_m = cfg.resolution_m
-        self.period_s = float(period_s)
+        self.period_s = t.period_s
         self._tpdo_id = 0x180 + cfg.node_id
         self._emcy_id = 0x080 + cfg.node_id
         self._hb_id = 0x700 + cfg.node_id
         self._sync_msg = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
-        self._hb_timeout_cycles = math.ceil(cfg.heartbeat_timeout_s / self.period_s)
-        self._max_step = cfg.max_speed_m_s * self.period_s / cfg.resolution_m
+        self._hb_timeout_cycles = t.cycles(cfg.heartbeat_timeout_s)
+        self._max_step = t.per_cycle(cfg.max_speed_m_s) / cfg.resolution_m
         self._reset_cyclic()
 
     def _reset_cyclic(self) -> None:

@@ -22,10 +22,10 @@ Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EM
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from typing import Any, Protocol
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import (
     DeviceFault,
     DeviceState,
@@ -59,8 +59,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         ``step(u_n, dt_s)`` advances the plant by ``dt_s`` [s] with force ``u_n`` [N];
         ``measure()`` returns the sensed position [m] (quantised, with noise); optional
         ``measure_counts()`` [counts] and ``resolution_m``.
-    period_s : float
-        Nominal loop period [s] (advance per SYNC without a clock; sub-step size with one).
+    timing : Timing or float
+        The loop's timing (or its nominal period [s]): advance per SYNC without a clock; sub-step size with one.
     delay_cycles : int
         Actuation delay in SYNC periods (0 or more; 1 mimics a sync RPDO).
     clock : optional
@@ -69,14 +69,15 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
 
     name = "plant_io"
 
-    def __init__(self, plant: Plant, period_s: float, *, delay_cycles: int = 1, clock: _Clock | None = None) -> None:
+    def __init__(self, plant: Plant, timing: Timing | float, *, delay_cycles: int = 1,
+                 clock: _Clock | None = None) -> None:
         PositionSensor.__init__(self)
-        if not (period_s > 0 and math.isfinite(period_s)):
-            raise ValueError(f"period_s: must be > 0 s (got {period_s})")
+        t = Timing.of(timing)  # ConfigError (a ValueError) for a period that is not > 0
         if delay_cycles < 0:
             raise ValueError(f"delay_cycles: must be >= 0 (got {delay_cycles})")
         self.plant = plant
-        self.period_s = float(period_s)
+        self.timing = t
+        self.period_s = t.period_s
         self.delay_cycles = int(delay_cycles)
         self.clock = clock
         res = getattr(plant, "resolution_m", None)

@@ -28,14 +28,23 @@ ever); a fault is active for SYNC number ``n`` (counted by the device from 1) wh
 * ``bus_off``       : one error frame with the SocketCAN bus-off class (0x40), then the device is silent
   (no TPDO, heartbeat, EMCY or SDO answer) while active.
 * ``position_jump`` : ``jump_m`` is added to the reported position while active (a step glitch).
+
+Loop-level names (the daemon's ``fault`` debug request) are aliases, resolved here for both simulated stages:
+:data:`FAULT_ALIASES` maps them onto the virtual devices' faults (:func:`world_fault`), and
+:func:`inject_plant_io_fault` applies them to the directly wrapped plant (:class:`~stagectl.sim.direct.PlantIO`).
 """
 
 from __future__ import annotations
 
 import enum
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
+from stagectl.drivers.base import FaultKind
 from stagectl.schema import param
+from stagectl.sim.direct import PlantIO
 
 
 class SimFault(enum.Enum):
@@ -122,3 +131,49 @@ class FaultSchedule:
             return 0.0
         spec = self.spec_of(SimFault.POSITION_JUMP)
         return spec.jump_m if spec else 0.0
+
+
+#: loop-level fault names accepted by the ``fault`` request → the virtual devices' faults
+FAULT_ALIASES: dict[str, SimFault] = {
+    "emcy": SimFault.DRIVE_FAULT,
+    "stale": SimFault.DROP_TPDO,
+    "heartbeat_lost": SimFault.HEARTBEAT_STOP,
+    "nan": SimFault.POSITION_JUMP,
+}
+#: how many cycles a ``stale`` fault lasts when the request does not say
+STALE_CYCLES = 10
+
+
+def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
+    """The :class:`FaultSpec` mapping (``kind`` + fields) for a fault request on the virtual devices:
+    aliases (:data:`FAULT_ALIASES`) replaced by their :class:`SimFault` value, ``stale`` lasting
+    :data:`STALE_CYCLES` unless ``cycles`` is given."""
+    out = dict(fields)
+    if kind == "stale":
+        out.setdefault("cycles", STALE_CYCLES)
+    alias = FAULT_ALIASES.get(kind)
+    out["kind"] = alias.value if alias is not None else kind
+    return out
+
+
+def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> None:
+    """Apply a fault request to the directly wrapped plant: ``stale`` (the next ``cycles`` reads are not
+    fresh), ``nan`` (the next read is NaN) or a device fault by :class:`~stagectl.drivers.base.FaultKind`
+    value (``detail``, ``code``).
+
+    Raises
+    ------
+    ValueError
+        An unknown fault name.
+    """
+    if kind == "stale":
+        io.drop_samples(int(fields.get("cycles", STALE_CYCLES)))
+    elif kind == "nan":
+        io.glitch(math.nan)
+    else:
+        try:
+            fk = FaultKind(kind)
+        except ValueError:
+            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
+                             f"{', '.join(k.value for k in FaultKind)})") from None
+        io.inject_fault(fk, str(fields.get("detail", "injected")), int(fields.get("code", 0)))

@@ -39,7 +39,6 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,7 +46,7 @@ import numpy.typing as npt
 from numba import njit, types
 
 from stagectl.errors import ConfigError
-from stagectl.friction import Effects, FrictionModel, load_model_file, parse_effects, parse_friction
+from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
 from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
 from stagectl.friction.effects import pack_layout
 from stagectl.schema import load, param
@@ -94,7 +93,8 @@ class PlantConfig:
     x0_m: float = param(0.0, unit="m", desc="initial position")
     seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
     model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
-                                   "inline keys override; relative to the YAML file's directory")
+                                   "inline keys override; relative to the YAML file's directory (loaded by "
+                                   "the configuration layer and handed to from_mapping as model=)")
 
     def __post_init__(self) -> None:
         # explicit-integration stability (module docstring): h·√(K/m) < 2 and h·c/m < 1, checked with margin
@@ -110,17 +110,18 @@ class PlantConfig:
                              f"and mass {self.mass_kg:g} kg (h·c/m <= 0.5; got {self.substep_s:g} s)")
 
     @classmethod
-    def from_mapping(cls, data: Any, path: str = "plant", base_dir: str | Path | None = None) -> PlantConfig:
-        """Validate a YAML mapping into a :class:`PlantConfig`, resolving ``model_file``.
+    def from_mapping(cls, data: Any, path: str = "plant", model: StageModel | None = None) -> PlantConfig:
+        """Validate a YAML mapping into a :class:`PlantConfig`, merged over ``model``.
 
-        With ``model_file``, the file's ``mass_kg``, ``friction`` and ``effects`` are the defaults; inline
-        keys override them. An inline ``friction`` mapping without ``model:`` updates the file's friction
-        parameters; an inline ``effects`` mapping updates the file's effects one effect at a time.
+        ``model`` is the stage model of ``model_file`` as loaded by the configuration layer (this method
+        reads no file): its ``mass_kg``, ``friction`` and ``effects`` are the defaults; inline keys override
+        them. An inline ``friction`` mapping without ``model:`` updates the model's friction parameters; an
+        inline ``effects`` mapping updates the model's effects one effect at a time.
 
         Raises
         ------
         ConfigError
-            Every problem at once, each prefixed with its key path.
+            Every problem at once, each prefixed with its key path; ``model_file`` given without ``model``.
         """
         if data is None:
             data = {}
@@ -128,16 +129,13 @@ class PlantConfig:
             raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {data!r}")
         merged: dict[str, Any] = dict(data)
         mf = merged.get("model_file")
-        if mf is not None:
-            if not isinstance(mf, str):
-                raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
-            p = Path(mf)
-            if not p.is_absolute() and base_dir is not None:
-                p = Path(base_dir) / p
-            try:
-                sm = load_model_file(p)
-            except ConfigError as exc:
-                raise ConfigError([f"{path}.model_file: {msg}" for msg in exc.problems]) from None
+        if mf is not None and not isinstance(mf, str):
+            raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
+        if mf is not None and model is None:
+            raise ConfigError(f"{path}.model_file: {mf} is not loaded (load the configuration with "
+                              "stagectl.config, or pass the StageModel as model=)")
+        sm = model
+        if sm is not None:
             if "mass_kg" not in merged and sm.mass_kg is not None:
                 merged["mass_kg"] = sm.mass_kg
             fr = merged.get("friction")
@@ -593,10 +591,10 @@ def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.
     return {"x": ox, "v": ov, "friction": of}
 
 
-def plant_from_model(model_path: str | Path, **overrides: Any) -> StagePlant:
-    """Convenience: a plant from a model file (``mass_kg`` must be in the file or in ``overrides``)."""
-    cfg = PlantConfig.from_mapping({"model_file": str(model_path), **overrides}, path="plant")
-    return StagePlant(cfg)
+def plant_from_model(model: StageModel, **overrides: Any) -> StagePlant:
+    """Convenience: a plant from a stage model (e.g. :func:`stagectl.friction.load_model_file`); ``mass_kg``
+    must be in the model or in ``overrides``."""
+    return StagePlant(PlantConfig.from_mapping(overrides, path="plant", model=model))
 
 
 __all__ = ["ActuatorConfig", "PlantConfig", "SensorConfig", "StagePlant", "plant_from_model", "simulate_batch"]

@@ -26,7 +26,7 @@ mode and is pumped at the end of every ``pump()`` in lock-step (configure it wit
 
 Example::
 
-    world = SimWorld.from_config(SimWorldConfig.from_mapping(yaml_mapping["sim"], base_dir=cfg_dir))
+    world = SimWorld.from_config(SimWorldConfig.from_mapping(yaml_mapping["sim"], plant_model=model))
     world.start()                                   # devices served in real time
     drive = Cia402Drive(Cia402Config(node_id=1, can=world.ready_info()["can"]), period_s=1e-3)
     drive.set_pump(world.pump)                      # optional: lock-step from now on
@@ -36,15 +36,13 @@ Example::
 
 from __future__ import annotations
 
-import contextvars
 import itertools
 import logging
 import os
 import threading
 import time
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,42 +51,20 @@ import can
 from stagectl.drivers.canbus import close_bus, open_bus
 from stagectl.drivers.interferometer_protocol import LinkBytes
 from stagectl.errors import ConfigError
-from stagectl.schema import param
-from stagectl.sim.cia402_drive import SimCia402Drive, SimCanopenDevice, SimDriveConfig
+from stagectl.friction import StageModel
+from stagectl.schema import load, param, section_parser
+from stagectl.sim.cia402_drive import SimCanopenDevice, SimCia402Drive, SimDriveConfig
 from stagectl.sim.cia406_encoder import SimCia406Encoder, SimEncoderConfig
 from stagectl.sim.faults import FaultSpec, SimFault
 from stagectl.sim.interferometer import SimInterferometer, SimInterferometerConfig
+from stagectl.sim.plant import PlantConfig, StagePlant
 
 log = logging.getLogger(__name__)
 
-#: directory against which relative paths in ``sim.plant`` (model_file) are resolved while parsing
-SIM_BASE_DIR: contextvars.ContextVar[Path | None] = contextvars.ContextVar("SIM_BASE_DIR", default=None)
 _counter = itertools.count(1)
 
 
-@contextmanager
-def sim_base_dir(base_dir: str | Path | None) -> Iterator[None]:
-    """Resolve relative ``sim.plant.model_file`` against ``base_dir`` while loading a config."""
-    token = SIM_BASE_DIR.set(Path(base_dir) if base_dir is not None else None)
-    try:
-        yield
-    finally:
-        SIM_BASE_DIR.reset(token)
-
-
-def _parse_plant(value: Any, path: str, problems: list[str]) -> Any:
-    from stagectl.sim.plant import PlantConfig
-
-    try:
-        return PlantConfig.from_mapping(value, path=path, base_dir=SIM_BASE_DIR.get())
-    except ConfigError as exc:
-        problems.extend(exc.problems)
-        return None
-
-
 def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec, ...] | None:
-    from stagectl.schema import load
-
     if value is None:
         return ()
     if not isinstance(value, (list, tuple)):
@@ -120,7 +96,8 @@ class SimTransportConfig:
 class SimWorldConfig:
     """The simulated world (YAML ``sim:`` section)."""
 
-    plant: Any = param(desc="stage plant (stagectl.sim.plant.PlantConfig)", parse=_parse_plant)
+    plant: PlantConfig = param(desc="stage plant (stagectl.sim.plant.PlantConfig)",
+                               parse=section_parser(PlantConfig))
     drive: SimDriveConfig = param(default_factory=SimDriveConfig, desc="simulated CiA 402 drive")
     encoder: SimEncoderConfig | None = param(None, desc="simulated CiA 406 encoder (optional)")
     interferometer: SimInterferometerConfig | None = param(
@@ -131,12 +108,30 @@ class SimWorldConfig:
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any] | None, path: str = "sim",
-                     base_dir: str | Path | None = None) -> SimWorldConfig:
-        """Validate the ``sim:`` mapping (all problems at once, as :class:`ConfigError`)."""
-        from stagectl.schema import load
+                     plant_model: StageModel | None = None) -> SimWorldConfig:
+        """Validate the ``sim:`` mapping (all problems at once, as :class:`ConfigError`).
 
-        with sim_base_dir(base_dir):
-            return load(cls, data or {}, path)
+        ``plant_model`` is ``sim.plant.model_file`` as loaded by the configuration layer (this method reads
+        no file; see :meth:`stagectl.sim.plant.PlantConfig.from_mapping`).
+        """
+        data = dict(data or {})
+        problems: list[str] = []
+        if "plant" in data and not isinstance(data["plant"], PlantConfig):
+            try:
+                data["plant"] = PlantConfig.from_mapping(data["plant"], f"{path}.plant", plant_model)
+            except ConfigError as exc:
+                problems.extend(exc.problems)
+                del data["plant"]
+        try:
+            cfg = load(cls, data, path)
+        except ConfigError as exc:
+            if problems:  # the plant's own problems, not a follow-up "required key missing"
+                problems.extend(p for p in exc.problems if not p.startswith(f"{path}.plant: required"))
+                raise ConfigError(problems) from None
+            raise
+        if problems:
+            raise ConfigError(problems)
+        return cfg
 
 
 class SimWorld:
@@ -145,10 +140,9 @@ class SimWorld:
     Use as a context manager or call :meth:`stop` (idempotent) to release the bus, threads and sockets.
     """
 
-    def __init__(self, cfg: SimWorldConfig, plant: Any = None, base_dir: str | Path | None = None) -> None:
+    def __init__(self, cfg: SimWorldConfig, plant: StagePlant | None = None,
+                 base_dir: str | Path | None = None) -> None:
         if plant is None:
-            from stagectl.sim.plant import StagePlant
-
             plant = StagePlant(cfg.plant)
         self.cfg = cfg
         self.plant = plant
@@ -355,8 +349,6 @@ class SimWorld:
 
     def inject_fault(self, kind: str, **kw: Any) -> dict[str, Any]:
         """Control-socket form of :meth:`inject`: returns the scheduled fault as a plain dict."""
-        from stagectl.schema import load
-
         spec = load(FaultSpec, {"kind": kind, **kw}, "fault")
         self.inject(spec)
         return {"kind": spec.kind.value, "device": spec.device, "at_cycle": spec.at_cycle,

@@ -13,206 +13,71 @@ closes every device and bus, also after an exception::
 With :class:`~stagectl.clock.MonotonicClock` (the default) the loop runs in real time and applies the
 ``loop.realtime`` settings in its thread. The attributes ``loop``, ``close``, ``controller_config``,
 ``simulated``, ``inject_fault`` and ``describe`` are what the daemon's ``Assembly`` needs.
+
+The devices come from one builder per :class:`~stagectl.config.IoKind` (:data:`IO_BUILDERS`); every consumer
+of the loop period (drive, encoder, safety, PlantIO, controller) is handed the one :class:`~stagectl.clock.Timing`
+of ``loop.period_s``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
-from stagectl.clock import Clock, MonotonicClock, SimClock
+from stagectl.clock import Clock, MonotonicClock, SimClock, Timing
 from stagectl.config import AppConfig, IoKind, SensorSource
-from stagectl.control.api import Reference
-from stagectl.drivers.base import Device, FaultKind, ForceActuator, PositionSensor, SyncProducer
+from stagectl.control.controller import TERM_NAMES, ControllerConfig, StageController
+from stagectl.control.reference import TrajectoryReference, get_scenario, scenario_names
+from stagectl.control.trajectory import Scenario
+from stagectl.drivers.base import Device, ForceActuator, PositionSensor, SyncProducer
+from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
+from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
+from stagectl.drivers.interferometer import SerialInterferometer
 from stagectl.errors import ConfigError, StageError
-from stagectl.loop import ControlLoop
+from stagectl.loop import ControlLoop, Controller
 from stagectl.safety import Safety
+from stagectl.sim.cia402_drive import SimDriveConfig
+from stagectl.sim.cia406_encoder import SimEncoderConfig
+from stagectl.sim.direct import PlantIO
+from stagectl.sim.faults import inject_plant_io_fault, world_fault
+from stagectl.sim.plant import StagePlant
+from stagectl.sim.world import SimWorld
 
 log = logging.getLogger("stagectl.app")
 
-#: names accepted by ``--scenario`` (besides the benchmark ones from stagectl.control.trajectory)
-EXTRA_SCENARIOS = ("demo", "hold")
+__all__ = ["IO_BUILDERS", "Stage", "StageIO", "TrajectoryReference", "build_stage", "embedded_drive_config",
+           "embedded_encoder_config", "get_scenario", "make_controller", "scenario_names"]
+
+D = TypeVar("D", bound=Device)
 
 
-def scenario_names() -> tuple[str, ...]:
-    from stagectl.control.trajectory import benchmark_scenarios
+@dataclass
+class Teardown:
+    """What has been opened so far, in order; :meth:`close` disables the drive and closes it all."""
 
-    return (*benchmark_scenarios(), *EXTRA_SCENARIOS)
+    devices: list[Device] = field(default_factory=list)
+    closers: list[Callable[[], None]] = field(default_factory=list)
+    actuator: ForceActuator | None = None
+    closed: bool = False
 
+    def open(self, dev: D, pump: Callable[[], object] | None = None) -> D:
+        """Lock-step pump (virtual devices), open, register for closing, configure; returns ``dev``."""
+        if pump is not None:
+            dev.set_pump(pump)  # type: ignore[arg-type]  # the drivers ignore what the pump returns
+        dev.open()
+        self.devices.append(dev)
+        dev.configure()
+        return dev
 
-def get_scenario(name: str, field: str = "--scenario") -> Any:
-    """A trajectory scenario by name (``cosine``, ``triangle``, ``steps``, ``demo``, ``hold``); an unknown name
-    is a ConfigError naming ``field``."""
-    from stagectl.control import trajectory as tr
-
-    if name == "hold":
-        return None
-    if name == "demo":
-        return tr.demo_scenario()
-    sc = tr.benchmark_scenarios()
-    if name not in sc:
-        raise ConfigError(f"{field}: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
-    return sc[name]
-
-
-class TrajectoryReference:
-    """Adapts :class:`stagectl.control.trajectory.TrajectoryGenerator` (``step(dt)``) to the loop's
-    ``ReferenceSource`` (``sample(t)``, ``hold``, ``move``, ``stop``).
-
-    A scenario given with :meth:`set_scenario` starts at the loop's first ``hold`` (from the measured
-    position); with ``repeat`` it restarts whenever it ends, until a ``move``/``stop`` request takes over.
-    Real-time safe apart from ``move``/``stop`` (binding one segment).
-    """
-
-    def __init__(self, default_velocity_m_s: float = 1e-3) -> None:
-        from stagectl.control.trajectory import TrajectoryGenerator
-
-        self.gen = TrajectoryGenerator(0.0)
-        self.default_velocity_m_s = default_velocity_m_s
-        self._t = 0.0
-        self._target = 0.0
-        self._scenario: Any = None
-        self._repeat = False
-        self._started = False
-
-    def set_scenario(self, scenario: Any, repeat: bool = False) -> None:
-        self._scenario = scenario
-        self._repeat = repeat
-        self._started = False
-
-    def hold(self, t_s: float, x_m: float) -> None:
-        self.gen.reset(x_m)
-        self._t = t_s
-        self._target = x_m
-        if self._scenario is not None and not self._started:
-            self._started = True
-            self.gen.load(self._scenario)
-            self._target = math.nan
-
-    def sample(self, t_s: float) -> Reference:
-        dt = t_s - self._t
-        if dt > 0.0:
-            self._t = t_s
-            ref = self.gen.step(dt)
-            if self._repeat and self.gen.done and self._scenario is not None:
-                self.gen.load(self._scenario)
-            return ref
-        return self.gen.sample()
-
-    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
-        self._repeat = False
-        self._scenario = None
-        self.gen.move(target_m, max_velocity_m_s or self.default_velocity_m_s)
-        self._target = target_m
-        return float(self.gen.remaining_s())
-
-    def stop(self, t_s: float) -> float:
-        """Decelerate (jerk-limited, the generator's default move limits) and hold where the reference comes
-        to rest; returns that position [m]."""
-        from stagectl.control.trajectory import Move
-
-        self._repeat = False
-        self._scenario = None
-        self.sample(t_s)
-        lim = Move(by_m=0.0)
-        end = float(self.gen.stop(lim.max_acceleration_m_s2, lim.max_jerk_m_s3))
-        self._target = end
-        return end
-
-    @property
-    def scenario(self) -> Any:
-        """The scenario set with :meth:`set_scenario` (None after a move/stop request took over)."""
-        return self._scenario
-
-    @property
-    def target_m(self) -> float:
-        if math.isnan(self._target):
-            return float(self.gen.final_reference().x_m)
-        return self._target
-
-
-class Stage:
-    """Assembled devices + loop (see module docstring). Use as a context manager, or call :meth:`close`."""
-
-    def __init__(self, cfg: AppConfig) -> None:
-        self.cfg = cfg
-        self.clock: Clock = MonotonicClock()
-        self.devices: list[Device] = []
-        self.closers: list[Callable[[], None]] = []
-        self.world: Any = None
-        self.plant: Any = None
-        self.plant_io: Any = None
-        self.sensor: PositionSensor | None = None
-        self.actuator: ForceActuator | None = None
-        self.sync: SyncProducer | None = None
-        self.controller: Any = None
-        self.controller_config: Any = cfg.controller
-        self.reference: TrajectoryReference | None = None
-        self.safety: Safety | None = None
-        self.loop: ControlLoop = None  # type: ignore[assignment]
-        self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
-        self._closed = False
-
-    # ------------------------------------------------------------------ daemon Assembly fields
-    @property
-    def describe(self) -> dict[str, Any]:
-        c = self.cfg
-        return {
-            "config": str(c.path) if c.path else None,
-            "io": c.io.kind.value,
-            "sensor": c.io.sensor.value,
-            "period_s": c.loop.period_s,
-            "simulated": self.simulated,
-            "columns": list(self.loop.columns) if self.loop else [],
-        }
-
-    def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
-        """Debug: inject a device fault into the simulated stage. Only for simulated stages.
-
-        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan`` or any :class:`FaultKind` value. Virtual CANopen
-        devices: any :class:`stagectl.sim.faults.SimFault` (``drive_fault``, ``heartbeat_stop``, ``drop_tpdo``,
-        ``late_tpdo``, ``bus_off``, ``position_jump``) with its FaultSpec fields; ``emcy``, ``stale``,
-        ``heartbeat_lost`` and ``nan`` are accepted as aliases."""
-        if not self.simulated:
-            raise StageError("inject_fault: only available on a simulated stage")
-        if self.plant_io is not None:
-            io = self.plant_io
-            if kind == "stale":
-                io.drop_samples(int(kw.get("cycles", 10)))
-            elif kind == "nan":
-                io.glitch(math.nan)
-            else:
-                try:
-                    fk = FaultKind(kind)
-                except ValueError:
-                    raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
-                                     f"{', '.join(k.value for k in FaultKind)})") from None
-                io.inject_fault(fk, str(kw.get("detail", "injected")), int(kw.get("code", 0)))
-            return {"injected": kind}
-        if self.world is not None and hasattr(self.world, "inject_fault"):
-            # loop-level names mapped onto the virtual devices' faults (stagectl.sim.faults.SimFault)
-            alias = {"emcy": "drive_fault", "stale": "drop_tpdo", "heartbeat_lost": "heartbeat_stop",
-                     "nan": "position_jump"}
-            if kind == "stale":
-                kw.setdefault("cycles", 10)
-            return {"injected": self.world.inject_fault(alias.get(kind, kind), **kw)}
-        raise StageError("inject_fault: no fault injection available for this stage")
-
-    def load_scenario(self, name_or_scenario: Any, repeat: bool = False) -> None:
-        """Run a scenario (by name or a Scenario object) from the loop's start."""
-        sc = get_scenario(name_or_scenario) if isinstance(name_or_scenario, str) else name_or_scenario
-        assert self.reference is not None
-        self.reference.set_scenario(sc, repeat)
-
-    # ------------------------------------------------------------------ teardown
     def close(self) -> None:
         """Disable the drive and close every device and bus (idempotent; never raises)."""
-        if self._closed:
+        if self.closed:
             return
-        self._closed = True
+        self.closed = True
         if self.actuator is not None:
             try:
                 self.actuator.disable()
@@ -229,6 +94,102 @@ class Stage:
             except Exception:  # noqa: BLE001
                 log.exception("closing failed")
 
+
+@dataclass
+class StageIO:
+    """The devices one I/O builder produced: what the loop reads, writes and syncs on, and the simulation."""
+
+    sensor: PositionSensor
+    actuator: ForceActuator
+    sync: SyncProducer | None
+    plant: StagePlant | None = None
+    plant_io: PlantIO | None = None
+    world: SimWorld | None = None
+
+
+@dataclass(frozen=True)
+class BuildContext:
+    """What an I/O builder gets: the configuration, the clock, the timing and where to register devices."""
+
+    cfg: AppConfig
+    clock: Clock
+    timing: Timing
+    teardown: Teardown
+
+
+class Stage:
+    """Assembled devices + loop (see module docstring). Use as a context manager, or call :meth:`close`."""
+
+    def __init__(self, cfg: AppConfig, *, clock: Clock, timing: Timing, io: StageIO, controller: Controller,
+                 safety: Safety, reference: TrajectoryReference, loop: ControlLoop, teardown: Teardown) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.timing = timing
+        self.sensor = io.sensor
+        self.actuator = io.actuator
+        self.sync = io.sync
+        self.plant = io.plant
+        self.plant_io = io.plant_io
+        self.world = io.world
+        self.controller = controller
+        self.controller_config: ControllerConfig = cfg.controller
+        self.safety = safety
+        self.reference = reference
+        self.loop = loop
+        self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
+        self._teardown = teardown
+
+    @property
+    def devices(self) -> list[Device]:
+        """The opened devices, in opening order."""
+        return self._teardown.devices
+
+    # ------------------------------------------------------------------ daemon Assembly fields
+    @property
+    def describe(self) -> dict[str, Any]:
+        c = self.cfg
+        return {
+            "config": str(c.path) if c.path else None,
+            "io": c.io.kind.value,
+            "sensor": c.io.sensor.value,
+            "period_s": self.timing.period_s,
+            "simulated": self.simulated,
+            "columns": list(self.loop.columns),
+        }
+
+    def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
+        """Debug: inject a device fault into the simulated stage. Only for simulated stages.
+
+        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan`` or any :class:`~stagectl.drivers.base.FaultKind` value.
+        Virtual CANopen devices: any :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of
+        the loop-level aliases of :data:`stagectl.sim.faults.FAULT_ALIASES`.
+
+        Raises
+        ------
+        StageError
+            Not a simulated stage.
+        """
+        if not self.simulated:
+            raise StageError("inject_fault: only available on a simulated stage")
+        if self.plant_io is not None:
+            inject_plant_io_fault(self.plant_io, kind, kw)
+            return {"injected": kind}
+        if self.world is not None:
+            spec = world_fault(kind, kw)
+            return {"injected": self.world.inject_fault(spec.pop("kind"), **spec)}
+        raise StageError("inject_fault: no fault injection available for this stage")
+
+    def load_scenario(self, name_or_scenario: str | Scenario | None, repeat: bool = False) -> None:
+        """Run a scenario (by name, a :class:`~stagectl.control.trajectory.Scenario`, or None: hold) from the
+        loop's start. Raises ConfigError for an unknown name."""
+        sc = get_scenario(name_or_scenario) if isinstance(name_or_scenario, str) else name_or_scenario
+        self.reference.set_scenario(sc, repeat)
+
+    # ------------------------------------------------------------------ teardown
+    def close(self) -> None:
+        """Disable the drive and close every device and bus (idempotent; never raises)."""
+        self._teardown.close()
+
     def __enter__(self) -> Stage:
         return self
 
@@ -236,17 +197,122 @@ class Stage:
         self.close()
 
 
-def make_controller(cfg: AppConfig, controller_config: Any = None) -> Any:
-    """The StageController for ``controller_config`` (default: the file's), model paths relative to the file."""
-    from stagectl.control.controller import StageController
+# ====================================================================================== I/O builders
+def _build_plant_io(ctx: BuildContext) -> StageIO:
+    """The simulated plant wrapped directly (:class:`~stagectl.sim.direct.PlantIO`), no protocol."""
+    cfg = ctx.cfg
+    if cfg.sim is None:  # excluded by the configuration's cross-checks
+        raise ConfigError("sim: required for io.kind plant_io (the simulated stage)")
+    plant = StagePlant(cfg.sim.plant)
+    io = ctx.teardown.open(PlantIO(plant, ctx.timing, delay_cycles=cfg.io.delay_cycles, clock=ctx.clock))
+    ctx.teardown.actuator = io
+    return StageIO(sensor=io, actuator=io, sync=io, plant=plant, plant_io=io)
 
-    return StageController(controller_config or cfg.controller, cfg.loop.period_s, base_dir=cfg.base_dir)
+
+def embedded_drive_config(io_drive: Cia402Config | None, sim_drive: SimDriveConfig,
+                          can: dict[str, Any]) -> Cia402Config:
+    """The CiA 402 driver's configuration for the in-process virtual drive: ``io.drive`` on the world's bus,
+    or, without one, a driver matching ``sim.drive`` (node id, position resolution, force per unit)."""
+    if io_drive is not None:
+        return dataclasses.replace(io_drive, can=can)
+    return Cia402Config(node_id=sim_drive.node_id, can=can, resolution_m=sim_drive.resolution_m,
+                        force_per_unit_n=sim_drive.force_per_unit_n)
 
 
-def controller_terms() -> tuple[str, ...]:
-    from stagectl.control.controller import TERM_NAMES
+def embedded_encoder_config(io_encoder: Cia406Config | None, sim_encoder: SimEncoderConfig | None,
+                            can: dict[str, Any]) -> Cia406Config:
+    """The CiA 406 driver's configuration for the in-process virtual encoder (``io.encoder`` on the world's
+    bus, or one matching ``sim.encoder``).
 
-    return tuple(TERM_NAMES)
+    Raises
+    ------
+    ConfigError
+        Neither ``io.encoder`` nor ``sim.encoder`` is given.
+    """
+    if io_encoder is not None:
+        return dataclasses.replace(io_encoder, can=can)
+    if sim_encoder is None:
+        raise ConfigError("io.encoder: required for io.sensor encoder (or give sim.encoder)")
+    return Cia406Config(node_id=sim_encoder.node_id, can=can, resolution_m=sim_encoder.resolution_m)
+
+
+def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
+    """Virtual CANopen devices in-process (:class:`~stagectl.sim.world.SimWorld` on python-can's virtual bus)
+    and the real drivers talking to them through the bus.
+
+    The virtual devices are served synchronously by the loop thread (the drivers' ``set_pump``) in simulated
+    AND real time: each SYNC steps the plant by exactly one period, no thread hop can make a TPDO late.
+    """
+    cfg = ctx.cfg
+    if cfg.sim is None:  # excluded by the configuration's cross-checks
+        raise ConfigError("sim: required for io.kind embedded_canopen (the simulated stage)")
+    wcfg = cfg.sim
+    if wcfg.transport.kind != "virtual":
+        wcfg = dataclasses.replace(wcfg, transport=dataclasses.replace(wcfg.transport, kind="virtual"))
+    world = SimWorld.from_config(wcfg, cfg.base_dir)
+    ctx.teardown.closers.append(world.stop)
+    world.open()
+    info = world.ready_info()
+    can: dict[str, Any] = info["can"]
+    drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can)
+    io = _open_drivers(ctx, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"),
+                       serial_pump=world.serial_pump,
+                       encoder=lambda: embedded_encoder_config(cfg.io.encoder, wcfg.encoder, can))
+    return dataclasses.replace(io, plant=world.plant, world=world)
+
+
+def _build_canopen(ctx: BuildContext) -> StageIO:
+    """The real drivers on a real bus (socketcan) or a ``stagectl sim-plant`` process (socketcand)."""
+    io = ctx.cfg.io
+    if io.drive is None:  # excluded by IoConfig
+        raise ConfigError("io.drive: required for io.kind canopen")
+    enc = io.encoder
+    return _open_drivers(ctx, io.drive, pump=None, encoder=lambda: _required_encoder(enc))
+
+
+def _required_encoder(enc: Cia406Config | None) -> Cia406Config:
+    if enc is None:  # excluded by IoConfig
+        raise ConfigError("io.encoder: required for io.sensor encoder")
+    return enc
+
+
+def _open_drivers(ctx: BuildContext, drive_cfg: Cia402Config, *, pump: Callable[[], object] | None,
+                  encoder: Callable[[], Cia406Config], interferometer_url: str | None = None,
+                  serial_pump: Callable[[], object] | None = None) -> StageIO:
+    """The CiA 402 drive (actuator, SYNC producer) and the position sensor ``io.sensor`` names."""
+    cfg, td = ctx.cfg, ctx.teardown
+    drive = td.open(Cia402Drive(drive_cfg, ctx.timing), pump)
+    td.actuator = drive
+    sensor: PositionSensor
+    src = cfg.io.sensor
+    if src is SensorSource.DRIVE:
+        sensor = drive
+    elif src is SensorSource.INTERFEROMETER:
+        icfg = cfg.io.interferometer
+        if icfg is None:  # excluded by IoConfig
+            raise ConfigError("io.interferometer: required for io.sensor interferometer")
+        if interferometer_url is not None:
+            icfg = dataclasses.replace(icfg, url=interferometer_url)
+        # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
+        sensor = td.open(SerialInterferometer(icfg), (serial_pump or pump) if pump else None)
+    else:
+        sensor = td.open(Cia406Encoder(encoder(), ctx.timing), pump)
+    return StageIO(sensor=sensor, actuator=drive, sync=drive)
+
+
+#: one builder per I/O kind
+IO_BUILDERS: dict[IoKind, Callable[[BuildContext], StageIO]] = {
+    IoKind.PLANT_IO: _build_plant_io,
+    IoKind.EMBEDDED_CANOPEN: _build_embedded_canopen,
+    IoKind.CANOPEN: _build_canopen,
+}
+
+
+# ====================================================================================== assembly
+def make_controller(cfg: AppConfig, controller_config: ControllerConfig | None = None) -> StageController:
+    """The StageController for ``controller_config`` (default: the file's), with the model the configuration
+    loader resolved (``feedforward.model``)."""
+    return StageController(controller_config or cfg.controller, cfg.timing)
 
 
 def build_stage(
@@ -254,7 +320,7 @@ def build_stage(
     *,
     clock: Clock | None = None,
     realtime: bool | None = None,
-    controller: Any = None,
+    controller: Controller | None = None,
 ) -> Stage:
     """Open and configure the devices, build controller, safety, reference and loop.
 
@@ -270,123 +336,32 @@ def build_stage(
 
     On any error everything opened so far is closed before the exception propagates.
     """
-    stage = Stage(cfg)
-    stage.clock = clock if clock is not None else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
-    simulated_time = isinstance(stage.clock, SimClock)
+    clk: Clock = clock if clock is not None else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
     if realtime is None:
-        realtime = not simulated_time
-    period = cfg.loop.period_s
+        realtime = not isinstance(clk, SimClock)
+    timing = cfg.timing
+    td = Teardown()
     try:
-        kind = cfg.io.kind
-        if kind is IoKind.PLANT_IO:
-            from stagectl.sim.direct import PlantIO
-            from stagectl.sim.plant import StagePlant
-
-            assert cfg.sim is not None
-            stage.plant = StagePlant(cfg.sim.plant)
-            io = PlantIO(stage.plant, period, delay_cycles=cfg.io.delay_cycles, clock=stage.clock)
-            stage.plant_io = _open_device(stage, io, None)
-            stage.sensor = stage.actuator = stage.sync = io
-        elif kind is IoKind.EMBEDDED_CANOPEN:
-            _build_embedded_canopen(stage, simulated_time)
-        else:
-            _build_canopen(stage)
-        stage.controller = controller if controller is not None else make_controller(cfg)
-        stage.safety = Safety(cfg.safety, period)
-        stage.reference = TrajectoryReference()
-        assert stage.sensor is not None and stage.actuator is not None
-        stage.loop = ControlLoop(
-            clock=stage.clock,
-            sensor=stage.sensor,
-            actuator=stage.actuator,
-            controller=stage.controller,
-            reference=stage.reference,
-            safety=stage.safety,
+        io = IO_BUILDERS[cfg.io.kind](BuildContext(cfg, clk, timing, td))
+        ctl: Controller = controller if controller is not None else make_controller(cfg)
+        safety = Safety(cfg.safety, timing)
+        reference = TrajectoryReference()
+        terms = getattr(ctl, "term_names", None) or TERM_NAMES
+        loop = ControlLoop(
+            clock=clk,
+            sensor=io.sensor,
+            actuator=io.actuator,
+            controller=ctl,
+            reference=reference,
+            safety=safety,
             cfg=cfg.loop,
-            sync=stage.sync,
+            sync=io.sync,
             realtime=realtime,
-            term_names=getattr(stage.controller, "term_names", None) or controller_terms(),
-            device_time=stage.world is not None,  # virtual CANopen devices step one period per SYNC
+            term_names=tuple(terms),
+            device_time=io.world is not None,  # virtual CANopen devices step one period per SYNC
         )
     except BaseException:
-        stage.close()
+        td.close()
         raise
-    return stage
-
-
-def _build_embedded_canopen(stage: Stage, simulated_time: bool) -> None:
-    """Virtual CANopen devices in-process (:class:`stagectl.sim.world.SimWorld` on python-can's virtual bus)
-    and the real drivers talking to them through the bus; the drivers pump the world (lock-step) in
-    simulated and in real time."""
-    import dataclasses
-
-    from stagectl.drivers.cia402 import Cia402Config
-    from stagectl.sim.world import SimWorld
-
-    cfg = stage.cfg
-    assert cfg.sim is not None and cfg.sim.world is not None
-    wcfg = cfg.sim.world
-    if wcfg.transport.kind != "virtual":
-        wcfg = dataclasses.replace(wcfg, transport=dataclasses.replace(wcfg.transport, kind="virtual"))
-    world = SimWorld.from_config(wcfg, cfg.base_dir)
-    stage.world = world
-    stage.plant = world.plant
-    stage.closers.append(world.stop)
-    world.open()
-    # The virtual devices are served synchronously by the loop thread (drivers' set_pump) in simulated AND
-    # real time: each SYNC steps the plant by exactly one period, no thread hop can make a TPDO late.
-    # A device thread (world.start()) would be needed only for peers that talk on their own (sim-plant).
-    info = world.ready_info()
-    sd = wcfg.drive
-    drive_cfg = cfg.io.drive
-    if drive_cfg is None:
-        drive_cfg = Cia402Config(node_id=sd.node_id, can=info["can"], resolution_m=sd.resolution_m,
-                                 force_per_unit_n=sd.force_per_unit_n)
-    else:
-        drive_cfg = dataclasses.replace(drive_cfg, can=info["can"])
-    _open_drivers(stage, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"),
-                  serial_pump=world.serial_pump)
-
-
-def _build_canopen(stage: Stage) -> None:
-    _open_drivers(stage, stage.cfg.io.drive, pump=None)
-
-
-def _open_drivers(stage: Stage, drive_cfg: Any, pump: Callable[[], None] | None,
-                  interferometer_url: str | None = None, serial_pump: Callable[[], Any] | None = None) -> None:
-    from stagectl.drivers.cia402 import Cia402Drive
-
-    cfg = stage.cfg
-    drive = _open_device(stage, Cia402Drive(drive_cfg, cfg.loop.period_s), pump)
-    stage.actuator = drive
-    stage.sync = drive
-    src = cfg.io.sensor
-    if src is SensorSource.DRIVE:
-        stage.sensor = drive
-    elif src is SensorSource.INTERFEROMETER:
-        from stagectl.drivers.interferometer import SerialInterferometer
-
-        icfg = cfg.io.interferometer
-        if interferometer_url is not None:
-            import dataclasses
-
-            icfg = dataclasses.replace(icfg, url=interferometer_url)
-        # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
-        stage.sensor = _open_device(stage, SerialInterferometer(icfg), (serial_pump or pump) if pump else None)
-    else:
-        from stagectl.drivers.cia406 import Cia406Encoder  # type: ignore[import-not-found]
-
-        stage.sensor = _open_device(stage, Cia406Encoder(cfg.io.encoder, cfg.loop.period_s), pump)
-
-
-def _open_device(stage: Stage, dev: Any, pump: Callable[[], Any] | None) -> Any:
-    """Lock-step pump (virtual devices), open, register for closing, configure; returns ``dev``."""
-    if pump is not None:
-        dev.set_pump(pump)
-    dev.open()
-    stage.devices.append(dev)
-    dev.configure()
-    return dev
-
-
-__all__ = ["Stage", "TrajectoryReference", "build_stage", "get_scenario", "scenario_names"]
+    return Stage(cfg, clock=clk, timing=timing, io=io, controller=ctl, safety=safety, reference=reference,
+                 loop=loop, teardown=td)

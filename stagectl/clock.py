@@ -12,6 +12,10 @@ Two clocks share one interface (``now() -> float`` seconds, ``sleep_until(t_s)``
 * :class:`SimClock` -- simulated time. ``sleep_until`` just sets the time; nothing waits on the wall
   clock, so a simulated run is deterministic and as fast as the computation allows.
 
+:class:`Timing` is the loop's one timing value (``period_s``); every consumer (drive, encoder, safety,
+simulated I/O, controller) derives its cycle counts from it with :meth:`Timing.cycles` / :meth:`Timing.every`
+instead of doing its own arithmetic on a bare ``period_s``.
+
 Real-time helpers (:func:`apply_realtime`) try SCHED_FIFO, CPU affinity, ``mlockall``,
 ``PR_SET_TIMERSLACK`` and ``gc.freeze``; each degrades gracefully (returns a note, never raises) when
 the process lacks the privilege.
@@ -23,17 +27,61 @@ import ctypes
 import ctypes.util
 import errno
 import gc
+import math
 import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from stagectl.errors import ConfigError
+
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 MCL_CURRENT = 1
 MCL_FUTURE = 2
 PR_SET_TIMERSLACK = 29
+
+
+@dataclass(frozen=True)
+class Timing:
+    """The loop's timing: one nominal period ``period_s`` [s], from which consumers derive cycle counts.
+
+    Raises
+    ------
+    ConfigError
+        ``period_s`` not a finite number > 0.
+    """
+
+    period_s: float
+
+    def __post_init__(self) -> None:
+        p = self.period_s
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not (p > 0 and math.isfinite(p)):
+            raise ConfigError(f"period_s: must be > 0 s (got {p!r})")
+        object.__setattr__(self, "period_s", float(p))
+
+    @classmethod
+    def of(cls, timing: Timing | float) -> Timing:
+        """``timing`` itself, or a :class:`Timing` for a bare period [s]."""
+        return timing if isinstance(timing, Timing) else cls(timing)
+
+    @property
+    def rate_hz(self) -> float:
+        """Loop rate 1/period_s [Hz]."""
+        return 1.0 / self.period_s
+
+    def cycles(self, duration_s: float) -> int:
+        """Whole cycles needed to cover ``duration_s`` [s]: ``ceil(duration_s / period_s)`` (time-outs)."""
+        return math.ceil(duration_s / self.period_s)
+
+    def every(self, interval_s: float) -> int:
+        """Cycles between two events ``interval_s`` [s] apart, rounded, at least 1 (periodic messages)."""
+        return max(1, round(interval_s / self.period_s))
+
+    def per_cycle(self, rate_per_s: float) -> float:
+        """How much of a rate (e.g. a speed [m/s]) accumulates in one cycle: ``rate_per_s * period_s``."""
+        return rate_per_s * self.period_s
 
 
 class Clock(Protocol):

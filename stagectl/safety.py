@@ -31,6 +31,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from stagectl.clock import Timing
 from stagectl.errors import ConfigError
 from stagectl.schema import param
 
@@ -86,14 +87,16 @@ class Safety:
     Parameters
     ----------
     cfg : SafetyConfig
-    period_s : float
-        Loop period T [s]; the velocity filter coefficient α is derived from it once here.
+    timing : Timing or float
+        The loop's timing (or its period T [s]); the velocity filter coefficient α is derived from it once here.
     """
 
-    def __init__(self, cfg: SafetyConfig, period_s: float) -> None:
+    def __init__(self, cfg: SafetyConfig, timing: Timing | float) -> None:
+        t = Timing.of(timing)
         self.cfg = cfg
-        self.period_s = float(period_s)
-        self._alpha = 1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * period_s)
+        self.timing = t
+        self.period_s = t.period_s
+        self._alpha = 1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * t.period_s)
         self.fault: SafetyFault | None = None
         self.n_faults = 0
         self.v_est_m_s = 0.0

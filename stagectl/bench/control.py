@@ -40,8 +40,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from collections.abc import Hashable
 from pathlib import Path
 from typing import Any
+
+from stagectl.app import build_stage
+from stagectl.clock import SimClock
+from stagectl.config import AppConfig, IoKind, load_app_config
+from stagectl.control.controller import ControllerConfig, StageController
+from stagectl.control.design import analyse_design, design_pid
+from stagectl.control.pid import PidConfig
+from stagectl.errors import ConfigError
+from stagectl.friction import FrictionModel, StageModel, build
+from stagectl.recorder import Recorder, tracking_summary
 
 TRACKING = ("cosine", "triangle")
 SCENARIOS = ("cosine", "triangle", "steps")
@@ -67,10 +78,8 @@ def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def mismatched(model: Any) -> Any:
+def mismatched(model: FrictionModel) -> FrictionModel:
     """The 20 %-off GMS model of docs/friction-models.md §6.3: k ×0.8, Fs 0.8, Fc 0.72, Vs 1.2 mm/s, σ2 ×0.8."""
-    from stagectl.friction import build
-
     spec = dict(model.spec())
     spec["k_n_m"] = [0.8 * k for k in spec["k_n_m"]]
     spec["fs_n"] = 0.8
@@ -80,17 +89,15 @@ def mismatched(model: Any) -> Any:
     return build(spec)
 
 
-def run_case(cfg: Any, ctl_cfg: Any, scenario: str, *, model: Any = None, skip_s: float = 1.0) -> dict[str, Any]:
+def run_case(cfg: AppConfig, ctl_cfg: ControllerConfig, scenario: str, *, model: StageModel | None = None,
+             skip_s: float = 1.0) -> dict[str, Any]:
     """One closed-loop run in simulated time; returns the tracking metrics."""
-    from stagectl.app import build_stage
-    from stagectl.clock import SimClock
-    from stagectl.control.controller import StageController
-    from stagectl.recorder import Recorder, tracking_summary
-
-    ctl = StageController(ctl_cfg, cfg.loop.period_s, model=model, base_dir=cfg.base_dir)
+    ctl = StageController(ctl_cfg, cfg.timing, model=model)
     with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
         stage.load_scenario(scenario)
-        sc = stage.reference.scenario  # type: ignore[union-attr]
+        sc = stage.reference.scenario
+        if sc is None:
+            raise ConfigError(f"bench control: scenario {scenario!r} has no motion")
         duration = sc.duration_s(0.0) + 0.2
         rec = Recorder(stage.loop.columns, int(duration / cfg.loop.period_s) + 16)
         stage.loop.add_sink(rec)
@@ -105,8 +112,8 @@ def run_case(cfg: Any, ctl_cfg: Any, scenario: str, *, model: Any = None, skip_s
     }
 
 
-def _variant(base: Any, *, pid: Any = None, dob_hz: float | None = None, dob: bool, ff: str,
-             coulomb_n: float = 0.0, viscous: float = 0.0) -> Any:
+def _variant(base: ControllerConfig, *, pid: PidConfig | None = None, dob_hz: float | None = None, dob: bool,
+             ff: str, coulomb_n: float = 0.0, viscous: float = 0.0) -> ControllerConfig:
     c = base
     if pid is not None:
         c = dataclasses.replace(c, pid=pid)
@@ -118,32 +125,27 @@ def _variant(base: Any, *, pid: Any = None, dob_hz: float | None = None, dob: bo
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from stagectl.config import load_app_config
-    from stagectl.control.design import design_pid
-
     t_start = time.perf_counter()
     cfg = load_app_config(args.config)
     if cfg.sim is None:
-        raise SystemExit("bench control: the config needs a sim: section (the seed stage)")
+        raise ConfigError("bench control: the config needs a sim: section (the seed stage)")
     # plant_io; a generous following-error window so that weak baselines are measured, not stopped
     cfg = dataclasses.replace(
         cfg,
-        io=dataclasses.replace(cfg.io, kind=type(cfg.io.kind)("plant_io")),
+        io=dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO),
         safety=dataclasses.replace(cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)),
     )
     base = cfg.controller
     plant = cfg.sim.plant
     exact = plant.friction
     off = mismatched(exact)
-    from stagectl.friction import StageModel
-
     m_exact = StageModel(friction=exact, effects=plant.effects, mass_kg=plant.mass_kg)
     m_off = StageModel(friction=off, effects=plant.effects, mass_kg=plant.mass_kg)
     mass = base.mass_kg or plant.mass_kg
     fc_true = float(exact.spec().get("fc_n", 0.8))
     sigma2 = float(exact.spec().get("viscous_n_s_m", 0.0))
 
-    pids = {"config": base.pid}
+    pids: dict[str, PidConfig] = {"config": base.pid}
     if not args.quick:
         for bw in _floats(args.pid_bandwidths):
             pids[f"{bw:g}Hz"] = design_pid(mass, bw, cfg.loop.period_s, delay_samples=1)
@@ -151,11 +153,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     def score(results: dict[str, dict[str, Any]]) -> float:
         return sum(results[s]["rms_error_nm"] for s in TRACKING)
 
-    from stagectl.control.design import analyse_design
+    margin_cache: dict[Hashable, dict[str, Any]] = {}
 
-    margin_cache: dict[Any, Any] = {}
-
-    def margins(c: Any) -> dict[str, Any]:
+    def margins(c: ControllerConfig) -> dict[str, Any]:
         """Linear margins (discrete plant, the config's I/O delay) of PID, or PID + DOB when the DOB is on."""
         key = (c.pid, c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples)
         if key not in margin_cache:
@@ -165,14 +165,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                  "closed_loop_stable": a.stable}
         return margin_cache[key]
 
-    def robust(c: Any) -> bool:
+    def robust(c: ControllerConfig) -> bool:
         m = margins(c)
         return bool(m["closed_loop_stable"] and m["phase_margin_deg"] >= args.min_phase_margin
                     and m["gain_margin_db"] >= args.min_gain_margin)
 
-    def sweep(label: str, candidates: list[tuple[dict[str, Any], Any, Any]]) -> dict[str, Any]:
-        best = None
-        tried = []
+    Candidate = tuple[dict[str, Any], ControllerConfig, StageModel | None]
+
+    def sweep(label: str, candidates: list[Candidate]) -> dict[str, Any]:
+        best: tuple[float, dict[str, Any], ControllerConfig, StageModel | None, dict[str, Any]] | None = None
+        tried: list[dict[str, Any]] = []
         kept = [cand for cand in candidates if robust(cand[1])] or candidates[:1]
         for params, ctl_cfg, _ in candidates:
             if not any(ctl_cfg is k[1] for k in kept):
@@ -208,7 +210,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     def rms(v: str, s: str) -> float:
         return float(out[v]["results"][s]["rms_error_nm"])
 
-    targets = {}
+    targets: dict[str, dict[str, Any]] = {}
     for s in TRACKING:
         r_pid = rms("pid", s) / rms("pid_dob_gms_20", s)
         r_cff = rms("pid_coulomb", s) / rms("pid_dob_gms_20", s)

@@ -21,6 +21,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.app import build_stage
+from stagectl.config import IoKind, load_app_config
+from stagectl.recorder import Recorder
+
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 
 
@@ -34,10 +38,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from stagectl.app import build_stage
-    from stagectl.config import IoKind, load_app_config
-    from stagectl.recorder import Recorder
-
     cfg = load_app_config(args.config)
     rt = cfg.loop.realtime
     if args.fifo is not None:

@@ -1,9 +1,16 @@
-"""``stagectl check-config FILE``: the exact validation the daemon runs; prints OK or every problem (exit 2)."""
+"""``stagectl check-config FILE``: the exact validation the daemon runs; prints OK or every problem (exit 2).
+
+Every problem is one ``stagectl: error: FILE: key.path: ...`` line (after a count), like the errors of the
+other commands; nothing is opened (no bus, no device, no controller design).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+
+from stagectl.config import load_app_config
+from stagectl.errors import ConfigError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -14,16 +21,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
-    from stagectl.config import load_app_config
-    from stagectl.errors import ConfigError
-
+    """Validate ``args.file`` with :func:`stagectl.config.load_app_config`; 0 when valid, 2 otherwise."""
     try:
         cfg = load_app_config(args.file)
     except ConfigError as exc:
         n = len(exc.problems)
         print(f"{args.file}: {n} problem{'s' if n != 1 else ''}", file=sys.stderr)
         for line in exc.problems:
-            print(f"  {line}", file=sys.stderr)
+            print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     if not args.quiet:
         sensor = cfg.io.sensor.value

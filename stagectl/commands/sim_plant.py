@@ -49,13 +49,17 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
 
     from stagectl.errors import ConfigError
     from stagectl.schema import load_yaml_file
-    from stagectl.sim.world import SimWorld, SimWorldConfig
+    from stagectl.config import ModelFiles, parse_sim_section
+    from stagectl.sim.world import SimWorld
 
     path = Path(args.config)
     data = load_yaml_file(path)
     if not isinstance(data, dict) or "sim" not in data:
         raise ConfigError(f"{path}: no sim: section (the virtual devices to run)")
-    cfg = SimWorldConfig.from_mapping(data["sim"], "sim", base_dir=path.resolve().parent)
+    problems: list[str] = []
+    cfg = parse_sim_section(data["sim"], ModelFiles(path.resolve().parent), problems)
+    if cfg is None:
+        raise ConfigError([f"{path.name}: {p}" for p in problems])
     tr = cfg.transport
     if tr.kind != "socketcand" or args.port is not None:
         port = tr.port if args.port is None else args.port

@@ -10,6 +10,18 @@ prints the summary as one JSON line on stdout.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from stagectl.app import build_stage, get_scenario
+from stagectl.clock import SimClock
+from stagectl.config import AppConfig, IoKind, load_app_config
+from stagectl.errors import ConfigError
+from stagectl.outputs import prepare_out_dir
+from stagectl.recorder import Recorder, tracking_summary, write_outputs
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -25,21 +37,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.set_defaults(func=run)
 
 
-def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: float = 10e-9,
-             plots: bool = True) -> dict:
-    """Run one simulation and write its outputs; returns the summary dict."""
-    import math
+def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: str | Path, *,
+             tol_m: float = 10e-9, plots: bool = True) -> dict[str, Any]:
+    """Run one simulation and write its outputs; returns the summary dict.
 
-    import dataclasses
-
-    from stagectl.app import build_stage, get_scenario
-    from stagectl.clock import SimClock
-    from stagectl.config import IoKind
-    from stagectl.errors import ConfigError
-    from stagectl.recorder import Recorder, prepare_out_dir, tracking_summary, write_outputs
-
+    Raises
+    ------
+    ConfigError
+        Unknown scenario, bad duration, unwritable ``out_dir``, or a canopen config without ``sim:``.
+    """
     if cfg.io.kind is IoKind.CANOPEN:
-        if cfg.sim is None or cfg.sim.world is None:
+        if cfg.sim is None:
             raise ConfigError(f"{cfg.path}: simulate needs a sim: section (the simulated stage) for io.kind canopen")
         # same drivers, the virtual devices of the sim: section in-process (lock-step)
         cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
@@ -71,10 +79,6 @@ def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: fl
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-
-    from stagectl.config import load_app_config
-
     cfg = load_app_config(args.config)
     summary = simulate(cfg, args.scenario, args.duration, args.out, tol_m=args.tolerance, plots=not args.no_plots)
     print(json.dumps(summary, default=str, separators=(",", ":")))

@@ -21,6 +21,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from stagectl.config import IoKind, load_app_config
+from stagectl.control import design
+from stagectl.control.dob import DobConfig
+from stagectl.control.pid import PidConfig
+from stagectl.errors import ConfigError
+from stagectl.outputs import prepare_out_dir
+
 
 #: margins below these are reported as thin (typical robustness targets for a motion loop)
 HEALTHY_PHASE_MARGIN_DEG = 40.0
@@ -49,28 +56,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
-    from stagectl.errors import ConfigError
-
-    out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None,
-                           "base_dir": None}
+    out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None}
     if args.config:
-        try:
-            from stagectl.config import load_app_config
-        except ModuleNotFoundError:  # pragma: no cover - stagectl.config always ships
-            load_app_config = None
-        if load_app_config is not None:
-            cfg = load_app_config(args.config)
-            out["controller"] = cfg.controller
-            out["period_s"] = cfg.loop.period_s
-            out["base_dir"] = cfg.base_dir
-            io = getattr(cfg, "io", None)
-            if io is not None and getattr(io.kind, "value", "") == "plant_io":
-                out["delay_samples"] = int(io.delay_cycles)
-            ctl = cfg.controller
-            mass = getattr(ctl, "mass_kg", None) if ctl is not None else None
-            if mass is None and cfg.sim is not None:
-                mass = getattr(cfg.sim.plant, "mass_kg", None)
-            out["mass_kg"] = mass
+        cfg = load_app_config(args.config)
+        ctl = cfg.controller
+        out["controller"] = ctl
+        out["period_s"] = cfg.loop.period_s
+        if cfg.io.kind is IoKind.PLANT_IO:
+            out["delay_samples"] = int(cfg.io.delay_cycles)
+        mass = ctl.mass_kg
+        if mass is None and ctl.feedforward.model is not None:
+            mass = ctl.feedforward.model.mass_kg
+        if mass is None and cfg.sim is not None:
+            mass = cfg.sim.plant.mass_kg
+        out["mass_kg"] = mass
     for key, flag in (("mass_kg", args.mass_kg), ("period_s", args.period_s), ("delay_samples", args.delay_samples)):
         if flag is not None:
             out[key] = flag
@@ -102,12 +101,8 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
 
 def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     """Compute the result dict (and exit code) without printing."""
-    from stagectl.control import design
-
     inp = _load_inputs(args)
     if args.out:
-        from stagectl.recorder import prepare_out_dir
-
         prepare_out_dir(args.out)
     m, T, nd = float(inp["mass_kg"]), float(inp["period_s"]), int(inp["delay_samples"])
     result: dict[str, Any] = {"mass_kg": m, "period_s": T, "delay_samples": nd}
@@ -163,20 +158,18 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     return result, exit_code
 
 
-def _kalman_q(m: float, T: float, dob: Any) -> float:
-    from stagectl.control.design import kalman_noise_for_bandwidth
-
+def _kalman_q(m: float, T: float, dob: DobConfig) -> float:
     if dob.disturbance_noise_n_sqrt_s is not None:
         return float(dob.disturbance_noise_n_sqrt_s)
-    return kalman_noise_for_bandwidth(m, T, dob.bandwidth_hz, dob.measurement_noise_m, use_control=True)
+    return design.kalman_noise_for_bandwidth(m, T, dob.bandwidth_hz, dob.measurement_noise_m, use_control=True)
 
 
-def _pid_dict(p: Any) -> dict[str, float]:
+def _pid_dict(p: PidConfig) -> dict[str, float]:
     return {"kp_n_m": p.kp_n_m, "ki_n_m_s": p.ki_n_m_s, "kd_n_s_m": p.kd_n_s_m,
             "derivative_cutoff_hz": p.derivative_cutoff_hz}
 
 
-def _yaml_snippet(m: float, pid: Any, dbw: float, nd: int) -> str:
+def _yaml_snippet(m: float, pid: PidConfig, dbw: float, nd: int) -> str:
     return (
         "controller:\n"
         f"  mass_kg: {m:.6g}\n"

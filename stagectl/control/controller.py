@@ -14,8 +14,13 @@ Terms in ``Command.terms`` (newtons): ``u_pid`` (= ``u_p`` + ``u_i`` + ``u_d``),
 when the integrator was held.
 
 Masses: ``mass_kg`` is the nominal moving mass; ``dob.nominal_mass_kg`` and ``feedforward.mass_kg`` override
-it for the observer and the inertia feed-forward. If ``mass_kg`` is not set, the model file's ``mass_kg``
+it for the observer and the inertia feed-forward. If ``mass_kg`` is not set, the stage model's ``mass_kg``
 is used.
+
+Model: the controller never reads a file. ``feedforward.model_file`` is loaded by the configuration layer
+(:func:`stagectl.config.load_app_config`), which stores the resolved :class:`~stagectl.friction.StageModel`
+in ``feedforward.model`` (see :func:`resolve_model`); a caller may also hand a model to
+:class:`StageController` directly.
 
 Real-time safety: ``step`` is (floats only, no allocation beyond the Command). ``StageController(...)``,
 ``retune`` and ``prepare_retune`` are not (the Kalman form designs its gain with python-control); for a
@@ -29,15 +34,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stagectl.clock import Timing
 from stagectl.control.api import Command, Reference
 from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
 from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.errors import ConfigError
-from stagectl.friction import StageModel, load_model_file, parse_friction
+from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
 from stagectl.friction.effects import Effects
-from stagectl.schema import param
+from stagectl.schema import load, param
 
 #: names of the terms in ``Command.terms`` (telemetry columns), all in newtons
 TERM_NAMES = ("u_pid", "u_p", "u_i", "u_d", "u_dob", "u_ff", "u_inertia")
@@ -64,6 +70,14 @@ class FeedforwardConfig:
     lookahead_s: float | None = param(
         None, unit="s", desc="evaluate the reference this far ahead, plus effects.delay (None: period_s/2, the "
         "zero-order-hold mid-point; add the I/O delay of the actuator path)", ge=0.0, le=0.1)
+    model: StageModel | None = param(
+        None, desc="the resolved stage model (inline friction or model_file, with effects); set by the "
+        "configuration loader, not a YAML key", parse=lambda value, path, problems: _not_a_key(path, problems))
+
+
+def _not_a_key(path: str, problems: list[str]) -> None:
+    """Parse hook of :attr:`FeedforwardConfig.model`: the loader fills it, a YAML file may not."""
+    problems.append(f"{path}: unknown key (the model is given with friction: or model_file:)")
 
 
 @dataclass(frozen=True)
@@ -95,28 +109,63 @@ class ControllerState:
     terms: dict[str, float] = field(default_factory=dict)
 
 
-def resolve_model(cfg: ControllerConfig, model: StageModel | FrictionModel | None = None,
-                  base_dir: str | Path | None = None) -> StageModel | None:
-    """The stage model the feed-forward uses: ``model`` argument > inline ``friction`` > ``model_file``.
+def resolve_model(cfg: ControllerConfig, file_model: StageModel | None = None) -> StageModel | None:
+    """The stage model the feed-forward uses: inline ``friction`` > the (already loaded) ``model_file`` model,
+    with the inline ``effects`` replacing the model's. Pure: reads no file.
 
-    Relative ``model_file`` paths are taken relative to ``base_dir`` (the config file's directory) when given.
+    Parameters
+    ----------
+    cfg : ControllerConfig
+    file_model : StageModel, optional
+        ``feedforward.model_file`` as loaded by the configuration layer (None: no file).
     """
     ff = cfg.feedforward
-    sm: StageModel | None
-    if isinstance(model, FrictionModel):
-        sm = StageModel(friction=model)
-    else:
-        sm = model
-    if sm is None and ff.friction is not None:
-        sm = StageModel(friction=ff.friction)
-    if sm is None and ff.model_file is not None:
-        p = Path(ff.model_file)
-        if base_dir is not None and not p.is_absolute():
-            p = Path(base_dir) / p
-        sm = load_model_file(p)
+    sm: StageModel | None = file_model
+    if ff.friction is not None:
+        mass = file_model.mass_kg if file_model is not None else None
+        sm = StageModel(friction=ff.friction, mass_kg=mass)
     if sm is not None and ff.effects is not None:
         sm = StageModel(friction=sm.friction, effects=ff.effects, mass_kg=sm.mass_kg, meta=sm.meta)
     return sm
+
+
+def _model_of(cfg: ControllerConfig, model: StageModel | FrictionModel | None) -> StageModel | None:
+    """``model`` argument > ``feedforward.model`` (resolved by the loader) > inline ``friction``.
+
+    Raises
+    ------
+    ConfigError
+        ``feedforward.model_file`` is set but no resolved model came with it (the file is the loader's job).
+    """
+    if isinstance(model, FrictionModel):
+        return StageModel(friction=model)
+    if model is not None:
+        return model
+    ff = cfg.feedforward
+    if ff.model is not None:
+        return ff.model
+    if ff.model_file is not None:
+        raise ConfigError(f"controller.feedforward.model_file: {ff.model_file} is not loaded (load the "
+                          "configuration with stagectl.config.load_app_config, or pass the StageModel)")
+    return resolve_model(cfg, None)
+
+
+def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | None = None) -> list[str]:
+    """What :class:`StageController` needs besides a valid ``cfg``: a model for ``feedforward.kind: model``
+    and a mass (``mass_kg`` or the model's). Returns the problems (empty: the controller can be built); the
+    configuration layer runs exactly this check, without designing the controller."""
+    try:
+        sm = _model_of(cfg, model)
+    except ConfigError as exc:
+        return list(exc.problems)
+    problems: list[str] = []
+    if cfg.feedforward.kind == "model" and sm is None:
+        problems.append("controller.feedforward: kind 'model' needs friction:, model_file: or a model "
+                        "from the application (or use kind: none / coulomb)")
+    if cfg.mass_kg is None and (sm is None or sm.mass_kg is None):
+        problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
+                        "or give mass_kg in the model file)")
+    return problems
 
 
 @dataclass
@@ -136,13 +185,12 @@ class StageController:
     Parameters
     ----------
     cfg : ControllerConfig
-    period_s : float
-        Nominal control period [s]; discrete coefficients are derived for it once (and re-derived only if a
-        step's ``dt`` differs).
+    timing : Timing or float
+        The loop's timing (or its nominal period [s]); discrete coefficients are derived for it once (and
+        re-derived only if a step's ``dt`` differs).
     model : StageModel or FrictionModel, optional
-        Model for ``feedforward.kind: model`` (takes precedence over the config's friction/model_file).
-    base_dir : path, optional
-        Directory for relative ``feedforward.model_file`` paths.
+        Model for ``feedforward.kind: model`` and the mass (takes precedence over ``feedforward.model``, the
+        model the configuration loader resolved from ``friction:`` / ``model_file:``).
 
     Raises
     ------
@@ -150,12 +198,12 @@ class StageController:
         No mass available, or ``kind: model`` without any model.
     """
 
-    def __init__(self, cfg: ControllerConfig, period_s: float, model: StageModel | FrictionModel | None = None,
-                 *, base_dir: str | Path | None = None):
-        check_dt(period_s)
-        self.period_s = period_s
+    def __init__(self, cfg: ControllerConfig, timing: Timing | float,
+                 model: StageModel | FrictionModel | None = None) -> None:
+        check_dt(timing.period_s if isinstance(timing, Timing) else timing)
+        self.timing = Timing.of(timing)
+        self.period_s = self.timing.period_s
         self._model_arg = model
-        self._base_dir = base_dir
         self.state = ControllerState()
         self._pending: _Parts | None = None
         parts = self._build(cfg, None)
@@ -170,34 +218,15 @@ class StageController:
 
     # ------------------------------------------------------------------ construction
     def _build(self, cfg: ControllerConfig, old: StageController | None) -> _Parts:
-        problems: list[str] = []
-        sm: StageModel | None = None
+        problems = check_controller(cfg, self._model_arg)
+        if problems:
+            raise ConfigError(problems)
         ffc = cfg.feedforward
         same_ff = old is not None and old.cfg.feedforward == ffc
-        if ffc.kind == "model" and not same_ff:
-            try:
-                sm = resolve_model(cfg, self._model_arg, self._base_dir)
-            except ConfigError as exc:
-                problems.extend(f"controller.feedforward.model_file: {p}" for p in exc.problems)
-            else:
-                if sm is None:
-                    problems.append("controller.feedforward: kind 'model' needs friction:, model_file: or a model "
-                                    "from the application (or use kind: none / coulomb)")
-        mass = cfg.mass_kg
-        if mass is None:
-            if sm is None and isinstance(self._model_arg, StageModel):
-                sm = self._model_arg
-            if sm is None and ffc.model_file is not None:
-                try:
-                    sm = resolve_model(cfg, None, self._base_dir)
-                except ConfigError:
-                    sm = None
-            mass = sm.mass_kg if sm is not None else None
-        if mass is None:
-            problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
-                            "or give mass_kg in the model file)")
-        if problems or mass is None:
-            raise ConfigError(problems)
+        sm = _model_of(cfg, self._model_arg)
+        mass = cfg.mass_kg if cfg.mass_kg is not None else (sm.mass_kg if sm is not None else None)
+        if mass is None:  # excluded by check_controller
+            raise ConfigError("controller.mass_kg: required key missing kg")
         # feed-forward
         ff: FrictionFeedforward | CoulombFeedforward | None
         kw = dict(reversal_threshold_m=ffc.reversal_threshold_m, reversal_velocity_m_s=ffc.reversal_velocity_m_s,
@@ -373,13 +402,12 @@ class StageController:
         return Command(u, terms, limited)
 
 
-def controller_from_mapping(data: Any, period_s: float, model: StageModel | FrictionModel | None = None,
-                            base_dir: str | Path | None = None) -> StageController:
-    """Convenience: ``controller:`` YAML mapping -> :class:`StageController` (errors as ConfigError)."""
-    from stagectl.schema import load
-
-    return StageController(load(ControllerConfig, data, "controller"), period_s, model, base_dir=base_dir)
+def controller_from_mapping(data: Any, timing: Timing | float,
+                            model: StageModel | FrictionModel | None = None) -> StageController:
+    """Convenience: ``controller:`` YAML mapping (no ``model_file``) -> :class:`StageController` (errors as
+    ConfigError)."""
+    return StageController(load(ControllerConfig, data, "controller"), timing, model)
 
 
 __all__ = ["TERM_NAMES", "ControllerConfig", "ControllerState", "FeedforwardConfig", "StageController",
-           "controller_from_mapping", "resolve_model", "DobConfig", "PidConfig"]
+           "check_controller", "controller_from_mapping", "resolve_model", "DobConfig", "PidConfig"]

@@ -58,7 +58,7 @@ from pathlib import Path
 from typing import Any
 
 from stagectl.daemon._sched import demote_to_normal_priority
-from stagectl.daemon.config import DaemonConfig
+from stagectl.config.daemon import DaemonConfig
 from stagectl.daemon.control import ControlServer, RequestError, to_json
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings

@@ -120,7 +120,7 @@ class TelemetryRing:
 
 @dataclass(frozen=True)
 class WriterSettings:
-    """How the writer stores telemetry (built from :class:`stagectl.daemon.config.TelemetryConfig`)."""
+    """How the writer stores telemetry (built from :class:`stagectl.config.daemon.TelemetryConfig`)."""
 
     directory: Path
     continuous: bool = True

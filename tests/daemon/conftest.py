@@ -78,7 +78,7 @@ class PD:
 
 def load_rig_config(path: Path):
     """The rig's 'check-config': YAML with a controller section and an optional daemon section."""
-    from stagectl.daemon.config import load_daemon_config
+    from stagectl.config.daemon import load_daemon_config
     from stagectl.schema import load_yaml_file
 
     raw = load_yaml_file(path) or {}

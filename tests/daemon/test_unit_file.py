@@ -90,7 +90,7 @@ def test_unit_keeps_what_the_loop_needs():
 def test_daemon_stops_within_the_units_stop_timeout():
     """SIGTERM → exit 0 within TimeoutStopSec: the daemon's own stop budget (halt, disable, flush) must fit in it,
     with room for the Python interpreter's exit; the watchdog is pinged at most every WatchdogSec/2."""
-    from stagectl.daemon.config import DaemonConfig
+    from stagectl.config.daemon import DaemonConfig
 
     s = _settings()
 

@@ -1,0 +1,129 @@
+"""The sections of a stagectl YAML file, each typed by the dataclass of the layer that uses it.
+
+Sections (see ``config/sim.yaml`` for a commented example)::
+
+    loop:        LoopConfig        period_s, realtime {fifo_priority, cpus, mlock, timer_slack_ns, gc_freeze}, ...
+    io:          IoConfig          kind: plant_io | embedded_canopen | canopen; sensor: drive | encoder |
+                                   interferometer; drive: Cia402Config; encoder: Cia406Config;
+                                   interferometer: InterferometerConfig; delay_cycles (plant_io)
+    sim:         SimWorldConfig    plant: PlantConfig (+ the virtual devices for embedded_canopen and
+                                   ``stagectl sim-plant``); required for plant_io/embedded_canopen
+    controller:  ControllerConfig  (stagectl.control.controller)
+    safety:      SafetyConfig      soft limits, following error, force/velocity limits, stale position
+    demo:        DemoConfig        what ``stagectl run`` does (scenario, repeat)
+    daemon:      DaemonConfig      control socket, watchdog, telemetry (stagectl.config.daemon)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass
+from pathlib import Path
+
+from stagectl.clock import Timing
+from stagectl.control.controller import ControllerConfig
+from stagectl.config.daemon import DaemonConfig
+from stagectl.drivers.cia402 import Cia402Config
+from stagectl.drivers.cia406 import Cia406Config
+from stagectl.drivers.interferometer import InterferometerConfig
+from stagectl.errors import ConfigError
+from stagectl.loop import LoopConfig
+from stagectl.safety import SafetyConfig
+from stagectl.schema import param, section_parser
+from stagectl.sim.world import SimWorldConfig
+
+__all__ = ["AppConfig", "DemoConfig", "IoConfig", "IoKind", "SensorSource"]
+
+
+class IoKind(enum.Enum):
+    """How the loop reaches the stage."""
+
+    PLANT_IO = "plant_io"  # the simulated plant wrapped directly (sim.direct.PlantIO): fastest, no protocol
+    EMBEDDED_CANOPEN = "embedded_canopen"  # real CiA 402 driver <-> virtual drive on the in-process bus
+    CANOPEN = "canopen"  # real driver on a real bus (socketcan) or a sim-plant process (socketcand)
+
+
+class SensorSource(enum.Enum):
+    """Where the loop's position comes from."""
+
+    DRIVE = "drive"  # the drive's position actual 0x6064
+    ENCODER = "encoder"  # a CiA 406 encoder node
+    INTERFEROMETER = "interferometer"  # the serial interferometer
+
+
+@dataclass(frozen=True)
+class IoConfig:
+    """Devices."""
+
+    kind: IoKind = param(IoKind.PLANT_IO, desc="plant_io | embedded_canopen | canopen")
+    sensor: SensorSource = param(SensorSource.DRIVE, desc="position source: drive | encoder | interferometer")
+    delay_cycles: int = param(1, desc="plant_io: actuation delay in SYNC periods (1 = like a sync RPDO)",
+                              ge=0, le=100)
+    drive: Cia402Config | None = param(None, desc="CiA 402 drive (stagectl.drivers.cia402.Cia402Config)")
+    encoder: Cia406Config | None = param(None, desc="CiA 406 encoder (stagectl.drivers.cia406.Cia406Config)")
+    interferometer: InterferometerConfig | None = param(
+        None, desc="serial interferometer (stagectl.drivers.interferometer.InterferometerConfig)")
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.kind is IoKind.CANOPEN and self.drive is None:
+            problems.append("io.drive: required for io.kind canopen")
+        if self.sensor is SensorSource.ENCODER and self.kind is IoKind.CANOPEN and self.encoder is None:
+            problems.append("io.encoder: required for io.sensor encoder")
+        if (self.sensor is SensorSource.INTERFEROMETER and self.kind is not IoKind.PLANT_IO
+                and self.interferometer is None):
+            problems.append("io.interferometer: required for io.sensor interferometer")
+        if self.kind is IoKind.PLANT_IO and self.sensor is not SensorSource.DRIVE:
+            problems.append("io.sensor: plant_io measures through the plant itself; use sensor: drive")
+        if problems:
+            raise ConfigError(problems)
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """What ``stagectl run`` moves when no daemon client is commanding."""
+
+    scenario: str = param("demo", desc="scenario name (demo, cosine, triangle, steps, hold)")
+    repeat: bool = param(True, desc="restart the scenario when it ends")
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    """The whole validated configuration (built by :func:`stagectl.config.load_app_config`).
+
+    Model files are already resolved: ``sim.plant`` holds the merged plant, and
+    ``controller.feedforward.model`` the :class:`~stagectl.friction.StageModel` the controller uses.
+    """
+
+    safety: SafetyConfig = param(desc="limits and watchdogs")
+    controller: ControllerConfig = param(desc="controller tuning (stagectl.control.controller.ControllerConfig)")
+    loop: LoopConfig = param(default_factory=LoopConfig, desc="loop timing")
+    io: IoConfig = param(default_factory=IoConfig, desc="devices")
+    demo: DemoConfig = param(default_factory=DemoConfig, desc="demo motion of `stagectl run`")
+    daemon: DaemonConfig = param(default_factory=DaemonConfig, desc="service settings (stagectl.config.daemon)")
+    description: str = param("", desc="free text shown by check-config")
+    sim: SimWorldConfig | None = param(
+        None, desc="simulated stage: plant and virtual devices (stagectl.sim.world.SimWorldConfig)",
+        parse=section_parser(SimWorldConfig))
+    # filled by load_app_config (not a YAML key)
+    path: Path | None = dataclasses.field(default=None, metadata={"desc": "source file", "unit": ""})
+
+    @property
+    def base_dir(self) -> Path:
+        """The directory of the YAML file (relative paths in it are relative to this)."""
+        return self.path.parent if self.path is not None else Path.cwd()
+
+    @property
+    def period_s(self) -> float:
+        return self.loop.period_s
+
+    @property
+    def timing(self) -> Timing:
+        """The loop's one timing value (every consumer derives its cycle counts from it)."""
+        return Timing(self.loop.period_s)
+
+    def resolve(self, p: str | Path) -> Path:
+        """A path from the file, relative to the file's directory."""
+        q = Path(p)
+        return q if q.is_absolute() else self.base_dir / q

@@ -1,0 +1,117 @@
+"""The loop's reference source and the scenario registry.
+
+* :func:`scenario_names` / :func:`get_scenario`: the motions known by name (``--scenario``, ``demo.scenario``):
+  the benchmark scenarios of :func:`stagectl.control.trajectory.benchmark_scenarios` plus ``demo`` (the demo
+  motion of ``stagectl run``) and ``hold`` (no motion: ``None``).
+* :class:`TrajectoryReference`: adapts :class:`~stagectl.control.trajectory.TrajectoryGenerator`
+  (``step(dt)``) to the loop's reference source (``sample(t)``, ``hold``, ``move``, ``stop``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from stagectl.control.api import Reference
+from stagectl.control.trajectory import Move, Scenario, TrajectoryGenerator, benchmark_scenarios, demo_scenario
+from stagectl.errors import ConfigError
+
+__all__ = ["EXTRA_SCENARIOS", "TrajectoryReference", "get_scenario", "scenario_names"]
+
+#: names accepted besides the benchmark scenarios: ``demo`` (demo motion) and ``hold`` (no motion)
+EXTRA_SCENARIOS = ("demo", "hold")
+
+
+def scenario_names() -> tuple[str, ...]:
+    """Every scenario name :func:`get_scenario` knows, benchmark ones first."""
+    return (*benchmark_scenarios(), *EXTRA_SCENARIOS)
+
+
+def get_scenario(name: str, field: str = "--scenario") -> Scenario | None:
+    """The scenario called ``name`` (``hold`` is None: stand still).
+
+    Raises
+    ------
+    ConfigError
+        An unknown name, naming ``field`` and the known names.
+    """
+    if name == "hold":
+        return None
+    if name == "demo":
+        return demo_scenario()
+    sc = benchmark_scenarios()
+    if name not in sc:
+        raise ConfigError(f"{field}: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
+    return sc[name]
+
+
+class TrajectoryReference:
+    """Adapts :class:`~stagectl.control.trajectory.TrajectoryGenerator` (``step(dt)``) to the loop's
+    ``ReferenceSource`` (``sample(t)``, ``hold``, ``move``, ``stop``).
+
+    A scenario given with :meth:`set_scenario` starts at the loop's first ``hold`` (from the measured
+    position); with ``repeat`` it restarts whenever it ends, until a ``move``/``stop`` request takes over.
+    Real-time safe apart from ``move``/``stop`` (binding one segment).
+    """
+
+    def __init__(self, default_velocity_m_s: float = 1e-3) -> None:
+        self.gen = TrajectoryGenerator(0.0)
+        self.default_velocity_m_s = default_velocity_m_s
+        self._t = 0.0
+        self._target = 0.0
+        self._scenario: Scenario | None = None
+        self._repeat = False
+        self._started = False
+
+    def set_scenario(self, scenario: Scenario | None, repeat: bool = False) -> None:
+        """Run ``scenario`` (None: hold) from the loop's next ``hold``; ``repeat`` restarts it when it ends."""
+        self._scenario = scenario
+        self._repeat = repeat
+        self._started = False
+
+    def hold(self, t_s: float, x_m: float) -> None:
+        self.gen.reset(x_m)
+        self._t = t_s
+        self._target = x_m
+        if self._scenario is not None and not self._started:
+            self._started = True
+            self.gen.load(self._scenario)
+            self._target = math.nan
+
+    def sample(self, t_s: float) -> Reference:
+        dt = t_s - self._t
+        if dt > 0.0:
+            self._t = t_s
+            ref = self.gen.step(dt)
+            if self._repeat and self.gen.done and self._scenario is not None:
+                self.gen.load(self._scenario)
+            return ref
+        return self.gen.sample()
+
+    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
+        self._repeat = False
+        self._scenario = None
+        self.gen.move(target_m, max_velocity_m_s or self.default_velocity_m_s)
+        self._target = target_m
+        return float(self.gen.remaining_s())
+
+    def stop(self, t_s: float) -> float:
+        """Decelerate (jerk-limited, the generator's default move limits) and hold where the reference comes
+        to rest; returns that position [m]."""
+        self._repeat = False
+        self._scenario = None
+        self.sample(t_s)
+        lim = Move(by_m=0.0)
+        end = float(self.gen.stop(lim.max_acceleration_m_s2, lim.max_jerk_m_s3))
+        self._target = end
+        return end
+
+    @property
+    def scenario(self) -> Scenario | None:
+        """The scenario set with :meth:`set_scenario` (None after a move/stop request took over)."""
+        return self._scenario
+
+    @property
+    def target_m(self) -> float:
+        if math.isnan(self._target):
+            return float(self.gen.final_reference().x_m)
+        return self._target
