@@ -31,9 +31,9 @@ import can
 from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor, SyncProducer
 from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
-from stagectl.resources import EDS_DIR
 from stagectl.drivers.cia402 import PDO_DISABLED, SYNC_COB_ID, _default_can, unwrap32
 from stagectl.errors import ConfigError, DriverInitError, DriverIOError
+from stagectl.resources import EDS_DIR
 from stagectl.schema import param
 
 log = logging.getLogger(__name__)

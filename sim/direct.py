@@ -83,7 +83,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         res = getattr(plant, "resolution_m", None)
         if res is None:  # StagePlant: cfg.sensor.resolution_m
             res = getattr(getattr(getattr(plant, "cfg", None), "sensor", None), "resolution_m", 1e-9)
-        self.resolution_m = float(res)
+        self.resolution_m = float(res) if isinstance(res, (int, float)) else 1e-9
         # commands latched at earlier SYNCs still waiting (delay_cycles − 1 of them)
         self._pipe: deque[float] = deque([0.0] * max(0, self.delay_cycles - 1))
         self._u_applied = 0.0

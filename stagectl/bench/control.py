@@ -127,7 +127,8 @@ def _variant(base: ControllerConfig, *, pid: PidConfig | None = None, dob_hz: fl
 def run(args: argparse.Namespace) -> dict[str, Any]:
     t_start = time.perf_counter()
     cfg = load_app_config(args.config)
-    if cfg.sim is None:
+    sim = cfg.sim
+    if sim is None:
         raise ConfigError("bench control: the config needs a sim: section (the seed stage)")
     # plant_io; a generous following-error window so that weak baselines are measured, not stopped
     cfg = dataclasses.replace(
@@ -136,7 +137,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         safety=dataclasses.replace(cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)),
     )
     base = cfg.controller
-    plant = cfg.sim.plant
+    plant = sim.plant
     exact = plant.friction
     off = mismatched(exact)
     m_exact = StageModel(friction=exact, effects=plant.effects, mass_kg=plant.mass_kg)
@@ -151,7 +152,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             pids[f"{bw:g}Hz"] = design_pid(mass, bw, cfg.loop.period_s, delay_samples=1)
 
     def score(results: dict[str, dict[str, Any]]) -> float:
-        return sum(results[s]["rms_error_nm"] for s in TRACKING)
+        return sum(float(results[s]["rms_error_nm"]) for s in TRACKING)
 
     margin_cache: dict[Hashable, dict[str, Any]] = {}
 

@@ -54,7 +54,7 @@ def make_drive():
 
     def make(can, period_s=0.001, **kw):
         kw.setdefault("sdo_timeout_s", 3.0)  # failure guard only: the machine is shared and loaded
-        d = Cia402Drive(Cia402Config(node_id=kw.pop("node_id", 1), can=can, **kw), period_s=period_s)
+        d = Cia402Drive(Cia402Config(node_id=kw.pop("node_id", 1), can=can, **kw), timing=period_s)
         drives.append(d)
         return d
 

@@ -17,7 +17,7 @@ def rig(lockstep):
     def make(**enc_kw):
         world, drive = lockstep(world_kw={"encoder": {"node_id": 5, "resolution_m": 5e-9}})
         enc = Cia406Encoder(Cia406Config(node_id=5, can=world.ready_info()["can"], resolution_m=5e-9, sdo_timeout_s=3.0, **enc_kw),
-                            period_s=0.001)
+                            timing=0.001)
         encoders.append(enc)
         enc.set_pump(world.pump)
         enc.open()

@@ -36,7 +36,7 @@ def test_every_shipped_config_loads(path):
 def test_sim_yaml_is_the_seed_stage():
     cfg = load_app_config(REPO / "config" / "sim.yaml")
     assert cfg.io.kind is IoKind.EMBEDDED_CANOPEN  # the real CiA 402 driver against the virtual drive
-    assert cfg.sim.world is not None and cfg.sim.world.transport.kind == "virtual"
+    assert cfg.sim is not None and cfg.sim.transport.kind == "virtual"
     plant = cfg.sim.plant
     assert plant.mass_kg == 2.0
     assert plant.sensor.resolution_m == 1e-9

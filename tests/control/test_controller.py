@@ -3,6 +3,7 @@ trend, bumpless reset/retune, terms and limiters, input checks."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -223,8 +224,22 @@ def test_config_errors_are_clear():
 def test_model_file_and_inline_friction(tmp_path):
     from control_harness import SEED_MODEL
 
+    from stagectl.config import ModelFiles
+    from stagectl.control.controller import resolve_model
+
+    def resolved(cfg: ControllerConfig, files: ModelFiles) -> ControllerConfig:
+        """What the configuration loader does: the model file loaded once, handed over as feedforward.model."""
+        problems: list[str] = []
+        sm = files.load(cfg.feedforward.model_file, "controller.feedforward.model_file", problems)
+        if problems:
+            raise ConfigError(problems)
+        ff = dataclasses.replace(cfg.feedforward, model=resolve_model(cfg, sm))
+        return dataclasses.replace(cfg, feedforward=ff)
+
     cfg = load(ControllerConfig, {"feedforward": {"model_file": str(SEED_MODEL)}}, "controller")
-    dut = StageController(cfg, 1e-3)
+    with pytest.raises(ConfigError, match="model_file.*not loaded"):
+        StageController(cfg, 1e-3)  # the controller reads no file
+    dut = StageController(resolved(cfg, ModelFiles(None)), 1e-3)
     assert dut.mass_kg == 2.0  # from the model file
     cfg2 = load(ControllerConfig, {"mass_kg": 3.0, "feedforward": {
         "friction": {"model": "gms", **{k: v for k, v in seed_model().friction.spec().items() if k != "model"}},
@@ -234,7 +249,7 @@ def test_model_file_and_inline_friction(tmp_path):
     cmd = dut2.step(1e-3, 0.0, Reference(0.0))
     assert cmd.terms["u_ff"] == pytest.approx(0.1)
     rel = load(ControllerConfig, {"feedforward": {"model_file": "kamenar2016_gms.yaml"}}, "controller")
-    assert StageController(rel, 1e-3, base_dir=SEED_MODEL.parent).mass_kg == 2.0
+    assert StageController(resolved(rel, ModelFiles(SEED_MODEL.parent)), 1e-3).mass_kg == 2.0
     with pytest.raises(ConfigError, match="model_file"):
-        StageController(load(ControllerConfig, {"mass_kg": 2.0, "feedforward": {"model_file": str(tmp_path / "x")}},
-                             "controller"), 1e-3)
+        resolved(load(ControllerConfig, {"mass_kg": 2.0, "feedforward": {"model_file": str(tmp_path / "x")}},
+                      "controller"), ModelFiles(None))

@@ -49,7 +49,7 @@ def test_every_value_is_documented_in_the_header(path):
 def test_model_file_runs_in_the_plant_and_slides_both_ways(path):
     from stagectl.sim.plant import plant_from_model
 
-    dut = plant_from_model(path)
+    dut = plant_from_model(load_model_file(path))
     t = np.arange(20000) * 1e-4
     r = dut.simulate(1.5 * np.sin(2 * np.pi * 2.0 * t), 1e-4)
     assert np.all(np.isfinite(r["x"])) and np.ptp(r["x"]) > 1e-3

@@ -64,7 +64,7 @@ def test_discover_cli_writes_report_plots_and_loadable_model(spring_stage, tmp_p
     assert model.mass_kg == pytest.approx(st["mass_kg"], rel=0.05)
     from stagectl.sim.plant import PlantConfig, StagePlant
 
-    StagePlant(PlantConfig.from_mapping({"model_file": str(out / "model.yaml")}))
+    StagePlant(PlantConfig.from_mapping({"model_file": str(out / "model.yaml")}, model=model))
 
 
 def test_identify_cli_writes_model_and_plots(spring_stage, tmp_path: Path,

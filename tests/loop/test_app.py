@@ -141,7 +141,7 @@ def test_run_command_smoke(tmp_path, capsys):
 
 
 def test_stop_decelerates_and_holds_without_going_back():
-    from stagectl.app import TrajectoryReference
+    from stagectl.control.reference import TrajectoryReference
 
     ref = TrajectoryReference()
     ref.hold(0.0, 0.0)
@@ -173,7 +173,9 @@ def test_retune_with_the_stage_controller(plant_io_cfg):
         loop, ctl = stage.loop, stage.controller
         old = ctl.cfg
         new = dataclasses.replace(old, pid=dataclasses.replace(old.pid, kp_n_m=old.pid.kp_n_m * 0.5))
-        bad = dataclasses.replace(old, feedforward=dataclasses.replace(old.feedforward, model_file=Path("nope.yaml")))
+        # a model file the configuration loader did not resolve (the controller itself reads no file)
+        bad = dataclasses.replace(old, feedforward=dataclasses.replace(old.feedforward, model_file=Path("nope.yaml"),
+                                                                       model=None))
         with pytest.raises(ConfigError, match="nope.yaml"):
             loop.request("retune", controller_config=bad)
         fut = loop.request("retune", controller_config=new)

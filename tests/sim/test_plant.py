@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from stagectl.errors import ConfigError
+from stagectl.friction import load_model_file
 from stagectl.sim.plant import PlantConfig, StagePlant
 
 REPO = Path(__file__).resolve().parents[2]
@@ -283,11 +284,12 @@ def test_reset_restores_initial_state():
 
 # ---------------------------------------------------------------------------------------------- config
 def test_model_file_relative_to_base_dir_and_overrides():
-    cfg = PlantConfig.from_mapping({"model_file": "kamenar2016_gms.yaml"}, base_dir=MODELS)
+    gms_model = load_model_file(MODELS / "kamenar2016_gms.yaml")  # the configuration layer's job
+    cfg = PlantConfig.from_mapping({"model_file": "kamenar2016_gms.yaml"}, model=gms_model)
     assert cfg.mass_kg == 2.0 and cfg.friction.tag == "gms"
     cfg2 = PlantConfig.from_mapping(
         {"model_file": "kamenar2016_gms.yaml", "mass_kg": 5.0, "friction": {"c_n_s": 2e4},
-         "effects": {"offset": {"force_n": 0.1}}}, base_dir=MODELS)
+         "effects": {"offset": {"force_n": 0.1}}}, model=gms_model)
     assert cfg2.mass_kg == 5.0
     assert cfg2.friction.params.c_n_s == 2e4 and cfg2.friction.params.fs_n == 0.9
     assert cfg2.effects.offset is not None and cfg2.effects.offset.force_n == 0.1
@@ -302,7 +304,7 @@ def test_config_errors_name_every_key():
     for key in ("plant.mass_kg", "plant.friction.c_ns", "plant.sensor.resolution_m", "plant.substepp_s"):
         assert key in msg
     with pytest.raises(ConfigError, match="plant.model_file"):
-        PlantConfig.from_mapping({"model_file": "nope.yaml"}, base_dir=MODELS)
+        PlantConfig.from_mapping({"model_file": "nope.yaml"})  # given, but not loaded
 
 
 def test_bad_step_arguments():
