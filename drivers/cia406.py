@@ -19,7 +19,6 @@ TPDO → ``MISSED_FRAME``; a step faster than ``max_speed_m_s`` → ``SENSOR_ERR
 from __future__ import annotations
 
 import logging
-import math
 import struct
 import time
 from dataclasses import dataclass

@@ -38,7 +38,7 @@ from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
 from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
 from stagectl.drivers.interferometer import SerialInterferometer
 from stagectl.errors import ConfigError, StageError
-from stagectl.loop import ControlLoop, Controller
+from stagectl.loop import Controller, ControlLoop
 from stagectl.safety import Safety
 from stagectl.sim.cia402_drive import SimDriveConfig
 from stagectl.sim.cia406_encoder import SimEncoderConfig

@@ -28,7 +28,6 @@ from stagectl.control.pid import PidConfig
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 
-
 #: margins below these are reported as thin (typical robustness targets for a motion loop)
 HEALTHY_PHASE_MARGIN_DEG = 40.0
 HEALTHY_GAIN_MARGIN_DB = 6.0

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stagectl.clock import Timing
-from stagectl.control.controller import ControllerConfig
 from stagectl.config.daemon import DaemonConfig
+from stagectl.control.controller import ControllerConfig
 from stagectl.drivers.cia402 import Cia402Config
 from stagectl.drivers.cia406 import Cia406Config
 from stagectl.drivers.interferometer import InterferometerConfig

@@ -409,5 +409,15 @@ def controller_from_mapping(data: Any, timing: Timing | float,
     return StageController(load(ControllerConfig, data, "controller"), timing, model)
 
 
-__all__ = ["TERM_NAMES", "ControllerConfig", "ControllerState", "FeedforwardConfig", "StageController",
-           "check_controller", "controller_from_mapping", "resolve_model", "DobConfig", "PidConfig"]
+__all__ = [
+    "TERM_NAMES",
+    "ControllerConfig",
+    "ControllerState",
+    "DobConfig",
+    "FeedforwardConfig",
+    "PidConfig",
+    "StageController",
+    "check_controller",
+    "controller_from_mapping",
+    "resolve_model",
+]

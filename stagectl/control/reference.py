@@ -12,7 +12,13 @@ from __future__ import annotations
 import math
 
 from stagectl.control.api import Reference
-from stagectl.control.trajectory import Move, Scenario, TrajectoryGenerator, benchmark_scenarios, demo_scenario
+from stagectl.control.trajectory import (
+    Move,
+    Scenario,
+    TrajectoryGenerator,
+    benchmark_scenarios,
+    demo_scenario,
+)
 from stagectl.errors import ConfigError
 
 __all__ = ["EXTRA_SCENARIOS", "TrajectoryReference", "get_scenario", "scenario_names"]

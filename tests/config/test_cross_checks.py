@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from stagectl.drivers.canbus import accepted_bus_keys, can_key_problems
 
 from stagectl.config import AppConfig, load_app_config, parse_app_config
 from stagectl.config.checks import force_chain_problems
-from stagectl.drivers.canbus import accepted_bus_keys, can_key_problems
 from stagectl.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]

@@ -7,16 +7,16 @@ import math
 from pathlib import Path
 
 import pytest
+from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
+from stagectl.sim.cia402_drive import SimDriveConfig
+from stagectl.sim.cia406_encoder import SimEncoderConfig
+from stagectl.sim.faults import FAULT_ALIASES, STALE_CYCLES, SimFault, world_fault
 
 from stagectl.app import IO_BUILDERS, build_stage, embedded_drive_config, embedded_encoder_config
 from stagectl.clock import SimClock, Timing
 from stagectl.config import IoKind, load_app_config
 from stagectl.control.reference import get_scenario, scenario_names
-from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
 from stagectl.errors import ConfigError
-from stagectl.sim.cia402_drive import SimDriveConfig
-from stagectl.sim.cia406_encoder import SimEncoderConfig
-from stagectl.sim.faults import FAULT_ALIASES, STALE_CYCLES, SimFault, world_fault
 
 REPO = Path(__file__).resolve().parents[2]
 
