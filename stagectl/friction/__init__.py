@@ -12,13 +12,12 @@ Public API (stable; other tools build on it):
       effects: {offset: {force_n: 0.1}, ...}   # optional, see stagectl.friction.effects
       meta: {...}             # optional free-form provenance (fit quality, source, notes)
 
-Models register themselves with :func:`stagectl.friction.base.register`; importing this package
-imports every model module so that all tags are available.
+Models register themselves with :func:`stagectl.friction.base.register`; this package imports every
+model module (at the end of this file) so that all tags are available.
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,19 +41,6 @@ __all__ = [
     "registry",
     "save_model_file",
 ]
-
-#: modules that define models; each registers its classes on import
-_MODEL_MODULES = ("static", "maxwell", "gms", "lugre", "dahl", "hsieh")
-
-
-def _import_models() -> None:
-    for name in _MODEL_MODULES:
-        try:
-            importlib.import_module(f"stagectl.friction.{name}")
-        except ModuleNotFoundError as exc:  # a model module not written yet
-            if exc.name != f"stagectl.friction.{name}":
-                raise
-
 
 def build(spec: Mapping[str, Any], path: str = "friction") -> FrictionModel:
     """Build a friction model from its YAML mapping.
@@ -80,7 +66,6 @@ def build(spec: Mapping[str, Any], path: str = "friction") -> FrictionModel:
 
 def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel | None:
     """``stagectl.schema`` parse hook for a ``friction:`` field (returns a built model)."""
-    _import_models()
     if isinstance(value, FrictionModel):
         return value
     if not isinstance(value, Mapping):
@@ -158,3 +143,5 @@ def save_model_file(model: StageModel, path: str | Path, header: str = "") -> No
     Path(path).write_text(text, encoding="utf-8")
 
 
+# the model modules: each registers its classes with base.register on import
+from stagectl.friction import dahl, gms, hsieh, lugre, maxwell, static  # noqa: E402,F401
