@@ -103,7 +103,7 @@ class Device(ABC):
     def __init__(self) -> None:
         self._state = DeviceState.CLOSED
         self._fault: DeviceFault | None = None
-        self._pump: Callable[[], None] | None = None
+        self._pump: Callable[[], object] | None = None
 
     # -------------------------------------------------------------- state
     @property
@@ -115,7 +115,7 @@ class Device(ABC):
         """The latched fault, or None."""
         return self._fault
 
-    def set_pump(self, pump: Callable[[], None] | None) -> None:
+    def set_pump(self, pump: Callable[[], object] | None) -> None:
         """Lock-step mode: ``pump()`` runs the simulated peers synchronously instead of waiting."""
         self._pump = pump
 

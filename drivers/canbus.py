@@ -188,7 +188,7 @@ def error_frame_is_bus_off(msg: can.Message) -> bool:
 
 
 @contextmanager
-def pumping(pump: Callable[[], None] | None, name: str) -> Iterator[None]:
+def pumping(pump: Callable[[], object] | None, name: str) -> Iterator[None]:
     """Lock-step helper: while the caller blocks (e.g. on SDO), run ``pump()`` from a helper thread.
 
     No-op when ``pump`` is None (real devices or a simulation running in its own thread).

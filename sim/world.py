@@ -26,9 +26,10 @@ mode and is pumped at the end of every ``pump()`` in lock-step (configure it wit
 
 Example::
 
+    model = load_model_file(models_dir / "kamenar2016_gms.yaml")   # sim.plant.model_file, if any
     world = SimWorld.from_config(SimWorldConfig.from_mapping(yaml_mapping["sim"], plant_model=model))
     world.start()                                   # devices served in real time
-    drive = Cia402Drive(Cia402Config(node_id=1, can=world.ready_info()["can"]), period_s=1e-3)
+    drive = Cia402Drive(Cia402Config(node_id=1, can=world.ready_info()["can"]), Timing(1e-3))
     drive.set_pump(world.pump)                      # optional: lock-step from now on
     with drive: drive.configure(); drive.enable(); ...
     world.stop()
@@ -58,6 +59,7 @@ from stagectl.sim.cia406_encoder import SimCia406Encoder, SimEncoderConfig
 from stagectl.sim.faults import FaultSpec, SimFault
 from stagectl.sim.interferometer import SimInterferometer, SimInterferometerConfig
 from stagectl.sim.plant import PlantConfig, StagePlant
+from stagectl.sim.socketcand import SocketcandServer
 
 log = logging.getLogger(__name__)
 
@@ -158,8 +160,8 @@ class SimWorld:
         self._closed = False
         self.drive: SimCia402Drive | None = None
         self.encoder: SimCia406Encoder | None = None
-        self.interferometer: Any = None
-        self.server: Any = None
+        self.interferometer: SimInterferometer | None = None
+        self.server: SocketcandServer | None = None
         self.frames_in = 0
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
@@ -183,8 +185,6 @@ class SimWorld:
             raise RuntimeError("SimWorld is stopped")
         try:
             if self.cfg.transport.kind == "socketcand":
-                from stagectl.sim.socketcand import SocketcandServer
-
                 tr = self.cfg.transport
                 try:
                     self.server = SocketcandServer(self.channel, tr.host, tr.port, tr.can_name)
@@ -235,8 +235,9 @@ class SimWorld:
         t = self.now()
         for d in self.devices:
             d.on_frame(msg, t)
-        if self._ifm_on_sync and msg.arbitration_id == 0x080 and not msg.is_error_frame:
-            self._serial_bytes += int(self.interferometer.trigger())  # after the drive stepped the plant
+        ifm = self.interferometer
+        if self._ifm_on_sync and ifm is not None and msg.arbitration_id == 0x080 and not msg.is_error_frame:
+            self._serial_bytes += int(ifm.trigger())  # after the drive stepped the plant
 
     def _tick(self) -> None:
         t = self.now()

@@ -67,7 +67,7 @@ class Teardown:
     def open(self, dev: D, pump: Callable[[], object] | None = None) -> D:
         """Lock-step pump (virtual devices), open, register for closing, configure; returns ``dev``."""
         if pump is not None:
-            dev.set_pump(pump)  # type: ignore[arg-type]  # the drivers ignore what the pump returns
+            dev.set_pump(pump)
         dev.open()
         self.devices.append(dev)
         dev.configure()
