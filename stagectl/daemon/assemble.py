@@ -3,17 +3,18 @@
 * :func:`load_configs` — :func:`stagectl.config.load_app_config` (every problem at once, with paths and
   units), plus the ``daemon:`` section (:class:`~stagectl.config.daemon.DaemonConfig`) it contains.
 * :func:`build_assembly` — :func:`stagectl.app.build_stage` on the real monotonic clock, with the
-  ``loop.realtime`` settings applied in the loop thread. The returned :class:`~stagectl.app.Stage` provides
-  what :class:`~stagectl.daemon.service.Assembly` describes (``loop``, ``close``, ``controller_config``,
-  ``simulated``, ``inject_fault``, ``describe``). The reference holds position until a client moves it.
+  ``loop.realtime`` settings applied in the loop thread, handed to the service as its
+  :class:`~stagectl.daemon.service.Assembly` (``loop``, ``close``, ``controller_config``, ``simulated``,
+  ``inject_fault``, ``describe``). The reference holds position until a client moves it.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from stagectl.app import Stage, build_stage
+from stagectl.app import build_stage
 from stagectl.config import AppConfig, DaemonConfig, load_app_config
+from stagectl.daemon.service import Assembly
 
 
 def load_configs(path: Path) -> tuple[AppConfig, DaemonConfig]:
@@ -22,6 +23,9 @@ def load_configs(path: Path) -> tuple[AppConfig, DaemonConfig]:
     return cfg, cfg.daemon
 
 
-def build_assembly(cfg: AppConfig) -> Stage:
+def build_assembly(cfg: AppConfig) -> Assembly:
     """Open and configure the devices and build the loop (real time). Raises StageError subclasses."""
-    return build_stage(cfg)
+    stage = build_stage(cfg)
+    return Assembly(loop=stage.loop, close=stage.close, controller_config=stage.controller_config,
+                    simulated=stage.simulated, inject_fault=stage.inject_fault if stage.simulated else None,
+                    describe=stage.describe)

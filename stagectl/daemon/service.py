@@ -57,8 +57,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.config.daemon import DaemonConfig
+from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.daemon.control import ControlServer, RequestError, to_json
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
