@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from stagectl.config import load_app_config
 from stagectl.errors import ConfigError
 
 
@@ -22,6 +21,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 def run(args: argparse.Namespace) -> int:
     """Validate ``args.file`` with :func:`stagectl.config.load_app_config`; 0 when valid, 2 otherwise."""
+    from stagectl.config import load_app_config  # here, not at module level: keeps `stagectl --help` light
+
     try:
         cfg = load_app_config(args.file)
     except ConfigError as exc:

@@ -14,14 +14,16 @@ import dataclasses
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from stagectl.app import build_stage, get_scenario
-from stagectl.clock import SimClock
-from stagectl.config import AppConfig, IoKind, load_app_config
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
-from stagectl.recorder import Recorder, tracking_summary, write_outputs
+
+if TYPE_CHECKING:
+    from stagectl.config import AppConfig
+
+# The assembly, config and recorder are imported where a command runs, not at module level: `stagectl --help`
+# imports every command module and must not pay for numpy/numba/canopen (about 1 s).
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -46,6 +48,11 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
     ConfigError
         Unknown scenario, bad duration, unwritable ``out_dir``, or a canopen config without ``sim:``.
     """
+    from stagectl.app import build_stage, get_scenario
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.recorder import Recorder, tracking_summary, write_outputs
+
     if cfg.io.kind is IoKind.CANOPEN:
         if cfg.sim is None:
             raise ConfigError(f"{cfg.path}: simulate needs a sim: section (the simulated stage) for io.kind canopen")
@@ -79,6 +86,8 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
 
 
 def run(args: argparse.Namespace) -> int:
+    from stagectl.config import load_app_config
+
     cfg = load_app_config(args.config)
     summary = simulate(cfg, args.scenario, args.duration, args.out, tol_m=args.tolerance, plots=not args.no_plots)
     print(json.dumps(summary, default=str, separators=(",", ":")))

@@ -19,14 +19,17 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from stagectl.config import IoKind, load_app_config
-from stagectl.control import design
-from stagectl.control.dob import DobConfig
-from stagectl.control.pid import PidConfig
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
+
+if TYPE_CHECKING:
+    from stagectl.control.dob import DobConfig
+    from stagectl.control.pid import PidConfig
+
+# config and control.design (numpy, numba, python-control) are imported where a command runs, not at module
+# level: `stagectl --help` imports every command module and must stay light.
 
 #: margins below these are reported as thin (typical robustness targets for a motion loop)
 HEALTHY_PHASE_MARGIN_DEG = 40.0
@@ -55,6 +58,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
+    from stagectl.config import IoKind, load_app_config
+
     out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None}
     if args.config:
         cfg = load_app_config(args.config)
@@ -100,6 +105,8 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
 
 def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     """Compute the result dict (and exit code) without printing."""
+    from stagectl.control import design
+
     inp = _load_inputs(args)
     if args.out:
         prepare_out_dir(args.out)
@@ -160,6 +167,8 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
 def _kalman_q(m: float, T: float, dob: DobConfig) -> float:
     if dob.disturbance_noise_n_sqrt_s is not None:
         return float(dob.disturbance_noise_n_sqrt_s)
+    from stagectl.control import design
+
     return design.kalman_noise_for_bandwidth(m, T, dob.bandwidth_hz, dob.measurement_noise_m, use_control=True)
 
 
