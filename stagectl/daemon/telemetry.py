@@ -25,6 +25,7 @@ a file every ``retry_s``.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import threading
@@ -37,6 +38,7 @@ from typing import IO
 import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.daemon.config import TelemetryConfig
 
 log = logging.getLogger("stagectl.telemetry")
 
@@ -508,3 +510,19 @@ class TelemetryWriter:
 def _describe(exc: OSError, path: Path) -> str:
     what = exc.strerror or type(exc).__name__
     return f"{exc.filename or path}: {what}"
+
+
+def start_telemetry(tc: TelemetryConfig, directory: Path, columns: Sequence[str], period_s: float
+                    ) -> TelemetryWriter | None:
+    """The daemon's telemetry set-up: a ring holding ``tc.buffer_s`` of rows and its writer thread, started;
+    None when ``tc.enabled`` is false. The ring is ``writer.ring`` (a loop sink)."""
+    if not tc.enabled:
+        return None
+    ring = TelemetryRing(columns, max(1024, int(math.ceil(tc.buffer_s / period_s))))
+    writer = TelemetryWriter(ring, WriterSettings(
+        directory=directory, continuous=tc.continuous, rotate_bytes=int(tc.rotate_mb * 1e6), rotate_s=tc.rotate_s,
+        keep_files=tc.keep_files, flush_interval_s=tc.flush_interval_s, retry_s=tc.retry_s))
+    writer.start()
+    log.info("telemetry: %s (%d-row ring, %.0f s at %g Hz)", directory, ring.capacity, ring.capacity * period_s,
+             1.0 / period_s)
+    return writer
