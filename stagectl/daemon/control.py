@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.daemon.config import DaemonConfig
 from stagectl.outputs import plain
 from stagectl.runtime.requests import RequestError
 
@@ -146,6 +147,13 @@ class ControlServer:
         self._thread: threading.Thread | None = None
         self.stats = {"accepted": 0, "rejected": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
                       "kicked_idle": 0, "long_lines": 0, "internal_errors": 0}
+
+    @classmethod
+    def from_config(cls, path: Path, handler: Handler, c: DaemonConfig) -> ControlServer:
+        """A server with the ``daemon:`` section's bounds."""
+        return cls(path, handler, group=c.socket_group, max_clients=c.max_clients, max_line_bytes=c.max_line_bytes,
+                   max_out_bytes=c.max_out_bytes, idle_timeout_s=c.client_idle_timeout_s,
+                   reply_timeout_s=c.reply_timeout_s)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:

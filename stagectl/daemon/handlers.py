@@ -25,6 +25,7 @@ from typing import Any, Protocol
 
 from stagectl.daemon.config import DaemonConfig
 from stagectl.daemon.lifecycle import AssemblyLike
+from stagectl.daemon.reload import Reloader
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
@@ -44,8 +45,7 @@ class ServiceView(Protocol):
     asm: AssemblyLike | None
     writer: TelemetryWriter | None
 
-    @property
-    def reload_status(self) -> dict[str, Any] | None: ...
+    reloader: Reloader
 
     def status(self) -> dict[str, Any]: ...
 
@@ -91,7 +91,7 @@ def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrF
 def handle_gains(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     _only(req)
     ctl = svc.asm.controller_config if svc.asm else None
-    return {"controller": plain(ctl, json=True), "reload": svc.reload_status}
+    return {"controller": plain(ctl, json=True), "reload": svc.reloader.status}
 
 
 def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:

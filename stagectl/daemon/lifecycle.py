@@ -18,20 +18,21 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 from stagectl.daemon.control import ControlServer
-from stagectl.daemon.marker import UncleanLatch
+from stagectl.daemon.marker import UNCLEAN_FAULT, UncleanLatch
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.daemon.watchdog import Watchdog
 from stagectl.drivers.base import DeviceState
-from stagectl.errors import StageError
+from stagectl.errors import ConfigError, StageError
 from stagectl.loop import ControlLoop
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import FaultInfo, LoopState, LoopStatus
 
-__all__ = ["Assembly", "AssemblyLike", "drive_state", "Lifecycle", "fault_text", "shut_down", "status_line", "wait_until_ready"]
+__all__ = ["Assembly", "AssemblyLike", "Lifecycle", "StatusCache", "announce_ready", "drive_state", "failure_code", "flush_after_fault", "fault_text", "shut_down", "status_line", "wait_until_ready"]
 
 log = logging.getLogger("stagectl.daemon")
 
@@ -85,6 +86,62 @@ class AssemblyLike(Protocol):
 def drive_state(asm: AssemblyLike) -> DeviceState:
     """The drive's (the loop's actuator's) lifecycle state."""
     return asm.loop.actuator.state
+
+
+class StatusCache:
+    """``loop.status()`` at most every ``max_age_s`` for clients: computing percentiles holds the GIL, so a
+    client flooding ``status`` requests must not translate into loop lateness. :meth:`clear` when the loop's
+    state changes, so that a cached snapshot never contradicts it."""
+
+    def __init__(self, max_age_s: float = 0.05) -> None:
+        self.max_age_s = max_age_s
+        self._lock = threading.Lock()
+        self._cache: tuple[float, LoopStatus] | None = None
+
+    def get(self, loop: ControlLoop) -> LoopStatus:
+        now = time.monotonic()
+        with self._lock:
+            if self._cache is None or now - self._cache[0] > self.max_age_s:
+                self._cache = (now, loop.status())
+            return self._cache[1]
+
+    def clear(self) -> None:
+        with self._lock:
+            self._cache = None
+
+
+def flush_after_fault(writer: TelemetryWriter | None, watchdog_s: float | None) -> bool:
+    """Flush telemetry after a loop fault, bounded so the next watchdog ping stays in time (the supervisor has
+    just pinged; its tick is at most a quarter of the interval). Returns True if a flush was attempted."""
+    if writer is None:
+        return False
+    wait_s = min(2.0, watchdog_s / 2) if watchdog_s else 2.0
+    if not writer.flush(timeout=wait_s):
+        log.warning("telemetry flush after fault did not finish within %.1f s", wait_s)
+    return True
+
+
+def announce_ready(latched: bool, socket_path: Path) -> None:
+    if latched:
+        log.warning("ready, LATCHED in fault %s (drive not enabled; `stagectl reset` enables it); control socket %s",
+                    UNCLEAN_FAULT, socket_path)
+    else:
+        log.info("ready: drive enabled, loop healthy; control socket %s", socket_path)
+
+
+def failure_code(exc: Exception, notify: SdNotifier) -> int:
+    """Report a failure of start-up or supervision (log + ``STATUS=``); returns the exit code: 2 for an invalid
+    configuration, 1 otherwise (devices, socket path, permissions need no traceback; anything else gets one)."""
+    if isinstance(exc, ConfigError):
+        log.error("configuration invalid, not starting:\n%s", exc)
+        notify.status(f"configuration invalid: {exc.problems[0] if exc.problems else exc}")
+        return 2
+    if isinstance(exc, (StageError, OSError)):
+        log.error("start-up failed: %s", exc)
+        notify.status(f"start-up failed: {exc}")
+    else:
+        log.exception("daemon error: %s", exc)
+    return 1
 
 
 def fault_text(fault: FaultInfo | None) -> str:
