@@ -25,6 +25,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
+from stagectl.errors import StageError
+
 __all__ = [
     "SOCKET_KINDS",
     "LoopRequest",
@@ -41,7 +43,7 @@ __all__ = [
 ]
 
 
-class RequestError(ValueError):
+class RequestError(StageError, ValueError):
     """A refused request; ``field`` names the offending key (``request``, ``target_m``, ...).
 
     The message starts with ``"<field>: "`` (the loop's and the control socket's convention).
