@@ -158,8 +158,9 @@ class ControlLoop:
         self.on_cycle = on_cycle
         self._devs = DeviceSet(sensor, actuator, sync)
         self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
-        terms = tuple(term_names or getattr(controller, "term_names", DEFAULT_TERMS))
-        self.term_names: tuple[str, ...] = terms
+        terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(
+            getattr(controller, "term_names", DEFAULT_TERMS))  # optional member of a controller
+        self.term_names = terms
         self.columns: tuple[str, ...] = BASE_COLUMNS + terms
         self.state = LoopState.CONFIGURED if self._devs.ready() else LoopState.UNCONFIGURED
         self._inbox = RequestInbox()
@@ -354,10 +355,10 @@ class ControlLoop:
         try:
             if self.realtime:
                 rt = self.cfg.realtime
-                self.realtime_report = apply_realtime(
-                    fifo_priority=rt.fifo_priority, cpus=rt.cpus, mlock=rt.mlock, timer_slack_ns=rt.timer_slack_ns,
-                    gc_freeze=rt.gc_freeze).as_dict()
-                for note in self.realtime_report["notes"]:
+                report = apply_realtime(fifo_priority=rt.fifo_priority, cpus=rt.cpus, mlock=rt.mlock,
+                                        timer_slack_ns=rt.timer_slack_ns, gc_freeze=rt.gc_freeze)
+                self.realtime_report = report.as_dict()
+                for note in report.notes:
                     log.info("real time: %s", note)
             t0 = self._start()
             ended_by = self._cycles(t0, period, cycles, duration_s, stop)

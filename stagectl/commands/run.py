@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         cap_s = args.duration if args.duration is not None else 600.0
         rec = Recorder(loop.columns, capacity=int(cap_s / cfg.loop.period_s) + 1024)
         host = LoopHost(loop, sinks=[rec])
-        print(f"stagectl run: {cfg.path.name} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
+        print(f"stagectl run: {cfg.path.name if cfg.path else '-'} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
               f"scenario={scenario} duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
         host.start(duration_s=args.duration)
         t_next = time.monotonic() + 1.0
