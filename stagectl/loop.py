@@ -65,7 +65,7 @@ from stagectl.outputs import plain
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
-from stagectl.runtime.protocols import Controller, ReferenceSource, TelemetrySink
+from stagectl.runtime.protocols import Controller, PreparesRetune, ReferenceSource, TelemetrySink
 from stagectl.runtime.requests import (
     LoopRequest,
     MotionLimits,
@@ -202,11 +202,10 @@ class ControlLoop:
         if isinstance(req, MoveRequest):
             req.check_limits(self.limits)
         elif isinstance(req, RetuneRequest):
-            prepare: Callable[[Any], None] | None = getattr(self.controller, "request_retune", None)
-            if prepare is not None:
+            if isinstance(self.controller, PreparesRetune):
                 # design (observer gains, model) here in the caller's thread; the controller swaps the prepared
                 # parts in at its next step. Bad tunings raise here.
-                prepare(req.controller_config)
+                self.controller.request_retune(req.controller_config)
                 prepared = True
         return self._inbox.put(req, prepared)
 

@@ -35,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
-    logs = DaemonLogging(getattr(logging, args.log_level.upper()))
+    logs = DaemonLogging(logging.getLevelNamesMapping()[args.log_level.upper()])
     # The loop thread must get the GIL back quickly from helper threads (telemetry formatting, JSON):
     # the default 5 ms switch interval would show up as 5 ms of lateness.
     sys.setswitchinterval(2.5e-4)

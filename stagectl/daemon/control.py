@@ -65,7 +65,7 @@ def error_reply(exc: BaseException) -> Reply:
     ``ValueError("target_m: ...")`` (the loop's convention) gives ``field = "target_m"``.
     """
     msg = str(exc) or type(exc).__name__
-    field = getattr(exc, "field", None)
+    field = exc.field if isinstance(exc, RequestError) else None
     if field is None and isinstance(exc, ValueError):
         head, sep, _ = msg.partition(":")
         if sep and head and " " not in head.strip() and len(head) < 64:

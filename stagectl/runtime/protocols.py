@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "ReferenceSource", "TelemetrySink"]
+__all__ = ["Controller", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -21,6 +21,14 @@ class Controller(Protocol):
     def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command: ...
 
     def retune(self, cfg: Any) -> None: ...
+
+
+@runtime_checkable
+class PreparesRetune(Protocol):
+    """A controller that designs a new tuning in the caller's thread and swaps it in at its next step
+    (:class:`~stagectl.control.controller.StageController`); bad tunings raise in ``request_retune``."""
+
+    def request_retune(self, cfg: Any) -> None: ...
 
 
 class ReferenceSource(Protocol):
