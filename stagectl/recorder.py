@@ -1,9 +1,9 @@
 """The recording CSV format, and the in-memory recorder for ``simulate``/``run``/benchmarks.
 
 :class:`RecordingCsv` is the one writer of the recording format (docs/recordings.md): one header row with the
-loop's column names, ``,`` separator, one row per control sample, SI units, ``%.12g``. The daemon's telemetry
-writer (continuous files and named recordings) and :meth:`Recorder.write_csv` both use it, so every file
-feeds ``stagectl identify`` unchanged.
+loop's column names, ``,`` separator, one row per control sample, SI units. The daemon's telemetry writer
+(continuous files and named recordings, ``%.12g``) and :meth:`Recorder.write_csv` (``simulate``, ``run``,
+benchmarks, ``%.10g``) both use it, so every file feeds ``stagectl identify`` unchanged.
 
 :class:`Recorder` is a loop sink (``append(row)``) writing into preallocated float64 arrays (doubling when
 full, which happens only if the run is longer than announced). Afterwards:
@@ -42,6 +42,7 @@ class RecordingCsv:
     """
 
     def __init__(self, columns: Sequence[str], float_format: str = "%.12g") -> None:
+        """``float_format``: printf format of every value (``%.12g`` telemetry, ``%.10g`` run outputs)."""
         self.columns = tuple(columns)
         self.header = ",".join(self.columns) + "\n"
         self._row = ",".join([float_format] * len(self.columns)) + "\n"
@@ -85,7 +86,7 @@ class Recorder:
 
     def write_csv(self, path: str | Path) -> Path:
         """The recording as CSV (:class:`RecordingCsv`); returns the path."""
-        return RecordingCsv(self.columns).write(path, self.data)
+        return RecordingCsv(self.columns, "%.10g").write(path, self.data)
 
 
 def _rest_intervals(v_ref: np.ndarray, a_ref: np.ndarray) -> list[tuple[int, int]]:
