@@ -28,8 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 def simulate(cfg, scenario: str, duration_s: float | None, out_dir, *, tol_m: float = 10e-9,
              plots: bool = True) -> dict:
     """Run one simulation and write its outputs; returns the summary dict."""
-    import dataclasses
     import math
+
+    import dataclasses
 
     from stagectl.app import build_stage, get_scenario
     from stagectl.clock import SimClock

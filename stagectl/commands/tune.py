@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+
 #: margins below these are reported as thin (typical robustness targets for a motion loop)
 HEALTHY_PHASE_MARGIN_DEG = 40.0
 HEALTHY_GAIN_MARGIN_DB = 6.0

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from support import RampReference
 
+from support import RampReference
 from stagectl.control.api import Command, Reference
 from stagectl.errors import ConfigError
 
@@ -96,12 +96,11 @@ def load_rig_config(path: Path):
 
 
 def build_rig(app_cfg):
-    from stagectl.sim.direct import PlantIO
-
     from stagectl.clock import MonotonicClock
     from stagectl.daemon.service import Assembly
     from stagectl.loop import ControlLoop, LoopConfig
     from stagectl.safety import Safety, SafetyConfig
+    from stagectl.sim.direct import PlantIO
 
     clock = MonotonicClock()
     period = 1e-3

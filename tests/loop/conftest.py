@@ -9,13 +9,13 @@ from __future__ import annotations
 import math
 
 import pytest
-from stagectl.sim.direct import PlantIO
-from support import RampReference
 
+from support import RampReference
 from stagectl.clock import SimClock
 from stagectl.control.api import Command, Reference
 from stagectl.loop import ControlLoop, LoopConfig
 from stagectl.safety import Safety, SafetyConfig
+from stagectl.sim.direct import PlantIO
 
 
 class MassPlant:

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from stagectl.drivers.base import DeviceState
 
 from stagectl.app import build_stage
 from stagectl.clock import SimClock
 from stagectl.commands.simulate import simulate
 from stagectl.config import parse_app_config
+from stagectl.drivers.base import DeviceState
 from stagectl.loop import LoopState
 from stagectl.recorder import Recorder
 

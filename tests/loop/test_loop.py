@@ -7,9 +7,9 @@ import threading
 
 import numpy as np
 import pytest
-from stagectl.drivers.base import DeviceState
 
 from stagectl.clock import SimClock
+from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
 from stagectl.loop import BASE_COLUMNS, LoopState, LoopStateError
 

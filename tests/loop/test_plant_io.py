@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
-from stagectl.drivers.base import DeviceState
-from stagectl.sim.direct import PlantIO
 
 from stagectl.clock import SimClock
+from stagectl.drivers.base import DeviceState
+from stagectl.sim.direct import PlantIO
 
 
 class Recorder:

@@ -7,8 +7,8 @@ import logging
 import math
 
 import pytest
-from stagectl.drivers.base import DeviceState, FaultKind
 
+from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.errors import ConfigError
 from stagectl.loop import LoopState, LoopStateError
 from stagectl.safety import Safety, SafetyConfig
