@@ -21,209 +21,85 @@ The same code runs with :class:`~stagectl.clock.MonotonicClock` (``stagectl run`
 :class:`~stagectl.clock.SimClock` plus lock-step devices (``stagectl simulate``, tests, benchmarks): with
 a SimClock, ``sleep_until`` only advances time, so lateness is 0 and runs are deterministic.
 
-Daemon API (stable; thread-safe unless noted)
----------------------------------------------
-``loop.columns``
-    Telemetry column names (SI, docs/recordings.md): ``t`` s, ``x`` m, ``u`` N, ``x_ref`` m, ``v_ref`` m/s,
-    ``a_ref`` m/s², ``e`` m (x_ref − x), ``v`` m/s (filtered measured velocity), then the controller terms
-    in N (``u_pid``, ``u_dob``, ``u_ff``, ``u_inertia``, ...).
-``loop.run(cycles=None, duration_s=None, stop=None) -> LoopResult``
-    Runs in the calling thread until ``cycles`` cycles, ``duration_s`` of loop time, ``stop.is_set()`` or a
-    ``shutdown`` request. Enables the devices at start (state ``active``) and disables the drive on the way
-    out (always, also on exceptions).
-``loop.request(kind, **kw) -> concurrent.futures.Future``
-    Queued and executed at the next cycle boundary in the loop thread. Kinds:
-
-    * ``move(target_m=X | relative_m=D, [max_velocity_m_s=V])`` → ``{"target_m", "duration_s"}``;
-      ``relative_m`` is relative to the current move's target.
-    * ``stop()`` decelerate and hold → ``{"x_m"}``.
-    * ``reset()`` clear a latched fault, re-enable the drive, restart the controller bumplessly at the
-      measured position → ``{"state"}``. A no-op when no fault is latched.
-    * ``retune(controller_config=CFG)`` → ``{"retuned": True}``. With a controller offering
-      ``request_retune`` (StageController) the new tuning is designed in the *caller's* thread (a bad tuning
-      raises there) and swapped in by the controller at its next step; otherwise ``retune`` runs in the loop
-      thread between two cycles. Either way bumpless (the controller's job).
-    * ``shutdown()`` → ``{"cycles": n}``, the loop returns after this cycle.
-
-    Bad arguments raise ``ValueError`` naming the field at once (unknown kind or key, non-finite
-    numbers, targets outside the soft limits, velocity above the limit); conditions known only in the loop
-    (a relative target outside the limits, a move while in fault) are set on the future as ``ValueError`` /
-    :class:`LoopStateError`. Futures still pending when ``run`` returns fail with :class:`LoopStateError`.
-``loop.latch_fault(name, cause) -> dict``
-    Before ``run`` only: latch fault ``name`` with ``cause``. ``run`` then starts in state ``fault`` without
-    enabling the devices (SYNC and reads go on), and only a ``reset`` request clears it and enables them,
-    like any latched fault. The daemon uses it to come up latched (``unclean_shutdown``) after an unclean end.
-``loop.status() -> dict``
-    Snapshot: ``state`` (unconfigured/configured/active/fault), ``fault`` (name, cause, t_s, cycle or None),
-    ``x_m``, ``x_ref_m``, ``e_m``, ``u_n``, ``t_s``, ``cycle``, ``overruns``, ``lateness_us``
-    {p50, p99, max}, ``exec_us`` {p50, p99, max}, ``running`` and ``healthy`` (running, active, recent
-    overrun fraction ≤ ``loop.healthy_overrun_fraction``) for the systemd watchdog.
-``loop.add_sink(sink)`` / ``loop.remove_sink(sink)``
-    ``sink.append(row: tuple[float, ...]) -> None`` is called in the loop thread once per cycle with one
-    value per column; it must not block. A sink that raises is removed and logged.
+API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
+-------------------------------------------------------------------------
+* ``loop.columns`` -- telemetry column names (SI, docs/recordings.md): ``t`` s, ``x`` m, ``u`` N, ``x_ref`` m,
+  ``v_ref`` m/s, ``a_ref`` m/s², ``e`` m (x_ref − x), ``v`` m/s (filtered measured velocity), then the
+  controller terms in N (``u_pid``, ``u_dob``, ``u_ff``, ``u_inertia``, ...).
+* ``loop.run(cycles=None, duration_s=None, stop=None) -> LoopResult`` -- in the calling thread (not
+  thread-safe; :class:`~stagectl.runtime.host.LoopHost` gives it a thread) until ``cycles``, ``duration_s``
+  of loop time, ``stop.is_set()`` or a shutdown request. Enables the devices at start and always disables
+  the drive on the way out; futures still pending then fail with :class:`LoopStateError`.
+* ``loop.submit(request) -> Future[dict]`` -- a typed request (:mod:`stagectl.runtime.requests`), checked
+  against the stage's limits here and executed at the next cycle boundary; conditions known only there (a
+  relative target outside the limits, a move in fault) are set on the future. A retune is designed in the
+  caller's thread when the controller offers ``request_retune``. ``loop.request(kind, **kw)`` builds the
+  request from keywords.
+* ``loop.latch_fault(name, cause)`` -- before ``run`` only: ``run`` then starts in fault without enabling the
+  devices, and only a reset clears it (the daemon's ``unclean_shutdown``).
+* ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
+* ``loop.add_sink(sink)`` / ``loop.remove_sink(sink)`` -- ``sink.append(row)`` once per cycle in the loop
+  thread; it must not block; a sink that raises is removed and logged.
 """
 
 from __future__ import annotations
 
-import concurrent.futures
-import enum
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, Protocol
-
-import numpy as np
+from typing import Any
 
 from stagectl.clock import Clock, apply_realtime
-from stagectl.control.api import Command, Reference
-from stagectl.drivers.base import Device, DeviceState, ForceActuator, Measurement, PositionSensor, SyncProducer
+from stagectl.control.api import Reference
+from stagectl.drivers.base import (
+    Device,
+    ForceActuator,
+    Measurement,
+    PositionSensor,
+    SyncProducer,
+)
 from stagectl.errors import StageError
+from stagectl.outputs import plain
+from stagectl.runtime.config import LoopConfig, RealtimeConfig
+from stagectl.runtime.devices import DeviceSet
+from stagectl.runtime.inbox import Reply, RequestInbox
+from stagectl.runtime.protocols import Controller, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.requests import (
+    LoopRequest,
+    MotionLimits,
+    MoveRequest,
+    ResetRequest,
+    RetuneRequest,
+    ShutdownRequest,
+    StopRequest,
+    request_from_kwargs,
+)
+from stagectl.runtime.sinks import SinkSet
+from stagectl.runtime.stats import CycleStats, LatenessWarner
+from stagectl.runtime.status import FaultInfo, LoopResult, LoopState, LoopStateError, LoopStatus
 from stagectl.safety import Safety
-from stagectl.schema import param
+
+__all__ = [
+    "BASE_COLUMNS",
+    "DEFAULT_TERMS",
+    "ControlLoop",
+    "Controller",
+    "LoopConfig",
+    "LoopResult",
+    "LoopState",
+    "LoopStateError",
+    "LoopStatus",
+    "RealtimeConfig",
+    "ReferenceSource",
+    "TelemetrySink",
+]
 
 log = logging.getLogger("stagectl.loop")
 
 BASE_COLUMNS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v")
 DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
-
-
-class LoopStateError(StageError, RuntimeError):
-    """A request cannot be executed in the loop's current state (e.g. a move while in fault)."""
-
-
-class LoopState(enum.Enum):
-    UNCONFIGURED = "unconfigured"
-    CONFIGURED = "configured"
-    ACTIVE = "active"
-    FAULT = "fault"
-
-
-# ------------------------------------------------------------------------------------------ config
-@dataclass(frozen=True)
-class RealtimeConfig:
-    """Best-effort real-time settings for the loop thread (each degrades gracefully without privileges)."""
-
-    fifo_priority: int | None = param(None, desc="SCHED_FIFO priority (1-99); null = normal scheduling", ge=1, le=99)
-    cpus: tuple[int, ...] | None = param(None, desc="CPU affinity of the loop thread; null = any CPU", ge=0)
-    mlock: bool = param(False, desc="mlockall(MCL_CURRENT|MCL_FUTURE) at start")
-    timer_slack_ns: int | None = param(1, unit="ns", desc="PR_SET_TIMERSLACK for the loop thread", ge=1)
-    gc_freeze: bool = param(True, desc="gc.collect() + gc.freeze() after start-up")
-    spin_us: float = param(0.0, unit="us", desc="busy-wait the last part of each sleep (hybrid wake-up; costs CPU)",
-                           ge=0, le=500)
-
-
-@dataclass(frozen=True)
-class LoopConfig:
-    """Loop timing."""
-
-    period_s: float = param(1e-3, unit="s", desc="control period T", ge=5e-5, le=0.1)
-    realtime: RealtimeConfig = param(default_factory=RealtimeConfig, desc="real-time settings")
-    lateness_warn_us: float = param(
-        500.0, unit="us", desc="log a (rate-limited) warning when a wake-up is later than this", gt=0
-    )
-    warn_interval_s: float = param(10.0, unit="s", desc="at most one timing warning per interval", gt=0)
-    stats_window: int = param(65536, desc="recent cycles kept for lateness percentiles", ge=16)
-    healthy_overrun_fraction: float = param(
-        0.01, desc="watchdog health: largest recent fraction of skipped cycles", ge=0, le=1
-    )
-    startup_cycles: int = param(
-        200, unit="cycles", desc="at start, SYNC periods to wait for the first fresh position (a loaded machine or "
-        "a late first TPDO); the stale-position check applies from the first active cycle on", ge=1, le=100000
-    )
-
-
-# ------------------------------------------------------------------------------------------ protocols
-class Controller(Protocol):
-    """What the loop needs from :class:`stagectl.control.controller.StageController`."""
-
-    def reset(self, x_m: float) -> None: ...
-
-    def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command: ...
-
-    def retune(self, cfg: Any) -> None: ...
-
-
-class ReferenceSource(Protocol):
-    """A reference generator the loop samples once per cycle (see :mod:`stagectl.app` for the adapter)."""
-
-    def sample(self, t_s: float) -> Reference: ...
-
-    def hold(self, t_s: float, x_m: float) -> None:
-        """Stand still at ``x_m`` from ``t_s`` on (start, reset)."""
-
-    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
-        """Start a move at ``t_s`` to ``target_m``; returns its duration [s]."""
-
-    def stop(self, t_s: float) -> float:
-        """Decelerate and hold; returns the position where it will stand [m]."""
-
-    @property
-    def target_m(self) -> float:
-        """The position the reference is heading to (or holding) [m]."""
-
-
-class TelemetrySink(Protocol):
-    def append(self, row: tuple[float, ...]) -> None: ...
-
-
-@dataclass
-class LoopResult:
-    """Summary of one :meth:`ControlLoop.run`."""
-
-    cycles: int
-    overruns: int
-    duration_s: float
-    ended_by: str
-    lateness_us: dict[str, float]
-    exec_us: dict[str, float]
-    cpu_fraction: float
-    fault: dict[str, Any] | None
-    realtime: dict[str, Any] = field(default_factory=dict)
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "cycles": self.cycles,
-            "overruns": self.overruns,
-            "overrun_fraction": self.overruns / max(1, self.cycles + self.overruns),
-            "duration_s": self.duration_s,
-            "ended_by": self.ended_by,
-            "lateness_us": self.lateness_us,
-            "exec_us": self.exec_us,
-            "cpu_fraction": self.cpu_fraction,
-            "fault": self.fault,
-            "realtime": self.realtime,
-        }
-
-
-_REQUEST_KEYS = {
-    "move": {"target_m", "relative_m", "max_velocity_m_s"},
-    "stop": set(),
-    "reset": set(),
-    "retune": {"controller_config"},
-    "shutdown": set(),
-}
-
-
-def _finite(name: str, value: Any) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name}: must be finite, got {value!r}")
-    return v
-
-
-def _stats(arr: np.ndarray, n: int, peak: float) -> dict[str, float]:
-    if n <= 0:
-        return {"p50": 0.0, "p99": 0.0, "max": 0.0}
-    a = arr[: min(n, arr.size)]
-    p50, p99 = np.percentile(a, (50.0, 99.0))
-    return {"p50": float(p50) * 1e6, "p99": float(p99) * 1e6, "max": float(peak) * 1e6}
 
 
 class ControlLoop:
@@ -261,17 +137,9 @@ class ControlLoop:
     def __init__(
         self,
         *,
-        clock: Clock,
-        sensor: PositionSensor,
-        actuator: ForceActuator,
-        controller: Controller,
-        reference: ReferenceSource,
-        safety: Safety,
-        cfg: LoopConfig,
-        sync: SyncProducer | None = None,
-        realtime: bool = False,
-        on_cycle: Callable[[], None] | None = None,
-        term_names: tuple[str, ...] | None = None,
+        clock: Clock, sensor: PositionSensor, actuator: ForceActuator, controller: Controller,
+        reference: ReferenceSource, safety: Safety, cfg: LoopConfig, sync: SyncProducer | None = None,
+        realtime: bool = False, on_cycle: Callable[[], None] | None = None, term_names: tuple[str, ...] | None = None,
         device_time: bool = False,
     ) -> None:
         self.clock = clock
@@ -288,30 +156,21 @@ class ControlLoop:
         self.realtime = realtime
         self.device_time = device_time
         self.on_cycle = on_cycle
-        self.devices: tuple[Device, ...] = tuple(dict.fromkeys([sensor, actuator]))  # unique, ordered
-        terms = tuple(term_names or getattr(controller, "term_names", DEFAULT_TERMS))
-        self.term_names: tuple[str, ...] = terms
+        self._devs = DeviceSet(sensor, actuator, sync)
+        self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
+        terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(
+            getattr(controller, "term_names", DEFAULT_TERMS))  # optional member of a controller
+        self.term_names = terms
         self.columns: tuple[str, ...] = BASE_COLUMNS + terms
-        self.state = LoopState.CONFIGURED if all(
-            d.state in (DeviceState.CONFIGURED, DeviceState.ENABLED) for d in self.devices
-        ) else LoopState.UNCONFIGURED
-        self._requests: queue.SimpleQueue[tuple[str, dict[str, Any], concurrent.futures.Future[Any]]] = (
-            queue.SimpleQueue()
-        )
-        self._sinks: tuple[TelemetrySink, ...] = ()
-        self._sink_lock = threading.Lock()
+        self.state = LoopState.CONFIGURED if self._devs.ready() else LoopState.UNCONFIGURED
+        self._inbox = RequestInbox()
+        self._sinks = SinkSet()
         self._running = False
         self._shutdown = False
         self._just_reset = False
-        # statistics (preallocated)
-        w = int(cfg.stats_window)
-        self._late = np.zeros(w)
-        self._exec = np.zeros(w)
-        self._skip = np.zeros(w, dtype=np.int32)
+        self.stats = CycleStats(cfg.stats_window)  # preallocated
         self.cycle = 0
         self.overruns = 0
-        self._late_max = 0.0
-        self._exec_max = 0.0
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
         self._t0 = 0.0
@@ -320,102 +179,69 @@ class ControlLoop:
     # ------------------------------------------------------------------ sinks
     def add_sink(self, sink: TelemetrySink) -> None:
         """Register a telemetry sink (thread-safe). ``sink.append(row)`` must not block."""
-        with self._sink_lock:
-            self._sinks = (*self._sinks, sink)
+        self._sinks.add(sink)
 
     def remove_sink(self, sink: TelemetrySink) -> None:
         """Unregister a sink (thread-safe; unknown sinks are ignored)."""
-        with self._sink_lock:
-            self._sinks = tuple(s for s in self._sinks if s is not sink)
+        self._sinks.remove(sink)
 
     # ------------------------------------------------------------------ requests
-    def request(self, kind: str, **kw: Any) -> concurrent.futures.Future[Any]:
-        """Queue a request for the next cycle boundary (thread-safe). See the module docstring."""
-        if kind not in _REQUEST_KEYS:
-            raise ValueError(f"kind: unknown request {kind!r} (known: {', '.join(_REQUEST_KEYS)})")
-        unknown = set(kw) - _REQUEST_KEYS[kind]
-        if unknown:
-            raise ValueError(f"{sorted(unknown)[0]}: unknown argument for {kind!r} (known: {sorted(_REQUEST_KEYS[kind])})")
-        if kind == "move":
-            has_t, has_r = kw.get("target_m") is not None, kw.get("relative_m") is not None
-            if has_t == has_r:
-                raise ValueError("target_m: give exactly one of target_m or relative_m")
-            if has_t:
-                kw["target_m"] = self.safety.check_target(kw["target_m"], "target_m")
-            else:
-                kw["relative_m"] = _finite("relative_m", kw["relative_m"])
-            if kw.get("max_velocity_m_s") is not None:
-                v = _finite("max_velocity_m_s", kw["max_velocity_m_s"])
-                vmax = self.safety.cfg.max_velocity_m_s
-                if not 0.0 < v <= vmax:
-                    raise ValueError(f"max_velocity_m_s: must be > 0 and <= {vmax:g} m/s (got {v:g} m/s)")
-                kw["max_velocity_m_s"] = v
-        if kind == "retune":
-            if kw.get("controller_config") is None:
-                raise ValueError("controller_config: required for retune")
-            prepare = getattr(self.controller, "request_retune", None)
-            if prepare is not None:
+    @property
+    def limits(self) -> MotionLimits:
+        """Soft limits and velocity limit a move is checked against (the safety section's)."""
+        c = self.safety.cfg
+        return MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s)
+
+    def submit(self, req: LoopRequest) -> Reply:
+        """Queue a typed request for the next cycle boundary (thread-safe; see the module docstring).
+
+        Raises RequestError (a ValueError naming the field) for a move outside the limits, and whatever a
+        controller's ``request_retune`` raises for a bad tuning (ConfigError is a ValueError).
+        """
+        prepared = False
+        if isinstance(req, MoveRequest):
+            req.check_limits(self.limits)
+        elif isinstance(req, RetuneRequest):
+            if isinstance(self.controller, PreparesRetune):
                 # design (observer gains, model) here in the caller's thread; the controller swaps the prepared
-                # parts in at its next step. Bad tunings raise here (ConfigError is a ValueError).
-                prepare(kw["controller_config"])
-                kw = {"controller_config": kw["controller_config"], "prepared": True}
-        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
-        self._requests.put((kind, kw, fut))
-        return fut
+                # parts in at its next step. Bad tunings raise here.
+                self.controller.request_retune(req.controller_config)
+                prepared = True
+        return self._inbox.put(req, prepared)
 
-    def _serve_requests(self, t: float, x: float) -> None:
-        q = self._requests
-        while True:
-            try:
-                kind, kw, fut = q.get_nowait()
-            except queue.Empty:
-                return
-            if not fut.set_running_or_notify_cancel():
-                continue
-            try:
-                fut.set_result(self._execute(kind, kw, t, x))
-            except BaseException as exc:  # noqa: BLE001 - handed to the requester
-                fut.set_exception(exc)
+    def request(self, kind: str, **kw: object) -> Reply:
+        """``submit(request_from_kwargs(kind, **kw))``: e.g. ``loop.request("move", target_m=1e-3)``."""
+        return self.submit(request_from_kwargs(kind, **kw))
 
-    def _execute(self, kind: str, kw: dict[str, Any], t: float, x: float) -> Any:
-        if kind == "shutdown":
+    def _execute(self, req: LoopRequest, prepared: bool, t: float, x: float) -> dict[str, Any]:
+        if isinstance(req, ShutdownRequest):
             self._shutdown = True
             return {"cycles": self.cycle}
-        if kind == "reset":
+        if isinstance(req, ResetRequest):
             return self._reset(t, x)
-        if kind == "retune":
-            if not kw.get("prepared"):
-                self.controller.retune(kw["controller_config"])
+        if isinstance(req, RetuneRequest):
+            if not prepared:
+                self.controller.retune(req.controller_config)
             return {"retuned": True}
         if self.state is not LoopState.ACTIVE:
             fault = self.safety.fault
             why = f" ({fault})" if fault else ""
-            raise LoopStateError(f"{kind}: loop is {self.state.value}{why}; reset first")
-        if kind == "stop":
+            raise LoopStateError(f"{req.KIND}: loop is {self.state.value}{why}; reset first")
+        if isinstance(req, StopRequest):
             return {"x_m": float(self.reference.stop(t))}
-        # move
-        if kw.get("target_m") is not None:
-            target = float(kw["target_m"])
+        if req.target_m is not None:
+            target = req.target_m
         else:
-            target = self.safety.check_target(self.reference.target_m + kw["relative_m"], "relative_m")
-        duration = self.reference.move(t, target, kw.get("max_velocity_m_s"))
+            rel = req.relative_m if req.relative_m is not None else 0.0
+            target = self.limits.check_position(self.reference.target_m + rel, "relative_m")
+        duration = self.reference.move(t, target, req.max_velocity_m_s)
         return {"target_m": target, "duration_s": float(duration)}
 
     def _reset(self, t: float, x: float) -> dict[str, Any]:
         if self.state is not LoopState.FAULT:
             return {"state": self.state.value, "cleared": None}
         cleared = self.safety.fault
-        for d in self.devices:
-            if d.fault is not None or d.state is DeviceState.FAULT:
-                d.fault_reset()
-        act = self.actuator
-        act.disable()
-        for d in self.devices:
-            if d.state is DeviceState.CONFIGURED:
-                d.enable()
-        for d in self.devices:
-            if d.fault is not None:
-                raise LoopStateError(f"reset: device {d.name} still reports {d.fault}")
+        self._devs.reset_faults()
         self.safety.clear()
         self.safety.restart(x)
         self.controller.reset(x)
@@ -426,47 +252,33 @@ class ControlLoop:
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
-    def latch_fault(self, name: str, cause: str) -> dict[str, Any]:
+    def latch_fault(self, name: str, cause: str) -> FaultInfo:
         """Latch fault ``name`` (``cause``: human-readable text) before :meth:`run` (see the module docstring).
         A fault already latched is kept (the first one wins, as in :meth:`Safety.latch`); returns the latched
         fault. Raises :class:`LoopStateError` while the loop runs (faults are latched in the loop thread then)."""
         if self._running:
             raise LoopStateError("latch_fault: only before run (the loop is running)")
-        return self.safety.latch(name, cause, 0.0, self.cycle).as_dict()
+        return self.safety.latch(name, cause, 0.0, self.cycle)
 
     # ------------------------------------------------------------------ status
-    def status(self, timing: bool = True) -> dict[str, Any]:
-        """Thread-safe snapshot (see module docstring).
+    def status(self, timing: bool = True) -> LoopStatus:
+        """Thread-safe snapshot (see :class:`~stagectl.runtime.status.LoopStatus`).
 
-        ``timing=False`` leaves out ``lateness_us`` and ``exec_us``: their percentiles over the stats window
-        take ~2 ms of interpreter time, which a frequent caller (the daemon's supervisor tick) should not take
-        from the loop thread when it only needs the counters, state and health.
+        ``timing=False`` leaves out ``lateness_us`` and ``exec_us`` (None): their percentiles over the stats
+        window take ~2 ms of interpreter time, which a frequent caller (the daemon's supervisor tick) should
+        not take from the loop thread when it only needs the counters, state and health.
         """
         t, x, x_ref, u, cyc = self._snap
-        n = min(self.cycle, self._late.size)
-        skipped = int(self._skip[:n].sum()) if n else 0
-        frac = skipped / max(1, n + skipped)
-        fault = self.safety.fault
-        out = {
-            "state": self.state.value,
-            "fault": fault.as_dict() if fault else None,
-            "t_s": t,
-            "x_m": x,
-            "x_ref_m": x_ref,
-            "e_m": x_ref - x,
-            "u_n": u,
-            "cycle": int(cyc),
-            "overruns": self.overruns,
-            "recent_overrun_fraction": frac,
-            "period_s": self.period_s,
-            "running": self._running,
-            "healthy": bool(self._running and self.state is LoopState.ACTIVE
-                            and frac <= self.cfg.healthy_overrun_fraction),
-        }
-        if timing:
-            out["lateness_us"] = _stats(self._late, n, self._late_max)
-            out["exec_us"] = _stats(self._exec, n, self._exec_max)
-        return out
+        frac = self.stats.overrun_fraction(self.cycle)
+        state = self.state
+        return LoopStatus(
+            state=state, fault=self.safety.fault, t_s=t, x_m=x, x_ref_m=x_ref, e_m=x_ref - x, u_n=u,
+            cycle=int(cyc), overruns=self.overruns, recent_overrun_fraction=frac, period_s=self.period_s,
+            running=self._running,
+            healthy=bool(self._running and state is LoopState.ACTIVE and frac <= self.cfg.healthy_overrun_fraction),
+            lateness_us=self.stats.lateness(self.cycle) if timing else None,
+            exec_us=self.stats.execution(self.cycle) if timing else None,
+        )
 
     # ------------------------------------------------------------------ fault
     def _enter_fault(self, t: float) -> None:
@@ -474,29 +286,10 @@ class ControlLoop:
             return
         self.state = LoopState.FAULT
         self._u = 0.0
-        fault = self.safety.fault
-        try:
-            self.actuator.quick_stop()
-        except Exception:  # noqa: BLE001 - still report the original fault
-            log.exception("quick stop failed while handling fault %s", fault)
-        log.error("FAULT %s; drive quick-stopped", fault)
+        self._devs.quick_stop(self.safety.fault)
+        log.error("FAULT %s; drive quick-stopped", self.safety.fault)
 
     # ------------------------------------------------------------------ run
-    def _first_sample(self, t0: float, n_max: int) -> tuple[Measurement, float, int]:
-        """SYNC + read on absolute deadlines until a fresh sample (or a non-finite one, or a device fault)
-        arrives, at most ``n_max`` times; returns (measurement, time of its SYNC, attempts − 1)."""
-        period = self.period_s
-        for i in range(n_max):
-            if i:
-                t0 += period
-                self.clock.sleep_until(t0)
-            if self.sync is not None:
-                self.sync.sync()
-            m = self.sensor.read()
-            if m.fresh or not math.isfinite(m.position_m) or m.fault is not None:
-                return m, t0, i
-        return m, t0, n_max - 1
-
     def _start(self) -> float:
         """Enable the devices and take the first position.
 
@@ -511,17 +304,15 @@ class ControlLoop:
         n_max = 1 if faulted else int(self.cfg.startup_cycles)
         t0 = clock.now()
         waited = 0
-        if not faulted and any(d.state is DeviceState.CONFIGURED for d in self.devices):
-            m, t0, waited = self._first_sample(t0, n_max)
+        if not faulted and self._devs.any_configured():
+            m, t0, waited = self._devs.first_sample(clock, t0, self.period_s, n_max)
             if not m.fresh:
                 raise StageError(f"no position from {self.sensor.name} within loop.startup_cycles {n_max} cycles "
                                  f"(devices configured, not yet enabled)")
-            for d in self.devices:
-                if d.state is DeviceState.CONFIGURED:
-                    d.enable()
+            self._devs.enable_configured()
             t0 = max(t0 + self.period_s, clock.now())  # the next SYNC slot after the warm-up one
             clock.sleep_until(t0)
-        m, t0, i = self._first_sample(t0, n_max)
+        m, t0, i = self._devs.first_sample(clock, t0, self.period_s, n_max)
         if waited or i:
             log.info("first fresh position after %d + %d start-up cycles", waited, i)
         self._t0 = t0
@@ -563,14 +354,10 @@ class ControlLoop:
         try:
             if self.realtime:
                 rt = self.cfg.realtime
-                self.realtime_report = apply_realtime(
-                    fifo_priority=rt.fifo_priority,
-                    cpus=rt.cpus,
-                    mlock=rt.mlock,
-                    timer_slack_ns=rt.timer_slack_ns,
-                    gc_freeze=rt.gc_freeze,
-                ).as_dict()
-                for note in self.realtime_report["notes"]:
+                report = apply_realtime(fifo_priority=rt.fifo_priority, cpus=rt.cpus, mlock=rt.mlock,
+                                        timer_slack_ns=rt.timer_slack_ns, gc_freeze=rt.gc_freeze)
+                self.realtime_report = report.as_dict()
+                for note in report.notes:
                     log.info("real time: %s", note)
             t0 = self._start()
             ended_by = self._cycles(t0, period, cycles, duration_s, stop)
@@ -580,15 +367,14 @@ class ControlLoop:
             self._fail_pending()
         cpu = time.thread_time() - cpu0
         wall = max(1e-9, time.monotonic() - wall0)
-        n = min(self.cycle, self._late.size)
         fault = self.safety.fault
         return LoopResult(
             cycles=self.cycle - cycle0,
             overruns=self.overruns - overruns0,
             duration_s=clock.now() - self._t0,
             ended_by=ended_by,
-            lateness_us=_stats(self._late, n, self._late_max),
-            exec_us=_stats(self._exec, n, self._exec_max),
+            lateness_us=plain(self.stats.lateness(self.cycle)),
+            exec_us=plain(self.stats.execution(self.cycle)),
             cpu_fraction=cpu / wall,
             fault=fault.as_dict() if fault else None,
             realtime=self.realtime_report,
@@ -601,12 +387,9 @@ class ControlLoop:
         sensor, actuator, sync = self.sensor, self.actuator, self.sync
         safety, controller, reference = self.safety, self.controller, self.reference
         term_names = self.term_names
-        late_arr, exec_arr, skip_arr = self._late, self._exec, self._skip
-        w = late_arr.size
-        warn_late = self.cfg.lateness_warn_us * 1e-6
-        warn_every = self.cfg.warn_interval_s
-        next_warn = 0.0
-        warn_count = 0
+        record = self.stats.record
+        devs, sinks = self._devs, self._sinks
+        warner = LatenessWarner(self.cfg.lateness_warn_us * 1e-6, self.cfg.warn_interval_s) if self.realtime else None
         on_cycle = self.on_cycle
         perf = time.perf_counter
         slot = 0  # deadline of slot n is t0 + n·T (no accumulated rounding)
@@ -640,19 +423,13 @@ class ControlLoop:
                     sync.sync()
                 m = sensor.read()
                 x = m.position_m
-                self._serve_requests(t, x)
+                self._inbox.serve(self._execute, t, x)
                 if self._just_reset:  # this cycle's sample predates the reset: restart cleanly next cycle
                     self._just_reset = False
                     m = Measurement(x, False)
-                dev_fault = m.fault
-                if dev_fault is None:
-                    for d in self.devices:
-                        if d.fault is not None:
-                            dev_fault = d.fault
-                            break
-                if self.state is LoopState.ACTIVE:
-                    if safety.check_measurement(t, k, x, m.fresh, dev_fault):
-                        self._enter_fault(t)
+                dev_fault = m.fault if m.fault is not None else devs.fault()
+                if self.state is LoopState.ACTIVE and safety.check_measurement(t, k, x, m.fresh, dev_fault):
+                    self._enter_fault(t)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
                     if safety.check_tracking(t, k, x, ref.x_m):
@@ -677,12 +454,7 @@ class ControlLoop:
                 row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
                     [terms.get(n, 0.0) for n in term_names]
                 )
-                for s in self._sinks:
-                    try:
-                        s.append(row)
-                    except Exception:  # noqa: BLE001 - a broken sink must not stop the loop
-                        log.exception("telemetry sink %r failed; removed", s)
-                        self.remove_sink(s)
+                sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:
                     on_cycle()
@@ -692,15 +464,7 @@ class ControlLoop:
                 safety.latch("loop_error", f"{type(exc).__name__}: {exc}", t, k)
                 self._enter_fault(t)
             # ------------------------------------------------------ statistics
-            ex = perf() - c0
-            i = k % w
-            late_arr[i] = late
-            exec_arr[i] = ex
-            skip_arr[i] = skipped
-            if late > self._late_max:
-                self._late_max = late
-            if ex > self._exec_max:
-                self._exec_max = ex
+            record(k, late, perf() - c0, skipped)
             k += 1
             self.cycle = k
             # ------------------------------------------------------ schedule: absolute deadline
@@ -715,42 +479,14 @@ class ControlLoop:
                 late -= skipped * period
                 self.overruns += skipped
             dt = period if device_time else period * (1 + skipped)
-            if (late > warn_late or skipped) and self.realtime:
-                warn_count += 1
-                if t >= next_warn:
-                    log.warning(
-                        "loop timing: %d late/overrun cycles in the last %.0f s (latest lateness %.0f us, "
-                        "overruns total %d)", warn_count, warn_every, (late + skipped * period) * 1e6, self.overruns,
-                    )
-                    warn_count = 0
-                    next_warn = t + warn_every
+            if warner is not None:
+                warner.note(t, late, skipped, period, self.overruns)
 
     def _teardown(self) -> None:
-        act = self.actuator
-        try:
-            if self.state is LoopState.ACTIVE and act.state is DeviceState.ENABLED:
-                act.write(0.0)
-        except Exception:  # noqa: BLE001
-            log.exception("writing zero force at stop failed")
-        try:
-            act.disable()
-        except Exception:  # noqa: BLE001
-            log.exception("disabling %s failed", act.name)
-        for d in self.devices:
-            if d is not act:
-                try:
-                    d.disable()
-                except Exception:  # noqa: BLE001
-                    log.exception("disabling %s failed", d.name)
+        self._devs.shut_down(write_zero=self.state is LoopState.ACTIVE)
         self._u = 0.0
         if self.state is LoopState.ACTIVE:
             self.state = LoopState.CONFIGURED
 
     def _fail_pending(self) -> None:
-        while True:
-            try:
-                _, _, fut = self._requests.get_nowait()
-            except queue.Empty:
-                return
-            if fut.set_running_or_notify_cancel():
-                fut.set_exception(LoopStateError("the control loop is not running"))
+        self._inbox.fail_pending(lambda: LoopStateError("the control loop is not running"))

@@ -1,4 +1,9 @@
-"""In-memory telemetry recorder for ``simulate``/``run``/benchmarks: CSV (docs/recordings.md), summary, plots.
+"""The recording CSV format, and the in-memory recorder for ``simulate``/``run``/benchmarks.
+
+:class:`RecordingCsv` is the one writer of the recording format (docs/recordings.md): one header row with the
+loop's column names, ``,`` separator, one row per control sample, SI units. The daemon's telemetry writer
+(continuous files and named recordings, ``%.12g``) and :meth:`Recorder.write_csv` (``simulate``, ``run``,
+benchmarks, ``%.10g``) both use it, so every file feeds ``stagectl identify`` unchanged.
 
 :class:`Recorder` is a loop sink (``append(row)``) writing into preallocated float64 arrays (doubling when
 full, which happens only if the run is longer than announced). Afterwards:
@@ -22,27 +27,39 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
+
+from stagectl.errors import StageError
+from stagectl.outputs import prepare_out_dir
+
+__all__ = ["Recorder", "RecordingCsv", "plot_run", "prepare_out_dir", "tracking_summary", "write_outputs"]
 
 
-def prepare_out_dir(path: str | Path, flag: str = "--out") -> Path:
-    """Create the output directory now (before a run) and check it is writable.
+class RecordingCsv:
+    """Header and rows of the recording CSV for ``columns`` (see the module docstring).
 
-    Raises
-    ------
-    ConfigError
-        Naming ``flag`` and the reason (not a directory, permission, read-only file system ...).
+    Not real-time: formatting runs in the writer thread or after the run, never in the loop.
     """
-    from stagectl.errors import ConfigError
 
-    p = Path(path)
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-        probe = p / ".stagectl-write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise ConfigError(f"{flag}: cannot write to directory {str(p)!r} ({exc.strerror or exc})") from None
-    return p
+    def __init__(self, columns: Sequence[str], float_format: str = "%.12g") -> None:
+        """``float_format``: printf format of every value (``%.12g`` telemetry, ``%.10g`` run outputs)."""
+        self.columns = tuple(columns)
+        self.header = ",".join(self.columns) + "\n"
+        self._row = ",".join([float_format] * len(self.columns)) + "\n"
+
+    def rows(self, data: npt.NDArray[np.float64]) -> str:
+        """``data`` (one row per sample, one column per name) as CSV lines."""
+        fmt = self._row
+        return "".join([fmt % tuple(r) for r in data.tolist()])
+
+    def write(self, path: str | Path, data: npt.NDArray[np.float64]) -> Path:
+        """Write a whole file (header + rows); returns its path."""
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        with open(p, "w", encoding="ascii", newline="") as fh:
+            fh.write(self.header)
+            fh.write(self.rows(data))
+        return p
 
 
 class Recorder:
@@ -68,10 +85,8 @@ class Recorder:
         return self._data[: self.n, self.columns.index(name)]
 
     def write_csv(self, path: str | Path) -> Path:
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(p, self.data, delimiter=",", header=",".join(self.columns), comments="", fmt="%.10g")
-        return p
+        """The recording as CSV (:class:`RecordingCsv`); returns the path."""
+        return RecordingCsv(self.columns, "%.10g").write(path, self.data)
 
 
 def _rest_intervals(v_ref: np.ndarray, a_ref: np.ndarray) -> list[tuple[int, int]]:
@@ -169,7 +184,6 @@ def plot_run(rec: Recorder, out_dir: str | Path, title: str = "") -> list[Path]:
 def write_outputs(rec: Recorder, out_dir: str | Path, summary: dict[str, Any], *, plots: bool = True,
                   title: str = "") -> dict[str, str]:
     """CSV + summary.json (+ PNG) into ``out_dir``; returns the written paths by kind."""
-    from stagectl.errors import StageError
 
     out = Path(out_dir)
     try:

@@ -1,1 +1,1 @@
-"""Benchmarks (``stagectl bench models|io|control|loop``). Timing and speed live here, never in tests."""
+"""Benchmarks (``stagectl bench models|io|control|loop|telemetry``). Timing and speed live here, never in tests."""

@@ -1,53 +1,43 @@
-"""``stagectl bench models|io|control|loop [--json] [...]``.
+"""``stagectl bench models|io|control|loop|telemetry [--json] [...]``.
 
 Each benchmark lives in ``stagectl.bench.<kind>`` and exposes ``add_arguments(parser)`` and
-``run(args) -> dict``. This command prints the dict as JSON (``--json``) or as readable lines.
-Figures are always measured in the run that prints them, baselines included.
+``run(args) -> dict`` (and optionally ``exit_code(result) -> int``; otherwise the result's ``exit_code``
+entry, default 0, is the exit code). This command prints the dict as JSON (``--json``) or as readable
+lines. Figures are always measured in the run that prints them, baselines included.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
 
-KINDS = {
-    "models": "friction model + plant steps per second vs a pure-Python GMS baseline",
-    "io": "cycle round trip and missed cycles: in-process CAN, socketcand TCP, serial streaming",
-    "control": "tracking error of the controller variants on the seed stage",
-    "loop": "loop timing: lateness p50/p99/max, overruns, CPU",
+from stagectl.bench import control, io, loop, models, telemetry
+
+KINDS: dict[str, tuple[ModuleType, str]] = {
+    "models": (models, "friction model + plant steps per second vs a pure-Python GMS baseline"),
+    "io": (io, "cycle round trip and missed cycles: in-process CAN, socketcand TCP, serial streaming"),
+    "control": (control, "tracking error of the controller variants on the seed stage"),
+    "loop": (loop, "loop timing: lateness p50/p99/max, overruns, CPU"),
+    "telemetry": (telemetry, "telemetry ring + writer at 1 kHz (or the real daemon): dropped/lost rows"),
 }
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="run a benchmark (timing lives here, never in tests)")
     kinds = p.add_subparsers(dest="bench_kind", metavar="KIND")
-    for kind, help_text in KINDS.items():
+    for kind, (mod, help_text) in KINDS.items():
         kp = kinds.add_parser(kind, help=help_text)
         kp.add_argument("--json", action="store_true", help="print the result as JSON")
-        try:
-            mod = importlib.import_module(f"stagectl.bench.{kind}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"stagectl.bench.{kind}":
-                raise
-            kp.set_defaults(func=_missing(kind))
-            continue
-        if hasattr(mod, "add_arguments"):
-            mod.add_arguments(kp)
+        mod.add_arguments(kp)
         kp.set_defaults(func=_runner(mod))
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
 
-def _missing(kind: str):  # type: ignore[no-untyped-def]
-    def fn(args: argparse.Namespace) -> int:
-        print(f"stagectl: error: benchmark {kind!r} is not available in this build", file=sys.stderr)
-        return 2
-
-    return fn
-
-
-def _runner(mod):  # type: ignore[no-untyped-def]
+def _runner(mod: ModuleType) -> Callable[[argparse.Namespace], int]:
     def fn(args: argparse.Namespace) -> int:
         result = mod.run(args)
         if args.json:
@@ -55,12 +45,14 @@ def _runner(mod):  # type: ignore[no-untyped-def]
             sys.stdout.write("\n")
         else:
             _print(result)
+        if hasattr(mod, "exit_code"):
+            return int(mod.exit_code(result))
         return int(result.get("exit_code", 0)) if isinstance(result, dict) else 0
 
     return fn
 
 
-def _print(obj, indent: int = 0) -> None:  # type: ignore[no-untyped-def]
+def _print(obj: Any, indent: int = 0) -> None:
     pad = "  " * indent
     if isinstance(obj, dict):
         for k, v in obj.items():

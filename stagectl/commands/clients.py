@@ -20,7 +20,13 @@ import argparse
 import json
 import os
 import sys
+import time
 from typing import Any
+
+from stagectl.daemon.control import ControlClient
+from stagectl.daemon.paths import first_dir
+from stagectl.errors import StageError
+from stagectl.runtime.requests import MoveRequest, ResetRequest, StopRequest
 
 DEFAULT_SOCKET = "/run/stagectl/control.sock"
 
@@ -29,10 +35,8 @@ def default_socket() -> str:
     env = os.environ.get("STAGECTL_SOCKET")
     if env:
         return env
-    rd = os.environ.get("RUNTIME_DIRECTORY")
-    if rd:
-        return os.path.join(rd.split(":")[0], "control.sock")
-    return DEFAULT_SOCKET
+    rd = first_dir(os.environ, "RUNTIME_DIRECTORY")
+    return str(rd / "control.sock") if rd is not None else DEFAULT_SOCKET
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -59,11 +63,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
     p = sub.add_parser("stop", help="decelerate and hold position")
     _common(p)
-    p.set_defaults(func=lambda a: _simple(a, {"request": "stop"}))
+    p.set_defaults(func=lambda a: _simple(a, StopRequest().to_json()))
 
     p = sub.add_parser("reset", help="clear a latched fault and re-enable the drive")
     _common(p)
-    p.set_defaults(func=lambda a: _simple(a, {"request": "reset"}))
+    p.set_defaults(func=lambda a: _simple(a, ResetRequest().to_json()))
 
     p = sub.add_parser("record", help="start/stop capturing telemetry into a named CSV file")
     rs = p.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -82,9 +86,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 # ---------------------------------------------------------------------------------------------- plumbing
 def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
-    from stagectl.daemon.control import ControlClient
-    from stagectl.errors import StageError
-
     path = args.socket or default_socket()
     try:
         with ControlClient(path, timeout_s=args.timeout) as c:
@@ -117,14 +118,10 @@ def _fmt(v: Any) -> str:
 
 # ---------------------------------------------------------------------------------------------- commands
 def cmd_move(args: argparse.Namespace) -> int:
-    req: dict[str, Any] = {"request": "move"}
-    if args.to is not None:
-        req["target_m"] = args.to
-    else:
-        req["relative_m"] = args.by
-    if args.max_velocity is not None:
-        req["max_velocity_m_s"] = args.max_velocity
-    reply = _request(args, req)
+    # validated here (finite numbers, velocity > 0) before anything is sent; the daemon checks the limits
+    req = MoveRequest(target_m=args.to, relative_m=args.by if args.to is None else None,
+                      max_velocity_m_s=args.max_velocity)
+    reply = _request(args, req.to_json())
     print(f"moving to {reply.get('target_m', float('nan')):.9g} m"
           + (f" ({reply['duration_s']:.3f} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
     return 0
@@ -168,8 +165,6 @@ def _print_tree(obj: Any, indent: int) -> None:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    import time
-
     while True:
         st = _request(args, {"request": "status"})["status"]
         if args.json:

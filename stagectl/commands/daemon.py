@@ -13,7 +13,13 @@ Directories: ``--runtime-dir`` (control socket) defaults to ``$RUNTIME_DIRECTORY
 from __future__ import annotations
 
 import argparse
-import os
+import logging
+import sys
+
+from stagectl.daemon.assemble import build_assembly, load_configs
+from stagectl.daemon.logging import DaemonLogging
+from stagectl.daemon.paths import ServicePaths
+from stagectl.daemon.service import StageService
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -29,22 +35,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
-    import logging
-    import sys
-
-    from stagectl.daemon.assemble import build_assembly, load_configs
-    from stagectl.daemon.logging import DaemonLogging
-    from stagectl.daemon.service import StageService
-
-    runtime_dir = args.runtime_dir or (os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0] or "/run/stagectl")
-    state_dir = args.state_dir or (os.environ.get("STATE_DIRECTORY", "").split(":")[0] or None)
-    logs = DaemonLogging(getattr(logging, args.log_level.upper()))
+    logs = DaemonLogging(logging.getLevelNamesMapping()[args.log_level.upper()])
     # The loop thread must get the GIL back quickly from helper threads (telemetry formatting, JSON):
     # the default 5 ms switch interval would show up as 5 ms of lateness.
     sys.setswitchinterval(2.5e-4)
     try:
-        svc = StageService(args.config, runtime_dir, load_config=load_configs, build=build_assembly,
-                           state_dir=state_dir)
+        paths = ServicePaths.from_env(args.config, args.runtime_dir, args.state_dir)
+        svc = StageService(paths.config, paths.runtime_dir, load_config=load_configs, build=build_assembly,
+                           state_dir=paths.state_dir)
         return svc.run()
     finally:
         logs.close()

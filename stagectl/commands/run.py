@@ -4,12 +4,29 @@ On a simulated stage (``config/sim.yaml``) it runs the configured demo motion on
 real stage it holds the position unless ``--scenario`` is given. One progress line per second goes to
 stderr; at the end the same outputs as ``simulate`` (telemetry.csv, summary.json, tracking.png) are written
 to ``--out`` (default ``./runs/<UTC timestamp>``) and the summary is printed as one JSON line. Ctrl-C stops
-cleanly (zero force, drive disabled).
+cleanly (zero force, drive disabled). The loop runs in a :class:`~stagectl.runtime.host.LoopHost`, like the
+daemon's.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import logging
+import math
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from stagectl.app import build_stage, get_scenario
+from stagectl.config import load_app_config
+from stagectl.errors import ConfigError
+from stagectl.outputs import prepare_out_dir
+from stagectl.recorder import Recorder, tracking_summary, write_outputs
+from stagectl.runtime.host import LoopHost
+from stagectl.runtime.status import LoopResult, LoopStatus
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -24,21 +41,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.set_defaults(func=run)
 
 
+def progress_line(st: LoopStatus) -> str:
+    """The once-a-second stderr line (µm, nm, N, µs)."""
+    lat = st.lateness_us
+    p99, late_max = (lat.p99, lat.max) if lat is not None else (math.nan, math.nan)
+    fault = f" FAULT {st.fault.name}: {st.fault.cause}" if st.fault else ""
+    return (f"t={st.t_s:7.2f} s  x={st.x_m * 1e6:10.4f} um  e={st.e_m * 1e9:9.1f} nm  "
+            f"u={st.u_n:7.3f} N  late p99={p99:6.0f} us max={late_max:6.0f} us  "
+            f"overruns={st.overruns}  {st.state.value}{fault}")
+
+
 def run(args: argparse.Namespace) -> int:
-    import json
-    import logging
-    import math
-    import sys
-    import threading
-    import time
-    from datetime import datetime, timezone
-    from pathlib import Path
-
-    from stagectl.app import build_stage, get_scenario
-    from stagectl.config import load_app_config
-    from stagectl.errors import ConfigError
-    from stagectl.recorder import Recorder, prepare_out_dir, tracking_summary, write_outputs
-
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ConfigError(f"--duration: must be > 0 s (got {args.duration})")
     if not logging.getLogger().handlers:
@@ -48,46 +61,27 @@ def run(args: argparse.Namespace) -> int:
     if args.scenario is not None:
         get_scenario(args.scenario)  # unknown names fail before any device is opened
     prepare_out_dir(out)
+    res: LoopResult | None
     with build_stage(cfg) as stage:
         loop = stage.loop
         scenario = args.scenario or (cfg.demo.scenario if stage.simulated else "hold")
         stage.load_scenario(scenario, repeat=cfg.demo.repeat)
         cap_s = args.duration if args.duration is not None else 600.0
         rec = Recorder(loop.columns, capacity=int(cap_s / cfg.loop.period_s) + 1024)
-        loop.add_sink(rec)
-        stop = threading.Event()
-        box: dict = {}
-
-        def target() -> None:
-            try:
-                box["result"] = loop.run(duration_s=args.duration, stop=stop)
-            except BaseException as exc:  # noqa: BLE001 - re-raised in the main thread
-                box["error"] = exc
-
-        th = threading.Thread(target=target, name="stagectl-loop", daemon=True)
-        print(f"stagectl run: {cfg.path.name} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
+        host = LoopHost(loop, sinks=[rec])
+        print(f"stagectl run: {cfg.path.name if cfg.path else '-'} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
               f"scenario={scenario} duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
-        th.start()
+        host.start(duration_s=args.duration)
         t_next = time.monotonic() + 1.0
         try:
-            while th.is_alive():
-                th.join(timeout=max(0.0, t_next - time.monotonic()))
-                if th.is_alive() and time.monotonic() >= t_next:
+            while not host.wait(max(0.0, t_next - time.monotonic())):
+                if time.monotonic() >= t_next:
                     t_next += 1.0
-                    st = loop.status()
-                    lat = st["lateness_us"]
-                    fault = f" FAULT {st['fault']['name']}: {st['fault']['cause']}" if st["fault"] else ""
-                    print(f"t={st['t_s']:7.2f} s  x={st['x_m'] * 1e6:10.4f} um  e={st['e_m'] * 1e9:9.1f} nm  "
-                          f"u={st['u_n']:7.3f} N  late p99={lat['p99']:6.0f} us max={lat['max']:6.0f} us  "
-                          f"overruns={st['overruns']}  {st['state']}{fault}", file=sys.stderr, flush=True)
+                    print(progress_line(loop.status()), file=sys.stderr, flush=True)
         except KeyboardInterrupt:
             print("stagectl run: stopping (Ctrl-C)", file=sys.stderr)
-            stop.set()
-            th.join(timeout=10.0)
-        if "error" in box:
-            raise box["error"]
-        res = box.get("result")
-    summary = {
+        res = host.finish(timeout_s=10.0)
+    summary: dict[str, Any] = {
         "command": "run",
         "config": str(cfg.path),
         "scenario": scenario,

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from stagectl.app import build_stage
 from stagectl.config import AppConfig, DaemonConfig, load_app_config
-from stagectl.daemon.service import Assembly
+from stagectl.daemon.lifecycle import Assembly
 
 
 def load_configs(path: Path) -> tuple[AppConfig, DaemonConfig]:

@@ -30,8 +30,6 @@ unit's ``Group=``) unless ``group`` names another.
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
-import enum
 import errno
 import grp
 import json
@@ -48,6 +46,11 @@ from pathlib import Path
 from typing import Any
 
 from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.config.daemon import DaemonConfig
+from stagectl.outputs import plain
+from stagectl.runtime.requests import RequestError
+
+__all__ = ["ControlClient", "ControlServer", "RequestError", "encode", "error_reply"]
 
 log = logging.getLogger("stagectl.control")
 
@@ -56,21 +59,13 @@ Reply = dict[str, Any]
 Handler = Callable[[dict[str, Any]], "Reply | concurrent.futures.Future[Reply]"]
 
 
-class RequestError(ValueError):
-    """A request the daemon refuses; ``field`` names the offending key (``request``, ``target_m``...)."""
-
-    def __init__(self, field: str, message: str) -> None:
-        self.field = field
-        super().__init__(f"{field}: {message}")
-
-
 def error_reply(exc: BaseException) -> Reply:
     """Turn an exception into ``{"ok": false, "error": ..., "field": ...}``.
 
     ``ValueError("target_m: ...")`` (the loop's convention) gives ``field = "target_m"``.
     """
     msg = str(exc) or type(exc).__name__
-    field = getattr(exc, "field", None)
+    field = exc.field if isinstance(exc, RequestError) else None
     if field is None and isinstance(exc, ValueError):
         head, sep, _ = msg.partition(":")
         if sep and head and " " not in head.strip() and len(head) < 64:
@@ -81,32 +76,9 @@ def error_reply(exc: BaseException) -> Reply:
     return out
 
 
-def to_json(obj: Any) -> Any:
-    """Plain-JSON view: NaN/inf -> None, enums -> value, dataclasses -> dict, numpy scalars -> Python."""
-    if obj is None or isinstance(obj, (bool, int, str)):
-        return obj
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, enum.Enum):
-        return to_json(obj.value)
-    if isinstance(obj, dict):
-        return {str(k): to_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple, set, frozenset)):
-        return [to_json(v) for v in obj]
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, Path):
-        return str(obj)
-    if hasattr(obj, "item"):  # numpy scalar
-        try:
-            return to_json(obj.item())
-        except Exception:  # noqa: BLE001
-            pass
-    return str(obj)
-
-
 def encode(reply: Reply) -> bytes:
-    return (json.dumps(to_json(reply), allow_nan=False, separators=(",", ":")) + "\n").encode()
+    """One JSON line: NaN/inf as null, dataclasses and enums as plain data, anything else as its text."""
+    return (json.dumps(plain(reply, json=True), allow_nan=False, default=str, separators=(",", ":")) + "\n").encode()
 
 
 #: longest request ``id`` string echoed back [characters]
@@ -175,6 +147,13 @@ class ControlServer:
         self._thread: threading.Thread | None = None
         self.stats = {"accepted": 0, "rejected": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
                       "kicked_idle": 0, "long_lines": 0, "internal_errors": 0}
+
+    @classmethod
+    def from_config(cls, path: Path, handler: Handler, c: DaemonConfig) -> ControlServer:
+        """A server with the ``daemon:`` section's bounds."""
+        return cls(path, handler, group=c.socket_group, max_clients=c.max_clients, max_line_bytes=c.max_line_bytes,
+                   max_out_bytes=c.max_out_bytes, idle_timeout_s=c.client_idle_timeout_s,
+                   reply_timeout_s=c.reply_timeout_s)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:

@@ -21,6 +21,7 @@ import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import IO
 
 from stagectl.daemon._sched import demote_to_normal_priority
@@ -76,7 +77,7 @@ class RateLimitFilter(logging.Filter):
     """
 
     def __init__(self, interval_s: float = 10.0, burst: int = 1, min_level: int = logging.WARNING,
-                 clock=time.monotonic) -> None:  # type: ignore[no-untyped-def]
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__()
         self.interval_s = interval_s
         self.burst = burst
@@ -110,9 +111,15 @@ class RateLimitFilter(logging.Filter):
 
 
 class _Listener(logging.handlers.QueueListener):
-    def _monitor(self) -> None:
-        demote_to_normal_priority()
-        super()._monitor()
+    """Drops to normal scheduling in its own thread before it handles the first record."""
+
+    _demoted = False
+
+    def dequeue(self, block: bool) -> logging.LogRecord:
+        if not self._demoted:  # dequeue runs only in the listener thread
+            self._demoted = True
+            demote_to_normal_priority()
+        return super().dequeue(block)
 
 
 class DaemonLogging:

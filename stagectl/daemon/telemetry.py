@@ -7,9 +7,10 @@ Data path::
     writer thread (non-RT) <--drain-----+--> continuous CSV files (rotated, oldest deleted)
                                         +--> named recording ``<dir>/<NAME>.csv`` (``record start NAME``)
 
-CSV follows docs/recordings.md: one header row with the loop's column names (``t, x, u, x_ref, v_ref, ...``,
-the same columns as ``stagectl simulate``), ``,`` separator, one row per control sample, SI units. Every file
-(each rotated piece and each recording) has its own header and feeds ``stagectl identify`` unchanged.
+CSV follows docs/recordings.md, written by :class:`stagectl.recorder.RecordingCsv` (the same writer as
+``stagectl simulate``'s): one header row with the loop's column names, ``,`` separator, one row per control
+sample, SI units. Every file (each rotated piece and each recording) has its own header and feeds
+``stagectl identify`` unchanged.
 
 Ring protocol (lock-free under the GIL): the producer owns ``_head`` (rows written so far), the consumer
 owns ``_tail`` (rows consumed so far); row k lives at ``buf[k mod C]``. The producer writes the row first
@@ -25,6 +26,7 @@ a file every ``retry_s``.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import threading
@@ -37,6 +39,8 @@ from typing import IO
 import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.config.daemon import TelemetryConfig
+from stagectl.recorder import RecordingCsv
 
 log = logging.getLogger("stagectl.telemetry")
 
@@ -137,12 +141,12 @@ class WriterSettings:
 class _CsvFile:
     """One open CSV file with a header; counts bytes and rows."""
 
-    def __init__(self, path: Path, columns: Sequence[str], *, exclusive: bool) -> None:
+    def __init__(self, path: Path, fmt: RecordingCsv, *, exclusive: bool) -> None:
         self.path = path
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else os.O_TRUNC),
                      0o640)
         self.fh: IO[str] = os.fdopen(fd, "w", buffering=1 << 16, encoding="ascii", newline="")
-        header = ",".join(columns) + "\n"
+        header = fmt.header
         self.fh.write(header)
         self.bytes = len(header)
         self.rows = 0
@@ -186,8 +190,7 @@ class TelemetryWriter:
         self.ring = ring
         self.settings = settings
         self.columns = ring.columns
-        n = len(self.columns)
-        self._row_fmt = ",".join([settings.float_format] * n) + "\n"
+        self._csv = RecordingCsv(self.columns, settings.float_format)
         self._lock = threading.Lock()  # guards the recording and the status fields (never the ring)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -258,7 +261,7 @@ class TelemetryWriter:
                 raise ValueError(f"name: recording {self._rec.name!r} is already running; stop it first")
         self.settings.directory.mkdir(parents=True, exist_ok=True)
         try:
-            csv = _CsvFile(path, self.columns, exclusive=True)
+            csv = _CsvFile(path, self._csv, exclusive=True)
         except FileExistsError:
             raise ValueError(f"name: {fname} already exists in {self.settings.directory}") from None
         with self._lock:
@@ -371,7 +374,7 @@ class TelemetryWriter:
             n = len(rows)
             if n:
                 self.rows_drained += n
-                text = "".join([self._row_fmt % tuple(r) for r in rows.tolist()])
+                text = self._csv.rows(rows)
                 self._write_continuous(text, n)
                 self._write_recording(first, rows, text, n)
             if n < s.chunk_rows:
@@ -431,8 +434,7 @@ class TelemetryWriter:
             hi = n if rec.stop_index is None else min(max(rec.stop_index - first, 0), n)
             if hi <= lo:
                 return
-            part = text if (lo == 0 and hi == n) else "".join(
-                [self._row_fmt % tuple(r) for r in rows[lo:hi].tolist()])
+            part = text if (lo == 0 and hi == n) else self._csv.rows(rows[lo:hi])
             try:
                 rec.csv.write(part, hi - lo)
             except OSError as exc:
@@ -448,7 +450,7 @@ class TelemetryWriter:
                 self._seq += 1
                 path = s.directory / f"{s.prefix}-{stamp}-{self._seq:04d}.csv"
                 try:
-                    f = _CsvFile(path, self.columns, exclusive=True)
+                    f = _CsvFile(path, self._csv, exclusive=True)
                     break
                 except FileExistsError:
                     continue
@@ -508,3 +510,19 @@ class TelemetryWriter:
 def _describe(exc: OSError, path: Path) -> str:
     what = exc.strerror or type(exc).__name__
     return f"{exc.filename or path}: {what}"
+
+
+def start_telemetry(tc: TelemetryConfig, directory: Path, columns: Sequence[str], period_s: float
+                    ) -> TelemetryWriter | None:
+    """The daemon's telemetry set-up: a ring holding ``tc.buffer_s`` of rows and its writer thread, started;
+    None when ``tc.enabled`` is false. The ring is ``writer.ring`` (a loop sink)."""
+    if not tc.enabled:
+        return None
+    ring = TelemetryRing(columns, max(1024, int(math.ceil(tc.buffer_s / period_s))))
+    writer = TelemetryWriter(ring, WriterSettings(
+        directory=directory, continuous=tc.continuous, rotate_bytes=int(tc.rotate_mb * 1e6), rotate_s=tc.rotate_s,
+        keep_files=tc.keep_files, flush_interval_s=tc.flush_interval_s, retry_s=tc.retry_s))
+    writer.start()
+    log.info("telemetry: %s (%d-row ring, %.0f s at %g Hz)", directory, ring.capacity, ring.capacity * period_s,
+             1.0 / period_s)
+    return writer

@@ -113,7 +113,7 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
     assert dut.asm.loop.actuator.state.value == "configured" or dut.asm.loop.actuator.state.value == "closed"
     assert not (tmp_path / "run" / "control.sock").exists()
     # ---------------------------------------------------------------- telemetry complete
-    cycles = dut._loop_result.cycles
+    cycles = dut.loop_result.cycles
     files = sorted((tmp_path / "tel").glob("telemetry-*.csv"))
     assert len(files) == 1
     with open(files[0], newline="") as fh:

@@ -15,6 +15,7 @@ from stagectl.clock import SimClock
 from stagectl.commands.simulate import simulate
 from stagectl.config import parse_app_config
 from stagectl.drivers.base import DeviceState
+from stagectl.loop import LoopState
 from stagectl.recorder import Recorder
 
 REPO = Path(__file__).resolve().parents[2]
@@ -85,9 +86,9 @@ def test_canopen_faults_stop_the_drive_and_latch(canopen_cfg, kind, expect):
         loop.on_cycle = lambda: loop.cycle == 100 and world.inject_fault(kind, at_cycle=None)
         loop.run(cycles=100 + int(0.5 / canopen_cfg.loop.period_s))
         st = loop.status()
-        assert st["state"] == "fault"
-        assert st["fault"]["name"] in (expect, "emcy"), st["fault"]
-        k = st["fault"]["cycle"]
+        assert st.state is LoopState.FAULT
+        assert st.fault.name in (expect, "emcy"), st.fault
+        k = st.fault.cycle
         assert k >= 100
         assert all(f == 0.0 for f in probe[k + 3:]), probe[k - 2:k + 6]  # the drive's force is zero
         assert world.drive.state.name != "OPERATION_ENABLED"
@@ -99,7 +100,7 @@ def test_canopen_fault_reset_re_enables(canopen_cfg):
         loop, world = stage.loop, stage.world
         loop.on_cycle = lambda: loop.cycle == 50 and world.inject_fault("drive_fault")
         loop.run(cycles=80)
-        assert loop.status()["fault"]["name"] in ("drive_fault", "emcy")
+        assert loop.status().fault.name in ("drive_fault", "emcy")
         world.clear_faults()
         loop.on_cycle = None
         fut = loop.request("reset")
@@ -108,8 +109,8 @@ def test_canopen_fault_reset_re_enables(canopen_cfg):
         assert fut.result(timeout=0)["state"] == "active"
         mv = loop.request("move", relative_m=2e-6)
         loop.run(cycles=400)
-        assert mv.result(timeout=0)["target_m"] == pytest.approx(loop.status()["x_ref_m"])
-        assert loop.status()["fault"] is None
+        assert mv.result(timeout=0)["target_m"] == pytest.approx(loop.status().x_ref_m)
+        assert loop.status().fault is None
 
 
 def test_stage_exit_disables_the_drive_after_an_exception(canopen_cfg):
@@ -182,4 +183,4 @@ def test_retune_with_the_stage_controller(plant_io_cfg):
         loop.run(cycles=5)
         assert fut.result(timeout=0) == {"retuned": True}
         assert ctl.cfg.pid.kp_n_m == pytest.approx(old.pid.kp_n_m * 0.5)
-        assert loop.status()["fault"] is None
+        assert loop.status().fault is None

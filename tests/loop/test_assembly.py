@@ -97,4 +97,4 @@ def test_inject_fault_aliases_on_both_simulated_stages(kind):
         loop.on_cycle = lambda: loop.cycle == 20 and got.append(stage.inject_fault("emcy"))
         loop.run(cycles=60)
         assert got and got[0]["injected"]
-        assert loop.status()["fault"] is not None
+        assert loop.status().fault is not None

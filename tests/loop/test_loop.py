@@ -11,7 +11,7 @@ import pytest
 from stagectl.clock import SimClock
 from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
-from stagectl.loop import BASE_COLUMNS, LoopStateError
+from stagectl.loop import BASE_COLUMNS, LoopState, LoopStateError
 
 
 def test_absolute_deadlines_and_columns(rig):
@@ -25,7 +25,7 @@ def test_absolute_deadlines_and_columns(rig):
     assert all(len(r) == len(loop.columns) for r in sink.rows)
     assert io.n_sync == 252  # a warm-up SYNC before enabling, one priming SYNC at start, one per cycle
     assert io.state is DeviceState.CONFIGURED  # disabled on the way out
-    assert loop.status()["state"] == "configured"
+    assert loop.status().state is LoopState.CONFIGURED
 
 
 def test_duration_runs_exact_cycle_count(rig):
@@ -65,12 +65,12 @@ def test_overruns_are_counted_and_skipped_not_caught_up(make, rows):
     # cycle 50 (slot 52) ends at 53.6 ms: 0.6 ms late, within one period -> not an overrun
     assert t[51] == pytest.approx(53.6, abs=1e-9)
     st = loop.status()
-    assert st["lateness_us"]["max"] == pytest.approx(600.0, rel=1e-6)
-    assert st["overruns"] == 2
+    assert st.lateness_us.max == pytest.approx(600.0, rel=1e-6)
+    assert st.overruns == 2
     light = loop.status(timing=False)  # the supervisor's cheap form: same counters, no percentiles
-    assert "lateness_us" not in light and "exec_us" not in light
-    assert {k: light[k] for k in ("cycle", "overruns", "recent_overrun_fraction", "healthy", "state")} == {
-        k: st[k] for k in ("cycle", "overruns", "recent_overrun_fraction", "healthy", "state")}
+    assert light.lateness_us is None and light.exec_us is None
+    keys = ("cycle", "overruns", "recent_overrun_fraction", "healthy", "state")
+    assert {k: getattr(light, k) for k in keys} == {k: getattr(st, k) for k in keys}
 
 
 def test_move_request_tracks_and_reports(rig):
@@ -81,7 +81,7 @@ def test_move_request_tracks_and_reports(rig):
     assert fut.result()["duration_s"] == pytest.approx(0.05, rel=1e-6)
     assert res.fault is None
     st = loop.status()
-    assert abs(st["x_m"] - 50e-6) < 1e-6
+    assert abs(st.x_m - 50e-6) < 1e-6
     e = np.array([r[loop.columns.index("e")] for r in sink.rows])
     assert np.max(np.abs(e)) < 5e-6
 
@@ -118,7 +118,7 @@ def test_shutdown_stop_and_pending_futures(rig):
     assert f_move.done() and f_shut.result(timeout=0) == {"cycles": 0}
     late = loop.request("stop")  # queued after run: fails when the next run ends without serving it?
     loop.run(cycles=1)
-    assert late.result(timeout=0)["x_m"] == pytest.approx(loop.status()["x_ref_m"])
+    assert late.result(timeout=0)["x_m"] == pytest.approx(loop.status().x_ref_m)
 
 
 def test_retune_applied_at_cycle_boundary_and_bad_tuning_rejected(rig):
@@ -129,7 +129,7 @@ def test_retune_applied_at_cycle_boundary_and_bad_tuning_rejected(rig):
     assert good.result(timeout=0) == {"retuned": True} and ctl.kp == 1e4
     with pytest.raises(ValueError, match="kp"):
         bad.result(timeout=0)
-    assert loop.status()["state"] == "configured" and loop.status()["fault"] is None
+    assert loop.status().state is LoopState.CONFIGURED and loop.status().fault is None
 
 
 def test_failing_sink_is_removed_and_loop_continues(rig):
@@ -154,13 +154,13 @@ def test_status_from_another_thread_while_running(rig):
         fut = loop.request("move", target_m=1e-6)
         fut.result(timeout=30)  # served at a cycle boundary in the loop thread
         st = loop.status()
-        assert st["running"] and st["healthy"] and st["state"] == "active"
-        assert st["cycle"] >= 1
+        assert st.running and st.healthy and st.state is LoopState.ACTIVE
+        assert st.cycle >= 1
     finally:
         stop.set()
         th.join(timeout=30)
     assert result["r"].ended_by == "stop"
-    assert not loop.status()["running"] and not loop.status()["healthy"]
+    assert not loop.status().running and not loop.status().healthy
 
 
 def test_run_disables_drive_even_when_start_fails(make):

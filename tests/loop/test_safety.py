@@ -10,7 +10,7 @@ import pytest
 
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.errors import ConfigError
-from stagectl.loop import LoopStateError
+from stagectl.loop import LoopState, LoopStateError
 from stagectl.safety import Safety, SafetyConfig
 from stagectl.schema import load
 
@@ -68,13 +68,13 @@ def test_fault_latches_stops_drive_and_needs_reset(make, name, caplog):
     loop, io, plant, ctl, probe = _drive_to_fault(make, trigger, safety=safety)
     loop.on_cycle = None
     st = loop.status()
-    assert st["state"] == "fault"
-    assert st["fault"]["name"] == name, st["fault"]
-    assert st["fault"]["cause"]
+    assert st.state is LoopState.FAULT
+    assert st.fault.name == name, st.fault
+    assert st.fault.cause
     # logged with its cause
     assert any(name in r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR)
     # the drive output is zero within 3 cycles of the fault and stays zero
-    k_fault = st["fault"]["cycle"]
+    k_fault = st.fault.cycle
     assert 20 <= k_fault <= 27
     after = probe.applied[k_fault + 3:]
     assert after and all(f == 0.0 for f in after), probe.applied[k_fault - 2:]
@@ -85,15 +85,15 @@ def test_fault_latches_stops_drive_and_needs_reset(make, name, caplog):
     loop.run(cycles=3)
     with pytest.raises(LoopStateError, match="fault"):
         fut.result(timeout=0)
-    assert loop.status()["state"] == "fault"  # still latched: nothing but reset clears it
+    assert loop.status().state is LoopState.FAULT  # still latched: nothing but reset clears it
     # explicit reset: bumpless restart at the measured position
     rst = loop.request("reset")
     loop.run(cycles=30)
     out = rst.result(timeout=0)
     assert out["cleared"]["name"] == name and out["state"] == "active"
     st = loop.status()
-    assert st["fault"] is None and st["state"] == "configured"
-    assert ctl.resets[-1] == pytest.approx(st["x_ref_m"], abs=1e-12)  # restarted where it stood
+    assert st.fault is None and st.state is LoopState.CONFIGURED
+    assert ctl.resets[-1] == pytest.approx(st.x_ref_m, abs=1e-12)  # restarted where it stood
     assert io.state is DeviceState.CONFIGURED  # disabled again at the end of the run
 
 
@@ -106,12 +106,12 @@ def test_quick_stop_issued_in_the_same_cycle(make):
         io.inject_fault(FaultKind.EMCY, "x")
 
     loop, io, plant, ctl, probe = _drive_to_fault(make, trigger, after=5)
-    assert stops == [loop.status()["fault"]["cycle"]] == [21]  # read and stopped in the next cycle
+    assert stops == [loop.status().fault.cycle] == [21]  # read and stopped in the next cycle
 
 
 def test_reset_then_new_fault_latches_again(make):
     loop, io, plant, ctl, probe = _drive_to_fault(make, lambda lp, io, pl, c: io.inject_fault(FaultKind.EMCY))
-    assert loop.status()["fault"]["name"] == "emcy"
+    assert loop.status().fault.name == "emcy"
     rst = loop.request("reset")
 
     def hook():
@@ -121,7 +121,7 @@ def test_reset_then_new_fault_latches_again(make):
     loop.on_cycle = hook
     loop.run(cycles=30)
     assert rst.result(timeout=0)["state"] == "active"
-    assert loop.status()["fault"]["name"] == "not_finite"
+    assert loop.status().fault.name == "not_finite"
 
 
 def test_safety_config_bounds_and_cross_check():

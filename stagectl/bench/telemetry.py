@@ -1,7 +1,7 @@
-"""Benchmark: telemetry at 1 kHz for 10 minutes loses nothing (issue 5 target: zero dropped samples).
+"""``stagectl bench telemetry``: telemetry at 1 kHz for 10 minutes loses nothing (target: zero dropped samples).
 
-    python -m stagectl.daemon.bench_telemetry [--duration-s 600] [--rate-hz 1000] [--columns 12] [--json]
-    python -m stagectl.daemon.bench_telemetry --daemon config/sim.yaml [--duration-s 600] [--json]
+    stagectl bench telemetry [--duration-s 600] [--rate-hz 1000] [--columns 12] [--json]
+    stagectl bench telemetry --daemon config/sim.yaml [--duration-s 600] [--json]
 
 A producer thread on absolute deadlines (``clock_nanosleep``, the loop's clock) appends one row per period
 into the daemon's :class:`TelemetryRing` (default 60 s of buffer); the daemon's :class:`TelemetryWriter`
@@ -13,13 +13,19 @@ the wall clock.
 With ``--daemon CONFIG`` the real ``stagectl daemon`` runs on CONFIG (e.g. the embedded simulated plant) in a
 temporary runtime directory for the duration; the figures come from its ``status`` reply at the end and from
 the telemetry file it leaves after SIGTERM (rows counted against the loop's cycle count).
+
+Exit code 0 when nothing was dropped or lost and every row reached the files, else 1.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
+import os
+import signal
+import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -27,28 +33,56 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
+import yaml
 
+from stagectl.clock import MonotonicClock
+from stagectl.daemon.control import ControlClient
 from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
 
+__all__ = ["add_arguments", "exit_code", "run", "run_daemon", "run_ring"]
 
-def run(duration_s: float = 600.0, rate_hz: float = 1000.0, ncols: int = 12, buffer_s: float = 60.0,
-        rotate_mb: float = 100.0, directory: Path | None = None) -> dict[str, Any]:
-    import sys
 
-    from stagectl.clock import MonotonicClock
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--duration-s", type=float, default=600.0, help="seconds to run (default 600)")
+    p.add_argument("--rate-hz", type=float, default=1000.0, help="rows per second (default 1000)")
+    p.add_argument("--columns", type=int, default=12, help="columns per row (default 12)")
+    p.add_argument("--daemon", metavar="CONFIG", help="measure the real daemon on CONFIG instead")
 
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    if args.daemon:
+        return run_daemon(args.daemon, args.duration_s)
+    return run_ring(args.duration_s, args.rate_hz, args.columns)
+
+
+def exit_code(res: dict[str, Any]) -> int:
+    """0 when the run lost nothing (see the module docstring), else 1."""
+    if "complete" in res:  # --daemon
+        return 0 if res["complete"] and res["dropped_at_end"] == 0 and res["lost_at_end"] == 0 else 1
+    return 0 if res["dropped"] == 0 and res["lost"] == 0 and res["rows_in_files"] == res["rows_produced"] else 1
+
+
+def _pct_us(a: npt.NDArray[np.float64]) -> dict[str, float]:
+    p50, p99 = np.percentile(a, (50, 99))
+    return {"p50": float(p50) * 1e6, "p99": float(p99) * 1e6, "max": float(a.max()) * 1e6}
+
+
+def run_ring(duration_s: float = 600.0, rate_hz: float = 1000.0, ncols: int = 12, buffer_s: float = 60.0,
+             rotate_mb: float = 100.0, directory: Path | None = None) -> dict[str, Any]:
+    """The ring and writer alone, fed by a producer thread on absolute deadlines."""
     sys.setswitchinterval(2.5e-4)  # as `stagectl daemon` does: the producer gets the GIL back quickly
     period = 1.0 / rate_hz
     cols = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v") + tuple(f"u_{i}" for i in range(max(0, ncols - 8)))
     ring = TelemetryRing(cols, int(math.ceil(buffer_s * rate_hz)))
     tmp = tempfile.TemporaryDirectory(prefix="stagectl-bench-tel-") if directory is None else None
-    d = Path(tmp.name) if tmp else Path(directory)  # type: ignore[arg-type]
+    d = Path(tmp.name) if tmp is not None else Path(directory or ".")
     writer = TelemetryWriter(ring, WriterSettings(directory=d, rotate_bytes=int(rotate_mb * 1e6), keep_files=0))
     writer.start()
     n_total = int(round(duration_s * rate_hz))
     append_cost = np.zeros(n_total)
     lateness = np.zeros(n_total)
-    backlog_peak = [0]
+    backlog_peak = [0]  # written by the producer thread
     clock = MonotonicClock()
 
     def producer() -> None:
@@ -95,7 +129,7 @@ def run(duration_s: float = 600.0, rate_hz: float = 1000.0, ncols: int = 12, buf
                     monotonic_ok = False
                 last_t = t
     out = {
-        "command": f"python -m stagectl.daemon.bench_telemetry --duration-s {duration_s:g} --rate-hz {rate_hz:g} "
+        "command": f"stagectl bench telemetry --duration-s {duration_s:g} --rate-hz {rate_hz:g} "
                    f"--columns {len(cols)}",
         "duration_s": duration_s,
         "wall_s": wall,
@@ -112,10 +146,8 @@ def run(duration_s: float = 600.0, rate_hz: float = 1000.0, ncols: int = 12, buf
         "recording_rows": (rec or {}).get("rows"),
         "ring_capacity_rows": ring.capacity,
         "backlog_peak_rows": backlog_peak[0],
-        "append_us": {k: float(v) * 1e6 for k, v in zip(("p50", "p99", "max"),
-                                                         (*np.percentile(append_cost, (50, 99)), append_cost.max()))},
-        "producer_lateness_us": {k: float(v) * 1e6 for k, v in zip(("p50", "p99", "max"),
-                                                                   (*np.percentile(lateness, (50, 99)), lateness.max()))},
+        "append_us": _pct_us(append_cost),
+        "producer_lateness_us": _pct_us(lateness),
         "write_error": st["error"],
     }
     if tmp:
@@ -125,16 +157,6 @@ def run(duration_s: float = 600.0, rate_hz: float = 1000.0, ncols: int = 12, buf
 
 def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     """Run ``stagectl daemon`` on ``config`` for ``duration_s`` and count what reached the files."""
-    import os
-    import signal
-    import socket
-    import subprocess
-    import sys
-
-    import yaml
-
-    from stagectl.daemon.control import ControlClient
-
     tmp = tempfile.TemporaryDirectory(prefix="stagectl-bench-daemon-")
     d = Path(tmp.name)
     src = Path(config).resolve()
@@ -190,7 +212,7 @@ def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     tel = st["telemetry"]
     loop = st["loop"]
     out = {
-        "command": f"python -m stagectl.daemon.bench_telemetry --daemon {config} --duration-s {duration_s:g}",
+        "command": f"stagectl bench telemetry --daemon {config} --duration-s {duration_s:g}",
         "duration_s": duration_s,
         "wall_s": wall,
         "exit_code": proc.returncode,
@@ -207,29 +229,3 @@ def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     ns.close()
     tmp.cleanup()
     return out
-
-
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--duration-s", type=float, default=600.0)
-    p.add_argument("--rate-hz", type=float, default=1000.0)
-    p.add_argument("--columns", type=int, default=12)
-    p.add_argument("--daemon", metavar="CONFIG", help="measure the real daemon on CONFIG instead")
-    p.add_argument("--json", action="store_true")
-    a = p.parse_args()
-    if a.daemon:
-        res = run_daemon(a.daemon, a.duration_s)
-        print(json.dumps(res, indent=2) if a.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
-        return 0 if res["complete"] and res["dropped_at_end"] == 0 and res["lost_at_end"] == 0 else 1
-    res = run(a.duration_s, a.rate_hz, a.columns)
-    if a.json:
-        print(json.dumps(res, indent=2))
-    else:
-        for k, v in res.items():
-            print(f"{k}: {v}")
-    ok = res["dropped"] == 0 and res["lost"] == 0 and res["rows_in_files"] == res["rows_produced"]
-    return 0 if ok else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,0 +1,161 @@
+"""Control-socket request handlers: one function per request kind.
+
+Each handler takes the service (:class:`ServiceView`) and the decoded JSON object and returns a reply dict,
+or a Future resolving to one (a loop request is answered once the loop has executed it). Bad input raises
+:class:`~stagectl.runtime.requests.RequestError` naming the field; the server turns it into an error reply.
+Handlers run in the control thread and never block.
+
+===========  ====================================================================================
+``status``   everything an operator needs (``StageService.status``)
+``move``     :class:`~stagectl.runtime.requests.MoveRequest` (``target_m`` | ``relative_m``, ``max_velocity_m_s``)
+``stop``     :class:`~stagectl.runtime.requests.StopRequest`
+``reset``    :class:`~stagectl.runtime.requests.ResetRequest`
+``gains``    the controller tuning in force and the last reload's outcome
+``record``   ``action: start`` + ``name`` / ``action: stop``: a named telemetry recording
+``fault``    debug: inject a fault into a *simulated* plant (``daemon.allow_fault_injection``)
+===========  ====================================================================================
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import threading
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol
+
+from stagectl.config.daemon import DaemonConfig
+from stagectl.daemon.lifecycle import AssemblyLike
+from stagectl.daemon.reload import Reloader
+from stagectl.daemon.telemetry import TelemetryWriter
+from stagectl.loop import ControlLoop
+from stagectl.outputs import plain
+from stagectl.runtime.inbox import Reply as LoopReply
+from stagectl.runtime.requests import RequestError, parse_request
+
+__all__ = ["HANDLERS", "ServiceView", "dispatch"]
+
+Reply = dict[str, Any]
+ReplyOrFuture = Reply | concurrent.futures.Future[Reply]
+
+
+class ServiceView(Protocol):
+    """What the handlers need from :class:`~stagectl.daemon.service.StageService`."""
+
+    cfg: DaemonConfig
+    asm: AssemblyLike | None
+    writer: TelemetryWriter | None
+
+    reloader: Reloader
+
+    def status(self) -> dict[str, Any]: ...
+
+    def need_loop(self) -> ControlLoop: ...
+
+
+def _only(req: Mapping[str, object], *allowed: str) -> None:
+    for key in req:
+        if key not in ("request", "id", *allowed):
+            raise RequestError(key, f"unknown field for {req.get('request')!r} (allowed: "
+                                    f"{', '.join(sorted(allowed)) or 'none'})")
+
+
+def as_reply(fut: LoopReply) -> concurrent.futures.Future[Reply]:
+    """The loop's future as a reply future (plain JSON values; errors stay errors)."""
+    out: concurrent.futures.Future[Reply] = concurrent.futures.Future()
+
+    def done(f: LoopReply) -> None:
+        if f.cancelled():
+            out.cancel()
+            return
+        exc = f.exception()
+        if exc is not None:
+            out.set_exception(exc)
+        else:
+            out.set_result(plain(f.result(), json=True))
+
+    fut.add_done_callback(done)
+    return out
+
+
+def handle_status(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    _only(req)
+    return {"status": svc.status()}
+
+
+def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    """``move``, ``stop``, ``reset``: parsed (and validated) first, then handed to the loop."""
+    typed = parse_request(str(req.get("request")), req)
+    return as_reply(svc.need_loop().submit(typed))
+
+
+def handle_gains(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    _only(req)
+    ctl = svc.asm.controller_config if svc.asm else None
+    return {"controller": plain(ctl, json=True), "reload": svc.reloader.status}
+
+
+def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    _only(req, "action", "name")
+    writer = svc.writer
+    if writer is None:
+        raise RequestError("request", "telemetry is disabled (daemon.telemetry.enabled: false)")
+    action = req.get("action")
+    if action == "start":
+        name = req.get("name")
+        if not isinstance(name, str):
+            raise RequestError("name", f"must be a plain file name of letters, digits, '._-' (got {name!r})")
+        try:
+            path = writer.record_start(name)
+        except OSError as exc:
+            raise RequestError("name", f"cannot create the recording: {exc.strerror or exc}") from None
+        return {"recording": str(path)}
+    if action == "stop":
+        # waits for the writer to drain and fsync: off the control thread, so other clients are served
+        fut: concurrent.futures.Future[Reply] = concurrent.futures.Future()
+
+        def stop_recording() -> None:
+            try:
+                fut.set_result({"recording": writer.record_stop()})
+            except Exception as exc:  # noqa: BLE001 - "action: no recording is running" -> error reply
+                fut.set_exception(exc)
+
+        threading.Thread(target=stop_recording, name="stagectl-record-stop", daemon=True).start()
+        return fut
+    raise RequestError("action", f"must be start or stop (got {action!r})")
+
+
+def handle_fault(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    """Debug: inject a fault into the *simulated* plant (``daemon.allow_fault_injection`` and sim only)."""
+    asm = svc.asm
+    if asm is None or asm.inject_fault is None or not (svc.cfg.allow_fault_injection and asm.simulated):
+        raise RequestError("request", "fault injection is only available on a simulated plant with "
+                                      "daemon.allow_fault_injection: true")
+    kw = {k: v for k, v in req.items() if k not in ("request", "id")}
+    kind = kw.pop("kind", None)
+    if not isinstance(kind, str):
+        raise RequestError("kind", "name the fault to inject")
+    res = asm.inject_fault(kind, **kw)
+    return {"injected": kind, **(res if isinstance(res, dict) else {})}
+
+
+HANDLERS: dict[str, Callable[[ServiceView, Mapping[str, object]], ReplyOrFuture]] = {
+    "status": handle_status,
+    "move": handle_loop_request,
+    "stop": handle_loop_request,
+    "reset": handle_loop_request,
+    "record": handle_record,
+    "gains": handle_gains,
+    "fault": handle_fault,
+}
+
+
+def dispatch(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    """Route one request to its handler (control thread; never blocks)."""
+    kind = req.get("request")
+    known = "one of status, move, stop, reset, record, gains"
+    if not isinstance(kind, str):
+        raise RequestError("request", f"missing; {known}")
+    fn = HANDLERS.get(kind)
+    if fn is None:
+        raise RequestError("request", f"unknown request {kind!r}; {known}")
+    return fn(svc, req)

@@ -1,0 +1,56 @@
+"""What the loop needs from the objects it drives (structural types; the real ones live in ``control/``)."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+from stagectl.control.api import Command, Reference
+
+__all__ = ["Controller", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
+
+
+class Controller(Protocol):
+    """What the loop needs from :class:`stagectl.control.controller.StageController`.
+
+    A controller may also offer ``request_retune(cfg)`` (prepare in the caller's thread, swap at its next
+    step) and ``term_names`` (its telemetry terms); the loop uses them when present.
+    """
+
+    def reset(self, x_m: float) -> None: ...
+
+    def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command: ...
+
+    def retune(self, cfg: Any) -> None: ...
+
+
+@runtime_checkable
+class PreparesRetune(Protocol):
+    """A controller that designs a new tuning in the caller's thread and swaps it in at its next step
+    (:class:`~stagectl.control.controller.StageController`); bad tunings raise in ``request_retune``."""
+
+    def request_retune(self, cfg: Any) -> None: ...
+
+
+class ReferenceSource(Protocol):
+    """A reference generator the loop samples once per cycle."""
+
+    def sample(self, t_s: float) -> Reference: ...
+
+    def hold(self, t_s: float, x_m: float) -> None:
+        """Stand still at ``x_m`` from ``t_s`` on (start, reset)."""
+
+    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
+        """Start a move at ``t_s`` to ``target_m``; returns its duration [s]."""
+
+    def stop(self, t_s: float) -> float:
+        """Decelerate and hold; returns the position where it will stand [m]."""
+
+    @property
+    def target_m(self) -> float:
+        """The position the reference is heading to (or holding) [m]."""
+
+
+class TelemetrySink(Protocol):
+    """``append(row)`` is called in the loop thread once per cycle; it must not block."""
+
+    def append(self, row: tuple[float, ...]) -> None: ...

@@ -1,0 +1,112 @@
+"""What the loop reports: its state, a typed status snapshot, the result of a run, timing statistics.
+
+* :class:`LoopState` -- ``unconfigured → configured → active ⇄ fault``.
+* :class:`LoopStatus` -- :meth:`stagectl.loop.ControlLoop.status`'s snapshot (thread-safe to take). Its
+  plain-JSON form (:func:`stagectl.outputs.plain` with ``json=True``) is the ``loop`` object of the daemon's
+  ``status`` reply: ``state``, ``fault`` {name, cause, t_s, cycle} or null, ``t_s``, ``x_m``, ``x_ref_m``,
+  ``e_m``, ``u_n``, ``cycle``, ``overruns``, ``recent_overrun_fraction``, ``period_s``, ``running``,
+  ``healthy``, ``lateness_us`` and ``exec_us`` {p50, p99, max} (null when taken with ``timing=False``).
+* :class:`LoopResult` -- the summary of one :meth:`~stagectl.loop.ControlLoop.run`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stagectl.errors import StageError
+from stagectl.outputs import plain
+from stagectl.safety import SafetyFault
+
+__all__ = ["FaultInfo", "LoopResult", "LoopState", "LoopStateError", "LoopStatus", "TimingStats", "timing_stats"]
+
+#: a latched fault: ``name`` (the safety table's), ``cause`` (text), ``t_s`` [s], ``cycle``
+FaultInfo = SafetyFault
+
+
+class LoopStateError(StageError, RuntimeError):
+    """A request cannot be executed in the loop's current state (e.g. a move while in fault)."""
+
+
+class LoopState(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    CONFIGURED = "configured"
+    ACTIVE = "active"
+    FAULT = "fault"
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    """Percentiles over the recent-cycles window and the all-time maximum, in µs."""
+
+    p50: float = 0.0
+    p99: float = 0.0
+    max: float = 0.0
+
+
+def timing_stats(arr: npt.NDArray[np.float64], n: int, peak_s: float) -> TimingStats:
+    """p50/p99 of the first ``n`` entries of ``arr`` [s] and ``peak_s``, as µs (zeros when ``n`` ≤ 0)."""
+    if n <= 0:
+        return TimingStats()
+    a = arr[: min(n, arr.size)]
+    p50, p99 = np.percentile(a, (50.0, 99.0))
+    return TimingStats(float(p50) * 1e6, float(p99) * 1e6, float(peak_s) * 1e6)
+
+
+@dataclass(frozen=True)
+class LoopStatus:
+    """A snapshot of the loop (positions in m, force in N, times in s)."""
+
+    state: LoopState
+    fault: FaultInfo | None
+    t_s: float
+    x_m: float
+    x_ref_m: float
+    e_m: float
+    u_n: float
+    cycle: int
+    overruns: int
+    recent_overrun_fraction: float
+    period_s: float
+    running: bool
+    healthy: bool
+    lateness_us: TimingStats | None = None
+    exec_us: TimingStats | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """The plain-JSON form (NaN → null), as sent on the control socket."""
+        out: dict[str, Any] = plain(self, json=True)
+        return out
+
+
+@dataclass
+class LoopResult:
+    """Summary of one :meth:`~stagectl.loop.ControlLoop.run`."""
+
+    cycles: int
+    overruns: int
+    duration_s: float
+    ended_by: str
+    lateness_us: dict[str, float]
+    exec_us: dict[str, float]
+    cpu_fraction: float
+    fault: dict[str, Any] | None
+    realtime: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "cycles": self.cycles,
+            "overruns": self.overruns,
+            "overrun_fraction": self.overruns / max(1, self.cycles + self.overruns),
+            "duration_s": self.duration_s,
+            "ended_by": self.ended_by,
+            "lateness_us": self.lateness_us,
+            "exec_us": self.exec_us,
+            "cpu_fraction": self.cpu_fraction,
+            "fault": self.fault,
+            "realtime": self.realtime,
+        }

@@ -1,0 +1,179 @@
+"""The runtime layer's mechanisms: typed requests (validated once), the typed status, the loop host, the
+recording CSV writer. Simulated time only."""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+
+import numpy as np
+import pytest
+
+from stagectl.errors import StageError
+from stagectl.loop import LoopState
+from stagectl.outputs import plain
+from stagectl.recorder import Recorder, RecordingCsv
+from stagectl.runtime.host import LoopHost
+from stagectl.runtime.requests import (
+    MotionLimits,
+    MoveRequest,
+    RequestError,
+    ResetRequest,
+    RetuneRequest,
+    StopRequest,
+    parse_request,
+    request_from_kwargs,
+)
+
+
+# ------------------------------------------------------------------------------------------------ requests
+@pytest.mark.parametrize(("kw", "field", "text"), [
+    ({"target_m": math.nan}, "target_m", "finite (m)"),
+    ({"relative_m": math.inf}, "relative_m", "finite (m)"),
+    ({"target_m": "1e-3"}, "target_m", "number in m"),
+    ({"target_m": True}, "target_m", "number in m"),
+    ({"target_m": 10**400}, "target_m", "too large"),
+    ({"target_m": 0.0, "relative_m": 0.0}, "target_m", "exactly one"),
+    ({}, "target_m", "exactly one"),
+    ({"target_m": 0.0, "max_velocity_m_s": 0.0}, "max_velocity_m_s", "> 0 m/s"),
+    ({"target_m": 0.0, "max_velocity_m_s": [1]}, "max_velocity_m_s", "number in m/s"),
+])
+def test_move_request_is_validated_on_construction_naming_field_and_unit(kw, field, text):
+    with pytest.raises(RequestError, match=re.escape(text)) as ei:
+        MoveRequest.from_fields(kw)
+    assert ei.value.field == field and str(ei.value).startswith(f"{field}: ")
+    assert isinstance(ei.value, ValueError) and isinstance(ei.value, StageError)  # caught either way
+
+
+def test_direct_construction_validates_too_and_requests_are_frozen():
+    with pytest.raises(RequestError, match="relative_m"):
+        MoveRequest(relative_m=math.nan)
+    dut = MoveRequest(target_m=1, max_velocity_m_s=2)
+    assert dut.target_m == 1.0 and isinstance(dut.target_m, float)
+    with pytest.raises(AttributeError):
+        dut.target_m = 2.0  # type: ignore[misc]
+    with pytest.raises(RequestError, match="controller_config: required"):
+        RetuneRequest(None)
+
+
+def test_limits_are_checked_by_the_request_against_the_stage():
+    lim = MotionLimits(-0.01, 0.01, 0.05)
+    MoveRequest(target_m=0.01, max_velocity_m_s=0.05).check_limits(lim)
+    with pytest.raises(RequestError, match=r"target_m: 0.02 m outside soft limits \[-0.01, 0.01\] m"):
+        MoveRequest(target_m=0.02).check_limits(lim)
+    with pytest.raises(RequestError, match=r"max_velocity_m_s: must be > 0 and <= 0.05 m/s"):
+        MoveRequest(relative_m=0.0, max_velocity_m_s=0.06).check_limits(lim)
+    MoveRequest(relative_m=0.5).check_limits(lim)  # relative: only the loop knows where it ends
+
+
+def test_socket_parsing_and_keyword_form_build_the_same_requests():
+    line = {"request": "move", "id": 7, "relative_m": -1e-4, "max_velocity_m_s": 2e-3}
+    dut = parse_request("move", line)
+    assert dut == MoveRequest(relative_m=-1e-4, max_velocity_m_s=2e-3)
+    assert dut == request_from_kwargs("move", relative_m=-1e-4, max_velocity_m_s=2e-3)
+    assert dut.to_json() == {"request": "move", "relative_m": -1e-4, "max_velocity_m_s": 2e-3}
+    assert parse_request("stop", {"request": "stop"}) == StopRequest()
+    assert parse_request("reset", {"request": "reset", "id": "x"}) == ResetRequest()
+    with pytest.raises(RequestError) as ei:
+        parse_request("move", {"request": "move", "target_m": 0.0, "speed": 1})
+    assert ei.value.field == "speed" and "allowed: max_velocity_m_s, relative_m, target_m" in str(ei.value)
+    with pytest.raises(RequestError) as ei:
+        parse_request("stop", {"request": "stop", "now": True})
+    assert ei.value.field == "now" and "allowed: none" in str(ei.value)
+    with pytest.raises(RequestError) as ei:
+        parse_request("shutdown", {"request": "shutdown"})  # not a socket request
+    assert ei.value.field == "request"
+    with pytest.raises(RequestError) as ei:
+        request_from_kwargs("jump")
+    assert ei.value.field == "kind"
+
+
+def test_submit_takes_the_typed_request(rig):
+    loop, io, plant, ctl, clock, sink = rig
+    fut = loop.submit(MoveRequest(target_m=20e-6, max_velocity_m_s=1e-3))
+    with pytest.raises(RequestError, match="target_m.*soft limits"):
+        loop.submit(MoveRequest(target_m=0.5))
+    loop.run(cycles=50)
+    assert fut.result(timeout=0) == {"target_m": 20e-6, "duration_s": pytest.approx(0.02)}
+
+
+# ------------------------------------------------------------------------------------------------ status
+def test_status_is_typed_and_its_json_form_keeps_the_socket_shape(rig):
+    loop, *_ = rig
+    before = loop.status()
+    assert before.state is LoopState.CONFIGURED and before.fault is None and not before.running
+    assert math.isnan(before.x_m)
+    js = before.as_json()
+    assert js["state"] == "configured" and js["x_m"] is None and js["fault"] is None  # NaN is not JSON
+    assert set(js["lateness_us"]) == {"p50", "p99", "max"}
+    assert set(js) == {"state", "fault", "t_s", "x_m", "x_ref_m", "e_m", "u_n", "cycle", "overruns",
+                       "recent_overrun_fraction", "period_s", "running", "healthy", "lateness_us", "exec_us"}
+    loop.latch_fault("unclean_shutdown", "test")
+    loop.run(cycles=3)
+    st = loop.status(timing=False)
+    assert st.state is LoopState.FAULT and st.fault is not None and st.fault.name == "unclean_shutdown"
+    assert st.lateness_us is None
+    assert plain(st, json=True)["fault"] == {"name": "unclean_shutdown", "cause": "test", "t_s": 0.0, "cycle": 0}
+
+
+# ------------------------------------------------------------------------------------------------ host
+def test_host_runs_the_loop_in_its_thread_with_its_sinks(rig, rows):
+    loop, io, plant, ctl, clock, sink = rig
+    exited = threading.Event()
+    dut = LoopHost(loop, sinks=[rows], on_exit=exited.set)
+    dut.start(cycles=120)
+    assert dut.started
+    assert dut.wait(60) and exited.is_set()
+    res = dut.finish(timeout_s=1.0)
+    assert res is not None and res.cycles == 120 and res.ended_by == "cycles"
+    assert len(rows.rows) == 120 and dut.end_reason() == "ended by cycles"
+    loop.run(cycles=5)
+    assert len(rows.rows) == 120  # the host's sink was removed when it finished
+    with pytest.raises(RuntimeError, match="already started"):
+        dut.start()
+
+
+def test_host_stop_halts_motion_and_reraises_a_loop_error(make):
+    loop, io, plant, ctl, clock = make()
+    dut = LoopHost(loop)
+    fut = loop.request("move", target_m=5e-6, max_velocity_m_s=1e-3)
+    dut.start()
+    fut.result(timeout=60)
+    dut.halt_motion(until_mono=float("inf"))  # returns once the reference stands where the stop put it
+    st = loop.status(timing=False)
+    assert st.state is LoopState.ACTIVE
+    res = dut.finish(timeout_s=60)
+    assert res is not None and res.ended_by == "stop" and res.fault is None
+    assert not dut.alive
+
+    loop2, io2, *_ = make(startup_cycles=2)
+    io2.drop_samples(10)  # no position at start: run raises in the loop thread
+    dut2 = LoopHost(loop2)
+    dut2.start(cycles=5)
+    with pytest.raises(StageError, match="startup_cycles"):
+        dut2.finish(timeout_s=60)
+    assert "StageError" in dut2.end_reason()
+
+
+# ------------------------------------------------------------------------------------------------ CSV writer
+def test_one_recording_csv_writer_for_the_recorder_and_the_daemon(tmp_path):
+    from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
+
+    cols = ("t", "x", "u")
+    data = np.array([[0.0, 1e-9 / 3, -0.5], [1e-3, math.pi * 1e-6, 2.0]])
+    dut = RecordingCsv(cols)
+    assert dut.header == "t,x,u\n"
+    assert dut.rows(data) == "0,3.33333333333e-10,-0.5\n0.001,3.14159265359e-06,2\n"
+    rec = Recorder(cols)
+    for r in data:
+        rec.append(tuple(r))
+    a = rec.write_csv(tmp_path / "a.csv").read_text()  # run outputs: 10 significant digits
+    assert a == "t,x,u\n0,3.333333333e-10,-0.5\n0.001,3.141592654e-06,2\n"
+    ring = TelemetryRing(cols, 16)
+    writer = TelemetryWriter(ring, WriterSettings(directory=tmp_path / "tel"))
+    for r in data:
+        ring.append(tuple(r))
+    writer.stop()  # never started: drains in this thread
+    (b,) = (tmp_path / "tel").glob("telemetry-*.csv")
+    assert b.read_text() == dut.header + dut.rows(data)  # telemetry: 12
