@@ -16,7 +16,6 @@ import argparse
 import logging
 import sys
 
-from stagectl.daemon.assemble import build_assembly, load_configs
 from stagectl.daemon.logging import DaemonLogging
 from stagectl.daemon.paths import ServicePaths
 from stagectl.daemon.service import StageService
@@ -35,6 +34,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
+    # the assembly (numpy, numba, canopen: ~1 s) only where the daemon runs, not for `stagectl --help`
+    from stagectl.daemon.assemble import build_assembly, load_configs
+
     logs = DaemonLogging(logging.getLevelNamesMapping()[args.log_level.upper()])
     # The loop thread must get the GIL back quickly from helper threads (telemetry formatting, JSON):
     # the default 5 ms switch interval would show up as 5 ms of lateness.

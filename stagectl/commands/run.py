@@ -20,13 +20,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from stagectl.app import build_stage, get_scenario
-from stagectl.config import load_app_config
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
-from stagectl.recorder import Recorder, tracking_summary, write_outputs
-from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import LoopResult, LoopStatus
+
+# The assembly, config and controller stack (numpy, numba, canopen: about 1 s) are imported where the command
+# runs: `stagectl --help` builds every command's parser.
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -52,6 +51,11 @@ def progress_line(st: LoopStatus) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from stagectl.app import build_stage, get_scenario
+    from stagectl.config import load_app_config
+    from stagectl.recorder import Recorder, tracking_summary, write_outputs
+    from stagectl.runtime.host import LoopHost
+
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ConfigError(f"--duration: must be > 0 s (got {args.duration})")
     if not logging.getLogger().handlers:

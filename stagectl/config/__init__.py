@@ -12,9 +12,33 @@ Public API:
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from stagectl.config.daemon import DaemonConfig, TelemetryConfig, load_daemon_config
-from stagectl.config.loader import ModelFiles, load_app_config, parse_app_config, parse_sim_section
-from stagectl.config.sections import AppConfig, DemoConfig, IoConfig, IoKind, SensorSource
+
+if TYPE_CHECKING:
+    from stagectl.config.loader import ModelFiles, load_app_config, parse_app_config, parse_sim_section
+    from stagectl.config.sections import AppConfig, DemoConfig, IoConfig, IoKind, SensorSource
+
+#: names served on first use (PEP 562): the loader and the sections import the controller, plant and driver
+#: configurations (numpy, numba, canopen: about 1 s), which a control-socket client importing
+#: :mod:`stagectl.config.daemon` must not pay for
+_LAZY = {
+    "ModelFiles": "loader", "load_app_config": "loader", "parse_app_config": "loader",
+    "parse_sim_section": "loader",
+    "AppConfig": "sections", "DemoConfig": "sections", "IoConfig": "sections", "IoKind": "sections",
+    "SensorSource": "sections",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'stagectl.config' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"stagectl.config.{module}"), name)
+    globals()[name] = value
+    return value
 
 __all__ = [
     "AppConfig",
