@@ -48,17 +48,11 @@ from numba import njit, types
 from stagectl.errors import ConfigError
 from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
 from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
-from stagectl.friction.effects import pack_layout
+from stagectl.friction.effects import modify_friction_kernel as _modify
+from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
-
-_EFFECTS_LAYOUT = (
-    "asym_ratio", "ripple_amplitude", "ripple_wavelength_m", "ripple_phase_rad", "cogging_amplitude_n",
-    "cogging_wavelength_m", "cogging_phase_rad", "offset_n", "spring_n_m", "spring_x0_m", "delay_s",
-)
-if pack_layout() != _EFFECTS_LAYOUT:  # the compiled effects math below depends on this order
-    raise ImportError("stagectl.friction.effects.pack_layout() changed; update sim/plant.py")
 
 
 # ================================================================================================ config
@@ -152,29 +146,6 @@ class PlantConfig:
 
 
 # ================================================================================================ kernels
-@njit(cache=True, inline="always")
-def _modify(ep: FloatArray, f: float, x: float) -> float:  # pragma: no cover - compiled
-    """ripple then asymmetry (effects.modify_friction)."""
-    a = ep[1]
-    if a != 0.0:
-        f *= 1.0 + a * math.sin(2.0 * math.pi * x / ep[2] + ep[3])
-    r = ep[0]
-    if r != 0.0 and f != 0.0:
-        f *= 1.0 + r * (1.0 if f > 0.0 else -1.0)
-    return f
-
-
-@njit(cache=True, inline="always")
-def _other(ep: FloatArray, x: float) -> float:  # pragma: no cover - compiled
-    """cogging + offset + spring (effects.other_force)."""
-    out = ep[7]
-    if ep[4] != 0.0:
-        out += ep[4] * math.sin(2.0 * math.pi * x / ep[5] + ep[6])
-    if ep[8] != 0.0:
-        out += ep[8] * (x - ep[9])
-    return out
-
-
 @njit(cache=True)
 def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float:  # pragma: no cover
     """Time average over [a, b] of the command u(s) = hu[j] on [ht[j], ht[j+1]) (0 before ht[0])."""

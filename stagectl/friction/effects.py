@@ -15,6 +15,13 @@ With the friction model force ``F`` (opposing motion, N) at position ``x`` (m) a
 
 The plant is ``m·a = u(t − τ) − F − F_other``. ``F_other`` has the same sign convention as friction:
 positive ``F_other`` pushes towards negative x.
+
+Three paths compute the same math and are checked to agree (``tests/friction/test_effects.py``): the scalar
+methods :meth:`Effects.modify_friction` / :meth:`Effects.other_force`, the numpy-vectorised ``*_array``
+methods, and the compiled kernels :func:`modify_friction_kernel` / :func:`other_force_kernel` that the plant
+inlines into its integrator, reading the parameters packed by :meth:`Effects.packed` (:func:`pack_layout`).
+Adding an effect means: a frozen dataclass here, a field on :class:`Effects`, its term in all three paths
+and, if the plant should simulate it, its packed entries.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from stagectl.schema import param
 
@@ -191,3 +199,32 @@ def pack_layout() -> tuple[str, ...]:
 
 
 NO_EFFECTS = Effects()
+
+
+# ---------------------------------------------------------------------------------------------- compiled path
+# The plant's integrator (``stagectl.sim.plant``) inlines these two kernels. numba's on-disk cache of a caller
+# does not notice an edit here: after changing a kernel, delete the ``__pycache__`` numba cache files of
+# ``sim/plant.py`` (``*.nbi``/``*.nbc``) or set ``NUMBA_CACHE_DIR`` to a fresh directory.
+@njit(cache=True, inline="always")
+def modify_friction_kernel(ep: npt.NDArray[np.float64], f: float, x: float) -> float:  # pragma: no cover
+    """Compiled :meth:`Effects.modify_friction` on packed parameters ``ep`` (:meth:`Effects.packed`):
+    ripple ``F·(1 + a·sin(2πx/λ + φ))``, then asymmetry ``F·(1 + r·sgn(F))``. Real-time safe."""
+    a = ep[1]
+    if a != 0.0:
+        f *= 1.0 + a * math.sin(2.0 * math.pi * x / ep[2] + ep[3])
+    r = ep[0]
+    if r != 0.0 and f != 0.0:
+        f *= 1.0 + r * (1.0 if f > 0.0 else -1.0)
+    return f
+
+
+@njit(cache=True, inline="always")
+def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragma: no cover - compiled
+    """Compiled :meth:`Effects.other_force` on packed parameters ``ep``: offset ``F_0`` + cogging
+    ``A·sin(2πx/λ_c + φ_c)`` + spring ``k_s·(x − x0)`` [N]. Real-time safe."""
+    out = ep[7]
+    if ep[4] != 0.0:
+        out += ep[4] * math.sin(2.0 * math.pi * x / ep[5] + ep[6])
+    if ep[8] != 0.0:
+        out += ep[8] * (x - ep[9])
+    return out
