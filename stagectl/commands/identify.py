@@ -10,6 +10,16 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from stagectl.errors import ConfigError
+from stagectl.outputs import plain, prepare_out_dir
+
+if TYPE_CHECKING:
+    from stagectl.ident.identify import Identified
 
 MODELS = ("gms", "maxwell_slip", "stribeck", "lugre", "dahl", "hsieh")
 
@@ -31,37 +41,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
-    from stagectl.errors import ConfigError
+    # identification pulls in scipy and numba (~0.5 s): imported when the command runs, not for `--help`
     from stagectl.friction import StageModel, save_model_file
     from stagectl.ident.identify import identify
     from stagectl.ident.recording import load_recording
-    from stagectl.ident.report import _clean
     from stagectl.schema import load
 
     if args.elements is not None and not 1 <= args.elements <= 32:
         raise ConfigError(f"--elements: must be between 1 and 32 (got {args.elements})")
-    from pathlib import Path
-
-    from stagectl.commands.discover import check_out_dir
-
     out_parent = Path(args.out).resolve().parent
     if Path(args.out).is_dir() or not out_parent.is_dir():
         raise ConfigError(f"--out {args.out}: must be a file path in an existing directory")
     if args.plot:
-        check_out_dir(args.plot, "--plot")
+        prepare_out_dir(args.plot, "--plot")
     rec = load_recording(args.data, args.columns, min_rows=50)
     res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
-    quality = _clean(res.quality)
-    spec = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
-                                           "data": args.data, "fit": quality.get("fit", {})}}
+    quality: dict[str, Any] = plain(res.quality, json=True)
+    spec: dict[str, Any] = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
+                                                           "data": args.data, "fit": quality.get("fit", {})}}
     if res.effects:
         spec["effects"] = res.effects
     if res.mass_kg is not None:
         spec = {"mass_kg": res.mass_kg, **spec}
-    model = load(StageModel, _clean(spec), "")
+    model = load(StageModel, plain(spec, json=True), "")
     save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
-    out = {"model_file": args.out, "model": _clean(res.spec), "effects": _clean(res.effects), "mass_kg": res.mass_kg,
-           "quality": quality}
+    out: dict[str, Any] = {"model_file": args.out, "model": plain(res.spec, json=True),
+                           "effects": plain(res.effects, json=True), "mass_kg": res.mass_kg, "quality": quality}
     if args.plot:
         out["plots"] = _plots(res, args.plot)
     if args.json:
@@ -76,23 +81,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plots(res, out_dir: str) -> list[str]:  # type: ignore[no-untyped-def]
-    from pathlib import Path
-
+def _plots(res: Identified, out_dir: str) -> list[str]:
+    # matplotlib is a heavy optional library: imported only when plots are written
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
-    from scipy import signal
+    from scipy import signal  # type: ignore[import-untyped]  # scipy ships no stubs
 
     from stagectl.friction import build
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out_dir(out_dir, "--plot")
     sig = res.meas.sig
     fm = signal.sosfiltfilt(sig.sos, build(res.spec).force_along(sig.xf, sig.t))
-    files = []
+    files: list[str] = []
     fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     ax[0].plot(sig.t, res.meas.force, lw=0.7, label="measured (inverse dynamics)")
     ax[0].plot(sig.t, fm, lw=0.7, label=f"model ({res.spec['model']})")

@@ -222,7 +222,7 @@ def modify_friction_kernel(ep: npt.NDArray[np.float64], f: float, x: float) -> f
 def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragma: no cover - compiled
     """Compiled :meth:`Effects.other_force` on packed parameters ``ep``: offset ``F_0`` + cogging
     ``A·sin(2πx/λ_c + φ_c)`` + spring ``k_s·(x − x0)`` [N]. Real-time safe."""
-    out = ep[7]
+    out = float(ep[7])
     if ep[4] != 0.0:
         out += ep[4] * math.sin(2.0 * math.pi * x / ep[5] + ep[6])
     if ep[8] != 0.0:

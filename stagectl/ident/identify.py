@@ -37,11 +37,16 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal
-from scipy.optimize import least_squares, minimize_scalar, nnls
+from scipy import signal  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy.optimize import least_squares, minimize_scalar, nnls  # type: ignore[import-untyped]  # scipy ships no stubs
 
-from stagectl.errors import DataError
+from stagectl.errors import ConfigError, DataError
+from stagectl.friction import build
+from stagectl.ident._kernels import maxwell_unit_states
+from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
+from stagectl.ident.hypothesis import Hyp
+from stagectl.ident.modelio import hyp_to_spec
 from stagectl.ident.recording import Recording
 from stagectl.ident.signals import Signals, prepare
 
@@ -73,7 +78,7 @@ def measure(rec: Recording, mass_kg: float | None = None, cutoff_hz: float | Non
     if m is None:
         rows = sig.evaluate
         if rows.sum() > 100 and np.std(acc[rows]) > 0:
-            h = rg.Hyp()
+            h = Hyp()
             fit = rg.fit_linear(sig, h, rows)
             m_fit = fit.hyp.theta.get("m", 0.0)
             # mass is identifiable only if the acceleration carries force well above the noise
@@ -290,7 +295,7 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
 
     def model(p: FloatArray) -> FloatArray:
         fc, ds, lvs, dl, fv, off = p
-        return s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off
+        return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
     fc0 = float(np.median(np.abs(f)))
     best = None
@@ -335,7 +340,6 @@ class Identified:
 
 def _fit_quality(meas: Measured, spec: dict[str, Any], rows: npt.NDArray[np.bool_],
                  effects: dict[str, Any] | None = None) -> dict[str, float]:
-    from stagectl.friction import build
 
     model = build(spec)
     fm = model.force_along(meas.sig.xf, meas.sig.t)
@@ -481,7 +485,7 @@ def _build_spec(model: str, meas: Measured, virgin: tuple[FloatArray, FloatArray
         d, f = virgin  # type: ignore[misc]
 
         def res_dahl(p: FloatArray) -> FloatArray:
-            return p[1] * (1 - np.exp(-p[0] * d / p[1])) - f
+            return np.asarray(p[1] * (1 - np.exp(-p[0] * d / p[1])) - f, dtype=np.float64)
 
         k0 = _initial_slope(d, f)
         r = least_squares(res_dahl, [k0, float(f.max())], bounds=([1e-6, 1e-9], [np.inf, np.inf]))
@@ -516,8 +520,6 @@ def refine_by_simulation(meas: Measured, spec: dict[str, Any], keys: tuple[str, 
                          rows: npt.NDArray[np.bool_], max_nfev: int = 60) -> tuple[dict[str, Any], str]:
     """Least squares on log-parameters ``keys`` of the filtered model force along the measured trajectory
     (every 4th sample of ``rows``). Zero-valued parameters start at a small positive value."""
-    from stagectl.errors import ConfigError
-    from stagectl.friction import build
 
     sig = meas.sig
     idx = np.flatnonzero(rows)[::4]
@@ -572,38 +574,29 @@ def _refine_by_regression(meas: Measured, deltas: FloatArray, stri: dict[str, fl
     inverse-dynamics regression of ``discover`` (mass, Coulomb, Maxwell-slip elements with micro-damping,
     viscous, Stribeck excess if identified), starting from the virgin-curve breakpoints; the breakpoints are
     refined by coordinate descent on log Δ_i. Returns (GMS spec, mass, note) or None for quasi-static data."""
-    from stagectl.ident.modelio import hyp_to_spec
-
     sig = meas.sig
     rows = sig.evaluate
     if rows.sum() < 500:
         return None
-    effects: tuple[str, ...] = ("presliding",)
-    nl: dict[str, Any] = {"deltas_m": tuple(float(d) for d in deltas)}
+    h = fx.PRESLIDING.reshaped(Hyp(effects=(fx.PRESLIDING.name,)), deltas_m=tuple(float(d) for d in deltas))
     if stri is not None and stri.get("stribeck_identified"):
-        effects = ("presliding", "stribeck")
-        nl.update(vs_m_s=stri["vs_m_s"], delta=stri["delta"])
-    h = rg.Hyp(effects=effects, nl=nl)
+        h = fx.STRIBECK.reshaped(h.adding(fx.STRIBECK.name), vs_m_s=stri["vs_m_s"], delta=stri["delta"])
     first = rg.fit_linear(sig, h, rows)
     best = first
-    ds_ = list(nl["deltas_m"])
+    ds_ = list(fx.PRESLIDING.shape(h).deltas_m)
     for _sweep in range(2):
         for j in range(len(ds_)):
             def cost(lv: float, j: int = j) -> float:
                 trial = list(ds_)
                 trial[j] = math.exp(lv)
-                hh = h.copy()
-                hh.nl["deltas_m"] = tuple(trial)
-                return rg.fit_linear(sig, hh, rows).rss
+                return rg.fit_linear(sig, fx.PRESLIDING.reshaped(h, deltas_m=tuple(trial)), rows).rss
 
             dj = ds_[j]
             res = minimize_scalar(cost, bounds=(math.log(dj / 2.5), math.log(dj * 2.5)), method="bounded",
                                   options={"maxiter": 10})
             if res.fun < best.rss:
                 ds_[j] = math.exp(float(res.x))
-                hh = h.copy()
-                hh.nl["deltas_m"] = tuple(ds_)
-                best = rg.fit_linear(sig, hh, rows)
+                best = rg.fit_linear(sig, fx.PRESLIDING.reshaped(h, deltas_m=tuple(ds_)), rows)
     spec = hyp_to_spec(best.hyp)["friction"]
     if spec.get("model") != "gms":
         return None
@@ -623,8 +616,6 @@ def _refine_on_loops(meas: Measured, deltas: FloatArray, w: FloatArray) -> tuple
     # loops present? need at least two reversals
     if np.count_nonzero(np.diff(np.sign(np.diff(sig.xf))) != 0) < 2:
         return deltas, w, ""
-    from stagectl.ident._kernels import maxwell_unit_states
-
     v = sig.v
 
     def design(ds_: FloatArray) -> FloatArray:
@@ -673,7 +664,7 @@ def _identify_hsieh(meas: Measured, virgin: tuple[FloatArray, FloatArray],
     def res_spring(p: FloatArray) -> FloatArray:
         k1, k2, lb = p
         b = math.exp(lb)
-        return k1 * dd + (k2 / b) * (1 - np.exp(-b * dd)) - ff
+        return np.asarray(k1 * dd + (k2 / b) * (1 - np.exp(-b * dd)) - ff, dtype=np.float64)
 
     k0 = _initial_slope(dd, ff)
     r = least_squares(res_spring, [0.05 * k0, 0.95 * k0, math.log(k0 / max(ff.max(), 1e-12))],
@@ -704,7 +695,8 @@ def _identify_hsieh(meas: Measured, virgin: tuple[FloatArray, FloatArray],
 
 def _invert_spring(fv: float, k1: float, k2: float, beta: float) -> float:
     lo, hi = 0.0, 1.0
-    g = lambda s: k1 * s + (k2 / beta) * (1 - math.exp(-beta * s)) - fv  # noqa: E731
+    def g(s: float) -> float:
+        return k1 * s + (k2 / beta) * (1 - math.exp(-beta * s)) - fv
     while g(hi) < 0 and hi < 1e3:
         hi *= 2
     for _ in range(100):

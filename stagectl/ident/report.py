@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -11,72 +10,60 @@ import numpy as np
 
 from stagectl.friction import save_model_file
 from stagectl.ident import discover as dsc
+from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
+from stagectl.ident.localise import regimes
 from stagectl.ident.modelio import hyp_to_model, hyp_to_spec
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+from stagectl.ident.results import BOOT_QUANTILE, BOOT_SAMPLES, MIN_REL_GAIN
+from stagectl.outputs import plain, prepare_out_dir
 
 
 def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str, Any]:
-    """The ``report.json`` mapping."""
-    start_spec = hyp_to_spec(res.start.hyp)
-    final_spec = hyp_to_spec(res.final.hyp)
+    """The ``report.json`` mapping (plain JSON data: non-finite numbers are ``None``)."""
     ds = res.dataset
-    assert ds is not None
-    return _clean({
+    if ds is None:
+        raise ValueError("build_report needs the result's dataset")
+    rep: dict[str, Any] = plain({
         "gap_metric": dsc.GAP_METRIC,
         "gap_before": res.gap_before,
         "gap_after": res.gap_after,
         "gap_unit": "N",
-        "effects": res.effects,
-        "rejected": res.rejected,
+        "effects": [e.as_json() for e in res.effects],
+        "rejected": [r.as_json() for r in res.rejected],
         "disagreement": res.disagreement_before,
         "disagreement_after": res.disagreement_after,
         "validation": res.split,
         "acceptance_rule": {
-            "min_relative_gap_reduction": dsc.MIN_REL_GAIN,
+            "min_relative_gap_reduction": MIN_REL_GAIN,
             "min_explained_force_fraction_of_rms_u_minus_ma": dsc.MIN_EXPLAINED_FRACTION,
             "min_explained_force_times_noise_floor": dsc.MIN_EXPLAINED_NOISE,
             "min_explained_force_n": res.min_explained_n,
             "noise_floor_n": res.noise_floor_n,
             "bootstrap": f"circular block bootstrap of the mean per-sample squared-residual reduction, "
-                         f"{dsc.BOOT_SAMPLES} resamples, lower {100 * dsc.BOOT_QUANTILE:.1f} % quantile > 0",
-            "nested": {k: list(v) for k, v in dsc.NESTED.items()},
+                         f"{BOOT_SAMPLES} resamples, lower {100 * BOOT_QUANTILE:.1f} % quantile > 0",
+            "nested": {k: list(v) for k, v in fx.REGISTRY.nested().items()},
         },
-        "rounds": [{"chosen": r.chosen, "candidates": r.candidates} for r in res.rounds],
-        "start_model": start_spec,
-        "final_model": final_spec,
+        "rounds": [r.as_json() for r in res.rounds],
+        "start_model": hyp_to_spec(res.start.hyp),
+        "final_model": hyp_to_spec(res.final.hyp),
         "samples": {"estimation": int(ds.est_rows.sum()), "validation": int(ds.val_rows.sum())},
         "filter_cutoff_hz": ds.est.cutoff_hz,
         "stick_threshold_m_s": ds.est.v_stick,
         "sources": sources,
         "elapsed_s": res.elapsed_s,
-    })
+    }, json=True)
+    return rep
 
 
 def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[str, str],
                   plots: bool = True) -> dict[str, Any]:
     """Write report.json, report.md, plots and ``model.yaml`` into ``out_dir``; return the report."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out_dir(out_dir)
     rep = build_report(res, sources)
     meta = {
         "source": "stagectl discover",
         "data": sources,
-        "effects_found": [e["name"] for e in res.effects],
+        "effects_found": [e.name for e in res.effects],
         "gap_metric": "force_residual_rms_n (validation)",
         "gap_before_n": rep["gap_before"],
         "gap_after_n": rep["gap_after"],
@@ -93,13 +80,14 @@ def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[s
 
 
 def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
-    import matplotlib
+    import matplotlib  # heavy optional library: imported only when plots are written
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     ds = res.dataset
-    assert ds is not None
+    if ds is None:
+        raise ValueError("plots need the result's dataset")
     sig, rows = ds.val, ds.val_rows
     r0 = rg.residual(sig, res.start.hyp)
     r1 = rg.residual(sig, res.final.hyp)
@@ -122,7 +110,7 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     plt.close(fig)
     files.append("residual_time.png")
 
-    regs = dsc.regimes(sig, rows)
+    regs = regimes(sig, rows)
     names = [k for k, m in regs.items() if m.any()]
     b = [float(np.sqrt(np.mean(r0[regs[k]] ** 2))) for k in names]
     a = [float(np.sqrt(np.mean(r1[regs[k]] ** 2))) for k in names]

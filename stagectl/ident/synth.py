@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.ident.recording import Recording
+from stagectl.sim.plant import PlantConfig, StagePlant
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -136,7 +137,6 @@ def closed_loop(
     Recording
         Columns t, x (measured), u (commanded), x_ref, and the true friction as extra column ``f_true``.
     """
-    from stagectl.sim.plant import PlantConfig, StagePlant
 
     cfg = PlantConfig.from_mapping({**dict(plant_cfg), "seed": int(seed)})
     plant = StagePlant(cfg)
@@ -169,7 +169,7 @@ def closed_loop(
         us[k] = u
         fr[k] = plant.friction_n
         plant.step(u, dt_s)
-    t = np.arange(n) * dt_s
+    t = np.arange(n, dtype=np.float64) * dt_s
     return Recording(t=t, x=xs, u=us, x_ref=x_ref, source=source, extra={"f_true": fr})
 
 
@@ -233,7 +233,7 @@ def hide(stage: dict[str, Any], effect: str, rng: np.random.Generator, span_m: f
         fr = {"model": "gms", "k_n_m": [float(v) for v in k], "alpha": [float(a) for a in alpha],
               "fc_n": fc, "fs_n": fs, "vs_m_s": float(fr.get("vs_m_s", 1e-3)), "delta": float(fr.get("delta", 2.0)),
               "c_n_s": 1e4, "viscous_n_s_m": float(fr["viscous_n_s_m"]),
-              "sigma1_n_s_m": float(0.1 * 2 * math.sqrt(float(np.sum(k)) * float(st["mass_kg"])))}
+              "sigma1_n_s_m": float(0.1 * 2 * math.sqrt(float(np.sum(k)) * float(stage["mass_kg"])))}
     else:
         raise ValueError(f"unknown effect {effect!r}")
     st["friction"] = fr

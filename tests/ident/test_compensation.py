@@ -30,7 +30,7 @@ def test_discovered_cogging_in_feedforward_reduces_tracking_error(tmp_path: Path
              "effects": {"cogging": cog}, "sensor": {"resolution_m": 1e-9, "noise_std_m": 0.5e-9}}
     rec = synth.closed_loop(stage, motion=synth.Motion(duration_s=8.0, v_max_m_s=5e-3), seed=606)
     res = discover(rec)
-    assert [e["name"] for e in res.effects] == ["cogging"]
+    assert [e.name for e in res.effects] == ["cogging"]
     write_outputs(res, tmp_path / "disc", {"estimation": "synth"}, plots=False)
     augmented = tmp_path / "disc" / "model.yaml"
     model = load_model_file(augmented)

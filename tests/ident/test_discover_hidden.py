@@ -16,7 +16,9 @@ import pytest
 
 from stagectl.ident import synth
 from stagectl.ident.discover import CATALOGUE, MIN_REL_GAIN, DiscoveryResult, discover
-from stagectl.ident.regress import Hyp
+from stagectl.ident.effects import STRIBECK, StribeckShape
+from stagectl.ident.hypothesis import Hyp
+from stagectl.ident.results import CandidateFit
 
 MOTION = synth.Motion(duration_s=12.0)
 
@@ -34,7 +36,7 @@ def _run(seed: int, effects: tuple[str, ...], start: Hyp | None = None) -> tuple
     if start is None and "frictional_lag" in effects:
         # frictional lag presupposes a Stribeck curve (docs/discovery.md §2): start from the Stribeck model
         fr = st["friction"]
-        start = Hyp(effects=("stribeck",), nl={"vs_m_s": fr["vs_m_s"], "delta": fr["delta"]})
+        start = Hyp(effects=(STRIBECK.name,), shapes={STRIBECK.name: StribeckShape(fr["vs_m_s"], fr["delta"])})
     rec = synth.closed_loop(st, motion=MOTION, seed=seed)
     return discover(rec, start=start), st
 
@@ -42,12 +44,12 @@ def _run(seed: int, effects: tuple[str, ...], start: Hyp | None = None) -> tuple
 @pytest.mark.parametrize("index,effect", list(enumerate(CATALOGUE)))
 def test_hidden_effect_is_named_first_and_gap_halves(index: int, effect: str) -> None:
     res, st = _run(2000 + index, (effect,))
-    names = [e["name"] for e in res.effects]
+    names = [e.name for e in res.effects]
     assert names, f"nothing found; rounds: {res.rounds[0].candidates}"
     assert names[0] == effect, f"named {names} for hidden {effect} ({st})"
     first = res.effects[0]
-    assert first["gap_after"] <= 0.5 * first["gap_before"]
-    assert first["evidence"]
+    assert first.gap_after <= 0.5 * first.gap_before
+    assert first.evidence
     # the report's overall gap is on validation data and shrinks too
     assert res.gap_after <= 0.5 * res.gap_before
 
@@ -55,11 +57,11 @@ def test_hidden_effect_is_named_first_and_gap_halves(index: int, effect: str) ->
 def test_hidden_parameters_are_recovered() -> None:
     """Not only the name: the fitted parameters of a hidden effect match the plant's."""
     res, st = _run(2100, ("position_ripple",))
-    p = res.effects[0]["parameters"]
+    p = res.effects[0].parameters
     truth = st["effects"]["position_ripple"]
-    assert p["wavelength_m"] == pytest.approx(truth["wavelength_m"], rel=0.01)
-    assert p["amplitude"] == pytest.approx(truth["amplitude"], rel=0.1)
-    dphi = np.angle(np.exp(1j * (p["phase_rad"] - truth["phase_rad"])))
+    assert p.wavelength_m == pytest.approx(truth["wavelength_m"], rel=0.01)
+    assert p.amplitude == pytest.approx(truth["amplitude"], rel=0.1)
+    dphi = np.angle(np.exp(1j * (p.phase_rad - truth["phase_rad"])))
     assert abs(dphi) < 0.1
     assert res.final.hyp.theta["m"] == pytest.approx(st["mass_kg"], rel=0.05)
 
@@ -77,16 +79,16 @@ def test_complete_model_names_nothing(null_results: list[DiscoveryResult]) -> No
 
 def test_null_gains_stay_below_the_acceptance_margin(null_results: list[DiscoveryResult]) -> None:
     """docs/discovery.md §4: with a complete model and noise only, no candidate comes near the margin."""
-    gains = [c["rel_gain"] for res in null_results for c in res.rounds[0].candidates if "rel_gain" in c]
+    gains = [c.rel_gain for res in null_results for c in res.rounds[0].candidates if isinstance(c, CandidateFit)]
     assert len(gains) == 2 * len(CATALOGUE)
     assert max(gains) < 0.5 * MIN_REL_GAIN, gains
 
 
 def test_two_hidden_effects_are_found_in_sequence() -> None:
     res, _ = _run(2300, ("spring", "cogging"))
-    names = [e["name"] for e in res.effects]
+    names = [e.name for e in res.effects]
     assert set(names[:2]) == {"spring", "cogging"}, names
-    assert res.effects[1]["gap_before"] == pytest.approx(res.effects[0]["gap_after"])
+    assert res.effects[1].gap_before == pytest.approx(res.effects[0].gap_after)
     assert res.gap_after <= 0.1 * res.gap_before
 
 
@@ -100,5 +102,5 @@ def test_phase_locked_ripple_that_does_not_validate_is_rejected() -> None:
     st2["effects"] = {"position_ripple": eff}
     val = synth.closed_loop(st2, motion=MOTION, seed=2401)
     res = discover(est, validate=val)
-    assert "position_ripple" not in [e["name"] for e in res.effects]
-    assert "position_ripple" in [r["name"] for r in res.rejected]
+    assert "position_ripple" not in [e.name for e in res.effects]
+    assert "position_ripple" in [r.name for r in res.rejected]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from stagectl.ident import discover as dsc
+from stagectl.ident.effects import DELAY
 from stagectl.ident.recording import Recording
 from stagectl.ident.signals import hat_average, prepare
 
@@ -51,7 +52,7 @@ def test_no_spurious_delay_from_zoh() -> None:
     ds = dsc.make_dataset(rec)
     cur = dsc.fit_start(ds)
     fit = dsc.fit_candidate(ds, cur, "delay")
-    assert fit.hyp.nl["delay_s"] < 0.05e-3
+    assert DELAY.shape(fit.hyp).delay_s < 0.05e-3
 
 
 def test_fractional_delay_is_recovered() -> None:
@@ -59,7 +60,7 @@ def test_fractional_delay_is_recovered() -> None:
     ds = dsc.make_dataset(rec)
     cur = dsc.fit_start(ds)
     fit = dsc.fit_candidate(ds, cur, "delay")
-    assert fit.hyp.nl["delay_s"] == pytest.approx(1.4e-3, abs=0.05e-3)
+    assert DELAY.shape(fit.hyp).delay_s == pytest.approx(1.4e-3, abs=0.05e-3)
 
 
 def test_hat_average_pairs_delayed_zoh_force_exactly() -> None:

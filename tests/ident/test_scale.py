@@ -38,6 +38,6 @@ def test_offset_found_on_heavy_stage_with_fast_point_to_point_moves() -> None:
     assert res.dataset is not None
     # 4th-difference noise (1 nm true): still biased by the motion, but far less than x − L[x]
     assert res.dataset.val.noise_diff_m < min(10e-9, 0.2 * res.dataset.val.noise_m)
-    assert [e["name"] for e in res.effects] == ["offset"]
-    assert res.effects[0]["parameters"]["force_n"] == pytest.approx(0.12, rel=0.15)
+    assert [e.name for e in res.effects] == ["offset"]
+    assert res.effects[0].parameters.force_n == pytest.approx(0.12, rel=0.15)
     assert res.gap_after < 0.5 * res.gap_before

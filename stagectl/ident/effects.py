@@ -1,0 +1,460 @@
+"""The discovery catalogue: one :class:`~stagectl.ident.hypothesis.EffectSpec` per effect, in :data:`REGISTRY`.
+
+Each entry below holds everything about one effect: its shape (nonlinear parameters, a frozen dataclass),
+its design-matrix columns, its typed fitted parameters (for the six effects of the model file's ``effects:``
+section these are the :mod:`stagectl.friction.effects` dataclasses themselves), the search of its shape, the
+evidence text the report prints, and the mapping to and from the model file. The regression
+(:mod:`stagectl.ident.regress`), the workflow (:mod:`stagectl.ident.discover`) and the model-file conversion
+(:mod:`stagectl.ident.modelio`) iterate over :data:`REGISTRY` and name no effect.
+
+Adding an effect: write its shape and parameter dataclasses, its column builder, search and evidence
+functions, and one ``EffectSpec(...)`` in the ``REGISTRY`` tuple (its position is its place in the search and
+the report); if it belongs in model files, add its twin to :mod:`stagectl.friction.effects` (dataclass,
+``Effects`` field, scalar/array/compiled terms) and set ``twin``/``to_twin``/``from_twin``.
+
+Column names (keys of ``Hyp.theta``) used here: ``ds`` = fs − fc [N] (Stribeck excess), ``w<i>``/``s<i>``
+Maxwell-slip saturation force W_i [N] / micro-damping [N·s/m], ``rs``/``rc`` ripple sine/cosine relative
+amplitudes [–], ``f0`` [N], ``ks`` [N/m], ``cs``/``cc`` cogging sine/cosine amplitudes [N].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import minimize  # type: ignore[import-untyped]  # scipy ships no stubs
+
+from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring
+from stagectl.ident.columns import (
+    element,
+    element_rate,
+    min_damped_delta,
+    position_sin_cos,
+    stribeck_shape,
+)
+from stagectl.ident.hypothesis import Column, EffectSpec, FitResult, Fitter, Hyp, NoShape, Registry
+from stagectl.ident.localise import ResidualView
+from stagectl.ident.search import best_scalar, position_periodogram, presliding_grid, speed_range
+from stagectl.ident.signals import Signals
+
+FloatArray = npt.NDArray[np.float64]
+
+
+# ============================================================================================ shapes and params
+@dataclass(frozen=True)
+class StribeckShape:
+    vs_m_s: float = 1e-3  # Stribeck velocity [m/s]
+    delta: float = 2.0  # Stribeck exponent [–]
+
+
+@dataclass(frozen=True)
+class StribeckParams:
+    fs_n: float  # static (break-away) force [N]
+    fc_n: float  # Coulomb force [N]
+    vs_m_s: float
+    delta: float
+
+
+@dataclass(frozen=True)
+class LagShape:
+    lag_s: float = 0.0  # time constant of the frictional lag [s]
+
+
+@dataclass(frozen=True)
+class LagParams:
+    lag_s: float
+
+
+@dataclass(frozen=True)
+class PreslidingShape:
+    deltas_m: tuple[float, ...] = ()  # break displacements Δ_i of the Maxwell-slip elements [m]
+    damped: bool = True  # micro-damping columns on elements that stay elastic long enough
+
+
+@dataclass(frozen=True)
+class PreslidingParams:
+    elements: int
+    total_slip_force_n: float
+    coulomb_part_n: float
+    initial_stiffness_n_m: float
+    largest_break_displacement_m: float
+
+
+@dataclass(frozen=True)
+class AsymmetryShape:
+    ratio: float = 0.0  # r: F+ = (1+r)F, F- = (1-r)F
+
+
+@dataclass(frozen=True)
+class WavelengthShape:
+    wavelength_m: float = 1.0  # period in position [m]
+
+
+@dataclass(frozen=True)
+class DelayShape:
+    delay_s: float = 0.0  # actuation delay [s]
+
+
+# ============================================================================================ friction shape
+def coulomb_level(h: Hyp) -> float:
+    """Sliding friction level [N]: Coulomb column plus every Maxwell-slip saturation force."""
+    w = sum(v for k, v in h.theta.items() if k.startswith("w") and k[1:].isdigit())
+    return float(h.theta.get("fc", 0.0) + w)
+
+
+def _stribeck_lag(h: Hyp) -> float:
+    return LAG.shape(h).lag_s if h.has(LAG.name) else 0.0
+
+
+def _stribeck_columns(sig: Signals, h: Hyp) -> list[Column]:
+    s = STRIBECK.shape(h)
+    lag = _stribeck_lag(h)
+    return [Column("ds", stribeck_shape(sig, s.vs_m_s, s.delta, lag), f"ds:{s.vs_m_s:.6e}:{s.delta:g}:{lag:.6e}",
+                   nonneg=True)]
+
+
+def _stribeck_params(h: Hyp) -> StribeckParams:
+    fc = coulomb_level(h)
+    s = STRIBECK.shape(h)
+    return StribeckParams(fc + h.theta.get("ds", 0.0), fc, float(s.vs_m_s), float(s.delta))
+
+
+def _stribeck_evidence(ev: ResidualView, p: StribeckParams) -> str:
+    return (f"the residual is largest at low speed (RMS {ev.regime_rms('low_speed'):.4g} N vs "
+            f"{ev.regime_rms('constant_speed'):.4g} N at constant speed) and has the sign of the velocity: friction "
+            f"falls with speed; fitted Fs = {p.fs_n:.4g} N, Fc = {p.fc_n:.4g} N, vs = {p.vs_m_s:.3g} m/s, "
+            f"δ = {p.delta:.2g}")
+
+
+def _search_stribeck_shape(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
+    """(vs, δ) of the Stribeck curve in ``h_s``: grid + Brent per δ ∈ {1, 2}, line search in δ, then a joint
+    Nelder-Mead refinement of (log vs, δ) (the two trade off, separate line searches stop short)."""
+    def rss(vs: float, delta: float) -> float:
+        return STRIBECK.fit_with(fitter, h_s, vs_m_s=vs, delta=delta).rss
+
+    vmin, vmax = speed_range(fitter.sig)
+    grid = list(np.geomspace(vmin, 0.5 * vmax, 10))
+    best: tuple[float, float, float] | None = None
+    for delta in (1.0, 2.0):
+        vs, f = best_scalar(lambda v, d=delta: rss(v, d), grid, vmin, vmax)  # type: ignore[misc]
+        if best is None or f < best[2]:
+            best = (vs, delta, f)
+    assert best is not None
+    vs, delta, _ = best
+    dl, _ = best_scalar(lambda d: rss(vs, d), [0.7, 1.0, 1.5, 2.0, 3.0], 0.5, 4.0, log=False, maxiter=8)
+    lv = math.log(vs)
+    res = minimize(lambda p: rss(math.exp(p[0]), float(np.clip(p[1], 0.5, 4.0))), np.array([lv, dl]),
+                   method="Nelder-Mead", options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-12, "initial_simplex":
+                                                  np.array([[lv, dl], [lv + 0.2, dl], [lv, dl + 0.2]])})
+    return math.exp(float(res.x[0])), float(np.clip(res.x[1], 0.5, 4.0))
+
+
+def _search_stribeck(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    vs, dl = _search_stribeck_shape(fitter, h)
+    return STRIBECK.fit_with(fitter, h, vs_m_s=vs, delta=dl)
+
+
+def _search_lag(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    """Lag time constant from ``dt`` up (a lag shorter than a sample cannot be told from the sampling); a
+    lag below two samples means no lag is supported: the Stribeck model alone (or ``cur``) is returned."""
+    if not cur.hyp.has(STRIBECK.name):
+        vs, dl = _search_stribeck_shape(fitter, cur.hyp.adding(STRIBECK.name))
+        h = STRIBECK.reshaped(h, vs_m_s=vs, delta=dl)
+    dt = fitter.sig.dt_s
+    lag, _ = best_scalar(lambda s: LAG.fit_with(fitter, h, lag_s=s).rss, list(np.geomspace(dt, 0.5, 10)), dt, 1.0)
+    if lag < 2.0 * dt:
+        if cur.hyp.has(STRIBECK.name):
+            return cur
+        s = STRIBECK.shape(h)
+        return STRIBECK.fit_with(fitter, cur.hyp.adding(STRIBECK.name), vs_m_s=s.vs_m_s, delta=s.delta)
+    # re-tune vs with the lag in place
+    h = LAG.reshaped(h, lag_s=lag)
+    vs0 = STRIBECK.shape(h).vs_m_s
+    vs, _ = best_scalar(lambda v: STRIBECK.fit_with(fitter, h, vs_m_s=v).rss, [vs0 / 2, vs0, vs0 * 2], vs0 / 4,
+                        vs0 * 4, maxiter=8)
+    return STRIBECK.fit_with(fitter, h, vs_m_s=vs)
+
+
+def _lag_evidence(ev: ResidualView, p: LagParams) -> str:
+    sig, rows, r, v = ev.sig, ev.rows, ev.r, ev.sig.v
+    acc = rows & (np.sign(sig.acc_f) == np.sign(v))
+    dec = rows & (np.sign(sig.acc_f) != np.sign(v))
+    ma = float(np.sqrt(np.mean(r[acc] ** 2))) if acc.any() else 0.0
+    md = float(np.sqrt(np.mean(r[dec] ** 2))) if dec.any() else 0.0
+    return (f"the low-speed friction differs between accelerating and decelerating motion (residual RMS "
+            f"{ma:.4g} N vs {md:.4g} N): the Stribeck part lags the velocity; fitted lag {1e3 * p.lag_s:.3g} ms")
+
+
+def _presliding_columns(sig: Signals, h: Hyp) -> list[Column]:
+    sh = PRESLIDING.shape(h)
+    cols = [Column(f"w{i}", element(sig, d), f"w:{d:.6e}", nonneg=True) for i, d in enumerate(sh.deltas_m)]
+    if sh.damped:
+        # micro-damping only on elements that stay elastic over more than a sample at typical reversal
+        # speeds; on the stiffest ones dz/dt is a one-sample spike that would fit transients, not physics
+        d_min = min_damped_delta(sig)
+        cols += [Column(f"s{i}", element_rate(sig, d), f"s:{d:.6e}", nonneg=True)
+                 for i, d in enumerate(sh.deltas_m) if d >= d_min]
+    return cols
+
+
+def _presliding_params(h: Hyp) -> PreslidingParams:
+    th = h.theta
+    d = np.asarray(PRESLIDING.shape(h).deltas_m, float)
+    w = np.array([th.get(f"w{i}", 0.0) for i in range(d.size)])
+    keep = w > 1e-9 * max(w.sum(), 1e-300)
+    return PreslidingParams(int(keep.sum()), float(w.sum()) + th.get("fc", 0.0), th.get("fc", 0.0),
+                            float(np.sum(w[keep] / d[keep])), float(d[keep].max()) if keep.any() else 0.0)
+
+
+def _search_presliding(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    """Elements on a log grid; keep those that carry force and refine their break displacements (coordinate
+    descent on log Δ_i: the virgin curve is piecewise linear with breakpoints Δ_i, docs/discovery.md §2.3)."""
+    h = PRESLIDING.reshaped(h, deltas_m=tuple(presliding_grid(fitter.sig)))
+    first = fitter.fit(h)
+    grid = PRESLIDING.shape(h).deltas_m
+    deltas = [grid[i] for i in range(len(grid)) if first.hyp.theta.get(f"w{i}", 0.0) > 0]
+    if not deltas:
+        return first
+    for _sweep in range(2):
+        for j in range(len(deltas)):
+            def cost(d: float, j: int = j) -> float:
+                trial = list(deltas)
+                trial[j] = d
+                return PRESLIDING.fit_with(fitter, h, deltas_m=tuple(trial)).rss
+            dj = deltas[j]
+            deltas[j], _ = best_scalar(cost, [dj / 1.8, dj, dj * 1.8], dj / 2.5, dj * 2.5, maxiter=8)
+    return PRESLIDING.fit_with(fitter, h, deltas_m=tuple(sorted(deltas)))
+
+
+def _presliding_evidence(ev: ResidualView, p: PreslidingParams) -> str:
+    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
+            f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed): the force builds up elastically over "
+            f"displacement instead of jumping with sgn(v); fitted {p.elements} Maxwell-slip elements, "
+            f"initial stiffness {p.initial_stiffness_n_m:.4g} N/m, largest break displacement "
+            f"{1e6 * p.largest_break_displacement_m:.3g} µm")
+
+
+@dataclass(frozen=True)
+class SlipElement:
+    break_displacement_m: float  # Δ_i [m]
+    slip_force_n: float  # W_i [N], clipped at 0
+    damping_n_s_m: float  # σ1_i [N·s/m], clipped at 0
+
+
+@dataclass(frozen=True)
+class FrictionFit:
+    """The friction part of a fitted hypothesis, typed (what :mod:`stagectl.ident.modelio` turns into the
+    model file's ``friction:`` section)."""
+
+    coulomb_n: float
+    viscous_n_s_m: float  # clipped at 0
+    stribeck_excess_n: float  # fs − fc [N]; 0 without the Stribeck effect
+    vs_m_s: float
+    delta: float
+    lag_s: float  # 0 without the frictional lag
+    elements: tuple[SlipElement, ...] | None  # None without pre-sliding
+    given_scale: float  # scale of ``Hyp.given_spec``
+
+
+def friction_fit(h: Hyp) -> FrictionFit:
+    th = h.theta
+    s = STRIBECK.shape(h)
+    elements = None
+    if h.has(PRESLIDING.name):
+        elements = tuple(SlipElement(float(d), max(th.get(f"w{i}", 0.0), 0.0), max(th.get(f"s{i}", 0.0), 0.0))
+                         for i, d in enumerate(PRESLIDING.shape(h).deltas_m))
+    return FrictionFit(float(th.get("fc", 0.0)), max(float(th.get("fv", 0.0)), 0.0),
+                       float(th.get("ds", 0.0)) if h.has(STRIBECK.name) else 0.0, float(s.vs_m_s), float(s.delta),
+                       float(_stribeck_lag(h)), elements, float(th.get("given", 1.0)))
+
+
+# ============================================================================================ asymmetry
+def _asymmetry_evidence(ev: ResidualView, p: Asymmetry) -> str:
+    return (f"the residual depends on the direction of motion (mean {ev.mean_positive_n:+.4g} N for v > 0, "
+            f"{ev.mean_negative_n:+.4g} N for v < 0) and scales with the friction level (viscous part too), which a "
+            f"constant offset cannot explain; fitted r = {p.ratio:+.4g} (F+ = (1+r)·F, F- = (1-r)·F)")
+
+
+def _search_asymmetry(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    r, _ = best_scalar(lambda r: ASYMMETRY.fit_with(fitter, h, ratio=r).rss, list(np.linspace(-0.8, 0.8, 9)), -0.95,
+                       0.95, log=False, maxiter=14)
+    return ASYMMETRY.fit_with(fitter, h, ratio=r)
+
+
+def _retune_asymmetry(fitter: Fitter, h: Hyp, step: float, maxiter: int) -> tuple[float, float]:
+    r0 = ASYMMETRY.shape(h).ratio
+    return best_scalar(lambda r: ASYMMETRY.fit_with(fitter, h, ratio=r).rss, [r0 - step, r0, r0 + step], -0.95, 0.95,
+                       log=False, maxiter=maxiter)
+
+
+def _refresh_asymmetry(fitter: Fitter, fr: FitResult) -> FitResult:
+    r, f = _retune_asymmetry(fitter, fr.hyp, 0.05, 10)
+    return ASYMMETRY.fit_with(fitter, fr.hyp, ratio=r) if f < fr.rss else fr
+
+
+def _asymmetry_after_removal(fitter: Fitter, h: Hyp) -> FitResult:
+    # the asymmetry ratio trades off with a constant force: search it again
+    r, _ = _retune_asymmetry(fitter, h, 0.1, 12)
+    return ASYMMETRY.fit_with(fitter, h, ratio=r)
+
+
+# ============================================================================================ periodic effects
+def _search_periodic(spec: EffectSpec[WavelengthShape, Any], fitter: Fitter, cur: FitResult, h: Hyp,
+                     weight: FloatArray | None) -> FitResult:
+    """Wavelength candidates from a position periodogram of the current residual, each refined by Brent."""
+    sig, rows = fitter.sig, fitter.rows
+    cands = position_periodogram(sig, rows, fitter.residual(cur.hyp), weight)
+    span = float(np.ptp(sig.xf[rows]))
+    best_fit: FitResult | None = None
+    for lam0 in cands:
+        rel = 1.5 * lam0 / span
+        lo, hi = lam0 * (1 - rel), lam0 * (1 + rel)
+        lam, _ = best_scalar(lambda s: spec.fit_with(fitter, h, wavelength_m=s).rss, [lo, lam0, hi], lo, hi,
+                             maxiter=10)
+        fr = spec.fit_with(fitter, h, wavelength_m=lam)
+        if best_fit is None or fr.rss < best_fit.rss:
+            best_fit = fr
+    return best_fit if best_fit is not None else spec.fit_with(fitter, h, wavelength_m=span)
+
+
+def _periodic_evidence(kind: str, amp: str, p: PositionRipple | Cogging) -> str:
+    return (f"the residual is periodic in position with wavelength {p.wavelength_m:.6g} m and {kind}; "
+            f"fitted {amp}, phase {p.phase_rad:.3g} rad; it transfers to the validation data")
+
+
+def _ripple_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    s, c = position_sin_cos(sig, RIPPLE.shape(h).wavelength_m)
+    return [Column("rs", f_est * s, None, follows_friction=True), Column("rc", f_est * c, None, follows_friction=True)]
+
+
+def _ripple_params(h: Hyp) -> PositionRipple:
+    rs, rc = h.theta.get("rs", 0.0), h.theta.get("rc", 0.0)
+    return PositionRipple(amplitude=math.hypot(rs, rc), wavelength_m=float(RIPPLE.shape(h).wavelength_m),
+                          phase_rad=math.atan2(rc, rs))
+
+
+def _search_ripple(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    weight = fitter.sig.filt(fitter.friction_force(cur.hyp))  # the ripple multiplies the friction force
+    return _search_periodic(RIPPLE, fitter, cur, h, weight)
+
+
+def _cogging_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    lam = COGGING.shape(h).wavelength_m
+    s, c = position_sin_cos(sig, lam)
+    return [Column("cs", s, f"cs:{lam:.9e}"), Column("cc", c, f"cc:{lam:.9e}")]
+
+
+def _cogging_params(h: Hyp) -> Cogging:
+    cs, cc = h.theta.get("cs", 0.0), h.theta.get("cc", 0.0)
+    return Cogging(amplitude_n=math.hypot(cs, cc), wavelength_m=float(COGGING.shape(h).wavelength_m),
+                   phase_rad=math.atan2(cc, cs))
+
+
+# ============================================================================================ offset, spring
+def _offset_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    return [Column("f0", np.ones(sig.n), "f0")]
+
+
+def _offset_evidence(ev: ResidualView, p: Offset) -> str:
+    return (f"the residual has the same sign in both directions of motion (mean {ev.mean_positive_n:+.4g} N for "
+            f"v > 0, {ev.mean_negative_n:+.4g} N for v < 0): a constant force; fitted F_0 = {p.force_n:.4g} N")
+
+
+def _spring_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    cols = [] if h.has(OFFSET.name) else _offset_columns(sig, h, f_est)  # the spring's constant part
+    return [*cols, Column("ks", sig.xf - h.x_center_m, f"ks:{h.x_center_m:.9e}")]
+
+
+def _spring_params(h: Hyp) -> Spring:
+    k = h.theta.get("ks", 0.0)
+    f0 = h.theta.get("f0", 0.0) / k if k and not h.has(OFFSET.name) else 0.0
+    return Spring(stiffness_n_m=k, x0_m=h.x_center_m - f0)
+
+
+def _spring_evidence(ev: ResidualView, p: Spring) -> str:
+    rr, xx = ev.r[ev.rows], ev.sig.xf[ev.rows]
+    c = float(np.corrcoef(rr, xx)[0, 1]) if rr.size > 2 else 0.0
+    slope = float(np.polyfit(xx, rr, 1)[0]) if rr.size > 2 else 0.0
+    return (f"the residual grows linearly with position (slope {slope:.4g} N/m, correlation {c:+.2f}) in both "
+            f"directions; fitted k_s = {p.stiffness_n_m:.4g} N/m, x0 = {p.x0_m:.6g} m")
+
+
+def _fit_as_is(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    return fitter.fit(h)
+
+
+# ============================================================================================ delay
+def _delay_evidence(ev: ResidualView, p: Delay) -> str:
+    du = np.gradient(ev.sig.u)
+    rr = ev.r[ev.rows]
+    c = float(np.corrcoef(rr, du[ev.rows])[0, 1]) if rr.size > 2 else 0.0
+    return (f"the residual is correlated with the rate of change of the commanded force (correlation {c:+.2f}): "
+            f"the force acts later than commanded; fitted τ = {1e3 * p.delay_s:.3g} ms")
+
+
+def _search_delay(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    dt = fitter.sig.dt_s
+    tau, _ = best_scalar(lambda s: DELAY.fit_with(fitter, h, delay_s=s).rss, [k * dt for k in range(0, 21)], 0.0,
+                         20 * dt, log=False)
+    return DELAY.fit_with(fitter, h, delay_s=tau)
+
+
+def _refresh_delay(fitter: Fitter, fr: FitResult) -> FitResult:
+    dt = fitter.sig.dt_s
+    t0 = DELAY.shape(fr.hyp).delay_s
+    tau, f = best_scalar(lambda s: DELAY.fit_with(fitter, fr.hyp, delay_s=s).rss,
+                         [max(t0 - 0.5 * dt, 0.0), t0, t0 + 0.5 * dt], 0.0, 20 * dt, log=False, maxiter=10)
+    return DELAY.fit_with(fitter, fr.hyp, delay_s=tau) if f < fr.rss else fr
+
+
+# ============================================================================================ the registry
+STRIBECK: EffectSpec[StribeckShape, StribeckParams] = EffectSpec(
+    "stribeck", StribeckShape, _stribeck_params, _stribeck_evidence, _search_stribeck, column_rank=20,
+    friction_columns=_stribeck_columns)
+PRESLIDING: EffectSpec[PreslidingShape, PreslidingParams] = EffectSpec(
+    "presliding", PreslidingShape, _presliding_params, _presliding_evidence, _search_presliding, column_rank=10,
+    friction_columns=_presliding_columns)
+LAG: EffectSpec[LagShape, LagParams] = EffectSpec(
+    "frictional_lag", LagShape, lambda h: LagParams(float(LAG.shape(h).lag_s)), _lag_evidence, _search_lag,
+    column_rank=21, implies=("stribeck",), contains=("stribeck",))
+ASYMMETRY: EffectSpec[AsymmetryShape, Asymmetry] = EffectSpec(
+    "asymmetry", AsymmetryShape, lambda h: Asymmetry(ratio=float(ASYMMETRY.shape(h).ratio)), _asymmetry_evidence,
+    _search_asymmetry, column_rank=25, scaling=lambda h: float(ASYMMETRY.shape(h).ratio), iterative=True,
+    contains=("offset",), twin="asymmetry",
+    to_twin=lambda p: Asymmetry(ratio=float(np.clip(p.ratio, -0.99, 0.99))),
+    from_twin=lambda h, e: ASYMMETRY.reshaped(h.adding("asymmetry"), ratio=e.ratio),
+    refresh=_refresh_asymmetry, after_removal=_asymmetry_after_removal)
+RIPPLE: EffectSpec[WavelengthShape, PositionRipple] = EffectSpec(
+    "position_ripple", WavelengthShape, _ripple_params,
+    lambda ev, p: _periodic_evidence("multiplies the friction force (changes sign with the direction of motion)",
+                                     f"a = {p.amplitude:.4g}", p),
+    _search_ripple, column_rank=30, columns=_ripple_columns, iterative=True, twin="position_ripple",
+    to_twin=lambda p: dataclasses.replace(p, amplitude=float(min(p.amplitude, 0.99))),
+    from_twin=lambda h, e: RIPPLE.reshaped(h.adding("position_ripple"), wavelength_m=e.wavelength_m))
+COGGING: EffectSpec[WavelengthShape, Cogging] = EffectSpec(
+    "cogging", WavelengthShape, _cogging_params,
+    lambda ev, p: _periodic_evidence("is the same in both directions (conservative force)",
+                                     f"A = {p.amplitude_n:.4g} N", p),
+    lambda fitter, cur, h: _search_periodic(COGGING, fitter, cur, h, None), column_rank=60, columns=_cogging_columns,
+    twin="cogging", to_twin=lambda p: p,
+    from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m))
+OFFSET: EffectSpec[NoShape, Offset] = EffectSpec(
+    "offset", NoShape, lambda h: Offset(force_n=h.theta.get("f0", 0.0)), _offset_evidence, _fit_as_is,
+    column_rank=40, columns=_offset_columns, twin="offset", to_twin=lambda p: p,
+    from_twin=lambda h, e: h.adding("offset"))
+SPRING: EffectSpec[NoShape, Spring] = EffectSpec(
+    "spring", NoShape, _spring_params, _spring_evidence, _fit_as_is, column_rank=50, columns=_spring_columns,
+    contains=("offset",), twin="spring", to_twin=lambda p: p,
+    from_twin=lambda h, e: dataclasses.replace(h.adding("spring"), x_center_m=e.x0_m))
+DELAY: EffectSpec[DelayShape, Delay] = EffectSpec(
+    "delay", DelayShape, lambda h: Delay(delay_s=float(DELAY.shape(h).delay_s)), _delay_evidence, _search_delay,
+    column_rank=70, target_delay=lambda h: float(DELAY.shape(h).delay_s), twin="delay", to_twin=lambda p: p,
+    from_twin=lambda h, e: DELAY.reshaped(h.adding("delay"), delay_s=e.delay_s), refresh=_refresh_delay)
+
+#: the discovery catalogue (issue 6), in search and report order; ``coulomb``, ``viscous`` and ``inertia`` are
+#: always in the model. ``contains``: richer -> simpler nested effects (docs/discovery.md §1-2).
+REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY))
