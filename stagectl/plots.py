@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.errors import ConfigError
 from stagectl.friction.base import FrictionModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -116,7 +117,7 @@ def summary(c: Curves, model: FrictionModel | None = None) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------------------ plots
 def _fig(title: str):  # type: ignore[no-untyped-def]
-    import matplotlib
+    import matplotlib  # heavy optional library: imported only when a plot is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -128,8 +129,6 @@ def _fig(title: str):  # type: ignore[no-untyped-def]
 
 
 def _save(plt: Any, fig: Any, path: Path) -> Path:
-    from stagectl.errors import ConfigError
-
     fig.tight_layout()
     try:
         fig.savefig(path)
@@ -142,8 +141,6 @@ def _save(plt: Any, fig: Any, path: Path) -> Path:
 
 def plot_curves(curves: Sequence[Curves], out_dir: str | Path, suffix: str = "") -> list[Path]:
     """Write ``virgin{suffix}.png``, ``hysteresis{suffix}.png`` and ``stribeck{suffix}.png``; overlay if several."""
-    from stagectl.errors import ConfigError
-
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -17,6 +17,7 @@ import numpy as np
 
 from stagectl.errors import ConfigError
 from stagectl.outputs import plain, prepare_out_dir
+from stagectl.schema import load
 
 if TYPE_CHECKING:
     from stagectl.ident.identify import Identified
@@ -45,7 +46,6 @@ def run(args: argparse.Namespace) -> int:
     from stagectl.friction import StageModel, save_model_file
     from stagectl.ident.identify import identify
     from stagectl.ident.recording import load_recording
-    from stagectl.schema import load
 
     if args.elements is not None and not 1 <= args.elements <= 32:
         raise ConfigError(f"--elements: must be between 1 and 32 (got {args.elements})")
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plots(res: Identified, out_dir: str) -> list[str]:
-    # matplotlib is a heavy optional library: imported only when plots are written
+    # matplotlib, scipy and the friction models (numba) are heavy: imported only when plots are written
     import matplotlib
 
     matplotlib.use("Agg")

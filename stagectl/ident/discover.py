@@ -353,7 +353,7 @@ def _choose(ds: Dataset, cur: FitResult, info: list[Candidate],
     ok = {k: v for k, v in cands.items() if v[1].significant}
     if not ok:
         return None
-    chosen = sorted(ok, key=lambda k: ok[k][1].gap_after)[0]
+    chosen = min(ok, key=lambda k: ok[k][1].gap_after)
     for simpler in fx.REGISTRY.get(chosen).contains:
         if simpler in ok and not cur.hyp.has(simpler):
             c2 = compare(ok[simpler][2], ok[chosen][2], ds.est.dt_s, force_rms)

@@ -398,7 +398,7 @@ def _delay_evidence(ev: ResidualView, p: Delay) -> str:
 
 def _search_delay(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
     dt = fitter.sig.dt_s
-    tau, _ = best_scalar(lambda s: DELAY.fit_with(fitter, h, delay_s=s).rss, [k * dt for k in range(0, 21)], 0.0,
+    tau, _ = best_scalar(lambda s: DELAY.fit_with(fitter, h, delay_s=s).rss, [k * dt for k in range(21)], 0.0,
                          20 * dt, log=False)
     return DELAY.fit_with(fitter, h, delay_s=tau)
 

@@ -42,9 +42,9 @@ from scipy.optimize import least_squares, minimize_scalar, nnls  # type: ignore[
 
 from stagectl.errors import ConfigError, DataError
 from stagectl.friction import build
-from stagectl.ident._kernels import maxwell_unit_states
 from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
+from stagectl.ident._kernels import maxwell_unit_states
 from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.modelio import hyp_to_spec
 from stagectl.ident.recording import Recording
