@@ -87,7 +87,7 @@ def _plots(res: Identified, out_dir: str) -> list[str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy import signal  # type: ignore[import-untyped]  # scipy ships no stubs
+    from scipy import signal
 
     from stagectl.friction import build
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy.optimize import minimize
 
 from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring
 from stagectl.ident.columns import (

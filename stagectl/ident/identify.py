@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal  # type: ignore[import-untyped]  # scipy ships no stubs
-from scipy.optimize import least_squares, minimize_scalar, nnls  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy import signal
+from scipy.optimize import least_squares, minimize_scalar, nnls
 
 from stagectl.errors import ConfigError, DataError
 from stagectl.friction import build

@@ -25,7 +25,7 @@ from typing import cast
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import lsq_linear  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy.optimize import lsq_linear
 
 from stagectl.ident import effects as fx
 from stagectl.ident.columns import cached, given_force

@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize_scalar  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy.optimize import minimize_scalar
 
 from stagectl.ident.signals import Signals
 

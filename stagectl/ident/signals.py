@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal  # type: ignore[import-untyped]  # scipy ships no stubs
+from scipy import signal
 
 from stagectl.errors import DataError
 from stagectl.ident.recording import Recording
