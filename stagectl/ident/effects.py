@@ -36,7 +36,7 @@ from stagectl.ident.columns import (
     position_sin_cos,
     stribeck_shape,
 )
-from stagectl.ident.hypothesis import Column, EffectSpec, FitResult, Fitter, Hyp, NoShape, Registry
+from stagectl.ident.hypothesis import Column, EffectSpec, FitResult, Fitter, HiddenStage, Hyp, NoShape, Registry
 from stagectl.ident.localise import ResidualView
 from stagectl.ident.search import best_scalar, position_periodogram, presliding_grid, speed_range
 from stagectl.ident.signals import Signals
@@ -411,49 +411,118 @@ def _refresh_delay(fitter: Fitter, fr: FitResult) -> FitResult:
     return DELAY.fit_with(fitter, fr.hyp, delay_s=tau) if f < fr.rss else fr
 
 
+# ============================================================================================ hidden (synthetic)
+# Each draws over plausible ranges relative to the stage's Coulomb level Fc (after the common random sign).
+def _hide_stribeck(st: HiddenStage) -> None:
+    """Fs/Fc 1.3-2, vs 0.5-3 mm/s, δ 1-2 (unless the stage already has a Stribeck curve)."""
+    fr, rng = st.friction, st.rng
+    if float(fr["fs_n"]) <= st.coulomb_n:
+        fr["fs_n"] = st.coulomb_n * float(rng.uniform(1.3, 2.0))
+        fr["vs_m_s"] = float(rng.uniform(0.5e-3, 3e-3))
+        fr["delta"] = float(rng.uniform(1.0, 2.0))
+
+
+def _hide_lag(st: HiddenStage) -> None:
+    """A Stribeck curve (see :func:`_hide_stribeck`) with a frictional lag of 10-50 ms."""
+    _hide_stribeck(st)
+    st.friction["lag_s"] = float(st.rng.uniform(10e-3, 50e-3))
+
+
+def _hide_presliding(st: HiddenStage) -> None:
+    """GMS with 4 elements, break displacements 0.5-30 µm."""
+    fr, rng, n = st.friction, st.rng, 4
+    deltas = np.sort(np.exp(rng.uniform(np.log(0.5e-6), np.log(30e-6), n)))
+    alpha = rng.dirichlet(np.ones(n))
+    fs = float(fr["fs_n"])
+    k = alpha * fs / deltas
+    st.friction = {"model": "gms", "k_n_m": [float(v) for v in k], "alpha": [float(a) for a in alpha],
+                   "fc_n": st.coulomb_n, "fs_n": fs, "vs_m_s": float(fr.get("vs_m_s", 1e-3)),
+                   "delta": float(fr.get("delta", 2.0)), "c_n_s": 1e4, "viscous_n_s_m": float(fr["viscous_n_s_m"]),
+                   "sigma1_n_s_m": float(0.1 * 2 * math.sqrt(float(np.sum(k)) * st.mass_kg))}
+
+
+def _hide_asymmetry(st: HiddenStage) -> None:
+    """|r| 0.15-0.35."""
+    st.effects["asymmetry"] = {"ratio": st.sign * float(st.rng.uniform(0.15, 0.35))}
+
+
+def _hide_ripple(st: HiddenStage) -> None:
+    """a 0.15-0.35, λ 0.5-2 mm, any phase."""
+    rng = st.rng
+    st.effects["position_ripple"] = {"amplitude": float(rng.uniform(0.15, 0.35)),
+                                     "wavelength_m": float(rng.uniform(0.5e-3, 2e-3)),
+                                     "phase_rad": float(rng.uniform(0, 2 * np.pi))}
+
+
+def _hide_cogging(st: HiddenStage) -> None:
+    """A 0.2-0.5 Fc, λ 0.5-3 mm, any phase."""
+    rng = st.rng
+    st.effects["cogging"] = {"amplitude_n": float(rng.uniform(0.2, 0.5)) * st.coulomb_n,
+                             "wavelength_m": float(rng.uniform(0.5e-3, 3e-3)),
+                             "phase_rad": float(rng.uniform(0, 2 * np.pi))}
+
+
+def _hide_offset(st: HiddenStage) -> None:
+    """|F_0| 0.2-0.6 Fc."""
+    st.effects["offset"] = {"force_n": st.sign * float(st.rng.uniform(0.2, 0.6)) * st.coulomb_n}
+
+
+def _hide_spring(st: HiddenStage) -> None:
+    """k·span/2 0.3-0.8 Fc, rest position within ±20 % of the span."""
+    k = float(st.rng.uniform(0.3, 0.8)) * st.coulomb_n / (st.span_m / 2)
+    st.effects["spring"] = {"stiffness_n_m": k, "x0_m": float(st.rng.uniform(-0.2, 0.2)) * st.span_m}
+
+
+def _hide_delay(st: HiddenStage) -> None:
+    """0.5-2 ms."""
+    st.effects["delay"] = {"delay_s": float(st.rng.uniform(0.5e-3, 2e-3))}
+
+
 # ============================================================================================ the registry
 STRIBECK: EffectSpec[StribeckShape, StribeckParams] = EffectSpec(
     "stribeck", StribeckShape, _stribeck_params, _stribeck_evidence, _search_stribeck, column_rank=20,
-    friction_columns=_stribeck_columns)
+    friction_columns=_stribeck_columns, hide=_hide_stribeck)
 PRESLIDING: EffectSpec[PreslidingShape, PreslidingParams] = EffectSpec(
     "presliding", PreslidingShape, _presliding_params, _presliding_evidence, _search_presliding, column_rank=10,
-    friction_columns=_presliding_columns)
+    friction_columns=_presliding_columns, hide=_hide_presliding)
 LAG: EffectSpec[LagShape, LagParams] = EffectSpec(
     "frictional_lag", LagShape, lambda h: LagParams(float(LAG.shape(h).lag_s)), _lag_evidence, _search_lag,
-    column_rank=21, implies=("stribeck",), contains=("stribeck",))
+    column_rank=21, implies=("stribeck",), contains=("stribeck",), hide=_hide_lag)
 ASYMMETRY: EffectSpec[AsymmetryShape, Asymmetry] = EffectSpec(
     "asymmetry", AsymmetryShape, lambda h: Asymmetry(ratio=float(ASYMMETRY.shape(h).ratio)), _asymmetry_evidence,
     _search_asymmetry, column_rank=25, scaling=lambda h: float(ASYMMETRY.shape(h).ratio), iterative=True,
     contains=("offset",), twin="asymmetry",
     to_twin=lambda p: Asymmetry(ratio=float(np.clip(p.ratio, -0.99, 0.99))),
     from_twin=lambda h, e: ASYMMETRY.reshaped(h.adding("asymmetry"), ratio=e.ratio),
-    refresh=_refresh_asymmetry, after_removal=_asymmetry_after_removal)
+    refresh=_refresh_asymmetry, after_removal=_asymmetry_after_removal, hide=_hide_asymmetry)
 RIPPLE: EffectSpec[WavelengthShape, PositionRipple] = EffectSpec(
     "position_ripple", WavelengthShape, _ripple_params,
     lambda ev, p: _periodic_evidence("multiplies the friction force (changes sign with the direction of motion)",
                                      f"a = {p.amplitude:.4g}", p),
     _search_ripple, column_rank=30, columns=_ripple_columns, iterative=True, twin="position_ripple",
     to_twin=lambda p: dataclasses.replace(p, amplitude=float(min(p.amplitude, 0.99))),
-    from_twin=lambda h, e: RIPPLE.reshaped(h.adding("position_ripple"), wavelength_m=e.wavelength_m))
+    from_twin=lambda h, e: RIPPLE.reshaped(h.adding("position_ripple"), wavelength_m=e.wavelength_m),
+    hide=_hide_ripple)
 COGGING: EffectSpec[WavelengthShape, Cogging] = EffectSpec(
     "cogging", WavelengthShape, _cogging_params,
     lambda ev, p: _periodic_evidence("is the same in both directions (conservative force)",
                                      f"A = {p.amplitude_n:.4g} N", p),
     lambda fitter, cur, h: _search_periodic(COGGING, fitter, cur, h, None), column_rank=60, columns=_cogging_columns,
     twin="cogging", to_twin=lambda p: p,
-    from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m))
+    from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m), hide=_hide_cogging)
 OFFSET: EffectSpec[NoShape, Offset] = EffectSpec(
     "offset", NoShape, lambda h: Offset(force_n=h.theta.get("f0", 0.0)), _offset_evidence, _fit_as_is,
     column_rank=40, columns=_offset_columns, twin="offset", to_twin=lambda p: p,
-    from_twin=lambda h, e: h.adding("offset"))
+    from_twin=lambda h, e: h.adding("offset"), hide=_hide_offset)
 SPRING: EffectSpec[NoShape, Spring] = EffectSpec(
     "spring", NoShape, _spring_params, _spring_evidence, _fit_as_is, column_rank=50, columns=_spring_columns,
     contains=("offset",), twin="spring", to_twin=lambda p: p,
-    from_twin=lambda h, e: dataclasses.replace(h.adding("spring"), x_center_m=e.x0_m))
+    from_twin=lambda h, e: dataclasses.replace(h.adding("spring"), x_center_m=e.x0_m), hide=_hide_spring)
 DELAY: EffectSpec[DelayShape, Delay] = EffectSpec(
     "delay", DelayShape, lambda h: Delay(delay_s=float(DELAY.shape(h).delay_s)), _delay_evidence, _search_delay,
     column_rank=70, target_delay=lambda h: float(DELAY.shape(h).delay_s), twin="delay", to_twin=lambda p: p,
-    from_twin=lambda h, e: DELAY.reshaped(h.adding("delay"), delay_s=e.delay_s), refresh=_refresh_delay)
+    from_twin=lambda h, e: DELAY.reshaped(h.adding("delay"), delay_s=e.delay_s), refresh=_refresh_delay,
+    hide=_hide_delay)
 
 #: the discovery catalogue (issue 6), in search and report order; ``coulomb``, ``viscous`` and ``inertia`` are
 #: always in the model. ``contains``: richer -> simpler nested effects (docs/discovery.md §1-2).

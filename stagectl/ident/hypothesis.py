@@ -106,6 +106,22 @@ class Column:
     follows_friction: bool = False
 
 
+@dataclass
+class HiddenStage:
+    """A simulated stage mapping being given a hidden effect (:func:`stagectl.ident.synth.hide`): an effect's
+    ``hide`` hook draws its parameters from ``rng`` over plausible ranges and edits ``friction`` (the
+    ``friction:`` mapping) or ``effects`` (the ``effects:`` mapping) in place. ``coulomb_n`` is the stage's
+    Coulomb level Fc [N], ``sign`` a random ±1 drawn for every effect, ``span_m`` the travel [m]."""
+
+    friction: dict[str, Any]
+    effects: dict[str, Any]
+    coulomb_n: float
+    sign: float
+    mass_kg: float
+    span_m: float
+    rng: np.random.Generator
+
+
 class Fitter(Protocol):
     """Linear least squares on the estimation data, as an effect's nonlinear search calls it."""
 
@@ -145,7 +161,9 @@ class EffectSpec(Generic[S, P]):
     * ``target_delay(h)`` -- delay [s] of the applied force behind the command.
 
     ``column_rank`` orders the columns in the design matrix (catalogue order is the registry's order);
-    ``iterative``: the columns depend on the previous fit, so each fit takes two passes.
+    ``iterative``: the columns depend on the previous fit, so each fit takes two passes. ``refresh`` re-searches
+    the shape after later effects were accepted, ``after_removal`` after another effect was pruned; ``hide``
+    puts the effect into a simulated stage (synthetic recordings for tests and demos).
     """
 
     name: str
@@ -166,6 +184,7 @@ class EffectSpec(Generic[S, P]):
     from_twin: Callable[[Hyp, Any], Hyp] | None = None
     refresh: Callable[[Fitter, FitResult], FitResult] | None = None
     after_removal: Callable[[Fitter, Hyp], FitResult] | None = None
+    hide: Callable[[HiddenStage], None] | None = None
 
     def shape(self, h: Hyp) -> S:
         """This effect's shape in ``h`` (its defaults when ``h`` has none)."""

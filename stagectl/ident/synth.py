@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.ident import effects as fx
+from stagectl.ident.hypothesis import HiddenStage
 from stagectl.ident.recording import Recording
 from stagectl.sim.plant import PlantConfig, StagePlant
 
@@ -188,55 +190,21 @@ def draw_stage(rng: np.random.Generator) -> dict[str, Any]:
 
 
 def hide(stage: dict[str, Any], effect: str, rng: np.random.Generator, span_m: float = 0.02) -> dict[str, Any]:
-    """Add ``effect`` with parameters drawn at random over plausible ranges to a stage mapping.
+    """Add ``effect`` with parameters drawn at random over plausible ranges to a stage mapping (a copy).
 
-    Ranges (relative to the stage's Coulomb level Fc): offset |F_0| 0.2-0.6 Fc; spring k·span/2 0.3-0.8 Fc;
-    asymmetry |r| 0.15-0.35; position ripple a 0.15-0.35, λ 0.5-2 mm; cogging A 0.2-0.5 Fc, λ 0.5-3 mm;
-    delay 0.5-2 ms; Stribeck Fs/Fc 1.3-2, vs 0.5-3 mm/s, δ 1-2; frictional lag (on top of a Stribeck
-    curve) 10-50 ms; pre-sliding: GMS with 4 elements, break displacements 0.5-30 µm.
+    A random sign is drawn first, then the effect's ``hide`` hook in :data:`stagectl.ident.effects.REGISTRY`
+    draws its parameters (the ranges are in each hook's docstring; relative to the stage's Coulomb level Fc).
     """
+    spec = fx.REGISTRY.get(effect)
+    if spec.hide is None:
+        raise ValueError(f"effect {effect!r} cannot be hidden in a simulated stage")
     st = {k: (dict(v) if isinstance(v, dict) else v) for k, v in stage.items()}
     fr = dict(st["friction"])
-    eff = dict(st.get("effects") or {})
-    fc = float(fr["fc_n"])
     sign = float(rng.choice([-1.0, 1.0]))
-    if effect == "offset":
-        eff["offset"] = {"force_n": sign * float(rng.uniform(0.2, 0.6)) * fc}
-    elif effect == "spring":
-        k = float(rng.uniform(0.3, 0.8)) * fc / (span_m / 2)
-        eff["spring"] = {"stiffness_n_m": k, "x0_m": float(rng.uniform(-0.2, 0.2)) * span_m}
-    elif effect == "asymmetry":
-        eff["asymmetry"] = {"ratio": sign * float(rng.uniform(0.15, 0.35))}
-    elif effect == "position_ripple":
-        eff["position_ripple"] = {"amplitude": float(rng.uniform(0.15, 0.35)),
-                                  "wavelength_m": float(rng.uniform(0.5e-3, 2e-3)),
-                                  "phase_rad": float(rng.uniform(0, 2 * np.pi))}
-    elif effect == "cogging":
-        eff["cogging"] = {"amplitude_n": float(rng.uniform(0.2, 0.5)) * fc,
-                          "wavelength_m": float(rng.uniform(0.5e-3, 3e-3)),
-                          "phase_rad": float(rng.uniform(0, 2 * np.pi))}
-    elif effect == "delay":
-        eff["delay"] = {"delay_s": float(rng.uniform(0.5e-3, 2e-3))}
-    elif effect in ("stribeck", "frictional_lag"):
-        if float(fr["fs_n"]) <= fc:
-            fr["fs_n"] = fc * float(rng.uniform(1.3, 2.0))
-            fr["vs_m_s"] = float(rng.uniform(0.5e-3, 3e-3))
-            fr["delta"] = float(rng.uniform(1.0, 2.0))
-        if effect == "frictional_lag":
-            fr["lag_s"] = float(rng.uniform(10e-3, 50e-3))
-    elif effect == "presliding":
-        n = 4
-        deltas = np.sort(np.exp(rng.uniform(np.log(0.5e-6), np.log(30e-6), n)))
-        alpha = rng.dirichlet(np.ones(n))
-        fs = float(fr["fs_n"])
-        k = alpha * fs / deltas
-        fr = {"model": "gms", "k_n_m": [float(v) for v in k], "alpha": [float(a) for a in alpha],
-              "fc_n": fc, "fs_n": fs, "vs_m_s": float(fr.get("vs_m_s", 1e-3)), "delta": float(fr.get("delta", 2.0)),
-              "c_n_s": 1e4, "viscous_n_s_m": float(fr["viscous_n_s_m"]),
-              "sigma1_n_s_m": float(0.1 * 2 * math.sqrt(float(np.sum(k)) * float(stage["mass_kg"])))}
-    else:
-        raise ValueError(f"unknown effect {effect!r}")
-    st["friction"] = fr
-    if eff:
-        st["effects"] = eff
+    hs = HiddenStage(fr, dict(st.get("effects") or {}), float(fr["fc_n"]), sign,
+                     float(stage.get("mass_kg", math.nan)), span_m, rng)
+    spec.hide(hs)
+    st["friction"] = hs.friction
+    if hs.effects:
+        st["effects"] = hs.effects
     return st

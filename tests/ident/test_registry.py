@@ -1,6 +1,6 @@
 """Adding a discovery effect touches one file: an ``EffectSpec`` registered in a test-local copy of the
-registry is picked up by the regression, the workflow, the report and the model-file conversion with no
-other edit (the toy effect is a constant force under a new name and column, written to model files as
+registry is picked up by the synthetic stages, the regression, the workflow, the report and the model-file
+conversion with no other edit (the toy effect is a constant force under a new name and column, written to model files as
 ``effects.offset``)."""
 
 from __future__ import annotations
@@ -17,7 +17,16 @@ from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
 from stagectl.ident import synth
 from stagectl.ident.discover import discover
-from stagectl.ident.hypothesis import Column, EffectSpec, FitResult, Fitter, Hyp, NoShape, Registry
+from stagectl.ident.hypothesis import (
+    Column,
+    EffectSpec,
+    FitResult,
+    Fitter,
+    HiddenStage,
+    Hyp,
+    NoShape,
+    Registry,
+)
 from stagectl.ident.localise import ResidualView
 from stagectl.ident.modelio import hyp_to_spec, model_to_hyp
 from stagectl.ident.report import write_outputs
@@ -40,9 +49,13 @@ def _search(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
     return fitter.fit(h)
 
 
+def _hide(st: HiddenStage) -> None:
+    st.effects["offset"] = {"force_n": st.sign * float(st.rng.uniform(0.2, 0.6)) * st.coulomb_n}
+
+
 TOY: EffectSpec[NoShape, Offset] = EffectSpec(
     "constant_force", NoShape, _params, _evidence, _search, column_rank=45, columns=_columns, twin="offset",
-    to_twin=lambda p: p, from_twin=lambda h, e: h.adding("constant_force"))
+    to_twin=lambda p: p, from_twin=lambda h, e: h.adding("constant_force"), hide=_hide)
 
 
 @pytest.fixture
@@ -54,7 +67,7 @@ def toy_registry(monkeypatch: pytest.MonkeyPatch) -> Registry:
 
 def test_a_registered_effect_is_discovered_reported_and_written(toy_registry: Registry, tmp_path: Path) -> None:
     rng = np.random.default_rng(2006)
-    st = synth.hide(synth.draw_stage(rng), "offset", rng)
+    st = synth.hide(synth.draw_stage(rng), "constant_force", rng)  # synth picks up the toy's hide hook
     rec = synth.closed_loop(st, motion=synth.Motion(duration_s=12.0), seed=2006)
     res = discover(rec)
     # regress and discover: the toy column is fitted, the effect is named with its typed parameters
