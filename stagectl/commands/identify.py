@@ -13,8 +13,6 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from stagectl.errors import ConfigError
 from stagectl.outputs import plain, prepare_out_dir
 from stagectl.schema import load
@@ -87,6 +85,7 @@ def _plots(res: Identified, out_dir: str) -> list[str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
     from scipy import signal
 
     from stagectl.friction import build
