@@ -43,6 +43,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from stagectl.control.design import kalman_gain
 from stagectl.control.pid import check_dt
 from stagectl.schema import param
 
@@ -184,8 +185,6 @@ class KalmanDob:
         self._design(period_s)
 
     def _design(self, dt: float) -> None:
-        from stagectl.control.design import kalman_gain
-
         m = self.mass_kg
         self._dt = dt
         self.K = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,

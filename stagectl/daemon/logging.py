@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import logging.handlers
+import os
 import queue
 import sys
 import threading
@@ -129,8 +130,6 @@ class DaemonLogging:
                  queue_size: int = 10000, rate_interval_s: float = 10.0) -> None:
         stream = stream if stream is not None else sys.stderr
         if journal is None:  # prefixes when stderr goes to journald (systemd sets JOURNAL_STREAM)
-            import os
-
             journal = bool(os.environ.get("JOURNAL_STREAM")) or not _isatty(stream)
         self.queue: queue.Queue[logging.LogRecord] = queue.Queue(queue_size)
         self.handler = DroppingQueueHandler(self.queue)

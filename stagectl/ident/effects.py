@@ -212,7 +212,7 @@ def _presliding_params(h: Hyp) -> PreslidingParams:
 
 def _search_presliding(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
     """Elements on a log grid; keep those that carry force and refine their break displacements (coordinate
-    descent on log Δ_i: the virgin curve is piecewise linear with breakpoints Δ_i, docs/discovery.md §2.3)."""
+    descent on log Δ_i: the virgin curve is piecewise linear with breakpoints Δ_i, docs/friction-models.md §2.3)."""
     h = PRESLIDING.reshaped(h, deltas_m=tuple(presliding_grid(fitter.sig)))
     first = fitter.fit(h)
     grid = PRESLIDING.shape(h).deltas_m
