@@ -23,7 +23,7 @@ import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Self
 
 from stagectl.errors import StageError
 
@@ -146,15 +146,14 @@ class MoveRequest:
         return out
 
 
-@dataclass(frozen=True)
-class StopRequest:
-    """Decelerate and hold. Loop reply: ``{"x_m"}`` (where the stage will stand)."""
+class _NoFieldRequest:
+    """A request without fields: parsed from a line that carries none, sent as ``{"request": KIND}``."""
 
-    KIND: ClassVar[str] = "stop"
+    KIND: ClassVar[str]
     FIELDS: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
-    def from_fields(cls, fields: Mapping[str, object]) -> StopRequest:
+    def from_fields(cls, fields: Mapping[str, object]) -> Self:
         _known(cls.KIND, fields, cls.FIELDS)
         return cls()
 
@@ -163,20 +162,18 @@ class StopRequest:
 
 
 @dataclass(frozen=True)
-class ResetRequest:
+class StopRequest(_NoFieldRequest):
+    """Decelerate and hold. Loop reply: ``{"x_m"}`` (where the stage will stand)."""
+
+    KIND: ClassVar[str] = "stop"
+
+
+@dataclass(frozen=True)
+class ResetRequest(_NoFieldRequest):
     """Clear a latched fault, re-enable the drive, restart bumplessly at the measured position (a no-op when no
     fault is latched). Loop reply: ``{"state", "cleared"}``."""
 
     KIND: ClassVar[str] = "reset"
-    FIELDS: ClassVar[tuple[str, ...]] = ()
-
-    @classmethod
-    def from_fields(cls, fields: Mapping[str, object]) -> ResetRequest:
-        _known(cls.KIND, fields, cls.FIELDS)
-        return cls()
-
-    def to_json(self) -> dict[str, object]:
-        return {"request": self.KIND}
 
 
 @dataclass(frozen=True)
@@ -203,16 +200,10 @@ class RetuneRequest:
 
 
 @dataclass(frozen=True)
-class ShutdownRequest:
+class ShutdownRequest(_NoFieldRequest):
     """End :meth:`~stagectl.loop.ControlLoop.run` after this cycle. Loop reply: ``{"cycles"}``."""
 
     KIND: ClassVar[str] = "shutdown"
-    FIELDS: ClassVar[tuple[str, ...]] = ()
-
-    @classmethod
-    def from_fields(cls, fields: Mapping[str, object]) -> ShutdownRequest:
-        _known(cls.KIND, fields, cls.FIELDS)
-        return cls()
 
 
 LoopRequest = MoveRequest | StopRequest | ResetRequest | RetuneRequest | ShutdownRequest
