@@ -211,18 +211,3 @@ class Safety:
             )
             return 0.0
         return lim if u_n > 0 else -lim
-
-    # ----------------------------------------------------------------- request validation
-    def check_target(self, x_m: float, field: str = "target_m") -> float:
-        """Validate a commanded position against the soft limits; ValueError names ``field``."""
-        try:
-            x = float(x_m)
-        except (TypeError, ValueError):
-            raise ValueError(f"{field}: expected a number in m, got {x_m!r}") from None
-        if not _isfinite(x):
-            raise ValueError(f"{field}: must be finite (m), got {x_m!r}")
-        if x < self.cfg.min_position_m or x > self.cfg.max_position_m:
-            raise ValueError(
-                f"{field}: {x:g} m outside soft limits [{self.cfg.min_position_m:g}, {self.cfg.max_position_m:g}] m"
-            )
-        return x

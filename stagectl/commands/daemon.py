@@ -17,7 +17,6 @@ import logging
 import sys
 
 from stagectl.daemon.logging import DaemonLogging
-from stagectl.daemon.paths import ServicePaths
 from stagectl.daemon.service import StageService
 
 
@@ -42,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
     # the default 5 ms switch interval would show up as 5 ms of lateness.
     sys.setswitchinterval(2.5e-4)
     try:
-        paths = ServicePaths.from_env(args.config, args.runtime_dir, args.state_dir)
-        svc = StageService(paths.config, paths.runtime_dir, load_config=load_configs, build=build_assembly,
-                           state_dir=paths.state_dir)
+        # the service reads $RUNTIME_DIRECTORY / $STATE_DIRECTORY itself (ServicePaths.from_env, once)
+        svc = StageService(args.config, args.runtime_dir, load_config=load_configs, build=build_assembly,
+                           state_dir=args.state_dir)
         return svc.run()
     finally:
         logs.close()

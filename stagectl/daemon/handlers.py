@@ -24,13 +24,13 @@ from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 from stagectl.config.daemon import DaemonConfig
-from stagectl.daemon.lifecycle import AssemblyLike
+from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.reload import Reloader
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
 from stagectl.runtime.inbox import Reply as LoopReply
-from stagectl.runtime.requests import RequestError, parse_request
+from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
 
 __all__ = ["HANDLERS", "ServiceView", "dispatch"]
 
@@ -42,7 +42,7 @@ class ServiceView(Protocol):
     """What the handlers need from :class:`~stagectl.daemon.service.StageService`."""
 
     cfg: DaemonConfig
-    asm: AssemblyLike | None
+    asm: Assembly | None
     writer: TelemetryWriter | None
 
     reloader: Reloader
@@ -53,10 +53,8 @@ class ServiceView(Protocol):
 
 
 def _only(req: Mapping[str, object], *allowed: str) -> None:
-    for key in req:
-        if key not in ("request", "id", *allowed):
-            raise RequestError(key, f"unknown field for {req.get('request')!r} (allowed: "
-                                    f"{', '.join(sorted(allowed)) or 'none'})")
+    """The request line carries no key but the envelope (``request``, ``id``) and ``allowed``."""
+    check_fields(str(req.get("request")), {k: v for k, v in req.items() if k not in ("request", "id")}, allowed)
 
 
 def as_reply(fut: LoopReply) -> concurrent.futures.Future[Reply]:
@@ -140,19 +138,21 @@ def handle_fault(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
 
 HANDLERS: dict[str, Callable[[ServiceView, Mapping[str, object]], ReplyOrFuture]] = {
     "status": handle_status,
-    "move": handle_loop_request,
-    "stop": handle_loop_request,
-    "reset": handle_loop_request,
+    **{kind: handle_loop_request for kind in SOCKET_KINDS},
     "record": handle_record,
     "gains": handle_gains,
     "fault": handle_fault,
 }
 
 
+#: requests that work but are not advertised in error messages (fault injection on a simulated plant)
+DEBUG_REQUESTS = ("fault",)
+
+
 def dispatch(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     """Route one request to its handler (control thread; never blocks)."""
     kind = req.get("request")
-    known = "one of status, move, stop, reset, record, gains"
+    known = "one of " + ", ".join(k for k in HANDLERS if k not in DEBUG_REQUESTS)
     if not isinstance(kind, str):
         raise RequestError("request", f"missing; {known}")
     fn = HANDLERS.get(kind)

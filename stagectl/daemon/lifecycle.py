@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from stagectl.daemon.control import ControlServer
 from stagectl.daemon.marker import UNCLEAN_FAULT, UncleanLatch
@@ -32,7 +32,7 @@ from stagectl.loop import ControlLoop
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import FaultInfo, LoopState, LoopStatus
 
-__all__ = ["Assembly", "AssemblyLike", "Lifecycle", "StatusCache", "announce_ready", "drive_state", "failure_code", "flush_after_fault", "fault_text", "shut_down", "status_line", "wait_until_ready"]
+__all__ = ["Assembly", "Lifecycle", "StatusCache", "announce_ready", "drive_state", "failure_code", "flush_after_fault", "fault_text", "shut_down", "status_line", "wait_until_ready"]
 
 log = logging.getLogger("stagectl.daemon")
 
@@ -48,7 +48,8 @@ class Lifecycle(enum.Enum):
 
 @dataclass
 class Assembly:
-    """What the service needs from the assembled application (built by :mod:`stagectl.app`).
+    """What the service needs from the assembled application (built by :func:`stagectl.daemon.assemble.build_assembly`
+    from a :class:`stagectl.app.Stage`; tests build it around their own loop).
 
     ``loop`` is the :class:`~stagectl.loop.ControlLoop`; ``close()`` releases devices and buses (idempotent);
     ``controller_config`` is the tuning in force; ``inject_fault(kind, **kw)`` exists only for simulated
@@ -63,27 +64,7 @@ class Assembly:
     describe: dict[str, Any] = field(default_factory=dict)
 
 
-class AssemblyLike(Protocol):
-    """The service's contract with the assembly: :class:`Assembly`, or :class:`stagectl.app.Stage` itself."""
-
-    controller_config: object  # replaced by a reload
-
-    @property
-    def loop(self) -> ControlLoop: ...
-
-    @property
-    def simulated(self) -> bool: ...
-
-    @property
-    def inject_fault(self) -> Callable[..., dict[str, Any]] | None: ...
-
-    @property
-    def describe(self) -> dict[str, Any]: ...
-
-    def close(self) -> None: ...
-
-
-def drive_state(asm: AssemblyLike) -> DeviceState:
+def drive_state(asm: Assembly) -> DeviceState:
     """The drive's (the loop's actuator's) lifecycle state."""
     return asm.loop.actuator.state
 
@@ -176,7 +157,7 @@ def status_line(state: Lifecycle, st: LoopStatus | None, writer: TelemetryWriter
     return ", ".join(parts)
 
 
-def wait_until_ready(asm: AssemblyLike, host: LoopHost, watchdog: Watchdog, latch: UncleanLatch, timeout_s: float,
+def wait_until_ready(asm: Assembly, host: LoopHost, watchdog: Watchdog, latch: UncleanLatch, timeout_s: float,
                      stopping: Callable[[], bool], wake: threading.Event) -> bool | None:
     """Wait until the loop is healthy: cycling, few overruns, drive enabled (or latched in
     ``unclean_shutdown``). Returns True if latched, False if active, None if a stop was requested.
@@ -206,7 +187,7 @@ def wait_until_ready(asm: AssemblyLike, host: LoopHost, watchdog: Watchdog, latc
     return None
 
 
-def shut_down(*, asm: AssemblyLike | None, host: LoopHost | None, halt: bool, server: ControlServer | None,
+def shut_down(*, asm: Assembly | None, host: LoopHost | None, halt: bool, server: ControlServer | None,
               writer: TelemetryWriter | None, latch: UncleanLatch, failed_while_running: bool,
               notify: SdNotifier, stop_timeout_s: float) -> bool:
     """Stop motion (if ``halt``), stop the loop (drive disabled), flush telemetry, settle the run marker,

@@ -29,7 +29,7 @@ from stagectl.daemon import lifecycle
 from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.daemon.control import ControlServer
 from stagectl.daemon.handlers import ReplyOrFuture, dispatch
-from stagectl.daemon.lifecycle import Assembly, AssemblyLike, Lifecycle
+from stagectl.daemon.lifecycle import Assembly, Lifecycle
 from stagectl.daemon.marker import RunMarker, UncleanLatch
 from stagectl.daemon.paths import ServicePaths
 from stagectl.daemon.reload import AppConfigLike, ConfigLoader, Reloader
@@ -47,7 +47,7 @@ __all__ = ["Assembly", "Builder", "ConfigLoader", "HealthWindow", "Lifecycle", "
 
 log = logging.getLogger("stagectl.daemon")
 
-Builder = Callable[[Any], AssemblyLike]  #: app config -> assembly (opens and configures the devices)
+Builder = Callable[[Any], Assembly]  #: app config -> assembly (opens and configures the devices)
 PathArg = str | os.PathLike[str]
 
 
@@ -62,7 +62,7 @@ class StageService:
         self.state = Lifecycle.UNCONFIGURED
         self.app_cfg: AppConfigLike | None = None
         self.cfg = DaemonConfig()
-        self.asm: AssemblyLike | None = None
+        self.asm: Assembly | None = None
         self.host: LoopHost | None = None
         self.writer: TelemetryWriter | None = None
         self.server: ControlServer | None = None

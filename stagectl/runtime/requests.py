@@ -23,7 +23,7 @@ import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar, Self
+from typing import Any, ClassVar, Self, cast
 
 from stagectl.errors import StageError
 
@@ -71,7 +71,8 @@ def _optional(field: str, value: object, unit: str) -> float | None:
     return None if value is None else _number(field, value, unit)
 
 
-def _known(kind: str, fields: Mapping[str, object], allowed: tuple[str, ...]) -> None:
+def check_fields(kind: str, fields: Mapping[str, object], allowed: tuple[str, ...]) -> None:
+    """RequestError naming the first key of ``fields`` not in ``allowed`` (with the allowed ones)."""
     for key in fields:
         if key not in allowed:
             raise RequestError(key, f"unknown field for {kind!r} (allowed: {', '.join(sorted(allowed)) or 'none'})")
@@ -121,10 +122,8 @@ class MoveRequest:
     @classmethod
     def from_fields(cls, fields: Mapping[str, object]) -> MoveRequest:
         """From a mapping (keyword arguments, a JSON object without its envelope); unknown keys refused."""
-        _known(cls.KIND, fields, cls.FIELDS)
-        return cls(target_m=_optional("target_m", fields.get("target_m"), "m"),
-                   relative_m=_optional("relative_m", fields.get("relative_m"), "m"),
-                   max_velocity_m_s=_optional("max_velocity_m_s", fields.get("max_velocity_m_s"), "m/s"))
+        check_fields(cls.KIND, fields, cls.FIELDS)
+        return cls(**cast("dict[str, Any]", dict(fields)))  # __post_init__ checks every value once
 
     def check_limits(self, limits: MotionLimits) -> None:
         """The checks that need the stage's limits: an absolute target inside the soft limits, the velocity at
@@ -154,7 +153,7 @@ class _NoFieldRequest:
 
     @classmethod
     def from_fields(cls, fields: Mapping[str, object]) -> Self:
-        _known(cls.KIND, fields, cls.FIELDS)
+        check_fields(cls.KIND, fields, cls.FIELDS)
         return cls()
 
     def to_json(self) -> dict[str, object]:
@@ -191,7 +190,7 @@ class RetuneRequest:
 
     @classmethod
     def from_fields(cls, fields: Mapping[str, object]) -> RetuneRequest:
-        _known(cls.KIND, fields, cls.FIELDS)
+        check_fields(cls.KIND, fields, cls.FIELDS)
         return cls(controller_config=fields.get("controller_config"))
 
     def __post_init__(self) -> None:
@@ -211,22 +210,25 @@ LoopRequest = MoveRequest | StopRequest | ResetRequest | RetuneRequest | Shutdow
 SocketRequest = MoveRequest | StopRequest | ResetRequest
 
 
+#: the requests a control-socket client may send, by kind (retune comes from SIGHUP, shutdown from SIGTERM)
+SOCKET_REQUESTS: dict[str, type[SocketRequest]] = {r.KIND: r for r in (MoveRequest, StopRequest, ResetRequest)}
+#: every loop request, by kind
+LOOP_REQUESTS: dict[str, type[LoopRequest]] = {
+    **SOCKET_REQUESTS, RetuneRequest.KIND: RetuneRequest, ShutdownRequest.KIND: ShutdownRequest,
+}
+#: kinds a control-socket client may send
+SOCKET_KINDS = tuple(SOCKET_REQUESTS)
+
+
 def request_from_kwargs(kind: str, **kw: object) -> LoopRequest:
     """``request_from_kwargs("move", target_m=1e-3)`` → :class:`MoveRequest` (``loop.request``'s form).
 
     Raises RequestError: unknown kind (field ``kind``), unknown key (field = the key), bad values.
     """
-    if kind == "retune":
-        return RetuneRequest.from_fields(kw)
-    if kind == "shutdown":
-        return ShutdownRequest.from_fields(kw)
-    if kind not in SOCKET_KINDS:
-        raise RequestError("kind", f"unknown request {kind!r} (known: move, stop, reset, retune, shutdown)")
-    return _socket_request(kind, kw)
-
-
-#: kinds a control-socket client may send
-SOCKET_KINDS = ("move", "stop", "reset")
+    cls = LOOP_REQUESTS.get(kind)
+    if cls is None:
+        raise RequestError("kind", f"unknown request {kind!r} (known: {', '.join(LOOP_REQUESTS)})")
+    return cls.from_fields(kw)
 
 
 def parse_request(kind: str, line: Mapping[str, object], envelope: tuple[str, ...] = ("request", "id")
@@ -236,14 +238,7 @@ def parse_request(kind: str, line: Mapping[str, object], envelope: tuple[str, ..
     ``envelope`` keys (``request``, ``id``) are the socket's own. Raises RequestError: unknown kind (field
     ``request``), unknown key (field = the key, with the allowed ones), bad values (field and unit).
     """
-    if kind not in SOCKET_KINDS:
+    cls = SOCKET_REQUESTS.get(kind)
+    if cls is None:
         raise RequestError("request", f"unknown request {kind!r}; one of {', '.join(SOCKET_KINDS)}")
-    return _socket_request(kind, {k: v for k, v in line.items() if k not in envelope})
-
-
-def _socket_request(kind: str, fields: Mapping[str, object]) -> SocketRequest:
-    if kind == "move":
-        return MoveRequest.from_fields(fields)
-    if kind == "stop":
-        return StopRequest.from_fields(fields)
-    return ResetRequest.from_fields(fields)
+    return cls.from_fields({k: v for k, v in line.items() if k not in envelope})

@@ -8,6 +8,8 @@ import math
 
 import pytest
 
+from stagectl.runtime.requests import MotionLimits
+
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.errors import ConfigError
 from stagectl.loop import LoopState, LoopStateError
@@ -149,8 +151,10 @@ def test_safety_unit_checks():
     first = s.fault
     s.latch("emcy", "later", 1.0, 9)
     assert s.fault is first  # the first fault stays latched
+    c = s.cfg
+    limits = MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s)  # as the loop builds them
     with pytest.raises(ValueError, match="target_m"):
-        s.check_target(2e-3)
+        limits.check_position(2e-3, "target_m")
 
 
 def test_not_finite_anywhere_latches():
