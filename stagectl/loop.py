@@ -33,8 +33,7 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
 * ``loop.submit(request) -> Future[dict]`` -- a typed request (:mod:`stagectl.runtime.requests`), checked
   against the stage's limits here and executed at the next cycle boundary; conditions known only there (a
   relative target outside the limits, a move in fault) are set on the future. A retune is designed in the
-  caller's thread when the controller offers ``request_retune``. ``loop.request(kind, **kw)`` builds the
-  request from keywords.
+  caller's thread when the controller offers ``request_retune``.
 * ``loop.latch_fault(name, cause)`` -- before ``run`` only: ``run`` then starts in fault without enabling the
   devices, and only a reset clears it (the daemon's ``unclean_shutdown``).
 * ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
@@ -74,7 +73,6 @@ from stagectl.runtime.requests import (
     RetuneRequest,
     ShutdownRequest,
     StopRequest,
-    request_from_kwargs,
 )
 from stagectl.runtime.sinks import SinkSet
 from stagectl.runtime.stats import CycleStats, LatenessWarner
@@ -208,10 +206,6 @@ class ControlLoop:
                 self.controller.request_retune(req.controller_config)
                 prepared = True
         return self._inbox.put(req, prepared)
-
-    def request(self, kind: str, **kw: object) -> Reply:
-        """``submit(request_from_kwargs(kind, **kw))``: e.g. ``loop.request("move", target_m=1e-3)``."""
-        return self.submit(request_from_kwargs(kind, **kw))
 
     def _execute(self, req: LoopRequest, prepared: bool, t: float, x: float) -> dict[str, Any]:
         if isinstance(req, ShutdownRequest):

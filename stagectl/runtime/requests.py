@@ -39,7 +39,6 @@ __all__ = [
     "SocketRequest",
     "StopRequest",
     "parse_request",
-    "request_from_kwargs",
 ]
 
 
@@ -212,23 +211,8 @@ SocketRequest = MoveRequest | StopRequest | ResetRequest
 
 #: the requests a control-socket client may send, by kind (retune comes from SIGHUP, shutdown from SIGTERM)
 SOCKET_REQUESTS: dict[str, type[SocketRequest]] = {r.KIND: r for r in (MoveRequest, StopRequest, ResetRequest)}
-#: every loop request, by kind
-LOOP_REQUESTS: dict[str, type[LoopRequest]] = {
-    **SOCKET_REQUESTS, RetuneRequest.KIND: RetuneRequest, ShutdownRequest.KIND: ShutdownRequest,
-}
 #: kinds a control-socket client may send
 SOCKET_KINDS = tuple(SOCKET_REQUESTS)
-
-
-def request_from_kwargs(kind: str, **kw: object) -> LoopRequest:
-    """``request_from_kwargs("move", target_m=1e-3)`` → :class:`MoveRequest` (``loop.request``'s form).
-
-    Raises RequestError: unknown kind (field ``kind``), unknown key (field = the key), bad values.
-    """
-    cls = LOOP_REQUESTS.get(kind)
-    if cls is None:
-        raise RequestError("kind", f"unknown request {kind!r} (known: {', '.join(LOOP_REQUESTS)})")
-    return cls.from_fields(kw)
 
 
 def parse_request(kind: str, line: Mapping[str, object], envelope: tuple[str, ...] = ("request", "id")

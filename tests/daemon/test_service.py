@@ -15,6 +15,7 @@ import pytest
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.service import StageService
+from stagectl.runtime.requests import ShutdownRequest
 
 
 def _write_cfg(path, kp, tmp_path, telemetry_dir=None, **daemon):
@@ -363,7 +364,7 @@ def test_loop_ending_by_itself_keeps_the_marker(tmp_path, notify_socket, rig_loa
     svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
     try:
         notify_socket.wait_for("READY", "1", alive=svc.alive)
-        svc.dut.asm.loop.request("shutdown").result(timeout=30)
+        svc.dut.asm.loop.submit(ShutdownRequest()).result(timeout=30)
     finally:
         code = svc.join()
     assert code == 1 and marker.exists()

@@ -17,6 +17,7 @@ from stagectl.config import parse_app_config
 from stagectl.drivers.base import DeviceState
 from stagectl.loop import LoopState
 from stagectl.recorder import Recorder
+from stagectl.runtime.requests import MoveRequest, ResetRequest, RetuneRequest
 
 REPO = Path(__file__).resolve().parents[2]
 SIM_YAML = REPO / "config" / "sim.yaml"
@@ -82,7 +83,7 @@ def test_canopen_faults_stop_the_drive_and_latch(canopen_cfg, kind, expect):
         loop, world = stage.loop, stage.world
         probe = []
         loop.add_sink(type("P", (), {"append": lambda self, row: probe.append(world.drive.force_n)})())
-        loop.request("move", target_m=5e-6)
+        loop.submit(MoveRequest(target_m=5e-6))
         loop.on_cycle = lambda: loop.cycle == 100 and world.inject_fault(kind, at_cycle=None)
         loop.run(cycles=100 + int(0.5 / canopen_cfg.loop.period_s))
         st = loop.status()
@@ -103,11 +104,11 @@ def test_canopen_fault_reset_re_enables(canopen_cfg):
         assert loop.status().fault.name in ("drive_fault", "emcy")
         world.clear_faults()
         loop.on_cycle = None
-        fut = loop.request("reset")
+        fut = loop.submit(ResetRequest())
         mv = None
         loop.run(cycles=5)
         assert fut.result(timeout=0)["state"] == "active"
-        mv = loop.request("move", relative_m=2e-6)
+        mv = loop.submit(MoveRequest(relative_m=2e-6))
         loop.run(cycles=400)
         assert mv.result(timeout=0)["target_m"] == pytest.approx(loop.status().x_ref_m)
         assert loop.status().fault is None
@@ -178,8 +179,8 @@ def test_retune_with_the_stage_controller(plant_io_cfg):
         bad = dataclasses.replace(old, feedforward=dataclasses.replace(old.feedforward, model_file=Path("nope.yaml"),
                                                                        model=None))
         with pytest.raises(ConfigError, match="nope.yaml"):
-            loop.request("retune", controller_config=bad)
-        fut = loop.request("retune", controller_config=new)
+            loop.submit(RetuneRequest(controller_config=bad))
+        fut = loop.submit(RetuneRequest(controller_config=new))
         loop.run(cycles=5)
         assert fut.result(timeout=0) == {"retuned": True}
         assert ctl.cfg.pid.kp_n_m == pytest.approx(old.pid.kp_n_m * 0.5)

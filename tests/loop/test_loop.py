@@ -12,6 +12,7 @@ from stagectl.clock import SimClock
 from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
 from stagectl.loop import BASE_COLUMNS, LoopState, LoopStateError
+from stagectl.runtime.requests import MoveRequest, RetuneRequest, ShutdownRequest, StopRequest, parse_request
 
 
 def test_absolute_deadlines_and_columns(rig):
@@ -75,7 +76,7 @@ def test_overruns_are_counted_and_skipped_not_caught_up(make, rows):
 
 def test_move_request_tracks_and_reports(rig):
     loop, io, plant, ctl, clock, sink = rig
-    fut = loop.request("move", target_m=50e-6, max_velocity_m_s=1e-3)
+    fut = loop.submit(MoveRequest(target_m=50e-6, max_velocity_m_s=1e-3))
     res = loop.run(cycles=200)
     assert fut.result(timeout=0)["target_m"] == 50e-6
     assert fut.result()["duration_s"] == pytest.approx(0.05, rel=1e-6)
@@ -89,19 +90,19 @@ def test_move_request_tracks_and_reports(rig):
 def test_request_validation_names_the_field(rig):
     loop = rig[0]
     with pytest.raises(ValueError, match="target_m.*soft limits"):
-        loop.request("move", target_m=0.5)
+        loop.submit(MoveRequest(target_m=0.5))
     with pytest.raises(ValueError, match="max_velocity_m_s"):
-        loop.request("move", target_m=1e-6, max_velocity_m_s=10.0)
+        loop.submit(MoveRequest(target_m=1e-6, max_velocity_m_s=10.0))
     with pytest.raises(ValueError, match="relative_m"):
-        loop.request("move", relative_m=math.nan)
-    with pytest.raises(ValueError, match="kind"):
-        loop.request("jump")
+        loop.submit(MoveRequest(relative_m=math.nan))
+    with pytest.raises(ValueError, match="unknown request 'jump'"):
+        parse_request("jump", {"request": "jump"})
     with pytest.raises(ValueError, match="speed"):
-        loop.request("move", target_m=0.0, speed=1)
+        MoveRequest.from_fields({"target_m": 0.0, "speed": 1})
     with pytest.raises(ValueError, match="exactly one"):
-        loop.request("move", target_m=0.0, relative_m=0.0)
+        loop.submit(MoveRequest(target_m=0.0, relative_m=0.0))
     # relative target only known in the loop: rejected on the future
-    fut = loop.request("move", relative_m=0.02)
+    fut = loop.submit(MoveRequest(relative_m=0.02))
     loop.run(cycles=3)
     with pytest.raises(ValueError, match="relative_m.*soft limits"):
         fut.result(timeout=0)
@@ -109,22 +110,22 @@ def test_request_validation_names_the_field(rig):
 
 def test_shutdown_stop_and_pending_futures(rig):
     loop, io, plant, ctl, clock, sink = rig
-    f_move = loop.request("move", relative_m=1e-3)
-    f_stop = loop.request("stop")
-    f_shut = loop.request("shutdown")
+    f_move = loop.submit(MoveRequest(relative_m=1e-3))
+    f_stop = loop.submit(StopRequest())
+    f_shut = loop.submit(ShutdownRequest())
     res = loop.run(cycles=1000)
     assert res.ended_by == "shutdown" and res.cycles == 1
     assert "x_m" in f_stop.result(timeout=0)
     assert f_move.done() and f_shut.result(timeout=0) == {"cycles": 0}
-    late = loop.request("stop")  # queued after run: fails when the next run ends without serving it?
+    late = loop.submit(StopRequest())  # queued after run: fails when the next run ends without serving it?
     loop.run(cycles=1)
     assert late.result(timeout=0)["x_m"] == pytest.approx(loop.status().x_ref_m)
 
 
 def test_retune_applied_at_cycle_boundary_and_bad_tuning_rejected(rig):
     loop, io, plant, ctl, clock, sink = rig
-    good = loop.request("retune", controller_config={"kp": 1e4})
-    bad = loop.request("retune", controller_config={"kp": -1.0})
+    good = loop.submit(RetuneRequest(controller_config={"kp": 1e4}))
+    bad = loop.submit(RetuneRequest(controller_config={"kp": -1.0}))
     loop.run(cycles=2)
     assert good.result(timeout=0) == {"retuned": True} and ctl.kp == 1e4
     with pytest.raises(ValueError, match="kp"):
@@ -151,7 +152,7 @@ def test_status_from_another_thread_while_running(rig):
     th = threading.Thread(target=lambda: result.setdefault("r", loop.run(stop=stop)))
     th.start()
     try:
-        fut = loop.request("move", target_m=1e-6)
+        fut = loop.submit(MoveRequest(target_m=1e-6))
         fut.result(timeout=30)  # served at a cycle boundary in the loop thread
         st = loop.status()
         assert st.running and st.healthy and st.state is LoopState.ACTIVE
@@ -173,7 +174,7 @@ def test_run_disables_drive_even_when_start_fails(make):
 
 def test_requests_pending_when_run_ends_fail(make):
     loop, io, plant, ctl, clock = make()
-    fut = loop.request("move", target_m=1e-6)
+    fut = loop.submit(MoveRequest(target_m=1e-6))
     stop = threading.Event()
     stop.set()  # the run ends before its first cycle boundary: the request is never served
     res = loop.run(stop=stop)

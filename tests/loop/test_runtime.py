@@ -23,7 +23,6 @@ from stagectl.runtime.requests import (
     RetuneRequest,
     StopRequest,
     parse_request,
-    request_from_kwargs,
 )
 
 
@@ -67,11 +66,11 @@ def test_limits_are_checked_by_the_request_against_the_stage():
     MoveRequest(relative_m=0.5).check_limits(lim)  # relative: only the loop knows where it ends
 
 
-def test_socket_parsing_and_keyword_form_build_the_same_requests():
+def test_socket_parsing_and_the_typed_form_build_the_same_requests():
     line = {"request": "move", "id": 7, "relative_m": -1e-4, "max_velocity_m_s": 2e-3}
     dut = parse_request("move", line)
     assert dut == MoveRequest(relative_m=-1e-4, max_velocity_m_s=2e-3)
-    assert dut == request_from_kwargs("move", relative_m=-1e-4, max_velocity_m_s=2e-3)
+    assert dut == MoveRequest.from_fields({"relative_m": -1e-4, "max_velocity_m_s": 2e-3})
     assert dut.to_json() == {"request": "move", "relative_m": -1e-4, "max_velocity_m_s": 2e-3}
     assert parse_request("stop", {"request": "stop"}) == StopRequest()
     assert parse_request("reset", {"request": "reset", "id": "x"}) == ResetRequest()
@@ -85,8 +84,8 @@ def test_socket_parsing_and_keyword_form_build_the_same_requests():
         parse_request("shutdown", {"request": "shutdown"})  # not a socket request
     assert ei.value.field == "request"
     with pytest.raises(RequestError) as ei:
-        request_from_kwargs("jump")
-    assert ei.value.field == "kind"
+        parse_request("jump", {"request": "jump"})
+    assert ei.value.field == "request" and "one of move, stop, reset" in str(ei.value)
 
 
 def test_submit_takes_the_typed_request(rig):
@@ -137,7 +136,7 @@ def test_host_runs_the_loop_in_its_thread_with_its_sinks(rig, rows):
 def test_host_stop_halts_motion_and_reraises_a_loop_error(make):
     loop, io, plant, ctl, clock = make()
     dut = LoopHost(loop)
-    fut = loop.request("move", target_m=5e-6, max_velocity_m_s=1e-3)
+    fut = loop.submit(MoveRequest(target_m=5e-6, max_velocity_m_s=1e-3))
     dut.start()
     fut.result(timeout=60)
     dut.halt_motion(until_mono=float("inf"))  # returns once the reference stands where the stop put it

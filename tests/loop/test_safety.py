@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from stagectl.runtime.requests import MotionLimits
+from stagectl.runtime.requests import MotionLimits, MoveRequest, ResetRequest
 
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.errors import ConfigError
@@ -39,7 +39,7 @@ def _drive_to_fault(make, trigger, *, settle=20, after=12, safety=None):
             trigger(loop, io, plant, ctl)
 
     loop.on_cycle = hook
-    loop.request("move", target_m=20e-6, max_velocity_m_s=0.5e-3)
+    loop.submit(MoveRequest(target_m=20e-6, max_velocity_m_s=0.5e-3))
     loop.run(cycles=settle + 1 + after)
     assert any(abs(f) > 1e-3 for f in probe.applied[:settle])  # the drive was pushing before the fault
     return loop, io, plant, ctl, probe
@@ -81,7 +81,7 @@ def test_fault_latches_stops_drive_and_needs_reset(make, name, caplog):
     after = probe.applied[k_fault + 3:]
     assert after and all(f == 0.0 for f in after), probe.applied[k_fault - 2:]
     # motion requests are refused while faulted
-    fut = loop.request("move", relative_m=1e-6)
+    fut = loop.submit(MoveRequest(relative_m=1e-6))
     plant.push_n = 0.0
     plant.v_m_s = 0.0  # the stage has come to rest before the operator resets
     loop.run(cycles=3)
@@ -89,7 +89,7 @@ def test_fault_latches_stops_drive_and_needs_reset(make, name, caplog):
         fut.result(timeout=0)
     assert loop.status().state is LoopState.FAULT  # still latched: nothing but reset clears it
     # explicit reset: bumpless restart at the measured position
-    rst = loop.request("reset")
+    rst = loop.submit(ResetRequest())
     loop.run(cycles=30)
     out = rst.result(timeout=0)
     assert out["cleared"]["name"] == name and out["state"] == "active"
@@ -114,7 +114,7 @@ def test_quick_stop_issued_in_the_same_cycle(make):
 def test_reset_then_new_fault_latches_again(make):
     loop, io, plant, ctl, probe = _drive_to_fault(make, lambda lp, io, pl, c: io.inject_fault(FaultKind.EMCY))
     assert loop.status().fault.name == "emcy"
-    rst = loop.request("reset")
+    rst = loop.submit(ResetRequest())
 
     def hook():
         if loop.cycle == 40:
