@@ -29,7 +29,6 @@ from stagectl.daemon.reload import Reloader
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
-from stagectl.runtime.inbox import Reply as LoopReply
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
 
 __all__ = ["HANDLERS", "ServiceView", "dispatch"]
@@ -57,24 +56,6 @@ def _only(req: Mapping[str, object], *allowed: str) -> None:
     check_fields(str(req.get("request")), {k: v for k, v in req.items() if k not in ("request", "id")}, allowed)
 
 
-def as_reply(fut: LoopReply) -> concurrent.futures.Future[Reply]:
-    """The loop's future as a reply future (plain JSON values; errors stay errors)."""
-    out: concurrent.futures.Future[Reply] = concurrent.futures.Future()
-
-    def done(f: LoopReply) -> None:
-        if f.cancelled():
-            out.cancel()
-            return
-        exc = f.exception()
-        if exc is not None:
-            out.set_exception(exc)
-        else:
-            out.set_result(plain(f.result(), json=True))
-
-    fut.add_done_callback(done)
-    return out
-
-
 def handle_status(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     _only(req)
     return {"status": svc.status()}
@@ -83,7 +64,9 @@ def handle_status(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
 def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     """``move``, ``stop``, ``reset``: parsed (and validated) first, then handed to the loop."""
     typed = parse_request(str(req.get("request")), req)
-    return as_reply(svc.need_loop().submit(typed))
+    # the loop's own future: the reply is made plain JSON when it is encoded, in the control thread (never in
+    # the loop thread), and a reply timeout cancels it, so a request still queued then is never executed
+    return svc.need_loop().submit(typed)
 
 
 def handle_gains(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
