@@ -97,6 +97,20 @@ def test_submit_takes_the_typed_request(rig):
     assert fut.result(timeout=0) == {"target_m": 20e-6, "duration_s": pytest.approx(0.02)}
 
 
+def test_a_cancelled_request_is_never_executed(rig):
+    """The daemon cancels a request whose reply timed out; the loop must then not apply it."""
+    loop, io, plant, ctl, clock, sink = rig
+    loop.run(cycles=5)
+    before = loop.status().x_ref_m
+    cancelled = loop.submit(MoveRequest(relative_m=20e-6, max_velocity_m_s=1e-3))
+    assert cancelled.cancel()
+    kept = loop.submit(StopRequest())
+    loop.run(cycles=50)
+    assert cancelled.cancelled()
+    assert kept.result(timeout=0)["x_m"] == pytest.approx(before)
+    assert loop.status().x_ref_m == pytest.approx(before)
+
+
 # ------------------------------------------------------------------------------------------------ status
 def test_status_is_typed_and_its_json_form_keeps_the_socket_shape(rig):
     loop, *_ = rig
