@@ -1,9 +1,11 @@
 """The recording CSV format, and the in-memory recorder for ``simulate``/``run``/benchmarks.
 
-:class:`RecordingCsv` is the one writer of the recording format (docs/recordings.md): one header row with the
-loop's column names, ``,`` separator, one row per control sample, SI units. The daemon's telemetry writer
-(continuous files and named recordings, ``%.12g``) and :meth:`Recorder.write_csv` (``simulate``, ``run``,
-benchmarks, ``%.10g``) both use it, so every file feeds ``stagectl identify`` unchanged.
+:class:`~stagectl.ident.recording.RecordingCsv` (next to the reader of the format) is the one writer of the
+recording format (docs/recordings.md): one header row with the loop's column names, ``,`` separator, one row
+per control sample, SI units. The daemon's telemetry writer (continuous files and named recordings,
+``%.12g``), :meth:`Recorder.write_csv` (``simulate``, ``run``, benchmarks, ``%.10g``) and
+:meth:`~stagectl.ident.recording.Recording.save_csv` (``%.17g``) all use it, so every file feeds
+``stagectl identify`` unchanged.
 
 :class:`Recorder` is a loop sink (``append(row)``) writing into preallocated float64 arrays (doubling when
 full, which happens only if the run is longer than announced). Afterwards:
@@ -30,36 +32,10 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.errors import StageError
+from stagectl.ident.recording import RecordingCsv
 from stagectl.outputs import prepare_out_dir
 
-__all__ = ["Recorder", "RecordingCsv", "plot_run", "prepare_out_dir", "tracking_summary", "write_outputs"]
-
-
-class RecordingCsv:
-    """Header and rows of the recording CSV for ``columns`` (see the module docstring).
-
-    Not real-time: formatting runs in the writer thread or after the run, never in the loop.
-    """
-
-    def __init__(self, columns: Sequence[str], float_format: str = "%.12g") -> None:
-        """``float_format``: printf format of every value (``%.12g`` telemetry, ``%.10g`` run outputs)."""
-        self.columns = tuple(columns)
-        self.header = ",".join(self.columns) + "\n"
-        self._row = ",".join([float_format] * len(self.columns)) + "\n"
-
-    def rows(self, data: npt.NDArray[np.float64]) -> str:
-        """``data`` (one row per sample, one column per name) as CSV lines."""
-        fmt = self._row
-        return "".join([fmt % tuple(r) for r in data.tolist()])
-
-    def write(self, path: str | Path, data: npt.NDArray[np.float64]) -> Path:
-        """Write a whole file (header + rows); returns its path."""
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        with open(p, "w", encoding="ascii", newline="") as fh:
-            fh.write(self.header)
-            fh.write(self.rows(data))
-        return p
+__all__ = ["Recorder", "plot_run", "prepare_out_dir", "tracking_summary", "write_outputs"]
 
 
 class Recorder:

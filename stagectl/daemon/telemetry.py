@@ -7,7 +7,7 @@ Data path::
     writer thread (non-RT) <--drain-----+--> continuous CSV files (rotated, oldest deleted)
                                         +--> named recording ``<dir>/<NAME>.csv`` (``record start NAME``)
 
-CSV follows docs/recordings.md, written by :class:`stagectl.recorder.RecordingCsv` (the same writer as
+CSV follows docs/recordings.md, written by :class:`stagectl.ident.recording.RecordingCsv` (the same writer as
 ``stagectl simulate``'s): one header row with the loop's column names, ``,`` separator, one row per control
 sample, SI units. Every file (each rotated piece and each recording) has its own header and feeds
 ``stagectl identify`` unchanged.
@@ -40,7 +40,7 @@ import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.config.daemon import TelemetryConfig
-from stagectl.recorder import RecordingCsv
+from stagectl.ident.recording import RecordingCsv
 
 log = logging.getLogger("stagectl.telemetry")
 

@@ -36,6 +36,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.outputs import plain
 from stagectl.schema import load
 
 FloatArray = npt.NDArray[np.float64]
@@ -140,7 +141,7 @@ class FrictionModel(ABC):
         out: dict[str, Any] = {"model": self.tag}
         for f in dataclasses.fields(self.params):
             val = getattr(self.params, f.name)
-            out[f.name] = _plain(val)
+            out[f.name] = plain(val)
         return out
 
     def replace(self, **changes: Any) -> FrictionModel:
@@ -153,23 +154,11 @@ class FrictionModel(ABC):
         """
         spec = self.spec()
         del spec["model"]
-        spec.update({k: _plain(v) for k, v in changes.items()})
+        spec.update({k: plain(v) for k, v in changes.items()})
         return type(self)(load(self.Params, spec, "friction"))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.params!r})"
-
-
-def _plain(val: Any) -> Any:
-    if dataclasses.is_dataclass(val) and not isinstance(val, type):
-        return {f.name: _plain(getattr(val, f.name)) for f in dataclasses.fields(val)}
-    if isinstance(val, tuple):
-        return [_plain(v) for v in val]
-    if isinstance(val, np.generic):
-        return val.item()
-    if hasattr(val, "value") and not isinstance(val, (int, float, str)):  # Enum
-        return val.value
-    return val
 
 
 def _check_xt(x: npt.ArrayLike, t: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:

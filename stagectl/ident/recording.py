@@ -36,6 +36,33 @@ REQUIRED = ("t", "x", "u")
 OPTIONAL = ("x_ref", "v")
 
 
+class RecordingCsv:
+    """Header and rows of the recording CSV for ``columns`` (see the module docstring).
+
+    Not real-time: formatting runs in the writer thread or after the run, never in the loop.
+    """
+
+    def __init__(self, columns: Sequence[str], float_format: str = "%.12g") -> None:
+        """``float_format``: printf format of every value (``%.12g`` telemetry, ``%.10g`` run outputs)."""
+        self.columns = tuple(columns)
+        self.header = ",".join(self.columns) + "\n"
+        self._row = ",".join([float_format] * len(self.columns)) + "\n"
+
+    def rows(self, data: npt.NDArray[np.float64]) -> str:
+        """``data`` (one row per sample, one column per name) as CSV lines."""
+        fmt = self._row
+        return "".join([fmt % tuple(r) for r in data.tolist()])
+
+    def write(self, path: str | Path, data: npt.NDArray[np.float64]) -> Path:
+        """Write a whole file (header + rows); returns its path."""
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        with open(p, "w", encoding="ascii", newline="") as fh:
+            fh.write(self.header)
+            fh.write(self.rows(data))
+        return p
+
+
 @dataclass
 class Recording:
     """A loaded recording (arrays of equal length, SI units).
@@ -88,8 +115,7 @@ class Recording:
         if self.v is not None:
             cols["v"] = self.v
         cols.update(self.extra)
-        data = np.column_stack(list(cols.values()))
-        np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+        RecordingCsv(list(cols), "%.17g").write(path, np.column_stack(list(cols.values())))
 
 
 def parse_columns(spec: str | None) -> dict[str, str]:

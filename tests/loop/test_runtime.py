@@ -13,7 +13,8 @@ import pytest
 from stagectl.errors import StageError
 from stagectl.loop import LoopState
 from stagectl.outputs import plain
-from stagectl.recorder import Recorder, RecordingCsv
+from stagectl.ident.recording import RecordingCsv
+from stagectl.recorder import Recorder
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.requests import (
     MotionLimits,
