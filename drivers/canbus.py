@@ -1,7 +1,9 @@
 """CAN bus helpers shared by the CANopen drivers (and the virtual devices).
 
 * :func:`can_key_problems` checks the ``can:`` keys against what the chosen python-can interface accepts
-  (its bus class's ``__init__`` parameters plus python-can's common keys), with a did-you-mean hint.
+  (:func:`bus_keys`: its bus class's ``__init__`` parameters, the keys its module reads from ``**kwargs``,
+  python-can's common keys), with a did-you-mean hint. The configuration loader runs it once; opening the
+  bus does not repeat it.
 * :func:`open_bus` opens a :class:`can.BusABC` from the YAML ``can:`` mapping, which is passed to
   ``can.Bus(**mapping)`` unchanged (so ``socketcan``, ``pcan``, ``kvaser``, ``virtual``, ``socketcand`` all
   work), except that ``tcp_tune`` is forced on for ``socketcand`` (docs/platform.md §1.2: without it Nagle
@@ -22,14 +24,17 @@ tells bus-off (``CAN_ERR_BUSOFF = 0x40``) from other bus errors.
 from __future__ import annotations
 
 import difflib
+import functools
 import importlib
 import inspect
 import logging
+import re
 import threading
 import typing
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -70,28 +75,88 @@ def _timing_keys() -> frozenset[str]:
     return frozenset(keys)
 
 
-def accepted_bus_keys(interface: str) -> frozenset[str] | None:
-    """The ``can:`` keys the python-can ``interface`` accepts: the named parameters of its bus class's
-    ``__init__`` (found through ``can.interfaces.BACKENDS``), the common keys and the bit-timing keys.
-    None when the interface is unknown or its module cannot be imported here (then nothing is checked)."""
+#: how a bus module reads an option its ``__init__`` takes through ``**kwargs``: ``kwargs.get("x"``,
+#: ``kwargs.pop("x"``, ``kwargs.setdefault("x"``, ``kwargs["x"]`` and ``"x" in kwargs`` / ``"x" not in kwargs``
+_KWARGS_READ = re.compile(
+    r"""\bkwargs\s*(?:\.\s*(?:get|pop|setdefault)\s*\(\s*|\[\s*)(?P<q1>["'])(?P<k1>\w+)(?P=q1)"""
+    r"""|(?P<q2>["'])(?P<k2>\w+)(?P=q2)\s+(?:not\s+)?in\s+kwargs\b""")
+
+#: similarity (difflib ratio) from which an unknown key of a bus that forwards ``**kwargs`` counts as a typo of
+#: an accepted key (``bitrat`` -> ``bitrate`` 0.92, ``hots`` -> ``host`` 0.75) and is refused
+NEAR_MISS = 0.75
+
+
+@contextmanager
+def _quiet_can_logging() -> Iterator[None]:
+    """Mute python-can's loggers (``can`` and its children) for the duration: importing a vendor interface
+    module logs a WARNING when the vendor library is missing (``Kvaser canlib is unavailable.``), which is noise
+    in ``check-config`` output (the bus is not opened there). Levels are restored afterwards."""
+    names = ["can", *(n for n in logging.root.manager.loggerDict if n.startswith("can."))]
+    loggers = [logging.getLogger(n) for n in names]
+    saved = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, saved):
+            lg.setLevel(level)
+
+
+@dataclass(frozen=True)
+class BusKeys:
+    """The ``can:`` keys one python-can interface accepts (:func:`bus_keys`)."""
+
+    accepted: frozenset[str]
+    #: False when the bus class's ``__init__`` takes ``**kwargs``: python-can forwards keys it does not know,
+    #: so only a near-miss of an accepted key (a likely typo) is refused
+    strict: bool
+
+
+@functools.lru_cache(maxsize=None)
+def bus_keys(interface: str) -> BusKeys | None:
+    """The keys the python-can ``interface`` accepts: the named parameters of its bus class's ``__init__``
+    (found through ``can.interfaces.BACKENDS``), the common keys and the bit-timing keys; for a class whose
+    ``__init__`` takes ``**kwargs``, also every key its module reads from ``kwargs`` (``kwargs.get("x")`` and
+    the like, e.g. kvaser's ``single_handle``, slcan's ``btr``). None when the interface is unknown or its module
+    cannot be imported here (then nothing is checked)."""
     from can.interfaces import BACKENDS
 
     where = BACKENDS.get(interface)
     if where is None:
         return None
-    module, cls_name = where
+    module_name, cls_name = where
     try:
-        cls = getattr(importlib.import_module(module), cls_name)
+        with _quiet_can_logging():
+            module = importlib.import_module(module_name)
+        cls = getattr(module, cls_name)
+        params = list(inspect.signature(cls.__init__).parameters.values())
     except Exception:  # noqa: BLE001 - vendor libraries missing on this machine: the bus would not open either
         return None
-    params = inspect.signature(cls.__init__).parameters.values()
     named = {p.name for p in params if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"}
-    return frozenset(named) | COMMON_BUS_KEYS | _timing_keys()
+    forwards = any(p.kind is p.VAR_KEYWORD for p in params)
+    if forwards:
+        try:
+            source = inspect.getsource(inspect.getmodule(cls) or module)
+        except (OSError, TypeError):  # no source installed: the named parameters only
+            source = ""
+        for m in _KWARGS_READ.finditer(source):
+            named.add(m.group("k1") or m.group("k2"))
+    return BusKeys(frozenset(named) | COMMON_BUS_KEYS | _timing_keys(), strict=not forwards)
+
+
+def accepted_bus_keys(interface: str) -> frozenset[str] | None:
+    """The ``can:`` keys the python-can ``interface`` accepts (:func:`bus_keys`); None when unknown."""
+    keys = bus_keys(interface)
+    return keys.accepted if keys is not None else None
 
 
 def can_key_problems(mapping: Mapping[str, Any], *, path: str = "can") -> list[str]:
     """Unknown keys (and an unknown ``interface``) of a ``can:`` mapping, one line each with a did-you-mean,
-    e.g. ``io.drive.can.bitrat: unknown key for interface socketcan (did you mean bitrate?)``."""
+    e.g. ``io.drive.can.bitrat: unknown key for interface socketcan (did you mean bitrate?)``.
+
+    For an interface whose bus class takes ``**kwargs`` (python-can forwards unknown keys) a key it does not
+    name is refused only when it is a near-miss (:data:`NEAR_MISS`) of an accepted key."""
     from can.interfaces import VALID_INTERFACES
 
     iface = mapping.get("interface")
@@ -101,29 +166,36 @@ def can_key_problems(mapping: Mapping[str, Any], *, path: str = "can") -> list[s
         close = difflib.get_close_matches(iface, sorted(VALID_INTERFACES), n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(sorted(VALID_INTERFACES))}"
         return [f"{path}.interface: unknown python-can interface {iface!r} ({hint})"]
-    accepted = accepted_bus_keys(iface)
-    if accepted is None:
+    keys = bus_keys(iface)
+    if keys is None:
         return []
     problems = []
     for key in mapping:
-        if key not in accepted:
-            close = difflib.get_close_matches(str(key), sorted(accepted), n=1, cutoff=0.6)
+        if isinstance(key, str) and key in keys.accepted:
+            continue
+        if not isinstance(key, str) or keys.strict:
+            close = difflib.get_close_matches(str(key), sorted(keys.accepted), n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
-            problems.append(f"{path}.{key}: unknown key for interface {iface}{hint}")
+        else:
+            close = difflib.get_close_matches(key, sorted(keys.accepted), n=1, cutoff=NEAR_MISS)
+            if not close:
+                continue  # forwarded by python-can to the interface
+            hint = f" (did you mean {close[0]}?)"
+        problems.append(f"{path}.{key}: unknown key for interface {iface}{hint}")
     return problems
 
 
 def bus_kwargs(mapping: Mapping[str, Any], *, path: str = "can") -> dict[str, Any]:
-    """Validate the ``can:`` mapping and return the keyword arguments for ``can.Bus``.
+    """The keyword arguments for ``can.Bus`` from the ``can:`` mapping (its keys were checked against the
+    interface by the configuration loader, :func:`can_key_problems`; they are passed on unchanged).
 
     Raises
     ------
     ConfigError
-        If ``interface`` is missing, a socketcand mapping lacks ``host``/``port``, or a key is not one the
-        interface accepts (:func:`can_key_problems`; an unknown interface is left to ``can.Bus``).
+        If ``interface`` or ``channel`` is missing, or a socketcand mapping lacks ``host``/``port``.
     """
     kw = dict(mapping)
-    problems: list[str] = [p for p in can_key_problems(mapping, path=path) if not p.startswith(f"{path}.interface")]
+    problems: list[str] = []
     iface = kw.get("interface")
     if not isinstance(iface, str) or not iface:
         problems.append(f"{path}.interface: required (e.g. socketcan, pcan, virtual, socketcand)")

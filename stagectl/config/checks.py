@@ -81,12 +81,11 @@ def can_problems(cfg: AppConfig) -> list[str]:
     if cfg.io.encoder is not None:
         devices.append(("io.encoder.can", cfg.io.encoder.can))
     for path, mapping in devices:
-        found = can_key_problems(mapping, path=path)
-        problems.extend(found)
+        problems.extend(can_key_problems(mapping, path=path))
         try:
             bus_kwargs(mapping, path=path)
         except ConfigError as exc:
-            problems.extend(p for p in exc.problems if p not in found)
+            problems.extend(exc.problems)
     return problems
 
 
