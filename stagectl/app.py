@@ -36,7 +36,7 @@ from stagectl.control.trajectory import Scenario
 from stagectl.drivers.base import Device, ForceActuator, PositionSensor, SyncProducer
 from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
 from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
-from stagectl.drivers.interferometer import SerialInterferometer
+from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
 from stagectl.errors import ConfigError, StageError
 from stagectl.loop import Controller, ControlLoop
 from stagectl.safety import Safety
@@ -44,15 +44,17 @@ from stagectl.sim.cia402_drive import SimDriveConfig
 from stagectl.sim.cia406_encoder import SimEncoderConfig
 from stagectl.sim.direct import PlantIO
 from stagectl.sim.faults import inject_plant_io_fault, world_fault
+from stagectl.sim.interferometer import SimInterferometerConfig
 from stagectl.sim.plant import StagePlant
 from stagectl.sim.world import SimWorld
 
 log = logging.getLogger("stagectl.app")
 
 __all__ = ["IO_BUILDERS", "Stage", "StageIO", "TrajectoryReference", "build_stage", "embedded_drive_config",
-           "embedded_encoder_config", "get_scenario", "make_controller", "scenario_names"]
+           "embedded_encoder_config", "embedded_interferometer_config", "get_scenario", "make_controller", "scenario_names"]
 
 D = TypeVar("D", bound=Device)
+T = TypeVar("T")
 
 
 @dataclass
@@ -222,7 +224,7 @@ def embedded_drive_config(io_drive: Cia402Config | None, sim_drive: SimDriveConf
 def embedded_encoder_config(io_encoder: Cia406Config | None, sim_encoder: SimEncoderConfig | None,
                             can: dict[str, Any]) -> Cia406Config:
     """The CiA 406 driver's configuration for the in-process virtual encoder (``io.encoder`` on the world's
-    bus, or one matching ``sim.encoder``).
+    bus, or one matching ``sim.encoder``; the configuration checks require ``sim.encoder`` and that both agree).
 
     Raises
     ------
@@ -234,6 +236,25 @@ def embedded_encoder_config(io_encoder: Cia406Config | None, sim_encoder: SimEnc
     if sim_encoder is None:
         raise ConfigError("io.encoder: required for io.sensor encoder (or give sim.encoder)")
     return Cia406Config(node_id=sim_encoder.node_id, can=can, resolution_m=sim_encoder.resolution_m)
+
+
+def embedded_interferometer_config(io_ifm: InterferometerConfig | None, sim_ifm: SimInterferometerConfig | None,
+                                   url: str | None) -> InterferometerConfig:
+    """The serial interferometer driver's configuration for the in-process simulated interferometer
+    (``io.interferometer`` at the simulated one's ``url``, or one matching ``sim.interferometer``): the same
+    rule as :func:`embedded_encoder_config`.
+
+    Raises
+    ------
+    ConfigError
+        No ``sim.interferometer`` (nothing to read from).
+    """
+    if sim_ifm is None or url is None:
+        raise ConfigError("sim.interferometer: required for io.sensor interferometer with io.kind "
+                          "embedded_canopen")
+    if io_ifm is not None:
+        return dataclasses.replace(io_ifm, url=url)
+    return InterferometerConfig(url=url, resolution_m=sim_ifm.resolution_m)
 
 
 def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
@@ -255,9 +276,11 @@ def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
     info = world.ready_info()
     can: dict[str, Any] = info["can"]
     drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can)
-    io = _open_drivers(ctx, drive_cfg, pump=world.pump, interferometer_url=info.get("interferometer_url"),
-                       serial_pump=world.serial_pump,
-                       encoder=lambda: embedded_encoder_config(cfg.io.encoder, wcfg.encoder, can))
+    io = _open_drivers(
+        ctx, drive_cfg, pump=world.pump, serial_pump=world.serial_pump,
+        encoder=lambda: embedded_encoder_config(cfg.io.encoder, wcfg.encoder, can),
+        interferometer=lambda: embedded_interferometer_config(cfg.io.interferometer, wcfg.interferometer,
+                                                              info.get("interferometer_url")))
     return dataclasses.replace(io, plant=world.plant, world=world)
 
 
@@ -266,18 +289,19 @@ def _build_canopen(ctx: BuildContext) -> StageIO:
     io = ctx.cfg.io
     if io.drive is None:  # excluded by IoConfig
         raise ConfigError("io.drive: required for io.kind canopen")
-    enc = io.encoder
-    return _open_drivers(ctx, io.drive, pump=None, encoder=lambda: _required_encoder(enc))
+    enc, ifm = io.encoder, io.interferometer
+    return _open_drivers(ctx, io.drive, pump=None, encoder=lambda: _required("io.encoder", enc),
+                         interferometer=lambda: _required("io.interferometer", ifm))
 
 
-def _required_encoder(enc: Cia406Config | None) -> Cia406Config:
-    if enc is None:  # excluded by IoConfig
-        raise ConfigError("io.encoder: required for io.sensor encoder")
-    return enc
+def _required(key: str, section: T | None) -> T:
+    if section is None:  # excluded by IoConfig
+        raise ConfigError(f"{key}: required for io.sensor {key.removeprefix('io.')}")
+    return section
 
 
 def _open_drivers(ctx: BuildContext, drive_cfg: Cia402Config, *, pump: Callable[[], object] | None,
-                  encoder: Callable[[], Cia406Config], interferometer_url: str | None = None,
+                  encoder: Callable[[], Cia406Config], interferometer: Callable[[], InterferometerConfig],
                   serial_pump: Callable[[], object] | None = None) -> StageIO:
     """The CiA 402 drive (actuator, SYNC producer) and the position sensor ``io.sensor`` names."""
     cfg, td = ctx.cfg, ctx.teardown
@@ -288,11 +312,7 @@ def _open_drivers(ctx: BuildContext, drive_cfg: Cia402Config, *, pump: Callable[
     if src is SensorSource.DRIVE:
         sensor = drive
     elif src is SensorSource.INTERFEROMETER:
-        icfg = cfg.io.interferometer
-        if icfg is None:  # excluded by IoConfig
-            raise ConfigError("io.interferometer: required for io.sensor interferometer")
-        if interferometer_url is not None:
-            icfg = dataclasses.replace(icfg, url=interferometer_url)
+        icfg = interferometer()
         # serial_pump returns LinkBytes: a dropped frame costs no lock-step wait
         sensor = td.open(SerialInterferometer(icfg), (serial_pump or pump) if pump else None)
     else:

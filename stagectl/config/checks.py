@@ -13,25 +13,60 @@
 * :func:`can_problems` -- the ``can:`` keys of every CANopen device against the chosen python-can interface.
 * :func:`demo_problems`, :func:`controller_problems` -- the demo scenario name, and what the controller
   needs (a model for ``kind: model``, a mass) checked on the resolved model, without designing a controller.
+* :func:`device_match_problems` -- a real driver (``io.drive``, ``io.encoder``, ``io.interferometer``) and the
+  simulated device it talks to (``sim.drive``, ``sim.encoder``, ``sim.interferometer``: in-process for
+  ``embedded_canopen``, served by ``stagectl sim-plant`` otherwise) must agree on node id and scaling.
+* :func:`sim_device_problems` -- what the simulated world needs: for ``embedded_canopen`` the simulated sensor
+  ``io.sensor`` names, distinct node ids on its bus, and ``sim.faults`` naming configured devices only.
+
+The checks run on :class:`Sections`, the sections that parsed: the loader runs every check whose inputs parsed
+even when another section has problems, so one file reports everything at once.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
-from stagectl.config.sections import AppConfig, IoKind
-from stagectl.control.controller import check_controller
+from stagectl.config.sections import AppConfig, DemoConfig, IoConfig, IoKind, SensorSource
+from stagectl.control.controller import ControllerConfig, check_controller
 from stagectl.control.reference import scenario_names
 from stagectl.drivers.canbus import bus_kwargs, can_key_problems
 from stagectl.errors import ConfigError
+from stagectl.safety import SafetyConfig
+from stagectl.sim.world import SimWorldConfig
 
-__all__ = ["INT16_MAX", "can_problems", "controller_problems", "cross_checks", "demo_problems",
-           "force_chain_problems"]
+__all__ = ["INT16_MAX", "Sections", "can_problems", "controller_problems", "cross_checks", "demo_problems",
+           "device_match_problems", "force_chain_problems", "sim_device_problems"]
 
 #: largest target torque 0x6071 (INT16) a CiA 402 drive accepts, in units of force_per_unit_n
 INT16_MAX = 32767
+
+
+@dataclass(frozen=True)
+class Sections:
+    """The sections of one configuration that parsed, as the cross-checks see them: None where a section has
+    problems of its own (reported by the schema), so that a check runs exactly when its inputs parsed."""
+
+    safety: SafetyConfig | None = None
+    controller: ControllerConfig | None = None  # with its model resolved (None also: its model file failed)
+    io: IoConfig | None = None
+    demo: DemoConfig | None = None
+    sim: SimWorldConfig | None = None
+    #: no ``sim:`` key at all (``sim`` None with ``sim_absent`` False: the section has problems)
+    sim_absent: bool = True
+
+    @classmethod
+    def of(cls, cfg: AppConfig) -> Sections:
+        """Every section of a complete configuration."""
+        return cls(safety=cfg.safety, controller=cfg.controller, io=cfg.io, demo=cfg.demo, sim=cfg.sim,
+                   sim_absent=cfg.sim is None)
+
+
+def _sections(cfg: AppConfig | Sections) -> Sections:
+    return cfg if isinstance(cfg, Sections) else Sections.of(cfg)
 
 
 def _link(lower: tuple[str, float], upper: tuple[str, float]) -> str | None:
@@ -43,43 +78,47 @@ def _link(lower: tuple[str, float], upper: tuple[str, float]) -> str | None:
     return None
 
 
-def force_chain_problems(cfg: AppConfig) -> list[str]:
-    """The force-limit chain (module docstring), one line per violated link naming both keys and values."""
-    ctl = ("controller.max_force_n", cfg.controller.max_force_n)
-    safety = ("safety.max_force_n", cfg.safety.max_force_n)
-    links: list[tuple[tuple[str, float], tuple[str, float]]] = [(ctl, safety)]
-    drive = cfg.io.drive
+def force_chain_problems(cfg: AppConfig | Sections) -> list[str]:
+    """The force-limit chain (module docstring), one line per violated link naming both keys and values; a link
+    is checked when both its ends parsed."""
+    s = _sections(cfg)
+    ctl = ("controller.max_force_n", s.controller.max_force_n) if s.controller is not None else None
+    safety = ("safety.max_force_n", s.safety.max_force_n) if s.safety is not None else None
+    links: list[tuple[tuple[str, float] | None, tuple[str, float] | None]] = [(ctl, safety)]
+    drive = s.io.drive if s.io is not None else None
     drive_limit: tuple[str, float] | None = None
     int16: tuple[str, float] | None = None
-    if drive is not None and cfg.io.kind is not IoKind.PLANT_IO:
+    if s.io is not None and drive is not None and s.io.kind is not IoKind.PLANT_IO:
         if math.isfinite(drive.max_force_n):
             drive_limit = ("io.drive.max_force_n", drive.max_force_n)
         int16 = (f"the drive's torque range {INT16_MAX} x io.drive.force_per_unit_n",
                  INT16_MAX * drive.force_per_unit_n)
-    elif cfg.io.kind is IoKind.EMBEDDED_CANOPEN and cfg.sim is not None:
+    elif s.io is not None and s.io.kind is IoKind.EMBEDDED_CANOPEN and s.sim is not None:
         int16 = (f"the drive's torque range {INT16_MAX} x sim.drive.force_per_unit_n",
-                 INT16_MAX * cfg.sim.drive.force_per_unit_n)
+                 INT16_MAX * s.sim.drive.force_per_unit_n)
     if drive_limit is not None:
         links.append((safety, drive_limit))
     if int16 is not None:
         links.append((safety, int16))
-    if cfg.sim is not None:  # the simulated actuator (also what `simulate` drives for a canopen config)
-        act = cfg.sim.plant.actuator.max_force_n
-        if math.isfinite(act):
-            actuator = ("sim.plant.actuator.max_force_n", act)
-            links.append((drive_limit or safety, actuator))
-    return [msg for lo, up in links if (msg := _link(lo, up)) is not None]
+    if s.sim is not None:  # the simulated actuator (also what `simulate` drives for a canopen config)
+        act = s.sim.plant.actuator.max_force_n
+        if math.isfinite(act) and s.io is not None:  # which limit it follows depends on io
+            links.append((drive_limit or safety, ("sim.plant.actuator.max_force_n", act)))
+    return [msg for lo, up in links if lo is not None and up is not None and (msg := _link(lo, up)) is not None]
 
 
-def can_problems(cfg: AppConfig) -> list[str]:
+def can_problems(cfg: AppConfig | Sections) -> list[str]:
     """The ``can:`` mapping of each configured CANopen device: required keys (:func:`bus_kwargs`) and keys the
     chosen python-can interface does not accept (:func:`can_key_problems`, with a did-you-mean)."""
+    io = _sections(cfg).io
+    if io is None:
+        return []
     problems: list[str] = []
     devices: list[tuple[str, Mapping[str, Any]]] = []
-    if cfg.io.drive is not None:
-        devices.append(("io.drive.can", cfg.io.drive.can))
-    if cfg.io.encoder is not None:
-        devices.append(("io.encoder.can", cfg.io.encoder.can))
+    if io.drive is not None:
+        devices.append(("io.drive.can", io.drive.can))
+    if io.encoder is not None:
+        devices.append(("io.encoder.can", io.encoder.can))
     for path, mapping in devices:
         problems.extend(can_key_problems(mapping, path=path))
         try:
@@ -89,27 +128,101 @@ def can_problems(cfg: AppConfig) -> list[str]:
     return problems
 
 
-def demo_problems(cfg: AppConfig) -> list[str]:
+def _differs(io_key: str, io_value: float, sim_key: str, sim_value: float, unit: str = "") -> str | None:
+    """One line when a driver setting and the simulated device's disagree (floats to 1e-9 relative)."""
+    if math.isclose(io_value, sim_value, rel_tol=1e-9, abs_tol=0.0):
+        return None
+    u = f" {unit}" if unit else ""
+    return (f"{io_key}: {io_value:g}{u} differs from {sim_key} {sim_value:g}{u} (the driver and the simulated "
+            f"device it talks to must agree)")
+
+
+def device_match_problems(cfg: AppConfig | Sections) -> list[str]:
+    """Each real driver and the simulated device it talks to, where both are configured: ``io.drive`` vs
+    ``sim.drive`` (node_id, force_per_unit_n, resolution_m), ``io.encoder`` vs ``sim.encoder`` (node_id,
+    resolution_m), ``io.interferometer`` vs ``sim.interferometer`` (resolution_m). A mismatch would simulate a
+    scaled force or position error (e.g. 10x force_per_unit_n), or fail at run time (node id)."""
+    s = _sections(cfg)
+    io, sim = s.io, s.sim
+    if io is None or sim is None or io.kind is IoKind.PLANT_IO:
+        return []
+    found: list[str | None] = []
+    if io.drive is not None:
+        d, sd = io.drive, sim.drive
+        found += [_differs("io.drive.node_id", d.node_id, "sim.drive.node_id", sd.node_id),
+                  _differs("io.drive.force_per_unit_n", d.force_per_unit_n, "sim.drive.force_per_unit_n",
+                           sd.force_per_unit_n, "N"),
+                  _differs("io.drive.resolution_m", d.resolution_m, "sim.drive.resolution_m", sd.resolution_m, "m")]
+    if io.encoder is not None and sim.encoder is not None:
+        e, se = io.encoder, sim.encoder
+        found += [_differs("io.encoder.node_id", e.node_id, "sim.encoder.node_id", se.node_id),
+                  _differs("io.encoder.resolution_m", e.resolution_m, "sim.encoder.resolution_m",
+                           se.resolution_m, "m")]
+    if io.interferometer is not None and sim.interferometer is not None:
+        found.append(_differs("io.interferometer.resolution_m", io.interferometer.resolution_m,
+                              "sim.interferometer.resolution_m", sim.interferometer.resolution_m, "m"))
+    return [m for m in found if m is not None]
+
+
+def sim_device_problems(cfg: AppConfig | Sections) -> list[str]:
+    """What the simulated world needs to run:
+
+    * ``embedded_canopen``: the sensor ``io.sensor`` names must be simulated (``sim.encoder`` for ``encoder``,
+      ``sim.interferometer`` for ``interferometer``); the matching ``io.`` section is optional there (driver
+      settings; its bus or URL is the world's);
+    * the virtual drive and encoder share one bus: distinct node ids;
+    * ``sim.faults`` may name only a configured virtual device.
+    """
+    s = _sections(cfg)
+    io, sim = s.io, s.sim
+    problems: list[str] = []
+    if sim is None:
+        return problems
+    if io is not None and io.kind is IoKind.EMBEDDED_CANOPEN:
+        if io.sensor is SensorSource.ENCODER and sim.encoder is None:
+            problems.append("sim.encoder: required for io.sensor encoder with io.kind embedded_canopen (the "
+                            "simulated encoder the driver talks to; io.encoder is optional)")
+        if io.sensor is SensorSource.INTERFEROMETER and sim.interferometer is None:
+            problems.append("sim.interferometer: required for io.sensor interferometer with io.kind "
+                            "embedded_canopen (the simulated interferometer the driver reads; io.interferometer "
+                            "is optional)")
+    if sim.encoder is not None and sim.encoder.node_id == sim.drive.node_id:
+        problems.append(f"sim.encoder.node_id: {sim.encoder.node_id} is also sim.drive.node_id (two CANopen "
+                        "nodes on one bus need distinct node ids)")
+    devices = {"drive": True, "encoder": sim.encoder is not None}
+    for i, spec in enumerate(sim.faults):
+        if not devices.get(spec.device, False):
+            problems.append(f"sim.faults[{i}].device: {spec.device} is not configured (no sim.{spec.device})")
+    return problems
+
+
+def demo_problems(cfg: AppConfig | Sections) -> list[str]:
     """``demo.scenario`` must name a scenario of :func:`stagectl.control.reference.scenario_names`."""
+    demo = _sections(cfg).demo
+    if demo is None:
+        return []
     names = scenario_names()
-    if cfg.demo.scenario not in names:
-        return [f"demo.scenario: unknown scenario {cfg.demo.scenario!r} (known: {', '.join(names)})"]
+    if demo.scenario not in names:
+        return [f"demo.scenario: unknown scenario {demo.scenario!r} (known: {', '.join(names)})"]
     return []
 
 
-def controller_problems(cfg: AppConfig) -> list[str]:
+def controller_problems(cfg: AppConfig | Sections) -> list[str]:
     """What the controller needs from the resolved model (:func:`stagectl.control.controller.check_controller`)."""
-    return check_controller(cfg.controller)
+    ctl = _sections(cfg).controller
+    return check_controller(ctl) if ctl is not None else []
 
 
-def cross_checks(cfg: AppConfig) -> list[str]:
-    """Every cross-section check, in a stable order."""
+def cross_checks(cfg: AppConfig | Sections) -> list[str]:
+    """Every cross-section check whose inputs parsed, in a stable order."""
+    s = _sections(cfg)
     problems: list[str] = []
-    kind = cfg.io.kind
-    if kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN) and cfg.sim is None:
-        problems.append(f"sim: required for io.kind {kind.value} (the simulated stage)")
-    problems += demo_problems(cfg)
-    problems += controller_problems(cfg)
-    problems += can_problems(cfg)
-    problems += force_chain_problems(cfg)
+    if s.io is not None and s.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN) and s.sim_absent:
+        problems.append(f"sim: required for io.kind {s.io.kind.value} (the simulated stage)")
+    problems += demo_problems(s)
+    problems += controller_problems(s)
+    problems += can_problems(s)
+    problems += force_chain_problems(s)
+    problems += device_match_problems(s)
+    problems += sim_device_problems(s)
     return problems

@@ -13,7 +13,9 @@ Steps:
 3. the schema builds the typed sections; the plant is merged over its model
    (:meth:`stagectl.sim.plant.PlantConfig.from_mapping`) and the controller receives its resolved model in
    ``controller.feedforward.model`` (:func:`stagectl.control.controller.resolve_model`);
-4. the cross-checks of :mod:`stagectl.config.checks` (force-limit chain, ``can:`` keys, scenario, controller).
+4. the cross-checks of :mod:`stagectl.config.checks` (force-limit chain, ``can:`` keys, scenario, controller,
+   drivers vs the simulated devices), each run whenever the sections it reads parsed, also when another
+   section has problems (then on the sections parsed one by one).
 """
 
 from __future__ import annotations
@@ -21,13 +23,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from stagectl.config.checks import cross_checks
-from stagectl.config.sections import AppConfig
-from stagectl.control.controller import resolve_model
+from stagectl.config.checks import Sections, cross_checks
+from stagectl.config.sections import AppConfig, DemoConfig, IoConfig
+from stagectl.control.controller import ControllerConfig, resolve_model
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, load_model_file
+from stagectl.safety import SafetyConfig
 from stagectl.schema import load, load_yaml_file
 from stagectl.sim.world import SimWorldConfig
 
@@ -95,10 +98,32 @@ def parse_sim_section(data: Any, models: ModelFiles, problems: list[str],
         return None
 
 
+T = TypeVar("T")
+
+
+def _try_section(cls: type[T], data: Mapping[str, Any], key: str, *, required: bool = False) -> T | None:
+    """The section ``key`` of ``data`` parsed alone, or None when it has problems (the full parse reports them)
+    or is ``required`` and missing."""
+    if required and data.get(key) is None:
+        return None
+    try:
+        return load(cls, data.get(key), key)
+    except ConfigError:
+        return None
+
+
+def _with_model(ctl: ControllerConfig, model: StageModel | None) -> ControllerConfig:
+    """The controller section with its resolved model in ``feedforward.model``."""
+    return dataclasses.replace(ctl, feedforward=dataclasses.replace(ctl.feedforward,
+                                                                    model=resolve_model(ctl, model)))
+
+
 def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
     """Validate a plain mapping (what ``yaml.safe_load`` returned) into an :class:`AppConfig`.
 
     Relative model paths are taken relative to ``path``'s directory (the current directory without one).
+    Every cross-check whose sections parsed runs even when other sections have problems, so all problems are
+    reported at once.
 
     Raises
     ------
@@ -117,19 +142,27 @@ def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
         problems.append("path: unknown key")
     sim_given = data.get("sim") is not None
     sim = parse_sim_section(data.get("sim"), models, problems)
+    n0 = len(problems)
     ff_model = models.load(_get(data, "controller", "feedforward", "model_file"),
                            "controller.feedforward.model_file", problems)
+    ff_ok = len(problems) == n0  # else the controller's model is unknown: no follow-up "needs a model"
     cfg: AppConfig | None = None
     try:
         cfg = load(AppConfig, rest, "")
     except ConfigError as exc:
         problems.extend(exc.problems)
-    if cfg is not None and not (sim_given and sim is None):
-        ctl = cfg.controller
-        ff = dataclasses.replace(ctl.feedforward, model=resolve_model(ctl, ff_model))
-        cfg = dataclasses.replace(cfg, controller=dataclasses.replace(ctl, feedforward=ff), sim=sim, path=p)
-        if not problems:
-            problems.extend(cross_checks(cfg))
+    if cfg is not None:
+        cfg = dataclasses.replace(cfg, controller=_with_model(cfg.controller, ff_model), sim=sim, path=p)
+        sections = Sections.of(cfg)
+    else:  # the sections that parsed on their own
+        ctl = _try_section(ControllerConfig, rest, "controller", required=True)
+        sections = Sections(safety=_try_section(SafetyConfig, rest, "safety", required=True),
+                            controller=_with_model(ctl, ff_model) if ctl is not None else None,
+                            io=_try_section(IoConfig, rest, "io"), demo=_try_section(DemoConfig, rest, "demo"),
+                            sim=sim)
+    sections = dataclasses.replace(sections, sim_absent=not sim_given,
+                                   controller=sections.controller if ff_ok else None)
+    problems.extend(cross_checks(sections))
     if problems or cfg is None:
         prefix = f"{p.name}: " if p is not None else ""
         raise ConfigError([prefix + m for m in problems] or [f"{prefix}invalid configuration"])

@@ -54,16 +54,31 @@ class SensorSource(enum.Enum):
 
 @dataclass(frozen=True)
 class IoConfig:
-    """Devices."""
+    """Devices.
+
+    ``io.kind: canopen`` talks to real devices (or a ``stagectl sim-plant`` process), so the driver sections
+    of the devices used are required. ``embedded_canopen`` talks to the simulated devices of ``sim:`` in-process:
+    there the simulated device is required (``sim.encoder`` / ``sim.interferometer`` for that sensor, checked
+    in :mod:`stagectl.config.checks`) and the driver section is optional, one rule for every device: without it
+    the driver matches the simulated device; with it, it must agree with the simulated device (node id,
+    scaling), and its bus or URL is replaced by the world's.
+    """
 
     kind: IoKind = param(IoKind.PLANT_IO, desc="plant_io | embedded_canopen | canopen")
     sensor: SensorSource = param(SensorSource.DRIVE, desc="position source: drive | encoder | interferometer")
     delay_cycles: int = param(1, desc="plant_io: actuation delay in SYNC periods (1 = like a sync RPDO)",
                               ge=0, le=100)
-    drive: Cia402Config | None = param(None, desc="CiA 402 drive (stagectl.drivers.cia402.Cia402Config)")
-    encoder: Cia406Config | None = param(None, desc="CiA 406 encoder (stagectl.drivers.cia406.Cia406Config)")
+    drive: Cia402Config | None = param(
+        None, desc="CiA 402 drive (stagectl.drivers.cia402.Cia402Config); required for canopen; optional for "
+        "embedded_canopen (default: matching sim.drive; its can: is the world's bus)")
+    encoder: Cia406Config | None = param(
+        None, desc="CiA 406 encoder (stagectl.drivers.cia406.Cia406Config); required for canopen with sensor "
+        "encoder; optional for embedded_canopen, which needs sim.encoder (default: matching sim.encoder; its "
+        "can: is the world's bus)")
     interferometer: InterferometerConfig | None = param(
-        None, desc="serial interferometer (stagectl.drivers.interferometer.InterferometerConfig)")
+        None, desc="serial interferometer (stagectl.drivers.interferometer.InterferometerConfig); required for "
+        "canopen with sensor interferometer; optional for embedded_canopen, which needs sim.interferometer "
+        "(default: matching sim.interferometer; its url is the simulated one's)")
 
     def __post_init__(self) -> None:
         problems = []
@@ -71,7 +86,7 @@ class IoConfig:
             problems.append("io.drive: required for io.kind canopen")
         if self.sensor is SensorSource.ENCODER and self.kind is IoKind.CANOPEN and self.encoder is None:
             problems.append("io.encoder: required for io.sensor encoder")
-        if (self.sensor is SensorSource.INTERFEROMETER and self.kind is not IoKind.PLANT_IO
+        if (self.sensor is SensorSource.INTERFEROMETER and self.kind is IoKind.CANOPEN
                 and self.interferometer is None):
             problems.append("io.interferometer: required for io.sensor interferometer")
         if self.kind is IoKind.PLANT_IO and self.sensor is not SensorSource.DRIVE:

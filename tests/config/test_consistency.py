@@ -1,0 +1,193 @@
+"""Every problem of a file at once (cross-checks run on the sections that parsed), the real drivers agreeing
+with the simulated devices they talk to, and the simulated devices an ``embedded_canopen`` stage needs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from stagectl.sim.interferometer import SimInterferometerConfig
+
+from stagectl.app import build_stage, embedded_interferometer_config
+from stagectl.clock import SimClock
+from stagectl.config import parse_app_config
+from stagectl.drivers.interferometer import InterferometerConfig
+from stagectl.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
+MODEL = str(REPO / "config" / "models" / "kamenar2016_gms.yaml")
+
+
+def _mapping(name: str) -> dict:
+    data = yaml.safe_load((REPO / "config" / name).read_text())
+    if "sim" in data:
+        data["sim"]["plant"]["model_file"] = MODEL
+    data["controller"]["feedforward"]["model_file"] = MODEL
+    return data
+
+
+def _problems(data: dict) -> list[str]:
+    with pytest.raises(ConfigError) as ei:
+        parse_app_config(data, REPO / "config" / "x.yaml")
+    return ei.value.problems
+
+
+def _check_config(tmp_path: Path, data: dict) -> tuple[int, list[str], str]:
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data))
+    r = subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", str(p)], capture_output=True,
+                       text=True, timeout=120)
+    lines = [ln.removeprefix("stagectl: error: bad.yaml: ") for ln in r.stderr.splitlines()
+             if ln.startswith("stagectl: error:")]
+    return r.returncode, lines, r.stdout + r.stderr
+
+
+# ------------------------------------------------------------------------------------ all problems at once
+def test_an_unknown_key_does_not_hide_the_cross_checks(tmp_path):
+    data = _mapping("stage-canopen.yaml")
+    data["loop"]["perod_s"] = 0.001  # schema problem in one section
+    data["controller"]["max_force_n"] = 30.0  # force chain
+    data["io"]["drive"]["can"]["bitrat"] = 1000000  # can: key
+    rc, lines, out = _check_config(tmp_path, data)
+    assert rc == 2 and "Traceback" not in out
+    assert lines == [
+        "loop.perod_s: unknown key (did you mean period_s?)",
+        "io.drive.can.bitrat: unknown key for interface socketcan (did you mean bitrate?)",
+        "controller.max_force_n: 30 N exceeds safety.max_force_n 10 N (the force limits must satisfy "
+        "controller <= safety <= drive <= actuator)",
+    ]
+
+
+def test_cross_checks_skip_a_section_with_its_own_problems():
+    data = _mapping("sim.yaml")
+    data["safety"]["max_forc_n"] = 1.0  # safety does not parse: no force-chain line about it
+    data["controller"]["max_force_n"] = 15.0  # exceeds safety's 10 N, but safety did not parse
+    data["demo"]["scenario"] = "cosin"
+    probs = _problems(data)
+    assert probs == ["x.yaml: safety.max_forc_n: unknown key (did you mean max_force_n?)",
+                     "x.yaml: demo.scenario: unknown scenario 'cosin' (known: cosine, triangle, steps, demo, hold)"]
+
+
+def test_a_broken_sim_section_does_not_hide_the_other_checks():
+    data = _mapping("sim.yaml")
+    data["sim"]["plant"]["mas"] = 1.0
+    data["controller"]["max_force_n"] = 15.0
+    probs = _problems(data)
+    assert probs == ["x.yaml: sim.plant.mas: unknown key (did you mean mass_kg?)",
+                     "x.yaml: controller.max_force_n: 15 N exceeds safety.max_force_n 10 N (the force limits must "
+                     "satisfy controller <= safety <= drive <= actuator)"]
+
+
+def test_a_missing_model_file_still_has_no_follow_up_noise():
+    data = _mapping("sim.yaml")
+    data["controller"]["feedforward"]["model_file"] = str(REPO / "config" / "models" / "nope.yaml")
+    data["controller"]["mass_kg"] = None  # the model file would give it: no "mass_kg required" follow-up
+    probs = _problems(data)
+    assert len(probs) == 1 and "controller.feedforward.model_file" in probs[0] and "nope.yaml" in probs[0]
+
+
+# ------------------------------------------------------------------------------ drivers vs simulated devices
+@pytest.mark.parametrize("name,path,value,expect", [
+    ("hil-canopen.yaml", ("sim", "drive", "force_per_unit_n"), 0.001,
+     "io.drive.force_per_unit_n: 0.01 N differs from sim.drive.force_per_unit_n 0.001 N"),
+    ("hil-canopen.yaml", ("sim", "drive", "node_id"), 3, "io.drive.node_id: 1 differs from sim.drive.node_id 3"),
+    ("hil-canopen.yaml", ("sim", "drive", "resolution_m"), 1e-8,
+     "io.drive.resolution_m: 1e-09 m differs from sim.drive.resolution_m 1e-08 m"),
+    ("hil-serial.yaml", ("sim", "interferometer", "resolution_m"), 1e-8,
+     "io.interferometer.resolution_m: 1e-09 m differs from sim.interferometer.resolution_m 1e-08 m"),
+    ("sim.yaml", ("io", "drive"), {"node_id": 1, "force_per_unit_n": 0.01, "resolution_m": 1e-9},
+     "io.drive.force_per_unit_n: 0.01 N differs from sim.drive.force_per_unit_n 0.001 N"),
+])
+def test_driver_and_simulated_device_must_agree(tmp_path, name, path, value, expect):
+    data = _mapping(name)
+    d = data
+    for k in path[:-1]:
+        d = d[k]
+    d[path[-1]] = value
+    rc, lines, out = _check_config(tmp_path, data)
+    assert rc == 2 and "Traceback" not in out
+    assert lines == [expect + " (the driver and the simulated device it talks to must agree)"]
+
+
+def test_encoder_driver_and_simulated_encoder_must_agree():
+    data = _mapping("sim.yaml")
+    data["io"]["sensor"] = "encoder"
+    data["io"]["encoder"] = {"node_id": 3, "resolution_m": 5e-9}
+    data["sim"]["encoder"] = {"node_id": 2, "resolution_m": 5e-9}
+    assert _problems(data) == ["x.yaml: io.encoder.node_id: 3 differs from sim.encoder.node_id 2 (the driver and "
+                               "the simulated device it talks to must agree)"]
+    data["io"]["encoder"] = {"node_id": 2, "resolution_m": 1e-9}
+    assert _problems(data) == ["x.yaml: io.encoder.resolution_m: 1e-09 m differs from sim.encoder.resolution_m "
+                               "5e-09 m (the driver and the simulated device it talks to must agree)"]
+    data["io"]["encoder"]["resolution_m"] = 5e-9
+    assert parse_app_config(data, REPO / "config" / "x.yaml").io.encoder is not None
+
+
+def test_shipped_configs_agree_with_their_simulated_devices():
+    for p in sorted((REPO / "config").glob("*.yaml")):
+        parse_app_config(_mapping(p.name), REPO / "config" / p.name)
+
+
+# ------------------------------------------------------------------------ embedded_canopen simulated devices
+def _embedded(**changes: object) -> dict:
+    data = _mapping("sim.yaml")
+    for dotted, value in changes.items():
+        keys = dotted.split("__")
+        d = data
+        for k in keys[:-1]:
+            d = d.setdefault(k, {})
+        d[keys[-1]] = value
+    return data
+
+
+@pytest.mark.parametrize("changes,expect", [
+    ({"io__sensor": "encoder"},
+     "sim.encoder: required for io.sensor encoder with io.kind embedded_canopen (the simulated encoder the "
+     "driver talks to; io.encoder is optional)"),
+    ({"io__sensor": "encoder", "io__encoder": {"node_id": 2}},
+     "sim.encoder: required for io.sensor encoder with io.kind embedded_canopen (the simulated encoder the "
+     "driver talks to; io.encoder is optional)"),
+    ({"io__sensor": "interferometer", "io__interferometer": {"url": "socket://127.0.0.1:1"}},
+     "sim.interferometer: required for io.sensor interferometer with io.kind embedded_canopen (the simulated "
+     "interferometer the driver reads; io.interferometer is optional)"),
+    ({"io__sensor": "interferometer"},
+     "sim.interferometer: required for io.sensor interferometer with io.kind embedded_canopen (the simulated "
+     "interferometer the driver reads; io.interferometer is optional)"),
+    ({"io__sensor": "encoder", "sim__encoder": {"node_id": 1}},
+     "sim.encoder.node_id: 1 is also sim.drive.node_id (two CANopen nodes on one bus need distinct node ids)"),
+    ({"sim__faults": [{"kind": "drive_fault", "device": "encoder"}]},
+     "sim.faults[0].device: encoder is not configured (no sim.encoder)"),
+])
+def test_embedded_canopen_needs_its_simulated_devices(tmp_path, changes, expect):
+    rc, lines, out = _check_config(tmp_path, _embedded(**changes))
+    assert rc == 2 and "Traceback" not in out
+    assert lines == [expect]
+
+
+def test_simulated_sensor_alone_is_enough_for_both_sensor_kinds():
+    enc = parse_app_config(_embedded(io__sensor="encoder", sim__encoder={"node_id": 2}),
+                           REPO / "config" / "x.yaml")
+    assert enc.io.encoder is None and enc.sim is not None and enc.sim.encoder is not None
+    ifm_data = _embedded(io__sensor="interferometer",
+                         sim__interferometer={"transport": "tcp", "trigger": "sync", "resolution_m": 1e-9})
+    ifm = parse_app_config(ifm_data, REPO / "config" / "x.yaml")
+    assert ifm.io.interferometer is None
+    with build_stage(ifm, clock=SimClock()) as stage:
+        stage.load_scenario("hold")
+        result = stage.loop.run(duration_s=0.02)
+        assert stage.sensor.name != stage.actuator.name
+        assert result is not None
+
+
+def test_interferometer_driver_config_follows_the_encoder_rule():
+    sim = SimInterferometerConfig(resolution_m=5e-9)
+    got = embedded_interferometer_config(None, sim, "socket://127.0.0.1:5")
+    assert (got.url, got.resolution_m) == ("socket://127.0.0.1:5", 5e-9)
+    mine = InterferometerConfig(url="/dev/ttyUSB0", resolution_m=5e-9, stale_cycles=9)
+    got = embedded_interferometer_config(mine, sim, "socket://127.0.0.1:5")
+    assert (got.url, got.stale_cycles) == ("socket://127.0.0.1:5", 9)
+    with pytest.raises(ConfigError, match="sim.interferometer: required"):
+        embedded_interferometer_config(mine, None, None)
