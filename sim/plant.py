@@ -73,6 +73,20 @@ class ActuatorConfig:
                                allow_inf=True)
 
 
+def _unresolved_model_file(value: Any, path: str, problems: list[str]) -> None:
+    """Parse hook of ``PlantConfig.model_file``: the schema never accepts the key by itself (through
+    :func:`~stagectl.schema.load`, a section parser or an enclosing section), since nothing there reads the
+    file; only :meth:`PlantConfig.from_mapping`, handed the resolved model, takes it."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        problems.append(f"{path}: expected a path string, got {value!r}")
+    else:
+        problems.append(f"{path}: {value} is not loaded (load the configuration with stagectl.config, or pass "
+                        "the StageModel to PlantConfig.from_mapping as model=)")
+    return None
+
+
 @dataclass(frozen=True)
 class PlantConfig:
     """Stage plant configuration (YAML block, e.g. ``plant:``). Build from YAML with :meth:`from_mapping`."""
@@ -88,7 +102,8 @@ class PlantConfig:
     seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
     model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
                                    "inline keys override; relative to the YAML file's directory (loaded by "
-                                   "the configuration layer and handed to from_mapping as model=)")
+                                   "the configuration layer and handed to from_mapping as model=)",
+                                   parse=_unresolved_model_file)
 
     def __post_init__(self) -> None:
         # explicit-integration stability (module docstring): h·√(K/m) < 2 and h·c/m < 1, checked with margin
@@ -126,8 +141,11 @@ class PlantConfig:
         if mf is not None and not isinstance(mf, str):
             raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
         if mf is not None and model is None:
-            raise ConfigError(f"{path}.model_file: {mf} is not loaded (load the configuration with "
-                              "stagectl.config, or pass the StageModel as model=)")
+            problems: list[str] = []
+            _unresolved_model_file(mf, f"{path}.model_file", problems)
+            raise ConfigError(problems)
+        if mf is not None:
+            del merged["model_file"]  # resolved: given to the dataclass below, past the schema's refusal
         sm = model
         if sm is not None:
             if "mass_kg" not in merged and sm.mass_kg is not None:
@@ -142,7 +160,8 @@ class PlantConfig:
                 merged["effects"] = sm.effects
             elif isinstance(eff, Mapping):
                 merged["effects"] = {**sm.effects.spec(), **eff}
-        return load(cls, merged, path)
+        cfg = load(cls, merged, path)
+        return dataclasses.replace(cfg, model_file=mf) if mf is not None else cfg
 
 
 # ================================================================================================ kernels

@@ -30,7 +30,7 @@ from stagectl.drivers.interferometer import InterferometerConfig
 from stagectl.errors import ConfigError
 from stagectl.loop import LoopConfig
 from stagectl.safety import SafetyConfig
-from stagectl.schema import param, section_parser
+from stagectl.schema import param
 from stagectl.sim.world import SimWorldConfig
 
 __all__ = ["AppConfig", "DemoConfig", "IoConfig", "IoKind", "SensorSource"]
@@ -119,8 +119,8 @@ class AppConfig:
     daemon: DaemonConfig = param(default_factory=DaemonConfig, desc="service settings (stagectl.config.daemon)")
     description: str = param("", desc="free text shown by check-config")
     sim: SimWorldConfig | None = param(
-        None, desc="simulated stage: plant and virtual devices (stagectl.sim.world.SimWorldConfig)",
-        parse=section_parser(SimWorldConfig))
+        None, desc="simulated stage: plant and virtual devices (stagectl.sim.world.SimWorldConfig; parsed by "
+        "the loader with its model file resolved)")
     # filled by load_app_config (not a YAML key)
     path: Path | None = dataclasses.field(default=None, metadata={"desc": "source file", "unit": ""})
 
