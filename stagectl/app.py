@@ -31,7 +31,7 @@ from typing import Any, TypeVar
 from stagectl.clock import Clock, MonotonicClock, SimClock, Timing
 from stagectl.config import AppConfig, IoKind, SensorSource
 from stagectl.control.controller import TERM_NAMES, ControllerConfig, StageController
-from stagectl.control.reference import TrajectoryReference, get_scenario, scenario_names
+from stagectl.control.reference import TrajectoryReference, get_scenario
 from stagectl.control.trajectory import Scenario
 from stagectl.drivers.base import Device, ForceActuator, PositionSensor, SyncProducer
 from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
@@ -39,6 +39,7 @@ from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
 from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
 from stagectl.errors import ConfigError, StageError
 from stagectl.loop import Controller, ControlLoop
+from stagectl.runtime.protocols import NamesTerms
 from stagectl.safety import Safety
 from stagectl.sim.cia402_drive import SimDriveConfig
 from stagectl.sim.cia406_encoder import SimEncoderConfig
@@ -50,8 +51,8 @@ from stagectl.sim.world import SimWorld
 
 log = logging.getLogger("stagectl.app")
 
-__all__ = ["IO_BUILDERS", "Stage", "StageIO", "TrajectoryReference", "build_stage", "embedded_drive_config",
-           "embedded_encoder_config", "embedded_interferometer_config", "get_scenario", "make_controller", "scenario_names"]
+__all__ = ["IO_BUILDERS", "Stage", "StageIO", "build_stage", "embedded_drive_config", "embedded_encoder_config",
+           "embedded_interferometer_config", "make_controller"]
 
 D = TypeVar("D", bound=Device)
 T = TypeVar("T")
@@ -171,15 +172,13 @@ class Stage:
         StageError
             Not a simulated stage.
         """
-        if not self.simulated:
-            raise StageError("inject_fault: only available on a simulated stage")
         if self.plant_io is not None:
             inject_plant_io_fault(self.plant_io, kind, kw)
             return {"injected": kind}
         if self.world is not None:
             spec = world_fault(kind, kw)
             return {"injected": self.world.inject_fault(spec.pop("kind"), **spec)}
-        raise StageError("inject_fault: no fault injection available for this stage")
+        raise StageError("inject_fault: only available on a simulated stage")  # simulated: a plant or a world
 
     def load_scenario(self, name_or_scenario: str | Scenario | None, repeat: bool = False) -> None:
         """Run a scenario (by name, a :class:`~stagectl.control.trajectory.Scenario`, or None: hold) from the
@@ -366,7 +365,7 @@ def build_stage(
         ctl: Controller = controller if controller is not None else make_controller(cfg)
         safety = Safety(cfg.safety, timing)
         reference = TrajectoryReference()
-        terms = getattr(ctl, "term_names", None) or TERM_NAMES
+        terms = ctl.term_names if isinstance(ctl, NamesTerms) else TERM_NAMES
         loop = ControlLoop(
             clock=clk,
             sensor=io.sensor,

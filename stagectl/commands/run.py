@@ -51,8 +51,9 @@ def progress_line(st: LoopStatus) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from stagectl.app import build_stage, get_scenario
+    from stagectl.app import build_stage
     from stagectl.config import load_app_config
+    from stagectl.control.reference import get_scenario
     from stagectl.recorder import Recorder, tracking_summary, write_outputs
     from stagectl.runtime.host import LoopHost
 

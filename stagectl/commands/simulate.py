@@ -48,9 +48,10 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
     ConfigError
         Unknown scenario, bad duration, unwritable ``out_dir``, or a canopen config without ``sim:``.
     """
-    from stagectl.app import build_stage, get_scenario
+    from stagectl.app import build_stage
     from stagectl.clock import SimClock
     from stagectl.config import IoKind
+    from stagectl.control.reference import get_scenario
     from stagectl.recorder import Recorder, tracking_summary, write_outputs
 
     if cfg.io.kind is IoKind.CANOPEN:

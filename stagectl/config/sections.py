@@ -130,15 +130,6 @@ class AppConfig:
         return self.path.parent if self.path is not None else Path.cwd()
 
     @property
-    def period_s(self) -> float:
-        return self.loop.period_s
-
-    @property
     def timing(self) -> Timing:
         """The loop's one timing value (every consumer derives its cycle counts from it)."""
         return Timing(self.loop.period_s)
-
-    def resolve(self, p: str | Path) -> Path:
-        """A path from the file, relative to the file's directory."""
-        q = Path(p)
-        return q if q.is_absolute() else self.base_dir / q

@@ -6,7 +6,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
+__all__ = ["Controller", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -29,6 +29,13 @@ class PreparesRetune(Protocol):
     (:class:`~stagectl.control.controller.StageController`); bad tunings raise in ``request_retune``."""
 
     def request_retune(self, cfg: Any) -> None: ...
+
+
+@runtime_checkable
+class NamesTerms(Protocol):
+    """A controller that names its telemetry terms (the loop's telemetry columns after the base ones)."""
+
+    term_names: tuple[str, ...]
 
 
 class ReferenceSource(Protocol):
