@@ -64,7 +64,7 @@ from stagectl.outputs import plain
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
-from stagectl.runtime.protocols import Controller, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.protocols import Controller, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
 from stagectl.runtime.requests import (
     LoopRequest,
     MotionLimits,
@@ -156,8 +156,8 @@ class ControlLoop:
         self.on_cycle = on_cycle
         self._devs = DeviceSet(sensor, actuator, sync)
         self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
-        terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(
-            getattr(controller, "term_names", DEFAULT_TERMS))  # optional member of a controller
+        named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
+        terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(named)
         self.term_names = terms
         self.columns: tuple[str, ...] = BASE_COLUMNS + terms
         self.state = LoopState.CONFIGURED if self._devs.ready() else LoopState.UNCONFIGURED
