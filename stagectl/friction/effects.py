@@ -36,9 +36,6 @@ from numba import njit
 
 from stagectl.schema import param
 
-#: the names used by the discovery catalogue for the effects defined here
-EFFECT_NAMES = ("asymmetry", "position_ripple", "cogging", "offset", "spring", "delay")
-
 
 @dataclass(frozen=True)
 class Asymmetry:

@@ -239,7 +239,7 @@ def _prune(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected:
                 fr = rg.fit_linear(ds.est, h, ds.est_rows)
                 for spec in fx.REGISTRY.active(h):
                     if spec.after_removal is not None:
-                        fr = spec.after_removal(_fitter(ds), h)
+                        fr = spec.after_removal(_fitter(ds), fr.hyp)  # hooks chain: each refines the last
             except _FIT_ERRORS:
                 continue
             c = _val_compare(ds, fr.hyp, cur.hyp, min_explained)

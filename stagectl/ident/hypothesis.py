@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.friction.effects import Effects
 from stagectl.ident.localise import ResidualView
 from stagectl.ident.signals import Signals
 
@@ -217,7 +218,14 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
                     problems.append(f"{s.name}: unknown effect {dep!r}")
         if sum(s.scaling is not None for s in self._specs) > 1:
             problems.append("more than one friction-scaling effect")
+        if sum(s.target_delay is not None for s in self._specs) > 1:
+            problems.append("more than one effect delaying the force")
         twins = [s.twin for s in self._specs if s.twin is not None]
+        model_file_effects = {f.name for f in dataclasses.fields(Effects)}
+        for s in self._specs:
+            if s.twin is not None and s.twin not in model_file_effects:
+                problems.append(f"{s.name}: twin {s.twin!r} is not a model-file effect (stagectl.friction.effects."
+                                f"Effects has {', '.join(sorted(model_file_effects))})")
         if len(set(twins)) != len(twins):
             problems.append("two effects map to the same model-file effect")
         if problems:
@@ -241,10 +249,6 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
             return self._by_name[name]
         except KeyError:
             raise ValueError(f"unknown effect {name!r}") from None
-
-    def plus(self, *specs: EffectSpec[Any, Any]) -> Registry:
-        """A new registry with ``specs`` appended."""
-        return Registry((*self._specs, *specs))
 
     def active(self, h: Hyp) -> list[EffectSpec[Any, Any]]:
         """The specs of the effects in ``h`` (registered ones only), in design-column order."""

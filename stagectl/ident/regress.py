@@ -36,7 +36,7 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 __all__ = ["FitResult", "Hyp", "LinearFitter", "design", "filtered_design", "fit_linear", "friction_columns",
-           "friction_force", "model_force", "residual", "solve"]
+           "friction_force", "residual", "solve"]
 
 
 # ---------------------------------------------------------------------------------------------- columns
@@ -194,13 +194,6 @@ def residual(sig: Signals, h: Hyp) -> FloatArray:
     cols, a, y = filtered_design(sig, h)
     th = np.array([h.theta.get(c.name, 0.0) for c in cols])
     return np.asarray(y - a @ th, dtype=np.float64)
-
-
-def model_force(sig: Signals, h: Hyp) -> FloatArray:
-    """Filtered model force ``L[moving·(m·a + F_model)]`` [N] for plots."""
-    cols, a, _ = filtered_design(sig, h)
-    th = np.array([h.theta.get(c.name, 0.0) for c in cols])
-    return np.asarray(a @ th, dtype=np.float64)
 
 
 @dataclass(frozen=True)
