@@ -65,3 +65,33 @@ def stop_process(proc, timeout_s: float) -> None:
     for stream in (proc.stdout, proc.stderr):
         if stream is not None:
             stream.close()
+
+
+# ------------------------------------------------------------------------------------------ shipped configs
+def shipped_config_mapping(name: str) -> dict:
+    """A shipped ``config/<name>`` as a mapping, its model-file paths made absolute (so it validates anywhere)."""
+    from pathlib import Path
+
+    import yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    model = str(repo / "config" / "models" / "kamenar2016_gms.yaml")
+    data = yaml.safe_load((repo / "config" / name).read_text())
+    if "sim" in data:
+        data["sim"]["plant"]["model_file"] = model
+    data["controller"]["feedforward"]["model_file"] = model
+    return data
+
+
+def config_problems(data: dict) -> list[str]:
+    """The problems :func:`stagectl.config.parse_app_config` reports for ``data`` (it must report some)."""
+    from pathlib import Path
+
+    import pytest
+
+    from stagectl.config import parse_app_config
+    from stagectl.errors import ConfigError
+
+    with pytest.raises(ConfigError) as ei:
+        parse_app_config(data, Path(__file__).resolve().parents[1] / "config" / "x.yaml")
+    return ei.value.problems

@@ -17,22 +17,11 @@ from stagectl.config import parse_app_config
 from stagectl.drivers.interferometer import InterferometerConfig
 from stagectl.errors import ConfigError
 
+from support import config_problems, shipped_config_mapping
+
 REPO = Path(__file__).resolve().parents[2]
-MODEL = str(REPO / "config" / "models" / "kamenar2016_gms.yaml")
 
 
-def _mapping(name: str) -> dict:
-    data = yaml.safe_load((REPO / "config" / name).read_text())
-    if "sim" in data:
-        data["sim"]["plant"]["model_file"] = MODEL
-    data["controller"]["feedforward"]["model_file"] = MODEL
-    return data
-
-
-def _problems(data: dict) -> list[str]:
-    with pytest.raises(ConfigError) as ei:
-        parse_app_config(data, REPO / "config" / "x.yaml")
-    return ei.value.problems
 
 
 def _check_config(tmp_path: Path, data: dict) -> tuple[int, list[str], str]:
@@ -47,7 +36,7 @@ def _check_config(tmp_path: Path, data: dict) -> tuple[int, list[str], str]:
 
 # ------------------------------------------------------------------------------------ all problems at once
 def test_an_unknown_key_does_not_hide_the_cross_checks(tmp_path):
-    data = _mapping("stage-canopen.yaml")
+    data = shipped_config_mapping("stage-canopen.yaml")
     data["loop"]["perod_s"] = 0.001  # schema problem in one section
     data["controller"]["max_force_n"] = 30.0  # force chain
     data["io"]["drive"]["can"]["bitrat"] = 1000000  # can: key
@@ -62,30 +51,30 @@ def test_an_unknown_key_does_not_hide_the_cross_checks(tmp_path):
 
 
 def test_cross_checks_skip_a_section_with_its_own_problems():
-    data = _mapping("sim.yaml")
+    data = shipped_config_mapping("sim.yaml")
     data["safety"]["max_forc_n"] = 1.0  # safety does not parse: no force-chain line about it
     data["controller"]["max_force_n"] = 15.0  # exceeds safety's 10 N, but safety did not parse
     data["demo"]["scenario"] = "cosin"
-    probs = _problems(data)
+    probs = config_problems(data)
     assert probs == ["x.yaml: safety.max_forc_n: unknown key (did you mean max_force_n?)",
                      "x.yaml: demo.scenario: unknown scenario 'cosin' (known: cosine, triangle, steps, demo, hold)"]
 
 
 def test_a_broken_sim_section_does_not_hide_the_other_checks():
-    data = _mapping("sim.yaml")
+    data = shipped_config_mapping("sim.yaml")
     data["sim"]["plant"]["mas"] = 1.0
     data["controller"]["max_force_n"] = 15.0
-    probs = _problems(data)
+    probs = config_problems(data)
     assert probs == ["x.yaml: sim.plant.mas: unknown key (did you mean mass_kg?)",
                      "x.yaml: controller.max_force_n: 15 N exceeds safety.max_force_n 10 N (the force limits must "
                      "satisfy controller <= safety <= drive <= actuator)"]
 
 
 def test_a_missing_model_file_still_has_no_follow_up_noise():
-    data = _mapping("sim.yaml")
+    data = shipped_config_mapping("sim.yaml")
     data["controller"]["feedforward"]["model_file"] = str(REPO / "config" / "models" / "nope.yaml")
     data["controller"]["mass_kg"] = None  # the model file would give it: no "mass_kg required" follow-up
-    probs = _problems(data)
+    probs = config_problems(data)
     assert len(probs) == 1 and "controller.feedforward.model_file" in probs[0] and "nope.yaml" in probs[0]
 
 
@@ -102,7 +91,7 @@ def test_a_missing_model_file_still_has_no_follow_up_noise():
      "io.drive.force_per_unit_n: 0.01 N differs from sim.drive.force_per_unit_n 0.001 N"),
 ])
 def test_driver_and_simulated_device_must_agree(tmp_path, name, path, value, expect):
-    data = _mapping(name)
+    data = shipped_config_mapping(name)
     d = data
     for k in path[:-1]:
         d = d[k]
@@ -113,14 +102,14 @@ def test_driver_and_simulated_device_must_agree(tmp_path, name, path, value, exp
 
 
 def test_encoder_driver_and_simulated_encoder_must_agree():
-    data = _mapping("sim.yaml")
+    data = shipped_config_mapping("sim.yaml")
     data["io"]["sensor"] = "encoder"
     data["io"]["encoder"] = {"node_id": 3, "resolution_m": 5e-9}
     data["sim"]["encoder"] = {"node_id": 2, "resolution_m": 5e-9}
-    assert _problems(data) == ["x.yaml: io.encoder.node_id: 3 differs from sim.encoder.node_id 2 (the driver and "
+    assert config_problems(data) == ["x.yaml: io.encoder.node_id: 3 differs from sim.encoder.node_id 2 (the driver and "
                                "the simulated device it talks to must agree)"]
     data["io"]["encoder"] = {"node_id": 2, "resolution_m": 1e-9}
-    assert _problems(data) == ["x.yaml: io.encoder.resolution_m: 1e-09 m differs from sim.encoder.resolution_m "
+    assert config_problems(data) == ["x.yaml: io.encoder.resolution_m: 1e-09 m differs from sim.encoder.resolution_m "
                                "5e-09 m (the driver and the simulated device it talks to must agree)"]
     data["io"]["encoder"]["resolution_m"] = 5e-9
     assert parse_app_config(data, REPO / "config" / "x.yaml").io.encoder is not None
@@ -128,12 +117,12 @@ def test_encoder_driver_and_simulated_encoder_must_agree():
 
 def test_shipped_configs_agree_with_their_simulated_devices():
     for p in sorted((REPO / "config").glob("*.yaml")):
-        parse_app_config(_mapping(p.name), REPO / "config" / p.name)
+        parse_app_config(shipped_config_mapping(p.name), REPO / "config" / p.name)
 
 
 # ------------------------------------------------------------------------ embedded_canopen simulated devices
 def _embedded(**changes: object) -> dict:
-    data = _mapping("sim.yaml")
+    data = shipped_config_mapping("sim.yaml")
     for dotted, value in changes.items():
         keys = dotted.split("__")
         d = data
@@ -194,7 +183,7 @@ def test_interferometer_driver_config_follows_the_encoder_rule():
 
 
 def test_a_missing_required_section_has_no_follow_up_noise():
-    probs = _problems({"loop": {"perod_s": 0.001}})
+    probs = config_problems({"loop": {"perod_s": 0.001}})
     assert probs == ["x.yaml: safety: required key missing (limits and watchdogs)",
                      "x.yaml: controller: required key missing (controller tuning "
                      "(stagectl.control.controller.ControllerConfig))",

@@ -15,23 +15,11 @@ from stagectl.config import AppConfig, load_app_config, parse_app_config
 from stagectl.config.checks import force_chain_problems
 from stagectl.errors import ConfigError
 
+from support import config_problems, shipped_config_mapping
+
 REPO = Path(__file__).resolve().parents[2]
-MODEL = str(REPO / "config" / "models" / "kamenar2016_gms.yaml")
 
 
-def _mapping(name: str) -> dict:
-    """A shipped config with its model paths made absolute (so a copy can live in tmp_path)."""
-    data = yaml.safe_load((REPO / "config" / name).read_text())
-    if "sim" in data:
-        data["sim"]["plant"]["model_file"] = MODEL
-    data["controller"]["feedforward"]["model_file"] = MODEL
-    return data
-
-
-def _problems(data: dict) -> list[str]:
-    with pytest.raises(ConfigError) as ei:
-        parse_app_config(data, REPO / "config" / "x.yaml")
-    return ei.value.problems
 
 
 def _check_config(tmp_path: Path, data: dict) -> subprocess.CompletedProcess[str]:
@@ -65,19 +53,19 @@ def test_shipped_configs_satisfy_the_force_chain(name):
      "safety.max_force_n: 10 N exceeds the drive's torque range 32767 x sim.drive.force_per_unit_n 3.2767 N"),
 ])
 def test_each_broken_link_of_the_force_chain_is_one_line(name, keys, expect):
-    data = _mapping(name)
+    data = shipped_config_mapping(name)
     for path, value in keys.items():
         d = data
         for k in path[:-1]:
             d = d.setdefault(k, {})
         d[path[-1]] = value
-    probs = _problems(data)
+    probs = config_problems(data)
     assert len(probs) == 1, probs
     assert expect in probs[0] and probs[0].startswith("x.yaml: ")
 
 
 def test_force_chain_through_check_config(tmp_path):
-    data = _mapping("stage-canopen.yaml")
+    data = shipped_config_mapping("stage-canopen.yaml")
     data["controller"]["max_force_n"] = 30.0
     r = _check_config(tmp_path, data)
     assert r.returncode == 2 and "Traceback" not in r.stderr
@@ -88,7 +76,7 @@ def test_force_chain_through_check_config(tmp_path):
 
 # ------------------------------------------------------------------------------------------ can: keys
 def test_can_typo_rejected_by_check_config_with_did_you_mean(tmp_path):
-    data = _mapping("stage-canopen.yaml")
+    data = shipped_config_mapping("stage-canopen.yaml")
     data["io"]["drive"]["can"] = {"interface": "socketcan", "channel": "can0", "bitrat": 1000000}
     r = _check_config(tmp_path, data)
     assert r.returncode == 2
@@ -113,9 +101,9 @@ def test_can_keys_come_from_python_can():
 
 
 def test_can_typo_in_every_can_section(tmp_path):
-    data = _mapping("hil-canopen.yaml")
+    data = shipped_config_mapping("hil-canopen.yaml")
     data["io"]["drive"]["can"]["hots"] = "127.0.0.1"
-    probs = "\n".join(_problems(data))
+    probs = "\n".join(config_problems(data))
     assert "io.drive.can.hots: unknown key for interface socketcand (did you mean host?)" in probs
 
 
@@ -150,16 +138,16 @@ def test_check_config_designs_no_controller(monkeypatch):
 
 
 def test_controller_needs_checked_on_the_resolved_model():
-    data = _mapping("stage-canopen.yaml")
+    data = shipped_config_mapping("stage-canopen.yaml")
     del data["controller"]["mass_kg"]
     del data["controller"]["feedforward"]["model_file"]
-    probs = "\n".join(_problems(data))
+    probs = "\n".join(config_problems(data))
     assert "controller.feedforward: kind 'model' needs friction:, model_file:" in probs
     assert "controller.mass_kg: required key missing" in probs
 
 
 def test_the_resolved_model_is_not_a_yaml_key():
-    data = _mapping("stage-canopen.yaml")
+    data = shipped_config_mapping("stage-canopen.yaml")
     data["controller"]["feedforward"]["model"] = {"model": "gms"}
-    probs = "\n".join(_problems(data))
+    probs = "\n".join(config_problems(data))
     assert "controller.feedforward.model: unknown key" in probs
