@@ -227,7 +227,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     name = "cia402"
 
-    def __init__(self, cfg: Cia402Config, timing: Timing | float = 0.001) -> None:
+    def __init__(self, cfg: Cia402Config, timing: Timing | float) -> None:
         super().__init__()
         self.cfg = cfg
         self.name = f"cia402[node {cfg.node_id}]"

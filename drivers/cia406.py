@@ -67,7 +67,7 @@ class Cia406Config:
 class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
     """CiA 406 encoder node (see module docstring)."""
 
-    def __init__(self, cfg: Cia406Config, timing: Timing | float = 0.001) -> None:
+    def __init__(self, cfg: Cia406Config, timing: Timing | float) -> None:
         """``timing``: the loop's timing (or its period [s]); written to 0x1006, per-cycle time-outs derive
         from it. Raises ConfigError for a period that is not a finite number > 0."""
         super().__init__()

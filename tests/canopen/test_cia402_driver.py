@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceState
 from stagectl.drivers.cia402 import Cia402Config, Cia402Drive, State402, unwrap32
 from stagectl.errors import ConfigError, DriverInitError
@@ -131,11 +132,11 @@ def test_config_errors():
 
 
 def test_open_errors_are_typed(tmp_path):
-    dut = Cia402Drive(Cia402Config(node_id=1, can={"interface": "no_such_iface", "channel": "x"}))
+    dut = Cia402Drive(Cia402Config(node_id=1, can={"interface": "no_such_iface", "channel": "x"}), Timing(1e-3))
     with pytest.raises(DriverInitError, match="cannot open CAN bus"):
         dut.open()
     bad = Cia402Drive(Cia402Config(node_id=1, can={"interface": "virtual", "channel": f"x-{id(tmp_path)}"},
-                                   eds_file=str(tmp_path / "missing.eds")))
+                                   eds_file=str(tmp_path / "missing.eds")), Timing(1e-3))
     with pytest.raises(DriverInitError, match="EDS"):
         bad.open()
     assert bad.state is DeviceState.CLOSED

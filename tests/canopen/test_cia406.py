@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import FaultKind
 from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
 from stagectl.errors import DriverInitError
@@ -67,7 +68,8 @@ def test_encoder_faults(rig):
 
 def test_encoder_as_sync_producer(make_world):
     world = make_world(encoder={"node_id": 9})
-    enc = Cia406Encoder(Cia406Config(node_id=9, can=world.ready_info()["can"], sync_producer=True, sdo_timeout_s=3.0))
+    enc = Cia406Encoder(Cia406Config(node_id=9, can=world.ready_info()["can"], sync_producer=True, sdo_timeout_s=3.0),
+                        Timing(1e-3))
     try:
         enc.set_pump(world.pump)
         enc.open()
@@ -84,7 +86,7 @@ def test_encoder_as_sync_producer(make_world):
 def test_encoder_rejects_a_drive(make_world):
     world = make_world()
     world.start()
-    enc = Cia406Encoder(Cia406Config(node_id=1, can=world.ready_info()["can"], sdo_timeout_s=3.0))
+    enc = Cia406Encoder(Cia406Config(node_id=1, can=world.ready_info()["can"], sdo_timeout_s=3.0), Timing(1e-3))
     try:
         enc.open()
         with pytest.raises(DriverInitError, match="not a CiA 406"):

@@ -15,6 +15,7 @@ import textwrap
 import pytest
 from support import stop_process
 
+from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.drivers.cia402 import State402
 
@@ -164,7 +165,7 @@ def test_two_socketcand_clients_share_the_bus(make_world, make_drive):
     can_cfg = world.ready_info()["can"]
     dut = make_drive(can_cfg, rx_timeout_s=0.5, heartbeat_timeout_s=30.0, drive_consumer_timeout_s=2.0)
     enc = Cia406Encoder(Cia406Config(node_id=4, can=can_cfg, rx_timeout_s=0.5, heartbeat_timeout_s=30.0,
-                                     sdo_timeout_s=3.0))
+                                     sdo_timeout_s=3.0), Timing(1e-3))
     try:
         dut.open()
         enc.open()
