@@ -60,7 +60,6 @@ from stagectl.drivers.base import (
     SyncProducer,
 )
 from stagectl.errors import StageError
-from stagectl.outputs import plain
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
@@ -367,10 +366,10 @@ class ControlLoop:
             overruns=self.overruns - overruns0,
             duration_s=clock.now() - self._t0,
             ended_by=ended_by,
-            lateness_us=plain(self.stats.lateness(self.cycle)),
-            exec_us=plain(self.stats.execution(self.cycle)),
+            lateness_us=self.stats.lateness(self.cycle),
+            exec_us=self.stats.execution(self.cycle),
             cpu_fraction=cpu / wall,
-            fault=fault.as_dict() if fault else None,
+            fault=fault,
             realtime=self.realtime_report,
         )
 

@@ -116,7 +116,7 @@ def run_case(cfg: AppConfig, ctl_cfg: ControllerConfig, scenario: str, *, model:
         "max_error_nm": s["max_error_m"] * 1e9,
         "settling_time_s": s["settling_time_s"] if scenario == "steps" else None,
         "settled": f"{s['moves_settled']}/{s['moves']}" if scenario == "steps" else None,
-        "fault": res.fault["name"] if res.fault else None,
+        "fault": res.fault.name if res.fault else None,
     }
 
 

@@ -69,7 +69,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         proc_cpu = (time.process_time() - cpu_run) / max(1e-9, wall_run)
     total = res.cycles + res.overruns
     period_us = cfg.loop.period_s * 1e6
-    late, ex = res.lateness_us, res.exec_us
+    summary = res.as_dict()
+    late, ex = summary["lateness_us"], summary["exec_us"]
     return {
         "benchmark": "loop",
         "config": str(cfg.path),
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "exec_us": ex,
         "cpu_loop_thread_percent": 100.0 * res.cpu_fraction,
         "cpu_process_percent": 100.0 * proc_cpu,
-        "fault": res.fault,
+        "fault": summary["fault"],
         "realtime": res.realtime,
         "spin_us": rt.spin_us,
         "loadavg_before": list(load0),

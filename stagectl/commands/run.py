@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         "io": cfg.io.kind.value,
         "period_s": cfg.loop.period_s,
         **(tracking_summary(rec) if rec.n else {}),
-        "fault": res.fault if res else None,
+        "fault": res.as_dict()["fault"] if res else None,
         "loop": res.as_dict() if res else None,
     }
     title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"

@@ -79,7 +79,7 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         "io": cfg.io.kind.value,
         "period_s": cfg.loop.period_s,
         **tracking_summary(rec, tol_m=tol_m),
-        "fault": res.fault,
+        "fault": res.as_dict()["fault"],
         "loop": {"cycles": res.cycles, "overruns": res.overruns, "ended_by": res.ended_by},
     }
     write_outputs(rec, out_dir, summary, plots=plots, title=f"simulate {scenario} ({cfg.path.name if cfg.path else ''})")

@@ -91,14 +91,15 @@ class LoopResult:
     overruns: int
     duration_s: float
     ended_by: str
-    lateness_us: dict[str, float]
-    exec_us: dict[str, float]
+    lateness_us: TimingStats
+    exec_us: TimingStats
     cpu_fraction: float
-    fault: dict[str, Any] | None
+    fault: FaultInfo | None
     realtime: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        return {
+        """Plain data for summaries (timing as {p50, p99, max} µs, the fault as {name, cause, t_s, cycle})."""
+        out: dict[str, Any] = plain({
             "cycles": self.cycles,
             "overruns": self.overruns,
             "overrun_fraction": self.overruns / max(1, self.cycles + self.overruns),
@@ -109,4 +110,5 @@ class LoopResult:
             "cpu_fraction": self.cpu_fraction,
             "fault": self.fault,
             "realtime": self.realtime,
-        }
+        })
+        return out

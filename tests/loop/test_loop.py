@@ -223,7 +223,7 @@ def test_start_waits_for_a_late_first_sample_then_stale_checks_apply(make, rows)
     loop.on_cycle = on_cycle
     res = loop.run(cycles=20)
     assert ctl.resets == [0.0] and rows.rows[0][0] == 0.0  # loop time starts at the first fresh sample
-    assert res.fault is not None and res.fault["name"] == "stale_position" and res.fault["cycle"] == 12
+    assert res.fault is not None and res.fault.name == "stale_position" and res.fault.cycle == 12
 
 
 def test_start_gives_up_after_startup_cycles(make):
