@@ -88,6 +88,12 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
     for s in active:
         if s.columns is not None:
             cols += s.columns(sig, h, f_est)
+    names = [c.name for c in cols]
+    if len(set(names)) != len(names):  # theta is keyed by column name: two would collapse (a registry bug,
+        # so not a ValueError, which discovery treats as a candidate that cannot be fitted)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise RuntimeError(f"design: column name(s) {', '.join(dup)} produced twice by the effects "
+                         f"{', '.join(s.name for s in active)}; each column must belong to one effect")
     target = sig.ubar(_target_delay(h))
     if h.fixed_mass_kg is None:
         cols.append(Column("m", sig.acc_raw, "m", nonneg=True))

@@ -128,3 +128,16 @@ def test_registry_rejects_a_twin_that_is_no_model_file_effect_and_two_delays() -
                           target_delay=lambda h: 0.0) for i in range(2)]
     with pytest.raises(ValueError, match="more than one effect delaying the force"):
         Registry(delayed)
+
+
+def test_two_effects_producing_one_column_name_fail_loudly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Coefficients are keyed by column name: a second effect reusing ``toy_f0`` is a registry bug, raised as
+    such (not a ValueError, which discovery would take for a candidate that cannot be fitted)."""
+    twin = EffectSpec("constant_force_2", NoShape, _params, _evidence, _search, column_rank=46, columns=_columns)
+    reg = Registry((TOY, twin))
+    monkeypatch.setattr(fx, "REGISTRY", reg)
+    st = synth.draw_stage(np.random.default_rng(5))
+    sig = prepare(synth.closed_loop(st, motion=synth.Motion(duration_s=4.0), seed=5))
+    h = reg.with_effect(reg.with_effect(Hyp(), "constant_force"), "constant_force_2")
+    with pytest.raises(RuntimeError, match="toy_f0 produced twice"):
+        rg.design(sig, h)
