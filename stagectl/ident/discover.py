@@ -72,12 +72,9 @@ from stagectl.ident.signals import Signals, prepare
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-__all__ = ["BOOT_QUANTILE", "BOOT_SAMPLES", "CATALOGUE", "GAP_METRIC", "MIN_EXPLAINED_FRACTION", "MIN_EXPLAINED_NOISE",
+__all__ = ["BOOT_QUANTILE", "BOOT_SAMPLES", "GAP_METRIC", "MIN_EXPLAINED_FRACTION", "MIN_EXPLAINED_NOISE",
            "MIN_REL_GAIN", "Dataset", "DiscoveryResult", "compare", "discover", "fit_candidate", "fit_start", "gap",
            "localise", "make_dataset", "regimes"]
-
-#: the discovery catalogue: the registered effects' names, in search order
-CATALOGUE = fx.REGISTRY.names
 
 GAP_METRIC = (
     "force_residual_rms_n: RMS [N] of the zero-phase low-pass filtered inverse-dynamics force residual "

@@ -1,8 +1,8 @@
 """The discovery catalogue: one :class:`~stagectl.ident.hypothesis.EffectSpec` per effect, in :data:`REGISTRY`.
 
 Each entry below holds everything about one effect: its shape (nonlinear parameters, a frozen dataclass),
-its design-matrix columns, its typed fitted parameters (for the six effects of the model file's ``effects:``
-section these are the :mod:`stagectl.friction.effects` dataclasses themselves), the search of its shape, the
+its design-matrix columns, its typed fitted parameters (for the effects that have a twin in the model file's
+``effects:`` section these are the :mod:`stagectl.friction.effects` dataclasses themselves), the search of its shape, the
 evidence text the report prints, and the mapping to and from the model file. The regression
 (:mod:`stagectl.ident.regress`), the workflow (:mod:`stagectl.ident.discover`) and the model-file conversion
 (:mod:`stagectl.ident.modelio`) iterate over :data:`REGISTRY` and name no effect.

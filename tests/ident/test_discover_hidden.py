@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 
 from stagectl.ident import synth
-from stagectl.ident.discover import CATALOGUE, MIN_REL_GAIN, DiscoveryResult, discover
+from stagectl.ident import effects as fx
+from stagectl.ident.discover import MIN_REL_GAIN, DiscoveryResult, discover
+
+CATALOGUE = fx.REGISTRY.names  # the registered effects, in search order
 from stagectl.ident.effects import STRIBECK, StribeckShape
 from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.results import CandidateFit
