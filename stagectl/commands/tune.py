@@ -59,6 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import IoKind, load_app_config
+    from stagectl.control.controller import controller_mass
 
     out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None}
     if args.config:
@@ -68,9 +69,7 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         out["period_s"] = cfg.loop.period_s
         if cfg.io.kind is IoKind.PLANT_IO:
             out["delay_samples"] = int(cfg.io.delay_cycles)
-        mass = ctl.mass_kg
-        if mass is None and ctl.feedforward.model is not None:
-            mass = ctl.feedforward.model.mass_kg
+        mass = controller_mass(ctl, ctl.feedforward.model)
         if mass is None and cfg.sim is not None:
             mass = cfg.sim.plant.mass_kg
         out["mass_kg"] = mass

@@ -150,6 +150,13 @@ def _model_of(cfg: ControllerConfig, model: StageModel | FrictionModel | None) -
     return resolve_model(cfg, None)
 
 
+def controller_mass(cfg: ControllerConfig, sm: StageModel | None) -> float | None:
+    """The nominal moving mass [kg]: ``controller.mass_kg``, else the stage model's, else None."""
+    if cfg.mass_kg is not None:
+        return cfg.mass_kg
+    return sm.mass_kg if sm is not None else None
+
+
 def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | None = None) -> list[str]:
     """What :class:`StageController` needs besides a valid ``cfg``: a model for ``feedforward.kind: model``
     and a mass (``mass_kg`` or the model's). Returns the problems (empty: the controller can be built); the
@@ -162,7 +169,7 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
     if cfg.feedforward.kind == "model" and sm is None:
         problems.append("controller.feedforward: kind 'model' needs friction:, model_file: or a model "
                         "from the application (or use kind: none / coulomb)")
-    if cfg.mass_kg is None and (sm is None or sm.mass_kg is None):
+    if controller_mass(cfg, sm) is None:
         problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
                         "or give mass_kg in the model file)")
     return problems
@@ -224,7 +231,7 @@ class StageController:
         ffc = cfg.feedforward
         same_ff = old is not None and old.cfg.feedforward == ffc
         sm = _model_of(cfg, self._model_arg)
-        mass = cfg.mass_kg if cfg.mass_kg is not None else (sm.mass_kg if sm is not None else None)
+        mass = controller_mass(cfg, sm)
         if mass is None:  # excluded by check_controller
             raise ConfigError("controller.mass_kg: required key missing kg")
         # feed-forward
@@ -419,5 +426,6 @@ __all__ = [
     "StageController",
     "check_controller",
     "controller_from_mapping",
+    "controller_mass",
     "resolve_model",
 ]
