@@ -33,9 +33,8 @@ import numpy.typing as npt
 
 from stagectl.errors import StageError
 from stagectl.ident.recording import RecordingCsv
-from stagectl.outputs import prepare_out_dir
 
-__all__ = ["Recorder", "plot_run", "prepare_out_dir", "tracking_summary", "write_outputs"]
+__all__ = ["Recorder", "plot_run", "tracking_summary", "write_outputs"]
 
 
 class Recorder:
