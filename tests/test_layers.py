@@ -38,7 +38,7 @@ RANKS: dict[int, tuple[str, ...]] = {
     6: ("stagectl.config",),
     7: ("stagectl.app", "stagectl.host"),
     8: ("stagectl.daemon",),
-    9: ("stagectl.bench",),
+    9: ("stagectl.bench", "stagectl.commission"),
     10: ("stagectl.commands", "stagectl.cli"),
 }
 #: ranks whose groups are independent of each other: friction, drivers and safety know nothing of each
