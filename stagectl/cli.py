@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import re
 import sys
 from collections.abc import Sequence
 
@@ -32,12 +34,28 @@ COMMAND_MODULES = (
 COMMAND_ALIASES = {name: "clients" for name in ("status", "move", "stop", "reset", "record", "gains")}
 
 
+#: sphinx/rst markup in the command modules' docstrings, shown plain in ``--help``
+_MARKUP = re.compile(r"``([^`]+)``|:(?:mod|func|class|meth|attr|data):`~?([^`]+)`")
+
+
+class StageArgumentParser(argparse.ArgumentParser):
+    """argparse with two fixes every subcommand inherits: ``--by -1e-5`` is a value, not an unknown
+    option (argparse's own negative-number rule knows no exponent), and descriptions lose their rst markup."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        desc = kwargs.get("description")
+        if isinstance(desc, str):
+            kwargs["description"] = _MARKUP.sub(lambda m: m.group(1) or m.group(2), desc)
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._negative_number_matcher = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$|^-inf$")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The full parser, or with ``only`` (a module of :data:`COMMAND_MODULES`) just that command's, so a
     command does not pay for importing every other one (``bench`` pulls in numpy/numba: ~0.4 s)."""
     from stagectl import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = StageArgumentParser(
         prog="stagectl",
         description="Friction-compensating controller for precision linear stages (SI units throughout).",
     )
@@ -71,9 +89,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        out = getattr(args, "out", None)
+        where = f"; outputs in {out} are incomplete" if out else ""
+        print(f"stagectl: interrupted (Ctrl-C){where}", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as exc:  # the environment, not a bug: disk full, permission, a path that vanished
+        name = exc.filename if exc.filename is not None else "output"
+        print(f"stagectl: error: {name}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: one line for the user, the traceback on request
+        if os.environ.get("STAGECTL_TRACEBACK"):
+            raise
+        print(f"stagectl: internal error: {type(exc).__name__}: {str(exc)[:200]} "
+              "(a bug in stagectl: please report it; STAGECTL_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+        return 70
 
 
 if __name__ == "__main__":  # pragma: no cover

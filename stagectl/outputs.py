@@ -20,7 +20,7 @@ from typing import Any
 
 from stagectl.errors import ConfigError
 
-__all__ = ["plain", "prepare_out_dir"]
+__all__ = ["plain", "prepare_out_dir", "prepare_out_file"]
 
 
 def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
@@ -49,6 +49,25 @@ def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
         probe.unlink()
     except OSError as exc:
         raise ConfigError(f"{option}: cannot write to directory {str(p)!r} ({exc.strerror or exc})") from None
+    return p
+
+
+def prepare_out_file(path: str | Path, option: str = "--out") -> Path:
+    """Check *before* a long run that ``path`` can be written as a file: not a directory, its directory
+    exists and takes a new file. Raises :class:`ConfigError` ``"{option}: ..."`` otherwise."""
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{option}: {str(p)!r} is a directory (expected a file path)")
+    if not p.parent.is_dir():
+        raise ConfigError(f"{option}: directory {str(p.parent)!r} does not exist")
+    if p.exists() and not p.is_file():  # a device or pipe (/dev/full): written as is, errors caught then
+        return p
+    try:
+        probe = p.parent / f".{p.name}.stagectl-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{option}: cannot write to {str(p)!r} ({exc.strerror or exc})") from None
     return p
 
 

@@ -23,6 +23,7 @@ import sys
 import time
 from typing import Any
 
+from stagectl.commands.args import number
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.paths import first_dir
 from stagectl.errors import StageError
@@ -42,13 +43,13 @@ def default_socket() -> str:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", metavar="PATH", default=None,
                    help=f"control socket of the daemon (default: $STAGECTL_SOCKET or {DEFAULT_SOCKET})")
-    p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="reply timeout [s] (default 10)")
+    p.add_argument("--timeout", type=number("s", lo=0, lo_open=True, hi=3600), default=10.0, metavar="S", help="reply timeout [s] (default 10)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("status", help="show the daemon's state, position, loop timing and telemetry")
     _common(p)
-    p.add_argument("--watch", nargs="?", const=1.0, type=float, metavar="S",
+    p.add_argument("--watch", nargs="?", const=1.0, type=number("s", lo=0.01, hi=3600), metavar="S",
                    help="refresh every S seconds (default 1) until Ctrl-C")
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=cmd_status)
@@ -56,9 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p = sub.add_parser("move", help="move the stage to an absolute position or by a distance (metres)")
     _common(p)
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--to", type=float, metavar="M", help="absolute target [m]")
-    g.add_argument("--by", type=float, metavar="M", help="relative distance [m] from the current target")
-    p.add_argument("--max-velocity", type=float, metavar="M_S", help="velocity limit for this move [m/s]")
+    g.add_argument("--to", type=number("m"), metavar="M", help="absolute target [m]")
+    g.add_argument("--by", type=number("m"), metavar="M", help="relative distance [m] from the current target")
+    p.add_argument("--max-velocity", type=number("m/s", lo=0, lo_open=True), metavar="M_S", help="velocity limit for this move [m/s]")
     p.set_defaults(func=cmd_move)
 
     p = sub.add_parser("stop", help="decelerate and hold position")

@@ -12,6 +12,7 @@ import argparse
 import json
 import sys
 
+from stagectl.commands.args import number
 from stagectl.outputs import prepare_out_dir
 
 
@@ -27,9 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--validate", help="validation recording (default: held-out contiguous blocks of DATA)")
     p.add_argument("--columns", help="column mapping, e.g. t=t_s,x=position_m,u=force_N,x_ref=reference_m")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, PNGs, model.yaml)")
-    p.add_argument("--cutoff-hz", type=float, default=None,
+    p.add_argument("--cutoff-hz", type=number("Hz", lo=0, lo_open=True), default=None,
                    help="zero-phase low-pass cut-off for the inverse dynamics [Hz] (default min(fs/10, 100 Hz))")
-    p.add_argument("--max-rounds", type=int, default=6, help="maximum number of effects to add")
+    p.add_argument("--max-rounds", type=number("effects", lo=0, hi=20, integer=True), default=6, help="maximum number of effects to add")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
     p.set_defaults(func=run)

@@ -10,11 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.commands.args import number
 from stagectl.errors import ConfigError
-from stagectl.outputs import plain, prepare_out_dir
+from stagectl.outputs import plain, prepare_out_dir, prepare_out_file
 from stagectl.schema import load
 
 if TYPE_CHECKING:
@@ -33,8 +33,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--columns", help="column mapping, e.g. t=t_s,x=position_m,u=force_N")
     p.add_argument("--elements", type=int, default=None,
                    help="number of Maxwell-slip/GMS elements (default: chosen by BIC, 1..8)")
-    p.add_argument("--mass-kg", type=float, default=None, help="known moving mass [kg] (default: estimated)")
-    p.add_argument("--cutoff-hz", type=float, default=None, help="inverse-dynamics low-pass cut-off [Hz]")
+    p.add_argument("--mass-kg", type=number("kg", lo=0, lo_open=True), default=None, help="known moving mass [kg] (default: estimated)")
+    p.add_argument("--cutoff-hz", type=number("Hz", lo=0, lo_open=True), default=None, help="inverse-dynamics low-pass cut-off [Hz]")
     p.add_argument("--json", action="store_true", help="print the fit quality as JSON")
     p.set_defaults(func=run)
 
@@ -47,9 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.elements is not None and not 1 <= args.elements <= 32:
         raise ConfigError(f"--elements: must be between 1 and 32 (got {args.elements})")
-    out_parent = Path(args.out).resolve().parent
-    if Path(args.out).is_dir() or not out_parent.is_dir():
-        raise ConfigError(f"--out {args.out}: must be a file path in an existing directory")
+    prepare_out_file(args.out)
     if args.plot:
         prepare_out_dir(args.plot, "--plot")
     rec = load_recording(args.data, args.columns, min_rows=50)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+from stagectl.commands.args import number
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("model", help="plot or compare friction model files (virgin curve, loops, Stribeck)")
@@ -18,7 +20,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
     def common(q: argparse.ArgumentParser) -> None:
         q.add_argument("--out", required=True, help="output directory for the PNG files (created)")
-        q.add_argument("--x-max-um", type=float, default=30.0,
+        q.add_argument("--x-max-um", type=number("µm", lo=0, lo_open=True), default=30.0,
                        help="virgin-curve range [µm] (default 30); loops use 2/3 of it")
         q.add_argument("--json", action="store_true", help="print a JSON summary instead of the paths")
 

@@ -15,11 +15,13 @@ from __future__ import annotations
 import argparse
 import threading
 
+from stagectl.commands.args import number
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("sim-plant", help="run the virtual CANopen/serial devices as their own process")
     p.add_argument("--config", required=True, help="YAML file with a sim: section")
-    p.add_argument("--port", type=int, default=None, help="override sim.transport.port (0 = ephemeral)")
+    p.add_argument("--port", type=number("(TCP port)", lo=0, hi=65535, integer=True), default=None, help="override sim.transport.port (0 = ephemeral)")
     p.set_defaults(func=run)
 
 
@@ -47,9 +49,9 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     import sys
     from pathlib import Path
 
+    from stagectl.config import ModelFiles, parse_sim_section
     from stagectl.errors import ConfigError
     from stagectl.schema import load_yaml_file
-    from stagectl.config import ModelFiles, parse_sim_section
     from stagectl.sim.world import SimWorld
 
     path = Path(args.config)

@@ -16,6 +16,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.commands.args import number
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 
@@ -34,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
-    p.add_argument("--tolerance", type=float, default=10e-9, help="settling band [m] (default 1e-8)")
+    p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
 

@@ -224,6 +224,9 @@ def prepare(
             f"{dt:.6g} s by {100 * jitter:.0f} % (identification needs uniform sampling)"
         )
     fs = 1.0 / dt
+    if cutoff_hz is not None and not (math.isfinite(cutoff_hz) and 0.0 < cutoff_hz < 0.5 * fs):
+        raise DataError(f"--cutoff-hz: must be between 0 and the recording's Nyquist frequency {0.5 * fs:.6g} Hz "
+                        f"(sampled at {fs:.6g} Hz), got {cutoff_hz:.6g} Hz")
     fc = float(cutoff_hz) if cutoff_hz else min(0.1 * fs, DEFAULT_MAX_CUTOFF_HZ)
     sos = lowpass_sos(fc, fs)
     x = rec.x
