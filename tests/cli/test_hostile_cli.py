@@ -1,0 +1,155 @@
+"""Every command with hostile arguments: one ``stagectl…: error:`` line, exit 2, never a traceback.
+
+The table runs in-process through :func:`stagectl.cli.main` (the console script's entry point, so what it
+prints is what a user sees); a few cases also run as real subprocesses to prove the installed script
+behaves the same. Each case must fail *before* any long work: the whole table takes seconds.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stagectl import cli
+
+REPO = Path(__file__).resolve().parents[2]
+ERROR_LINE = re.compile(r"^stagectl(?: [\w-]+)*: error: \S")
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small, valid recording (a slow sine with Coulomb friction), so only the hostile option fails."""
+    d = tmp_path_factory.mktemp("rec")
+    t = np.arange(0, 2.0, 1e-3)
+    x = 1e-4 * np.sin(2 * np.pi * 1.0 * t)
+    u = 2.0 * np.sign(np.cos(2 * np.pi * 1.0 * t)) + 0.5 * np.cos(2 * np.pi * t)
+    p = d / "rec.csv"
+    np.savetxt(p, np.column_stack([t, x, u]), delimiter=",", header="t,x,u", comments="", fmt="%.10g")
+    return p
+
+
+HOSTILE = [
+    # numbers out of range, not finite, not numbers: refused with the option and its unit
+    "run --config config/sim.yaml --duration -1",
+    "run --config config/sim.yaml --duration nan",
+    "simulate --config config/sim.yaml --out {tmp}/o --tolerance -1",
+    "simulate --config config/sim.yaml --out {tmp}/o --tolerance abc",
+    "simulate --config config/sim.yaml --out {tmp}/o --duration 0",
+    "status --timeout -1 --socket {tmp}/none.sock",
+    "status --timeout inf --socket {tmp}/none.sock",
+    "move --to nan --socket {tmp}/none.sock",
+    "move --by 1e-5 --max-velocity -1 --socket {tmp}/none.sock",
+    "sim-plant --config config/hil-canopen.yaml --port 99999",
+    "identify {rec} --model gms --out {tmp}/m.yaml --cutoff-hz -5",
+    "identify {rec} --model gms --out {tmp}/m.yaml --cutoff-hz 0",
+    "identify {rec} --model gms --out {tmp}/m.yaml --cutoff-hz 10000",
+    "identify {rec} --model gms --out {tmp}/m.yaml --mass-kg -2",
+    "identify {rec} --model gms --out {tmp}/m.yaml --elements 0",
+    "discover {rec} --out {tmp}/d --cutoff-hz -5",
+    "discover {rec} --out {tmp}/d --cutoff-hz 10000",
+    "discover {rec} --out {tmp}/d --max-rounds -1",
+    "tune --config config/sim.yaml --bandwidth-hz -3",
+    # paths that cannot be read or written: checked before the work
+    "run --config {tmp}/missing.yaml",
+    "simulate --config {tmp} --out {tmp}/o",
+    "simulate --config config/sim.yaml --out /proc/stagectl-x",
+    "identify {rec} --model gms --out /proc/stagectl-x.yaml",
+    "identify {rec} --model gms --out {tmp}",
+    "identify {tmp} --model gms --out {tmp}/m.yaml",
+    "identify /dev/null --model gms --out {tmp}/m.yaml",
+    "identify {rec} --model gms --out {tmp}/m.yaml --columns t=zz",
+    "identify {rec} --model gms --out {tmp}/m.yaml --columns garbage",
+    "discover {rec} --out /proc/stagectl-x",
+    "discover {rec} --out {tmp}/d --validate {tmp}/missing.csv",
+    "check-config /dev/null",
+    "check-config {rec}",
+    "model plot {tmp}/missing.yaml --out {tmp}/p.png",
+    "model plot config/models/kamenar2016_gms.yaml --out /dev/full",
+    # no daemon behind the socket
+    "status --socket {tmp}/none.sock",
+    "gains --socket {rec}",
+    "move --by -1e-5 --socket {tmp}/none.sock",
+    "reset --socket {tmp}/none.sock",
+    "stop --socket {tmp}/none.sock",
+    "record start x --socket {tmp}/none.sock",
+    # argparse's own refusals
+    "identify {rec} --model nosuch --out {tmp}/m.yaml",
+    "nosuchcommand",
+]
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    try:
+        rc = cli.main(argv)
+    except SystemExit as exc:  # argparse exits with 2 itself
+        rc = int(exc.code) if isinstance(exc.code, int) else 1
+    return rc, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("case", HOSTILE)
+def test_hostile_arguments_give_one_error_line_and_exit_2(case: str, rec: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)
+    argv = shlex.split(case.format(rec=rec, tmp=tmp_path))
+    rc, err = _run(argv, capsys)  # an uncaught exception fails the test here: that is a traceback
+    lines = [line for line in err.splitlines() if line.strip()]
+    errors = [line for line in lines if ERROR_LINE.match(line)]
+    usage = [line for line in lines if line.startswith(("usage:", " "))  # argparse's usage block
+             or re.search(r": \d+ problems?$", line)]  # check-config's count before its list
+    assert rc == 2, (rc, err)
+    assert errors and len(errors) + len(usage) == len(lines), err  # one line per problem, nothing else
+    assert len(errors) == 1 or "check-config" in case, err  # several only where the config has several
+    assert "Traceback" not in err and "internal error" not in err, err
+
+
+def test_negative_scientific_values_are_values_not_options(capsys: pytest.CaptureFixture[str],
+                                                           tmp_path: Path) -> None:
+    rc, err = _run(["move", "--by", "-1e-5", "--socket", str(tmp_path / "none.sock")], capsys)
+    assert rc == 2 and "no control socket" in err, err  # parsed: it got as far as connecting
+
+
+def test_help_has_no_rst_markup(capsys: pytest.CaptureFixture[str]) -> None:
+    for cmd in ("identify", "discover", "simulate", "sim-plant"):
+        with pytest.raises(SystemExit):
+            cli.main([cmd, "--help"])
+        out = capsys.readouterr().out
+        assert "``" not in out and ":mod:" not in out and ":func:" not in out, out
+
+
+def test_a_bug_is_one_line_with_exit_70(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+                                        tmp_path: Path) -> None:
+    """A genuine bug (here: a command that raises) is reported in one line, the traceback on request."""
+    from stagectl.commands import check_config
+
+    def boom(args: object) -> int:
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(check_config, "run", boom)
+    monkeypatch.delenv("STAGECTL_TRACEBACK", raising=False)
+    rc, err = _run(["check-config", str(tmp_path / "x.yaml")], capsys)
+    assert rc == 70 and err.count("\n") == 1 and "internal error: ZeroDivisionError" in err, err
+    monkeypatch.setenv("STAGECTL_TRACEBACK", "1")
+    with pytest.raises(ZeroDivisionError):
+        cli.main(["check-config", str(tmp_path / "x.yaml")])
+
+
+@pytest.mark.parametrize("case", [
+    "identify {tmp}/missing.csv --model gms --out {tmp}/m.yaml --cutoff-hz -5",
+    "status --timeout -1 --socket {tmp}/none.sock",
+])
+def test_installed_script_gives_one_line_too(case: str, tmp_path: Path) -> None:
+    script = Path(sys.executable).with_name("stagectl")
+    argv = [str(script)] if script.exists() else [sys.executable, "-m", "stagectl.cli"]
+    p = subprocess.run([*argv, *shlex.split(case.format(tmp=tmp_path))], capture_output=True, text=True,
+                       cwd=REPO, timeout=120, env={**os.environ, "STAGECTL_TRACEBACK": ""})
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr
+    assert sum(bool(ERROR_LINE.match(line)) for line in p.stderr.splitlines()) == 1, p.stderr
