@@ -59,7 +59,8 @@ def prepare_out_file(path: str | Path, option: str = "--out") -> Path:
     if p.is_dir():
         raise ConfigError(f"{option}: {str(p)!r} is a directory (expected a file path)")
     if not p.parent.is_dir():
-        raise ConfigError(f"{option}: directory {str(p.parent)!r} does not exist")
+        raise ConfigError(f"{option}: directory {str(p.parent)!r} does not exist (expected a file path in an "
+                          "existing directory)")
     if p.exists() and not p.is_file():  # a device or pipe (/dev/full): written as is, errors caught then
         return p
     try:

@@ -1,7 +1,8 @@
 """``stagectl identify DATA.csv --model NAME --out MODEL.yaml [--plot DIR] [--columns ...] [--elements N] [--json]``.
 
-Identifies a friction model (gms, maxwell_slip, stribeck, lugre, dahl, hsieh) from a recording and writes a
-model file (``mass_kg`` when the data excite it, ``friction``, ``meta`` with the fit quality) that
+Identifies a friction model (gms, maxwell_slip, stribeck, lugre, dahl, hsieh) from a recording, judges the
+fit (verdict good / fair / poor from the force error and the parameters' standard deviations; exit status 3
+for poor, with what to record instead) and writes a model file (``mass_kg`` when the data excite it, ``friction``, ``meta`` with the fit quality) that
 ``stagectl.friction.load_model_file`` and the plant load. See :mod:`stagectl.ident.identify`.
 """
 
@@ -74,7 +75,25 @@ def run(args: argparse.Namespace) -> int:
               f"({100 * fit.get('relative_error', float('nan')):.2f} % of the RMS friction force)")
         for note in quality.get("notes", []):
             print(f"note: {note}")
-    return 0
+    return _report_verdict(quality.get("verdict", {}), args.model)
+
+
+def _report_verdict(v: dict[str, Any], model: str) -> int:
+    """The verdict on stderr; exit status 3 when the recording cannot identify what was asked."""
+    if not v:
+        return 0
+    mass = v.get("mass_std_relative")
+    mass_txt = f", mass ±{100 * mass:.0f} %" if mass is not None else ""
+    print(f"verdict: {v['verdict']} (force error {100 * v['force_error_relative']:.1f} %, model force determined "
+          f"to ±{100 * (v.get('prediction_std_relative') or 0.0):.1f} %{mass_txt}; local estimates, see --json)",
+          file=sys.stderr)
+    for reason in v.get("reasons", []):
+        print(f"stagectl: warning: {reason}", file=sys.stderr)
+    if v.get("not_determined"):
+        print(f"note: not determined by this recording: {', '.join(v['not_determined'])}", file=sys.stderr)
+    for advice in v.get("record_instead", []):
+        print(f"stagectl: warning: to identify {model}, record {advice}", file=sys.stderr)
+    return 3 if v["verdict"] == "poor" else 0
 
 
 def _plots(res: Identified, out_dir: str) -> list[str]:

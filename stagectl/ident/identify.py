@@ -49,6 +49,7 @@ from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.modelio import hyp_to_spec
 from stagectl.ident.recording import Recording
 from stagectl.ident.signals import Signals, prepare
+from stagectl.ident.verdict import assess
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -405,6 +406,9 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
             quality["notes"].append(f"constant force {stri['offset_n']:.4g} N found with the friction curve; "
                                     "written as effects.offset")
         quality["fit"] = _fit_quality(meas, spec, meas.sig.evaluate, effects)
+        quality["verdict"] = assess(meas.sig, meas.force, spec, meas.sig.evaluate, model=model,
+                                    mass_estimated=meas.mass_kg if mass_kg is None else None,
+                                    offset_n=effects.get("offset", {}).get("force_n", 0.0))
         return Identified(spec, meas.mass_kg, quality, meas, virgin, effects)
 
     assert virgin is not None or model == "lugre"
@@ -432,6 +436,8 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
     notes = quality["notes"] + best[2].pop("notes", [])
     quality.update(best[2])
     quality["notes"] = notes
+    quality["verdict"] = assess(meas.sig, meas.force, spec, all_rows, model=model,
+                                mass_estimated=meas.mass_kg if mass_kg is None else None)
     return Identified(spec, meas.mass_kg, quality, meas, virgin)
 
 
