@@ -28,6 +28,8 @@ COMMAND_MODULES = (
     "identify",
     "discover",
     "bench",
+    "scope",
+    "plot",
 )
 
 #: command names that live in a module of another name (the rest: name with '-' as '_')

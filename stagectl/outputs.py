@@ -2,6 +2,7 @@
 
 * :func:`prepare_out_dir` -- create an ``--out`` directory *before* a long run and prove it writable, so a
   bad path is one clear :class:`~stagectl.errors.ConfigError` line up front, not a traceback afterwards.
+* :func:`prefix_for`, :func:`si` -- a value or an axis in the SI prefix that suits it (nm, µm, mm; mN, N).
 * :func:`plain` -- dataclasses, enums, tuples, numpy scalars/arrays and paths as plain Python (dict, list,
   float, int, str, bool, None) for YAML and JSON; ``json=True`` also maps NaN/inf to ``None`` (JSON has no
   non-finite numbers).
@@ -20,7 +21,7 @@ from typing import Any
 
 from stagectl.errors import ConfigError
 
-__all__ = ["plain", "prepare_out_dir", "prepare_out_file"]
+__all__ = ["plain", "prefix_for", "prepare_out_dir", "prepare_out_file", "si"]
 
 
 def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
@@ -99,3 +100,28 @@ def plain(obj: Any, *, json: bool = False) -> Any:
     if callable(tolist):
         return plain(tolist(), json=json)
     return obj
+
+
+#: SI prefixes for :func:`si`
+_PREFIXES = ((1e-9, "n"), (1e-6, "µ"), (1e-3, "m"), (1.0, ""), (1e3, "k"))
+
+
+def prefix_for(peak: float, unit: str) -> tuple[float, str]:
+    """``(factor, label)`` such that ``peak·factor`` reads 1…1000 in ``label`` (``unit`` with an SI prefix;
+    forces from 1 mN up stay in N, as a force reads best in N)."""
+    peak = abs(peak) if math.isfinite(peak) else 0.0
+    if unit == "N" and peak >= 1e-3:
+        return 1.0, "N"
+    factor, prefix = 1.0, ""
+    for f, p in _PREFIXES:
+        if peak >= f or f == _PREFIXES[0][0]:
+            factor, prefix = f, p
+    return 1.0 / factor, prefix + unit
+
+
+def si(value: float, unit: str, digits: int = 4) -> str:
+    """``value`` (in ``unit``) with the prefix that suits it: ``si(1.2345e-6, "m") == "1.2345 µm"``."""
+    if not math.isfinite(value):
+        return f"{value} {unit}"
+    k, label = prefix_for(value, unit)
+    return f"{value * k:.{digits}f} {label}"

@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.errors import ConfigError
+from stagectl.outputs import prefix_for
 from stagectl.friction.base import FrictionModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -188,3 +189,55 @@ def compare_virgin(a: Curves, b: Curves) -> dict[str, float]:
     d = np.interp(x, a.virgin_x_m, a.virgin_f_n) - np.interp(x, b.virgin_x_m, b.virgin_f_n)
     return {"virgin_rms_diff_n": float(np.sqrt(np.mean(d**2))), "virgin_max_abs_diff_n": float(np.max(np.abs(d))),
             "range_m": float(x[-1])}
+
+
+# ------------------------------------------------------------------------------------------------ recordings
+#: panels of a recording plot: title, SI unit, the columns it takes (in drawing order), by name
+RECORDING_PANELS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
+    ("position", "m", ("x_ref", "x")),
+    ("tracking error x_ref − x", "m", ("e",)),
+    ("force", "N", ("u", "u_pid", "u_dob", "u_ff", "u_inertia", "u_p", "u_i", "u_d")),
+    ("velocity", "m/s", ("v_ref", "v")),
+    ("acceleration", "m/s²", ("a_ref",)),
+)
+#: the PID's own parts are drawn thin and dashed: they sum to u_pid
+_DETAIL = ("u_p", "u_i", "u_d")
+
+
+def plot_recording(columns: Sequence[str], data: FloatArray, path: str | Path, title: str = "") -> Path:
+    """One PNG of any recording (telemetry, simulate, commissioning, a user's CSV with t, x, u …).
+
+    One panel per quantity present (position, error, force and its terms, velocity, acceleration; any other
+    column gets its own panel), each y axis in the SI prefix that suits its range (nm, µm, mm; mN, N), one
+    colour per trace from a qualitative palette, legends outside the axes so they cover no data.
+    """
+    import matplotlib  # heavy optional library: imported only when a plot is drawn
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = list(columns)
+    if "t" not in cols:
+        raise ConfigError("plot: the recording has no 't' column (time in s)")
+    t = data[:, cols.index("t")]
+    known = {c for _, _, group in RECORDING_PANELS for c in group} | {"t"}
+    panels = [(ttl, unit, [c for c in group if c in cols]) for ttl, unit, group in RECORDING_PANELS]
+    panels = [p for p in panels if p[2]] + [(c, "", [c]) for c in cols if c not in known]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(11, 2.2 + 2.0 * len(panels)), sharex=True, squeeze=False)
+    colours = plt.get_cmap("tab10").colors
+    for ax, (ttl, unit, group) in zip(axes[:, 0], panels, strict=True):
+        peak = max(float(np.nanmax(np.abs(data[:, cols.index(c)]))) if data.shape[0] else 0.0 for c in group)
+        k, label = prefix_for(peak, unit) if unit else (1.0, "")
+        for i, c in enumerate(group):
+            detail = c in _DETAIL
+            ax.plot(t, data[:, cols.index(c)] * k, lw=0.6 if detail else 0.9, ls="--" if detail else "-",
+                    color=colours[i % len(colours)], label=c)
+        ax.set_ylabel(f"{ttl}\n[{label}]" if label else ttl, fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, frameon=False)
+    axes[-1, 0].set_xlabel("time t [s]")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(plt, fig, Path(path))

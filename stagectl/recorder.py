@@ -33,6 +33,7 @@ import numpy.typing as npt
 
 from stagectl.errors import StageError
 from stagectl.ident.recording import RecordingCsv
+from stagectl.plots import plot_recording
 
 __all__ = ["Recorder", "plot_run", "tracking_summary", "write_outputs"]
 
@@ -123,37 +124,11 @@ def tracking_summary(rec: Recorder, *, tol_m: float = 10e-9, skip_s: float = 0.0
 
 
 def plot_run(rec: Recorder, out_dir: str | Path, title: str = "") -> list[Path]:
-    """Write ``tracking.png`` (x and x_ref, error, force terms) into ``out_dir``; returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """Write ``tracking.png`` (position and reference, error, force and its terms, velocity; see
+    :func:`stagectl.plots.plot_recording`) into ``out_dir``; returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    t = rec.col("t")
-    fig, ax = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
-    ax[0].plot(t, rec.col("x_ref") * 1e6, label="x_ref", lw=1)
-    ax[0].plot(t, rec.col("x") * 1e6, label="x", lw=0.8)
-    ax[0].set_ylabel("position [µm]")
-    ax[0].legend(loc="best")
-    ax[1].plot(t, rec.col("e") * 1e9, lw=0.7)
-    ax[1].set_ylabel("error x_ref − x [nm]")
-    ax[1].grid(True, alpha=0.3)
-    ax[2].plot(t, rec.col("u"), label="u", lw=1)
-    for name in rec.columns:
-        if name.startswith("u_"):
-            ax[2].plot(t, rec.col(name), label=name, lw=0.7)
-    ax[2].set_ylabel("force [N]")
-    ax[2].set_xlabel("t [s]")
-    ax[2].legend(loc="best", fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    p = out / "tracking.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    return [p]
+    return [plot_recording(rec.columns, rec.data, out / "tracking.png", title)]
 
 
 def write_outputs(rec: Recorder, out_dir: str | Path, summary: dict[str, Any], *, plots: bool = True,

@@ -32,3 +32,4 @@ def number(unit: str, *, lo: float | None = None, hi: float | None = None, lo_op
 
     convert.__name__ = "integer" if integer else "number"  # argparse names the type in some messages
     return convert
+

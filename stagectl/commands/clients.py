@@ -17,16 +17,21 @@ exits with code 2; an unreachable daemon also exits 2 with the socket path in th
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any
+
+import yaml
 
 from stagectl.commands.args import number
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.paths import first_dir
 from stagectl.errors import StageError
+from stagectl.outputs import si
 from stagectl.runtime.requests import MoveRequest, ResetRequest, StopRequest
 
 DEFAULT_SOCKET = "/run/stagectl/control.sock"
@@ -43,7 +48,8 @@ def default_socket() -> str:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", metavar="PATH", default=None,
                    help=f"control socket of the daemon (default: $STAGECTL_SOCKET or {DEFAULT_SOCKET})")
-    p.add_argument("--timeout", type=number("s", lo=0, lo_open=True, hi=3600), default=10.0, metavar="S", help="reply timeout [s] (default 10)")
+    p.add_argument("--timeout", type=number("s", lo=0, lo_open=True, hi=3600), default=10.0, metavar="S",
+                   help="reply timeout [s] (default 10)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -59,7 +65,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--to", type=number("m"), metavar="M", help="absolute target [m]")
     g.add_argument("--by", type=number("m"), metavar="M", help="relative distance [m] from the current target")
-    p.add_argument("--max-velocity", type=number("m/s", lo=0, lo_open=True), metavar="M_S", help="velocity limit for this move [m/s]")
+    p.add_argument("--max-velocity", type=number("m/s", lo=0, lo_open=True), metavar="M_S",
+                   help="velocity limit for this move [m/s]")
     p.set_defaults(func=cmd_move)
 
     p = sub.add_parser("stop", help="decelerate and hold position")
@@ -86,17 +93,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 # ---------------------------------------------------------------------------------------------- plumbing
-def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
-    path = args.socket or default_socket()
+@contextlib.contextmanager
+def open_client(socket_path: str | None, timeout_s: float) -> Iterator[ControlClient]:
+    """A connected client; an unreachable daemon or a broken connection is one :class:`StageError` line."""
+    path = socket_path or default_socket()
     try:
-        with ControlClient(path, timeout_s=args.timeout) as c:
-            reply = c.request(req)
+        with ControlClient(path, timeout_s=timeout_s) as c:
+            yield c
     except FileNotFoundError:
         raise StageError(f"{path}: no control socket (is the daemon running? use --socket PATH)") from None
     except PermissionError:
         raise StageError(f"{path}: permission denied (is your user in the daemon's group?)") from None
     except (ConnectionError, TimeoutError, OSError) as exc:
         raise StageError(f"{path}: {exc}") from None
+
+
+def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
+    with open_client(args.socket, args.timeout) as c:
+        reply = c.request(req)
     if not reply.get("ok"):
         raise StageError(str(reply.get("error", "request refused")))
     return reply
@@ -105,16 +119,13 @@ def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
 def _simple(args: argparse.Namespace, req: dict[str, Any]) -> int:
     reply = _request(args, req)
     body = {k: v for k, v in reply.items() if k not in ("ok", "id")}
-    print(", ".join(f"{k}: {_fmt(v)}" for k, v in body.items()) or "ok")
+    print(_yaml(body).rstrip() if body else "ok")
     return 0
 
 
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.9g}"
-    if isinstance(v, (dict, list)):
-        return json.dumps(v)
-    return str(v)
+def _yaml(obj: Any) -> str:
+    """YAML a user can paste into a config (``null``/``true``, not Python's ``None``/``True``)."""
+    return yaml.safe_dump(obj, sort_keys=False, default_flow_style=False, allow_unicode=True)
 
 
 # ---------------------------------------------------------------------------------------------- commands
@@ -145,24 +156,12 @@ def cmd_gains(args: argparse.Namespace) -> int:
         json.dump({"controller": reply.get("controller"), "reload": reply.get("reload")}, sys.stdout, indent=2)
         sys.stdout.write("\n")
         return 0
-    _print_tree(reply.get("controller"), 0)
+    # the controller section as YAML, ready to paste into a config
+    print(_yaml({"controller": reply.get("controller")}).rstrip())
     rl = reply.get("reload")
     if rl:
-        print(f"last reload: {'applied' if rl.get('ok') else 'REJECTED: ' + str(rl.get('error'))}")
+        print(f"# last reload: {'applied' if rl.get('ok') else 'REJECTED: ' + str(rl.get('error'))}")
     return 0
-
-
-def _print_tree(obj: Any, indent: int) -> None:
-    pad = "  " * indent
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            if isinstance(v, dict):
-                print(f"{pad}{k}:")
-                _print_tree(v, indent + 1)
-            else:
-                print(f"{pad}{k}: {_fmt(v)}")
-    else:
-        print(f"{pad}{_fmt(obj)}")
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -214,10 +213,10 @@ def render_status(st: dict[str, Any]) -> str:
 
 
 def _m(v: Any) -> str:
-    """Metres with nm resolution; a value that rounds to zero prints as 0 (never "-0.000000000")."""
+    """Metres in the unit that suits the value (nm, µm, mm, m), to 0.1 nm for sub-mm values."""
     if not isinstance(v, (int, float)) or isinstance(v, bool):
         return "-"
-    return f"{(round(v, 9) or 0.0):.9f} m"
+    return si(float(v), "m")
 
 
 def _n(v: Any) -> str:
