@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.errors import ConfigError
-from stagectl.outputs import prefix_for
 from stagectl.friction.base import FrictionModel
+from stagectl.outputs import prefix_for
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from stagectl.errors import StageError
 from stagectl.ident.recording import RecordingCsv
