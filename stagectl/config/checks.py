@@ -35,6 +35,7 @@ from stagectl.control.controller import ControllerConfig, check_controller
 from stagectl.control.reference import scenario_names
 from stagectl.drivers.canbus import bus_kwargs, can_key_problems
 from stagectl.errors import ConfigError
+from stagectl.runtime.config import LoopConfig
 from stagectl.safety import SafetyConfig
 from stagectl.sim.world import SimWorldConfig
 
@@ -55,6 +56,7 @@ class Sections:
     io: IoConfig | None = None
     demo: DemoConfig | None = None
     sim: SimWorldConfig | None = None
+    loop: LoopConfig | None = None
     #: no ``sim:`` key at all (``sim`` None with ``sim_absent`` False: the section has problems)
     sim_absent: bool = True
 
@@ -62,7 +64,7 @@ class Sections:
     def of(cls, cfg: AppConfig) -> Sections:
         """Every section of a complete configuration."""
         return cls(safety=cfg.safety, controller=cfg.controller, io=cfg.io, demo=cfg.demo, sim=cfg.sim,
-                   sim_absent=cfg.sim is None)
+                   loop=cfg.loop, sim_absent=cfg.sim is None)
 
 
 def _sections(cfg: AppConfig | Sections) -> Sections:
@@ -213,6 +215,61 @@ def controller_problems(cfg: AppConfig | Sections) -> list[str]:
     return check_controller(ctl) if ctl is not None else []
 
 
+#: coarsest plausible position step, as a fraction of the stroke (a precision stage resolves far finer)
+MAX_RESOLUTION_OF_STROKE = 0.01
+
+
+def plausibility_problems(cfg: AppConfig | Sections) -> list[str]:
+    """Values each in range on their own but physically implausible together, one line each:
+
+    * ``safety.following_error_m`` at least the whole stroke (``max_position_m − min_position_m``): the
+      window could never trip;
+    * a sensor's ``resolution_m`` coarser than 1 % of the stroke (metres given where µm or nm were meant);
+    * a filter or observer at or above the Nyquist frequency ``1/(2·loop.period_s)``: a discrete filter
+      cannot act there (the observer, the PID's derivative low-pass, the velocity filters).
+    """
+    s = _sections(cfg)
+    problems: list[str] = []
+    stroke = None
+    if s.safety is not None:
+        stroke = s.safety.max_position_m - s.safety.min_position_m
+        if stroke > 0 and s.safety.following_error_m >= stroke:
+            problems.append(f"safety.following_error_m: {s.safety.following_error_m:g} m is not smaller than the "
+                            f"stroke {stroke:g} m between the soft limits (the window could never trip)")
+    if stroke is not None and stroke > 0:
+        sensors: list[tuple[str, float]] = []
+        if s.io is not None:
+            for name in ("drive", "encoder", "interferometer"):
+                dev = getattr(s.io, name)
+                if dev is not None:
+                    sensors.append((f"io.{name}.resolution_m", dev.resolution_m))
+        if s.sim is not None:
+            sensors.append(("sim.plant.sensor.resolution_m", s.sim.plant.sensor.resolution_m))
+            for name in ("drive", "encoder", "interferometer"):
+                dev = getattr(s.sim, name, None)
+                if dev is not None and hasattr(dev, "resolution_m"):
+                    sensors.append((f"sim.{name}.resolution_m", dev.resolution_m))
+        for key, res in sensors:
+            if res > MAX_RESOLUTION_OF_STROKE * stroke:
+                problems.append(f"{key}: {res:g} m per count is coarser than {100 * MAX_RESOLUTION_OF_STROKE:g} % "
+                                f"of the stroke {stroke:g} m (a value in µm or nm written as metres?)")
+    if s.loop is not None:
+        nyquist = 0.5 / s.loop.period_s
+        filters: list[tuple[str, float | None]] = []
+        if s.controller is not None:
+            ctl = s.controller
+            filters += [("controller.dob.bandwidth_hz", ctl.dob.bandwidth_hz if ctl.dob.kind != "none" else None),
+                        ("controller.pid.derivative_cutoff_hz", ctl.pid.derivative_cutoff_hz),
+                        ("controller.velocity_cutoff_hz", ctl.velocity_cutoff_hz)]
+        if s.safety is not None:
+            filters.append(("safety.velocity_filter_hz", s.safety.velocity_filter_hz))
+        for key, hz in filters:
+            if hz is not None and hz >= nyquist:
+                problems.append(f"{key}: {hz:g} Hz is at or above the Nyquist frequency {nyquist:g} Hz of "
+                                f"loop.period_s {s.loop.period_s:g} s (a sampled filter cannot act there)")
+    return problems
+
+
 def cross_checks(cfg: AppConfig | Sections) -> list[str]:
     """Every cross-section check whose inputs parsed, in a stable order."""
     s = _sections(cfg)
@@ -225,4 +282,5 @@ def cross_checks(cfg: AppConfig | Sections) -> list[str]:
     problems += force_chain_problems(s)
     problems += device_match_problems(s)
     problems += sim_device_problems(s)
+    problems += plausibility_problems(s)
     return problems

@@ -38,6 +38,10 @@ GOOD_ERROR, POOR_ERROR = 0.10, 0.30
 GOOD_PREDICTION, POOR_PREDICTION = 0.05, 0.10
 GOOD_MASS, POOR_MASS = 0.05, 0.15
 
+#: plausible moving masses [kg] and position spans [m] of a linear stage (outside: units are likely wrong)
+MASS_RANGE_KG = (1e-3, 1e5)
+MAX_SPAN_M = 10.0
+
 #: what to record when a parameter is not determined, by the parameter's kind
 ADVICE = {
     "mass": "a motion with acceleration (fast reversals or a multisine) so inertia carries >= 20 % of the force",
@@ -163,6 +167,13 @@ def assess(sig: Any, force: FloatArray, spec: dict[str, Any], rows: npt.NDArray[
                           "(give --mass-kg, or record with more acceleration)", "mass")
         elif mass_rel > GOOD_MASS:
             worse("fair", f"mass {mass_estimated:.4g} kg ± {100 * mass_rel:.0f} %", "mass")
+    if mass_estimated is not None and not MASS_RANGE_KG[0] <= mass_estimated <= MASS_RANGE_KG[1]:
+        worse("poor", f"mass {mass_estimated:.3g} kg is outside {MASS_RANGE_KG[0]:g}…{MASS_RANGE_KG[1]:g} kg, "
+                      "implausible for a stage: are positions in µm or mm written as metres, or forces in mN?", "fit")
+    span = float(np.ptp(sig.xf))
+    if span > MAX_SPAN_M:
+        worse("poor", f"the recording spans {span:.3g} m (> {MAX_SPAN_M:g} m): are positions in µm or nm written "
+                      "as metres?", "fit")
     loose = [nm for nm, row in table.items() if row["identifiability"] == "not determined" and nm != "mass_kg"]
     if loose:
         for nm in loose:

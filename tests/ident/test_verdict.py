@@ -50,3 +50,13 @@ def test_cli_exits_3_with_what_to_record(stage: dict, tmp_path: Path, capsys: py
     assert (tmp_path / "m.yaml").exists()  # written for inspection, but the exit status says it is not usable
     assert main(["identify", str(csv), "--model", "stribeck", "--out", str(tmp_path / "s.yaml")]) == 0
     assert "verdict: good" in capsys.readouterr().err
+
+
+def test_positions_in_micrometres_labelled_metres_are_implausible(stage: dict) -> None:
+    rec = synth.closed_loop(stage, seed=3, motion=synth.Motion(duration_s=6.0))
+    from dataclasses import replace
+
+    wrong = replace(rec, x=rec.x * 1e6)  # µm written as m: the mass comes out a million times too small
+    v = identify(wrong, "stribeck").quality["verdict"]
+    assert v["verdict"] == "poor"
+    assert any("implausible" in r or "written as metres" in r for r in v["reasons"]), v["reasons"]

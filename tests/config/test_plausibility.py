@@ -1,0 +1,35 @@
+"""Implausible but in-range values: one line each, naming the field, the value and the unit."""
+
+from __future__ import annotations
+
+import pytest
+from support import config_problems, shipped_config_mapping
+
+from stagectl.config import parse_app_config
+
+
+def _set(data: dict, path: str, value: object) -> dict:
+    node = data
+    *parents, leaf = path.split(".")
+    for key in parents:
+        node = node.setdefault(key, {})
+    node[leaf] = value
+    return data
+
+
+@pytest.mark.parametrize(("path", "value", "expect"), [
+    ("safety.following_error_m", 50.0, "safety.following_error_m: 50 m is not smaller than the stroke"),
+    ("sim.plant.sensor.resolution_m", 1.0, "sim.plant.sensor.resolution_m: 1 m per count is coarser"),
+    ("controller.dob.bandwidth_hz", 1000.0, "controller.dob.bandwidth_hz: 1000 Hz is at or above the Nyquist "
+                                            "frequency 500 Hz"),
+    ("controller.pid.derivative_cutoff_hz", 600.0, "controller.pid.derivative_cutoff_hz: 600 Hz"),
+    ("safety.velocity_filter_hz", 500.0, "safety.velocity_filter_hz: 500 Hz is at or above"),
+])
+def test_implausible_value_is_one_line(path: str, value: object, expect: str) -> None:
+    problems = config_problems(_set(shipped_config_mapping("sim.yaml"), path, value))
+    assert len(problems) == 1 and problems[0].startswith("x.yaml: " + expect), problems
+
+
+def test_shipped_configs_are_plausible(repo_root) -> None:
+    for name in ("sim.yaml", "hil-canopen.yaml", "hil-serial.yaml", "stage-canopen.yaml"):
+        parse_app_config(shipped_config_mapping(name), repo_root / "config" / name)
