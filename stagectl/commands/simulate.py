@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from stagectl.commands.args import number
+from stagectl.commands.progress import Progress, ProgressSink
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 
@@ -37,11 +38,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
     p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr (for scripts)")
     p.set_defaults(func=run)
 
 
 def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: str | Path, *,
-             tol_m: float = 10e-9, plots: bool = True) -> dict[str, Any]:
+             tol_m: float = 10e-9, plots: bool = True, quiet: bool = True) -> dict[str, Any]:
     """Run one simulation and write its outputs; returns the summary dict.
 
     Raises
@@ -67,12 +69,24 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         duration_s = (sc.duration_s(x0) if sc is not None else 1.0) + 0.2
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise ConfigError(f"--duration: must be > 0 s (got {duration_s})")
+    progress = Progress("simulate", duration_s, "s simulated", quiet=quiet)
+    interrupted = False
     with build_stage(cfg, clock=SimClock()) as stage:
         loop = stage.loop
         rec = Recorder(loop.columns, capacity=int(duration_s / cfg.loop.period_s) + 16)
         loop.add_sink(rec)
+        loop.add_sink(ProgressSink(progress))
         stage.load_scenario(sc)
-        res = loop.run(duration_s=duration_s)
+        try:
+            res = loop.run(duration_s=duration_s)
+        except KeyboardInterrupt:  # keep what was simulated: written below, marked, then Ctrl-C goes on
+            interrupted = True
+        progress.close()
+    if interrupted:
+        summary = {"command": "simulate", "config": str(cfg.path), "scenario": scenario, "interrupted": True,
+                   **(tracking_summary(rec, tol_m=tol_m) if rec.n else {})}
+        write_outputs(rec, out_dir, summary, plots=False)
+        raise KeyboardInterrupt
     summary = {
         "command": "simulate",
         "config": str(cfg.path),
@@ -91,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     from stagectl.config import load_app_config
 
     cfg = load_app_config(args.config)
-    summary = simulate(cfg, args.scenario, args.duration, args.out, tol_m=args.tolerance, plots=not args.no_plots)
+    summary = simulate(cfg, args.scenario, args.duration, args.out, tol_m=args.tolerance, plots=not args.no_plots,
+                       quiet=args.quiet)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0

@@ -20,8 +20,8 @@ def _set(data: dict, path: str, value: object) -> dict:
 @pytest.mark.parametrize(("path", "value", "expect"), [
     ("safety.following_error_m", 50.0, "safety.following_error_m: 50 m is not smaller than the stroke"),
     ("sim.plant.sensor.resolution_m", 1.0, "sim.plant.sensor.resolution_m: 1 m per count is coarser"),
-    ("controller.dob.bandwidth_hz", 1000.0, "controller.dob.bandwidth_hz: 1000 Hz is at or above the Nyquist "
-                                            "frequency 500 Hz"),
+    ("controller.dob.bandwidth_hz", 1000.0, ("controller.dob.bandwidth_hz: 1000 Hz is at or above the Nyquist "
+                                             "frequency 500 Hz")),
     ("controller.pid.derivative_cutoff_hz", 600.0, "controller.pid.derivative_cutoff_hz: 600 Hz"),
     ("safety.velocity_filter_hz", 500.0, "safety.velocity_filter_hz: 500 Hz is at or above"),
 ])
