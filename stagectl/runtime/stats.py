@@ -65,6 +65,7 @@ class LatenessWarner:
         self.interval_s = interval_s
         self._next = 0.0
         self._count = 0
+        self._hinted = False
 
     def note(self, t_s: float, late_s: float, skipped: int, period_s: float, overruns: int) -> None:
         """After each wake-up (loop thread): ``late_s`` behind its deadline after ``skipped`` skipped slots."""
@@ -75,5 +76,10 @@ class LatenessWarner:
             log.warning("loop timing: %d late/overrun cycles in the last %.0f s (latest lateness %.0f us, "
                         "overruns total %d)", self._count, self.interval_s, (late_s + skipped * period_s) * 1e6,
                         overruns)
+            if not self._hinted:  # once: what a user on an ordinary PC needs to know about these lines
+                self._hinted = True
+                log.warning("loop timing: late cycles are expected without real-time scheduling (a loaded PC, "
+                            "no SCHED_FIFO); the systemd unit and `realtime:` in the config request it, see "
+                            "README 'Installing on a stage PC'")
             self._count = 0
             self._next = t_s + self.interval_s
