@@ -93,7 +93,7 @@ class PlantConfig:
 
     mass_kg: float = param(unit="kg", desc="moving mass m", gt=0.0)
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
-    effects: Effects = param(default_factory=Effects, desc="additional effects (stagectl.friction.effects)",
+    effects: Effects = param(default_factory=Effects, desc="additional effects (offset, ripple, cogging, ...)",
                              parse=parse_effects)
     substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", gt=0.0, le=1e-2)
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")

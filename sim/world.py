@@ -98,7 +98,7 @@ class SimTransportConfig:
 class SimWorldConfig:
     """The simulated world (YAML ``sim:`` section)."""
 
-    plant: PlantConfig = param(desc="stage plant (stagectl.sim.plant.PlantConfig)",
+    plant: PlantConfig = param(desc="stage plant (mass, friction, sensor, actuator)",
                                parse=section_parser(PlantConfig))
     drive: SimDriveConfig = param(default_factory=SimDriveConfig, desc="simulated CiA 402 drive")
     encoder: SimEncoderConfig | None = param(None, desc="simulated CiA 406 encoder (optional)")

@@ -69,14 +69,14 @@ class IoConfig:
     delay_cycles: int = param(1, desc="plant_io: actuation delay in SYNC periods (1 = like a sync RPDO)",
                               ge=0, le=100)
     drive: Cia402Config | None = param(
-        None, desc="CiA 402 drive (stagectl.drivers.cia402.Cia402Config); required for canopen; optional for "
+        None, desc="CiA 402 drive; required for canopen; optional for "
         "embedded_canopen (default: matching sim.drive; its can: is the world's bus)")
     encoder: Cia406Config | None = param(
-        None, desc="CiA 406 encoder (stagectl.drivers.cia406.Cia406Config); required for canopen with sensor "
+        None, desc="CiA 406 encoder; required for canopen with sensor "
         "encoder; optional for embedded_canopen, which needs sim.encoder (default: matching sim.encoder; its "
         "can: is the world's bus)")
     interferometer: InterferometerConfig | None = param(
-        None, desc="serial interferometer (stagectl.drivers.interferometer.InterferometerConfig); required for "
+        None, desc="serial interferometer; required for "
         "canopen with sensor interferometer; optional for embedded_canopen, which needs sim.interferometer "
         "(default: matching sim.interferometer; its url is the simulated one's)")
 
@@ -112,15 +112,14 @@ class AppConfig:
     """
 
     safety: SafetyConfig = param(desc="limits and watchdogs")
-    controller: ControllerConfig = param(desc="controller tuning (stagectl.control.controller.ControllerConfig)")
+    controller: ControllerConfig = param(desc="controller tuning (pid, dob, feedforward)")
     loop: LoopConfig = param(default_factory=LoopConfig, desc="loop timing")
     io: IoConfig = param(default_factory=IoConfig, desc="devices")
     demo: DemoConfig = param(default_factory=DemoConfig, desc="demo motion of `stagectl run`")
-    daemon: DaemonConfig = param(default_factory=DaemonConfig, desc="service settings (stagectl.config.daemon)")
+    daemon: DaemonConfig = param(default_factory=DaemonConfig, desc="service settings (control socket, watchdog, telemetry)")
     description: str = param("", desc="free text shown by check-config")
     sim: SimWorldConfig | None = param(
-        None, desc="simulated stage: plant and virtual devices (stagectl.sim.world.SimWorldConfig; parsed by "
-        "the loader with its model file resolved)")
+        None, desc="simulated stage: plant and virtual devices (its model file resolved by the loader)")
     # filled by load_app_config (not a YAML key)
     path: Path | None = dataclasses.field(default=None, metadata={"desc": "source file", "unit": ""})
 
