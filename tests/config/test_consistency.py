@@ -185,7 +185,6 @@ def test_interferometer_driver_config_follows_the_encoder_rule():
 def test_a_missing_required_section_has_no_follow_up_noise():
     probs = config_problems({"loop": {"perod_s": 0.001}})
     assert probs == ["x.yaml: safety: required key missing (limits and watchdogs)",
-                     "x.yaml: controller: required key missing (controller tuning "
-                     "(stagectl.control.controller.ControllerConfig))",
+                     "x.yaml: controller: required key missing (controller tuning (pid, dob, feedforward))",
                      "x.yaml: loop.perod_s: unknown key (did you mean period_s?)",
                      "x.yaml: sim: required for io.kind plant_io (the simulated stage)"]
