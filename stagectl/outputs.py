@@ -124,4 +124,4 @@ def si(value: float, unit: str, digits: int = 4) -> str:
     if not math.isfinite(value):
         return f"{value} {unit}"
     k, label = prefix_for(value, unit)
-    return f"{value * k:.{digits}f} {label}"
+    return f"{round(value * k, digits) or 0.0:.{digits}f} {label}"  # `or 0.0`: never "-0.0000"

@@ -224,7 +224,7 @@ def plot_recording(columns: Sequence[str], data: FloatArray, path: str | Path, t
     panels = [(ttl, unit, [c for c in group if c in cols]) for ttl, unit, group in RECORDING_PANELS]
     panels = [p for p in panels if p[2]] + [(c, "", [c]) for c in cols if c not in known]
     fig, axes = plt.subplots(len(panels), 1, figsize=(11, 2.2 + 2.0 * len(panels)), sharex=True, squeeze=False)
-    colours = plt.get_cmap("tab10").colors
+    colours = [f"C{i}" for i in range(10)]  # matplotlib's default cycle: the qualitative tab10 palette
     for ax, (ttl, unit, group) in zip(axes[:, 0], panels, strict=True):
         peak = max(float(np.nanmax(np.abs(data[:, cols.index(c)]))) if data.shape[0] else 0.0 for c in group)
         k, label = prefix_for(peak, unit) if unit else (1.0, "")

@@ -32,8 +32,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.data).with_suffix(".png")
     prepare_out_file(out)
     rec = load_recording(args.data, args.columns, min_rows=2)
-    named = {"t": rec.t, "x": rec.x, "u": rec.u, "x_ref": rec.x_ref, "v": rec.v, **rec.extra}
-    cols = [k for k, v in named.items() if v is not None]
+    optional = {"x_ref": rec.x_ref, "v": rec.v, **rec.extra}
+    named = {"t": rec.t, "x": rec.x, "u": rec.u, **{k: v for k, v in optional.items() if v is not None}}
+    cols = list(named)
     data = np.column_stack([named[k] for k in cols])
     path = plot_recording(cols, data, out, args.title if args.title is not None else Path(args.data).name)
     print(f"wrote {path}")

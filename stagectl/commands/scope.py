@@ -98,7 +98,11 @@ class ScopeData:
         if column not in self.columns:
             return []
         i = self.columns.index(column)
-        return [r[i] if r[i] is not None else math.nan for r in self.rows]
+        out: list[float] = []
+        for r in self.rows:
+            v = r[i]
+            out.append(math.nan if v is None else float(v))
+        return out
 
     def header(self) -> str:
         st, loop = self.status, self.status.get("loop") or {}
@@ -124,7 +128,7 @@ class ScopeData:
 
     def text_frame(self, width: int = 100, height: int = 40) -> str:
         """The whole view as plain text (``--once``): header, plots drawn by plotext, values, faults."""
-        import plotext as plt
+        import plotext as plt  # type: ignore[import-untyped]  # no type information shipped
 
         out = [self.header(), ""]
         for title, sigs, unit in PLOTS:
@@ -225,18 +229,19 @@ def make_app(data: ScopeData, poll: Poll, rate_hz: float = 10.0) -> App[None]:
 
 def socket_poller(client: Any, data: ScopeData, every: int | None, signals: Sequence[str] | None = None) -> Poll:
     """A ``poll()`` pulling the stream (and, twice a second, the status) through ``client.request``."""
-    state = {"every": every, "status_due": 0.0}
+    every_k: list[int | None] = [every]
+    status_due = [0.0]
 
     def poll() -> None:
         now = time.monotonic()
-        if now >= state["status_due"] or state["every"] is None:
+        if now >= status_due[0] or every_k[0] is None:
             st = client.request({"request": "status"})
             data.set_status(st.get("status", {}))
-            state["status_due"] = now + 0.5
-            if state["every"] is None:  # about 200 points per second of loop time
+            status_due[0] = now + 0.5
+            if every_k[0] is None:  # about 200 points per second of loop time
                 period = (st.get("status", {}).get("loop") or {}).get("period_s") or 1e-3
-                state["every"] = max(1, round(1.0 / (200.0 * period)))
-        req: dict[str, Any] = {"request": "subscribe", "since": data.next, "every": state["every"]}
+                every_k[0] = max(1, round(1.0 / (200.0 * period)))
+        req: dict[str, Any] = {"request": "subscribe", "since": data.next, "every": every_k[0]}
         if signals:
             req["signals"] = list(signals)
         reply = client.request(req)

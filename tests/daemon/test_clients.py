@@ -17,8 +17,8 @@ def test_render_status_shows_fault_telemetry_error_reload_and_watchdog():
         "watchdog": {"reason": "cycle counter not advancing"},
     }
     out = render_status(st)
-    assert "x = 0.000000000 m" in out  # -1e-13 m is not shown as -0
-    assert "x_ref = 0.001500000 m" in out
+    assert "x = -0.0001 nm" in out and "-0.0000" not in out  # each value in its own unit, never "-0"
+    assert "x_ref = 1.5000 mm" in out
     assert "FAULT      following_error: |e| 60 um > 50 um" in out
     assert "TELEMETRY ERROR  /var/lib/stagectl/telemetry: No space left on device" in out
     assert "reload     REJECTED: controller.pid.kp_n_m" in out
