@@ -4,7 +4,8 @@ Equations (SI units; friction and F_other oppose motion, see ``stagectl.friction
 
     m·dv/dt = u_a(t) − F'(x, v, z) − F_other(x),     dx/dt = v
     u_a(t)  = sat(u(t − τ), ±max_force_n)              actuator: force limit, delay τ = effects.delay.delay_s
-    F'      = effects.modify_friction(F, x)            position ripple, then asymmetry
+    F'      = effects.modify_friction(F, x)            position ripple, then asymmetry,
+              + effects.velocity_force(v)               plus the viscous asymmetry d_v·|v|
     F_other = effects.other_force(x)                   cogging + offset + spring
 
 ``u`` is the commanded force, held constant over each ``step(u, dt)`` call (zero-order hold). The delayed
@@ -50,6 +51,7 @@ from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects,
 from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
+from stagectl.friction.effects import velocity_force_kernel as _vforce
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -267,7 +269,7 @@ def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov,
             win += ua * dx
             wf += ff * dx
             wo += fo * dx
-            ff = _modify(ep, kstep(kp, fs, dx, v, h), x)
+            ff = _modify(ep, kstep(kp, fs, dx, v, h), x) + _vforce(ep, v)
         t = t + dt
         ot[k] = t
         ox[k] = x

@@ -144,7 +144,7 @@ class FrictionFeedforward:
             st.holding = dx != 0.0  # unconfirmed move-back (jitter) or no motion: hold the model
             f = self._f_model
         eff = self.effects
-        f = eff.modify_friction(f, xr)
+        f = eff.modify_friction(f, xr) + eff.velocity_force(vr)
         fo = eff.other_force(xr)
         st.f_friction_n, st.f_other_n = f, fo
         st.x_extreme_m = self.latch.extreme
@@ -182,7 +182,7 @@ class CoulombFeedforward:
         st.direction = d
         st.x_fed_m = xr
         f = d * self.coulomb_n + self.viscous_n_s_m * vr
-        f = self.effects.modify_friction(f, xr)
+        f = self.effects.modify_friction(f, xr) + self.effects.velocity_force(vr)
         fo = self.effects.other_force(xr)
         st.f_friction_n, st.f_other_n = f, fo
         st.u_ff_n = f + fo

@@ -8,6 +8,8 @@ With the friction model force ``F`` (opposing motion, N) at position ``x`` (m) a
     position_ripple:  F ← F · (1 + a · sin(2π x / λ + φ))          a = amplitude [–], λ = wavelength_m, φ = phase_rad
     asymmetry:        F ← F · (1 + r · sgn(F))                     r = ratio [–], |r| < 1
                       (friction levels differ by direction: Fc+ = (1+r)Fc, Fc− = (1−r)Fc, and likewise Fv)
+    viscous_asymmetry: F ← F + d_v · |v|                           d_v = difference_n_s_m [N·s/m]
+                      (only the viscous part differs: Fv+ = Fv + d_v, Fv− = Fv − d_v; Coulomb unchanged)
     F_other(x) = A · sin(2π x / λ_c + φ_c)                          cogging (conservative, direction-independent) [N]
                + F_0                                                offset (gravity on an incline, cable pull) [N]
                + k_s · (x − x0)                                     spring (cable carrier, flexure) [N]
@@ -42,6 +44,16 @@ class Asymmetry:
     """Direction-dependent friction level: ``F ← F·(1 + r·sgn(F))``."""
 
     ratio: float = param(unit="", desc="relative level difference r: F+ = (1+r)F, F- = (1-r)F", gt=-1.0, lt=1.0)
+
+
+@dataclass(frozen=True)
+class ViscousAsymmetry:
+    """Direction-dependent viscous friction: ``F ← F + d_v·|v|``, so that ``Fv+ = Fv + d_v`` and
+    ``Fv− = Fv − d_v`` while the Coulomb level is the same in both directions (a real axis whose lubricant
+    film or seal drags more one way; EMPS: Fv+ ≈ 167, Fv− ≈ 240 N·s/m)."""
+
+    difference_n_s_m: float = param(unit="N·s/m", desc="half difference d_v = (Fv+ − Fv−)/2 of the viscous "
+                                    "coefficients between the two directions")
 
 
 @dataclass(frozen=True)
@@ -89,6 +101,7 @@ class Effects:
     """The set of additional effects (YAML block ``effects:``). Every entry is optional (``null`` = off)."""
 
     asymmetry: Asymmetry | None = param(None, desc="direction-dependent friction level")
+    viscous_asymmetry: ViscousAsymmetry | None = param(None, desc="direction-dependent viscous coefficient")
     position_ripple: PositionRipple | None = param(None, desc="friction magnitude periodic in position")
     cogging: Cogging | None = param(None, desc="conservative periodic force")
     offset: Offset | None = param(None, desc="constant force")
@@ -119,6 +132,7 @@ class Effects:
                 sp.stiffness_n_m if sp else 0.0,
                 sp.x0_m if sp else 0.0,
                 self.delay.delay_s if self.delay else 0.0,
+                self.viscous_asymmetry.difference_n_s_m if self.viscous_asymmetry else 0.0,
             ],
             dtype=np.float64,
         )
@@ -132,6 +146,12 @@ class Effects:
         if self.asymmetry is not None and f_n != 0.0:
             f_n *= 1.0 + self.asymmetry.ratio * (1.0 if f_n > 0.0 else -1.0)
         return f_n
+
+    def velocity_force(self, v_m_s: float) -> float:
+        """Friction term that depends on the velocity alone [N]: ``d_v·|v|`` (viscous asymmetry), added to the
+        friction force after :meth:`modify_friction`."""
+        va = self.viscous_asymmetry
+        return va.difference_n_s_m * abs(v_m_s) if va is not None else 0.0
 
     def other_force(self, x_m: float) -> float:
         """``F_other(x)`` [N]: cogging + offset + spring."""
@@ -155,6 +175,11 @@ class Effects:
         if self.asymmetry is not None:
             f *= 1.0 + self.asymmetry.ratio * np.sign(f)
         return f
+
+    def velocity_force_array(self, v_m_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        v = np.asarray(v_m_s, dtype=np.float64)
+        va = self.viscous_asymmetry
+        return va.difference_n_s_m * np.abs(v) if va is not None else np.zeros_like(v)
 
     def other_force_array(self, x_m: npt.ArrayLike) -> npt.NDArray[np.float64]:
         x = np.asarray(x_m, dtype=np.float64)
@@ -192,6 +217,7 @@ def pack_layout() -> tuple[str, ...]:
         "spring_n_m",
         "spring_x0_m",
         "delay_s",
+        "viscous_asym_n_s_m",
     )
 
 
@@ -225,3 +251,9 @@ def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragm
     if ep[8] != 0.0:
         out += ep[8] * (x - ep[9])
     return out
+
+
+@njit(cache=True, inline="always")
+def velocity_force_kernel(ep: npt.NDArray[np.float64], v: float) -> float:  # pragma: no cover - compiled
+    """Compiled :meth:`Effects.velocity_force` on packed parameters ``ep``: ``d_v·|v|`` [N]. Real-time safe."""
+    return ep[11] * abs(v)

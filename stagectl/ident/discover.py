@@ -91,6 +91,11 @@ MIN_EXPLAINED_NOISE = 1.5
 HOLDOUT_BLOCKS = 6
 HOLDOUT_VALIDATION = (1, 4)
 PAIR_CANDIDATES = 4
+#: fewest validation samples in an effect's regime for the regime-aware test (docs/discovery.md §7)
+MIN_REGIME_SAMPLES = 40
+#: candidates whose validation gaps are within this fraction of each other (and not significantly different)
+#: are reported as a tie the data cannot separate
+TIE_MARGIN = 0.03
 #: a candidate that cannot be fitted on these data (recorded as a CandidateError, not raised)
 _FIT_ERRORS = (ValueError, np.linalg.LinAlgError)
 
@@ -105,6 +110,15 @@ class Dataset:
     val: Signals
     val_rows: BoolArray
     split: str
+
+    @property
+    def val_regimes(self) -> dict[str, BoolArray]:
+        """Regime masks of the validation data (:func:`stagectl.ident.localise.regimes`), computed once."""
+        got = self.val.cache.get("regimes:" + str(id(self.val_rows)))
+        if got is None:
+            got = regimes(self.val, self.val_rows)
+            self.val.cache["regimes:" + str(id(self.val_rows))] = got
+        return got  # type: ignore[return-value]
 
 
 def make_dataset(
@@ -169,8 +183,9 @@ def evidence(name: str, sig: Signals, rows: BoolArray, r_before: FloatArray, aft
     """One paragraph: what in the residual points to ``name`` and what the fit found."""
     spec = fx.REGISTRY.get(name)
     txt = spec.evidence(ResidualView(sig, rows, r_before), spec.params(after))
+    boot = f"{cmp.boot_lower:.3g} N² > 0" if cmp.boot_lower > 0 else f"{cmp.boot_lower:.3g} N²"
     return (f"{txt}; validation gap {cmp.gap_before:.4g} N -> {cmp.gap_after:.4g} N ({100 * cmp.rel_gain:.0f} % "
-            f"smaller, block-bootstrap lower bound of the per-sample MSE gain {cmp.boot_lower:.3g} N² > 0)")
+            f"smaller, block-bootstrap lower bound of the per-sample MSE gain {boot})")
 
 
 def _accept(ds: Dataset, name: str, fr: FitResult, before: Hyp, cmp: Comparison, suffix: str = "",
@@ -240,11 +255,12 @@ def _prune(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected:
             except _FIT_ERRORS:
                 continue
             c = _val_compare(ds, fr.hyp, cur.hyp, min_explained)
-            if not c.significant:
+            if not c.significant and c.rel_gain < 0.5 * MIN_REL_GAIN:
                 effects.remove(item)
                 rejected.append(RejectedEffect(item, f"made redundant by the effects found after it: removing it "
-                                               f"changes the validation gap only from {c.gap_after:.4g} N to "
-                                               f"{c.gap_before:.4g} N"))
+                                               f"changes the validation gap from {c.gap_after:.4g} N to "
+                                               f"{c.gap_before:.4g} N ({100 * c.rel_gain:.1f} % of the gap with it, "
+                                               "not a significant loss)"))
                 cur = fr
                 changed = True
                 break
@@ -259,7 +275,7 @@ def _try_pairs(
     estimation data best (e.g. an offset plus a cogging whose position coverage differs between estimation
     and validation blocks, where each alone absorbs part of the other). The pair must pass the same test."""
     nested = fx.REGISTRY.nested()
-    est = sorted(cands, key=lambda k: cands[k][0].rss)
+    est = sorted((k for k in cands if "+" not in k), key=lambda k: cands[k][0].rss)
     top = [k for k in est if 1.0 - math.sqrt(cands[k][0].rss / max(cur.rss, 1e-300)) >= 0.5 * MIN_REL_GAIN]
     top = top[:PAIR_CANDIDATES]
     best: tuple[tuple[str, str], FitResult, Comparison] | None = None
@@ -320,48 +336,189 @@ class DiscoveryResult:
     min_explained_n: float = 0.0
 
 
+def _regime_mask(ds: Dataset, name: str) -> BoolArray | None:
+    """Mask over the validation rows (``r[rows]`` indexing) of the regime whose key starts with ``name``."""
+    for k, m in ds.val_regimes.items():
+        if k.startswith(name):
+            return np.asarray(m[ds.val_rows], dtype=bool)
+    return None
+
+
+def _fit_label(ds: Dataset, cur: FitResult, label: str) -> FitResult:
+    """Fit a candidate label: one effect, or ``rich+simple`` (the richer effect searched with the nested
+    simpler one already in the model, so that neither is fitted with the other frozen)."""
+    names = label.split("+")
+    fr = cur
+    for name in reversed(names):
+        fr = fit_candidate(ds, fr, name)
+    return fr
+
+
+def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatArray, force_rms: float
+           ) -> tuple[CandidateFit, Comparison, FloatArray]:
+    """Validation comparison of a fitted candidate: globally and, for an effect that lives in one regime,
+    there (regime-aware acceptance, docs/discovery.md §7); physical bounds; the report row."""
+    names = label.split("+")
+    _, r_new = gap(ds.val, ds.val_rows, fr.hyp)
+    cmp = compare(r_cur, r_new, ds.est.dt_s, force_rms)
+    est_gain = 1.0 - math.sqrt(fr.rss / max(cur.rss, 1e-300))
+    specs = [fx.REGISTRY.get(n) for n in names]
+    params = [sp.params(fr.hyp) for sp in specs]
+    bounds = tuple(b for sp, p in zip(specs, params) if sp.bounds is not None for b in sp.bounds(p))
+    keys = "; ".join(sp.key(p) for sp, p in zip(specs, params) if sp.key is not None) or None
+    regime = specs[0].regime if len(specs) == 1 else None
+    rc: Comparison | None = None
+    if regime is not None:
+        m = _regime_mask(ds, regime)
+        if m is not None and int(m.sum()) >= MIN_REGIME_SAMPLES:
+            rc = compare(r_cur[m], r_new[m], ds.est.dt_s, force_rms)
+    in_regime = rc is not None and rc.significant and cmp.gap_after <= cmp.gap_before
+    ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds
+    row = CandidateFit(
+        label, params[0] if len(params) == 1 else tuple(params), est_gain, cmp.gap_before, cmp.gap_after,
+        cmp.rel_gain, cmp.boot_lower, cmp.block, cmp.explained_n, cmp.min_explained_n, ok, key_parameter=keys,
+        regime=regime, regime_gap_before=None if rc is None else rc.gap_before,
+        regime_gap_after=None if rc is None else rc.gap_after, regime_rel_gain=None if rc is None else rc.rel_gain,
+        regime_significant=None if rc is None else rc.significant, bounds=bounds)
+    return row, cmp, r_new
+
+
 def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: FloatArray, force_rms: float
            ) -> tuple[list[Candidate], dict[str, tuple[FitResult, Comparison, FloatArray]]]:
-    """Every catalogue effect not in the model, added in turn, fitted and compared on validation data."""
+    """Every catalogue effect not in the model, added in turn, fitted and compared on validation data; a
+    richer effect that contains a simpler one not yet in the model is also tried jointly with it
+    (``asymmetry+offset``): nesting must not hide the truth (docs/discovery.md §2)."""
     cands: dict[str, tuple[FitResult, Comparison, FloatArray]] = {}
     info: list[Candidate] = []
+    labels: list[str] = []
     for name in catalogue:
         if cur.hyp.has(name):
             continue
+        labels.append(name)
+        for simpler in fx.REGISTRY.get(name).contains:
+            joint = f"{name}+{simpler}"
+            if (simpler in catalogue and not cur.hyp.has(simpler) and _joint_differs(name, simpler)
+                    and simpler not in fx.REGISTRY.get(name).implies):  # an implied effect is always fitted with it
+                labels.append(joint)
+    for label in labels:
         try:
-            fr = fit_candidate(ds, cur, name)
+            fr = _fit_label(ds, cur, label)
         except _FIT_ERRORS as exc:  # a candidate that cannot be fitted here
-            info.append(CandidateError(name, str(exc)))
+            info.append(CandidateError(label, str(exc)))
             continue
-        _, r_new = gap(ds.val, ds.val_rows, fr.hyp)
-        cmp = compare(r_cur, r_new, ds.est.dt_s, force_rms)
-        cands[name] = (fr, cmp, r_new)
-        info.append(CandidateFit(
-            name, fx.REGISTRY.get(name).params(fr.hyp), 1.0 - math.sqrt(fr.rss / max(cur.rss, 1e-300)),
-            cmp.gap_before, cmp.gap_after, cmp.rel_gain, cmp.boot_lower, cmp.block, cmp.explained_n,
-            cmp.min_explained_n, cmp.significant))
+        row, cmp, r_new = _score(ds, cur, label, fr, r_cur, force_rms)
+        cands[label] = (fr, cmp, r_new)
+        info.append(row)
     return info, cands
+
+
+def _joint_differs(rich: str, simpler: str) -> bool:
+    """A joint fit adds something only when the richer effect does not already carry the simpler one's
+    columns (a spring carries its own constant force when no offset is in the model)."""
+    return not (rich == "spring" and simpler == "offset")
+
+
+def _effects_of(label: str) -> set[str]:
+    return set(label.split("+"))
+
+
+def _complexity(label: str) -> int:
+    """Parsimony order: the number of effects, a richer (containing) effect counting more than a plain one."""
+    return sum(2 + (1 if fx.REGISTRY.get(n).contains else 0) for n in label.split("+"))
+
+
+def _related(simple: str, rich: str) -> bool:
+    """``simple`` is nested in ``rich``: a subset of its effects, or contained by one of them."""
+    a, b = _effects_of(simple), _effects_of(rich)
+    if a < b:
+        return True
+    contained = {c for n in b for c in fx.REGISTRY.get(n).contains} | b
+    return a <= contained and a != b
+
+
+def _note(info: list[Candidate], label: str, note: str) -> None:
+    for i, item in enumerate(info):
+        if item.name == label and isinstance(item, CandidateFit):
+            old = item.note
+            info[i] = replace(item, note=note if not old else f"{old}; {note}")
 
 
 def _choose(ds: Dataset, cur: FitResult, info: list[Candidate],
             cands: dict[str, tuple[FitResult, Comparison, FloatArray]], force_rms: float) -> str | None:
-    """The acceptable candidate with the smallest validation gap; a richer effect that does not beat an
-    acceptable simpler one it contains significantly gives way to it (noted on the richer candidate)."""
-    ok = {k: v for k, v in cands.items() if v[1].significant}
+    """The acceptable candidate with the smallest validation gap, except that a richer candidate that does
+    not beat an acceptable simpler, nested one significantly gives way to it (parsimony; noted on the
+    richer one); unrelated candidates that fit about as well are named as ties the data cannot separate."""
+    ok_names = {c.name for c in info if isinstance(c, CandidateFit) and c.acceptable}
+    ok = {k: v for k, v in cands.items() if k in ok_names}
     if not ok:
         return None
     chosen = min(ok, key=lambda k: ok[k][1].gap_after)
-    for simpler in fx.REGISTRY.get(chosen).contains:
-        if simpler in ok and not cur.hyp.has(simpler):
-            c2 = compare(ok[simpler][2], ok[chosen][2], ds.est.dt_s, force_rms)
-            if not c2.significant:
-                note = (f"{chosen} did not beat the nested, simpler {simpler} significantly on validation data "
-                        f"({100 * c2.rel_gain:.1f} % further gain)")
-                for i, item in enumerate(info):
-                    if item.name == chosen and isinstance(item, CandidateFit):
-                        info[i] = replace(item, note=note)
-                return simpler
+    moved = True
+    while moved:  # parsimony: a simpler candidate that the chosen one does not beat significantly is preferred
+        moved = False
+        simpler = [k for k in ok if _complexity(k) < _complexity(chosen)
+                   and not compare(ok[k][2], ok[chosen][2], ds.est.dt_s, force_rms).significant]
+        if simpler:
+            best = min(simpler, key=lambda k: ok[k][1].gap_after)
+            c2 = compare(ok[best][2], ok[chosen][2], ds.est.dt_s, force_rms)
+            _note(info, chosen, f"superseded: did not beat the simpler {best} significantly on validation data "
+                  f"({100 * c2.rel_gain:.1f} % further gain)")
+            chosen, moved = best, True
+    g = ok[chosen][1].gap_after
+    for other, (_, oc, r_o) in ok.items():
+        if other == chosen or _related(other, chosen) or _related(chosen, other):
+            continue
+        if oc.gap_after <= (1.0 + TIE_MARGIN) * g and not compare(r_o, ok[chosen][2], ds.est.dt_s,
+                                                                  force_rms).significant:
+            how = "; ".join(dict.fromkeys(fx.REGISTRY.get(n).separate_by for n in (*other.split("+"),
+                                                                                   *chosen.split("+"))))
+            _note(info, chosen, f"tie with {other} (validation gap {g:.4g} N vs {oc.gap_after:.4g} N): these data "
+                  f"cannot separate them; to separate: {how}")
     return chosen
+
+
+def _regime_text(row: CandidateFit) -> str:
+    return (f"; accepted in its regime ({row.regime}): there the validation residual went "
+            f"{row.regime_gap_before:.4g} N -> {row.regime_gap_after:.4g} N ({100 * (row.regime_rel_gain or 0):.0f} % "
+            f"smaller), while the global gap did not get worse ({row.gap_before:.4g} N -> {row.gap_after:.4g} N, "
+            f"{100 * row.rel_gain:.1f} %)")
+
+
+def _why_not(c: CandidateFit) -> str:
+    """Why a candidate was not accepted, in the words of the acceptance rule (docs/discovery.md §4, §7)."""
+    if c.bounds:
+        return "fit at or beyond a physical bound, so not accepted (and not clipped): " + "; ".join(c.bounds)
+    if c.estimation_rel_gain <= 0.0:
+        return f"no gain on the estimation data ({100 * c.estimation_rel_gain:.1f} %)"
+    txt = (f"estimation gain {100 * c.estimation_rel_gain:.1f} %, validation gap {c.gap_before:.4g} N -> "
+           f"{c.gap_after:.4g} N ({100 * c.rel_gain:.1f} %; needs >= {100 * MIN_REL_GAIN:.0f} %, a positive "
+           f"bootstrap bound (got {c.bootstrap_lower_n2:.3g} N²) and >= {c.min_explained_n:.3g} N explained "
+           f"(got {c.explained_n:.3g} N))")
+    if c.regime is not None:
+        if c.regime_rel_gain is None:
+            txt += f"; too few validation samples in its regime ({c.regime}) to judge it there"
+        else:
+            txt += (f"; in its regime ({c.regime}) {c.regime_gap_before:.4g} N -> {c.regime_gap_after:.4g} N "
+                    f"({100 * c.regime_rel_gain:.1f} %, {'significant' if c.regime_significant else 'not significant'}"
+                    f"{'' if c.gap_after <= c.gap_before else ', but the global gap got worse'})")
+    return txt
+
+
+def _verdicts(info: list[Candidate], chosen: str | None) -> list[Candidate]:
+    """Every candidate's verdict: accepted, superseded (acceptable, but another was named), rejected (why)."""
+    out: list[Candidate] = []
+    for c in info:
+        if not isinstance(c, CandidateFit):
+            out.append(c)
+            continue
+        if chosen is not None and c.name == chosen:
+            v = "accepted" + (f" ({c.note})" if c.note else "")
+        elif c.acceptable:
+            v = f"superseded: acceptable, but {chosen} was named this round" + (f" ({c.note})" if c.note else "")
+        else:
+            v = "rejected: " + _why_not(c)
+        out.append(replace(c, verdict=v))
+    return out
 
 
 def discover(
@@ -396,12 +553,11 @@ def discover(
         _, r_cur = gap(ds.val, ds.val_rows, cur.hyp)
         info, cands = _round(ds, cur, cat, r_cur, force_rms)
         chosen = _choose(ds, cur, info, cands, force_rms)
-        rounds.append(Round(info, chosen))
         if chosen is None:
             pair = _try_pairs(ds, cur, cands, r_cur, force_rms)
             if pair is not None:
                 (a, b), fr, cmp = pair
-                rounds[-1].chosen = f"{a}+{b}"
+                rounds.append(Round(_verdicts(info, f"{a}+{b}"), f"{a}+{b}"))
                 for name in (a, b):
                     effects.append(_accept(ds, name, fr, cur.hyp, cmp, f" (neither {a} nor {b} validated alone: each "
                                            "biases the other's fit; accepted as a pair)",
@@ -409,16 +565,23 @@ def discover(
                 cur = _refresh(ds, fr)
                 history.append(cur.hyp)
                 continue
-            for item in info:
-                if isinstance(item, CandidateFit) and item.estimation_rel_gain >= MIN_REL_GAIN:
-                    rejected.append(RejectedEffect(item, "fits the estimation data "
-                                    f"({100 * item.estimation_rel_gain:.0f} % smaller residual) but the validation "
-                                    f"gap shrinks only {100 * item.rel_gain:.1f} % "
-                                    f"(needs >= {100 * MIN_REL_GAIN:.0f} %, a positive bootstrap bound and at "
-                                    f"least {item.min_explained_n:.3g} N explained; got {item.explained_n:.3g} N)"))
+            rounds.append(Round(_verdicts(info, None), None))
+            for item in rounds[-1].candidates:
+                if isinstance(item, CandidateFit):
+                    rejected.append(RejectedEffect(item, item.verdict or "not acceptable"))
             break
+        rounds.append(Round(_verdicts(info, chosen), chosen))
         fr, cmp, _ = cands[chosen]
-        effects.append(_accept(ds, chosen, fr, cur.hyp, cmp))
+        row = next(c for c in info if c.name == chosen and isinstance(c, CandidateFit))
+        names = chosen.split("+")
+        for name in names:
+            suffix = _regime_text(row) if not cmp.significant else ""
+            if len(names) > 1:
+                suffix += f" (fitted jointly with the nested {' and '.join(n for n in names if n != name)}: " \
+                          "neither is fitted with the other frozen)"
+            effects.append(_accept(ds, name, fr, cur.hyp, cmp, suffix,
+                                   **({"accepted_jointly_with": "+".join(n for n in names if n != name)}
+                                      if len(names) > 1 else {})))
         cur = _refresh(ds, fr)
         history.append(cur.hyp)
     cur = _prune(ds, cur, effects, rejected, force_rms)

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize
 
-from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring
+from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring, ViscousAsymmetry
 from stagectl.ident.columns import (
     element,
     element_rate,
@@ -302,6 +302,44 @@ def _asymmetry_after_removal(fitter: Fitter, h: Hyp) -> FitResult:
     return ASYMMETRY.fit_with(fitter, h, ratio=r)
 
 
+# ============================================================================================ viscous asymmetry
+@dataclass(frozen=True)
+class ViscousAsymmetryParams:
+    """Viscous coefficients per direction [N·s/m]: ``Fv± = fv ± d_v`` (the Coulomb level is symmetric)."""
+
+    difference_n_s_m: float  # d_v = (Fv+ − Fv−)/2
+    fv_plus_n_s_m: float
+    fv_minus_n_s_m: float
+
+
+def _vasym_columns(sig: Signals, h: Hyp) -> list[Column]:
+    return [Column("dv", np.abs(sig.v), "dv")]
+
+
+def _vasym_params(h: Hyp) -> ViscousAsymmetryParams:
+    fv, dv = h.theta.get("fv", 0.0), h.theta.get("dv", 0.0)
+    return ViscousAsymmetryParams(dv, fv + dv, fv - dv)
+
+
+def _vasym_evidence(ev: ResidualView, p: ViscousAsymmetryParams) -> str:
+    sig, rows, r = ev.sig, ev.rows, ev.r
+    slopes = []
+    for sgn in (1.0, -1.0):
+        m = rows & (np.sign(sig.v) == sgn)
+        vv = np.abs(sig.v[m])
+        slopes.append(float(np.polyfit(vv, r[m], 1)[0]) if m.sum() > 2 and np.ptp(vv) > 0 else 0.0)
+    return (f"the residual grows with speed differently in the two directions (slope {slopes[0]:+.4g} N·s/m for "
+            f"v > 0, {slopes[1]:+.4g} N·s/m for v < 0 against |v|): the viscous coefficient depends on the "
+            f"direction; fitted Fv+ = {p.fv_plus_n_s_m:.4g} N·s/m, Fv− = {p.fv_minus_n_s_m:.4g} N·s/m "
+            f"(d_v = {p.difference_n_s_m:+.4g} N·s/m; Coulomb level unchanged)")
+
+
+def _hide_vasym(st: HiddenStage) -> None:
+    """|d_v| 0.25-0.5 of the stage's viscous coefficient (Fv+/Fv− from 1.67 to 3)."""
+    fv = float(st.friction.get("viscous_n_s_m", 0.0))
+    st.effects["viscous_asymmetry"] = {"difference_n_s_m": st.sign * float(st.rng.uniform(0.25, 0.5)) * fv}
+
+
 # ============================================================================================ periodic effects
 def _search_periodic(spec: EffectSpec[WavelengthShape, Any], fitter: Fitter, cur: FitResult, h: Hyp,
                      weight: FloatArray | None) -> FitResult:
@@ -360,8 +398,16 @@ def _offset_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
 
 
 def _offset_evidence(ev: ResidualView, p: Offset) -> str:
-    return (f"the residual has the same sign in both directions of motion (mean {ev.mean_positive_n:+.4g} N for "
-            f"v > 0, {ev.mean_negative_n:+.4g} N for v < 0): a constant force; fitted F_0 = {p.force_n:.4g} N")
+    if ev.both_directions:
+        txt = (f"the residual has the same sign in both directions of motion (mean {ev.mean_positive_n:+.4g} N for "
+               f"v > 0, {ev.mean_negative_n:+.4g} N for v < 0): a constant force")
+    else:
+        txt = (f"the residual has a constant part (mean {ev.mean_positive_n + ev.mean_negative_n:+.4g} N); the motion "
+               "is almost all in one direction, so a constant force and a change of the friction level cannot be "
+               "told apart here (move in both directions to separate them)")
+    return (f"{txt}; fitted F_0 = {p.force_n:.4g} N. While sliding this is the same force as a Coulomb asymmetry "
+            f"Fc+ − Fc− = {2 * p.force_n:+.4g} N (docs/discovery.md §1): sliding data cannot separate the two; "
+            "the break-away force in each direction, or holding at rest, can")
 
 
 def _spring_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
@@ -478,52 +524,112 @@ def _hide_delay(st: HiddenStage) -> None:
     st.effects["delay"] = {"delay_s": float(st.rng.uniform(0.5e-3, 2e-3))}
 
 
+# ============================================================================================ bounds, keys
+def _stribeck_bounds(p: StribeckParams) -> list[str]:
+    out = []
+    if p.fs_n <= p.fc_n * (1 + 1e-9):
+        out.append("Fs = Fc (lower bound Fs >= Fc: no Stribeck excess left)")
+    if p.delta <= 0.5 + 1e-6 or p.delta >= 4.0 - 1e-6:
+        out.append(f"δ = {p.delta:.3g} at the search bound [0.5, 4]")
+    return out
+
+
+def _presliding_bounds(p: PreslidingParams) -> list[str]:
+    return [] if p.elements > 0 else ["every slip force W_i at its lower bound 0 (no elastic element carries force)"]
+
+
+def _lag_bounds(p: LagParams) -> list[str]:
+    return [f"lag {p.lag_s:.3g} s at the search bound 1 s"] if p.lag_s >= 0.999 else []
+
+
+def _asym_bounds(p: Asymmetry) -> list[str]:
+    return [f"r = {p.ratio:+.3g} at the bound |r| < 0.95 (friction in one direction would vanish)"] \
+        if abs(p.ratio) >= 0.949 else []
+
+
+def _vasym_bounds(p: ViscousAsymmetryParams) -> list[str]:
+    return [f"{name} = {v:.4g} N·s/m < 0 (viscous friction would push the stage)"
+            for name, v in (("Fv+", p.fv_plus_n_s_m), ("Fv−", p.fv_minus_n_s_m)) if v < 0]
+
+
+def _ripple_bounds(p: PositionRipple) -> list[str]:
+    return [f"amplitude a = {p.amplitude:.3g} >= 1 (friction would reverse sign; bound a < 1)"] \
+        if p.amplitude >= 1.0 else []
+
+
 # ============================================================================================ the registry
 STRIBECK: EffectSpec[StribeckShape, StribeckParams] = EffectSpec(
     "stribeck", StribeckShape, _stribeck_params, _stribeck_evidence, _search_stribeck, column_rank=20,
-    friction_columns=_stribeck_columns, hide=_hide_stribeck)
+    friction_columns=_stribeck_columns, hide=_hide_stribeck, regime="low_speed", bounds=_stribeck_bounds,
+    key=lambda p: f"Fs/Fc = {p.fs_n / max(p.fc_n, 1e-300):.3g}, vs = {p.vs_m_s:.3g} m/s",
+    separate_by="slow constant-speed moves (below the Stribeck velocity) in both directions")
 PRESLIDING: EffectSpec[PreslidingShape, PreslidingParams] = EffectSpec(
     "presliding", PreslidingShape, _presliding_params, _presliding_evidence, _search_presliding, column_rank=10,
-    friction_columns=_presliding_columns, hide=_hide_presliding)
+    friction_columns=_presliding_columns, hide=_hide_presliding, regime="near_reversal",
+    bounds=_presliding_bounds,
+    key=lambda p: f"{p.elements} elements, largest Δ = {1e6 * p.largest_break_displacement_m:.3g} µm",
+    separate_by="small back-and-forth moves of a few break displacements (pre-sliding hysteresis loops)")
 LAG: EffectSpec[LagShape, LagParams] = EffectSpec(
     "frictional_lag", LagShape, lambda h: LagParams(float(LAG.shape(h).lag_s)), _lag_evidence, _search_lag,
-    column_rank=21, implies=("stribeck",), contains=("stribeck",), hide=_hide_lag)
+    column_rank=21, implies=("stribeck",), contains=("stribeck",), hide=_hide_lag, regime="low_speed",
+    bounds=_lag_bounds, key=lambda p: f"lag = {1e3 * p.lag_s:.3g} ms",
+    separate_by="accelerate and decelerate through low speed at different rates")
 ASYMMETRY: EffectSpec[AsymmetryShape, Asymmetry] = EffectSpec(
     "asymmetry", AsymmetryShape, lambda h: Asymmetry(ratio=float(ASYMMETRY.shape(h).ratio)), _asymmetry_evidence,
     _search_asymmetry, column_rank=25, scaling=lambda h: float(ASYMMETRY.shape(h).ratio), iterative=True,
     contains=("offset",), twin="asymmetry",
-    to_twin=lambda p: Asymmetry(ratio=float(np.clip(p.ratio, -0.99, 0.99))),
+    to_twin=lambda p: Asymmetry(ratio=float(p.ratio)),
     from_twin=lambda h, e: ASYMMETRY.reshaped(h.adding("asymmetry"), ratio=e.ratio),
-    refresh=_refresh_asymmetry, after_removal=_asymmetry_after_removal, hide=_hide_asymmetry)
+    refresh=_refresh_asymmetry, after_removal=_asymmetry_after_removal, hide=_hide_asymmetry,
+    bounds=_asym_bounds, key=lambda p: f"r = {p.ratio:+.3g}",
+    separate_by="constant-speed moves in both directions at several speeds (a common ratio on Coulomb and "
+                "viscous parts vs a viscous-only difference)")
+VISCOUS_ASYMMETRY: EffectSpec[NoShape, ViscousAsymmetryParams] = EffectSpec(
+    "viscous_asymmetry", NoShape, _vasym_params, _vasym_evidence, _fit_as_is, column_rank=26,
+    friction_columns=_vasym_columns, twin="viscous_asymmetry",
+    to_twin=lambda p: ViscousAsymmetry(difference_n_s_m=float(p.difference_n_s_m)),
+    from_twin=lambda h, e: h.adding("viscous_asymmetry"), hide=_hide_vasym, bounds=_vasym_bounds,
+    key=lambda p: f"Fv+ = {p.fv_plus_n_s_m:.4g}, Fv− = {p.fv_minus_n_s_m:.4g} N·s/m",
+    separate_by="constant-speed moves in both directions at several speeds")
 RIPPLE: EffectSpec[WavelengthShape, PositionRipple] = EffectSpec(
     "position_ripple", WavelengthShape, _ripple_params,
     lambda ev, p: _periodic_evidence("multiplies the friction force (changes sign with the direction of motion)",
                                      f"a = {p.amplitude:.4g}", p),
     _search_ripple, column_rank=30, columns=_ripple_columns, iterative=True, twin="position_ripple",
-    to_twin=lambda p: dataclasses.replace(p, amplitude=float(min(p.amplitude, 0.99))),
+    to_twin=lambda p: p,
     from_twin=lambda h, e: RIPPLE.reshaped(h.adding("position_ripple"), wavelength_m=e.wavelength_m),
-    hide=_hide_ripple)
+    hide=_hide_ripple, bounds=_ripple_bounds,
+    key=lambda p: f"λ = {1e3 * p.wavelength_m:.4g} mm, a = {p.amplitude:.3g}",
+    separate_by="move over the same positions in both directions (a ripple of friction changes sign with "
+                "the direction, cogging does not)")
 COGGING: EffectSpec[WavelengthShape, Cogging] = EffectSpec(
     "cogging", WavelengthShape, _cogging_params,
     lambda ev, p: _periodic_evidence("is the same in both directions (conservative force)",
                                      f"A = {p.amplitude_n:.4g} N", p),
     lambda fitter, cur, h: _search_periodic(COGGING, fitter, cur, h, None), column_rank=60, columns=_cogging_columns,
     twin="cogging", to_twin=lambda p: p,
-    from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m), hide=_hide_cogging)
+    from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m), hide=_hide_cogging,
+    key=lambda p: f"λ = {1e3 * p.wavelength_m:.4g} mm, A = {p.amplitude_n:.3g} N",
+    separate_by="move over the same positions in both directions (cogging is the same both ways)")
 OFFSET: EffectSpec[NoShape, Offset] = EffectSpec(
     "offset", NoShape, lambda h: Offset(force_n=h.theta.get("f0", 0.0)), _offset_evidence, _fit_as_is,
     column_rank=40, columns=_offset_columns, twin="offset", to_twin=lambda p: p,
-    from_twin=lambda h, e: h.adding("offset"), hide=_hide_offset)
+    from_twin=lambda h, e: h.adding("offset"), hide=_hide_offset, key=lambda p: f"F_0 = {p.force_n:+.4g} N",
+    separate_by="hold the stage at rest with the loop open or measure the break-away force in both directions "
+                "(a constant force acts at rest, an asymmetric Coulomb level does not)")
 SPRING: EffectSpec[NoShape, Spring] = EffectSpec(
     "spring", NoShape, _spring_params, _spring_evidence, _fit_as_is, column_rank=50, columns=_spring_columns,
     contains=("offset",), twin="spring", to_twin=lambda p: p,
-    from_twin=lambda h, e: dataclasses.replace(h.adding("spring"), x_center_m=e.x0_m), hide=_hide_spring)
+    from_twin=lambda h, e: dataclasses.replace(h.adding("spring"), x_center_m=e.x0_m), hide=_hide_spring,
+    key=lambda p: f"k_s = {p.stiffness_n_m:.4g} N/m",
+    separate_by="hold the stage at several positions across the travel")
 DELAY: EffectSpec[DelayShape, Delay] = EffectSpec(
     "delay", DelayShape, lambda h: Delay(delay_s=float(DELAY.shape(h).delay_s)), _delay_evidence, _search_delay,
     column_rank=70, target_delay=lambda h: float(DELAY.shape(h).delay_s), twin="delay", to_twin=lambda p: p,
     from_twin=lambda h, e: DELAY.reshaped(h.adding("delay"), delay_s=e.delay_s), refresh=_refresh_delay,
-    hide=_hide_delay)
+    hide=_hide_delay, key=lambda p: f"τ = {1e3 * p.delay_s:.3g} ms",
+    separate_by="a sine sweep of the reference up to the loop bandwidth")
 
 #: the discovery catalogue (issue 6), in search and report order; ``coulomb``, ``viscous`` and ``inertia`` are
 #: always in the model. ``contains``: richer -> simpler nested effects (docs/discovery.md §1-2).
-REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY))
+REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, VISCOUS_ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY))

@@ -165,6 +165,13 @@ class EffectSpec(Generic[S, P]):
     ``iterative``: the columns depend on the previous fit, so each fit takes two passes. ``refresh`` re-searches
     the shape after later effects were accepted, ``after_removal`` after another effect was pruned; ``hide``
     puts the effect into a simulated stage (synthetic recordings for tests and demos).
+
+    Report and acceptance: ``regime`` names the motion regime the effect acts in (a prefix of a
+    :func:`stagectl.ident.localise.regimes` key, e.g. ``near_reversal``): the effect may be accepted on its gain
+    there while the global gap does not get worse (docs/discovery.md §7); ``bounds(params)`` lists the physical
+    bounds the fitted parameters reach or cross (a fit outside is never accepted, and never clipped); ``key``
+    formats the key parameter (wavelength, ratio, ...) for the report; ``separate_by`` is the experiment that
+    tells this effect from a look-alike when the data cannot.
     """
 
     name: str
@@ -186,6 +193,10 @@ class EffectSpec(Generic[S, P]):
     refresh: Callable[[Fitter, FitResult], FitResult] | None = None
     after_removal: Callable[[Fitter, Hyp], FitResult] | None = None
     hide: Callable[[HiddenStage], None] | None = None
+    regime: str | None = None
+    bounds: Callable[[P], list[str]] | None = None
+    key: Callable[[P], str] | None = None
+    separate_by: str = ""
 
     def shape(self, h: Hyp) -> S:
         """This effect's shape in ``h`` (its defaults when ``h`` has none)."""

@@ -102,6 +102,13 @@ class ResidualView:
         neg = self.rows & (self.sig.v < 0)
         return float(np.mean(self.r[neg])) if neg.any() else 0.0
 
+    @property
+    def both_directions(self) -> bool:
+        """At least 10 % of the evaluated samples move each way (direction evidence is meaningful)."""
+        n = int(self.rows.sum())
+        pos = int((self.rows & (self.sig.v > 0)).sum())
+        return n > 0 and 0.1 * n <= pos <= 0.9 * n
+
     @cached_property
     def regimes(self) -> dict[str, BoolArray]:
         return regimes(self.sig, self.rows)

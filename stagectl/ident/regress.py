@@ -75,16 +75,20 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
     force of ``h``'s coefficients, or sgn(v) before the first fit). ``scaled=False`` leaves the friction
     scaling out (:func:`filtered_design` applies it after filtering).
     """
-    if f_prev is None:
-        f_prev = friction_force(sig, h) if h.theta else sig.direction
     active = fx.REGISTRY.active(h)
-    mult = np.ones(sig.n)
+    needs_f = any(s.scaling is not None or s.iterative for s in active)  # else no column reads the estimate
+    if f_prev is None:
+        f_prev = friction_force(sig, h) if h.theta and needs_f else sig.direction
+    mult: FloatArray | None = None
     if scaled:
         for s in active:
             if s.scaling is not None:
-                mult = mult * (1.0 + s.scaling(h) * np.sign(f_prev))
-    cols = [Column(c.name, c.values * mult, c.cache_key, c.nonneg) for c in friction_columns(sig, h)]
-    f_est = f_prev * mult
+                m1 = 1.0 + s.scaling(h) * np.sign(f_prev)
+                mult = m1 if mult is None else mult * m1
+    cols = friction_columns(sig, h)
+    if mult is not None:
+        cols = [Column(c.name, c.values * mult, c.cache_key, c.nonneg) for c in cols]
+    f_est = f_prev if mult is None else f_prev * mult
     for s in active:
         if s.columns is not None:
             cols += s.columns(sig, h, f_est)
@@ -106,9 +110,9 @@ def _filtered(sig: Signals, key: str, raw: FloatArray) -> FloatArray:
     return cached(sig, "F:" + key, lambda: sig.filt(raw))
 
 
-def filtered_design(
+def _filtered_design(
     sig: Signals, h: Hyp, f_prev: FloatArray | None = None
-) -> tuple[list[Column], FloatArray, FloatArray]:
+) -> tuple[list[Column], _Stack, FloatArray]:
     """Raw columns, filtered design matrix (all samples) and filtered target.
 
     Columns that do not depend on the previous fit are filtered once and cached. The friction scaling is
@@ -129,6 +133,7 @@ def filtered_design(
         # friction-following columns carry the scaling of the friction estimate
         raw = [v * (1.0 + r * sgn_f) if c.follows_friction else v for c, v in zip(cols, raw)]
     out: list[FloatArray | None] = [None] * len(cols)
+    keys: list[str | None] = [None] * len(cols)
     todo: list[int] = []
     skey = None if sgn_f is None else "sgn:" + str(hash(sgn_f.astype(np.int8).tobytes()))
     for j, c in enumerate(cols):
@@ -136,15 +141,114 @@ def filtered_design(
             todo.append(j)
             continue
         base = _filtered(sig, c.cache_key, raw[j])
+        keys[j] = c.cache_key
         if sgn_f is not None and skey is not None and j < n_friction:
             base = base + r * _filtered(sig, c.cache_key + "|" + skey, raw[j] * sgn_f)
+            keys[j] = f"{c.cache_key}|{skey}|{r!r}"
         out[j] = base
     if todo:
         filt = sig.filt_many(np.column_stack([raw[j] for j in todo]))
         for i, j in enumerate(todo):
             out[j] = filt[:, i]
-    y = _filtered(sig, f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}", target)
-    return cols, np.column_stack(cast(list[FloatArray], out)), y
+    ykey = f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}"
+    y = _filtered(sig, ykey, target)
+    return cols, _Stack(cast(list[FloatArray], out), keys, ykey), y
+
+
+class _Stack:
+    """The filtered design matrix, stacked only when someone needs the matrix (the fit reads the columns)."""
+
+    def __init__(self, cols: list[FloatArray], keys: list[str | None], ykey: str) -> None:
+        self.cols = cols
+        self.keys = keys  # cache key of each filtered column (None: depends on the fit)
+        self.ykey = ykey
+        self._m: FloatArray | None = None
+
+    def matrix(self) -> FloatArray:
+        if self._m is None:
+            self._m = np.column_stack(self.cols)
+        return self._m
+
+
+def filtered_design(
+    sig: Signals, h: Hyp, f_prev: FloatArray | None = None
+) -> tuple[list[Column], FloatArray, FloatArray]:
+    """Raw columns, filtered design matrix (all samples) and filtered target (see :func:`_filtered_design`)."""
+    cols, st, y = _filtered_design(sig, h, f_prev)
+    return cols, st.matrix(), y
+
+
+def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, keys: Sequence[str | None],
+          ykey: str) -> tuple[FloatArray, FloatArray, float]:
+    """``AᵀA``, ``Aᵀy`` and ``yᵀy`` over ``rows``, with every product of two cached (fit-independent) columns
+    cached on ``sig``: a search that changes one column recomputes one row of the Gram matrix, not all of it."""
+    rk = "rows:" + str(hash(rows.tobytes()))
+    store = cast(dict[tuple[str, str, str], float], sig.cache.setdefault("_gram", {}))
+    cols = cast(dict[tuple[str, str], FloatArray], sig.cache.setdefault("_rowcols", {}))
+
+    def colv(j: int) -> FloatArray:
+        k = keys[j]
+        if k is None:
+            return a[j][rows]
+        v = cols.get((rk, k))
+        if v is None:
+            v = a[j][rows]
+            cols[(rk, k)] = v
+        return v
+
+    yv = cols.get((rk, ykey))
+    if yv is None:
+        yv = np.ascontiguousarray(y[rows])
+        cols[(rk, ykey)] = yv
+    p = len(a)
+    vs = [colv(j) for j in range(p)]
+    g = np.empty((p, p))
+    b = np.empty(p)
+
+    def dot(i: int, ki: str | None, v: FloatArray, kj: str | None, w: FloatArray) -> float:
+        if ki is None or kj is None:
+            return float(v @ w)
+        kk = (rk, ki, kj) if ki <= kj else (rk, kj, ki)
+        got = store.get(kk)
+        if got is None:
+            got = float(v @ w)
+            store[kk] = got
+        return got
+
+    for i in range(p):
+        for j in range(i, p):
+            g[i, j] = g[j, i] = dot(i, keys[i], vs[i], keys[j], vs[j])
+        b[i] = dot(i, keys[i], vs[i], ykey, yv)
+    yy = dot(0, ykey, yv, ykey, yv)
+    return g, b, yy
+
+
+def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float, n: int
+               ) -> tuple[FloatArray, float]:
+    """:func:`solve` from the normal equations ``G = AᵀA``, ``b = Aᵀy``, ``yᵀy`` of ``n`` rows."""
+    scale = np.sqrt(np.maximum(np.diag(g0), 0.0) / max(n, 1))
+    scale[scale == 0] = 1.0
+    g = g0 / np.outer(scale, scale)
+    b = b0 / scale
+    p = g.shape[0]
+    g[np.diag_indices(p)] += 1e-12 * max(float(np.trace(g)), 1e-300)
+    try:
+        r = np.linalg.cholesky(g).T
+    except np.linalg.LinAlgError:
+        g[np.diag_indices(p)] += 1e-8 * float(np.trace(g))
+        r = np.linalg.cholesky(g).T
+    c = np.linalg.solve(r.T, b)
+    base = max(yy - float(c @ c), 0.0)
+    lo = np.array([0.0 if nn else -np.inf for nn in nonneg])
+    hi = np.full(p, np.inf)
+    sol = np.linalg.solve(r, c)
+    th = sol / scale
+    if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
+        res = lsq_linear(r, c, bounds=(lo * scale, hi * scale), method="bvls")
+        sol = res.x
+        th = sol / scale
+    e = c - r @ sol
+    return np.asarray(th, dtype=np.float64), base + float(e @ e)
 
 
 def solve(nonneg: Sequence[bool], a: FloatArray, y: FloatArray) -> tuple[FloatArray, float]:
@@ -189,17 +293,22 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     hh = h.copy()
     rss = np.inf
     for _ in range(passes):
-        cols, a, y = filtered_design(sig, hh)
-        th, rss = solve([c.nonneg for c in cols], a[rows], y[rows])
+        cols, st, y = _filtered_design(sig, hh)
+        g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey)
+        th, rss = solve_gram([c.nonneg for c in cols], g, b, yy, int(rows.sum()))
         hh.theta = dict(zip((c.name for c in cols), (float(v) for v in th)))
     return FitResult(hh, float(rss), int(rows.sum()))
 
 
 def residual(sig: Signals, h: Hyp) -> FloatArray:
     """Filtered force residual ``L[moving·(ū_τ − m·a − F_model)]`` of a fitted hypothesis [N] (all samples)."""
-    cols, a, y = filtered_design(sig, h)
-    th = np.array([h.theta.get(c.name, 0.0) for c in cols])
-    return np.asarray(y - a @ th, dtype=np.float64)
+    cols, st, y = _filtered_design(sig, h)
+    out = y.copy()
+    for c, v in zip(cols, st.cols):
+        th = h.theta.get(c.name, 0.0)
+        if th != 0.0:
+            out -= th * v
+    return out
 
 
 @dataclass(frozen=True)

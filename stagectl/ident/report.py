@@ -12,10 +12,31 @@ from stagectl.friction import save_model_file
 from stagectl.ident import discover as dsc
 from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
+from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.localise import regimes
 from stagectl.ident.modelio import hyp_to_model, hyp_to_spec
 from stagectl.ident.results import BOOT_QUANTILE, BOOT_SAMPLES, MIN_REL_GAIN
 from stagectl.outputs import plain, prepare_out_dir
+
+
+def base_model_text(h: Hyp) -> str:
+    """What the model file's friction section really is (its tag can hold less than it says)."""
+    names = [e for e in h.effects]
+    if h.given_spec is not None:
+        return f"base model: the given {h.given_spec.get('model')} friction model, rescaled"
+    parts = ["mass", "Coulomb", "viscous friction"]
+    if "stribeck" in names:
+        parts.append("a Stribeck curve" + (" with frictional lag" if "frictional_lag" in names else ""))
+    if "presliding" in names:
+        parts.append("pre-sliding (Maxwell-slip elements)")
+    tag = "gms" if "presliding" in names else "stribeck"
+    extra = [e for e in names if e not in ("stribeck", "frictional_lag", "presliding")]
+    txt = f"base model: {', '.join(parts)}, written with the `{tag}` tag"
+    if tag == "stribeck" and "stribeck" not in names:
+        txt += " (fs_n = fc_n: no Stribeck effect was found, the tag only holds Coulomb + viscous)"
+    if extra:
+        txt += f"; effects: {', '.join(extra)}"
+    return txt
 
 
 def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str, Any]:
@@ -47,6 +68,8 @@ def build_report(res: dsc.DiscoveryResult, sources: dict[str, str]) -> dict[str,
         "start_model": hyp_to_spec(res.start.hyp),
         "final_model": hyp_to_spec(res.final.hyp),
         "samples": {"estimation": int(ds.est_rows.sum()), "validation": int(ds.val_rows.sum())},
+        "data_notes": [*ds.est.notes, *([] if ds.val is ds.est else ds.val.notes)],
+        "base_model": base_model_text(res.final.hyp),
         "filter_cutoff_hz": ds.est.cutoff_hz,
         "stick_threshold_m_s": ds.est.v_stick,
         "sources": sources,
@@ -70,7 +93,7 @@ def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[s
     }
     model = hyp_to_model(res.final.hyp, meta)
     save_model_file(model, out / "model.yaml",
-                    header="augmented model written by `stagectl discover` (see report.md)")
+                    header=f"model written by `stagectl discover` (see report.md); {base_model_text(res.final.hyp)}")
     rep["model_file"] = str(out / "model.yaml")
     pngs = _plots(res, out) if plots else []
     rep["plots"] = pngs
@@ -152,21 +175,24 @@ def _markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     lines.append(f"- gap metric: {rep['gap_metric']}")
     lines.append(f"- **validation gap: {rep['gap_before']:.5g} N (start) → {rep['gap_after']:.5g} N (final)**")
     lines.append(f"- run time: {rep['elapsed_s']:.1f} s")
+    lines.append(f"- {rep['base_model']}")
+    for note in rep.get("data_notes", []):
+        lines.append(f"- note: {note}")
     lines.append("")
     lines.append("## Effects found (in order)")
     if not rep["effects"]:
         lines.append("No effect was accepted: no catalogue effect reduced the validation gap by the required "
                      f"margin ({100 * rep['acceptance_rule']['min_relative_gap_reduction']:.0f} % and a "
-                     "positive block-bootstrap bound).")
+                     "positive block-bootstrap bound), globally or in the regime where it acts.")
     for i, e in enumerate(rep["effects"], 1):
         params = ", ".join(f"{k} = {v:.6g}" if isinstance(v, float) else f"{k} = {v}"
                            for k, v in e["parameters"].items())
         lines.append(f"{i}. **{e['name']}** ({params}): gap {e['gap_before']:.5g} → {e['gap_after']:.5g} N.  ")
         lines.append(f"   Evidence: {e['evidence']}")
     lines.append("")
-    lines.append("## Rejected")
+    lines.append("## Not accepted")
     if not rep["rejected"]:
-        lines.append("None fitted the estimation data markedly without validating.")
+        lines.append("Every candidate is listed per round below.")
     for e in rep["rejected"]:
         lines.append(f"- {e['name']}: {e['reason']}")
     lines.append("")
@@ -178,18 +204,26 @@ def _markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         lines.append(f"| {d['kind']} | {where} | {d['share_of_samples']:.3f} | {d['rms_n']:.4g} | "
                      f"{d['mean_n']:+.4g} | {d['share_of_squared_residual']:.3f} |")
     lines.append("")
-    lines.append("## Candidates per round (validation gap)")
+    lines.append("## Candidates per round")
+    lines.append("Every candidate tried: gain on estimation data (fit) and on validation data (decides), in its "
+                 "regime where it acts in one, its key parameter, and the verdict.")
+    lines.append("")
     for i, r in enumerate(rep["rounds"], 1):
         lines.append(f"Round {i}: chosen **{r['chosen'] or 'none'}**")
         lines.append("")
-        lines.append("| effect | gap before [N] | gap after [N] | relative gain | bootstrap lower [N²] | acceptable |")
-        lines.append("|---|---|---|---|---|---|")
+        lines.append("| effect | key parameter | estimation gain | validation gap [N] | validation gain | "
+                     "regime gain | verdict |")
+        lines.append("|---|---|---|---|---|---|---|")
         for c in r["candidates"]:
             if "error" in c:
-                lines.append(f"| {c['name']} | – | – | – | – | error: {c['error']} |")
+                lines.append(f"| {c['name']} | – | – | – | – | – | error: {c['error']} |")
                 continue
-            lines.append(f"| {c['name']} | {c['gap_before']:.5g} | {c['gap_after']:.5g} | {100 * c['rel_gain']:.1f} % | "
-                         f"{c['bootstrap_lower_n2']:.3g} | {'yes' if c['acceptable'] else 'no'} |")
+            reg = (f"{100 * c['regime_rel_gain']:.1f} % ({c['regime'].split('_')[0]}…)"
+                   if c.get("regime_rel_gain") is not None else "–")
+            verdict = str(c.get("verdict") or "").replace("|", "\\|")
+            key = str(c.get("key_parameter") or "–").replace("|", "\\|")
+            lines.append(f"| {c['name']} | {key} | {100 * c['estimation_rel_gain']:.1f} % | {c['gap_before']:.5g} → "
+                         f"{c['gap_after']:.5g} | {100 * c['rel_gain']:.1f} % | {reg} | {verdict} |")
         lines.append("")
     lines.append("## Plots")
     for p in pngs:

@@ -109,9 +109,18 @@ class CandidateFit:
     min_explained_n: float
     acceptable: bool
     note: str | None = None
+    key_parameter: str | None = None
+    regime: str | None = None  # the regime the effect acts in (judged there too)
+    regime_gap_before: float | None = None
+    regime_gap_after: float | None = None
+    regime_rel_gain: float | None = None
+    regime_significant: bool | None = None
+    bounds: tuple[str, ...] = ()  # physical bounds reached or crossed by the fit
+    verdict: str | None = None  # accepted / rejected / superseded, with the reason
 
     def as_json(self) -> dict[str, Any]:
-        return _json(self, "note")
+        return _json(self, "note", "key_parameter", "regime", "regime_gap_before", "regime_gap_after",
+                     "regime_rel_gain", "regime_significant", "verdict")
 
 
 @dataclass(frozen=True)

@@ -97,6 +97,7 @@ class Signals:
     source: str = ""
     noise_diff_m: float = 0.0
     cache: dict[str, object] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)  # what the preparation did to the data (resampling, ...)
 
     @property
     def n(self) -> int:
@@ -185,6 +186,49 @@ def _quantum(x: FloatArray) -> float:
     return q if q > 1e-6 * float(np.median(d)) else float(np.percentile(d, 1))
 
 
+#: physical ranges a recording must stay in (far beyond any stage; values outside are a unit or export error and
+#: would overflow the inverse dynamics: a 1e300 m position squared is inf)
+MAX_ABS_X_M = 1e3
+MAX_ABS_U_N = 1e9
+MIN_DT_S = 1e-7
+MAX_DT_S = 10.0
+
+
+def check_ranges(rec: Recording) -> None:
+    """One clear :class:`DataError` for a recording outside physical ranges (named row, column and unit)."""
+    for name, arr, lim, unit in (("x", rec.x, MAX_ABS_X_M, "m"), ("u", rec.u, MAX_ABS_U_N, "N")):
+        bad = np.flatnonzero(~(np.abs(arr) <= lim))
+        if bad.size:
+            k = int(bad[0])
+            raise DataError(f"{rec.source}: row {k + 2}, column '{name}': {arr[k]:.6g} {unit} is outside the "
+                            f"physical range ±{lim:g} {unit} (wrong unit or a corrupt export?)")
+    dts = np.diff(rec.t)
+    for k in (int(np.argmin(dts)), int(np.argmax(dts))):
+        d = float(dts[k]) if dts.size else 0.0
+        if dts.size and not (MIN_DT_S <= d <= MAX_DT_S):
+            raise DataError(f"{rec.source}: row {k + 3}, column 't': time step {d:.6g} s is outside "
+                            f"[{MIN_DT_S:g}, {MAX_DT_S:g}] s (wrong time unit?)")
+
+
+def resample_uniform(rec: Recording, dt_s: float) -> tuple[Recording, npt.NDArray[np.bool_]]:
+    """``rec`` on a uniform grid of period ``dt_s`` [s] from its first sample: position (and other columns)
+    linearly interpolated, the command ``u`` held (zero-order hold: the last command sent before each grid
+    time). Returns the recording and a mask of the grid samples farther than dt/10 from any measured one."""
+    t = rec.t
+    m = int(math.floor((t[-1] - t[0]) / dt_s + 1e-9)) + 1
+    tg = t[0] + dt_s * np.arange(m)
+    idx = np.clip(np.searchsorted(t, tg + 1e-9 * dt_s, side="right") - 1, 0, t.size - 1)
+    nearest = np.minimum(np.abs(t[idx] - tg), np.abs(t[np.minimum(idx + 1, t.size - 1)] - tg))
+    synthetic = nearest > 0.1 * dt_s
+
+    def lin(a: FloatArray | None) -> FloatArray | None:
+        return None if a is None else np.interp(tg, t, a)
+
+    out = Recording(tg, np.interp(tg, t, rec.x), rec.u[idx].copy(), lin(rec.x_ref), lin(rec.v),
+                    f"{rec.source} (resampled)", {k: np.interp(tg, t, v) for k, v in rec.extra.items()})
+    return out, synthetic
+
+
 def prepare(
     rec: Recording,
     cutoff_hz: float | None = None,
@@ -209,20 +253,32 @@ def prepare(
     Raises
     ------
     DataError
-        Too few rows, or a sample period that varies by more than 5 %.
+        Too few rows, values outside physical ranges (:func:`check_ranges`), a cut-off outside (0, Nyquist), too
+        little motion. A sample period that varies by more than 5 % is resampled (:func:`resample_uniform`), with
+        a note in ``Signals.notes``.
     """
     n = len(rec)
     if n < min_rows:
         raise DataError(f"{rec.source}: {n} rows; identification needs at least {min_rows} samples")
+    check_ranges(rec)
+    notes: list[str] = []
+    synthetic = np.zeros(n, dtype=bool)
     dts = np.diff(rec.t)
     dt = float(np.median(dts))
     jitter = float(np.max(np.abs(dts - dt)) / dt)
     if jitter > 0.05:
+        # irregular sampling (a USB-polled drive, skipped cycles): resample onto a uniform grid at the median
+        # period; samples that are not measured ones are kept out of the residual (treated like stick samples)
         k = int(np.argmax(np.abs(dts - dt))) + 1
-        raise DataError(
-            f"{rec.source}: row {k + 2}, column 't': sample period {dts[k - 1]:.6g} s differs from the median "
-            f"{dt:.6g} s by {100 * jitter:.0f} % (identification needs uniform sampling)"
-        )
+        rec, synthetic = resample_uniform(rec, dt)
+        notes.append(f"irregular sampling: the sample period varies by up to {100 * jitter:.0f} % of the median "
+                     f"{dt:.6g} s (first at row {k + 2}); resampled onto a uniform {dt:.6g} s grid (x linearly "
+                     f"interpolated, u held as commanded), {int(synthetic.sum())} of {rec.t.size} grid samples "
+                     "were not measured and are excluded from the fit")
+        n = len(rec)
+    if cutoff_hz is not None and not (0.0 < float(cutoff_hz) < 0.5 / dt):
+        raise DataError(f"--cutoff-hz: {cutoff_hz:g} Hz is outside (0, {0.5 / dt:.6g}) Hz (the Nyquist frequency of "
+                        f"the {dt:.6g} s sample period of {rec.source})")
     fs = 1.0 / dt
     if cutoff_hz is not None and not (math.isfinite(cutoff_hz) and 0.0 < cutoff_hz < 0.5 * fs):
         raise DataError(f"--cutoff-hz: must be between 0 and the recording's Nyquist frequency {0.5 * fs:.6g} Hz "
@@ -254,7 +310,14 @@ def prepare(
     dxc = np.zeros(n)
     dxc[1:-1] = x[2:] - x[:-2]
     thr = max(6.0 * math.sqrt(2.0) * noise, 2.5 * q)
-    moving = (np.abs(dxc) > thr) & (np.abs(v) > v_th)
+    by_disp = np.abs(dxc) > thr
+    by_speed = np.abs(v) > v_th
+    moving = by_disp & by_speed
+    if synthetic.any():  # resampled, not measured: like a stick sample (and its neighbours' differences)
+        near_syn = synthetic.copy()
+        near_syn[1:] |= synthetic[:-1]
+        near_syn[:-1] |= synthetic[1:]
+        moving &= ~near_syn
     moving[0] = moving[-1] = False
     # a reversal without a stick phase happens inside an interval: the friction changes sign mid-interval,
     # which no per-sample model column represents; those samples are treated like stick samples
@@ -296,10 +359,14 @@ def prepare(
         noise_diff_m=_robust_std(np.diff(x, 4)) / math.sqrt(70.0) if n > 8 else 0.0,
     )
     sig.acc_f = sig.filt(acc_raw)
+    sig.notes = notes
     if require_motion and int(evaluate.sum()) < 50:
         raise DataError(
-            f"{rec.source}: only {int(evaluate.sum())} samples in motion (|v| > {v_th:.3g} m/s); "
-            "identification needs a recording with motion"
+            f"{rec.source}: only {int(evaluate.sum())} samples usable in motion (identification needs 50): a sample "
+            f"counts as moving when its central displacement |x[k+1] − x[k−1]| exceeds {thr:.3g} m (the noise band: "
+            f"6·√2 × position noise {noise:.3g} m, at least 2.5 counts of {q:.3g} m; {int(by_disp.sum())} samples "
+            f"pass) and its filtered speed exceeds {v_th:.3g} m/s ({int(by_speed.sum())} pass), {guard} samples "
+            "away from any stop; record longer or faster moves, or a finer position sensor"
         )
     return sig
 

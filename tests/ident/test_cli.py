@@ -134,3 +134,46 @@ def test_cli_non_utf8_bom_and_bad_out_are_one_line_errors(tmp_path: Path,
     assert main(["identify", str(bom), "--model", "stribeck", "--out", str(tmp_path / "no" / "m.yaml")]) == 2
     err = capsys.readouterr().err
     assert "--out" in err and "existing directory" in err and "Traceback" not in err
+
+
+def test_discover_accepts_a_recording_with_gaps_and_says_it_resampled(spring_stage, tmp_path: Path) -> None:
+    """Skipped control cycles leave t non-uniform: the recording is resampled onto a uniform grid with a note
+    (issue 15), instead of a refusal."""
+    est, _, _ = spring_stage
+    data = np.loadtxt(est, delimiter=",", skiprows=1)
+    rng = np.random.default_rng(7)
+    keep = np.ones(len(data), bool)
+    keep[rng.choice(np.arange(10, len(data) - 10), size=len(data) // 25, replace=False)] = False  # 4 % skipped
+    gappy = tmp_path / "gappy.csv"
+    np.savetxt(gappy, data[keep], delimiter=",", header="t_s,position_m,force_N,reference_m", comments="",
+               fmt="%.17g")
+    out = tmp_path / "out"
+    p = _cli("discover", str(gappy), "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m", "--out",
+             str(out), "--json", "--no-plots", "--max-rounds", "1")
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(p.stdout)
+    assert any("resampled onto a uniform" in n for n in rep["data_notes"]), rep["data_notes"]
+    assert [e["name"] for e in rep["effects"]] == ["spring"]
+    assert "resampled" in (out / "report.md").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("what", ["huge_x", "tiny_dt"])
+def test_extreme_but_valid_recordings_give_one_error_line(spring_stage, tmp_path: Path, what: str) -> None:
+    """Values around 1e300 or a 1e-300 s time step are valid CSV but no physical recording: one line naming the
+    row, column and unit, exit 2 (issue 16)."""
+    est, _, _ = spring_stage
+    data = np.loadtxt(est, delimiter=",", skiprows=1)[:600]
+    if what == "huge_x":
+        data[300, 1] = 1e300
+    else:
+        data[:, 0] = np.arange(len(data)) * 1e-300
+    bad = tmp_path / "bad.csv"
+    np.savetxt(bad, data, delimiter=",", header="t_s,position_m,force_N,reference_m", comments="", fmt="%.17g")
+    for cmd, extra in (("discover", ()), ("identify", ("--model", "stribeck"))):
+        p = _cli(cmd, str(bad), *extra, "--columns", "t=t_s,x=position_m,u=force_N", "--out",
+                 str(tmp_path / f"{cmd}.yaml"))
+        assert p.returncode == 2, (cmd, p.stdout, p.stderr)
+        lines = p.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("stagectl: error:"), p.stderr
+        assert "Traceback" not in p.stderr
+        assert ("column 'x'" in lines[0] and " m " in lines[0]) if what == "huge_x" else "time step" in lines[0]

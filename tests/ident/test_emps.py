@@ -40,3 +40,21 @@ def test_offset_candidate_matches_published_offset_and_validates(emps: dsc.Datas
     _, r1 = dsc.gap(emps.val, emps.val_rows, fr.hyp)
     c = dsc.compare(r0, r1, emps.est.dt_s)
     assert c.significant and c.rel_gain > 0.25
+
+
+def test_discovery_names_viscous_asymmetry_and_presliding_rejects_the_lead_ripple(emps_dir: Path) -> None:
+    """Issue 13 targets on the real axis: viscous asymmetry with Fv+/Fv− within 5 % of the published
+    direction-dependent model (166.7 / 240.4 N·s/m), pre-sliding named from the reversal regime, the 2.5 mm
+    (ball-screw lead) periodic candidates not accepted. The validation residual is reported, not asserted
+    against the 2.0 N target, which this model family does not reach (docs/discovery.md §7)."""
+    est = load_recording(emps_dir / "DATA_EMPS.csv", COLUMNS)
+    val = load_recording(emps_dir / "DATA_EMPS_PULSES.csv", COLUMNS)
+    res = dsc.discover(est, validate=val)
+    got = {e.name: e for e in res.effects}
+    assert "viscous_asymmetry" in got
+    p = got["viscous_asymmetry"].parameters
+    assert p.fv_plus_n_s_m == pytest.approx(166.7061, rel=0.05)
+    assert p.fv_minus_n_s_m == pytest.approx(240.4236, rel=0.05)
+    assert "presliding" in got and "in its regime (near_reversal)" in got["presliding"].evidence
+    assert "position_ripple" not in got and "cogging" not in got
+    assert res.gap_after < 0.6 * res.gap_before  # 4.23 N -> 2.24 N
