@@ -632,4 +632,4 @@ DELAY: EffectSpec[DelayShape, Delay] = EffectSpec(
 
 #: the discovery catalogue (issue 6), in search and report order; ``coulomb``, ``viscous`` and ``inertia`` are
 #: always in the model. ``contains``: richer -> simpler nested effects (docs/discovery.md §1-2).
-REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, VISCOUS_ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY))
+REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY, VISCOUS_ASYMMETRY))

@@ -24,6 +24,8 @@ import numpy.typing as npt
 from stagectl.ident import effects as fx
 from stagectl.ident.hypothesis import HiddenStage
 from stagectl.ident.recording import Recording
+from stagectl.schema import load
+from stagectl.sim.backlash import BacklashConfig, BacklashPlant
 from stagectl.sim.plant import PlantConfig, StagePlant
 
 FloatArray = npt.NDArray[np.float64]
@@ -119,6 +121,7 @@ def closed_loop(
     mass_estimate_kg: float | None = None,
     source: str = "synth",
     x_ref: FloatArray | None = None,
+    backlash: Mapping[str, Any] | None = None,
 ) -> Recording:
     """Simulate a closed-loop recording.
 
@@ -127,6 +130,9 @@ def closed_loop(
     plant_cfg : mapping
         A ``plant:`` mapping for :meth:`stagectl.sim.plant.PlantConfig.from_mapping` (mass_kg, friction,
         effects, sensor, ...); its ``seed`` is replaced by ``seed``.
+    backlash : mapping, optional
+        A :class:`stagectl.sim.backlash.BacklashConfig` mapping: the stage becomes motor + load with that play
+        (``plant_cfg`` is then the friction side; the mass estimate defaults to the sum of both masses).
     motion : Motion
         Reference design.
     bandwidth_hz : float
@@ -141,8 +147,13 @@ def closed_loop(
     """
 
     cfg = PlantConfig.from_mapping({**dict(plant_cfg), "seed": int(seed)})
-    plant = StagePlant(cfg)
-    m_hat = float(mass_estimate_kg if mass_estimate_kg is not None else cfg.mass_kg)
+    plant: StagePlant | BacklashPlant = StagePlant(cfg)
+    m_total = cfg.mass_kg
+    if backlash is not None:
+        bl = load(BacklashConfig, dict(backlash), "backlash")
+        plant = BacklashPlant(cfg, bl)
+        m_total += bl.other_mass_kg
+    m_hat = float(mass_estimate_kg if mass_estimate_kg is not None else m_total)
     if x_ref is None:
         x_ref, v_ref, a_ref = reference(motion or Motion(), dt_s, seed)
     else:

@@ -172,6 +172,19 @@ def test_asymmetry_sliding_levels():
     assert bwd.v_m_s == pytest.approx(-(3.0 / (1 - r) - 1.0) / 20.0, rel=1e-3)
 
 
+def test_viscous_asymmetry_sliding_levels():
+    """Fv+ = Fv + d_v, Fv− = Fv − d_v, Coulomb symmetric: the terminal speeds under ±3 N follow from
+    3 = Fc + Fv±·|v| (a plain reference, not the plant's kernels)."""
+    fric = {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.0, "viscous_n_s_m": 20.0}
+    d = 8.0
+    fwd = make(fric, effects={"viscous_asymmetry": {"difference_n_s_m": d}})
+    fwd.simulate(np.full(5000, 3.0), 1e-4)
+    assert fwd.v_m_s == pytest.approx((3.0 - 1.0) / (20.0 + d), rel=1e-3)
+    bwd = make(fric, effects={"viscous_asymmetry": {"difference_n_s_m": d}})
+    bwd.simulate(np.full(5000, -3.0), 1e-4)
+    assert bwd.v_m_s == pytest.approx(-(3.0 - 1.0) / (20.0 - d), rel=1e-3)
+
+
 def test_position_ripple_modulates_sliding_force_and_breakaway():
     fric = {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.0, "viscous_n_s_m": 5.0}
     rp = {"amplitude": 0.2, "wavelength_m": 1e-3, "phase_rad": 0.0}
