@@ -29,9 +29,9 @@ def test_lost_motion_at_reversal_equals_the_play(friction_side: str, sensor_side
     assert dut.x_motor_m - dut.x_load_m == pytest.approx(0.5 * gap + f_load / k, abs=0.1 * gap)  # + side
     # reverse: the contact opens, the motor crosses the play (lost motion), the contact closes on the other side
     d_open = d_close = None
-    for k in range(12000):  # 0.2 s finely (the crossing takes a few ms), then 1.8 s at the control period
+    for i in range(12000):  # 0.2 s finely (the crossing takes a few ms), then 1.8 s at the control period
         was = dut.contact_force_n
-        dut.step(-1.5, 2e-5 if k < 10000 else dt)
+        dut.step(-1.5, 2e-5 if i < 10000 else dt)
         d = dut.x_motor_m - dut.x_load_m
         if d_open is None and was > 0.0 and dut.contact_force_n == 0.0:
             d_open = d
