@@ -1,8 +1,11 @@
 """``stagectl discover DATA.csv [--model MODEL.yaml] [--validate OTHER.csv] [--columns ...] --out DIR [--json]``.
 
 Finds where a model and a closed-loop recording disagree, names the missing effect from the catalogue
-(stribeck, presliding, frictional_lag, asymmetry, position_ripple, cogging, offset, spring, delay), adds it,
-and accepts it only if the validation gap shrinks significantly; iterates. See
+(stribeck, presliding, frictional_lag, asymmetry, position_ripple, cogging, offset, spring, delay,
+viscous_asymmetry, backlash), adds it,
+and accepts it only if the validation gap shrinks significantly (globally, or in the regime where the effect
+acts while the global gap does not get worse); iterates. Irregularly sampled recordings are resampled onto a
+uniform grid (with a note). See docs/discovery.md and
 :mod:`stagectl.ident.discover` for the gap metric and the decision rule.
 """
 

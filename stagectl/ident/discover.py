@@ -275,7 +275,10 @@ def _try_pairs(
     estimation data best (e.g. an offset plus a cogging whose position coverage differs between estimation
     and validation blocks, where each alone absorbs part of the other). The pair must pass the same test."""
     nested = fx.REGISTRY.nested()
-    est = sorted((k for k in cands if "+" not in k), key=lambda k: cands[k][0].rss)
+    # effects that act in one regime are judged singly, there (docs/discovery.md §7): paired with a global
+    # effect, their columns only absorb fitting residue at the extremes of the motion
+    est = sorted((k for k in cands if "+" not in k and fx.REGISTRY.get(k).regime is None),
+                 key=lambda k: cands[k][0].rss)
     top = [k for k in est if 1.0 - math.sqrt(cands[k][0].rss / max(cur.rss, 1e-300)) >= 0.5 * MIN_REL_GAIN]
     top = top[:PAIR_CANDIDATES]
     best: tuple[tuple[str, str], FitResult, Comparison] | None = None

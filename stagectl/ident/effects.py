@@ -30,6 +30,7 @@ from scipy.optimize import minimize
 
 from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring, ViscousAsymmetry
 from stagectl.ident.columns import (
+    cached,
     element,
     element_rate,
     min_damped_delta,
@@ -524,6 +525,84 @@ def _hide_delay(st: HiddenStage) -> None:
     st.effects["delay"] = {"delay_s": float(st.rng.uniform(0.5e-3, 2e-3))}
 
 
+# ============================================================================================ backlash
+@dataclass(frozen=True)
+class BacklashShape:
+    gap_m: float = 1e-5  # total play b between motor and load [m]
+
+
+@dataclass(frozen=True)
+class BacklashParams:
+    """Backlash seen from a motor-side sensor: for the first ``gap_m`` after each reversal the motor moves
+    alone; ``coulomb_lost_n`` [N] of friction and ``mass_lost_kg`` [kg] of mass are then not carried."""
+
+    gap_m: float
+    coulomb_lost_n: float
+    viscous_lost_n_s_m: float
+    mass_lost_kg: float
+    coulomb_n: float  # the full Coulomb level, for the bounds
+    mass_kg: float
+
+
+def _play_open(sig: Signals, gap: float) -> FloatArray:
+    """1 while the play is open (the motor has moved less than ``gap`` since it last pushed the load the
+    other way), else 0: the play operator of half-width b/2 on the raw motor position, i.e. a Maxwell-slip
+    element of break displacement b/2 that is not saturated."""
+    return cached(sig, f"play:{gap:.6e}", lambda: np.asarray(
+        np.abs(element(sig, 0.5 * gap)) < 1.0 - 1e-9, dtype=np.float64))
+
+
+def _backlash_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    b = BACKLASH.shape(h).gap_m
+    g = _play_open(sig, b)
+    return [Column("bc", g * sig.direction, f"bc:{b:.6e}"), Column("bv", g * sig.v, f"bv:{b:.6e}"),
+            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}")]
+
+
+def _backlash_params(h: Hyp) -> BacklashParams:
+    th = h.theta
+    m = th.get("m", h.fixed_mass_kg or 0.0)
+    return BacklashParams(float(BACKLASH.shape(h).gap_m), -th.get("bc", 0.0), -th.get("bv", 0.0), -th.get("bm", 0.0),
+                          coulomb_level(h), float(m))
+
+
+def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    sig = fitter.sig
+    span = float(np.ptp(sig.xf))
+    lo = max(4.0 * sig.noise_m, 2.0 * sig.quantum_m, 1e-7)
+    hi = max(min(0.02 * span, 2e-3), 20 * lo)
+    b, _ = best_scalar(lambda g: BACKLASH.fit_with(fitter, h, gap_m=g).rss, list(np.geomspace(lo, hi, 12)), lo, hi,
+                       maxiter=10)
+    return BACKLASH.fit_with(fitter, h, gap_m=b)
+
+
+def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
+    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
+            f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed) and behaves like lost motion: for the "
+            f"first {1e6 * p.gap_m:.3g} µm after a reversal the motor moves without the load ({p.coulomb_lost_n:.3g} N "
+            f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (a step "
+            "in displacement, where pre-sliding builds up gradually). Backlash is a plant structure, not written "
+            "into model.yaml (simulate it with stagectl.sim.backlash)")
+
+
+def _backlash_bounds(p: BacklashParams) -> list[str]:
+    out = []
+    if not (-0.1 * abs(p.coulomb_n) <= p.coulomb_lost_n <= 1.1 * abs(p.coulomb_n)):
+        out.append(f"friction lost in the play {p.coulomb_lost_n:.3g} N outside [0, Fc = {p.coulomb_n:.3g} N]")
+    if p.mass_kg > 0 and not (-0.1 * p.mass_kg <= p.mass_lost_kg <= p.mass_kg):
+        out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg outside [0, m = {p.mass_kg:.3g} kg]")
+    return out
+
+
+def _hide_backlash(st: HiddenStage) -> None:
+    """Motor + load with a play of 5-30 µm; the motor side is 10-25 % of the load mass; friction on the load,
+    sensor on the motor (a ball-screw axis with a rotary encoder)."""
+    rng = st.rng
+    st.backlash = {"gap_m": float(rng.uniform(5e-6, 30e-6)),
+                   "other_mass_kg": float(rng.uniform(0.1, 0.25)) * st.mass_kg,
+                   "contact_stiffness_n_m": 1e7, "coupling_step_s": 2e-5}
+
+
 # ============================================================================================ bounds, keys
 def _stribeck_bounds(p: StribeckParams) -> list[str]:
     out = []
@@ -558,6 +637,12 @@ def _ripple_bounds(p: PositionRipple) -> list[str]:
 
 
 # ============================================================================================ the registry
+BACKLASH: EffectSpec[BacklashShape, BacklashParams] = EffectSpec(
+    "backlash", BacklashShape, _backlash_params, _backlash_evidence, _search_backlash, column_rank=80,
+    columns=_backlash_columns, hide=_hide_backlash, regime="near_reversal", bounds=_backlash_bounds,
+    key=lambda p: f"play = {1e6 * p.gap_m:.3g} µm",
+    separate_by="slow small reversals with a load-side sensor, or compare motor and load positions (lost motion "
+                "is a step; pre-sliding a gradual build-up)")
 STRIBECK: EffectSpec[StribeckShape, StribeckParams] = EffectSpec(
     "stribeck", StribeckShape, _stribeck_params, _stribeck_evidence, _search_stribeck, column_rank=20,
     friction_columns=_stribeck_columns, hide=_hide_stribeck, regime="low_speed", bounds=_stribeck_bounds,
@@ -632,4 +717,5 @@ DELAY: EffectSpec[DelayShape, Delay] = EffectSpec(
 
 #: the discovery catalogue (issue 6), in search and report order; ``coulomb``, ``viscous`` and ``inertia`` are
 #: always in the model. ``contains``: richer -> simpler nested effects (docs/discovery.md §1-2).
-REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY, VISCOUS_ASYMMETRY))
+REGISTRY = Registry((STRIBECK, PRESLIDING, LAG, ASYMMETRY, RIPPLE, COGGING, OFFSET, SPRING, DELAY, VISCOUS_ASYMMETRY,
+                     BACKLASH))

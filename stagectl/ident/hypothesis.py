@@ -121,6 +121,7 @@ class HiddenStage:
     mass_kg: float
     span_m: float
     rng: np.random.Generator
+    backlash: dict[str, Any] | None = None  # a stagectl.sim.backlash.BacklashConfig mapping (motor + load)
 
 
 class Fitter(Protocol):

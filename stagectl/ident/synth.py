@@ -146,7 +146,11 @@ def closed_loop(
         Columns t, x (measured), u (commanded), x_ref, and the true friction as extra column ``f_true``.
     """
 
-    cfg = PlantConfig.from_mapping({**dict(plant_cfg), "seed": int(seed)})
+    plant_map = dict(plant_cfg)
+    if backlash is None and "backlash" in plant_map:  # a stage drawn by hide(..., "backlash", ...)
+        backlash = plant_map.pop("backlash")
+    plant_map.pop("backlash", None)
+    cfg = PlantConfig.from_mapping({**plant_map, "seed": int(seed)})
     plant: StagePlant | BacklashPlant = StagePlant(cfg)
     m_total = cfg.mass_kg
     if backlash is not None:
@@ -215,6 +219,8 @@ def hide(stage: dict[str, Any], effect: str, rng: np.random.Generator, span_m: f
     hs = HiddenStage(fr, dict(st.get("effects") or {}), float(fr["fc_n"]), sign,
                      float(stage.get("mass_kg", math.nan)), span_m, rng)
     spec.hide(hs)
+    if hs.backlash is not None:
+        st["backlash"] = hs.backlash
     st["friction"] = hs.friction
     if hs.effects:
         st["effects"] = hs.effects

@@ -99,3 +99,21 @@ def test_long_stroke_null_recording_names_nothing_in_any_regime() -> None:
     gains = [c.regime_rel_gain for c in res.rounds[0].candidates
              if isinstance(c, CandidateFit) and c.regime_rel_gain is not None]
     assert gains and max(gains) < 0.2, gains
+
+
+def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() -> None:
+    """A ball-screw-scale axis (load 4 kg, motor side 0.8 kg, stiff nut contact 1e7 N/m, encoder on the motor)
+    with a hidden play of 15-30 µm: discovery names backlash, not pre-sliding, with the play and the load mass
+    it loses at each reversal (docs/discovery.md §10)."""
+    st, rng = _stage(1305)
+    st["mass_kg"] = 4.0
+    gap = float(rng.uniform(15e-6, 30e-6))
+    bl = {"gap_m": gap, "other_mass_kg": 0.8, "contact_stiffness_n_m": 1e7, "coupling_step_s": 2e-5}
+    rec = synth.closed_loop(st, motion=MOTION, seed=1305, backlash=bl)
+    res = discover(rec, max_rounds=2)
+    names = [e.name for e in res.effects]
+    assert names[:1] == ["backlash"], res.rounds[0].candidates
+    p = res.effects[0].parameters
+    assert p.gap_m == pytest.approx(gap, rel=0.15)
+    assert p.mass_lost_kg == pytest.approx(4.0, rel=0.3)  # the load's mass is not carried inside the play
+    assert "lost motion" in res.effects[0].evidence
