@@ -256,4 +256,4 @@ def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragm
 @njit(cache=True, inline="always")
 def velocity_force_kernel(ep: npt.NDArray[np.float64], v: float) -> float:  # pragma: no cover - compiled
     """Compiled :meth:`Effects.velocity_force` on packed parameters ``ep``: ``d_v·|v|`` [N]. Real-time safe."""
-    return ep[11] * abs(v)
+    return float(ep[11]) * abs(v)
