@@ -58,6 +58,14 @@ def test_discover_cli_writes_report_plots_and_loadable_model(spring_stage, tmp_p
     assert len(pngs) >= 3 and all((out / x).stat().st_size > 1000 for x in pngs)
     md = (out / "report.md").read_text(encoding="utf-8")
     assert "spring" in md and ".png" in md
+    # every candidate of every round with its key parameter and verdict; the model file names its base model
+    rows = [c for r in rep["rounds"] for c in r["candidates"] if "error" not in c]
+    assert rows and all(c.get("verdict") for c in rows)
+    assert sum(c["verdict"].startswith("accepted") for c in rows) == len(rep["effects"])
+    assert any(c["verdict"].startswith("rejected: ") for c in rows)
+    assert "| verdict |" in md and "λ = " in md  # periodic candidates show their wavelength
+    header = (out / "model.yaml").read_text(encoding="utf-8").splitlines()[0]
+    assert header.startswith("#") and "base model:" in header and "no Stribeck effect was found" in header
     # the augmented model loads as a StageModel, and the plant accepts it
     model = load_model_file(out / "model.yaml")
     assert model.effects.spring is not None

@@ -117,3 +117,20 @@ def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() ->
     assert p.gap_m == pytest.approx(gap, rel=0.15)
     assert p.mass_lost_kg == pytest.approx(4.0, rel=0.3)  # the load's mass is not carried inside the play
     assert "lost motion" in res.effects[0].evidence
+
+
+def test_a_fit_beyond_a_physical_bound_is_reported_not_clipped() -> None:
+    """A ripple amplitude >= 1 (friction would reverse sign) is named as a bound violation and the model file
+    refuses it instead of silently clipping it to 0.99."""
+    from stagectl.errors import ConfigError
+    from stagectl.friction.effects import PositionRipple
+    from stagectl.ident import effects as fx
+    from stagectl.ident.hypothesis import Hyp
+    from stagectl.ident.modelio import hyp_to_model
+
+    p = PositionRipple(amplitude=1.3, wavelength_m=1e-3, phase_rad=0.0)
+    assert fx.RIPPLE.bounds is not None and "reverse sign" in fx.RIPPLE.bounds(p)[0]
+    h = fx.RIPPLE.reshaped(Hyp(effects=("position_ripple",), theta={"m": 1.0, "fc": 1.0, "fv": 1.0, "rs": 1.3}),
+                           wavelength_m=1e-3)
+    with pytest.raises((ConfigError, ValueError)):
+        hyp_to_model(h)

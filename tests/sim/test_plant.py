@@ -178,10 +178,10 @@ def test_viscous_asymmetry_sliding_levels():
     fric = {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.0, "viscous_n_s_m": 20.0}
     d = 8.0
     fwd = make(fric, effects={"viscous_asymmetry": {"difference_n_s_m": d}})
-    fwd.simulate(np.full(5000, 3.0), 1e-4)
+    fwd.simulate(np.full(20000, 3.0), 1e-4)
     assert fwd.v_m_s == pytest.approx((3.0 - 1.0) / (20.0 + d), rel=1e-3)
     bwd = make(fric, effects={"viscous_asymmetry": {"difference_n_s_m": d}})
-    bwd.simulate(np.full(5000, -3.0), 1e-4)
+    bwd.simulate(np.full(20000, -3.0), 1e-4)
     assert bwd.v_m_s == pytest.approx(-(3.0 - 1.0) / (20.0 - d), rel=1e-3)
 
 
