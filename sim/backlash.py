@@ -44,7 +44,7 @@ class BacklashConfig:
                              choices=("motor", "load"))
     contact_stiffness_n_m: float = param(2e6, unit="N/m", desc="contact stiffness k_c once the play is closed",
                                          gt=0.0)
-    contact_damping_ratio: float = param(0.7, unit="", desc="contact damping as a fraction of critical", ge=0.0)
+    contact_damping_fraction: float = param(0.7, unit="", desc="contact damping as a fraction of critical", ge=0.0)
     coupling_step_s: float = param(2e-5, unit="s", desc="explicit coupling step h", gt=0.0, le=1e-3)
 
 
@@ -58,7 +58,7 @@ class BacklashPlant:
         self._m_other = float(bl.other_mass_kg)
         m_red = 1.0 / (1.0 / cfg.mass_kg + 1.0 / self._m_other)
         self._k = float(bl.contact_stiffness_n_m)
-        self._c = 2.0 * float(bl.contact_damping_ratio) * math.sqrt(self._k * m_red)
+        self._c = 2.0 * float(bl.contact_damping_fraction) * math.sqrt(self._k * m_red)
         if bl.coupling_step_s * math.sqrt(self._k / m_red) > 0.5:
             raise ValueError(f"backlash.coupling_step_s: must be <= {0.5 / math.sqrt(self._k / m_red):.3g} s for "
                              f"contact stiffness {self._k:.4g} N/m (h·√(k_c/m) <= 0.5)")

@@ -20,9 +20,17 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 3. the mean per-sample reduction of the squared residual is positive at the 97.5 % level of a circular
    block bootstrap (block length from the autocorrelation of the per-sample gain, >= 0.1 s).
 
-Among acceptable effects the one with the largest gain is named, except that a richer effect that contains
-a simpler acceptable one (spring ⊃ offset, asymmetry ⊃ offset, frictional_lag ⊃ stribeck) is named only if it
-beats the simpler one by the same tests. Rejected candidates (fit on estimation data but fail on
+An effect that acts in one regime (``EffectSpec.regime``: pre-sliding and backlash near reversals, Stribeck
+and frictional lag at low speed) is also acceptable when these tests pass on the validation samples of its
+regime and the global gap does not get worse (docs/discovery.md §7). A fit at or beyond a physical bound
+(``EffectSpec.bounds``) or without gain on estimation data is never acceptable. A richer effect is also tried
+jointly with the simpler one it contains (``asymmetry+offset``), so that neither is fitted with the other frozen.
+
+Among acceptable candidates the one with the smallest validation gap is named, except that a simpler candidate
+(fewer effects, or one the chosen contains) that it does not beat significantly is preferred (parsimony);
+unrelated candidates that fit within ``TIE_MARGIN`` and are not significantly different are reported as a tie
+with the experiment that would separate them. Every candidate carries its verdict (accepted, superseded,
+rejected and why) into the report. Rejected candidates (fit on estimation data but fail on
 validation data) are reported with their figures. Rounds repeat until nothing more is accepted.
 
 Two refinements of the greedy search:
@@ -400,7 +408,7 @@ def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: Float
         labels.append(name)
         for simpler in fx.REGISTRY.get(name).contains:
             joint = f"{name}+{simpler}"
-            if (simpler in catalogue and not cur.hyp.has(simpler) and _joint_differs(name, simpler)
+            if (simpler in catalogue and not cur.hyp.has(simpler)
                     and simpler not in fx.REGISTRY.get(name).implies):  # an implied effect is always fitted with it
                 labels.append(joint)
     for label in labels:
@@ -409,16 +417,13 @@ def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: Float
         except _FIT_ERRORS as exc:  # a candidate that cannot be fitted here
             info.append(CandidateError(label, str(exc)))
             continue
+        single = cands.get(label.split("+")[0]) if "+" in label else None
+        if single is not None and abs(fr.rss - single[0].rss) <= 1e-9 * max(single[0].rss, 1e-300):
+            continue  # the richer effect already carries the simpler one (a spring its constant force)
         row, cmp, r_new = _score(ds, cur, label, fr, r_cur, force_rms)
         cands[label] = (fr, cmp, r_new)
         info.append(row)
     return info, cands
-
-
-def _joint_differs(rich: str, simpler: str) -> bool:
-    """A joint fit adds something only when the richer effect does not already carry the simpler one's
-    columns (a spring carries its own constant force when no offset is in the model)."""
-    return not (rich == "spring" and simpler == "offset")
 
 
 def _effects_of(label: str) -> set[str]:
