@@ -186,10 +186,11 @@ def _quantum(x: FloatArray) -> float:
     return q if q > 1e-6 * float(np.median(d)) else float(np.percentile(d, 1))
 
 
-#: physical ranges a recording must stay in (far beyond any stage; values outside are a unit or export error and
-#: would overflow the inverse dynamics: a 1e300 m position squared is inf)
-MAX_ABS_X_M = 1e3
-MAX_ABS_U_N = 1e9
+#: ranges a recording must stay in: far beyond any stage, even one whose positions in nm were written as metres
+#: (the plausibility verdict of identify names such unit mix-ups); values outside are a corrupt export and would
+#: overflow the inverse dynamics (a 1e300 m position squared is inf)
+MAX_ABS_X_M = 1e9
+MAX_ABS_U_N = 1e12
 MIN_DT_S = 1e-7
 MAX_DT_S = 10.0
 
