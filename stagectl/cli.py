@@ -30,6 +30,7 @@ COMMAND_MODULES = (
     "bench",
     "scope",
     "plot",
+    "commission",
 )
 
 #: command names that live in a module of another name (the rest: name with '-' as '_')

@@ -1,0 +1,77 @@
+"""``stagectl commission --config STAGE.yaml --out DIR [--max-stroke M] [--max-force N] [--max-velocity M_S]``.
+
+From an unknown stage to a tuned, friction-compensated controller in one command (``docs/commissioning.md``):
+sanity probe, closed-loop FRF, friction experiments, identify/discover, gains with margins checked on the
+measured FRF, verification before/after. Writes ``DIR/model.yaml``, ``DIR/stage.yaml``,
+``DIR/recordings/*.csv``, ``DIR/report.md`` (+ PNGs) and ``DIR/report.json``; progress lines on stderr, the
+summary as one JSON line on stdout. Exit 0 when complete, 1 when a fault aborted it (drive disabled,
+recordings kept), 130 on Ctrl-C, 2 on bad input or a stage that fails the sanity checks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from stagectl.errors import ConfigError
+from stagectl.outputs import prepare_out_dir
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("commission", help="identify, tune and verify a stage in one run (report, model, config)")
+    p.add_argument("--config", required=True, help="stagectl YAML of the stage")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--max-stroke", type=float, default=None, metavar="M",
+                   help="lower the travel used by the experiments [m] (default: soft limits less 5 %% margins)")
+    p.add_argument("--max-force", type=float, default=None, metavar="N",
+                   help="lower the force limit of the experiments [N] (default: the configured one)")
+    p.add_argument("--max-velocity", type=float, default=None, metavar="M_S",
+                   help="lower the velocity limit of the experiments [m/s]")
+    p.add_argument("--no-verify", action="store_true", help="skip the before/after verification runs")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--runtime-dir", default=None, help="the daemon's runtime directory (refusal check)")
+    p.add_argument("--state-dir", default=None, help="the daemon's state directory (refusal check)")
+    p.add_argument("--inject-fault", default=None, metavar="EXPERIMENT@T",
+                   help="debug, simulated stages only: inject a drive fault T s into EXPERIMENT")
+    p.set_defaults(func=run)
+
+
+def _parse_fault(spec: str | None) -> tuple[str, float] | None:
+    if spec is None:
+        return None
+    name, _, t = spec.partition("@")
+    try:
+        return name, float(t or "0")
+    except ValueError:
+        raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {spec!r}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from stagectl.commission.guard import check_daemon
+    from stagectl.commission.outputs import write_config, write_report
+    from stagectl.commission.sequence import Commissioning, Options
+    from stagectl.config import load_app_config
+
+    cfg = load_app_config(args.config)
+    fault = _parse_fault(args.inject_fault)
+    check_daemon(cfg, args.runtime_dir, args.state_dir)
+    out = prepare_out_dir(args.out)
+
+    def progress(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    opts = Options(max_stroke_m=args.max_stroke, max_force_n=args.max_force, max_velocity_m_s=args.max_velocity,
+                   verify=not args.no_verify, plots=not args.no_plots, inject_fault=fault, progress=progress)
+    com = Commissioning(cfg, Path(out), opts, lambda res: write_config(res, Path(out)))
+    res = com.run()
+    rep = write_report(res, Path(out), plots=opts.plots)
+    summary = {"command": "commission", "status": rep["status"], "out": str(out),
+               "fitted": rep.get("fitted"), "aborted": rep.get("aborted")}
+    print(json.dumps(summary, default=str, separators=(",", ":")))
+    if res.aborted is not None:
+        print(f"stagectl: error: {res.aborted}", file=sys.stderr)
+        return 130 if res.aborted.interrupted else 1
+    print(f"stagectl commission: model.yaml, stage.yaml, report.md in {out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,379 @@
+"""The analyses of the commissioning experiments (pure numpy/scipy; SI units).
+
+**Sanity** (:func:`evaluate_probe`): per direction, quadratic fits ``x(τ) = x0 + v0·τ + a·τ²/2`` over the two
+constant-force phases give ``a1, a2``; ``m = (F2 − F1)/(a2 − a1)`` (friction cancels).
+
+**FRF** (:func:`estimate_frf`): the force excitation ``d`` is periodic with ``N`` samples; after one period of
+transient the recorded ``x`` and ``u`` (the total commanded force, excitation included) are cut into ``P``
+periods and averaged; at the excited bins ``P(ω_k) = X̄_k / Ū_k`` (closed loop, both driven by the same known
+``d``: the indirect estimate, unbiased by the controller). Its standard deviation comes from the spread of the
+``P`` per-period ratios (/√P).
+
+**Plant fit** (:func:`fit_plant`): ``G(z) = ZOH{1/(m·s² + c·s + k)}·e^{−jωτ}`` (exact zero-order-hold
+discretisation at the loop period, ``τ`` the I/O delay), least squares on ``ln(P_meas/G)`` (log-magnitude and
+phase equally), weighted by the per-line uncertainty. ``k`` is the pre-sliding (friction) stiffness the stage
+stands on while excited around a position, so ``f0 = √(k/m)/2π`` is reported as the pre-sliding resonance.
+Parameter standard errors: ``s²·(JᵀJ)⁻¹``. Lines where ``|P_meas/G|`` exceeds ``RESONANCE_RATIO`` are
+reported as unmodelled resonances.
+
+**Friction from constant-velocity passes** (:func:`cv_friction`): the mean force of each steady segment vs its
+speed, per direction; regression ``F = Fc·sgn(v) + Fv·v + F0`` with the Stribeck excess of the
+curve fitted by :func:`stagectl.ident.identify.fit_stribeck_curve` removed first (standard errors from the
+regression).
+
+**Margins on the measured FRF** (:func:`measured_margins`): ``L(jω) = P_meas(jω)·K(e^{jωT})`` with ``K`` the
+equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy import signal
+from scipy.optimize import least_squares
+
+from stagectl.commission.controllers import ProbeDirection
+from stagectl.errors import StageError
+
+FloatArray = npt.NDArray[np.float64]
+ComplexArray = npt.NDArray[np.complex128]
+
+RESONANCE_RATIO = 2.0
+FIT_ABOVE_F0 = 1.5
+
+
+class SanityError(StageError):
+    """The stage failed the sanity probe (wrong sign, no motion, implausible scale)."""
+
+
+# ================================================================================================ sanity
+@dataclass
+class SanityResult:
+    mass_kg: float
+    mass_by_direction_kg: list[float]
+    breakaway_n: list[float]
+    notes: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"mass_kg": self.mass_kg, "mass_by_direction_kg": self.mass_by_direction_kg,
+                "breakaway_n": self.breakaway_n, "notes": self.notes}
+
+
+def _accel(t: list[float], x: list[float]) -> float:
+    if len(t) < 4:
+        return math.nan
+    c = np.polyfit(np.asarray(t), np.asarray(x), 2)
+    return float(2.0 * c[0])
+
+
+def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float,
+                   expected_mass_kg: float | None) -> SanityResult:
+    """Check the probe's outcome and estimate the mass (see the module docstring).
+
+    Raises
+    ------
+    SanityError
+        One line naming what is wrong and what to check (sign, scaling, stuck axis / sensor).
+    """
+    masses: list[float] = []
+    brk: list[float] = []
+    notes: list[str] = []
+    for d in dirs:
+        name = "+" if d.sign > 0 else "-"
+        if d.outcome == "wrong_sign":
+            raise SanityError(f"sanity: a {name} force moved the stage the other way ({d_detect_m * 1e6:.3g} um): "
+                              "wrong sign; check io.drive polarity (force_per_unit_n sign) and the sensor direction")
+        if d.outcome == "no_motion":
+            raise SanityError(f"sanity: no motion beyond {d_detect_m * 1e6:.3g} um with up to {f_lim_n:.3g} N "
+                              f"in the {name} direction: stuck axis (brake, end stop) or the sensor does not move; "
+                              "check io.sensor and io.drive.resolution_m, or raise --max-force")
+        if d.outcome != "ok":
+            raise SanityError(f"sanity: the {name} probe did not finish ({d.outcome})")
+        brk.append(d.breakaway_n)
+        a1, a2 = _accel(d.t1, d.x1) * d.sign, _accel(d.t2, d.x2) * d.sign
+        if a1 < 0 and a2 < 0:
+            raise SanityError(f"sanity: the stage decelerated under a {name} force ({a1:.3g}, {a2:.3g} m/s^2): "
+                              "wrong sign; check io.drive polarity and the sensor direction")
+        if math.isfinite(a1) and math.isfinite(a2) and a2 > a1 > -math.inf and d.f2_n > d.f1_n:
+            masses.append((d.f2_n - d.f1_n) / (a2 - a1))
+    if not masses:
+        raise SanityError("sanity: the accelerations under two force levels could not be measured (too little "
+                          "travel or force); raise --max-stroke or --max-force")
+    m = float(np.median(masses))
+    if not (m > 0 and math.isfinite(m)):
+        raise SanityError(f"sanity: moving mass estimate {m:.3g} kg is not positive: check io.drive.force_per_unit_n "
+                          "and io.drive.resolution_m")
+    if expected_mass_kg is not None:
+        r = m / expected_mass_kg
+        if not 0.2 <= r <= 5.0:
+            raise SanityError(f"sanity: force/position scale off by {r:.3g}x: the probe moves like {m:.4g} kg where "
+                              f"the configuration expects {expected_mass_kg:.4g} kg; check io.drive.force_per_unit_n "
+                              "and the sensor's resolution_m")
+        notes.append(f"scale plausible: probe mass {m:.4g} kg vs {expected_mass_kg:.4g} kg configured ({r:.2f}x)")
+    return SanityResult(m, masses, brk, notes)
+
+
+# ================================================================================================ FRF
+@dataclass
+class Frf:
+    """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``)."""
+
+    f_hz: FloatArray
+    p: ComplexArray
+    p_std: FloatArray
+    periods: int
+
+
+def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[np.int64], period_s: float) -> Frf:
+    """Periodic-averaging FRF (module docstring). ``x``, ``u`` start at the excitation's first sample."""
+    p_count = x.shape[0] // n_period - 1
+    if p_count < 2:
+        raise StageError(f"frf: {x.shape[0]} samples hold fewer than 3 excitation periods of {n_period}")
+    xs = x[n_period: n_period * (p_count + 1)].reshape(p_count, n_period)
+    us = u[n_period: n_period * (p_count + 1)].reshape(p_count, n_period)
+    xs = xs - xs.mean(axis=1, keepdims=True)
+    us = us - us.mean(axis=1, keepdims=True)
+    X = np.fft.rfft(xs, axis=1)[:, bins]
+    U = np.fft.rfft(us, axis=1)[:, bins]
+    p = X.mean(axis=0) / U.mean(axis=0)
+    per = X / U
+    p_std = np.abs(per - p).std(axis=0, ddof=1) / math.sqrt(p_count) if p_count > 1 else np.abs(p)
+    f = bins.astype(float) / (n_period * period_s)
+    return Frf(f, p.astype(np.complex128), np.asarray(p_std, float), p_count)
+
+
+def plant_response(f_hz: FloatArray, m: float, c: float, k: float, tau: float, period_s: float) -> ComplexArray:
+    """``ZOH{1/(m s² + c s + k)}(e^{jωT})·e^{−jωτ}`` at ``f_hz``."""
+    num, den, _ = signal.cont2discrete(([1.0], [m, c, k]), period_s, method="zoh")
+    w = 2 * np.pi * f_hz * period_s
+    _, h = signal.freqz(np.ravel(num), den, worN=w)
+    return np.asarray(h * np.exp(-1j * 2 * np.pi * f_hz * tau), np.complex128)
+
+
+@dataclass
+class PlantFit:
+    mass_kg: float
+    mass_std_kg: float
+    damping_n_s_m: float
+    stiffness_n_m: float
+    stiffness_std_n_m: float
+    delay_s: float
+    delay_std_s: float
+    rms_log_error: float
+    resonances_hz: list[float]
+    f_lo_hz: float
+
+    @property
+    def presliding_resonance_hz(self) -> float:
+        return math.sqrt(max(self.stiffness_n_m, 0.0) / self.mass_kg) / (2 * math.pi)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"mass_kg": self.mass_kg, "mass_std_kg": self.mass_std_kg, "damping_n_s_m": self.damping_n_s_m,
+                "presliding_stiffness_n_m": self.stiffness_n_m, "presliding_stiffness_std_n_m": self.stiffness_std_n_m,
+                "presliding_resonance_hz": self.presliding_resonance_hz, "delay_s": self.delay_s,
+                "delay_std_s": self.delay_std_s, "rms_log_error": self.rms_log_error,
+                "unmodelled_resonances_hz": self.resonances_hz, "fit_band_hz": [self.f_lo_hz, None]}
+
+
+def _fit_band(frf: Frf, sel: npt.NDArray[np.bool_], period_s: float, mass_guess_kg: float
+              ) -> tuple[FloatArray, FloatArray, float, int]:
+    """Least-squares ``m, c, k, τ`` on the lines ``sel``; returns (θ, std(θ), rms log error, lines)."""
+    fo, po = frf.f_hz[sel], frf.p[sel]
+    wo = 1.0 / np.clip(frf.p_std[sel] / np.maximum(np.abs(po), 1e-300), 1e-3, 1.0)
+
+    def model(th: FloatArray) -> ComplexArray:
+        return plant_response(fo, math.exp(th[0]), th[1], th[2], th[3], period_s)
+
+    def logres(th: FloatArray) -> ComplexArray:
+        r = np.log(po / model(th))
+        return np.asarray(r.real + 1j * np.angle(np.exp(1j * r.imag)), np.complex128)
+
+    def resid(th: FloatArray) -> FloatArray:
+        r = logres(th)
+        return np.concatenate([r.real * wo, r.imag * wo])
+
+    best = None
+    for k0 in (0.0, mass_guess_kg * (2 * math.pi * float(np.median(fo)) / 3) ** 2):
+        th0 = np.array([math.log(mass_guess_kg), 0.0, k0, period_s])
+        scale = np.array([1.0, max(mass_guess_kg * 10.0, 1e-3), max(mass_guess_kg * 1e4, 1.0), period_s])
+        sol = least_squares(resid, th0, bounds=([-30, 0.0, 0.0, 0.0], [30, np.inf, np.inf, 0.1]), x_scale=scale)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    assert best is not None
+    n = best.fun.shape[0]
+    s2 = 2 * best.cost / max(n - 4, 1)
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(best.jac.T @ best.jac) * s2), 0, None))
+    rms = float(np.sqrt(np.mean(np.abs(logres(best.x)) ** 2)))
+    return best.x, sd, rms, int(sel.sum())
+
+
+def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
+    """Fit ``m, c, k, τ`` to the measured FRF (module docstring), in two passes: over every well-measured line,
+    which locates the pre-sliding resonance ``f0``, then over the lines above ``FIT_ABOVE_F0·f0`` (at most
+    from ``0.15/T``), where the rigid-body mass dominates and the hysteretic pre-sliding (a spring only to
+    first order) no longer biases it."""
+    f, p = frf.f_hz, frf.p
+    ok = frf.p_std / np.maximum(np.abs(p), 1e-300) < 0.3
+    if ok.sum() < 6:
+        raise StageError(f"frf: only {int(ok.sum())} lines measured with < 30 % uncertainty; raise the excitation "
+                         "(--max-force) or check the sensor")
+    th, sd, rms, _ = _fit_band(frf, ok, period_s, mass_guess_kg)
+    f0 = math.sqrt(max(th[2], 0.0) / math.exp(th[0])) / (2 * math.pi)
+    f_lo = min(FIT_ABOVE_F0 * f0, 0.15 / period_s)
+    band = ok & (f >= f_lo)
+    if band.sum() >= 6 and f_lo > float(f[ok].min()):
+        th, sd, rms, _ = _fit_band(frf, band, period_s, math.exp(th[0]))
+    else:
+        f_lo = float(f[ok].min())
+        band = ok
+    m = math.exp(th[0])
+    full = plant_response(f, m, th[1], th[2], th[3], period_s)
+    ratio = np.abs(p / full)
+    res = [float(fi) for fi, r, good in zip(f, ratio, band) if good and r > RESONANCE_RATIO]
+    return PlantFit(m, m * float(sd[0]), float(th[1]), float(th[2]), float(sd[2]), float(th[3]), float(sd[3]), rms,
+                    res, f_lo)
+
+
+# ================================================================================================ friction
+@dataclass
+class CvSegment:
+    v_m_s: float
+    f_n: float
+    f_std_n: float
+    n: int
+
+
+def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
+                mass_kg: float, min_samples: int = 50) -> list[CvSegment]:
+    """Steady constant-velocity segments (``a_ref = 0``, ``v_ref ≠ 0``), each trimmed by 20 % at both ends;
+    mean force ``ū − m·ā`` with its standard error (from the sample spread, decorrelated over 20 samples)."""
+    out: list[CvSegment] = []
+    steady = (np.abs(a_ref) < 1e-12) & (np.abs(v_ref) > 0)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], steady.astype(np.int8), [0]])))
+    dt = float(np.median(np.diff(t)))
+    for i0, i1 in zip(edges[::2], edges[1::2]):
+        n = i1 - i0
+        if n < min_samples:
+            continue
+        j0, j1 = i0 + n // 5, i1 - n // 5
+        vel = (x[j1 - 1] - x[j0]) / (t[j1 - 1] - t[j0])
+        acc = np.gradient(np.gradient(x[j0:j1], dt), dt)
+        f = u[j0:j1] - mass_kg * acc
+        se = float(np.std(f) / math.sqrt(max((j1 - j0) / 20.0, 1.0)))
+        out.append(CvSegment(float(vel), float(np.mean(f)), se, int(j1 - j0)))
+    return out
+
+
+@dataclass
+class CvFriction:
+    coulomb_n: float
+    coulomb_std_n: float
+    viscous_n_s_m: float
+    viscous_std_n_s_m: float
+    offset_n: float
+    offset_std_n: float
+    segments: list[CvSegment]
+    used: int
+    stribeck: dict[str, float] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
+                "viscous_n_s_m": self.viscous_n_s_m, "viscous_std_n_s_m": self.viscous_std_n_s_m,
+                "offset_n": self.offset_n, "offset_std_n": self.offset_std_n, "segments_used": self.used,
+                "stribeck_curve": self.stribeck,
+                "segments": [{"v_m_s": s.v_m_s, "f_n": s.f_n, "f_std_n": s.f_std_n, "samples": s.n}
+                             for s in self.segments]}
+
+
+def cv_friction(segs: list[CvSegment]) -> CvFriction:
+    """Friction from the segment means (module docstring): the Stribeck curve
+    (:func:`stagectl.ident.identify.fit_stribeck_curve`) where the data allow it, then, with its Stribeck excess
+    removed, the linear regression ``F = Fc·sgn(v) + Fv·v + F0`` whose standard errors are reported."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    if len(segs) < 4:
+        raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
+    v = np.array([s.v_m_s for s in segs])
+    f = np.array([s.f_n for s in segs])
+    excess = np.zeros_like(v)
+    stri: dict[str, float] | None = None
+    try:
+        stri = fit_stribeck_curve(v, f)
+        excess = np.sign(v) * (stri["fs_n"] - stri["fc_n"]) * np.exp(-np.abs(v / stri["vs_m_s"]) ** stri["delta"])
+    except (StageError, ValueError):
+        stri = None
+    A = np.column_stack([np.sign(v), v, np.ones_like(v)])
+    th, *_ = np.linalg.lstsq(A, f - excess, rcond=None)
+    r = f - excess - A @ th
+    s2 = float(r @ r) / max(v.size - 3 - (4 if stri else 0), 1)
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
+    return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), float(th[2]), float(sd[2]), segs,
+                      int(v.size), stri)
+
+
+# ================================================================================================ margins
+@dataclass
+class Margins:
+    phase_margin_deg: float
+    gain_margin_db: float
+    crossover_hz: float
+    phase_crossover_hz: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {"phase_margin_deg": self.phase_margin_deg, "gain_margin_db": self.gain_margin_db,
+                "crossover_hz": self.crossover_hz, "phase_crossover_hz": self.phase_crossover_hz}
+
+
+def margins_from_response(f: FloatArray, L: ComplexArray) -> Margins:
+    """Phase margin at the last |L| = 1 crossing, gain margin at the worst −180° crossing above it
+    (linear interpolation between lines; ∞ when no crossing is inside the measured band)."""
+    mag = np.abs(L)
+    ph = np.unwrap(np.angle(L))
+    pm, wc = math.inf, math.nan
+    above = mag >= 1.0
+    idx = np.nonzero(above[:-1] & ~above[1:])[0]
+    if idx.size:
+        i = int(idx[-1])
+        t = -math.log(mag[i]) / (math.log(mag[i + 1]) - math.log(mag[i]))
+        wc = float(f[i] + t * (f[i + 1] - f[i]))
+        p = ph[i] + t * (ph[i + 1] - ph[i])
+        pm = (math.degrees(p) + 180.0 + 180.0) % 360.0 - 180.0
+    gm, wp = math.inf, math.nan
+    phd = np.degrees(ph)
+    k = np.floor((phd + 180.0) / 360.0)
+    for i in np.nonzero(np.diff(k) != 0)[0].tolist():
+        if not math.isnan(wc) and f[i + 1] < wc:
+            continue
+        t = ((k[i + 1] * 360.0 - 180.0) - phd[i]) / (phd[i + 1] - phd[i]) if phd[i + 1] != phd[i] else 0.0
+        t = min(max(t, 0.0), 1.0)
+        mg = math.exp(math.log(mag[i]) + t * (math.log(mag[i + 1]) - math.log(mag[i])))
+        g = -20 * math.log10(max(mg, 1e-300))
+        if g < gm:
+            gm, wp = g, float(f[i] + t * (f[i + 1] - f[i]))
+    return Margins(pm, gm, wc, wp)
+
+
+def controller_response(f_hz: FloatArray, period_s: float, pid: Any, dob_kind: str, dob_bandwidth_hz: float,
+                        dob_mass_kg: float, command_delay_samples: int) -> ComplexArray:
+    """Frequency response of the equivalent controller ``K = (C + H_y)/(1 − H_u)`` (or ``C`` without an
+    observer) at ``f_hz`` (``stagectl.control.design`` transfer functions)."""
+    from stagectl.control import design
+
+    z = np.exp(1j * 2 * np.pi * f_hz * period_s)
+    C = design.pid_tf(pid, period_s)
+    c = np.array([complex(C(zi)) for zi in z])
+    if dob_kind == "none":
+        return c.astype(np.complex128)
+    Hu, Hy = design.qfilter_tfs(dob_mass_kg, dob_bandwidth_hz, period_s, command_delay_samples)
+    hu = np.array([complex(Hu(zi)) for zi in z])
+    hy = np.array([complex(Hy(zi)) for zi in z])
+    return np.asarray((c + hy) / (1 - hu), np.complex128)
+
+
+def measured_margins(frf: Frf, K: ComplexArray) -> Margins:
+    """Margins of ``L = P_meas·K`` on the measured lines."""
+    return margins_from_response(frf.f_hz, frf.p * K)

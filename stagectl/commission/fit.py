@@ -1,0 +1,68 @@
+"""Models from the commissioning recordings: the friction regression, ``discover`` for the effects, and the
+model file's content (``docs/commissioning.md`` §4).
+
+* mass: the FRF fit (its rigid-body mass, independent of friction);
+* ``discover`` runs on the constant-velocity passes (estimation) validated on the slow passes over the
+  stroke (a separate experiment: an effect must transfer to be accepted), starting from the FRF mass (fixed)
+  plus Coulomb and viscous friction. It names the effects the data need (Stribeck, pre-sliding, cogging,
+  offset, spring, ripple, asymmetry, ...) and fits them;
+* the model file is the discovered model (:func:`stagectl.ident.modelio.hyp_to_spec`) with the FRF mass.
+
+The reversal recording is kept for the pre-sliding check: ``identify --model gms`` on it gives the virgin
+curve's elements when discover accepted pre-sliding only weakly; its fit quality is reported either way.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from stagectl.errors import DataError
+from stagectl.ident.discover import discover
+from stagectl.ident.hypothesis import Hyp
+from stagectl.ident.modelio import hyp_to_spec
+from stagectl.ident.recording import Recording
+from stagectl.outputs import plain
+from stagectl.recorder import Recorder
+
+if TYPE_CHECKING:
+    from stagectl.commission.sequence import Results
+
+
+def to_recording(rec: Recorder, name: str) -> Recording:
+    """A loop recording as an identification recording (t, x, u, x_ref, v)."""
+    return Recording(t=np.array(rec.col("t")), x=np.array(rec.col("x")), u=np.array(rec.col("u")),
+                     x_ref=np.array(rec.col("x_ref")), v=np.array(rec.col("v")), source=f"recordings/{name}.csv")
+
+
+def fit_models(res: Results, period_s: float) -> None:
+    """Fill ``res.discovery`` and ``res.model_spec`` (module docstring)."""
+    assert res.plant is not None
+    m = res.plant.mass_kg
+    est = to_recording(res.recordings["friction_cv"], "friction_cv")
+    val = to_recording(res.recordings["slow_passes"], "slow_passes")
+    x = est.x
+    start = Hyp(fixed_mass_kg=m, x_center_m=float(0.5 * (x.min() + x.max())))
+    d = discover(est, validate=val, start=start)
+    spec = hyp_to_spec(d.final.hyp, {"source": "stagectl commission"})
+    spec["mass_kg"] = float(m)
+    res.discovery = {
+        "estimation": est.source, "validation": val.source,
+        "gap_before_n": d.gap_before, "gap_after_n": d.gap_after,
+        "effects": [plain(e.as_json(), json=True) for e in d.effects],
+        "rejected": [plain(e.as_json(), json=True) for e in d.rejected],
+        "coulomb_n": float(d.final.hyp.theta.get("fc", math.nan)),
+        "viscous_n_s_m": float(d.final.hyp.theta.get("fv", math.nan)),
+        "elapsed_s": d.elapsed_s,
+    }
+    res.model_spec = plain(spec, json=True)
+    try:
+        from stagectl.ident.identify import identify
+
+        gi = identify(to_recording(res.recordings["reversals"], "reversals"), "gms", mass_kg=m)
+        res.discovery["reversals_gms"] = {"friction": plain(gi.spec, json=True),
+                                          "fit": plain(gi.quality.get("fit", {}), json=True)}
+    except DataError as exc:
+        res.discovery["reversals_gms"] = {"error": str(exc)}

@@ -1,0 +1,195 @@
+"""Outputs of ``stagectl commission``: ``model.yaml``, ``stage.yaml``, ``report.json``, ``report.md`` and plots.
+
+``stage.yaml`` is the given configuration file with its ``controller:`` section replaced (measured mass,
+designed PID and observer, friction feed-forward from ``model.yaml``) and every relative file path in it
+made absolute (the new file lives in another directory); it is loaded back with the same loader as
+``check-config`` before anything uses it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from stagectl.commission.sequence import Results
+from stagectl.config import AppConfig, load_app_config
+from stagectl.friction import StageModel, save_model_file
+from stagectl.outputs import plain
+from stagectl.schema import load, load_yaml_file
+
+PATH_KEYS = ("model_file", "eds", "eds_file", "directory")
+
+
+def _absolute_paths(node: Any, base: Path) -> Any:
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            if isinstance(v, str) and (k in PATH_KEYS or k.endswith("_file")) and not Path(v).is_absolute():
+                out[k] = str((base / v).resolve())
+            else:
+                out[k] = _absolute_paths(v, base)
+        return out
+    if isinstance(node, list):
+        return [_absolute_paths(v, base) for v in node]
+    return node
+
+
+def controller_section(res: Results) -> dict[str, Any]:
+    """The new ``controller:`` mapping (model file next to stage.yaml)."""
+    assert res.gains is not None and res.plant is not None
+    ch = res.gains["chosen"]
+    nd = int(res.gains["delay_samples"])
+    T = res.config.loop.period_s
+    return {
+        "mass_kg": float(res.gains["mass_kg"]),
+        "max_force_n": float(res.config.controller.max_force_n),
+        "pid": dict(ch["pid"]),
+        "dob": {"kind": "qfilter", "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
+        "feedforward": {"kind": "model", "model_file": "model.yaml", "inertia": True,
+                        # the zero-order-hold mid-point plus the measured I/O delay
+                        "lookahead_s": float(min(max(T / 2 + res.plant.delay_s, 0.0), 0.1))},
+    }
+
+
+def write_config(res: Results, out: Path) -> AppConfig:
+    """Write model.yaml and stage.yaml into ``out``; return stage.yaml loaded (raises ConfigError if invalid)."""
+    assert res.model_spec is not None
+    model = load(StageModel, res.model_spec, "")
+    save_model_file(model, out / "model.yaml", header="identified by `stagectl commission` (see report.md)")
+    cfg = res.config
+    data = load_yaml_file(cfg.path) if cfg.path is not None else {}
+    assert isinstance(data, dict)
+    data = _absolute_paths(dict(data), cfg.base_dir)
+    res.controller_yaml = controller_section(res)
+    data["controller"] = res.controller_yaml
+    data["description"] = f"{data.get('description', '')} (commissioned by stagectl commission)".strip()
+    text = ("# written by `stagectl commission` from " + (str(cfg.path) if cfg.path else "-")
+            + ": the given configuration with the commissioned controller (see report.md)\n"
+            + yaml.safe_dump(plain(data, json=True), sort_keys=False, default_flow_style=None))
+    (out / "stage.yaml").write_text(text, encoding="utf-8")
+    return load_app_config(out / "stage.yaml")
+
+
+def report_dict(res: Results) -> dict[str, Any]:
+    r: dict[str, Any] = {
+        "command": "commission",
+        "config": str(res.config.path) if res.config.path else None,
+        "status": "aborted" if res.aborted else "complete",
+        "envelope": res.envelope.as_dict(),
+        "experiments": [e.as_dict() for e in res.experiments],
+        "notes": res.notes,
+    }
+    if res.aborted is not None:
+        r["aborted"] = {"experiment": res.aborted.experiment, "reason": res.aborted.reason,
+                        "interrupted": res.aborted.interrupted, "drive_state_after": res.drive_state}
+    if res.sanity is not None:
+        r["sanity"] = res.sanity.as_dict()
+    if res.plant is not None:
+        r["plant"] = res.plant.as_dict()
+    if res.frf is not None:
+        r["frf"] = {"f_hz": res.frf.f_hz.tolist(), "re": res.frf.p.real.tolist(), "im": res.frf.p.imag.tolist(),
+                    "std": res.frf.p_std.tolist(), "periods": res.frf.periods}
+    if res.cv is not None:
+        r["friction_cv"] = res.cv.as_dict()
+    if res.discovery is not None:
+        r["discovery"] = res.discovery
+    if res.model_spec is not None:
+        r["model"] = res.model_spec
+    fitted: dict[str, Any] = {}
+    if res.plant is not None:
+        fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg, "from": "frf"}
+        fitted["delay_s"] = {"value": res.plant.delay_s, "std": res.plant.delay_std_s, "from": "frf"}
+    if res.cv is not None:
+        fitted["coulomb_n"] = {"value": res.cv.coulomb_n, "std": res.cv.coulomb_std_n, "from": "friction_cv"}
+        fitted["viscous_n_s_m"] = {"value": res.cv.viscous_n_s_m, "std": res.cv.viscous_std_n_s_m,
+                                   "from": "friction_cv"}
+        fitted["offset_n"] = {"value": res.cv.offset_n, "std": res.cv.offset_std_n, "from": "friction_cv"}
+    if res.discovery is not None:
+        fitted["effects"] = [e["name"] for e in res.discovery["effects"]]
+    r["fitted"] = fitted
+    if res.gains is not None:
+        r["gains"] = res.gains
+    if res.controller_yaml is not None:
+        r["controller"] = res.controller_yaml
+    r["verification"] = res.verification
+    return plain(r, json=True)  # type: ignore[no-any-return]
+
+
+def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f"{v * scale:.{digits}g}{unit}"
+
+
+def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
+    L: list[str] = ["# Commissioning report", "", f"Configuration: `{rep.get('config')}`; status: **{rep['status']}**"]
+    if "aborted" in rep:
+        a = rep["aborted"]
+        L += ["", f"Aborted in `{a['experiment']}`: {a['reason']}. The drive was disabled; the recordings made so "
+                  "far are in `recordings/`."]
+    env = rep["envelope"]
+    L += ["", "## Envelope", "",
+          f"Travel {env['x_lo_m'] * 1e3:.4g} .. {env['x_hi_m'] * 1e3:.4g} mm, force <= {env['f_max_n']:.3g} N, "
+          f"velocity <= {env['v_max_m_s'] * 1e3:.3g} mm/s.", "", "## Experiments", "",
+          "| experiment | purpose | duration [s] | samples | ended by | recording |", "|---|---|---|---|---|---|"]
+    for e in rep["experiments"]:
+        fault = f" (fault {e['fault']['name']})" if e.get("fault") else ""
+        L.append(f"| {e['name']} | {e['purpose']} | {e['duration_s']:.2f} | {e['rows']} | {e['ended_by']}{fault} | "
+                 f"`{e['csv']}` |")
+    f = rep.get("fitted", {})
+    if f:
+        L += ["", "## Fitted values (± one standard deviation)", "", "| quantity | value | from |", "|---|---|---|"]
+        for k, v in f.items():
+            if isinstance(v, dict):
+                L.append(f"| {k} | {v['value']:.5g} ± {v['std']:.2g} | {v['from']} |")
+        if "effects" in f:
+            L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | friction_cv / slow_passes |")
+    if "plant" in rep:
+        p = rep["plant"]
+        L += ["", f"Pre-sliding resonance {p['presliding_resonance_hz']:.3g} Hz (stiffness "
+                  f"{p['presliding_stiffness_n_m']:.3g} N/m); unmodelled resonances: "
+                  f"{', '.join(f'{x:.3g} Hz' for x in p['unmodelled_resonances_hz']) or 'none'}."]
+    if "gains" in rep:
+        ch = rep["gains"]["chosen"]
+        pid = ch["pid"]
+        L += ["", "## Gains", "",
+              f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
+              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_bandwidth_hz']:.3g} Hz.", "",
+              "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
+              f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
+              f"{ch['model']['crossover_hz']:.3g} |"]
+        if "measured" in ch:
+            mm = ch["measured"]
+            L.append(f"| measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
+                     f"{mm['crossover_hz']:.3g} |")
+    ver = rep.get("verification", {})
+    if ver:
+        L += ["", "## Verification: before (given config) and after (stage.yaml)", "",
+              "| scenario | RMS before [nm] | RMS after [nm] | max before [nm] | max after [nm] | settled before | "
+              "settled after |", "|---|---|---|---|---|---|---|"]
+        for name, d in ver.items():
+            b, a = d.get("before", {}), d.get("after", {})
+            L.append(f"| {name} | {_fmt(b.get('rms_error_m'), 1e9)} | {_fmt(a.get('rms_error_m'), 1e9)} | "
+                     f"{_fmt(b.get('max_error_m'), 1e9)} | {_fmt(a.get('max_error_m'), 1e9)} | "
+                     f"{b.get('moves_settled', '-')}/{b.get('moves', '-')} | {a.get('moves_settled', '-')}/"
+                     f"{a.get('moves', '-')} |")
+    if pngs:
+        L += ["", "## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in pngs]
+    return "\n".join(L) + "\n"
+
+
+def write_report(res: Results, out: Path, plots: bool) -> dict[str, Any]:
+    rep = report_dict(res)
+    pngs: list[str] = []
+    if plots:
+        from stagectl.commission.plots import write_plots
+
+        pngs = write_plots(res, out)
+    rep["plots"] = [Path(p).name for p in pngs]
+    (out / "report.json").write_text(json.dumps(rep, indent=1, allow_nan=True), encoding="utf-8")
+    (out / "report.md").write_text(report_markdown(rep, pngs), encoding="utf-8")
+    return rep

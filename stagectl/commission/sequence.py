@@ -1,0 +1,518 @@
+"""The commissioning sequence on an assembled stage (``docs/commissioning.md``).
+
+:class:`Commissioning` builds the stage exactly as ``stagectl run`` does (:func:`stagectl.app.build_stage`:
+same drivers, loop and safety supervisor), in simulated time with lock-step devices when the configuration
+is a simulated stage, in real time otherwise, and runs one ``loop.run`` per experiment:
+
+1. ``sanity``      open-loop force probe both ways: sign, scale (mass), breakaway; refuses a bad stage;
+2. ``frf``         closed loop (a conservative tuning for the probe's mass) + force multisine at the centre;
+3. ``friction_cv`` constant-velocity passes both ways at log-spaced speeds;
+   ``reversals``   nested reversals after a long move, both ways;
+   ``slow_passes`` slow passes over the stroke, both ways;
+4. fits: plant (FRF), friction (constant-velocity regression, ``discover`` on the friction recordings);
+5. gains: ``tune``'s design rule, highest crossover with PM ≥ 40° and GM ≥ 8 dB on the model *and* the
+   measured FRF;
+6. ``verify_before_*`` / ``verify_after_*``: cosine, triangle, steps with the given and the new controller.
+
+Every recording is written to ``DIR/recordings/<experiment>.csv`` as soon as its run ends, also when a fault or
+Ctrl-C ends it; a fault or Ctrl-C aborts the sequence (:class:`CommissionAborted`), the loop has then already
+written zero force and disabled the drive, and the stage is closed.
+
+The commissioning never reads the configuration's ``sim:`` section (the simulated plant is what it must
+find out): it reads ``loop``, ``io`` (through the assembly), ``safety`` and ``controller`` only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stagectl.app import Stage, build_stage, make_controller
+from stagectl.clock import Clock, MonotonicClock, SimClock
+from stagectl.commission import analysis as an
+from stagectl.commission.controllers import CommissionController, FollowMeasured, SanityProbe, log_bins, multisine
+from stagectl.commission.envelope import Envelope, make_envelope
+from stagectl.config import AppConfig, IoKind
+from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController, controller_mass
+from stagectl.control.dob import DobConfig
+from stagectl.control.pid import PidConfig
+from stagectl.control.trajectory import Dwell, Move, Scenario, SegmentSpec, benchmark_scenarios
+from stagectl.errors import StageError
+from stagectl.recorder import Recorder, tracking_summary
+from stagectl.runtime.host import LoopHost
+from stagectl.runtime.status import LoopResult
+
+FloatArray = npt.NDArray[np.float64]
+log = logging.getLogger("stagectl.commission")
+
+#: the margins the new tuning must keep, on the model and on the measured FRF
+MIN_PHASE_MARGIN_DEG = 40.0
+MIN_GAIN_MARGIN_DB = 8.0
+#: candidate crossovers × period (highest first): 40 Hz ... 8 Hz at 1 kHz
+CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01, 0.008)
+#: the conservative commissioning tuning (before the plant is known): crossover and observer × period
+COMMISSION_CROSSOVER_X_PERIOD = 0.015
+COMMISSION_DOB_X_PERIOD = 0.05
+#: FRF: RMS force of the multisine as a fraction of F_max, number of lines, averaged periods
+FRF_FORCE_FRACTION = 0.08
+FRF_LINES = 60
+FRF_PERIODS = 5
+#: constant-velocity speeds: count and range v_max/CV_SPAN ... v_max; time per pass at most CV_PASS_S
+CV_SPEEDS = 6
+CV_SPAN = 100.0
+CV_PASS_S = 2.0
+SLOW_PASS_S = 6.0
+
+VERIFY = ("cosine", "triangle", "steps")
+
+
+class CommissionAborted(StageError):
+    """A fault or Ctrl-C ended the sequence (the drive is disabled; the recordings so far are kept)."""
+
+    def __init__(self, experiment: str, reason: str, interrupted: bool = False) -> None:
+        super().__init__(f"commission aborted in {experiment}: {reason}; drive disabled, recordings so far kept")
+        self.experiment = experiment
+        self.reason = reason
+        self.interrupted = interrupted
+
+
+@dataclass
+class Options:
+    """Command-line options (limits can only be lowered; see :mod:`stagectl.commission.envelope`)."""
+
+    max_stroke_m: float | None = None
+    max_force_n: float | None = None
+    max_velocity_m_s: float | None = None
+    verify: bool = True
+    plots: bool = True
+    #: debug, simulated stages only: inject a device fault ``(experiment, t_s)`` into that experiment
+    inject_fault: tuple[str, float] | None = None
+    progress: Callable[[str], None] = lambda line: None
+
+
+@dataclass
+class ExperimentRecord:
+    name: str
+    purpose: str
+    duration_s: float
+    csv: str
+    rows: int
+    ended_by: str
+    fault: dict[str, Any] | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Results:
+    """Everything the sequence found (filled as it goes; the outputs module writes it)."""
+
+    config: AppConfig
+    envelope: Envelope
+    experiments: list[ExperimentRecord] = field(default_factory=list)
+    sanity: an.SanityResult | None = None
+    frf: an.Frf | None = None
+    plant: an.PlantFit | None = None
+    cv: an.CvFriction | None = None
+    model_spec: dict[str, Any] | None = None
+    discovery: dict[str, Any] | None = None
+    gains: dict[str, Any] | None = None
+    controller_yaml: dict[str, Any] | None = None
+    verification: dict[str, dict[str, Any]] = field(default_factory=dict)
+    aborted: CommissionAborted | None = None
+    drive_state: str | None = None
+    notes: list[str] = field(default_factory=list)
+    recordings: dict[str, Recorder] = field(default_factory=dict)
+
+
+def _plain_pid(p: PidConfig) -> dict[str, float]:
+    return {"kp_n_m": p.kp_n_m, "ki_n_m_s": p.ki_n_m_s, "kd_n_s_m": p.kd_n_s_m,
+            "derivative_cutoff_hz": p.derivative_cutoff_hz}
+
+
+class Commissioning:
+    """The sequence (module docstring). ``run()`` returns the :class:`Results`; ``new_config`` is a callable
+    that writes model.yaml and stage.yaml and returns the loaded new configuration (outputs module)."""
+
+    def __init__(self, cfg: AppConfig, out_dir: Path, opts: Options,
+                 write_config: Callable[[Results], AppConfig]) -> None:
+        self.cfg = cfg
+        self.out = Path(out_dir)
+        self.rec_dir = self.out / "recordings"
+        self.opts = opts
+        self.write_config = write_config
+        s = cfg.safety
+        self.env = make_envelope(min_position_m=s.min_position_m, max_position_m=s.max_position_m,
+                                 safety_force_n=s.max_force_n, controller_force_n=cfg.controller.max_force_n,
+                                 max_velocity_m_s=s.max_velocity_m_s, period_s=cfg.loop.period_s,
+                                 following_error_m=s.following_error_m, max_stroke_m=opts.max_stroke_m,
+                                 max_force_n=opts.max_force_n, max_speed_m_s=opts.max_velocity_m_s)
+        self.res = Results(cfg, self.env)
+        self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
+        if opts.inject_fault is not None and not self.simulated:
+            raise StageError("--inject-fault: only on a simulated stage (io.kind plant_io or embedded_canopen)")
+        self.T = cfg.loop.period_s
+        self._planned: list[tuple[str, float]] = []
+
+    # ------------------------------------------------------------------ running one experiment
+    def _run(self, stage: Stage, name: str, purpose: str, duration_s: float, params: dict[str, Any]) -> Recorder:
+        loop = stage.loop
+        rec = Recorder(loop.columns, capacity=int(duration_s / self.T) + 64)
+        loop.add_sink(rec)
+        injector = None
+        if self.opts.inject_fault is not None and self.opts.inject_fault[0] == name:
+            injector = _FaultInjector(stage, self.opts.inject_fault[1])
+            loop.add_sink(injector)
+        idx = next((i for i, (n, _) in enumerate(self._planned) if n == name), len(self._planned))
+        later = sum(d for _, d in self._planned[idx + 1:])
+        prog = _Progress(name, idx + 1, len(self._planned), duration_s, later, self.opts.progress)
+        res: LoopResult | None = None
+        interrupted = False
+        try:
+            if self.simulated:
+                loop.add_sink(prog)
+                try:
+                    res = loop.run(duration_s=duration_s)
+                finally:
+                    loop.remove_sink(prog)
+            else:
+                host = LoopHost(loop)
+                host.start(duration_s=duration_s)
+                try:
+                    while not host.wait(1.0):
+                        prog.show(loop.status(timing=False).t_s)
+                except KeyboardInterrupt:
+                    interrupted = True
+                    host.stop()
+                res = host.finish(timeout_s=10.0)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            loop.remove_sink(rec)
+            if injector is not None:
+                loop.remove_sink(injector)
+            csv = self.rec_dir / f"{name}.csv"
+            if rec.n:
+                rec.write_csv(csv)
+            fault = res.fault.as_dict() if res is not None and res.fault is not None else None
+            self.res.experiments.append(ExperimentRecord(
+                name, purpose, float(rec.col("t")[-1] - rec.col("t")[0]) if rec.n else 0.0,
+                str(csv.relative_to(self.out)) if rec.n else "", rec.n, res.ended_by if res else "interrupted",
+                fault, params))
+            self.res.recordings[name] = rec
+        if interrupted:
+            raise CommissionAborted(name, "interrupted (Ctrl-C)", interrupted=True)
+        if res is not None and res.fault is not None:
+            raise CommissionAborted(name, f"fault {res.fault.name}: {res.fault.cause}")
+        self.opts.progress(f"commission: [{idx + 1}/{len(self._planned)}] {name}: done ({rec.n} samples)")
+        return rec
+
+    def _closed(self, stage: Stage, name: str, purpose: str, inner: StageController, segments: list[SegmentSpec],
+                params: dict[str, Any], extra_s: float = 0.3, excitation: FloatArray | None = None,
+                exc_start: int = 0) -> Recorder:
+        ctl = stage.controller
+        assert isinstance(ctl, CommissionController)
+        if excitation is not None and exc_start:
+            excitation = np.concatenate([np.zeros(exc_start), excitation])
+        ctl.set_closed(inner, excitation)
+        stage.loop.reference = stage.reference
+        sc = Scenario(name=name, segments=tuple(segments), start_m=None)
+        stage.load_scenario(sc)
+        dur = sc.duration_s(0.0) + extra_s
+        return self._run(stage, name, purpose, dur, params)
+
+    # ------------------------------------------------------------------ the sequence
+    def run(self) -> Results:
+        cfg = self.cfg
+        clock: Clock = SimClock() if self.simulated else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
+        ctl = CommissionController(make_controller(cfg))
+        self.rec_dir.mkdir(parents=True, exist_ok=True)
+        with build_stage(cfg, clock=clock, controller=ctl) as stage:
+            try:
+                self._sequence(stage, ctl)
+            except CommissionAborted as exc:
+                self.res.aborted = exc
+                # read back from the device: the loop has already written zero and disabled it
+                self.res.drive_state = stage.actuator.state.value
+        return self.res
+
+    def _sequence(self, stage: Stage, ctl: CommissionController) -> None:
+        env, T, r = self.env, self.T, self.res
+        S = env.stroke_m
+        # a rough plan for the time-left figures (refined as the sequence learns the stage)
+        cv_t = CV_SPEEDS * 2 * (CV_PASS_S + 0.6)
+        self._planned = [("sanity", 6.0), ("frf", 1.0 + (FRF_PERIODS + 1) * 1.0), ("friction_cv", cv_t),
+                         ("reversals", 8.0), ("slow_passes", 2 * SLOW_PASS_S + 2.0)]
+        if self.opts.verify:
+            for which in ("before", "after"):
+                self._planned += [(f"verify_{which}_{n}", 4.0) for n in VERIFY]
+
+        # 1. sanity ----------------------------------------------------------------------------------
+        d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
+        probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
+                            v_stop_m_s=0.5 * env.v_max_m_s)
+        follow = FollowMeasured()
+        ctl.set_probe(probe, follow)
+        stage.loop.reference = follow
+        try:
+            self._run(stage, "sanity", "open-loop force probe: sign, scale (mass), breakaway, both directions",
+                      probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5,
+                      {"f_lim_n": probe.f_lim, "d_detect_m": d_detect, "d_acc_m": probe.d_acc})
+        finally:
+            stage.loop.reference = stage.reference
+            ctl.probe = None
+        ctl_cfg = self.cfg.controller
+        expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
+        r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected)
+        m0 = r.sanity.mass_kg
+        self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} kg, breakaway "
+                           + ", ".join(f"{b:.3g}" for b in r.sanity.breakaway_n) + " N")
+
+        # 2. FRF --------------------------------------------------------------------------------------
+        inner = StageController(self._commission_tuning(m0), self.cfg.timing)
+        n_per = max(int(round(1.0 / T)), 64)
+        bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
+        amp = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
+        exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
+        v_rep = 0.5 * env.v_max_m_s
+        to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
+        lead = [to_c, Dwell(0.3)]
+        lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
+        n0 = int(round(lead_s / T)) + 2
+        rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
+                           inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
+                               "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
+                               "f_hi_hz": float(bins[-1] / (n_per * T)), "amplitude_per_line_n": amp,
+                               "periods_averaged": FRF_PERIODS, "period_samples": n_per}, excitation=exc,
+                           exc_start=n0)
+        x, u = rec.col("x"), rec.col("u")
+        k0 = _first_excited_row(rec)
+        r.frf = an.estimate_frf(x[k0:], u[k0:], n_per, bins, T)
+        r.plant = an.fit_plant(r.frf, T, m0)
+        m = r.plant.mass_kg
+        self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
+                           f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
+
+        # 3. friction experiments ---------------------------------------------------------------------
+        inner = StageController(self._commission_tuning(m), self.cfg.timing)
+        speeds = np.geomspace(env.v_max_m_s / CV_SPAN, env.v_max_m_s, CV_SPEEDS)
+        segs: list[SegmentSpec] = []
+        xc = env.x_c_m
+        for v in speeds.tolist():
+            L = min(S, max(v * CV_PASS_S, 0.05 * S))
+            a = self._accel(v, L, m)
+            segs += [self._move_to(xc - L / 2, v_rep, m), Dwell(0.1),
+                     Move(to_m=xc + L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100),
+                     Dwell(0.1),
+                     Move(to_m=xc - L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100),
+                     Dwell(0.1)]
+        segs.append(self._move_to(xc, v_rep, m))
+        cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
+                              "(Coulomb, viscous, Stribeck, asymmetry)", inner, segs,
+                              {"speeds_m_s": speeds.tolist()})
+        r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
+                                             cv_rec.col("a_ref"), m))
+        self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
+                           f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
+        # nested reversals after a long move, both ways
+        a0 = min(0.0125 * S, 2e-4)
+        amps = [a0 / 3 ** i for i in range(4)]
+        v_r = max(a0 / 0.4, speeds[0])
+        v_mid = float(np.sqrt(speeds[0] * speeds[-1]))
+        segs = []
+        for s in (+1, -1):
+            segs += [self._move_to(xc - s * S / 4, v_rep, m), Dwell(0.1), self._move_to(xc, v_mid, m), Dwell(0.2)]
+            for i, A in enumerate(amps + amps[::-1][1:]):
+                sgn = -s if i % 2 == 0 else s
+                segs += [self._move_by(sgn * A, v_r, m), Dwell(0.05)]
+        self._closed(stage, "reversals", "nested reversals after a long move (virgin curve, pre-sliding hysteresis)",
+                     inner, segs, {"amplitudes_m": amps, "velocity_m_s": v_r})
+        v_slow = max(S / SLOW_PASS_S, float(speeds[0]))
+        segs = [self._move_to(env.x_lo_m, v_rep, m), Dwell(0.2), self._move_to(env.x_hi_m, v_slow, m), Dwell(0.2),
+                self._move_to(env.x_lo_m, v_slow, m), Dwell(0.2), self._move_to(xc, v_rep, m)]
+        self._closed(stage, "slow_passes", "slow passes over the stroke both ways (cogging, ripple, spring, offset)",
+                     inner, segs, {"velocity_m_s": v_slow})
+
+        # 4.-5. models, gains, new configuration -----------------------------------------------------
+        from stagectl.commission.fit import fit_models
+
+        fit_models(self.res, self.T)
+        self.res.gains = choose_gains(m, T, r.plant, r.frf)
+        new_cfg = self.write_config(self.res)
+
+        # 6. verification -----------------------------------------------------------------------------
+        if not self.opts.verify:
+            return
+        old = make_controller(self.cfg)
+        new = make_controller(new_cfg)
+        for which, inner_v in (("before", old), ("after", new)):
+            for nm in VERIFY:
+                sc = _verify_scenario(nm, xc, S)
+                if sc is None:
+                    r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
+                    continue
+                segs = [self._move_to(xc, v_rep, m), Dwell(0.3), *sc.segments]
+                rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller", inner_v, segs,
+                                   {"scenario": nm}, extra_s=0.3)
+                tol = max(10e-9, 2 * _quantum(rec.col("x")))
+                skip = Scenario(name="lead", segments=tuple(segs[:2])).duration_s(0.0)
+                summ = _summary_after(rec, skip, tol)
+                r.verification.setdefault(nm, {})[which] = summ
+
+    # ------------------------------------------------------------------ helpers
+    def _commission_tuning(self, mass_kg: float) -> ControllerConfig:
+        """A conservative tuning for ``mass_kg`` (no friction feed-forward: nothing is known about it yet)."""
+        from stagectl.control import design
+
+        T = self.T
+        pid = design.design_pid(mass_kg, COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
+        base = self.cfg.controller
+        return ControllerConfig(mass_kg=mass_kg, max_force_n=base.max_force_n, pid=pid,
+                                dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
+                                              command_delay_samples=1),
+                                feedforward=FeedforwardConfig(kind="none", inertia=True))
+
+    def _accel(self, v: float, length: float, mass_kg: float) -> float:
+        """Acceleration for a pass at ``v`` over ``length``: the ramps take at most 10 % of it, the inertia
+        force at most 30 % of F_max."""
+        a_need = v * v / (0.1 * max(length, 1e-12))
+        a_cap = 0.3 * self.env.f_max_n / mass_kg
+        return float(max(min(max(a_need, 0.02), a_cap), 1e-6))
+
+    def _move_to(self, target: float, v: float, mass_kg: float) -> Move:
+        a = self._accel(v, 0.2 * self.env.stroke_m, mass_kg)
+        return Move(to_m=target, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100)
+
+    def _move_by(self, by: float, v: float, mass_kg: float) -> Move:
+        a = self._accel(v, abs(by), mass_kg)
+        return Move(by_m=by, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100)
+
+    def _move(self, x_from: float, x_to: float, v: float, mass_kg: float) -> SegmentSpec:
+        if abs(x_to - x_from) < 1e-12:
+            return Dwell(0.01)
+        return self._move_to(x_to, v, mass_kg)
+
+
+# ====================================================================================== gains
+def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | None) -> dict[str, Any]:
+    """``tune``'s design (:func:`stagectl.control.design.design_pid`, Q-filter DOB at min(5·f_c, 0.1/T)) for the
+    measured mass and delay, at the highest candidate crossover whose PID+DOB loop keeps PM ≥ 40° and
+    GM ≥ 8 dB on the model and on the measured FRF."""
+    from stagectl.control import design
+
+    nd = max(1, int(round(plant.delay_s / T))) if plant is not None else 1
+    tried: list[dict[str, Any]] = []
+    chosen: dict[str, Any] | None = None
+    for x in CROSSOVER_X_PERIOD:
+        bw = x / T
+        dbw = min(5.0 * bw, 0.1 / T)
+        pid = design.design_pid(m, bw, T, nd)
+        loops = design.analyse_design(m, T, pid, nd, dbw, nd, dob_mass_kg=m)
+        mod = loops[-1].summary()
+        entry: dict[str, Any] = {"crossover_target_hz": bw, "dob_bandwidth_hz": dbw, "pid": _plain_pid(pid),
+                                 "model": mod}
+        ok = bool(mod["closed_loop_stable"] and mod["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
+                  and mod["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
+        if frf is not None:
+            K = an.controller_response(frf.f_hz, T, pid, "qfilter", dbw, m, nd)
+            mm = an.measured_margins(frf, K)
+            entry["measured"] = mm.as_dict()
+            ok = ok and mm.phase_margin_deg >= MIN_PHASE_MARGIN_DEG and mm.gain_margin_db >= MIN_GAIN_MARGIN_DB
+        entry["healthy"] = ok
+        tried.append(entry)
+        if ok:
+            chosen = entry
+            break
+    if chosen is None:
+        raise StageError(f"gains: no design between {CROSSOVER_X_PERIOD[-1] / T:g} and {CROSSOVER_X_PERIOD[0] / T:g} Hz "
+                         f"keeps PM >= {MIN_PHASE_MARGIN_DEG:g} deg and GM >= {MIN_GAIN_MARGIN_DB:g} dB on the "
+                         "measured FRF; see report.json gains.tried")
+    return {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "tried": tried,
+            "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+
+
+# ====================================================================================== small helpers
+class _Progress:
+    """Progress lines (experiment i/n, per cent, time left); in simulated time a sink prints at 25 % steps."""
+
+    def __init__(self, name: str, i: int, n: int, duration_s: float, later_s: float,
+                 out: Callable[[str], None]) -> None:
+        self.name, self.i, self.n, self.dur, self.later, self.out = name, i, n, duration_s, later_s, out
+        self._next = 0.25
+        self._t0 = time.monotonic()
+
+    def show(self, t_s: float) -> None:
+        frac = min(max(t_s / max(self.dur, 1e-9), 0.0), 1.0)
+        left = self.dur - t_s + self.later
+        self.out(f"commission: [{self.i}/{self.n}] {self.name} {100 * frac:3.0f} %  ~{left:.0f} s of stage time left")
+
+    def append(self, row: tuple[float, ...]) -> None:
+        t = row[0]
+        if t >= self._next * self.dur:
+            self._next += 0.25
+            self.show(t)
+
+
+class _FaultInjector:
+    """Debug sink: inject a device fault into the simulated stage at loop time ``t_s``."""
+
+    def __init__(self, stage: Stage, t_s: float) -> None:
+        self.stage, self.t, self.done = stage, t_s, False
+
+    def append(self, row: tuple[float, ...]) -> None:
+        if not self.done and row[0] >= self.t:
+            self.done = True
+            self.stage.inject_fault("emcy")
+
+
+def stage_x(stage: Stage) -> float:
+    st = stage.loop.status(timing=False)
+    return float(st.x_m) if math.isfinite(st.x_m) else math.nan
+
+
+def _quantum_guess(stage: Stage) -> float:
+    cfg = stage.cfg
+    d = cfg.io.drive
+    return float(d.resolution_m) if d is not None else 1e-9
+
+
+def _quantum(x: FloatArray) -> float:
+    d = np.abs(np.diff(x))
+    d = d[d > 0]
+    return float(d.min()) if d.size else 0.0
+
+
+def _first_excited_row(rec: Recorder) -> int:
+    """The first row with the excitation applied (telemetry term ``u_exc``)."""
+    nz = np.flatnonzero(rec.col("u_exc") != 0.0)
+    if nz.size == 0:
+        raise StageError("frf: the excitation never reached the loop (no nonzero u_exc)")
+    return int(nz[0])
+
+
+def _verify_scenario(name: str, xc: float, stroke: float) -> Scenario | None:
+    sc = benchmark_scenarios()[name]
+    extent = {"cosine": 10e-6, "triangle": 1e-3, "steps": 20e-6}[name]
+    if extent > 0.5 * stroke:
+        return None
+    return dataclasses.replace(sc, start_m=xc)
+
+
+def _summary_after(rec: Recorder, skip_s: float, tol_m: float) -> dict[str, Any]:
+    t = rec.col("t")
+    sel = t >= t[0] + skip_s
+    sub = Recorder(rec.columns, capacity=int(sel.sum()) + 1)
+    for row in rec.data[sel]:
+        sub.append(tuple(row))
+    return tracking_summary(sub, tol_m=tol_m)

@@ -1,0 +1,140 @@
+"""``stagectl commission`` end to end on a lock-step simulated plant that is NOT the configured model.
+
+The plant (tests/commission/conftest.py) has a mass, Coulomb and viscous friction 30–44 % away from the
+controller's model and a hidden cogging force; the commissioning reads loop/io/safety/controller only and
+must find the plant's values. Simulated time (SimClock, PlantIO lock-step): no wall-clock sleeps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from commission_stage import HIDDEN, write_stage  # noqa: E402
+
+from stagectl.cli import main
+from stagectl.config import load_app_config
+from stagectl.ident.recording import load_recording
+
+
+@pytest.fixture
+def hidden_stage(tmp_path: Path) -> Path:
+    return write_stage(tmp_path / "stage.yaml")
+
+
+@pytest.fixture(scope="module")
+def commissioned(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path]:
+    d = tmp_path_factory.mktemp("commission")
+    cfg = write_stage(d / "stage.yaml")
+    out = d / "out"
+    rc = main(["commission", "--config", str(cfg), "--out", str(out), "--max-stroke", "0.003"])
+    return rc, out
+
+
+def test_identifies_the_hidden_plant_within_10_percent(commissioned: tuple[int, Path]) -> None:
+    rc, out = commissioned
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "complete"
+    f = rep["fitted"]
+    for key, true in (("mass_kg", HIDDEN["mass_kg"]), ("coulomb_n", HIDDEN["fc_n"]),
+                      ("viscous_n_s_m", HIDDEN["viscous_n_s_m"])):
+        assert abs(f[key]["value"] / true - 1) < 0.10, (key, f[key], true)
+        assert 0 < f[key]["std"] < 0.1 * true, (key, f[key])
+    # the hidden effect is named, with its period
+    assert "cogging" in f["effects"]
+    cog = next(e for e in rep["discovery"]["effects"] if e["name"] == "cogging")
+    assert abs(cog["parameters"]["wavelength_m"] / HIDDEN["cogging_wavelength_m"] - 1) < 0.05
+    # one I/O cycle of delay (the plant's delay_cycles: 1) besides the zero-order hold
+    assert abs(f["delay_s"]["value"] - 1e-3) < 0.25e-3
+
+
+def test_outputs_are_complete_and_valid(commissioned: tuple[int, Path]) -> None:
+    rc, out = commissioned
+    cfg = load_app_config(out / "stage.yaml")  # what check-config runs
+    assert main(["check-config", "-q", str(out / "stage.yaml")]) == 0
+    assert cfg.controller.feedforward.model is not None
+    assert cfg.controller.feedforward.model.effects.cogging is not None
+    assert abs(cfg.controller.mass_kg / HIDDEN["mass_kg"] - 1) < 0.10
+    rep = json.loads((out / "report.json").read_text())
+    names = {e["name"] for e in rep["experiments"]}
+    assert {"sanity", "frf", "friction_cv", "reversals", "slow_passes"} <= names
+    for e in rep["experiments"]:
+        rec = load_recording(out / e["csv"], min_rows=50)
+        assert len(rec) == e["rows"]
+    # gains: the margins the report claims hold on the model and on the measured FRF
+    ch = rep["gains"]["chosen"]
+    assert ch["model"]["phase_margin_deg"] >= 40 and ch["model"]["gain_margin_db"] >= 8
+    assert ch["measured"]["phase_margin_deg"] >= 40 and ch["measured"]["gain_margin_db"] >= 8
+    # before/after side by side, for each scenario
+    for name in ("cosine", "triangle", "steps"):
+        assert set(rep["verification"][name]) == {"before", "after"}
+    md = (out / "report.md").read_text()
+    assert "RMS before" in md and "frf.png" in md
+    assert (out / "frf.png").stat().st_size > 1000
+
+
+def test_experiments_stay_inside_the_envelope(commissioned: tuple[int, Path]) -> None:
+    _, out = commissioned
+    rep = json.loads((out / "report.json").read_text())
+    env = rep["envelope"]
+    for e in rep["experiments"]:
+        rec = load_recording(out / e["csv"], min_rows=10)
+        assert rec.x.min() >= -0.005 and rec.x.max() <= 0.005
+        assert abs(rec.u).max() <= 10.0 + 1e-9
+        if not e["name"].startswith("verify"):
+            assert abs(rec.u).max() <= env["f_max_n"] * 1.0 + 1e-9, e["name"]
+            # experiments keep to the (lowered) stroke, with room for the controller's following error
+            assert rec.x.min() >= env["x_lo_m"] - 1e-4 and rec.x.max() <= env["x_hi_m"] + 1e-4, e["name"]
+
+
+def test_injected_fault_aborts_with_drive_disabled_and_recordings_kept(hidden_stage: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    rc = main(["commission", "--config", str(hidden_stage), "--out", str(out), "--no-plots",
+               "--inject-fault", "friction_cv@1.0"])
+    assert rc == 1
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "aborted"
+    assert rep["aborted"]["experiment"] == "friction_cv"
+    assert rep["aborted"]["drive_state_after"] != "enabled"
+    last = rep["experiments"][-1]
+    assert last["name"] == "friction_cv" and last["fault"] is not None
+    for name in ("sanity", "frf", "friction_cv"):
+        rec = load_recording(out / "recordings" / f"{name}.csv", min_rows=100)
+        assert rec.t[-1] > rec.t[0]
+    assert not (out / "stage.yaml").exists()
+
+
+def test_stuck_axis_is_one_clear_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = write_stage(tmp_path / "stuck.yaml", fc_n=50.0)  # breakaway far above the probe's force
+    rc = main(["commission", "--config", str(cfg), "--out", str(tmp_path / "o"), "--no-plots"])
+    assert rc == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("stagectl: error:")]
+    assert len(err) == 1 and "no motion" in err[0] and "um" in err[0]
+    assert (tmp_path / "o" / "recordings" / "sanity.csv").exists()
+
+
+def test_command_line_can_only_lower_limits(hidden_stage: Path, tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["commission", "--config", str(hidden_stage), "--out", str(tmp_path / "o"), "--max-force", "50"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "--max-force" in err and "N" in err and "Traceback" not in err
+
+
+def test_refuses_while_the_daemon_holds_the_same_config(hidden_stage: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    # the daemon's run marker, naming a live process (this one) and the same configuration
+    (run_dir / "stagectl.running").write_text(json.dumps({"pid": os.getpid(), "config": str(hidden_stage)}))
+    rc = main(["commission", "--config", str(hidden_stage), "--out", str(tmp_path / "o"), "--runtime-dir",
+               str(run_dir)])
+    assert rc == 2
+    assert "daemon" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
