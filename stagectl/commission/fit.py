@@ -27,22 +27,31 @@ from stagectl.ident.recording import Recording
 from stagectl.outputs import plain
 from stagectl.recorder import Recorder
 
+#: highest sample rate handed to discover [Hz]
+DISCOVER_RATE_HZ = 500.0
+
 if TYPE_CHECKING:
     from stagectl.commission.sequence import Results
 
 
-def to_recording(rec: Recorder, name: str) -> Recording:
-    """A loop recording as an identification recording (t, x, u, x_ref, v)."""
-    return Recording(t=np.array(rec.col("t")), x=np.array(rec.col("x")), u=np.array(rec.col("u")),
-                     x_ref=np.array(rec.col("x_ref")), v=np.array(rec.col("v")), source=f"recordings/{name}.csv")
+def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
+    """A loop recording as an identification recording (t, x, u, x_ref, v), every ``step``-th sample with
+    ``u`` averaged over the ``step`` samples it replaces (the zero-order-hold force over the longer interval)."""
+    n = (rec.n // step) * step
+    u = np.array(rec.col("u"))[:n].reshape(-1, step).mean(axis=1)
+    return Recording(t=np.array(rec.col("t"))[:n:step], x=np.array(rec.col("x"))[:n:step], u=u,
+                     x_ref=np.array(rec.col("x_ref"))[:n:step], v=np.array(rec.col("v"))[:n:step],
+                     source=f"recordings/{name}.csv")
 
 
 def fit_models(res: Results, period_s: float) -> None:
     """Fill ``res.discovery`` and ``res.model_spec`` (module docstring)."""
     assert res.plant is not None
     m = res.plant.mass_kg
-    est = to_recording(res.recordings["friction_cv"], "friction_cv")
-    val = to_recording(res.recordings["slow_passes"], "slow_passes")
+    # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
+    step = max(1, int(round(1.0 / (period_s * DISCOVER_RATE_HZ))))
+    est = to_recording(res.recordings["friction_cv"], "friction_cv", step)
+    val = to_recording(res.recordings["slow_passes"], "slow_passes", step)
     x = est.x
     start = Hyp(fixed_mass_kg=m, x_center_m=float(0.5 * (x.min() + x.max())))
     d = discover(est, validate=val, start=start)
