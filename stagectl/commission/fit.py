@@ -15,7 +15,7 @@ curve's elements when discover accepted pre-sliding only weakly; its fit quality
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -30,9 +30,6 @@ from stagectl.recorder import Recorder
 #: highest sample rate handed to discover [Hz]
 DISCOVER_RATE_HZ = 500.0
 
-if TYPE_CHECKING:
-    from stagectl.commission.sequence import Results
-
 
 def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
     """A loop recording as an identification recording (t, x, u, x_ref, v), every ``step``-th sample with
@@ -44,20 +41,21 @@ def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
                      source=f"recordings/{name}.csv")
 
 
-def fit_models(res: Results, period_s: float) -> None:
-    """Fill ``res.discovery`` and ``res.model_spec`` (module docstring)."""
-    assert res.plant is not None
-    m = res.plant.mass_kg
+def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float
+               ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The discovery summary and the model file's mapping (module docstring)."""
+    m = mass_kg
+    res_recordings = recordings
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
-    step = max(1, int(round(1.0 / (period_s * DISCOVER_RATE_HZ))))
-    est = to_recording(res.recordings["friction_cv"], "friction_cv", step)
-    val = to_recording(res.recordings["slow_passes"], "slow_passes", step)
+    step = max(1, round(1.0 / (period_s * DISCOVER_RATE_HZ)))
+    est = to_recording(res_recordings["friction_cv"], "friction_cv", step)
+    val = to_recording(res_recordings["slow_passes"], "slow_passes", step)
     x = est.x
     start = Hyp(fixed_mass_kg=m, x_center_m=float(0.5 * (x.min() + x.max())))
     d = discover(est, validate=val, start=start)
     spec = hyp_to_spec(d.final.hyp, {"source": "stagectl commission"})
     spec["mass_kg"] = float(m)
-    res.discovery = {
+    discovery: dict[str, Any] = {
         "estimation": est.source, "validation": val.source,
         "gap_before_n": d.gap_before, "gap_after_n": d.gap_after,
         "effects": [plain(e.as_json(), json=True) for e in d.effects],
@@ -66,12 +64,13 @@ def fit_models(res: Results, period_s: float) -> None:
         "viscous_n_s_m": float(d.final.hyp.theta.get("fv", math.nan)),
         "elapsed_s": d.elapsed_s,
     }
-    res.model_spec = plain(spec, json=True)
+    model_spec: dict[str, Any] = plain(spec, json=True)
     try:
         from stagectl.ident.identify import identify
 
-        gi = identify(to_recording(res.recordings["reversals"], "reversals"), "gms", mass_kg=m)
-        res.discovery["reversals_gms"] = {"friction": plain(gi.spec, json=True),
+        gi = identify(to_recording(res_recordings["reversals"], "reversals"), "gms", mass_kg=m)
+        discovery["reversals_gms"] = {"friction": plain(gi.spec, json=True),
                                           "fit": plain(gi.quality.get("fit", {}), json=True)}
     except DataError as exc:
-        res.discovery["reversals_gms"] = {"error": str(exc)}
+        discovery["reversals_gms"] = {"error": str(exc)}
+    return discovery, model_spec

@@ -129,12 +129,12 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     L: list[str] = ["# Commissioning report", "", f"Configuration: `{rep.get('config')}`; status: **{rep['status']}**"]
     if "aborted" in rep:
         a = rep["aborted"]
-        L += ["", f"Aborted in `{a['experiment']}`: {a['reason']}. The drive was disabled; the recordings made so "
-                  "far are in `recordings/`."]
+        L += ["", (f"Aborted in `{a['experiment']}`: {a['reason']}. The drive was disabled; the recordings made so "
+                  "far are in `recordings/`.")]
     env = rep["envelope"]
     L += ["", "## Envelope", "",
-          f"Travel {env['x_lo_m'] * 1e3:.4g} .. {env['x_hi_m'] * 1e3:.4g} mm, force <= {env['f_max_n']:.3g} N, "
-          f"velocity <= {env['v_max_m_s'] * 1e3:.3g} mm/s.", "", "## Experiments", "",
+          (f"Travel {env['x_lo_m'] * 1e3:.4g} .. {env['x_hi_m'] * 1e3:.4g} mm, force <= {env['f_max_n']:.3g} N, "
+          f"velocity <= {env['v_max_m_s'] * 1e3:.3g} mm/s."), "", "## Experiments", "",
           "| experiment | purpose | duration [s] | samples | ended by | recording |", "|---|---|---|---|---|---|"]
     for e in rep["experiments"]:
         fault = f" (fault {e['fault']['name']})" if e.get("fault") else ""
@@ -150,18 +150,18 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | friction_cv / slow_passes |")
     if "plant" in rep:
         p = rep["plant"]
-        L += ["", f"Pre-sliding resonance {p['presliding_resonance_hz']:.3g} Hz (stiffness "
+        L += ["", (f"Pre-sliding resonance {p['presliding_resonance_hz']:.3g} Hz (stiffness "
                   f"{p['presliding_stiffness_n_m']:.3g} N/m); unmodelled resonances: "
-                  f"{', '.join(f'{x:.3g} Hz' for x in p['unmodelled_resonances_hz']) or 'none'}."]
+                  f"{', '.join(f'{x:.3g} Hz' for x in p['unmodelled_resonances_hz']) or 'none'}.")]
     if "gains" in rep:
         ch = rep["gains"]["chosen"]
         pid = ch["pid"]
         L += ["", "## Gains", "",
-              f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
-              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_bandwidth_hz']:.3g} Hz.", "",
+              (f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
+              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_bandwidth_hz']:.3g} Hz."), "",
               "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
-              f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
-              f"{ch['model']['crossover_hz']:.3g} |"]
+              (f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
+              f"{ch['model']['crossover_hz']:.3g} |")]
         if "measured" in ch:
             mm = ch["measured"]
             L.append(f"| measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
@@ -169,8 +169,8 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     ver = rep.get("verification", {})
     if ver:
         L += ["", "## Verification: before (given config) and after (stage.yaml)", "",
-              "| scenario | RMS before [nm] | RMS after [nm] | max before [nm] | max after [nm] | settled before | "
-              "settled after |", "|---|---|---|---|---|---|---|"]
+              ("| scenario | RMS before [nm] | RMS after [nm] | max before [nm] | max after [nm] | settled before | "
+              "settled after |"), "|---|---|---|---|---|---|---|"]
         for name, d in ver.items():
             b, a = d.get("before", {}), d.get("after", {})
             L.append(f"| {name} | {_fmt(b.get('rms_error_m'), 1e9)} | {_fmt(a.get('rms_error_m'), 1e9)} | "

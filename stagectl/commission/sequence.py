@@ -39,8 +39,15 @@ import numpy.typing as npt
 from stagectl.app import Stage, build_stage, make_controller
 from stagectl.clock import Clock, MonotonicClock, SimClock
 from stagectl.commission import analysis as an
-from stagectl.commission.controllers import CommissionController, FollowMeasured, SanityProbe, log_bins, multisine
+from stagectl.commission.controllers import (
+    CommissionController,
+    FollowMeasured,
+    SanityProbe,
+    log_bins,
+    multisine,
+)
 from stagectl.commission.envelope import Envelope, make_envelope
+from stagectl.commission.fit import fit_models
 from stagectl.config import AppConfig, IoKind
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController, controller_mass
 from stagectl.control.dob import DobConfig
@@ -281,7 +288,7 @@ class Commissioning:
 
         # 2. FRF --------------------------------------------------------------------------------------
         inner = StageController(self._commission_tuning(m0), self.cfg.timing)
-        n_per = max(int(round(1.0 / T)), 64)
+        n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
         amp = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
         exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
@@ -289,7 +296,7 @@ class Commissioning:
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
         lead = [to_c, Dwell(0.3)]
         lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
-        n0 = int(round(lead_s / T)) + 2
+        n0 = round(lead_s / T) + 2
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
@@ -345,9 +352,7 @@ class Commissioning:
                      inner, segs, {"velocity_m_s": v_slow})
 
         # 4.-5. models, gains, new configuration -----------------------------------------------------
-        from stagectl.commission.fit import fit_models
-
-        fit_models(self.res, self.T)
+        self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T)
         self.res.gains = choose_gains(m, T, r.plant, r.frf)
         new_cfg = self.write_config(self.res)
 
@@ -411,7 +416,7 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     GM ≥ 8 dB on the model and on the measured FRF."""
     from stagectl.control import design
 
-    nd = max(1, int(round(plant.delay_s / T))) if plant is not None else 1
+    nd = max(1, round(plant.delay_s / T)) if plant is not None else 1
     tried: list[dict[str, Any]] = []
     chosen: dict[str, Any] | None = None
     for x in CROSSOVER_X_PERIOD:

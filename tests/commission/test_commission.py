@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from commission_stage import HIDDEN, write_stage  # noqa: E402
+from commission_stage import HIDDEN, write_stage
 
 from stagectl.cli import main
 from stagectl.config import load_app_config
@@ -55,7 +55,7 @@ def test_identifies_the_hidden_plant_within_10_percent(commissioned: tuple[int, 
 
 
 def test_outputs_are_complete_and_valid(commissioned: tuple[int, Path]) -> None:
-    rc, out = commissioned
+    _rc, out = commissioned
     cfg = load_app_config(out / "stage.yaml")  # what check-config runs
     assert main(["check-config", "-q", str(out / "stage.yaml")]) == 0
     assert cfg.controller.feedforward.model is not None
