@@ -214,7 +214,7 @@ def _fit_band(frf: Frf, sel: npt.NDArray[np.bool_], period_s: float, mass_guess_
 def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
     """Fit ``m, c, k, τ`` to the measured FRF (module docstring), in two passes: over every well-measured line,
     which locates the pre-sliding resonance ``f0``, then over the lines above ``FIT_ABOVE_F0·f0`` (at most
-    from ``0.15/T``), where the rigid-body mass dominates and the hysteretic pre-sliding (a spring only to
+    from ``0.15/T``; repeated while the band moves up), where the rigid-body mass dominates and the hysteretic pre-sliding (a spring only to
     first order) no longer biases it."""
     f, p = frf.f_hz, frf.p
     ok = frf.p_std / np.maximum(np.abs(p), 1e-300) < 0.3
@@ -222,14 +222,16 @@ def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
         raise StageError(f"frf: only {int(ok.sum())} lines measured with < 30 % uncertainty; raise the excitation "
                          "(--max-force) or check the sensor")
     th, sd, rms, _ = _fit_band(frf, ok, period_s, mass_guess_kg)
-    f0 = math.sqrt(max(th[2], 0.0) / math.exp(th[0])) / (2 * math.pi)
-    f_lo = min(FIT_ABOVE_F0 * f0, 0.15 / period_s)
-    band = ok & (f >= f_lo)
-    if band.sum() >= 6 and f_lo > float(f[ok].min()):
+    f_lo = float(f[ok].min())
+    band = ok
+    for _ in range(4):  # the band moves up with the resonance each refit finds (a hysteretic spring is stiffer
+        f0 = math.sqrt(max(th[2], 0.0) / math.exp(th[0])) / (2 * math.pi)  # at the smaller high-f amplitudes)
+        lo = min(max(FIT_ABOVE_F0 * f0, f_lo), 0.15 / period_s)
+        nb = ok & (f >= lo)
+        if lo <= f_lo or nb.sum() < 6:
+            break
+        f_lo, band = lo, nb
         th, sd, rms, _ = _fit_band(frf, band, period_s, math.exp(th[0]))
-    else:
-        f_lo = float(f[ok].min())
-        band = ok
     m = math.exp(th[0])
     full = plant_response(f, m, th[1], th[2], th[3], period_s)
     ratio = np.abs(p / full)

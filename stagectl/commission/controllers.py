@@ -76,8 +76,8 @@ class SanityProbe:
 
         RAMP   u = s·f_lim·τ/t_ramp       until s·(x − x_start) ≥ d_detect   (breakaway force F_b = |u|)
                                            or τ ≥ t_ramp (no motion) or −s·(x − x_start) ≥ d_detect (wrong sign)
-        ACC1   u = s·F1, F1 = min(1.5·F_b, f_lim)   until d_acc more, v ≥ v_stop or t_acc
-        ACC2   u = s·F2, F2 = min(2.5·F_b, f_lim)   until 2·d_acc more, v ≥ v_stop or t_acc
+        ACC1   u = s·F1, F1 = min(1.5·F_b, f_lim)   until d_acc more, v ≥ v_stop/3 or t_acc
+        ACC2   u = s·F2, F2 = min(2.5·F_b, f_lim)   until 3·d_acc more, v ≥ v_stop or t_acc
         BRAKE  u = −s·F2                   until the velocity (5-sample difference) reverses, or t_acc
         REST   u = 0                       for t_rest
 
@@ -148,8 +148,9 @@ class SanityProbe:
             tl, xl = (d.t1, d.x1) if ph == "ACC1" else (d.t2, d.x2)
             tl.append(self._tau)
             xl.append(x)
-            span = self.d_acc if ph == "ACC1" else 2.0 * self.d_acc
-            if s * (x - self._xp) >= span or s * v >= self.v_stop or self._tau >= self.t_acc:
+            span = self.d_acc if ph == "ACC1" else 3.0 * self.d_acc
+            v_end = self.v_stop / 3.0 if ph == "ACC1" else self.v_stop
+            if s * (x - self._xp) >= span or s * v >= v_end or self._tau >= self.t_acc:
                 if ph == "ACC1" and d.f2_n > 1.2 * d.f1_n:
                     self._next("ACC2", x)
                     return s * d.f2_n

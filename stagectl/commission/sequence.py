@@ -268,7 +268,7 @@ class Commissioning:
         # 1. sanity ----------------------------------------------------------------------------------
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
         probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
-                            v_stop_m_s=0.5 * env.v_max_m_s)
+                            v_stop_m_s=0.9 * env.v_max_m_s)
         follow = FollowMeasured()
         ctl.set_probe(probe, follow)
         stage.loop.reference = follow
