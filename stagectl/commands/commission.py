@@ -68,10 +68,12 @@ def run(args: argparse.Namespace) -> int:
     res = com.run()
     rep = write_report(res, Path(out), plots=opts.plots)
     summary = {"command": "commission", "status": rep["status"], "out": str(out),
-               "fitted": rep.get("fitted"), "aborted": rep.get("aborted")}
+               "fitted": rep.get("fitted"), "verdict": rep.get("verdict", {}).get("recommend"),
+               "aborted": rep.get("aborted")}
     print(json.dumps(summary, default=str, separators=(",", ":")))
     if res.aborted is not None:
         print(f"stagectl: error: {res.aborted}", file=sys.stderr)
         return 130 if res.aborted.interrupted else 1
+    print(f"stagectl commission: {rep['verdict']['text']}", file=sys.stderr)
     print(f"stagectl commission: model.yaml, stage.yaml, report.md in {out}", file=sys.stderr)
     return 0

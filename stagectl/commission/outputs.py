@@ -116,7 +116,36 @@ def report_dict(res: Results) -> dict[str, Any]:
     if res.controller_yaml is not None:
         r["controller"] = res.controller_yaml
     r["verification"] = res.verification
+    r["verdict"] = verdict(res.verification)
     return plain(r, json=True)  # type: ignore[no-any-return]
+
+
+def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The advice, checked before it is given: ``stage.yaml`` is recommended only if, on every verification
+    scenario, its RMS error is not above the given controller's and no fewer moves settle; otherwise the
+    report says which scenarios got worse and recommends keeping the given controller."""
+    worse: list[str] = []
+    better: list[str] = []
+    for name, d in ver.items():
+        b, a = d.get("before"), d.get("after")
+        if not b or not a:
+            continue
+        rb, ra = b.get("rms_error_m"), a.get("rms_error_m")
+        if rb is None or ra is None or not (math.isfinite(rb) and math.isfinite(ra)):
+            continue
+        if ra > rb or a.get("moves_settled", 0) < b.get("moves_settled", 0):
+            worse.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before, settled "
+                         f"{a.get('moves_settled')}/{a.get('moves')} vs {b.get('moves_settled')}/{b.get('moves')}")
+        else:
+            better.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
+    if not worse and not better:
+        return {"recommend": "unverified", "worse": [], "better": [],
+                "text": "not verified (no before/after runs): check stage.yaml with `stagectl simulate`/`run` first"}
+    if worse:
+        return {"recommend": "given", "worse": worse, "better": better,
+                "text": "keep the given controller: the commissioned one tracks worse on " + "; ".join(worse)}
+    return {"recommend": "new", "worse": [], "better": better,
+            "text": "use stage.yaml: it tracks at least as well on every scenario (" + "; ".join(better) + ")"}
 
 
 def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
@@ -167,6 +196,8 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
                      f"{mm['crossover_hz']:.3g} |")
     ver = rep.get("verification", {})
+    if "verdict" in rep:
+        L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]
     if ver:
         L += ["", "## Verification: before (given config) and after (stage.yaml)", "",
               ("| scenario | RMS before [nm] | RMS after [nm] | max before [nm] | max after [nm] | settled before | "

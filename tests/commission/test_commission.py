@@ -74,6 +74,11 @@ def test_outputs_are_complete_and_valid(commissioned: tuple[int, Path]) -> None:
     # before/after side by side, for each scenario
     for name in ("cosine", "triangle", "steps"):
         assert set(rep["verification"][name]) == {"before", "after"}
+    # the verdict is checked against the before/after figures, not assumed
+    worse = [n for n, d in rep["verification"].items()
+             if d["after"]["rms_error_m"] > d["before"]["rms_error_m"]
+             or d["after"]["moves_settled"] < d["before"]["moves_settled"]]
+    assert rep["verdict"]["recommend"] == ("given" if worse else "new")
     md = (out / "report.md").read_text()
     assert "RMS before" in md and "frf.png" in md
     assert (out / "frf.png").stat().st_size > 1000
