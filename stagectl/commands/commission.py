@@ -71,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
                "fitted": rep.get("fitted"), "verdict": rep.get("verdict", {}).get("recommend"),
                "aborted": rep.get("aborted")}
     print(json.dumps(summary, default=str, separators=(",", ":")))
+    if res.error is not None:
+        raise res.error  # one `stagectl: error:` line, exit 2 (report.json written)
     if res.aborted is not None:
         print(f"stagectl: error: {res.aborted}", file=sys.stderr)
         return 130 if res.aborted.interrupted else 1

@@ -139,6 +139,8 @@ class Results:
     verification: dict[str, dict[str, Any]] = field(default_factory=dict)
     aborted: CommissionAborted | None = None
     drive_state: str | None = None
+    #: the error that ended the sequence when it was not a fault or Ctrl-C (re-raised after the report)
+    error: StageError | None = None
     notes: list[str] = field(default_factory=list)
     recordings: dict[str, Recorder] = field(default_factory=dict)
 
@@ -171,6 +173,7 @@ class Commissioning:
             raise StageError("--inject-fault: only on a simulated stage (io.kind plant_io or embedded_canopen)")
         self.T = cfg.loop.period_s
         self._planned: list[tuple[str, float]] = []
+        self._coulomb_guess = 0.0
 
     # ------------------------------------------------------------------ running one experiment
     def _run(self, stage: Stage, name: str, purpose: str, duration_s: float, params: dict[str, Any]) -> Recorder:
@@ -194,15 +197,24 @@ class Commissioning:
                 finally:
                     loop.remove_sink(prog)
             else:
-                host = LoopHost(loop)
-                host.start(duration_s=duration_s)
-                try:
-                    while not host.wait(1.0):
-                        prog.show(loop.status(timing=False).t_s)
-                except KeyboardInterrupt:
-                    interrupted = True
-                    host.stop()
-                res = host.finish(timeout_s=10.0)
+                for attempt in (1, 2):
+                    host = LoopHost(loop)
+                    host.start(duration_s=duration_s)
+                    try:
+                        while not host.wait(1.0):
+                            prog.show(loop.status(timing=False).t_s)
+                    except KeyboardInterrupt:
+                        interrupted = True
+                        host.stop()
+                    try:
+                        res = host.finish(timeout_s=10.0)
+                        break
+                    except StageError as exc:
+                        # re-enabling the drive for the next experiment: a loaded machine can miss the first
+                        # positions within loop.startup_cycles; one retry, nothing has moved yet
+                        if attempt == 2 or rec.n or interrupted:
+                            raise
+                        log.warning("%s: start failed (%s); retrying once", name, exc)
         except KeyboardInterrupt:
             interrupted = True
         finally:
@@ -250,6 +262,11 @@ class Commissioning:
                 self._sequence(stage, ctl)
             except CommissionAborted as exc:
                 self.res.aborted = exc
+            except StageError as exc:  # a sanity verdict, a failed start, no healthy design: kept in the report
+                name = self.res.experiments[-1].name if self.res.experiments else "start"
+                self.res.aborted = CommissionAborted(name, str(exc))
+                self.res.error = exc
+            if self.res.aborted is not None:
                 # read back from the device: the loop has already written zero and disabled it
                 self.res.drive_state = stage.actuator.state.value
         return self.res
@@ -283,6 +300,7 @@ class Commissioning:
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
         r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected)
         m0 = r.sanity.mass_kg
+        self._coulomb_guess = 0.8 * min(r.sanity.breakaway_n)
         self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} kg, breakaway "
                            + ", ".join(f"{b:.3g}" for b in r.sanity.breakaway_n) + " N")
 
@@ -377,7 +395,9 @@ class Commissioning:
 
     # ------------------------------------------------------------------ helpers
     def _commission_tuning(self, mass_kg: float) -> ControllerConfig:
-        """A conservative tuning for ``mass_kg`` (no friction feed-forward: nothing is known about it yet)."""
+        """A conservative tuning for ``mass_kg``, with a Coulomb feed-forward of 80 % of the smaller breakaway
+        force the probe measured (keeps the following error small at reversals; the identification uses the
+        total commanded force, so the feed-forward does not bias it)."""
         from stagectl.control import design
 
         T = self.T
@@ -386,7 +406,8 @@ class Commissioning:
         return ControllerConfig(mass_kg=mass_kg, max_force_n=base.max_force_n, pid=pid,
                                 dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
                                               command_delay_samples=1),
-                                feedforward=FeedforwardConfig(kind="none", inertia=True))
+                                feedforward=FeedforwardConfig(kind="coulomb", coulomb_n=self._coulomb_guess,
+                                                              inertia=True))
 
     def _accel(self, v: float, length: float, mass_kg: float) -> float:
         """Acceleration for a pass at ``v`` over ``length``: the ramps take at most 10 % of it, the inertia
