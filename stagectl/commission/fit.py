@@ -6,7 +6,9 @@ model file's content (``docs/commissioning.md`` §4).
   stroke (a separate experiment: an effect must transfer to be accepted), starting from the FRF mass (fixed)
   plus Coulomb and viscous friction. It names the effects the data need (Stribeck, pre-sliding, cogging,
   offset, spring, ripple, asymmetry, ...) and fits them;
-* the model file is the discovered model (:func:`stagectl.ident.modelio.hyp_to_spec`) with the FRF mass.
+* the model file is the discovered model (:func:`stagectl.ident.modelio.hyp_to_spec`) with the FRF mass and
+  the sliding levels (Coulomb, static, Stribeck velocity and shape, viscous) of the constant-velocity
+  segment fit.
 
 The reversal recording is kept for the pre-sliding check: ``identify --model gms`` on it gives the virgin
 curve's elements when discover accepted pre-sliding only weakly; its fit quality is reported either way.
@@ -41,9 +43,13 @@ def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
                      source=f"recordings/{name}.csv")
 
 
-def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float
-               ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The discovery summary and the model file's mapping (module docstring)."""
+def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
+               sliding: dict[str, float] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The discovery summary and the model file's mapping (module docstring). ``sliding``: the Stribeck
+    curve of the constant-velocity segment means (``fc_n, fs_n, vs_m_s, delta, viscous_n_s_m``), which
+    replaces the discovered sliding levels when given (a direct measurement of exactly these parameters;
+    discover fits them jointly with the pre-sliding elements, whose damping can trade with the viscous
+    term)."""
     m = mass_kg
     res_recordings = recordings
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
@@ -55,6 +61,10 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float
     d = discover(est, validate=val, start=start)
     spec = hyp_to_spec(d.final.hyp, {"source": "stagectl commission"})
     spec["mass_kg"] = float(m)
+    fr = spec["friction"]
+    if sliding is not None and fr.get("model") in ("gms", "stribeck"):
+        fr.update({k: float(sliding[k]) for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m")})
+        fr["fs_n"] = max(fr["fs_n"], fr["fc_n"])
     discovery: dict[str, Any] = {
         "estimation": est.source, "validation": val.source,
         "gap_before_n": d.gap_before, "gap_after_n": d.gap_after,

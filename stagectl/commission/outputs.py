@@ -48,7 +48,7 @@ def controller_section(res: Results) -> dict[str, Any]:
         "mass_kg": float(res.gains["mass_kg"]),
         "max_force_n": float(res.config.controller.max_force_n),
         "pid": dict(ch["pid"]),
-        "dob": {"kind": "qfilter", "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
+        "dob": {"kind": ch["dob_kind"], "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
         "feedforward": {"kind": "model", "model_file": "model.yaml", "inertia": True,
                         # the zero-order-hold mid-point plus the measured I/O delay
                         "lookahead_s": float(min(max(T / 2 + res.plant.delay_s, 0.0), 0.1))},
@@ -187,7 +187,7 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         pid = ch["pid"]
         L += ["", "## Gains", "",
               (f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
-              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_bandwidth_hz']:.3g} Hz."), "",
+              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_kind']} {ch['dob_bandwidth_hz']:.3g} Hz."), "",
               "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
               (f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
               f"{ch['model']['crossover_hz']:.3g} |")]

@@ -370,7 +370,8 @@ class Commissioning:
                      inner, segs, {"velocity_m_s": v_slow})
 
         # 4.-5. models, gains, new configuration -----------------------------------------------------
-        self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T)
+        self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
+                                                             r.cv.stribeck if r.cv is not None else None)
         self.res.gains = choose_gains(m, T, r.plant, r.frf)
         new_cfg = self.write_config(self.res)
 
@@ -432,9 +433,10 @@ class Commissioning:
 
 # ====================================================================================== gains
 def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | None) -> dict[str, Any]:
-    """``tune``'s design (:func:`stagectl.control.design.design_pid`, Q-filter DOB at min(5·f_c, 0.1/T)) for the
-    measured mass and delay, at the highest candidate crossover whose PID+DOB loop keeps PM ≥ 40° and
-    GM ≥ 8 dB on the model and on the measured FRF."""
+    """``tune``'s design (:func:`stagectl.control.design.design_pid`) for the measured mass and delay, in two
+    forms per candidate crossover: PID alone, and PID with a Q-filter DOB at min(5·f_c, 0.1/T). The chosen
+    design is the one with the highest crossover whose loop keeps PM ≥ 40° and GM ≥ 8 dB on the model *and*
+    on the measured FRF (at equal crossover the DOB form, which rejects friction faster)."""
     from stagectl.control import design
 
     nd = max(1, round(plant.delay_s / T)) if plant is not None else 1
@@ -442,23 +444,26 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     chosen: dict[str, Any] | None = None
     for x in CROSSOVER_X_PERIOD:
         bw = x / T
-        dbw = min(5.0 * bw, 0.1 / T)
         pid = design.design_pid(m, bw, T, nd)
-        loops = design.analyse_design(m, T, pid, nd, dbw, nd, dob_mass_kg=m)
-        mod = loops[-1].summary()
-        entry: dict[str, Any] = {"crossover_target_hz": bw, "dob_bandwidth_hz": dbw, "pid": _plain_pid(pid),
-                                 "model": mod}
-        ok = bool(mod["closed_loop_stable"] and mod["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
-                  and mod["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
-        if frf is not None:
-            K = an.controller_response(frf.f_hz, T, pid, "qfilter", dbw, m, nd)
-            mm = an.measured_margins(frf, K)
-            entry["measured"] = mm.as_dict()
-            ok = ok and mm.phase_margin_deg >= MIN_PHASE_MARGIN_DEG and mm.gain_margin_db >= MIN_GAIN_MARGIN_DB
-        entry["healthy"] = ok
-        tried.append(entry)
-        if ok:
-            chosen = entry
+        for dob in ("qfilter", "none"):
+            dbw = min(5.0 * bw, 0.1 / T)
+            loops = design.analyse_design(m, T, pid, nd, dbw if dob == "qfilter" else None, nd, dob_mass_kg=m)
+            mod = loops[-1].summary()
+            entry: dict[str, Any] = {"crossover_target_hz": bw, "dob_kind": dob, "dob_bandwidth_hz": dbw,
+                                     "pid": _plain_pid(pid), "model": mod}
+            ok = bool(mod["closed_loop_stable"] and mod["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
+                      and mod["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
+            if frf is not None:
+                K = an.controller_response(frf.f_hz, T, pid, dob, dbw, m, nd)
+                mm = an.measured_margins(frf, K)
+                entry["measured"] = mm.as_dict()
+                ok = ok and mm.phase_margin_deg >= MIN_PHASE_MARGIN_DEG and mm.gain_margin_db >= MIN_GAIN_MARGIN_DB
+            entry["healthy"] = ok
+            tried.append(entry)
+            if ok:
+                chosen = entry
+                break
+        if chosen is not None:
             break
     if chosen is None:
         raise StageError(f"gains: no design between {CROSSOVER_X_PERIOD[-1] / T:g} and {CROSSOVER_X_PERIOD[0] / T:g} Hz "
