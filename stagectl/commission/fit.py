@@ -2,16 +2,16 @@
 model file's content (``docs/commissioning.md`` §4).
 
 * mass: the FRF fit (its rigid-body mass, independent of friction);
-* ``discover`` runs on the constant-velocity passes (estimation) validated on the slow passes over the
-  stroke (a separate experiment: an effect must transfer to be accepted), starting from the FRF mass (fixed)
-  plus Coulomb and viscous friction. It names the effects the data need (Stribeck, pre-sliding, cogging,
+* ``discover`` runs on the constant-velocity passes (estimation) validated on the nested reversals (a
+  separate experiment, rich in reversals, over half the stroke: an effect must transfer to be accepted; the
+  slow passes' two reversals were too few for the bootstrap to accept pre-sliding on a GMS stage), starting
+  from the FRF mass (fixed) plus Coulomb and viscous friction. It names the effects the data need (Stribeck, pre-sliding, cogging,
   offset, spring, ripple, asymmetry, ...) and fits them;
 * the model file is the discovered model (:func:`stagectl.ident.modelio.hyp_to_spec`) with the FRF mass and
   the sliding levels (Coulomb, static, Stribeck velocity and shape, viscous) of the constant-velocity
   segment fit.
 
-The reversal recording is kept for the pre-sliding check: ``identify --model gms`` on it gives the virgin
-curve's elements when discover accepted pre-sliding only weakly; its fit quality is reported either way.
+``identify --model gms`` also runs on the reversal recording; its virgin-curve fit is reported beside.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
     step = max(1, round(1.0 / (period_s * DISCOVER_RATE_HZ)))
     est = to_recording(res_recordings["friction_cv"], "friction_cv", step)
-    val = to_recording(res_recordings["slow_passes"], "slow_passes", step)
+    val = to_recording(res_recordings["reversals"], "reversals", step)
     x = est.x
     start = Hyp(fixed_mass_kg=m, x_center_m=float(0.5 * (x.min() + x.max())))
     d = discover(est, validate=val, start=start)

@@ -44,6 +44,8 @@ def controller_section(res: Results) -> dict[str, Any]:
     ch = res.gains["chosen"]
     nd = int(res.gains["delay_samples"])
     T = res.config.loop.period_s
+    # the feed-forward adds the model's own effects.delay to the lookahead: count the measured delay once
+    model_delay = float((res.model_spec or {}).get("effects", {}).get("delay", {}).get("delay_s", 0.0))
     return {
         "mass_kg": float(res.gains["mass_kg"]),
         "max_force_n": float(res.config.controller.max_force_n),
@@ -51,7 +53,7 @@ def controller_section(res: Results) -> dict[str, Any]:
         "dob": {"kind": ch["dob_kind"], "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
         "feedforward": {"kind": "model", "model_file": "model.yaml", "inertia": True,
                         # the zero-order-hold mid-point plus the measured I/O delay
-                        "lookahead_s": float(min(max(T / 2 + res.plant.delay_s, 0.0), 0.1))},
+                        "lookahead_s": float(min(max(T / 2 + res.plant.delay_s - model_delay, 0.0), 0.1))},
     }
 
 
@@ -117,6 +119,10 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["controller"] = res.controller_yaml
     r["verification"] = res.verification
     r["verdict"] = verdict(res.verification)
+    if res.aborted is not None and res.aborted.experiment.startswith("verify_after"):
+        r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
+                        "better": [], "text": f"keep the given controller: the commissioned one faulted in "
+                        f"{res.aborted.experiment} ({res.aborted.reason})"}
     return plain(r, json=True)  # type: ignore[no-any-return]
 
 

@@ -305,7 +305,9 @@ class Commissioning:
                            + ", ".join(f"{b:.3g}" for b in r.sanity.breakaway_n) + " N")
 
         # 2. FRF --------------------------------------------------------------------------------------
-        inner = StageController(self._commission_tuning(m0), self.cfg.timing)
+        # no friction feed-forward while standing: its last direction's Coulomb force would preload the
+        # pre-sliding spring the FRF measures
+        inner = StageController(self._commission_tuning(m0, coulomb=False), self.cfg.timing)
         n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
         amp = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
@@ -395,10 +397,10 @@ class Commissioning:
                 r.verification.setdefault(nm, {})[which] = summ
 
     # ------------------------------------------------------------------ helpers
-    def _commission_tuning(self, mass_kg: float) -> ControllerConfig:
+    def _commission_tuning(self, mass_kg: float, coulomb: bool = True) -> ControllerConfig:
         """A conservative tuning for ``mass_kg``, with a Coulomb feed-forward of 80 % of the smaller breakaway
         force the probe measured (keeps the following error small at reversals; the identification uses the
-        total commanded force, so the feed-forward does not bias it)."""
+        total commanded force, so the feed-forward does not bias it); ``coulomb=False`` for the FRF."""
         from stagectl.control import design
 
         T = self.T
@@ -407,8 +409,8 @@ class Commissioning:
         return ControllerConfig(mass_kg=mass_kg, max_force_n=base.max_force_n, pid=pid,
                                 dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
                                               command_delay_samples=1),
-                                feedforward=FeedforwardConfig(kind="coulomb", coulomb_n=self._coulomb_guess,
-                                                              inertia=True))
+                                feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
+                                                              coulomb_n=self._coulomb_guess, inertia=True))
 
     def _accel(self, v: float, length: float, mass_kg: float) -> float:
         """Acceleration for a pass at ``v`` over ``length``: the ramps take at most 10 % of it, the inertia
