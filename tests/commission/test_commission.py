@@ -32,7 +32,7 @@ def commissioned(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path]:
     d = tmp_path_factory.mktemp("commission")
     cfg = write_stage(d / "stage.yaml")
     out = d / "out"
-    rc = main(["commission", "--config", str(cfg), "--out", str(out), "--max-stroke", "0.003"])
+    rc = main(["commission", "--config", str(cfg), "--out", str(out), "--max-stroke", "0.002"])
     return rc, out
 
 
