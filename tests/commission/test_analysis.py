@@ -1,0 +1,93 @@
+"""The commissioning analyses against plain reference implementations (no loop, milliseconds each)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from stagectl.commission import analysis as an
+from stagectl.commission.controllers import SanityProbe, log_bins, multisine
+from stagectl.control import design
+
+
+def _closed_loop_record(m: float, k: float, c: float, delay: int, T: float, n_per: int, periods: int,
+                        seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain reference: exact ZOH discretisation of m x'' + c x' + k x = u(t − delay·T), a PD controller
+    holding x = 0, a known multisine d added to its output, 0.5 nm sensor noise."""
+    sysd = signal.cont2discrete((np.array([[0, 1], [-k / m, -c / m]]), np.array([[0], [1 / m]]),
+                                 np.array([[1, 0]]), np.array([[0]])), T, method="zoh")
+    A, B = sysd[0], sysd[1]
+    bins = log_bins(n_per, 2, int(0.45 * n_per), 40)
+    d = np.tile(multisine(n_per, bins, 0.05), periods)
+    rng = np.random.default_rng(seed)
+    s = np.zeros((2, 1))
+    q = [0.0] * delay
+    x_out, u_out = np.zeros(d.size), np.zeros(d.size)
+    xp = 0.0
+    for i in range(d.size):
+        x = float(s[0, 0]) + 0.5e-9 * rng.standard_normal()
+        u = -2e4 * x - 150.0 * (x - xp) / T + d[i]
+        xp = x
+        x_out[i], u_out[i] = x, u
+        q.append(u)
+        s = A @ s + B * q.pop(0)
+    return x_out, u_out, bins
+
+
+def test_frf_fit_recovers_mass_delay_and_stiffness() -> None:
+    T, n_per = 1e-3, 500
+    x, u, bins = _closed_loop_record(m=3.0, k=2e5, c=30.0, delay=1, T=T, n_per=n_per, periods=5)
+    frf = an.estimate_frf(x, u, n_per, bins, T)
+    fit = an.fit_plant(frf, T, mass_guess_kg=1.5)
+    assert fit.mass_kg == pytest.approx(3.0, rel=0.02)
+    assert fit.delay_s == pytest.approx(1e-3, abs=0.05e-3)
+    assert fit.presliding_resonance_hz == pytest.approx(math.sqrt(2e5 / 3.0) / (2 * math.pi), rel=0.1)
+    assert fit.mass_std_kg < 0.05 * fit.mass_kg
+    assert fit.resonances_hz == []
+
+
+def test_measured_margins_agree_with_python_control_on_an_exact_frf() -> None:
+    T, m = 1e-3, 2.0
+    pid = design.design_pid(m, 25.0, T, 1)
+    f = np.logspace(0, math.log10(450), 400)
+    p = an.plant_response(f, m, 0.0, 0.0, T, T)   # ZOH mass + one sample of delay, as design.plant_tf
+    K = an.controller_response(f, T, pid, "none", 100.0, m, 1)
+    ours = an.margins_from_response(f, p * K)
+    ref = design.analyse_design(m, T, pid, 1)[0]
+    assert ours.phase_margin_deg == pytest.approx(ref.phase_margin_deg, abs=1.0)
+    assert ours.gain_margin_db == pytest.approx(ref.gain_margin_db, abs=0.3)
+
+
+def _drive_probe(sign: int, m: float = 2.0, f_c: float = 0.5) -> SanityProbe:
+    """The probe against a plain mass with Coulomb friction whose force input has the given sign."""
+    T = 1e-3
+    probe = SanityProbe(f_lim_n=4.0, d_detect_m=2e-5, d_acc_m=1e-4, v_stop_m_s=0.02)
+    x = v = 0.0
+    probe.reset(x)
+    for _ in range(20000):
+        u = sign * probe.step(T, x)
+        if probe.done:
+            break
+        f = u - f_c * np.sign(v) if v != 0 else (0.0 if abs(u) <= f_c else u - f_c * np.sign(u))
+        v_new = v + f / m * T
+        if v != 0 and np.sign(v_new) != np.sign(v) and abs(u) <= f_c:
+            v_new = 0.0
+        x += 0.5 * (v + v_new) * T
+        v = v_new
+    return probe
+
+
+def test_sanity_probe_measures_the_mass_and_catches_a_wrong_sign() -> None:
+    ok = _drive_probe(+1)
+    res = an.evaluate_probe(ok.dirs, ok.f_lim, ok.d_detect, expected_mass_kg=2.0)
+    assert res.mass_kg == pytest.approx(2.0, rel=0.1)
+    # the force when the motion is detected: above the true breakaway by the ramp during the detection travel
+    assert 0.5 <= min(res.breakaway_n) <= 0.7
+    bad = _drive_probe(-1)
+    with pytest.raises(an.SanityError, match="wrong sign"):
+        an.evaluate_probe(bad.dirs, bad.f_lim, bad.d_detect, expected_mass_kg=2.0)
+    with pytest.raises(an.SanityError, match="scale"):
+        an.evaluate_probe(ok.dirs, ok.f_lim, ok.d_detect, expected_mass_kg=20.0)
