@@ -2,10 +2,12 @@
 model file's content (``docs/commissioning.md`` §4).
 
 * mass: the FRF fit (its rigid-body mass, independent of friction);
-* ``discover`` runs on the constant-velocity passes (estimation) validated on the nested reversals (a
-  separate experiment, rich in reversals, over half the stroke: an effect must transfer to be accepted; the
-  slow passes' two reversals were too few for the bootstrap to accept pre-sliding on a GMS stage), starting
-  from the FRF mass (fixed) plus Coulomb and viscous friction. It names the effects the data need (Stribeck, pre-sliding, cogging,
+* ``discover`` runs on the nested reversals (estimation: pre-sliding loops, long moves both ways over half
+  the stroke) validated on the constant-velocity passes (a separate experiment: an effect must transfer to
+  be accepted), starting from the FRF mass (fixed) plus Coulomb and viscous friction. The other way round
+  (estimation on the passes) named the same effects but cost 10–50× more (the passes are 3× longer, and the
+  pre-sliding search grows faster than the samples); the slow passes' two reversals were too few to
+  validate pre-sliding on a GMS stage. It names the effects the data need (Stribeck, pre-sliding, cogging,
   offset, spring, ripple, asymmetry, ...) and fits them;
 * the model file is the discovered model (:func:`stagectl.ident.modelio.hyp_to_spec`) with the FRF mass and
   the sliding levels (Coulomb, static, Stribeck velocity and shape, viscous) of the constant-velocity
@@ -54,8 +56,8 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     res_recordings = recordings
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
     step = max(1, round(1.0 / (period_s * DISCOVER_RATE_HZ)))
-    est = to_recording(res_recordings["friction_cv"], "friction_cv", step)
-    val = to_recording(res_recordings["reversals"], "reversals", step)
+    est = to_recording(res_recordings["reversals"], "reversals", step)
+    val = to_recording(res_recordings["friction_cv"], "friction_cv", step)
     x = est.x
     start = Hyp(fixed_mass_kg=m, x_center_m=float(0.5 * (x.min() + x.max())))
     d = discover(est, validate=val, start=start)
