@@ -185,8 +185,10 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | friction_cv / slow_passes |")
     if "plant" in rep:
         p = rep["plant"]
-        L += ["", (f"Pre-sliding resonance {p['presliding_resonance_hz']:.3g} Hz (stiffness "
-                  f"{p['presliding_stiffness_n_m']:.3g} N/m); unmodelled resonances: "
+        L += ["", (f"Mass and delay from the lines above {p['fit_band_hz'][0]:.3g} Hz; the stiffness term of that "
+                  f"fit, {p['presliding_stiffness_n_m']:.3g} N/m ({p['presliding_resonance_hz']:.3g} Hz with the "
+                  "mass), is the small-amplitude pre-sliding stiffness; below the band the stage is friction-"
+                  "dominated (see frf.png). Unmodelled resonances: "
                   f"{', '.join(f'{x:.3g} Hz' for x in p['unmodelled_resonances_hz']) or 'none'}.")]
     if "gains" in rep:
         ch = rep["gains"]["chosen"]

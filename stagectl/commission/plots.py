@@ -25,16 +25,21 @@ def write_plots(res: Results, out: Path) -> list[str]:
     if res.frf is not None and res.plant is not None:
         f = res.frf.f_hz
         pf = res.plant
-        g = an.plant_response(f, pf.mass_kg, pf.damping_n_s_m, pf.stiffness_n_m, pf.delay_s, T)
+        band = f >= pf.f_lo_hz  # the model is fitted (and drawn) only where it was fitted
+        fb = f[band]
+        g = an.plant_response(fb, pf.mass_kg, pf.damping_n_s_m, pf.stiffness_n_m, pf.delay_s, T)
+        ph_m = np.degrees(np.unwrap(np.angle(res.frf.p)))
+        ph_g = np.degrees(np.unwrap(np.angle(g)))
+        if fb.size:  # draw the fit's phase on the measured branch (whole turns)
+            ph_g += 360.0 * np.round((ph_m[band][0] - ph_g[0]) / 360.0)
         fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
         ax[0].loglog(f, np.abs(res.frf.p), ".", label="measured P = X/U")
-        ax[0].loglog(f, np.abs(g), "-", label=f"fit: m {pf.mass_kg:.4g} kg, delay {pf.delay_s * 1e3:.3g} ms, "
-                     f"f0 {pf.presliding_resonance_hz:.3g} Hz")
+        ax[0].loglog(fb, np.abs(g), "-", label=f"fit: m {pf.mass_kg:.4g} kg, delay {pf.delay_s * 1e3:.3g} ms")
         ax[0].axvline(pf.f_lo_hz, color="0.6", lw=0.8, ls="--", label="mass fit band from here")
         ax[0].set_ylabel("|P| [m/N]")
         ax[0].legend(fontsize=8)
-        ax[1].semilogx(f, np.degrees(np.unwrap(np.angle(res.frf.p))), ".")
-        ax[1].semilogx(f, np.degrees(np.unwrap(np.angle(g))), "-")
+        ax[1].semilogx(f, ph_m, ".")
+        ax[1].semilogx(fb, ph_g, "-")
         ax[1].set_ylabel("phase [deg]")
         ax[1].set_xlabel("frequency [Hz]")
         fig.suptitle("plant FRF (closed-loop, force multisine)")
