@@ -262,6 +262,9 @@ class Commissioning:
                 self._sequence(stage, ctl)
             except CommissionAborted as exc:
                 self.res.aborted = exc
+            except KeyboardInterrupt:  # Ctrl-C between two runs (an analysis): the loop is not running
+                name = self.res.experiments[-1].name if self.res.experiments else "start"
+                self.res.aborted = CommissionAborted(name, "interrupted (Ctrl-C)", interrupted=True)
             except StageError as exc:  # a sanity verdict, a failed start, no healthy design: kept in the report
                 name = self.res.experiments[-1].name if self.res.experiments else "start"
                 self.res.aborted = CommissionAborted(name, str(exc))

@@ -143,3 +143,25 @@ def test_refuses_while_the_daemon_holds_the_same_config(hidden_stage: Path, tmp_
     assert rc == 2
     assert "daemon" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_stage: Path, tmp_path: Path) -> None:
+    """A real process and a real SIGINT, sent when the progress line says the FRF is under way."""
+    import signal
+    import subprocess
+
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "stagectl.cli", "commission", "--config", str(hidden_stage),
+                             "--out", str(out), "--no-plots"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if "[2/" in line and "frf" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "aborted" and rep["aborted"]["interrupted"]
+    assert rep["aborted"]["drive_state_after"] != "enabled"
+    assert load_recording(out / "recordings" / "sanity.csv", min_rows=100).t[-1] > 1.0
