@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from stagectl.commission.sequence import MIN_GAIN_MARGIN_DB as MIN_GM
+from stagectl.commission.sequence import MIN_PHASE_MARGIN_DEG as MIN_PM
 from stagectl.commission.sequence import Results
 from stagectl.config import AppConfig, load_app_config
 from stagectl.friction import StageModel, save_model_file
@@ -119,6 +121,12 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["controller"] = res.controller_yaml
     r["verification"] = res.verification
     r["verdict"] = verdict(res.verification)
+    gv = (res.gains or {}).get("given")
+    if gv and r["verdict"]["recommend"] == "given" and not gv["measured"]["healthy"]:
+        mm = gv["measured"]
+        r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
+                                 f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
+                                 f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
     if res.aborted is not None and res.aborted.experiment.startswith("verify_after"):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
                         "better": [], "text": f"keep the given controller: the commissioned one faulted in "
@@ -195,13 +203,20 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         pid = ch["pid"]
         L += ["", "## Gains", "",
               (f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
-              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, DOB {ch['dob_kind']} {ch['dob_bandwidth_hz']:.3g} Hz."), "",
+              f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, "
+               + (f"Q-filter DOB {ch['dob_bandwidth_hz']:.3g} Hz." if ch["dob_kind"] == "qfilter" else "no DOB.")),
+              "",
               "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
               (f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
               f"{ch['model']['crossover_hz']:.3g} |")]
         if "measured" in ch:
             mm = ch["measured"]
             L.append(f"| measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
+                     f"{mm['crossover_hz']:.3g} |")
+        gv = rep["gains"].get("given")
+        if gv:
+            mm = gv["measured"]
+            L.append(f"| given controller, measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
                      f"{mm['crossover_hz']:.3g} |")
     ver = rep.get("verification", {})
     if "verdict" in rep:

@@ -378,6 +378,7 @@ class Commissioning:
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
                                                              r.cv.stribeck if r.cv is not None else None)
         self.res.gains = choose_gains(m, T, r.plant, r.frf)
+        self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
         new_cfg = self.write_config(self.res)
 
         # 6. verification -----------------------------------------------------------------------------
@@ -476,6 +477,20 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
                          "measured FRF; see report.json gains.tried")
     return {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "tried": tried,
             "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+
+
+def given_margins(ctl: ControllerConfig, T: float, nd: int, frf: an.Frf | None) -> dict[str, Any] | None:
+    """Margins of the given configuration's PID (+ Q-filter DOB) on the measured FRF, for the verdict's
+    trade-off (a Kalman observer is not evaluated here: None)."""
+    if frf is None or ctl.dob.kind == "kalman":
+        return None
+    m_dob = ctl.dob.nominal_mass_kg or controller_mass(ctl, ctl.feedforward.model) or 1.0
+    K = an.controller_response(frf.f_hz, T, ctl.pid, ctl.dob.kind, ctl.dob.bandwidth_hz, m_dob,
+                               ctl.dob.command_delay_samples)
+    mm = an.measured_margins(frf, K).as_dict()
+    mm["healthy"] = bool(mm["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG and mm["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
+    return {"pid": _plain_pid(ctl.pid), "dob_kind": ctl.dob.kind, "dob_bandwidth_hz": ctl.dob.bandwidth_hz,
+            "measured": mm}
 
 
 # ====================================================================================== small helpers
