@@ -189,11 +189,14 @@ class CommissionController:
         self.follow: FollowMeasured | None = None
         self.excitation: FloatArray | None = None   # one period of d[n] [N]
         self.n = 0
+        self.limit_n = math.inf
         self.on_probe_done: Callable[[], None] | None = None
 
-    def set_closed(self, inner: StageController, excitation: FloatArray | None = None) -> None:
-        """Closed loop with ``inner`` (+ the periodic ``excitation``, one period of samples)."""
+    def set_closed(self, inner: StageController, excitation: FloatArray | None = None,
+                   limit_n: float = math.inf) -> None:
+        """Closed loop with ``inner`` (+ the ``excitation`` samples), the sum clamped to ±``limit_n``."""
         self.inner = inner
+        self.limit_n = limit_n
         self.probe = None
         self.follow = None
         self.excitation = excitation
@@ -227,7 +230,8 @@ class CommissionController:
             self.n += 1
             terms = dict(cmd.terms)
             terms["u_exc"] = d
-            return Command(cmd.force_n + d, terms, cmd.limited)
+            u = min(max(cmd.force_n + d, -self.limit_n), self.limit_n)
+            return Command(u, terms, cmd.limited)
         return cmd
 
 

@@ -244,7 +244,9 @@ class Commissioning:
         assert isinstance(ctl, CommissionController)
         if excitation is not None and exc_start:
             excitation = np.concatenate([np.zeros(exc_start), excitation])
-        ctl.set_closed(inner, excitation)
+        # the experiments' own tunings stay inside the envelope's force; the given and the new controller
+        # (verification) only inside the configuration's limits
+        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith("verify") else math.inf)
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
@@ -409,8 +411,8 @@ class Commissioning:
 
         T = self.T
         pid = design.design_pid(mass_kg, COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
-        base = self.cfg.controller
-        return ControllerConfig(mass_kg=mass_kg, max_force_n=base.max_force_n, pid=pid,
+        # the output clamp at the envelope's force (the experiments promise to stay below it)
+        return ControllerConfig(mass_kg=mass_kg, max_force_n=self.env.f_max_n, pid=pid,
                                 dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
                                               command_delay_samples=1),
                                 feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
