@@ -1,7 +1,10 @@
 """Models from the commissioning recordings: the friction regression, ``discover`` for the effects, and the
 model file's content (``docs/commissioning.md`` §4).
 
-* mass: the FRF fit (its rigid-body mass, independent of friction);
+* mass: the FRF fit (its rigid-body mass, independent of friction), cross-checked against the
+  inverse-dynamics regression over the constant-velocity passes; when they differ by more than
+  ``MASS_DISAGREEMENT`` the latter is used (an FRF around a standing position measures a stage held by its
+  friction: a heavy ball-screw axis);
 * ``discover`` runs on the nested reversals (estimation: pre-sliding loops, long moves both ways over half
   the stroke) validated on the constant-velocity passes (a separate experiment: an effect must transfer to
   be accepted), starting from the FRF mass (fixed) plus Coulomb and viscous friction. The other way round
@@ -31,6 +34,8 @@ from stagectl.ident.recording import Recording
 from stagectl.outputs import plain
 from stagectl.recorder import Recorder
 
+#: relative difference between the FRF mass and the inverse-dynamics mass that the report warns about
+MASS_DISAGREEMENT = 0.2
 #: highest sample rate handed to discover [Hz]
 DISCOVER_RATE_HZ = 500.0
 
@@ -52,8 +57,24 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     replaces the discovered sliding levels when given (a direct measurement of exactly these parameters;
     discover fits them jointly with the pre-sliding elements, whose damping can trade with the viscous
     term)."""
-    m = mass_kg
     res_recordings = recordings
+    # a second, independent mass: the inverse-dynamics regression (m·a + Coulomb + viscous) over the
+    # acceleration ramps of the constant-velocity passes (ident.identify.measure)
+    from stagectl.ident.identify import measure
+
+    try:
+        m_id = measure(to_recording(res_recordings["friction_cv"], "friction_cv")).mass_kg
+    except DataError:
+        m_id = None
+    m = mass_kg
+    warning = None
+    if m_id is not None and abs(m_id / mass_kg - 1) > MASS_DISAGREEMENT:
+        # the FRF stands still: on a stage held by its friction it measures the friction, not the mass
+        m = float(m_id)
+        warning = (f"the FRF mass {mass_kg:.4g} kg and the inverse-dynamics mass {m_id:.4g} kg of the "
+                   f"constant-velocity passes differ by more than {100 * MASS_DISAGREEMENT:.0f} %: the FRF "
+                   "probably measured a stage held by its friction; the model and the gains use the "
+                   "inverse-dynamics mass")
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
     step = max(1, round(1.0 / (period_s * DISCOVER_RATE_HZ)))
     est = to_recording(res_recordings["reversals"], "reversals", step)
@@ -75,7 +96,11 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         "coulomb_n": float(d.final.hyp.theta.get("fc", math.nan)),
         "viscous_n_s_m": float(d.final.hyp.theta.get("fv", math.nan)),
         "elapsed_s": d.elapsed_s,
+        "mass_kg_inverse_dynamics": m_id,
+        "mass_kg_used": m,
     }
+    if warning is not None:
+        discovery["mass_warning"] = warning
     model_spec: dict[str, Any] = plain(spec, json=True)
     try:
         from stagectl.ident.identify import identify

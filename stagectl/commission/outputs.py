@@ -106,6 +106,11 @@ def report_dict(res: Results) -> dict[str, Any]:
     fitted: dict[str, Any] = {}
     if res.plant is not None:
         fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg, "from": "frf"}
+        used = (res.discovery or {}).get("mass_kg_used")
+        if used is not None and used != res.plant.mass_kg:
+            fitted["mass_kg_frf"] = fitted["mass_kg"]
+            fitted["mass_kg"] = {"value": used, "std": float("nan"),
+                                 "from": "inverse dynamics of friction_cv (the FRF disagreed)"}
         fitted["delay_s"] = {"value": res.plant.delay_s, "std": res.plant.delay_std_s, "from": "frf"}
     if res.cv is not None:
         fitted["coulomb_n"] = {"value": res.cv.coulomb_n, "std": res.cv.coulomb_std_n, "from": "friction_cv"}
@@ -114,6 +119,8 @@ def report_dict(res: Results) -> dict[str, Any]:
         fitted["offset_n"] = {"value": res.cv.offset_n, "std": res.cv.offset_std_n, "from": "friction_cv"}
     if res.discovery is not None:
         fitted["effects"] = [e["name"] for e in res.discovery["effects"]]
+        if res.discovery.get("mass_warning"):
+            r["notes"] = [*r["notes"], res.discovery["mass_warning"]]
     r["fitted"] = fitted
     if res.gains is not None:
         r["gains"] = res.gains
@@ -183,14 +190,17 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         fault = f" (fault {e['fault']['name']})" if e.get("fault") else ""
         L.append(f"| {e['name']} | {e['purpose']} | {e['duration_s']:.2f} | {e['rows']} | {e['ended_by']}{fault} | "
                  f"`{e['csv']}` |")
+    for note in rep.get("notes", []):
+        L += ["", f"**Note:** {note}"]
     f = rep.get("fitted", {})
     if f:
         L += ["", "## Fitted values (± one standard deviation)", "", "| quantity | value | from |", "|---|---|---|"]
         for k, v in f.items():
             if isinstance(v, dict):
-                L.append(f"| {k} | {v['value']:.5g} ± {v['std']:.2g} | {v['from']} |")
+                sd = f" ± {_fmt(v['std'], digits=2)}" if v.get("std") is not None else ""
+                L.append(f"| {k} | {_fmt(v['value'], digits=5)}{sd} | {v['from']} |")
         if "effects" in f:
-            L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | friction_cv / slow_passes |")
+            L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | reversals / friction_cv |")
     if "plant" in rep:
         p = rep["plant"]
         L += ["", (f"Mass and delay from the lines above {p['fit_band_hz'][0]:.3g} Hz; the stiffness term of that "

@@ -379,6 +379,7 @@ class Commissioning:
         # 4.-5. models, gains, new configuration -----------------------------------------------------
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
                                                              r.cv.stribeck if r.cv is not None else None)
+        m = float(self.res.discovery.get("mass_kg_used", m))
         self.res.gains = choose_gains(m, T, r.plant, r.frf)
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
         new_cfg = self.write_config(self.res)

@@ -165,3 +165,41 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
     assert rep["status"] == "aborted" and rep["aborted"]["interrupted"]
     assert rep["aborted"]["drive_state_after"] != "enabled"
     assert load_recording(out / "recordings" / "sanity.csv", min_rows=100).t[-1] > 1.0
+
+
+def test_heavy_ball_screw_axis_scales_and_is_improved(tmp_path: Path) -> None:
+    """A 60 kg axis configured as 50 kg with a weak tuning: Stribeck friction 40/48 N, 400 N s/m, an 8 N
+    offset, 0.1 µm encoder, ±0.2 m travel. The standing FRF sees a stage held by its friction; the
+    inverse-dynamics mass of the passes is used instead, and the verdict recommends the new tuning only
+    because the before/after runs show it."""
+    cfg = tmp_path / "axis.yaml"
+    cfg.write_text("""
+loop: {period_s: 0.001}
+io: {kind: plant_io, sensor: drive, delay_cycles: 1}
+sim:
+  plant:
+    mass_kg: 60.0
+    friction: {model: stribeck, fc_n: 40.0, fs_n: 48.0, vs_m_s: 0.005, delta: 2.0, viscous_n_s_m: 400.0}
+    effects: {offset: {force_n: 8.0}}
+    sensor: {resolution_m: 1.0e-7, noise_std_m: 5.0e-8}
+    actuator: {max_force_n: 2000.0}
+controller:
+  mass_kg: 50.0
+  max_force_n: 1000.0
+  pid: {kp_n_m: 2.46e5, ki_n_m_s: 3.1e6, kd_n_s_m: 5880.0, derivative_cutoff_hz: 100.0}
+  dob: {kind: qfilter, bandwidth_hz: 100.0}
+  feedforward: {kind: coulomb, coulomb_n: 30.0, viscous_n_s_m: 300.0, inertia: true}
+safety: {min_position_m: -0.2, max_position_m: 0.2, following_error_m: 1.0e-3, following_error_time_s: 0.02,
+         max_force_n: 1000.0, max_velocity_m_s: 0.2}
+""")
+    out = tmp_path / "out"
+    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--max-stroke", "0.36"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    f = rep["fitted"]
+    assert abs(f["mass_kg"]["value"] / 60.0 - 1) < 0.10
+    assert abs(f["coulomb_n"]["value"] / 40.0 - 1) < 0.05 and abs(f["viscous_n_s_m"]["value"] / 400.0 - 1) < 0.05
+    assert "offset" in f["effects"] and abs(f["offset_n"]["value"] / 8.0 - 1) < 0.1
+    assert rep["envelope"]["f_max_n"] == pytest.approx(700.0)
+    for name, d in rep["verification"].items():
+        assert d["after"]["rms_error_m"] < d["before"]["rms_error_m"], name
+    assert rep["verdict"]["recommend"] == "new"
