@@ -14,6 +14,7 @@ import os
 import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 #: command modules, in the order they appear in ``--help``
 COMMAND_MODULES = (
@@ -51,6 +52,11 @@ class StageArgumentParser(argparse.ArgumentParser):
             kwargs["description"] = _MARKUP.sub(lambda m: m.group(1) or m.group(2), desc)
         super().__init__(*args, **kwargs)  # type: ignore[arg-type]
         self._negative_number_matcher = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$|^-inf$")
+
+    def error(self, message: str) -> NoReturn:
+        """A bad argument is one ``stagectl: error: <command>: ...`` line (no usage block), exit 2."""
+        cmd = self.prog.split(" ", 1)[1] if " " in self.prog else ""
+        self.exit(2, f"stagectl: error: {cmd + ': ' if cmd else ''}{message} (see: {self.prog} --help)\n")
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

@@ -34,7 +34,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         kp.add_argument("--json", action="store_true", help="print the result as JSON")
         mod.add_arguments(kp)
         kp.set_defaults(func=_runner(mod))
-    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    p.set_defaults(func=_no_kind)
+
+
+def _no_kind(args: argparse.Namespace) -> int:
+    from stagectl.errors import ConfigError
+
+    raise ConfigError(f"bench: name a benchmark: {', '.join(KINDS)} (see: stagectl bench --help)")
 
 
 def _runner(mod: ModuleType) -> Callable[[argparse.Namespace], int]:

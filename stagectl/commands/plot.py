@@ -29,7 +29,11 @@ def run(args: argparse.Namespace) -> int:
     from stagectl.outputs import prepare_out_file
     from stagectl.plots import plot_recording
 
+    from stagectl.errors import ConfigError
+
     out = Path(args.out) if args.out else Path(args.data).with_suffix(".png")
+    if out.suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise ConfigError(f"--out {out}: the image type is taken from the suffix: .png, .svg or .pdf")
     prepare_out_file(out)
     rec = load_recording(args.data, args.columns, min_rows=2)
     optional = {"x_ref": rec.x_ref, "v": rec.v, **rec.extra}
