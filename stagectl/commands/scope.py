@@ -259,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
     with open_client(args.socket, args.timeout) as client:
         poll = socket_poller(client, data, args.every)
         if args.once:
-            poll()
+            poll()  # the first request attaches the stream: the frame shows what arrives in the next second
+            time.sleep(min(args.window, 1.0))
             poll()
             print(data.text_frame())
             return 0

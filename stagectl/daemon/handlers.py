@@ -12,6 +12,7 @@ Handlers run in the control thread and never block.
 ``reset``    :class:`~stagectl.runtime.requests.ResetRequest`
 ``gains``    the controller tuning in force and the last reload's outcome
 ``record``   ``action: start`` + ``name`` / ``action: stop``: a named telemetry recording
+``subscribe`` the live telemetry stream of ``stagectl scope`` (:mod:`stagectl.daemon.stream`)
 ``fault``    debug: inject a fault into a *simulated* plant (``daemon.allow_fault_injection``)
 ===========  ====================================================================================
 """
@@ -26,6 +27,7 @@ from typing import Any, Protocol
 from stagectl.config.daemon import DaemonConfig
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.reload import Reloader
+from stagectl.daemon.stream import handle_subscribe
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
@@ -125,6 +127,7 @@ HANDLERS: dict[str, Callable[[ServiceView, Mapping[str, object]], ReplyOrFuture]
     "record": handle_record,
     "gains": handle_gains,
     "fault": handle_fault,
+    "subscribe": handle_subscribe,
 }
 
 

@@ -11,21 +11,23 @@ index. A client pulls with a cursor::
 
 ``every = k`` keeps the rows whose index is a multiple of k (so successive pulls line up); ``lost`` counts
 the rows of the requested range the stream no longer (or never) had: a client polling too slowly, or rows
-the writer lost. The loop never sees a client: the stream lives on the daemon side of the telemetry ring.
+the writer lost. The loop never sees a client: the daemon's :func:`handle_subscribe` feeds the stream from a
+:class:`LoopTap`, one more lock-free telemetry sink of the loop, in the control thread.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+import weakref
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from stagectl.runtime.requests import RequestError
+from stagectl.runtime.requests import RequestError, check_fields
 
-__all__ = ["MAX_ROWS", "TelemetryStream", "parse_subscribe"]
+__all__ = ["MAX_ROWS", "LoopTap", "TelemetryStream", "handle_subscribe", "parse_subscribe", "stream_for"]
 
 #: at most this many rows per reply (a reply stays far below the socket's 1 MiB limit)
 MAX_ROWS = 2000
@@ -95,3 +97,74 @@ def parse_subscribe(req: Mapping[str, object], columns: Sequence[str]) -> tuple[
         raise RequestError("signals", f"unknown {', '.join(repr(s[:40]) for s in unknown)} "
                                       f"(known: {', '.join(columns)})")
     return since, every, list(signals)
+
+
+# ---------------------------------------------------------------------------------------------- the daemon side
+class LoopTap:
+    """A loop telemetry sink (``append(row)``, the interface the telemetry ring and the recorder use) that
+    feeds a :class:`TelemetryStream` without a lock in the loop thread.
+
+    The loop writes row ``k`` into ``buf[k mod C]`` and then publishes ``head = k + 1`` (single producer, no
+    lock, no allocation, never raises). The control thread's :meth:`take` copies the rows it has not taken
+    yet and re-reads ``head`` afterwards, dropping rows the loop may have overwritten during the copy; those
+    reach the client as ``lost``.
+    """
+
+    def __init__(self, columns: Sequence[str], capacity: int = 8192) -> None:
+        cap = 1 << (max(int(capacity), 64) - 1).bit_length()
+        self.columns = tuple(columns)
+        self._buf = np.zeros((cap, len(self.columns)), dtype=np.float64)
+        self._mask = cap - 1
+        self._head = 0  # loop thread only
+        self._taken = 0  # control thread only
+
+    def append(self, row: Sequence[float]) -> None:
+        """Loop thread: store one row (a malformed row is skipped, never raised into the loop)."""
+        h = self._head
+        try:
+            self._buf[h & self._mask] = row
+        except (ValueError, TypeError):
+            return
+        self._head = h + 1
+
+    def take(self) -> tuple[int, np.ndarray]:
+        """Control thread: ``(first index, rows)`` appended since the previous call and still intact."""
+        cap = self._mask + 1
+        h = self._head
+        start = max(self._taken, h - cap + cap // 8)
+        idx = np.arange(start, h, dtype=np.int64)
+        rows = self._buf[idx & self._mask].copy()
+        ok = idx > self._head - cap  # not overwritten while copying (a prefix at worst)
+        keep = int(np.argmax(ok)) if ok.any() else idx.size
+        self._taken = h
+        return start + keep, rows[keep:]
+
+
+_TAPS: weakref.WeakKeyDictionary[Any, tuple[LoopTap, TelemetryStream]] = weakref.WeakKeyDictionary()
+_TAPS_LOCK = threading.Lock()
+
+
+class _HasLoop(Protocol):
+    def need_loop(self) -> Any: ...
+
+
+def stream_for(loop: Any) -> tuple[LoopTap, TelemetryStream]:
+    """The loop's tap and stream, created on the first ``subscribe`` (the tap joins the loop's sinks)."""
+    with _TAPS_LOCK:
+        pair = _TAPS.get(loop)
+        if pair is None:
+            pair = (LoopTap(loop.columns), TelemetryStream(loop.columns))
+            loop.add_sink(pair[0])
+            _TAPS[loop] = pair
+        return pair
+
+
+def handle_subscribe(svc: _HasLoop, req: Mapping[str, object]) -> dict[str, Any]:
+    """The ``subscribe`` request (control thread, never blocks): the new rows of the loop, decimated."""
+    check_fields("subscribe", {k: v for k, v in req.items() if k not in ("request", "id")},
+                 ("since", "every", "signals"))
+    tap, stream = stream_for(svc.need_loop())
+    since, every, signals = parse_subscribe(req, stream.columns)
+    first, rows = tap.take()
+    stream(first, rows)
+    return stream.read(since, every, signals)
