@@ -32,6 +32,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     for kind, (mod, help_text) in KINDS.items():
         kp = kinds.add_parser(kind, help=help_text)
         kp.add_argument("--json", action="store_true", help="print the result as JSON")
+        kp.add_argument("--quiet", action="store_true", help="no elapsed-time line on stderr (for scripts)")
         mod.add_arguments(kp)
         kp.set_defaults(func=_runner(mod))
     p.set_defaults(func=_no_kind)
@@ -45,7 +46,10 @@ def _no_kind(args: argparse.Namespace) -> int:
 
 def _runner(mod: ModuleType) -> Callable[[argparse.Namespace], int]:
     def fn(args: argparse.Namespace) -> int:
-        result = mod.run(args)
+        from stagectl.commands.progress import Ticker
+
+        with Ticker(f"bench {args.bench_kind}", quiet=args.quiet):
+            result = mod.run(args)
         if args.json:
             json.dump(result, sys.stdout, indent=2, default=float)
             sys.stdout.write("\n")

@@ -37,6 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--max-rounds", type=number("effects", lo=0, hi=20, integer=True), default=6, help="maximum number of effects to add")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr (for scripts)")
     p.set_defaults(func=run)
 
 
@@ -47,20 +48,26 @@ def run(args: argparse.Namespace) -> int:
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     # identification pulls in scipy and numba (~0.5 s): imported when the command runs, not for `--help`
+    from stagectl.commands.progress import Progress
     from stagectl.ident.discover import discover
     from stagectl.ident.modelio import load_start
     from stagectl.ident.recording import load_recording
     from stagectl.ident.report import write_outputs
 
     prepare_out_dir(args.out)
+    progress = Progress("discover", 3, quiet=args.quiet)
+    progress.step(1, "loading the recordings")
     rec = load_recording(args.data, args.columns, min_rows=200)
     val = load_recording(args.validate, args.columns, min_rows=200) if args.validate else None
     start = load_start(args.model) if args.model else None
+    progress.step(2, f"searching for missing effects (up to {args.max_rounds} rounds)")
     res = discover(rec, validate=val, start=start, max_rounds=args.max_rounds, cutoff_hz=args.cutoff_hz)
     sources = {"estimation": args.data, "validation": args.validate or "held-out blocks of estimation file"}
     if args.model:
         sources["start_model"] = args.model
+    progress.step(3, "writing the report" + ("" if args.no_plots else " and plots"))
     rep = write_outputs(res, args.out, sources, plots=not args.no_plots)
+    progress.close()
     if args.json:
         json.dump(rep, sys.stdout, indent=2)
         sys.stdout.write("\n")

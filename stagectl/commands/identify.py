@@ -37,6 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--mass-kg", type=number("kg", lo=0, lo_open=True), default=None, help="known moving mass [kg] (default: estimated)")
     p.add_argument("--cutoff-hz", type=number("Hz", lo=0, lo_open=True), default=None, help="inverse-dynamics low-pass cut-off [Hz]")
     p.add_argument("--json", action="store_true", help="print the fit quality as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr (for scripts)")
     p.set_defaults(func=run)
 
 
@@ -51,7 +52,12 @@ def run(args: argparse.Namespace) -> int:
     prepare_out_file(args.out)
     if args.plot:
         prepare_out_dir(args.plot, "--plot")
+    from stagectl.commands.progress import Progress
+
+    progress = Progress("identify", 3, quiet=args.quiet)
+    progress.step(1, f"loading {args.data}")
     rec = load_recording(args.data, args.columns, min_rows=50)
+    progress.step(2, f"fitting {args.model} to {len(rec)} rows, then its verdict")
     res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
     quality: dict[str, Any] = plain(res.quality, json=True)
     spec: dict[str, Any] = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
@@ -60,12 +66,14 @@ def run(args: argparse.Namespace) -> int:
         spec["effects"] = res.effects
     if res.mass_kg is not None:
         spec = {"mass_kg": res.mass_kg, **spec}
+    progress.step(3, "writing the model file" + (" and plots" if args.plot else ""))
     model = load(StageModel, plain(spec, json=True), "")
     save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
     out: dict[str, Any] = {"model_file": args.out, "model": plain(res.spec, json=True),
                            "effects": plain(res.effects, json=True), "mass_kg": res.mass_kg, "quality": quality}
     if args.plot:
         out["plots"] = _plots(res, args.plot)
+    progress.close()
     if args.json:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")

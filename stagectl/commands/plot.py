@@ -25,11 +25,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from stagectl.errors import ConfigError
     from stagectl.ident.recording import load_recording
     from stagectl.outputs import prepare_out_file
     from stagectl.plots import plot_recording
-
-    from stagectl.errors import ConfigError
 
     out = Path(args.out) if args.out else Path(args.data).with_suffix(".png")
     if out.suffix.lower() not in (".png", ".svg", ".pdf"):

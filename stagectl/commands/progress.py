@@ -7,8 +7,10 @@ On a terminal the line is rewritten in place; otherwise (a log, a pipe) a plain 
 from __future__ import annotations
 
 import sys
+import threading
 import time
-from typing import TextIO
+from types import TracebackType
+from typing import Self, TextIO
 
 
 class Progress:
@@ -23,8 +25,21 @@ class Progress:
         self.t0 = time.monotonic()
         self._next = self.t0 + self.every_s
         self._shown = False
+        self.what = ""
+
+    def step(self, index: int, what: str) -> None:
+        """Start step ``index`` (1-based) of ``total`` steps, named ``what``: shown at once on a terminal."""
+        self.what = what
+        if self.tty:
+            self._next = 0.0
+        self.update(float(index - 1))
 
     def line(self, done: float, now: float) -> str:
+        if self.what and self.total <= 1:
+            return f"{self.label}: {self.what} ({now - self.t0:.0f} s elapsed)"
+        if self.what:
+            return (f"{self.label}: step {done + 1:.0f} of {self.total:.0f}, {self.what} "
+                    f"({now - self.t0:.0f} s elapsed)")
         frac = min(max(done / self.total, 0.0), 1.0)
         elapsed = now - self.t0
         left = elapsed * (1.0 - frac) / frac if frac > 0 else float("nan")
@@ -67,3 +82,34 @@ class ProgressSink:
         self._n += 1
         if not self._n & 255:
             self.progress.update(float(row[0]))
+
+
+class Ticker:
+    """For work that cannot report how far it is (a benchmark): the elapsed time, from a helper thread.
+
+    ``with Ticker("bench io", quiet=args.quiet): ...`` rewrites one line every second on a terminal; in a log
+    it prints a line every 30 s, so a long silent run still shows that it is alive.
+    """
+
+    def __init__(self, label: str, *, quiet: bool = False, stream: TextIO | None = None) -> None:
+        self.progress = Progress(label, 1.0, quiet=quiet, stream=stream)
+        self.progress.every_s = 1.0 if self.progress.tty else 30.0
+        self.progress._next = self.progress.t0 + self.progress.every_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stagectl-ticker", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.25):
+            self.progress.what = "running"
+            self.progress.update(0.0)
+
+    def __enter__(self) -> Self:
+        if not self.progress.quiet:
+            self._thread.start()
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+        self.progress.close()
