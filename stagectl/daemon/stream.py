@@ -1,5 +1,5 @@
-"""The live telemetry stream behind ``stagectl scope``: the ``subscribe`` request on the control (or the
-read-only observer) socket.
+"""The live telemetry stream behind ``stagectl scope``: the ``subscribe`` request on the control socket
+(no network listener).
 
 :class:`TelemetryStream` is a tap on the telemetry writer (it receives every block of rows the writer drains
 from the loop's ring, in the writer thread) and keeps the newest ``capacity`` rows, each with its loop row
