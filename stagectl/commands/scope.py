@@ -1,7 +1,7 @@
 """``stagectl scope [--socket PATH] [--window S] [--every K]``: a live terminal scope of the running daemon.
 
 Works in any terminal, over SSH on a headless stage PC. It pulls the daemon's decimated telemetry stream
-(the ``subscribe`` request on the control or the read-only observer socket) ten times a second and draws,
+(the ``subscribe`` request on the control socket) ten times a second and draws,
 over the last ``--window`` seconds:
 
 * position and its reference, the tracking error, the force with its terms (PID, observer, friction and
@@ -49,7 +49,7 @@ def scale_for(values: Iterable[float], unit: str) -> tuple[float, str]:
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("scope", help="live terminal scope of the running daemon (position, error, force terms)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--socket", metavar="PATH", help="control or observer socket (default: the daemon's)")
+    p.add_argument("--socket", metavar="PATH", help="the daemon's control socket (default: $STAGECTL_SOCKET, else the daemon's)")
     p.add_argument("--window", type=number("s", lo=0.1, hi=600), default=5.0, metavar="S",
                    help="time span shown [s] (default 5)")
     p.add_argument("--every", type=number("rows", lo=1, hi=100000, integer=True), default=None, metavar="K",
