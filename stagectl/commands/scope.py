@@ -49,7 +49,8 @@ def scale_for(values: Iterable[float], unit: str) -> tuple[float, str]:
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("scope", help="live terminal scope of the running daemon (position, error, force terms)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--socket", metavar="PATH", help="the daemon's control socket (default: $STAGECTL_SOCKET, else the daemon's)")
+    p.add_argument("--socket", metavar="PATH",
+                   help="the daemon's control socket (default: $STAGECTL_SOCKET, else the daemon's)")
     p.add_argument("--window", type=number("s", lo=0.1, hi=600), default=5.0, metavar="S",
                    help="time span shown [s] (default 5)")
     p.add_argument("--every", type=number("rows", lo=1, hi=100000, integer=True), default=None, metavar="K",
