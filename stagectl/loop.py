@@ -25,7 +25,9 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
 -------------------------------------------------------------------------
 * ``loop.columns`` -- telemetry column names (SI, docs/recordings.md): ``t`` s, ``x`` m, ``u`` N, ``x_ref`` m,
   ``v_ref`` m/s, ``a_ref`` m/s², ``e`` m (x_ref − x), ``v`` m/s (filtered measured velocity), then the
-  controller terms in N (``u_pid``, ``u_dob``, ``u_ff``, ``u_inertia``, ...).
+  controller terms in N (``u_pid``, ``u_dob``, ``u_ff``, ``u_inertia``, ...), then ``stale`` (1: this
+  cycle's sample was stale, the force and its terms are the last cycle's, held) and ``skipped`` (slots skipped
+  before this cycle: its ``t`` follows the previous row by ``(1 + skipped)·T``).
 * ``loop.run(cycles=None, duration_s=None, stop=None) -> LoopResult`` -- in the calling thread (not
   thread-safe; :class:`~stagectl.runtime.host.LoopHost` gives it a thread) until ``cycles``, ``duration_s``
   of loop time, ``stop.is_set()`` or a shutdown request. Enables the devices at start and always disables
@@ -80,6 +82,7 @@ from stagectl.safety import Safety
 
 __all__ = [
     "BASE_COLUMNS",
+    "FLAG_COLUMNS",
     "DEFAULT_TERMS",
     "ControlLoop",
     "Controller",
@@ -96,6 +99,8 @@ __all__ = [
 log = logging.getLogger("stagectl.loop")
 
 BASE_COLUMNS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v")
+#: appended after the controller terms: stale sample (force and terms held) and skipped slots before the row
+FLAG_COLUMNS = ("stale", "skipped")
 DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
 
 
@@ -158,7 +163,7 @@ class ControlLoop:
         named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
         terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(named)
         self.term_names = terms
-        self.columns: tuple[str, ...] = BASE_COLUMNS + terms
+        self.columns: tuple[str, ...] = BASE_COLUMNS + terms + FLAG_COLUMNS
         self.state = LoopState.CONFIGURED if self._devs.ready() else LoopState.UNCONFIGURED
         self._inbox = RequestInbox()
         self._sinks = SinkSet()
@@ -168,6 +173,7 @@ class ControlLoop:
         self.stats = CycleStats(cfg.stats_window)  # preallocated
         self.cycle = 0
         self.overruns = 0
+        self.faults = 0  # faults entered since construction (a fault cleared by a reset between two looks counts)
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
         self._t0 = 0.0
@@ -267,6 +273,7 @@ class ControlLoop:
         return LoopStatus(
             state=state, fault=self.safety.fault, t_s=t, x_m=x, x_ref_m=x_ref, e_m=x_ref - x, u_n=u,
             cycle=int(cyc), overruns=self.overruns, recent_overrun_fraction=frac, period_s=self.period_s,
+            faults=self.faults,
             running=self._running,
             healthy=bool(self._running and state is LoopState.ACTIVE and frac <= self.cfg.healthy_overrun_fraction),
             lateness_us=self.stats.lateness(self.cycle) if timing else None,
@@ -278,6 +285,7 @@ class ControlLoop:
         if self.state is LoopState.FAULT:
             return
         self.state = LoopState.FAULT
+        self.faults += 1
         self._u = 0.0
         self._devs.quick_stop(self.safety.fault)
         log.error("FAULT %s; drive quick-stopped", self.safety.fault)
@@ -395,6 +403,7 @@ class ControlLoop:
         k0 = k
         device_time = self.device_time
         x_prev_ref = Reference(self._snap[2])
+        held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -435,10 +444,10 @@ class ControlLoop:
                         else:
                             actuator.write(u)
                             self._u = u
-                        terms = cmd.terms
+                        terms = held = cmd.terms
                     else:  # stale sample (below the stale limit): hold the last force, no new estimate
                         actuator.write(self._u)
-                        terms = {}
+                        terms = held
                 else:
                     ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t)
                     terms = {}
@@ -446,7 +455,7 @@ class ControlLoop:
                 u = self._u
                 row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
                     [terms.get(n, 0.0) for n in term_names]
-                )
+                ) + (0.0 if m.fresh else 1.0, float(skipped))
                 sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:

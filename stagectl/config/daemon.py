@@ -12,6 +12,9 @@ Example (every key optional; the defaults are shown)::
       ready_timeout_s: 10              # drive enabled + loop healthy within this, or start-up fails
       status_interval_s: 1             # STATUS= updates
       allow_fault_injection: false     # `fault` debug request; only honoured on a simulated plant
+      health: auto                     # auto | realtime | liveness (docs/daemon.md)
+      observer_socket_name: observer.sock   # read-only: status, gains, telemetry; null = none
+      observer_group: null
       telemetry:
         enabled: true
         directory: null                # null: $STATE_DIRECTORY/telemetry, else <runtime dir>/telemetry
@@ -21,6 +24,7 @@ Example (every key optional; the defaults are shown)::
         rotate_s: 3600
         keep_files: 48
         flush_interval_s: 0.2
+        on_error: report               # unwritable directory at start: report (run, say so) | refuse
 """
 
 from __future__ import annotations
@@ -48,6 +52,10 @@ class TelemetryConfig:
     keep_files: int = param(48, desc="continuous files kept; older ones are deleted (0 = keep all)", ge=0)
     flush_interval_s: float = param(0.2, unit="s", desc="writer wake-up / flush interval", gt=0, le=10)
     retry_s: float = param(5.0, unit="s", desc="retry interval after a write error (full disk...)", gt=0)
+    on_error: str = param(
+        "report", choices=("report", "refuse"),
+        desc="telemetry directory not writable at start: report = run, say so in READY/STATUS/status and the "
+        "journal, count every row as lost; refuse = do not start (exit 1)")
 
 
 @dataclass(frozen=True)
@@ -67,6 +75,15 @@ class DaemonConfig:
     stop_timeout_s: float = param(5.0, unit="s", desc="budget for stopping the loop and flushing on SIGTERM",
                                   gt=0)
     allow_fault_injection: bool = param(False, desc="accept the `fault` debug request (simulated plants only)")
+    health: str = param(
+        "auto", choices=("auto", "realtime", "liveness"),
+        desc="what READY and the watchdog require: realtime = cycling with at most loop.healthy_overrun_fraction "
+        "skipped slots; liveness = cycling (late cycles lose nothing on a simulated stage); auto = liveness for a "
+        "simulated stage, realtime for real devices")
+    observer_socket_name: str | None = param(
+        "observer.sock", desc="read-only socket (status, gains, telemetry stream) in the runtime directory; "
+        "null = none")
+    observer_group: str | None = param(None, desc="group owning the observer socket; null = the daemon's group")
     telemetry: TelemetryConfig = param(default_factory=TelemetryConfig, desc="telemetry recording")
 
 

@@ -13,7 +13,15 @@ Replies on one connection come in request order. Errors never close the connecti
 Bounds (nothing a client does can block or crash the loop; the loop never touches this thread):
 
 * one selector thread at normal priority serves every client with non-blocking sockets;
-* at most ``max_clients`` connections (extra ones get an error line and are closed);
+* at most ``max_clients`` connections; a new client when all are taken **evicts** the connection that has been
+  quiet longest (no request awaiting the loop preferred; it gets an error line), so 32 half-open
+  connections cannot lock ``stop`` out: a newcomer always gets in;
+* at most ``lines_per_round`` requests per connection per serving round, and a connection's socket is not
+  read again while complete lines of it wait: a flooding client gets back-pressure, and every other
+  client's request (``stop``) is served within one round (at most ``max_clients × lines_per_round``
+  requests);
+* error texts are bounded (:data:`MAX_ERROR_CHARS`), and a reply larger than ``max_out_bytes`` is replaced by
+  an error reply instead of disconnecting the client;
 * a line longer than ``max_line_bytes`` gets an error reply (field ``line``) and is discarded;
 * a client that does not read its replies is disconnected once ``max_out_bytes`` are queued for it;
 * a connection idle for ``idle_timeout_s`` (half-open, stalled mid-line) is closed;
@@ -59,12 +67,24 @@ Reply = dict[str, Any]
 Handler = Callable[[dict[str, Any]], "Reply | concurrent.futures.Future[Reply]"]
 
 
+#: longest error text in a reply [characters]; the rest is cut and its length said
+MAX_ERROR_CHARS = 1000
+
+
+def bound_text(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    """``text`` cut to at most ``limit`` characters plus a note of how many were left out."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... ({len(text) - limit} more characters)"
+
+
 def error_reply(exc: BaseException) -> Reply:
-    """Turn an exception into ``{"ok": false, "error": ..., "field": ...}``.
+    """Turn an exception into ``{"ok": false, "error": ..., "field": ...}``; the text is bounded
+    (:data:`MAX_ERROR_CHARS`).
 
     ``ValueError("target_m: ...")`` (the loop's convention) gives ``field = "target_m"``.
     """
-    msg = str(exc) or type(exc).__name__
+    msg = bound_text(str(exc) or type(exc).__name__)
     field = exc.field if isinstance(exc, RequestError) else None
     if field is None and isinstance(exc, ValueError):
         head, sep, _ = msg.partition(":")
@@ -145,8 +165,10 @@ class ControlServer:
         self._conns: dict[int, _Conn] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.stats = {"accepted": 0, "rejected": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
-                      "kicked_idle": 0, "long_lines": 0, "internal_errors": 0}
+        self.lines_per_round = 4
+        self._backlog: dict[int, _Conn] = {}  # connections with complete lines waiting (served each round)
+        self.stats = {"accepted": 0, "rejected": 0, "evicted": 0, "requests": 0, "errors": 0, "kicked_slow": 0,
+                      "kicked_idle": 0, "long_lines": 0, "internal_errors": 0, "oversized_replies": 0}
 
     @classmethod
     def from_config(cls, path: Path, handler: Handler, c: DaemonConfig) -> ControlServer:
@@ -226,7 +248,8 @@ class ControlServer:
         demote_to_normal_priority()
         try:
             while not self._stop.is_set():
-                for key, events in self._sel.select(timeout=self._next_timeout()):
+                timeout = 0.0 if self._backlog else self._next_timeout()
+                for key, events in self._sel.select(timeout=timeout):
                     tag = key.data
                     if tag == "listen":
                         self._accept()
@@ -249,6 +272,9 @@ class ControlServer:
                             self.stats["internal_errors"] += 1
                             log.exception("control: connection dropped after an internal error")
                             self._close(conn)
+                for conn in list(self._backlog.values()):  # the rest of a flooding client's lines, budgeted
+                    if not conn.closed:
+                        self._process_lines(conn)
                 self._check_pending()
                 self._check_idle()
         except Exception:  # pragma: no cover - keep the loop alive; the daemon reports control as down
@@ -286,6 +312,8 @@ class ControlServer:
                 return
             sock.setblocking(False)
             if len(self._conns) >= self.max_clients:
+                self._evict_one()
+            if len(self._conns) >= self.max_clients:
                 self.stats["rejected"] += 1
                 try:
                     sock.send(encode({"ok": False, "error": f"too many clients (max {self.max_clients})",
@@ -298,6 +326,23 @@ class ControlServer:
             self._conns[sock.fileno()] = conn
             self._sel.register(sock, selectors.EVENT_READ, conn)
             self.stats["accepted"] += 1
+
+    def _evict_one(self) -> None:
+        """Make room for a new client: close the connection quiet longest, preferring one that waits for no
+        reply from the loop (half-open and idle clients go first)."""
+        conns = list(self._conns.values())
+        if not conns:
+            return
+        free = [c for c in conns if c.pending is None]
+        victim = min(free or conns, key=lambda c: c.last_active)
+        self.stats["evicted"] += 1
+        try:
+            victim.sock.send(encode({"ok": False, "field": "connection",
+                                     "error": f"connection: closed to make room for a new client (all "
+                                              f"{self.max_clients} taken; this one was quiet longest)"}))
+        except OSError:
+            pass
+        self._close(victim)
 
     def _read(self, conn: _Conn) -> None:
         try:
@@ -315,8 +360,13 @@ class ControlServer:
         self._process_lines(conn)
 
     def _process_lines(self, conn: _Conn) -> None:
+        budget = self.lines_per_round
         while conn.pending is None and not conn.closed:
             nl = conn.rbuf.find(b"\n")
+            if nl >= 0 and budget <= 0:
+                self._backlog[id(conn)] = conn  # served next round, after every other client
+                self._update_interest(conn)
+                return
             if nl < 0:
                 if len(conn.rbuf) > self.max_line_bytes:
                     if not conn.discarding:
@@ -325,7 +375,7 @@ class ControlServer:
                                           "error": f"line: longer than {self.max_line_bytes} bytes; discarded"})
                     conn.discarding = True
                     conn.rbuf.clear()
-                return
+                break  # no complete line left: read the socket again
             line = bytes(conn.rbuf[:nl])
             del conn.rbuf[: nl + 1]
             if conn.discarding:  # the tail of an over-long line
@@ -337,7 +387,9 @@ class ControlServer:
                                   "error": f"line: longer than {self.max_line_bytes} bytes; discarded"})
                 continue
             if line.strip():
+                budget -= 1
                 self._handle_line(conn, line)
+        self._backlog.pop(id(conn), None)
         self._update_interest(conn)
 
     def _handle_line(self, conn: _Conn, line: bytes) -> None:
@@ -414,6 +466,13 @@ class ControlServer:
         except Exception as exc:  # noqa: BLE001 - TypeError, ValueError, RecursionError: a bug, not the client's
             log.error("control: reply not serialisable: %s: %s", type(exc).__name__, exc)
             data = encode({"ok": False, "error": f"reply not serialisable: {type(exc).__name__}"})
+        if len(data) > self.max_out_bytes:  # never disconnect a client for a reply we made too big
+            self.stats["oversized_replies"] += 1
+            log.error("control: a %d-byte reply exceeds max_out_bytes %d; replaced by an error", len(data),
+                      self.max_out_bytes)
+            err: Reply = {"ok": False, "field": "reply",
+                          "error": f"reply: {len(data)} bytes, more than max_out_bytes {self.max_out_bytes}"}
+            data = encode(err if rid is None else {**err, "id": rid})
         conn.wbuf += data
         if len(conn.wbuf) > self.max_out_bytes:
             self.stats["kicked_slow"] += 1
@@ -440,7 +499,8 @@ class ControlServer:
         """Read only when no reply is pending (keeps replies in order); write while output is queued."""
         if conn.closed:
             return
-        ev = (selectors.EVENT_READ if conn.pending is None else 0) | (selectors.EVENT_WRITE if conn.wbuf else 0)
+        reading = conn.pending is None and id(conn) not in self._backlog
+        ev = (selectors.EVENT_READ if reading else 0) | (selectors.EVENT_WRITE if conn.wbuf else 0)
         try:
             key = self._sel.get_key(conn.sock)
         except (KeyError, ValueError):
@@ -460,6 +520,7 @@ class ControlServer:
         if conn.closed:
             return
         conn.closed = True
+        self._backlog.pop(id(conn), None)
         if conn.pending is not None:
             conn.pending = None
         try:

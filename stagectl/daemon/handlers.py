@@ -33,7 +33,7 @@ from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
 
-__all__ = ["HANDLERS", "ServiceView", "dispatch"]
+__all__ = ["HANDLERS", "READ_ONLY_REQUESTS", "ServiceView", "dispatch", "dispatch_observer"]
 
 Reply = dict[str, Any]
 ReplyOrFuture = Reply | concurrent.futures.Future[Reply]
@@ -135,6 +135,22 @@ HANDLERS: dict[str, Callable[[ServiceView, Mapping[str, object]], ReplyOrFuture]
 DEBUG_REQUESTS = ("fault",)
 
 
+#: what the read-only observer socket serves (kinds not registered in HANDLERS are skipped)
+READ_ONLY_REQUESTS = ("status", "gains", "subscribe")
+
+
+def dispatch_observer(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
+    """Route one request from the observer socket: only :data:`READ_ONLY_REQUESTS`; anything that could move,
+    reset, record or inject is refused naming the field ``request``."""
+    kind = req.get("request")
+    allowed = [k for k in READ_ONLY_REQUESTS if k in HANDLERS]
+    if kind not in allowed:
+        shown = kind if isinstance(kind, str) and len(kind) <= 40 else "that"
+        raise RequestError("request", f"{shown!r} is not allowed on the read-only observer socket; one of "
+                                      f"{', '.join(allowed)} (use the control socket to command the stage)")
+    return dispatch(svc, req)
+
+
 def dispatch(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     """Route one request to its handler (control thread; never blocks)."""
     kind = req.get("request")
@@ -143,5 +159,5 @@ def dispatch(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
         raise RequestError("request", f"missing; {known}")
     fn = HANDLERS.get(kind)
     if fn is None:
-        raise RequestError("request", f"unknown request {kind!r}; {known}")
+        raise RequestError("request", f"unknown request {kind[:40]!r}; {known}")
     return fn(svc, req)

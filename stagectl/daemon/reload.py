@@ -98,5 +98,7 @@ class Reloader:
         self.notify.ready(self.status_line())
 
     def _rejected(self, t: float, reason: str) -> None:
+        if len(reason) > 2000:  # returned in every status/gains reply and logged: bounded
+            reason = f"{reason[:2000]}... ({len(reason) - 2000} more characters)"
         self.status = {"ok": False, "time": t, "error": reason}
         log.error("reload rejected, old tuning kept:\n%s", reason)

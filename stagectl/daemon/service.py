@@ -28,13 +28,14 @@ from stagectl.config.daemon import DaemonConfig
 from stagectl.daemon import lifecycle
 from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.daemon.control import ControlServer
-from stagectl.daemon.handlers import ReplyOrFuture, dispatch
+from stagectl.daemon.handlers import ReplyOrFuture, dispatch, dispatch_observer
+from stagectl.daemon.instance import InstanceLock
 from stagectl.daemon.lifecycle import Assembly, Lifecycle
 from stagectl.daemon.marker import RunMarker, UncleanLatch
 from stagectl.daemon.paths import ServicePaths
 from stagectl.daemon.reload import AppConfigLike, ConfigLoader, Reloader
 from stagectl.daemon.sdnotify import SdNotifier
-from stagectl.daemon.telemetry import TelemetryWriter, start_telemetry
+from stagectl.daemon.telemetry import TelemetryWriter, check_writable, start_telemetry
 from stagectl.daemon.watchdog import HealthWindow, Watchdog
 from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
@@ -66,6 +67,11 @@ class StageService:
         self.host: LoopHost | None = None
         self.writer: TelemetryWriter | None = None
         self.server: ControlServer | None = None
+        self.observer: ControlServer | None = None
+        self.instance = InstanceLock(self.paths.runtime_dir, self.paths.state_dir)
+        self.health_policy = "realtime"
+        self.telemetry_problem: str | None = None  # the telemetry directory was not writable at start
+        self._faults_seen = 0
         self.watchdog = Watchdog(self.notify, 0.01)
         self.latch = UncleanLatch(RunMarker(self.paths.marker_dir), self.paths.config)
         self.reloader = Reloader(load_config, self.paths.config, self.notify, self.cfg.reply_timeout_s,
@@ -115,22 +121,46 @@ class StageService:
         p = self.paths
         log.info("stagectl daemon starting (pid %d, config %s, runtime dir %s)", os.getpid(), p.config,
                  p.runtime_dir)
+        self.instance.acquire()  # first: a second daemon touches nothing of the first one's
         self.latch.read()
         self.notify.status("loading configuration")
         self.app_cfg, self.cfg = self._load_config(p.config)
         self.reloader.reply_timeout_s = self.cfg.reply_timeout_s
         if self._stopping():
             return 0
+        tc = self.cfg.telemetry
+        tel_dir = p.telemetry_dir(tc.directory)
+        if tc.enabled:  # before any device is opened: `refuse` must not have touched the stage
+            self.telemetry_problem = check_writable(tel_dir)
+            if self.telemetry_problem is not None:
+                if tc.on_error == "refuse":
+                    raise StageError(f"telemetry directory not writable: {self.telemetry_problem} "
+                                     f"(daemon.telemetry.on_error: refuse); not starting")
+                log.error("telemetry directory not writable: %s; running WITHOUT telemetry, every row counted "
+                          "as lost (daemon.telemetry.on_error: report)", self.telemetry_problem)
         self.notify.status("opening and configuring devices")
         self.asm = asm = self._build(self.app_cfg)
         loop = asm.loop
-        self.watchdog.limit = loop.cfg.healthy_overrun_fraction
+        self.health_policy = self.cfg.health if self.cfg.health != "auto" else (
+            "liveness" if asm.simulated else "realtime")
+        # liveness: a simulated stage loses nothing when a cycle is late (the plant steps with the loop), so
+        # READY and the watchdog ask only that the loop cycles; real devices also need few skipped slots
+        self.watchdog.limit = 1.0 if self.health_policy == "liveness" else loop.cfg.healthy_overrun_fraction
+        log.info("health policy %s (%s)", self.health_policy,
+                 "loop cycling" if self.health_policy == "liveness"
+                 else f"cycling, at most {loop.cfg.healthy_overrun_fraction:.2%} skipped slots")
         self.state = Lifecycle.CONFIGURED
         log.info("configured: %s", ", ".join(f"{k}={v}" for k, v in asm.describe.items()) or "ok")
-        tc = self.cfg.telemetry
-        self.writer = start_telemetry(tc, p.telemetry_dir(tc.directory), loop.columns, loop.period_s)
+        self.writer = start_telemetry(tc, tel_dir, loop.columns, loop.period_s)
+        if self.writer is not None and self.telemetry_problem is not None:
+            self.writer.report_error(self.telemetry_problem)  # READY's STATUS= says so from the first line
         self.server = ControlServer.from_config(p.runtime_dir / self.cfg.socket_name, self.handle, self.cfg)
         self.server.start()
+        if self.cfg.observer_socket_name:
+            self.observer = ControlServer.from_config(p.runtime_dir / self.cfg.observer_socket_name,
+                                                      self.handle_observer, self.cfg)
+            self.observer.group = self.cfg.observer_group
+            self.observer.start()
         if self._stopping():
             return 0
         self.latch.arm(loop)  # the marker is written before the loop thread can enable the drive
@@ -173,6 +203,11 @@ class StageService:
             st = loop.status(timing=want_timing)
             self.watchdog.check(st)  # first, so that the fault handling below cannot delay a due ping
             self.latch.track(st)
+            if st.faults > self._faults_seen and st.state is not LoopState.FAULT:
+                # a fault and its reset both fell between two ticks: handle the fault all the same
+                self._status_cache.clear()
+                self._loop_state_changed(st, LoopState.ACTIVE, wd, fault_missed=True)
+            self._faults_seen = st.faults
             if st.state is not last:
                 self._status_cache.clear()
                 self._loop_state_changed(st, last, wd)
@@ -187,7 +222,12 @@ class StageService:
                 self.notify.status(self._status_line(st))
                 next_status = time.monotonic() + self.cfg.status_interval_s
 
-    def _loop_state_changed(self, st: LoopStatus, last: LoopState, wd: float | None) -> None:
+    def _loop_state_changed(self, st: LoopStatus, last: LoopState, wd: float | None,
+                            fault_missed: bool = False) -> None:
+        if fault_missed:
+            log.error("loop fault (already cleared by a reset before the supervisor looked); flushing telemetry")
+            self.fault_flushes += lifecycle.flush_after_fault(self.writer, wd)
+            return
         if st.state is LoopState.FAULT:
             self.state = Lifecycle.FAULT
             log.error("loop fault: %s; flushing telemetry", lifecycle.fault_text(st.fault))
@@ -206,6 +246,12 @@ class StageService:
     def _shutdown(self) -> bool:
         if self.state is Lifecycle.STOPPED:
             return True
+        if not self.instance.held:  # another daemon holds the directories: nothing of ours to stop or clean
+            self.state = Lifecycle.STOPPED
+            self.notify.close()
+            return True
+        if self.observer is not None:
+            self.observer.stop()
         halt = self.state in (Lifecycle.ACTIVE, Lifecycle.CONFIGURED)
         self.state = Lifecycle.STOPPING
         clean = lifecycle.shut_down(
@@ -213,21 +259,28 @@ class StageService:
             failed_while_running=self._ready and self._term_signal is None, notify=self.notify,
             stop_timeout_s=self.cfg.stop_timeout_s)
         self.state = Lifecycle.STOPPED
+        self.instance.release()
         return clean
 
     # ================================================================== status + requests
     def _status_line(self, st: LoopStatus | None = None) -> str:
         if st is None and self.asm is not None:
             st = self.asm.loop.status()
-        return lifecycle.status_line(self.state, st, self.writer, self.watchdog.reason, self._control_down)
+        return lifecycle.status_line(self.state, st, self.writer, self.watchdog.reason, self._control_down,
+                                     self.health_policy)
 
     def status(self) -> dict[str, Any]:
         """Everything an operator needs, as plain JSON-able values."""
         asm, srv = self.asm, self.server
+        loop_st = self._status_cache.get(asm.loop) if asm else None
+        state = self.state
+        if loop_st is not None and state in (Lifecycle.ACTIVE, Lifecycle.FAULT):  # the loop's own, not a tick old
+            state = Lifecycle.FAULT if loop_st.state is LoopState.FAULT else Lifecycle.ACTIVE
         return {
-            "state": self.state.value, "pid": os.getpid(), "uptime_s": time.monotonic() - self._started_mono,
+            "state": state.value, "pid": os.getpid(), "uptime_s": time.monotonic() - self._started_mono,
             "config": str(self.paths.config),
-            "loop": self._status_cache.get(asm.loop).as_json() if asm else {},
+            "loop": loop_st.as_json() if loop_st is not None else {},
+            "health_policy": self.health_policy,
             "drive_enabled": asm is not None and lifecycle.drive_state(asm) is DeviceState.ENABLED,
             "telemetry": self.writer.status() if self.writer else None,
             "reload": self.reloader.status,
@@ -247,3 +300,7 @@ class StageService:
     def handle(self, req: Mapping[str, object]) -> ReplyOrFuture:
         """Control-socket request → reply dict or Future (runs in the control thread; never blocks)."""
         return dispatch(self, req)
+
+    def handle_observer(self, req: Mapping[str, object]) -> ReplyOrFuture:
+        """Observer-socket request: the read-only kinds only (status, gains, the telemetry stream)."""
+        return dispatch_observer(self, req)

@@ -25,6 +25,7 @@ a file every ``retry_s``.
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
@@ -34,8 +35,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
-
 import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
@@ -139,34 +138,65 @@ class WriterSettings:
 
 
 class _CsvFile:
-    """One open CSV file with a header; counts bytes and rows."""
+    """One open CSV file with a header; counts bytes and rows.
+
+    Rows go to the kernel in whole chunks with ``os.write`` (no Python buffer between): a chunk is either
+    in the file completely or not at all. A failed or short write (full disk ``ENOSPC``, file-size limit
+    ``EFBIG``) is undone with ``ftruncate`` back to the last complete row, so a file never ends in a
+    truncated row, and the caller counts the chunk's rows as lost.
+    """
 
     def __init__(self, path: Path, fmt: RecordingCsv, *, exclusive: bool) -> None:
         self.path = path
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else os.O_TRUNC),
-                     0o640)
-        self.fh: IO[str] = os.fdopen(fd, "w", buffering=1 << 16, encoding="ascii", newline="")
-        header = fmt.header
-        self.fh.write(header)
-        self.bytes = len(header)
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else os.O_TRUNC),
+                          0o640)
+        self.bytes = 0
         self.rows = 0
+        try:
+            self._write_all(fmt.header.encode("ascii"))
+        except OSError:
+            self.close()
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            raise
         self.opened_mono = time.monotonic()
 
+    def _write_all(self, data: bytes) -> None:
+        view = memoryview(data)
+        done = 0
+        try:
+            while done < len(view):
+                n = os.write(self.fd, view[done:])
+                if n <= 0:  # pragma: no cover - a regular file never returns 0 for a non-empty write
+                    raise OSError(errno.EIO, "write returned 0")
+                done += n
+        except OSError:
+            if done:
+                try:  # undo the partial chunk: the file keeps only whole rows
+                    os.ftruncate(self.fd, self.bytes)
+                    os.lseek(self.fd, self.bytes, os.SEEK_SET)
+                except OSError:
+                    pass
+            raise
+        self.bytes += len(view)
+
     def write(self, text: str, rows: int) -> None:
-        self.fh.write(text)
-        self.bytes += len(text)
+        """Append ``rows`` complete rows (``text``), all or nothing. Raises OSError (nothing written then)."""
+        self._write_all(text.encode("ascii"))
         self.rows += rows
 
     def flush(self, sync: bool = False) -> None:
-        self.fh.flush()
         if sync:
-            os.fsync(self.fh.fileno())
+            os.fsync(self.fd)
 
     def close(self) -> None:
         try:
-            self.fh.close()
+            os.close(self.fd)
         except OSError:
             pass
+        self.fd = -1
 
 
 class _Recording:
@@ -328,6 +358,7 @@ class TelemetryWriter:
                 "backlog": self.ring.backlog,
                 "capacity": self.ring.capacity,
                 "error": self.error,
+                "recording_ok": self.error is None,
                 "error_count": self.error_count,
                 "files_rotated": self.files_rotated,
             }
@@ -500,6 +531,12 @@ class TelemetryWriter:
             self._cont = None
         self._next_retry = time.monotonic() + self.settings.retry_s
 
+    def report_error(self, msg: str) -> None:
+        """Mark telemetry as failing with ``msg`` (thread-safe; e.g. the start-up probe's finding): reported
+        in :meth:`status` and ``STATUS=`` until a file is written again."""
+        with self._lock:
+            self._set_error(msg)
+
     def _set_error(self, msg: str) -> None:
         if msg != self.error:
             log.error("telemetry: %s (the loop keeps running; samples are counted as lost)", msg)
@@ -510,6 +547,25 @@ class TelemetryWriter:
 def _describe(exc: OSError, path: Path) -> str:
     what = exc.strerror or type(exc).__name__
     return f"{exc.filename or path}: {what}"
+
+
+def check_writable(directory: Path) -> str | None:
+    """None if a file can be created, written and removed in ``directory`` (created if missing); else the
+    reason (``<path>: <strerror>``). Used at start-up, before any device is opened, for the
+    ``daemon.telemetry.on_error`` policy."""
+    probe = directory / f".stagectl-probe-{os.getpid()}"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+        try:
+            os.write(fd, b"t\n")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        probe.unlink()
+    except OSError as exc:
+        return _describe(exc, directory)
+    return None
 
 
 def start_telemetry(tc: TelemetryConfig, directory: Path, columns: Sequence[str], period_s: float

@@ -5,7 +5,8 @@
   plain-JSON form (:func:`stagectl.outputs.plain` with ``json=True``) is the ``loop`` object of the daemon's
   ``status`` reply: ``state``, ``fault`` {name, cause, t_s, cycle} or null, ``t_s``, ``x_m``, ``x_ref_m``,
   ``e_m``, ``u_n``, ``cycle``, ``overruns``, ``recent_overrun_fraction``, ``period_s``, ``running``,
-  ``healthy``, ``lateness_us`` and ``exec_us`` {p50, p99, max} (null when taken with ``timing=False``).
+  ``healthy``, ``lateness_us`` and ``exec_us`` {p50, p99, max} (null when taken with ``timing=False``),
+  ``faults`` (faults entered so far).
 * :class:`LoopResult` -- the summary of one :meth:`~stagectl.loop.ControlLoop.run`.
 """
 
@@ -76,6 +77,7 @@ class LoopStatus:
     healthy: bool
     lateness_us: TimingStats | None = None
     exec_us: TimingStats | None = None
+    faults: int = 0  #: faults entered since the loop was built (a fault and its reset between two looks show here)
 
     def as_json(self) -> dict[str, Any]:
         """The plain-JSON form (NaN → null), as sent on the control socket."""

@@ -114,18 +114,44 @@ def test_many_clients_at_once(server):
     assert errors == []
 
 
-def test_too_many_clients_get_an_error_line(server):
+def test_a_new_client_evicts_the_quietest_when_all_slots_are_taken(server):
+    """All 8 slots held: the 9th client is served, and the connection quiet longest gets an error line."""
     dut, _ = server
     held = [ControlClient(dut.path) for _ in range(8)]
     try:
-        for c in held:  # make sure all 8 are accepted before the 9th connects
+        for c in held:  # make sure all 8 are accepted (held[0] is then the one quiet longest)
             assert c.request({"request": "status"})["ok"]
         with ControlClient(dut.path) as extra:
-            r = extra.read_reply()
-            assert r["ok"] is False and r["field"] == "connection"
+            assert extra.request({"request": "status"})["ok"]
+        r = held[0].read_reply()
+        assert r["ok"] is False and r["field"] == "connection" and "make room" in r["error"]
+        assert held[1].request({"request": "status"})["ok"]  # the others keep their connection
+        assert dut.stats["evicted"] == 1
     finally:
         for c in held:
             c.close()
+
+
+def test_error_text_is_bounded_and_an_oversized_reply_is_an_error_not_a_disconnect(tmp_path):
+    huge = "x" * 100_000
+
+    def handler(req):
+        if req.get("request") == "big":
+            return {"blob": huge}
+        raise ValueError(f"value: {huge}")
+
+    dut = ControlServer(tmp_path / "c.sock", handler, max_out_bytes=8192)
+    dut.start()
+    try:
+        with ControlClient(dut.path) as c:
+            r = c.request({"request": "bad"})
+            assert r["ok"] is False and r["field"] == "value"
+            assert len(r["error"]) < 1100 and "more characters" in r["error"]
+            r = c.request({"request": "big", "id": 3})
+            assert r["ok"] is False and r["field"] == "reply" and r["id"] == 3
+            assert c.request({"request": "bad"})["ok"] is False  # still connected
+    finally:
+        dut.stop()
 
 
 def test_client_that_never_reads_is_disconnected_others_unaffected(server):

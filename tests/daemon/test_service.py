@@ -134,10 +134,8 @@ def test_unwritable_telemetry_directory_reported_while_loop_runs(tmp_path, notif
     svc = _Running(cfg, tmp_path, notify_socket, rig_loader, rig_builder)
     dut = svc.dut
     try:
-        notify_socket.wait_for("READY", "1", alive=svc.alive)
-        msg = notify_socket.wait_for("STATUS")
-        while "ERROR" not in msg["STATUS"]:  # STATUS= carries the telemetry error
-            msg = notify_socket.wait_for("STATUS")
+        ready = notify_socket.wait_for("READY", "1", alive=svc.alive)
+        assert "TELEMETRY NOT RECORDING" in ready["STATUS"] and "not-a-dir" in ready["STATUS"]  # READY says so
         with ControlClient(tmp_path / "run" / "control.sock") as c:
             st1 = c.request({"request": "status"})["status"]
             assert st1["state"] == "active" and "not-a-dir" in st1["telemetry"]["error"]

@@ -181,8 +181,8 @@ def test_full_disk_is_reported(tmp_path):
     path = dut.record_start("full")
     path.unlink()
     path.symlink_to("/dev/full")  # the recording's file now writes to a device that is always full
-    dut._rec.csv.fh.close()  # reopen onto the full device: same object, real ENOSPC from the kernel
-    dut._rec.csv.fh = open(path, "w", buffering=1 << 16)
+    os.close(dut._rec.csv.fd)  # reopen onto the full device: same object, real ENOSPC from the kernel
+    dut._rec.csv.fd = os.open(path, os.O_WRONLY)
     for k in range(10):
         ring.append(_row(k))
     dut.flush()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from stagectl.clock import SimClock
-from stagectl.drivers.base import DeviceState
+from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.errors import StageError
-from stagectl.loop import BASE_COLUMNS, LoopState, LoopStateError
-from stagectl.runtime.requests import MoveRequest, RetuneRequest, ShutdownRequest, StopRequest, parse_request
+from stagectl.loop import BASE_COLUMNS, FLAG_COLUMNS, LoopState, LoopStateError
+from stagectl.runtime.requests import MoveRequest, ResetRequest, RetuneRequest, ShutdownRequest, StopRequest, parse_request
 
 
 def test_absolute_deadlines_and_columns(rig):
@@ -22,7 +22,7 @@ def test_absolute_deadlines_and_columns(rig):
     t = np.array([r[0] for r in sink.rows])
     assert len(t) == 250
     np.testing.assert_allclose(t, np.arange(250) * 1e-3, rtol=0, atol=1e-12)  # t_k = k·T exactly
-    assert loop.columns == BASE_COLUMNS + ("u_pid", "u_inertia")
+    assert loop.columns == BASE_COLUMNS + ("u_pid", "u_inertia") + FLAG_COLUMNS
     assert all(len(r) == len(loop.columns) for r in sink.rows)
     assert io.n_sync == 252  # a warm-up SYNC before enabling, one priming SYNC at start, one per cycle
     assert io.state is DeviceState.CONFIGURED  # disabled on the way out
@@ -274,3 +274,50 @@ def test_realtime_settings_are_applied_in_the_loop_thread(make):
     else:
         assert any("SCHED_FIFO" in n for n in rep["notes"])
     assert rep["mlocked"] or any("mlockall" in n for n in rep["notes"])
+
+
+def test_stale_rows_say_so_and_record_the_held_terms(make, rows):
+    """A stale sample below the stale limit holds the force; its row has ``stale`` = 1 and the held
+    controller terms (not zeros, which drew false chatter), so ``u`` = Σ terms on every row."""
+    loop, io, plant, ctl, clock = make()
+    loop.add_sink(rows)
+    loop.submit(MoveRequest(target_m=1e-4))
+    calls = []
+
+    def on_cycle():
+        calls.append(1)
+        if len(calls) == 30:
+            io.drop_samples(2)  # below stale_cycles: held, no fault
+
+    loop.on_cycle = on_cycle
+    res = loop.run(cycles=60)
+    assert res.fault is None
+    cols = loop.columns
+    data = np.array(rows.rows)
+    stale = data[:, cols.index("stale")]
+    assert stale.sum() == 2 and set(np.flatnonzero(stale)) == {30, 31}
+    for name in ("u_pid", "u_inertia"):
+        col = data[:, cols.index(name)]
+        assert col[30] == col[29] == col[31]  # held
+    assert data[29, cols.index("u_pid")] != 0.0  # (so "held" is not "zeroed")
+    np.testing.assert_allclose(data[:, cols.index("u")], data[:, cols.index("u_pid")] + data[:, cols.index("u_inertia")],
+                               rtol=0, atol=1e-9)
+    assert np.all(data[:, cols.index("skipped")] == 0)  # simulated time: nothing skipped
+
+
+def test_fault_counter_sees_a_fault_already_cleared_by_reset(make):
+    """``status().faults`` counts faults entered, so a supervisor that looks only after the reset still sees one."""
+    loop, io, plant, ctl, clock = make()
+    seen = []
+
+    def on_cycle():
+        seen.append(1)
+        if len(seen) == 5:
+            io.inject_fault(FaultKind.EMCY, detail="test")
+        if len(seen) == 8:
+            loop.submit(ResetRequest())
+
+    loop.on_cycle = on_cycle
+    loop.run(cycles=20)
+    st = loop.status()
+    assert st.faults == 1 and st.fault is None
