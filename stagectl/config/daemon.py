@@ -12,6 +12,7 @@ Example (every key optional; the defaults are shown)::
       ready_timeout_s: 10              # drive enabled + loop healthy within this, or start-up fails
       status_interval_s: 1             # STATUS= updates
       allow_fault_injection: false     # `fault` debug request; only honoured on a simulated plant
+      isolation: process               # the loop in its own process (docs/daemon.md); thread: in the daemon
       health: auto                     # auto | realtime | liveness (docs/daemon.md)
       observer_socket_name: observer.sock   # read-only: status, gains, telemetry; null = none
       observer_group: null
@@ -75,6 +76,10 @@ class DaemonConfig:
     stop_timeout_s: float = param(5.0, unit="s", desc="budget for stopping the loop and flushing on SIGTERM",
                                   gt=0)
     allow_fault_injection: bool = param(False, desc="accept the `fault` debug request (simulated plants only)")
+    isolation: str = param(
+        "process", choices=("process", "thread"),
+        desc="process = the loop runs in its own process that owns the devices (shared-memory rings to the "
+        "daemon; no client can take its interpreter lock); thread = a thread of the daemon (tests, debugging)")
     health: str = param(
         "auto", choices=("auto", "realtime", "liveness"),
         desc="what READY and the watchdog require: realtime = cycling with at most loop.healthy_overrun_fraction "

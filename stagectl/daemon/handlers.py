@@ -29,7 +29,7 @@ from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.reload import Reloader
 from stagectl.daemon.stream import handle_subscribe
 from stagectl.daemon.telemetry import TelemetryWriter
-from stagectl.loop import ControlLoop
+from stagectl.daemon.remote import LoopLike
 from stagectl.outputs import plain
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
 
@@ -50,7 +50,7 @@ class ServiceView(Protocol):
 
     def status(self) -> dict[str, Any]: ...
 
-    def need_loop(self) -> ControlLoop: ...
+    def need_loop(self) -> LoopLike: ...
 
 
 def _only(req: Mapping[str, object], *allowed: str) -> None:
@@ -118,6 +118,9 @@ def handle_fault(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     if not isinstance(kind, str):
         raise RequestError("kind", "name the fault to inject")
     res = asm.inject_fault(kind, **kw)
+    if isinstance(res, concurrent.futures.Future):  # the loop process injects it at its next cycle boundary
+        fut: concurrent.futures.Future[Reply] = res
+        return fut
     return {"injected": kind, **(res if isinstance(res, dict) else {})}
 
 

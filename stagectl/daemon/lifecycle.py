@@ -24,12 +24,12 @@ from typing import Any
 
 from stagectl.daemon.control import ControlServer
 from stagectl.daemon.marker import UNCLEAN_FAULT, UncleanLatch
+from stagectl.daemon.remote import LoopLike
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.daemon.watchdog import Watchdog
 from stagectl.drivers.base import DeviceState
 from stagectl.errors import ConfigError, StageError
-from stagectl.loop import ControlLoop
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import FaultInfo, LoopState, LoopStatus
 
@@ -57,7 +57,7 @@ class Assembly:
     plants (the ``fault`` debug request); ``simulated`` says the plant is simulated.
     """
 
-    loop: ControlLoop
+    loop: LoopLike
     close: Callable[[], None]
     controller_config: object = None
     simulated: bool = False
@@ -80,7 +80,7 @@ class StatusCache:
         self._lock = threading.Lock()
         self._cache: tuple[float, LoopStatus] | None = None
 
-    def get(self, loop: ControlLoop) -> LoopStatus:
+    def get(self, loop: LoopLike) -> LoopStatus:
         now = time.monotonic()
         with self._lock:
             if self._cache is None or now - self._cache[0] > self.max_age_s:

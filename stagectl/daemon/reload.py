@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 from stagectl.config.daemon import DaemonConfig
 from stagectl.daemon.sdnotify import SdNotifier
-from stagectl.loop import ControlLoop
+from stagectl.daemon.remote import LoopLike
 from stagectl.runtime.requests import RetuneRequest
 
 __all__ = ["AppConfigLike", "ConfigLoader", "Reloader"]
@@ -70,7 +70,7 @@ class Reloader:
         """Note a SIGHUP (thread-safe; served at the supervisor's next tick)."""
         self.pending += 1
 
-    def maybe_start(self, loop: ControlLoop, current: AppConfigLike) -> None:
+    def maybe_start(self, loop: LoopLike, current: AppConfigLike) -> None:
         """Supervisor tick: start a reload thread if one is pending and none runs."""
         if self.pending and not (self._thread and self._thread.is_alive()):
             self.pending = 0
@@ -78,7 +78,7 @@ class Reloader:
                                             daemon=True)
             self._thread.start()
 
-    def _reload(self, loop: ControlLoop, current: AppConfigLike) -> None:
+    def _reload(self, loop: LoopLike, current: AppConfigLike) -> None:
         self.notify.reloading()
         t = time.time()
         try:

@@ -39,7 +39,7 @@ from stagectl.daemon.telemetry import TelemetryWriter, check_writable, start_tel
 from stagectl.daemon.watchdog import HealthWindow, Watchdog
 from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
-from stagectl.loop import ControlLoop
+from stagectl.daemon.remote import LoopLike, RemoteLoop
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.requests import RequestError
 from stagectl.runtime.status import LoopResult, LoopState, LoopStatus
@@ -139,7 +139,15 @@ class StageService:
                 log.error("telemetry directory not writable: %s; running WITHOUT telemetry, every row counted "
                           "as lost (daemon.telemetry.on_error: report)", self.telemetry_problem)
         self.notify.status("opening and configuring devices")
-        self.asm = asm = self._build(self.app_cfg)
+        if self.cfg.isolation == "process":
+            from stagectl.daemon.loopproc import spawn_loop_process
+
+            self.notify.status("starting the loop process (it opens and configures the devices)")
+            self.asm = asm = spawn_loop_process(
+                self._build, self.app_cfg, telemetry_buffer_s=tc.buffer_s if tc.enabled else 0.0,
+                timeout_s=max(60.0, self.cfg.ready_timeout_s), stopping=self._stopping)
+        else:
+            self.asm = asm = self._build(self.app_cfg)
         loop = asm.loop
         self.health_policy = self.cfg.health if self.cfg.health != "auto" else (
             "liveness" if asm.simulated else "realtime")
@@ -151,7 +159,8 @@ class StageService:
                  else f"cycling, at most {loop.cfg.healthy_overrun_fraction:.2%} skipped slots")
         self.state = Lifecycle.CONFIGURED
         log.info("configured: %s", ", ".join(f"{k}={v}" for k, v in asm.describe.items()) or "ok")
-        self.writer = start_telemetry(tc, tel_dir, loop.columns, loop.period_s)
+        shared_ring = loop.ring if isinstance(loop, RemoteLoop) else None
+        self.writer = start_telemetry(tc, tel_dir, loop.columns, loop.period_s, ring=shared_ring)
         if self.writer is not None and self.telemetry_problem is not None:
             self.writer.report_error(self.telemetry_problem)  # READY's STATUS= says so from the first line
         self.server = ControlServer.from_config(p.runtime_dir / self.cfg.socket_name, self.handle, self.cfg)
@@ -281,6 +290,8 @@ class StageService:
             "config": str(self.paths.config),
             "loop": loop_st.as_json() if loop_st is not None else {},
             "health_policy": self.health_policy,
+            "isolation": self.cfg.isolation,
+            "loop_pid": asm.loop.pid if asm is not None and isinstance(asm.loop, RemoteLoop) else os.getpid(),
             "drive_enabled": asm is not None and lifecycle.drive_state(asm) is DeviceState.ENABLED,
             "telemetry": self.writer.status() if self.writer else None,
             "reload": self.reloader.status,
@@ -291,7 +302,7 @@ class StageService:
             "simulated": bool(asm.simulated) if asm else None,
         }
 
-    def need_loop(self) -> ControlLoop:
+    def need_loop(self) -> LoopLike:
         """The loop, for a request that needs it; RequestError while the daemon cannot serve one."""
         if self.asm is None or self.state in (Lifecycle.UNCONFIGURED, Lifecycle.STOPPING, Lifecycle.STOPPED):
             raise RequestError("request", f"daemon is {self.state.value}")

@@ -121,6 +121,79 @@ class TelemetryRing:
         return t, out
 
 
+class SharedTelemetryRing:
+    """The same single-producer/single-consumer ring as :class:`TelemetryRing`, with its rows and counters in
+    shared memory (:class:`stagectl.runtime.shm.LoopShm`): the loop process appends, the daemon's writer
+    thread drains. ``buf`` float64[capacity, columns] (capacity a power of two), ``ctl`` the block's int64
+    counters (head, tail, dropped, bad rows at the :mod:`~stagectl.runtime.shm` indices)."""
+
+    def __init__(self, columns: Sequence[str], buf: np.ndarray, ctl: np.ndarray) -> None:
+        from stagectl.runtime.shm import TEL_BAD, TEL_DROPPED, TEL_HEAD, TEL_TAIL
+
+        cap = int(buf.shape[0])
+        if cap < 2 or cap & (cap - 1) or buf.shape[1] != len(columns):
+            raise ValueError(f"buf: needs a power-of-two row count and {len(columns)} columns (got {buf.shape})")
+        self.columns: tuple[str, ...] = tuple(columns)
+        self.capacity = cap
+        self._mask = cap - 1
+        self._buf = buf
+        self._ctl = ctl
+        self._h, self._t, self._d, self._b = TEL_HEAD, TEL_TAIL, TEL_DROPPED, TEL_BAD
+
+    # ------------------------------------------------------------------ producer (loop process)
+    def append(self, row: Sequence[float]) -> None:
+        """Store one row. Real-time safe: no lock, no syscall, never blocks, never raises."""
+        ctl = self._ctl
+        h = int(ctl[self._h])
+        if h - int(ctl[self._t]) > self._mask:
+            ctl[self._d] += 1
+            return
+        try:
+            self._buf[h & self._mask] = row
+        except (ValueError, TypeError):
+            ctl[self._b] += 1
+            return
+        ctl[self._h] = h + 1  # publish after the row is stored
+
+    # ------------------------------------------------------------------ consumer (daemon writer thread)
+    @property
+    def dropped(self) -> int:
+        return int(self._ctl[self._d])
+
+    @property
+    def bad_rows(self) -> int:
+        return int(self._ctl[self._b])
+
+    @property
+    def head(self) -> int:
+        return int(self._ctl[self._h])
+
+    @property
+    def backlog(self) -> int:
+        return int(self._ctl[self._h]) - int(self._ctl[self._t])
+
+    def drain(self, max_rows: int | None = None) -> tuple[int, np.ndarray]:
+        """Copy out the unread rows (oldest first) and release them (see :meth:`TelemetryRing.drain`)."""
+        t = int(self._ctl[self._t])
+        n = int(self._ctl[self._h]) - t
+        if max_rows is not None:
+            n = min(n, max_rows)
+        if n <= 0:
+            return t, self._buf[:0].copy()
+        i0 = t & self._mask
+        i1 = i0 + n
+        if i1 <= self.capacity:
+            out = self._buf[i0:i1].copy()
+        else:
+            out = np.concatenate((self._buf[i0:], self._buf[: i1 - self.capacity]))
+        self._ctl[self._t] = t + n  # publish after the copy: the producer may now reuse these slots
+        return t, out
+
+
+#: what the writer drains
+Ring = TelemetryRing | SharedTelemetryRing
+
+
 @dataclass(frozen=True)
 class WriterSettings:
     """How the writer stores telemetry (built from :class:`stagectl.config.daemon.TelemetryConfig`)."""
@@ -216,7 +289,7 @@ class TelemetryWriter:
     :meth:`record_stop`, :meth:`flush`, :meth:`status`, :meth:`stop`.
     """
 
-    def __init__(self, ring: TelemetryRing, settings: WriterSettings) -> None:
+    def __init__(self, ring: Ring, settings: WriterSettings) -> None:
         self.ring = ring
         self.settings = settings
         self.columns = ring.columns
@@ -568,13 +641,21 @@ def check_writable(directory: Path) -> str | None:
     return None
 
 
-def start_telemetry(tc: TelemetryConfig, directory: Path, columns: Sequence[str], period_s: float
-                    ) -> TelemetryWriter | None:
-    """The daemon's telemetry set-up: a ring holding ``tc.buffer_s`` of rows and its writer thread, started;
-    None when ``tc.enabled`` is false. The ring is ``writer.ring`` (a loop sink)."""
+def ring_rows(tc: TelemetryConfig, period_s: float) -> int:
+    """Ring capacity for ``tc.buffer_s`` of loop time [rows], a power of two, at least 1024."""
+    n = max(1024, int(math.ceil(tc.buffer_s / period_s)))
+    return 1 << (n - 1).bit_length()
+
+
+def start_telemetry(tc: TelemetryConfig, directory: Path, columns: Sequence[str], period_s: float,
+                    ring: Ring | None = None) -> TelemetryWriter | None:
+    """The daemon's telemetry set-up: a ring holding ``tc.buffer_s`` of rows (or ``ring``, e.g. the loop
+    process's shared one) and its writer thread, started; None when ``tc.enabled`` is false. The ring is
+    ``writer.ring`` (a loop sink)."""
     if not tc.enabled:
         return None
-    ring = TelemetryRing(columns, max(1024, int(math.ceil(tc.buffer_s / period_s))))
+    if ring is None:
+        ring = TelemetryRing(columns, ring_rows(tc, period_s))
     writer = TelemetryWriter(ring, WriterSettings(
         directory=directory, continuous=tc.continuous, rotate_bytes=int(tc.rotate_mb * 1e6), rotate_s=tc.rotate_s,
         keep_files=tc.keep_files, flush_interval_s=tc.flush_interval_s, retry_s=tc.retry_s))

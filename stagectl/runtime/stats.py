@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import numpy.typing as npt
 
 from stagectl.runtime.status import TimingStats, timing_stats
 
@@ -20,11 +21,19 @@ log = logging.getLogger("stagectl.loop")
 class CycleStats:
     """Timing of the recent cycles: ``record`` in the loop thread, the readers from any thread."""
 
-    def __init__(self, window: int) -> None:
+    def __init__(self, window: int, buffers: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                                 npt.NDArray[np.int32]] | None = None) -> None:
+        """``buffers``: (late, exec, skip) arrays of length ``window`` to record into (shared memory: the
+        daemon computes the percentiles in its own process); default: private arrays."""
         w = int(window)
-        self.late = np.zeros(w)
-        self.exec = np.zeros(w)
-        self.skip = np.zeros(w, dtype=np.int32)
+        if buffers is not None:
+            self.late, self.exec, self.skip = buffers
+            if not (self.late.size == self.exec.size == self.skip.size == w):
+                raise ValueError(f"buffers: three arrays of length {w} needed")
+        else:
+            self.late = np.zeros(w)
+            self.exec = np.zeros(w)
+            self.skip = np.zeros(w, dtype=np.int32)
         self.late_max = 0.0
         self.exec_max = 0.0
 

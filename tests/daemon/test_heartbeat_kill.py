@@ -115,7 +115,8 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
     network = canopen.Network(bus)
     network.notifier = can.Notifier(bus, network.listeners, 0.1)
     daemon = subprocess.Popen([*_stagectl(), "daemon", "--config", str(path), "--runtime-dir", str(tmp_path / "run")],
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                              start_new_session=True)
     try:
         try:
             notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: daemon.poll() is None)
@@ -136,7 +137,9 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
         node.emcy.add_callback(lambda e: emcys.append((e.code, time.monotonic())))
 
         t_kill = time.monotonic()
-        daemon.send_signal(signal.SIGKILL)
+        # the whole controller dies: the daemon AND its loop process (a SIGKILL of the daemon alone makes the
+        # loop process disable the drive itself: PR_SET_PDEATHSIG, tested in test_isolation)
+        os.killpg(daemon.pid, signal.SIGKILL)
         daemon.wait(30)
         assert daemon.returncode == -signal.SIGKILL
         # wait for the drive's own EMCY 0x8130 (heartbeat consumer timeout); the timeout is a failure guard

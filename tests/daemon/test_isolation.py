@@ -121,6 +121,8 @@ def test_stop_gets_through_32_half_open_clients_and_a_flood(tmp_path, notify_soc
             st = c.request({"request": "status"})["status"]
         assert st["state"] == "active" and st["loop"]["fault"] is None
         assert st["control"]["evicted"] >= 1
+        # the loop ran in its own process (it owns the devices; the flood was served by this one)
+        assert st["isolation"] == "process" and st["loop_pid"] != os.getpid() and st["pid"] == os.getpid()
     finally:
         done.set()
         for s in half_open:

@@ -19,13 +19,15 @@ from stagectl.runtime.requests import ShutdownRequest
 
 
 def _write_cfg(path, kp, tmp_path, telemetry_dir=None, **daemon):
-    """The rig's YAML: controller gains, a ``daemon:`` section (status every 50 ms + ``daemon``), telemetry
+    """The rig's YAML: controller gains, a ``daemon:`` section (status every 50 ms, the loop as a thread of the
+    service so the tests can reach into it, + ``daemon``), telemetry
     into ``telemetry_dir`` (default ``tmp_path/tel``) flushed every 50 ms."""
     import yaml
 
     tel = {"directory": str(telemetry_dir or tmp_path / "tel"), "flush_interval_s": 0.05}
     path.write_text(yaml.safe_dump({"controller": {"kp_n_m": kp, "kd_n_s_m": 400.0},
-                                    "daemon": {"status_interval_s": 0.05, **daemon, "telemetry": tel}}))
+                                    "daemon": {"status_interval_s": 0.05, "isolation": "thread", **daemon,
+                                               "telemetry": tel}}))
     return path
 
 
