@@ -1,4 +1,4 @@
-"""``stagectl bench models|io|control|loop|telemetry [--json] [...]``.
+"""``stagectl bench models|io|control|loop|telemetry|flood [--json] [...]``.
 
 Each benchmark lives in ``stagectl.bench.<kind>`` and exposes ``add_arguments(parser)`` and
 ``run(args) -> dict`` (and optionally ``exit_code(result) -> int``; otherwise the result's ``exit_code``
@@ -15,7 +15,7 @@ from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
-from stagectl.bench import control, io, loop, models, telemetry
+from stagectl.bench import control, flood, io, loop, models, telemetry
 
 KINDS: dict[str, tuple[ModuleType, str]] = {
     "models": (models, "friction model + plant steps per second vs a pure-Python GMS baseline"),
@@ -23,6 +23,7 @@ KINDS: dict[str, tuple[ModuleType, str]] = {
     "control": (control, "tracking error of the controller variants on the seed stage"),
     "loop": (loop, "loop timing: lateness p50/p99/max, overruns, CPU"),
     "telemetry": (telemetry, "telemetry ring + writer at 1 kHz (or the real daemon): dropped/lost rows"),
+    "flood": (flood, "the real daemon under flooding + half-open clients: missed cycles, watchdog gaps, stop latency"),
 }
 
 

@@ -32,7 +32,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 import numpy as np
@@ -313,6 +313,7 @@ class TelemetryWriter:
         self.error: str | None = None
         self.error_count = 0
         self.files_rotated = 0
+        self._taps: tuple[Callable[[int, np.ndarray], None], ...] = ()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -342,6 +343,27 @@ class TelemetryWriter:
             want = self._flush_req
             self._wake.set()
             return self._flush_cv.wait_for(lambda: self._flush_done >= want, timeout)
+
+    # ------------------------------------------------------------------ taps (live streams)
+    def add_tap(self, tap: Callable[[int, np.ndarray], None]) -> None:
+        """Call ``tap(first_index, rows)`` in the writer thread with every block of rows drained from the ring
+        (``rows`` float64[n, len(columns)], a private copy; ``first_index`` the ring index of ``rows[0]``, so a
+        gap in the indices is a gap in the data). A live stream (``subscribe``) decimates and queues them
+        itself; a tap must not block, and one that raises is removed (logged). Thread-safe."""
+        with self._lock:
+            self._taps = (*self._taps, tap)
+
+    def remove_tap(self, tap: Callable[[int, np.ndarray], None]) -> None:
+        with self._lock:
+            self._taps = tuple(t for t in self._taps if t is not tap)
+
+    def _feed_taps(self, first: int, rows: np.ndarray) -> None:
+        for tap in self._taps:
+            try:
+                tap(first, rows)
+            except Exception:  # noqa: BLE001 - a broken stream must not stop telemetry
+                log.exception("telemetry tap %r failed; removed", tap)
+                self.remove_tap(tap)
 
     # ------------------------------------------------------------------ recordings
     def record_start(self, name: str) -> Path:
@@ -481,6 +503,8 @@ class TelemetryWriter:
                 text = self._csv.rows(rows)
                 self._write_continuous(text, n)
                 self._write_recording(first, rows, text, n)
+                if self._taps:
+                    self._feed_taps(first, rows)
             if n < s.chunk_rows:
                 break
             time.sleep(0)  # let the loop thread take the GIL between chunks

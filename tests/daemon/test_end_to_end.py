@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -312,3 +313,43 @@ def test_sigkilled_daemon_restarts_latched_until_reset(tmp_path, notify_socket):
                 p.kill()
             p.wait(30)
             p.stderr.close()
+
+
+def _gone(pid: int) -> bool:
+    """The process no longer runs (exited, or a zombie waiting for a reaper that is not us)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+
+
+def test_loop_process_outlives_no_daemon_and_a_second_daemon_waits_its_turn(daemon, tmp_path):
+    """The loop runs in its own process; a second daemon on the same directories refuses; SIGKILL of the daemon
+    makes the loop process stop the drive and end by itself (PR_SET_PDEATHSIG); the next start is latched."""
+    proc, cfg, run, ns = daemon
+    ns.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
+    with ControlClient(run / "control.sock", timeout_s=30) as c:
+        st = c.request({"request": "status"})["status"]
+    loop_pid = st["loop_pid"]
+    assert st["isolation"] == "process" and loop_pid != proc.pid and not _gone(loop_pid)
+    second = subprocess.run([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+                            capture_output=True, text=True, timeout=120, env={**os.environ, "NOTIFY_SOCKET": ""})
+    assert second.returncode == 1 and f"pid {proc.pid}" in second.stderr, second.stderr[-2000:]
+    assert (run / "control.sock").exists()  # the first one's socket survived
+    pidfd = os.pidfd_open(loop_pid)  # readable once the loop process has exited
+    try:
+        proc.kill()
+        proc.wait(30)
+        # it ends by itself: nobody signals it (the timeout is a failure guard, not a timing check)
+        assert select.select([pidfd], [], [], 60)[0] and _gone(loop_pid)
+    finally:
+        os.close(pidfd)
+    third = subprocess.Popen([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+                             env={**os.environ, "NOTIFY_SOCKET": str(ns.path)}, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    try:
+        ready = ns.wait_for("READY", "1", timeout=120, alive=lambda: third.poll() is None)
+        assert ready["STATUS"].startswith("fault") and "unclean_shutdown" in ready["STATUS"]
+    finally:
+        third.send_signal(signal.SIGTERM)
+        assert third.wait(60) == 0

@@ -191,3 +191,25 @@ def test_full_disk_is_reported(tmp_path):
     info = dut.record_stop()
     assert "No space left" in str(info["error"])
     dut.stop()
+
+
+def test_taps_get_every_drained_row_with_its_ring_index_and_a_failing_tap_is_removed(tmp_path):
+    ring = TelemetryRing(COLS, 64)
+    dut = TelemetryWriter(ring, _settings(tmp_path, continuous=False))
+    got: list[tuple[int, int]] = []
+
+    def bad(first, rows):
+        raise RuntimeError("stream broke")
+
+    dut.add_tap(lambda first, rows: got.append((first, len(rows))))
+    dut.add_tap(bad)
+    for k in range(10):
+        ring.append(_row(k))
+    dut.flush()
+    for k in range(10, 15):
+        ring.append(_row(k))
+    dut.flush()
+    dut.stop()
+    idx = [i for first, n in got for i in range(first, first + n)]
+    assert idx == list(range(15))  # every row once, in order, indices without gaps
+    assert bad not in dut._taps
