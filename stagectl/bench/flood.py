@@ -1,6 +1,7 @@
 """``stagectl bench flood``: what flooding and half-open clients cost the loop, the watchdog and ``stop``.
 
-    stagectl bench flood --config config/sim.yaml [--phase-s 10] [--clients 16] [--half-open 32] [--json]
+    stagectl bench flood --config config/sim.yaml [--phase-s 10] [--clients 16] [--half-open 32] [--fifo 80]
+                         [--isolation both|thread|process] [--json]
 
 For each isolation (``thread``: the loop is a thread of the daemon, the baseline; ``process``: the loop in its
 own process) the real ``stagectl daemon`` runs on CONFIG in a temporary runtime directory, with a notify
@@ -43,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phase-s", type=float, default=10.0, help="seconds per phase (default 10)")
     p.add_argument("--clients", type=int, default=16, help="flooding clients (default 16)")
     p.add_argument("--half-open", type=int, default=32, help="half-open connections (default 32)")
+    p.add_argument("--fifo", type=int, default=None, metavar="PRIO",
+                   help="run the loop at SCHED_FIFO PRIO (loop.realtime.fifo_priority; needs privileges)")
     p.add_argument("--isolation", choices=("both", "thread", "process"), default="both",
                    help="which isolation(s) to measure (default both: thread is the baseline)")
 
@@ -80,7 +83,8 @@ def _loop_counters(sock: Path) -> tuple[int, int]:
     return int(st["cycle"]), int(st["overruns"])
 
 
-def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_open: int) -> dict[str, Any]:
+def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_open: int,
+             fifo: int | None = None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="stagectl-flood-") as tmp:
         d = Path(tmp)
         base = config.resolve().parent
@@ -94,6 +98,10 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
             return node
 
         raw = absolutize(yaml.safe_load(config.read_text()) or {})
+        if fifo is not None:
+            loop = raw.setdefault("loop", {}) or {}
+            loop["realtime"] = {**(loop.get("realtime") or {}), "fifo_priority": fifo}
+            raw["loop"] = loop
         dm = raw.setdefault("daemon", {}) or {}
         raw["daemon"] = {**dm, "isolation": isolation, "ready_timeout_s": 120, "status_interval_s": 1.0,
                          "telemetry": {**(dm.get("telemetry") or {}), "directory": str(d / "tel")}}
@@ -208,10 +216,11 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
 def run(args: argparse.Namespace) -> dict[str, Any]:
     kinds = ("thread", "process") if args.isolation == "both" else (args.isolation,)
     res: dict[str, Any] = {"config": str(args.config), "phase_s": args.phase_s, "clients": args.clients,
+                           "fifo": args.fifo,
                            "half_open": args.half_open, "cpus": os.cpu_count(),
                            "loadavg_1min_at_start": os.getloadavg()[0]}
     for kind in kinds:
-        res[kind] = _measure(Path(args.config), kind, args.phase_s, args.clients, args.half_open)
+        res[kind] = _measure(Path(args.config), kind, args.phase_s, args.clients, args.half_open, args.fifo)
     res["loadavg_1min_at_end"] = os.getloadavg()[0]
     json.dumps(res)  # plain data only
     return res

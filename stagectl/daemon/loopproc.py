@@ -35,6 +35,7 @@ from multiprocessing import Pipe
 from multiprocessing.connection import Connection
 from typing import Any
 
+from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.remote import DEVICE_STATES, KIND_CODES, LOOP_STATES, RemoteLoop
 from stagectl.daemon.telemetry import SharedTelemetryRing
@@ -180,6 +181,7 @@ class Bridge:
                                                    f.exception()))
 
     def _retune(self, rid: int, blob: bytes) -> None:
+        demote_to_normal_priority()  # started from the loop thread: never compete with it at its priority
         try:
             cfg = pickle.loads(blob)
             fut = self.loop.submit(RetuneRequest(cfg))
@@ -206,6 +208,34 @@ class Bridge:
             pass  # a wake-up is pending already
 
 
+#: sched_getscheduler() ORs this flag in under systemd's CPUSchedulingResetOnFork=yes
+SCHED_RESET_ON_FORK = 0x40000000
+
+
+def inherited_realtime() -> tuple[int, int] | None:
+    """(policy, priority) if the calling thread runs SCHED_FIFO/RR (e.g. the unit's CPUSchedulingPolicy=fifo),
+    else None. Read in the daemon before the fork: with ``CPUSchedulingResetOnFork=yes`` the child starts at
+    SCHED_OTHER and must take the policy back itself."""
+    try:
+        policy = os.sched_getscheduler(0) & ~SCHED_RESET_ON_FORK
+        if policy in (os.SCHED_FIFO, os.SCHED_RR):
+            return policy, os.sched_getparam(0).sched_priority
+    except (OSError, AttributeError):
+        pass
+    return None
+
+
+def _restore_realtime(rt: tuple[int, int] | None) -> None:
+    if rt is None:
+        return
+    try:
+        os.sched_setscheduler(0, rt[0], os.sched_param(rt[1]))
+        log.info("loop process: scheduling policy %d priority %d of the service restored after fork", *rt)
+    except OSError as exc:
+        log.warning("loop process: cannot take the service's real-time priority back (%s); set "
+                    "loop.realtime.fifo_priority", exc.strerror or exc)
+
+
 def _set_pdeathsig(sig: int) -> None:
     try:
         libc = ctypes.CDLL(None, use_errno=True)
@@ -215,7 +245,7 @@ def _set_pdeathsig(sig: int) -> None:
 
 
 def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemetry_buffer_s: float,
-           parent_pid: int, log_level: int) -> int:
+           parent_pid: int, log_level: int, rt: tuple[int, int] | None) -> int:
     """The loop process's body (see the module docstring); returns its exit code."""
     stop = threading.Event()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -263,6 +293,8 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
             if latch:
                 loop.latch_fault(str(latch[0]), str(latch[1]))
             shm.ctl[PHASE] = 1
+            if loop.cfg.realtime.fifo_priority is None:  # the unit's CPUSchedulingPolicy, reset by the fork
+                _restore_realtime(rt)
             try:
                 result = loop.run(stop=stop)
             except BaseException as exc:  # noqa: BLE001
@@ -301,13 +333,14 @@ def spawn_loop_process(build: Builder, app_cfg: Any, *, telemetry_buffer_s: floa
     wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
     parent_pid = os.getpid()
     level = logging.getLogger().getEffectiveLevel()
+    rt = inherited_realtime()
     pid = os.fork()
     if pid == 0:  # ---------------------------------------------------------------- the loop process
         code = 1
         try:
             parent_conn.close()
             os.close(wake_r)
-            code = _child(build, app_cfg, child_conn, wake_w, telemetry_buffer_s, parent_pid, level)
+            code = _child(build, app_cfg, child_conn, wake_w, telemetry_buffer_s, parent_pid, level, rt)
         except BaseException:  # noqa: BLE001 - never return into the daemon's code
             traceback.print_exc()
         finally:
