@@ -1,7 +1,8 @@
 """``stagectl daemon --config FILE [--runtime-dir DIR] [--state-dir DIR]``: the systemd service entry point.
 
-Validates the configuration exactly like ``stagectl check-config``, opens and configures the devices, starts
-the loop, and sends ``READY=1`` to systemd once the drive is enabled and the loop is healthy. Runs until
+Validates the configuration exactly like ``stagectl check-config``, starts the loop process (which opens and
+configures the devices and runs nothing but the loop; docs/daemon.md), and sends ``READY=1`` to systemd once
+the drive is enabled and the loop is healthy. Runs until
 SIGTERM/SIGINT (exit 0 after stopping motion, disabling the drive and flushing telemetry); SIGHUP reloads the
 controller tuning. Exit codes: 0 clean stop, 1 runtime failure, 2 invalid configuration.
 

@@ -171,6 +171,9 @@ class RemoteLoop:
             text = LoopShm.get_text(self.shm.fault_text) if vals[S_HAS_FAULT] == 1.0 else ""
             if int(ctl[STATUS_SEQ]) == s1:
                 break
+        else:  # the writer died mid-update (sequence left odd): its last values are all there is
+            vals = st.tolist()
+            text = LoopShm.get_text(self.shm.fault_text) if vals[S_HAS_FAULT] == 1.0 else ""
         return vals, text
 
     def status(self, timing: bool = True) -> LoopStatus:

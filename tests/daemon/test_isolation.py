@@ -267,3 +267,18 @@ def test_full_disk_loses_whole_rows_and_counts_every_one(tmp_path):
     assert st["lost"] > 0 and "too large" in st["error"].lower()
     assert data_rows == st["rows_written"]
     assert st["rows_written"] + st["lost"] + st["dropped"] == st["produced"]
+
+
+def test_reload_error_text_is_bounded(tmp_path):
+    """A reload error (e.g. a YAML alias bomb's message) is shown in every status/gains reply: bounded."""
+    from stagectl.daemon.reload import Reloader
+    from stagectl.errors import ConfigError
+
+    def load(path):
+        raise ConfigError(["controller.pid: " + "x" * 50_000])
+
+    dut = Reloader(load, tmp_path / "s.yaml", SdNotifier(environ={}), 1.0, lambda cfg: None, lambda: "")
+    dut._reload(None, None)
+    err = dut.status["error"]
+    assert dut.status["ok"] is False and err.startswith("controller.pid: ") and len(err) < 2100
+    assert "more characters" in err
