@@ -5,7 +5,9 @@ check; before any device is opened, before any socket or helper thread of the da
 process**:
 
 1. ignores SIGINT/SIGHUP (the daemon orchestrates), turns SIGTERM into "end the loop", and asks the kernel
-   for SIGTERM when the daemon dies (``PR_SET_PDEATHSIG``): the loop then stops the drive itself;
+   for SIGTERM when the daemon dies (``PR_SET_PDEATHSIG``, which fires when the *forking thread* ends: the
+   service forks from the thread that runs it to the end, its main thread): the loop then stops the drive
+   itself;
 2. builds the stage (opens and configures the devices) with the daemon's builder;
 3. creates the shared-memory block (:class:`~stagectl.runtime.shm.LoopShm`), records its cycle statistics
    there and feeds its telemetry rows into the shared ring, sends the block's name and the loop's facts
