@@ -159,6 +159,12 @@ class RemoteLoop:
         return SafetyFault(name, cause, 0.0, 0)
 
     # ------------------------------------------------------------------ status
+    @property
+    def state(self) -> LoopState:
+        """The loop's state as last published (cheap: no statistics)."""
+        code = self.shm.status[S_STATE]
+        return LOOP_STATES[int(code)] if math.isfinite(code) else LoopState.CONFIGURED
+
     def _snapshot(self) -> tuple[list[float], str]:
         ctl, st = self.shm.ctl, self.shm.status
         vals: list[float] = []
