@@ -9,6 +9,7 @@ socket of our own and ``WATCHDOG_USEC`` = 2 s so it pings the watchdog. Two phas
 
 1. **quiet**: nothing but the daemon (the machine's own load: the reference figure);
 2. **flood**: ``--clients`` connections sending pipelined ``status`` requests as fast as they are answered,
+   one client sending ``gains`` requests that never reads a reply (it is dropped and reconnects),
    ``--half-open`` connections that never finish a line, and one client that sends ``move`` + ``stop``
    repeatedly and times each ``stop`` reply.
 
@@ -158,7 +159,23 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
                     except OSError:
                         continue
 
+            kicked = [0]
+
+            def never_reads() -> None:  # sends requests and never reads a reply (dropped, comes back)
+                line = b'{"request": "gains"}\n' * 256
+                while not done.is_set():
+                    try:
+                        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+                            s.settimeout(1)
+                            s.connect(str(sock))
+                            while not done.is_set():
+                                s.sendall(line)
+                    except OSError:
+                        kicked[0] += 1
+
             threads = [threading.Thread(target=flood, daemon=True) for _ in range(clients)]
+            threads.append(threading.Thread(target=never_reads, daemon=True))
             for th in threads:
                 th.start()
             for i in range(half_open):
@@ -197,6 +214,7 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
                 "missed_cycles_pct": 100.0 * (o1 - o0) / max(1, (c1 - c0) + (o1 - o0)),
                 "watchdog_max_gap_s": notify.max_gap(t0, t1),
                 "status_requests_served": served[0],
+                "non_reader_disconnects": kicked[0],
                 "stop_replies": len(stop_lat), "stop_failures": stop_fail,
                 "stop_latency_p50_ms": 1e3 * stop_lat[len(stop_lat) // 2] if stop_lat else None,
                 "stop_latency_max_ms": 1e3 * stop_lat[-1] if stop_lat else None,

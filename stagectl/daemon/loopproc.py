@@ -287,7 +287,10 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
                        "columns": loop.columns, "period_s": loop.period_s, "cfg": loop.cfg, "limits": loop.limits,
                        "simulated": asm.simulated, "describe": asm.describe,
                        "controller_config": asm.controller_config, "pid": os.getpid()})
-            go = conn.recv()
+            try:
+                go = conn.recv()
+            except (EOFError, OSError):  # the daemon is gone before starting us: close the devices, exit
+                return 1
             shm.unlink()  # both processes have it mapped: no name left behind whatever happens next
             if not (isinstance(go, dict) and go.get("go")) or stop.is_set() or shm.ctl[STOP_REQ]:
                 return 0
