@@ -21,6 +21,7 @@ the phase's start and end), the largest gap between two ``WATCHDOG=1`` pings, st
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import signal
@@ -75,7 +76,7 @@ class _Notify:
 
     def max_gap(self, t0: float, t1: float) -> float:
         ts = [t0] + [t for t in self.pings if t0 <= t <= t1] + [t1]
-        return max(b - a for a, b in zip(ts, ts[1:]))
+        return max(b - a for a, b in itertools.pairwise(ts))
 
 
 def _loop_counters(sock: Path) -> tuple[int, int]:

@@ -7,7 +7,9 @@ control socket, rewrite its run marker or open the devices the first one drives.
 
 The lock is tied to the open file description, so it is released by the kernel when the process dies
 however it dies (SIGKILL included): no stale lock to clean up. The file itself is never deleted (deleting a
-lock file races with a third process opening it); it holds the holder's pid as text, for the message.
+lock file races with a third process opening it); it holds the holder's pid as text, for the message. The
+loop process inherits the locked descriptor: when the daemon in the file is dead but the lock is still held,
+its loop process is still stopping the drive, and a new daemon (systemd's restart) waits for it, bounded.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import errno
 import fcntl
 import logging
 import os
+import time
 from pathlib import Path
 
 from stagectl.errors import StageError
@@ -34,7 +37,8 @@ class InstanceLockedError(StageError):
 class InstanceLock:
     """Exclusive locks on ``<dir>/stagectl.lock`` for every distinct directory given (see the module docstring)."""
 
-    def __init__(self, *directories: Path | None) -> None:
+    def __init__(self, *directories: Path | None, orphan_wait_s: float = 10.0) -> None:
+        self.orphan_wait_s = orphan_wait_s
         seen: dict[Path, None] = {}
         for d in directories:
             if d is not None:
@@ -53,7 +57,7 @@ class InstanceLock:
                 path.parent.mkdir(parents=True, mode=0o750, exist_ok=True)
                 fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
                 try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    _lock(fd, path, self.orphan_wait_s)
                 except OSError as exc:
                     holder = _read_pid(fd)
                     os.close(fd)
@@ -78,6 +82,40 @@ class InstanceLock:
                 os.close(fd)
             except OSError:
                 pass
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _lock(fd: int, path: Path, orphan_wait_s: float) -> None:
+    """``flock(LOCK_EX|LOCK_NB)``; if it is held but the pid written in the file is dead, the holder is that
+    daemon's loop process still stopping the drive (it inherited the lock): wait for it, at most
+    ``orphan_wait_s``. A live holder is refused at once. Raises OSError (EWOULDBLOCK) when still held."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return
+    except OSError as exc:
+        holder = _read_pid(fd)
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN) or holder is None or _alive(holder):
+            raise
+    log.warning("%s is held by the loop process of daemon %d, which has ended: waiting up to %.0f s for it to "
+                "stop the drive", path, holder, orphan_wait_s)
+    end = time.monotonic() + orphan_wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN) or time.monotonic() >= end:
+                raise
+        time.sleep(0.05)
 
 
 def _read_pid(fd: int) -> int | None:

@@ -273,7 +273,7 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
         try:
             telemetry_rows = 0
             if telemetry_buffer_s > 0:
-                n = max(1024, int(math.ceil(telemetry_buffer_s / loop.period_s)))
+                n = max(1024, math.ceil(telemetry_buffer_s / loop.period_s))
                 telemetry_rows = 1 << (n - 1).bit_length()
             rows = telemetry_rows or 2
             shm = LoopShm.create(ShmLayout(len(loop.columns), rows, int(loop.cfg.stats_window)))
@@ -302,7 +302,7 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
                 _restore_realtime(rt)
             try:
                 result = loop.run(stop=stop)
-            except BaseException as exc:  # noqa: BLE001
+            except BaseException as exc:
                 log.exception("control loop ended with an error")
                 bridge.publish(running=False)
                 conn.send({"error": f"{type(exc).__name__}: {exc}"[:4000]})
@@ -313,7 +313,7 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
         finally:
             try:
                 asm.close()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("closing devices failed")
             if bridge is not None:
                 bridge.publish(running=False)

@@ -76,7 +76,7 @@ from stagectl.runtime.stats import CycleStats
 from stagectl.runtime.status import FaultInfo, LoopResult, LoopState, LoopStateError, LoopStatus
 from stagectl.safety import SafetyFault
 
-__all__ = ["KIND_CODES", "LOOP_STATES", "DEVICE_STATES", "LoopLike", "RemoteLoop", "reply_error"]
+__all__ = ["DEVICE_STATES", "KIND_CODES", "LOOP_STATES", "LoopLike", "RemoteLoop", "reply_error"]
 
 log = logging.getLogger("stagectl.daemon")
 

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["CMD_SLOTS", "CTL", "LoopShm", "REP_SLOTS", "ShmLayout"]
+__all__ = ["CMD_SLOTS", "CTL", "REP_SLOTS", "LoopShm", "ShmLayout"]
 
 #: ``ctl`` indices: (name, writer)
 CTL = {

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 
+import pytest
 import yaml
 
 from stagectl.daemon.control import ControlClient
@@ -282,3 +283,40 @@ def test_reload_error_text_is_bounded(tmp_path):
     err = dut.status["error"]
     assert dut.status["ok"] is False and err.startswith("controller.pid: ") and len(err) < 2100
     assert "more characters" in err
+
+
+def test_lock_held_by_a_dead_daemons_loop_process_is_waited_for_a_live_one_refused(tmp_path):
+    """The loop process inherits the lock: a restart after the daemon died waits for it (bounded); a live
+    holder is refused at once."""
+    from stagectl.daemon.instance import InstanceLock, InstanceLockedError
+
+    go_r, go_w = os.pipe()
+    held_r, held_w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the "orphaned loop process": holds the lock until told to finish
+        code = 1
+        try:
+            lock = InstanceLock(tmp_path)
+            lock.acquire()
+            os.write(held_w, b"h")
+            os.read(go_r, 1)
+            code = 0
+        finally:
+            os._exit(code)
+    try:
+        assert os.read(held_r, 1) == b"h"
+        with pytest.raises(InstanceLockedError, match=str(pid)):  # its pid is alive: refused at once
+            InstanceLock(tmp_path, orphan_wait_s=60).acquire()
+        dead = subprocess.Popen([sys.executable, "-c", "pass"])
+        dead.wait()
+        (tmp_path / "stagectl.lock").write_text(f"{dead.pid}\n")  # the daemon named in the file is gone
+        os.write(go_w, b"g")  # the loop process finishes stopping the drive
+        dut = InstanceLock(tmp_path, orphan_wait_s=60)
+        dut.acquire()  # waited for it instead of refusing
+        assert dut.held
+        dut.release()
+    finally:
+        os.write(go_w, b"g")
+        os.waitpid(pid, 0)
+        for fd in (go_r, go_w, held_r, held_w):
+            os.close(fd)

@@ -14,22 +14,22 @@ from multiprocessing import Pipe
 
 import numpy as np
 import pytest
-
+from stagectl.drivers.base import FaultKind
+from stagectl.sim.direct import PlantIO
 from support import RampReference
+
 from stagectl.clock import SimClock
 from stagectl.control.api import Command
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.loopproc import Bridge
 from stagectl.daemon.remote import RESERVED_SLOTS, RemoteLoop
 from stagectl.daemon.telemetry import SharedTelemetryRing
-from stagectl.drivers.base import FaultKind
 from stagectl.loop import ControlLoop, LoopConfig
 from stagectl.runtime.requests import MoveRequest, RequestError, ResetRequest, StopRequest
 from stagectl.runtime.shm import CMD_SLOTS, LoopShm, ShmLayout
 from stagectl.runtime.stats import CycleStats
 from stagectl.runtime.status import LoopState, LoopStateError
 from stagectl.safety import Safety, SafetyConfig
-from stagectl.sim.direct import PlantIO
 
 
 class MassPlant:
@@ -107,7 +107,7 @@ def pair():
 
 
 def test_status_through_the_block_equals_the_loops_own(pair):
-    loop, remote, bridge, io = pair
+    loop, remote, bridge, _ = pair
     loop.run(cycles=300)
     bridge.publish(running=False)
     mine, theirs = loop.status(), remote.status()
@@ -121,7 +121,7 @@ def test_status_through_the_block_equals_the_loops_own(pair):
 
 
 def test_requests_and_replies_go_through_the_rings(pair):
-    loop, remote, bridge, io = pair
+    loop, remote, _, _ = pair
     move = remote.submit(MoveRequest(target_m=2e-4))
     with pytest.raises(RequestError) as err:  # limits are checked daemon-side, before the ring
         remote.submit(MoveRequest(target_m=1.0))
@@ -148,7 +148,7 @@ def test_requests_and_replies_go_through_the_rings(pair):
 
 
 def test_a_flood_of_moves_leaves_room_for_stop(pair):
-    loop, remote, bridge, io = pair
+    loop, remote, _, _ = pair
     moves = []
     with pytest.raises(RequestError, match="busy"):
         for _ in range(CMD_SLOTS):
