@@ -332,6 +332,10 @@ def test_loop_process_outlives_no_daemon_and_a_second_daemon_waits_its_turn(daem
         st = c.request({"request": "status"})["status"]
     loop_pid = st["loop_pid"]
     assert st["isolation"] == "process" and loop_pid != proc.pid and not _gone(loop_pid)
+    # nothing but the loop (its main thread) and the queued log writer run there; clients, sockets, the
+    # telemetry writer and the supervisor are threads of the daemon
+    assert len(os.listdir(f"/proc/{loop_pid}/task")) == 2
+    assert len(os.listdir(f"/proc/{proc.pid}/task")) > 2
     second = subprocess.run([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
                             capture_output=True, text=True, timeout=120, env={**os.environ, "NOTIFY_SOCKET": ""})
     assert second.returncode == 1 and f"pid {proc.pid}" in second.stderr, second.stderr[-2000:]
