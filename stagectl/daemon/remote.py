@@ -139,6 +139,7 @@ class RemoteLoop:
         self._next_id = 1
         self._blob_cmd = -1  # command index of the last request that carried a blob
         self._latch: tuple[str, str] | None = None
+        self._sinks: tuple[TelemetrySink, ...] = ()
         self._ended = False
         self._exit_status: int | None = None
         self.result: LoopResult | None = None
@@ -147,11 +148,23 @@ class RemoteLoop:
 
     # ------------------------------------------------------------------ sinks (telemetry is shared memory)
     def add_sink(self, sink: TelemetrySink) -> None:
-        if sink is not self.ring:
-            raise StageError("add_sink: a loop in its own process feeds only its shared telemetry ring")
+        """The shared ring is the loop process's own sink already. Any other sink (a live stream's tap) is fed
+        here in the daemon, from the telemetry writer's taps (:meth:`feed_sinks`), row by row and in order;
+        never in the loop process."""
+        if sink is self.ring:
+            return
+        with self._cmd_lock:
+            self._sinks = (*self._sinks, sink)
 
     def remove_sink(self, sink: TelemetrySink) -> None:
-        pass
+        with self._cmd_lock:
+            self._sinks = tuple(s for s in self._sinks if s is not sink)
+
+    def feed_sinks(self, first: int, rows: Any) -> None:
+        """Writer tap: every drained block of telemetry rows to the daemon-side sinks (writer thread)."""
+        for sink in self._sinks:
+            for row in rows:
+                sink.append(row)
 
     def latch_fault(self, name: str, cause: str) -> FaultInfo:
         """Latched by the loop process before its loop starts (sent with the start message)."""

@@ -161,6 +161,8 @@ class StageService:
         log.info("configured: %s", ", ".join(f"{k}={v}" for k, v in asm.describe.items()) or "ok")
         shared_ring = loop.ring if isinstance(loop, RemoteLoop) else None
         self.writer = start_telemetry(tc, tel_dir, loop.columns, loop.period_s, ring=shared_ring)
+        if self.writer is not None and isinstance(loop, RemoteLoop):
+            self.writer.add_tap(loop.feed_sinks)  # daemon-side sinks (the scope's stream) fed from the writer
         if self.writer is not None and self.telemetry_problem is not None:
             self.writer.report_error(self.telemetry_problem)  # READY's STATUS= says so from the first line
         self.server = ControlServer.from_config(p.runtime_dir / self.cfg.socket_name, self.handle, self.cfg)
