@@ -230,8 +230,10 @@ class SimWorld:
     # ------------------------------------------------------------------ dispatch
     def _dispatch(self, msg: can.Message) -> None:
         self.frames_in += 1
-        if msg.arbitration_id == 0x080 and not msg.is_error_frame and self._thread is None and self.drive:
-            self._sim_t += self.drive.period_s
+        drive = self.drive
+        if (drive is not None and msg.arbitration_id == drive.sync_cob_id and not msg.is_error_frame
+                and not msg.is_extended_id and self._thread is None):
+            self._sim_t += drive.period_s
         t = self.now()
         for d in self.devices:
             d.on_frame(msg, t)
@@ -267,6 +269,7 @@ class SimWorld:
                 with self._lock:
                     while msg is not None:
                         self._dispatch(msg)
+                        self._tick()  # timers after every frame: steady traffic must not starve heartbeats
                         msg = bus.recv(0.0)
                     self._tick()
         except Exception as exc:  # noqa: BLE001 - reported by pump()/stop()
