@@ -693,21 +693,20 @@ class SimDriveConfig:
     sync_timeout_s: float = param(
         0.1, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
         "fault (0 = off)", ge=0)
-    standstill_m_s: float = param(1e-5, unit="m/s", desc="quick-stop / fault-reaction ramp ends below this speed",
-                                  gt=0)
     eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia402.eds)")
 
 
 class SimCia402Drive(SimCanopenDevice):
     """Simulated CiA 402 drive in cyclic synchronous torque mode driving ``plant`` (see module docstring).
 
-    Quick stop (0x605A) and fault reaction (0x605E) ramps: option 0 switches the power stage off at once; the
-    others brake along a velocity ramp ``v_ref(t) = v0 − sign(v0)·a·t`` with ``a`` = quick stop deceleration
-    0x6085 × ``velocity_resolution_m_s`` [m/s²], one period at a time on the drive's clock, with the force of
-    a tuned velocity loop ``F = clamp(m·(v_ref − v)/T, ±F_max)`` (``m`` the plant's mass, ``F_max`` = 0x6072 ×
-    ``force_per_unit_n``); the ramp ends when ``v_ref = 0`` and ``|v| < standstill_m_s`` (or after
-    ``|v0|/a + 1 s``). Then 0x605A 1–4 → SWITCH ON DISABLED, 5–8 stay in QUICK STOP ACTIVE; a fault reaction
-    ends in FAULT.
+    Quick stop (0x605A) and fault reaction (0x605E) in a torque mode: option 0 switches the power stage off at
+    once; the others ramp the torque down to zero with the torque slope 0x6087 [‰ of rated torque per s],
+    one period at a time on the drive's own clock::
+
+        F_k+1 = sign(F_k) · max(0, |F_k| − 0x6087 · force_per_unit_n · T)
+
+    When it reaches 0: 0x605A 1–4 → SWITCH ON DISABLED, 5–8 stay in QUICK STOP ACTIVE (transition 16 to
+    OPERATION ENABLED allowed from then on); a fault reaction ends in FAULT.
     """
 
     def __init__(self, plant: Any, cfg: SimDriveConfig, send: Callable[[can.Message], None],
@@ -718,8 +717,6 @@ class SimCia402Drive(SimCanopenDevice):
         super().__init__(cfg.node_id, eds, send, "drive")
         self.plant = plant
         self.cfg = cfg
-        pcfg = getattr(plant, "cfg", None)
-        self.mass_kg = float(getattr(pcfg, "mass_kg", 1.0))
         self.on_reset()
 
     def on_reset(self) -> None:
@@ -734,7 +731,7 @@ class SimCia402Drive(SimCanopenDevice):
         self.velocity_units = 0
         self._plant_t = self.t_s
         self._sync_seen = False
-        self._ramp: tuple[float, float, float] | None = None  # (v0, decel, elapsed)
+        self._ramp: float | None = None  # torque slope [N/s] while a quick-stop / fault-reaction ramp runs
 
     # ------------------------------------------------------------------ process values
     @property
@@ -837,44 +834,27 @@ class SimCia402Drive(SimCanopenDevice):
         return raw - 0x10000 if raw & 0x8000 else raw
 
     def _start_ramp(self, option: int) -> None:
-        """Begin a quick-stop / fault-reaction ramp (option 0: power stage off at once)."""
+        """Begin a quick-stop / fault-reaction torque ramp (option 0: power stage off at once)."""
         if option <= 0:
             self._ramp = None
             self.force_n = 0.0
             return
-        decel = max(1, self._stored(0x6085, 0, "<I", 1_000_000)) * self.cfg.velocity_resolution_m_s
-        self._ramp = (float(getattr(self.plant, "v_m_s", 0.0)), decel, 0.0)
-        self.force_n = self._ramp_force()
-
-    def _ramp_force(self) -> float:
-        """Braking force for the next period along the ramp (see class docstring)."""
-        if self._ramp is None:
-            return 0.0
-        v0, a, el = self._ramp
-        T = self.period_s
-        left = max(0.0, abs(v0) - a * (el + T))
-        v_ref = left if v0 > 0 else -left
-        v = float(getattr(self.plant, "v_m_s", 0.0))
-        f_max = self.max_torque_units * self.cfg.force_per_unit_n
-        return max(-f_max, min(f_max, self.mass_kg * (v_ref - v) / T))
+        self._ramp = max(1, self._stored(0x6087, 0, "<I", 1_000_000)) * self.cfg.force_per_unit_n
 
     def _advance_ramp(self) -> None:
-        """After one plant period: end the ramp at standstill, else the next braking force."""
+        """After one period: the next force on the ramp; at zero the ramp ends (see class docstring)."""
         if self._ramp is None:
             return
-        v0, a, el = self._ramp
-        el += self.period_s
-        self._ramp = (v0, a, el)
-        v = abs(float(getattr(self.plant, "v_m_s", 0.0)))
-        if (a * el >= abs(v0) and v < self.cfg.standstill_m_s) or el > abs(v0) / a + 1.0:
-            self._ramp = None
-            self.force_n = 0.0
-            if self.state is _S.FAULT_REACTION_ACTIVE:
-                self.state = _S.FAULT
-            elif self.state is _S.QUICK_STOP_ACTIVE and self._option(0x605A, 2) <= 4:
-                self.state = _S.SWITCH_ON_DISABLED
-        else:
-            self.force_n = self._ramp_force()
+        left = abs(self.force_n) - self._ramp * self.period_s
+        if left > 1e-12:
+            self.force_n = left if self.force_n > 0 else -left
+            return
+        self._ramp = None
+        self.force_n = 0.0
+        if self.state is _S.FAULT_REACTION_ACTIVE:
+            self.state = _S.FAULT
+        elif self.state is _S.QUICK_STOP_ACTIVE and self._option(0x605A, 2) <= 4:
+            self.state = _S.SWITCH_ON_DISABLED
 
     def enter_fault(self, code: int) -> None:
         """A fault: EMCY ``code``, FAULT REACTION ACTIVE (0x605E ramp or power off), then FAULT."""
