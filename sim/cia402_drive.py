@@ -48,9 +48,11 @@ mode 0x6060 (only 0 and 10 = cyclic synchronous torque are accepted), and the pl
     0x6064 = wrap32(round((plant.measure() + jump) / resolution_m))
     send TPDOs
 
-While the power stage is on and SYNC has been missing for three periods the drive runs the plant on its own
-clock (periods of 0x1006 in device time), so the stage keeps moving under the last torque until SYNC
-supervision (``sync_timeout_s``) faults the drive with EMCY 0x8700, and a quick stop completes without SYNC.
+While the power stage is on and SYNC is missing the drive runs the plant on its own clock (periods of 0x1006 in
+device time): in QUICK STOP / FAULT REACTION ACTIVE after three silent periods (a ramp completes without SYNC),
+in OPERATION ENABLED after half of ``sync_timeout_s`` (the stage keeps moving under the last torque; a merely
+late SYNC on a loaded machine does not move it), until SYNC supervision (``sync_timeout_s``) faults the drive
+with EMCY 0x8700.
 
 The protocol constants are written out here on purpose, independently of the driver in
 :mod:`stagectl.drivers.cia402`, so that the two sides check each other (and canopen's BaseNode402 checks both).
@@ -875,6 +877,9 @@ class SimCia402Drive(SimCanopenDevice):
         self.error_code = EMCY_INTERNAL
 
     def on_heartbeat_lost(self) -> None:
+        if self.state in (_S.FAULT, _S.FAULT_REACTION_ACTIVE):
+            self.error_code = EMCY_HEARTBEAT  # 0x603F shows the last error
+            return
         if self.state not in (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE):
             return
         action = self._option(0x6007, 1)
@@ -913,12 +918,15 @@ class SimCia402Drive(SimCanopenDevice):
 
     def on_sync(self, active: set[SimFault]) -> None:
         self._sync_seen = True
-        self._plant_t = self.t_s - self.period_s
-        if SimFault.DRIVE_FAULT in active:
+        self.jump_m = self.faults.jump_m(active)
+        if self._plant_t > self.t_s - 0.5 * self.period_s:  # the own clock already ran this period
+            self.position_counts = self._sample()
+        else:
+            self._plant_t = self.t_s - self.period_s
+            self._step_period()
+        if SimFault.DRIVE_FAULT in active:  # FAULT REACTION ACTIVE for (at least) this period, then FAULT
             spec = self.faults.spec_of(SimFault.DRIVE_FAULT)
             self.enter_fault(spec.code if spec else 0x2310)
-        self.jump_m = self.faults.jump_m(active)
-        self._step_period()
 
     def on_tick(self, t_s: float) -> None:
         T = self.period_s
@@ -929,7 +937,12 @@ class SimCia402Drive(SimCanopenDevice):
             log.warning("%s: no SYNC for %.3g s (> sync_timeout_s %.3g s): EMCY 0x%04X, fault", self.name,
                         silent_s, self.cfg.sync_timeout_s, EMCY_SYNC_LOST)
             self.enter_fault(EMCY_SYNC_LOST)
-        if self.state in _POWERED and silent_s > OWN_CLOCK_PERIODS * T + _EPS:
+        if self.state is _S.OPERATION_ENABLED:
+            # the controller may only be late (thread mode on a loaded machine): take over when it is surely gone
+            take_over_s = 0.5 * self.cfg.sync_timeout_s if self.cfg.sync_timeout_s > 0 else 0.05
+        else:
+            take_over_s = OWN_CLOCK_PERIODS * T  # a quick stop / fault reaction completes without SYNC
+        if self.state in _POWERED and silent_s > take_over_s + _EPS:
             n = 0
             while t_s - self._plant_t >= T - _EPS and n < 10_000 and self.state in _POWERED:
                 self._step_period()
