@@ -332,6 +332,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         return State402.from_statusword(self.statusword)
 
     def _reset_cyclic(self) -> None:
+        self._held: tuple[int, int] | None = None
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -601,6 +602,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        if not self.cfg.sync_producer:
+            self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
             self._evaluate(got)
@@ -650,7 +653,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if not self._synced:
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
-        return self._evaluate(self._wait_tpdo())
+        got = self._wait_tpdo()
+        if got is None and self._held is not None:
+            got = self._held
+        self._held = None
+        return self._evaluate(got)
 
     def _evaluate(self, got: tuple[int, int] | None) -> Measurement:
         self.cycles += 1
