@@ -69,6 +69,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+from canopen.objectdictionary import ODVariable
 
 from stagectl.resources import EDS_DIR
 from stagectl.schema import param
@@ -352,11 +353,12 @@ class SimCanopenDevice:
             obj = obj[sub]
         elif sub != 0:
             raise _abort(ABORT_NO_OBJECT)
+        assert isinstance(obj, ODVariable)
         access = str(obj.access_type)
         readable, writable = "r" in access or access == "const", "w" in access
         if not obj.pdo_mappable or obj.data_type not in _TYPE_FMT or (readable if tx else writable) is False:
             raise _abort(ABORT_NOT_MAPPABLE)
-        if bits != 8 * struct.calcsize(_TYPE_FMT[obj.data_type]):
+        if bits != 8 * struct.calcsize(_TYPE_FMT[int(obj.data_type or 0)]):
             raise _abort(ABORT_INCOMPATIBLE)
         return bits
 
@@ -427,7 +429,8 @@ class SimCanopenDevice:
                     obj = od[index]
                     if not hasattr(obj, "data_type"):
                         obj = obj[sub]
-                    fmt += _TYPE_FMT[obj.data_type]
+                    assert isinstance(obj, ODVariable)
+                    fmt += _TYPE_FMT[int(obj.data_type or 0)]
                     fields.append((index, sub))
                 pdo = _Pdo(n, cob & 0x7FF, ttype, struct.Struct(fmt), fields,
                            inhibit_s=self._stored(comm, 3, "<H", 0) * 1e-4,
@@ -451,6 +454,7 @@ class SimCanopenDevice:
         obj = self.node.object_dictionary[index]
         if not hasattr(obj, "data_type"):
             obj = obj[sub]
+        assert isinstance(obj, ODVariable)
         raw = obj.decode_raw(self.node.get_data(index, sub))
         return raw if isinstance(raw, (int, float)) else 0
 
@@ -693,7 +697,7 @@ class SimDriveConfig:
     force_per_unit_n: float = param(0.01, unit="N", desc="newtons per unit of target torque 0x6071", gt=0)
     velocity_resolution_m_s: float = param(1e-6, unit="m/s", desc="velocity per unit of 0x606C", gt=0)
     sync_timeout_s: float = param(
-        0.1, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
+        0.5, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
         "fault (0 = off)", ge=0)
     eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia402.eds)")
 
@@ -733,6 +737,7 @@ class SimCia402Drive(SimCanopenDevice):
         self.velocity_units = 0
         self._plant_t = self.t_s
         self._sync_seen = False
+        self._max_torque: int | None = None
         self._ramp: float | None = None  # torque slope [N/s] while a quick-stop / fault-reaction ramp runs
 
     # ------------------------------------------------------------------ process values
@@ -745,8 +750,10 @@ class SimCia402Drive(SimCanopenDevice):
 
     @property
     def max_torque_units(self) -> int:
-        """0x6072 max torque [per mille of rated torque]."""
-        return self._stored(0x6072, 0, "<H", 0x7FFF)
+        """0x6072 max torque [per mille of rated torque] (cached; updated on every write of 0x6072)."""
+        if self._max_torque is None:
+            self._max_torque = self._stored(0x6072, 0, "<H", 0x7FFF)
+        return self._max_torque
 
     @property
     def torque_units(self) -> int:
@@ -790,6 +797,8 @@ class SimCia402Drive(SimCanopenDevice):
             self.apply_controlword(_u(bytes(data), "<H"))
         elif index == 0x6071:
             self.target_torque = struct.unpack_from("<h", bytes(data))[0]
+        elif index == 0x6072:
+            self._max_torque = _u(bytes(data), "<H")
         else:
             super()._on_sdo_write(index, subindex, od, data)
 

@@ -64,6 +64,8 @@ from stagectl.sim.socketcand import SocketcandServer
 log = logging.getLogger(__name__)
 
 _counter = itertools.count(1)
+#: thread mode: run the device timers at least this often while frames keep arriving [s]
+TICK_EVERY_S = 0.0005
 
 
 def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec, ...] | None:
@@ -166,6 +168,7 @@ class SimWorld:
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
+        self._last_tick = 0.0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -242,6 +245,7 @@ class SimWorld:
             self._serial_bytes += int(ifm.trigger())  # after the drive stepped the plant
 
     def _tick(self) -> None:
+        self._last_tick = time.monotonic()
         t = self.now()
         for d in self.devices:
             d.tick(t)
@@ -269,7 +273,8 @@ class SimWorld:
                 with self._lock:
                     while msg is not None:
                         self._dispatch(msg)
-                        self._tick()  # timers after every frame: steady traffic must not starve heartbeats
+                        if time.monotonic() - self._last_tick >= TICK_EVERY_S:  # steady traffic must not
+                            self._tick()  # starve the timers (heartbeat) while frames keep coming
                         msg = bus.recv(0.0)
                     self._tick()
         except Exception as exc:  # noqa: BLE001 - reported by pump()/stop()

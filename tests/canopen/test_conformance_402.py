@@ -151,7 +151,7 @@ def test_fault_reaction_ramp_0x605e(master):
 def test_sync_supervision_faults_and_stage_keeps_moving(master):
     """SYNC stops while 3 N are commanded: the plant keeps moving on the drive's clock (not frozen) until
     SYNC supervision (sim.drive.sync_timeout_s = 0.1 s) faults the drive with EMCY 0x8700 and zero force."""
-    world, m = master()
+    world, m = master(drive={"sync_timeout_s": 0.1})
     _enable_cst(world, m, 300)
     m.sync(50)
     m.frames()
