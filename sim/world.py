@@ -16,7 +16,8 @@ Transports: ``virtual`` (python-can in-process bus; channel name unique per worl
 tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
 process connects with python-can's stock socketcand client). ``ready_info()`` says where to connect.
 
-The plant is stepped only by the drive, at each SYNC, by exactly one nominal period; SYNC is dispatched
+The plant is stepped only by the drive: at each SYNC by exactly one nominal period, and on the drive's own
+clock while its power stage is on and SYNC is missing (docs/canopen.md §1); SYNC is dispatched
 to the drive before the encoder so the encoder samples the stepped plant. The optional serial
 interferometer (``stagectl.sim.interferometer.SimInterferometer``) is either triggered by each SYNC right after
 the drive stepped the plant (``trigger: sync``, both modes), or streams from its own thread in thread

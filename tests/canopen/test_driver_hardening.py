@@ -156,3 +156,41 @@ def test_encoder_persisting_faults(make_world):
         assert any(p.startswith("heartbeat_lost") for p in enc.persisting_faults())
     finally:
         enc.close()
+
+
+def test_loop_reset_after_nmt_reset_node_from_another_node():
+    """Whole stage (lock-step): one ``0x000 [81 01]`` frame from another participant reboots the drive; the
+    loop latches a fault; its reset re-configures the drive and the stage moves again."""
+    from pathlib import Path
+
+    import yaml
+
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.config import parse_app_config
+    from stagectl.loop import LoopState
+    from stagectl.runtime.requests import MoveRequest, ResetRequest
+
+    sim_yaml = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+    data = yaml.safe_load(sim_yaml.read_text())
+    data["io"].update(kind="embedded_canopen")
+    cfg = parse_app_config(data, sim_yaml)
+    with build_stage(cfg, clock=SimClock()) as stage:
+        loop, world = stage.loop, stage.world
+        bus = canbus.open_bus({"interface": "virtual", "channel": world.channel})
+        try:
+            reset_node = can.Message(arbitration_id=0x000, data=b"\x81\x01", is_extended_id=False)
+            loop.on_cycle = lambda: loop.cycle == 50 and bus.send(reset_node)
+            loop.run(cycles=100)
+            loop.on_cycle = None
+            assert loop.status().state is LoopState.FAULT
+            fut = loop.submit(ResetRequest())
+            loop.run(cycles=5)
+            assert fut.result(timeout=0)["state"] == "active"
+            assert world.drive.nmt_state == NMT_OPERATIONAL
+            mv = loop.submit(MoveRequest(relative_m=2e-6))
+            loop.run(cycles=400)
+            assert mv.result(timeout=0)["target_m"] == pytest.approx(loop.status().x_ref_m)
+            assert loop.status().fault is None
+        finally:
+            canbus.close_bus(bus)
