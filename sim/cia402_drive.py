@@ -737,6 +737,7 @@ class SimCia402Drive(SimCanopenDevice):
         self.velocity_units = 0
         self._plant_t = self.t_s
         self._sync_seen = False
+        self._own_steps = 0  # plant periods stepped on the drive's own clock since the last SYNC
         self._max_torque: int | None = None
         self._ramp: float | None = None  # torque slope [N/s] while a quick-stop / fault-reaction ramp runs
 
@@ -928,7 +929,8 @@ class SimCia402Drive(SimCanopenDevice):
     def on_sync(self, active: set[SimFault]) -> None:
         self._sync_seen = True
         self.jump_m = self.faults.jump_m(active)
-        if self._plant_t > self.t_s - 0.5 * self.period_s:  # the own clock already ran this period
+        if self._own_steps:  # the own clock already ran up to now: this SYNC only samples
+            self._own_steps = 0
             self.position_counts = self._sample()
         else:
             self._plant_t = self.t_s - self.period_s
@@ -956,3 +958,4 @@ class SimCia402Drive(SimCanopenDevice):
             while t_s - self._plant_t >= T - _EPS and n < 10_000 and self.state in _POWERED:
                 self._step_period()
                 n += 1
+            self._own_steps += n
