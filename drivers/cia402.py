@@ -5,9 +5,12 @@ Start-up (``configure``, SDO only, canopen's Notifier running): NMT pre-operatio
 0x1006 (= loop ``period_s``), the drive's heartbeat producer 0x1017, the drive's heartbeat consumer 0x1016
 (watching *our* heartbeat, so the drive stops by itself if the controller dies), the PDO mapping
 (TPDO1 = statusword 0x6041 + position actual 0x6064, optional TPDO2 = velocity actual 0x606C;
-RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1), mode of
-operation 0x6060 = 10 (CST); then NMT start and the Notifier is stopped ("pump mode", docs/platform.md
-§0.2): during cyclic operation the loop thread reads the bus itself.
+RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1; each PDO read back
+and compared), max torque 0x6072 read (if present) into the force clamp, mode of operation 0x6060 = 10 (CST)
+confirmed by polling 0x6061 for up to ``mode_switch_timeout_s``; then NMT start and the Notifier is stopped
+("pump mode", docs/platform.md §0.2): during cyclic operation the loop thread reads the bus itself. 0x1006 is
+optional (a drive that only consumes SYNC); every start-up failure is one line naming the object, the SDO
+abort code with its CiA 301 meaning and what to check (:func:`explain_sdo_error`). docs/canopen.md §4.
 
 Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::
 
@@ -199,9 +202,9 @@ class Cia402Config:
         "switch modes in milliseconds)", gt=0)
     sync_producer: bool = param(
         True, desc="the loop sends SYNC (0x080); false = another node produces SYNC and the loop follows its TPDOs")
-    no_answer_cycles: int = param(
-        10, desc="enable/disable/fault reset give up after this many cycles without any TPDO (drive not "
-        "answering: bus-off, unpowered) instead of waiting state_timeout_s", ge=1)
+    no_answer_timeout_s: float = param(
+        0.05, unit="s", desc="enable/disable/fault reset give up after this long without any TPDO (drive not "
+        "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
 
     def __post_init__(self) -> None:
@@ -777,7 +780,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             got = self._wait_tpdo()
             self._synced = False
             silent = 0 if got is not None else silent + 1
-            if silent >= self.cfg.no_answer_cycles:
+            if silent >= max(2, self.timing.cycles(self.cfg.no_answer_timeout_s)):
                 raise DriverTimeoutError(
                     f"{self.name}: {what}: drive not answering (no TPDO for {silent} cycles); check its power, "
                     f"the bus (bus-off?) and that it is OPERATIONAL"
