@@ -285,3 +285,21 @@ def test_heartbeat_on_schedule_under_traffic(master):
             beats.append(world.now())
     gaps = [round(b - a, 6) for a, b in zip(beats, beats[1:])]
     assert len(beats) >= 29 and set(gaps) == {0.01}, gaps
+
+
+SDO_ABORTS = [
+    ("write read-only 0x6041", (0x6041, 0, "<H", 1), 0x06010002),
+    ("object does not exist", (0x2999, 0, "<H", 1), 0x06020000),
+    ("sub-index does not exist", (0x1018, 9, "<I", 1), 0x06090011),
+    ("length does not match", (0x6040, 0, "<I", 1), 0x06070010),
+    ("mode not implemented", (0x6060, 0, "<b", 1), 0x06090030),
+    ("SYNC producer bit on a consumer", (0x1005, 0, "<I", 0x40000080), 0x06090030),
+    ("EMCY COB-ID change while valid", (0x1014, 0, "<I", 0x0A0), 0x06090030),
+]
+
+
+@pytest.mark.parametrize("what, write, code", SDO_ABORTS, ids=[a[0] for a in SDO_ABORTS])
+def test_sdo_abort_codes(master, what, write, code):
+    world, m = master()
+    assert m.abort_code(*write) == code, what
+    assert m.upload(0x1000, 0, "<I") & 0xFFFF == 402  # the server goes on answering
