@@ -753,7 +753,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     def persisting_faults(self) -> tuple[str, ...]:
         """Faults whose cause is present now: link closed, bus-off with nothing heard since, drive heartbeat
-        still missing, drive still in FAULT after a fault reset (docs/canopen.md). Real-time safe."""
+        still missing, drive still in FAULT after a fault reset (docs/canopen.md). Real-time safe: it first
+        handles the frames that have arrived (non-blocking), so a heartbeat that came back counts; call it from
+        the thread that cycles the drive."""
+        if self._bus is not None and not self._link_dead and self._state is not DeviceState.OPEN:
+            try:
+                self._drain()
+            except DriverIOError:
+                pass
         out: list[str] = []
         if self._link_dead:
             out.append("disconnected: CAN link closed")

@@ -194,3 +194,19 @@ def test_loop_reset_after_nmt_reset_node_from_another_node():
             assert loop.status().fault is None
         finally:
             canbus.close_bus(bus)
+
+
+def test_persisting_heartbeat_loss_clears_when_beats_return(lockstep):
+    """persisting_faults() looks at the bus when asked: after a heartbeat loss, once the drive beats again the
+    cause is gone even if no cycle ran in between."""
+    world, dut = lockstep(heartbeat_producer_s=0.01, heartbeat_timeout_s=0.05)
+    world.inject("heartbeat_stop")
+    m = _cycles(dut, 200)
+    assert m.fault is not None and m.fault.kind is FaultKind.HEARTBEAT_LOST
+    assert any(p.startswith("heartbeat_lost") for p in dut.persisting_faults())
+    world.advance(0.05)
+    assert any(p.startswith("heartbeat_lost") for p in dut.persisting_faults())  # still silent
+    world.clear_faults()
+    world.drive._hb_stopped = False  # the drive's heartbeat producer runs again (no SYNC needed)
+    world.advance(0.02)
+    assert dut.persisting_faults() == ()
