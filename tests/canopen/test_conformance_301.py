@@ -140,10 +140,12 @@ def test_event_timer_and_inhibit_time(master):
     m.nmt(0x01)
     m.frames()
     t0 = world.now()
+    sent = []
     for _ in range(50):
         world.advance(0.001)
-    times = [round((f.timestamp or 0) * 0, 3) for f in m.frames(0x281)]
-    assert 5 <= len(times) <= 6, times  # 50 ms / 10 ms (+ the initial event)
+        sent += [round(world.now() - t0, 6)] * len(m.frames(0x281))
+    gaps = {round(b - a, 6) for a, b in zip(sent, sent[1:])}
+    assert len(sent) >= 5 and gaps == {0.01}, sent  # one frame every 10 ms of device time, no SYNC
     # inhibit: position changes at every SYNC (torque commanded), inhibit 5 ms
     m.nmt(0x80)
     _map_tpdo2(m, [0x60640020], 255, inhibit_100us=50)
