@@ -115,6 +115,11 @@ class Device(ABC):
         """The latched fault, or None."""
         return self._fault
 
+    def persisting_faults(self) -> tuple[str, ...]:
+        """Names of faults whose cause is still present right now (heartbeat still missing, bus-off, link down,
+        device still in FAULT); a reset is refused while this is not empty. Default: none."""
+        return ()
+
     def set_pump(self, pump: Callable[[], object] | None) -> None:
         """Lock-step mode: ``pump()`` runs the simulated peers synchronously instead of waiting."""
         self._pump = pump

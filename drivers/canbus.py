@@ -259,6 +259,26 @@ def error_frame_is_bus_off(msg: can.Message) -> bool:
     return bool(msg.arbitration_id & CAN_ERR_BUSOFF)
 
 
+def link_closed(bus: can.BusABC) -> bool:
+    """True when a socketcand bus's TCP connection was closed by the server (EOF pending on the socket).
+
+    python-can's socketcand client then returns from ``recv`` at once, forever: a loop that waits for a frame
+    would spin. Other interfaces: always False. Costs one non-blocking ``recv(MSG_PEEK)``; call it only after a
+    missed frame.
+    """
+    import socket
+
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
+
+
 @contextmanager
 def pumping(pump: Callable[[], object] | None, name: str) -> Iterator[None]:
     """Lock-step helper: while the caller blocks (e.g. on SDO), run ``pump()`` from a helper thread.

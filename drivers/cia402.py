@@ -5,9 +5,12 @@ Start-up (``configure``, SDO only, canopen's Notifier running): NMT pre-operatio
 0x1006 (= loop ``period_s``), the drive's heartbeat producer 0x1017, the drive's heartbeat consumer 0x1016
 (watching *our* heartbeat, so the drive stops by itself if the controller dies), the PDO mapping
 (TPDO1 = statusword 0x6041 + position actual 0x6064, optional TPDO2 = velocity actual 0x606C;
-RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1), mode of
-operation 0x6060 = 10 (CST); then NMT start and the Notifier is stopped ("pump mode", docs/platform.md
-§0.2): during cyclic operation the loop thread reads the bus itself.
+RPDO1 = controlword 0x6040 + target torque 0x6071; all synchronous, transmission type 1; each PDO read back
+and compared), max torque 0x6072 read (if present) into the force clamp, mode of operation 0x6060 = 10 (CST)
+confirmed by polling 0x6061 for up to ``mode_switch_timeout_s``; then NMT start and the Notifier is stopped
+("pump mode", docs/platform.md §0.2): during cyclic operation the loop thread reads the bus itself. 0x1006 is
+optional (a drive that only consumes SYNC); every start-up failure is one line naming the object, the SDO
+abort code with its CiA 301 meaning and what to check (:func:`explain_sdo_error`). docs/canopen.md §4.
 
 Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::
 
@@ -58,7 +61,7 @@ from stagectl.drivers.base import (
     PositionSensor,
     SyncProducer,
 )
-from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
+from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, link_closed, pumping
 from stagectl.errors import ConfigError, DriveFault, DriverError, DriverInitError, DriverIOError, DriverTimeoutError
 from stagectl.resources import EDS_DIR
 from stagectl.schema import param
@@ -194,6 +197,14 @@ class Cia402Config:
     state_timeout_s: float = param(
         0.5, unit="s", desc="time allowed for enable/disable/fault reset state changes", gt=0
     )
+    mode_switch_timeout_s: float = param(
+        0.5, unit="s", desc="configure: how long to wait for 0x6061 to show CST after 0x6060 = 10 (real drives "
+        "switch modes in milliseconds)", gt=0)
+    sync_producer: bool = param(
+        True, desc="the loop sends SYNC (0x080); false = another node produces SYNC and the loop follows its TPDOs")
+    no_answer_timeout_s: float = param(
+        0.05, unit="s", desc="enable/disable/fault reset give up after this long without any TPDO (drive not "
+        "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
 
     def __post_init__(self) -> None:
@@ -207,6 +218,44 @@ class Cia402Config:
                 f"drive_consumer_timeout_s: must be > controller_heartbeat_s ({self.drive_consumer_timeout_s:g} s "
                 f"<= {self.controller_heartbeat_s:g} s)"
             )
+
+
+#: CiA 301 SDO abort codes: meaning and what to check on the drive
+ABORT_HINTS: dict[int, tuple[str, str]] = {
+    0x05040000: ("SDO protocol timed out", "the drive's power, node id and bit rate, and the bus wiring"),
+    0x06010000: ("unsupported access to an object", "that the PDO is disabled (COB-ID bit 31) before remapping"),
+    0x06010001: ("attempt to read a write-only object", "the drive's EDS"),
+    0x06010002: ("attempt to write a read-only object", "the drive's EDS / manual for this object"),
+    0x06020000: ("object does not exist in the object dictionary", "the drive's EDS: this drive lacks the object"),
+    0x06040041: ("object cannot be mapped to the PDO", "the drive manual's list of mappable objects"),
+    0x06040042: ("number and length of mapped objects exceed the PDO length",
+                 "the number of objects per PDO the drive supports (at most 8 bytes)"),
+    0x06040043: ("general parameter incompatibility", "the mapping entry's bit length against the object's type"),
+    0x06040047: ("general internal incompatibility in the device", "the drive's state and firmware"),
+    0x06060000: ("access failed due to a hardware error", "the drive's hardware status"),
+    0x06070010: ("data type does not match, length of service parameter does not match", "the drive's EDS"),
+    0x06090011: ("sub-index does not exist", "the drive's EDS"),
+    0x06090030: ("invalid value for parameter", "the value range in the drive manual"),
+    0x06090031: ("value of parameter written too high", "the value range in the drive manual"),
+    0x06090032: ("value of parameter written too low", "the value range in the drive manual"),
+    0x08000000: ("general error", "the drive's error log"),
+    0x08000020: ("data cannot be transferred or stored to the application", "the drive's state (e.g. enabled)"),
+    0x08000021: ("data cannot be transferred because of local control", "the drive's local/remote setting"),
+    0x08000022: ("data cannot be transferred because of the present device state",
+                 "the drive's NMT / CiA 402 state (PRE-OPERATIONAL, not enabled)"),
+}
+
+
+def explain_sdo_error(exc: BaseException) -> str:
+    """One line for an SDO failure: ``abort 0x06020000 (meaning); check …`` or the exception text."""
+    code = getattr(exc, "code", None)
+    if isinstance(code, int):
+        meaning, check = ABORT_HINTS.get(code, ("abort code not in CiA 301", "the drive manual"))
+        return f"abort 0x{code:08X} ({meaning}); check {check}"
+    text = " ".join(str(exc).split())
+    if "timeout" in text.lower() or "no sdo response" in text.lower():
+        return f"no SDO answer ({text}); check the drive's power, node id and bit rate, and the bus wiring"
+    return text
 
 
 def unwrap32(prev_raw: int, prev_counts: int, raw: int) -> int:
@@ -248,6 +297,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         #: statusword and state of the last fresh TPDO
         self.statusword = 0
         self.velocity_m_s = 0.0
+        #: the drive's max torque 0x6072 read at configure (None: the drive has no 0x6072)
+        self.drive_max_units: int | None = None
+        self._rebooted = False
+        self._link_dead = False
+        self._bus_off = False
+        self._stuck_in_fault = False
+        #: NMT state from the drive's last heartbeat (None: none seen yet)
+        self.drive_nmt_state: int | None = None
 
     # ------------------------------------------------------------------ config helpers
     def set_period(self, timing: Timing | float) -> None:
@@ -264,6 +321,9 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._hb_every = t.every(self.cfg.controller_heartbeat_s)
         self._hb_timeout_cycles = t.cycles(self.cfg.heartbeat_timeout_s)
         self._max_step_counts = t.per_cycle(self.cfg.max_speed_m_s) / self.cfg.resolution_m
+        # following an external SYNC producer, the TPDO may come at any time within the period
+        self._rx_wait_s = self.cfg.rx_timeout_s if self.cfg.sync_producer else max(
+            self.cfg.rx_timeout_s, 0.9 * t.period_s)
 
     @property
     def period_s(self) -> float:
@@ -275,6 +335,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         return State402.from_statusword(self.statusword)
 
     def _reset_cyclic(self) -> None:
+        self._held: tuple[int, int] | None = None
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -314,10 +375,12 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._node.sdo.download(index, sub, struct.pack(fmt, value))
         except SdoError as exc:
             raise DriverInitError(
-                f"{self.name}: SDO write {what} 0x{index:04X}:{sub:02X} = {value} failed: {exc}"
+                f"{self.name}: configure: writing {what} 0x{index:04X}:{sub:02X} = 0x{value & 0xFFFFFFFF:X} failed: "
+                f"{explain_sdo_error(exc)}"
             ) from exc
         except (can.CanError, OSError) as exc:
-            raise DriverInitError(f"{self.name}: CAN error writing 0x{index:04X}:{sub:02X} ({what}): {exc}") from exc
+            raise DriverInitError(f"{self.name}: configure: CAN error writing {what} 0x{index:04X}:{sub:02X}: "
+                                  f"{' '.join(str(exc).split())}; check the CAN interface") from exc
 
     def _sdo_read(self, index: int, sub: int, fmt: str, what: str) -> int:
         from canopen.sdo.exceptions import SdoError
@@ -326,11 +389,29 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             data = self._node.sdo.upload(index, sub)
             return int(struct.unpack_from(fmt, data)[0])
         except SdoError as exc:
-            raise DriverInitError(f"{self.name}: SDO read {what} 0x{index:04X}:{sub:02X} failed: {exc}") from exc
+            raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
+                                  f"{explain_sdo_error(exc)}") from exc
         except struct.error as exc:
-            raise DriverInitError(f"{self.name}: SDO read {what} 0x{index:04X}:{sub:02X}: short answer") from exc
+            raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X}: answer too "
+                                  f"short for its data type; check the drive's EDS") from exc
         except (can.CanError, OSError) as exc:
-            raise DriverInitError(f"{self.name}: CAN error reading 0x{index:04X}:{sub:02X} ({what}): {exc}") from exc
+            raise DriverInitError(f"{self.name}: configure: CAN error reading {what} 0x{index:04X}:{sub:02X}: "
+                                  f"{' '.join(str(exc).split())}; check the CAN interface") from exc
+
+    def _sdo_read_optional(self, index: int, sub: int, fmt: str, what: str) -> int | None:
+        """Like :meth:`_sdo_read`, None when the drive does not have the object (abort 0x06020000/0x06090011)."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        try:
+            data = self._node.sdo.upload(index, sub)
+            return int(struct.unpack_from(fmt, data)[0])
+        except SdoAbortedError as exc:
+            if exc.code in (0x06020000, 0x06090011):
+                return None
+            raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
+                                  f"{explain_sdo_error(exc)}") from exc
+        except struct.error:
+            return None
 
     def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int], what: str) -> None:
         self._sdo_write(comm, 1, "<I", cob_id | PDO_DISABLED, f"{what} COB-ID (disable)")
@@ -340,6 +421,18 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._sdo_write(mapping, 0, "<B", len(entries), f"{what} mapping count")
         self._sdo_write(comm, 2, "<B", 1, f"{what} transmission type (synchronous)")
         self._sdo_write(comm, 1, "<I", cob_id, f"{what} COB-ID (enable)")
+        # read back: a drive may accept a download and keep another value (or map a different length)
+        got = [self._sdo_read(mapping, i, "<I", f"{what} mapping entry {i}") for i in range(1, len(entries) + 1)]
+        n = self._sdo_read(mapping, 0, "<B", f"{what} mapping count")
+        cob = self._sdo_read(comm, 1, "<I", f"{what} COB-ID")
+        tt = self._sdo_read(comm, 2, "<B", f"{what} transmission type")
+        want = ([f"0x{e:08X}" for e in entries], len(entries), cob_id, 1)
+        if (got, n, cob & 0x9FFFFFFF, tt) != (entries, len(entries), cob_id, 1):
+            raise DriverInitError(
+                f"{self.name}: configure: {what} read back differs from what was written: mapping "
+                f"{[f'0x{e:08X}' for e in got]} count {n} COB-ID 0x{cob:08X} type {tt}, wrote {want[0]} count "
+                f"{want[1]} COB-ID 0x{cob_id:08X} type 1; check the drive's PDO mapping rules in its manual"
+            )
 
     def _disable_pdo(self, comm: int, cob_id: int) -> None:
         from canopen.sdo.exceptions import SdoError
@@ -366,7 +459,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 raise DriverInitError(
                     f"{self.name}: drive does not support cyclic synchronous torque (0x6502 = 0x{modes:08X})"
                 )
-            self._sdo_write(0x1006, 0, "<I", round(self._period_s * 1e6), "communication cycle period [µs]")
+            self._write_cycle_period()
             self._sdo_write(0x1017, 0, "<H", round(self.cfg.heartbeat_producer_s * 1000), "producer heartbeat [ms]")
             consumer = (self.cfg.controller_node_id << 16) | round(self.cfg.drive_consumer_timeout_s * 1000)
             self._sdo_write(0x1016, 1, "<I", consumer, "consumer heartbeat time")
@@ -380,25 +473,73 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._map_pdo(0x1400, 0x1600, 0x200 + nid, [0x60400010, 0x60710010], "RPDO1")
             for n in (1, 2, 3):
                 self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
+            self._read_max_torque()
             self._sdo_write(0x6060, 0, "<b", MODE_CST, "mode of operation (CST)")
-            shown = self._sdo_read(0x6061, 0, "<b", "mode of operation display")
-            if shown != MODE_CST:
-                raise DriverInitError(f"{self.name}: drive shows mode {shown} after 0x6060 = {MODE_CST} (CST)")
+            self._wait_mode(MODE_CST)
             self._node.nmt.send_command(0x01)  # NMT start: OPERATIONAL, PDOs run
         self._stop_notifier()  # pump mode: the loop thread reads the bus itself from now on
         self._reset_cyclic()
+        self._rebooted = False
+        self._link_dead = False
+        self.drive_nmt_state = None  # the next heartbeat tells (PRE-OPERATIONAL ones came during configure)
+
+    def _write_cycle_period(self) -> None:
+        """0x1006 = loop period; optional on a drive that only consumes SYNC (abort 0x06020000 → skipped)."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        us = round(self._period_s * 1e6)
+        try:
+            self._node.sdo.download(0x1006, 0, struct.pack("<I", us))
+        except SdoAbortedError as exc:
+            if exc.code not in (0x06020000, 0x06090011):
+                raise DriverInitError(f"{self.name}: configure: writing communication cycle period 0x1006:00 = "
+                                      f"{us} µs failed: {explain_sdo_error(exc)}") from exc
+            log.info("%s: drive has no 0x1006 (communication cycle period): it follows SYNC only", self.name)
+        except (can.CanError, OSError) as exc:
+            raise DriverInitError(f"{self.name}: configure: CAN error writing 0x1006:00: "
+                                  f"{' '.join(str(exc).split())}; check the CAN interface") from exc
+
+    def _read_max_torque(self) -> None:
+        """Honour the drive's max torque 0x6072 (optional object): the command clamp is the smaller limit."""
+        units = self.cfg.max_force_n / self.cfg.force_per_unit_n
+        self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
+        limit = self._sdo_read_optional(0x6072, 0, "<H", "max torque")
+        self.drive_max_units = limit
+        if limit is not None and limit < self._max_units:
+            log.info("%s: drive max torque 0x6072 = %d (%.4g N) limits the command (max_force_n %.4g N)",
+                     self.name, limit, limit * self.cfg.force_per_unit_n, self.cfg.max_force_n)
+            self._max_units = limit
+
+    def _wait_mode(self, mode: int) -> None:
+        """Poll 0x6061 until it shows ``mode``, for at most ``mode_switch_timeout_s`` (wall clock: SDO time)."""
+        deadline = time.monotonic() + self.cfg.mode_switch_timeout_s
+        while True:
+            shown = self._sdo_read(0x6061, 0, "<b", "mode of operation display")
+            if shown == mode:
+                return
+            if time.monotonic() >= deadline:
+                raise DriverInitError(
+                    f"{self.name}: configure: modes of operation display 0x6061:00 = {shown} still not {mode} (CST) "
+                    f"{self.cfg.mode_switch_timeout_s:g} s after 0x6060 = {mode}; check that the drive allows "
+                    f"CST in its present state, or raise drive.mode_switch_timeout_s"
+                )
+            time.sleep(0.002)
 
     # ------------------------------------------------------------------ frame handling
     def _handle(self, msg: can.Message) -> tuple[int, int] | None:
         """Process one received frame; return (statusword, raw position) for TPDO1."""
         if msg.is_error_frame:
             if error_frame_is_bus_off(msg):
+                self._bus_off = True
                 self._note(DeviceFault(FaultKind.BUS_OFF, "CAN controller reports bus-off"))
             else:
                 self._note(DeviceFault(FaultKind.BUS_ERROR, f"CAN error frame class 0x{msg.arbitration_id:08X}"))
             return None
         cid = msg.arbitration_id
+        if msg.is_extended_id:
+            return None  # CANopen CC uses 11-bit ids: a 29-bit frame is never one of ours
         if cid == self._tpdo1_id:
+            self._bus_off = False
             if len(msg.data) >= 6:
                 sw, raw = _TPDO1.unpack_from(msg.data)
                 return sw, raw
@@ -413,8 +554,22 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         elif cid == self._hb_id and msg.data:
             self._hb_age = 0
             self._hb_seen = True
-            if msg.data[0] == 0 and self._state is DeviceState.ENABLED:
-                self._note(DeviceFault(FaultKind.HEARTBEAT_LOST, "drive sent boot-up (it was reset)"))
+            self._bus_off = False
+            nmt = msg.data[0] & 0x7F
+            self.drive_nmt_state = nmt
+            if nmt == 0:
+                self._rebooted = True  # boot-up: default PDOs, PRE-OPERATIONAL; fault_reset() re-configures
+                if self._state is DeviceState.ENABLED:
+                    self._note(DeviceFault(FaultKind.HEARTBEAT_LOST, "drive sent boot-up (it was reset)"))
+            elif nmt != 5 and self._state is DeviceState.ENABLED:
+                self._note(DeviceFault(FaultKind.HEARTBEAT_LOST, f"drive left OPERATIONAL (NMT state {nmt})"))
+        elif cid == self._rpdo1_id:
+            # we never receive our own frames: another node sends our RPDO (a second master or a spoofed frame)
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"second sender of our RPDO1 COB-ID 0x{cid:03X} on the bus "
+                                                        f"(another master or a foreign frame)"))
+        elif cid == SYNC_COB_ID and self.cfg.sync_producer:
+            self._note(DeviceFault(FaultKind.BUS_ERROR, "second SYNC producer on the bus (COB-ID 0x080): "
+                                                        "set drive.sync_producer false if another node produces SYNC"))
         return None
 
     def _note(self, fault: DeviceFault) -> None:
@@ -426,6 +581,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         bus = self._bus
         assert bus is not None
         got: tuple[int, int] | None = None
+        if self._link_dead:
+            return None
         while True:
             try:
                 msg = bus.recv(0.0)
@@ -448,12 +605,15 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        if not self.cfg.sync_producer:
+            self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
             self._evaluate(got)
         if self._cycle % self._hb_every == 0:
             self._send(self._hb_msg)
-        self._send(self._sync_msg)
+        if self.cfg.sync_producer:
+            self._send(self._sync_msg)
         self._cycle += 1
         self._hb_age += 1
         self._synced = True
@@ -462,6 +622,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         bus = self._bus
         assert bus is not None
         got: tuple[int, int] | None = None
+        if self._link_dead:
+            return None
         try:
             if self._pump is not None:
                 self._pump()
@@ -470,7 +632,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                     if r is not None:
                         got = r
                 return got
-            deadline = time.monotonic() + self.cfg.rx_timeout_s
+            deadline = time.monotonic() + self._rx_wait_s
             while got is None:
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -481,6 +643,9 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 got = self._handle(msg) or got
             while (msg := bus.recv(0.0)) is not None:  # newest wins (a late frame may precede it)
                 got = self._handle(msg) or got
+            if got is None and link_closed(bus):
+                self._link_dead = True  # a closed socketcand link: recv would return at once forever (busy spin)
+                self._note(DeviceFault(FaultKind.DISCONNECTED, "CAN link closed by the socketcand server"))
         except can.CanError as exc:
             raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
         return got
@@ -491,7 +656,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if not self._synced:
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
-        return self._evaluate(self._wait_tpdo())
+        got = self._wait_tpdo()
+        if got is None and self._held is not None:
+            got = self._held
+        self._held = None
+        return self._evaluate(got)
 
     def _evaluate(self, got: tuple[int, int] | None) -> Measurement:
         self.cycles += 1
@@ -582,6 +751,27 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._bus is not None:
             self._send_rpdo(self._cw, 0)
 
+    def persisting_faults(self) -> tuple[str, ...]:
+        """Faults whose cause is present now: link closed, bus-off with nothing heard since, drive heartbeat
+        still missing, drive still in FAULT after a fault reset (docs/canopen.md). Real-time safe: it first
+        handles the frames that have arrived (non-blocking), so a heartbeat that came back counts; call it from
+        the thread that cycles the drive."""
+        if self._bus is not None and not self._link_dead and self._state is not DeviceState.OPEN:
+            try:
+                self._drain()
+            except DriverIOError:
+                pass
+        out: list[str] = []
+        if self._link_dead:
+            out.append("disconnected: CAN link closed")
+        if self._bus_off:
+            out.append("bus_off: no frame from the drive since the bus-off error frame")
+        if self.cfg.heartbeat_producer_s > 0 and self._hb_age > self._hb_timeout_cycles:
+            out.append(f"heartbeat_lost: no drive heartbeat for {self._hb_age * self._period_s:.3g} s")
+        if self._stuck_in_fault and self.statusword & STATUSWORD_FAULT:
+            out.append("drive_fault: drive stays in FAULT after fault reset (cause still present)")
+        return tuple(out)
+
     # ------------------------------------------------------------------ state machine (cycles)
     def _step_cycles(self, choose: Callable[[State402 | None], int | None], what: str) -> State402:
         """Run SYNC/TPDO/RPDO cycles, sending ``choose(state)`` until it returns None."""
@@ -589,10 +779,19 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._unread = False  # state changes read the statusword themselves
         next_t = time.monotonic()
         state: State402 | None = None
+        silent = 0
         for _ in range(n_max):
+            if self._link_dead:
+                raise DriverIOError(f"{self.name}: {what}: CAN link closed; check the socketcand server / adapter")
             self.sync()
             got = self._wait_tpdo()
             self._synced = False
+            silent = 0 if got is not None else silent + 1
+            if silent >= max(2, self.timing.cycles(self.cfg.no_answer_timeout_s)):
+                raise DriverTimeoutError(
+                    f"{self.name}: {what}: drive not answering (no TPDO for {silent} cycles); check its power, "
+                    f"the bus (bus-off?) and that it is OPERATIONAL"
+                )
             if got is not None:
                 self.statusword = got[0]
                 state = State402.from_statusword(got[0])
@@ -652,6 +851,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._cw = int(Controlword.SHUTDOWN)
 
     def _do_fault_reset(self) -> None:
+        if self._link_dead:
+            raise DriverIOError(f"{self.name}: fault reset: CAN link closed; check the socketcand server / adapter")
+        self._drain()
+        if self._rebooted or (self.drive_nmt_state is not None and self.drive_nmt_state != 5):
+            log.warning("%s: drive was reset (boot-up or NMT state %s): configuring it again", self.name,
+                        self.drive_nmt_state)
+            self._do_configure()
         self._pending = None
         self._missed = 0
         self._hb_age = 0
@@ -668,7 +874,12 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             sent_low[0] = False
             return int(Controlword.FAULT_RESET)
 
-        self._step_cycles(choose, "fault reset (leave FAULT)")
+        try:
+            self._step_cycles(choose, "fault reset (leave FAULT)")
+        except DriverTimeoutError:
+            self._stuck_in_fault = bool(self.statusword & STATUSWORD_FAULT)
+            raise
+        self._stuck_in_fault = False
         self._cw = int(Controlword.SHUTDOWN)
         self._pending = None
         self._last_emcy = 0

@@ -29,8 +29,8 @@ import can
 
 from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor, SyncProducer
-from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, pumping
-from stagectl.drivers.cia402 import PDO_DISABLED, SYNC_COB_ID, _default_can, unwrap32
+from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, link_closed, pumping
+from stagectl.drivers.cia402 import PDO_DISABLED, SYNC_COB_ID, _default_can, explain_sdo_error, unwrap32
 from stagectl.errors import ConfigError, DriverInitError, DriverIOError
 from stagectl.resources import EDS_DIR
 from stagectl.schema import param
@@ -84,6 +84,7 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
         self._hb_timeout_cycles = t.cycles(cfg.heartbeat_timeout_s)
         self._max_step = t.per_cycle(cfg.max_speed_m_s) / cfg.resolution_m
         self._reset_cyclic()
+        self._rebooted = self._link_dead = self._bus_off = False
 
     def _reset_cyclic(self) -> None:
         self._after_sync = False
@@ -113,8 +114,12 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
             self._node.sdo.download(index, sub, struct.pack(fmt, value))
             return value
         except (SdoError, struct.error, can.CanError, OSError) as exc:
-            op = "read" if value is None else f"write {value} to"
-            raise DriverInitError(f"{self.name}: SDO {op} {what} 0x{index:04X}:{sub:02X} failed: {exc}") from exc
+            if index == 0x1006 and getattr(exc, "code", None) in (0x06020000, 0x06090011):
+                log.info("%s: encoder has no 0x1006: it follows SYNC only", self.name)
+                return value or 0
+            op = "reading" if value is None else f"writing 0x{value & 0xFFFFFFFF:X} to"
+            raise DriverInitError(f"{self.name}: configure: {op} {what} 0x{index:04X}:{sub:02X} failed: "
+                                  f"{explain_sdo_error(exc)}") from exc
 
     def _do_configure(self) -> None:
         self._start_notifier()
@@ -136,8 +141,26 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
             self._node.nmt.send_command(0x01)
         self._stop_notifier()  # pump mode: the loop thread reads the bus itself from now on
         self._reset_cyclic()
+        self._rebooted = self._link_dead = self._bus_off = False
+
+    def persisting_faults(self) -> tuple[str, ...]:
+        """Faults whose cause is present now: link closed, bus-off with nothing heard since, heartbeat still
+        missing. Real-time safe."""
+        out: list[str] = []
+        if self._link_dead:
+            out.append("disconnected: CAN link closed")
+        if self._bus_off:
+            out.append("bus_off: no frame from the encoder since the bus-off error frame")
+        if self.cfg.heartbeat_producer_s > 0 and self._hb_age > self._hb_timeout_cycles:
+            out.append(f"heartbeat_lost: no encoder heartbeat for {self._hb_age} cycles")
+        return tuple(out)
 
     def _do_fault_reset(self) -> None:
+        if self._link_dead:
+            raise DriverIOError(f"{self.name}: fault reset: CAN link closed; check the socketcand server / adapter")
+        if self._rebooted:
+            log.warning("%s: encoder was reset (boot-up seen): configuring it again", self.name)
+            self._do_configure()
         self._pending = None
         self._missed = 0
         self._hb_age = 0
@@ -146,12 +169,19 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
     def _handle(self, msg: can.Message) -> int | None:
         if msg.is_error_frame:
             kind = FaultKind.BUS_OFF if error_frame_is_bus_off(msg) else FaultKind.BUS_ERROR
+            self._bus_off = self._bus_off or kind is FaultKind.BUS_OFF
             self._note(DeviceFault(kind, f"CAN error frame class 0x{msg.arbitration_id:08X}"))
+            return None
+        if msg.is_extended_id:
             return None
         cid = msg.arbitration_id
         if cid == SYNC_COB_ID:
+            if self.cfg.sync_producer:
+                self._note(DeviceFault(FaultKind.BUS_ERROR, "second SYNC producer on the bus (COB-ID 0x080)"))
             self._after_sync = True
             return -1
+        if cid == self._tpdo_id:
+            self._bus_off = False
         if cid == self._tpdo_id and len(msg.data) >= 4:
             return _POS.unpack_from(msg.data)[0] if self._after_sync else None
         if cid == self._emcy_id and len(msg.data) >= 2:
@@ -160,6 +190,9 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
                 self._note(DeviceFault(FaultKind.EMCY, "encoder EMCY", code))
         elif cid == self._hb_id:
             self._hb_age = 0
+            self._bus_off = False
+            if msg.data and msg.data[0] == 0:
+                self._rebooted = True
         return None
 
     def _note(self, fault: DeviceFault) -> None:
@@ -187,6 +220,8 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
         bus = self._bus
         assert bus is not None
         got: int | None = None
+        if self._link_dead:
+            return None
 
         def take(msg: can.Message) -> None:
             nonlocal got
@@ -212,6 +247,9 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
                     if got is not None or left <= 0 or (msg := bus.recv(left)) is None:
                         break
                 take(msg)
+            if got is None and link_closed(bus):
+                self._link_dead = True  # recv would return at once forever: stop waiting on it
+                self._note(DeviceFault(FaultKind.DISCONNECTED, "CAN link closed by the socketcand server"))
         except can.CanError as exc:
             raise DriverIOError(f"{self.name}: CAN receive failed: {exc}") from exc
         return got

@@ -62,6 +62,9 @@ class SimCia406Encoder(SimCanopenDevice):
             return max(1, round(self.cfg.resolution_m * 1e9))
         return super().live_value(index, sub)
 
+    def on_internal_error(self) -> None:
+        self.status |= 0x0001  # operating status 0x6500: error (EMCY 0x6100 already sent)
+
     def on_sync(self, active: set[SimFault]) -> None:
         if SimFault.DRIVE_FAULT in active:
             spec = self.faults.spec_of(SimFault.DRIVE_FAULT)

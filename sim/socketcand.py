@@ -6,7 +6,7 @@ the CAN "port" of a :class:`~stagectl.sim.world.SimWorld` (``recv``/``send``, li
 receives every client frame and its devices' frames go to every client; client frames are also forwarded
 to the other clients, so two drivers (drive + encoder) see each other's SYNC as on a real bus.
 
-Protocol (rawmode subset; docs/platform.md §1.2 lists the client's parsing rules we must honour)::
+Protocol (the daemon's ``doc/protocol.md``; replies as its C source gives them)::
 
     server: < hi >                       client: < open can0 >
     server: < ok >                       client: < rawmode >
@@ -14,13 +14,23 @@ Protocol (rawmode subset; docs/platform.md §1.2 lists the client's parsing rule
     client -> server:  < send 601 8 40 0 10 0 0 0 0 0 >        (hex id, hex length, one hex token per byte)
     server -> client:  < frame 581 1700000000.123456 4300100092010200 >   (contiguous hex data)
                        < frame 080 1700000000.123456  >        (0-byte frame: keep the trailing space)
-                       < error 00000040 1700000000.123456 >    (error frame; id = SocketCAN error class)
+                       < error 040 1700000000.123456 >         (error frame: SocketCAN error class, %03X)
 
-Rules: standard ids are exactly 3 hex digits (the client decides "extended" from the length), extended ids 8;
-each handshake reply is sent on its own after the client's request (the client compares one ``recv(256)``
-exactly, so replies must not be coalesced), and no frame follows the final ``< ok >`` until the client has
-sent a frame or ``RAW_SETTLE_S`` (50 ms) has passed (a frame in the same read would fail its handshake on a
-busy machine; a pure listener misses the first 50 ms of traffic, as an adapter that just joined the bus);
+* NO_BUS: ``< open X >`` for a bus this server does not serve → ``< error could not open bus >`` and the
+  connection is closed (as the daemon); any other command → ``< error unknown command >``.
+* After ``open`` (the daemon's BCM mode): ``< rawmode >`` → ``< ok >``; ``< echo >`` is echoed; the BCM, ISO-TP
+  and CONTROL commands (``add``, ``subscribe``, ``bcmmode`` … ``isotpmode``, ``controlmode``) are not implemented
+  here → ``< error unknown command >`` (never silence).
+* RAW: ``< send … >``; ``< echo >`` echoed; a malformed ``send`` is dropped without reply (as the daemon, which
+  only logs it); anything else → ``< error unknown command >``.
+* Ids: an id written with exactly 8 hex digits is extended, any other length standard (``< send 1 0 >`` is the
+  standard id 0x001), as the daemon's ``element_length(buf, 2) == 8``.
+* Bytes before a ``<`` are skipped (the daemon's ``receive_command``).
+* Timestamps: wall-clock seconds, taken from a monotonic clock anchored once at start (never going back).
+
+Rules for python-can's client (docs/platform.md §1.2): each handshake reply is sent on its own (the client
+compares one ``recv(256)`` exactly), so frames that arrive within ``RAW_SETTLE_S`` (50 ms) after the final
+``< ok >`` are *queued*, not dropped, and sent once the client has sent a frame or the window has passed;
 TCP_NODELAY on every accepted socket.
 """
 
@@ -36,33 +46,69 @@ import can
 
 log = logging.getLogger(__name__)
 
-#: after the rawmode "< ok >", a client that has not sent anything yet gets no frames for this long [s]
+#: after the rawmode "< ok >", frames for a client that has not sent anything yet are queued this long [s]
 RAW_SETTLE_S = 0.05
+#: frames queued per client during the settle window (beyond this the oldest are dropped and counted)
+SETTLE_QUEUE = 65536
+_WALL0 = time.time()
+_MONO0 = time.monotonic()
+CAN_EFF_MASK = 0x1FFFFFFF
+UNKNOWN = b"< error unknown command >"
+
+
+def timestamp() -> float:
+    """Wall-clock seconds that never go back: ``time.time()`` at import + monotonic time since."""
+    return _WALL0 + (time.monotonic() - _MONO0)
+
+
+def _stamp(t: float) -> str:
+    sec = int(t)
+    return f"{sec}.{min(999999, int(round((t - sec) * 1e6))):06d}"
 
 
 def format_frame(msg: can.Message, ts: float | None = None) -> bytes:
-    """One server→client line for ``msg``."""
-    t = time.time() if ts is None else ts
+    """One server→client line for ``msg``, as the daemon's ``state_raw.c`` prints it."""
+    t = timestamp() if ts is None else ts
     if msg.is_error_frame:
-        return f"< error {msg.arbitration_id & 0x1FFFFFFF:08X} {t:.6f} >".encode("ascii")
-    cid = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id & 0x7FF:03X}"
-    return f"< frame {cid} {t:.6f} {bytes(msg.data).hex().upper()} >".encode("ascii")
+        return f"< error {msg.arbitration_id & CAN_EFF_MASK:03X} {_stamp(t)} >".encode("ascii")
+    cid = f"{msg.arbitration_id & CAN_EFF_MASK:08X}" if msg.is_extended_id else f"{msg.arbitration_id & 0x7FF:03X}"
+    return f"< frame {cid} {_stamp(t)} {bytes(msg.data).hex().upper()} >".encode("ascii")
 
 
 def parse_send(text: str) -> can.Message | None:
-    """Parse ``< send ID LEN B0 B1 ... >`` (without validation errors escaping: None if malformed)."""
+    """Parse ``< send ID LEN B0 B1 ... >`` as the daemon does (None if malformed: dropped without reply).
+
+    The id is extended when written with exactly 8 hex digits; LEN is read as hex (``%hhu`` in the daemon reads
+    decimal, identical for 0–8) and must match the number of data bytes."""
     parts = text.strip("<> \r\n").split()
     if len(parts) < 3 or parts[0] != "send":
         return None
     try:
         cid = int(parts[1], 16)
         n = int(parts[2], 16)
-        data = bytes(int(b, 16) for b in parts[3 : 3 + n])
+        data = bytes(int(b, 16) for b in parts[3:])
     except ValueError:
         return None
     if len(data) != n or n > 8:
         return None
-    return can.Message(arbitration_id=cid, data=data, is_extended_id=len(parts[1]) != 3)
+    extended = len(parts[1]) == 8
+    if cid > (CAN_EFF_MASK if extended else 0x7FF):
+        return None
+    return can.Message(arbitration_id=cid, data=data, is_extended_id=extended)
+
+
+def split_commands(buf: bytes) -> tuple[list[str], bytes]:
+    """Complete ``< … >`` elements in ``buf`` and the rest to keep; bytes before a ``<`` are skipped."""
+    out: list[str] = []
+    while True:
+        start = buf.find(b"<")
+        if start < 0:
+            return out, b""
+        stop = buf.find(b">", start + 1)
+        if stop < 0:
+            return out, buf[start:]
+        out.append(buf[start : stop + 1].decode("ascii", "replace"))
+        buf = buf[stop + 1 :]
 
 
 class _Client:
@@ -72,60 +118,109 @@ class _Client:
         self.raw = False
         self.lock = threading.Lock()
         self.alive = True
-        #: frames are held back until the client has surely read the final "< ok >" (see ``send``)
+        #: while set: frames are queued until the client has surely read the final "< ok >" (see ``send``)
         self.quiet_until: float | None = None
+        self.queued: list[bytes] = []
+        self.dropped = 0
+
+    def _reply(self, data: bytes) -> None:
+        with self.lock:
+            self.sock.sendall(data)
 
     def send(self, data: bytes) -> None:
         if not (self.raw and self.alive):
             return
-        if self.quiet_until is not None:
-            # python-can's client reads the rawmode "< ok >" with one recv(256) and compares it exactly: a
-            # frame in the same read fails its handshake. So nothing is sent until the client has sent its
-            # first frame (it has read the ok by then) or RAW_SETTLE_S has passed (a pure listener).
-            if time.monotonic() < self.quiet_until:
-                return
-            self.quiet_until = None
-        try:
-            with self.lock:
+        with self.lock:
+            if self.quiet_until is not None:
+                # python-can's client reads the rawmode "< ok >" with one recv(256) and compares it exactly: a
+                # frame in the same read fails its handshake. Frames wait in a queue until the client has sent
+                # its first frame (it has read the ok by then) or RAW_SETTLE_S has passed; none is lost.
+                if time.monotonic() < self.quiet_until:
+                    if len(self.queued) >= SETTLE_QUEUE:
+                        self.queued.pop(0)
+                        self.dropped += 1
+                    self.queued.append(data)
+                    return
+                self._flush_locked()
+            try:
                 self.sock.sendall(data)
+            except OSError:
+                self.alive = False  # the reader notices the closed socket and cleans up
+
+    def _flush_locked(self) -> None:
+        self.quiet_until = None
+        queued, self.queued = self.queued, []
+        try:
+            if queued:
+                self.sock.sendall(b"".join(queued))
         except OSError:
-            self.alive = False  # the reader notices the closed socket and cleans up
+            self.alive = False
+
+    def flush(self) -> None:
+        with self.lock:
+            if self.quiet_until is not None:
+                self._flush_locked()
+
+    def _command(self, cmd: str, opened: bool) -> bool:
+        """Handle one command element; returns the new "bus opened" flag. Replies as the daemon does."""
+        text = " ".join(cmd.strip("<>").split())
+        if self.raw:
+            if text.startswith("send "):
+                msg = parse_send(cmd)
+                self.flush()
+                if msg is not None:
+                    msg.timestamp = timestamp()
+                    self.server.from_client(msg, self)
+            elif text == "echo":
+                self._reply(b"< echo >")
+            else:
+                self._reply(UNKNOWN)
+            return opened
+        if not opened:
+            if text.startswith("open "):
+                if text.split()[1] != self.server.can_name:
+                    self._reply(b"< error could not open bus >")
+                    self.alive = False  # the daemon closes the connection
+                    return False
+                self._reply(b"< ok >")
+                return True
+            self._reply(UNKNOWN)
+            return False
+        if text == "rawmode":
+            with self.lock:
+                self.quiet_until = time.monotonic() + RAW_SETTLE_S
+                self.raw = True
+                self.sock.sendall(b"< ok >")
+        elif text == "echo":
+            self._reply(b"< echo >")
+        else:  # BCM commands, bcmmode, isotpmode, controlmode: not implemented by this server
+            self._reply(UNKNOWN)
+        return True
 
     def run(self) -> None:
         sock = self.sock
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.settimeout(0.2)
+            sock.settimeout(0.02)
             sock.sendall(b"< hi >")
             buf = b""
             opened = False
             while self.alive:
-                while b">" in buf:
-                    line, buf = buf.split(b">", 1)
-                    text = line.decode("ascii", "replace")
-                    if self.raw:
-                        msg = parse_send(text)
-                        self.quiet_until = None
-                        if msg is not None:
-                            msg.timestamp = time.time()
-                            self.server.from_client(msg, self)
-                        continue
-                    cmd = text.strip("< \r\n")  # handshake: one reply per request, never coalesced
-                    if cmd.startswith("open "):
-                        opened = True
-                        sock.sendall(b"< ok >")
-                    elif cmd == "rawmode" and opened:
-                        self.quiet_until = time.monotonic() + RAW_SETTLE_S
-                        sock.sendall(b"< ok >")
-                        self.raw = True
-                    else:
-                        sock.sendall(b"< error unknown command >")
+                cmds, buf = split_commands(buf)
+                for cmd in cmds:  # one reply per request, each sent on its own
+                    opened = self._command(cmd, opened)
+                    if not self.alive:
+                        return
+                if self.quiet_until is not None and time.monotonic() >= self.quiet_until:
+                    self.flush()
                 chunk = self._recv()
                 if chunk is None:
                     continue
                 if not chunk:
                     return
                 buf += chunk
+                if len(buf) > 65536:  # a client that never closes an element
+                    buf = buf[-4096:]
         except OSError:
             pass
         except Exception:  # noqa: BLE001 - a server bug must be visible
@@ -186,7 +281,7 @@ class SocketcandServer:
 
     def send(self, msg: can.Message) -> None:
         """Send a device frame to every connected client."""
-        self._broadcast(format_frame(msg), None)
+        self._broadcast(format_frame(msg, timestamp()), None)
 
     def from_client(self, msg: can.Message, origin: _Client) -> None:
         # forward first: the other clients must see a SYNC before the devices' answers to it (on a real bus

@@ -16,7 +16,8 @@ Transports: ``virtual`` (python-can in-process bus; channel name unique per worl
 tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
 process connects with python-can's stock socketcand client). ``ready_info()`` says where to connect.
 
-The plant is stepped only by the drive, at each SYNC, by exactly one nominal period; SYNC is dispatched
+The plant is stepped only by the drive: at each SYNC by exactly one nominal period, and on the drive's own
+clock while its power stage is on and SYNC is missing (docs/canopen.md §1); SYNC is dispatched
 to the drive before the encoder so the encoder samples the stepped plant. The optional serial
 interferometer (``stagectl.sim.interferometer.SimInterferometer``) is either triggered by each SYNC right after
 the drive stepped the plant (``trigger: sync``, both modes), or streams from its own thread in thread
@@ -64,6 +65,8 @@ from stagectl.sim.socketcand import SocketcandServer
 log = logging.getLogger(__name__)
 
 _counter = itertools.count(1)
+#: thread mode: run the device timers at least this often while frames keep arriving [s]
+TICK_EVERY_S = 0.0005
 
 
 def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec, ...] | None:
@@ -166,6 +169,7 @@ class SimWorld:
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
+        self._last_tick = 0.0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -230,8 +234,10 @@ class SimWorld:
     # ------------------------------------------------------------------ dispatch
     def _dispatch(self, msg: can.Message) -> None:
         self.frames_in += 1
-        if msg.arbitration_id == 0x080 and not msg.is_error_frame and self._thread is None and self.drive:
-            self._sim_t += self.drive.period_s
+        drive = self.drive
+        if (drive is not None and msg.arbitration_id == drive.sync_cob_id and not msg.is_error_frame
+                and not msg.is_extended_id and self._thread is None):
+            self._sim_t += drive.period_s
         t = self.now()
         for d in self.devices:
             d.on_frame(msg, t)
@@ -240,6 +246,7 @@ class SimWorld:
             self._serial_bytes += int(ifm.trigger())  # after the drive stepped the plant
 
     def _tick(self) -> None:
+        self._last_tick = time.monotonic()
         t = self.now()
         for d in self.devices:
             d.tick(t)
@@ -267,6 +274,8 @@ class SimWorld:
                 with self._lock:
                     while msg is not None:
                         self._dispatch(msg)
+                        if time.monotonic() - self._last_tick >= TICK_EVERY_S:  # steady traffic must not
+                            self._tick()  # starve the timers (heartbeat) while frames keep coming
                         msg = bus.recv(0.0)
                     self._tick()
         except Exception as exc:  # noqa: BLE001 - reported by pump()/stop()

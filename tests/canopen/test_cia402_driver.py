@@ -72,7 +72,8 @@ def test_force_scaling_and_clamp(lockstep):
     dut.write(1e9)
     dut.sync()
     dut.read()
-    assert world.drive.target_torque == 10000  # 100 N / 0.01 N
+    assert world.drive.target_torque == 3000  # 100 N / 0.01 N = 10000, but the drive's 0x6072 max torque is 3000
+    assert dut.drive_max_units == 3000
     dut.write(float("nan"))
     dut.sync()
     dut.read()

@@ -105,7 +105,7 @@ def test_socketcand_framing_rules():
     ext = format_frame(can.Message(arbitration_id=0x1ABCDEF, data=b"\x00", is_extended_id=True), ts=0.0)
     assert ext.startswith(b"< frame 01ABCDEF ")
     err = format_frame(can.Message(arbitration_id=0x40, is_error_frame=True, data=b""), ts=0.0)
-    assert err.startswith(b"< error 00000040 ")
+    assert err.startswith(b"< error 040 ")  # the daemon prints the error class with %03X
     msg = parse_send("< send 601 8 40 0 10 0 0 0 0 0 ")
     assert msg.arbitration_id == 0x601 and bytes(msg.data) == bytes([0x40, 0, 0x10, 0, 0, 0, 0, 0])
     assert not msg.is_extended_id
@@ -325,3 +325,35 @@ def test_socketcand_handshake_ok_is_never_coalesced_with_a_frame():
     finally:
         sock.close()
         server.stop()
+
+
+def test_stock_master_over_socketcand_gets_the_standard_aborts(sim_plant):
+    """As a new user would: canopen's RemoteNode with the shipped EDS over python-can's socketcand client,
+    against `stagectl sim-plant` in another process: PDO rules answered with CiA 301 abort codes."""
+    import can
+    import canopen
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    from stagectl.drivers import canbus
+    from stagectl.drivers.cia402 import DEFAULT_EDS
+
+    _, info = sim_plant
+    bus = canbus.open_bus(info["can"])
+    net = canopen.Network(bus)
+    net.notifier = can.Notifier(bus, net.listeners, 0.05)
+    try:
+        node = canopen.RemoteNode(info["drive_node_id"], str(DEFAULT_EDS))
+        net.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = 10.0  # failure guard (loaded machine)
+        codes = []
+        for index, sub, value in ((0x1800, 1, 0x80000183), (0x1A00, 0, 0), (0x1A00, 1, 0x60720010),
+                                  (0x1A00, 1, 0x20000010), (0x1A00, 1, 0x60640018)):
+            try:
+                node.sdo.download(index, sub, value.to_bytes(4 if sub or index != 0x1A00 else 1, "little"))
+                codes.append(None)
+            except SdoAbortedError as exc:
+                codes.append(exc.code)
+        assert codes == [None, None, 0x06040041, 0x06020000, 0x06040043]
+    finally:
+        net.notifier.stop(1.0)
+        canbus.close_bus(bus)

@@ -193,3 +193,42 @@ def test_sync_triggered_interferometer_samples_with_the_drive(lockstep, tmp_path
             assert i.fresh and i.counts == m.counts, k
         assert world.interferometer.frames_sent - n0 == 50  # exactly one frame per SYNC
         assert m.counts > 0
+
+
+def test_thread_mode_timers_run_during_a_flood_of_frames(make_world):
+    """Thread mode: frames that keep arriving (never an idle ``recv``) must not starve the timers (heartbeat).
+    The world thread is fed 3000 frames back to back by a stand-in bus; its timers must have run while the
+    flood lasted, not only after it."""
+    import can
+
+    world = make_world()
+    world.open()
+    frames = [can.Message(arbitration_id=0x7F0, data=b"\0", is_extended_id=False) for _ in range(3000)]
+    ticks_during_flood = []
+    left = [len(frames)]
+
+    class FloodBus:
+        def recv(self, timeout=None):
+            if left[0] == 0:
+                world._stop_evt.set()
+                return None
+            left[0] -= 1
+            return frames[left[0]]
+
+        def send(self, msg):
+            pass
+
+    real_tick = world._tick
+
+    def tick():
+        if left[0] > 0:
+            ticks_during_flood.append(left[0])
+        real_tick()
+
+    world._bus, bus = FloodBus(), world._bus
+    world._tick = tick
+    try:
+        world._run()
+    finally:
+        world._bus = bus
+    assert left[0] == 0 and ticks_during_flood  # timers ran while frames were still coming
