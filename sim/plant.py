@@ -43,13 +43,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit, types
 
 from stagectl.errors import ConfigError
 from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
-from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
+from stagectl.friction._numba import kernel_lists
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
+from stagectl.jit import kernel
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -165,7 +165,7 @@ class PlantConfig:
 
 
 # ================================================================================================ kernels
-@njit(cache=True)
+@kernel
 def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float:  # pragma: no cover
     """Time average over [a, b] of the command u(s) = hu[j] on [ht[j], ht[j+1]) (0 before ht[0])."""
     if nh == 0 or b <= ht[0]:
@@ -192,17 +192,7 @@ def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float
 _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
-_arr = types.float64[::1]
-
-
-_STEP_LIST = STEP_LIST
-
-
-_SIG_LOOP = (_arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr, types.float64, types.int64,
-             _arr, _arr, _arr, _arr)
-
-
-@njit(types.void(STEP_FN, *_SIG_LOOP), cache=True)
+@kernel
 def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
     """The fused loop (see the module docstring): ``u[k]`` held for ``dt`` in ``nsub`` sub-steps each.
 
@@ -285,13 +275,13 @@ def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov,
     ps[_WO] = wo
 
 
-@njit(types.void(_STEP_LIST, *_SIG_LOOP), cache=True)
+@kernel
 def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Python entry to :func:`_integrate` (the typed list unboxes fast; see ``_numba.kernel_lists``)."""
     _integrate(kl[0], kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of)
 
 
-@njit(cache=True)  # compiled on first use only (most processes never batch)
+@kernel  # compiled on first use only (most processes never batch)
 def _run_batch(kl, P, S, ep, PAR, ps0, ht, hu, nh0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
     """:func:`_integrate` for every packed parameter row of ``P`` (friction states in the rows of ``S``,
     plant parameters in the rows of ``PAR``)."""

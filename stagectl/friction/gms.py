@@ -38,11 +38,11 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from stagectl.errors import ConfigError
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, stribeck_excess
+from stagectl.friction._numba import FloatArray, KernelModel, stribeck_excess
 from stagectl.friction.base import register
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 # packed layout: [N, fc, fs, vs, delta, C, viscous, k_1..k_N, alpha_1..alpha_N, sigma1_1..sigma1_N,
@@ -50,13 +50,13 @@ from stagectl.schema import param
 _HDR = 7
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _g(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
     g: float = p[1] + (p[2] - p[1]) * stribeck_excess(v, p[3], p[4])
     return g
 
 
-@njit(STEP_SIG, cache=True)
+@kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     n = int(p[0])
     if v == 0.0:  # rule 3: hold
@@ -105,7 +105,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
     return total
 
 
-@njit(FORCE_SIG, cache=True)
+@kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     n = int(p[0])
     tot = 0.0

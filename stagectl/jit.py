@@ -1,0 +1,178 @@
+"""Compiled kernels: compile on first use, cache in a writable directory, with an honest cache key.
+
+Every numba kernel of the package is declared with :func:`kernel` instead of ``numba.njit``:
+
+* **Lazy.** No signature is given, so nothing is compiled at import; a kernel is compiled (or loaded from
+  the on-disk cache) the first time it is called or passed to a compiled loop. Importing
+  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses.
+* **Cache directory** (:func:`cache_dir`), first that applies: ``$NUMBA_CACHE_DIR`` if set;
+  ``$CACHE_DIRECTORY/numba`` (systemd's ``CacheDirectory=`` of the daemon's unit); ``$XDG_CACHE_HOME`` (or
+  ``~/.cache``) ``/stagectl/numba``. If that directory cannot be created or written, numba's own locators
+  are used (``__pycache__`` next to the source, then numba's user-wide cache). The numba process-wide
+  configuration is left untouched.
+* **Honest key.** numba keys a cached kernel on its own source file and bytecode only; a kernel that
+  inlines (or calls) a kernel of *another* module keeps loading the old machine code after that module
+  changes. :func:`kernel` adds to the key a SHA-256 over the source text of every module that holds a
+  kernel reachable from this one's globals (transitively: ``_integrate`` → ``effects.modify_friction_kernel``
+  → …), so editing any of them recompiles every kernel built on it. No manual cache deletion is needed.
+
+``stagectl warm`` (``stagectl.commands.warm``) compiles the kernels a configuration uses into the cache
+ahead of the first start (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import types as pytypes
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+_CACHE_CLASS: Any = None
+
+
+def cache_dir() -> Path:
+    """The directory compiled kernels are cached in (see the module docstring for the order)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    if env:
+        return Path(env)
+    sd = os.environ.get("CACHE_DIRECTORY")  # systemd CacheDirectory= (colon-separated if several)
+    if sd:
+        return Path(sd.split(":")[0]) / "numba"
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "stagectl" / "numba"
+
+
+def _is_dispatcher(obj: Any) -> bool:
+    return hasattr(obj, "py_func") and hasattr(obj, "overloads")
+
+
+def _names(code: pytypes.CodeType) -> set[str]:
+    out = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, pytypes.CodeType):
+            out |= _names(c)
+    return out
+
+
+def dependency_files(py_func: Callable[..., Any]) -> list[str]:
+    """Source files of every kernel reachable from ``py_func``'s globals (transitive), its own excluded.
+
+    Followed: global names that are dispatchers, and attributes of imported modules named in the code
+    (``effects.modify_friction_kernel``) that are dispatchers."""
+    own = getattr(py_func, "__code__", None)
+    seen_funcs: set[int] = set()
+    files: set[str] = set()
+    stack = [py_func]
+    while stack:
+        fn = stack.pop()
+        if id(fn) in seen_funcs:
+            continue
+        seen_funcs.add(id(fn))
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            continue
+        g = getattr(fn, "__globals__", {})
+        names = _names(code)
+        for name in names:
+            obj = g.get(name)
+            cands = [obj]
+            if isinstance(obj, pytypes.ModuleType):
+                cands = [getattr(obj, n, None) for n in names]
+            for c in cands:
+                if _is_dispatcher(c):
+                    pf = c.py_func
+                    f = getattr(pf.__code__, "co_filename", None)
+                    if f and os.path.exists(f):
+                        files.add(os.path.abspath(f))
+                    stack.append(pf)
+    if own is not None:
+        files.discard(os.path.abspath(own.co_filename))
+    return sorted(files)
+
+
+def _file_digest(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _cache_class() -> Any:
+    """The numba ``FunctionCache`` subclass (built on first use: importing numba's caching is not free)."""
+    global _CACHE_CLASS
+    if _CACHE_CLASS is not None:
+        return _CACHE_CLASS
+    from numba.core import caching
+
+    class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):  # type: ignore[misc]
+        def __init__(self, py_func: Any, py_file: str) -> None:
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(cache_dir() / self.get_suitable_cache_subpath(py_file))
+
+        def get_cache_path(self) -> str:
+            return self._cache_path
+
+    class _Impl(caching.CompileResultCacheImpl):  # type: ignore[misc]
+        _locator_classes = [_Locator, *caching.CompileResultCacheImpl._locator_classes]
+
+    class HonestCache(caching.FunctionCache):  # type: ignore[misc]
+        """numba's function cache with the dependencies' source hash in the index key."""
+
+        _impl_class = _Impl
+
+        def __init__(self, py_func: Any) -> None:
+            super().__init__(py_func)
+            self._deps_hash: str | None = None
+
+        def deps_hash(self) -> str:
+            if self._deps_hash is None:
+                h = hashlib.sha256()
+                for f in dependency_files(self._py_func):
+                    h.update(f.encode())
+                    h.update(_file_digest(f).encode())
+                self._deps_hash = h.hexdigest()
+            return self._deps_hash
+
+        def _index_key(self, sig: Any, codegen: Any) -> Any:
+            base = super()._index_key(sig, codegen)
+            return (*base, self.deps_hash())
+
+    _CACHE_CLASS = HonestCache
+    return HonestCache
+
+
+def kernel(fn: F | None = None, **options: Any) -> Any:
+    """``numba.njit(**options)`` compiled lazily, cached in :func:`cache_dir` with an honest key.
+
+    Use as ``@kernel`` or ``@kernel(inline="always")``. ``cache`` is always on; a signature cannot be given
+    (it would compile at import)."""
+    if "cache" in options:
+        raise TypeError("kernel(): the cache is always on")
+
+    def deco(f: F) -> Any:
+        from numba import njit
+
+        disp = njit(**options)(f)
+        if not os.environ.get("NUMBA_DISABLE_JIT"):
+            disp._cache = _cache_class()(f)
+        return disp
+
+    if fn is not None:
+        return deco(fn)
+    return deco
+
+
+def compiled_signatures(dispatcher: Any) -> int:
+    """How many signatures ``dispatcher`` has compiled or loaded in this process (0: never used)."""
+    return len(getattr(dispatcher, "overloads", {}))
+
+
+def loaded_from_cache(dispatcher: Any) -> int:
+    """Cache hits of ``dispatcher`` in this process (numba's per-signature counters)."""
+    return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
+
+
+__all__ = ["cache_dir", "compiled_signatures", "dependency_files", "kernel", "loaded_from_cache"]
