@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "identify",
     "discover",
     "bench",
+    "warm",
 )
 
 #: command names that live in a module of another name (the rest: name with '-' as '_')

@@ -14,7 +14,10 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
   inlines (or calls) a kernel of *another* module keeps loading the old machine code after that module
   changes. :func:`kernel` adds to the key a SHA-256 over the source text of every module that holds a
   kernel reachable from this one's globals (transitively: ``_integrate`` → ``effects.modify_friction_kernel``
-  → …), so editing any of them recompiles every kernel built on it. No manual cache deletion is needed.
+  → …, and kernels held in a closure's cells), so editing any of them recompiles every kernel built on it.
+  No manual cache deletion is needed. A closure kernel specialised on another kernel (``make(kstep)``,
+  the plant's per-model loop) is cached under a stable description of its cells (module and name of the
+  kernel), where numba's own key (a pickle of the cells) would change from one process to the next.
 
 ``stagectl warm`` (``stagectl.commands.warm``) compiles the kernels a configuration uses into the cache
 ahead of the first start (docs/performance.md).
@@ -77,8 +80,8 @@ def dependency_files(py_func: Callable[..., Any]) -> list[str]:
             continue
         g = getattr(fn, "__globals__", {})
         names = _names(code)
-        for name in names:
-            obj = g.get(name)
+        cells = [c.cell_contents for c in (getattr(fn, "__closure__", None) or ())]
+        for obj in [g.get(name) for name in names] + cells:
             cands = [obj]
             if isinstance(obj, pytypes.ModuleType):
                 cands = [getattr(obj, n, None) for n in names]
@@ -137,8 +140,17 @@ def _cache_class() -> Any:
             return self._deps_hash
 
         def _index_key(self, sig: Any, codegen: Any) -> Any:
-            base = super()._index_key(sig, codegen)
-            return (*base, self.deps_hash())
+            # numba hashes a closure's cell contents pickled, which for a kernel (dispatcher) differs from one
+            # process to the next: the entry would never be found again. A dispatcher cell is described by
+            # its module and name instead (its source is in deps_hash); other cells as numba does.
+            from numba.core.serialize import dumps
+
+            cells = tuple(c.cell_contents for c in (self._py_func.__closure__ or ()))
+            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c) else dumps(c)
+                    for c in cells]
+            code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
+            cellh = hashlib.sha256(repr(desc).encode()).hexdigest()
+            return (sig, codegen.magic_tuple(), (code, cellh), self.deps_hash())
 
     _CACHE_CLASS = HonestCache
     return HonestCache

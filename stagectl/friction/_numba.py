@@ -131,36 +131,35 @@ def along_batch(kls: Any, klf: Any, P: FloatArray, S: FloatArray, x: FloatArray,
             out[j, k] = step(p, st, dx, dx / dt, dt)
 
 
-_LISTS: dict[tuple[int, int], tuple[Any, Any]] = {}
+_LISTS: dict[tuple[str, int], Any] = {}
+_KEEP: list[Any] = []  # the dispatchers behind _LISTS' ids stay alive
 
 
-def kernel_lists(kstep: Any, kforce: Any) -> tuple[Any, Any]:
-    """Typed lists for ``(kstep, kforce)``, made once per pair of dispatchers."""
-    key = (id(kstep), id(kforce))
+def _typed_list(kind: str, fn: Any) -> Any:
+    key = (kind, id(fn))
     got = _LISTS.get(key)
     if got is None:
-        if not _WRAPPERS_READY:
-            _ready_wrappers()
-        got = (wrap_step(kstep), wrap_force(kforce))
+        wrap, sig = (wrap_step, STEP_LIST(STEP_FN)) if kind == "step" else (wrap_force, FORCE_LIST(FORCE_FN))
+        if not wrap.signatures:
+            # compile (or load) the wrapper for its one signature and lock it: called with a dispatcher it then
+            # converts it to the first-class function type instead of specialising on the dispatcher's own
+            # type (which could not be cached)
+            wrap.compile(sig)
+            wrap.disable_compile()
+        got = wrap(fn)
         _LISTS[key] = got
-        _KEEP.append((kstep, kforce))  # ids stay valid: the dispatchers are kept alive
+        _KEEP.append(fn)
     return got
 
 
-_KEEP: list[tuple[Any, Any]] = []
-_WRAPPERS_READY = False
+def step_list(kstep: Any) -> Any:
+    """A typed list holding ``kstep`` (made once per dispatcher; the plant needs only this one)."""
+    return _typed_list("step", kstep)
 
 
-def _ready_wrappers() -> None:
-    """Compile (or load) the two list wrappers for their one signature and lock them: called with a
-    dispatcher, they then convert it to the first-class function type instead of specialising on the
-    dispatcher's own type (which could not be cached)."""
-    global _WRAPPERS_READY
-    wrap_step.compile(STEP_LIST(STEP_FN))
-    wrap_step.disable_compile()
-    wrap_force.compile(FORCE_LIST(FORCE_FN))
-    wrap_force.disable_compile()
-    _WRAPPERS_READY = True
+def kernel_lists(kstep: Any, kforce: Any) -> tuple[Any, Any]:
+    """Typed lists for ``(kstep, kforce)``, made once per dispatcher."""
+    return step_list(kstep), _typed_list("force", kforce)
 
 
 def run_along(kstep: Any, kforce: Any, p: FloatArray, state: FloatArray, x: FloatArray,

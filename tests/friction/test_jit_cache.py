@@ -121,7 +121,9 @@ def test_dependency_files_follow_the_plant_into_effects_and_helpers() -> None:
     from stagectl.jit import dependency_files
     from stagectl.sim import plant
 
-    deps = dependency_files(plant._integrate.py_func)
-    assert effects.__file__ in deps
+    integrate, _ = plant.loops_for(gms._kstep)
+    deps = dependency_files(integrate.py_func)
+    assert effects.__file__ in deps  # inlined modifiers
+    assert gms.__file__ in deps  # the model kernel held in the closure
+    assert _numba.__file__ in deps  # and what that one inlines (transitively)
     assert plant.__file__ not in deps
-    assert _numba.__file__ in dependency_files(gms._kstep.py_func)
