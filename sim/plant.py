@@ -357,6 +357,51 @@ def _make_batch(kstep: Any, integrate: Any) -> Any:
     return run_batch
 
 
+def _make_batch_sets(ksets: Any) -> Any:
+    """The plain batch loop for a model with a many-sets kernel ``ksets`` (e.g. ``gms._ksets``): per time step
+    the rigid-body update of every set, then one ``ksets`` call for all of them (no per-set calls, no array
+    views; the sets' loops have no data-dependent branches)."""
+
+    @kernel
+    def run_sets(PT, ST, m, fo_c, x0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+        ns = PT.shape[1]
+        h = dt / nsub
+        x = np.full(ns, x0)
+        v = np.zeros(ns)
+        ff = np.zeros(ns)
+        dx = np.empty(ns)
+        inv_m = np.empty(ns)
+        for q in range(ns):
+            inv_m[q] = 1.0 / m[q]
+        for k in range(u.shape[0]):
+            fe = u[k] - fo_c
+            for i in range(nsub):
+                for q in range(ns):
+                    vq = v[q] + h * (fe - ff[q]) * inv_m[q]
+                    v[q] = vq
+                    dx[q] = h * vq
+                    x[q] += dx[q]
+                ksets(PT, ST, dx, v, h, ff)
+            for q in range(ns):
+                ox[q, k] = x[q]
+                ov[q, k] = v[q]
+                of[q, k] = ff[q]
+
+    return run_sets
+
+
+_SETS: dict[int, tuple[Any, Any]] = {}
+
+
+def batch_sets_loop(ksets: Any) -> Any:
+    """:func:`_make_batch_sets` made once per many-sets kernel."""
+    got = _SETS.get(id(ksets))
+    if got is None:
+        got = (_make_batch_sets(ksets), ksets)
+        _SETS[id(ksets)] = got
+    return got[0]
+
+
 _LOOPS: dict[int, tuple[Any, Any, Any]] = {}
 _OUTPUTS = ("t", "x", "v", "friction", "x_meas")
 _EMPTY = np.empty(0)  # an output not stored
@@ -686,6 +731,18 @@ def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.
     else:
         ht, hu, nh0 = np.zeros(1), np.zeros(1), -1
     ox, ov, of = (np.empty((P.shape[0], n)) for _ in range(3))
+    ksets = getattr(type(frictions[0]), "_ksets", None)
+    ep = plant._ep
+    plain_fx = ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
+    if (ksets is not None and plant._tau == 0.0 and plain_fx and all(k.breakaway_n == 0.0 for k in kerns)
+            and S.shape[1] > 0 and float(plant._ps[_FF]) == 0.0 and float(plant._ps[_V]) == 0.0):
+        # branch-free many-sets kernel, parameters and states one column per set
+        PT = np.ascontiguousarray(P.T)
+        ST = np.ascontiguousarray(S.T)
+        masses = np.full(P.shape[0], float(plant._par[0]))
+        batch_sets_loop(ksets)(PT, ST, masses, float(ep[7]), float(plant._ps[_X]), ua, float(dt_s), nsub,
+                               ox, ov, of)
+        return {"x": ox, "v": ov, "friction": of}
     PAR = np.ascontiguousarray(np.tile(plant._par, (len(kerns), 1)))
     PAR[:, 1] = [k.breakaway_n for k in kerns]
     PAR[:, 2] = [k.stick_velocity_m_s for k in kerns]
