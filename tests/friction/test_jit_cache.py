@@ -127,3 +127,23 @@ def test_dependency_files_follow_the_plant_into_effects_and_helpers() -> None:
     assert gms.__file__ in deps  # the model kernel held in the closure
     assert _numba.__file__ in deps  # and what that one inlines (transitively)
     assert plant.__file__ not in deps
+
+
+def test_stagectl_warm_fills_the_cache_the_next_start_loads(tmp_path: Path) -> None:
+    """``stagectl warm --config`` compiles the kernels of the configured model and plant into an empty cache;
+    a second warm (a start after install) loads every one of them instead of compiling."""
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nc"))
+    cmd = [sys.executable, "-m", "stagectl.cli", "warm", "--config", str(repo / "config" / "sim.yaml")]
+
+    def warm() -> dict[str, object]:
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+
+    first = warm()
+    assert first["cache_dir"] == str(tmp_path / "nc")
+    assert first["models"] == ["gms"] and first["plants"] == 1
+    assert first["kernels"] == 3 and first["loaded_from_cache"] == 0
+    second = warm()
+    assert second["loaded_from_cache"] == second["signatures"] == first["signatures"]
