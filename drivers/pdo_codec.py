@@ -32,12 +32,12 @@ RPDO1 = struct.Struct("<Hh")
 __all__ = ["RPDO1", "TPDO1", "TPDO2", "CyclicFrame", "Rpdo1Encoder", "decode_tpdo1", "decode_tpdo2"]
 
 
-class CyclicFrame(can.Message):  # type: ignore[misc]  # python-can ships no type information
+class CyclicFrame(can.Message):
     """A ``can.Message`` reused every cycle; ``deepcopy`` (python-can's virtual bus) copies it cheaply."""
 
     __slots__ = ()
 
-    def __deepcopy__(self, memo: dict[int, Any]) -> can.Message:
+    def __deepcopy__(self, memo: dict[int, Any] | None = None) -> can.Message:
         return can.Message(timestamp=self.timestamp, arbitration_id=self.arbitration_id,
                            is_extended_id=self.is_extended_id, is_remote_frame=self.is_remote_frame,
                            is_error_frame=self.is_error_frame, channel=self.channel, dlc=self.dlc,

@@ -30,7 +30,7 @@ import os
 import types as pytypes
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, overload
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -87,7 +87,7 @@ def dependency_files(py_func: Callable[..., Any]) -> list[str]:
                 cands = [getattr(obj, n, None) for n in names]
             for c in cands:
                 if _is_dispatcher(c):
-                    pf = c.py_func
+                    pf = getattr(c, "py_func")
                     f = getattr(pf.__code__, "co_filename", None)
                     if f and os.path.exists(f):
                         files.add(os.path.abspath(f))
@@ -109,25 +109,25 @@ def _cache_class() -> Any:
         return _CACHE_CLASS
     from numba.core import caching
 
-    class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):  # type: ignore[misc]
+    class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         def __init__(self, py_func: Any, py_file: str) -> None:
             self._py_file = py_file
             self._lineno = py_func.__code__.co_firstlineno
-            self._cache_path = str(cache_dir() / self.get_suitable_cache_subpath(py_file))
+            self._cache_path = str(cache_dir() / self.get_suitable_cache_subpath(py_file))  # type: ignore[no-untyped-call]
 
         def get_cache_path(self) -> str:
             return self._cache_path
 
-    class _Impl(caching.CompileResultCacheImpl):  # type: ignore[misc]
+    class _Impl(caching.CompileResultCacheImpl):
         _locator_classes = [_Locator, *caching.CompileResultCacheImpl._locator_classes]
 
-    class HonestCache(caching.FunctionCache):  # type: ignore[misc]
+    class HonestCache(caching.FunctionCache):
         """numba's function cache with the dependencies' source hash in the index key."""
 
         _impl_class = _Impl
 
         def __init__(self, py_func: Any) -> None:
-            super().__init__(py_func)
+            super().__init__(py_func)  # type: ignore[no-untyped-call]
             self._deps_hash: str | None = None
 
         def deps_hash(self) -> str:
@@ -146,7 +146,8 @@ def _cache_class() -> Any:
             from numba.core.serialize import dumps
 
             cells = tuple(c.cell_contents for c in (self._py_func.__closure__ or ()))
-            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c) else dumps(c)
+            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c)
+                    else dumps(c)  # type: ignore[no-untyped-call]
                     for c in cells]
             code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
             cellh = hashlib.sha256(repr(desc).encode()).hexdigest()
@@ -154,6 +155,14 @@ def _cache_class() -> Any:
 
     _CACHE_CLASS = HonestCache
     return HonestCache
+
+
+@overload
+def kernel(fn: F) -> F: ...
+
+
+@overload
+def kernel(fn: None = None, **options: Any) -> Callable[[F], F]: ...
 
 
 def kernel(fn: F | None = None, **options: Any) -> Any:

@@ -139,6 +139,7 @@ def _typed_list(kind: str, fn: Any) -> Any:
     key = (kind, id(fn))
     got = _LISTS.get(key)
     if got is None:
+        wrap: Any
         wrap, sig = (wrap_step, STEP_LIST(STEP_FN)) if kind == "step" else (wrap_force, FORCE_LIST(FORCE_FN))
         if not wrap.signatures:
             # compile (or load) the wrapper for its one signature and lock it: called with a dispatcher it then
