@@ -191,10 +191,13 @@ def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float
 _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
-def _make_integrate(kstep: Any) -> Any:
+def _make_integrate(kstep: Any, plain_only: bool) -> Any:
     """The fused loop specialised on one friction kernel ``kstep`` (a direct call, inlined by LLVM: a call
     through a function pointer cost ~40 % of the GMS step). One compiled loop per model, compiled on first
-    use and cached (``stagectl.jit``: keyed on the model kernel's module and source)."""
+    use and cached (``stagectl.jit``: keyed on the model kernel's module and source).
+
+    ``plain_only``: a compile-time constant; True compiles only the plain loop (no delay, no Karnopp band, no
+    friction modifier, constant F_other), about half the code and compile time, for plants that are plain."""
 
     @kernel
     def integrate(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
@@ -229,6 +232,44 @@ def _make_integrate(kstep: Any) -> Any:
         st_f = of.shape[0] > 0
         cnt = 0
         j = 0
+        if plain_only:  # compile-time constant: the general loop below is not compiled at all
+            if not plain:
+                raise ValueError("plain-only plant loop called with delay, stick band or position effects")
+            for k in range(u.shape[0]):
+                ua = u[k]
+                fe = ua - fo_c
+                for i in range(nsub):
+                    v = v + h * (fe - ff) * inv_m
+                    dx = h * v
+                    x += dx
+                    win += ua * dx
+                    wf += ff * dx
+                    wo += fo_c * dx
+                    ff = kstep(kp, fs, dx, v, h)
+                t = t + dt
+                cnt += 1
+                if cnt == every:
+                    cnt = 0
+                    if st_t:
+                        ot[j] = t
+                    if st_x:
+                        ox[j] = x
+                    if st_v:
+                        ov[j] = v
+                    if st_f:
+                        of[j] = ff
+                    j += 1
+            ps[_T] = t
+            ps[_X] = x
+            ps[_V] = v
+            ps[_FF] = ff
+            ps[_FO] = fo_c
+            ps[_UA] = ua
+            ps[_STUCK] = stuck
+            ps[_WIN] = win
+            ps[_WF] = wf
+            ps[_WO] = wo
+            return
         for k in range(u.shape[0]):
             nh = nh0 + k + 1
             ua = u[k]
@@ -402,19 +443,21 @@ def batch_sets_loop(ksets: Any) -> Any:
     return got[0]
 
 
-_LOOPS: dict[int, tuple[Any, Any, Any]] = {}
+_LOOPS: dict[tuple[int, bool], tuple[Any, Any, Any]] = {}
 _OUTPUTS = ("t", "x", "v", "friction", "x_meas")
 _EMPTY = np.empty(0)  # an output not stored
 _EMPTY1 = np.zeros(1)  # the command history when there is no delay
 
 
-def loops_for(kstep: Any) -> tuple[Any, Any]:
-    """(integrate, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel)."""
-    got = _LOOPS.get(id(kstep))
+def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
+    """(integrate, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel);
+    ``plain_only``: the plain loop alone (see :func:`_make_integrate`); run_batch is always the general one."""
+    got = _LOOPS.get((id(kstep), plain_only))
     if got is None:
-        integ = _make_integrate(kstep)
-        got = (integ, _make_batch(kstep, integ), kstep)  # kstep kept alive: its id stays valid
-        _LOOPS[id(kstep)] = got
+        integ = _make_integrate(kstep, plain_only)
+        batch = loops_for(kstep, False)[1] if plain_only else _make_batch(kstep, integ)
+        got = (integ, batch, kstep)  # kstep kept alive: its id stays valid
+        _LOOPS[(id(kstep), plain_only)] = got
     return got[0], got[1]
 
 
@@ -435,7 +478,10 @@ class StagePlant:
         kern = cfg.friction.kernel()
         self._kstep = kern.step
         self._kforce = kern.force
-        self._integrate, self._run_batch = loops_for(kern.step)
+        ep = cfg.effects.packed()
+        plain = (kern.breakaway_n == 0.0 and not (cfg.effects.delay is not None and cfg.effects.delay.delay_s > 0.0)
+                 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0)
+        self._integrate, _ = loops_for(kern.step, plain_only=plain)
         self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
         self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
         self._tau = float(cfg.effects.delay.delay_s) if cfg.effects.delay is not None else 0.0
@@ -746,7 +792,8 @@ def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.
     PAR = np.ascontiguousarray(np.tile(plant._par, (len(kerns), 1)))
     PAR[:, 1] = [k.breakaway_n for k in kerns]
     PAR[:, 2] = [k.stick_velocity_m_s for k in kerns]
-    plant._run_batch(P, S, plant._ep, PAR, plant._ps.copy(), ht, hu, nh0, ua, float(dt_s), nsub, ox, ov, of)
+    run_batch = loops_for(plant._kstep)[1]
+    run_batch(P, S, plant._ep, PAR, plant._ps.copy(), ht, hu, nh0, ua, float(dt_s), nsub, ox, ov, of)
     return {"x": ox, "v": ov, "friction": of}
 
 
