@@ -15,6 +15,7 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
   changes. :func:`kernel` adds to the key a SHA-256 over the source text of every module that holds a
   kernel reachable from this one's globals (transitively: ``_integrate`` → ``effects.modify_friction_kernel``
   → …, and kernels held in a closure's cells), so editing any of them recompiles every kernel built on it.
+  Global constants the reached kernels read (numba freezes them into the code) are in the key by value.
   No manual cache deletion is needed. A closure kernel specialised on another kernel (``make(kstep)``,
   the plant's per-model loop) is cached under a stable description of its cells (module and name of the
   kernel), where numba's own key (a pickle of the cells) would change from one process to the next.
@@ -61,40 +62,63 @@ def _names(code: pytypes.CodeType) -> set[str]:
     return out
 
 
-def dependency_files(py_func: Callable[..., Any]) -> list[str]:
-    """Source files of every kernel reachable from ``py_func``'s globals (transitive), its own excluded.
+_SIMPLE = (bool, int, float, complex, str, bytes)
 
-    Followed: global names that are dispatchers, and attributes of imported modules named in the code
-    (``effects.modify_friction_kernel``) that are dispatchers."""
-    own = getattr(py_func, "__code__", None)
-    seen_funcs: set[int] = set()
+
+def _is_simple(v: Any) -> bool:
+    if isinstance(v, tuple):
+        return all(_is_simple(e) for e in v)
+    return isinstance(v, _SIMPLE)
+
+
+def _walk(py_func: Callable[..., Any]) -> tuple[set[str], set[tuple[str, str]]]:
+    """Source files of every kernel reachable from ``py_func`` (transitive, its own included), and the
+    global constants (numbers, strings, tuples of them) the reached functions read: numba freezes those into
+    the machine code, so a constant imported from another module must be in the key too."""
     files: set[str] = set()
+    consts: set[tuple[str, str]] = set()
+    seen: set[int] = set()
     stack = [py_func]
     while stack:
         fn = stack.pop()
-        if id(fn) in seen_funcs:
+        if id(fn) in seen:
             continue
-        seen_funcs.add(id(fn))
+        seen.add(id(fn))
         code = getattr(fn, "__code__", None)
         if code is None:
             continue
+        if os.path.exists(code.co_filename):
+            files.add(os.path.abspath(code.co_filename))
         g = getattr(fn, "__globals__", {})
         names = _names(code)
-        cells = [c.cell_contents for c in (getattr(fn, "__closure__", None) or ())]
-        for obj in [g.get(name) for name in names] + cells:
-            cands = [obj]
+        cells = [("<cell>", c.cell_contents) for c in (getattr(fn, "__closure__", None) or ())]
+        for name, obj in [(name, g.get(name)) for name in names] + cells:
+            cands = [(name, obj)]
             if isinstance(obj, pytypes.ModuleType):
-                cands = [getattr(obj, n, None) for n in names]
-            for c in cands:
+                cands = [(f"{name}.{n}", getattr(obj, n, None)) for n in names]
+            for cname, c in cands:
                 if _is_dispatcher(c):
-                    pf = getattr(c, "py_func")
-                    f = getattr(pf.__code__, "co_filename", None)
-                    if f and os.path.exists(f):
-                        files.add(os.path.abspath(f))
-                    stack.append(pf)
+                    stack.append(getattr(c, "py_func"))
+                elif _is_simple(c) and cname != "<cell>":
+                    consts.add((f"{getattr(fn, '__module__', '?')}:{cname}", repr(c)))
+    return files, consts
+
+
+def dependency_files(py_func: Callable[..., Any]) -> list[str]:
+    """Source files of every kernel reachable from ``py_func``'s globals (transitive), its own excluded.
+
+    Followed: global names that are dispatchers, attributes of imported modules named in the code
+    (``effects.modify_friction_kernel``) that are dispatchers, and dispatchers held in closure cells."""
+    files, _ = _walk(py_func)
+    own = getattr(py_func, "__code__", None)
     if own is not None:
         files.discard(os.path.abspath(own.co_filename))
     return sorted(files)
+
+
+def dependency_constants(py_func: Callable[..., Any]) -> list[tuple[str, str]]:
+    """``(module:name, repr(value))`` of the global constants read by ``py_func`` and the kernels it reaches."""
+    return sorted(_walk(py_func)[1])
 
 
 def _file_digest(path: str) -> str:
@@ -136,6 +160,7 @@ def _cache_class() -> Any:
                 for f in dependency_files(self._py_func):
                     h.update(f.encode())
                     h.update(_file_digest(f).encode())
+                h.update(repr(dependency_constants(self._py_func)).encode())
                 self._deps_hash = h.hexdigest()
             return self._deps_hash
 
@@ -196,4 +221,5 @@ def loaded_from_cache(dispatcher: Any) -> int:
     return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
 
 
-__all__ = ["cache_dir", "compiled_signatures", "dependency_files", "kernel", "loaded_from_cache"]
+__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "kernel",
+           "loaded_from_cache"]

@@ -147,3 +147,29 @@ def test_stagectl_warm_fills_the_cache_the_next_start_loads(tmp_path: Path) -> N
     assert first["kernels"] == 3 and first["loaded_from_cache"] == 0
     second = warm()
     assert second["loaded_from_cache"] == second["signatures"] == first["signatures"]
+
+
+def test_a_constant_imported_from_another_module_is_part_of_the_key(tmp_path: Path) -> None:
+    """numba freezes global constants into the machine code; one imported from another module changes the
+    compiled result, so its value is in the key."""
+    pkg = tmp_path / "src"
+    pkg.mkdir()
+    (pkg / "jit_c.py").write_text("SCALE = 2.0\n")
+    (pkg / "jit_d.py").write_text(textwrap.dedent("""
+        from stagectl.jit import kernel
+        from jit_c import SCALE
+
+        @kernel
+        def scaled(x):
+            return SCALE * x
+    """))
+    code = """
+        import json, jit_d
+        from stagectl.jit import loaded_from_cache
+        print(json.dumps({"r": jit_d.scaled(1.5), "hits": loaded_from_cache(jit_d.scaled)}))
+    """
+    cache = tmp_path / "nc"
+    assert json.loads(_run(code, cache, pkg)) == {"r": 3.0, "hits": 0}
+    assert json.loads(_run(code, cache, pkg)) == {"r": 3.0, "hits": 1}
+    (pkg / "jit_c.py").write_text("SCALE = 4.0\n")
+    assert json.loads(_run(code, cache, pkg)) == {"r": 6.0, "hits": 0}
