@@ -52,6 +52,7 @@ from typing import Any
 import can
 
 from stagectl.clock import Timing
+from stagectl.drivers import pdo_codec
 from stagectl.drivers.base import (
     DeviceFault,
     DeviceState,
@@ -289,8 +290,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rpdo1_id = 0x200 + nid
         self._emcy_id = 0x080 + nid
         self._hb_id = 0x700 + nid
-        self._sync_msg = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
-        self._hb_msg = can.Message(arbitration_id=0x700 + cfg.controller_node_id, data=b"\x05", is_extended_id=False)
+        # cyclic frames preallocated once, payloads packed in place (drivers/pdo_codec.py)
+        self._sync_msg = pdo_codec.frame(SYNC_COB_ID)
+        self._hb_msg = pdo_codec.frame(0x700 + cfg.controller_node_id, b"\x05")
+        self._rpdo1 = pdo_codec.Rpdo1Encoder(self._rpdo1_id)
         units = cfg.max_force_n / cfg.force_per_unit_n
         self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
         self._reset_cyclic()
@@ -743,7 +746,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: write() needs an open, configured drive (state {self._state.value})")
 
     def _send_rpdo(self, cw: int, torque: int) -> None:
-        self._send(can.Message(arbitration_id=self._rpdo1_id, data=_RPDO1.pack(cw, torque), is_extended_id=False))
+        self._send(self._rpdo1.encode(cw, torque))
 
     def quick_stop(self) -> None:
         """Controlword QUICK STOP with zero torque, now and in every following ``write``. Real-time safe."""

@@ -44,14 +44,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit, types
 
 from stagectl.errors import ConfigError
 from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
-from stagectl.friction._numba import STEP_FN, STEP_LIST, kernel_lists
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
+from stagectl.jit import kernel
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -167,7 +166,7 @@ class PlantConfig:
 
 
 # ================================================================================================ kernels
-@njit(cache=True)
+@kernel
 def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float:  # pragma: no cover
     """Time average over [a, b] of the command u(s) = hu[j] on [ht[j], ht[j+1]) (0 before ht[0])."""
     if nh == 0 or b <= ht[0]:
@@ -194,115 +193,276 @@ def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float
 _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
-_arr = types.float64[::1]
+def _make_integrate(kstep: Any, plain_only: bool) -> Any:
+    """The fused loop specialised on one friction kernel ``kstep`` (a direct call, inlined by LLVM: a call
+    through a function pointer cost ~40 % of the GMS step). One compiled loop per model, compiled on first
+    use and cached (``stagectl.jit``: keyed on the model kernel's module and source).
+
+    ``plain_only``: a compile-time constant; True compiles only the plain loop (no delay, no Karnopp band, no
+    friction modifier, constant F_other), about half the code and compile time, for plants that are plain."""
+
+    @kernel
+    def integrate(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+        """``u[k]`` held for ``dt`` in ``nsub`` sub-steps each (see the module docstring).
+
+        Plant state in ``ps`` (read at the start, written at the end), friction state in ``fs``; the command
+        history ``ht/hu`` holds ``nh0`` earlier commands followed by ``u`` (only used when τ > 0). Outputs after
+        every ``every``-th step into ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N] (an output of length 0
+        is not stored).
+        """
+        m = par[0]
+        inv_m = 1.0 / m
+        fb = par[1]
+        dv = par[2]
+        tau = par[3]
+        h = dt / nsub
+        t = ps[_T]
+        x = ps[_X]
+        v = ps[_V]
+        ff = ps[_FF]
+        stuck = ps[_STUCK]
+        win = ps[_WIN]
+        wf = ps[_WF]
+        wo = ps[_WO]
+        ua = 0.0
+        # no delay, no Karnopp band, no friction modifier, constant F_other: the plain loop
+        plain = (tau == 0.0 and fb == 0.0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
+                 and ep[11] == 0.0)
+        fo_c = ep[7]
+        st_t = ot.shape[0] > 0
+        st_x = ox.shape[0] > 0
+        st_v = ov.shape[0] > 0
+        st_f = of.shape[0] > 0
+        cnt = 0
+        j = 0
+        if plain_only:  # compile-time constant: the general loop below is not compiled at all
+            if not plain:
+                raise ValueError("plain-only plant loop called with delay, stick band or position effects")
+            for k in range(u.shape[0]):
+                ua = u[k]
+                fe = ua - fo_c
+                for i in range(nsub):
+                    v = v + h * (fe - ff) * inv_m
+                    dx = h * v
+                    x += dx
+                    win += ua * dx
+                    wf += ff * dx
+                    wo += fo_c * dx
+                    ff = kstep(kp, fs, dx, v, h)
+                t = t + dt
+                cnt += 1
+                if cnt == every:
+                    cnt = 0
+                    if st_t:
+                        ot[j] = t
+                    if st_x:
+                        ox[j] = x
+                    if st_v:
+                        ov[j] = v
+                    if st_f:
+                        of[j] = ff
+                    j += 1
+            ps[_T] = t
+            ps[_X] = x
+            ps[_V] = v
+            ps[_FF] = ff
+            ps[_FO] = fo_c
+            ps[_UA] = ua
+            ps[_STUCK] = stuck
+            ps[_WIN] = win
+            ps[_WF] = wf
+            ps[_WO] = wo
+            return
+        for k in range(u.shape[0]):
+            nh = nh0 + k + 1
+            ua = u[k]
+            if plain:
+                fe = ua - fo_c
+                for i in range(nsub):
+                    v = v + h * (fe - ff) * inv_m
+                    dx = h * v
+                    x += dx
+                    win += ua * dx
+                    wf += ff * dx
+                    wo += fo_c * dx
+                    ff = kstep(kp, fs, dx, v, h)
+            else:
+                for i in range(nsub):
+                    if tau > 0.0:
+                        t0 = t + i * h
+                        ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
+                    fo = _other(ep, x)
+                    fe = ua - fo
+                    if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
+                        # Karnopp band (static models): hold while the net force stays below break-away
+                        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                        if abs(fe) <= lim:
+                            v = 0.0
+                            ff = fe
+                            stuck = 1.0
+                            kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
+                            continue
+                        stuck = 0.0
+                        ff = lim if fe > 0.0 else -lim
+                        v = v + h * (fe - ff) * inv_m
+                        dx = h * v
+                        x += dx
+                        win += ua * dx
+                        wf += ff * dx
+                        wo += fo * dx
+                        kstep(kp, fs, dx, v, h)
+                        continue
+                    v_old = v
+                    v = v + h * (fe - ff) * inv_m
+                    if fb > 0.0 and v * v_old < 0.0:
+                        # velocity crossed zero inside the sub-step: stop here, the stick test follows
+                        v = 0.0
+                        stuck = 1.0
+                        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                        ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
+                        kstep(kp, fs, 0.0, 0.0, h)
+                        continue
+                    dx = h * v
+                    x += dx
+                    win += ua * dx
+                    wf += ff * dx
+                    wo += fo * dx
+                    ff = _modify(ep, kstep(kp, fs, dx, v, h), x) + _vforce(ep, v)
+            t = t + dt
+            cnt += 1
+            if cnt == every:
+                cnt = 0
+                if st_t:
+                    ot[j] = t
+                if st_x:
+                    ox[j] = x
+                if st_v:
+                    ov[j] = v
+                if st_f:
+                    of[j] = ff
+                j += 1
+        ps[_T] = t
+        ps[_X] = x
+        ps[_V] = v
+        ps[_FF] = ff
+        ps[_FO] = _other(ep, x)
+        ps[_UA] = ua
+        ps[_STUCK] = stuck
+        ps[_WIN] = win
+        ps[_WF] = wf
+        ps[_WO] = wo
+
+    return integrate
 
 
-_STEP_LIST = STEP_LIST
+def _make_batch(kstep: Any, integrate: Any) -> Any:
+    """The batch loop for one friction kernel (see :func:`simulate_batch`)."""
+
+    @kernel
+    def run_batch(P, S, ep, PAR, ps0, ht, hu, nh0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+        """Every packed parameter row of ``P`` over one input (friction states in the rows of ``S``, plant
+        parameters in the rows of ``PAR``). Plain runs (no delay, no Karnopp band, no friction modifier,
+        constant F_other) interleave the sets per time step: their dependency chains overlap in the CPU.
+        Anything else runs :func:`integrate` set by set."""
+        n_sets = P.shape[0]
+        plain = (nh0 < 0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
+                 and ep[11] == 0.0)
+        for q in range(n_sets):
+            if PAR[q, 1] != 0.0 or PAR[q, 3] != 0.0:
+                plain = False
+        if not plain:
+            ps = np.empty(ps0.shape[0])
+            ot = np.empty(0)
+            for q in range(n_sets):
+                ps[:] = ps0
+                integrate(P[q], S[q], ep, PAR[q], ps, ht, hu, nh0, u, dt, nsub, 1, ot, ox[q], ov[q], of[q])
+            return
+        h = dt / nsub
+        fo_c = ep[7]
+        x = np.full(n_sets, ps0[_X])
+        v = np.full(n_sets, ps0[_V])
+        ff = np.full(n_sets, ps0[_FF])
+        inv_m = np.empty(n_sets)
+        for q in range(n_sets):
+            inv_m[q] = 1.0 / PAR[q, 0]
+        for k in range(u.shape[0]):
+            fe = u[k] - fo_c
+            for i in range(nsub):
+                for q in range(n_sets):
+                    vq = v[q] + h * (fe - ff[q]) * inv_m[q]
+                    dx = h * vq
+                    v[q] = vq
+                    x[q] += dx
+                    ff[q] = kstep(P[q], S[q], dx, vq, h)
+            for q in range(n_sets):
+                ox[q, k] = x[q]
+                ov[q, k] = v[q]
+                of[q, k] = ff[q]
+
+    return run_batch
 
 
-_SIG_LOOP = (_arr, _arr, _arr, _arr, _arr, _arr, _arr, types.int64, _arr, types.float64, types.int64,
-             _arr, _arr, _arr, _arr)
+def _make_batch_sets(ksets: Any) -> Any:
+    """The plain batch loop for a model with a many-sets kernel ``ksets`` (e.g. ``gms._ksets``): per time step
+    the rigid-body update of every set, then one ``ksets`` call for all of them (no per-set calls, no array
+    views; the sets' loops have no data-dependent branches)."""
+
+    @kernel
+    def run_sets(PT, ST, m, fo_c, x0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+        ns = PT.shape[1]
+        h = dt / nsub
+        x = np.full(ns, x0)
+        v = np.zeros(ns)
+        ff = np.zeros(ns)
+        dx = np.empty(ns)
+        inv_m = np.empty(ns)
+        for q in range(ns):
+            inv_m[q] = 1.0 / m[q]
+        for k in range(u.shape[0]):
+            fe = u[k] - fo_c
+            for i in range(nsub):
+                for q in range(ns):
+                    vq = v[q] + h * (fe - ff[q]) * inv_m[q]
+                    v[q] = vq
+                    dx[q] = h * vq
+                    x[q] += dx[q]
+                ksets(PT, ST, dx, v, h, ff)
+            for q in range(ns):
+                ox[q, k] = x[q]
+                ov[q, k] = v[q]
+                of[q, k] = ff[q]
+
+    return run_sets
 
 
-@njit(types.void(STEP_FN, *_SIG_LOOP), cache=True)
-def _integrate(kstep, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The fused loop (see the module docstring): ``u[k]`` held for ``dt`` in ``nsub`` sub-steps each.
-
-    Plant state in ``ps`` (read at the start, written at the end), friction state in ``fs``; the command
-    history ``ht/hu`` holds ``nh0`` earlier commands followed by ``u`` (only used when τ > 0). Outputs
-    after each step: ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N].
-    """
-    m = par[0]
-    fb = par[1]
-    dv = par[2]
-    tau = par[3]
-    h = dt / nsub
-    t = ps[_T]
-    x = ps[_X]
-    v = ps[_V]
-    ff = ps[_FF]
-    stuck = ps[_STUCK]
-    win = ps[_WIN]
-    wf = ps[_WF]
-    wo = ps[_WO]
-    ua = 0.0
-    for k in range(u.shape[0]):
-        nh = nh0 + k + 1
-        ua = u[k]
-        for i in range(nsub):
-            if tau > 0.0:
-                t0 = t + i * h
-                ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
-            fo = _other(ep, x)
-            fe = ua - fo
-            if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
-                # Karnopp band (static models): hold while the net force stays below break-away
-                lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                if abs(fe) <= lim:
-                    v = 0.0
-                    ff = fe
-                    stuck = 1.0
-                    kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
-                    continue
-                stuck = 0.0
-                ff = lim if fe > 0.0 else -lim
-                v = v + h * (fe - ff) / m
-                dx = h * v
-                x += dx
-                win += ua * dx
-                wf += ff * dx
-                wo += fo * dx
-                kstep(kp, fs, dx, v, h)
-                continue
-            v_old = v
-            v = v + h * (fe - ff) / m
-            if fb > 0.0 and v * v_old < 0.0:
-                # velocity crossed zero inside the sub-step: stop here, the stick test follows
-                v = 0.0
-                stuck = 1.0
-                lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
-                kstep(kp, fs, 0.0, 0.0, h)
-                continue
-            dx = h * v
-            x += dx
-            win += ua * dx
-            wf += ff * dx
-            wo += fo * dx
-            ff = _modify(ep, kstep(kp, fs, dx, v, h), x) + _vforce(ep, v)
-        t = t + dt
-        ot[k] = t
-        ox[k] = x
-        ov[k] = v
-        of[k] = ff
-    ps[_T] = t
-    ps[_X] = x
-    ps[_V] = v
-    ps[_FF] = ff
-    ps[_FO] = _other(ep, x)
-    ps[_UA] = ua
-    ps[_STUCK] = stuck
-    ps[_WIN] = win
-    ps[_WF] = wf
-    ps[_WO] = wo
+_SETS: dict[int, tuple[Any, Any]] = {}
 
 
-@njit(types.void(_STEP_LIST, *_SIG_LOOP), cache=True)
-def _advance(kl, kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Python entry to :func:`_integrate` (the typed list unboxes fast; see ``_numba.kernel_lists``)."""
-    _integrate(kl[0], kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, ot, ox, ov, of)
+def batch_sets_loop(ksets: Any) -> Any:
+    """:func:`_make_batch_sets` made once per many-sets kernel."""
+    got = _SETS.get(id(ksets))
+    if got is None:
+        got = (_make_batch_sets(ksets), ksets)
+        _SETS[id(ksets)] = got
+    return got[0]
 
 
-@njit(cache=True)  # compiled on first use only (most processes never batch)
-def _run_batch(kl, P, S, ep, PAR, ps0, ht, hu, nh0, u, dt, nsub, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """:func:`_integrate` for every packed parameter row of ``P`` (friction states in the rows of ``S``,
-    plant parameters in the rows of ``PAR``)."""
-    ps = np.empty(ps0.shape[0])
-    ot = np.empty(u.shape[0])
-    kstep = kl[0]
-    for j in range(P.shape[0]):
-        ps[:] = ps0
-        _integrate(kstep, P[j], S[j], ep, PAR[j], ps, ht, hu, nh0, u, dt, nsub, ot, ox[j], ov[j], of[j])
+_LOOPS: dict[tuple[int, bool], tuple[Any, Any, Any]] = {}
+_OUTPUTS = ("t", "x", "v", "friction", "x_meas")
+_EMPTY = np.empty(0)  # an output not stored
+_EMPTY1 = np.zeros(1)  # the command history when there is no delay
+
+
+def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
+    """(integrate, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel);
+    ``plain_only``: the plain loop alone (see :func:`_make_integrate`); run_batch is always the general one."""
+    got = _LOOPS.get((id(kstep), plain_only))
+    if got is None:
+        integ = _make_integrate(kstep, plain_only)
+        batch = loops_for(kstep, False)[1] if plain_only else _make_batch(kstep, integ)
+        got = (integ, batch, kstep)  # kstep kept alive: its id stays valid
+        _LOOPS[(id(kstep), plain_only)] = got
+    return got[0], got[1]
 
 
 # ================================================================================================ plant
@@ -322,7 +482,11 @@ class StagePlant:
         kern = cfg.friction.kernel()
         self._kstep = kern.step
         self._kforce = kern.force
-        self._kl = kernel_lists(kern.step, kern.force)[0]
+        ep = cfg.effects.packed()
+        plain = (kern.breakaway_n == 0.0 and not (cfg.effects.delay is not None and cfg.effects.delay.delay_s > 0.0)
+                 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
+                 and ep[11] == 0.0)
+        self._integrate, _ = loops_for(kern.step, plain_only=plain)
         self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
         self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
         self._tau = float(cfg.effects.delay.delay_s) if cfg.effects.delay is not None else 0.0
@@ -404,31 +568,68 @@ class StagePlant:
             nh0 = self._nh - 1
         self._u1[0] = u
         o = self._o1
-        _advance(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, self._ht,
-                 self._hu, nh0, self._u1, float(dt_s), nsub, o[0], o[1], o[2], o[3])
+        self._integrate(self._kp, self._fs, self._ep, self._par, self._ps, self._ht,
+                        self._hu, nh0, self._u1, float(dt_s), nsub, 1, o[0], o[1], o[2], o[3])
         self._sample(self._ps[_X])
 
-    def simulate(self, u: npt.ArrayLike, dt_s: float) -> dict[str, FloatArray]:
+    def simulate(self, u: npt.ArrayLike, dt_s: float, outputs: Sequence[str] | None = None, every: int = 1,
+                 out: Mapping[str, FloatArray] | None = None) -> dict[str, FloatArray]:
         """Open-loop fast path: equivalent to ``for uk in u: step(uk, dt_s); measure()``.
 
         Continues from the current state and leaves the plant where the run ends.
 
+        Parameters
+        ----------
+        outputs : names, optional
+            Which of ``t``, ``x``, ``v``, ``friction``, ``x_meas`` to return (default: all). Only these are
+            stored: a long run that needs just ``x`` writes 8 bytes per step, not 40.
+        every : int
+            Store every ``every``-th step only (steps ``every−1, 2·every−1, …``; ``len(u) // every`` samples).
+            ``x_meas`` needs ``every = 1``.
+        out : mapping name → array, optional
+            Preallocated float64 arrays of length ``len(u) // every`` to write into (repeated runs then touch
+            no fresh memory); returned as they are.
+
+        Without ``x_meas`` the sensor is refreshed from the end state only (as :meth:`reset` fills it): a
+        following :meth:`measure` reads the final position, without the earlier steps' sensor delay.
+
         Returns
         -------
         dict
-            ``t`` [s], ``x`` [m], ``v`` [m/s], ``friction`` [N] (F', after effects) and ``x_meas`` [m]
-            (sensor reading) after each step; arrays of ``len(u)``.
+            The requested outputs after each (stored) step: ``t`` [s], ``x`` [m], ``v`` [m/s], ``friction`` [N]
+            (F', after effects), ``x_meas`` [m] (sensor reading).
         """
-        ua = np.asarray(u, dtype=np.float64).ravel()
-        if not np.all(np.isfinite(ua)):
+        names = _OUTPUTS if outputs is None else tuple(outputs)
+        bad = [nm for nm in names if nm not in _OUTPUTS]
+        if bad:
+            raise ValueError(f"outputs: unknown {bad} (known: {', '.join(_OUTPUTS)})")
+        every = int(every)
+        if every < 1:
+            raise ValueError(f"every must be >= 1 (got {every})")
+        meas_wanted = "x_meas" in names
+        if meas_wanted and every != 1:
+            raise ValueError(f"x_meas needs every=1 (got every={every}): the sensor delay works on whole steps")
+        ua = np.ascontiguousarray(u, dtype=np.float64).ravel()
+        if not math.isfinite(float(np.add.reduce(ua))):  # finite sum <=> every entry finite (no temporary)
             raise ValueError("u must be finite")
         nsub = self._nsub(dt_s)
-        ua = np.clip(ua, -self._umax, self._umax)
+        if math.isfinite(self._umax) and ua.size and float(np.max(np.abs(ua))) > self._umax:
+            ua = np.clip(ua, -self._umax, self._umax)
         n = ua.shape[0]
+        n_out = n // every
+        bufs: dict[str, FloatArray] = {}
+        for nm in ("t", "x", "v", "friction"):
+            if nm in names or (nm == "x" and meas_wanted):
+                given = out.get(nm) if out is not None else None
+                if given is not None:
+                    if given.dtype != np.float64 or given.shape != (n_out,) or not given.flags.c_contiguous:
+                        raise ValueError(f"out[{nm!r}]: needs a C-contiguous float64 array of shape ({n_out},)")
+                    bufs[nm] = given
+                else:
+                    bufs[nm] = np.empty(n_out)
         if n == 0:
-            e = np.empty(0)
-            return {"t": e, "x": e.copy(), "v": e.copy(), "friction": e.copy(), "x_meas": e.copy()}
-        ot, ox, ov, of = (np.empty(n) for _ in range(4))
+            return {nm: bufs.get(nm, np.empty(0)) for nm in names}
+        ot, ox, ov, of = (bufs.get(nm, _EMPTY) for nm in ("t", "x", "v", "friction"))
         if self._tau > 0.0:
             if self._nh:
                 self._prune(self._ps[_T])
@@ -442,10 +643,10 @@ class StagePlant:
             hu[nh0:] = ua
         else:
             nh0 = -1  # the history is not used without delay
-            ht = np.zeros(1)
-            hu = np.zeros(1)
-        _advance(self._kl, self._kp, self._fs, self._ep, self._par, self._ps, ht, hu,
-                 nh0, ua, float(dt_s), nsub, ot, ox, ov, of)
+            ht = _EMPTY1
+            hu = _EMPTY1
+        self._integrate(self._kp, self._fs, self._ep, self._par, self._ps, ht, hu,
+                        nh0, ua, float(dt_s), nsub, every, ot, ox, ov, of)
         if self._tau > 0.0:
             # keep the tail of the command history for later step() calls
             keep = int(np.searchsorted(ht, self._ps[_T] - self._tau, side="right")) - 1
@@ -456,6 +657,11 @@ class StagePlant:
             self._nh = tail_t.shape[0]
             self._ht[: self._nh] = tail_t
             self._hu[: self._nh] = tail_u
+        result = {nm: bufs[nm] for nm in names if nm != "x_meas"}
+        if not meas_wanted:
+            self._ring[:] = self._counts_of(float(self._ps[_X]))
+            self._ri = 0
+            return result
         # sensor: noise (one draw per step), quantisation, delay
         xn = ox + self._rng.normal(0.0, self._noise, n) if self._noise > 0.0 else ox
         counts = np.floor(xn / self._res + 0.5).astype(np.int64)
@@ -468,7 +674,8 @@ class StagePlant:
         else:
             meas = counts
             self._ring[0] = counts[-1] if n else self._ring[0]
-        return {"t": ot, "x": ox, "v": ov, "friction": of, "x_meas": meas.astype(np.float64) * self._res}
+        result["x_meas"] = meas.astype(np.float64) * self._res
+        return {nm: result[nm] for nm in names}
 
     # ------------------------------------------------------------------------------------ sensor
     def _counts_of(self, x: float) -> int:
@@ -575,11 +782,23 @@ def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.
     else:
         ht, hu, nh0 = np.zeros(1), np.zeros(1), -1
     ox, ov, of = (np.empty((P.shape[0], n)) for _ in range(3))
+    ksets = getattr(type(frictions[0]), "_ksets", None)
+    ep = plant._ep
+    plain_fx = ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0 and ep[11] == 0.0  # no effects
+    if (ksets is not None and plant._tau == 0.0 and plain_fx and all(k.breakaway_n == 0.0 for k in kerns)
+            and S.shape[1] > 0 and float(plant._ps[_FF]) == 0.0 and float(plant._ps[_V]) == 0.0):
+        # branch-free many-sets kernel, parameters and states one column per set
+        PT = np.ascontiguousarray(P.T)
+        ST = np.ascontiguousarray(S.T)
+        masses = np.full(P.shape[0], float(plant._par[0]))
+        batch_sets_loop(ksets)(PT, ST, masses, float(ep[7]), float(plant._ps[_X]), ua, float(dt_s), nsub,
+                               ox, ov, of)
+        return {"x": ox, "v": ov, "friction": of}
     PAR = np.ascontiguousarray(np.tile(plant._par, (len(kerns), 1)))
     PAR[:, 1] = [k.breakaway_n for k in kerns]
     PAR[:, 2] = [k.stick_velocity_m_s for k in kerns]
-    _run_batch(plant._kl, P, S, plant._ep, PAR, plant._ps.copy(), ht, hu, nh0, ua, float(dt_s), nsub,
-               ox, ov, of)
+    run_batch = loops_for(plant._kstep)[1]
+    run_batch(P, S, plant._ep, PAR, plant._ps.copy(), ht, hu, nh0, ua, float(dt_s), nsub, ox, ov, of)
     return {"x": ox, "v": ov, "friction": of}
 
 

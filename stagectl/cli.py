@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "scope",
     "plot",
     "commission",
+    "warm",
 )
 
 #: command names that live in a module of another name (the rest: name with '-' as '_')

@@ -29,7 +29,7 @@ SOURCES = {
 #: package "stagectl" matches only its own __init__, so a new top-level module must be given a rank here)
 RANKS: dict[int, tuple[str, ...]] = {
     0: ("stagectl", "stagectl.errors", "stagectl.outputs", "stagectl.resources", "stagectl.clock",
-        "stagectl.rt"),
+        "stagectl.rt", "stagectl.jit"),
     1: ("stagectl.schema",),
     2: ("stagectl.friction", "stagectl.drivers", "stagectl.safety"),
     3: ("stagectl.control", "stagectl.sim"),

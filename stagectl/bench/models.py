@@ -6,6 +6,12 @@ Measured in one run (figures are never copied from elsewhere):
   control period = sub-step = 10 µs, so one step = one plant+friction integration step;
 * **batch**: the same plant with 1000 perturbed parameter sets (``stagectl.sim.plant.simulate_batch``);
 * **baseline**: a straightforward pure-Python GMS (N = 6) + plant loop with the same equations;
+* **C reference** (``stagectl.bench.cref``): a minimal C implementation of the same GMS + plant recurrence,
+  compiled with the system C compiler at ``-O2`` in this run (skipped with a note when there is none), single
+  trajectory and a batch that interleaves the sets per time step; the GMS rates are reported as ratios to it
+  and the C and compiled trajectories are compared (``c_max_abs_dx_m``);
+* **first call**: a new plant's first ``simulate(u, outputs=("x",))`` of ``--first-steps`` steps (fresh
+  output memory, kernel already loaded), against the C reference writing into fresh memory too;
 * **per-sample**: ``model.step(state, dx, v, dt)`` called from Python, as the control loop's
   feed-forward does, and ``StagePlant.step(u, dt)`` (10 sub-steps), in µs per call.
 
@@ -27,6 +33,9 @@ from stagectl.resources import config_dir
 TARGET_SINGLE_STEPS_S = 2_000_000.0
 TARGET_RATIO = 20.0
 TARGET_PER_SAMPLE_US = 10.0
+TARGET_VS_C_SINGLE = 0.9
+TARGET_VS_C_FIRST = 0.7
+TARGET_VS_C_BATCH = 1.0
 
 _MODELS_DIR = config_dir() / "models"  # repo checkout or the wheel's share/stagectl/config
 
@@ -52,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sets", type=int, default=1000, help="parameter sets in the batch run (default 1000)")
     parser.add_argument("--repeat", type=int, default=None, help="repetitions; the best is reported (default 3)")
     parser.add_argument("--models", default=None, help="comma-separated tags (default: every registered model)")
+    parser.add_argument("--first-steps", type=int, default=None,
+                        help="steps of the first-call run (default 1e7, --quick 2e6)")
+    parser.add_argument("--no-c", action="store_true", help="skip the C reference")
 
 
 # ---------------------------------------------------------------------------------------------- baseline
@@ -140,6 +152,77 @@ def _perturbed(model: Any, n_sets: int, rng: np.random.Generator) -> list[Any]:
     return out
 
 
+# ---------------------------------------------------------------------------------------------- C reference
+def _c_reference(spec: dict[str, Any], mass: float, dt: float, u_single: Any, u_batch: Any, n_sets: int,
+                 rng: np.random.Generator, repeat: int, gms_entry: dict[str, Any] | None,
+                 n_first: int) -> dict[str, Any]:
+    """The C GMS reference against the compiled plant, measured here, interleaved (C, compiled, C, …) so
+    that both see the same load; the best of each is kept."""
+    from stagectl.bench import cref
+    from stagectl.friction import build
+    from stagectl.sim.plant import PlantConfig, StagePlant, simulate_batch
+
+    lib, why = cref.load()
+    if lib is None:
+        return {"skipped": why}
+    model = build(spec)
+    par = cref.pack(spec)
+    n = u_single.shape[0]
+    cfg = PlantConfig(mass_kg=mass, friction=model, substep_s=dt)
+    plant = StagePlant(cfg)
+    plant.simulate(u_single[:10], dt, outputs=("x",))
+    xc = np.empty(n)
+    xn = np.empty(n)
+    cref.single(lib, u_single[:10], dt, mass, par, xc[:10])
+    t_c = t_n = math.inf
+    for _ in range(max(3, repeat)):
+        t0 = time.perf_counter()
+        cref.single(lib, u_single, dt, mass, par, xc)
+        t_c = min(t_c, time.perf_counter() - t0)
+        plant.reset()
+        t0 = time.perf_counter()
+        plant.simulate(u_single, dt, outputs=("x",), out={"x": xn})
+        t_n = min(t_n, time.perf_counter() - t0)
+    out: dict[str, Any] = {
+        "compiler": cref.compiler(), "flags": "-O2",
+        "c_single_steps_per_s": n / t_c, "compiled_single_steps_per_s": n / t_n, "single_vs_c": t_c / t_n,
+        "c_max_abs_dx_m": float(np.max(np.abs(xc - xn))),
+    }
+    # first call: fresh plant, fresh output memory (the kernel is loaded: compile time is warmup_s)
+    u_first = 1.5 * np.sin(2 * np.pi * 5.0 * np.arange(n_first) * dt)
+    t0 = time.perf_counter()
+    cref.single(lib, u_first, dt, mass, par, np.empty(n_first))
+    t_cf = time.perf_counter() - t0
+    fresh = StagePlant(cfg)
+    t0 = time.perf_counter()
+    fresh.simulate(u_first, dt, outputs=("x",))
+    t_nf = time.perf_counter() - t0
+    out.update({"first_call_steps": n_first, "c_first_call_steps_per_s": n_first / t_cf,
+                "compiled_first_call_steps_per_s": n_first / t_nf, "first_call_vs_c": t_c / n * n_first / t_nf,
+                "first_call_vs_c_first_call": t_cf / t_nf})
+    # batch: the same perturbed sets for both (parameters packed per set)
+    sets = _perturbed(model, n_sets, rng)
+    P = np.ascontiguousarray(np.stack([cref.pack(s.spec()) for s in sets]))
+    nb = u_batch.shape[0]
+    xcb = np.empty((n_sets, nb))
+    cref.batch(lib, u_batch[:10], dt, mass, P[:2], np.empty((2, 10)))
+    simulate_batch(cfg, sets[:2], u_batch[:10], dt)
+    t_cb = t_nb = math.inf
+    res: dict[str, Any] = {}
+    for _ in range(max(2, repeat - 1)):
+        t0 = time.perf_counter()
+        cref.batch(lib, u_batch, dt, mass, P, xcb)
+        t_cb = min(t_cb, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        res = simulate_batch(cfg, sets, u_batch, dt)
+        t_nb = min(t_nb, time.perf_counter() - t0)
+    out.update({"c_batch_set_steps_per_s": n_sets * nb / t_cb, "compiled_batch_set_steps_per_s": n_sets * nb / t_nb,
+                "batch_vs_c": t_cb / t_nb, "c_batch_max_abs_dx_m": float(np.max(np.abs(res["x"] - xcb)))})
+    if gms_entry is not None:
+        gms_entry["single_vs_c"] = out["single_vs_c"]
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.friction import build, registry
@@ -184,9 +267,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         model.step(state, 1e-9, 1e-4, 1e-4)
         entry["warmup_s"] = time.perf_counter() - t0
 
+        x_buf = np.empty(n_single)
+
         def single() -> None:
             plant.reset()
-            plant.simulate(u_single, dt)
+            plant.simulate(u_single, dt, outputs=("x",), out={"x": x_buf})
 
         t_single = _best(single, repeat)
         entry["single_steps_per_s"] = n_single / t_single
@@ -216,6 +301,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     # baseline: pure-Python GMS + plant, same equations and input
     gms_spec = SPECS["gms"]
+    c_ref = None if getattr(args, "no_c", False) else _c_reference(
+        gms_spec, mass, dt, u_single, u_batch, n_sets, rng, repeat, results.get("gms"),
+        int(args.first_steps or (2_000_000 if quick else 10_000_000)))
     python_gms_plant(100, dt, mass, gms_spec)
     t_py = _best(lambda: python_gms_plant(n_py, dt, mass, gms_spec), max(1, repeat - 1))
     baseline = n_py / t_py
@@ -225,6 +313,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                   "repeat": repeat, "input": "u = 1.5 N sin(2π·5 Hz·t), GMS N = 6 (Table 1)"},
         "baseline_python_gms_steps_per_s": baseline,
         "models": results,
+        "c_reference": c_ref,
     }
     for entry in results.values():
         if "single_steps_per_s" in entry:
@@ -240,4 +329,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "gms_per_sample_step_us": {"value": g["per_sample_step_us"], "target": TARGET_PER_SAMPLE_US,
                                        "met": g["per_sample_step_us"] <= TARGET_PER_SAMPLE_US},
         }
+        if c_ref and "single_vs_c" in c_ref:
+            for key, target in (("single_vs_c", TARGET_VS_C_SINGLE), ("first_call_vs_c", TARGET_VS_C_FIRST),
+                                ("batch_vs_c", TARGET_VS_C_BATCH)):
+                out["targets"][f"gms_{key}"] = {"value": c_ref[key], "target": target,
+                                                "met": c_ref[key] >= target}
     return out

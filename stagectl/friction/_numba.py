@@ -27,8 +27,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit, types
+from numba import types
 from numba.typed import List
+
+from stagectl.jit import kernel
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -42,7 +44,7 @@ STEP_FN = types.FunctionType(STEP_SIG)
 FORCE_FN = types.FunctionType(FORCE_SIG)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def sgn(v: float) -> float:
     """sgn(v) with sgn(0) = 0."""
     if v > 0.0:
@@ -52,7 +54,7 @@ def sgn(v: float) -> float:
     return 0.0
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def stribeck_excess(v: float, vs: float, delta: float) -> float:
     """exp(−|v/Vs|^δ) [–], fast: δ = 2 and δ = 1 avoid ``pow``, and arguments past the underflow
     threshold return 0 directly (glibc's underflow path of ``exp`` is ~10× slower than a normal call)."""
@@ -68,7 +70,7 @@ def stribeck_excess(v: float, vs: float, delta: float) -> float:
     return math.exp(-e)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def stribeck_g(v: float, fc: float, fs: float, vs: float, delta: float) -> float:
     """Unsigned Stribeck magnitude g(v) = Fc + (Fs − Fc)·exp(−|v/Vs|^δ) [N]."""
     return fc + (fs - fc) * stribeck_excess(v, vs, delta)
@@ -80,7 +82,7 @@ STEP_LIST = types.ListType(STEP_FN)  # type: ignore[no-untyped-call]  # numba ty
 FORCE_LIST = types.ListType(FORCE_FN)  # type: ignore[no-untyped-call]
 
 
-@njit(STEP_LIST(STEP_FN), cache=True)
+@kernel
 def wrap_step(f: Any) -> Any:  # pragma: no cover - compiled
     """A one-element typed list holding a kernel ``step`` function."""
     out = List.empty_list(STEP_FN)
@@ -88,7 +90,7 @@ def wrap_step(f: Any) -> Any:  # pragma: no cover - compiled
     return out
 
 
-@njit(FORCE_LIST(FORCE_FN), cache=True)
+@kernel
 def wrap_force(f: Any) -> Any:  # pragma: no cover - compiled
     """A one-element typed list holding a kernel ``force`` function."""
     out = List.empty_list(FORCE_FN)
@@ -96,7 +98,7 @@ def wrap_force(f: Any) -> Any:  # pragma: no cover - compiled
     return out
 
 
-@njit(types.void(STEP_LIST, FORCE_LIST, _arr, _arr, _arr, _arr, _arr), cache=True)
+@kernel
 def along(kls: Any, klf: Any, p: FloatArray, state: FloatArray, x: FloatArray, t: FloatArray,
           out: FloatArray) -> None:  # pragma: no cover - compiled
     """``force_along`` convention of ``stagectl.friction.base`` into ``out`` (state advanced in place)."""
@@ -111,7 +113,7 @@ def along(kls: Any, klf: Any, p: FloatArray, state: FloatArray, x: FloatArray, t
         out[k] = step(p, state, dx, dx / dt, dt)
 
 
-@njit(cache=True)  # compiled on first use only
+@kernel
 def along_batch(kls: Any, klf: Any, P: FloatArray, S: FloatArray, x: FloatArray, t: FloatArray,
                 out: FloatArray) -> None:  # pragma: no cover - compiled
     """:func:`along` for every row of the packed-parameter matrix ``P`` (states in rows of ``S``)."""
@@ -129,21 +131,36 @@ def along_batch(kls: Any, klf: Any, P: FloatArray, S: FloatArray, x: FloatArray,
             out[j, k] = step(p, st, dx, dx / dt, dt)
 
 
-_LISTS: dict[tuple[int, int], tuple[Any, Any]] = {}
+_LISTS: dict[tuple[str, int], Any] = {}
+_KEEP: list[Any] = []  # the dispatchers behind _LISTS' ids stay alive
 
 
-def kernel_lists(kstep: Any, kforce: Any) -> tuple[Any, Any]:
-    """Typed lists for ``(kstep, kforce)``, made once per pair of dispatchers."""
-    key = (id(kstep), id(kforce))
+def _typed_list(kind: str, fn: Any) -> Any:
+    key = (kind, id(fn))
     got = _LISTS.get(key)
     if got is None:
-        got = (wrap_step(kstep), wrap_force(kforce))
+        wrap: Any
+        wrap, sig = (wrap_step, STEP_LIST(STEP_FN)) if kind == "step" else (wrap_force, FORCE_LIST(FORCE_FN))
+        if not wrap.signatures:
+            # compile (or load) the wrapper for its one signature and lock it: called with a dispatcher it then
+            # converts it to the first-class function type instead of specialising on the dispatcher's own
+            # type (which could not be cached)
+            wrap.compile(sig)
+            wrap.disable_compile()
+        got = wrap(fn)
         _LISTS[key] = got
-        _KEEP.append((kstep, kforce))  # ids stay valid: the dispatchers are kept alive
+        _KEEP.append(fn)
     return got
 
 
-_KEEP: list[tuple[Any, Any]] = []
+def step_list(kstep: Any) -> Any:
+    """A typed list holding ``kstep`` (made once per dispatcher; the plant needs only this one)."""
+    return _typed_list("step", kstep)
+
+
+def kernel_lists(kstep: Any, kforce: Any) -> tuple[Any, Any]:
+    """Typed lists for ``(kstep, kforce)``, made once per dispatcher."""
+    return step_list(kstep), _typed_list("force", kforce)
 
 
 def run_along(kstep: Any, kforce: Any, p: FloatArray, state: FloatArray, x: FloatArray,

@@ -26,16 +26,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn
+from stagectl.friction._numba import FloatArray, KernelModel, sgn
 from stagectl.friction.base import register
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 # packed layout: [sigma0, fc, exponent, sigma2]
 
 
-@njit(STEP_SIG, cache=True)
+@kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     fc = p[1]
     if dx != 0.0:
@@ -59,7 +59,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
     return f
 
 
-@njit(FORCE_SIG, cache=True)
+@kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     f: float = state[0] + p[3] * v
     return f

@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 
@@ -225,10 +225,9 @@ NO_EFFECTS = Effects()
 
 
 # ---------------------------------------------------------------------------------------------- compiled path
-# The plant's integrator (``stagectl.sim.plant``) inlines these two kernels. numba's on-disk cache of a caller
-# does not notice an edit here: after changing a kernel, delete the ``__pycache__`` numba cache files of
-# ``sim/plant.py`` (``*.nbi``/``*.nbc``) or set ``NUMBA_CACHE_DIR`` to a fresh directory.
-@njit(cache=True, inline="always")
+# The plant's integrator (``stagectl.sim.plant``) inlines these two kernels. Its cache key includes this
+# file's source hash (``stagectl.jit.kernel``), so an edit here recompiles the plant: no stale machine code.
+@kernel(inline="always")
 def modify_friction_kernel(ep: npt.NDArray[np.float64], f: float, x: float) -> float:  # pragma: no cover
     """Compiled :meth:`Effects.modify_friction` on packed parameters ``ep`` (:meth:`Effects.packed`):
     ripple ``F·(1 + a·sin(2πx/λ + φ))``, then asymmetry ``F·(1 + r·sgn(F))``. Real-time safe."""
@@ -241,7 +240,7 @@ def modify_friction_kernel(ep: npt.NDArray[np.float64], f: float, x: float) -> f
     return f
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragma: no cover - compiled
     """Compiled :meth:`Effects.other_force` on packed parameters ``ep``: offset ``F_0`` + cogging
     ``A·sin(2πx/λ_c + φ_c)`` + spring ``k_s·(x − x0)`` [N]. Real-time safe."""
@@ -253,7 +252,7 @@ def other_force_kernel(ep: npt.NDArray[np.float64], x: float) -> float:  # pragm
     return out
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def velocity_force_kernel(ep: npt.NDArray[np.float64], v: float) -> float:  # pragma: no cover - compiled
     """Compiled :meth:`Effects.velocity_force` on packed parameters ``ep``: ``d_v·|v|`` [N]. Real-time safe."""
     return float(ep[11]) * abs(v)

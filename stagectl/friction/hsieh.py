@@ -78,10 +78,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn, stribeck_g
+from stagectl.friction._numba import FloatArray, KernelModel, sgn, stribeck_g
 from stagectl.friction.base import register
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 # packed layout
@@ -109,7 +109,7 @@ N_STATE = S_STACK + 2 * STACK_CAP
 _NEWTON_MAXIT = 60
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _branch(p: FloatArray, xr: float, sr: float, xs: float) -> tuple[float, float]:  # pragma: no cover
     """Branch force and slope dF_el/dx_s from start (xr, sr)."""
     d = xs - xr
@@ -119,7 +119,7 @@ def _branch(p: FloatArray, xr: float, sr: float, xs: float) -> tuple[float, floa
     return f, p[P_K1S] + p[P_K2S] * e
 
 
-@njit(cache=True)
+@kernel
 def _el_eval(p: FloatArray, state: FloatArray, n: int, dirn: float, xs0: float, f0: float,
              xs: float) -> tuple[float, float, int]:  # pragma: no cover
     """Elastic force at ``xs`` reached monotonically from ``xs0`` within this step (lookahead).
@@ -150,7 +150,7 @@ def _el_eval(p: FloatArray, state: FloatArray, n: int, dirn: float, xs0: float, 
     return f, sl, k
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _phi(p: FloatArray, f: float, xh: float, c: float) -> tuple[float, float]:  # pragma: no cover
     """Plastic increment φ(F) = sgn(F)·c·max(0, |F|^a/ψ − x_h) and dφ/dF."""
     af = abs(f)
@@ -161,13 +161,13 @@ def _phi(p: FloatArray, f: float, xh: float, c: float) -> tuple[float, float]:  
     return sgn(f) * c * (h - xh), dphi
 
 
-@njit(cache=True)
+@kernel
 def _sliding_force(p: FloatArray, v: float) -> float:  # pragma: no cover
     f: float = sgn(v) * stribeck_g(v, p[P_FC], p[P_FS], p[P_VS], p[P_DELTA]) + p[P_SIGMA2] * v
     return f
 
 
-@njit(cache=True)
+@kernel
 def _top_force(p: FloatArray, state: FloatArray) -> float:  # pragma: no cover
     n = int(state[S_DEPTH])
     xr = state[S_STACK + 2 * (n - 1)]
@@ -175,7 +175,7 @@ def _top_force(p: FloatArray, state: FloatArray) -> float:  # pragma: no cover
     return _branch(p, xr, sr, state[S_XS])[0]
 
 
-@njit(cache=True)
+@kernel
 def _presliding_step(p: FloatArray, state: FloatArray, dx: float, v: float,
                      dt: float) -> float:  # pragma: no cover
     n = int(state[S_DEPTH])
@@ -254,7 +254,7 @@ def _presliding_step(p: FloatArray, state: FloatArray, dx: float, v: float,
     return f
 
 
-@njit(STEP_SIG, cache=True)
+@kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     if state[S_MODE] == 1.0:
         sd = state[S_SLDIR]
@@ -287,7 +287,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
     return f
 
 
-@njit(FORCE_SIG, cache=True)
+@kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     if state[S_MODE] == 1.0:
         if v * state[S_SLDIR] > 0.0:

@@ -29,16 +29,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn, stribeck_g
+from stagectl.friction._numba import FloatArray, KernelModel, sgn, stribeck_g
 from stagectl.friction.base import register
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 # packed layout: [sigma0, sigma1, sigma2, fc, fs, vs, delta, vd]
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _sigma1(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
     vd = p[7]
     s1: float = p[1]
@@ -47,7 +47,7 @@ def _sigma1(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
     return s1 * math.exp(-((v / vd) ** 2))
 
 
-@njit(STEP_SIG, cache=True)
+@kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     s0 = p[0]
     g = stribeck_g(v, p[3], p[4], p[5], p[6])
@@ -62,7 +62,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
     return f
 
 
-@njit(FORCE_SIG, cache=True)
+@kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     s0 = p[0]
     g = stribeck_g(v, p[3], p[4], p[5], p[6])

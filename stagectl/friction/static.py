@@ -26,16 +26,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from stagectl.friction._numba import FORCE_SIG, STEP_SIG, FloatArray, KernelModel, sgn, stribeck_excess
+from stagectl.friction._numba import FloatArray, KernelModel, sgn, stribeck_excess
 from stagectl.friction.base import register
+from stagectl.jit import kernel
 from stagectl.schema import param
 
 # packed layout: [fc, fs, vs, delta, viscous, lag_s, stick_v]
 
 
-@njit(STEP_SIG, cache=True)
+@kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
     fc = p[0]
     ess = (p[1] - fc) * stribeck_excess(v, p[2], p[3])
@@ -50,7 +50,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
     return f
 
 
-@njit(FORCE_SIG, cache=True)
+@kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
     fc = p[0]
     if p[5] > 0.0:

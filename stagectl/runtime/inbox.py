@@ -32,7 +32,13 @@ class RequestInbox:
     def serve(self, execute: Callable[[LoopRequest, bool, float, float], dict[str, Any]], t_s: float, x_m: float
               ) -> None:
         """``execute(request, prepared, t_s, x_m)`` for every queued request (loop thread, at loop time ``t_s``
-        with the cycle's measured position ``x_m``); a raised exception goes onto the request's future."""
+        with the cycle's measured position ``x_m``); a raised exception goes onto the request's future.
+
+        The usual case, an empty inbox, costs one ``empty()`` call (no ``queue.Empty`` raised and caught every
+        cycle: ~0.5 µs); the loop thread is the only consumer, so a request queued right after the check is
+        served at the next cycle boundary."""
+        if self._q.empty():
+            return
         while True:
             try:
                 req, prepared, fut = self._q.get_nowait()

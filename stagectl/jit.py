@@ -1,0 +1,225 @@
+"""Compiled kernels: compile on first use, cache in a writable directory, with an honest cache key.
+
+Every numba kernel of the package is declared with :func:`kernel` instead of ``numba.njit``:
+
+* **Lazy.** No signature is given, so nothing is compiled at import; a kernel is compiled (or loaded from
+  the on-disk cache) the first time it is called or passed to a compiled loop. Importing
+  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses.
+* **Cache directory** (:func:`cache_dir`), first that applies: ``$NUMBA_CACHE_DIR`` if set;
+  ``$CACHE_DIRECTORY/numba`` (systemd's ``CacheDirectory=`` of the daemon's unit); ``$XDG_CACHE_HOME`` (or
+  ``~/.cache``) ``/stagectl/numba``. If that directory cannot be created or written, numba's own locators
+  are used (``__pycache__`` next to the source, then numba's user-wide cache). The numba process-wide
+  configuration is left untouched.
+* **Honest key.** numba keys a cached kernel on its own source file and bytecode only; a kernel that
+  inlines (or calls) a kernel of *another* module keeps loading the old machine code after that module
+  changes. :func:`kernel` adds to the key a SHA-256 over the source text of every module that holds a
+  kernel reachable from this one's globals (transitively: ``_integrate`` → ``effects.modify_friction_kernel``
+  → …, and kernels held in a closure's cells), so editing any of them recompiles every kernel built on it.
+  Global constants the reached kernels read (numba freezes them into the code) are in the key by value.
+  No manual cache deletion is needed. A closure kernel specialised on another kernel (``make(kstep)``,
+  the plant's per-model loop) is cached under a stable description of its cells (module and name of the
+  kernel), where numba's own key (a pickle of the cells) would change from one process to the next.
+
+``stagectl warm`` (``stagectl.commands.warm``) compiles the kernels a configuration uses into the cache
+ahead of the first start (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import types as pytypes
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar, overload
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+_CACHE_CLASS: Any = None
+
+
+def cache_dir() -> Path:
+    """The directory compiled kernels are cached in (see the module docstring for the order)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    if env:
+        return Path(env)
+    sd = os.environ.get("CACHE_DIRECTORY")  # systemd CacheDirectory= (colon-separated if several)
+    if sd:
+        return Path(sd.split(":")[0]) / "numba"
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "stagectl" / "numba"
+
+
+def _is_dispatcher(obj: Any) -> bool:
+    return hasattr(obj, "py_func") and hasattr(obj, "overloads")
+
+
+def _names(code: pytypes.CodeType) -> set[str]:
+    out = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, pytypes.CodeType):
+            out |= _names(c)
+    return out
+
+
+_SIMPLE = (bool, int, float, complex, str, bytes)
+
+
+def _is_simple(v: Any) -> bool:
+    if isinstance(v, tuple):
+        return all(_is_simple(e) for e in v)
+    return isinstance(v, _SIMPLE)
+
+
+def _walk(py_func: Callable[..., Any]) -> tuple[set[str], set[tuple[str, str]]]:
+    """Source files of every kernel reachable from ``py_func`` (transitive, its own included), and the
+    global constants (numbers, strings, tuples of them) the reached functions read: numba freezes those into
+    the machine code, so a constant imported from another module must be in the key too."""
+    files: set[str] = set()
+    consts: set[tuple[str, str]] = set()
+    seen: set[int] = set()
+    stack = [py_func]
+    while stack:
+        fn = stack.pop()
+        if id(fn) in seen:
+            continue
+        seen.add(id(fn))
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            continue
+        if os.path.exists(code.co_filename):
+            files.add(os.path.abspath(code.co_filename))
+        g = getattr(fn, "__globals__", {})
+        names = _names(code)
+        cells = [("<cell>", c.cell_contents) for c in (getattr(fn, "__closure__", None) or ())]
+        for name, obj in [(name, g.get(name)) for name in names] + cells:
+            cands = [(name, obj)]
+            if isinstance(obj, pytypes.ModuleType):
+                cands = [(f"{name}.{n}", getattr(obj, n, None)) for n in names]
+            for cname, c in cands:
+                if _is_dispatcher(c):
+                    stack.append(getattr(c, "py_func"))
+                elif _is_simple(c) and cname != "<cell>":
+                    consts.add((f"{getattr(fn, '__module__', '?')}:{cname}", repr(c)))
+    return files, consts
+
+
+def dependency_files(py_func: Callable[..., Any]) -> list[str]:
+    """Source files of every kernel reachable from ``py_func``'s globals (transitive), its own excluded.
+
+    Followed: global names that are dispatchers, attributes of imported modules named in the code
+    (``effects.modify_friction_kernel``) that are dispatchers, and dispatchers held in closure cells."""
+    files, _ = _walk(py_func)
+    own = getattr(py_func, "__code__", None)
+    if own is not None:
+        files.discard(os.path.abspath(own.co_filename))
+    return sorted(files)
+
+
+def dependency_constants(py_func: Callable[..., Any]) -> list[tuple[str, str]]:
+    """``(module:name, repr(value))`` of the global constants read by ``py_func`` and the kernels it reaches."""
+    return sorted(_walk(py_func)[1])
+
+
+def _file_digest(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _cache_class() -> Any:
+    """The numba ``FunctionCache`` subclass (built on first use: importing numba's caching is not free)."""
+    global _CACHE_CLASS
+    if _CACHE_CLASS is not None:
+        return _CACHE_CLASS
+    from numba.core import caching
+
+    class _Locator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+        def __init__(self, py_func: Any, py_file: str) -> None:
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(cache_dir() / self.get_suitable_cache_subpath(py_file))  # type: ignore[no-untyped-call]
+
+        def get_cache_path(self) -> str:
+            return self._cache_path
+
+    class _Impl(caching.CompileResultCacheImpl):
+        _locator_classes = [_Locator, *caching.CompileResultCacheImpl._locator_classes]
+
+    class HonestCache(caching.FunctionCache):
+        """numba's function cache with the dependencies' source hash in the index key."""
+
+        _impl_class = _Impl
+
+        def __init__(self, py_func: Any) -> None:
+            super().__init__(py_func)  # type: ignore[no-untyped-call]
+            self._deps_hash: str | None = None
+
+        def deps_hash(self) -> str:
+            if self._deps_hash is None:
+                h = hashlib.sha256()
+                for f in dependency_files(self._py_func):
+                    h.update(f.encode())
+                    h.update(_file_digest(f).encode())
+                h.update(repr(dependency_constants(self._py_func)).encode())
+                self._deps_hash = h.hexdigest()
+            return self._deps_hash
+
+        def _index_key(self, sig: Any, codegen: Any) -> Any:
+            # numba hashes a closure's cell contents pickled, which for a kernel (dispatcher) differs from one
+            # process to the next: the entry would never be found again. A dispatcher cell is described by
+            # its module and name instead (its source is in deps_hash); other cells as numba does.
+            from numba.core.serialize import dumps
+
+            cells = tuple(c.cell_contents for c in (self._py_func.__closure__ or ()))
+            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c)
+                    else dumps(c)  # type: ignore[no-untyped-call]
+                    for c in cells]
+            code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
+            cellh = hashlib.sha256(repr(desc).encode()).hexdigest()
+            return (sig, codegen.magic_tuple(), (code, cellh), self.deps_hash())
+
+    _CACHE_CLASS = HonestCache
+    return HonestCache
+
+
+@overload
+def kernel(fn: F) -> F: ...
+
+
+@overload
+def kernel(fn: None = None, **options: Any) -> Callable[[F], F]: ...
+
+
+def kernel(fn: F | None = None, **options: Any) -> Any:
+    """``numba.njit(**options)`` compiled lazily, cached in :func:`cache_dir` with an honest key.
+
+    Use as ``@kernel`` or ``@kernel(inline="always")``. ``cache`` is always on; a signature cannot be given
+    (it would compile at import)."""
+    if "cache" in options:
+        raise TypeError("kernel(): the cache is always on")
+
+    def deco(f: F) -> Any:
+        from numba import njit
+
+        disp = njit(**options)(f)
+        if not os.environ.get("NUMBA_DISABLE_JIT"):
+            disp._cache = _cache_class()(f)
+        return disp
+
+    if fn is not None:
+        return deco(fn)
+    return deco
+
+
+def compiled_signatures(dispatcher: Any) -> int:
+    """How many signatures ``dispatcher`` has compiled or loaded in this process (0: never used)."""
+    return len(getattr(dispatcher, "overloads", {}))
+
+
+def loaded_from_cache(dispatcher: Any) -> int:
+    """Cache hits of ``dispatcher`` in this process (numba's per-signature counters)."""
+    return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
+
+
+__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "kernel",
+           "loaded_from_cache"]

@@ -1,0 +1,175 @@
+"""Compile on demand and an honest numba cache key (``stagectl.jit``), checked in fresh interpreters.
+
+Each test runs a real subprocess with its own empty ``NUMBA_CACHE_DIR``: importing must compile nothing, and
+a cached kernel must be rebuilt when a kernel it inlines from *another* module changes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+
+def _run(code: str, cache: Path, extra_path: Path | None = None) -> str:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONDONTWRITEBYTECODE="1")
+    if extra_path is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(extra_path), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_importing_friction_and_plant_compiles_nothing(tmp_path: Path) -> None:
+    got = json.loads(_run("""
+        import json
+        import stagectl.friction, stagectl.sim.plant
+        from stagectl.friction import _numba, dahl, effects, gms, hsieh, lugre, maxwell, static
+        from stagectl.sim import plant
+        mods = (_numba, dahl, effects, gms, hsieh, lugre, maxwell, static, plant)
+        n = {m.__name__: sum(len(d.overloads) for d in vars(m).values() if hasattr(d, "overloads"))
+             for m in mods}
+        import os
+        files = [f for _, _, fs in os.walk(os.environ["NUMBA_CACHE_DIR"]) for f in fs]
+        print(json.dumps({"compiled": n, "cache_files": len(files)}))
+    """, tmp_path / "nc"))
+    assert got["compiled"] and all(v == 0 for v in got["compiled"].values()), got
+    assert got["cache_files"] == 0
+
+
+def test_using_one_model_compiles_only_that_model(tmp_path: Path) -> None:
+    got = json.loads(_run("""
+        import json
+        from stagectl.friction import build, dahl, gms, lugre
+        m = build({"model": "dahl", "sigma0_n_m": 1e5, "fc_n": 1.0})
+        st = m.initial_state()
+        m.step(st, 1e-9, 1e-5, 1e-4)
+        print(json.dumps({"dahl": len(dahl._kstep.overloads), "gms": len(gms._kstep.overloads),
+                          "lugre": len(lugre._kstep.overloads)}))
+    """, tmp_path / "nc"))
+    assert got == {"dahl": 1, "gms": 0, "lugre": 0}
+
+
+def test_second_process_loads_from_the_cache_dir(tmp_path: Path) -> None:
+    code = """
+        import json
+        from stagectl.friction import build, gms
+        from stagectl.jit import loaded_from_cache
+        m = build({"model": "gms", "k_n_m": [1e5], "alpha": [1.0], "fc_n": 1.0, "fs_n": 1.2})
+        m.step(m.initial_state(), 1e-9, 1e-5, 1e-4)
+        print(json.dumps({"hits": loaded_from_cache(gms._kstep)}))
+    """
+    cache = tmp_path / "nc"
+    assert json.loads(_run(code, cache)) == {"hits": 0}
+    assert any(cache.rglob("*.nbi"))
+    assert json.loads(_run(code, cache)) == {"hits": 1}
+
+
+def test_cache_dir_order(tmp_path: Path) -> None:
+    code = "from stagectl.jit import cache_dir; print(cache_dir())"
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "CACHE_DIRECTORY", "XDG_CACHE_HOME")}
+
+    def where(**extra: str) -> str:
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             check=True)
+        return out.stdout.strip()
+
+    assert where(NUMBA_CACHE_DIR=str(tmp_path / "a"), CACHE_DIRECTORY=str(tmp_path / "b")) == str(tmp_path / "a")
+    assert where(CACHE_DIRECTORY=f"{tmp_path / 'b'}:{tmp_path / 'c'}") == str(tmp_path / "b" / "numba")
+    assert where(XDG_CACHE_HOME=str(tmp_path / "x")) == str(tmp_path / "x" / "stagectl" / "numba")
+
+
+def test_editing_an_inlined_kernel_of_another_module_recompiles_its_caller(tmp_path: Path) -> None:
+    """The trap numba has by itself: ``outer`` (module b) inlines ``inner`` (module a); a cached ``outer``
+    ignores an edit of a.py. With :func:`stagectl.jit.kernel` the key holds a.py's source hash."""
+    pkg = tmp_path / "src"
+    pkg.mkdir()
+    (pkg / "jit_a.py").write_text(textwrap.dedent("""
+        from stagectl.jit import kernel
+
+        @kernel(inline="always")
+        def inner(x):
+            return x + 1.0
+    """))
+    (pkg / "jit_b.py").write_text(textwrap.dedent("""
+        from stagectl.jit import kernel
+        import jit_a
+
+        @kernel
+        def outer(x):
+            return 2.0 * jit_a.inner(x)
+    """))
+    code = """
+        import json, jit_b
+        from stagectl.jit import loaded_from_cache
+        r = jit_b.outer(1.0)
+        print(json.dumps({"r": r, "hits": loaded_from_cache(jit_b.outer)}))
+    """
+    cache = tmp_path / "nc"
+    assert json.loads(_run(code, cache, pkg)) == {"r": 4.0, "hits": 0}
+    assert json.loads(_run(code, cache, pkg)) == {"r": 4.0, "hits": 1}
+    (pkg / "jit_a.py").write_text((pkg / "jit_a.py").read_text().replace("x + 1.0", "x + 3.0"))
+    assert json.loads(_run(code, cache, pkg)) == {"r": 8.0, "hits": 0}
+
+
+def test_dependency_files_follow_the_plant_into_effects_and_helpers() -> None:
+    from stagectl.friction import _numba, effects, gms
+    from stagectl.jit import dependency_files
+    from stagectl.sim import plant
+
+    integrate, _ = plant.loops_for(gms._kstep)
+    deps = dependency_files(integrate.py_func)
+    assert effects.__file__ in deps  # inlined modifiers
+    assert gms.__file__ in deps  # the model kernel held in the closure
+    assert _numba.__file__ in deps  # and what that one inlines (transitively)
+    assert plant.__file__ not in deps
+
+
+def test_stagectl_warm_fills_the_cache_the_next_start_loads(tmp_path: Path) -> None:
+    """``stagectl warm --config`` compiles the kernels of the configured model and plant into an empty cache;
+    a second warm (a start after install) loads every one of them instead of compiling."""
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nc"))
+    cmd = [sys.executable, "-m", "stagectl.cli", "warm", "--config", str(repo / "config" / "sim.yaml")]
+
+    def warm() -> dict[str, object]:
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+
+    first = warm()
+    assert first["cache_dir"] == str(tmp_path / "nc")
+    assert first["models"] == ["gms"] and first["plants"] == 1
+    assert first["kernels"] == 3 and first["loaded_from_cache"] == 0
+    second = warm()
+    assert second["loaded_from_cache"] == second["signatures"] == first["signatures"]
+
+
+def test_a_constant_imported_from_another_module_is_part_of_the_key(tmp_path: Path) -> None:
+    """numba freezes global constants into the machine code; one imported from another module changes the
+    compiled result, so its value is in the key."""
+    pkg = tmp_path / "src"
+    pkg.mkdir()
+    (pkg / "jit_c.py").write_text("SCALE = 2.0\n")
+    (pkg / "jit_d.py").write_text(textwrap.dedent("""
+        from stagectl.jit import kernel
+        from jit_c import SCALE
+
+        @kernel
+        def scaled(x):
+            return SCALE * x
+    """))
+    code = """
+        import json, jit_d
+        from stagectl.jit import loaded_from_cache
+        print(json.dumps({"r": jit_d.scaled(1.5), "hits": loaded_from_cache(jit_d.scaled)}))
+    """
+    cache = tmp_path / "nc"
+    assert json.loads(_run(code, cache, pkg)) == {"r": 3.0, "hits": 0}
+    assert json.loads(_run(code, cache, pkg)) == {"r": 3.0, "hits": 1}
+    (pkg / "jit_c.py").write_text("SCALE = 4.0\n")
+    assert json.loads(_run(code, cache, pkg)) == {"r": 6.0, "hits": 0}
