@@ -127,6 +127,16 @@ class ScopeData:
                     lines.append(f"{label:>12} {s[-1] * k:11.4f} {u}")
         return "\n".join(lines)
 
+    def draw(self, plt: Any, title: str, sigs: Sequence[tuple[str, str]], unit: str) -> None:
+        """One panel into a plotext figure: the signals over time (0 = now), in the unit that suits them."""
+        t = self.series("t")
+        k, u = scale_for([v for col, _ in sigs for v in self.series(col)], unit)
+        for col, label in sigs:
+            s = self.series(col)
+            if s and t:
+                plt.plot([ti - t[-1] for ti in t], [v * k for v in s], label=label)
+        plt.title(f"{title} [{u}]")
+
     def text_frame(self, width: int = 100, height: int = 40) -> str:
         """The whole view as plain text (``--once``): header, plots drawn by plotext, values, faults."""
         import plotext as plt  # type: ignore[import-untyped]  # no type information shipped
@@ -136,14 +146,7 @@ class ScopeData:
             plt.clear_figure()
             plt.plotsize(width, max(8, height // 4))
             plt.theme("clear")
-            t = self.series("t")
-            allv = [v for col, _ in sigs for v in self.series(col)]
-            k, u = scale_for(allv, unit)
-            for col, label in sigs:
-                s = self.series(col)
-                if s and t:
-                    plt.plot([ti - t[-1] for ti in t], [v * k for v in s], label=label)
-            plt.title(f"{title} [{u}]")
+            self.draw(plt, title, sigs, unit)
             plt.xlabel("time [s] (0 = now)")
             out.append(_ANSI.sub("", plt.build()))  # plain text: no terminal colour codes
         out += ["", self.values(), "", "faults: " + ("; ".join(self.faults) if self.faults else "none")]
@@ -208,18 +211,10 @@ def make_app(data: ScopeData, poll: Poll, rate_hz: float = 10.0) -> App[None]:
             head = self.query_one("#header", Static)
             head.update(("PAUSED  " if self.paused else "") + (f"NO DATA: {self.error}" if self.error
                                                               else data.header()))
-            t = data.series("t")
             for i, (title, sigs, unit) in enumerate(PLOTS):
                 widget = self.query_one(f"#plot{i}", PlotextPlot)
-                plt = widget.plt
-                plt.clear_data()
-                allv = [v for col, _ in sigs for v in data.series(col)]
-                k, u = scale_for(allv, unit)
-                for col, label in sigs:
-                    s = data.series(col)
-                    if s and t:
-                        plt.plot([ti - t[-1] for ti in t], [v * k for v in s], label=label)
-                plt.title(f"{title} [{u}]")
+                widget.plt.clear_data()
+                data.draw(widget.plt, title, sigs, unit)
                 widget.refresh()
             self.query_one("#values", Static).update(data.values())
             self.query_one("#faults", Static).update(
