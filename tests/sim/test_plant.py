@@ -394,3 +394,26 @@ def test_substep_limit_applies_to_every_stiff_or_damped_model(tag, mass):
     with pytest.raises(ConfigError, match="plant.substep_s: must be <="):
         PlantConfig.from_mapping({"mass_kg": mass, "friction": fric, "substep_s": 5e-3})
     PlantConfig.from_mapping({"mass_kg": mass, "friction": fric, "substep_s": 1e-5})
+
+
+def test_constructor_prepares_the_integration_kernel_and_leaves_the_plant_relaxed():
+    """A virtual drive builds its plant before it answers its master: the first cyclic ``step`` must not compile
+    (a 2 s compile inside the cyclic exchange looks like a dead drive). The constructor's warm-up step relies on
+    ``reset`` undoing a step completely: a used-then-reset plant must follow a fresh one exactly."""
+    from stagectl.jit import compiled_signatures
+
+    kw = dict(friction=gms(sigma1=1.0), effects={"delay": {"delay_s": 2e-4}}, sensor={"noise_std_m": 1e-9})
+    fresh = make(**kw)
+    assert compiled_signatures(fresh._integrate) >= 1
+    used = make(**kw)
+    for _ in range(20):
+        used.step(2.0, 1e-3)
+    assert used.measure() != fresh.measure()
+    used.reset()
+    for k in range(200):
+        u = 0.5 * math.sin(0.05 * k)
+        fresh.step(u, 1e-3)
+        used.step(u, 1e-3)
+        assert used.measure() == fresh.measure()
+    np.testing.assert_array_equal(used._ps, fresh._ps)
+    np.testing.assert_array_equal(used._fs, fresh._fs)
