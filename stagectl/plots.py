@@ -183,6 +183,50 @@ def plot_curves(curves: Sequence[Curves], out_dir: str | Path, suffix: str = "")
     return written
 
 
+def presliding_extent(d_m: FloatArray, f_n: FloatArray, fraction: float = 0.95) -> float:
+    """Displacement [m] at which a virgin curve ``f_n(d_m)`` (``d_m`` ascending from 0) first reaches
+    ``fraction`` of its largest force: the end of the pre-sliding regime. ``d_m[-1]`` if never reached."""
+    d = np.asarray(d_m, dtype=np.float64)
+    f = np.abs(np.asarray(f_n, dtype=np.float64))
+    if d.size == 0:
+        return 0.0
+    top = float(np.max(f))
+    if not np.isfinite(top) or top <= 0.0:
+        return float(d[-1])
+    k = int(np.argmax(f >= fraction * top))
+    return float(d[k])
+
+
+def plot_virgin_fit(d_m: FloatArray, f_n: FloatArray, model_d_m: FloatArray, model_f_n: FloatArray,
+                    path: str | Path, label: str = "model") -> Path:
+    """Measured virgin points and a model's virgin curve, in two panels: the whole range, and the pre-sliding
+    region (0 … 3× the displacement where the model reaches 95 % of its force), each in the unit that suits it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    zoom = min(float(np.max(model_d_m)), 3.0 * presliding_extent(model_d_m, model_f_n))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, top, title in ((axes[0], float(np.max(model_d_m)), "whole range"),
+                           (axes[1], zoom, "pre-sliding region")):
+        k, unit = prefix_for(top, "m")
+        md = model_d_m <= top * (1 + 1e-12)
+        mp = d_m <= top * (1 + 1e-12)
+        ax.plot(d_m[mp] * k, f_n[mp], ".", ms=2, color="C0", label="measured virgin points")
+        ax.plot(model_d_m[md] * k, model_f_n[md], lw=1.2, color="C3", label=f"{label} virgin curve")
+        ax.set_xlabel(f"displacement [{unit}]")
+        ax.set_ylabel("force [N]")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right", framealpha=0.8)
+    fig.tight_layout()
+    out = Path(path)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
 def compare_virgin(a: Curves, b: Curves) -> dict[str, float]:
     """RMS and max |F_a − F_b| over the common virgin-curve range [N]."""
     x = a.virgin_x_m[a.virgin_x_m <= b.virgin_x_m[-1]]

@@ -114,6 +114,8 @@ def _plots(res: Identified, out_dir: str) -> list[str]:
     from scipy import signal
 
     from stagectl.friction import build
+    from stagectl.outputs import prefix_for
+    from stagectl.plots import plot_virgin_fit
 
     out = prepare_out_dir(out_dir, "--plot")
     sig = res.meas.sig
@@ -131,12 +133,13 @@ def _plots(res: Identified, out_dir: str) -> list[str]:
     fig.savefig(out / "force_time.png", dpi=90)
     plt.close(fig)
     files.append(str(out / "force_time.png"))
+    k, unit = prefix_for(float(np.max(np.abs(sig.xf))), "m")
     fig, ax = plt.subplots(figsize=(6, 5))
-    ax.plot(sig.xf, res.meas.force, lw=0.7, label="measured")
-    ax.plot(sig.xf, fm, lw=0.7, label="model")
-    ax.set_xlabel("position [m]")
+    ax.plot(sig.xf * k, res.meas.force, lw=0.7, label="measured")
+    ax.plot(sig.xf * k, fm, lw=0.7, label="model")
+    ax.set_xlabel(f"position [{unit}]")
     ax.set_ylabel("friction force [N]")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, framealpha=0.8)
     ax.set_title("hysteresis: force vs position")
     fig.tight_layout()
     fig.savefig(out / "force_position.png", dpi=90)
@@ -144,17 +147,11 @@ def _plots(res: Identified, out_dir: str) -> list[str]:
     files.append(str(out / "force_position.png"))
     if res.virgin is not None:
         d, f = res.virgin
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.plot(d * 1e6, f, ".", ms=2, label="measured virgin points")
         model = build(res.spec)
-        dd = np.linspace(0, float(d.max()), 400)
-        tt = np.arange(dd.size) * 1.0
-        ax.plot(dd * 1e6, model.force_along(dd, tt), label="model virgin curve (slow ramp)")
-        ax.set_xlabel("displacement [µm]")
-        ax.set_ylabel("force [N]")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "virgin_curve.png", dpi=90)
-        plt.close(fig)
-        files.append(str(out / "virgin_curve.png"))
+        # log-spaced, so that a few-µm pre-sliding region within a 1 mm curve still has hundreds of points;
+        # a quasi-static ramp at 1 µm/s
+        dd = np.concatenate(([0.0], np.geomspace(float(d.max()) * 1e-5, float(d.max()), 2000)))
+        tt = dd / 1e-6
+        files.append(str(plot_virgin_fit(d, f, dd, model.force_along(dd, tt), out / "virgin_curve.png",
+                                         label=str(res.spec["model"]))))
     return files

@@ -185,3 +185,18 @@ def test_extreme_but_valid_recordings_give_one_error_line(spring_stage, tmp_path
         assert len(lines) == 1 and lines[0].startswith("stagectl: error:"), p.stderr
         assert "Traceback" not in p.stderr
         assert ("column 'x'" in lines[0] and " m " in lines[0]) if what == "huge_x" else "time step" in lines[0]
+
+
+def test_presliding_extent_finds_the_end_of_a_virgin_curve() -> None:
+    """The identify plot's zoom window: where an exponential virgin curve F = Fc(1 − e^{−d/d0}) reaches 95 %
+    (d = d0·ln 20), checked against that closed form; a curve that never saturates gives its whole range."""
+    import numpy as np
+
+    from stagectl.plots import presliding_extent
+
+    d = np.linspace(0.0, 1e-3, 200001)
+    d0 = 2e-6
+    got = presliding_extent(d, 0.8 * (1 - np.exp(-d / d0)))
+    assert got == pytest.approx(d0 * np.log(20.0), rel=1e-3)
+    assert presliding_extent(d, 5.0 * d) == pytest.approx(d[int(np.argmax(d >= 0.95e-3))])
+    assert presliding_extent(d, np.zeros_like(d)) == d[-1]
