@@ -130,7 +130,7 @@ def breakdown(cfg: Any, cycles: int) -> dict[str, Any]:
                     dev_cpu.append(time.thread_time() - c0)
                     dev_wall.append(perf() - w0)
 
-            drv._pump = timed_pump
+            setattr(drv, "_pump", timed_pump)
         cpu0 = time.thread_time()
         res = loop.run(cycles=cycles)
         cpu_cycles = time.thread_time() - cpu0
