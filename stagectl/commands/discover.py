@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 from stagectl.commands.args import number
@@ -42,11 +41,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def run(args: argparse.Namespace) -> int:
-    # The regression solves many small systems (<= ~30 columns): BLAS threads only contend for the cores on a
-    # shared machine (EMPS pair under load: 16.7 s with OpenBLAS' default threads, 3.6 s with one). Set before
-    # numpy is first imported (the CLI parser imports none); a user's explicit setting wins.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+    # one BLAS thread: set by stagectl.cli.main before numpy is imported
     # identification pulls in scipy and numba (~0.5 s): imported when the command runs, not for `--help`
     from stagectl.commands.progress import Progress
     from stagectl.ident.discover import discover
