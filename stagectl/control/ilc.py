@@ -408,8 +408,41 @@ class IlcLearner:
         self.iteration += 1
 
     # ------------------------------------------------------------------ control
+    def prepare(self) -> None:
+        """Design the law for the running repetition's length now (any thread; the loop thread then finds it
+        made). Nothing when no repeated motion runs."""
+        rep = self._repetition()
+        if rep is not None:
+            self._design_for(int(round(rep.length_s / self.period_s)) + 1)
+
+    def request(self, action: str, motion: str | None = None) -> dict[str, Any]:
+        """``start`` | ``stop`` | ``save`` | ``load`` | ``status`` (the ``ilc`` client request), at the loop's
+        cycle boundary. ValueError ``"<field>: why"`` for a refused one."""
+        if action == "start":
+            return self.start()
+        if action == "stop":
+            return self.stop()
+        if action == "save":
+            return {**self.save(motion), **self.status()}
+        if action == "load":
+            if motion is None:
+                raise ValueError("motion: load needs the motion name of the saved signal")
+            return {**self.load(motion), **self.status()}
+        if action == "status":
+            return self.status()
+        raise ValueError(f"action: must be start, stop, save, load or status (got {action!r})")
+
     def start(self) -> dict[str, Any]:
-        """Learn (and apply, ramping in) from the next repetition boundary on; clears a freeze."""
+        """Learn (and apply, ramping in) from the next repetition boundary on; clears a freeze.
+
+        Refused (ValueError) when the design of the running motion fails the monotonic-convergence check (3)."""
+        rep = self._repetition()
+        if rep is not None:
+            d = self._design_for(int(round(rep.length_s / self.period_s)) + 1)
+            if not d.monotonic:
+                raise ValueError(f"action: the learning law fails the convergence check for {rep.motion!r} "
+                                 f"(rho {d.rho:.3g}, with the mass off {d.rho_robust:.3g}; needs < 1): lower "
+                                 f"ilc.alpha or ilc.q_cutoff_hz, or use learning: inverse")
         self.frozen = None
         self.learning = True
         self.applying = True
