@@ -126,7 +126,7 @@ class IlcDesign:
     """A learning law for repetitions of ``n_samples`` samples (see module docstring, (1)–(3)).
 
     ``learn`` = L(f_j) [N/m] and ``q`` = Q(f_j) on the rfft grid ``freq_hz``; ``rho`` = max ρ of (3) with the
-    nominal model, ``rho_robust`` the worst with the mass ±``mass_error_fraction`` off; ``rho_hz`` where the
+    nominal model, ``rho_robust`` the worst with the mass ±``mass_error_fraction`` off or one more sample of delay; ``rho_hz`` where the
     nominal maximum is.
     """
 
@@ -174,11 +174,15 @@ def _freqresp(sys: Any, z: np.ndarray) -> np.ndarray:
     return np.asarray(sys(z), dtype=complex).reshape(-1)
 
 
-def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | None = None) -> np.ndarray:
+def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | None = None,
+                        sampling_zero: bool = True, extra_delay_samples: int = 0) -> np.ndarray:
     """G(f) [m/N] of (2): position per force added to the command, loop closed (PID + observer as configured).
 
-    ``mass_kg`` overrides the *true* mass of P (the controller and observer keep the plant's nominal one), for
-    the robustness check. f = 0 gives 0 (the integrator rejects a constant force).
+    ``mass_kg`` overrides the *true* mass of P (the controller and observer keep the plant's nominal one) and
+    ``extra_delay_samples`` adds delay to P, for the robustness check. ``sampling_zero`` False replaces the ZOH
+    zero's factor (z+1)/2 = cos(ωT/2)·e^(jωT/2) by its phase e^(jωT/2) alone: the learning filter (2) uses
+    that, since inverting the zero at z = −1 would give L → ∞ towards the Nyquist frequency, where no model
+    of the real actuator holds. f = 0 gives 0 (the integrator rejects a constant force).
     """
     T = plant.period_s
     f = np.asarray(freq_hz, dtype=float)
@@ -188,7 +192,8 @@ def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | N
     m = plant.mass_kg if mass_kg is None else mass_kg
     # closed forms of design.plant_tf, design.pid_tf and design.qfilter_tfs (numpy only: no python-control in
     # the loop process); ZOH rigid mass T²(z+1)/(2m(z−1)²) with d samples of delay
-    P = T * T * (z + 1) / (2.0 * m * (z - 1) ** 2) * z ** (-plant.delay_samples)
+    zoh_zero = (z + 1) / 2 if sampling_zero else np.exp(1j * math.pi * f[pos] * T)
+    P = T * T * zoh_zero / (m * (z - 1) ** 2) * z ** (-(plant.delay_samples + extra_delay_samples))
     pid = plant.pid
     b = math.exp(-2 * math.pi * pid.derivative_cutoff_hz * T)
     C = pid.kp_n_m + pid.ki_n_m_s * T * z / (z - 1) + pid.kd_n_s_m * (1 - b) / T * (z - 1) / (z - b)
@@ -214,7 +219,8 @@ def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | N
 
 
 def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
-    """The learning law (1) for repetitions of ``n_samples`` samples, with its convergence check (3).
+    """The learning law (1) for repetitions of ``n_samples`` samples, with its convergence check (3) for the
+    nominal model and (``rho_robust``) for the mass ±``mass_error_fraction`` off and one sample more delay.
 
     Raises
     ------
@@ -227,12 +233,13 @@ def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
                           f"[8 samples, ilc.max_repetition_s {cfg.max_repetition_s:g} s]")
     f = np.fft.rfftfreq(n_samples, T)
     G = process_sensitivity(f, plant)
+    G_learn = process_sensitivity(f, plant, sampling_zero=False)
     pos = f > 0
     q = q_filter(f, cfg.q_cutoff_hz)
     learn = np.zeros(f.shape, dtype=complex)
     lead = int(round((1 + plant.delay_samples) if cfg.lead_s is None else cfg.lead_s / T))
     if cfg.learning == "inverse":
-        learn[pos] = cfg.alpha / G[pos]
+        learn[pos] = cfg.alpha / G_learn[pos]
     else:
         gain = cfg.gain_n_m
         if gain is None:
@@ -248,7 +255,8 @@ def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
 
     rho, rho_hz = worst(G)
     e = cfg.mass_error_fraction
-    rob = max(worst(process_sensitivity(f, plant, plant.mass_kg * (1 + s * e)))[0] for s in (-1.0, 1.0)) if e else rho
+    rob = max([worst(process_sensitivity(f, plant, plant.mass_kg * (1 + s * e)))[0] for s in (-1.0, 1.0)]
+              + [worst(process_sensitivity(f, plant, extra_delay_samples=1))[0]])
     return IlcDesign(n_samples, T, cfg.learning, f, learn, q, cfg.max_force_n, rho, rho_hz, rob, e, lead)
 
 
