@@ -126,7 +126,7 @@ class IlcDesign:
     """A learning law for repetitions of ``n_samples`` samples (see module docstring, (1)–(3)).
 
     ``learn`` = L(f_j) [N/m] and ``q`` = Q(f_j) on the rfft grid ``freq_hz``; ``rho`` = max ρ of (3) with the
-    nominal model, ``rho_robust`` the worst with the mass ±``mass_error_fraction`` off or one more sample of delay; ``rho_hz`` where the
+    nominal model, ``rho_robust`` the worst with the mass ±``mass_error_fraction`` off or half a sample more delay; ``rho_hz`` where the
     nominal maximum is.
     """
 
@@ -175,7 +175,7 @@ def _freqresp(sys: Any, z: np.ndarray) -> np.ndarray:
 
 
 def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | None = None,
-                        sampling_zero: bool = True, extra_delay_samples: int = 0) -> np.ndarray:
+                        sampling_zero: bool = True, extra_delay_samples: float = 0.0) -> np.ndarray:
     """G(f) [m/N] of (2): position per force added to the command, loop closed (PID + observer as configured).
 
     ``mass_kg`` overrides the *true* mass of P (the controller and observer keep the plant's nominal one) and
@@ -193,7 +193,8 @@ def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | N
     # closed forms of design.plant_tf, design.pid_tf and design.qfilter_tfs (numpy only: no python-control in
     # the loop process); ZOH rigid mass T²(z+1)/(2m(z−1)²) with d samples of delay
     zoh_zero = (z + 1) / 2 if sampling_zero else np.exp(1j * math.pi * f[pos] * T)
-    P = T * T * zoh_zero / (m * (z - 1) ** 2) * z ** (-(plant.delay_samples + extra_delay_samples))
+    P = (T * T * zoh_zero / (m * (z - 1) ** 2) * z ** (-plant.delay_samples)
+         * np.exp(-2j * math.pi * f[pos] * T * extra_delay_samples))
     pid = plant.pid
     b = math.exp(-2 * math.pi * pid.derivative_cutoff_hz * T)
     C = pid.kp_n_m + pid.ki_n_m_s * T * z / (z - 1) + pid.kd_n_s_m * (1 - b) / T * (z - 1) / (z - b)
@@ -220,7 +221,7 @@ def process_sensitivity(freq_hz: np.ndarray, plant: IlcPlant, mass_kg: float | N
 
 def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
     """The learning law (1) for repetitions of ``n_samples`` samples, with its convergence check (3) for the
-    nominal model and (``rho_robust``) for the mass ±``mass_error_fraction`` off and one sample more delay.
+    nominal model and (``rho_robust``) for the mass ±``mass_error_fraction`` off and half a sample more delay.
 
     Raises
     ------
@@ -256,7 +257,7 @@ def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
     rho, rho_hz = worst(G)
     e = cfg.mass_error_fraction
     rob = max([worst(process_sensitivity(f, plant, plant.mass_kg * (1 + s * e)))[0] for s in (-1.0, 1.0)]
-              + [worst(process_sensitivity(f, plant, extra_delay_samples=1))[0]])
+              + [worst(process_sensitivity(f, plant, extra_delay_samples=0.5))[0]])
     return IlcDesign(n_samples, T, cfg.learning, f, learn, q, cfg.max_force_n, rho, rho_hz, rob, e, lead)
 
 
