@@ -76,6 +76,7 @@ from stagectl.runtime.protocols import (
     NamesTerms,
     PreparesRetune,
     ReferenceSource,
+    RunsScenarios,
     TakesLearnedForce,
     TelemetrySink,
 )
@@ -245,7 +246,14 @@ class ControlLoop:
             if self.learner is None:
                 raise RequestError("request", "learning is not enabled (ilc.enabled: false in the config)")
             try:
-                return self.learner.request(req.action, req.motion)
+                out: dict[str, Any] = {}
+                if req.action == "start" and req.motion is not None:  # run that motion, repeated, and learn it
+                    if self.state is not LoopState.ACTIVE:
+                        raise LoopStateError(f"ilc: loop is {self.state.value}; reset first")
+                    if not isinstance(self.reference, RunsScenarios):
+                        raise RequestError("motion", "this reference source runs no named motions")
+                    out["repetition_s"] = self.reference.run_scenario(t, req.motion)
+                return {**self.learner.request(req.action, req.motion if req.action != "start" else None), **out}
             except ValueError as exc:
                 field, _, msg = str(exc).partition(": ")
                 raise RequestError(field if msg else "action", msg or str(exc)) from None

@@ -336,6 +336,7 @@ class IlcLearner:
         self._rec_u = np.zeros(0)
         self._rec_ok = np.zeros(0, dtype=bool)
         self._valid = False  # the repetition in progress started with learning on and is usable
+        self._loaded = False  # the signal came from a file (kept when its length does not match a pass)
         self._u_out = 0.0
         self._ramp_step = 1.0
 
@@ -350,7 +351,8 @@ class IlcLearner:
     def _bind(self, rep: Repetition) -> None:
         """Take up motion ``rep.motion`` (a new motion resets the learned signal unless loaded for it)."""
         n = int(round(rep.length_s / self.period_s)) + 1
-        if self.motion != rep.motion:
+        if self.motion != rep.motion or not self._loaded:
+            self._loaded = False
             self.motion = rep.motion
             self.design = self._design_for(n)
             self.u = np.zeros(n)
@@ -381,7 +383,7 @@ class IlcLearner:
             if self._rep_index is not None and self._valid:
                 self._finish()
             self._rep_index = rep.index
-            if rep.motion != self.motion:
+            if rep.motion != self.motion or (self.iteration == 0 and not self._loaded and n_rep != self.u.size):
                 self._bind(rep)
             self._rec_ok[:] = False
             self._valid = self.learning and self.frozen is None and n_rep == self.u.size
@@ -528,6 +530,7 @@ class IlcLearner:
         self.last_rms_m = hist[-1] if hist else math.nan
         self._rep_index = None
         self._valid = False
+        self._loaded = True
         return {"loaded": str(path), "motion": motion, "samples": int(u.size), "iteration": it}
 
     # ------------------------------------------------------------------ state

@@ -93,6 +93,23 @@ class TrajectoryReference:
         self._t_load = t_s
         self._length = float(self.gen.remaining_s())
 
+    def run_scenario(self, t_s: float, name: str) -> float:
+        """Start scenario ``name`` now, repeated until a move/stop request (a motion for ``ilc:`` to learn);
+        returns the length of one repetition [s]. ConfigError (field ``motion``) for an unknown name or
+        while a move is still running."""
+        sc = get_scenario(name, "motion")
+        if sc is None:
+            raise ConfigError("motion: 'hold' is no motion to repeat")
+        self.sample(t_s)
+        if not self.gen.done:
+            raise ConfigError("motion: the stage is still moving; start the repeated motion from standstill")
+        self._scenario = sc
+        self._repeat = True
+        self._started = True
+        self._target = math.nan
+        self._load(t_s, sc)
+        return self._length
+
     def repetition(self) -> Repetition | None:
         """Where a *repeated* scenario (``set_scenario(..., repeat=True)``) is: name, restart counter, time
         since its start [s], length [s]; None when no repeated scenario runs (a move/stop took over)."""

@@ -6,7 +6,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "Learner", "NamesTerms", "PreparesRetune", "ReferenceSource", "TakesLearnedForce",
+__all__ = ["Controller", "Learner", "NamesTerms", "PreparesRetune", "ReferenceSource", "RunsScenarios", "TakesLearnedForce",
            "TelemetrySink"]
 
 
@@ -60,6 +60,14 @@ class Learner(Protocol):
     def prepare(self) -> None: ...
 
     def status(self) -> dict[str, Any]: ...
+
+
+@runtime_checkable
+class RunsScenarios(Protocol):
+    """A reference source that can start a named motion, repeated (:class:`~stagectl.control.reference.
+    TrajectoryReference`): what ``ilc start`` with a motion name runs."""
+
+    def run_scenario(self, t_s: float, name: str) -> float: ...
 
 
 @runtime_checkable
