@@ -90,13 +90,13 @@ class IlcConfig:
     learning: str = param("inverse", desc="learning filter: inverse (alpha times the model's process "
                           "sensitivity inverse) or lead (scalar gain_n_m with phase lead lead_s)",
                           choices=("inverse", "lead"))
-    alpha: float = param(0.5, desc="learning gain as a fraction of the model inverse (inverse), or of "
+    alpha: float = param(0.6, desc="learning gain as a fraction of the model inverse (inverse), or of "
                          "1/|G| at q_cutoff_hz when gain_n_m is None (lead)", gt=0.0, le=1.0)
     gain_n_m: float | None = param(None, unit="N/m", desc="lead: scalar learning gain L (None: from alpha)",
                                    gt=0.0)
     lead_s: float | None = param(None, unit="s", desc="lead: phase lead λ (None: (1 + I/O delay) periods)",
                                  ge=0.0, le=0.1)
-    q_cutoff_hz: float = param(60.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
+    q_cutoff_hz: float = param(200.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
     ramp_s: float = param(0.2, unit="s", desc="ramp of the learned force when learning is switched on/off",
                           ge=0.0, le=10.0)
     max_force_n: float = param(2.0, unit="N", desc="clamp of the learned force", gt=0.0)
