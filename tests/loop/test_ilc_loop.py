@@ -72,7 +72,8 @@ def build(tmp_path, *, autostart: bool = True, scenario: Scenario | None = SCAN,
     ref = TrajectoryReference()
     if scenario is not None:
         ref.set_scenario(scenario, repeat=True)
-    cfg = IlcConfig(enabled=True, autostart=autostart, store_dir=tmp_path, **ilc_kw)
+    kw = {"alpha": 0.5, "q_cutoff_hz": 60.0, **ilc_kw}  # pinned: the phases below were chosen with this law
+    cfg = IlcConfig(enabled=True, autostart=autostart, store_dir=tmp_path, **kw)
     learner = IlcLearner(cfg, IlcPlant(0.8, T, 1, PID, ctl_cfg.dob), ref.repetition, base_dir=tmp_path)
     if autostart:
         learner.start()
