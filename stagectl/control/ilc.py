@@ -504,7 +504,8 @@ class IlcLearner:
         return {"saved": str(path), "motion": self.motion, "samples": int(self.u.size), "iteration": self.iteration}
 
     def load(self, motion: str) -> dict[str, Any]:
-        """Read ``store_dir/<motion>.npz`` as the learned signal of ``motion`` (applied when started)."""
+        """Read ``store_dir/<motion>.npz`` (``motion``: the name it was saved under) as the learned signal of the
+        motion it was learned on (applied when that motion runs and learning is started)."""
         path = self.path_for(motion)
         try:
             with np.load(path) as z:
@@ -512,6 +513,7 @@ class IlcLearner:
                 period = float(z["period_s"])
                 it = int(z["iteration"])
                 hist = [float(v) for v in z["rms_m"]]
+                learned_on = str(z["motion"]) if "motion" in z.files else motion
         except FileNotFoundError:
             raise ValueError(f"motion: no saved signal {path}") from None
         except (OSError, KeyError, ValueError) as exc:
@@ -519,7 +521,7 @@ class IlcLearner:
         if abs(period - self.period_s) > 1e-12 or u.ndim != 1 or u.size < 8 or not np.all(np.isfinite(u)):
             raise ValueError(f"motion: {path} was learned at period {period:g} s with {u.size} samples; the loop "
                              f"runs at {self.period_s:g} s")
-        self.motion = motion
+        self.motion = learned_on  # the motion it applies to (the file name is the label it was saved under)
         self.design = self._design_for(u.size)
         self.u = np.clip(u, -self.cfg.max_force_n, self.cfg.max_force_n)
         self.iteration = it
@@ -531,7 +533,7 @@ class IlcLearner:
         self._rep_index = None
         self._valid = False
         self._loaded = True
-        return {"loaded": str(path), "motion": motion, "samples": int(u.size), "iteration": it}
+        return {"loaded": str(path), "motion": learned_on, "samples": int(u.size), "iteration": it}
 
     # ------------------------------------------------------------------ state
     def row(self) -> tuple[float, float, float]:
