@@ -140,7 +140,7 @@ class Stage:
         self.safety = safety
         self.reference = reference
         self.loop = loop
-        self.learner = loop.learner
+        self.learner = loop.learner if isinstance(loop.learner, IlcLearner) else None  # ilc: (None: off)
         self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
         self._teardown = teardown
 

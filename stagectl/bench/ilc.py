@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -99,7 +98,7 @@ def _first_at_or_below(rms: list[float], target: float, start: int = 0) -> int |
     return None
 
 
-def plot(runs: dict[str, dict[str, Any]], path: Path, target_nm: float, change_after: int) -> None:
+def plot(runs: dict[str, dict[str, Any]], path: Path, target_nm: float, change_after: int, scale: float) -> None:
     """RMS per repetition of every run (log scale) with the target line."""
     import matplotlib
 
@@ -111,7 +110,7 @@ def plot(runs: dict[str, dict[str, Any]], path: Path, target_nm: float, change_a
         y = [v * 1e9 for v in r["rms_m"]]
         ax.semilogy(range(1, len(y) + 1), y, marker="o", ms=3, label=name)
     ax.axhline(target_nm, color="k", ls="--", lw=0.8, label=f"target {target_nm:g} nm")
-    ax.axvline(change_after + 0.5, color="r", ls=":", lw=0.8, label=f"friction ×1.2 after repetition {change_after}")
+    ax.axvline(change_after + 0.5, color="r", ls=":", lw=0.8, label=f"friction ×{scale:g} after repetition {change_after}")
     ax.set_xlabel("repetition")
     ax.set_ylabel("RMS tracking error [nm]")
     ax.set_title("ILC on the 1 mm triangle scan, 20 %-wrong GMS model (stagectl bench ilc)")
@@ -174,7 +173,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                           and res["no_growth"])
         out[name] = res
     png = Path(args.out) / "ilc_rms.png"
-    plot(runs, png, args.target_nm, args.change_after)
+    plot(runs, png, args.target_nm, args.change_after, args.friction_scale)
     return {
         "benchmark": "ilc",
         "scenario": args.scenario, "repetition_s": runs["nominal"]["repetition_s"],

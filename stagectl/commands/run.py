@@ -52,7 +52,8 @@ def progress_line(st: LoopStatus) -> str:
     learn = ""
     if ilc is not None and ilc.get("motion") is not None:
         r = ilc.get("last_rms_m")
-        learn = (f"  ilc {ilc['motion']} it={ilc['iteration']} rms={r * 1e9 if r == r else math.nan:.1f} nm"
+        rms_nm = float(r) * 1e9 if isinstance(r, (int, float)) else math.nan
+        learn = (f"  ilc {ilc['motion']} it={ilc['iteration']} rms={rms_nm:.1f} nm"
                  f"{' FROZEN' if ilc.get('frozen') else ''}")
     return (f"t={st.t_s:7.2f} s  x={st.x_m * 1e6:10.4f} um  e={st.e_m * 1e9:9.1f} nm  "
             f"u={st.u_n:7.3f} N  late p99={p99:6.0f} us max={late_max:6.0f} us  "

@@ -192,18 +192,37 @@ def make_app(data: ScopeData, poll: Poll, rate_hz: float = 10.0) -> App[None]:
 
         def on_mount(self) -> None:
             self.title = "stagectl scope"
-            self.set_interval(1.0 / rate_hz, self.tick)
-            self.tick()
+            self.redraw()
+            # the socket is read in a worker thread: a slow or vanished daemon (a request may wait for its
+            # timeout) never freezes the view or its keys; the data is touched only between a poll and the
+            # redraw that poll asks for, which runs on the UI thread while the worker waits for it
+            self.run_worker(self.poll_forever, thread=True, exclusive=True, name="scope-poll")
+
+        def poll_forever(self) -> None:
+            from textual.worker import get_current_worker
+
+            worker = get_current_worker()
+            period = 1.0 / rate_hz
+            while not worker.is_cancelled:
+                t0 = time.monotonic()
+                try:
+                    poll()
+                    error = ""
+                except Exception as exc:  # noqa: BLE001 - a daemon gone away is shown, the scope keeps trying
+                    error = str(exc)[:200]
+                if worker.is_cancelled:
+                    return
+                try:
+                    self.call_from_thread(self.after_poll, error)
+                except RuntimeError:  # the app has stopped
+                    return
+                time.sleep(max(0.0, period - (time.monotonic() - t0)))
 
         def action_pause(self) -> None:
             self.paused = not self.paused
 
-        def tick(self) -> None:
-            try:
-                poll()
-                self.error = ""
-            except Exception as exc:  # noqa: BLE001 - a daemon gone away is shown, the scope keeps trying
-                self.error = str(exc)[:200]
+        def after_poll(self, error: str) -> None:
+            self.error = error
             if not self.paused:
                 self.redraw()
 

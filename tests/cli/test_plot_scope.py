@@ -105,7 +105,10 @@ def test_scope_app_headless() -> None:
     async def drive() -> None:
         app = make_app(data, lambda: polls.append(1), rate_hz=50.0)
         async with app.run_test(size=(120, 40)) as pilot:
-            await pilot.pause()
+            for _ in range(500):  # the poll runs in a worker thread: wait for it, not for a fixed time
+                await pilot.pause(0.01)
+                if polls:
+                    break
             header = str(app.query_one("#header").render())
             assert "cycle 1000" in header and "FAULT following_error" in header
             assert "following_error" in str(app.query_one("#faults").render())
@@ -115,3 +118,39 @@ def test_scope_app_headless() -> None:
         assert polls
 
     asyncio.run(drive())
+
+
+def test_scope_keys_work_while_a_poll_hangs() -> None:
+    """A daemon that does not answer (a poll blocked until its socket timeout) must not freeze the view: the
+    poll runs in a worker thread, so 'space' and 'q' are handled while it hangs."""
+    import asyncio
+    import threading
+
+    data = _filled()
+    entered, release = threading.Event(), threading.Event()
+    timed_out: list[bool] = []
+
+    def hanging_poll() -> None:
+        entered.set()
+        if not release.is_set():
+            timed_out.append(not release.wait(10.0))  # released by the test only if its keys got through
+
+    async def drive() -> bool:
+        app = make_app(data, hanging_poll, rate_hz=50.0)
+        try:
+            async with app.run_test(size=(120, 40)) as pilot:
+                for _ in range(500):
+                    await pilot.pause(0.01)
+                    if entered.is_set():
+                        break
+                assert entered.is_set()
+                await pilot.press("space")
+                paused = bool(app.paused)  # type: ignore[attr-defined]
+                release.set()
+                await pilot.press("q")
+            return paused
+        finally:
+            release.set()
+
+    assert asyncio.run(drive())
+    assert timed_out == [False]

@@ -69,7 +69,8 @@ def test_scope_shows_a_move_of_the_simulated_stage(daemon_socket):
         async def drive() -> tuple[str, str]:
             app = make_app(data, poll, rate_hz=20.0)
             async with app.run_test(size=(120, 40)) as pilot:
-                assert client.request({"request": "move", "relative_m": 1e-5})["ok"]
+                with ControlClient(daemon_socket, timeout_s=10) as mover:  # the scope's client is its worker's
+                    assert mover.request({"request": "move", "relative_m": 1e-5})["ok"]
                 # wait on the stream itself (simulated stage, real socket), not on a fixed time
                 for _ in range(3000):
                     await pilot.pause(0.02)

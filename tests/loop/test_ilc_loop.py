@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from stagectl.sim.direct import PlantIO
 
 from stagectl.clock import SimClock
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
@@ -24,7 +25,6 @@ from stagectl.control.trajectory import Cosine, Scenario
 from stagectl.loop import ControlLoop, LoopConfig
 from stagectl.runtime.requests import IlcRequest, RequestError
 from stagectl.safety import Safety, SafetyConfig
-from stagectl.sim.direct import PlantIO
 
 T = 1e-3
 PID = PidConfig(kp_n_m=1.96e4, ki_n_m_s=4.93e5, kd_n_s_m=234.0, derivative_cutoff_hz=200.0)
