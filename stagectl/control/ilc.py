@@ -339,6 +339,7 @@ class IlcLearner:
         self._loaded = False  # the signal came from a file (kept when its length does not match a pass)
         self._u_out = 0.0
         self._ramp_step = 1.0
+        self._tail_step = 0.0
 
     # ------------------------------------------------------------------ setup
     def _design_for(self, n: int) -> IlcDesign:
@@ -372,12 +373,14 @@ class IlcLearner:
         if self.gain != target:
             s = self._ramp_step
             self.gain = min(target, self.gain + s) if target > self.gain else max(target, self.gain - s)
-        if rep is None:
+        if rep is None:  # no repeated motion (a move/stop took over): the learned force decays over ramp_s
             if self._rep_index is not None:
                 self._rep_index = None
                 self._valid = False
-            self._u_out = 0.0  # no repeated motion: the learned signal belongs to a motion's timeline
-            return 0.0
+                self._tail_step = abs(self._u_out) * self._ramp_step_of_cfg()
+            u_prev = self._u_out
+            self._u_out = 0.0 if abs(u_prev) <= self._tail_step else u_prev - math.copysign(self._tail_step, u_prev)
+            return self._u_out
         n_rep = int(round(rep.length_s / self.period_s)) + 1
         if rep.index != self._rep_index:
             if self._rep_index is not None and self._valid:
@@ -478,8 +481,11 @@ class IlcLearner:
         self.gain = 0.0
         self._u_out = 0.0
 
+    def _ramp_step_of_cfg(self) -> float:
+        return 1.0 if self.cfg.ramp_s <= 0 else min(1.0, self.period_s / self.cfg.ramp_s)
+
     def _set_ramp(self) -> None:
-        self._ramp_step = 1.0 if self.cfg.ramp_s <= 0 else min(1.0, self.period_s / self.cfg.ramp_s)
+        self._ramp_step = self._ramp_step_of_cfg()
 
     # ------------------------------------------------------------------ store
     def path_for(self, motion: str) -> Path:

@@ -197,3 +197,21 @@ def test_start_is_refused_when_the_convergence_check_fails(tmp_path):
     lr, _ = _learner(tmp_path, learning="lead")
     with pytest.raises(ValueError, match="convergence check"):
         lr.start()
+
+
+def test_the_learned_force_decays_when_the_repeated_motion_is_taken_over(tmp_path):
+    """A move request ends the repeated motion mid-way: the force ramps to 0 over ramp_s, no step."""
+    lr, rep = _learner(tmp_path, ramp_s=0.02)
+    lr.start()
+    _run_rep(lr, rep)
+    rep.tau = 0.0
+    lr.step(0.0, 0.0)  # the new repetition begins (the last one is learned from here)
+    lr.u[:] = 0.5
+    lr.gain = 1.0
+    rep.tau = 0.03
+    u0 = lr.step(0.0, 0.0)
+    assert u0 == 0.5
+    rep.on = False
+    outs = [lr.step(0.0, 0.0) for _ in range(30)]
+    steps = np.abs(np.diff([u0, *outs]))
+    assert steps.max() <= 0.5 * T / 0.02 + 1e-12 and outs[-1] == 0.0
