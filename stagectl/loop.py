@@ -85,12 +85,12 @@ from stagectl.runtime.requests import (
     LoopRequest,
     MotionLimits,
     MoveRequest,
+    RequestError,
     ResetRequest,
     RetuneRequest,
     ShutdownRequest,
     StopRequest,
 )
-from stagectl.runtime.requests import RequestError
 from stagectl.runtime.sinks import SinkSet
 from stagectl.runtime.stats import CycleStats, LatenessWarner
 from stagectl.runtime.status import FaultInfo, LoopResult, LoopState, LoopStateError, LoopStatus
