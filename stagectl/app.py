@@ -30,7 +30,8 @@ from typing import Any, TypeVar
 
 from stagectl.clock import Clock, MonotonicClock, SimClock, Timing
 from stagectl.config import AppConfig, IoKind, SensorSource
-from stagectl.control.controller import TERM_NAMES, ControllerConfig, StageController
+from stagectl.control.controller import TERM_NAMES, ControllerConfig, StageController, controller_mass
+from stagectl.control.ilc import IlcLearner, IlcPlant
 from stagectl.control.reference import TrajectoryReference, get_scenario
 from stagectl.control.trajectory import Scenario
 from stagectl.drivers.base import Device, ForceActuator, PositionSensor, SyncProducer
@@ -139,6 +140,7 @@ class Stage:
         self.safety = safety
         self.reference = reference
         self.loop = loop
+        self.learner = loop.learner if isinstance(loop.learner, IlcLearner) else None  # ilc: (None: off)
         self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
         self._teardown = teardown
 
@@ -334,6 +336,21 @@ def make_controller(cfg: AppConfig, controller_config: ControllerConfig | None =
     return StageController(controller_config or cfg.controller, cfg.timing)
 
 
+def make_learner(cfg: AppConfig, reference: TrajectoryReference) -> IlcLearner:
+    """The ILC learner of ``cfg.ilc`` for the loop (:mod:`stagectl.control.ilc`), designed for the controller's
+    mass, PID and observer and the I/O delay; learning from the start when ``ilc.autostart``."""
+    c = cfg.controller
+    mass = controller_mass(c, c.feedforward.model)
+    if mass is None:  # the configuration check requires one
+        raise StageError("ilc: no controller mass (controller.mass_kg or the model file's)")
+    plant = IlcPlant(mass_kg=mass, period_s=cfg.loop.period_s, delay_samples=int(cfg.io.delay_cycles), pid=c.pid,
+                     dob=c.dob)
+    learner = IlcLearner(cfg.ilc, plant, reference.repetition, base_dir=cfg.base_dir)
+    if cfg.ilc.autostart:
+        learner.start()
+    return learner
+
+
 def build_stage(
     cfg: AppConfig,
     *,
@@ -366,6 +383,7 @@ def build_stage(
         safety = Safety(cfg.safety, timing)
         reference = TrajectoryReference()
         terms = ctl.term_names if isinstance(ctl, NamesTerms) else TERM_NAMES
+        learner = make_learner(cfg, reference) if cfg.ilc.enabled else None
         loop = ControlLoop(
             clock=clk,
             sensor=io.sensor,
@@ -378,6 +396,7 @@ def build_stage(
             realtime=realtime,
             term_names=tuple(terms),
             device_time=io.world is not None,  # virtual CANopen devices step one period per SYNC
+            learner=learner,
         )
     except BaseException:
         td.close()

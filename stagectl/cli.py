@@ -36,7 +36,7 @@ COMMAND_MODULES = (
 )
 
 #: command names that live in a module of another name (the rest: name with '-' as '_')
-COMMAND_ALIASES = {name: "clients" for name in ("status", "move", "stop", "reset", "record", "gains")}
+COMMAND_ALIASES = {name: "clients" for name in ("status", "move", "stop", "reset", "record", "gains", "ilc")}
 
 
 #: sphinx/rst markup in the command modules' docstrings, shown plain in ``--help``

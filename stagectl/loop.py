@@ -36,6 +36,11 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
   against the stage's limits here and executed at the next cycle boundary; conditions known only there (a
   relative target outside the limits, a move in fault) are set on the future. A retune is designed in the
   caller's thread when the controller offers ``request_retune``.
+* ``learner`` (optional, :class:`~stagectl.runtime.protocols.Learner`, ``ilc:``): stepped before the
+  controller in every active cycle with a fresh sample, ``u_l = learner.step(t, e)``; u_l goes to the
+  controller's learned-force input (``step(..., u_learn_n=u_l)``) or, for a controller without one, is added to
+  its command. Its columns (``u_ilc``, ``ilc_iteration``, ``ilc_rms_m``) follow the controller terms; a fault
+  freezes it; ``IlcRequest`` drives it (``loop.status().ilc`` shows it).
 * ``loop.latch_fault(name, cause)`` -- before ``run`` only: ``run`` then starts in fault without enabling the
   devices, and only a reset clears it (the daemon's ``unclean_shutdown``).
 * ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
@@ -65,11 +70,22 @@ from stagectl.errors import StageError
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
-from stagectl.runtime.protocols import Controller, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.protocols import (
+    Controller,
+    Learner,
+    NamesTerms,
+    PreparesRetune,
+    ReferenceSource,
+    RunsScenarios,
+    TakesLearnedForce,
+    TelemetrySink,
+)
 from stagectl.runtime.requests import (
+    IlcRequest,
     LoopRequest,
     MotionLimits,
     MoveRequest,
+    RequestError,
     ResetRequest,
     RetuneRequest,
     ShutdownRequest,
@@ -142,7 +158,7 @@ class ControlLoop:
         clock: Clock, sensor: PositionSensor, actuator: ForceActuator, controller: Controller,
         reference: ReferenceSource, safety: Safety, cfg: LoopConfig, sync: SyncProducer | None = None,
         realtime: bool = False, on_cycle: Callable[[], None] | None = None, term_names: tuple[str, ...] | None = None,
-        device_time: bool = False,
+        device_time: bool = False, learner: Learner | None = None,
     ) -> None:
         self.clock = clock
         self.sensor = sensor
@@ -163,7 +179,10 @@ class ControlLoop:
         named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
         terms: tuple[str, ...] = tuple(term_names) if term_names else tuple(named)
         self.term_names = terms
-        self.columns: tuple[str, ...] = BASE_COLUMNS + terms + FLAG_COLUMNS
+        self.learner = learner
+        self._learn_ctl = controller if learner is not None and isinstance(controller, TakesLearnedForce) else None
+        extra = tuple(learner.columns) if learner is not None else ()
+        self.columns: tuple[str, ...] = BASE_COLUMNS + terms + extra + FLAG_COLUMNS
         self.state = LoopState.CONFIGURED if self._devs.ready() else LoopState.UNCONFIGURED
         self._inbox = RequestInbox()
         self._sinks = SinkSet()
@@ -210,6 +229,11 @@ class ControlLoop:
                 # parts in at its next step. Bad tunings raise here.
                 self.controller.request_retune(req.controller_config)
                 prepared = True
+        elif isinstance(req, IlcRequest):
+            if self.learner is None:
+                raise RequestError("request", "learning is not enabled (ilc.enabled: false in the config)")
+            if req.action == "start":
+                self.learner.prepare()  # the design of the running motion, here in the caller's thread
         return self._inbox.put(req, prepared)
 
     def _execute(self, req: LoopRequest, prepared: bool, t: float, x: float) -> dict[str, Any]:
@@ -218,6 +242,21 @@ class ControlLoop:
             return {"cycles": self.cycle}
         if isinstance(req, ResetRequest):
             return self._reset(t, x)
+        if isinstance(req, IlcRequest):
+            if self.learner is None:
+                raise RequestError("request", "learning is not enabled (ilc.enabled: false in the config)")
+            try:
+                out: dict[str, Any] = {}
+                if req.action == "start" and req.motion is not None:  # run that motion, repeated, and learn it
+                    if self.state is not LoopState.ACTIVE:
+                        raise LoopStateError(f"ilc: loop is {self.state.value}; reset first")
+                    if not isinstance(self.reference, RunsScenarios):
+                        raise RequestError("motion", "this reference source runs no named motions")
+                    out["repetition_s"] = self.reference.run_scenario(t, req.motion)
+                return {**self.learner.request(req.action, req.motion if req.action != "start" else None), **out}
+            except ValueError as exc:
+                field, _, msg = str(exc).partition(": ")
+                raise RequestError(field if msg else "action", msg or str(exc)) from None
         if isinstance(req, RetuneRequest):
             if not prepared:
                 self.controller.retune(req.controller_config)
@@ -278,6 +317,7 @@ class ControlLoop:
             healthy=bool(self._running and state is LoopState.ACTIVE and frac <= self.cfg.healthy_overrun_fraction),
             lateness_us=self.stats.lateness(self.cycle) if timing else None,
             exec_us=self.stats.execution(self.cycle) if timing else None,
+            ilc=self.learner.status() if self.learner is not None else None,
         )
 
     # ------------------------------------------------------------------ fault
@@ -287,6 +327,9 @@ class ControlLoop:
         self.state = LoopState.FAULT
         self.faults += 1
         self._u = 0.0
+        if self.learner is not None:
+            fault = self.safety.fault
+            self.learner.freeze(fault.name if fault is not None else "fault")
         self._devs.quick_stop(self.safety.fault)
         log.error("FAULT %s; drive quick-stopped", self.safety.fault)
 
@@ -404,6 +447,8 @@ class ControlLoop:
         device_time = self.device_time
         x_prev_ref = Reference(self._snap[2])
         held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
+        learner, learn_ctl = self.learner, self._learn_ctl
+        lrow: tuple[float, ...] = ()
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -437,7 +482,15 @@ class ControlLoop:
                     if safety.check_tracking(t, k, x, ref.x_m):
                         self._enter_fault(t)
                     elif m.fresh:
-                        cmd = controller.step(dt, x, ref)
+                        if learner is None:
+                            cmd = controller.step(dt, x, ref)
+                        else:  # the learned feed-forward of a repeated motion (ilc:)
+                            u_l = learner.step(t, ref.x_m - x)
+                            if learn_ctl is not None:
+                                cmd = learn_ctl.step(dt, x, ref, u_l)
+                            else:
+                                cmd = controller.step(dt, x, ref)
+                                cmd.force_n += u_l
                         u = safety.limit_force(t, k, cmd.force_n)
                         if safety.fault is not None:
                             self._enter_fault(t)
@@ -453,9 +506,11 @@ class ControlLoop:
                     terms = {}
                 x_prev_ref = ref
                 u = self._u
+                if learner is not None:
+                    lrow = learner.row()
                 row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
                     [terms.get(n, 0.0) for n in term_names]
-                ) + (0.0 if m.fresh else 1.0, float(skipped))
+                ) + lrow + (0.0 if m.fresh else 1.0, float(skipped))
                 sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:

@@ -8,6 +8,8 @@
     stagectl reset                              clear a latched fault (re-enables the drive)
     stagectl record start NAME | stop           capture telemetry to <telemetry dir>/NAME.csv
     stagectl gains [--json]                     the controller tuning in force
+    stagectl ilc start|stop|status|save [--motion NAME]|load --motion NAME
+                                                learning feed-forward of the repeated motion (ilc:)
 
 Every command takes ``--socket PATH`` (default ``$STAGECTL_SOCKET``, else ``$RUNTIME_DIRECTORY/control.sock``,
 else ``/run/stagectl/control.sock``). A refused request prints ``stagectl: error: <field>: <reason>`` and
@@ -32,7 +34,7 @@ from stagectl.daemon.control import ControlClient
 from stagectl.daemon.paths import first_dir
 from stagectl.errors import StageError
 from stagectl.outputs import si
-from stagectl.runtime.requests import MoveRequest, ResetRequest, StopRequest
+from stagectl.runtime.requests import IlcRequest, MoveRequest, ResetRequest, StopRequest
 
 DEFAULT_SOCKET = "/run/stagectl/control.sock"
 
@@ -85,6 +87,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     pe = rs.add_parser("stop", help="stop the running capture and print its file and row count")
     _common(pe)
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("ilc", help="learning feed-forward of the repeated motion: start/stop learning, "
+                                   "save/load the learned signal per motion, status")
+    _common(p)
+    p.add_argument("action", choices=("start", "stop", "status", "save", "load"),
+                   help="start | stop learning (the learned force ramps in/out), status, save | load the "
+                        "learned signal (<ilc.store_dir>/<motion>.npz)")
+    p.add_argument("--motion", metavar="NAME", default=None,
+                   help="motion name of the saved signal (save: default the running motion; load: required)")
+    p.add_argument("--json", action="store_true", help="print the reply as JSON")
+    p.set_defaults(func=cmd_ilc)
 
     p = sub.add_parser("gains", help="show the controller tuning in force")
     _common(p)
@@ -164,6 +177,29 @@ def cmd_gains(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ilc(args: argparse.Namespace) -> int:
+    req = IlcRequest(action=args.action, motion=args.motion)  # checked here before anything is sent
+    reply = _request(args, req.to_json())
+    body = {k: v for k, v in reply.items() if k not in ("ok", "id")}
+    if args.json:
+        print(json.dumps(body, indent=2))
+        return 0
+    for key in ("saved", "loaded"):
+        if key in body:
+            print(f"{key} {body[key]}")
+    rms = body.get("rms_m") or []
+    d = body.get("design") or {}
+    print(f"motion {body.get('motion')}  learning {body.get('learning')}  applying {body.get('applying')}  "
+          f"gain {_n(body.get('gain'))}  iteration {body.get('iteration')}"
+          + (f"  FROZEN ({body['frozen']})" if body.get("frozen") else ""))
+    if rms:
+        print("rms per repetition  " + "  ".join(_m(v) for v in rms))
+    if d:
+        print(f"design  {d.get('learning')}  rho {_n(d.get('rho'))}  rho with model error {_n(d.get('rho_robust'))}  "
+              f"monotonic {d.get('monotonic')}")
+    return 0
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     while True:
         st = _request(args, {"request": "status"})["status"]
@@ -203,6 +239,10 @@ def render_status(st: dict[str, Any]) -> str:
                      f"{', recording ' + str(rec.get('name')) if rec else ''}   {tel.get('file') or ''}")
         if tel.get("error"):
             lines.append(f"TELEMETRY ERROR  {tel['error']}")
+    ilc = loop.get("ilc")
+    if ilc:
+        lines.append(f"learning   iteration {ilc.get('iteration')}   rms {_m(ilc.get('last_rms_m'))}   "
+                     f"u_ilc {_n(ilc.get('u_ilc_n'))} N")
     rl = st.get("reload")
     if rl and not rl.get("ok"):
         lines.append(f"reload     REJECTED: {rl.get('error')}")

@@ -11,6 +11,7 @@ daemon's.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -37,6 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "
                         "simulated stage, hold on a real one)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--ilc", action="store_true",
+                   help="learn a feed-forward for the repeated motion (ilc: section, learning from the start)")
     p.set_defaults(func=run)
 
 
@@ -45,9 +48,16 @@ def progress_line(st: LoopStatus) -> str:
     lat = st.lateness_us
     p99, late_max = (lat.p99, lat.max) if lat is not None else (math.nan, math.nan)
     fault = f" FAULT {st.fault.name}: {st.fault.cause}" if st.fault else ""
+    ilc = st.ilc
+    learn = ""
+    if ilc is not None and ilc.get("motion") is not None:
+        r = ilc.get("last_rms_m")
+        rms_nm = float(r) * 1e9 if isinstance(r, (int, float)) else math.nan
+        learn = (f"  ilc {ilc['motion']} it={ilc['iteration']} rms={rms_nm:.1f} nm"
+                 f"{' FROZEN' if ilc.get('frozen') else ''}")
     return (f"t={st.t_s:7.2f} s  x={st.x_m * 1e6:10.4f} um  e={st.e_m * 1e9:9.1f} nm  "
             f"u={st.u_n:7.3f} N  late p99={p99:6.0f} us max={late_max:6.0f} us  "
-            f"overruns={st.overruns}  {st.state.value}{fault}")
+            f"overruns={st.overruns}  {st.state.value}{fault}{learn}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = load_app_config(args.config)
+    if getattr(args, "ilc", False):
+        cfg = dataclasses.replace(cfg, ilc=dataclasses.replace(cfg.ilc, enabled=True, autostart=True))
     out = Path(args.out) if args.out else Path("runs") / datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     if args.scenario is not None:
         get_scenario(args.scenario)  # unknown names fail before any device is opened
@@ -96,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
         "fault": res.as_dict()["fault"] if res else None,
         "loop": res.as_dict() if res else None,
     }
+    if stage.learner is not None:
+        summary["ilc"] = stage.learner.status()
     title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"
     summary["out"] = str(out)
     write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)

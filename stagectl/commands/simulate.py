@@ -38,18 +38,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
     p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--repetitions", type=int, default=None,
+                   help="run the scenario this many times back to back (a repeated motion; default once)")
+    p.add_argument("--ilc", action="store_true",
+                   help="learn a feed-forward over the repetitions (ilc: section, learning from the start)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr (for scripts)")
     p.set_defaults(func=run)
 
 
 def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: str | Path, *,
-             tol_m: float = 10e-9, plots: bool = True, quiet: bool = True) -> dict[str, Any]:
+             tol_m: float = 10e-9, plots: bool = True, quiet: bool = True,
+             repetitions: int | None = None) -> dict[str, Any]:
     """Run one simulation and write its outputs; returns the summary dict.
 
     Raises
     ------
     ConfigError
-        Unknown scenario, bad duration, unwritable ``out_dir``, or a canopen config without ``sim:``.
+        Unknown scenario, bad duration or repetitions, unwritable ``out_dir``, or a canopen config without
+        ``sim:``.
+
+    ``repetitions``: the scenario restarts when it ends (a repeated motion, what ``ilc:`` learns), the default
+    duration covering that many; the summary then has ``ilc`` (the learner's state, RMS per repetition).
     """
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
@@ -63,10 +72,13 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         # same drivers, the virtual devices of the sim: section in-process (lock-step)
         cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
     sc = get_scenario(scenario)
+    if repetitions is not None and not 1 <= repetitions <= 100000:
+        raise ConfigError(f"--repetitions: must be >= 1 (got {repetitions})")
     prepare_out_dir(out_dir)
     if duration_s is None:
         x0 = cfg.sim.plant.x0_m if cfg.sim is not None else 0.0
-        duration_s = (sc.duration_s(x0) if sc is not None else 1.0) + 0.2
+        one = sc.duration_s(x0) if sc is not None else 1.0
+        duration_s = (one + cfg.loop.period_s) * (repetitions or 1) + 0.2
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise ConfigError(f"--duration: must be > 0 s (got {duration_s})")
     progress = Progress("simulate", duration_s, "s simulated", quiet=quiet)
@@ -76,7 +88,7 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         rec = Recorder(loop.columns, capacity=int(duration_s / cfg.loop.period_s) + 16)
         loop.add_sink(rec)
         loop.add_sink(ProgressSink(progress))
-        stage.load_scenario(sc)
+        stage.load_scenario(sc, repeat=repetitions is not None)
         try:
             res = loop.run(duration_s=duration_s)
         except KeyboardInterrupt:  # keep what was simulated: written below, marked, then Ctrl-C goes on
@@ -97,6 +109,9 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         "fault": res.as_dict()["fault"],
         "loop": {"cycles": res.cycles, "overruns": res.overruns, "ended_by": res.ended_by},
     }
+    if stage.learner is not None:
+        summary["ilc"] = stage.learner.status()
+        summary["ilc"]["rms_m"] = list(stage.learner.rms_history)
     write_outputs(rec, out_dir, summary, plots=plots, title=f"simulate {scenario} ({cfg.path.name if cfg.path else ''})")
     return summary
 
@@ -105,7 +120,11 @@ def run(args: argparse.Namespace) -> int:
     from stagectl.config import load_app_config
 
     cfg = load_app_config(args.config)
+    if args.ilc and args.repetitions is None:
+        raise ConfigError("--ilc: learning needs a repeated motion; give --repetitions N")
+    if args.ilc:
+        cfg = dataclasses.replace(cfg, ilc=dataclasses.replace(cfg.ilc, enabled=True, autostart=True))
     summary = simulate(cfg, args.scenario, args.duration, args.out, tol_m=args.tolerance, plots=not args.no_plots,
-                       quiet=args.quiet)
+                       quiet=args.quiet, repetitions=args.repetitions)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0

@@ -11,6 +11,7 @@ Sections (see ``config/sim.yaml`` for a commented example)::
     controller:  ControllerConfig  (stagectl.control.controller)
     safety:      SafetyConfig      soft limits, following error, force/velocity limits, stale position
     demo:        DemoConfig        what ``stagectl run`` does (scenario, repeat)
+    ilc:         IlcConfig         learning feed-forward for repeated motions (stagectl.control.ilc)
     daemon:      DaemonConfig      control socket, watchdog, telemetry (stagectl.config.daemon)
 """
 
@@ -24,6 +25,7 @@ from pathlib import Path
 from stagectl.clock import Timing
 from stagectl.config.daemon import DaemonConfig
 from stagectl.control.controller import ControllerConfig
+from stagectl.control.ilc import IlcConfig
 from stagectl.drivers.cia402 import Cia402Config
 from stagectl.drivers.cia406 import Cia406Config
 from stagectl.drivers.interferometer import InterferometerConfig
@@ -116,6 +118,8 @@ class AppConfig:
     loop: LoopConfig = param(default_factory=LoopConfig, desc="loop timing")
     io: IoConfig = param(default_factory=IoConfig, desc="devices")
     demo: DemoConfig = param(default_factory=DemoConfig, desc="demo motion of `stagectl run`")
+    ilc: IlcConfig = param(default_factory=IlcConfig, desc="learning feed-forward for repeated motions "
+                           "(iterative learning control; off by default)")
     daemon: DaemonConfig = param(default_factory=DaemonConfig, desc="service settings (control socket, watchdog, telemetry)")
     description: str = param("", desc="free text shown by check-config")
     sim: SimWorldConfig | None = param(

@@ -6,8 +6,10 @@ Per step (dt [s], measured position x [m], reference r = (x_r, v_r, a_r))::
     u_ff   = friction feed-forward along the reference     (kind none | coulomb | model)       [N]
     u_in   = m_ff·a_r                                      inertia feed-forward (if inertia)   [N]
     d̂      = DOB(x_k, v̂_k, u_obs,k−1)                      (kind none | qfilter | kalman)      [N]
-    u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ , ±max_force_n )
+    u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ + u_l , ±max_force_n )
+    u_l    = learned feed-forward (``u_learn_n``, iterative learning control: stagectl.control.ilc)  [N]
     u_obs,k = u − u_ff                                      residual form, docs/friction-models.md §6.2
+                                                            (u_l stays in: it is applied, like m·a_r)
 
 Terms in ``Command.terms`` (newtons): ``u_pid`` (= ``u_p`` + ``u_i`` + ``u_d``), ``u_dob``, ``u_ff``,
 ``u_inertia``. ``Command.limited`` holds ``"force"`` when the output was clamped and ``"anti_windup"``
@@ -342,8 +344,14 @@ class StageController:
     _ff_bump: float | None = None
 
     # ------------------------------------------------------------------ loop
-    def step(self, dt: float, x_meas_m: float, ref: Reference) -> Command:
-        """One control step (real-time safe). Raises ``ValueError`` on bad dt or non-finite inputs."""
+    #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
+    accepts_learned_force = True
+
+    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0) -> Command:
+        """One control step (real-time safe). Raises ``ValueError`` on bad dt or non-finite inputs.
+
+        ``u_learn_n`` [N]: a learned feed-forward force added to the command (ILC); the observer counts it as
+        applied, so it does not estimate it away."""
         check_dt(dt)
         if not math.isfinite(x_meas_m):
             raise ValueError(f"x_meas_m must be finite (got {x_meas_m})")
@@ -386,7 +394,7 @@ class StageController:
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
         # feedback + clamp
         pid = self.pid
-        u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat, cfg.max_force_n)
+        u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 from stagectl.control.api import Reference
+from stagectl.control.ilc import Repetition
 from stagectl.control.trajectory import (
     Move,
     Scenario,
@@ -67,6 +68,9 @@ class TrajectoryReference:
         self._scenario: Scenario | None = None
         self._repeat = False
         self._started = False
+        self._loads = 0  # scenario (re)starts: the repetition counter of repetition()
+        self._t_load = 0.0
+        self._length = 0.0
 
     def set_scenario(self, scenario: Scenario | None, repeat: bool = False) -> None:
         """Run ``scenario`` (None: hold) from the loop's next ``hold``; ``repeat`` restarts it when it ends."""
@@ -80,8 +84,39 @@ class TrajectoryReference:
         self._target = x_m
         if self._scenario is not None and not self._started:
             self._started = True
-            self.gen.load(self._scenario)
+            self._load(t_s, self._scenario)
             self._target = math.nan
+
+    def _load(self, t_s: float, scenario: Scenario) -> None:
+        self.gen.load(scenario)
+        self._loads += 1
+        self._t_load = t_s
+        self._length = float(self.gen.remaining_s())
+
+    def run_scenario(self, t_s: float, name: str) -> float:
+        """Start scenario ``name`` now, repeated until a move/stop request (a motion for ``ilc:`` to learn);
+        returns the length of one repetition [s]. ConfigError (field ``motion``) for an unknown name or
+        while a move is still running."""
+        sc = get_scenario(name, "motion")
+        if sc is None:
+            raise ConfigError("motion: 'hold' is no motion to repeat")
+        self.sample(t_s)
+        if not self.gen.done:
+            raise ConfigError("motion: the stage is still moving; start the repeated motion from standstill")
+        self._scenario = sc
+        self._repeat = True
+        self._started = True
+        self._target = math.nan
+        self._load(t_s, sc)
+        return self._length
+
+    def repetition(self) -> Repetition | None:
+        """Where a *repeated* scenario (``set_scenario(..., repeat=True)``) is: name, restart counter, time
+        since its start [s], length [s]; None when no repeated scenario runs (a move/stop took over)."""
+        sc = self._scenario
+        if sc is None or not self._repeat or not self._started:
+            return None
+        return Repetition(sc.name, self._loads, self._t - self._t_load, self._length)
 
     def sample(self, t_s: float) -> Reference:
         dt = t_s - self._t
@@ -89,7 +124,7 @@ class TrajectoryReference:
             self._t = t_s
             ref = self.gen.step(dt)
             if self._repeat and self.gen.done and self._scenario is not None:
-                self.gen.load(self._scenario)
+                self._load(t_s, self._scenario)
             return ref
         return self.gen.sample()
 

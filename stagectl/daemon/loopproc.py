@@ -45,6 +45,7 @@ from stagectl.errors import StageError
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
 from stagectl.runtime.requests import (
+    IlcRequest,
     LoopRequest,
     MoveRequest,
     RequestError,
@@ -165,6 +166,9 @@ class Bridge:
             req = ResetRequest()
         elif kind == "shutdown":
             req = ShutdownRequest()
+        elif kind == "ilc":
+            action, motion = pickle.loads(blob)
+            req = IlcRequest(action=action, motion=motion)
         elif kind == "retune":
             # designing the tuning (observer gains) is the heavy part: a helper thread, never this cycle
             threading.Thread(target=self._retune, args=(rid, blob), name="stagectl-retune", daemon=True).start()

@@ -36,6 +36,7 @@ from stagectl.runtime.config import LoopConfig
 from stagectl.runtime.inbox import Reply
 from stagectl.runtime.protocols import TelemetrySink
 from stagectl.runtime.requests import (
+    IlcRequest,
     LoopRequest,
     MotionLimits,
     MoveRequest,
@@ -81,7 +82,7 @@ __all__ = ["DEVICE_STATES", "KIND_CODES", "LOOP_STATES", "LoopLike", "RemoteLoop
 log = logging.getLogger("stagectl.daemon")
 
 #: request kind -> code in a command record
-KIND_CODES = {"move": 1, "stop": 2, "reset": 3, "shutdown": 4, "retune": 5, "fault": 6}
+KIND_CODES = {"move": 1, "stop": 2, "reset": 3, "shutdown": 4, "retune": 5, "fault": 6, "ilc": 7}
 LOOP_STATES = tuple(LoopState)
 DEVICE_STATES = tuple(DeviceState)
 #: command slots kept free for stop, reset and shutdown: a flood of moves never locks them out
@@ -145,6 +146,11 @@ class RemoteLoop:
         self.result: LoopResult | None = None
         self.error: str | None = None
         self.replies_lost = 0
+        # the learner's telemetry columns (ilc:), read from the last telemetry row the writer drained
+        cols = self.columns
+        self._ilc_cols = (tuple(cols.index(c) for c in ("u_ilc", "ilc_iteration", "ilc_rms_m"))
+                          if "ilc_iteration" in cols else None)
+        self._ilc_last: tuple[float, float, float] | None = None
 
     # ------------------------------------------------------------------ sinks (telemetry is shared memory)
     def add_sink(self, sink: TelemetrySink) -> None:
@@ -162,6 +168,10 @@ class RemoteLoop:
 
     def feed_sinks(self, first: int, rows: Any) -> None:
         """Writer tap: every drained block of telemetry rows to the daemon-side sinks (writer thread)."""
+        ic = self._ilc_cols
+        if ic is not None and len(rows):
+            last = rows[-1]
+            self._ilc_last = (float(last[ic[0]]), float(last[ic[1]]), float(last[ic[2]]))
         for sink in self._sinks:
             for row in rows:
                 sink.append(row)
@@ -218,7 +228,18 @@ class RemoteLoop:
             healthy=bool(running and state is LoopState.ACTIVE and frac <= self.cfg.healthy_overrun_fraction),
             lateness_us=stats.lateness(n) if timing else None, exec_us=stats.execution(n) if timing else None,
             faults=int(v[S_FAULTS]),
+            ilc=self._ilc_status(),
         )
+
+    def _ilc_status(self) -> dict[str, Any] | None:
+        """The learner's iteration, RMS of its last repetition [m] and force [N] from the telemetry (the full state:
+        the ``ilc`` request); None without a learner."""
+        if self._ilc_cols is None:
+            return None
+        last = self._ilc_last
+        if last is None:
+            return {"iteration": None, "last_rms_m": None, "u_ilc_n": None}
+        return {"iteration": int(last[1]), "last_rms_m": last[2], "u_ilc_n": last[0]}
 
     # ------------------------------------------------------------------ requests
     def submit(self, req: LoopRequest) -> Reply:
@@ -232,6 +253,8 @@ class RemoteLoop:
             c = req.max_velocity_m_s if req.max_velocity_m_s is not None else math.nan
         elif isinstance(req, RetuneRequest):
             blob = pickle.dumps(req.controller_config)
+        elif isinstance(req, IlcRequest):
+            blob = pickle.dumps((req.action, req.motion))
         return self._post(KIND_CODES[req.KIND], a, b, c, blob,
                           reserved=isinstance(req, (StopRequest, ResetRequest, ShutdownRequest)))
 

@@ -6,7 +6,8 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
+__all__ = ["Controller", "Learner", "NamesTerms", "PreparesRetune", "ReferenceSource", "RunsScenarios", "TakesLearnedForce",
+           "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -29,6 +30,44 @@ class PreparesRetune(Protocol):
     (:class:`~stagectl.control.controller.StageController`); bad tunings raise in ``request_retune``."""
 
     def request_retune(self, cfg: Any) -> None: ...
+
+
+@runtime_checkable
+class TakesLearnedForce(Protocol):
+    """A controller with the learned feed-forward input: ``step(..., u_learn_n)`` adds it to the command as an
+    applied force (the observer counts it as applied, so it does not fight it)."""
+
+    accepts_learned_force: bool
+
+    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0) -> Command: ...
+
+
+class Learner(Protocol):
+    """The loop's learning hook (:class:`stagectl.control.ilc.IlcLearner`): stepped once per active cycle
+    before the controller, frozen on a fault, driven by ``ilc`` requests at the cycle boundary."""
+
+    @property
+    def columns(self) -> tuple[str, ...]: ...
+
+    def step(self, t_s: float, e_m: float, fresh: bool = True) -> float: ...
+
+    def row(self) -> tuple[float, ...]: ...
+
+    def freeze(self, reason: str) -> None: ...
+
+    def request(self, action: str, motion: str | None) -> dict[str, Any]: ...
+
+    def prepare(self) -> None: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+
+@runtime_checkable
+class RunsScenarios(Protocol):
+    """A reference source that can start a named motion, repeated (:class:`~stagectl.control.reference.
+    TrajectoryReference`): what ``ilc start`` with a motion name runs."""
+
+    def run_scenario(self, t_s: float, name: str) -> float: ...
 
 
 @runtime_checkable

@@ -28,7 +28,9 @@ from typing import Any, ClassVar, Self, cast
 from stagectl.errors import StageError
 
 __all__ = [
+    "ILC_ACTIONS",
     "SOCKET_KINDS",
+    "IlcRequest",
     "LoopRequest",
     "MotionLimits",
     "MoveRequest",
@@ -204,13 +206,49 @@ class ShutdownRequest(_NoFieldRequest):
     KIND: ClassVar[str] = "shutdown"
 
 
-LoopRequest = MoveRequest | StopRequest | ResetRequest | RetuneRequest | ShutdownRequest
+ILC_ACTIONS = ("start", "stop", "save", "load", "status")
+
+
+@dataclass(frozen=True)
+class IlcRequest:
+    """Learning feed-forward (``ilc:``): ``action`` start | stop | save | load | status; ``motion`` names the
+    saved signal for save (default: the running motion's name) and load. Loop reply: the learner's status
+    (``motion``, ``iteration``, ``rms_m`` per repetition, ...), plus ``saved``/``loaded`` paths."""
+
+    KIND: ClassVar[str] = "ilc"
+    FIELDS: ClassVar[tuple[str, ...]] = ("action", "motion")
+
+    action: str = "status"
+    motion: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.action not in ILC_ACTIONS:
+            raise RequestError("action", f"must be one of {', '.join(ILC_ACTIONS)} (got {self.action!r})")
+        if self.motion is not None and not isinstance(self.motion, str):
+            raise RequestError("motion", f"must be a name of letters, digits, '._-' (got {self.motion!r})")
+        if self.action == "load" and self.motion is None:
+            raise RequestError("motion", "load needs the motion name of the saved signal")
+
+    @classmethod
+    def from_fields(cls, fields: Mapping[str, object]) -> IlcRequest:
+        check_fields(cls.KIND, fields, cls.FIELDS)
+        return cls(**cast("dict[str, Any]", dict(fields)))
+
+    def to_json(self) -> dict[str, object]:
+        out: dict[str, object] = {"request": self.KIND, "action": self.action}
+        if self.motion is not None:
+            out["motion"] = self.motion
+        return out
+
+
+LoopRequest = MoveRequest | StopRequest | ResetRequest | RetuneRequest | ShutdownRequest | IlcRequest
 #: a loop request a control-socket client may send (retune comes from SIGHUP, shutdown from SIGTERM)
-SocketRequest = MoveRequest | StopRequest | ResetRequest
+SocketRequest = MoveRequest | StopRequest | ResetRequest | IlcRequest
 
 
 #: the requests a control-socket client may send, by kind (retune comes from SIGHUP, shutdown from SIGTERM)
-SOCKET_REQUESTS: dict[str, type[SocketRequest]] = {r.KIND: r for r in (MoveRequest, StopRequest, ResetRequest)}
+SOCKET_REQUESTS: dict[str, type[SocketRequest]] = {r.KIND: r for r in (MoveRequest, StopRequest, ResetRequest,
+                                                                       IlcRequest)}
 #: kinds a control-socket client may send
 SOCKET_KINDS = tuple(SOCKET_REQUESTS)
 

@@ -78,10 +78,13 @@ class LoopStatus:
     lateness_us: TimingStats | None = None
     exec_us: TimingStats | None = None
     faults: int = 0  #: faults entered since the loop was built (a fault and its reset between two looks show here)
+    ilc: dict[str, Any] | None = None  #: the learner's state (iteration, RMS per repetition ...); None: no learner
 
     def as_json(self) -> dict[str, Any]:
-        """The plain-JSON form (NaN → null), as sent on the control socket."""
+        """The plain-JSON form (NaN → null), as sent on the control socket (``ilc`` only with a learner)."""
         out: dict[str, Any] = plain(self, json=True)
+        if out.get("ilc") is None:
+            out.pop("ilc", None)
         return out
 
 
