@@ -278,6 +278,7 @@ class ControlLoop:
             healthy=bool(self._running and state is LoopState.ACTIVE and frac <= self.cfg.healthy_overrun_fraction),
             lateness_us=self.stats.lateness(self.cycle) if timing else None,
             exec_us=self.stats.execution(self.cycle) if timing else None,
+            in_position=_in_position(self.controller),
         )
 
     # ------------------------------------------------------------------ fault
@@ -492,3 +493,10 @@ class ControlLoop:
 
     def _fail_pending(self) -> None:
         self._inbox.fail_pending(lambda: LoopStateError("the control loop is not running"))
+
+
+def _in_position(controller: object) -> bool | None:
+    """The controller's settle-detector flag (``controller.settle.state.in_position``), None without one."""
+    st = getattr(getattr(controller, "settle", None), "state", None)
+    flag = getattr(st, "in_position", None)
+    return bool(flag) if flag is not None else None
