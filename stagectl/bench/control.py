@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from stagectl.config import AppConfig
     from stagectl.control.controller import ControllerConfig
     from stagectl.control.pid import PidConfig
+    from stagectl.control.trajectory import Scenario
     from stagectl.friction import FrictionModel, StageModel
 
 # The assembly, config and controller stack (numpy, numba, canopen: about 1 s) are imported where the benchmark
@@ -117,6 +118,65 @@ def run_case(cfg: AppConfig, ctl_cfg: ControllerConfig, scenario: str, *, model:
         "settling_time_s": s["settling_time_s"] if scenario == "steps" else None,
         "settled": f"{s['moves_settled']}/{s['moves']}" if scenario == "steps" else None,
         "fault": res.fault.name if res.fault else None,
+    }
+
+
+def steps_scenario(hold_s: float = 2.0) -> Scenario:
+    """The move-and-settle target's motion: 10 µm steps (+10, +10, −10, −10 µm) with the move limits of the
+    ``steps`` benchmark scenario, each followed by a ``hold_s`` hold."""
+    from stagectl.control.trajectory import Dwell, Move, Scenario, benchmark_scenarios
+
+    moves = [seg for seg in benchmark_scenarios()["steps"].segments if isinstance(seg, Move)]
+    segs: list[Move | Dwell] = []
+    for mv in moves:
+        segs += [mv, Dwell(hold_s)]
+    return Scenario(name=f"steps_hold_{hold_s:g}s", segments=tuple(segs), start_m=0.0)
+
+
+def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel | None = None, hold_s: float = 2.0,
+                tol_m: float = 10e-9, window_s: float = 0.03, delay_samples: int | None = None) -> dict[str, Any]:
+    """Move-and-settle check in simulated time on ``cfg``'s simulated plant (``plant_io``, the loop's timing).
+
+    Runs :func:`steps_scenario` (``hold_s`` after each step) with ``ctl_cfg`` (and ``model`` for the friction
+    feed-forward, None: the configured one) and ``delay_samples`` of I/O delay (None: ``io.delay_cycles``).
+    Returns per step ``settle_s`` (end of the commanded move -> inside ±``tol_m`` for good), ``hold_excursion_m``
+    (max |e| after ``window_s``) and ``limit_cycle`` (:func:`stagectl.recorder.hold_report`), and the verdicts
+    ``settled_within_window`` (every step settled within ``window_s``), ``limit_cycle`` (any step) and ``fault``.
+    """
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.control.controller import StageController
+    from stagectl.recorder import Recorder, hold_report
+
+    if cfg.sim is None:
+        raise ConfigError("steps check: the config needs a sim: section (the plant to check on)")
+    io = dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO,
+                             delay_cycles=cfg.io.delay_cycles if delay_samples is None else delay_samples)
+    cfg = dataclasses.replace(cfg, io=io, safety=dataclasses.replace(
+        cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)))
+    sc = steps_scenario(hold_s)
+    ctl = StageController(ctl_cfg, cfg.timing, model=model)
+    with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+        stage.load_scenario(sc)
+        duration = sc.duration_s(0.0) + cfg.loop.period_s
+        rec = Recorder(stage.loop.columns, int(duration / cfg.loop.period_s) + 16)
+        stage.loop.add_sink(rec)
+        res = stage.loop.run(duration_s=duration)
+    steps = hold_report(rec, tol_m=tol_m, window_s=window_s)
+    ok = [st["settle_s"] is not None and st["settle_s"] <= window_s + 1e-9 for st in steps]
+    return {
+        "steps": steps,
+        "settle_s": [st["settle_s"] for st in steps],
+        "max_hold_excursion_m": max((st["hold_excursion_m"] for st in steps), default=float("nan")),
+        "settled_within_window": bool(steps) and all(ok),
+        "settled": sum(st["settle_s"] is not None for st in steps),
+        "limit_cycle": any(st["limit_cycle"] for st in steps),
+        "fault": res.fault.name if res.fault else None,
+        "tolerance_m": tol_m,
+        "window_s": window_s,
+        "hold_s": hold_s,
+        "delay_samples": io.delay_cycles,
     }
 
 

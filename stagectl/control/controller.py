@@ -426,7 +426,16 @@ class StageController:
         # feedback + clamp
         pid = self.pid
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
-        pid.hold_integrator = at_rest and dob is not None and cfg.hold_integrator_at_rest
+        hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
+        pid.hold_integrator = hold
+        if hold and dob is not None and pid.state.i_n != 0.0:
+            # hand the integral term to the observer (bumpless: d̂ and its input history move by I, I -> 0);
+            # a held non-zero I would stand against P and leave a steady error e = −I/K_p
+            i_n = pid.state.i_n
+            dob.shift(i_n)
+            d_hat += i_n
+            st.u_obs_prev_n += i_n
+            pid.state.i_n = 0.0
         u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat, cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, ref.x_m - x_meas_m, at_rest)
