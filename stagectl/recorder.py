@@ -134,8 +134,9 @@ def hold_report(rec: Recorder, *, tol_m: float = 10e-9, window_s: float = 0.03) 
 
     For the rest interval [i₀, i₁) after each move: ``settle_s`` (as in :func:`tracking_summary`: from the end of
     the commanded move until |e| enters ±``tol_m`` and stays there for the rest of the interval; None if it
-    does not), ``hold_excursion_m`` (max |e| after ``window_s`` from the end of the move), ``hold_s`` (length of
-    the interval) and ``limit_cycle``: the error still leaves the band in the second half of the hold *and*
+    does not), ``hold_excursion_m`` (max |e| after ``window_s`` from the end of the move), ``late_excursion_m``
+    (max |e| in the second half of the hold: what is left once settling is over), ``hold_s`` (length of the
+    interval) and ``limit_cycle``: the error still leaves the band in the second half of the hold *and*
     changes sign there outside the band at least twice (a friction limit cycle hunts around the target; a
     slow one-sided creep does not count as one, it shows as an unsettled move with its excursion).
     """
@@ -159,6 +160,7 @@ def hold_report(rec: Recorder, *, tol_m: float = 10e-9, window_s: float = 0.03) 
         big = late[np.abs(late) > tol_m]
         flips = int(np.count_nonzero(np.diff(np.sign(big)) != 0)) if big.size > 1 else 0
         out.append({"settle_s": settle, "hold_excursion_m": exc, "hold_s": float(t[i1 - 1] - t[i0]),
+                    "late_excursion_m": float(np.max(np.abs(late))) if late.size else 0.0,
                     "limit_cycle": bool(big.size and flips >= 2)})
     return out
 

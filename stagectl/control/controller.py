@@ -121,6 +121,10 @@ class ControllerConfig:
         True, desc="with an observer: hold the PID integrator while the reference is at rest (the observer "
         "integrates already; both together hunt on the friction's pre-sliding stiffness)")
     settle: SettleConfig = param(default_factory=SettleConfig, desc="in-position (settle) detector")
+    design_delay_samples: int | None = param(
+        None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
+        "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
+        ge=0, le=8)
 
 
 @dataclass
