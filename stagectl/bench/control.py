@@ -144,7 +144,8 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
 
     Runs :func:`steps_scenario` (``hold_s`` after each step) with ``ctl_cfg`` (and ``model`` for the friction
     feed-forward, None: the configured one) and ``delay_samples`` of I/O delay (None: ``io.delay_cycles``).
-    Returns per step ``settle_s`` (end of the commanded move -> inside ±``tol_m`` for good), ``hold_excursion_m``
+    Returns per step ``settle_s`` (end of the commanded move -> inside ±``tol_m`` for good),
+    ``in_position_after_s`` (when the controller's settle detector first reported in-position), ``hold_excursion_m``
     (max |e| after ``window_s``) and ``limit_cycle`` (:func:`stagectl.recorder.hold_report`), and the verdicts
     ``settled_within_window`` (every step settled within ``window_s``), ``limit_cycle`` (any step) and ``fault``.
     """
@@ -152,7 +153,7 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
     from stagectl.clock import SimClock
     from stagectl.config import IoKind, SensorSource
     from stagectl.control.controller import StageController
-    from stagectl.recorder import Recorder, hold_report
+    from stagectl.recorder import Recorder, hold_report, tracking_summary
 
     if cfg.sim is None:
         raise ConfigError("steps check: the config needs a sim: section (the plant to check on)")
@@ -169,10 +170,12 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
         stage.loop.add_sink(rec)
         res = stage.loop.run(duration_s=duration)
     steps = hold_report(rec, tol_m=tol_m, window_s=window_s)
+    in_pos = tracking_summary(rec, tol_m=tol_m).get("in_position_after_s", [None] * len(steps))
     ok = [st["settle_s"] is not None and st["settle_s"] <= window_s + 1e-9 for st in steps]
     return {
         "steps": steps,
         "settle_s": [st["settle_s"] for st in steps],
+        "in_position_after_s": in_pos,
         "max_hold_excursion_m": max((st["hold_excursion_m"] for st in steps), default=float("nan")),
         "max_late_excursion_m": max((st["late_excursion_m"] for st in steps), default=float("nan")),
         "settled_within_window": bool(steps) and all(ok),

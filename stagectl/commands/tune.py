@@ -165,7 +165,8 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         a.name = f"designed {a.name}"
     analyses += loops
     summaries = {a.name.removeprefix("designed "): {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
-    check = _check(inp["app"], pid, dbw, nd) if inp["app"] is not None else None
+    healthy = all(v["healthy"] for v in summaries.values())
+    check = _check(inp["app"], pid, dbw, nd) if inp["app"] is not None and healthy else None
     verdict = _verdict(summaries, check)
     result["designed"] = {
         "target_crossover_hz": bw,
