@@ -240,9 +240,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     def margins(c: ControllerConfig) -> dict[str, Any]:
         """Linear margins (discrete plant, the config's I/O delay) of PID, or PID + DOB when the DOB is on."""
-        key = (c.pid, c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples)
+        key = (c.pid, c.dob.bandwidth_hz if c.dob.kind != "none" else None, c.dob.command_delay_samples,
+               c.velocity_cutoff_hz)
         if key not in margin_cache:
-            a = analyse_design(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, key[1], key[2])[-1]
+            a = analyse_design(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, key[1], key[2],
+                               velocity_cutoff_hz=c.velocity_cutoff_hz)[-1]
             margin_cache[key] = {"loop": a.name, "phase_margin_deg": a.phase_margin_deg,
                                  "gain_margin_db": a.gain_margin_db, "crossover_hz": a.crossover_hz,
                                  "closed_loop_stable": a.stable}

@@ -142,7 +142,8 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
             K, _ = design.kalman_gain_for_noise(m_dob, T, dob.measurement_noise_m, _kalman_q(m_dob, T, dob),
                                                 use_control=True)
         loops = design.analyse_design(m, T, ctl.pid, nd, None if dob.kind == "none" else dob.bandwidth_hz,
-                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind, kalman_k=K)
+                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind, kalman_k=K,
+                                      velocity_cutoff_hz=ctl.velocity_cutoff_hz)
         conf: dict[str, Any] = {
             "pid": _pid_dict(ctl.pid),
             "dob": {"kind": dob.kind, "bandwidth_hz": dob.bandwidth_hz,
