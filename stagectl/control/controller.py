@@ -433,8 +433,9 @@ class StageController:
         hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
-            # hand the integral term to the observer (bumpless: d̂ and its input history move by I, I -> 0);
-            # a held non-zero I would stand against P and leave a steady error e = −I/K_p
+            # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer
+            # then carries the whole steady force); a held non-zero I would stand against P and leave a steady
+            # error e = −I/K_p
             i_n = pid.state.i_n
             dob.shift(i_n)
             d_hat += i_n
