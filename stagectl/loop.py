@@ -318,6 +318,7 @@ class ControlLoop:
             lateness_us=self.stats.lateness(self.cycle) if timing else None,
             exec_us=self.stats.execution(self.cycle) if timing else None,
             ilc=self.learner.status() if self.learner is not None else None,
+            in_position=_in_position(self.controller),
         )
 
     # ------------------------------------------------------------------ fault
@@ -547,3 +548,10 @@ class ControlLoop:
 
     def _fail_pending(self) -> None:
         self._inbox.fail_pending(lambda: LoopStateError("the control loop is not running"))
+
+
+def _in_position(controller: object) -> bool | None:
+    """The controller's settle-detector flag (``controller.settle.state.in_position``), None without one."""
+    st = getattr(getattr(controller, "settle", None), "state", None)
+    flag = getattr(st, "in_position", None)
+    return bool(flag) if flag is not None else None

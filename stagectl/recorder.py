@@ -34,7 +34,7 @@ from stagectl.errors import StageError
 from stagectl.ident.recording import RecordingCsv
 from stagectl.plots import plot_recording
 
-__all__ = ["Recorder", "plot_run", "tracking_summary", "write_outputs"]
+__all__ = ["Recorder", "hold_report", "plot_run", "tracking_summary", "write_outputs"]
 
 
 class Recorder:
@@ -113,12 +113,55 @@ def tracking_summary(rec: Recorder, *, tol_m: float = 10e-9, skip_s: float = 0.0
                 k = i0 + outside[-1] + 1
                 settle.append(float(t[k] - t[i0]))
     done = [s for s in settle if s is not None]
+    if rec.n and "in_position" in rec.columns and "v_ref" in rec.columns and "a_ref" in rec.columns:
+        ip = rec.col("in_position")
+        first: list[float | None] = []
+        for i0, i1 in _rest_intervals(rec.col("v_ref"), rec.col("a_ref")):
+            on = np.nonzero(ip[i0:i1] > 0.5)[0]
+            first.append(float(t[i0 + on[0]] - t[i0]) if on.size else None)
+        out["in_position_after_s"] = first
     out["settling_tolerance_m"] = tol_m
     out["moves"] = len(settle)
     out["moves_settled"] = len(done)
     out["settling_time_s"] = settle
     out["settling_time_max_s"] = (max(done) if len(done) == len(settle) else None) if settle else None
     out["settling_time_mean_s"] = float(np.mean(done)) if done else None
+    return out
+
+
+def hold_report(rec: Recorder, *, tol_m: float = 10e-9, window_s: float = 0.03) -> list[dict[str, Any]]:
+    """Per point-to-point move (rest interval after motion): settling and hold behaviour.
+
+    For the rest interval [i₀, i₁) after each move: ``settle_s`` (as in :func:`tracking_summary`: from the end of
+    the commanded move until |e| enters ±``tol_m`` and stays there for the rest of the interval; None if it
+    does not), ``hold_excursion_m`` (max |e| after ``window_s`` from the end of the move), ``late_excursion_m``
+    (max |e| in the second half of the hold: what is left once settling is over), ``hold_s`` (length of the
+    interval) and ``limit_cycle``: the error still leaves the band in the second half of the hold *and*
+    changes sign there outside the band at least twice (a friction limit cycle hunts around the target; a
+    slow one-sided creep does not count as one, it shows as an unsettled move with its excursion).
+    """
+    out: list[dict[str, Any]] = []
+    if not rec.n or "v_ref" not in rec.columns or "a_ref" not in rec.columns:
+        return out
+    t = rec.col("t")
+    e = rec.col("e")
+    for i0, i1 in _rest_intervals(rec.col("v_ref"), rec.col("a_ref")):
+        seg = e[i0:i1]
+        outside = np.nonzero(np.abs(seg) > tol_m)[0]
+        if outside.size == 0:
+            settle: float | None = 0.0
+        elif outside[-1] == i1 - i0 - 1:
+            settle = None
+        else:
+            settle = float(t[i0 + outside[-1] + 1] - t[i0])
+        j0 = i0 + int(np.searchsorted(t[i0:i1] - t[i0], window_s - 1e-12))
+        exc = float(np.max(np.abs(e[j0:i1]))) if j0 < i1 else 0.0
+        late = e[(i0 + i1) // 2:i1]
+        big = late[np.abs(late) > tol_m]
+        flips = int(np.count_nonzero(np.diff(np.sign(big)) != 0)) if big.size > 1 else 0
+        out.append({"settle_s": settle, "hold_excursion_m": exc, "hold_s": float(t[i1 - 1] - t[i0]),
+                    "late_excursion_m": float(np.max(np.abs(late))) if late.size else 0.0,
+                    "limit_cycle": bool(big.size and flips >= 2)})
     return out
 
 

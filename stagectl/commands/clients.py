@@ -224,7 +224,9 @@ def render_status(st: dict[str, Any]) -> str:
     tel = st.get("telemetry") or {}
     lines = [
         f"state      {st.get('state')}   (loop {loop.get('state')}, drive {'enabled' if st.get('drive_enabled') else 'disabled'})",
-        f"position   x = {_m(loop.get('x_m'))}   x_ref = {_m(loop.get('x_ref_m'))}   e = {_m(loop.get('e_m'))}",
+        f"position   x = {_m(loop.get('x_m'))}   x_ref = {_m(loop.get('x_ref_m'))}   e = {_m(loop.get('e_m'))}"
+        + ("" if loop.get("in_position") is None else
+           f"   {'in position' if loop.get('in_position') else 'not in position'}"),
         f"force      u = {_n(loop.get('u_n'))} N",
         f"loop       cycle {loop.get('cycle')}   overruns {loop.get('overruns')}   lateness p50/p99/max "
         f"{_n(late.get('p50'))}/{_n(late.get('p99'))}/{_n(late.get('max'))} us",

@@ -6,10 +6,20 @@ and crossover frequency of the *configured* controller and of the *designed* one
 (``tune_bode.png``) into ``--out``. See :mod:`stagectl.control.design` for the rule and the loop model.
 
 Inputs: the application config (``stagectl.config.load_app_config``: ``loop.period_s``,
-``controller.*``, ``controller.mass_kg`` or the simulated plant's mass, ``io.delay_cycles``); flags
-override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
-Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 6 dB, else shown as
-thin. Exit code 1 when the configured loop is unstable, 2 on bad input.
+``controller.*``, ``controller.mass_kg`` or the simulated plant's mass, ``controller.design_delay_samples`` or
+``io.delay_cycles``); flags override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
+Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
+included), else shown as thin.
+
+Advice is checked before it is given. Without ``--bandwidth-hz`` the crossover is searched downward from
+0.02/period until the PID + observer loop is healthy. The design is then run, in simulated time, on the
+config's simulated plant (``sim:``) through 10 µm steps with 0.5 s holds
+(:func:`stagectl.bench.control.steps_check`), with the configured friction model and with a 20 %-wrong one.
+It is **refused** (no suggested YAML, exit 1, the reasons printed) when it is unstable, its margins are thin,
+or it hunts in a limit cycle, is still more than 1 µm off in the second half of a hold, or faults on the steps. Otherwise it is offered with a confidence: ``high`` (every
+step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every step settles within the hold),
+``low`` (margins only: no ``sim:`` plant to check on). Exit code 1 also when the configured loop is unstable,
+2 on bad input.
 """
 
 from __future__ import annotations
@@ -33,7 +43,12 @@ if TYPE_CHECKING:
 
 #: margins below these are reported as thin (typical robustness targets for a motion loop)
 HEALTHY_PHASE_MARGIN_DEG = 40.0
-HEALTHY_GAIN_MARGIN_DB = 6.0
+HEALTHY_GAIN_MARGIN_DB = 8.0
+#: hold after each 10 µm step of the design check [s]
+CHECK_HOLD_S = 0.5
+#: an error above this in the second half of a hold is a drift, not a settle: the design is refused [m]
+#: (10 % of the step)
+MAX_HOLD_EXCURSION_M = 1e-6
 
 
 def _healthy(s: dict[str, Any]) -> bool:
@@ -53,7 +68,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="Q-filter DOB bandwidth [Hz] for the design (default: min(5 x crossover, 0.1/period))")
     p.add_argument("--period-s", type=float, help="control period [s] (default: loop.period_s)")
     p.add_argument("--delay-samples", type=int,
-                   help="I/O delay in whole periods (default: io.delay_cycles for plant_io, else 1)")
+                   help="I/O delay in whole periods (default: controller.design_delay_samples, else "
+                   "io.delay_cycles for plant_io, else 1)")
     p.set_defaults(func=run)
 
 
@@ -61,13 +77,17 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import IoKind, load_app_config
     from stagectl.control.controller import controller_mass
 
-    out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None}
+    out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None,
+                           "app": None}
     if args.config:
         cfg = load_app_config(args.config)
+        out["app"] = cfg
         ctl = cfg.controller
         out["controller"] = ctl
         out["period_s"] = cfg.loop.period_s
-        if cfg.io.kind is IoKind.PLANT_IO:
+        if ctl.design_delay_samples is not None:
+            out["delay_samples"] = int(ctl.design_delay_samples)
+        elif cfg.io.kind is IoKind.PLANT_IO:
             out["delay_samples"] = int(cfg.io.delay_cycles)
         mass = controller_mass(ctl, ctl.feedforward.model)
         if mass is None and cfg.sim is not None:
@@ -122,7 +142,8 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
             K, _ = design.kalman_gain_for_noise(m_dob, T, dob.measurement_noise_m, _kalman_q(m_dob, T, dob),
                                                 use_control=True)
         loops = design.analyse_design(m, T, ctl.pid, nd, None if dob.kind == "none" else dob.bandwidth_hz,
-                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind, kalman_k=K)
+                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind, kalman_k=K,
+                                      velocity_cutoff_hz=ctl.velocity_cutoff_hz)
         conf: dict[str, Any] = {
             "pid": _pid_dict(ctl.pid),
             "dob": {"kind": dob.kind, "bandwidth_hz": dob.bandwidth_hz,
@@ -140,20 +161,26 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         if unstable:
             exit_code = 1
         result["configured"] = conf
-    bw = args.bandwidth_hz if args.bandwidth_hz is not None else 0.02 / T
-    dbw = args.dob_bandwidth_hz if args.dob_bandwidth_hz is not None else min(5.0 * bw, 0.1 / T)
-    pid = design.design_pid(m, bw, T, nd)
-    loops = design.analyse_design(m, T, pid, nd, dbw, nd)
+    bw, dbw, pid, loops, searched = _design(args, m, T, nd)
     for a in loops:
         a.name = f"designed {a.name}"
     analyses += loops
+    summaries = {a.name.removeprefix("designed "): {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
+    healthy = all(v["healthy"] for v in summaries.values())
+    check = _check(inp["app"], pid, dbw, nd) if inp["app"] is not None and healthy else None
+    verdict = _verdict(summaries, check)
     result["designed"] = {
         "target_crossover_hz": bw,
+        "searched_crossover_hz": searched,
         "pid": _pid_dict(pid),
         "dob": {"kind": "qfilter", "bandwidth_hz": dbw, "command_delay_samples": nd},
-        "loops": {a.name.removeprefix("designed "): {**a.summary(), "healthy": _healthy(a.summary())} for a in loops},
-        "yaml": _yaml_snippet(m, pid, dbw, nd),
+        "loops": summaries,
+        "check": check,
+        **verdict,
+        "yaml": None if verdict["refused"] else _yaml_snippet(m, pid, dbw, nd),
     }
+    if verdict["refused"]:
+        exit_code = 1
     if args.out:
         png = Path(args.out) / "tune_bode.png"
         design.bode_png(analyses, str(png), f"open loop at the plant input: m = {m:g} kg, T = {T * 1e3:g} ms, "
@@ -161,6 +188,97 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         result["bode_png"] = str(png)
     result["exit_code"] = exit_code
     return result, exit_code
+
+
+def _design(args: argparse.Namespace, m: float, T: float, nd: int) -> tuple[float, float, PidConfig, list[Any],
+                                                                          list[float]]:
+    """The design rule of :mod:`stagectl.control.design`; without ``--bandwidth-hz`` the crossover is lowered
+    from 0.02/T in steps of 10 % (down to 0.002/T) until the PID + observer loop is healthy."""
+    from stagectl.control import design
+
+    fixed = args.bandwidth_hz is not None
+    bw = args.bandwidth_hz if fixed else 0.02 / T
+    searched: list[float] = []
+    while True:
+        dbw = args.dob_bandwidth_hz if args.dob_bandwidth_hz is not None else min(5.0 * bw, 0.1 / T)
+        pid = design.design_pid(m, bw, T, nd)
+        loops = design.analyse_design(m, T, pid, nd, dbw, nd)
+        searched.append(bw)
+        if fixed or all(_healthy(a.summary()) for a in loops) or bw * 0.9 < 0.002 / T:
+            return bw, dbw, pid, loops, searched
+        bw *= 0.9
+
+
+def _check(app: Any, pid: PidConfig, dbw: float, nd: int) -> dict[str, Any] | None:
+    """Run the design on the config's simulated plant (10 µm steps, :data:`CHECK_HOLD_S` holds), with the
+    configured friction model and a 20 %-wrong one; None without a ``sim:`` plant."""
+    import dataclasses
+
+    from stagectl.bench.control import mismatched, steps_check
+    from stagectl.friction import StageModel
+
+    if app.sim is None:
+        return None
+    base = app.controller
+    ctl = dataclasses.replace(base, pid=pid, dob=dataclasses.replace(
+        base.dob, kind="qfilter", bandwidth_hz=dbw, command_delay_samples=nd))
+    plant = app.sim.plant
+    models: dict[str, Any] = {"configured model": None}
+    try:
+        models["20 %-wrong model"] = StageModel(friction=mismatched(plant.friction), effects=plant.effects,
+                                                mass_kg=plant.mass_kg)
+    except (KeyError, TypeError, ValueError, ConfigError):
+        pass  # not a GMS plant: the mismatch recipe does not apply
+    out: dict[str, Any] = {}
+    for name, model in models.items():
+        try:
+            r = steps_check(app, ctl, model=model, hold_s=CHECK_HOLD_S, delay_samples=nd)
+        except (ConfigError, ValueError) as exc:
+            out[name] = {"error": str(exc)}
+            continue
+        out[name] = {k: r[k] for k in ("settle_s", "max_hold_excursion_m", "max_late_excursion_m", "settled",
+                                       "limit_cycle", "fault")}
+        out[name]["moves"] = len(r["steps"])
+    return out
+
+
+def _verdict(loops: dict[str, dict[str, Any]], check: dict[str, Any] | None) -> dict[str, Any]:
+    """Refusal reasons and the confidence of an offered design (see the module docstring)."""
+    reasons: list[str] = []
+    for name, s in loops.items():
+        if not s["closed_loop_stable"]:
+            reasons.append(f"{name} loop unstable")
+        elif not s["healthy"]:
+            reasons.append(f"{name} margins thin (PM {s['phase_margin_deg']:.1f} deg, GM {s['gain_margin_db']:.1f} dB; "
+                           f"need {HEALTHY_PHASE_MARGIN_DEG:g} deg / {HEALTHY_GAIN_MARGIN_DB:g} dB)")
+    if check is None:
+        return {"refused": bool(reasons), "reasons": reasons,
+                "confidence": None if reasons else "low",
+                "confidence_reason": "margins only: no sim: plant in the config to check the design on"}
+    all_settled = True
+    for name, r in check.items():
+        if "error" in r:
+            reasons.append(f"steps check with the {name} failed: {r['error']}")
+            continue
+        if r["fault"]:
+            reasons.append(f"{name}: fault {r['fault']} on the 10 um steps")
+        if r["limit_cycle"]:
+            reasons.append(f"{name}: limit cycle in the hold after a 10 um step "
+                           f"(max excursion {r['max_hold_excursion_m'] * 1e9:.0f} nm)")
+        elif r["max_late_excursion_m"] > MAX_HOLD_EXCURSION_M:
+            reasons.append(f"{name}: still {r['max_late_excursion_m'] * 1e9:.0f} nm off in the second half of the "
+                           f"hold after a 10 um step (more than {MAX_HOLD_EXCURSION_M * 1e9:.0f} nm)")
+        if r["settled"] < r["moves"]:
+            all_settled = False
+    if reasons:
+        return {"refused": True, "reasons": reasons, "confidence": None, "confidence_reason": None}
+    if all_settled:
+        why = "every 10 um step settled to +-10 nm without a limit cycle, exact and 20 %-wrong model"
+        return {"refused": False, "reasons": [], "confidence": "high", "confidence_reason": why}
+    worst = max(r["max_late_excursion_m"] for r in check.values())
+    why = (f"no limit cycle, but not every 10 um step settled to +-10 nm within {CHECK_HOLD_S:g} s "
+           f"(max error in the second half of a hold {worst * 1e9:.0f} nm)")
+    return {"refused": False, "reasons": [], "confidence": "medium", "confidence_reason": why}
 
 
 def _kalman_q(m: float, T: float, dob: DobConfig) -> float:
@@ -226,10 +344,27 @@ def run(args: argparse.Namespace) -> int:
           f"DOB qfilter {d['dob']['bandwidth_hz']:g} Hz")
     for name, s in d["loops"].items():
         print(_fmt_loop(name, s))
-    print("suggested YAML:")
-    print("".join(f"  {line}\n" for line in d["yaml"].splitlines()), end="")
+    if d["check"] is not None:
+        for name, r in d["check"].items():
+            if "error" in r:
+                print(f"  steps check ({name}): {r['error']}")
+                continue
+            st = ", ".join("-" if v is None else f"{v * 1e3:.0f}" for v in r["settle_s"])
+            print(f"  steps check ({name}): settled {r['settled']}/{r['moves']} to +-10 nm after [{st}] ms, "
+                  f"max hold excursion {r['max_hold_excursion_m'] * 1e9:.0f} nm, "
+                  f"limit cycle {'YES' if r['limit_cycle'] else 'no'}, fault {r['fault'] or 'none'}")
+    if d["refused"]:
+        print("no suggestion: this design is refused:")
+        for reason in d["reasons"]:
+            print(f"  - {reason}")
+    else:
+        print(f"confidence: {d['confidence']} ({d['confidence_reason']})")
+        print("suggested YAML:")
+        print("".join(f"  {line}\n" for line in d["yaml"].splitlines()), end="")
     if "bode_png" in result:
         print(f"Bode plot: {result['bode_png']}")
-    if code:
+    if "configured" in result and not result["configured"]["stable"]:
         print("stagectl: warning: the configured closed loop is UNSTABLE", file=sys.stderr)
+    if d["refused"]:
+        print("stagectl: warning: no gains suggested (the design failed its own check)", file=sys.stderr)
     return code

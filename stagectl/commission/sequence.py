@@ -413,7 +413,10 @@ class Commissioning:
         T = self.T
         pid = design.design_pid(mass_kg, COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
         # the output clamp at the envelope's force (the experiments promise to stay below it)
+        # hold_integrator_at_rest off: the FRF runs with the reference at rest and its estimate assumes the
+        # full linear PID + observer loop (an integrator held at rest is not in that model)
         return ControllerConfig(mass_kg=mass_kg, max_force_n=self.env.f_max_n, pid=pid,
+                                hold_integrator_at_rest=False,
                                 dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
                                               command_delay_samples=1),
                                 feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",

@@ -4,12 +4,31 @@ Per step (dt [s], measured position x [m], reference r = (x_r, v_r, a_r))::
 
     v̂      = LPF_fv( (x_k − x_{k−1})/dt )                velocity estimate [m/s] (no filter if fv is None)
     u_ff   = friction feed-forward along the reference     (kind none | coulomb | model)       [N]
-    u_in   = m_ff·a_r                                      inertia feed-forward (if inertia)   [N]
+    u_in   = m_ff·(a_r + j_r·τ_a)                          inertia feed-forward (if inertia)   [N]
     d̂      = DOB(x_k, v̂_k, u_obs,k−1)                      (kind none | qfilter | kalman)      [N]
     u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ + u_l , ±max_force_n )
     u_l    = learned feed-forward (``u_learn_n``, iterative learning control: stagectl.control.ilc)  [N]
     u_obs,k = u − u_ff                                      residual form, docs/friction-models.md §6.2
                                                             (u_l stays in: it is applied, like m·a_r)
+
+Two degrees of freedom: the reference enters through the feed-forward (friction model and inertia, both
+evaluated τ_a = ``feedforward.lookahead_s`` (+ effects delay) ahead, so that the force held by the zero-order
+hold over the next period, after the I/O delay, matches the reference at the middle of that period), and the
+feedback (PID + observer) only answers disturbances and model error. The inertia term's look-ahead uses the
+reference jerk j_r = (a_k − a_{k−1})/dt (exact for the piecewise-constant-jerk moves of
+:mod:`stagectl.control.trajectory`; ``feedforward.inertia_lookahead: false`` evaluates m·a_r at t_k).
+
+Near standstill (``hold_integrator_at_rest``, with an observer): while the reference is at rest the PID
+integrator is held. The observer already integrates (at low frequency d̂ integrates the PID output with gain
+g = 2π·bandwidth), and at rest the plant is the friction's pre-sliding spring (Σk_i ≈ 6.4e5 N/m on the seed
+stage) instead of a free mass: PID integrator × observer is then a double integrator on a spring,
+L ≈ g·K_i/(k·s²) + g·K_p/(k·s), an under-damped mode at √(g·K_i/k) (≈ 2 Hz at the shipped 20 Hz gains,
+≈ 5 Hz at 40 Hz gains) that made the stage drift and hunt by 50–100 nm for hundreds of ms after each stop. With
+the integrator held the rest loop is first order (observer × P, no overshoot) and the observer alone removes
+any steady error; the integrator resumes with the next motion.
+
+Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
+at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
 Terms in ``Command.terms`` (newtons): ``u_pid`` (= ``u_p`` + ``u_i`` + ``u_d``), ``u_dob``, ``u_ff``,
 ``u_inertia``. ``Command.limited`` holds ``"force"`` when the output was clamped and ``"anti_windup"``
@@ -41,14 +60,18 @@ from stagectl.control.api import Command, Reference
 from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
 from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
+from stagectl.control.settle import SettleConfig, SettleDetector
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
 from stagectl.friction.effects import Effects
 from stagectl.schema import load, param
 
-#: names of the terms in ``Command.terms`` (telemetry columns), all in newtons
-TERM_NAMES = ("u_pid", "u_p", "u_i", "u_d", "u_dob", "u_ff", "u_inertia")
+#: names of the terms in ``Command.terms`` (telemetry columns), in newtons except ``in_position`` (1.0 in
+#: position, 0.0 not; the settle detector's flag, not a force)
+TERM_NAMES = ("u_pid", "u_p", "u_i", "u_d", "u_dob", "u_ff", "u_inertia", "in_position")
+#: the force terms of TERM_NAMES (newtons)
+FORCE_TERM_NAMES = TERM_NAMES[:-1]
 
 
 @dataclass(frozen=True)
@@ -62,6 +85,8 @@ class FeedforwardConfig:
                                            parse=parse_friction)
     effects: Effects | None = param(None, desc="inline effects (overrides the model file's)")
     inertia: bool = param(True, desc="add the inertia feed-forward m·a_ref")
+    inertia_lookahead: bool = param(True, desc="evaluate the inertia feed-forward m·a_ref at the look-ahead "
+                                    "(a_ref + jerk·τ_a, jerk from the reference's change of a_ref)")
     mass_kg: float | None = param(None, unit="kg", desc="mass of the inertia feed-forward (None: controller mass_kg)",
                                   gt=0.0)
     coulomb_n: float = param(0.0, unit="N", desc="kind coulomb: Coulomb level F_c", ge=0.0)
@@ -94,6 +119,14 @@ class ControllerConfig:
     pid: PidConfig = param(default_factory=PidConfig, desc="PID gains")
     dob: DobConfig = param(default_factory=DobConfig, desc="disturbance observer")
     feedforward: FeedforwardConfig = param(default_factory=FeedforwardConfig, desc="feed-forward")
+    hold_integrator_at_rest: bool = param(
+        True, desc="with an observer: hold the PID integrator while the reference is at rest (the observer "
+        "integrates already; both together hunt on the friction's pre-sliding stiffness)")
+    settle: SettleConfig = param(default_factory=SettleConfig, desc="in-position (settle) detector")
+    design_delay_samples: int | None = param(
+        None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
+        "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
+        ge=0, le=8)
 
 
 @dataclass
@@ -221,6 +254,7 @@ class StageController:
         self.pid = Pid(cfg.pid)
         self.dob = parts.dob
         self.ff = parts.ff
+        self.settle = SettleDetector(cfg.settle)
         self._vbeta = 0.0
         self._vdt = math.nan
         self.reset(0.0)
@@ -280,6 +314,7 @@ class StageController:
         if self.ff is not None:
             self.ff.reset(x_m)
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
+        self.settle.reset()
         self._ff_bump = None
         self._last_ref = None
 
@@ -334,6 +369,8 @@ class StageController:
         self.pid.retune(parts.pid_cfg)
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
+        if parts.cfg.settle != self.cfg.settle:
+            self.settle.cfg = parts.cfg.settle
         self.cfg = parts.cfg
         self.mass_kg = parts.mass_kg
         self.dob = new_dob
@@ -386,7 +423,13 @@ class StageController:
         ffc = cfg.feedforward
         if ffc.inertia:
             m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
-            u_in = m_ff * ref.a_m_s2
+            a_r = ref.a_m_s2
+            last = self._last_ref
+            if ffc.inertia_lookahead and last is not None:
+                la = ff.lookahead_s if ff is not None else (
+                    0.5 * dt if ffc.lookahead_s is None else ffc.lookahead_s)
+                a_r += (a_r - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
+            u_in = m_ff * a_r
         else:
             u_in = 0.0
         # observer (residual form: its input is the previous command minus the previous friction FF)
@@ -394,8 +437,21 @@ class StageController:
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
         # feedback + clamp
         pid = self.pid
+        at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+        hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
+        pid.hold_integrator = hold
+        if hold and dob is not None and pid.state.i_n != 0.0:
+            # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer
+            # then carries the whole steady force); a held non-zero I would stand against P and leave a steady
+            # error e = −I/K_p
+            i_n = pid.state.i_n
+            dob.shift(i_n)
+            d_hat += i_n
+            st.u_obs_prev_n += i_n
+            pid.state.i_n = 0.0
         u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
+        in_pos = self.settle.step(dt, ref.x_m - x_meas_m, at_rest)
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -406,11 +462,11 @@ class StageController:
         st.steps += 1
         self._last_ref = ref
         terms = {"u_pid": ps.u_pid_n, "u_p": ps.p_n, "u_i": ps.i_n, "u_d": ps.d_n, "u_dob": d_hat, "u_ff": u_ff,
-                 "u_inertia": u_in}
+                 "u_inertia": u_in, "in_position": 1.0 if in_pos else 0.0}
         st.terms = terms
         if ps.saturated:
             limited: tuple[str, ...] = ("force", "anti_windup") if not ps.integrating else ("force",)
-        elif not ps.integrating:
+        elif not ps.integrating and not pid.hold_integrator:
             limited = ("anti_windup",)
         else:
             limited = ()
@@ -425,7 +481,9 @@ def controller_from_mapping(data: Any, timing: Timing | float,
 
 
 __all__ = [
+    "FORCE_TERM_NAMES",
     "TERM_NAMES",
+    "SettleConfig",
     "ControllerConfig",
     "ControllerState",
     "DobConfig",

@@ -193,12 +193,16 @@ def plant_tf(mass_kg: float, dt: float, delay_samples: int = 1, viscous_n_s_m: f
     return P * _zinv(dt, delay_samples) if delay_samples else P
 
 
-def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_samples: int = 0) -> tuple[Any, Any]:
+def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_samples: int = 0,
+                velocity_cutoff_hz: float | None = None) -> tuple[Any, Any]:
     """(H_u, H_y) of the Q-filter DOB of :mod:`stagectl.control.dob`: d̂ = H_u·u − H_y·y.
 
-    H_w = (1−α)z⁻¹/(1−αz⁻¹), K_v = m(1−α)/dt, ū = (1+z⁻¹)/2·z^−d·u, v̂ = (1−z⁻¹)/dt·y::
+    H_w = (1−α)z⁻¹/(1−αz⁻¹), K_v = m(1−α)/dt, ū = (1+z⁻¹)/2·z^−d·u, v̂ = F_v·(1−z⁻¹)/dt·y::
 
-        H_u = H_w·(1+z⁻¹)/2·z^−d,        H_y = K_v·(1 − H_w)·(1−z⁻¹)/dt
+        H_u = H_w·(1+z⁻¹)/2·z^−d,        H_y = K_v·(1 − H_w)·F_v·(1−z⁻¹)/dt
+
+    with the controller's velocity low-pass F_v = (1−β)/(1−βz⁻¹), β = exp(−2π·``velocity_cutoff_hz``·dt)
+    (``controller.velocity_cutoff_hz``; F_v = 1 when None).
     """
     import control
 
@@ -212,6 +216,9 @@ def qfilter_tfs(mass_kg: float, bandwidth_hz: float, dt: float, command_delay_sa
     if command_delay_samples:
         Hu = Hu * _zinv(dt, command_delay_samples)
     Hy = kv * (one - Hw) * (z - 1) / (z * dt)
+    if velocity_cutoff_hz is not None:
+        b = math.exp(-2 * math.pi * velocity_cutoff_hz * dt)
+        Hy = Hy * (1 - b) * z / (z - b)
     return Hu, Hy
 
 
@@ -284,7 +291,8 @@ def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tu
 def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int = 1,
                    dob_bandwidth_hz: float | None = None, dob_command_delay_samples: int = 0,
                    viscous_n_s_m: float = 0.0, dob_mass_kg: float | None = None,
-                   dob_kind: str = "qfilter", kalman_k: Any = None) -> list[LoopAnalysis]:
+                   dob_kind: str = "qfilter", kalman_k: Any = None,
+                   velocity_cutoff_hz: float | None = None) -> list[LoopAnalysis]:
     """Margins of PID alone and (if ``dob_bandwidth_hz``) PID + DOB on the discrete plant.
 
     ``dob_kind`` ``qfilter`` (default) or ``kalman`` (then ``kalman_k``, the filter-form gain, is used, or
@@ -301,7 +309,7 @@ def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_sample
             K = kalman_k if kalman_k is not None else kalman_gain(md, period_s, dob_bandwidth_hz)
             Hu, Hy = kalman_tfs(md, period_s, K, dob_command_delay_samples)
         else:
-            Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz, period_s, dob_command_delay_samples)
+            Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz, period_s, dob_command_delay_samples, velocity_cutoff_hz)
         out.append(analyse("pid+dob", dob_loop(P, C, Hu, Hy, period_s), period_s))
     return out
 

@@ -89,6 +89,8 @@ class Pid:
         self.state = PidState()
         self._dt = math.nan
         self._beta = 0.0
+        #: set by the caller before ``step``: True holds the integral term this step (reported as not integrating)
+        self.hold_integrator = False
 
     def _coeffs(self, dt: float) -> None:
         if dt != self._dt:
@@ -157,7 +159,7 @@ class Pid:
         u_star = p + st.i_n + d + u_other_n
         pid_sat = abs(p + st.i_n + d) > c.max_force_n
         sat_dir = (abs(u_star) > lim or pid_sat) and (u_star > 0.0) == (e > 0.0) and e != 0.0
-        if sat_dir:
+        if sat_dir or self.hold_integrator:
             st.integrating = False
         else:
             st.integrating = True

@@ -79,6 +79,9 @@ class LoopStatus:
     exec_us: TimingStats | None = None
     faults: int = 0  #: faults entered since the loop was built (a fault and its reset between two looks show here)
     ilc: dict[str, Any] | None = None  #: the learner's state (iteration, RMS per repetition ...); None: no learner
+    #: the controller's settle detector: reference at rest and |e| inside its window for its dwell time (None: the
+    #: controller has no detector)
+    in_position: bool | None = None
 
     def as_json(self) -> dict[str, Any]:
         """The plain-JSON form (NaN → null), as sent on the control socket (``ilc`` only with a learner)."""

@@ -11,7 +11,7 @@ from stagectl.bench import control as bench
 def test_bench_control_quick_reports_errors_margins_and_targets():
     p = argparse.ArgumentParser()
     bench.add_arguments(p)
-    res = bench.run(p.parse_args(["--quick"]))
+    res = bench.run(p.parse_args(["--quick", "--hold", "0.3"]))
     json.dumps(res)  # JSON-serialisable as printed by --json
     assert set(res["table"]) == {"pid", "pid_coulomb", "pid_dob", "pid_dob_gms", "pid_dob_gms_20"}
     for v, row in res["table"].items():
@@ -21,4 +21,10 @@ def test_bench_control_quick_reports_errors_margins_and_targets():
         assert m["closed_loop_stable"] and m["loop"] == ("pid+dob" if "dob" in v else "pid")
     for s in ("cosine", "triangle"):  # simulated, deterministic: the trend targets
         t = res["targets"][s]
-        assert t["met_10x_vs_pid"] and t["met_3x_vs_pid_coulomb"], t
+        assert t["improvement_vs_pid"] >= 10.0 and t["met_3x_vs_pid_coulomb"], t
+        assert t["met_100x_vs_pid"] == (t["improvement_vs_pid"] >= 100.0)
+    st = res["targets"]["steps"]  # move and settle: reported per step with the margins of the design used
+    d = st["designs"]["config"]
+    assert len(d["settle_ms"]) == 4 and d["max_hold_excursion_nm"] >= 0.0 and d["fault"] is None
+    assert d["margins"]["phase_margin_deg"] >= 40.0 and d["margins"]["gain_margin_db"] >= 8.0
+    assert st["met"] == all(x["met_settle_30ms"] and x["met_no_limit_cycle"] for x in st["designs"].values())

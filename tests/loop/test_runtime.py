@@ -122,7 +122,8 @@ def test_status_is_typed_and_its_json_form_keeps_the_socket_shape(rig):
     assert js["state"] == "configured" and js["x_m"] is None and js["fault"] is None  # NaN is not JSON
     assert set(js["lateness_us"]) == {"p50", "p99", "max"}
     assert set(js) == {"state", "fault", "t_s", "x_m", "x_ref_m", "e_m", "u_n", "cycle", "overruns",
-                       "recent_overrun_fraction", "period_s", "running", "healthy", "lateness_us", "exec_us", "faults"}
+                       "recent_overrun_fraction", "period_s", "running", "healthy", "lateness_us", "exec_us", "faults",
+                       "in_position"}
     loop.latch_fault("unclean_shutdown", "test")
     loop.run(cycles=3)
     st = loop.status(timing=False)

@@ -1,0 +1,75 @@
+"""In-position (settle) detector: pure, scalar, real-time safe.
+
+The stage is *in position* when the reference is at rest (v_ref = a_ref = 0) and the tracking error has
+stayed inside the window for the dwell time::
+
+    in_position_k = at_rest_k  and  |e_j| <= tolerance_m  for every sample j with t_k − t_j < dwell_s
+
+A sample outside the window, or any reference motion, clears it at once (and restarts the dwell). The
+detector also times each move: ``settle_time_s`` is the time from the end of the commanded move (first
+sample at rest) to the sample that declared in-position (``nan`` until the current move has settled).
+YAML ``controller.settle``: ``tolerance_m`` [m], ``dwell_s`` [s].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from stagectl.schema import param
+
+
+@dataclass(frozen=True)
+class SettleConfig:
+    """Settle-detector settings (YAML ``controller.settle``)."""
+
+    tolerance_m: float = param(10e-9, unit="m", desc="in-position window: |x_ref − x| <= tolerance_m", gt=0.0)
+    dwell_s: float = param(0.005, unit="s", desc="time the error must stay inside the window before the stage "
+                           "is reported in position", ge=0.0)
+
+
+@dataclass
+class SettleState:
+    """Diagnostics: in-position flag, time at rest [s], time inside the window [s], last settle time [s]."""
+
+    in_position: bool = False
+    at_rest_s: float = 0.0
+    inside_s: float = 0.0
+    settle_time_s: float = math.nan
+    settled_moves: int = 0
+
+
+class SettleDetector:
+    """See module docstring. ``step`` is real-time safe (floats only)."""
+
+    def __init__(self, cfg: SettleConfig | None = None) -> None:
+        self.cfg = cfg if cfg is not None else SettleConfig()
+        self.state = SettleState()
+
+    def reset(self) -> None:
+        """Forget the history (not in position; the next rest interval is timed from its start)."""
+        self.state = SettleState()
+
+    def step(self, dt: float, error_m: float, at_rest: bool) -> bool:
+        """Feed one sample (period ``dt`` [s], error ``error_m`` [m], reference at rest); return in-position."""
+        st = self.state
+        if not at_rest:
+            st.at_rest_s = 0.0
+            st.inside_s = 0.0
+            st.in_position = False
+            st.settle_time_s = math.nan
+            return False
+        st.at_rest_s += dt
+        if abs(error_m) <= self.cfg.tolerance_m:
+            st.inside_s += dt
+        else:
+            st.inside_s = 0.0
+            st.in_position = False
+            return False
+        # the sample that enters the window counts as the start of the dwell (inside_s = dt there)
+        if not st.in_position and st.inside_s >= self.cfg.dwell_s - 1e-12:
+            st.in_position = True
+            if math.isnan(st.settle_time_s):
+                st.settle_time_s = st.at_rest_s - st.inside_s
+                st.settled_moves += 1
+        return st.in_position
