@@ -37,7 +37,7 @@ from multiprocessing import Pipe
 from multiprocessing.connection import Connection
 from typing import Any
 
-from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.daemon._sched import SCHED_RESET_ON_FORK, demote_to_normal_priority
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.remote import DEVICE_STATES, KIND_CODES, LOOP_STATES, RemoteLoop
 from stagectl.daemon.telemetry import SharedTelemetryRing
@@ -208,10 +208,6 @@ class Bridge:
             os.write(self.wake_fd, b"r")
         except (BlockingIOError, OSError):
             pass  # a wake-up is pending already
-
-
-#: sched_getscheduler() ORs this flag in under systemd's CPUSchedulingResetOnFork=yes
-SCHED_RESET_ON_FORK = 0x40000000
 
 
 def inherited_realtime() -> tuple[int, int] | None:
