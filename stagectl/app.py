@@ -363,7 +363,9 @@ def build_stage(
     try:
         io = IO_BUILDERS[cfg.io.kind](BuildContext(cfg, clk, timing, td))
         ctl: Controller = controller if controller is not None else make_controller(cfg)
-        safety = Safety(cfg.safety, timing)
+        # the moving mass bounds a plausible position step (safety's position_jump check)
+        mass = ctl.mass_kg if isinstance(ctl, StageController) else cfg.controller.mass_kg
+        safety = Safety(cfg.safety, timing, mass_kg=mass)
         reference = TrajectoryReference()
         terms = ctl.term_names if isinstance(ctl, NamesTerms) else TERM_NAMES
         loop = ControlLoop(

@@ -242,7 +242,7 @@ class ControlLoop:
         cleared = self.safety.fault
         self._devs.reset_faults()
         self.safety.clear()
-        self.safety.restart(x)
+        self.safety.restart(x, t)
         self.controller.reset(x)
         self.reference.hold(t, x)
         self._u = 0.0
