@@ -366,7 +366,8 @@ def build_stage(
         # the moving mass bounds a plausible position step (safety's position_jump check)
         mass = ctl.mass_kg if isinstance(ctl, StageController) else cfg.controller.mass_kg
         safety = Safety(cfg.safety, timing, mass_kg=mass)
-        reference = TrajectoryReference()
+        # a move without max_velocity_m_s: 1 mm/s, or slower when the planned fraction of the limit is lower
+        reference = TrajectoryReference(min(1e-3, cfg.safety.move_velocity_fraction * cfg.safety.max_velocity_m_s))
         terms = ctl.term_names if isinstance(ctl, NamesTerms) else TERM_NAMES
         loop = ControlLoop(
             clock=clk,

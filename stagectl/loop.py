@@ -193,7 +193,7 @@ class ControlLoop:
     def limits(self) -> MotionLimits:
         """Soft limits and velocity limit a move is checked against (the safety section's)."""
         c = self.safety.cfg
-        return MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s)
+        return MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s, c.move_velocity_fraction)
 
     def submit(self, req: LoopRequest) -> Reply:
         """Queue a typed request for the next cycle boundary (thread-safe; see the module docstring).
