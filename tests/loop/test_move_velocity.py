@@ -39,9 +39,8 @@ def _move(cfg, v, distance=3e-3, duration_s=0.35):
 def test_a_move_at_the_limit_is_refused_with_one_clear_line():
     cfg = _seed()
     assert cfg.safety.move_velocity_fraction == 0.9  # the default
-    with build_stage(cfg, clock=SimClock()) as stage:
-        with pytest.raises(RequestError) as ei:
-            stage.loop.submit(MoveRequest(relative_m=1e-3, max_velocity_m_s=cfg.safety.max_velocity_m_s))
+    with build_stage(cfg, clock=SimClock()) as stage, pytest.raises(RequestError) as ei:
+        stage.loop.submit(MoveRequest(relative_m=1e-3, max_velocity_m_s=cfg.safety.max_velocity_m_s))
     msg = str(ei.value)
     assert ei.value.field == "max_velocity_m_s" and "\n" not in msg
     assert msg.startswith("max_velocity_m_s: must be > 0 and <= 0.018 m/s (safety.move_velocity_fraction 0.9 of "
