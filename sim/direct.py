@@ -94,6 +94,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._drop = 0
         self._glitch: float | None = None
         self._inject: DeviceFault | None = None
+        self._cause: DeviceFault | None = None
         self.n_sync = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -111,7 +112,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._zero()
 
     def _do_fault_reset(self) -> None:
-        self._inject = None
+        self._inject = self._cause  # a cause still present latches the fault again
         self._zero()
 
     def _do_close(self) -> None:
@@ -124,9 +125,21 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             self._pipe[i] = 0.0
 
     # ------------------------------------------------------------------ fault injection
-    def inject_fault(self, kind: FaultKind = FaultKind.EMCY, detail: str = "injected", code: int = 0) -> None:
-        """Latch a device fault now (reported with the next read); output goes to zero, like a drive."""
+    def inject_fault(self, kind: FaultKind = FaultKind.EMCY, detail: str = "injected", code: int = 0,
+                     persist: bool = False) -> None:
+        """Latch a device fault now (reported with the next read); output goes to zero, like a drive.
+        ``persist``: its cause stays present (:meth:`persisting_faults`, a reset is refused) until
+        :meth:`remove_cause`, like a heartbeat that stays missing or a closed link."""
         self._inject = DeviceFault(kind, detail, code)
+        if persist:
+            self._cause = self._inject
+
+    def remove_cause(self) -> None:
+        """The cause of a persisting injected fault is gone (the heartbeat is back, the link reconnected)."""
+        self._cause = None
+
+    def persisting_faults(self) -> tuple[str, ...]:
+        return (str(self._cause),) if self._cause is not None else ()
 
     def drop_samples(self, n: int) -> None:
         """The next ``n`` reads return stale (not fresh) measurements."""

@@ -170,6 +170,7 @@ class ControlLoop:
         self._running = False
         self._shutdown = False
         self._just_reset = False
+        self._fresh = False  # this cycle's sample is fresh (read by a reset's persisting-cause check)
         self.stats = CycleStats(cfg.stats_window)  # preallocated
         self.cycle = 0
         self.overruns = 0
@@ -240,6 +241,13 @@ class ControlLoop:
         if self.state is not LoopState.FAULT:
             return {"state": self.state.value, "cleared": None}
         cleared = self.safety.fault
+        # refused while a cause persists (heartbeat still missing, bus-off, link closed, stage outside the soft
+        # limits, ...): it would latch again at once, or worse, enable a drive nobody can supervise
+        persisting = self._devs.persisting() + self.safety.persisting(x, self._fresh)
+        if persisting:
+            why = "; ".join(persisting)
+            log.warning("reset refused: %s (fault %s stays latched)", why, cleared.name if cleared else "-")
+            raise LoopStateError(f"reset refused: cause still present: {why}; the fault stays latched")
         self._devs.reset_faults()
         self.safety.clear()
         self.safety.restart(x, t)
@@ -425,6 +433,7 @@ class ControlLoop:
                     sync.sync()
                 m = sensor.read()
                 x = m.position_m
+                self._fresh = m.fresh
                 self._inbox.serve(self._execute, t, x)
                 if self._just_reset:  # this cycle's sample predates the reset: restart cleanly next cycle
                     self._just_reset = False

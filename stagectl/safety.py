@@ -162,13 +162,15 @@ class Safety:
 
     def persisting(self, x_m: float, fresh: bool) -> tuple[str, ...]:
         """Causes of supervisor faults still present at position ``x_m`` (``fresh``: this cycle's sample is
-        new): a reset is refused while this is not empty (it would latch again at once)."""
+        new): a reset is refused while this is not empty (it would latch again at once). A non-finite position
+        or one outside the soft limits always counts; a stale sample when the latched fault is about one."""
         cfg = self.cfg
         if not _isfinite(x_m):
             return (f"not_finite: measured position is {x_m}",)
         out: list[str] = []
-        if not fresh:
-            out.append("stale_position: no fresh position this cycle")
+        latched = self.fault.name if self.fault is not None else None
+        if not fresh and latched in ("stale_position", "missed_frame"):
+            out.append(f"{latched}: still no fresh position this cycle")
         if x_m < cfg.min_position_m or x_m > cfg.max_position_m:
             out.append(f"position_limit: x = {x_m:.9g} m outside soft limits [{cfg.min_position_m:g}, "
                        f"{cfg.max_position_m:g}] m (bring the stage inside with the drive disabled)")
