@@ -37,7 +37,6 @@ from stagectl.daemon.reload import AppConfigLike, ConfigLoader, Reloader
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryWriter, check_writable, start_telemetry
 from stagectl.daemon.watchdog import HealthWindow, Watchdog
-from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
 from stagectl.daemon.remote import LoopLike, RemoteLoop
 from stagectl.runtime.host import LoopHost
