@@ -16,8 +16,9 @@ Time comes from ``clock.now()`` when a clock is given (real time: the plant foll
 sub-steps of at most ``period_s``), otherwise each SYNC after the first advances the plant by exactly
 ``period_s``.
 
-Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY), :meth:`drop_samples`
-(the next N reads are stale), :meth:`glitch` (the next read returns a given value, e.g. NaN).
+Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY; ``persist``: its cause stays
+present), :meth:`drop_samples` (the next N reads are stale), :meth:`glitch` (the next N reads return a given value,
+e.g. NaN), :meth:`remove_cause` (a persisting cause goes away).
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._meas = Measurement(0.0, False)
         self._drop = 0
         self._glitch: float | None = None
+        self._glitch_n = 0
         self._inject: DeviceFault | None = None
         self._cause: DeviceFault | None = None
         self.n_sync = 0
@@ -135,19 +137,26 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             self._cause = self._inject
 
     def remove_cause(self) -> None:
-        """The cause of a persisting injected fault is gone (the heartbeat is back, the link reconnected)."""
+        """The cause of a persisting injected fault is gone (the heartbeat is back, the link reconnected), and
+        so are endless dropped samples and glitches."""
         self._cause = None
+        if self._drop < 0:
+            self._drop = 0
+        if self._glitch_n < 0:
+            self._glitch, self._glitch_n = None, 0
 
     def persisting_faults(self) -> tuple[str, ...]:
         return (str(self._cause),) if self._cause is not None else ()
 
     def drop_samples(self, n: int) -> None:
-        """The next ``n`` reads return stale (not fresh) measurements."""
+        """The next ``n`` reads return stale (not fresh) measurements (``n`` < 0: until :meth:`remove_cause`)."""
         self._drop = int(n)
 
-    def glitch(self, value_m: float) -> None:
-        """The next read reports ``value_m`` (e.g. NaN or a jump) as a fresh sample."""
+    def glitch(self, value_m: float, cycles: int = 1) -> None:
+        """The next ``cycles`` reads report ``value_m`` (e.g. NaN or a jump) as a fresh sample (``cycles`` < 0:
+        until :meth:`remove_cause`)."""
         self._glitch = float(value_m)
+        self._glitch_n = int(cycles)
 
     # ------------------------------------------------------------------ cyclic
     def sync(self) -> None:
@@ -188,12 +197,17 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             fault = self._latch(self._inject)
             self._zero()
         fresh = True
-        if self._drop > 0:
-            self._drop -= 1
+        if self._drop:
+            if self._drop > 0:
+                self._drop -= 1
             fresh = False
             x = self._meas.position_m
         if self._glitch is not None:
-            x, self._glitch = self._glitch, None
+            x = self._glitch
+            if self._glitch_n > 0:
+                self._glitch_n -= 1
+                if self._glitch_n == 0:
+                    self._glitch = None
         self._meas = Measurement(x, fresh, counts, 0, fault)
 
     def _advance(self, dt: float) -> None:
