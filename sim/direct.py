@@ -95,6 +95,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._drop = 0
         self._glitch: float | None = None
         self._glitch_n = 0
+        self._offset, self._offset_n = 0.0, 0
         self._inject: DeviceFault | None = None
         self._cause: DeviceFault | None = None
         self.n_sync = 0
@@ -152,6 +153,11 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         """The next ``n`` reads return stale (not fresh) measurements (``n`` < 0: until :meth:`remove_cause`)."""
         self._drop = int(n)
 
+    def jump(self, offset_m: float, cycles: int = 1) -> None:
+        """The next ``cycles`` reads report the position plus ``offset_m`` (a step glitch; ``cycles`` 0: for
+        ever, as the virtual devices' ``position_jump``)."""
+        self._offset, self._offset_n = float(offset_m), int(cycles)
+
     def glitch(self, value_m: float, cycles: int = 1) -> None:
         """The next ``cycles`` reads report ``value_m`` (e.g. NaN or a jump) as a fresh sample (``cycles`` < 0:
         until :meth:`remove_cause`)."""
@@ -202,6 +208,12 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
                 self._drop -= 1
             fresh = False
             x = self._meas.position_m
+        if self._offset:
+            x += self._offset
+            if self._offset_n > 0:
+                self._offset_n -= 1
+                if self._offset_n == 0:
+                    self._offset = 0.0
         if self._glitch is not None:
             x = self._glitch
             if self._glitch_n > 0:

@@ -138,8 +138,10 @@ FAULT_ALIASES: dict[str, SimFault] = {
     "emcy": SimFault.DRIVE_FAULT,
     "stale": SimFault.DROP_TPDO,
     "heartbeat_lost": SimFault.HEARTBEAT_STOP,
-    "nan": SimFault.POSITION_JUMP,
 }
+#: why ``nan`` exists on the directly wrapped plant only (it used to alias a 5 mm jump here: one name, two causes)
+NAN_ON_CANOPEN = ("kind: nan needs a floating-point position (io.kind plant_io); a CANopen position is an "
+                  "integer count, so it cannot be NaN: use position_jump (jump_m, cycles) for a sensor glitch")
 #: how many cycles a ``stale`` fault lasts when the request does not say
 STALE_CYCLES = 10
 
@@ -148,6 +150,8 @@ def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
     """The :class:`FaultSpec` mapping (``kind`` + fields) for a fault request on the virtual devices:
     aliases (:data:`FAULT_ALIASES`) replaced by their :class:`SimFault` value, ``stale`` lasting
     :data:`STALE_CYCLES` unless ``cycles`` is given."""
+    if kind == "nan":
+        raise ValueError(NAN_ON_CANOPEN)
     out = dict(fields)
     if kind == "stale":
         out.setdefault("cycles", STALE_CYCLES)
@@ -158,8 +162,9 @@ def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
 
 def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> None:
     """Apply a fault request to the directly wrapped plant: ``stale`` (the next ``cycles`` reads are not
-    fresh), ``nan`` (the next read is NaN) or a device fault by :class:`~stagectl.drivers.base.FaultKind`
-    value (``detail``, ``code``).
+    fresh), ``nan`` (the next read is NaN), ``position_jump`` (``jump_m`` added to the next ``cycles`` reads,
+    default 1; as on the virtual devices) or a device fault by :class:`~stagectl.drivers.base.FaultKind` value
+    (``detail``, ``code``).
 
     Raises
     ------
@@ -170,10 +175,12 @@ def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> 
         io.drop_samples(int(fields.get("cycles", STALE_CYCLES)))
     elif kind == "nan":
         io.glitch(math.nan)
+    elif kind == "position_jump":
+        io.jump(float(fields.get("jump_m", FaultSpec.jump_m)), int(fields.get("cycles", 1)))
     else:
         try:
             fk = FaultKind(kind)
         except ValueError:
-            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
+            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, position_jump, "
                              f"{', '.join(k.value for k in FaultKind)})") from None
         io.inject_fault(fk, str(fields.get("detail", "injected")), int(fields.get("code", 0)))

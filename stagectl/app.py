@@ -163,9 +163,10 @@ class Stage:
     def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
         """Debug: inject a device fault into the simulated stage. Only for simulated stages.
 
-        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan`` or any :class:`~stagectl.drivers.base.FaultKind` value.
-        Virtual CANopen devices: any :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of
-        the loop-level aliases of :data:`stagectl.sim.faults.FAULT_ALIASES`.
+        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
+        :class:`~stagectl.drivers.base.FaultKind` value. Virtual CANopen devices: any
+        :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of the loop-level aliases of
+        :data:`stagectl.sim.faults.FAULT_ALIASES` (``nan`` is refused there: an integer position cannot be NaN).
 
         Raises
         ------
