@@ -79,8 +79,8 @@ def drive_text(asm: Assembly, st: LoopStatus | None) -> str:
         loop_state = st.state if st is not None else asm.loop.state
         if loop_state is LoopState.FAULT:
             return "quick_stopped"
-        return "enabled" if loop_state is LoopState.ACTIVE else ds.value
-    return ds.value
+        return "enabled" if loop_state is LoopState.ACTIVE else str(ds.value)
+    return str(ds.value)
 
 
 class StatusCache:
