@@ -41,6 +41,8 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
 * ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
 * ``loop.add_sink(sink)`` / ``loop.remove_sink(sink)`` -- ``sink.append(row)`` once per cycle in the loop
   thread; it must not block; a sink that raises is removed and logged.
+* ``loop.on_state_change`` -- optional callable, run in the loop thread when the loop enters FAULT or a reset
+  makes it ACTIVE (must not block; the daemon wakes its supervisor with it).
 """
 
 from __future__ import annotations
@@ -158,6 +160,9 @@ class ControlLoop:
         self.realtime = realtime
         self.device_time = device_time
         self.on_cycle = on_cycle
+        #: called in the loop thread right after the loop enters FAULT or a reset makes it ACTIVE again (must not
+        #: block: the daemon wakes its supervisor with it, so the service state does not wait for its next tick)
+        self.on_state_change: Callable[[], None] | None = None
         self._devs = DeviceSet(sensor, actuator, sync)
         self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
         named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
@@ -257,6 +262,8 @@ class ControlLoop:
         self.state = LoopState.ACTIVE
         self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
+        if self.on_state_change is not None:
+            self.on_state_change()
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
     def latch_fault(self, name: str, cause: str) -> FaultInfo:
@@ -297,6 +304,8 @@ class ControlLoop:
         self._u = 0.0
         self._devs.quick_stop(self.safety.fault)
         log.error("FAULT %s; drive quick-stopped", self.safety.fault)
+        if self.on_state_change is not None:
+            self.on_state_change()
 
     # ------------------------------------------------------------------ run
     def _start(self) -> float:

@@ -25,6 +25,7 @@ import select
 import signal
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -145,6 +146,9 @@ class RemoteLoop:
         self.result: LoopResult | None = None
         self.error: str | None = None
         self.replies_lost = 0
+        #: called (in the thread running :meth:`run`) when the published loop state or fault count changed
+        self.on_state_change: Callable[[], None] | None = None
+        self._seen_state: tuple[float, float] | None = None
 
     # ------------------------------------------------------------------ sinks (telemetry is shared memory)
     def add_sink(self, sink: TelemetrySink) -> None:
@@ -219,6 +223,18 @@ class RemoteLoop:
             lateness_us=stats.lateness(n) if timing else None, exec_us=stats.execution(n) if timing else None,
             faults=int(v[S_FAULTS]),
         )
+
+    def check_state_change(self) -> bool:
+        """Call ``on_state_change`` if the loop's state or fault count changed since the last look (the loop
+        process wakes :meth:`run` when it publishes a change). Returns True if it changed."""
+        st = self.shm.status
+        now = (float(st[S_STATE]), float(st[S_FAULTS]))
+        if now == self._seen_state:
+            return False
+        self._seen_state = now
+        if self.on_state_change is not None:
+            self.on_state_change()
+        return True
 
     # ------------------------------------------------------------------ requests
     def submit(self, req: LoopRequest) -> Reply:
@@ -334,6 +350,7 @@ class RemoteLoop:
                     except BlockingIOError:
                         pass
                 self.collect_replies()
+                self.check_state_change()
                 if self.conn.fileno() in ready or self._child_exited():
                     self._finish()
                     break

@@ -174,6 +174,7 @@ class StageService:
         if self._stopping():
             return 0
         self.latch.arm(loop)  # the marker is written before the loop thread can enable the drive
+        loop.on_state_change = self._wake.set  # a fault or a reset wakes the supervisor at once (no tick of lag)
         self.host = LoopHost(loop, sinks=[self.writer.ring] if self.writer else [], on_exit=self._wake.set)
         self.host.start()
         demote_to_normal_priority()  # the loop thread keeps the unit's SCHED_FIFO; the supervisor steps down
