@@ -187,7 +187,8 @@ def render_status(st: dict[str, Any]) -> str:
     late = loop.get("lateness_us") or {}
     tel = st.get("telemetry") or {}
     lines = [
-        f"state      {st.get('state')}   (loop {loop.get('state')}, drive {'enabled' if st.get('drive_enabled') else 'disabled'})",
+        f"state      {st.get('state')}   (loop {loop.get('state')}, drive "
+        f"{st.get('drive') or ('enabled' if st.get('drive_enabled') else 'disabled')})",
         f"position   x = {_m(loop.get('x_m'))}   x_ref = {_m(loop.get('x_ref_m'))}   e = {_m(loop.get('e_m'))}",
         f"force      u = {_n(loop.get('u_n'))} N",
         f"loop       cycle {loop.get('cycle')}   overruns {loop.get('overruns')}   lateness p50/p99/max "
