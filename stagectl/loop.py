@@ -262,8 +262,7 @@ class ControlLoop:
         self.state = LoopState.ACTIVE
         self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
-        if self.on_state_change is not None:
-            self.on_state_change()
+        self._state_changed()
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
     def latch_fault(self, name: str, cause: str) -> FaultInfo:
@@ -304,8 +303,15 @@ class ControlLoop:
         self._u = 0.0
         self._devs.quick_stop(self.safety.fault)
         log.error("FAULT %s; drive quick-stopped", self.safety.fault)
-        if self.on_state_change is not None:
-            self.on_state_change()
+        self._state_changed()
+
+    def _state_changed(self) -> None:
+        cb = self.on_state_change
+        if cb is not None:
+            try:
+                cb()
+            except Exception:  # a wake-up that fails must not turn into a loop error
+                log.exception("on_state_change failed")
 
     # ------------------------------------------------------------------ run
     def _start(self) -> float:
