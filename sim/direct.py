@@ -93,6 +93,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._t_plant: float | None = None
         self._meas = Measurement(0.0, False)
         self._drop = 0
+        self._missed_after: int | None = None
+        self._dropped_run = 0
         self._glitch: float | None = None
         self._glitch_n = 0
         self._offset, self._offset_n = 0.0, 0
@@ -149,9 +151,12 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
     def persisting_faults(self) -> tuple[str, ...]:
         return (str(self._cause),) if self._cause is not None else ()
 
-    def drop_samples(self, n: int) -> None:
-        """The next ``n`` reads return stale (not fresh) measurements (``n`` < 0: until :meth:`remove_cause`)."""
+    def drop_samples(self, n: int, missed_after: int | None = None) -> None:
+        """The next ``n`` reads return stale (not fresh) measurements (``n`` < 0: until :meth:`remove_cause`);
+        ``missed_after``: latch ``MISSED_FRAME`` after that many in a row, as a drive's ``max_missed`` does."""
         self._drop = int(n)
+        self._missed_after = missed_after
+        self._dropped_run = 0
 
     def jump(self, offset_m: float, cycles: int = 1) -> None:
         """The next ``cycles`` reads report the position plus ``offset_m`` (a step glitch; ``cycles`` 0: for
@@ -208,6 +213,13 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
                 self._drop -= 1
             fresh = False
             x = self._meas.position_m
+            self._dropped_run += 1
+            if self._missed_after is not None and self._dropped_run >= self._missed_after and self._fault is None:
+                fault = self._latch(DeviceFault(FaultKind.MISSED_FRAME,
+                                                f"no fresh sample for {self._dropped_run} cycles"))
+                self._zero()
+        else:
+            self._dropped_run = 0
         if self._offset:
             x += self._offset
             if self._offset_n > 0:

@@ -1,6 +1,7 @@
 """One name, one cause: the ``fault`` debug request's kinds latch the same fault on both simulated stages (the
-directly wrapped plant and the virtual CANopen drive); ``nan`` is refused on the CANopen stage, where it used to
-mean a 5 mm jump latched as ``sensor_error``."""
+directly wrapped plant and the virtual CANopen drive). Before: ``stale`` gave stale_position vs missed_frame,
+``emcy`` emcy vs drive_fault, and ``nan`` meant a 5 mm jump latched as ``sensor_error`` on the CANopen stage
+(now refused there)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,8 @@ def cfgs():
 
 @pytest.mark.parametrize("request_kind,fields,latched", [
     ("heartbeat_lost", {}, "heartbeat_lost"),
+    ("stale", {}, "missed_frame"),
+    ("emcy", {}, "drive_fault"),
     ("position_jump", {"jump_m": 30e-6, "cycles": 3}, "position_jump"),
 ])
 def test_same_request_same_fault_on_both_simulated_stages(cfgs, request_kind, fields, latched):
