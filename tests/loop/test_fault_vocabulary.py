@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from stagectl.sim.faults import NAN_ON_CANOPEN
 
 from stagectl.app import build_stage
 from stagectl.clock import SimClock
 from stagectl.config import parse_app_config
 from stagectl.loop import LoopState
-from stagectl.sim.faults import NAN_ON_CANOPEN
 
 REPO = Path(__file__).resolve().parents[2]
 SIM_YAML = REPO / "config" / "sim.yaml"
