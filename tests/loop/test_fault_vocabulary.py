@@ -40,7 +40,7 @@ def test_same_request_same_fault_on_both_simulated_stages(cfgs, request_kind, fi
     for io_kind, cfg in cfgs.items():
         with build_stage(cfg, clock=SimClock()) as stage:
             loop = stage.loop
-            loop.on_cycle = lambda: loop.cycle == 50 and stage.inject_fault(request_kind, **fields)
+            loop.on_cycle = lambda loop=loop, stage=stage: loop.cycle == 50 and stage.inject_fault(request_kind, **fields)
             loop.run(cycles=300)
             st = loop.status()
             assert st.state is LoopState.FAULT and st.fault.name == latched, (io_kind, st.fault)
