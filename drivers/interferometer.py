@@ -91,6 +91,8 @@ class SerialInterferometer(PositionSensor):
         self._stale = 0
         self._last: Frame | None = None
         self._last_read_seq: int | None = None
+        #: the port reported EOF or an I/O error: permanent for this open port (a reset cannot bring it back)
+        self._link_dead = False
         self._bytes_rx = 0
         #: monotonic time [ns] at which the newest chunk of bytes was read
         self.last_rx_ns = 0
@@ -115,6 +117,7 @@ class SerialInterferometer(PositionSensor):
             ser.close()
             raise DriverInitError(f"{self.name}: {url!r} has no selectable file descriptor: {exc}") from exc
         self._ser = ser
+        self._link_dead = False
 
     def _do_configure(self) -> None:
         """Discard stale input and reset the parser and fault counters."""
@@ -135,6 +138,14 @@ class SerialInterferometer(PositionSensor):
 
     def _do_fault_reset(self) -> None:
         self._reset_monitors()
+
+    def persisting_faults(self) -> tuple[str, ...]:
+        """A port that reported EOF or an I/O error stays dead (an unplugged adapter comes back as a new device,
+        a closed pty or TCP peer never returns): reported until the port is opened again (daemon restart)."""
+        if self._link_dead:
+            return (f"disconnected: port {self.cfg.url} closed or failing; restart the daemon once the "
+                    f"interferometer is connected again",)
+        return ()
 
     def _do_close(self) -> None:
         ser, self._ser = self._ser, None
@@ -239,6 +250,7 @@ class SerialInterferometer(PositionSensor):
         except DriverIOError as exc:
             frames = []
             fault = DeviceFault(FaultKind.DISCONNECTED, str(exc))
+            self._link_dead = True
         # CRC errors in the window
         crc_now = self.parser.crc_errors
         new_crc = crc_now - self._crc_seen

@@ -16,8 +16,9 @@ Time comes from ``clock.now()`` when a clock is given (real time: the plant foll
 sub-steps of at most ``period_s``), otherwise each SYNC after the first advances the plant by exactly
 ``period_s``.
 
-Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY), :meth:`drop_samples`
-(the next N reads are stale), :meth:`glitch` (the next read returns a given value, e.g. NaN).
+Fault injection for tests: :meth:`inject_fault` (a latched device fault, e.g. EMCY; ``persist``: its cause stays
+present), :meth:`drop_samples` (the next N reads are stale), :meth:`glitch` (the next N reads return a given value,
+e.g. NaN), :meth:`remove_cause` (a persisting cause goes away).
 """
 
 from __future__ import annotations
@@ -92,8 +93,13 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._t_plant: float | None = None
         self._meas = Measurement(0.0, False)
         self._drop = 0
+        self._missed_after: int | None = None
+        self._dropped_run = 0
         self._glitch: float | None = None
+        self._glitch_n = 0
+        self._offset, self._offset_n = 0.0, 0
         self._inject: DeviceFault | None = None
+        self._cause: DeviceFault | None = None
         self.n_sync = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -111,7 +117,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._zero()
 
     def _do_fault_reset(self) -> None:
-        self._inject = None
+        self._inject = self._cause  # a cause still present latches the fault again
         self._zero()
 
     def _do_close(self) -> None:
@@ -124,17 +130,44 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             self._pipe[i] = 0.0
 
     # ------------------------------------------------------------------ fault injection
-    def inject_fault(self, kind: FaultKind = FaultKind.EMCY, detail: str = "injected", code: int = 0) -> None:
-        """Latch a device fault now (reported with the next read); output goes to zero, like a drive."""
+    def inject_fault(self, kind: FaultKind = FaultKind.EMCY, detail: str = "injected", code: int = 0,
+                     persist: bool = False) -> None:
+        """Latch a device fault now (reported with the next read); output goes to zero, like a drive.
+        ``persist``: its cause stays present (:meth:`persisting_faults`, a reset is refused) until
+        :meth:`remove_cause`, like a heartbeat that stays missing or a closed link."""
         self._inject = DeviceFault(kind, detail, code)
+        if persist:
+            self._cause = self._inject
 
-    def drop_samples(self, n: int) -> None:
-        """The next ``n`` reads return stale (not fresh) measurements."""
+    def remove_cause(self) -> None:
+        """The cause of a persisting injected fault is gone (the heartbeat is back, the link reconnected), and
+        so are endless dropped samples and glitches."""
+        self._cause = None
+        if self._drop < 0:
+            self._drop = 0
+        if self._glitch_n < 0:
+            self._glitch, self._glitch_n = None, 0
+
+    def persisting_faults(self) -> tuple[str, ...]:
+        return (str(self._cause),) if self._cause is not None else ()
+
+    def drop_samples(self, n: int, missed_after: int | None = None) -> None:
+        """The next ``n`` reads return stale (not fresh) measurements (``n`` < 0: until :meth:`remove_cause`);
+        ``missed_after``: latch ``MISSED_FRAME`` after that many in a row, as a drive's ``max_missed`` does."""
         self._drop = int(n)
+        self._missed_after = missed_after
+        self._dropped_run = 0
 
-    def glitch(self, value_m: float) -> None:
-        """The next read reports ``value_m`` (e.g. NaN or a jump) as a fresh sample."""
+    def jump(self, offset_m: float, cycles: int = 1) -> None:
+        """The next ``cycles`` reads report the position plus ``offset_m`` (a step glitch; ``cycles`` 0: for
+        ever, as the virtual devices' ``position_jump``)."""
+        self._offset, self._offset_n = float(offset_m), int(cycles)
+
+    def glitch(self, value_m: float, cycles: int = 1) -> None:
+        """The next ``cycles`` reads report ``value_m`` (e.g. NaN or a jump) as a fresh sample (``cycles`` < 0:
+        until :meth:`remove_cause`)."""
         self._glitch = float(value_m)
+        self._glitch_n = int(cycles)
 
     # ------------------------------------------------------------------ cyclic
     def sync(self) -> None:
@@ -175,12 +208,30 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             fault = self._latch(self._inject)
             self._zero()
         fresh = True
-        if self._drop > 0:
-            self._drop -= 1
+        if self._drop:
+            if self._drop > 0:
+                self._drop -= 1
             fresh = False
             x = self._meas.position_m
+            self._dropped_run += 1
+            if self._missed_after is not None and self._dropped_run >= self._missed_after and self._fault is None:
+                fault = self._latch(DeviceFault(FaultKind.MISSED_FRAME,
+                                                f"no fresh sample for {self._dropped_run} cycles"))
+                self._zero()
+        else:
+            self._dropped_run = 0
+        if self._offset:
+            x += self._offset
+            if self._offset_n > 0:
+                self._offset_n -= 1
+                if self._offset_n == 0:
+                    self._offset = 0.0
         if self._glitch is not None:
-            x, self._glitch = self._glitch, None
+            x = self._glitch
+            if self._glitch_n > 0:
+                self._glitch_n -= 1
+                if self._glitch_n == 0:
+                    self._glitch = None
         self._meas = Measurement(x, fresh, counts, 0, fault)
 
     def _advance(self, dt: float) -> None:

@@ -138,16 +138,22 @@ FAULT_ALIASES: dict[str, SimFault] = {
     "emcy": SimFault.DRIVE_FAULT,
     "stale": SimFault.DROP_TPDO,
     "heartbeat_lost": SimFault.HEARTBEAT_STOP,
-    "nan": SimFault.POSITION_JUMP,
 }
+#: why ``nan`` exists on the directly wrapped plant only (it used to alias a 5 mm jump here: one name, two causes)
+NAN_ON_CANOPEN = ("kind: nan needs a floating-point position (io.kind plant_io); a CANopen position is an "
+                  "integer count, so it cannot be NaN: use position_jump (jump_m, cycles) for a sensor glitch")
 #: how many cycles a ``stale`` fault lasts when the request does not say
 STALE_CYCLES = 10
+#: the plant_io stage's ``stale``: MISSED_FRAME after this many dropped samples (the CiA 402 driver's default)
+PLANT_IO_MAX_MISSED = 3
 
 
 def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
     """The :class:`FaultSpec` mapping (``kind`` + fields) for a fault request on the virtual devices:
     aliases (:data:`FAULT_ALIASES`) replaced by their :class:`SimFault` value, ``stale`` lasting
     :data:`STALE_CYCLES` unless ``cycles`` is given."""
+    if kind == "nan":
+        raise ValueError(NAN_ON_CANOPEN)
     out = dict(fields)
     if kind == "stale":
         out.setdefault("cycles", STALE_CYCLES)
@@ -157,23 +163,33 @@ def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> None:
-    """Apply a fault request to the directly wrapped plant: ``stale`` (the next ``cycles`` reads are not
-    fresh), ``nan`` (the next read is NaN) or a device fault by :class:`~stagectl.drivers.base.FaultKind`
-    value (``detail``, ``code``).
+    """Apply a fault request to the directly wrapped plant, latching the names the virtual CANopen stage
+    latches for the same request: ``stale`` (the next ``cycles`` reads are not fresh; ``missed_frame`` after
+    3), ``emcy`` (``drive_fault`` with the EMCY ``code``), ``nan`` (the next read is NaN), ``position_jump`` (``jump_m`` added to the next ``cycles`` reads,
+    default 1; as on the virtual devices) or a device fault by :class:`~stagectl.drivers.base.FaultKind` value
+    (``detail``, ``code``).
 
     Raises
     ------
     ValueError
         An unknown fault name.
     """
+    # the same fault names as the virtual CANopen drive: a drive misses its TPDOs (missed_frame after 3, the
+    # driver's max_missed default) and an EMCY comes with the drive entering FAULT (drive_fault)
     if kind == "stale":
-        io.drop_samples(int(fields.get("cycles", STALE_CYCLES)))
+        io.drop_samples(int(fields.get("cycles", STALE_CYCLES)), missed_after=PLANT_IO_MAX_MISSED)
+    elif kind == "emcy":
+        code = int(fields.get("code", FaultSpec.code))
+        io.inject_fault(FaultKind.DRIVE_FAULT, str(fields.get("detail", f"drive in FAULT (EMCY 0x{code:04X})")),
+                        code)
     elif kind == "nan":
         io.glitch(math.nan)
+    elif kind == "position_jump":
+        io.jump(float(fields.get("jump_m", FaultSpec.jump_m)), int(fields.get("cycles", 1)))
     else:
         try:
             fk = FaultKind(kind)
         except ValueError:
-            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
+            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, position_jump, "
                              f"{', '.join(k.value for k in FaultKind)})") from None
         io.inject_fault(fk, str(fields.get("detail", "injected")), int(fields.get("code", 0)))

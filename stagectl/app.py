@@ -165,9 +165,10 @@ class Stage:
     def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
         """Debug: inject a device fault into the simulated stage. Only for simulated stages.
 
-        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan`` or any :class:`~stagectl.drivers.base.FaultKind` value.
-        Virtual CANopen devices: any :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of
-        the loop-level aliases of :data:`stagectl.sim.faults.FAULT_ALIASES`.
+        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
+        :class:`~stagectl.drivers.base.FaultKind` value. Virtual CANopen devices: any
+        :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of the loop-level aliases of
+        :data:`stagectl.sim.faults.FAULT_ALIASES` (``nan`` is refused there: an integer position cannot be NaN).
 
         Raises
         ------
@@ -380,8 +381,11 @@ def build_stage(
     try:
         io = IO_BUILDERS[cfg.io.kind](BuildContext(cfg, clk, timing, td))
         ctl: Controller = controller if controller is not None else make_controller(cfg)
-        safety = Safety(cfg.safety, timing)
-        reference = TrajectoryReference()
+        # the moving mass bounds a plausible position step (safety's position_jump check)
+        mass = ctl.mass_kg if isinstance(ctl, StageController) else cfg.controller.mass_kg
+        safety = Safety(cfg.safety, timing, mass_kg=mass)
+        # a move without max_velocity_m_s: 1 mm/s, or slower when the planned fraction of the limit is lower
+        reference = TrajectoryReference(min(1e-3, cfg.safety.move_velocity_fraction * cfg.safety.max_velocity_m_s))
         terms = ctl.term_names if isinstance(ctl, NamesTerms) else TERM_NAMES
         learner = make_learner(cfg, reference) if cfg.ilc.enabled else None
         loop = ControlLoop(

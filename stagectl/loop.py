@@ -46,6 +46,8 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
 * ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
 * ``loop.add_sink(sink)`` / ``loop.remove_sink(sink)`` -- ``sink.append(row)`` once per cycle in the loop
   thread; it must not block; a sink that raises is removed and logged.
+* ``loop.on_state_change`` -- optional callable, run in the loop thread when the loop enters FAULT or a reset
+  makes it ACTIVE (must not block; the daemon wakes its supervisor with it).
 """
 
 from __future__ import annotations
@@ -174,6 +176,9 @@ class ControlLoop:
         self.realtime = realtime
         self.device_time = device_time
         self.on_cycle = on_cycle
+        #: called in the loop thread right after the loop enters FAULT or a reset makes it ACTIVE again (must not
+        #: block: the daemon wakes its supervisor with it, so the service state does not wait for its next tick)
+        self.on_state_change: Callable[[], None] | None = None
         self._devs = DeviceSet(sensor, actuator, sync)
         self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
         named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
@@ -189,6 +194,7 @@ class ControlLoop:
         self._running = False
         self._shutdown = False
         self._just_reset = False
+        self._fresh = False  # this cycle's sample is fresh (read by a reset's persisting-cause check)
         self.stats = CycleStats(cfg.stats_window)  # preallocated
         self.cycle = 0
         self.overruns = 0
@@ -212,7 +218,7 @@ class ControlLoop:
     def limits(self) -> MotionLimits:
         """Soft limits and velocity limit a move is checked against (the safety section's)."""
         c = self.safety.cfg
-        return MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s)
+        return MotionLimits(c.min_position_m, c.max_position_m, c.max_velocity_m_s, c.move_velocity_fraction)
 
     def submit(self, req: LoopRequest) -> Reply:
         """Queue a typed request for the next cycle boundary (thread-safe; see the module docstring).
@@ -279,15 +285,23 @@ class ControlLoop:
         if self.state is not LoopState.FAULT:
             return {"state": self.state.value, "cleared": None}
         cleared = self.safety.fault
+        # refused while a cause persists (heartbeat still missing, bus-off, link closed, stage outside the soft
+        # limits, ...): it would latch again at once, or worse, enable a drive nobody can supervise
+        persisting = self._devs.persisting() + self.safety.persisting(x, self._fresh)
+        if persisting:
+            why = "; ".join(persisting)
+            log.warning("reset refused: %s (fault %s stays latched)", why, cleared.name if cleared else "-")
+            raise LoopStateError(f"reset refused: cause still present: {why}; the fault stays latched")
         self._devs.reset_faults()
         self.safety.clear()
-        self.safety.restart(x)
+        self.safety.restart(x, t)
         self.controller.reset(x)
         self.reference.hold(t, x)
         self._u = 0.0
         self.state = LoopState.ACTIVE
         self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
+        self._state_changed()
         return {"state": self.state.value, "cleared": cleared.as_dict() if cleared else None}
 
     def latch_fault(self, name: str, cause: str) -> FaultInfo:
@@ -333,6 +347,15 @@ class ControlLoop:
             self.learner.freeze(fault.name if fault is not None else "fault")
         self._devs.quick_stop(self.safety.fault)
         log.error("FAULT %s; drive quick-stopped", self.safety.fault)
+        self._state_changed()
+
+    def _state_changed(self) -> None:
+        cb = self.on_state_change
+        if cb is not None:
+            try:
+                cb()
+            except Exception:  # a wake-up that fails must not turn into a loop error
+                log.exception("on_state_change failed")
 
     # ------------------------------------------------------------------ run
     def _start(self) -> float:
@@ -471,6 +494,7 @@ class ControlLoop:
                     sync.sync()
                 m = sensor.read()
                 x = m.position_m
+                self._fresh = m.fresh
                 self._inbox.serve(self._execute, t, x)
                 if self._just_reset:  # this cycle's sample predates the reset: restart cleanly next cycle
                     self._just_reset = False

@@ -13,12 +13,26 @@ fault name             condition
 ``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
 ``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s``
-``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/T low-passed at
-                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/T − v̂), α = 1 − e^{−2π f T})
+``position_jump``      a fresh sample moved further since the previous fresh one than the stage physically
+                       can: \\|Δx\\| > v_max·Δt + (F_max/m)·Δt²/2 + ``jump_margin_m`` (Δt: time between the two
+                       samples, T when none was stale; v_max = ``max_velocity_m_s``, F_max = ``max_force_n``,
+                       m the moving mass given to :class:`Safety`; off without a mass)
+``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt (Δt since the
+                       previous fresh sample: T, or more after a stale sample or skipped slots) low-passed at
+                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f T})
 ``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
                        for longer than ``force_saturation_time_s`` (a blocked stage) is a fault
 ``loop_error``         an unexpected exception in the cycle (raised by the loop, recorded here)
+``unclean_shutdown``   latched at start by the daemon when the previous run did not end cleanly
 =====================  ===============================================================================
+
+:data:`SAFETY_FAULTS` lists the names above that are not device kinds.
+
+Position-jump bound: a stage that was inside the velocity limit at the previous sample and is pushed by at most
+F_max moves at most v_max·Δt + (F_max/m)·Δt²/2 by the next one; ``jump_margin_m`` covers sensor noise and
+sampling jitter. For the seed stage (2 kg, 10 N, 0.02 m/s, 1 ms, margin 1 µm) that is 20 + 2.5 + 1 = 23.5 µm,
+where a sensor's own glitch check (``max_speed_m_s``) allows 2 mm. A larger step is a sensor glitch or a
+collision; either way the position can no longer be trusted to close the loop on.
 
 The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
 overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
@@ -53,6 +67,12 @@ class SafetyConfig:
     max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
     stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+    jump_margin_m: float = param(
+        1e-6, unit="m", desc="sensor noise and sampling-jitter margin added to the physical per-cycle position bound "
+        "(position_jump)", ge=0)
+    move_velocity_fraction: float = param(
+        0.9, desc="moves are planned at most at this fraction of max_velocity_m_s (tracking overshoot must not "
+        "trip velocity_limit); faster requests are refused", gt=0, le=1)
 
     def __post_init__(self) -> None:
         if not self.min_position_m < self.max_position_m:
@@ -80,6 +100,11 @@ class SafetyFault:
 
 _isfinite = math.isfinite
 
+#: fault names the supervisor itself latches; a device fault is latched under its kind's name (the
+#: ``FaultKind`` values of :mod:`stagectl.drivers.base`)
+SAFETY_FAULTS = ("not_finite", "stale_position", "position_limit", "position_jump", "following_error",
+                 "velocity_limit", "force_limit", "loop_error", "unclean_shutdown")
+
 
 class Safety:
     """Stateful supervisor for one loop (see module docstring). Not thread-safe: loop thread only.
@@ -89,14 +114,23 @@ class Safety:
     cfg : SafetyConfig
     timing : Timing or float
         The loop's timing (or its period T [s]); the velocity filter coefficient α is derived from it once here.
+    mass_kg : float, optional
+        The moving mass m [kg] (the controller's ``mass_kg``): with it, the ``position_jump`` check bounds each
+        step by v_max·Δt + (F_max/m)·Δt²/2 + ``jump_margin_m``; None turns that check off.
     """
 
-    def __init__(self, cfg: SafetyConfig, timing: Timing | float) -> None:
+    def __init__(self, cfg: SafetyConfig, timing: Timing | float, mass_kg: float | None = None) -> None:
         t = Timing.of(timing)
         self.cfg = cfg
         self.timing = t
         self.period_s = t.period_s
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * t.period_s)
+        if mass_kg is not None and not (_isfinite(mass_kg) and mass_kg > 0):
+            raise ConfigError(f"safety: moving mass must be a finite number > 0 kg, got {mass_kg!r}")
+        self.mass_kg = mass_kg
+        #: largest plausible acceleration F_max/m [m/s²] (None: no position_jump check)
+        self.max_accel_m_s2 = cfg.max_force_n / mass_kg if mass_kg is not None else None
+        self._t_prev = 0.0
         self.fault: SafetyFault | None = None
         self.n_faults = 0
         self.v_est_m_s = 0.0
@@ -118,10 +152,36 @@ class Safety:
         self.fault = None
         self.restart(None)
 
-    def restart(self, x_m: float | None) -> None:
-        """Reset the estimators and timers (at start and on reset) without touching a latched fault."""
+    def max_step_m(self, dt_s: float) -> float:
+        """The largest plausible position change [m] in ``dt_s`` [s]: v_max·Δt + (F_max/m)·Δt²/2 + margin
+        (inf without a mass)."""
+        a = self.max_accel_m_s2
+        if a is None:
+            return math.inf
+        return self.cfg.max_velocity_m_s * dt_s + 0.5 * a * dt_s * dt_s + self.cfg.jump_margin_m
+
+    def persisting(self, x_m: float, fresh: bool) -> tuple[str, ...]:
+        """Causes of supervisor faults still present at position ``x_m`` (``fresh``: this cycle's sample is
+        new): a reset is refused while this is not empty (it would latch again at once). A non-finite position
+        or one outside the soft limits always counts; a stale sample when the latched fault is about one."""
+        cfg = self.cfg
+        if not _isfinite(x_m):
+            return (f"not_finite: measured position is {x_m}",)
+        out: list[str] = []
+        latched = self.fault.name if self.fault is not None else None
+        if not fresh and latched in ("stale_position", "missed_frame"):
+            out.append(f"{latched}: still no fresh position this cycle")
+        if x_m < cfg.min_position_m or x_m > cfg.max_position_m:
+            out.append(f"position_limit: x = {x_m:.9g} m outside soft limits [{cfg.min_position_m:g}, "
+                       f"{cfg.max_position_m:g}] m (bring the stage inside with the drive disabled)")
+        return tuple(out)
+
+    def restart(self, x_m: float | None, t_s: float | None = None) -> None:
+        """Reset the estimators and timers (at start and on reset) without touching a latched fault; ``t_s``:
+        the time [s] of the sample ``x_m`` (the position-jump bound is measured from it)."""
         self.v_est_m_s = 0.0
         self._x_prev = x_m
+        self._t_prev = t_s if t_s is not None else -self.period_s
         self._stale = 0
         self._fe_since = None
         self._sat_since = None
@@ -155,8 +215,23 @@ class Safety:
             return True
         xp = self._x_prev
         self._x_prev = x_m
+        tp = self._t_prev
+        self._t_prev = t_s
         if xp is not None:
-            v_raw = (x_m - xp) / self.period_s
+            dt = t_s - tp if t_s > tp else self.period_s  # since the previous fresh sample (stale/skipped: > T)
+            if self.max_accel_m_s2 is not None:
+                bound = self.max_step_m(dt)
+                if abs(x_m - xp) > bound:
+                    self.latch(
+                        "position_jump",
+                        f"position moved {x_m - xp:.4g} m in {dt:.4g} s; physically at most {bound:.4g} m "
+                        f"(v_max·Δt + F_max/m·Δt²/2 + jump_margin_m: max_velocity_m_s {cfg.max_velocity_m_s:g}, "
+                        f"max_force_n {cfg.max_force_n:g} N, mass {self.mass_kg:g} kg)",
+                        t_s,
+                        cycle,
+                    )
+                    return True
+            v_raw = (x_m - xp) / dt
             self.v_est_m_s += self._alpha * (v_raw - self.v_est_m_s)
             if abs(self.v_est_m_s) > cfg.max_velocity_m_s:
                 self.latch(

@@ -223,7 +223,8 @@ def render_status(st: dict[str, Any]) -> str:
     late = loop.get("lateness_us") or {}
     tel = st.get("telemetry") or {}
     lines = [
-        f"state      {st.get('state')}   (loop {loop.get('state')}, drive {'enabled' if st.get('drive_enabled') else 'disabled'})",
+        f"state      {st.get('state')}   (loop {loop.get('state')}, drive "
+        f"{st.get('drive') or ('enabled' if st.get('drive_enabled') else 'disabled')})",
         f"position   x = {_m(loop.get('x_m'))}   x_ref = {_m(loop.get('x_ref_m'))}   e = {_m(loop.get('e_m'))}"
         + ("" if loop.get("in_position") is None else
            f"   {'in position' if loop.get('in_position') else 'not in position'}"),

@@ -108,7 +108,7 @@ class ScopeData:
     def header(self) -> str:
         st, loop = self.status, self.status.get("loop") or {}
         late = loop.get("lateness_us") or {}
-        drive = "enabled" if st.get("drive_enabled") else "disabled"
+        drive = st.get("drive") or ("enabled" if st.get("drive_enabled") else "disabled")
         fault = loop.get("fault")
         p99 = late.get("p99")
         late_txt = f"{p99:.0f} µs" if isinstance(p99, (int, float)) else "-"

@@ -33,7 +33,7 @@ from stagectl.errors import ConfigError, StageError
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import FaultInfo, LoopState, LoopStatus
 
-__all__ = ["Assembly", "Lifecycle", "StatusCache", "announce_ready", "drive_state", "failure_code", "flush_after_fault", "fault_text", "shut_down", "status_line", "wait_until_ready"]
+__all__ = ["Assembly", "Lifecycle", "StatusCache", "announce_ready", "drive_state", "drive_text", "failure_code", "flush_after_fault", "fault_text", "shut_down", "status_line", "wait_until_ready"]
 
 log = logging.getLogger("stagectl.daemon")
 
@@ -68,6 +68,19 @@ class Assembly:
 def drive_state(asm: Assembly) -> DeviceState:
     """The drive's (the loop's actuator's) lifecycle state."""
     return asm.loop.actuator.state
+
+
+def drive_text(asm: Assembly, st: LoopStatus | None) -> str:
+    """The drive as an operator sees it: ``enabled`` only while the loop controls it (ACTIVE);
+    ``quick_stopped`` while the device is still enabled but the loop has latched a fault and quick-stopped
+    it (braking, not following commands); otherwise the device state (``configured``, ``fault``, ...)."""
+    ds = drive_state(asm)
+    if ds is DeviceState.ENABLED:
+        loop_state = st.state if st is not None else asm.loop.state
+        if loop_state is LoopState.FAULT:
+            return "quick_stopped"
+        return "enabled" if loop_state is LoopState.ACTIVE else str(ds.value)
+    return str(ds.value)
 
 
 class StatusCache:

@@ -37,7 +37,7 @@ from multiprocessing import Pipe
 from multiprocessing.connection import Connection
 from typing import Any
 
-from stagectl.daemon._sched import demote_to_normal_priority
+from stagectl.daemon._sched import SCHED_RESET_ON_FORK, demote_to_normal_priority
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.remote import DEVICE_STATES, KIND_CODES, LOOP_STATES, RemoteLoop
 from stagectl.daemon.telemetry import SharedTelemetryRing
@@ -107,6 +107,8 @@ class Bridge:
         self.replies_dropped = 0
         self._drive = loop.actuator
         self._loop_thread = threading.get_ident()  # built in the thread that runs the loop
+        self._wake_due = False
+        loop.on_state_change = self._state_changed
 
     # ------------------------------------------------------------------ per cycle
     def on_cycle(self) -> None:
@@ -118,6 +120,16 @@ class Bridge:
             self.stop.set()
         if ctl[CMD_HEAD] != ctl[CMD_TAIL]:
             self.take_requests()
+
+    def _state_changed(self) -> None:
+        """The loop entered FAULT or left it: wake the daemon once this cycle's state is published."""
+        self._wake_due = True
+
+    def _wake(self) -> None:
+        try:
+            os.write(self.wake_fd, b"s")
+        except (BlockingIOError, OSError):
+            pass  # a wake-up is pending already
 
     def publish(self, running: bool | None = None) -> None:
         """The status snapshot into shared memory (a few stores; the fault text only when it changed)."""
@@ -139,6 +151,9 @@ class Bridge:
                 LoopShm.put_text(self.shm.fault_text, f"{fault.name}\n{fault.cause}"[: FAULT_TEXT - 1])
                 st[12:15] = (fault.t_s, fault.cycle, 1.0)
         ctl[STATUS_SEQ] = seq + 2
+        if self._wake_due:  # the daemon's supervisor reads the new state now, not at its next tick
+            self._wake_due = False
+            self._wake()
 
     def take_requests(self) -> None:
         ctl, cmd = self.shm.ctl, self.shm.cmd
@@ -208,14 +223,7 @@ class Bridge:
             self.publish()  # the state the request left (reset: active) is visible before its reply
         self.shm.put_reply(head % REP_SLOTS, rid, exc is None, payload)
         ctl[REP_HEAD] = head + 1
-        try:
-            os.write(self.wake_fd, b"r")
-        except (BlockingIOError, OSError):
-            pass  # a wake-up is pending already
-
-
-#: sched_getscheduler() ORs this flag in under systemd's CPUSchedulingResetOnFork=yes
-SCHED_RESET_ON_FORK = 0x40000000
+        self._wake()
 
 
 def inherited_realtime() -> tuple[int, int] | None:

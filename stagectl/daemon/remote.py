@@ -25,6 +25,7 @@ import select
 import signal
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -151,6 +152,9 @@ class RemoteLoop:
         self._ilc_cols = (tuple(cols.index(c) for c in ("u_ilc", "ilc_iteration", "ilc_rms_m"))
                           if "ilc_iteration" in cols else None)
         self._ilc_last: tuple[float, float, float] | None = None
+        #: called (in the thread running :meth:`run`) when the published loop state or fault count changed
+        self.on_state_change: Callable[[], None] | None = None
+        self._seen_state: tuple[float, float] | None = None
 
     # ------------------------------------------------------------------ sinks (telemetry is shared memory)
     def add_sink(self, sink: TelemetrySink) -> None:
@@ -240,6 +244,17 @@ class RemoteLoop:
         if last is None:
             return {"iteration": None, "last_rms_m": None, "u_ilc_n": None}
         return {"iteration": int(last[1]), "last_rms_m": last[2], "u_ilc_n": last[0]}
+    def check_state_change(self) -> bool:
+        """Call ``on_state_change`` if the loop's state or fault count changed since the last look (the loop
+        process wakes :meth:`run` when it publishes a change). Returns True if it changed."""
+        st = self.shm.status
+        now = (float(st[S_STATE]), float(st[S_FAULTS]))
+        if now == self._seen_state:
+            return False
+        self._seen_state = now
+        if self.on_state_change is not None:
+            self.on_state_change()
+        return True
 
     # ------------------------------------------------------------------ requests
     def submit(self, req: LoopRequest) -> Reply:
@@ -357,6 +372,7 @@ class RemoteLoop:
                     except BlockingIOError:
                         pass
                 self.collect_replies()
+                self.check_state_change()
                 if self.conn.fileno() in ready or self._child_exited():
                     self._finish()
                     break

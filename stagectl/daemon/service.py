@@ -37,7 +37,6 @@ from stagectl.daemon.reload import AppConfigLike, ConfigLoader, Reloader
 from stagectl.daemon.sdnotify import SdNotifier
 from stagectl.daemon.telemetry import TelemetryWriter, check_writable, start_telemetry
 from stagectl.daemon.watchdog import HealthWindow, Watchdog
-from stagectl.drivers.base import DeviceState
 from stagectl.errors import StageError
 from stagectl.daemon.remote import LoopLike, RemoteLoop
 from stagectl.runtime.host import LoopHost
@@ -175,6 +174,7 @@ class StageService:
         if self._stopping():
             return 0
         self.latch.arm(loop)  # the marker is written before the loop thread can enable the drive
+        loop.on_state_change = self._wake.set  # a fault or a reset wakes the supervisor at once (no tick of lag)
         self.host = LoopHost(loop, sinks=[self.writer.ring] if self.writer else [], on_exit=self._wake.set)
         self.host.start()
         demote_to_normal_priority()  # the loop thread keeps the unit's SCHED_FIFO; the supervisor steps down
@@ -287,6 +287,7 @@ class StageService:
         state = self.state
         if loop_st is not None and state in (Lifecycle.ACTIVE, Lifecycle.FAULT):  # the loop's own, not a tick old
             state = Lifecycle.FAULT if loop_st.state is LoopState.FAULT else Lifecycle.ACTIVE
+        drive = lifecycle.drive_text(asm, loop_st) if asm is not None else "none"
         return {
             "state": state.value, "pid": os.getpid(), "uptime_s": time.monotonic() - self._started_mono,
             "config": str(self.paths.config),
@@ -294,7 +295,8 @@ class StageService:
             "health_policy": self.health_policy,
             "isolation": self.cfg.isolation,
             "loop_pid": asm.loop.pid if asm is not None and isinstance(asm.loop, RemoteLoop) else os.getpid(),
-            "drive_enabled": asm is not None and lifecycle.drive_state(asm) is DeviceState.ENABLED,
+            # enabled = powered AND under control: a drive the loop has quick-stopped (fault reaction) is not
+            "drive_enabled": drive == "enabled", "drive": drive,
             "telemetry": self.writer.status() if self.writer else None,
             "reload": self.reloader.status,
             "watchdog": self.watchdog.as_json(),

@@ -68,6 +68,17 @@ class DeviceSet:
                 return m, t0, i
         return m, t0, n_max - 1
 
+    def persisting(self) -> tuple[str, ...]:
+        """``"<device>: <cause>"`` for every fault cause a device reports as still present
+        (:meth:`~stagectl.drivers.base.Device.persisting_faults`); a device whose check fails counts as one."""
+        out: list[str] = []
+        for d in self.all:
+            try:
+                out += [f"{d.name}: {c}" for c in d.persisting_faults()]
+            except Exception as exc:  # noqa: BLE001 - a check that cannot run is no proof the cause is gone
+                out.append(f"{d.name}: cannot check whether the fault persists ({type(exc).__name__}: {exc})")
+        return tuple(out)
+
     def reset_faults(self) -> None:
         """Fault-reset every faulted device, disable the actuator, enable the configured devices.
 

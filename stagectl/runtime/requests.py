@@ -81,11 +81,21 @@ def check_fields(kind: str, fields: Mapping[str, object], allowed: tuple[str, ..
 
 @dataclass(frozen=True)
 class MotionLimits:
-    """The limits a move is checked against (from the safety section): soft limits [m], velocity [m/s]."""
+    """The limits a move is checked against (from the safety section): soft limits [m], velocity [m/s].
+
+    A move is planned at most at ``move_velocity_m_s`` = ``move_velocity_fraction`` × ``max_velocity_m_s``: a
+    reference at exactly the limit is crossed by the tracking overshoot and trips ``velocity_limit`` mid-move.
+    """
 
     min_position_m: float
     max_position_m: float
     max_velocity_m_s: float
+    move_velocity_fraction: float = 1.0
+
+    @property
+    def move_velocity_m_s(self) -> float:
+        """The fastest planned move [m/s]."""
+        return self.move_velocity_fraction * self.max_velocity_m_s
 
     def check_position(self, x_m: float, field: str) -> float:
         """``x_m`` inside the soft limits, else RequestError naming ``field``."""
@@ -128,13 +138,16 @@ class MoveRequest:
 
     def check_limits(self, limits: MotionLimits) -> None:
         """The checks that need the stage's limits: an absolute target inside the soft limits, the velocity at
-        most the limit. RequestError naming the field."""
+        most the planned fraction of the limit (:attr:`MotionLimits.move_velocity_m_s`). RequestError naming
+        the field."""
         if self.target_m is not None:
             limits.check_position(self.target_m, "target_m")
         v = self.max_velocity_m_s
-        if v is not None and v > limits.max_velocity_m_s:
-            raise RequestError("max_velocity_m_s", f"must be > 0 and <= {limits.max_velocity_m_s:g} m/s "
-                                                   f"(got {v:g} m/s)")
+        if v is not None and v > limits.move_velocity_m_s:
+            raise RequestError("max_velocity_m_s", f"must be > 0 and <= {limits.move_velocity_m_s:.6g} m/s "
+                               f"(safety.move_velocity_fraction {limits.move_velocity_fraction:g} of "
+                               f"max_velocity_m_s {limits.max_velocity_m_s:g} m/s, room for tracking overshoot "
+                               f"below the velocity_limit fault) (got {v:g} m/s)")
 
     def to_json(self) -> dict[str, object]:
         """The control-socket line (without ``id``)."""

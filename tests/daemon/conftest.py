@@ -113,9 +113,16 @@ def build_rig(app_cfg):
                        safety=safety, cfg=LoopConfig(period_s=period, healthy_overrun_fraction=0.5), realtime=False)
 
     def inject(kind: str, **kw):
+        import math
+
         from stagectl.drivers.base import FaultKind
 
-        io.inject_fault(FaultKind(kind), detail="injected by test")
+        if kind == "cause_gone":  # a persisting injected fault's cause goes away
+            io.remove_cause()
+        elif kind == "nan":  # the next sample is NaN: the supervisor's not_finite, the drive stays enabled
+            io.glitch(math.nan)
+        else:
+            io.inject_fault(FaultKind(kind), detail="injected by test", persist=bool(kw.get("persist")))
         return {}
 
     return Assembly(loop=loop, close=io.close, controller_config=app_cfg.controller, simulated=True,

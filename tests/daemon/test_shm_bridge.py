@@ -178,3 +178,34 @@ def test_shared_telemetry_ring_counts_what_it_cannot_hold():
     assert first == 3 and rows[:, 0].tolist() == [3, 6, 7, 8]
     ring.append((1.0, 2.0, 3.0))  # wrong width: counted, not stored
     assert ring.bad_rows == 1 and ring.backlog == 0
+
+
+def test_a_state_change_wakes_the_daemon_side_once_published(pair):
+    """A fault and a reset each write a wake-up after the cycle's status is published, and the daemon side sees
+    the new state when it looks (the service's supervisor is woken instead of waiting for its tick)."""
+    loop, remote, _, io = pair
+    calls: list[LoopState] = []
+    remote.on_state_change = lambda: calls.append(remote.state)
+    loop.run(cycles=5)
+    remote.check_state_change()  # the first look records the state
+    calls.clear()
+
+    def drain() -> bytes:
+        try:
+            return os.read(remote.wake_fd, 4096)
+        except BlockingIOError:
+            return b""
+
+    drain()
+    loop.run(cycles=5)
+    assert drain() == b"" and not remote.check_state_change()  # nothing changed: no wake-up, no call
+    io.inject_fault(FaultKind.EMCY, "wake test")
+    loop.run(cycles=2)
+    assert b"s" in drain()
+    assert remote.check_state_change() and calls == [LoopState.FAULT]
+    reset = remote.submit(ResetRequest())
+    loop.run(cycles=2)
+    assert b"s" in drain()
+    remote.collect_replies()
+    assert reset.result(0)["state"] == "active"
+    assert remote.check_state_change() and calls == [LoopState.FAULT, LoopState.ACTIVE]

@@ -79,7 +79,7 @@ def test_scenario_registry_lives_in_control():
 
 def test_fault_aliases_map_loop_names_onto_virtual_device_faults():
     assert FAULT_ALIASES == {"emcy": SimFault.DRIVE_FAULT, "stale": SimFault.DROP_TPDO,
-                             "heartbeat_lost": SimFault.HEARTBEAT_STOP, "nan": SimFault.POSITION_JUMP}
+                             "heartbeat_lost": SimFault.HEARTBEAT_STOP}  # nan: plant_io only (fault vocabulary)
     assert world_fault("stale", {}) == {"kind": "drop_tpdo", "cycles": STALE_CYCLES}
     assert world_fault("stale", {"cycles": 3}) == {"kind": "drop_tpdo", "cycles": 3}
     assert world_fault("late_tpdo", {"cycles": 2}) == {"kind": "late_tpdo", "cycles": 2}

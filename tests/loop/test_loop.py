@@ -321,3 +321,20 @@ def test_fault_counter_sees_a_fault_already_cleared_by_reset(make):
     loop.run(cycles=20)
     st = loop.status()
     assert st.faults == 1 and st.fault is None
+
+
+def test_on_state_change_runs_in_the_fault_cycle_and_the_reset_cycle(make):
+    from stagectl.drivers.base import FaultKind
+    from stagectl.runtime.requests import ResetRequest
+
+    loop, io, plant, ctl, clock = make()
+    seen: list[tuple[int, str]] = []
+    loop.on_state_change = lambda: seen.append((loop.cycle, loop.state.value))
+    loop.on_cycle = lambda: loop.cycle == 10 and io.inject_fault(FaultKind.EMCY, "x")
+    loop.run(cycles=20)
+    assert seen == [(11, "fault")]  # the cycle that latched it (cycle counter not yet advanced)
+    loop.on_cycle = None
+    fut = loop.submit(ResetRequest())
+    loop.run(cycles=3)
+    assert fut.result(timeout=0)["state"] == "active"
+    assert seen == [(11, "fault"), (20, "active")]

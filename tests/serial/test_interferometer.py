@@ -221,6 +221,26 @@ def test_disconnect_mid_stream_reports_disconnected_not_exception(rig):
     assert m.counts == held  # last good value held
 
 
+def test_disconnect_persists_through_a_fault_reset(rig):
+    """A closed port never comes back: persisting_faults() names it (so the loop refuses a reset) before and
+    after the device-level fault reset, while a fault whose cause is gone (a CRC burst) does not persist."""
+    plant, sim, dut = rig
+    sim.inject(kind="corrupt", count=3)
+    for _ in range(3):
+        cycle(plant, dut)
+    assert dut.fault is not None and dut.fault.kind is FaultKind.CRC_ERRORS
+    assert dut.persisting_faults() == ()
+    dut.fault_reset()
+    assert cycle(plant, dut).fault is None
+    sim.disconnect()
+    assert cycle(plant, dut).fault.kind is FaultKind.DISCONNECTED
+    (cause,) = dut.persisting_faults()
+    assert cause.startswith("disconnected: port ") and "restart the daemon" in cause
+    dut.fault_reset()
+    assert dut.persisting_faults() == (cause,)
+    assert cycle(plant, dut).fault.kind is FaultKind.DISCONNECTED  # and it is still dead
+
+
 def test_streaming_thread_delivers_contiguous_frames(transport, tmp_path):
     """Real-time mode: the sim thread streams; the consumer waits on select (timeouts are only guards)."""
     plant = ScriptedPlant()
