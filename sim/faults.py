@@ -45,6 +45,7 @@ from typing import Any
 from stagectl.drivers.base import FaultKind
 from stagectl.schema import param
 from stagectl.sim.direct import PlantIO
+from stagectl.errors import short
 
 
 class SimFault(enum.Enum):
@@ -174,6 +175,6 @@ def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> 
         try:
             fk = FaultKind(kind)
         except ValueError:
-            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, "
+            raise ValueError(f"kind: unknown fault {short(kind)} (known: stale, nan, "
                              f"{', '.join(k.value for k in FaultKind)})") from None
         io.inject_fault(fk, str(fields.get("detail", "injected")), int(fields.get("code", 0)))

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
@@ -81,7 +81,7 @@ def _unresolved_model_file(value: Any, path: str, problems: list[str]) -> None:
     if value is None:
         return None
     if not isinstance(value, str):
-        problems.append(f"{path}: expected a path string, got {value!r}")
+        problems.append(f"{path}: expected a path string, got {short(value)}")
     else:
         problems.append(f"{path}: {value} is not loaded (load the configuration with stagectl.config, or pass "
                         "the StageModel to PlantConfig.from_mapping as model=)")
@@ -136,11 +136,11 @@ class PlantConfig:
         if data is None:
             data = {}
         if not isinstance(data, Mapping):
-            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {data!r}")
+            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {short(data)}")
         merged: dict[str, Any] = dict(data)
         mf = merged.get("model_file")
         if mf is not None and not isinstance(mf, str):
-            raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
+            raise ConfigError(f"{path}.model_file: expected a path string, got {short(mf)}")
         if mf is not None and model is None:
             problems: list[str] = []
             _unresolved_model_file(mf, f"{path}.model_file", problems)

@@ -35,6 +35,7 @@ import math
 from dataclasses import dataclass
 
 from stagectl.schema import param
+from stagectl.errors import short
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ class PidState:
 def check_dt(dt: float) -> None:
     """Raise ``ValueError`` unless ``dt`` > 0 and finite."""
     if not (dt > 0.0 and math.isfinite(dt)):
-        raise ValueError(f"dt must be > 0 and finite (got {dt!r} s)")
+        raise ValueError(f"dt must be > 0 and finite (got {short(dt)} s)")
 
 
 class Pid:

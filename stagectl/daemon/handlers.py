@@ -32,6 +32,7 @@ from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.daemon.remote import LoopLike
 from stagectl.outputs import plain
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
+from stagectl.errors import short
 
 __all__ = ["HANDLERS", "READ_ONLY_REQUESTS", "ServiceView", "dispatch", "dispatch_observer"]
 
@@ -86,7 +87,8 @@ def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     if action == "start":
         name = req.get("name")
         if not isinstance(name, str):
-            raise RequestError("name", f"must be a plain file name of letters, digits, '._-' (got {name!r})")
+            raise RequestError("name", "must be a plain file name of letters, digits, '._-' "
+                                       f"(got {short(name)})")
         try:
             path = writer.record_start(name)
         except OSError as exc:
@@ -104,7 +106,7 @@ def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
 
         threading.Thread(target=stop_recording, name="stagectl-record-stop", daemon=True).start()
         return fut
-    raise RequestError("action", f"must be start or stop (got {action!r})")
+    raise RequestError("action", f"must be start or stop (got {short(action)})")
 
 
 def handle_fault(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
