@@ -443,6 +443,8 @@ def _expanded_nodes(root: Any) -> int:
 
 
 def _cut(text: str, limit: int = 200) -> str:
+    """``text`` on one line (PyYAML's messages have several), at most ``limit`` characters."""
+    text = " ".join(text.split())
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
@@ -459,8 +461,9 @@ def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
 
     if len(text) > MAX_YAML_BYTES:
         raise ConfigError(f"{name}: larger than {MAX_YAML_BYTES // 1024} KiB; not a configuration file")
-    loader = _bounded_loader(text)
+    loader = None
     try:
+        loader = _bounded_loader(text)
         node = loader.get_single_node()
         _expanded_nodes(node)
         return loader.construct_document(node) if node is not None else None
@@ -477,7 +480,8 @@ def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
     except Exception as exc:  # noqa: BLE001 - whatever else PyYAML raises is still one line, not a traceback
         raise ConfigError(f"{name}: YAML cannot be read ({type(exc).__name__}: {_cut(str(exc))})") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def load_yaml_file(path: str | Path) -> Any:
