@@ -187,6 +187,8 @@ class StageService:
         self.state = Lifecycle.FAULT if latched else Lifecycle.ACTIVE
         self.notify.ready(self._status_line())
         lifecycle.announce_ready(latched, self.server.path)
+        if self.app_cfg is not None:
+            self.reloader.warm(self.app_cfg)  # the first SIGHUP then needs no import of python-control
         return None
 
     # ================================================================== supervision
