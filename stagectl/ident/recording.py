@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -273,7 +274,9 @@ def _read_fast(p: Path, ncols: int) -> FloatArray | None:
     """The data rows as one float array when every cell is a finite number (numpy's C parser, several times
     faster than the row-by-row reader); None otherwise, and the careful reader then names the bad cell."""
     try:
-        arr = np.loadtxt(p, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8-sig")
+        with warnings.catch_warnings():  # "input contained no data": the careful reader says it in one line
+            warnings.simplefilter("ignore")
+            arr = np.loadtxt(p, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8-sig")
     except (ValueError, IndexError, OSError, UnicodeDecodeError):
         return None
     if arr.ndim != 2 or arr.shape[1] != ncols or not np.all(np.isfinite(arr)):
