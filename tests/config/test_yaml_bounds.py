@@ -158,3 +158,15 @@ def test_short_is_bounded_for_hostile_values() -> None:
     for v in ("x" * 10**6, a, nested, {"k": list(range(10**5))}):
         assert len(short(v)) <= 60
     assert short("abc") == "'abc'" and short(1.5) == "1.5"
+
+
+def test_check_config_refuses_a_bad_file_before_the_heavy_imports(tmp_path: Path) -> None:
+    """A refused YAML file costs the interpreter's start and the parse, not the validation's imports (numpy,
+    numba, the controller): check-config on the alias bomb is as cheap as `stagectl --help`."""
+    p = tmp_path / "laughs.yaml"
+    p.write_text(laughs(12, 30))
+    code = ("import sys\nfrom stagectl.cli import main\nrc = main(['check-config', sys.argv[1]])\n"
+            "print(rc, sorted(m for m in ('numpy', 'stagectl.config', 'stagectl.control') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, timeout=120)
+    assert r.stdout.split("\n")[0] == "2 []", (r.stdout, r.stderr)
+    assert "more than 100 aliases" in r.stderr
