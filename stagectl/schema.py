@@ -361,13 +361,13 @@ def _bounded_loader(text: str) -> Any:
             if self.check_event(yaml.AliasEvent):
                 self.n_aliases += 1
                 if self.n_aliases > MAX_YAML_ALIASES:
-                    line = self.peek_event().start_mark.line + 1
+                    line = self.peek_event().start_mark.line + 1  # type: ignore[no-untyped-call]
                     raise _YamlRefused(f"more than {MAX_YAML_ALIASES} aliases (*name) at line {line}")
                 return super().compose_node(parent, index)
             self.depth += 1
             try:
                 if self.depth > MAX_YAML_DEPTH:
-                    line = self.peek_event().start_mark.line + 1
+                    line = self.peek_event().start_mark.line + 1  # type: ignore[no-untyped-call]
                     raise _YamlRefused(f"nested deeper than {MAX_YAML_DEPTH} levels at line {line}")
                 return super().compose_node(parent, index)
             finally:

@@ -73,10 +73,10 @@ def same_value(a: object, b: object, depth: int = 0) -> bool:
         return False
     if dataclasses.is_dataclass(a) and not isinstance(a, type):
         return all(same_value(getattr(a, f.name), getattr(b, f.name), depth + 1) for f in dataclasses.fields(a))
-    if isinstance(a, (list, tuple)):
-        return len(a) == len(b) and all(same_value(x, y, depth + 1) for x, y in zip(a, b))  # type: ignore[arg-type]
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(same_value(a[k], b[k], depth + 1) for k in a)  # type: ignore[attr-defined]
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(same_value(x, y, depth + 1) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_value(a[k], b[k], depth + 1) for k in a)
     if isinstance(a, float) and math.isnan(a):
         return isinstance(b, float) and math.isnan(b)
     try:
@@ -105,7 +105,7 @@ def with_controller_of(current: AppConfigLike, new: AppConfigLike) -> AppConfigL
     """``current`` with ``new``'s controller: what the daemon runs after a reload (the other sections of the
     running configuration stay until a restart)."""
     if dataclasses.is_dataclass(current) and type(current) is type(new):
-        out: AppConfigLike = dataclasses.replace(current, controller=new.controller)  # type: ignore[type-var]
+        out: AppConfigLike = dataclasses.replace(current, controller=new.controller)
         return out
     return new
 

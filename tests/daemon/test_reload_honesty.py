@@ -67,3 +67,18 @@ def test_kalman_observer_tuning_is_analysed(sim_cfg) -> None:
 
 def test_not_an_application_config_is_not_analysed() -> None:
     assert stability_problem(object()) is None
+
+
+def test_status_and_gains_texts_are_bounded() -> None:
+    """Whatever an error held (a reload error, a fault cause, a telemetry error), a status/gains reply carries
+    at most MAX_REPLY_TEXT characters per text field, and everything else unchanged."""
+    from stagectl.daemon.handlers import MAX_REPLY_TEXT, bounded_texts
+
+    st = {"state": "active", "reload": {"ok": False, "error": "x" * 10**6},
+          "telemetry": {"error": "e" * 5000, "rows_written": 12}, "faults": [{"cause": "c" * 3000}, "ok"],
+          "loop": {"x_m": 1.5e-3, "cycle": 7}}
+    out = bounded_texts(st)
+    assert len(out["reload"]["error"]) < MAX_REPLY_TEXT + 40 and "998000 more characters" in out["reload"]["error"]
+    assert len(out["telemetry"]["error"]) < MAX_REPLY_TEXT + 40 and out["telemetry"]["rows_written"] == 12
+    assert len(out["faults"][0]["cause"]) < MAX_REPLY_TEXT + 40 and out["faults"][1] == "ok"
+    assert out["loop"] == st["loop"] and out["state"] == "active"
