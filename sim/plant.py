@@ -61,8 +61,9 @@ FloatArray = npt.NDArray[np.float64]
 class SensorConfig:
     """Position sensor model: noise, then quantisation, then a delay in whole plant steps."""
 
-    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", gt=0.0)
-    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0)
+    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", ge=1e-15)
+    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0,
+                               le=1.0)
     delay_steps: int = param(0, unit="", desc="measurement delay in plant.step() calls", ge=0, le=100000)
 
 
@@ -96,7 +97,7 @@ class PlantConfig:
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
     effects: Effects = param(default_factory=Effects, desc="additional effects (offset, ripple, cogging, ...)",
                              parse=parse_effects)
-    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", gt=0.0, le=1e-2)
+    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", ge=1e-7, le=1e-2)
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
     actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
     x0_m: float = param(0.0, unit="m", desc="initial position")

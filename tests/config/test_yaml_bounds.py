@@ -104,7 +104,13 @@ def _sim() -> dict:
     (("controller", "mass_kg"), float("inf"), "controller.mass_kg: must be finite kg"),
     (("description",), "x" * 100_000, None),
     (("loop", "period_s"), ["x" * 1000] * 100, "loop.period_s: expected a number s, got list ["),
-], ids=["401-digit-float", "401-digit-int", "nan", "inf", "long-description", "100-KB-list"])
+    # in range for the schema before, then an OverflowError or a hang inside `simulate`
+    (("sim", "plant", "sensor", "noise_std_m"), 1e300, "sim.plant.sensor.noise_std_m: must be <= 1 m"),
+    (("sim", "plant", "sensor", "resolution_m"), 1e-300, "sim.plant.sensor.resolution_m: must be >= 1e-15 m"),
+    (("sim", "plant", "substep_s"), 1e-300, "sim.plant.substep_s: must be >= 1e-07 s"),
+    (("sim", "drive", "resolution_m"), 1e-300, "sim.drive.resolution_m: must be >= 1e-15 m"),
+], ids=["401-digit-float", "401-digit-int", "nan", "inf", "long-description", "100-KB-list", "noise-1e300",
+        "resolution-1e-300", "substep-1e-300", "drive-resolution-1e-300"])
 def test_extreme_values_name_field_and_unit_in_a_short_line(tmp_path: Path, key: tuple[str, ...], value: object,
                                                             expected: str | None) -> None:
     data = _sim()
