@@ -64,24 +64,22 @@ class ConfigError(StageError, ValueError):
     ``str(err)`` lists one problem per line, e.g.
     ``controller.pid.kp_n_m: must be > 0 (got -3 N/m)``.
 
-    Bounded: each line is cut at :data:`MAX_PROBLEM_CHARS` characters and at most :data:`MAX_PROBLEMS` lines
-    are kept (a last line counts the rest), so a hostile file cannot make an error text of megabytes.
+    Bounded: each line is cut at :data:`MAX_PROBLEM_CHARS` characters, and the message (``str(err)``) shows the
+    first :data:`MAX_PROBLEMS` lines and a line counting the rest (:meth:`shown`), so a hostile file cannot make
+    an error text of megabytes. ``problems`` keeps every (cut) line, so that callers that collect the problems
+    of several parts count them all.
     """
 
     def __init__(self, problems: str | Iterable[str]):
         if isinstance(problems, str):
             problems = [problems]
-        kept: list[str] = []
-        more = 0
-        for line in problems:
-            if len(kept) < MAX_PROBLEMS:
-                kept.append(_bounded(str(line)))
-            else:
-                more += 1
-        if more:
-            kept.append(f"... and {more} more problems")
-        self.problems: list[str] = kept
-        super().__init__("\n".join(self.problems) if self.problems else "invalid configuration")
+        self.problems: list[str] = [_bounded(str(line)) for line in problems]
+        super().__init__("\n".join(self.shown()) if self.problems else "invalid configuration")
+
+    def shown(self) -> list[str]:
+        """The lines to print: the first MAX_PROBLEMS problems, then ``... and N more problems``."""
+        more = len(self.problems) - MAX_PROBLEMS
+        return self.problems if more <= 0 else [*self.problems[:MAX_PROBLEMS], f"... and {more} more problems"]
 
 
 class DataError(StageError, ValueError):

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         n = len(exc.problems)
         print(f"{args.file}: {n} problem{'s' if n != 1 else ''}", file=sys.stderr)
-        for line in exc.problems:
+        for line in exc.shown():
             print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     if not args.quiet:

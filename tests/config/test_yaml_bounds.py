@@ -176,3 +176,12 @@ def test_check_config_refuses_a_bad_file_before_the_heavy_imports(tmp_path: Path
     r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, timeout=120)
     assert r.stdout.split("\n")[0] == "2 []", (r.stdout, r.stderr)
     assert "more than 100 aliases" in r.stderr
+
+
+def test_a_thousand_unknown_keys_give_a_bounded_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "keys.yaml"
+    p.write_text("".join(f"key_{i}: {i}\n" for i in range(1000)))
+    assert check_config_run(argparse.Namespace(file=str(p), quiet=False)) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].endswith(": 1003 problems"), err[0]  # 1000 unknown keys + safety, controller, sim missing
+    assert len(err) == 1 + 100 + 1 and err[-1] == "stagectl: error: ... and 903 more problems", err[-3:]
