@@ -12,7 +12,7 @@ import reprlib
 from collections.abc import Iterable
 
 __all__ = ["ConfigError", "DataError", "DriveFault", "DriverError", "DriverIOError", "DriverInitError",
-           "DriverTimeoutError", "StageError", "short"]
+           "DriverTimeoutError", "StageError", "cut", "short"]
 
 #: the longest single problem line a ConfigError keeps, and how many lines it keeps (the rest are counted)
 MAX_PROBLEM_CHARS = 400
@@ -39,6 +39,8 @@ def short(value: object, limit: int = 60) -> str:
         digits = len(str(value)) if value.bit_length() < 13000 else int(value.bit_length() * 0.30103) + 1
         text = f"<integer of {digits - (value < 0)} digits>" if value.bit_length() < 13000 \
             else f"<integer of about {digits} digits>"
+    elif isinstance(value, str):  # reprlib would cut any string at 60 characters, whatever the limit
+        text = repr(value[:limit])
     else:
         try:
             text = _REPR.repr(value)
@@ -46,6 +48,12 @@ def short(value: object, limit: int = 60) -> str:
             text = f"<{type(value).__name__}>"
     limit = max(limit, 8)
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def cut(text: str, limit: int = 200) -> str:
+    """``text`` (a message, a header) on one line and at most ``limit`` characters, unquoted."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[:max(limit, 8) - 3] + "..."
 
 
 def _bounded(line: str) -> str:

@@ -38,7 +38,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-from stagectl.errors import ConfigError, short
+from stagectl.errors import ConfigError, cut, short
 
 T = TypeVar("T")
 
@@ -442,12 +442,6 @@ def _expanded_nodes(root: Any) -> int:
     return size(root) if root is not None else 0
 
 
-def _cut(text: str, limit: int = 200) -> str:
-    """``text`` on one line (PyYAML's messages have several), at most ``limit`` characters."""
-    text = " ".join(text.split())
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
 def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
     """Parse one YAML document with the bounded safe loader (see :data:`MAX_YAML_BYTES` and the others).
 
@@ -473,12 +467,12 @@ def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         kind = "YAML error" if isinstance(exc, yaml.constructor.ConstructorError) else "YAML syntax error"
-        problem = _cut(str(getattr(exc, "problem", None) or exc))
+        problem = cut(str(getattr(exc, "problem", None) or exc))
         raise ConfigError(f"{name}: {kind}{where}: {problem}") from None
     except RecursionError:
         raise ConfigError(f"{name}: YAML refused: nested too deeply") from None
     except Exception as exc:  # noqa: BLE001 - whatever else PyYAML raises is still one line, not a traceback
-        raise ConfigError(f"{name}: YAML cannot be read ({type(exc).__name__}: {_cut(str(exc))})") from None
+        raise ConfigError(f"{name}: YAML cannot be read ({type(exc).__name__}: {cut(str(exc))})") from None
     finally:
         if loader is not None:
             loader.dispose()

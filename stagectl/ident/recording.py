@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import DataError, short
+from stagectl.errors import DataError, cut, short
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -201,7 +201,7 @@ def load_recording(
                 hint = f" (mapped from {short(key)} by --columns)" if key in cmap else ""
                 raise DataError(
                     f"{p}: missing required column {short(name)}{hint} [{UNITS.get(key, '')}]; "
-                    f"header has: {short(', '.join(header), 200)}"
+                    f"header has: {cut(', '.join(header), 200)}"
                     + ("" if key in cmap else f"; map another name with --columns {key}=NAME")
                 )
         for key, name in cmap.items():
