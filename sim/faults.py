@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from stagectl.drivers.base import FaultKind
+from stagectl.errors import short
 from stagectl.schema import param
 from stagectl.sim.direct import PlantIO
-from stagectl.errors import short
 
 
 class SimFault(enum.Enum):

@@ -34,8 +34,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from stagectl.schema import param
 from stagectl.errors import short
+from stagectl.schema import param
 
 
 @dataclass(frozen=True)

@@ -30,9 +30,9 @@ from stagectl.daemon.reload import Reloader
 from stagectl.daemon.stream import handle_subscribe
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.daemon.remote import LoopLike
+from stagectl.errors import short
 from stagectl.outputs import plain
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
-from stagectl.errors import short
 
 __all__ = ["HANDLERS", "READ_ONLY_REQUESTS", "ServiceView", "dispatch", "dispatch_observer"]
 

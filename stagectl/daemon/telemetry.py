@@ -39,8 +39,8 @@ import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.config.daemon import TelemetryConfig
-from stagectl.ident.recording import RecordingCsv
 from stagectl.errors import short
+from stagectl.ident.recording import RecordingCsv
 
 log = logging.getLogger("stagectl.telemetry")
 

@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.errors import short
 from stagectl.friction.effects import Effects
 from stagectl.ident.localise import ResidualView
 from stagectl.ident.signals import Signals
-from stagectl.errors import short
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance

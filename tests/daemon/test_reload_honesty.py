@@ -11,8 +11,13 @@ from pathlib import Path
 import pytest
 
 from stagectl.config import load_app_config
-from stagectl.daemon.reload import (MIN_PHASE_MARGIN_DEG, same_value, sections_not_applied, stability_problem,
-                                    with_controller_of)
+from stagectl.daemon.reload import (
+    MIN_PHASE_MARGIN_DEG,
+    same_value,
+    sections_not_applied,
+    stability_problem,
+    with_controller_of,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
