@@ -51,7 +51,8 @@ FRAME = st.builds(
 
 def _world_and_drive() -> tuple[SimWorld, Cia402Drive, can.BusABC]:
     world = SimWorld.from_config(SimWorldConfig.from_mapping({"plant": PLANT}))
-    dut = Cia402Drive(Cia402Config(node_id=NODE, can=world.ready_info()["can"], sdo_timeout_s=0.5), timing=1e-3)
+    # the SDO timeout is a failure guard (a loaded machine), and the wait when a foreign frame silenced the drive
+    dut = Cia402Drive(Cia402Config(node_id=NODE, can=world.ready_info()["can"], sdo_timeout_s=1.5), timing=1e-3)
     dut.set_pump(world.pump)
     dut.open()
     dut.configure()
