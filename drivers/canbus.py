@@ -40,7 +40,7 @@ from typing import Any
 
 import can
 
-from stagectl.errors import ConfigError, DriverError, DriverInitError
+from stagectl.errors import ConfigError, DriverError, DriverInitError, short
 
 #: SocketCAN error class bits (linux/can/error.h) carried in an error frame's arbitration id
 CAN_ERR_BUSOFF = 0x00000040
@@ -165,7 +165,7 @@ def can_key_problems(mapping: Mapping[str, Any], *, path: str = "can") -> list[s
     if iface not in VALID_INTERFACES:
         close = difflib.get_close_matches(iface, sorted(VALID_INTERFACES), n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(sorted(VALID_INTERFACES))}"
-        return [f"{path}.interface: unknown python-can interface {iface!r} ({hint})"]
+        return [f"{path}.interface: unknown python-can interface {short(iface)} ({hint})"]
     keys = bus_keys(iface)
     if keys is None:
         return []

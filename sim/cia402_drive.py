@@ -693,7 +693,7 @@ class SimDriveConfig:
     """The simulated drive (YAML ``sim.drive``)."""
 
     node_id: int = param(1, desc="CANopen node id", ge=1, le=127)
-    resolution_m: float = param(1e-9, unit="m", desc="position per count of 0x6064", gt=0)
+    resolution_m: float = param(1e-9, unit="m", desc="position per count of 0x6064", ge=1e-15)
     force_per_unit_n: float = param(0.01, unit="N", desc="newtons per unit of target torque 0x6071", gt=0)
     velocity_resolution_m_s: float = param(1e-6, unit="m/s", desc="velocity per unit of 0x606C", gt=0)
     sync_timeout_s: float = param(

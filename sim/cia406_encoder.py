@@ -31,7 +31,8 @@ class SimEncoderConfig:
     """The simulated CiA 406 encoder (YAML ``sim.encoder``)."""
 
     node_id: int = param(2, desc="CANopen node id", ge=1, le=127)
-    resolution_m: float = param(1e-9, unit="m", desc="measuring step (position per count of 0x6004)", gt=0)
+    resolution_m: float = param(1e-9, unit="m", desc="measuring step (position per count of 0x6004)",
+                                 ge=1e-15)
     eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia406.eds)")
 
 

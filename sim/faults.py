@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from stagectl.drivers.base import FaultKind
+from stagectl.errors import short
 from stagectl.schema import param
 from stagectl.sim.direct import PlantIO
 
@@ -190,6 +191,6 @@ def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> 
         try:
             fk = FaultKind(kind)
         except ValueError:
-            raise ValueError(f"kind: unknown fault {kind!r} (known: stale, nan, position_jump, "
+            raise ValueError(f"kind: unknown fault {short(kind)} (known: stale, nan, position_jump, "
                              f"{', '.join(k.value for k in FaultKind)})") from None
         io.inject_fault(fk, str(fields.get("detail", "injected")), int(fields.get("code", 0)))

@@ -116,7 +116,7 @@ class SimInterferometerConfig:
     host: str = param("127.0.0.1", desc="tcp: listen address")
     port: int = param(0, desc="tcp: listen port (0: ephemeral, see .url)", ge=0, le=65535)
     rate_hz: float = param(1000.0, unit="Hz", desc="streaming rate (start()) and lock-step plant_time rate", gt=0)
-    resolution_m: float = param(1e-9, unit="m", desc="position resolution per count", gt=0)
+    resolution_m: float = param(1e-9, unit="m", desc="position resolution per count", ge=1e-15)
     signal: int = param(230, desc="signal strength byte sent when healthy (0..255)", ge=0, le=255)
     baudrate: int | None = param(None, unit="bit/s", desc="pace frames as on an 8N1 line (None: unpaced)", gt=0)
     lockstep: str = param("per_pump", desc="pump(): per_pump = one frame per call; plant_time = one frame "

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
@@ -61,8 +61,9 @@ FloatArray = npt.NDArray[np.float64]
 class SensorConfig:
     """Position sensor model: noise, then quantisation, then a delay in whole plant steps."""
 
-    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", gt=0.0)
-    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0)
+    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", ge=1e-15)
+    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0,
+                               le=1.0)
     delay_steps: int = param(0, unit="", desc="measurement delay in plant.step() calls", ge=0, le=100000)
 
 
@@ -81,7 +82,7 @@ def _unresolved_model_file(value: Any, path: str, problems: list[str]) -> None:
     if value is None:
         return None
     if not isinstance(value, str):
-        problems.append(f"{path}: expected a path string, got {value!r}")
+        problems.append(f"{path}: expected a path string, got {short(value)}")
     else:
         problems.append(f"{path}: {value} is not loaded (load the configuration with stagectl.config, or pass "
                         "the StageModel to PlantConfig.from_mapping as model=)")
@@ -96,7 +97,7 @@ class PlantConfig:
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
     effects: Effects = param(default_factory=Effects, desc="additional effects (offset, ripple, cogging, ...)",
                              parse=parse_effects)
-    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", gt=0.0, le=1e-2)
+    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", ge=1e-7, le=1e-2)
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
     actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
     x0_m: float = param(0.0, unit="m", desc="initial position")
@@ -136,11 +137,11 @@ class PlantConfig:
         if data is None:
             data = {}
         if not isinstance(data, Mapping):
-            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {data!r}")
+            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {short(data)}")
         merged: dict[str, Any] = dict(data)
         mf = merged.get("model_file")
         if mf is not None and not isinstance(mf, str):
-            raise ConfigError(f"{path}.model_file: expected a path string, got {mf!r}")
+            raise ConfigError(f"{path}.model_file: expected a path string, got {short(mf)}")
         if mf is not None and model is None:
             problems: list[str] = []
             _unresolved_model_file(mf, f"{path}.model_file", problems)

@@ -52,7 +52,7 @@ import can
 
 from stagectl.drivers.canbus import close_bus, open_bus
 from stagectl.drivers.interferometer_protocol import LinkBytes
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction import StageModel
 from stagectl.schema import load, param, section_parser
 from stagectl.sim.cia402_drive import SimCanopenDevice, SimCia402Drive, SimDriveConfig
@@ -73,7 +73,7 @@ def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec
     if value is None:
         return ()
     if not isinstance(value, (list, tuple)):
-        problems.append(f"{path}: expected a list of faults, got {value!r}")
+        problems.append(f"{path}: expected a list of faults, got {short(value)}")
         return None
     out: list[FaultSpec] = []
     n0 = len(problems)
@@ -352,7 +352,7 @@ class SimWorld:
         if dev is None:
             if self._bus is None:
                 raise RuntimeError("SimWorld.inject(): open() or start() the world first")
-            raise ConfigError(f"sim.faults: device {spec.device!r} is not configured")
+            raise ConfigError(f"sim.faults: device {short(spec.device)} is not configured")
         with self._lock:
             dev.add_fault(spec)
         return spec

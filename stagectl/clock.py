@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -58,7 +58,7 @@ class Timing:
     def __post_init__(self) -> None:
         p = self.period_s
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not (p > 0 and math.isfinite(p)):
-            raise ConfigError(f"period_s: must be > 0 s (got {p!r})")
+            raise ConfigError(f"period_s: must be > 0 s (got {short(p)})")
         object.__setattr__(self, "period_s", float(p))
 
     @classmethod

@@ -38,11 +38,12 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, cut, short
 
 T = TypeVar("T")
 
 _MISSING = dataclasses.MISSING
+_INT64 = 2**63
 
 #: signature of a custom parse hook: (value, path, problems) -> parsed value (or None on error,
 #: after appending messages to ``problems``)
@@ -126,19 +127,27 @@ def _check_number(value: Any, path: str, meta: Mapping[str, Any], problems: list
             try:
                 value = int(value) if integer else float(value)
             except ValueError:
-                problems.append(f"{path}: expected a number{_unit(meta)}, got {value!r}")
+                problems.append(f"{path}: expected a number{_unit(meta)}, got {short(value)}")
                 return None
         else:
-            problems.append(f"{path}: expected a number{_unit(meta)}, got {type(value).__name__} {value!r}")
+            problems.append(f"{path}: expected a number{_unit(meta)}, "
+                            f"got {type(value).__name__} {short(value)}")
             return None
     if integer:
         if isinstance(value, float):
             if not value.is_integer():
-                problems.append(f"{path}: expected an integer, got {value!r}")
+                problems.append(f"{path}: expected an integer{_unit(meta)}, got {short(value)}")
                 return None
             value = int(value)
+        if not -_INT64 <= value < _INT64:
+            problems.append(f"{path}: out of range{_unit(meta)} (got {short(value)})")
+            return None
     else:
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond 1.8e308
+            problems.append(f"{path}: must be finite{_unit(meta)}, got {short(value)}")
+            return None
         if math.isnan(value):
             problems.append(f"{path}: must be a finite number{_unit(meta)}, got NaN")
             return None
@@ -177,7 +186,7 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
         return None
     if origin is typing.Literal:
         if value not in args:
-            problems.append(f"{path}: must be one of {', '.join(map(str, args))} (got {value!r})")
+            problems.append(f"{path}: must be one of {', '.join(map(str, args))} (got {short(value)})")
             return None
         return value
     if tp is float:
@@ -186,21 +195,21 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
         return _check_number(value, path, meta, problems, integer=True)
     if tp is bool:
         if not isinstance(value, bool):
-            problems.append(f"{path}: expected true or false, got {value!r}")
+            problems.append(f"{path}: expected true or false, got {short(value)}")
             return None
         return value
     if tp is str:
         if not isinstance(value, str):
-            problems.append(f"{path}: expected a string, got {value!r}")
+            problems.append(f"{path}: expected a string, got {short(value)}")
             return None
         choices = meta.get("choices")
         if choices and value not in choices:
-            problems.append(f"{path}: must be one of {', '.join(choices)} (got {value!r})")
+            problems.append(f"{path}: must be one of {', '.join(choices)} (got {short(value)})")
             return None
         return value
     if tp is Path:
         if not isinstance(value, str):
-            problems.append(f"{path}: expected a path string, got {value!r}")
+            problems.append(f"{path}: expected a path string, got {short(value)}")
             return None
         return Path(value)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
@@ -208,11 +217,11 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
             if value == member.value or (isinstance(value, str) and value.lower() == member.name.lower()):
                 return member
         allowed = ", ".join(str(m.value) for m in tp)
-        problems.append(f"{path}: must be one of {allowed} (got {value!r})")
+        problems.append(f"{path}: must be one of {allowed} (got {short(value)})")
         return None
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            problems.append(f"{path}: expected a list{_unit_of_list(meta)}, got {value!r}")
+            problems.append(f"{path}: expected a list{_unit_of_list(meta)}, got {short(value)}")
             return None
         elem_t = args[0] if args else Any
         out = []
@@ -222,7 +231,7 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
         return tuple(out) if len(problems) == n_before else None
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
-            problems.append(f"{path}: expected a mapping, got {value!r}")
+            problems.append(f"{path}: expected a mapping, got {short(value)}")
             return None
         return dict(value)
     if tp is Any:
@@ -238,16 +247,17 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        problems.append(f"{where}: expected a mapping, got {type(data).__name__} {data!r}")
+        problems.append(f"{where}: expected a mapping, got {type(data).__name__} {short(data)}")
         return None
     hints = typing.get_type_hints(cls)
     flds = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     prefix = f"{path}." if path else ""
     for key in data:
         if key not in flds:
-            close = difflib.get_close_matches(str(key), list(flds), n=2, cutoff=0.6)
+            name = key if isinstance(key, str) and len(key) <= 60 else short(key)
+            close = difflib.get_close_matches(name, list(flds), n=2, cutoff=0.6)
             hint = f" (did you mean {', '.join(close)}?)" if close else f" (known keys: {', '.join(flds)})"
-            problems.append(f"{prefix}{key}: unknown key{hint}")
+            problems.append(f"{prefix}{name}: unknown key{hint}")
     kwargs: dict[str, Any] = {}
     ok = True
     for name, f in flds.items():
@@ -322,23 +332,168 @@ def section_parser(cls: type[T]) -> ParseHook:
     return hook
 
 
-def load_yaml_file(path: str | Path) -> Any:
-    """Read a YAML file with ``yaml.safe_load``; file and syntax errors become :class:`ConfigError`."""
+#: bounds of a YAML file read by :func:`load_yaml_file` (configurations and model files are a few KB): the
+#: file size, the alias count (``*name``), the nesting depth and the node count with aliases expanded. They
+#: refuse "billion laughs" alias bombs and deep nesting before any value is built.
+MAX_YAML_BYTES = 256 * 1024
+MAX_YAML_ALIASES = 100
+MAX_YAML_DEPTH = 32
+MAX_YAML_NODES = 100_000
+
+
+class _YamlRefused(Exception):
+    """A bound of the bounded loader was exceeded (message: what and where)."""
+
+
+def _bounded_loader(text: str) -> Any:
+    """A ``yaml.SafeLoader`` for ``text`` that counts aliases and depth while composing, refuses duplicate
+    mapping keys, and turns any exception raised while building a value into a ``ConstructorError`` that
+    names the value and its line."""
     import yaml
 
-    p = Path(path)
+    class BoundedLoader(yaml.SafeLoader):
+        def __init__(self, stream: str) -> None:
+            super().__init__(stream)
+            self.n_aliases = 0
+            self.depth = 0
+
+        def compose_node(self, parent: Any, index: Any) -> Any:
+            if self.check_event(yaml.AliasEvent):
+                self.n_aliases += 1
+                if self.n_aliases > MAX_YAML_ALIASES:
+                    line = self.peek_event().start_mark.line + 1  # type: ignore[no-untyped-call]
+                    raise _YamlRefused(f"more than {MAX_YAML_ALIASES} aliases (*name) at line {line}")
+                return super().compose_node(parent, index)
+            self.depth += 1
+            try:
+                if self.depth > MAX_YAML_DEPTH:
+                    line = self.peek_event().start_mark.line + 1  # type: ignore[no-untyped-call]
+                    raise _YamlRefused(f"nested deeper than {MAX_YAML_DEPTH} levels at line {line}")
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
+
+        def construct_object(self, node: Any, deep: bool = False) -> Any:
+            try:
+                return super().construct_object(node, deep=deep)
+            except (yaml.YAMLError, _YamlRefused):
+                raise
+            except Exception as exc:  # noqa: BLE001 - PyYAML's constructors raise AttributeError, ValueError
+                what = short(node.value, 40) if isinstance(node, yaml.ScalarNode) else node.id
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"cannot read {what} as {node.tag.rsplit(':', 1)[-1]} ({type(exc).__name__})",
+                    node.start_mark) from None
+
+        def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+            if isinstance(node, yaml.MappingNode):
+                seen: dict[Any, int] = {}
+                for key_node, _value in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key = self.construct_object(key_node, deep=True)
+                    line = key_node.start_mark.line + 1
+                    try:
+                        first = seen.get(key)
+                    except TypeError:
+                        continue  # unhashable: PyYAML's own check names it
+                    if first is not None:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"duplicate key {short(key, 40)} (first at line {first})",
+                            key_node.start_mark)
+                    seen[key] = line
+            return super().construct_mapping(node, deep=deep)
+
+    return BoundedLoader(text)
+
+
+def _expanded_nodes(root: Any) -> int:
+    """How many nodes the document would have with every alias expanded (refused above MAX_YAML_NODES or
+    when an alias refers to a node that contains it)."""
+    import yaml
+
+    sizes: dict[int, int] = {}
+    busy: set[int] = set()
+
+    def size(node: Any) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in busy:
+            raise _YamlRefused(f"recursive alias at line {node.start_mark.line + 1}")
+        busy.add(key)
+        n = 1
+        if isinstance(node, yaml.SequenceNode):
+            for child in node.value:
+                n += size(child)
+                if n > MAX_YAML_NODES:
+                    break
+        elif isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                n += size(k) + size(v)
+                if n > MAX_YAML_NODES:
+                    break
+        busy.discard(key)
+        if n > MAX_YAML_NODES:
+            raise _YamlRefused(f"more than {MAX_YAML_NODES} values once aliases are expanded "
+                               f"(line {node.start_mark.line + 1})")
+        sizes[key] = n
+        return n
+
+    return size(root) if root is not None else 0
+
+
+def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
+    """Parse one YAML document with the bounded safe loader (see :data:`MAX_YAML_BYTES` and the others).
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``name``, the line and what is wrong: syntax, a bound exceeded, a duplicate key, a
+        value PyYAML cannot build (``!!timestamp 2001-13-45x``). Never another exception.
+    """
+    import yaml
+
+    if len(text) > MAX_YAML_BYTES:
+        raise ConfigError(f"{name}: larger than {MAX_YAML_BYTES // 1024} KiB; not a configuration file")
+    loader = None
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{p}: not a UTF-8 text file (byte {exc.start}: {exc.reason})") from exc
-    try:
-        return yaml.safe_load(text)
+        loader = _bounded_loader(text)
+        node = loader.get_single_node()
+        _expanded_nodes(node)
+        return loader.construct_document(node) if node is not None else None
+    except _YamlRefused as exc:
+        raise ConfigError(f"{name}: YAML refused: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{p}: YAML syntax error{where}: {getattr(exc, 'problem', exc)}") from exc
+        kind = "YAML error" if isinstance(exc, yaml.constructor.ConstructorError) else "YAML syntax error"
+        problem = cut(str(getattr(exc, "problem", None) or exc))
+        raise ConfigError(f"{name}: {kind}{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{name}: YAML refused: nested too deeply") from None
+    except Exception as exc:  # noqa: BLE001 - whatever else PyYAML raises is still one line, not a traceback
+        raise ConfigError(f"{name}: YAML cannot be read ({type(exc).__name__}: {cut(str(exc))})") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+
+
+def load_yaml_file(path: str | Path) -> Any:
+    """Read a YAML file with the bounded safe loader (:func:`parse_yaml_text`); file and syntax errors,
+    oversize files, alias bombs, deep nesting and duplicate keys become one-line :class:`ConfigError`."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            raw = f.read(MAX_YAML_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
+    if len(raw) > MAX_YAML_BYTES:
+        raise ConfigError(f"{p}: larger than {MAX_YAML_BYTES // 1024} KiB; not a configuration file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file (byte {exc.start}: {exc.reason})") from exc
+    return parse_yaml_text(text, str(p))
 
 
 def describe(cls: type) -> list[tuple[str, str, str, str]]:

@@ -37,6 +37,7 @@ from typing import Any
 import yaml
 
 from stagectl.daemon.control import ControlClient
+from stagectl.schema import load_yaml_file
 
 __all__ = ["add_arguments", "run"]
 
@@ -99,7 +100,7 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
                 return [absolutize(v) for v in node]
             return node
 
-        raw = absolutize(yaml.safe_load(config.read_text()) or {})
+        raw = absolutize(load_yaml_file(config) or {})
         if fifo is not None:
             loop = raw.setdefault("loop", {}) or {}
             loop["realtime"] = {**(loop.get("realtime") or {}), "fifo_priority": fifo}

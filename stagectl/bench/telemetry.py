@@ -39,6 +39,7 @@ import yaml
 from stagectl.clock import MonotonicClock
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
+from stagectl.schema import load_yaml_file
 
 __all__ = ["add_arguments", "exit_code", "run", "run_daemon", "run_ring"]
 
@@ -160,7 +161,7 @@ def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     tmp = tempfile.TemporaryDirectory(prefix="stagectl-bench-daemon-")
     d = Path(tmp.name)
     src = Path(config).resolve()
-    data = yaml.safe_load(src.read_text())
+    data = load_yaml_file(src)  # the bounded loader, as the daemon reads it
 
     def absolutize(node: Any) -> Any:
         if isinstance(node, dict):

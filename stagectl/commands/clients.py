@@ -174,6 +174,8 @@ def cmd_gains(args: argparse.Namespace) -> int:
     rl = reply.get("reload")
     if rl:
         print(f"# last reload: {'applied' if rl.get('ok') else 'REJECTED: ' + str(rl.get('error'))}")
+        if rl.get("ok") and rl.get("note"):
+            print(f"# {rl['note']}")
     return 0
 
 
@@ -249,6 +251,8 @@ def render_status(st: dict[str, Any]) -> str:
     rl = st.get("reload")
     if rl and not rl.get("ok"):
         lines.append(f"reload     REJECTED: {rl.get('error')}")
+    elif rl and rl.get("note"):
+        lines.append(f"reload     controller applied; {rl['note']}")
     wd = st.get("watchdog") or {}
     if wd.get("reason"):
         lines.append(f"watchdog   withheld: {wd['reason']}")

@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.outputs import prepare_out_dir
 
 
@@ -45,7 +45,7 @@ def _parse_fault(spec: str | None) -> tuple[str, float] | None:
     try:
         return name, float(t or "0")
     except ValueError:
-        raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {spec!r}") from None
+        raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {short(spec)}") from None
 
 
 def run(args: argparse.Namespace) -> int:

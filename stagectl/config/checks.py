@@ -34,7 +34,7 @@ from stagectl.config.sections import AppConfig, DemoConfig, IoConfig, IoKind, Se
 from stagectl.control.controller import ControllerConfig, check_controller
 from stagectl.control.reference import scenario_names
 from stagectl.drivers.canbus import bus_kwargs, can_key_problems
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.runtime.config import LoopConfig
 from stagectl.safety import SafetyConfig
 from stagectl.sim.world import SimWorldConfig
@@ -205,7 +205,7 @@ def demo_problems(cfg: AppConfig | Sections) -> list[str]:
         return []
     names = scenario_names()
     if demo.scenario not in names:
-        return [f"demo.scenario: unknown scenario {demo.scenario!r} (known: {', '.join(names)})"]
+        return [f"demo.scenario: unknown scenario {short(demo.scenario)} (known: {', '.join(names)})"]
     return []
 
 

@@ -28,7 +28,7 @@ from typing import Any, TypeVar
 from stagectl.config.checks import Sections, cross_checks
 from stagectl.config.sections import AppConfig, DemoConfig, IoConfig
 from stagectl.control.controller import ControllerConfig, resolve_model
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction import StageModel, load_model_file
 from stagectl.safety import SafetyConfig
 from stagectl.schema import load, load_yaml_file
@@ -53,7 +53,7 @@ class ModelFiles:
         if value is None:
             return None
         if not isinstance(value, (str, Path)):
-            problems.append(f"{key}: expected a path string, got {value!r}")
+            problems.append(f"{key}: expected a path string, got {short(value)}")
             return None
         p = self.path_of(value)
         if p not in self._loaded:
@@ -84,7 +84,7 @@ def parse_sim_section(data: Any, models: ModelFiles, problems: list[str],
     if data is None:
         return None
     if not isinstance(data, Mapping):
-        problems.append(f"{path}: expected a mapping, got {data!r}")
+        problems.append(f"{path}: expected a mapping, got {short(data)}")
         return None
     n0 = len(problems)
     model_file = _get(data, "plant", "model_file")

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from stagectl.errors import short
 from stagectl.schema import param
 
 
@@ -78,7 +79,7 @@ class PidState:
 def check_dt(dt: float) -> None:
     """Raise ``ValueError`` unless ``dt`` > 0 and finite."""
     if not (dt > 0.0 and math.isfinite(dt)):
-        raise ValueError(f"dt must be > 0 and finite (got {dt!r} s)")
+        raise ValueError(f"dt must be > 0 and finite (got {short(dt)} s)")
 
 
 class Pid:

@@ -20,7 +20,7 @@ from stagectl.control.trajectory import (
     benchmark_scenarios,
     demo_scenario,
 )
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 
 __all__ = ["EXTRA_SCENARIOS", "TrajectoryReference", "get_scenario", "scenario_names"]
 
@@ -47,7 +47,7 @@ def get_scenario(name: str, field: str = "--scenario") -> Scenario | None:
         return demo_scenario()
     sc = benchmark_scenarios()
     if name not in sc:
-        raise ConfigError(f"{field}: unknown scenario {name!r} (known: {', '.join(scenario_names())})")
+        raise ConfigError(f"{field}: unknown scenario {short(name)} (known: {', '.join(scenario_names())})")
     return sc[name]
 
 

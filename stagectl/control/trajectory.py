@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from stagectl.control.api import Reference
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.schema import load, param
 
 __all__ = [
@@ -114,7 +114,7 @@ _KINDS: dict[str, type] = {"move": Move, "cosine": Cosine, "sine": Sine, "triang
 def parse_segments(value: Any, path: str, problems: list[str]) -> tuple[SegmentSpec, ...] | None:
     """``stagectl.schema`` parse hook: a YAML list of ``{kind: ..., ...}`` mappings -> segment specs."""
     if not isinstance(value, (list, tuple)):
-        problems.append(f"{path}: expected a list of segments, got {value!r}")
+        problems.append(f"{path}: expected a list of segments, got {short(value)}")
         return None
     out: list[SegmentSpec] = []
     n0 = len(problems)
@@ -125,7 +125,7 @@ def parse_segments(value: Any, path: str, problems: list[str]) -> tuple[SegmentS
             continue
         if not isinstance(item, Mapping) or item.get("kind") not in _KINDS:
             kind = item.get("kind") if isinstance(item, Mapping) else None
-            problems.append(f"{p}.kind: must be one of {', '.join(_KINDS)} (got {kind!r})")
+            problems.append(f"{p}.kind: must be one of {', '.join(_KINDS)} (got {short(kind)})")
             continue
         rest = {k: v for k, v in item.items() if k != "kind"}
         try:
@@ -344,7 +344,7 @@ def _bind(spec: SegmentSpec, start: Reference) -> _Bound:
             ph.append(((mid_cruise if i + 1 < n_rev else end_cruise) / V, 0.0))
         ph += _vel_change(-sign * V, A, J)
         return _Phases(x0, 0.0, 0.0, ph, x_end=x0)
-    raise TypeError(f"unknown segment {spec!r}")
+    raise TypeError(f"unknown segment {short(spec)}")
 
 
 # ------------------------------------------------------------------------------------------ generator

@@ -30,6 +30,7 @@ from stagectl.daemon.reload import Reloader
 from stagectl.daemon.stream import handle_subscribe
 from stagectl.daemon.telemetry import TelemetryWriter
 from stagectl.daemon.remote import LoopLike
+from stagectl.errors import short
 from stagectl.outputs import plain
 from stagectl.runtime.requests import SOCKET_KINDS, RequestError, check_fields, parse_request
 
@@ -58,9 +59,27 @@ def _only(req: Mapping[str, object], *allowed: str) -> None:
     check_fields(str(req.get("request")), {k: v for k, v in req.items() if k not in ("request", "id")}, allowed)
 
 
+#: the longest text a status/gains reply carries in one field (reload errors, fault causes, telemetry errors)
+MAX_REPLY_TEXT = 2000
+
+
+def bounded_texts(value: Any, limit: int = MAX_REPLY_TEXT) -> Any:
+    """``value`` (plain JSON data) with every string longer than ``limit`` cut and marked, so a status or
+    gains reply stays far below the reply size limit whatever an error message held."""
+    if isinstance(value, str):
+        if len(value) <= limit:
+            return value
+        return f"{value[:limit]}... ({len(value) - limit} more characters)"
+    if isinstance(value, Mapping):
+        return {k: bounded_texts(v, limit) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [bounded_texts(v, limit) for v in value]
+    return value
+
+
 def handle_status(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     _only(req)
-    return {"status": svc.status()}
+    return {"status": bounded_texts(svc.status())}
 
 
 def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
@@ -74,7 +93,7 @@ def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrF
 def handle_gains(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     _only(req)
     ctl = svc.asm.controller_config if svc.asm else None
-    return {"controller": plain(ctl, json=True), "reload": svc.reloader.status}
+    return {"controller": plain(ctl, json=True), "reload": bounded_texts(svc.reloader.status)}
 
 
 def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
@@ -86,7 +105,8 @@ def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     if action == "start":
         name = req.get("name")
         if not isinstance(name, str):
-            raise RequestError("name", f"must be a plain file name of letters, digits, '._-' (got {name!r})")
+            raise RequestError("name", "must be a plain file name of letters, digits, '._-' "
+                                       f"(got {short(name)})")
         try:
             path = writer.record_start(name)
         except OSError as exc:
@@ -104,7 +124,7 @@ def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
 
         threading.Thread(target=stop_recording, name="stagectl-record-stop", daemon=True).start()
         return fut
-    raise RequestError("action", f"must be start or stop (got {action!r})")
+    raise RequestError("action", f"must be start or stop (got {short(action)})")
 
 
 def handle_fault(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:

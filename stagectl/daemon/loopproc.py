@@ -41,7 +41,7 @@ from stagectl.daemon._sched import SCHED_RESET_ON_FORK, demote_to_normal_priorit
 from stagectl.daemon.lifecycle import Assembly
 from stagectl.daemon.remote import DEVICE_STATES, KIND_CODES, LOOP_STATES, RemoteLoop
 from stagectl.daemon.telemetry import SharedTelemetryRing
-from stagectl.errors import StageError
+from stagectl.errors import StageError, short
 from stagectl.loop import ControlLoop
 from stagectl.outputs import plain
 from stagectl.runtime.requests import (
@@ -196,7 +196,7 @@ class Bridge:
             self.reply(rid, {"injected": fault_kind, **(res if isinstance(res, dict) else {})}, None)
             return
         else:
-            raise RequestError("request", f"unknown request code {kind!r}")
+            raise RequestError("request", f"unknown request code {short(kind)}")
         fut = self.loop.submit(req)
         fut.add_done_callback(lambda f: self.reply(rid, f.result() if f.exception() is None else None,
                                                    f.exception()))

@@ -187,6 +187,10 @@ class StageService:
         self.state = Lifecycle.FAULT if latched else Lifecycle.ACTIVE
         self.notify.ready(self._status_line())
         lifecycle.announce_ready(latched, self.server.path)
+        if self.app_cfg is not None and self.cfg.isolation == "process":
+            # the first SIGHUP then needs no import of python-control; never beside a loop thread (isolation:
+            # thread), whose process must not import it (docs/architecture.md §3)
+            self.reloader.warm(self.app_cfg)
         return None
 
     # ================================================================== supervision

@@ -39,6 +39,7 @@ import numpy as np
 
 from stagectl.daemon._sched import demote_to_normal_priority
 from stagectl.config.daemon import TelemetryConfig
+from stagectl.errors import short
 from stagectl.ident.recording import RecordingCsv
 
 log = logging.getLogger("stagectl.telemetry")
@@ -378,7 +379,7 @@ class TelemetryWriter:
             The file cannot be created (reported as is).
         """
         if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
-            raise ValueError(f"name: must be a plain file name of letters, digits, '._-' (got {name!r})")
+            raise ValueError(f"name: must be a plain file name of letters, digits, '._-' (got {short(name)})")
         fname = name if name.endswith(".csv") else name + ".csv"
         path = self.settings.directory / fname
         with self._lock:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction.base import FrictionKernel, FrictionModel, register, registry
 from stagectl.friction.effects import Effects
 from stagectl.schema import load, load_yaml_file, param, section_parser
@@ -69,7 +69,7 @@ def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel 
     if isinstance(value, FrictionModel):
         return value
     if not isinstance(value, Mapping):
-        problems.append(f"{path}: expected a mapping with a 'model:' tag, got {value!r}")
+        problems.append(f"{path}: expected a mapping with a 'model:' tag, got {short(value)}")
         return None
     tag = value.get("model")
     reg = registry()
@@ -78,7 +78,8 @@ def parse_friction(value: Any, path: str, problems: list[str]) -> FrictionModel 
                         f"{', '.join(sorted(reg))})")
         return None
     if not isinstance(tag, str) or tag not in reg:
-        problems.append(f"{path}.model: unknown friction model {tag!r} (known: {', '.join(sorted(reg))})")
+        problems.append(f"{path}.model: unknown friction model {short(tag)} "
+                        f"(known: {', '.join(sorted(reg))})")
         return None
     cls = reg[tag]
     rest = {k: v for k, v in value.items() if k != "model"}

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import ConfigError
+from stagectl.errors import ConfigError, short
 from stagectl.friction._numba import FloatArray, KernelModel, stribeck_excess
 from stagectl.friction.base import register
 from stagectl.jit import kernel
@@ -193,11 +193,11 @@ def _parse_float_or_tuple(value: Any, path: str, problems: list[str]) -> tuple[f
     for i, item in enumerate(items):
         where = f"{path}[{i}]" if isinstance(value, (list, tuple)) else path
         if isinstance(item, bool) or not isinstance(item, (int, float)):
-            problems.append(f"{where}: expected a number N·s/m, got {item!r}")
+            problems.append(f"{where}: expected a number N·s/m, got {short(item)}")
             return None
         f = float(item)
         if not math.isfinite(f) or f < 0.0:
-            problems.append(f"{where}: must be >= 0 and finite N·s/m (got {item!r})")
+            problems.append(f"{where}: must be >= 0 and finite N·s/m (got {short(item)})")
             return None
         out.append(f)
     return tuple(out)

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.errors import short
 from stagectl.friction.effects import Effects
 from stagectl.ident.localise import ResidualView
 from stagectl.ident.signals import Signals
@@ -227,7 +228,7 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
         for s in self._specs:
             for dep in (*s.implies, *s.contains):
                 if dep not in self._by_name:
-                    problems.append(f"{s.name}: unknown effect {dep!r}")
+                    problems.append(f"{s.name}: unknown effect {short(dep)}")
         if sum(s.scaling is not None for s in self._specs) > 1:
             problems.append("more than one friction-scaling effect")
         if sum(s.target_delay is not None for s in self._specs) > 1:
@@ -236,7 +237,8 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
         model_file_effects = {f.name for f in dataclasses.fields(Effects)}
         for s in self._specs:
             if s.twin is not None and s.twin not in model_file_effects:
-                problems.append(f"{s.name}: twin {s.twin!r} is not a model-file effect (stagectl.friction.effects."
+                problems.append(f"{s.name}: twin {short(s.twin)} is not a model-file effect "
+                                f"(stagectl.friction.effects."
                                 f"Effects has {', '.join(sorted(model_file_effects))})")
         if len(set(twins)) != len(twins):
             problems.append("two effects map to the same model-file effect")
@@ -260,7 +262,7 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
         try:
             return self._by_name[name]
         except KeyError:
-            raise ValueError(f"unknown effect {name!r}") from None
+            raise ValueError(f"unknown effect {short(name)}") from None
 
     def active(self, h: Hyp) -> list[EffectSpec[Any, Any]]:
         """The specs of the effects in ``h`` (registered ones only), in design-column order."""

@@ -40,7 +40,7 @@ import numpy.typing as npt
 from scipy import signal
 from scipy.optimize import least_squares, minimize_scalar, nnls
 
-from stagectl.errors import ConfigError, DataError
+from stagectl.errors import ConfigError, DataError, short
 from stagectl.friction import build
 from stagectl.ident import effects as fx
 from stagectl.ident import regress as rg
@@ -366,7 +366,7 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
         segments, ...); the message says what is missing.
     """
     if model not in MODELS:
-        raise DataError(f"--model: unknown model {model!r} (known: {', '.join(MODELS)})")
+        raise DataError(f"--model: unknown model {short(model)} (known: {', '.join(MODELS)})")
     meas = measure(rec, mass_kg, cutoff_hz)
     quality: dict[str, Any] = {"notes": list(meas.notes)}
     virgin = None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import DataError
+from stagectl.errors import DataError, cut, short
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -134,13 +135,14 @@ def parse_columns(spec: str | None) -> dict[str, str]:
         if not item:
             continue
         if "=" not in item:
-            raise DataError(f"--columns: entry {item!r} is not of the form canonical=file_column (e.g. t=t_s)")
+            raise DataError(f"--columns: entry {short(item)} is not of the form canonical=file_column "
+                            "(e.g. t=t_s)")
         key, _, name = item.partition("=")
         key, name = key.strip(), name.strip()
         if key not in UNITS:
-            raise DataError(f"--columns: unknown canonical column {key!r} (known: {', '.join(UNITS)})")
+            raise DataError(f"--columns: unknown canonical column {short(key)} (known: {', '.join(UNITS)})")
         if not name:
-            raise DataError(f"--columns: empty file column name for {key!r}")
+            raise DataError(f"--columns: empty file column name for {short(key)}")
         out[key] = name
     return out
 
@@ -196,15 +198,16 @@ def load_recording(
             if name in index:
                 wanted[key] = name
             elif key in required:
-                hint = f" (mapped from {key!r} by --columns)" if key in cmap else ""
+                hint = f" (mapped from {short(key)} by --columns)" if key in cmap else ""
                 raise DataError(
-                    f"{p}: missing required column {name!r}{hint} [{UNITS.get(key, '')}]; "
-                    f"header has: {', '.join(header)}"
+                    f"{p}: missing required column {short(name)}{hint} [{UNITS.get(key, '')}]; "
+                    f"header has: {cut(', '.join(header), 200)}"
                     + ("" if key in cmap else f"; map another name with --columns {key}=NAME")
                 )
         for key, name in cmap.items():
             if key not in wanted and name not in index:
-                raise DataError(f"{p}: column {name!r} given for {key!r} by --columns is not in the header")
+                raise DataError(f"{p}: column {short(name)} given for {short(key)} by --columns "
+                                "is not in the header")
         used = set(wanted.values())
         extra_names = [h for h in header if h and h not in used]
         fast = _read_fast(p, len(header))
@@ -227,17 +230,19 @@ def load_recording(
                 vals: list[float] = []
                 for key, ci in zip(order, cols_idx):
                     if ci >= len(row):
-                        raise DataError(f"{p}: row {line}, column {wanted[key]!r}: missing value (row too short)")
+                        raise DataError(f"{p}: row {line}, column {short(wanted[key])}: missing value "
+                                        "(row too short)")
                     cell = row[ci].strip()
                     try:
                         val = float(cell)
                     except ValueError:
                         raise DataError(
-                            f"{p}: row {line}, column {wanted[key]!r}: non-numeric value {cell!r} "
+                            f"{p}: row {line}, column {short(wanted[key])}: non-numeric value {short(cell)} "
                             f"(expected a number in {UNITS.get(key, 'SI units')})"
                         ) from None
                     if not math.isfinite(val):
-                        raise DataError(f"{p}: row {line}, column {wanted[key]!r}: {cell} is not a finite number")
+                        raise DataError(f"{p}: row {line}, column {short(wanted[key])}: "
+                                        f"{short(cell, 30)} is not a finite number")
                     vals.append(val)
                 rows.append(vals)
                 ev: list[float] = []
@@ -269,7 +274,9 @@ def _read_fast(p: Path, ncols: int) -> FloatArray | None:
     """The data rows as one float array when every cell is a finite number (numpy's C parser, several times
     faster than the row-by-row reader); None otherwise, and the careful reader then names the bad cell."""
     try:
-        arr = np.loadtxt(p, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8-sig")
+        with warnings.catch_warnings():  # "input contained no data": the careful reader says it in one line
+            warnings.simplefilter("ignore")
+            arr = np.loadtxt(p, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8-sig")
     except (ValueError, IndexError, OSError, UnicodeDecodeError):
         return None
     if arr.ndim != 2 or arr.shape[1] != ncols or not np.all(np.isfinite(arr)):
@@ -288,7 +295,7 @@ def _finish(p: Path, data: dict[str, FloatArray], wanted: dict[str, str], extra:
         k = int(bad[0]) + 1
         # line numbers: data row k is on line k + 2 when no blank lines were skipped (header = line 1)
         raise DataError(
-            f"{p}: row {k + 2}, column {wanted['t']!r}: time not strictly increasing "
+            f"{p}: row {k + 2}, column {short(wanted['t'])}: time not strictly increasing "
             f"({t[k]:.9g} s after {t[k - 1]:.9g} s)"
         )
     return Recording(

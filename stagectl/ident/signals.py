@@ -191,13 +191,17 @@ def _quantum(x: FloatArray) -> float:
 #: overflow the inverse dynamics (a 1e300 m position squared is inf)
 MAX_ABS_X_M = 1e9
 MAX_ABS_U_N = 1e12
+MAX_ABS_V_M_S = 1e9
 MIN_DT_S = 1e-7
 MAX_DT_S = 10.0
 
 
 def check_ranges(rec: Recording) -> None:
     """One clear :class:`DataError` for a recording outside physical ranges (named row, column and unit)."""
-    for name, arr, lim, unit in (("x", rec.x, MAX_ABS_X_M, "m"), ("u", rec.u, MAX_ABS_U_N, "N")):
+    for name, arr, lim, unit in (("x", rec.x, MAX_ABS_X_M, "m"), ("u", rec.u, MAX_ABS_U_N, "N"),
+                                 ("x_ref", rec.x_ref, MAX_ABS_X_M, "m"), ("v", rec.v, MAX_ABS_V_M_S, "m/s")):
+        if arr is None:  # an optional column the recording does not have
+            continue
         bad = np.flatnonzero(~(np.abs(arr) <= lim))
         if bad.size:
             k = int(bad[0])

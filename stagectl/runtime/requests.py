@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self, cast
 
-from stagectl.errors import StageError
+from stagectl.errors import StageError, short
 
 __all__ = [
     "ILC_ACTIONS",
@@ -58,13 +58,13 @@ class RequestError(StageError, ValueError):
 def _number(field: str, value: object, unit: str) -> float:
     """``value`` as a finite float; RequestError naming ``field`` and ``unit`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise RequestError(field, f"expected a number in {unit}, got {value!r}")
+        raise RequestError(field, f"expected a number in {unit}, got {short(value)}")
     try:
         v = float(value)
     except OverflowError:  # an integer literal with hundreds of digits (valid JSON)
         raise RequestError(field, f"must be finite ({unit}); got an integer too large for a float") from None
     if not math.isfinite(v):
-        raise RequestError(field, f"must be finite ({unit}), got {value!r}")
+        raise RequestError(field, f"must be finite ({unit}), got {short(value)}")
     return v
 
 
@@ -76,7 +76,8 @@ def check_fields(kind: str, fields: Mapping[str, object], allowed: tuple[str, ..
     """RequestError naming the first key of ``fields`` not in ``allowed`` (with the allowed ones)."""
     for key in fields:
         if key not in allowed:
-            raise RequestError(key, f"unknown field for {kind!r} (allowed: {', '.join(sorted(allowed)) or 'none'})")
+            raise RequestError(key, f"unknown field for {short(kind)} "
+                                    f"(allowed: {', '.join(sorted(allowed)) or 'none'})")
 
 
 @dataclass(frozen=True)
@@ -275,5 +276,5 @@ def parse_request(kind: str, line: Mapping[str, object], envelope: tuple[str, ..
     """
     cls = SOCKET_REQUESTS.get(kind)
     if cls is None:
-        raise RequestError("request", f"unknown request {kind!r}; one of {', '.join(SOCKET_KINDS)}")
+        raise RequestError("request", f"unknown request {short(kind)}; one of {', '.join(SOCKET_KINDS)}")
     return cls.from_fields({k: v for k, v in line.items() if k not in envelope})

@@ -46,7 +46,8 @@ def _base_config() -> dict:
     return _absolutize(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
 
 
-def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tuning: dict | None = None) -> Path:
+def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tuning: dict | None = None,
+            safety: dict | None = None) -> Path:
     cfg = _base_config()
     loop = cfg.setdefault("loop", {})
     # a shared 2-core CI machine misses cycles; health here means "cycling", timing is judged in benchmarks
@@ -65,6 +66,7 @@ def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tun
     pid["kp_n_m"] = -1.0 if bad else kp0 * kp_scale
     for key, value in (tuning or {}).items():  # e.g. {"feedforward": {...}, "dob": {...}}
         ctl[key] = {**(ctl.get(key) or {}), **value}
+    cfg["safety"] = {**cfg["safety"], **(safety or {})}
     path = tmp_path / "stagectl.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -200,6 +202,27 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         st = c.request({"request": "status"})["status"]
         assert st["reload"]["ok"] is False and "controller.pid.kp_n_m" in st["reload"]["error"]
         assert c.request({"request": "gains"})["controller"]["pid"]["kp_n_m"] == kp_old
+        # an alias bomb (12 levels x 30 aliases, 3.4 KB): refused by the bounded loader, a short error
+        lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+        lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 30) + "]" for i in range(1, 12)]
+        good_text = (tmp_path / "stagectl.yaml").read_text()
+        (tmp_path / "stagectl.yaml").write_text("\n".join([*lines, "controller: *a11", ""]))
+        cycle0 = c.request({"request": "status"})["status"]["loop"]["cycle"]
+        proc.send_signal(signal.SIGHUP)
+        ns.wait_for("READY", "1")
+        st = c.request({"request": "status"})["status"]
+        assert st["reload"]["ok"] is False and "YAML refused: more than 100 aliases" in st["reload"]["error"]
+        assert len(st["reload"]["error"]) < 300 and st["state"] == "active" and st["loop"]["cycle"] > cycle0
+        (tmp_path / "stagectl.yaml").write_text(good_text)
+        # ------------------------------------------------------------- SIGHUP: in range, but an unstable loop
+        # (the first reload that analyses the loop: it may wait for the daemon's warm-up import of python-control)
+        _config(tmp_path, kp_scale=15.0)
+        proc.send_signal(signal.SIGHUP)
+        ns.wait_for("READY", "1")
+        g = c.request({"request": "gains"})
+        assert g["reload"]["ok"] is False and "UNSTABLE" in g["reload"]["error"], g["reload"]
+        assert "phase margin" in g["reload"]["error"] and "gain margin" in g["reload"]["error"]
+        assert g["controller"]["pid"]["kp_n_m"] == kp_old
         rec = c.request({"request": "record", "action": "stop"})["recording"]
         assert rec["rows"] > 0 and rec["error"] is None
         # good tuning applied during a constant-velocity move (friction ~0.85 N carried by the GMS feed-forward):
@@ -209,12 +232,13 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         assert c.request({"request": "record", "action": "start", "name": "reload"})["ok"]
         assert c.request({"request": "move", "relative_m": 3e-3, "max_velocity_m_s": 1e-3})["ok"]
         _wait_loop(c, lambda lp: lp["x_ref_m"] > x_start + 100e-6)  # cruising (acceleration takes 10 ms)
-        _config(tmp_path, kp_scale=1.1, tuning={"feedforward": {"kind": "coulomb", "coulomb_n": 0.4},
-                                                "dob": {"bandwidth_hz": 80.0}})
+        tuning = {"feedforward": {"kind": "coulomb", "coulomb_n": 0.4}, "dob": {"bandwidth_hz": 80.0}}
+        _config(tmp_path, kp_scale=1.1, tuning=tuning)
         proc.send_signal(signal.SIGHUP)
         ns.wait_for("READY", "1")
         g = c.request({"request": "gains"})
         assert g["reload"]["ok"] is True and g["controller"]["pid"]["kp_n_m"] == pytest.approx(kp_old * 1.1)
+        assert g["reload"]["not_applied"] == [], g["reload"]  # the unchanged sim: section is no edit
         assert g["controller"]["feedforward"]["kind"] == "coulomb"
         st = c.request({"request": "status"})["status"]
         assert st["state"] == "active"
@@ -223,6 +247,15 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
         reload_rec = c.request({"request": "record", "action": "stop"})["recording"]
         assert reload_rec["error"] is None
         _assert_bumpless(Path(reload_rec["path"]))
+        # ------------------------------------------------------------- SIGHUP: a safety edit is NOT applied
+        for _ in range(2):  # reported each time, warned about once
+            _config(tmp_path, kp_scale=1.2, tuning=tuning, safety={"max_velocity_m_s": 0.01})
+            proc.send_signal(signal.SIGHUP)
+            ns.wait_for("READY", "1")
+            st = c.request({"request": "status"})["status"]
+            assert st["reload"]["ok"] is True and st["reload"]["not_applied"] == ["safety"], st["reload"]
+            assert "safety NOT applied" in st["reload"]["note"]
+        assert c.request({"request": "gains"})["controller"]["pid"]["kp_n_m"] == pytest.approx(kp_old * 1.2)
     # ------------------------------------------------------------- the CLI clients (in-process, real socket)
     from stagectl.cli import main
 
@@ -254,6 +287,8 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     cycles = int(final.split(" cycles")[0].rsplit(" ", 1)[1])
     assert "<6>stagectl.daemon: stopped: drive disabled" in err  # journald priority prefixes
     assert "<3>" in err  # the rejected reload was logged at error level
+    assert err.count("NOT applied") == 1, err[-4000:]  # the pending safety edit: one warning, not one per SIGHUP
+    assert "only the controller section" not in err
     assert not sock.exists()
     files = sorted((tmp_path / "telemetry").glob("telemetry-*.csv"))
     assert len(files) == 1

@@ -165,7 +165,7 @@ def test_discover_accepts_a_recording_with_gaps_and_says_it_resampled(spring_sta
     assert "resampled" in (out / "report.md").read_text(encoding="utf-8")
 
 
-@pytest.mark.parametrize("what", ["huge_x", "tiny_dt"])
+@pytest.mark.parametrize("what", ["huge_x", "tiny_dt", "huge_x_ref"])
 def test_extreme_but_valid_recordings_give_one_error_line(spring_stage, tmp_path: Path, what: str) -> None:
     """Values around 1e300 or a 1e-300 s time step are valid CSV but no physical recording: one line naming the
     row, column and unit, exit 2 (issue 16)."""
@@ -173,18 +173,22 @@ def test_extreme_but_valid_recordings_give_one_error_line(spring_stage, tmp_path
     data = np.loadtxt(est, delimiter=",", skiprows=1)[:600]
     if what == "huge_x":
         data[300, 1] = 1e300
+    elif what == "huge_x_ref":  # an optional column, still loaded: checked like the required ones
+        data[300, 3] = -1e300
     else:
         data[:, 0] = np.arange(len(data)) * 1e-300
     bad = tmp_path / "bad.csv"
     np.savetxt(bad, data, delimiter=",", header="t_s,position_m,force_N,reference_m", comments="", fmt="%.17g")
     for cmd, extra in (("discover", ()), ("identify", ("--model", "stribeck"))):
-        p = _cli(cmd, str(bad), *extra, "--columns", "t=t_s,x=position_m,u=force_N", "--out",
+        p = _cli(cmd, str(bad), *extra, "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m", "--out",
                  str(tmp_path / f"{cmd}.yaml"))
         assert p.returncode == 2, (cmd, p.stdout, p.stderr)
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("stagectl: error:"), p.stderr
         assert "Traceback" not in p.stderr
-        assert ("column 'x'" in lines[0] and " m " in lines[0]) if what == "huge_x" else "time step" in lines[0]
+        expected = {"huge_x": "column 'x': 1e+300 m ", "huge_x_ref": "column 'x_ref': -1e+300 m ",
+                    "tiny_dt": "time step"}[what]
+        assert expected in lines[0], lines[0]
 
 
 def test_presliding_extent_finds_the_end_of_a_virgin_curve() -> None:
