@@ -116,7 +116,8 @@ def stability_problem(app: object) -> str | None:
 
     The loop analysed is the one in operation: PID + observer when ``controller.dob.kind`` is not ``none``,
     else PID alone, on the ZOH rigid mass ``controller_mass`` (else the simulated plant's) at ``loop.period_s``
-    with ``io.delay_cycles`` (plant I/O) or one cycle (drives) of I/O delay.
+    with ``controller.design_delay_samples`` cycles of I/O delay, else ``io.delay_cycles`` (plant I/O) or one cycle
+    (drives), the delay ``stagectl tune`` designs for.
     """
     from stagectl.config.sections import AppConfig, IoKind
 
@@ -132,7 +133,10 @@ def stability_problem(app: object) -> str | None:
     if mass is None:
         return None
     T = app.loop.period_s
-    nd = int(app.io.delay_cycles) if app.io.kind is IoKind.PLANT_IO else 1
+    if ctl.design_delay_samples is not None:  # the delay the tuning was designed for (as `tune` uses it)
+        nd = int(ctl.design_delay_samples)
+    else:
+        nd = int(app.io.delay_cycles) if app.io.kind is IoKind.PLANT_IO else 1
     dob = ctl.dob
     m_dob = dob.nominal_mass_kg if dob.nominal_mass_kg is not None else mass
     try:
@@ -142,7 +146,7 @@ def stability_problem(app: object) -> str | None:
                                    dob.disturbance_noise_n_sqrt_s)
         loop = design.analyse_design(mass, T, ctl.pid, nd, None if dob.kind == "none" else dob.bandwidth_hz,
                                      dob.command_delay_samples, dob_mass_kg=m_dob, dob_kind=dob.kind,
-                                     kalman_k=K)[-1]
+                                     kalman_k=K, velocity_cutoff_hz=ctl.velocity_cutoff_hz)[-1]
     except Exception as exc:  # noqa: BLE001 - gains so extreme the analysis fails: not a tuning to swap in
         return f"controller: the new tuning cannot be analysed ({type(exc).__name__}: {short(str(exc), 120)})"
     pm, gm = loop.phase_margin_deg, loop.gain_margin_db
