@@ -134,3 +134,29 @@ def test_a_fit_beyond_a_physical_bound_is_reported_not_clipped() -> None:
                            wavelength_m=1e-3)
     with pytest.raises((ConfigError, ValueError)):
         hyp_to_model(h)
+
+
+def test_one_directional_motion_reports_the_cogging_ripple_tie_with_the_separating_experiment() -> None:
+    """Moving in one direction at nearly constant speed, a ripple of the friction force (a·F·sin) and a
+    cogging force (A·sin) at the same wavelength are the same force: the report must say the data cannot
+    separate them and name the experiment that would (move over the same positions in both directions)."""
+    rng = np.random.default_rng(1310)
+    st = synth.draw_stage(rng)
+    fc = st["friction"]["fc_n"]
+    st["sensor"] = {"resolution_m": 1e-9, "noise_std_m": 60e-9}
+    st["effects"] = {"cogging": {"amplitude_n": 0.4 * fc, "wavelength_m": 1e-3, "phase_rad": 0.7}}
+    dt, n = 1e-3, 8000
+    t = np.arange(n) * dt
+    v = 8e-3 * 0.5 * (1.0 - np.cos(np.pi * np.minimum(t / 0.5, 1.0)))  # ramp to 8 mm/s, then one direction
+    rec = synth.closed_loop(st, x_ref=np.cumsum(v) * dt, seed=1310)
+    assert np.all(np.diff(rec.x[200:]) > -1e-7)  # one-directional indeed (up to noise)
+    res = discover(rec, max_rounds=2)
+    names = [e.name for e in res.effects]
+    assert names[:1] in (["cogging"], ["position_ripple"]), res.rounds[0].candidates
+    other = "position_ripple" if names[0] == "cogging" else "cogging"
+    row = next(c for c in res.rounds[0].candidates if c.name == names[0] and isinstance(c, CandidateFit))
+    assert row.note is not None and f"tie with {other}" in row.note, row.note
+    assert "cannot separate" in row.note and "both directions" in row.note
+    # the note reaches the written report
+    from stagectl.ident.report import _markdown, build_report  # noqa: PLC0415
+    assert f"tie with {other}" in _markdown(build_report(res, {"estimation": "synth"}), [])
