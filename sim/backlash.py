@@ -40,7 +40,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from stagectl.sim.plant import _FF, _STUCK, _T, _V, _WF, _WIN, _WO, _X, PlantConfig, StagePlant
+from stagectl.sim.plant import plant_from_model as _rigid_plant_from_model
 
+from stagectl.friction import StageModel
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
@@ -309,4 +311,23 @@ class BacklashPlant:
         return self._ring[0] * self.cfg.sensor.resolution_m
 
 
-__all__ = ["BacklashConfig", "BacklashPlant"]
+def plant_from_model(model: StageModel, backlash: Any = None, **overrides: Any) -> StagePlant | BacklashPlant:
+    """The plant a model file describes: a :class:`BacklashPlant` when it has a ``backlash:`` section (the
+    friction side gets ``mass_kg − other_mass_kg``; ``backlash`` maps extra :class:`BacklashConfig` keys such as
+    ``contact_stiffness_n_m``), else a rigid :class:`StagePlant`. ``overrides`` are ``plant:`` keys."""
+    bl = model.backlash
+    if bl is None:
+        return _rigid_plant_from_model(model, **overrides)
+    mass = overrides.pop("mass_kg", model.mass_kg)
+    if mass is None:
+        raise ValueError("plant_from_model: mass_kg is in neither the model nor the overrides")
+    side = float(mass) - float(bl.other_mass_kg)
+    if side <= 0.0:
+        raise ValueError(f"backlash.other_mass_kg: {bl.other_mass_kg:.6g} kg must be below mass_kg = {mass:.6g} kg")
+    cfg = PlantConfig.from_mapping({**overrides, "mass_kg": side}, path="plant", model=model)
+    keys = {"gap_m": bl.gap_m, "other_mass_kg": bl.other_mass_kg, "friction_side": bl.friction_side,
+            "sensor_side": bl.sensor_side, **dict(backlash or {})}
+    return BacklashPlant(cfg, load(BacklashConfig, keys, "backlash"))
+
+
+__all__ = ["BacklashConfig", "BacklashPlant", "loop_for", "plant_from_model"]

@@ -553,10 +553,17 @@ def _play_open(sig: Signals, gap: float) -> FloatArray:
 
 
 def _backlash_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    """While the play is open (g = 1) the motor carries neither the load's friction nor its mass: columns
+    g·sgn(v), g·v, g·a with coefficients −(lost Coulomb, viscous, mass). When it closes, the load is engaged
+    at once, an inelastic impact: the motor's measured acceleration has a one-sample spike of the momentum
+    handed to the load, column ``δ_engage·v/dt`` (coefficient: the effective impact mass [kg]; without it the
+    spike leaks into the mass column and pushes the lost mass beyond the total)."""
     b = BACKLASH.shape(h).gap_m
     g = _play_open(sig, b)
+    eng = np.zeros(sig.n)
+    eng[1:] = (g[:-1] > 0.5) & (g[1:] < 0.5)  # the play closes: the load is engaged (an impact)
     return [Column("bc", g * sig.direction, f"bc:{b:.6e}"), Column("bv", g * sig.v, f"bv:{b:.6e}"),
-            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}")]
+            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}"), Column("bi", eng * sig.v / sig.dt_s, f"bi:{b:.6e}")]
 
 
 def _backlash_params(h: Hyp) -> BacklashParams:
@@ -580,9 +587,10 @@ def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
     return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
             f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed) and behaves like lost motion: for the "
             f"first {1e6 * p.gap_m:.3g} µm after a reversal the motor moves without the load ({p.coulomb_lost_n:.3g} N "
-            f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (a step "
-            "in displacement, where pre-sliding builds up gradually). Backlash is a plant structure, not written "
-            "into model.yaml (simulate it with stagectl.sim.backlash)")
+            f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (an impact; a step "
+            "in displacement, where pre-sliding builds up gradually). Written to model.yaml as its backlash: "
+            "section (a plant structure: stagectl.sim.backlash.plant_from_model simulates it; the feed-forward "
+            "does not compensate the play)")
 
 
 def _backlash_bounds(p: BacklashParams) -> list[str]:

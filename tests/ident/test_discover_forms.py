@@ -13,6 +13,7 @@ is drawn over a plausible range from the same generator. The forms, in the plant
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -101,7 +102,7 @@ def test_long_stroke_null_recording_names_nothing_in_any_regime() -> None:
     assert gains and max(gains) < 0.2, gains
 
 
-def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() -> None:
+def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding(tmp_path: Path) -> None:
     """A ball-screw-scale axis (load 4 kg, motor side 0.8 kg, stiff nut contact 1e7 N/m, encoder on the motor)
     with a hidden play of 15-30 µm: discovery names backlash, not pre-sliding, with the play and the load mass
     it loses at each reversal (docs/discovery.md §10)."""
@@ -117,6 +118,31 @@ def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() ->
     assert p.gap_m == pytest.approx(gap, rel=0.15)
     assert p.mass_lost_kg == pytest.approx(4.0, rel=0.3)  # the load's mass is not carried inside the play
     assert "lost motion" in res.effects[0].evidence
+    # round trip: discover -> model.yaml (backlash: section) -> plant and feed-forward -> discover's start model
+    from stagectl.control.friction_ff import FrictionFeedforward  # noqa: PLC0415
+    from stagectl.friction import load_model_file, save_model_file  # noqa: PLC0415
+    from stagectl.ident import effects as fx  # noqa: PLC0415
+    from stagectl.ident.modelio import hyp_to_model, model_to_hyp  # noqa: PLC0415
+    from stagectl.sim.backlash import BacklashPlant, plant_from_model  # noqa: PLC0415
+    save_model_file(hyp_to_model(res.final.hyp), tmp_path / "model.yaml")
+    model = load_model_file(tmp_path / "model.yaml")
+    assert model.backlash is not None and model.mass_kg is not None
+    assert model.backlash.gap_m == pytest.approx(gap, rel=0.15)
+    assert model.backlash.friction_side == "load" and model.backlash.sensor_side == "motor"
+    assert model.backlash.other_mass_kg == pytest.approx(0.8, abs=0.6)  # the motor side: total − load
+    assert model.mass_kg == pytest.approx(4.8, rel=0.05)
+    plant = plant_from_model(model, sensor={"resolution_m": 1e-9})
+    assert isinstance(plant, BacklashPlant) and plant.bl.gap_m == model.backlash.gap_m
+    assert plant.cfg.mass_kg == pytest.approx(model.mass_kg - model.backlash.other_mass_kg)
+    for _ in range(200):  # push, then reverse: the motor crosses the play before the load follows
+        plant.step(5.0, 1e-3)
+    x_load = plant.x_load_m
+    while plant.contact_force_n >= 0.0 and abs(plant.x_load_m - x_load) < 1e-3:
+        plant.step(-5.0, 1e-4)
+    assert plant.x_motor_m - plant.x_load_m == pytest.approx(-0.5 * model.backlash.gap_m, abs=0.2 * gap)
+    FrictionFeedforward(model.friction, model.effects)  # the feed-forward reads the same file
+    h = model_to_hyp(model)
+    assert h.has("backlash") and fx.BACKLASH.shape(h).gap_m == model.backlash.gap_m
 
 
 def test_a_fit_beyond_a_physical_bound_is_reported_not_clipped() -> None:
