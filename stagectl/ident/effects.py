@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -133,7 +133,22 @@ def _stribeck_evidence(ev: ResidualView, p: StribeckParams) -> str:
 
 def _search_stribeck_shape(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     """(vs, δ) of the Stribeck curve in ``h_s``: grid + Brent per δ ∈ {1, 2}, line search in δ, then a joint
-    Nelder-Mead refinement of (log vs, δ) (the two trade off, separate line searches stop short)."""
+    Nelder-Mead refinement of (log vs, δ) (the two trade off, separate line searches stop short).
+
+    Memoised on the signals per (rows, hypothesis): the ``stribeck`` and ``frictional_lag`` candidates of a
+    round both start from the same Stribeck search on the same model."""
+    key = ("stribeck_shape", hash(fitter.rows.tobytes()), h_s.effects,
+           repr(sorted((k, repr(v)) for k, v in h_s.shapes.items())), repr(sorted(h_s.theta.items())),
+           h_s.fixed_mass_kg, h_s.x_center_m, repr(h_s.given_spec))
+    memo = cast(dict[object, tuple[float, float]], fitter.sig.cache.setdefault("_memo", {}))
+    got = memo.get(key)
+    if got is None:
+        got = _search_stribeck_shape_now(fitter, h_s)
+        memo[key] = got
+    return got
+
+
+def _search_stribeck_shape_now(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     def rss(vs: float, delta: float) -> float:
         return STRIBECK.fit_with(fitter, h_s, vs_m_s=vs, delta=delta).rss
 
