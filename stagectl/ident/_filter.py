@@ -58,7 +58,7 @@ def _zi(sos: FloatArray) -> FloatArray:
 
 
 @kernel
-def _filtfilt_cols(sos, zi, x, edge):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def _filtfilt_cols(sos: FloatArray, zi: FloatArray, x: FloatArray, edge: int) -> FloatArray:  # pragma: no cover
     """Forward-backward cascade over each column of ``x`` (n, k) with odd extension ``edge``."""
     n, k = x.shape
     ns = sos.shape[0]

@@ -278,9 +278,10 @@ def _prune(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected:
                         fr = spec.after_removal(_fitter(ds), fr.hyp)  # hooks chain: each refines the last
             except _FIT_ERRORS:
                 continue
-            fr = _within_bounds(ds, fr)
-            if fr is None:
+            kept = _within_bounds(ds, fr)
+            if kept is None:
                 continue  # without it, another effect's fit leaves its physical bounds: it is not redundant
+            fr = kept
             c = _val_compare(ds, fr.hyp, cur.hyp, min_explained)
             if not c.significant and c.rel_gain < 0.5 * MIN_REL_GAIN:
                 effects.remove(item)

@@ -286,7 +286,7 @@ def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float
     sol = np.linalg.solve(r, c)
     th = sol / scale
     if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
-        sol = nonneg_lstsq(r, c, np.isfinite(lo))
+        sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo))
         th = sol / scale
     e = c - r @ sol
     return np.asarray(th, dtype=np.float64), base + float(e @ e)
@@ -320,7 +320,7 @@ def solve(nonneg: Sequence[bool], a: FloatArray, y: FloatArray) -> tuple[FloatAr
     sol = np.linalg.solve(r, c)
     th = sol / scale
     if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
-        sol = nonneg_lstsq(r, c, np.isfinite(lo))
+        sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo))
         th = sol / scale
     e = c - r @ sol
     return np.asarray(th, dtype=np.float64), base + float(e @ e)

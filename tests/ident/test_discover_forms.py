@@ -119,11 +119,12 @@ def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding(tmp_
     assert p.mass_lost_kg == pytest.approx(4.0, rel=0.3)  # the load's mass is not carried inside the play
     assert "lost motion" in res.effects[0].evidence
     # round trip: discover -> model.yaml (backlash: section) -> plant and feed-forward -> discover's start model
-    from stagectl.control.friction_ff import FrictionFeedforward  # noqa: PLC0415
-    from stagectl.friction import load_model_file, save_model_file  # noqa: PLC0415
-    from stagectl.ident import effects as fx  # noqa: PLC0415
-    from stagectl.ident.modelio import hyp_to_model, model_to_hyp  # noqa: PLC0415
-    from stagectl.sim.backlash import BacklashPlant, plant_from_model  # noqa: PLC0415
+    from stagectl.sim.backlash import BacklashPlant, plant_from_model
+
+    from stagectl.control.friction_ff import FrictionFeedforward
+    from stagectl.friction import load_model_file, save_model_file
+    from stagectl.ident import effects as fx
+    from stagectl.ident.modelio import hyp_to_model, model_to_hyp
     save_model_file(hyp_to_model(res.final.hyp), tmp_path / "model.yaml")
     model = load_model_file(tmp_path / "model.yaml")
     assert model.backlash is not None and model.mass_kg is not None
@@ -184,5 +185,5 @@ def test_one_directional_motion_reports_the_cogging_ripple_tie_with_the_separati
     assert row.note is not None and f"tie with {other}" in row.note, row.note
     assert "cannot separate" in row.note and "both directions" in row.note
     # the note reaches the written report
-    from stagectl.ident.report import _markdown, build_report  # noqa: PLC0415
+    from stagectl.ident.report import _markdown, build_report
     assert f"tie with {other}" in _markdown(build_report(res, {"estimation": "synth"}), [])
