@@ -18,6 +18,17 @@ or the load (``sensor_side``) with the noise, quantisation and delay of ``plant.
 With the sensor on the motor (a rotary encoder on a ball-screw motor, as on EMPS), every reversal shows as
 *lost motion*: the motor travels b with no friction and only its own inertia before the load follows; this is
 the evidence `stagectl discover` looks for (docs/discovery.md §10).
+
+Integration: one compiled call per ``step`` (:func:`loop_for`, a numba kernel specialised on the friction
+side's model kernel like the plant's own loop): per coupling step h the contact force, then the friction-free
+body (semi-implicit Euler), then the friction side in ``ceil(h/substep_s)`` sub-steps with the plant's
+sub-step (effects, Karnopp band of static models). :meth:`BacklashPlant.step_reference` is the same
+integration in plain Python over :meth:`StagePlant.step`, kept as the oracle the kernel is tested against.
+A friction side with an actuation delay (``effects.delay``) uses the reference path (the kernel has no
+command history).
+
+A model file can carry the play (``backlash:`` of :class:`stagectl.friction.StageModel`, written by
+``stagectl discover``); :func:`plant_from_model` builds the motor + load plant from it.
 """
 
 from __future__ import annotations
@@ -27,9 +38,135 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
+from stagectl.sim.plant import _FF, _STUCK, _T, _V, _WF, _WIN, _WO, _X, PlantConfig, StagePlant
+from stagectl.sim.plant import plant_from_model as _rigid_plant_from_model
 
+from stagectl.friction import StageModel
+from stagectl.friction.effects import modify_friction_kernel as _modify
+from stagectl.friction.effects import other_force_kernel as _other
+from stagectl.friction.effects import velocity_force_kernel as _vforce
+from stagectl.jit import kernel
 from stagectl.schema import load, param
-from stagectl.sim.plant import PlantConfig, StagePlant
+
+FloatArray = npt.NDArray[np.float64]
+
+# bp (backlash parameters) layout: side mass, breakaway, stick velocity, other mass, k_c, c_c, b/2,
+# friction on the load (1) or motor (0), coupling step h, side sub-steps per h
+_BP_N = 10
+# bs (backlash state): x_other, v_other, contact force
+_BS_N = 3
+
+
+def _make_loop(kstep: Any) -> Any:
+    """The fused motor + load loop specialised on the friction side's kernel ``kstep`` (see module docstring)."""
+
+    @kernel
+    def run(kp, fs, ep, bp, ps, bs, u, nh):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+        """Hold ``u`` on the motor for ``nh`` coupling steps; side state ``ps``/``fs``, other body ``bs``."""
+        m = bp[0]
+        inv_m = 1.0 / m
+        fb = bp[1]
+        dvs = bp[2]
+        inv_mo = 1.0 / bp[3]
+        kc = bp[4]
+        cc = bp[5]
+        half = bp[6]
+        on_load = bp[7] != 0.0
+        h = bp[8]
+        ns = int(bp[9])
+        hs = h / ns
+        x = ps[_X]
+        v = ps[_V]
+        ff = ps[_FF]
+        stuck = ps[_STUCK]
+        win = ps[_WIN]
+        wf = ps[_WF]
+        wo = ps[_WO]
+        xo = bs[0]
+        vo = bs[1]
+        fcon = bs[2]
+        for _ in range(nh):
+            if on_load:
+                d = xo - x
+                dv = vo - v
+            else:
+                d = x - xo
+                dv = v - vo
+            fcon = 0.0
+            if d > half:
+                fcon = max(kc * (d - half) + cc * dv, 0.0)
+            elif d < -half:
+                fcon = min(kc * (d + half) + cc * dv, 0.0)
+            if on_load:
+                f_o = u - fcon
+                ua = fcon
+            else:
+                f_o = fcon
+                ua = u - fcon
+            vo = vo + h * f_o * inv_mo
+            xo = xo + h * vo
+            for i in range(ns):  # the plant's general sub-step with the contact force held (tau = 0)
+                fo = _other(ep, x)
+                fe = ua - fo
+                if fb > 0.0 and (stuck != 0.0 or abs(v) < dvs):
+                    lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                    if abs(fe) <= lim:
+                        v = 0.0
+                        ff = fe
+                        stuck = 1.0
+                        kstep(kp, fs, 0.0, 0.0, hs)
+                        continue
+                    stuck = 0.0
+                    ff = lim if fe > 0.0 else -lim
+                    v = v + hs * (fe - ff) * inv_m
+                    dx = hs * v
+                    x += dx
+                    win += ua * dx
+                    wf += ff * dx
+                    wo += fo * dx
+                    kstep(kp, fs, dx, v, hs)
+                    continue
+                v_old = v
+                v = v + hs * (fe - ff) * inv_m
+                if fb > 0.0 and v * v_old < 0.0:
+                    v = 0.0
+                    stuck = 1.0
+                    lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+                    ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
+                    kstep(kp, fs, 0.0, 0.0, hs)
+                    continue
+                dx = hs * v
+                x += dx
+                win += ua * dx
+                wf += ff * dx
+                wo += fo * dx
+                ff = _modify(ep, kstep(kp, fs, dx, v, hs), x) + _vforce(ep, v)
+            ps[_T] = ps[_T] + h
+        ps[_X] = x
+        ps[_V] = v
+        ps[_FF] = ff
+        ps[_STUCK] = stuck
+        ps[_WIN] = win
+        ps[_WF] = wf
+        ps[_WO] = wo
+        bs[0] = xo
+        bs[1] = vo
+        bs[2] = fcon
+
+    return run
+
+
+_LOOPS: dict[int, tuple[Any, Any]] = {}
+
+
+def loop_for(kstep: Any) -> Any:
+    """:func:`_make_loop` made once per friction kernel."""
+    got = _LOOPS.get(id(kstep))
+    if got is None:
+        got = (_make_loop(kstep), kstep)  # kstep kept alive: its id stays valid
+        _LOOPS[id(kstep)] = got
+    return got[0]
 
 
 @dataclass(frozen=True)
@@ -52,7 +189,7 @@ class BacklashPlant:
     """Motor + load with backlash (see module docstring); the interface of :class:`StagePlant` that the
     closed-loop generators use: ``step(u, dt)``, ``measure()``, ``friction_n``, ``x_m``, ``v_m_s``."""
 
-    def __init__(self, cfg: PlantConfig, bl: BacklashConfig) -> None:
+    def __init__(self, cfg: PlantConfig, bl: BacklashConfig, fused: bool = True) -> None:
         self.cfg, self.bl = cfg, bl
         self.side = StagePlant(cfg)  # the friction side
         self._m_other = float(bl.other_mass_kg)
@@ -68,10 +205,18 @@ class BacklashPlant:
         self._rng = np.random.default_rng(cfg.seed)
         nd = int(cfg.sensor.delay_steps)
         self._ring = [self._counts(self._x_o)] * (nd + 1)
+        side = self.side
+        self._fused = fused and side._tau == 0.0
+        if self._fused:
+            self._loop = loop_for(side._kstep)
+            self._bp = np.zeros(_BP_N)
+            self._bp[:9] = [cfg.mass_kg, side._par[1], side._par[2], self._m_other, self._k, self._c,
+                            0.5 * float(bl.gap_m), 1.0 if bl.friction_side == "load" else 0.0, 0.0]
+            self._bs = np.array([self._x_o, 0.0, 0.0])
 
     @classmethod
-    def from_mapping(cls, plant: Any, backlash: Any) -> BacklashPlant:
-        return cls(PlantConfig.from_mapping(plant), load(BacklashConfig, backlash, "backlash"))
+    def from_mapping(cls, plant: Any, backlash: Any, fused: bool = True) -> BacklashPlant:
+        return cls(PlantConfig.from_mapping(plant), load(BacklashConfig, backlash, "backlash"), fused=fused)
 
     # ------------------------------------------------------------------ state
     def _motor_load(self) -> tuple[float, float, float, float]:
@@ -119,7 +264,26 @@ class BacklashPlant:
         return 0.0
 
     def step(self, u_n: float, dt_s: float) -> None:
-        """Hold the commanded force ``u_n`` [N] on the motor for ``dt_s`` [s]."""
+        """Hold the commanded force ``u_n`` [N] on the motor for ``dt_s`` [s] (one compiled call)."""
+        if not self._fused:
+            self.step_reference(u_n, dt_s)
+            return
+        if not (dt_s > 0.0 and math.isfinite(dt_s)):
+            raise ValueError(f"dt_s must be > 0 and finite (got {dt_s})")
+        n = max(1, math.ceil(dt_s / self.bl.coupling_step_s - 1e-9))
+        h = dt_s / n
+        side = self.side
+        self._bp[8] = h
+        self._bp[9] = side._nsub(h)
+        self._loop(side._kp, side._fs, side._ep, self._bp, side._ps, self._bs, side._clamp(u_n), n)
+        self._x_o, self._v_o, self._fc = float(self._bs[0]), float(self._bs[1]), float(self._bs[2])
+        self._ring.append(self._counts(self.x_m))
+        self._ring.pop(0)
+
+    def step_reference(self, u_n: float, dt_s: float) -> None:
+        """:meth:`step` in plain Python over :meth:`StagePlant.step` (the oracle of the compiled loop)."""
+        if self._fused:
+            raise RuntimeError("step_reference: build the plant with fused=False to use the reference path")
         n = max(1, math.ceil(dt_s / self.bl.coupling_step_s - 1e-9))
         h = dt_s / n
         u = float(u_n)
@@ -147,4 +311,23 @@ class BacklashPlant:
         return self._ring[0] * self.cfg.sensor.resolution_m
 
 
-__all__ = ["BacklashConfig", "BacklashPlant"]
+def plant_from_model(model: StageModel, backlash: Any = None, **overrides: Any) -> StagePlant | BacklashPlant:
+    """The plant a model file describes: a :class:`BacklashPlant` when it has a ``backlash:`` section (the
+    friction side gets ``mass_kg − other_mass_kg``; ``backlash`` maps extra :class:`BacklashConfig` keys such as
+    ``contact_stiffness_n_m``), else a rigid :class:`StagePlant`. ``overrides`` are ``plant:`` keys."""
+    bl = model.backlash
+    if bl is None:
+        return _rigid_plant_from_model(model, **overrides)
+    mass = overrides.pop("mass_kg", model.mass_kg)
+    if mass is None:
+        raise ValueError("plant_from_model: mass_kg is in neither the model nor the overrides")
+    side = float(mass) - float(bl.other_mass_kg)
+    if side <= 0.0:
+        raise ValueError(f"backlash.other_mass_kg: {bl.other_mass_kg:.6g} kg must be below mass_kg = {mass:.6g} kg")
+    cfg = PlantConfig.from_mapping({**overrides, "mass_kg": side}, path="plant", model=model)
+    keys = {"gap_m": bl.gap_m, "other_mass_kg": bl.other_mass_kg, "friction_side": bl.friction_side,
+            "sensor_side": bl.sensor_side, **dict(backlash or {})}
+    return BacklashPlant(cfg, load(BacklashConfig, keys, "backlash"))
+
+
+__all__ = ["BacklashConfig", "BacklashPlant", "loop_for", "plant_from_model"]

@@ -10,7 +10,13 @@ Public API (stable; other tools build on it):
       mass_kg: 2.0            # optional rigid-body mass [kg]
       friction: {model: gms, ...}
       effects: {offset: {force_n: 0.1}, ...}   # optional, see stagectl.friction.effects
+      backlash: {gap_m: 2.0e-5, other_mass_kg: 0.8}  # optional play between motor and load
       meta: {...}             # optional free-form provenance (fit quality, source, notes)
+
+  ``backlash`` is a plant structure, not a force law: :func:`stagectl.sim.backlash.plant_from_model` builds a
+  motor + load plant from it (``mass_kg`` stays the total moving mass; the friction side has
+  ``mass_kg − other_mass_kg``). The feed-forward uses ``mass_kg``, ``friction`` and ``effects`` and does not
+  compensate the play.
 
 Models register themselves with :func:`stagectl.friction.base.register`; this package imports every
 model module (at the end of this file) so that all tags are available.
@@ -29,6 +35,7 @@ from stagectl.friction.effects import Effects
 from stagectl.schema import load, load_yaml_file, param, section_parser
 
 __all__ = [
+    "Backlash",
     "Effects",
     "FrictionKernel",
     "FrictionModel",
@@ -99,13 +106,34 @@ parse_effects = section_parser(Effects)
 
 
 @dataclass(frozen=True)
+class Backlash:
+    """Play between motor and load (ball-screw nut, gear lash); see :mod:`stagectl.sim.backlash`."""
+
+    gap_m: float = param(unit="m", desc="total play b between motor and load", ge=0.0, le=0.01)
+    other_mass_kg: float = param(unit="kg", desc="mass of the side without friction (the motor side when "
+                                 "friction_side is load); part of mass_kg, which stays the total", gt=0.0)
+    friction_side: str = param("load", unit="", desc="side carrying the friction and effects: load or motor",
+                               choices=("load", "motor"))
+    sensor_side: str = param("motor", unit="", desc="side the position sensor reads: motor or load",
+                             choices=("motor", "load"))
+
+
+@dataclass(frozen=True)
 class StageModel:
     """A stage's physical model: rigid-body mass, friction model and additional effects."""
 
     friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
     effects: Effects = param(default_factory=Effects, desc="additional effects", parse=parse_effects)
     mass_kg: float | None = param(None, unit="kg", desc="moving mass", gt=0.0)
+    backlash: Backlash | None = param(None, desc="play between motor and load (a plant structure; the "
+                                      "feed-forward ignores it)")
     meta: dict[str, Any] = param(default_factory=dict, desc="free-form provenance (fit quality, source)")
+
+    def __post_init__(self) -> None:
+        bl = self.backlash
+        if bl is not None and self.mass_kg is not None and bl.other_mass_kg >= self.mass_kg:
+            raise ValueError(f"backlash.other_mass_kg: {bl.other_mass_kg:.6g} kg must be below the total moving "
+                             f"mass mass_kg = {self.mass_kg:.6g} kg (it is a part of it)")
 
     def spec(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -115,6 +143,10 @@ class StageModel:
         eff = self.effects.spec()
         if eff:
             out["effects"] = eff
+        if self.backlash is not None:
+            b = self.backlash
+            out["backlash"] = {"gap_m": float(b.gap_m), "other_mass_kg": float(b.other_mass_kg),
+                               "friction_side": b.friction_side, "sensor_side": b.sensor_side}
         if self.meta:
             out["meta"] = self.meta
         return out

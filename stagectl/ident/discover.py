@@ -243,11 +243,27 @@ def _upgrade_nested(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], 
     return cur
 
 
+def _out_of_bounds(h: Hyp) -> list[str]:
+    return [spec.name for spec in fx.REGISTRY.active(h) if spec.bounds is not None and spec.bounds(spec.params(h))]
+
+
+def _within_bounds(ds: Dataset, fr: FitResult) -> FitResult | None:
+    """``fr``, or ``fr`` with the shape of each effect outside its physical bounds searched again (with the
+    other effects in place), or None when that does not bring it back within them."""
+    for name in _out_of_bounds(fr.hyp):
+        try:
+            fr = fit_candidate(ds, rg.fit_linear(ds.est, fr.hyp.without(name), ds.est_rows), name)
+        except _FIT_ERRORS:
+            return None
+    return None if _out_of_bounds(fr.hyp) else fr
+
+
 def _prune(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected: list[RejectedEffect],
            min_explained: float) -> FitResult:
     """Backward check: an accepted effect that a later, richer one made redundant (e.g. an offset accepted
     before the asymmetry or spring that contains it) is removed if the model without it is not significantly
-    worse on validation data."""
+    worse on validation data and every remaining effect stays within its physical bounds (a fit outside them is
+    never accepted, so it is not the model left behind either)."""
     changed = True
     while changed and len(effects) > 1:
         changed = False
@@ -262,6 +278,10 @@ def _prune(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected:
                         fr = spec.after_removal(_fitter(ds), fr.hyp)  # hooks chain: each refines the last
             except _FIT_ERRORS:
                 continue
+            kept = _within_bounds(ds, fr)
+            if kept is None:
+                continue  # without it, another effect's fit leaves its physical bounds: it is not redundant
+            fr = kept
             c = _val_compare(ds, fr.hyp, cur.hyp, min_explained)
             if not c.significant and c.rel_gain < 0.5 * MIN_REL_GAIN:
                 effects.remove(item)

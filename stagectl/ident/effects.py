@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -133,7 +133,22 @@ def _stribeck_evidence(ev: ResidualView, p: StribeckParams) -> str:
 
 def _search_stribeck_shape(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     """(vs, δ) of the Stribeck curve in ``h_s``: grid + Brent per δ ∈ {1, 2}, line search in δ, then a joint
-    Nelder-Mead refinement of (log vs, δ) (the two trade off, separate line searches stop short)."""
+    Nelder-Mead refinement of (log vs, δ) (the two trade off, separate line searches stop short).
+
+    Memoised on the signals per (rows, hypothesis): the ``stribeck`` and ``frictional_lag`` candidates of a
+    round both start from the same Stribeck search on the same model."""
+    key = ("stribeck_shape", hash(fitter.rows.tobytes()), h_s.effects,
+           repr(sorted((k, repr(v)) for k, v in h_s.shapes.items())), repr(sorted(h_s.theta.items())),
+           h_s.fixed_mass_kg, h_s.x_center_m, repr(h_s.given_spec))
+    memo = cast(dict[object, tuple[float, float]], fitter.sig.cache.setdefault("_memo", {}))
+    got = memo.get(key)
+    if got is None:
+        got = _search_stribeck_shape_now(fitter, h_s)
+        memo[key] = got
+    return got
+
+
+def _search_stribeck_shape_now(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     def rss(vs: float, delta: float) -> float:
         return STRIBECK.fit_with(fitter, h_s, vs_m_s=vs, delta=delta).rss
 
@@ -553,10 +568,17 @@ def _play_open(sig: Signals, gap: float) -> FloatArray:
 
 
 def _backlash_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
+    """While the play is open (g = 1) the motor carries neither the load's friction nor its mass: columns
+    g·sgn(v), g·v, g·a with coefficients −(lost Coulomb, viscous, mass). When it closes, the load is engaged
+    at once, an inelastic impact: the motor's measured acceleration has a one-sample spike of the momentum
+    handed to the load, column ``δ_engage·v/dt`` (coefficient: the effective impact mass [kg]; without it the
+    spike leaks into the mass column and pushes the lost mass beyond the total)."""
     b = BACKLASH.shape(h).gap_m
     g = _play_open(sig, b)
+    eng = np.zeros(sig.n)
+    eng[1:] = (g[:-1] > 0.5) & (g[1:] < 0.5)  # the play closes: the load is engaged (an impact)
     return [Column("bc", g * sig.direction, f"bc:{b:.6e}"), Column("bv", g * sig.v, f"bv:{b:.6e}"),
-            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}")]
+            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}"), Column("bi", eng * sig.v / sig.dt_s, f"bi:{b:.6e}")]
 
 
 def _backlash_params(h: Hyp) -> BacklashParams:
@@ -580,9 +602,10 @@ def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
     return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
             f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed) and behaves like lost motion: for the "
             f"first {1e6 * p.gap_m:.3g} µm after a reversal the motor moves without the load ({p.coulomb_lost_n:.3g} N "
-            f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (a step "
-            "in displacement, where pre-sliding builds up gradually). Backlash is a plant structure, not written "
-            "into model.yaml (simulate it with stagectl.sim.backlash)")
+            f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (an impact; a step "
+            "in displacement, where pre-sliding builds up gradually). Written to model.yaml as its backlash: "
+            "section (a plant structure: stagectl.sim.backlash.plant_from_model simulates it; the feed-forward "
+            "does not compensate the play)")
 
 
 def _backlash_bounds(p: BacklashParams) -> list[str]:

@@ -8,7 +8,12 @@ A hypothesis becomes a :class:`stagectl.friction.StageModel` (``mass_kg`` + ``fr
   ``α_i = W_i/ΣW``; the Coulomb column (a jump at reversal) becomes one stiff element with
   ``Δ = COULOMB_ELEMENT_FRACTION·min Δ``; ``c_n_s`` from the frictional lag (τ = Fs/C) or fast (τ = 10 µs);
 * every registered effect with a model-file twin (:data:`stagectl.ident.effects.REGISTRY`, ``EffectSpec.twin``)
-  maps one to one onto its entry of ``stagectl.friction.effects`` (``effects:``), both ways.
+  maps one to one onto its entry of ``stagectl.friction.effects`` (``effects:``), both ways;
+* ``backlash`` becomes the model file's ``backlash:`` section (:class:`stagectl.friction.Backlash`): the play
+  ``gap_m``; the friction is on the load when the fit says the friction is lost inside the play (more than
+  half the Coulomb level), else on the motor; ``other_mass_kg`` is the side without friction (the mass carried
+  inside the play, or the mass lost in it); the sensor is on the motor (lost motion is seen there). Read back,
+  the section restores the effect with its play.
 """
 
 from __future__ import annotations
@@ -76,9 +81,23 @@ def hyp_to_spec(h: Hyp, meta: Mapping[str, Any] | None = None) -> dict[str, Any]
     out["friction"] = friction
     if effects:
         out["effects"] = effects
+    if h.has(fx.BACKLASH.name):
+        out["backlash"] = _backlash_spec(h)
     if meta:
         out["meta"] = dict(meta)
     return out
+
+
+def _backlash_spec(h: Hyp) -> dict[str, Any]:
+    """The ``backlash:`` mapping of a fitted hypothesis with the backlash effect (see the module docstring)."""
+    p = fx.BACKLASH.params(h)
+    on_load = p.coulomb_lost_n >= 0.5 * abs(p.coulomb_n)
+    other = p.mass_kg - p.mass_lost_kg if on_load else p.mass_lost_kg
+    if not (0.0 < other < p.mass_kg):
+        raise ConfigError(f"backlash: the fitted mass lost in the play ({p.mass_lost_kg:.4g} kg of "
+                          f"{p.mass_kg:.4g} kg) leaves no valid motor/load split; not written (not clipped)")
+    return {"gap_m": float(p.gap_m), "other_mass_kg": float(other), "friction_side": "load" if on_load else "motor",
+            "sensor_side": "motor"}
 
 
 def scale_friction_spec(spec: dict[str, Any], c: float) -> dict[str, Any]:
@@ -137,6 +156,8 @@ def model_to_hyp(model: StageModel) -> Hyp:
         value = getattr(model.effects, eff.twin) if eff.twin is not None else None
         if value is not None and eff.from_twin is not None:
             h = eff.from_twin(h, value)
+    if model.backlash is not None:
+        h = fx.BACKLASH.reshaped(h.adding(fx.BACKLASH.name), gap_m=float(model.backlash.gap_m))
     h.theta = {}
     return h
 

@@ -102,11 +102,20 @@ def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[s
     return rep
 
 
-def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
-    import matplotlib  # heavy optional library: imported only when plots are written
+#: at most this many points per scatter series: the residual-by-position/velocity clouds of a long recording
+#: look the same thinned evenly, and Agg draws markers one by one
+MAX_SCATTER_POINTS = 4000
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
+    # heavy optional library, imported only when plots are written; Figure without pyplot (no GUI backend
+    # machinery to import, nothing global to close)
+    from matplotlib.figure import Figure
+
+    def subplots(*grid: int, **kw: Any) -> tuple[Any, Any]:
+        fig = Figure(figsize=kw.pop("figsize"))
+        ax = fig.subplots(*grid, **kw)
+        return fig, ax
 
     ds = res.dataset
     if ds is None:
@@ -117,7 +126,7 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     files: list[str] = []
     t = sig.t
 
-    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    fig, ax = subplots(2, 1, figsize=(10, 6), sharex=True)
     r0p = np.where(rows, r0, np.nan)
     r1p = np.where(rows, r1, np.nan)
     ax[0].plot(t, r0p, lw=0.6, label=f"start model (RMS {res.gap_before:.4g} N)")
@@ -128,16 +137,15 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     ax[1].plot(t, sig.xf, lw=0.8, color="k")
     ax[1].set_ylabel("position [m]")
     ax[1].set_xlabel("time [s]")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.95, bottom=0.09, hspace=0.12)  # fixed: tight_layout draws twice
     fig.savefig(out / "residual_time.png", dpi=90)
-    plt.close(fig)
     files.append("residual_time.png")
 
     regs = regimes(sig, rows)
     names = [k for k, m in regs.items() if m.any()]
     b = [float(np.sqrt(np.mean(r0[regs[k]] ** 2))) for k in names]
     a = [float(np.sqrt(np.mean(r1[regs[k]] ** 2))) for k in names]
-    fig, ax = plt.subplots(figsize=(10, 4))
+    fig, ax = subplots(figsize=(10, 4))
     y = np.arange(len(names))
     ax.barh(y - 0.2, b, 0.4, label="start model")
     ax.barh(y + 0.2, a, 0.4, label="final model")
@@ -145,15 +153,16 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     ax.set_xlabel("RMS force residual [N]")
     ax.set_title("validation residual by regime")
     ax.legend(fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.2, right=0.98, top=0.9, bottom=0.13)
     fig.savefig(out / "residual_regimes.png", dpi=90)
-    plt.close(fig)
     files.append("residual_regimes.png")
 
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = subplots(1, 2, figsize=(11, 4))
+    idx = np.flatnonzero(rows)
+    idx = idx[:: max(1, -(-idx.size // MAX_SCATTER_POINTS))]
     for rr, lab in ((r0, "start"), (r1, "final")):
-        ax[0].plot(sig.xf[rows], rr[rows], ".", ms=1, label=lab)
-        ax[1].plot(sig.v[rows], rr[rows], ".", ms=1, label=lab)
+        ax[0].plot(sig.xf[idx], rr[idx], ".", ms=1, label=lab)
+        ax[1].plot(sig.v[idx], rr[idx], ".", ms=1, label=lab)
     ax[0].set_xlabel("position [m]")
     ax[1].set_xlabel("velocity [m/s]")
     for a_ in ax:
@@ -161,9 +170,8 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
         a_.legend(fontsize=8, markerscale=8)
     ax[0].set_title("residual by position")
     ax[1].set_title("residual by velocity")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.99, top=0.92, bottom=0.13, wspace=0.25)
     fig.savefig(out / "residual_position_velocity.png", dpi=90)
-    plt.close(fig)
     files.append("residual_position_velocity.png")
     return files
 

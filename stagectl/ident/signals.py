@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal
 
 from stagectl.errors import DataError
+from stagectl.ident._filter import butter_lowpass_sos, sosfiltfilt
 from stagectl.ident.recording import Recording
 
 FloatArray = npt.NDArray[np.float64]
@@ -49,7 +49,7 @@ ERODE = 2
 def lowpass_sos(cutoff_hz: float, fs_hz: float, order: int = 4) -> FloatArray:
     """Butterworth low-pass in second-order sections (cut-off clipped below Nyquist)."""
     wn = min(cutoff_hz / (0.5 * fs_hz), 0.95)
-    return np.asarray(signal.butter(order, wn, output="sos"), dtype=np.float64)
+    return butter_lowpass_sos(order, wn)
 
 
 @dataclass
@@ -105,7 +105,7 @@ class Signals:
 
     def filt(self, raw: FloatArray) -> FloatArray:
         """``L[moving · raw]``: zero stuck samples, then zero-phase low-pass."""
-        return np.asarray(signal.sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
+        return np.asarray(sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
 
     def noise_floor_n(self, mass_kg: float) -> float:
         """Force-residual RMS [N] that white position noise (and quantisation) alone produce.
@@ -121,7 +121,7 @@ class Signals:
     def filt_many(self, raw: FloatArray) -> FloatArray:
         """:meth:`filt` applied to every column of ``raw`` (shape ``(n, k)``) in one call."""
         m = self.moving[:, None]
-        return np.asarray(signal.sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
+        return np.asarray(sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
 
     def ubar(self, delay_s: float = 0.0) -> FloatArray:
         """Applied force seen by the second difference at ``t[k]`` for an actuation delay ``delay_s`` [N].
@@ -292,7 +292,7 @@ def prepare(
     sos = lowpass_sos(fc, fs)
     x = rec.x
     x0 = float(x[0])
-    xf = np.asarray(signal.sosfiltfilt(sos, x - x0), dtype=np.float64) + x0
+    xf = np.asarray(sosfiltfilt(sos, x - x0), dtype=np.float64) + x0
     v = np.gradient(xf, dt)
     acc_raw = np.zeros(n)
     acc_raw[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (dt * dt)
@@ -302,10 +302,10 @@ def prepare(
     # velocity noise gain of the pipeline for unit white position noise
     rng = np.random.default_rng(12345)
     w = rng.standard_normal(4096)
-    gain_v = float(np.std(np.gradient(signal.sosfiltfilt(sos, w), dt)[64:-64]))
+    gain_v = float(np.std(np.gradient(sosfiltfilt(sos, w), dt)[64:-64]))
     w2 = np.zeros_like(w)
     w2[1:-1] = w[2:] - 2.0 * w[1:-1] + w[:-2]
-    gain_a = float(np.std(signal.sosfiltfilt(sos, w2)[64:-64])) / (dt * dt)
+    gain_a = float(np.std(sosfiltfilt(sos, w2)[64:-64])) / (dt * dt)
     sigma_x = max(noise, q / math.sqrt(12.0))
     v_th = float(v_stick_m_s) if v_stick_m_s is not None else max(6.0 * sigma_x * gain_v, 1e-12)
     guard = max(2, int(math.ceil(0.5 * fs / fc)))

@@ -13,6 +13,7 @@ is drawn over a plausible range from the same generator. The forms, in the plant
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -101,7 +102,7 @@ def test_long_stroke_null_recording_names_nothing_in_any_regime() -> None:
     assert gains and max(gains) < 0.2, gains
 
 
-def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() -> None:
+def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding(tmp_path: Path) -> None:
     """A ball-screw-scale axis (load 4 kg, motor side 0.8 kg, stiff nut contact 1e7 N/m, encoder on the motor)
     with a hidden play of 15-30 µm: discovery names backlash, not pre-sliding, with the play and the load mass
     it loses at each reversal (docs/discovery.md §10)."""
@@ -117,6 +118,32 @@ def test_hidden_backlash_on_a_ball_screw_axis_is_told_apart_from_presliding() ->
     assert p.gap_m == pytest.approx(gap, rel=0.15)
     assert p.mass_lost_kg == pytest.approx(4.0, rel=0.3)  # the load's mass is not carried inside the play
     assert "lost motion" in res.effects[0].evidence
+    # round trip: discover -> model.yaml (backlash: section) -> plant and feed-forward -> discover's start model
+    from stagectl.sim.backlash import BacklashPlant, plant_from_model
+
+    from stagectl.control.friction_ff import FrictionFeedforward
+    from stagectl.friction import load_model_file, save_model_file
+    from stagectl.ident import effects as fx
+    from stagectl.ident.modelio import hyp_to_model, model_to_hyp
+    save_model_file(hyp_to_model(res.final.hyp), tmp_path / "model.yaml")
+    model = load_model_file(tmp_path / "model.yaml")
+    assert model.backlash is not None and model.mass_kg is not None
+    assert model.backlash.gap_m == pytest.approx(gap, rel=0.15)
+    assert model.backlash.friction_side == "load" and model.backlash.sensor_side == "motor"
+    assert model.backlash.other_mass_kg == pytest.approx(0.8, abs=0.6)  # the motor side: total − load
+    assert model.mass_kg == pytest.approx(4.8, rel=0.05)
+    plant = plant_from_model(model, sensor={"resolution_m": 1e-9})
+    assert isinstance(plant, BacklashPlant) and plant.bl.gap_m == model.backlash.gap_m
+    assert plant.cfg.mass_kg == pytest.approx(model.mass_kg - model.backlash.other_mass_kg)
+    for _ in range(200):  # push, then reverse: the motor crosses the play before the load follows
+        plant.step(5.0, 1e-3)
+    x_load = plant.x_load_m
+    while plant.contact_force_n >= 0.0 and abs(plant.x_load_m - x_load) < 1e-3:
+        plant.step(-5.0, 1e-4)
+    assert plant.x_motor_m - plant.x_load_m == pytest.approx(-0.5 * model.backlash.gap_m, abs=0.2 * gap)
+    FrictionFeedforward(model.friction, model.effects)  # the feed-forward reads the same file
+    h = model_to_hyp(model)
+    assert h.has("backlash") and fx.BACKLASH.shape(h).gap_m == model.backlash.gap_m
 
 
 def test_a_fit_beyond_a_physical_bound_is_reported_not_clipped() -> None:
@@ -134,3 +161,29 @@ def test_a_fit_beyond_a_physical_bound_is_reported_not_clipped() -> None:
                            wavelength_m=1e-3)
     with pytest.raises((ConfigError, ValueError)):
         hyp_to_model(h)
+
+
+def test_one_directional_motion_reports_the_cogging_ripple_tie_with_the_separating_experiment() -> None:
+    """Moving in one direction at nearly constant speed, a ripple of the friction force (a·F·sin) and a
+    cogging force (A·sin) at the same wavelength are the same force: the report must say the data cannot
+    separate them and name the experiment that would (move over the same positions in both directions)."""
+    rng = np.random.default_rng(1310)
+    st = synth.draw_stage(rng)
+    fc = st["friction"]["fc_n"]
+    st["sensor"] = {"resolution_m": 1e-9, "noise_std_m": 60e-9}
+    st["effects"] = {"cogging": {"amplitude_n": 0.4 * fc, "wavelength_m": 1e-3, "phase_rad": 0.7}}
+    dt, n = 1e-3, 8000
+    t = np.arange(n) * dt
+    v = 8e-3 * 0.5 * (1.0 - np.cos(np.pi * np.minimum(t / 0.5, 1.0)))  # ramp to 8 mm/s, then one direction
+    rec = synth.closed_loop(st, x_ref=np.cumsum(v) * dt, seed=1310)
+    assert np.all(np.diff(rec.x[200:]) > -1e-7)  # one-directional indeed (up to noise)
+    res = discover(rec, max_rounds=2)
+    names = [e.name for e in res.effects]
+    assert names[:1] in (["cogging"], ["position_ripple"]), res.rounds[0].candidates
+    other = "position_ripple" if names[0] == "cogging" else "cogging"
+    row = next(c for c in res.rounds[0].candidates if c.name == names[0] and isinstance(c, CandidateFit))
+    assert row.note is not None and f"tie with {other}" in row.note, row.note
+    assert "cannot separate" in row.note and "both directions" in row.note
+    # the note reaches the written report
+    from stagectl.ident.report import _markdown, build_report
+    assert f"tie with {other}" in _markdown(build_report(res, {"estimation": "synth"}), [])
