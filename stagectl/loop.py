@@ -13,9 +13,26 @@ Each cycle, in this order::
     m = sensor.read()            # read once
     requests                     # move / stop / reset / retune / shutdown, at the cycle boundary
     safety checks                # device faults, NaN/inf, stale, soft limits, velocity, following error
-    ref = reference.sample(t);  cmd = controller.step(dt, x, ref)
+    ref = reference.sample(t);  cmd = controller.step(dt, x, ref)      (fresh sample only)
     u = safety.limit_force(cmd.force_n);  actuator.write(u)
     row -> sinks                 # telemetry, never blocking
+
+Timing of the control law (a PC without a real-time kernel wakes late, skips slots and gets stale samples):
+
+* ``dt`` is the *measured* interval between the sample the controller steps on and the previous one it
+  stepped on, in loop time: ``dt = clamp(t_k − t_prev, T/2, MAX_DT_PERIODS·T)``. A skipped slot gives
+  ``dt ≈ 2T``; after stale samples the first fresh one gets the whole gap, so the velocity estimate
+  Δx/dt, the integrator (∫e dt), the observer and the derivative filter see the time that really passed
+  (no derivative kick when samples resume). The reference is sampled at loop time ``t`` too.
+* A stale sample (no new position: late or dropped TPDO, missing frame) does not step the controller:
+  the last force and terms are held, nothing integrates; ``safety.stale_cycles`` in a row is a fault.
+* Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
+  drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
+  (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
+  then commands the actuator's ``quick_stop()``; the fault is latched and logged at once, the state is
+  FAULT while braking. Every other fault (device, drive, NaN, stale position, loop error) quick-stops at
+  once (zero force). Braking needs the moving mass (the controller's ``mass_kg``); without one the loop
+  quick-stops at once.
 
 The same code runs with :class:`~stagectl.clock.MonotonicClock` (``stagectl run``, the daemon) and with
 :class:`~stagectl.clock.SimClock` plus lock-step devices (``stagectl simulate``, tests, benchmarks): with
@@ -56,6 +73,7 @@ from stagectl.clock import Clock, apply_realtime
 from stagectl.control.api import Reference
 from stagectl.drivers.base import (
     Device,
+    DeviceState,
     ForceActuator,
     Measurement,
     PositionSensor,
@@ -66,6 +84,7 @@ from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
 from stagectl.runtime.protocols import Controller, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.quickstop import BRAKE_FAULTS, QuickStopBrake
 from stagectl.runtime.requests import (
     LoopRequest,
     MotionLimits,
@@ -102,6 +121,9 @@ BASE_COLUMNS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v")
 #: appended after the controller terms: stale sample (force and terms held) and skipped slots before the row
 FLAG_COLUMNS = ("stale", "skipped")
 DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
+#: the controller's dt is clamped to [MIN_DT_PERIODS·T, MAX_DT_PERIODS·T] (module docstring)
+MIN_DT_PERIODS = 0.5
+MAX_DT_PERIODS = 10.0
 
 
 class ControlLoop:
@@ -127,10 +149,10 @@ class ControlLoop:
         ``u_pid, u_dob, u_ff, u_inertia``); a term missing from a step's ``Command.terms`` is recorded as 0.
     device_time : bool
         The devices' time advances exactly one period per SYNC (virtual devices served by the loop thread):
-        loop time is then ``executed cycles × T`` and every step gets ``dt = T``, so skipped slots slow the
-        simulation down instead of desynchronising reference and plant. False (default): loop time is
-        ``clock.now() − start`` and ``dt = T·(1 + skipped)``, right for real devices and for PlantIO with a
-        clock (its plant follows the clock).
+        loop time is then ``executed cycles × T`` (a step after stale samples gets the whole gap), so skipped
+        slots slow the simulation down instead of desynchronising reference and plant. False (default): loop
+        time is ``clock.now() − start`` (a skipped slot gives ``dt ≈ T·(1 + skipped)``), right for real devices
+        and for PlantIO with a clock (its plant follows the clock).
     realtime : bool
         Apply ``cfg.realtime`` (FIFO, affinity, mlock, timer slack, gc.freeze) in the loop thread at start.
         False for simulated time.
@@ -177,6 +199,9 @@ class ControlLoop:
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
         self._t0 = 0.0
+        self._t_step: float | None = None  # loop time of the last sample the controller stepped on
+        self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
+        self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
         self.realtime_report: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ sinks
@@ -239,6 +264,8 @@ class ControlLoop:
     def _reset(self, t: float, x: float) -> dict[str, Any]:
         if self.state is not LoopState.FAULT:
             return {"state": self.state.value, "cleared": None}
+        if self.brake is not None:
+            raise LoopStateError("reset: the fault reaction is still braking the stage; retry when it stands")
         cleared = self.safety.fault
         self._devs.reset_faults()
         self.safety.clear()
@@ -246,6 +273,7 @@ class ControlLoop:
         self.controller.reset(x)
         self.reference.hold(t, x)
         self._u = 0.0
+        self._t_step = None
         self.state = LoopState.ACTIVE
         self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
@@ -281,14 +309,50 @@ class ControlLoop:
         )
 
     # ------------------------------------------------------------------ fault
-    def _enter_fault(self, t: float) -> None:
+    def _enter_fault(self, t: float, x: float = math.nan) -> None:
         if self.state is LoopState.FAULT:
             return
         self.state = LoopState.FAULT
         self.faults += 1
         self._u = 0.0
+        fault = self.safety.fault
+        brake = self._make_brake(t, x) if fault is not None and fault.name in BRAKE_FAULTS else None
+        if brake is None:
+            self._devs.quick_stop(fault)
+            log.error("FAULT %s; drive quick-stopped", fault)
+            return
+        self.brake = self.last_brake = brake
+        log.error("FAULT %s; braking from %.4g m/s at %.3g m/s^2 (force within %.3g N), then quick stop", fault,
+                  brake.v0_m_s, brake.a_m_s2, brake.max_force_n)
+        self._brake_cycle(t, x, True)
+
+    def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
+        """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
+        mass = getattr(self.controller, "mass_kg", None)
+        if not (isinstance(mass, (int, float)) and mass > 0 and math.isfinite(x)):
+            return None
+        if self.actuator.state is not DeviceState.ENABLED:
+            return None
+        c = self.safety.cfg
+        a = c.quick_stop_deceleration_m_s2 or 0.9 * c.max_force_n / float(mass)
+        return QuickStopBrake(t, x, self.safety.v_est_m_s, mass_kg=float(mass), max_force_n=c.max_force_n,
+                              deceleration_m_s2=a, standstill_m_s=c.quick_stop_standstill_m_s,
+                              stale_limit=c.stale_cycles)
+
+    def _brake_cycle(self, t: float, x: float, fresh: bool) -> None:
+        """One cycle of the fault reaction's brake; at its end the actuator's quick stop (force 0)."""
+        brake = self.brake
+        assert brake is not None
+        u = brake.step(t, x, fresh)
+        if not brake.done:
+            self.actuator.write(u)
+            self._u = u
+            return
+        self.brake = None
+        self._u = 0.0
         self._devs.quick_stop(self.safety.fault)
-        log.error("FAULT %s; drive quick-stopped", self.safety.fault)
+        log.error("fault reaction: brake ended (%s) after %.1f ms, %.3g m from where it began; drive "
+                  "quick-stopped", brake.why, (t - brake.t0_s) * 1e3, x - brake.x0_m)
 
     # ------------------------------------------------------------------ run
     def _start(self) -> float:
@@ -317,6 +381,7 @@ class ControlLoop:
         if waited or i:
             log.info("first fresh position after %d + %d start-up cycles", waited, i)
         self._t0 = t0
+        self._t_step = None
         x0 = m.position_m
         if faulted:  # a latched fault survives a restart of the loop: only reset clears it
             self.state = LoopState.FAULT
@@ -394,7 +459,7 @@ class ControlLoop:
         on_cycle = self.on_cycle
         perf = time.perf_counter
         slot = 0  # deadline of slot n is t0 + n·T (no accumulated rounding)
-        dt = period
+        dt_min, dt_max = MIN_DT_PERIODS * period, MAX_DT_PERIODS * period
         skipped = 0
         late = 0.0
         max_cycles = self.cycle + cycles if cycles is not None else -1
@@ -431,16 +496,19 @@ class ControlLoop:
                     m = Measurement(x, False)
                 dev_fault = m.fault if m.fault is not None else devs.fault()
                 if self.state is LoopState.ACTIVE and safety.check_measurement(t, k, x, m.fresh, dev_fault):
-                    self._enter_fault(t)
+                    self._enter_fault(t, x)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
                     if safety.check_tracking(t, k, x, ref.x_m):
-                        self._enter_fault(t)
+                        self._enter_fault(t, x)
                     elif m.fresh:
+                        t_prev = self._t_step
+                        dt = period if t_prev is None else min(dt_max, max(dt_min, t - t_prev))
+                        self._t_step = t
                         cmd = controller.step(dt, x, ref)
                         u = safety.limit_force(t, k, cmd.force_n)
                         if safety.fault is not None:
-                            self._enter_fault(t)
+                            self._enter_fault(t, x)
                         else:
                             actuator.write(u)
                             self._u = u
@@ -449,6 +517,10 @@ class ControlLoop:
                         actuator.write(self._u)
                         terms = held
                 else:
+                    if self.brake is not None:
+                        if dev_fault is not None:  # the drive no longer obeys: release at once
+                            self.brake.step(t, math.nan, False)
+                        self._brake_cycle(t, x, m.fresh)
                     ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t)
                     terms = {}
                 x_prev_ref = ref
@@ -464,6 +536,10 @@ class ControlLoop:
                 if safety.fault is None:
                     log.exception("unexpected error in cycle %d", k)
                 safety.latch("loop_error", f"{type(exc).__name__}: {exc}", t, k)
+                if self.brake is not None:  # braking itself failed: release to the drive's quick stop
+                    self.brake = None
+                    self._u = 0.0
+                    self._devs.quick_stop(safety.fault)
                 self._enter_fault(t)
             # ------------------------------------------------------ statistics
             record(k, late, perf() - c0, skipped)
@@ -480,11 +556,13 @@ class ControlLoop:
                 slot += skipped
                 late -= skipped * period
                 self.overruns += skipped
-            dt = period if device_time else period * (1 + skipped)
             if warner is not None:
                 warner.note(t, late, skipped, period, self.overruns)
 
     def _teardown(self) -> None:
+        if self.brake is not None:  # the run ends while braking: the drive's own quick stop takes over
+            self.brake = None
+            self._devs.quick_stop(self.safety.fault)
         self._devs.shut_down(write_zero=self.state is LoopState.ACTIVE)
         self._u = 0.0
         if self.state is LoopState.ACTIVE:

@@ -13,8 +13,10 @@ fault name             condition
 ``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
 ``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s``
-``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/T low-passed at
-                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/T − v̂), α = 1 − e^{−2π f T})
+``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt between fresh samples,
+                       Δt their measured interval (loop time, at least T/2), low-passed at
+                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f Δt}), so a
+                       skipped cycle or a dropped sample does not read as a velocity jump
 ``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
                        for longer than ``force_saturation_time_s`` (a blocked stage) is a fault
 ``loop_error``         an unexpected exception in the cycle (raised by the loop, recorded here)
@@ -22,7 +24,11 @@ fault name             condition
 
 The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
 overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
-latched fault by commanding the drive's quick stop in the same cycle (well within the 3-cycle budget).
+latched fault in the same cycle: for ``following_error``, ``velocity_limit`` and ``position_limit`` (the
+position is valid and the drive obeys) it brakes the stage to standstill on a velocity ramp with
+``quick_stop_deceleration_m_s2`` within ``max_force_n`` and then commands the drive's quick stop
+(:mod:`stagectl.runtime.quickstop`); for every other fault it commands the quick stop at once (zero force
+within the 3-cycle budget).
 """
 
 from __future__ import annotations
@@ -53,6 +59,12 @@ class SafetyConfig:
     max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
     stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+    quick_stop_deceleration_m_s2: float | None = param(
+        None, unit="m/s^2", desc="fault reaction: deceleration of the braking ramp after following_error, "
+        "velocity_limit or position_limit, before the drive is released (None: 0.9 max_force_n / moving mass)",
+        gt=0)
+    quick_stop_standstill_m_s: float = param(
+        1e-4, unit="m/s", desc="fault reaction: the brake ends (drive released) below this velocity", gt=0)
 
     def __post_init__(self) -> None:
         if not self.min_position_m < self.max_position_m:
@@ -101,6 +113,7 @@ class Safety:
         self.n_faults = 0
         self.v_est_m_s = 0.0
         self._x_prev: float | None = None
+        self._t_prev: float | None = None
         self._stale = 0
         self._fe_since: float | None = None
         self._sat_since: float | None = None
@@ -122,13 +135,17 @@ class Safety:
         """Reset the estimators and timers (at start and on reset) without touching a latched fault."""
         self.v_est_m_s = 0.0
         self._x_prev = x_m
+        self._t_prev = None
         self._stale = 0
         self._fe_since = None
         self._sat_since = None
 
     # ----------------------------------------------------------------- per-cycle checks
     def check_measurement(self, t_s: float, cycle: int, x_m: float, fresh: bool, device_fault: object) -> bool:
-        """Position, freshness and device-fault checks. Returns True when a fault is latched."""
+        """Position, freshness and device-fault checks. Returns True when a fault is latched.
+
+        ``t_s`` is the loop time of this sample [s]: the velocity estimate divides by the measured interval
+        since the previous fresh sample (at least T/2; T when there is no previous one)."""
         cfg = self.cfg
         if device_fault is not None:
             kind = getattr(device_fault, "kind", None)
@@ -153,11 +170,15 @@ class Safety:
                 cycle,
             )
             return True
-        xp = self._x_prev
-        self._x_prev = x_m
+        xp, tp = self._x_prev, self._t_prev
+        self._x_prev, self._t_prev = x_m, t_s
         if xp is not None:
-            v_raw = (x_m - xp) / self.period_s
-            self.v_est_m_s += self._alpha * (v_raw - self.v_est_m_s)
+            T = self.period_s
+            dt = T if tp is None else max(0.5 * T, t_s - tp)
+            alpha = self._alpha if abs(dt - T) <= 1e-9 * T else (
+                1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * dt))
+            v_raw = (x_m - xp) / dt
+            self.v_est_m_s += alpha * (v_raw - self.v_est_m_s)
             if abs(self.v_est_m_s) > cfg.max_velocity_m_s:
                 self.latch(
                     "velocity_limit",
