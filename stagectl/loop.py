@@ -26,6 +26,8 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   (no derivative kick when samples resume). The reference is sampled at loop time ``t`` too.
 * A stale sample (no new position: late or dropped TPDO, missing frame) does not step the controller:
   the last force and terms are held, nothing integrates; ``safety.stale_cycles`` in a row is a fault.
+  Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
+  Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
 * Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
   drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
   (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
@@ -202,6 +204,8 @@ class ControlLoop:
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
         self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
         self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
+        #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
+        self.active_braking = True
         self.realtime_report: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ sinks
@@ -329,7 +333,7 @@ class ControlLoop:
     def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
         """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
         mass = getattr(self.controller, "mass_kg", None)
-        if not (isinstance(mass, (int, float)) and mass > 0 and math.isfinite(x)):
+        if not self.active_braking or not (isinstance(mass, (int, float)) and mass > 0 and math.isfinite(x)):
             return None
         if self.actuator.state is not DeviceState.ENABLED:
             return None
@@ -469,6 +473,7 @@ class ControlLoop:
         device_time = self.device_time
         x_prev_ref = Reference(self._snap[2])
         held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
+        stale_row = False
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -501,9 +506,9 @@ class ControlLoop:
                     ref = reference.sample(t)
                     if safety.check_tracking(t, k, x, ref.x_m):
                         self._enter_fault(t, x)
-                    elif m.fresh:
+                    elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):
                         t_prev = self._t_step
-                        dt = period if t_prev is None else min(dt_max, max(dt_min, t - t_prev))
+                        dt = period if t_prev is None else min(dt_max, t - t_prev)
                         self._t_step = t
                         cmd = controller.step(dt, x, ref)
                         u = safety.limit_force(t, k, cmd.force_n)
@@ -513,9 +518,10 @@ class ControlLoop:
                             actuator.write(u)
                             self._u = u
                         terms = held = cmd.terms
-                    else:  # stale sample (below the stale limit): hold the last force, no new estimate
-                        actuator.write(self._u)
-                        terms = held
+                    else:  # stale sample (below the stale limit), or one less than T/2 after the last
+                        actuator.write(self._u)  # stepped one (a late wake-up right before an on-time one):
+                        terms = held  # hold the last force, no new estimate; the next step gets the whole gap
+                        stale_row = True
                 else:
                     if self.brake is not None:
                         if dev_fault is not None:  # the drive no longer obeys: release at once
@@ -524,10 +530,14 @@ class ControlLoop:
                     ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t)
                     terms = {}
                 x_prev_ref = ref
+                if stale_row:
+                    fresh_row, stale_row = 0.0, False
+                else:
+                    fresh_row = 1.0 if m.fresh else 0.0
                 u = self._u
                 row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
                     [terms.get(n, 0.0) for n in term_names]
-                ) + (0.0 if m.fresh else 1.0, float(skipped))
+                ) + (1.0 - fresh_row, float(skipped))
                 sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:
@@ -551,8 +561,8 @@ class ControlLoop:
             clock.sleep_until(deadline)
             late = clock.now() - deadline
             skipped = 0
-            if late >= period:
-                skipped = int(late // period)
+            if late >= period * (1.0 - 1e-9):  # (a wake-up one period late is a skipped slot, rounding aside)
+                skipped = max(1, int(late // period))
                 slot += skipped
                 late -= skipped * period
                 self.overruns += skipped

@@ -14,7 +14,8 @@ fault name             condition
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
 ``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s``
 ``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt between fresh samples,
-                       Δt their measured interval (loop time, at least T/2), low-passed at
+                       Δt their measured interval (loop time; a sample less than T/2 after the last one waits for the
+                       next), low-passed at
                        ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f Δt}), so a
                        skipped cycle or a dropped sample does not read as a velocity jump
 ``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
@@ -171,10 +172,12 @@ class Safety:
             )
             return True
         xp, tp = self._x_prev, self._t_prev
+        T = self.period_s
+        dt = T if tp is None else t_s - tp
+        if dt < 0.5 * T:  # a sample right after the last one (late wake-up): keep the longer baseline
+            return self.fault is not None
         self._x_prev, self._t_prev = x_m, t_s
         if xp is not None:
-            T = self.period_s
-            dt = T if tp is None else max(0.5 * T, t_s - tp)
             alpha = self._alpha if abs(dt - T) <= 1e-9 * T else (
                 1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * dt))
             v_raw = (x_m - xp) / dt

@@ -16,7 +16,8 @@ discretised with α = exp(−g·dt)::
     w_{k+1} = α·w_k + (1 − α)·(ū_k + K_v·v̂_k),       d̂_k = w_k − K_v·v̂_k
     K_v = m_n·(1 − α)/dt   (→ m_n·g as dt → 0),       ū_k = (u_obs,k + u_obs,k−1)/2
 
-with v̂ the backward-difference velocity estimate [m/s] from the controller. The two discrete choices make
+with v̂ the backward-difference velocity estimate [m/s] from the controller and dt the measured sample
+interval (when dt changes, w is re-based by ΔK_v·v̂ so that d̂ is continuous). The two discrete choices make
 the estimate exact for a rigid mass under a zero-order-hold force (d̂ = LPF(τ), no bias): with §6.1's
 literal K_v = m_n·g and ū = u_obs the estimate is biased by −m_n·a·g·dt/2 under a constant acceleration a
 (1.6 % of m·a at 50 Hz and 10 kHz).
@@ -144,9 +145,12 @@ class QFilterDob:
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
         """
         check_dt(dt)
-        if dt != self._dt:
-            self._coeffs(dt)
         st = self.state
+        if dt != self._dt:
+            kv_old = self._kv
+            self._coeffs(dt)
+            if self._have_prev:  # a new sample interval (skipped cycle, stale samples): re-base w so that the
+                st.w_n += (self._kv - kv_old) * st.v_hat_m_s  # estimate d̂ = w − K_v·v̂ does not jump with K_v
         u_in = u_obs_prev_n
         if self._delay:
             self._delay.append(u_obs_prev_n)
