@@ -15,7 +15,9 @@ abort code with its CiA 301 meaning and what to check (:func:`explain_sdo_error`
 Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::
 
     drive.sync()    # drain stale frames, send SYNC (0x080), every N cycles our heartbeat (0x700+ctrl)
-    drive.read()    # wait for the TPDO sent after this SYNC; unwrap position; detect faults
+    drive.read()    # wait for the TPDO sent after this SYNC; unwrap position; detect faults. If it does not
+                    # come in time, the newest late answer to the previous SYNC (drained by sync()) is
+                    # returned as a fresh sample with age_cycles = 1 (a loaded machine answering late)
     drive.write(f)  # RPDO1 (controlword, target torque); the drive applies it at the next SYNC
 
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
@@ -339,6 +341,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     def _reset_cyclic(self) -> None:
         self._held: tuple[int, int] | None = None
+        self._late: tuple[int, int] | None = None  # the newest late answer to an earlier SYNC (sync producer)
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -608,11 +611,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        self._late = None
         if not self.cfg.sync_producer:
             self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
             self._evaluate(got)
+        elif self.cfg.sync_producer:
+            self._late = got  # ... kept as a late sample (age 1) in case this SYNC's answer is late too
         if self._cycle % self._hb_every == 0:
             self._send(self._hb_msg)
         if self.cfg.sync_producer:
@@ -660,12 +666,15 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
         got = self._wait_tpdo()
+        age = 0
         if got is None and self._held is not None:
             got = self._held
-        self._held = None
-        return self._evaluate(got)
+        elif got is None and self._late is not None:
+            got, age = self._late, 1  # a late answer to the previous SYNC: newer than the last read
+        self._held = self._late = None
+        return self._evaluate(got, age)
 
-    def _evaluate(self, got: tuple[int, int] | None) -> Measurement:
+    def _evaluate(self, got: tuple[int, int] | None, age: int = 0) -> Measurement:
         self.cycles += 1
         fault: DeviceFault | None = None
         fresh = got is not None
@@ -714,6 +723,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             counts=self._counts,
             status=self.statusword,
             fault=fault,
+            age_cycles=age,
         )
 
     def torque_units(self, force_n: float) -> int:

@@ -24,8 +24,13 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   ``dt ≈ 2T``; after stale samples the first fresh one gets the whole gap, so the velocity estimate
   Δx/dt, the integrator (∫e dt), the observer and the derivative filter see the time that really passed
   (no derivative kick when samples resume). The reference is sampled at loop time ``t`` too.
+* A late sample (``Measurement.age_cycles`` n > 0: a TPDO that answered the previous SYNC after its wait)
+  is placed at ``t − n·T`` for the velocity estimate and extrapolated to ``t`` with it
+  (x + v̂·n·T) for the controller, the tracking check and the telemetry.
 * A stale sample (no new position: late or dropped TPDO, missing frame) does not step the controller:
-  the last force and terms are held, nothing integrates; ``safety.stale_cycles`` in a row is a fault.
+  nothing integrates, no estimate moves; a controller with ``hold(dt, ref)`` (StageController) keeps its
+  feedback terms and moves its feed-forward along the reference, any other holds its last force;
+  ``safety.stale_cycles`` in a row is a fault.
   Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
   Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
 * Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
@@ -85,7 +90,7 @@ from stagectl.errors import StageError
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
-from stagectl.runtime.protocols import Controller, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.protocols import Controller, HoldsOnStale, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
 from stagectl.runtime.quickstop import BRAKE_FAULTS, QuickStopBrake
 from stagectl.runtime.requests import (
     LoopRequest,
@@ -474,6 +479,8 @@ class ControlLoop:
         x_prev_ref = Reference(self._snap[2])
         held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
         stale_row = False
+        holds = isinstance(controller, HoldsOnStale)
+        t_ctl = self._t_step  # loop time of the last controller step or hold
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -500,8 +507,13 @@ class ControlLoop:
                     self._just_reset = False
                     m = Measurement(x, False)
                 dev_fault = m.fault if m.fault is not None else devs.fault()
-                if self.state is LoopState.ACTIVE and safety.check_measurement(t, k, x, m.fresh, dev_fault):
+                t_m = t
+                if m.age_cycles and m.fresh:  # a late sample from age·T ago: its own time for the velocity
+                    t_m = t - m.age_cycles * period  # estimate, then extrapolated to now with it
+                if self.state is LoopState.ACTIVE and safety.check_measurement(t_m, k, x, m.fresh, dev_fault):
                     self._enter_fault(t, x)
+                if t_m != t and math.isfinite(x):
+                    x += safety.v_est_m_s * (t - t_m)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
                     if safety.check_tracking(t, k, x, ref.x_m):
@@ -509,7 +521,7 @@ class ControlLoop:
                     elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):
                         t_prev = self._t_step
                         dt = period if t_prev is None else min(dt_max, t - t_prev)
-                        self._t_step = t
+                        self._t_step = t_ctl = t
                         cmd = controller.step(dt, x, ref)
                         u = safety.limit_force(t, k, cmd.force_n)
                         if safety.fault is not None:
@@ -519,9 +531,22 @@ class ControlLoop:
                             self._u = u
                         terms = held = cmd.terms
                     else:  # stale sample (below the stale limit), or one less than T/2 after the last
-                        actuator.write(self._u)  # stepped one (a late wake-up right before an on-time one):
-                        terms = held  # hold the last force, no new estimate; the next step gets the whole gap
+                        # stepped one (a late wake-up right before an on-time one): feedback held, no new
+                        # estimate (the next step gets the whole gap); the feed-forward follows the reference
+                        # when the controller can (hold), else the last force is held
                         stale_row = True
+                        terms = held
+                        if holds and self._t_step is not None and t_ctl is not None and t - t_ctl >= dt_min:
+                            cmd = controller.hold(min(dt_max, t - t_ctl), ref)  # type: ignore[attr-defined]
+                            t_ctl = t
+                            u = safety.limit_force(t, k, cmd.force_n)
+                            if safety.fault is not None:
+                                self._enter_fault(t, x)
+                            else:
+                                self._u = u
+                                terms = cmd.terms
+                        if self.state is LoopState.ACTIVE:
+                            actuator.write(self._u)
                 else:
                     if self.brake is not None:
                         if dev_fault is not None:  # the drive no longer obeys: release at once

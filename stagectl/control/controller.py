@@ -221,6 +221,7 @@ class StageController:
         self.ff = parts.ff
         self._vbeta = 0.0
         self._vdt = math.nan
+        self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -280,6 +281,7 @@ class StageController:
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
         self._ff_bump = None
         self._last_ref = None
+        self._ff_ahead_s = 0.0
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -364,9 +366,11 @@ class StageController:
                 self._vdt = dt
                 self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
-        # feed-forward
+        # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
-        u_ff = ff.step(dt, ref) if ff is not None else 0.0
+        dt_ff = dt - self._ff_ahead_s
+        self._ff_ahead_s = 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -407,6 +411,40 @@ class StageController:
         else:
             limited = ()
         return Command(u, terms, limited)
+
+
+    def hold(self, dt: float, ref: Reference) -> Command:
+        """A cycle without a new sample (stale: late or dropped frame; real-time safe).
+
+        The feedback terms (u_pid, d̂) are held at their last values: nothing integrates, no estimate moves.
+        The feed-forward follows the reference (it needs no measurement): the friction model is advanced by
+        ``dt`` [s] (the time since its last step; the next :meth:`step` advances it only by the rest of its
+        own dt) and the inertia term is m·a_ref::
+
+            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref , ±max_force_n )
+        """
+        check_dt(dt)
+        st = self.state
+        ff = self.ff
+        ffc = self.cfg.feedforward
+        if ff is None or self._ff_bump is not None or self._pending is not None:
+            return Command(st.u_n, st.terms, ("stale",))
+        u_ff = ff.step(dt, ref)
+        self._ff_ahead_s += dt
+        m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
+        u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
+        u_fb = st.u_n - st.u_ff_n - st.u_inertia_n
+        lim = self.cfg.max_force_n
+        u = max(-lim, min(lim, u_fb + u_ff + u_in))
+        st.u_n = u
+        st.u_ff_n = u_ff
+        st.u_inertia_n = u_in
+        st.u_obs_prev_n = u - u_ff
+        terms = dict(st.terms)
+        terms["u_ff"] = u_ff
+        terms["u_inertia"] = u_in
+        st.terms = terms
+        return Command(u, terms, ("stale",))
 
 
 def controller_from_mapping(data: Any, timing: Timing | float,

@@ -6,7 +6,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
+__all__ = ["Controller", "HoldsOnStale", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -29,6 +29,14 @@ class PreparesRetune(Protocol):
     (:class:`~stagectl.control.controller.StageController`); bad tunings raise in ``request_retune``."""
 
     def request_retune(self, cfg: Any) -> None: ...
+
+
+@runtime_checkable
+class HoldsOnStale(Protocol):
+    """A controller with a stale-cycle step (:meth:`StageController.hold`): feedback held, feed-forward
+    along the reference. Without it the loop holds the last force."""
+
+    def hold(self, dt: float, ref: Reference) -> Command: ...
 
 
 @runtime_checkable
