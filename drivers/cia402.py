@@ -193,6 +193,10 @@ class Cia402Config:
         0.0008, unit="s", desc="how long read() waits for the TPDO after SYNC (real-time mode)", gt=0
     )
     max_missed: int = param(3, desc="consecutive cycles without a fresh TPDO before MISSED_FRAME", ge=1)
+    max_late: int = param(
+        50, unit="cycles", desc="consecutive cycles without an on-time TPDO (late answers to the previous SYNC "
+        "used, one period old) before MISSED_FRAME: a lasting extra period of delay eats the loop's phase margin",
+        ge=1)
     max_speed_m_s: float = param(
         2.0, unit="m/s", desc="position steps faster than this are a sensor glitch (SENSOR_ERROR)", gt=0
     )
@@ -347,6 +351,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._synced = False
         self._unread = False
         self._missed = 0
+        self._late_run = 0
         self._hb_age = 0
         self._hb_seen = False
         self._pending: DeviceFault | None = None
@@ -678,6 +683,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self.cycles += 1
         fault: DeviceFault | None = None
         fresh = got is not None
+        if got is not None and age == 0:
+            self._late_run = 0
+        else:
+            self._late_run += 1
         if got is not None:
             sw, raw = got
             self.statusword = sw
@@ -707,6 +716,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                     FaultKind.MISSED_FRAME,
                     f"no TPDO after SYNC for {self._missed} consecutive cycles",
                 )
+        if fault is None and self._late_run >= self.cfg.max_late:
+            fault = DeviceFault(
+                FaultKind.MISSED_FRAME,
+                f"no TPDO in time after SYNC for {self._late_run} consecutive cycles (max_late; late ones used)",
+            )
         if self._pending is not None and (fault is None or fault.kind is FaultKind.MISSED_FRAME):
             fault = self._pending
         self._pending = None
@@ -873,6 +887,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._do_configure()
         self._pending = None
         self._missed = 0
+        self._late_run = 0
         self._hb_age = 0
         sent_low = [False]
 
@@ -897,3 +912,4 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._pending = None
         self._last_emcy = 0
         self._missed = 0
+        self._late_run = 0
