@@ -33,6 +33,11 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   ``safety.stale_cycles`` in a row is a fault.
   Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
   Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
+* Slow-down: the controller's step intervals are averaged (time constant ``loop.slow_down_time_s``):
+  T_eff += min(1, dt/τ)·(dt − T_eff). When T_eff/T reaches the next of ``SLOW_DOWN_LEVELS`` (1.5, 2, 2.5,
+  ...) the loop calls ``controller.set_timing_scale(level)``: the feedback crossover is divided by it
+  (the design keeps the margins it has for T at the interval actually seen); it steps back when T_eff/T
+  falls 10 % below the level. Logged at each change.
 * Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
   drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
   (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
@@ -90,7 +95,7 @@ from stagectl.errors import StageError
 from stagectl.runtime.config import LoopConfig, RealtimeConfig
 from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
-from stagectl.runtime.protocols import Controller, HoldsOnStale, NamesTerms, PreparesRetune, ReferenceSource, TelemetrySink
+from stagectl.runtime.protocols import Controller, HoldsOnStale, NamesTerms, ScalesWithTiming, PreparesRetune, ReferenceSource, TelemetrySink
 from stagectl.runtime.quickstop import BRAKE_FAULTS, QuickStopBrake
 from stagectl.runtime.requests import (
     LoopRequest,
@@ -131,6 +136,17 @@ DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
 #: the controller's dt is clamped to [MIN_DT_PERIODS·T, MAX_DT_PERIODS·T] (module docstring)
 MIN_DT_PERIODS = 0.5
 MAX_DT_PERIODS = 10.0
+#: feedback slow-down steps (effective sample interval / T); a step down needs the average 10 % below it
+SLOW_DOWN_LEVELS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
+
+
+def _next_level(lvl: float) -> float:
+    i = SLOW_DOWN_LEVELS.index(lvl)
+    return SLOW_DOWN_LEVELS[min(i + 1, len(SLOW_DOWN_LEVELS) - 1)]
+
+
+def _prev_level(lvl: float) -> float:
+    return SLOW_DOWN_LEVELS[max(SLOW_DOWN_LEVELS.index(lvl) - 1, 0)]
 
 
 class ControlLoop:
@@ -207,6 +223,8 @@ class ControlLoop:
         self._u = 0.0
         self._t0 = 0.0
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
+        self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
+        self.slow_down = 1.0  # the feedback slow-down factor in force (SLOW_DOWN_LEVELS)
         self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
         self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
         #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
@@ -334,6 +352,13 @@ class ControlLoop:
         log.error("FAULT %s; braking from %.4g m/s at %.3g m/s^2 (force within %.3g N), then quick stop", fault,
                   brake.v0_m_s, brake.a_m_s2, brake.max_force_n)
         self._brake_cycle(t, x, True)
+
+    def _set_slow_down(self, level: float, t: float) -> None:
+        """Slow the controller's feedback down to ``level`` (see the module docstring); logged."""
+        prev, self.slow_down = self.slow_down, level
+        self.controller.set_timing_scale(level)  # type: ignore[attr-defined]
+        log.warning("loop timing: average sample interval %.2f T: feedback %s to crossover / %g (t=%.3f s)",
+                    self.t_eff_s / self.period_s, "slowed" if level > prev else "restored", level, t)
 
     def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
         """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
@@ -480,6 +505,7 @@ class ControlLoop:
         held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
         stale_row = False
         holds = isinstance(controller, HoldsOnStale)
+        tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
         while True:
             # ------------------------------------------------------ stop conditions
@@ -522,6 +548,16 @@ class ControlLoop:
                         t_prev = self._t_step
                         dt = period if t_prev is None else min(dt_max, t - t_prev)
                         self._t_step = t_ctl = t
+                        if tau_slow > 0.0:
+                            self.t_eff_s += min(1.0, dt / tau_slow) * (dt - self.t_eff_s)
+                            r = self.t_eff_s / period
+                            lvl = self.slow_down
+                            if lvl < SLOW_DOWN_LEVELS[-1] and r >= _next_level(lvl):
+                                lvl = _next_level(lvl)
+                            elif lvl > 1.0 and r < 0.9 * lvl:
+                                lvl = _prev_level(lvl)
+                            if lvl != self.slow_down:
+                                self._set_slow_down(lvl, t)
                         cmd = controller.step(dt, x, ref)
                         u = safety.limit_force(t, k, cmd.force_n)
                         if safety.fault is not None:

@@ -29,6 +29,7 @@ reload from another thread use ``request_retune`` (prepares there, swaps at the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -222,6 +223,7 @@ class StageController:
         self._vbeta = 0.0
         self._vdt = math.nan
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
+        self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -331,7 +333,7 @@ class StageController:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
             st.u_ff_n = 0.0
-        self.pid.retune(parts.pid_cfg)
+        self.pid.retune(_scaled_pid(parts.pid_cfg, self.timing_scale))
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
         self.cfg = parts.cfg
@@ -339,6 +341,27 @@ class StageController:
         self.dob = new_dob
         self.ff = parts.ff
         self._vdt = math.nan
+        if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
+            new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
+
+    def set_timing_scale(self, scale: float) -> None:
+        """Slow the feedback down for a loop that runs slower than its period (real-time safe enough for a
+        rare call: two bumpless retunes, no allocation beyond two small configs).
+
+        ``scale`` s >= 1 is the effective sample interval over T (the loop's measure of skipped and late
+        cycles). The crossover of the configured design is divided by s, so the margins it was designed with
+        for T hold for a loop sampling at s·T: Kp/s², Ki/s³, Kd/s, derivative cut-off /s, Q-filter DOB
+        bandwidth /s (a Kalman DOB is left as is). s = 1 restores the configured gains. The feed-forward is
+        unchanged. Bumpless: the PID term and d̂ keep their values.
+        """
+        s = max(1.0, float(scale))
+        if s == self.timing_scale:
+            return
+        self.timing_scale = s
+        cfg = self.cfg
+        self.pid.retune(_scaled_pid(cfg.pid, s))
+        if isinstance(self.dob, QFilterDob):
+            self.dob.retune(_scaled_dob(cfg.dob, s), self.mass_kg)
 
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
@@ -445,6 +468,18 @@ class StageController:
         terms["u_inertia"] = u_in
         st.terms = terms
         return Command(u, terms, ("stale",))
+
+
+def _scaled_pid(p: PidConfig, s: float) -> PidConfig:
+    """PID gains for a crossover divided by ``s`` (Kp/s², Ki/s³, Kd/s, fc/s)."""
+    if s == 1.0:
+        return p
+    return dataclasses.replace(p, kp_n_m=p.kp_n_m / s**2, ki_n_m_s=p.ki_n_m_s / s**3, kd_n_s_m=p.kd_n_s_m / s,
+                               derivative_cutoff_hz=p.derivative_cutoff_hz / s)
+
+
+def _scaled_dob(d: DobConfig, s: float) -> DobConfig:
+    return d if s == 1.0 else dataclasses.replace(d, bandwidth_hz=d.bandwidth_hz / s)
 
 
 def controller_from_mapping(data: Any, timing: Timing | float,

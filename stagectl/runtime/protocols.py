@@ -6,7 +6,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "HoldsOnStale", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
+__all__ = ["Controller", "HoldsOnStale", "ScalesWithTiming", "NamesTerms", "PreparesRetune", "ReferenceSource", "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -37,6 +37,13 @@ class HoldsOnStale(Protocol):
     along the reference. Without it the loop holds the last force."""
 
     def hold(self, dt: float, ref: Reference) -> Command: ...
+
+
+@runtime_checkable
+class ScalesWithTiming(Protocol):
+    """A controller whose feedback can be slowed down by a factor (the effective sample interval over T)."""
+
+    def set_timing_scale(self, scale: float) -> None: ...
 
 
 @runtime_checkable

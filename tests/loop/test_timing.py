@@ -238,3 +238,43 @@ def test_stage_controller_hold_keeps_feedback_and_follows_the_feed_forward(sim_c
     assert held.terms["u_inertia"] == pytest.approx(sim_cfg.controller.mass_kg * 0.01)
     assert held.force_n == pytest.approx(fb + held.terms["u_ff"] + held.terms["u_inertia"], abs=1e-12)
     assert ctl.pid.state.i_n == cmd.terms["u_i"]  # nothing integrated
+
+
+def test_loop_slows_the_feedback_down_when_cycles_are_skipped_a_lot(sim_cfg, monkeypatch):
+    """40 % of the wake-ups two periods late: the average sample interval passes 2 T, the loop divides the
+    feedback crossover by the level reached (set_timing_scale) and tracks better than at full gain."""
+    import stagectl.bench.timing as bench
+    import stagectl.sim.jitter as jitter
+
+    orig = jitter.JitterClock.__init__
+
+    def init(self, *a, **k):
+        k["late_periods"] = 2.0
+        orig(self, *a, **k)
+
+    monkeypatch.setattr(jitter.JitterClock, "__init__", init)
+    monkeypatch.setattr(bench, "LATE_FRACTION", 0.4)
+    out = {}
+    for tau in (0.0, 0.5):
+        cfg = dataclasses.replace(sim_cfg, loop=dataclasses.replace(sim_cfg.loop, slow_down_time_s=tau))
+        out[tau] = run_tracking(cfg, "cosine", stage_kind="plant_io", disturbed=True, duration_s=2.5, skip_s=1.0)
+    assert out[0.5]["fault"] is None
+    assert out[0.5]["rms_error_nm"] < 0.6 * out[0.0]["rms_error_nm"], out
+
+
+def test_set_timing_scale_is_bumpless_and_scales_the_gains(sim_cfg):
+    from stagectl.control.controller import StageController
+
+    ctl = StageController(sim_cfg.controller, sim_cfg.timing)
+    ctl.reset(0.0)
+    for k in range(30):
+        cmd = ctl.step(1e-3, 1e-9 * k, Reference(2e-9 * k, 2e-6, 0.0))
+    ctl.set_timing_scale(2.0)
+    p0, p = sim_cfg.controller.pid, ctl.pid.cfg
+    assert p.kp_n_m == pytest.approx(p0.kp_n_m / 4) and p.ki_n_m_s == pytest.approx(p0.ki_n_m_s / 8)
+    assert p.kd_n_s_m == pytest.approx(p0.kd_n_s_m / 2)
+    assert ctl.dob.cfg.bandwidth_hz == pytest.approx(sim_cfg.controller.dob.bandwidth_hz / 2)
+    nxt = ctl.step(1e-3, 3e-8, Reference(6e-8, 2e-6, 0.0))
+    assert abs(nxt.force_n - cmd.force_n) < 0.05  # no bump
+    ctl.set_timing_scale(1.0)
+    assert ctl.pid.cfg == p0
