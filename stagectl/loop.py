@@ -225,6 +225,7 @@ class ControlLoop:
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
         self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
         self.slow_down = 1.0  # the feedback slow-down factor in force (SLOW_DOWN_LEVELS)
+        self.slow_downs = 0  # level changes so far
         self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
         self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
         #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
@@ -357,8 +358,10 @@ class ControlLoop:
         """Slow the controller's feedback down to ``level`` (see the module docstring); logged."""
         prev, self.slow_down = self.slow_down, level
         self.controller.set_timing_scale(level)  # type: ignore[attr-defined]
-        log.warning("loop timing: average sample interval %.2f T: feedback %s to crossover / %g (t=%.3f s)",
-                    self.t_eff_s / self.period_s, "slowed" if level > prev else "restored", level, t)
+        self.slow_downs += 1
+        lvl = logging.WARNING if self.slow_downs == 1 else logging.INFO  # first one a warning, then info
+        log.log(lvl, "loop timing: average sample interval %.2f T: feedback %s to crossover / %g (t=%.3f s)",
+                self.t_eff_s / self.period_s, "slowed" if level > prev else "restored", level, t)
 
     def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
         """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
