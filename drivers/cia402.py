@@ -193,7 +193,7 @@ class Cia402Config:
         0.0008, unit="s", desc="how long read() waits for the TPDO after SYNC (real-time mode)", gt=0
     )
     max_missed: int = param(3, desc="consecutive cycles without a fresh TPDO before MISSED_FRAME", ge=1)
-    max_late: int = param(
+    max_late_cycles: int = param(
         50, unit="cycles", desc="consecutive cycles without an on-time TPDO (late answers to the previous SYNC "
         "used, one period old) before MISSED_FRAME: a lasting extra period of delay eats the loop's phase margin",
         ge=1)
@@ -716,10 +716,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                     FaultKind.MISSED_FRAME,
                     f"no TPDO after SYNC for {self._missed} consecutive cycles",
                 )
-        if fault is None and self._late_run >= self.cfg.max_late:
+        if fault is None and self._late_run >= self.cfg.max_late_cycles:
             fault = DeviceFault(
                 FaultKind.MISSED_FRAME,
-                f"no TPDO in time after SYNC for {self._late_run} consecutive cycles (max_late; late ones used)",
+                f"no TPDO in time after SYNC for {self._late_run} consecutive cycles "
+                f"(max_late_cycles; late ones used)",
             )
         if self._pending is not None and (fault is None or fault.kind is FaultKind.MISSED_FRAME):
             fault = self._pending

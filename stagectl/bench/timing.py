@@ -67,7 +67,8 @@ def run_tracking(cfg: AppConfig, scenario: str, *, stage_kind: str, disturbed: b
     cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=kind))
     clock: SimClock = SimClock()
     if disturbed and stage_kind == "plant_io":
-        clock = JitterClock(T, late_fraction=LATE_FRACTION, late_periods=1.0, jitter_s=JITTER_PERIODS * T, seed=seed)
+        clock = JitterClock(T, late_fraction=LATE_FRACTION, late_periods=1.0, jitter_s=JITTER_PERIODS * T,
+                            seed=seed)
     with build_stage(cfg, clock=clock) as stage:
         loop = stage.loop
         stage.load_scenario(scenario)
@@ -80,12 +81,12 @@ def run_tracking(cfg: AppConfig, scenario: str, *, stage_kind: str, disturbed: b
         if disturbed and stage_kind == "canopen":
             world = stage.world
             assert world is not None
-            world.inject(FaultSpec(kind=SimFault.LATE_TPDO, probability=LATE_FRACTION, seed=seed))
-            world.inject(FaultSpec(kind=SimFault.DROP_TPDO, probability=DROP_FRACTION, seed=seed + 1000))
+            world.inject(FaultSpec(kind=SimFault.LATE_TPDO, sync_fraction=LATE_FRACTION, seed=seed))
+            world.inject(FaultSpec(kind=SimFault.DROP_TPDO, sync_fraction=DROP_FRACTION, seed=seed + 1000))
         elif disturbed:
             rng = random.Random(seed + 1000)
             io = stage.sensor
-            drop = getattr(io, "drop_samples")
+            drop = io.drop_samples  # type: ignore[attr-defined]
 
             def on_cycle() -> None:
                 if rng.random() < DROP_FRACTION:
@@ -187,7 +188,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             ratio = dist["rms_error_nm"] / clean["rms_error_nm"]
             met = ratio <= 2.0 and dist["fault"] is None and clean["fault"] is None
             ok = ok and met
-            tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio, "met_2x_no_fault": met}
+            tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio,
+                                      "met_2x_no_fault": met}
     reaction = {"active_quick_stop": run_fault_reaction(cfg, braking=True),
                 "release_at_once": run_fault_reaction(cfg, braking=False)}
     c = cfg.controller

@@ -85,8 +85,8 @@ def test_late_tpdo_is_never_taken_for_the_next_cycle(lockstep):
 def test_late_tpdos_are_used_one_period_old_then_a_lasting_lateness_faults(lockstep):
     """Every TPDO late (lock-step: it arrives after the read gave up): from the second cycle on read()
     returns the late answer to the previous SYNC as a fresh sample with age_cycles = 1 (a loaded machine
-    answering late is not a missing drive); ``max_late`` such cycles in a row latch MISSED_FRAME."""
-    world, dut = lockstep(max_late=6)
+    answering late is not a missing drive); ``max_late_cycles`` such cycles in a row latch MISSED_FRAME."""
+    world, dut = lockstep(max_late_cycles=6)
     for _ in range(5):
         dut.sync()
         dut.read()
@@ -108,7 +108,7 @@ def test_late_tpdos_are_used_one_period_old_then_a_lasting_lateness_faults(locks
             assert m.counts == round(x_before / 1e-9)  # the sample of the previous SYNC
     # the 6th cycle without an on-time TPDO (the stale first one counts) latches the fault
     assert [m.fault is None for m in seen[:5]] == [True] * 4 + [False]
-    assert seen[4].fault.kind is FaultKind.MISSED_FRAME and "max_late" in seen[4].fault.detail
+    assert seen[4].fault.kind is FaultKind.MISSED_FRAME and "max_late_cycles" in seen[4].fault.detail
 
 
 def test_emcy_without_fault_state_is_reported(lockstep):
