@@ -587,7 +587,7 @@ class ControlLoop:
                         if self.state is LoopState.ACTIVE:
                             actuator.write(self._u)
                 else:
-                    if self.brake is not None:
+                    if self.brake is not None and self.brake.t_last_s < t:  # (not the cycle it began in)
                         if dev_fault is not None:  # the drive no longer obeys: release at once
                             self.brake.step(t, math.nan, False)
                         self._brake_cycle(t, x, m.fresh)

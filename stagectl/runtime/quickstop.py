@@ -78,6 +78,7 @@ class QuickStopBrake:
         self._t_prev = t_s
         self._still = 0
         self._stale = 0
+        self.t_last_s = -math.inf  # time of the last step call
         self.u_n = 0.0
         self.done = False
         self.why = ""
@@ -95,6 +96,7 @@ class QuickStopBrake:
         when the stage is stopped or the brake must give up."""
         if self.done:
             return 0.0
+        self.t_last_s = t_s
         if not math.isfinite(x_m):
             return self._finish("position not finite")
         if t_s - self.t0_s > self.ramp_s + EXTRA_TIME_S:
