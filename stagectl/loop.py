@@ -20,7 +20,8 @@ Each cycle, in this order::
 Timing of the control law (a PC without a real-time kernel wakes late, skips slots and gets stale samples):
 
 * ``dt`` is the *measured* interval between the sample the controller steps on and the previous one it
-  stepped on, in loop time: ``dt = clamp(t_k − t_prev, T/2, MAX_DT_PERIODS·T)``. A skipped slot gives
+  stepped on, in loop time: ``dt = min(t_k − t_prev, MAX_DT_PERIODS·T)`` (exactly T when within 1e-6 T of it,
+  so simulated time stays bit-exact). A skipped slot gives
   ``dt ≈ 2T``; after stale samples the first fresh one gets the whole gap, so the velocity estimate
   Δx/dt, the integrator (∫e dt), the observer and the derivative filter see the time that really passed
   (no derivative kick when samples resume). The reference is sampled at loop time ``t`` too.
@@ -550,6 +551,8 @@ class ControlLoop:
                     elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):
                         t_prev = self._t_step
                         dt = period if t_prev is None else min(dt_max, t - t_prev)
+                        if abs(dt - period) <= 1e-6 * period:  # on time (rounding of t aside): exactly T
+                            dt = period
                         self._t_step = t_ctl = t
                         if tau_slow > 0.0:
                             self.t_eff_s += min(1.0, dt / tau_slow) * (dt - self.t_eff_s)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 from stagectl.control.design import kalman_gain
 from stagectl.control.pid import check_dt
@@ -177,7 +178,9 @@ class KalmanDob:
     """Steady-state Kalman DOB on [x, v, τ] (see module docstring). ``step`` is real-time safe.
 
     The gain is designed for ``period_s`` at construction (:func:`stagectl.control.design.kalman_gain`,
-    scipy imported lazily); a different ``dt`` at ``step`` triggers a redesign (not real-time safe, avoid).
+    scipy imported lazily). A step's ``dt`` (the loop's measured sample interval) is rounded to a tenth of
+    ``period_s``; a rounded interval not seen before is designed once (not real-time safe: the first
+    skipped cycle of each length costs a design) and cached, so sampling jitter never redesigns.
     """
 
     def __init__(self, cfg: DobConfig, mass_kg: float, period_s: float):
@@ -186,13 +189,18 @@ class KalmanDob:
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
         self.state = DobState()
         self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
+        self._period_s = period_s
+        self._gains: dict[float, Any] = {}
         self._design(period_s)
 
     def _design(self, dt: float) -> None:
         m = self.mass_kg
         self._dt = dt
-        self.K = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,
-                             self.cfg.disturbance_noise_n_sqrt_s)
+        K = self._gains.get(dt)
+        if K is None:
+            K = self._gains[dt] = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,
+                                              self.cfg.disturbance_noise_n_sqrt_s)
+        self.K = K
         # A = [[1, dt, -dt²/2m], [0, 1, -dt/m], [0, 0, 1]],  B = [dt²/2m, dt/m, 0]
         self._a02 = -dt * dt / (2.0 * m)
         self._a12 = -dt / m
@@ -207,6 +215,7 @@ class KalmanDob:
         """New gain (redesigned now); the state [x, v, τ] is kept, so d̂ does not jump."""
         self.cfg = cfg
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self._gains = {}
         self._design(self._dt)
         n = cfg.command_delay_samples
         old = list(self._delay)
@@ -233,8 +242,10 @@ class KalmanDob:
         ``v_hat_m_s`` is unused (the filter estimates v itself); kept for a common signature.
         """
         check_dt(dt)
-        if dt != self._dt:
-            self._design(dt)
+        q = self._period_s * max(1, round(10.0 * dt / self._period_s)) / 10.0
+        if q != self._dt:
+            self._design(q)
+        dt = q
         st = self.state
         u_in = u_obs_prev_n
         if self._delay:
