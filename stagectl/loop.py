@@ -34,8 +34,8 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   ``safety.stale_cycles`` in a row is a fault.
   Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
   Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
-* Slow-down: the controller's step intervals are averaged (time constant ``loop.slow_down_time_s``):
-  T_eff += min(1, dt/τ)·(dt − T_eff). When T_eff/T reaches the next of ``SLOW_DOWN_LEVELS`` (1.5, 2, 2.5,
+* Slow-down: the controller's step intervals, plus the age of a late sample, are averaged (time constant
+  ``loop.slow_down_time_s``): T_eff += min(1, dt/τ)·(dt + n·T − T_eff). When T_eff/T reaches the next of ``SLOW_DOWN_LEVELS`` (1.5, 2, 2.5,
   ...) the loop calls ``controller.set_timing_scale(level)``: the feedback crossover is divided by it
   (the design keeps the margins it has for T at the interval actually seen); it steps back when T_eff/T
   falls 10 % below the level. Logged at each change.
@@ -555,7 +555,8 @@ class ControlLoop:
                             dt = period
                         self._t_step = t_ctl = t
                         if tau_slow > 0.0:
-                            self.t_eff_s += min(1.0, dt / tau_slow) * (dt - self.t_eff_s)
+                            d_eff = dt + m.age_cycles * period  # a late sample adds its age as delay
+                            self.t_eff_s += min(1.0, dt / tau_slow) * (d_eff - self.t_eff_s)
                             r = self.t_eff_s / period
                             lvl = self.slow_down
                             if lvl < SLOW_DOWN_LEVELS[-1] and r >= _next_level(lvl):
