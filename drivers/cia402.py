@@ -741,6 +741,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             age_cycles=age,
         )
 
+    @property
+    def force_limit_n(self) -> float:
+        """The largest force the drive is commanded [N]: ``max_force_n`` and the drive's max torque 0x6072."""
+        return self._max_units * self.cfg.force_per_unit_n
+
     def torque_units(self, force_n: float) -> int:
         """Force [N] → 0x6071 units: ``round(force_n / force_per_unit_n)``, clamped (NaN → 0)."""
         if force_n != force_n:

@@ -372,8 +372,12 @@ class ControlLoop:
         if self.actuator.state is not DeviceState.ENABLED:
             return None
         c = self.safety.cfg
-        a = c.quick_stop_deceleration_m_s2 or 0.9 * c.max_force_n / float(mass)
-        return QuickStopBrake(t, x, self.safety.v_est_m_s, mass_kg=float(mass), max_force_n=c.max_force_n,
+        lim = c.max_force_n  # and the actuator's own limit when it has one (CiA 402: 0x6072 max torque)
+        act_lim = getattr(self.actuator, "force_limit_n", None)
+        if isinstance(act_lim, (int, float)) and 0.0 < act_lim < lim:
+            lim = float(act_lim)
+        a = c.quick_stop_deceleration_m_s2 or 0.9 * lim / float(mass)
+        return QuickStopBrake(t, x, self.safety.v_est_m_s, mass_kg=float(mass), max_force_n=lim,
                               deceleration_m_s2=a, standstill_m_s=c.quick_stop_standstill_m_s,
                               stale_limit=c.stale_cycles)
 

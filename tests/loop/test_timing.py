@@ -278,3 +278,37 @@ def test_set_timing_scale_is_bumpless_and_scales_the_gains(sim_cfg):
     assert abs(nxt.force_n - cmd.force_n) < 0.05  # no bump
     ctl.set_timing_scale(1.0)
     assert ctl.pid.cfg == p0
+
+
+def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_cfg):
+    """Lock-step CANopen: the brake works through the real driver and respects the drive's own force limit
+    (0x6072 max torque, below safety.max_force_n on the seed stage's virtual drive); then the drive's quick
+    stop (controlword) ends in SWITCH ON DISABLED with the stage at rest."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+
+    with build_stage(sim_cfg, clock=SimClock()) as stage:
+        loop, world = stage.loop, stage.world
+        forces = []
+        xs = []
+        loop.add_sink(type("P", (), {"append": lambda self, row: (forces.append(world.drive.force_n),
+                                                                   xs.append(row[1]))})())
+        loop.submit(MoveRequest(target_m=4e-3, max_velocity_m_s=0.015))
+        low = dataclasses.replace(loop.safety.cfg, max_velocity_m_s=0.013)
+
+        def hook():
+            if loop.safety.fault is None and loop.safety.v_est_m_s > 0.0145:
+                loop.safety.cfg = low
+
+        loop.on_cycle = hook
+        res = loop.run(duration_s=0.6)
+        lim = stage.actuator.force_limit_n
+        b = loop.last_brake
+        assert res.fault.name == "velocity_limit" and b is not None and b.why == "standstill"
+        assert lim < sim_cfg.safety.max_force_n and b.max_force_n == pytest.approx(lim)
+        assert max(abs(f) for f in forces) <= lim + 1e-9
+        assert min(forces) <= -0.9 * lim  # it did brake
+        k = res.fault.cycle
+        v0, a_max = b.v0_m_s, lim / sim_cfg.controller.mass_kg
+        assert abs(xs[-1] - xs[k]) <= v0 ** 2 / (2 * a_max) + v0 * 3e-3 + 1e-6
+        assert world.drive.state.name == "SWITCH_ON_DISABLED" and abs(world.plant.v_m_s) < 1e-5
