@@ -86,6 +86,10 @@ class Measurement:
         Raw device status (CiA 402 statusword, sensor status flags).
     fault : DeviceFault | None
         A fault detected during this read, if any.
+    age_cycles : int
+        0: sampled at this cycle's SYNC; n > 0: a late frame sampled n SYNCs ago (its answer came after the
+        wait of its own cycle; still newer than the previous read, so ``fresh``). The loop places it at
+        ``t − n·T``.
     """
 
     position_m: float
@@ -93,6 +97,7 @@ class Measurement:
     counts: int = 0
     status: int = 0
     fault: DeviceFault | None = None
+    age_cycles: int = 0
 
 
 class Device(ABC):

@@ -15,7 +15,9 @@ abort code with its CiA 301 meaning and what to check (:func:`explain_sdo_error`
 Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`struct`)::
 
     drive.sync()    # drain stale frames, send SYNC (0x080), every N cycles our heartbeat (0x700+ctrl)
-    drive.read()    # wait for the TPDO sent after this SYNC; unwrap position; detect faults
+    drive.read()    # wait for the TPDO sent after this SYNC; unwrap position; detect faults. If it does not
+                    # come in time, the newest late answer to the previous SYNC (drained by sync()) is
+                    # returned as a fresh sample with age_cycles = 1 (a loaded machine answering late)
     drive.write(f)  # RPDO1 (controlword, target torque); the drive applies it at the next SYNC
 
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
@@ -191,6 +193,10 @@ class Cia402Config:
         0.0008, unit="s", desc="how long read() waits for the TPDO after SYNC (real-time mode)", gt=0
     )
     max_missed: int = param(3, desc="consecutive cycles without a fresh TPDO before MISSED_FRAME", ge=1)
+    max_late_cycles: int = param(
+        50, unit="cycles", desc="consecutive cycles without an on-time TPDO (late answers to the previous SYNC "
+        "used, one period old) before MISSED_FRAME: a lasting extra period of delay eats the loop's phase margin",
+        ge=1)
     max_speed_m_s: float = param(
         2.0, unit="m/s", desc="position steps faster than this are a sensor glitch (SENSOR_ERROR)", gt=0
     )
@@ -339,11 +345,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     def _reset_cyclic(self) -> None:
         self._held: tuple[int, int] | None = None
+        self._late: tuple[int, int] | None = None  # the newest late answer to an earlier SYNC (sync producer)
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
         self._unread = False
         self._missed = 0
+        self._late_run = 0
         self._hb_age = 0
         self._hb_seen = False
         self._pending: DeviceFault | None = None
@@ -608,11 +616,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        self._late = None
         if not self.cfg.sync_producer:
             self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
             self._evaluate(got)
+        elif self.cfg.sync_producer:
+            self._late = got  # ... kept as a late sample (age 1) in case this SYNC's answer is late too
         if self._cycle % self._hb_every == 0:
             self._send(self._hb_msg)
         if self.cfg.sync_producer:
@@ -660,15 +671,22 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
         got = self._wait_tpdo()
+        age = 0
         if got is None and self._held is not None:
             got = self._held
-        self._held = None
-        return self._evaluate(got)
+        elif got is None and self._late is not None:
+            got, age = self._late, 1  # a late answer to the previous SYNC: newer than the last read
+        self._held = self._late = None
+        return self._evaluate(got, age)
 
-    def _evaluate(self, got: tuple[int, int] | None) -> Measurement:
+    def _evaluate(self, got: tuple[int, int] | None, age: int = 0) -> Measurement:
         self.cycles += 1
         fault: DeviceFault | None = None
         fresh = got is not None
+        if got is not None and age == 0:
+            self._late_run = 0
+        else:
+            self._late_run += 1
         if got is not None:
             sw, raw = got
             self.statusword = sw
@@ -698,6 +716,12 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                     FaultKind.MISSED_FRAME,
                     f"no TPDO after SYNC for {self._missed} consecutive cycles",
                 )
+        if fault is None and self._late_run >= self.cfg.max_late_cycles:
+            fault = DeviceFault(
+                FaultKind.MISSED_FRAME,
+                f"no TPDO in time after SYNC for {self._late_run} consecutive cycles "
+                f"(max_late_cycles; late ones used)",
+            )
         if self._pending is not None and (fault is None or fault.kind is FaultKind.MISSED_FRAME):
             fault = self._pending
         self._pending = None
@@ -714,7 +738,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             counts=self._counts,
             status=self.statusword,
             fault=fault,
+            age_cycles=age,
         )
+
+    @property
+    def force_limit_n(self) -> float:
+        """The largest force the drive is commanded [N]: ``max_force_n`` and the drive's max torque 0x6072."""
+        return self._max_units * self.cfg.force_per_unit_n
 
     def torque_units(self, force_n: float) -> int:
         """Force [N] → 0x6071 units: ``round(force_n / force_per_unit_n)``, clamped (NaN → 0)."""
@@ -863,6 +893,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._do_configure()
         self._pending = None
         self._missed = 0
+        self._late_run = 0
         self._hb_age = 0
         sent_low = [False]
 
@@ -887,3 +918,4 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._pending = None
         self._last_emcy = 0
         self._missed = 0
+        self._late_run = 0

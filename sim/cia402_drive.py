@@ -42,6 +42,8 @@ what deliberately is not):
 mode 0x6060 (only 0 and 10 = cyclic synchronous torque are accepted), and the plant: at each SYNC ::
 
     plant.step(F, T)               T = 0x1006 period [s] (nominal: deterministic), F = force of last period
+                                   (``wall_clock_plant`` in thread mode: n·T, n = whole periods of wall time
+                                   since the last step, at most MAX_CATCH_UP_PERIODS; 0 when SYNCs bunch)
     apply latched RPDO             controlword transition, target torque 0x6071
     F = clamp(0x6071, ±0x6072) × force_per_unit_n   in OPERATION ENABLED + CST; the braking force of the
                                    quick-stop / fault-reaction ramp in QUICK STOP / FAULT REACTION ACTIVE; else 0
@@ -189,6 +191,7 @@ class SimCanopenDevice:
         self.nmt_state = NMT_INITIALISING
         self.sync_count = 0
         self.t_s = 0.0
+        self.threaded = False  # set by SimWorld: served by its thread (device time = wall clock)
         self.period_s = 0.001
         self.sync_cob_id = 0x080
         self.emcy_cob_id: int | None = 0x80 + node_id
@@ -684,6 +687,9 @@ _S = DriveState
 _POWERED = (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE, _S.FAULT_REACTION_ACTIVE)
 #: SYNC missing for this many periods: the drive steps the plant on its own clock
 OWN_CLOCK_PERIODS = 3
+#: wall_clock_plant: most periods one SYNC steps the plant by: a skipped controller slot or two are physical, a
+#: longer gap is mostly this process held off the CPU (its SYNCs then arrive bunched) and is lost, as without
+MAX_CATCH_UP_PERIODS = 5
 #: statusword bit 12 in CST: the drive follows the target torque
 SW_CST_FOLLOWING = 0x1000
 
@@ -700,6 +706,11 @@ class SimDriveConfig:
         0.5, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
         "fault (0 = off)", ge=0)
     eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia402.eds)")
+    wall_clock_plant: bool = param(
+        False, desc="thread mode (stagectl sim-plant): at each SYNC step the plant by the whole periods of wall "
+        "time since its last step (at most MAX_CATCH_UP_PERIODS, the first ones under the held force), so a "
+        "skipped controller cycle lets the stage move on as a real one does; false: one period per SYNC "
+        "(deterministic). Lock-step runs are one period per SYNC either way")
 
 
 class SimCia402Drive(SimCanopenDevice):
@@ -932,6 +943,22 @@ class SimCia402Drive(SimCanopenDevice):
         if self._own_steps:  # the own clock already ran up to now: this SYNC only samples
             self._own_steps = 0
             self.position_counts = self._sample()
+        elif self.cfg.wall_clock_plant and self.threaded:
+            T = self.period_s
+            n = min(MAX_CATCH_UP_PERIODS, round((self.t_s - self._plant_t) / T))
+            if n <= 0:  # SYNCs bunched (this process was held off the CPU): the plant is up to date
+                self.position_counts = self._sample()
+            else:
+                if self.state is _S.OPERATION_ENABLED:
+                    for _ in range(n - 1):  # the periods without SYNC: the torque of the last one is held
+                        self.plant.step(self.force_n, T)
+                    self._plant_t = self.t_s - T
+                else:
+                    self._plant_t = self.t_s - n * T
+                    for _ in range(n - 1):
+                        self._step_period()
+                self._step_period()
+                self._plant_t = self.t_s
         else:
             self._plant_t = self.t_s - self.period_s
             self._step_period()

@@ -9,6 +9,7 @@ YAML (``sim.faults``)::
       - {kind: late_tpdo, at_cycle: 200, cycles: 10}          # each TPDO sent one cycle late
       - {kind: bus_off, at_cycle: 300}                        # error frame (bus-off), then silence
       - {kind: position_jump, device: encoder, at_cycle: 50, jump_m: 0.005}
+      - {kind: late_tpdo, sync_fraction: 0.1, seed: 3}        # 10 % of the SYNCs, drawn at random, for ever
 
 Tests: ``world.inject(FaultSpec(kind=SimFault.DROP_TPDO, cycles=3))`` (``at_cycle``/``at_time_s`` unset =
 from the device's next SYNC on).
@@ -16,7 +17,8 @@ from the device's next SYNC on).
 Semantics, per device (``drive`` or ``encoder``); ``cycles`` = how many SYNCs the fault lasts (0 = for
 ever); a fault is active for SYNC number ``n`` (counted by the device from 1) when
 ``start <= n < start + cycles``, where ``start`` is ``at_cycle`` or the first SYNC at or after
-``at_time_s`` of simulated time:
+``at_time_s`` of simulated time, and (``sync_fraction`` p < 1) a draw of a seeded generator per SYNC is
+below p: a random fraction p of the SYNCs in the window (timing disturbances of a loaded machine):
 
 * ``drive_fault``   : one-shot; the drive enters FAULT (statusword bit 3) with 0x603F = ``code`` and sends
   EMCY ``code`` before that SYNC's TPDO.
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import enum
 import math
+import random
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,6 +72,9 @@ class FaultSpec:
     code: int = param(0x2310, desc="drive_fault: CiA 301 error code sent by EMCY and shown in 0x603F", ge=1,
                       le=0xFFFF)
     jump_m: float = param(0.005, unit="m", desc="position_jump: offset added to the reported position")
+    sync_fraction: float = param(1.0, desc="fraction of the SYNCs in the window the fault hits, drawn at random "
+                               "per SYNC (1 = every SYNC; not for drive_fault)", ge=0, le=1)
+    seed: int = param(0, desc="seed of the random draws for sync_fraction < 1 (reproducible runs)", ge=0)
 
     def __post_init__(self) -> None:
         if self.at_cycle is not None and self.at_time_s is not None:
@@ -80,6 +86,7 @@ class _Armed:
     spec: FaultSpec
     start: int | None = None  # resolved first SYNC number
     fired: bool = False
+    rng: random.Random | None = None  # draws for sync_fraction < 1
 
 
 @dataclass
@@ -90,7 +97,7 @@ class FaultSchedule:
     armed: list[_Armed] = field(default_factory=list)
 
     def add(self, spec: FaultSpec, next_cycle: int) -> None:
-        a = _Armed(spec)
+        a = _Armed(spec, rng=random.Random(spec.seed) if spec.sync_fraction < 1.0 else None)
         if spec.at_cycle is not None:
             a.start = spec.at_cycle
         elif spec.at_time_s is None:
@@ -117,6 +124,8 @@ class FaultSchedule:
                     active.add(SimFault.DRIVE_FAULT)
                 continue
             if a.spec.cycles == 0 or cycle < a.start + a.spec.cycles:
+                if a.rng is not None and a.rng.random() >= a.spec.sync_fraction:
+                    continue
                 active.add(a.spec.kind)
         return active
 

@@ -260,6 +260,8 @@ class SimWorld:
         with self._lock:
             self._t0 = time.monotonic() - self._sim_t
             self._stop_evt.clear()
+            for d in self.devices:
+                d.threaded = True
             self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
             self._thread.start()
         if self.interferometer is not None and not self._ifm_on_sync:
@@ -290,6 +292,8 @@ class SimWorld:
         t.join(5.0)
         self._sim_t = time.monotonic() - self._t0
         self._thread = None
+        for d in self.devices:
+            d.threaded = False
         if self.interferometer is not None:
             self.interferometer.stop()
 

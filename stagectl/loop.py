@@ -13,9 +13,39 @@ Each cycle, in this order::
     m = sensor.read()            # read once
     requests                     # move / stop / reset / retune / shutdown, at the cycle boundary
     safety checks                # device faults, NaN/inf, stale, soft limits, velocity, following error
-    ref = reference.sample(t);  cmd = controller.step(dt, x, ref)
+    ref = reference.sample(t);  cmd = controller.step(dt, x, ref)      (fresh sample only)
     u = safety.limit_force(cmd.force_n);  actuator.write(u)
     row -> sinks                 # telemetry, never blocking
+
+Timing of the control law (a PC without a real-time kernel wakes late, skips slots and gets stale samples):
+
+* ``dt`` is the *measured* interval between the sample the controller steps on and the previous one it
+  stepped on, in loop time: ``dt = min(t_k − t_prev, MAX_DT_PERIODS·T)`` (exactly T when within 1e-6 T of it,
+  so simulated time stays bit-exact). A skipped slot gives
+  ``dt ≈ 2T``; after stale samples the first fresh one gets the whole gap, so the velocity estimate
+  Δx/dt, the integrator (∫e dt), the observer and the derivative filter see the time that really passed
+  (no derivative kick when samples resume). The reference is sampled at loop time ``t`` too.
+* A late sample (``Measurement.age_cycles`` n > 0: a TPDO that answered the previous SYNC after its wait)
+  is placed at ``t − n·T`` for the velocity estimate and extrapolated to ``t`` with it
+  (x + v̂·n·T) for the controller, the tracking check and the telemetry.
+* A stale sample (no new position: late or dropped TPDO, missing frame) does not step the controller:
+  nothing integrates, no estimate moves; a controller with ``hold(dt, ref)`` (StageController) keeps its
+  feedback terms and moves its feed-forward along the reference, any other holds its last force;
+  ``safety.stale_cycles`` in a row is a fault.
+  Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
+  Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
+* Slow-down: the controller's step intervals, plus the age of a late sample, are averaged (time constant
+  ``loop.slow_down_time_s``): T_eff += min(1, dt/τ)·(dt + n·T − T_eff). When T_eff/T reaches the next of ``SLOW_DOWN_LEVELS`` (1.5, 2, 2.5,
+  ...) the loop calls ``controller.set_timing_scale(level)``: the feedback crossover is divided by it
+  (the design keeps the margins it has for T at the interval actually seen); it steps back when T_eff/T
+  falls 10 % below the level. Logged at each change.
+* Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
+  drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
+  (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
+  then commands the actuator's ``quick_stop()``; the fault is latched and logged at once, the state is
+  FAULT while braking. Every other fault (device, drive, NaN, stale position, loop error) quick-stops at
+  once (zero force). Braking needs the moving mass (the controller's ``mass_kg``); without one the loop
+  quick-stops at once.
 
 The same code runs with :class:`~stagectl.clock.MonotonicClock` (``stagectl run``, the daemon) and with
 :class:`~stagectl.clock.SimClock` plus lock-step devices (``stagectl simulate``, tests, benchmarks): with
@@ -63,6 +93,7 @@ from stagectl.clock import Clock, apply_realtime
 from stagectl.control.api import Reference
 from stagectl.drivers.base import (
     Device,
+    DeviceState,
     ForceActuator,
     Measurement,
     PositionSensor,
@@ -74,14 +105,17 @@ from stagectl.runtime.devices import DeviceSet
 from stagectl.runtime.inbox import Reply, RequestInbox
 from stagectl.runtime.protocols import (
     Controller,
+    HoldsOnStale,
     Learner,
     NamesTerms,
     PreparesRetune,
     ReferenceSource,
     RunsScenarios,
+    ScalesWithTiming,
     TakesLearnedForce,
     TelemetrySink,
 )
+from stagectl.runtime.quickstop import BRAKE_FAULTS, QuickStopBrake
 from stagectl.runtime.requests import (
     IlcRequest,
     LoopRequest,
@@ -120,6 +154,20 @@ BASE_COLUMNS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v")
 #: appended after the controller terms: stale sample (force and terms held) and skipped slots before the row
 FLAG_COLUMNS = ("stale", "skipped")
 DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
+#: the controller's dt is clamped to [MIN_DT_PERIODS·T, MAX_DT_PERIODS·T] (module docstring)
+MIN_DT_PERIODS = 0.5
+MAX_DT_PERIODS = 10.0
+#: feedback slow-down steps (effective sample interval / T); a step down needs the average 10 % below it
+SLOW_DOWN_LEVELS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
+
+
+def _next_level(lvl: float) -> float:
+    i = SLOW_DOWN_LEVELS.index(lvl)
+    return SLOW_DOWN_LEVELS[min(i + 1, len(SLOW_DOWN_LEVELS) - 1)]
+
+
+def _prev_level(lvl: float) -> float:
+    return SLOW_DOWN_LEVELS[max(SLOW_DOWN_LEVELS.index(lvl) - 1, 0)]
 
 
 class ControlLoop:
@@ -145,10 +193,10 @@ class ControlLoop:
         ``u_pid, u_dob, u_ff, u_inertia``); a term missing from a step's ``Command.terms`` is recorded as 0.
     device_time : bool
         The devices' time advances exactly one period per SYNC (virtual devices served by the loop thread):
-        loop time is then ``executed cycles × T`` and every step gets ``dt = T``, so skipped slots slow the
-        simulation down instead of desynchronising reference and plant. False (default): loop time is
-        ``clock.now() − start`` and ``dt = T·(1 + skipped)``, right for real devices and for PlantIO with a
-        clock (its plant follows the clock).
+        loop time is then ``executed cycles × T`` (a step after stale samples gets the whole gap), so skipped
+        slots slow the simulation down instead of desynchronising reference and plant. False (default): loop
+        time is ``clock.now() − start`` (a skipped slot gives ``dt ≈ T·(1 + skipped)``), right for real devices
+        and for PlantIO with a clock (its plant follows the clock).
     realtime : bool
         Apply ``cfg.realtime`` (FIFO, affinity, mlock, timer slack, gc.freeze) in the loop thread at start.
         False for simulated time.
@@ -202,6 +250,14 @@ class ControlLoop:
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
         self._t0 = 0.0
+        self._t_step: float | None = None  # loop time of the last sample the controller stepped on
+        self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
+        self.slow_down = 1.0  # the feedback slow-down factor in force (SLOW_DOWN_LEVELS)
+        self.slow_downs = 0  # level changes so far
+        self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
+        self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
+        #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
+        self.active_braking = True
         self.realtime_report: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ sinks
@@ -284,6 +340,8 @@ class ControlLoop:
     def _reset(self, t: float, x: float) -> dict[str, Any]:
         if self.state is not LoopState.FAULT:
             return {"state": self.state.value, "cleared": None}
+        if self.brake is not None:
+            raise LoopStateError("reset: the fault reaction is still braking the stage; retry when it stands")
         cleared = self.safety.fault
         # refused while a cause persists (heartbeat still missing, bus-off, link closed, stage outside the soft
         # limits, ...): it would latch again at once, or worse, enable a drive nobody can supervise
@@ -298,6 +356,7 @@ class ControlLoop:
         self.controller.reset(x)
         self.reference.hold(t, x)
         self._u = 0.0
+        self._t_step = None
         self.state = LoopState.ACTIVE
         self._just_reset = True
         log.warning("fault reset: %s cleared, loop active at x = %.9g m", cleared.name if cleared else "-", x)
@@ -336,17 +395,25 @@ class ControlLoop:
         )
 
     # ------------------------------------------------------------------ fault
-    def _enter_fault(self, t: float) -> None:
+    def _enter_fault(self, t: float, x: float = math.nan) -> None:
         if self.state is LoopState.FAULT:
             return
         self.state = LoopState.FAULT
         self.faults += 1
         self._u = 0.0
+        fault = self.safety.fault
         if self.learner is not None:
-            fault = self.safety.fault
             self.learner.freeze(fault.name if fault is not None else "fault")
-        self._devs.quick_stop(self.safety.fault)
-        log.error("FAULT %s; drive quick-stopped", self.safety.fault)
+        brake = self._make_brake(t, x) if fault is not None and fault.name in BRAKE_FAULTS else None
+        if brake is None:
+            self._devs.quick_stop(fault)
+            log.error("FAULT %s; drive quick-stopped", fault)
+            self._state_changed()
+            return
+        self.brake = self.last_brake = brake
+        log.error("FAULT %s; braking from %.4g m/s at %.3g m/s^2 (force within %.3g N), then quick stop", fault,
+                  brake.v0_m_s, brake.a_m_s2, brake.max_force_n)
+        self._brake_cycle(t, x, True)
         self._state_changed()
 
     def _state_changed(self) -> None:
@@ -356,6 +423,47 @@ class ControlLoop:
                 cb()
             except Exception:  # a wake-up that fails must not turn into a loop error
                 log.exception("on_state_change failed")
+
+    def _set_slow_down(self, level: float, t: float) -> None:
+        """Slow the controller's feedback down to ``level`` (see the module docstring); logged."""
+        prev, self.slow_down = self.slow_down, level
+        self.controller.set_timing_scale(level)  # type: ignore[attr-defined]
+        self.slow_downs += 1
+        lvl = logging.WARNING if self.slow_downs == 1 else logging.INFO  # first one a warning, then info
+        log.log(lvl, "loop timing: average sample interval %.2f T: feedback %s to crossover / %g (t=%.3f s)",
+                self.t_eff_s / self.period_s, "slowed" if level > prev else "restored", level, t)
+
+    def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
+        """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
+        mass = getattr(self.controller, "mass_kg", None)
+        if not self.active_braking or not (isinstance(mass, (int, float)) and mass > 0 and math.isfinite(x)):
+            return None
+        if self.actuator.state is not DeviceState.ENABLED:
+            return None
+        c = self.safety.cfg
+        lim = c.max_force_n  # and the actuator's own limit when it has one (CiA 402: 0x6072 max torque)
+        act_lim = getattr(self.actuator, "force_limit_n", None)
+        if isinstance(act_lim, (int, float)) and 0.0 < act_lim < lim:
+            lim = float(act_lim)
+        a = c.quick_stop_deceleration_m_s2 or 0.9 * lim / float(mass)
+        return QuickStopBrake(t, x, self.safety.v_est_m_s, mass_kg=float(mass), max_force_n=lim,
+                              deceleration_m_s2=a, standstill_m_s=c.quick_stop_standstill_m_s,
+                              stale_limit=c.stale_cycles)
+
+    def _brake_cycle(self, t: float, x: float, fresh: bool) -> None:
+        """One cycle of the fault reaction's brake; at its end the actuator's quick stop (force 0)."""
+        brake = self.brake
+        assert brake is not None
+        u = brake.step(t, x, fresh)
+        if not brake.done:
+            self.actuator.write(u)
+            self._u = u
+            return
+        self.brake = None
+        self._u = 0.0
+        self._devs.quick_stop(self.safety.fault)
+        log.error("fault reaction: brake ended (%s) after %.1f ms, %.3g m from where it began; drive "
+                  "quick-stopped", brake.why, (t - brake.t0_s) * 1e3, x - brake.x0_m)
 
     # ------------------------------------------------------------------ run
     def _start(self) -> float:
@@ -384,6 +492,7 @@ class ControlLoop:
         if waited or i:
             log.info("first fresh position after %d + %d start-up cycles", waited, i)
         self._t0 = t0
+        self._t_step = None
         x0 = m.position_m
         if faulted:  # a latched fault survives a restart of the loop: only reset clears it
             self.state = LoopState.FAULT
@@ -461,7 +570,7 @@ class ControlLoop:
         on_cycle = self.on_cycle
         perf = time.perf_counter
         slot = 0  # deadline of slot n is t0 + n·T (no accumulated rounding)
-        dt = period
+        dt_min, dt_max = MIN_DT_PERIODS * period, MAX_DT_PERIODS * period
         skipped = 0
         late = 0.0
         max_cycles = self.cycle + cycles if cycles is not None else -1
@@ -473,6 +582,10 @@ class ControlLoop:
         held: dict[str, float] = {}  # the last fresh cycle's terms, recorded again while a stale sample holds u
         learner, learn_ctl = self.learner, self._learn_ctl
         lrow: tuple[float, ...] = ()
+        stale_row = False
+        holds = isinstance(controller, HoldsOnStale)
+        tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
+        t_ctl = self._t_step  # loop time of the last controller step or hold
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -500,13 +613,34 @@ class ControlLoop:
                     self._just_reset = False
                     m = Measurement(x, False)
                 dev_fault = m.fault if m.fault is not None else devs.fault()
-                if self.state is LoopState.ACTIVE and safety.check_measurement(t, k, x, m.fresh, dev_fault):
-                    self._enter_fault(t)
+                t_m = t
+                if m.age_cycles and m.fresh:  # a late sample from age·T ago: its own time for the velocity
+                    t_m = t - m.age_cycles * period  # estimate, then extrapolated to now with it
+                if self.state is LoopState.ACTIVE and safety.check_measurement(t_m, k, x, m.fresh, dev_fault):
+                    self._enter_fault(t, x)
+                if t_m != t and math.isfinite(x):
+                    x += safety.v_est_m_s * (t - t_m)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
                     if safety.check_tracking(t, k, x, ref.x_m):
-                        self._enter_fault(t)
-                    elif m.fresh:
+                        self._enter_fault(t, x)
+                    elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):
+                        t_prev = self._t_step
+                        dt = period if t_prev is None else min(dt_max, t - t_prev)
+                        if abs(dt - period) <= 1e-6 * period:  # on time (rounding of t aside): exactly T
+                            dt = period
+                        self._t_step = t_ctl = t
+                        if tau_slow > 0.0:
+                            d_eff = dt + m.age_cycles * period  # a late sample adds its age as delay
+                            self.t_eff_s += min(1.0, dt / tau_slow) * (d_eff - self.t_eff_s)
+                            r = self.t_eff_s / period
+                            lvl = self.slow_down
+                            if lvl < SLOW_DOWN_LEVELS[-1] and r >= _next_level(lvl):
+                                lvl = _next_level(lvl)
+                            elif lvl > 1.0 and r < 0.9 * lvl:
+                                lvl = _prev_level(lvl)
+                            if lvl != self.slow_down:
+                                self._set_slow_down(lvl, t)
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
@@ -518,24 +652,48 @@ class ControlLoop:
                                 cmd.force_n += u_l
                         u = safety.limit_force(t, k, cmd.force_n)
                         if safety.fault is not None:
-                            self._enter_fault(t)
+                            self._enter_fault(t, x)
                         else:
                             actuator.write(u)
                             self._u = u
                         terms = held = cmd.terms
-                    else:  # stale sample (below the stale limit): hold the last force, no new estimate
-                        actuator.write(self._u)
+                    else:  # stale sample (below the stale limit), or one less than T/2 after the last
+                        # stepped one (a late wake-up right before an on-time one): feedback held, no new
+                        # estimate (the next step gets the whole gap); the feed-forward follows the reference
+                        # when the controller can (hold), else the last force is held
+                        stale_row = True
                         terms = held
+                        if holds and self._t_step is not None and t_ctl is not None and t - t_ctl >= dt_min:
+                            cmd = controller.hold(min(dt_max, t - t_ctl), ref)  # type: ignore[attr-defined]
+                            if learner is not None:  # the learned force goes on along the motion (not recorded)
+                                cmd.force_n += learner.step(t, ref.x_m - x, fresh=False)
+                            t_ctl = t
+                            u = safety.limit_force(t, k, cmd.force_n)
+                            if safety.fault is not None:
+                                self._enter_fault(t, x)
+                            else:
+                                self._u = u
+                                terms = cmd.terms
+                        if self.state is LoopState.ACTIVE:
+                            actuator.write(self._u)
                 else:
+                    if self.brake is not None and self.brake.t_last_s < t:  # (not the cycle it began in)
+                        if dev_fault is not None:  # the drive no longer obeys: release at once
+                            self.brake.step(t, math.nan, False)
+                        self._brake_cycle(t, x, m.fresh)
                     ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t)
                     terms = {}
                 x_prev_ref = ref
+                if stale_row:
+                    fresh_row, stale_row = 0.0, False
+                else:
+                    fresh_row = 1.0 if m.fresh else 0.0
                 u = self._u
                 if learner is not None:
                     lrow = learner.row()
                 row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
                     [terms.get(n, 0.0) for n in term_names]
-                ) + lrow + (0.0 if m.fresh else 1.0, float(skipped))
+                ) + lrow + (1.0 - fresh_row, float(skipped))
                 sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:
@@ -544,6 +702,10 @@ class ControlLoop:
                 if safety.fault is None:
                     log.exception("unexpected error in cycle %d", k)
                 safety.latch("loop_error", f"{type(exc).__name__}: {exc}", t, k)
+                if self.brake is not None:  # braking itself failed: release to the drive's quick stop
+                    self.brake = None
+                    self._u = 0.0
+                    self._devs.quick_stop(safety.fault)
                 self._enter_fault(t)
             # ------------------------------------------------------ statistics
             record(k, late, perf() - c0, skipped)
@@ -555,16 +717,18 @@ class ControlLoop:
             clock.sleep_until(deadline)
             late = clock.now() - deadline
             skipped = 0
-            if late >= period:
-                skipped = int(late // period)
+            if late >= period * (1.0 - 1e-9):  # (a wake-up one period late is a skipped slot, rounding aside)
+                skipped = max(1, int(late // period))
                 slot += skipped
                 late -= skipped * period
                 self.overruns += skipped
-            dt = period if device_time else period * (1 + skipped)
             if warner is not None:
                 warner.note(t, late, skipped, period, self.overruns)
 
     def _teardown(self) -> None:
+        if self.brake is not None:  # the run ends while braking: the drive's own quick stop takes over
+            self.brake = None
+            self._devs.quick_stop(self.safety.fault)
         self._devs.shut_down(write_zero=self.state is LoopState.ACTIVE)
         self._u = 0.0
         if self.state is LoopState.ACTIVE:

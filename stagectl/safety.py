@@ -17,9 +17,11 @@ fault name             condition
                        can: \\|Δx\\| > v_max·Δt + (F_max/m)·Δt²/2 + ``jump_margin_m`` (Δt: time between the two
                        samples, T when none was stale; v_max = ``max_velocity_m_s``, F_max = ``max_force_n``,
                        m the moving mass given to :class:`Safety`; off without a mass)
-``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt (Δt since the
-                       previous fresh sample: T, or more after a stale sample or skipped slots) low-passed at
-                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f T})
+``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt between fresh samples,
+                       Δt their measured interval (loop time; a sample less than T/2 after the last one waits for the
+                       next), low-passed at
+                       ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f Δt}), so a
+                       skipped cycle or a dropped sample does not read as a velocity jump
 ``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
                        for longer than ``force_saturation_time_s`` (a blocked stage) is a fault
 ``loop_error``         an unexpected exception in the cycle (raised by the loop, recorded here)
@@ -36,7 +38,11 @@ collision; either way the position can no longer be trusted to close the loop on
 
 The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
 overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
-latched fault by commanding the drive's quick stop in the same cycle (well within the 3-cycle budget).
+latched fault in the same cycle: for ``following_error``, ``velocity_limit`` and ``position_limit`` (the
+position is valid and the drive obeys) it brakes the stage to standstill on a velocity ramp with
+``quick_stop_deceleration_m_s2`` within ``max_force_n`` and then commands the drive's quick stop
+(:mod:`stagectl.runtime.quickstop`); for every other fault it commands the quick stop at once (zero force
+within the 3-cycle budget).
 """
 
 from __future__ import annotations
@@ -73,6 +79,12 @@ class SafetyConfig:
     move_velocity_fraction: float = param(
         0.9, desc="moves are planned at most at this fraction of max_velocity_m_s (tracking overshoot must not "
         "trip velocity_limit); faster requests are refused", gt=0, le=1)
+    quick_stop_deceleration_m_s2: float | None = param(
+        None, unit="m/s^2", desc="fault reaction: deceleration of the braking ramp after following_error, "
+        "velocity_limit or position_limit, before the drive is released (None: 0.9 max_force_n / moving mass)",
+        gt=0)
+    quick_stop_standstill_m_s: float = param(
+        1e-4, unit="m/s", desc="fault reaction: the brake ends (drive released) below this velocity", gt=0)
 
     def __post_init__(self) -> None:
         if not self.min_position_m < self.max_position_m:
@@ -135,6 +147,7 @@ class Safety:
         self.n_faults = 0
         self.v_est_m_s = 0.0
         self._x_prev: float | None = None
+        self._t_prev: float | None = None
         self._stale = 0
         self._fe_since: float | None = None
         self._sat_since: float | None = None
@@ -181,14 +194,17 @@ class Safety:
         the time [s] of the sample ``x_m`` (the position-jump bound is measured from it)."""
         self.v_est_m_s = 0.0
         self._x_prev = x_m
-        self._t_prev = t_s if t_s is not None else -self.period_s
+        self._t_prev = t_s
         self._stale = 0
         self._fe_since = None
         self._sat_since = None
 
     # ----------------------------------------------------------------- per-cycle checks
     def check_measurement(self, t_s: float, cycle: int, x_m: float, fresh: bool, device_fault: object) -> bool:
-        """Position, freshness and device-fault checks. Returns True when a fault is latched."""
+        """Position, freshness and device-fault checks. Returns True when a fault is latched.
+
+        ``t_s`` is the loop time of this sample [s]: the velocity estimate divides by the measured interval
+        since the previous fresh sample (at least T/2; T when there is no previous one)."""
         cfg = self.cfg
         if device_fault is not None:
             kind = getattr(device_fault, "kind", None)
@@ -213,12 +229,13 @@ class Safety:
                 cycle,
             )
             return True
-        xp = self._x_prev
-        self._x_prev = x_m
-        tp = self._t_prev
-        self._t_prev = t_s
+        xp, tp = self._x_prev, self._t_prev
+        T = self.period_s
+        dt = T if tp is None else t_s - tp
+        if dt < 0.5 * T:  # a sample right after the last one (late wake-up): keep the longer baseline
+            return self.fault is not None
+        self._x_prev, self._t_prev = x_m, t_s
         if xp is not None:
-            dt = t_s - tp if t_s > tp else self.period_s  # since the previous fresh sample (stale/skipped: > T)
             if self.max_accel_m_s2 is not None:
                 bound = self.max_step_m(dt)
                 if abs(x_m - xp) > bound:
@@ -231,8 +248,10 @@ class Safety:
                         cycle,
                     )
                     return True
+            alpha = self._alpha if abs(dt - T) <= 1e-9 * T else (
+                1.0 - math.exp(-2.0 * math.pi * cfg.velocity_filter_hz * dt))
             v_raw = (x_m - xp) / dt
-            self.v_est_m_s += self._alpha * (v_raw - self.v_est_m_s)
+            self.v_est_m_s += alpha * (v_raw - self.v_est_m_s)
             if abs(self.v_est_m_s) > cfg.max_velocity_m_s:
                 self.latch(
                     "velocity_limit",

@@ -50,6 +50,7 @@ reload from another thread use ``request_retune`` (prepares there, swaps at the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,6 +258,8 @@ class StageController:
         self.settle = SettleDetector(cfg.settle)
         self._vbeta = 0.0
         self._vdt = math.nan
+        self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
+        self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -317,6 +320,7 @@ class StageController:
         self.settle.reset()
         self._ff_bump = None
         self._last_ref = None
+        self._ff_ahead_s = 0.0
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -366,7 +370,7 @@ class StageController:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
             st.u_ff_n = 0.0
-        self.pid.retune(parts.pid_cfg)
+        self.pid.retune(_scaled_pid(parts.pid_cfg, self.timing_scale))
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
         if parts.cfg.settle != self.cfg.settle:
@@ -376,6 +380,27 @@ class StageController:
         self.dob = new_dob
         self.ff = parts.ff
         self._vdt = math.nan
+        if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
+            new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
+
+    def set_timing_scale(self, scale: float) -> None:
+        """Slow the feedback down for a loop that runs slower than its period (real-time safe enough for a
+        rare call: two bumpless retunes, no allocation beyond two small configs).
+
+        ``scale`` s >= 1 is the effective sample interval over T (the loop's measure of skipped and late
+        cycles). The crossover of the configured design is divided by s, so the margins it was designed with
+        for T hold for a loop sampling at s·T: Kp/s², Ki/s³, Kd/s, derivative cut-off /s, Q-filter DOB
+        bandwidth /s (a Kalman DOB is left as is). s = 1 restores the configured gains. The feed-forward is
+        unchanged. Bumpless: the PID term and d̂ keep their values.
+        """
+        s = max(1.0, float(scale))
+        if s == self.timing_scale:
+            return
+        self.timing_scale = s
+        cfg = self.cfg
+        self.pid.retune(_scaled_pid(cfg.pid, s))
+        if isinstance(self.dob, QFilterDob):
+            self.dob.retune(_scaled_dob(cfg.dob, s), self.mass_kg)
 
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
@@ -409,9 +434,11 @@ class StageController:
                 self._vdt = dt
                 self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
-        # feed-forward
+        # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
-        u_ff = ff.step(dt, ref) if ff is not None else 0.0
+        dt_ff = dt - self._ff_ahead_s
+        self._ff_ahead_s = 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -471,6 +498,52 @@ class StageController:
         else:
             limited = ()
         return Command(u, terms, limited)
+
+
+    def hold(self, dt: float, ref: Reference) -> Command:
+        """A cycle without a new sample (stale: late or dropped frame; real-time safe).
+
+        The feedback terms (u_pid, d̂) are held at their last values: nothing integrates, no estimate moves.
+        The feed-forward follows the reference (it needs no measurement): the friction model is advanced by
+        ``dt`` [s] (the time since its last step; the next :meth:`step` advances it only by the rest of its
+        own dt) and the inertia term is m·a_ref::
+
+            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref , ±max_force_n )
+        """
+        check_dt(dt)
+        st = self.state
+        ff = self.ff
+        ffc = self.cfg.feedforward
+        if ff is None or self._ff_bump is not None or self._pending is not None:
+            return Command(st.u_n, st.terms, ("stale",))
+        u_ff = ff.step(dt, ref)
+        self._ff_ahead_s += dt
+        m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
+        u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
+        u_fb = st.u_n - st.u_ff_n - st.u_inertia_n
+        lim = self.cfg.max_force_n
+        u = max(-lim, min(lim, u_fb + u_ff + u_in))
+        st.u_n = u
+        st.u_ff_n = u_ff
+        st.u_inertia_n = u_in
+        st.u_obs_prev_n = u - u_ff
+        terms = dict(st.terms)
+        terms["u_ff"] = u_ff
+        terms["u_inertia"] = u_in
+        st.terms = terms
+        return Command(u, terms, ("stale",))
+
+
+def _scaled_pid(p: PidConfig, s: float) -> PidConfig:
+    """PID gains for a crossover divided by ``s`` (Kp/s², Ki/s³, Kd/s, fc/s)."""
+    if s == 1.0:
+        return p
+    return dataclasses.replace(p, kp_n_m=p.kp_n_m / s**2, ki_n_m_s=p.ki_n_m_s / s**3, kd_n_s_m=p.kd_n_s_m / s,
+                               derivative_cutoff_hz=p.derivative_cutoff_hz / s)
+
+
+def _scaled_dob(d: DobConfig, s: float) -> DobConfig:
+    return d if s == 1.0 else dataclasses.replace(d, bandwidth_hz=d.bandwidth_hz / s)
 
 
 def controller_from_mapping(data: Any, timing: Timing | float,

@@ -16,7 +16,8 @@ discretised with α = exp(−g·dt)::
     w_{k+1} = α·w_k + (1 − α)·(ū_k + K_v·v̂_k),       d̂_k = w_k − K_v·v̂_k
     K_v = m_n·(1 − α)/dt   (→ m_n·g as dt → 0),       ū_k = (u_obs,k + u_obs,k−1)/2
 
-with v̂ the backward-difference velocity estimate [m/s] from the controller. The two discrete choices make
+with v̂ the backward-difference velocity estimate [m/s] from the controller and dt the measured sample
+interval (when dt changes, w is re-based by ΔK_v·v̂ so that d̂ is continuous). The two discrete choices make
 the estimate exact for a rigid mass under a zero-order-hold force (d̂ = LPF(τ), no bias): with §6.1's
 literal K_v = m_n·g and ū = u_obs the estimate is biased by −m_n·a·g·dt/2 under a constant acceleration a
 (1.6 % of m·a at 50 Hz and 10 kHz).
@@ -42,6 +43,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 from stagectl.control.design import kalman_gain
 from stagectl.control.pid import check_dt
@@ -144,9 +146,12 @@ class QFilterDob:
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
         """
         check_dt(dt)
-        if dt != self._dt:
-            self._coeffs(dt)
         st = self.state
+        if dt != self._dt:
+            kv_old = self._kv
+            self._coeffs(dt)
+            if self._have_prev:  # a new sample interval (skipped cycle, stale samples): re-base w so that the
+                st.w_n += (self._kv - kv_old) * st.v_hat_m_s  # estimate d̂ = w − K_v·v̂ does not jump with K_v
         u_in = u_obs_prev_n
         if self._delay:
             self._delay.append(u_obs_prev_n)
@@ -173,7 +178,9 @@ class KalmanDob:
     """Steady-state Kalman DOB on [x, v, τ] (see module docstring). ``step`` is real-time safe.
 
     The gain is designed for ``period_s`` at construction (:func:`stagectl.control.design.kalman_gain`,
-    scipy imported lazily); a different ``dt`` at ``step`` triggers a redesign (not real-time safe, avoid).
+    scipy imported lazily). A step's ``dt`` (the loop's measured sample interval) is rounded to a tenth of
+    ``period_s``; a rounded interval not seen before is designed once (not real-time safe: the first
+    skipped cycle of each length costs a design) and cached, so sampling jitter never redesigns.
     """
 
     def __init__(self, cfg: DobConfig, mass_kg: float, period_s: float):
@@ -182,13 +189,18 @@ class KalmanDob:
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
         self.state = DobState()
         self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
+        self._period_s = period_s
+        self._gains: dict[float, Any] = {}
         self._design(period_s)
 
     def _design(self, dt: float) -> None:
         m = self.mass_kg
         self._dt = dt
-        self.K = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,
-                             self.cfg.disturbance_noise_n_sqrt_s)
+        K = self._gains.get(dt)
+        if K is None:
+            K = self._gains[dt] = kalman_gain(m, dt, self.cfg.bandwidth_hz, self.cfg.measurement_noise_m,
+                                              self.cfg.disturbance_noise_n_sqrt_s)
+        self.K = K
         # A = [[1, dt, -dt²/2m], [0, 1, -dt/m], [0, 0, 1]],  B = [dt²/2m, dt/m, 0]
         self._a02 = -dt * dt / (2.0 * m)
         self._a12 = -dt / m
@@ -203,6 +215,7 @@ class KalmanDob:
         """New gain (redesigned now); the state [x, v, τ] is kept, so d̂ does not jump."""
         self.cfg = cfg
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
+        self._gains = {}
         self._design(self._dt)
         n = cfg.command_delay_samples
         old = list(self._delay)
@@ -229,8 +242,10 @@ class KalmanDob:
         ``v_hat_m_s`` is unused (the filter estimates v itself); kept for a common signature.
         """
         check_dt(dt)
-        if dt != self._dt:
-            self._design(dt)
+        q = self._period_s * max(1, round(10.0 * dt / self._period_s)) / 10.0
+        if q != self._dt:
+            self._design(q)
+        dt = q
         st = self.state
         u_in = u_obs_prev_n
         if self._delay:

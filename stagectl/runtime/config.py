@@ -36,6 +36,9 @@ class LoopConfig:
     healthy_overrun_fraction: float = param(
         0.01, desc="watchdog health: largest recent fraction of skipped cycles", ge=0, le=1
     )
+    slow_down_time_s: float = param(
+        0.5, unit="s", desc="time constant of the average measured sample interval that slows the controller's "
+        "feedback down when cycles are skipped (crossover / (interval / T), in steps); 0 = never", ge=0)
     startup_cycles: int = param(
         200, unit="cycles", desc="at start, SYNC periods to wait for the first fresh position (a loaded machine or "
         "a late first TPDO); the stale-position check applies from the first active cycle on", ge=1, le=100000

@@ -6,8 +6,8 @@ from typing import Any, Protocol, runtime_checkable
 
 from stagectl.control.api import Command, Reference
 
-__all__ = ["Controller", "Learner", "NamesTerms", "PreparesRetune", "ReferenceSource", "RunsScenarios", "TakesLearnedForce",
-           "TelemetrySink"]
+__all__ = ["Controller", "HoldsOnStale", "Learner", "NamesTerms", "PreparesRetune", "ReferenceSource", "RunsScenarios",
+           "ScalesWithTiming", "TakesLearnedForce", "TelemetrySink"]
 
 
 class Controller(Protocol):
@@ -68,6 +68,21 @@ class RunsScenarios(Protocol):
     TrajectoryReference`): what ``ilc start`` with a motion name runs."""
 
     def run_scenario(self, t_s: float, name: str) -> float: ...
+
+
+@runtime_checkable
+class HoldsOnStale(Protocol):
+    """A controller with a stale-cycle step (:meth:`StageController.hold`): feedback held, feed-forward
+    along the reference. Without it the loop holds the last force."""
+
+    def hold(self, dt: float, ref: Reference) -> Command: ...
+
+
+@runtime_checkable
+class ScalesWithTiming(Protocol):
+    """A controller whose feedback can be slowed down by a factor (the effective sample interval over T)."""
+
+    def set_timing_scale(self, scale: float) -> None: ...
 
 
 @runtime_checkable

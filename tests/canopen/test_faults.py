@@ -27,7 +27,6 @@ def run_until_fault(dut, n):
     [
         (SimFault.DRIVE_FAULT, FaultKind.DRIVE_FAULT, 1),
         (SimFault.DROP_TPDO, FaultKind.MISSED_FRAME, 3),
-        (SimFault.LATE_TPDO, FaultKind.MISSED_FRAME, 3),
         (SimFault.BUS_OFF, FaultKind.BUS_OFF, 1),
         (SimFault.POSITION_JUMP, FaultKind.SENSOR_ERROR, 1),
     ],
@@ -81,6 +80,35 @@ def test_late_tpdo_is_never_taken_for_the_next_cycle(lockstep):
         m = dut.read()
         assert m.fresh and m.counts == round(world.plant.measure() / 1e-9)
         dut.write(2.0)
+
+
+def test_late_tpdos_are_used_one_period_old_then_a_lasting_lateness_faults(lockstep):
+    """Every TPDO late (lock-step: it arrives after the read gave up): from the second cycle on read()
+    returns the late answer to the previous SYNC as a fresh sample with age_cycles = 1 (a loaded machine
+    answering late is not a missing drive); ``max_late_cycles`` such cycles in a row latch MISSED_FRAME."""
+    world, dut = lockstep(max_late_cycles=6)
+    for _ in range(5):
+        dut.sync()
+        dut.read()
+        dut.write(2.0)
+    world.inject(FaultSpec(kind=SimFault.LATE_TPDO))
+    dut.sync()
+    m = dut.read()
+    assert not m.fresh and m.fault is None
+    dut.write(2.0)
+    seen = []
+    for _ in range(6):
+        x_before = world.plant.measure()
+        dut.sync()
+        m = dut.read()
+        seen.append(m)
+        dut.write(2.0)
+        if m.fault is None:
+            assert m.fresh and m.age_cycles == 1
+            assert m.counts == round(x_before / 1e-9)  # the sample of the previous SYNC
+    # the 6th cycle without an on-time TPDO (the stale first one counts) latches the fault
+    assert [m.fault is None for m in seen[:5]] == [True] * 4 + [False]
+    assert seen[4].fault.kind is FaultKind.MISSED_FRAME and "max_late_cycles" in seen[4].fault.detail
 
 
 def test_emcy_without_fault_state_is_reported(lockstep):
