@@ -142,7 +142,6 @@ class Safety:
         self.mass_kg = mass_kg
         #: largest plausible acceleration F_max/m [m/s²] (None: no position_jump check)
         self.max_accel_m_s2 = cfg.max_force_n / mass_kg if mass_kg is not None else None
-        self._t_prev = 0.0
         self.fault: SafetyFault | None = None
         self.n_faults = 0
         self.v_est_m_s = 0.0
