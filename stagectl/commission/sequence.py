@@ -80,6 +80,8 @@ CV_PASS_S = 2.0
 SLOW_PASS_S = 6.0
 
 VERIFY = ("cosine", "triangle", "steps")
+#: --lockstep: how long the drive waits (wall clock) for the answer to each SYNC from the sim-plant process
+LOCKSTEP_RX_TIMEOUT_S = 5.0
 
 
 class CommissionAborted(StageError):
@@ -103,6 +105,9 @@ class Options:
     plots: bool = True
     #: debug, simulated stages only: inject a device fault ``(experiment, t_s)`` into that experiment
     inject_fault: tuple[str, float] | None = None
+    #: the stage is a ``stagectl sim-plant --lockstep`` process (io.kind canopen): run in simulated time,
+    #: the drive waiting for each SYNC's answer (up to LOCKSTEP_RX_TIMEOUT_S of wall time)
+    lockstep: bool = False
     progress: Callable[[str], None] = lambda line: None
 
 
@@ -170,7 +175,14 @@ class Commissioning:
         self.res = Results(cfg, self.env)
         self.simulated = cfg.io.kind in (IoKind.PLANT_IO, IoKind.EMBEDDED_CANOPEN)
         if opts.inject_fault is not None and not self.simulated:
-            raise StageError("--inject-fault: only on a simulated stage (io.kind plant_io or embedded_canopen)")
+            raise StageError("--inject-fault: only on a simulated stage (io.kind plant_io or embedded_canopen); "
+                             "a sim-plant process takes scripted faults from its sim.faults")
+        if opts.lockstep and (cfg.io.kind is not IoKind.CANOPEN or cfg.io.drive is None
+                              or cfg.io.sensor.value != "drive"):
+            raise StageError("--lockstep: needs io.kind canopen with io.sensor drive (a `stagectl sim-plant "
+                             "--lockstep` process)")
+        #: simulated time: the embedded plant, or a lock-step sim-plant process
+        self.sim_time = self.simulated or opts.lockstep
         self.T = cfg.loop.period_s
         self._planned: list[tuple[str, float]] = []
         self._coulomb_guess = 0.0
@@ -190,7 +202,7 @@ class Commissioning:
         res: LoopResult | None = None
         interrupted = False
         try:
-            if self.simulated:
+            if self.sim_time:
                 loop.add_sink(prog)
                 try:
                     res = loop.run(duration_s=duration_s)
@@ -256,10 +268,16 @@ class Commissioning:
     # ------------------------------------------------------------------ the sequence
     def run(self) -> Results:
         cfg = self.cfg
-        clock: Clock = SimClock() if self.simulated else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
+        clock: Clock = SimClock() if self.sim_time else MonotonicClock(spin_s=cfg.loop.realtime.spin_us * 1e-6)
         ctl = CommissionController(make_controller(cfg))
         self.rec_dir.mkdir(parents=True, exist_ok=True)
-        with build_stage(cfg, clock=clock, controller=ctl) as stage:
+        build_cfg = cfg
+        if self.opts.lockstep and cfg.io.drive is not None:
+            # the sim-plant answers each SYNC once it has stepped the plant: wait for it (deterministic)
+            drive = dataclasses.replace(cfg.io.drive, rx_timeout_s=max(cfg.io.drive.rx_timeout_s,
+                                                                       LOCKSTEP_RX_TIMEOUT_S))
+            build_cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, drive=drive))
+        with build_stage(build_cfg, clock=clock, controller=ctl) as stage:
             try:
                 self._sequence(stage, ctl)
             except CommissionAborted as exc:
