@@ -17,7 +17,7 @@ import yaml
 
 from stagectl.commission.sequence import MIN_GAIN_MARGIN_DB as MIN_GM
 from stagectl.commission.sequence import MIN_PHASE_MARGIN_DEG as MIN_PM
-from stagectl.commission.sequence import Results
+from stagectl.commission.sequence import Results, controller_mapping
 from stagectl.config import AppConfig, load_app_config
 from stagectl.friction import StageModel, save_model_file
 from stagectl.outputs import plain
@@ -43,20 +43,9 @@ def _absolute_paths(node: Any, base: Path) -> Any:
 def controller_section(res: Results) -> dict[str, Any]:
     """The new ``controller:`` mapping (model file next to stage.yaml)."""
     assert res.gains is not None and res.plant is not None
-    ch = res.gains["chosen"]
-    nd = int(res.gains["delay_samples"])
-    T = res.config.loop.period_s
-    # the feed-forward adds the model's own effects.delay to the lookahead: count the measured delay once
-    model_delay = float((res.model_spec or {}).get("effects", {}).get("delay", {}).get("delay_s", 0.0))
-    return {
-        "mass_kg": float(res.gains["mass_kg"]),
-        "max_force_n": float(res.config.controller.max_force_n),
-        "pid": dict(ch["pid"]),
-        "dob": {"kind": ch["dob_kind"], "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
-        "feedforward": {"kind": "model", "model_file": "model.yaml", "inertia": True,
-                        # the zero-order-hold mid-point plus the measured I/O delay
-                        "lookahead_s": float(min(max(T / 2 + res.plant.delay_s - model_delay, 0.0), 0.1))},
-    }
+    return controller_mapping(res.gains["chosen"], float(res.gains["mass_kg"]), int(res.gains["delay_samples"]),
+                              res.config.loop.period_s, res.plant.delay_s, res.model_spec,
+                              res.config.controller.max_force_n, "model.yaml")
 
 
 def write_config(res: Results, out: Path) -> AppConfig:
