@@ -467,8 +467,9 @@ class Commissioning:
         10 % lower (``TWIN_MISMATCH``), under the I/O delay and sensor quantum measured here; the feed-forward
         uses the identified model itself. So the ranking rewards a design that tolerates the feed-forward's
         likely error, not one that only works with a perfect model. Each finalist runs the verification
-        scenarios (cosine, triangle, steps) from rest; the best settles the most moves, then has the lowest
-        geometric-mean RMS error. The scores are kept in each finalist's ``twin`` entry."""
+        scenarios (cosine, triangle, steps) from rest; the best has the lowest geometric-mean RMS error (ties:
+        more moves settled). The scores are kept in each finalist's ``twin`` entry. (Ranking by settled moves
+        first was tried: the twin's settling counts did not carry over to the stage.)"""
         import tempfile
 
         import yaml
@@ -527,7 +528,7 @@ class Commissioning:
                     settled += int(summ["moves_settled"])
                     logs.append(math.log(max(float(summ["rms_error_m"]), 1e-15)))
                 entry["twin"] = scores
-                rank_key = (-float(settled), float(np.mean(logs)))
+                rank_key = (float(np.mean(logs)), -float(settled))
                 if best is None or rank_key < best[0]:
                     best = (rank_key, entry)
         assert best is not None
