@@ -16,11 +16,13 @@ model file's content (``docs/commissioning.md`` §4).
   the sliding levels (Coulomb, static, Stribeck velocity and shape, viscous) of the constant-velocity
   segment fit.
 
-* pre-sliding (when discover accepted it): the GMS elements are refitted on the reversals by a linear
-  Maxwell-slip regression (:func:`fit_presliding`): ``PRESLIDING_ELEMENTS`` elements with fixed,
-  log-spaced break-away displacements, whose stiffnesses come from non-negative least squares. On the
-  test plant this brought the cosine's RMS error under the same gains from 0.18–0.56 µm (discover's
-  elements) to 17–36 nm (exact model: 1–2 nm).
+* pre-sliding (when discover accepted it): the GMS elements are refitted on the reversals and the
+  constant-velocity passes (their reversals) by a linear Maxwell-slip regression (:func:`fit_presliding`):
+  ``PRESLIDING_ELEMENTS`` elements with fixed, log-spaced break-away displacements, whose stiffnesses come
+  from non-negative least squares. On the test plant, with the seed gains and from rest, this brought the
+  cosine's RMS error from 0.18 µm (discover's elements) to 17–36 nm (exact model: 1.1 nm); with the
+  reversals alone the regression gave 82 nm, with the passes added 59 nm (35 Hz PID design, after the
+  verification's approach move; exact model 18 nm).
 
 ``identify --model gms`` also runs on the reversal recording; its virgin-curve fit is reported beside.
 """
@@ -80,20 +82,9 @@ def _play(x: FloatArray, v: FloatArray, deltas: FloatArray, scale: FloatArray) -
     return out
 
 
-def fit_presliding(rec: Recorder, mass_kg: float, period_s: float, delay_s: float, sliding: dict[str, float],
-                   effects: dict[str, Any] | None) -> dict[str, Any]:
-    """GMS pre-sliding elements from a recording with reversals, by linear regression.
-
-    The force balance ``u(t − τ) − m·a − F_v·v − F_eff(x) = Σ_i k_i·z_i(t)`` holds with ``z_i`` the element
-    deflections of :func:`_play` on a fixed grid of break-away displacements ``Δ_i`` (log-spaced over
-    ``PRESLIDING_DELTA_M``); ``τ`` is the FRF delay plus half a sample (zero-order hold), ``a`` the second
-    difference of ``x``, ``F_eff`` the discovered position-dependent effects (cogging, offset, spring) and
-    ``g`` the constant-velocity Stribeck curve. ``k_i ≥ 0`` by non-negative least squares on the columns
-    smoothed by a ``PRESLIDING_SMOOTH``-sample moving average, with one weighted row for
-    ``Σ k_i·Δ_i = Fs`` (so that the GMS levels ``α_i = k_i·Δ_i/Fs`` sum to one). Returns the GMS
-    ``k_n_m`` and ``alpha`` (elements with k_i > 0) and the regression's residual [N]."""
-    from scipy.optimize import nnls
-
+def _presliding_rows(rec: Recorder, mass_kg: float, period_s: float, delay_s: float, sliding: dict[str, float],
+                     effects: dict[str, Any] | None, deltas: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """One recording's smoothed regressors (element deflections) and target force (:func:`fit_presliding`)."""
     from stagectl.friction import StageModel
     from stagectl.schema import load
 
@@ -111,11 +102,11 @@ def fit_presliding(rec: Recorder, mass_kg: float, period_s: float, delay_s: floa
     fc, fs, vs, dl, fv = (float(sliding[k]) for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m"))
     fs = max(fs, fc)
     g = fc + (fs - fc) * np.exp(-np.abs(v / vs) ** dl)
-    deltas = np.geomspace(*PRESLIDING_DELTA_M, PRESLIDING_ELEMENTS)
     Z = _play(x, v, deltas, g / fs)
     other = np.zeros(n)
     if effects:
-        eff = load(StageModel, {"friction": {"model": "stribeck", "fc_n": 0.0, "fs_n": 0.0}, "effects": effects}, "").effects
+        eff = load(StageModel, {"friction": {"model": "stribeck", "fc_n": 0.0, "fs_n": 0.0}, "effects": effects},
+                   "").effects
         other = np.asarray(eff.other_force_array(x), np.float64) + np.asarray(eff.velocity_force_array(v), np.float64)
     y = u_s - mass_kg * a - fv * v - other
     ker = np.ones(PRESLIDING_SMOOTH) / PRESLIDING_SMOOTH
@@ -124,8 +115,29 @@ def fit_presliding(rec: Recorder, mass_kg: float, period_s: float, delay_s: floa
     def smooth(c: FloatArray) -> FloatArray:
         return np.convolve(c[skip:], ker, mode="valid")
 
-    A = np.column_stack([smooth(Z[:, i]) for i in range(deltas.shape[0])])
-    yy = smooth(y)
+    return np.column_stack([smooth(Z[:, i]) for i in range(deltas.shape[0])]), smooth(y)
+
+
+def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: float, delay_s: float,
+                   sliding: dict[str, float], effects: dict[str, Any] | None) -> dict[str, Any]:
+    """GMS pre-sliding elements from recordings with reversals, by linear regression.
+
+    The force balance ``u(t − τ) − m·a − F_v·v − F_eff(x) = Σ_i k_i·z_i(t)`` holds with ``z_i`` the element
+    deflections of :func:`_play` on a fixed grid of break-away displacements ``Δ_i`` (log-spaced over
+    ``PRESLIDING_DELTA_M``); ``τ`` is the FRF delay plus half a sample (zero-order hold), ``a`` the second
+    difference of ``x``, ``F_eff`` the discovered position-dependent effects (cogging, offset, spring) and
+    ``g`` the constant-velocity Stribeck curve. ``k_i ≥ 0`` by non-negative least squares on the columns
+    smoothed by a ``PRESLIDING_SMOOTH``-sample moving average (rows of several recordings stacked), with one
+    weighted row for ``Σ k_i·Δ_i = Fs`` (so that the GMS levels ``α_i = k_i·Δ_i/Fs`` sum to one). Returns
+    the GMS ``k_n_m`` and ``alpha`` (elements with k_i > 0) and the regression's residual [N]."""
+    from scipy.optimize import nnls
+
+    deltas = np.geomspace(*PRESLIDING_DELTA_M, PRESLIDING_ELEMENTS)
+    rows = [_presliding_rows(r, mass_kg, period_s, delay_s, sliding, effects, deltas)
+            for r in (recs if isinstance(recs, list) else [recs])]
+    A = np.vstack([r[0] for r in rows])
+    yy = np.concatenate([r[1] for r in rows])
+    fs = max(float(sliding["fs_n"]), float(sliding["fc_n"]))
     w = 3.0 * math.sqrt(yy.shape[0])
     k, _ = nnls(np.vstack([A, w * deltas / fs]), np.concatenate([yy, [w]]), maxiter=50 * deltas.shape[0])
     resid = yy - A @ k
@@ -134,16 +146,6 @@ def fit_presliding(rec: Recorder, mass_kg: float, period_s: float, delay_s: floa
     return {"k_n_m": [float(v_) for v_ in k[keep]], "alpha": [float(v_) for v_ in alpha[keep] / alpha[keep].sum()],
             "break_away_m": [float(v_) for v_ in deltas[keep]], "residual_rms_n": float(resid.std()),
             "force_rms_n": float(yy.std()), "samples": int(yy.shape[0])}
-
-
-def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
-    """A loop recording as an identification recording (t, x, u, x_ref, v), every ``step``-th sample with
-    ``u`` averaged over the ``step`` samples it replaces (the zero-order-hold force over the longer interval)."""
-    n = (rec.n // step) * step
-    u = np.array(rec.col("u"))[:n].reshape(-1, step).mean(axis=1)
-    return Recording(t=np.array(rec.col("t"))[:n:step], x=np.array(rec.col("x"))[:n:step], u=u,
-                     x_ref=np.array(rec.col("x_ref"))[:n:step], v=np.array(rec.col("v"))[:n:step],
-                     source=f"recordings/{name}.csv")
 
 
 def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
@@ -188,7 +190,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     presliding: dict[str, Any] | None = None
     if sliding is not None and fr.get("model") == "gms":
         try:
-            presliding = fit_presliding(res_recordings["reversals"], m, period_s,
+            presliding = fit_presliding([res_recordings["reversals"], res_recordings["friction_cv"]], m, period_s,
                                         period_s if delay_s is None else delay_s, fr, spec.get("effects"))
         except DataError as exc:
             presliding = {"error": str(exc)}
