@@ -110,7 +110,7 @@ def _presliding_rows(rec: Recorder, mass_kg: float, period_s: float, delay_s: fl
         other = np.asarray(eff.other_force_array(x), np.float64) + np.asarray(eff.velocity_force_array(v), np.float64)
     y = u_s - mass_kg * a - fv * v - other
     ker = np.ones(PRESLIDING_SMOOTH) / PRESLIDING_SMOOTH
-    skip = int(math.ceil(shift)) + 2  # the interpolation's and the differences' edge
+    skip = math.ceil(shift) + 2  # the interpolation's and the differences' edge
 
     def smooth(c: FloatArray) -> FloatArray:
         return np.convolve(c[skip:], ker, mode="valid")
@@ -146,6 +146,16 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
     return {"k_n_m": [float(v_) for v_ in k[keep]], "alpha": [float(v_) for v_ in alpha[keep] / alpha[keep].sum()],
             "break_away_m": [float(v_) for v_ in deltas[keep]], "residual_rms_n": float(resid.std()),
             "force_rms_n": float(yy.std()), "samples": int(yy.shape[0])}
+
+
+def to_recording(rec: Recorder, name: str, step: int = 1) -> Recording:
+    """A loop recording as an identification recording (t, x, u, x_ref, v), every ``step``-th sample with
+    ``u`` averaged over the ``step`` samples it replaces (the zero-order-hold force over the longer interval)."""
+    n = (rec.n // step) * step
+    u = np.array(rec.col("u"))[:n].reshape(-1, step).mean(axis=1)
+    return Recording(t=np.array(rec.col("t"))[:n:step], x=np.array(rec.col("x"))[:n:step], u=u,
+                     x_ref=np.array(rec.col("x_ref"))[:n:step], v=np.array(rec.col("v"))[:n:step],
+                     source=f"recordings/{name}.csv")
 
 
 def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
