@@ -143,9 +143,17 @@ def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
         rb, ra = b.get("rms_error_m"), a.get("rms_error_m")
         if rb is None or ra is None or not (math.isfinite(rb) and math.isfinite(ra)):
             continue
-        if ra > rb or a.get("moves_settled", 0) < b.get("moves_settled", 0):
-            worse.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before, settled "
-                         f"{a.get('moves_settled')}/{a.get('moves')} vs {b.get('moves_settled')}/{b.get('moves')}")
+        fewer = a.get("moves_settled", 0) < b.get("moves_settled", 0)
+        if ra > rb or fewer:
+            what = []  # name exactly what got worse, and what did not
+            if ra > rb:
+                what.append(f"RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
+            if fewer:
+                what.append(f"settled {a.get('moves_settled')}/{a.get('moves')} after vs "
+                            f"{b.get('moves_settled')}/{b.get('moves')} before")
+            if ra <= rb:
+                what.append(f"though its RMS is lower, {ra * 1e9:.3g} vs {rb * 1e9:.3g} nm")
+            worse.append(f"{name}: " + ", ".join(what))
         else:
             better.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
     if not worse and not better:
@@ -153,7 +161,7 @@ def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
                 "text": "not verified (no before/after runs): check stage.yaml with `stagectl simulate`/`run` first"}
     if worse:
         return {"recommend": "given", "worse": worse, "better": better,
-                "text": "keep the given controller: the commissioned one tracks worse on " + "; ".join(worse)}
+                "text": "keep the given controller: the commissioned one is worse on " + "; ".join(worse)}
     return {"recommend": "new", "worse": [], "better": better,
             "text": "use stage.yaml: it tracks at least as well on every scenario (" + "; ".join(better) + ")"}
 
