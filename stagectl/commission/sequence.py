@@ -419,12 +419,13 @@ class Commissioning:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
                     continue
                 d = approach_m(S)
-                lead: list[SegmentSpec] = [self._move_to(xc - d, v_rep, m), Dwell(0.1), approach_move(d), Dwell(0.3)]
-                segs = [*lead, *sc.segments]
+                approach: list[SegmentSpec] = [self._move_to(xc - d, v_rep, m), Dwell(0.1), approach_move(d),
+                                               Dwell(0.3)]
+                segs = [*approach, *sc.segments]
                 rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller", inner_v, segs,
                                    {"scenario": nm, "approach_m": d}, extra_s=0.3)
                 tol = max(10e-9, 2 * _quantum(rec.col("x")))
-                skip = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0)
+                skip = Scenario(name="lead", segments=tuple(approach)).duration_s(0.0)
                 summ = _summary_after(rec, skip, tol)
                 r.verification.setdefault(nm, {})[which] = summ
 

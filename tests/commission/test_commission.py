@@ -151,9 +151,11 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
     import subprocess
 
     out = tmp_path / "out"
+    # a test run started in the background (`cmd &` without job control) ignores SIGINT, and a child
+    # inherits SIG_IGN (Python then never raises KeyboardInterrupt): restore the default in the child
     proc = subprocess.Popen([sys.executable, "-m", "stagectl.cli", "commission", "--config", str(hidden_stage),
                              "--out", str(out), "--no-plots"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.stderr is not None
     for line in proc.stderr:
         if "[2/" in line and "frf" in line:
