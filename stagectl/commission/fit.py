@@ -19,10 +19,9 @@ model file's content (``docs/commissioning.md`` §4).
 * pre-sliding (when discover accepted it): the GMS elements are refitted on the reversals and the
   constant-velocity passes (their reversals) by a linear Maxwell-slip regression (:func:`fit_presliding`):
   ``PRESLIDING_ELEMENTS`` elements with fixed, log-spaced break-away displacements, whose stiffnesses come
-  from non-negative least squares. On the test plant, with the seed gains and from rest, this brought the
-  cosine's RMS error from 0.18 µm (discover's elements) to 17–36 nm (exact model: 1.1 nm); with the
-  reversals alone the regression gave 82 nm, with the passes added 59 nm (35 Hz PID design, after the
-  verification's approach move; exact model 18 nm).
+  from non-negative least squares. On the test plant, with a 35 Hz PID, the cosine's RMS error went from
+  556 nm from rest (discover's elements; exact model 2 nm) to 59 nm after the verification's approach
+  move (exact model 18 nm); on the reversals alone the regression gave 82 nm.
 
 ``identify --model gms`` also runs on the reversal recording; its virgin-curve fit is reported beside.
 """

@@ -182,7 +182,7 @@ def against_exact(commissioned: tuple[int, Path]) -> dict[str, dict[str, dict[st
 def test_commissioned_controller_tracks_near_the_exact_model_one(
         against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
     """What holds today (the issue's 2x and all-steps-settle criteria are the xfail test below): within 4x
-    of the exact-model controller on cosine and triangle (before the pre-sliding regression: 25-100x), and
+    of the exact-model controller on cosine and triangle (with discover's pre-sliding elements: 10-280x), and
     the 10 um steps settle as often as with the exact model."""
     new, ex = against_exact["new"], against_exact["exact"]
     for sc in ("cosine", "triangle"):
