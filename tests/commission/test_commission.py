@@ -152,10 +152,12 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
 
     out = tmp_path / "out"
     # a test run started in the background (`cmd &` without job control) ignores SIGINT, and a child
-    # inherits SIG_IGN (Python then never raises KeyboardInterrupt): restore the default in the child
-    proc = subprocess.Popen([sys.executable, "-m", "stagectl.cli", "commission", "--config", str(hidden_stage),
+    # inherits SIG_IGN (Python then never raises KeyboardInterrupt): the child restores Python's handler
+    boot = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from stagectl.cli import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", boot, "commission", "--config", str(hidden_stage),
                              "--out", str(out), "--no-plots"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            text=True)
     assert proc.stderr is not None
     for line in proc.stderr:
         if "[2/" in line and "frf" in line:
