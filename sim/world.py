@@ -11,6 +11,13 @@ Two ways to run the virtual devices, switchable at any time:
   heartbeat consumer expire). The first ``pump()`` while the thread runs stops the thread (the switch is
   seamless: simulated time continues from the wall-clock time reached). Give ``world.pump`` to the
   drivers' ``set_pump`` for deterministic, faster-than-real-time runs.
+* **served lock-step** (``start(lockstep=True)``): a background thread serves the devices as frames arrive
+  (blocking on the bus, so a client in another process is answered at once), but device time is simulated
+  as in ``pump()``: each SYNC advances it by exactly one communication cycle period, and nothing happens
+  between frames (no heartbeat, no drive-consumer time-out while the client is silent). A client that waits
+  for each SYNC's TPDO (``io.drive.rx_timeout_s`` large, a :class:`~stagectl.clock.SimClock` loop) then runs
+  the plant deterministically and as fast as the two processes exchange frames: ``stagectl sim-plant
+  --lockstep`` (docs/commissioning.md, "Across processes").
 
 Transports: ``virtual`` (python-can in-process bus; channel name unique per world unless given, so
 tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
@@ -170,6 +177,7 @@ class SimWorld:
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
         self._last_tick = 0.0
+        self._lockstep_thread = False  # served lock-step: device time advances by SYNC only
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -227,7 +235,7 @@ class SimWorld:
 
     def now(self) -> float:
         """Device time [s]: wall clock since start in thread mode, simulated time in lock-step."""
-        if self._thread is not None:
+        if self._thread is not None and not self._lockstep_thread:
             return time.monotonic() - self._t0
         return self._sim_t
 
@@ -236,7 +244,7 @@ class SimWorld:
         self.frames_in += 1
         drive = self.drive
         if (drive is not None and msg.arbitration_id == drive.sync_cob_id and not msg.is_error_frame
-                and not msg.is_extended_id and self._thread is None):
+                and not msg.is_extended_id and (self._thread is None or self._lockstep_thread)):
             self._sim_t += drive.period_s
         t = self.now()
         for d in self.devices:
@@ -252,20 +260,48 @@ class SimWorld:
             d.tick(t)
 
     # ------------------------------------------------------------------ thread mode
-    def start(self) -> None:
-        """Serve the devices from a background thread in real time (idempotent)."""
+    def start(self, lockstep: bool = False) -> None:
+        """Serve the devices from a background thread (idempotent): in real time, or with ``lockstep`` in
+        simulated time advanced by each SYNC (module docstring, "served lock-step")."""
         self.open()
         if self._thread is not None:
             return
+        if lockstep and self.interferometer is not None and not self._ifm_on_sync:
+            raise ConfigError("sim.interferometer: served lock-step needs trigger: sync (a streaming "
+                              "interferometer follows the wall clock)")
         with self._lock:
             self._t0 = time.monotonic() - self._sim_t
             self._stop_evt.clear()
             for d in self.devices:
-                d.threaded = True
-            self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
+                d.threaded = not lockstep  # lock-step: the devices' time is the SYNC count, never the wall clock
+            self._lockstep_thread = lockstep
+            self._thread = threading.Thread(target=self._run_lockstep if lockstep else self._run,
+                                            name="sim-world", daemon=True)
             self._thread.start()
         if self.interferometer is not None and not self._ifm_on_sync:
             self.interferometer.start()
+
+    def _run_lockstep(self) -> None:
+        """Served lock-step: block for the next frame, then handle it and everything queued behind it as
+        :meth:`pump` does (device time advances by SYNC only)."""
+        bus = self._bus
+        assert bus is not None
+        try:
+            while not self._stop_evt.is_set():
+                msg = bus.recv(0.05)
+                if msg is None:
+                    continue
+                with self._lock:
+                    for d in self.devices:
+                        d.release_late()
+                    while msg is not None:
+                        self._dispatch(msg)
+                        self._tick()
+                        msg = bus.recv(0.0)
+                    self._tick()
+        except Exception as exc:  # noqa: BLE001 - reported by pump()/stop()
+            self._thread_error = exc
+            log.exception("sim world thread failed")
 
     def _run(self) -> None:
         bus = self._bus
@@ -290,10 +326,12 @@ class SimWorld:
             return
         self._stop_evt.set()
         t.join(5.0)
-        self._sim_t = time.monotonic() - self._t0
+        if not self._lockstep_thread:
+            self._sim_t = time.monotonic() - self._t0
         self._thread = None
         for d in self.devices:
             d.threaded = False
+        self._lockstep_thread = False
         if self.interferometer is not None:
             self.interferometer.stop()
 

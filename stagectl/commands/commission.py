@@ -35,6 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--state-dir", default=None, help="the daemon's state directory (refusal check)")
     p.add_argument("--inject-fault", default=None, metavar="EXPERIMENT@T",
                    help="debug, simulated stages only: inject a drive fault T s into EXPERIMENT")
+    p.add_argument("--lockstep", action="store_true",
+                   help="the stage is a `stagectl sim-plant --lockstep` process: simulated time, each SYNC "
+                        "answered before the next (deterministic, faster than real time)")
     p.set_defaults(func=run)
 
 
@@ -63,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr, flush=True)
 
     opts = Options(max_stroke_m=args.max_stroke, max_force_n=args.max_force, max_velocity_m_s=args.max_velocity,
-                   verify=not args.no_verify, plots=not args.no_plots, inject_fault=fault, progress=progress)
+                   verify=not args.no_verify, plots=not args.no_plots, inject_fault=fault, progress=progress,
+                   lockstep=args.lockstep)
     com = Commissioning(cfg, Path(out), opts, lambda res: write_config(res, Path(out)))
     res = com.run()
     rep = write_report(res, Path(out), plots=opts.plots)

@@ -8,6 +8,12 @@ Prints exactly one ready line (JSON) on stdout once everything listens, e.g.::
      "drive_node_id": 1}
 
 and runs until SIGTERM or SIGINT, then stops cleanly (exit 0).
+
+Two timings. Default: real time (device time = wall clock; the drive steps the plant at each SYNC and on its
+own clock while SYNC is missing). ``--lockstep``: simulated time driven by the client's SYNC frames; each SYNC
+advances the plant by exactly one communication cycle period and nothing happens between frames, so a client
+that waits for each answer (``stagectl commission --lockstep``) runs deterministically and faster than real
+time. The ready line then says ``"lockstep": true``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p = sub.add_parser("sim-plant", help="run the virtual CANopen/serial devices as their own process")
     p.add_argument("--config", required=True, help="YAML file with a sim: section")
     p.add_argument("--port", type=number("(TCP port)", lo=0, hi=65535, integer=True), default=None, help="override sim.transport.port (0 = ephemeral)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="simulated time: each SYNC from the client advances the plant by one period (for "
+                        "`stagectl commission --lockstep`); default real time")
     p.set_defaults(func=run)
 
 
@@ -71,8 +80,9 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     if stop.is_set():  # terminated during start-up
         return 0
     try:
-        world.start()
-        info = {"ready": True, "pid": os.getpid(), **world.ready_info()}
+        lockstep = bool(getattr(args, "lockstep", False))
+        world.start(lockstep=lockstep)
+        info = {"ready": True, "pid": os.getpid(), **world.ready_info(), "lockstep": lockstep}
         sys.stdout.write(json.dumps(info) + "\n")
         sys.stdout.flush()
         while not stop.wait(0.5):

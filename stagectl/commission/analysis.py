@@ -44,6 +44,10 @@ ComplexArray = npt.NDArray[np.complex128]
 
 RESONANCE_RATIO = 2.0
 FIT_ABOVE_F0 = 1.5
+#: the mass fit uses at least the lines above this × sample rate (the smallest displacements: there the
+#: pre-sliding friction is its initial, linear stiffness; lower lines see partial slip, a hysteretic
+#: describing function that biased the mass by -20 % on config/sim.yaml)
+MASS_BAND_X_PERIOD = 0.15
 
 
 class SanityError(StageError):
@@ -213,8 +217,8 @@ def _fit_band(frf: Frf, sel: npt.NDArray[np.bool_], period_s: float, mass_guess_
 
 def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
     """Fit ``m, c, k, τ`` to the measured FRF (module docstring), in two passes: over every well-measured line,
-    which locates the pre-sliding resonance ``f0``, then over the lines above ``FIT_ABOVE_F0·f0`` (at most
-    from ``0.15/T``; repeated while the band moves up), where the rigid-body mass dominates and the hysteretic pre-sliding (a spring only to
+    which locates the pre-sliding resonance ``f0``, then over the lines above ``max(FIT_ABOVE_F0·f0,
+    MASS_BAND_X_PERIOD/T)`` (at most from ``0.3/T``; repeated while the band moves up), where the rigid-body mass dominates and the hysteretic pre-sliding (a spring only to
     first order) no longer biases it."""
     f, p = frf.f_hz, frf.p
     ok = frf.p_std / np.maximum(np.abs(p), 1e-300) < 0.3
@@ -226,7 +230,7 @@ def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
     band = ok
     for _ in range(4):  # the band moves up with the resonance each refit finds (a hysteretic spring is stiffer
         f0 = math.sqrt(max(th[2], 0.0) / math.exp(th[0])) / (2 * math.pi)  # at the smaller high-f amplitudes)
-        lo = min(max(FIT_ABOVE_F0 * f0, f_lo), 0.15 / period_s)
+        lo = min(max(FIT_ABOVE_F0 * f0, f_lo, MASS_BAND_X_PERIOD / period_s), 0.3 / period_s)
         nb = ok & (f >= lo)
         if lo <= f_lo or nb.sum() < 6:
             break

@@ -17,7 +17,7 @@ import yaml
 
 from stagectl.commission.sequence import MIN_GAIN_MARGIN_DB as MIN_GM
 from stagectl.commission.sequence import MIN_PHASE_MARGIN_DEG as MIN_PM
-from stagectl.commission.sequence import Results
+from stagectl.commission.sequence import Results, controller_mapping
 from stagectl.config import AppConfig, load_app_config
 from stagectl.friction import StageModel, save_model_file
 from stagectl.outputs import plain
@@ -43,20 +43,9 @@ def _absolute_paths(node: Any, base: Path) -> Any:
 def controller_section(res: Results) -> dict[str, Any]:
     """The new ``controller:`` mapping (model file next to stage.yaml)."""
     assert res.gains is not None and res.plant is not None
-    ch = res.gains["chosen"]
-    nd = int(res.gains["delay_samples"])
-    T = res.config.loop.period_s
-    # the feed-forward adds the model's own effects.delay to the lookahead: count the measured delay once
-    model_delay = float((res.model_spec or {}).get("effects", {}).get("delay", {}).get("delay_s", 0.0))
-    return {
-        "mass_kg": float(res.gains["mass_kg"]),
-        "max_force_n": float(res.config.controller.max_force_n),
-        "pid": dict(ch["pid"]),
-        "dob": {"kind": ch["dob_kind"], "bandwidth_hz": float(ch["dob_bandwidth_hz"]), "command_delay_samples": nd},
-        "feedforward": {"kind": "model", "model_file": "model.yaml", "inertia": True,
-                        # the zero-order-hold mid-point plus the measured I/O delay
-                        "lookahead_s": float(min(max(T / 2 + res.plant.delay_s - model_delay, 0.0), 0.1))},
-    }
+    return controller_mapping(res.gains["chosen"], float(res.gains["mass_kg"]), int(res.gains["delay_samples"]),
+                              res.config.loop.period_s, res.plant.delay_s, res.model_spec,
+                              res.config.controller.max_force_n, "model.yaml")
 
 
 def write_config(res: Results, out: Path) -> AppConfig:
@@ -154,9 +143,17 @@ def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
         rb, ra = b.get("rms_error_m"), a.get("rms_error_m")
         if rb is None or ra is None or not (math.isfinite(rb) and math.isfinite(ra)):
             continue
-        if ra > rb or a.get("moves_settled", 0) < b.get("moves_settled", 0):
-            worse.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before, settled "
-                         f"{a.get('moves_settled')}/{a.get('moves')} vs {b.get('moves_settled')}/{b.get('moves')}")
+        fewer = a.get("moves_settled", 0) < b.get("moves_settled", 0)
+        if ra > rb or fewer:
+            what = []  # name exactly what got worse, and what did not
+            if ra > rb:
+                what.append(f"RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
+            if fewer:
+                what.append(f"settled {a.get('moves_settled')}/{a.get('moves')} after vs "
+                            f"{b.get('moves_settled')}/{b.get('moves')} before")
+            if ra <= rb:
+                what.append(f"though its RMS is lower, {ra * 1e9:.3g} vs {rb * 1e9:.3g} nm")
+            worse.append(f"{name}: " + ", ".join(what))
         else:
             better.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
     if not worse and not better:
@@ -164,7 +161,7 @@ def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
                 "text": "not verified (no before/after runs): check stage.yaml with `stagectl simulate`/`run` first"}
     if worse:
         return {"recommend": "given", "worse": worse, "better": better,
-                "text": "keep the given controller: the commissioned one tracks worse on " + "; ".join(worse)}
+                "text": "keep the given controller: the commissioned one is worse on " + "; ".join(worse)}
     return {"recommend": "new", "worse": [], "better": better,
             "text": "use stage.yaml: it tracks at least as well on every scenario (" + "; ".join(better) + ")"}
 

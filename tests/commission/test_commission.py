@@ -151,7 +151,11 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
     import subprocess
 
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "stagectl.cli", "commission", "--config", str(hidden_stage),
+    # a test run started in the background (`cmd &` without job control) ignores SIGINT, and a child
+    # inherits SIG_IGN (Python then never raises KeyboardInterrupt): the child restores Python's handler
+    boot = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from stagectl.cli import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", boot, "commission", "--config", str(hidden_stage),
                              "--out", str(out), "--no-plots"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
                             text=True)
     assert proc.stderr is not None
