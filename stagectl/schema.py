@@ -381,7 +381,7 @@ def _bounded_loader(text: str) -> Any:
             except Exception as exc:  # noqa: BLE001 - PyYAML's constructors raise AttributeError, ValueError
                 what = short(node.value, 40) if isinstance(node, yaml.ScalarNode) else node.id
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"cannot read {what} as {node.tag.rsplit(':', 1)[-1]} ({type(exc).__name__})",
+                    None, None, f"cannot read {what} as {cut(node.tag.rsplit(':', 1)[-1], 40)} ({type(exc).__name__})",
                     node.start_mark) from None
 
         def construct_mapping(self, node: Any, deep: bool = False) -> Any:
