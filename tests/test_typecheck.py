@@ -30,7 +30,6 @@ def link_tree(dest: Path) -> Path:
     return dest
 
 
-@pytest.mark.slow
 def test_mypy_strict_over_the_whole_package(tmp_path):
     tree = link_tree(tmp_path / "tree")
     cmd = [sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"),

@@ -171,6 +171,7 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
     assert load_recording(out / "recordings" / "sanity.csv", min_rows=100).t[-1] > 1.0
 
 
+@pytest.mark.slow  # ~30 s: a whole commissioning of a 60 kg axis (pytest -m slow)
 def test_heavy_ball_screw_axis_scales_and_is_improved(tmp_path: Path) -> None:
     """A 60 kg axis configured as 50 kg with a weak tuning: Stribeck friction 40/48 N, 400 N s/m, an 8 N
     offset, 0.1 µm encoder, ±0.2 m travel. The standing FRF sees a stage held by its friction; the

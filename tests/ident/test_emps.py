@@ -42,6 +42,7 @@ def test_offset_candidate_matches_published_offset_and_validates(emps: dsc.Datas
     assert c.significant and c.rel_gain > 0.25
 
 
+@pytest.mark.slow  # ~60 s: the whole discovery on 2 x 24.8 k samples (pytest -m slow)
 def test_discovery_names_viscous_asymmetry_and_presliding_rejects_the_lead_ripple(emps_dir: Path) -> None:
     """Issue 13 targets on the real axis: viscous asymmetry with Fv+/Fv− within 5 % of the published
     direction-dependent model (166.7 / 240.4 N·s/m), pre-sliding named from the reversal regime, the 2.5 mm
