@@ -69,6 +69,7 @@ __all__ = [
     "Repetition",
     "design_ilc",
     "ilc_update",
+    "learning_window",
     "process_sensitivity",
     "q_filter",
     "rms",
@@ -105,6 +106,13 @@ class IlcConfig:
     min_coverage_fraction: float = param(0.98, desc="a repetition with fewer valid samples is not learned from",
                                          gt=0.0, le=1.0)
     max_repetition_s: float = param(60.0, unit="s", desc="longest repetition learned", gt=0.0, le=600.0)
+    window: str = param("moving", desc="where to learn: moving (only while the reference moves, plus "
+                        "window_tail_s after each stop, smooth edges) or all (the whole repetition)",
+                        choices=("moving", "all"))
+    window_tail_s: float = param(0.03, unit="s", desc="the learning window stays open this long after the "
+                                 "reference stops (the settling after a move)", ge=0.0, le=10.0)
+    window_taper_s: float = param(0.02, unit="s", desc="raised-cosine edges of the learning window", ge=0.0,
+                                  le=10.0)
     store_dir: Path | None = param(None, desc="directory of saved learned signals <motion>.npz (relative to "
                                    "the config file; None: the current directory)")
 
@@ -261,16 +269,49 @@ def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
     return IlcDesign(n_samples, T, cfg.learning, f, learn, q, cfg.max_force_n, rho, rho_hz, rob, e, lead)
 
 
-def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign) -> np.ndarray:
-    """One learning step (1): u_{k+1} = clamp(Q·(u_k + L·e_k), ±max_force_n) [N] over one repetition.
+def learning_window(moving: np.ndarray, period_s: float, tail_s: float, taper_s: float) -> np.ndarray:
+    """The learning window W(t) in [0, 1] of one repetition (circular: the repetition is one period).
+
+    ``moving`` (bool per sample): the reference moves. W = 1 where it moves and for ``tail_s`` after each stop,
+    with raised-cosine edges ``taper_s`` wide centred on the edges of that set; 0 at rest beyond. No motion at
+    all gives W = 0.
+    """
+    m = np.asarray(moving, dtype=bool)
+    n = m.size
+    if not m.any():
+        return np.zeros(n)
+    tail = int(round(tail_s / period_s))
+    open_ = m.copy()
+    for k in range(1, min(tail, n) + 1):  # stays open tail samples after every stop (circular)
+        open_ |= np.roll(m, k)
+    w = int(round(taper_s / period_s))
+    if w < 2:
+        return open_.astype(float)
+    h = np.hanning(w + 2)[1:-1]
+    h /= h.sum()
+    k = np.zeros(n)
+    k[: h.size] = h
+    k = np.roll(k, -(h.size // 2))  # centred kernel: the edges are smoothed symmetrically
+    out = np.fft.irfft(np.fft.rfft(open_.astype(float)) * np.fft.rfft(k), n)
+    return np.asarray(np.clip(out, 0.0, 1.0))
+
+
+def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign, window: np.ndarray | None = None) -> np.ndarray:
+    """One learning step (1): u_{k+1} = clamp(W·Q·(u_k + L·W·e_k), ±max_force_n) [N] over one repetition.
 
     ``u_applied`` [N] and ``e`` [m] are the repetition's applied learned force and error (length
-    ``d.n_samples``), evaluated on the DFT grid (the repetition taken as one period). Pure.
+    ``d.n_samples``), evaluated on the DFT grid (the repetition taken as one period); ``window`` W (None: 1)
+    is the learning window of :func:`learning_window`. Pure.
     """
     n = d.n_samples
+    ea = np.asarray(e, dtype=float)
+    if window is not None:
+        ea = window * ea
     U = np.fft.rfft(np.asarray(u_applied, dtype=float), n)
-    E = np.fft.rfft(np.asarray(e, dtype=float), n)
+    E = np.fft.rfft(ea, n)
     u = np.fft.irfft(d.q * (U + d.learn * E), n)
+    if window is not None:
+        u = window * u
     return np.asarray(np.clip(u, -d.max_force_n, d.max_force_n))
 
 
@@ -335,6 +376,8 @@ class IlcLearner:
         self._rec_e = np.zeros(0)
         self._rec_u = np.zeros(0)
         self._rec_ok = np.zeros(0, dtype=bool)
+        self._rec_mv = np.zeros(0, dtype=bool)
+        self.window: np.ndarray | None = None  # learning window of the current motion (window: moving)
         self._valid = False  # the repetition in progress started with learning on and is usable
         self._loaded = False  # the signal came from a file (kept when its length does not match a pass)
         self._u_out = 0.0
@@ -357,17 +400,20 @@ class IlcLearner:
             self.motion = rep.motion
             self.design = self._design_for(n)
             self.u = np.zeros(n)
+            self.window = None
             self.iteration = 0
             self.rms_history = []
             self.last_rms_m = math.nan
         self._rec_e = np.zeros(n)
         self._rec_u = np.zeros(n)
         self._rec_ok = np.zeros(n, dtype=bool)
+        self._rec_mv = np.zeros(n, dtype=bool)
 
     # ------------------------------------------------------------------ per cycle
-    def step(self, t_s: float, e_m: float, fresh: bool = True) -> float:
+    def step(self, t_s: float, e_m: float, fresh: bool = True, moving: bool = True) -> float:
         """The learned force for this cycle [N] (ramp applied), recording the error ``e_m`` [m] of this cycle
-        (``fresh`` False: a stale sample, not recorded). Runs the update (1) when a repetition ends."""
+        (``fresh`` False: a stale sample, not recorded) and whether the reference moves (``moving``: for the
+        learning window). Runs the update (1) when a repetition ends."""
         rep = self._repetition()
         target = 1.0 if (self.applying and self.frozen is None) else 0.0
         if self.gain != target:
@@ -398,6 +444,7 @@ class IlcLearner:
                 self._rec_e[i] = e_m
                 self._rec_u[i] = u
                 self._rec_ok[i] = True
+                self._rec_mv[i] = moving
         else:
             u = 0.0
         self._u_out = u
@@ -418,7 +465,13 @@ class IlcLearner:
             del self.rms_history[0]
         if not (self.learning and self.frozen is None):
             return
-        self.u = ilc_update(u, e, self.design)  # from what was applied (ramps included)
+        w = None
+        if self.cfg.window == "moving":
+            if self.window is None or self.window.size != ok.size:  # the reference repeats: made once
+                self.window = learning_window(self._rec_mv | ~ok, self.period_s, self.cfg.window_tail_s,
+                                              self.cfg.window_taper_s)
+            w = self.window
+        self.u = ilc_update(u, e, self.design, w)  # from what was applied (ramps included)
         self.iteration += 1
 
     # ------------------------------------------------------------------ control
@@ -534,6 +587,8 @@ class IlcLearner:
         self._rec_e = np.zeros(u.size)
         self._rec_u = np.zeros(u.size)
         self._rec_ok = np.zeros(u.size, dtype=bool)
+        self._rec_mv = np.zeros(u.size, dtype=bool)
+        self.window = None
         self.rms_history = hist
         self.last_rms_m = hist[-1] if hist else math.nan
         self._rep_index = None
