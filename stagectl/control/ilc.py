@@ -91,13 +91,13 @@ class IlcConfig:
     learning: str = param("inverse", desc="learning filter: inverse (alpha times the model's process "
                           "sensitivity inverse) or lead (scalar gain_n_m with phase lead lead_s)",
                           choices=("inverse", "lead"))
-    alpha: float = param(0.6, desc="learning gain as a fraction of the model inverse (inverse), or of "
+    alpha: float = param(1.0, desc="learning gain as a fraction of the model inverse (inverse), or of "
                          "1/|G| at q_cutoff_hz when gain_n_m is None (lead)", gt=0.0, le=1.0)
     gain_n_m: float | None = param(None, unit="N/m", desc="lead: scalar learning gain L (None: from alpha)",
                                    gt=0.0)
     lead_s: float | None = param(None, unit="s", desc="lead: phase lead λ (None: (1 + I/O delay) periods)",
                                  ge=0.0, le=0.1)
-    q_cutoff_hz: float = param(200.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
+    q_cutoff_hz: float = param(300.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
     ramp_s: float = param(0.2, unit="s", desc="ramp of the learned force when learning is switched on/off",
                           ge=0.0, le=10.0)
     max_force_n: float = param(2.0, unit="N", desc="clamp of the learned force", gt=0.0)
@@ -113,6 +113,10 @@ class IlcConfig:
                                  "reference stops (the settling after a move)", ge=0.0, le=10.0)
     window_taper_s: float = param(0.02, unit="s", desc="raised-cosine edges of the learning window", ge=0.0,
                                   le=10.0)
+    guard_growth_fraction: float = param(
+        0.3, desc="divergence guard: a repetition whose RMS exceeds the previous one's by this fraction rolls the "
+        "last update back and halves the learning gain (it recovers x1.25 per repetition that does not grow; "
+        "0: off)", ge=0.0, le=10.0)
     store_dir: Path | None = param(None, desc="directory of saved learned signals <motion>.npz (relative to "
                                    "the config file; None: the current directory)")
 
@@ -296,20 +300,21 @@ def learning_window(moving: np.ndarray, period_s: float, tail_s: float, taper_s:
     return np.asarray(np.clip(out, 0.0, 1.0))
 
 
-def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign, window: np.ndarray | None = None) -> np.ndarray:
-    """One learning step (1): u_{k+1} = clamp(W·Q·(u_k + L·W·e_k), ±max_force_n) [N] over one repetition.
+def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign, window: np.ndarray | None = None,
+               scale: float = 1.0) -> np.ndarray:
+    """One learning step (1): u_{k+1} = clamp(W·Q·(u_k + s·L·e_k), ±max_force_n) [N] over one repetition.
 
     ``u_applied`` [N] and ``e`` [m] are the repetition's applied learned force and error (length
     ``d.n_samples``), evaluated on the DFT grid (the repetition taken as one period); ``window`` W (None: 1)
-    is the learning window of :func:`learning_window`. Pure.
+    is the learning window of :func:`learning_window` (applied to the force only: ||W·M|| ≤ ||M||, so the
+    check (3) still bounds the iteration); ``scale`` s in (0, 1] the divergence guard's gain factor (s·L keeps
+    (3): |Q·(1 − s·c)| ≤ (1 − s)·Q + s·|Q·(1 − c)|). Pure.
     """
     n = d.n_samples
     ea = np.asarray(e, dtype=float)
-    if window is not None:
-        ea = window * ea
     U = np.fft.rfft(np.asarray(u_applied, dtype=float), n)
     E = np.fft.rfft(ea, n)
-    u = np.fft.irfft(d.q * (U + d.learn * E), n)
+    u = np.fft.irfft(d.q * (U + scale * d.learn * E), n)
     if window is not None:
         u = window * u
     return np.asarray(np.clip(u, -d.max_force_n, d.max_force_n))
@@ -378,6 +383,9 @@ class IlcLearner:
         self._rec_ok = np.zeros(0, dtype=bool)
         self._rec_mv = np.zeros(0, dtype=bool)
         self.window: np.ndarray | None = None  # learning window of the current motion (window: moving)
+        self.gain_scale = 1.0  # divergence guard: factor on L (halved on growth, recovers)
+        self.guard_rollbacks = 0
+        self._u_prev: np.ndarray | None = None  # the signal before the last update (for a roll-back)
         self._valid = False  # the repetition in progress started with learning on and is usable
         self._loaded = False  # the signal came from a file (kept when its length does not match a pass)
         self._u_out = 0.0
@@ -401,6 +409,8 @@ class IlcLearner:
             self.design = self._design_for(n)
             self.u = np.zeros(n)
             self.window = None
+            self.gain_scale = 1.0
+            self._u_prev = None
             self.iteration = 0
             self.rms_history = []
             self.last_rms_m = math.nan
@@ -465,13 +475,25 @@ class IlcLearner:
             del self.rms_history[0]
         if not (self.learning and self.frozen is None):
             return
+        h = self.rms_history
+        g = self.cfg.guard_growth_fraction
+        if g > 0 and len(h) >= 2 and h[-1] > (1.0 + g) * h[-2]:
+            if self._u_prev is not None:  # the last update made it worse (or the plant changed): roll it back
+                self.u = self._u_prev
+                self._u_prev = None
+                self.gain_scale = max(self.gain_scale * 0.5, 1.0 / 16.0)
+                self.guard_rollbacks += 1
+                return  # the next repetition runs the previous signal again, then learns at the lower gain
+        elif len(h) >= 2:
+            self.gain_scale = min(1.0, self.gain_scale * 1.25)
+        self._u_prev = self.u.copy()
         w = None
         if self.cfg.window == "moving":
             if self.window is None or self.window.size != ok.size:  # the reference repeats: made once
                 self.window = learning_window(self._rec_mv | ~ok, self.period_s, self.cfg.window_tail_s,
                                               self.cfg.window_taper_s)
             w = self.window
-        self.u = ilc_update(u, e, self.design, w)  # from what was applied (ramps included)
+        self.u = ilc_update(u, e, self.design, w, self.gain_scale)  # from what was applied (ramps included)
         self.iteration += 1
 
     # ------------------------------------------------------------------ control
@@ -590,6 +612,8 @@ class IlcLearner:
         self._rec_mv = np.zeros(u.size, dtype=bool)
         self.window = None
         self.rms_history = hist
+        self.gain_scale = 1.0
+        self._u_prev = None
         self.last_rms_m = hist[-1] if hist else math.nan
         self._rep_index = None
         self._valid = False
@@ -608,5 +632,6 @@ class IlcLearner:
             "motion": self.motion, "learning": self.learning, "applying": self.applying, "gain": self.gain,
             "frozen": self.frozen, "iteration": self.iteration, "last_rms_m": self.last_rms_m,
             "rms_m": list(self.rms_history[-20:]), "skipped_repetitions": self.skipped_repetitions,
+            "gain_scale": self.gain_scale, "guard_rollbacks": self.guard_rollbacks,
             "design": d.summary() if d is not None else None,
         }
