@@ -383,6 +383,7 @@ class IlcLearner:
         self._rec_ok = np.zeros(0, dtype=bool)
         self._rec_mv = np.zeros(0, dtype=bool)
         self.window: np.ndarray | None = None  # learning window of the current motion (window: moving)
+        self.record_only = False  # record the RMS per repetition without learning (a baseline run)
         self.gain_scale = 1.0  # divergence guard: factor on L (halved on growth, recovers)
         self.guard_rollbacks = 0
         self._u_prev: np.ndarray | None = None  # the signal before the last update (for a roll-back)
@@ -445,7 +446,7 @@ class IlcLearner:
             if rep.motion != self.motion or (self.iteration == 0 and not self._loaded and n_rep != self.u.size):
                 self._bind(rep)
             self._rec_ok[:] = False
-            self._valid = self.learning and self.frozen is None and n_rep == self.u.size
+            self._valid = (self.learning or self.record_only) and self.frozen is None and n_rep == self.u.size
         i = int(round(rep.tau_s / self.period_s))
         n = self.u.size
         if n_rep == n and 0 <= i < n:  # (a first pass with an approach move has another length: not ours)

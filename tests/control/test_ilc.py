@@ -97,7 +97,8 @@ def test_update_converges_on_a_linear_plant_with_a_wrong_mass():
 
 def test_no_divergence_when_the_plant_changes_between_repetitions():
     """Mass alternately −20 % / +20 % and one extra sample of delay every third repetition: the learned force
-    stays bounded and the error stays well below the first pass."""
+    stays bounded, the error does not grow and stays well below the first pass (a signal right for both masses
+    does not exist: with the default full inverse (α = 1) the error settles at 1/3 of the first pass)."""
     plant = IlcPlant(2.0, T, 1, PID)
     n = 400
     t = np.arange(n) * T
@@ -111,7 +112,8 @@ def test_no_divergence_when_the_plant_changes_between_repetitions():
         norms.append(float(np.linalg.norm(e)))
         u = ilc_update(u, e, d)
         u_norms.append(float(np.linalg.norm(u)))
-    assert max(norms[5:]) < 0.3 * norms[0], norms
+    assert max(norms[5:]) < 0.4 * norms[0], norms
+    assert max(norms[5:]) <= 1.05 * min(norms[5:]), norms  # no growth
     assert max(u_norms[10:]) < 1.5 * max(u_norms[:10]), u_norms
 
 
