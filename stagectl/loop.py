@@ -37,7 +37,8 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
   relative target outside the limits, a move in fault) are set on the future. A retune is designed in the
   caller's thread when the controller offers ``request_retune``.
 * ``learner`` (optional, :class:`~stagectl.runtime.protocols.Learner`, ``ilc:``): stepped before the
-  controller in every active cycle with a fresh sample, ``u_l = learner.step(t, e)``; u_l goes to the
+  controller in every active cycle with a fresh sample, ``u_l = learner.step(t, e, moving=v_r ≠ 0 or a_r ≠ 0)``
+  (the reference moves: the learning window); u_l goes to the
   controller's learned-force input (``step(..., u_learn_n=u_l)``) or, for a controller without one, is added to
   its command. Its columns (``u_ilc``, ``ilc_iteration``, ``ilc_rms_m``) follow the controller terms; a fault
   freezes it; ``IlcRequest`` drives it (``loop.status().ilc`` shows it).

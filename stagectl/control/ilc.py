@@ -286,8 +286,8 @@ def learning_window(moving: np.ndarray, period_s: float, tail_s: float, taper_s:
         return np.zeros(n)
     tail = int(round(tail_s / period_s))
     open_ = m.copy()
-    for k in range(1, min(tail, n) + 1):  # stays open tail samples after every stop (circular)
-        open_ |= np.roll(m, k)
+    for lag in range(1, min(tail, n) + 1):  # stays open tail samples after every stop (circular)
+        open_ |= np.roll(m, lag)
     w = int(round(taper_s / period_s))
     if w < 2:
         return open_.astype(float)
@@ -634,5 +634,6 @@ class IlcLearner:
             "frozen": self.frozen, "iteration": self.iteration, "last_rms_m": self.last_rms_m,
             "rms_m": list(self.rms_history[-20:]), "skipped_repetitions": self.skipped_repetitions,
             "gain_scale": self.gain_scale, "guard_rollbacks": self.guard_rollbacks,
+            "window_fraction": float(np.mean(self.window)) if self.window is not None else None,
             "design": d.summary() if d is not None else None,
         }
