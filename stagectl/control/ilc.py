@@ -5,7 +5,7 @@ period T) is tracked with the same feedback every time, so its error repeats. IL
 [N] to the command and improves it after every repetition k from that repetition's error e_k(t) = x_ref − x
 [m]::
 
-    u_{k+1}(t) = Q(z)·[ u_k(t) + L(z)·e_k(t) ]                                      (1)
+    u_{k+1}(t) = W(t)·Q(z)·[ u_k(t) + s·L(z)·e_k(t) ]                               (1)
 
 * ``u_k`` is the force *actually applied* in repetition k (ramps included), so switching on or off mid-way
   does not corrupt the update.
@@ -23,6 +23,17 @@ period T) is tracked with the same feedback every time, so its error repeats. IL
 * ``Q(z)`` is a zero-phase low-pass (forward-backward Butterworth of order 1, i.e. |Q| = 1/(1 + (f/f_Q)²),
   cut-off ``q_cutoff_hz``): it keeps the learning out of the frequencies where the model is not trusted and
   makes the iteration robust.
+
+* ``W(t)`` in [0, 1] is the learning window (``window: moving``, :func:`learning_window`): the learned force
+  is applied only while the reference moves, plus ``window_tail_s`` after each stop, with raised-cosine edges.
+  At rest the plant is the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage) and the controller
+  holds its PID integrator, so the free-mass loop model of (2) does not hold there; learning everywhere
+  diverged on 10 µm steps with the shipped gains. W multiplies the force only, so ‖W·M‖ ≤ ‖M‖ and (3) still
+  bounds the iteration M = Q·(1 − L·G) (windowing the error too would not: W does not commute with L·G).
+* ``s`` in [1/16, 1] is the divergence guard's gain factor: a repetition whose RMS exceeds the previous one's by
+  ``guard_growth_fraction`` rolls the last update back and halves s; s recovers ×1.25 per repetition that does
+  not grow. s·L keeps (3): |Q·(1 − s·c)| ≤ (1 − s)·Q + s·|Q·(1 − c)|. The guard covers what (3) cannot see
+  (pre-sliding inside a move, a plant change).
 
 The update runs once per repetition on the whole record, so L and Q may be non-causal. It is done in the
 frequency domain on the repetition's DFT grid f_j = j/(N·T) (a repetition starts and ends at rest, so the
