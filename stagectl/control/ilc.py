@@ -28,8 +28,9 @@ period T) is tracked with the same feedback every time, so its error repeats. IL
   is applied only while the reference moves, plus ``window_tail_s`` after each stop, with raised-cosine edges.
   At rest the plant is the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage) and the controller
   holds its PID integrator, so the free-mass loop model of (2) does not hold there; learning everywhere
-  diverged on 10 µm steps with the shipped gains. W multiplies the force only, so ‖W·M‖ ≤ ‖M‖ and (3) still
-  bounds the iteration M = Q·(1 − L·G) (windowing the error too would not: W does not commute with L·G).
+  diverged on 10 µm steps with the shipped gains. W multiplies the force only, so ‖W·M‖ ≤ ‖M‖ = max(ρ of (3),
+  1 in the unlearned DC bin) for M = Q·(1 − L·G): the windowed iteration never grows for the model
+  (windowing the error too would lose that: W does not commute with L·G).
 * ``s`` in [1/16, 1] is the divergence guard's gain factor: a repetition whose RMS exceeds the previous one's by
   ``guard_growth_fraction`` rolls the last update back and halves s; s recovers ×1.25 per repetition that does
   not grow. s·L keeps (3): |Q·(1 − s·c)| ≤ (1 − s)·Q + s·|Q·(1 − c)|. The guard covers what (3) cannot see
