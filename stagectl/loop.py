@@ -67,7 +67,8 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
   relative target outside the limits, a move in fault) are set on the future. A retune is designed in the
   caller's thread when the controller offers ``request_retune``.
 * ``learner`` (optional, :class:`~stagectl.runtime.protocols.Learner`, ``ilc:``): stepped before the
-  controller in every active cycle with a fresh sample, ``u_l = learner.step(t, e)``; u_l goes to the
+  controller in every active cycle with a fresh sample, ``u_l = learner.step(t, e, moving=v_r ≠ 0 or a_r ≠ 0)``
+  (the reference moves: the learning window); u_l goes to the
   controller's learned-force input (``step(..., u_learn_n=u_l)``) or, for a controller without one, is added to
   its command. Its columns (``u_ilc``, ``ilc_iteration``, ``ilc_rms_m``) follow the controller terms; a fault
   freezes it; ``IlcRequest`` drives it (``loop.status().ilc`` shows it).
@@ -644,7 +645,7 @@ class ControlLoop:
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
-                            u_l = learner.step(t, ref.x_m - x)
+                            u_l = learner.step(t, ref.x_m - x, moving=ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0)
                             if learn_ctl is not None:
                                 cmd = learn_ctl.step(dt, x, ref, u_l)
                             else:

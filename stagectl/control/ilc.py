@@ -5,7 +5,7 @@ period T) is tracked with the same feedback every time, so its error repeats. IL
 [N] to the command and improves it after every repetition k from that repetition's error e_k(t) = x_ref − x
 [m]::
 
-    u_{k+1}(t) = Q(z)·[ u_k(t) + L(z)·e_k(t) ]                                      (1)
+    u_{k+1}(t) = W(t)·Q(z)·[ u_k(t) + s·L(z)·e_k(t) ]                               (1)
 
 * ``u_k`` is the force *actually applied* in repetition k (ramps included), so switching on or off mid-way
   does not corrupt the update.
@@ -23,6 +23,18 @@ period T) is tracked with the same feedback every time, so its error repeats. IL
 * ``Q(z)`` is a zero-phase low-pass (forward-backward Butterworth of order 1, i.e. |Q| = 1/(1 + (f/f_Q)²),
   cut-off ``q_cutoff_hz``): it keeps the learning out of the frequencies where the model is not trusted and
   makes the iteration robust.
+
+* ``W(t)`` in [0, 1] is the learning window (``window: moving``, :func:`learning_window`): the learned force
+  is applied only while the reference moves, plus ``window_tail_s`` after each stop, with raised-cosine edges.
+  At rest the plant is the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage) and the controller
+  holds its PID integrator, so the free-mass loop model of (2) does not hold there; learning everywhere
+  diverged on 10 µm steps with the shipped gains. W multiplies the force only, so ‖W·M‖ ≤ ‖M‖ = max(ρ of (3),
+  1 in the unlearned DC bin) for M = Q·(1 − L·G): the windowed iteration never grows for the model
+  (windowing the error too would lose that: W does not commute with L·G).
+* ``s`` in [1/16, 1] is the divergence guard's gain factor: a repetition whose RMS exceeds the previous one's by
+  ``guard_growth_fraction`` rolls the last update back and halves s; s recovers ×1.25 per repetition that does
+  not grow. s·L keeps (3): |Q·(1 − s·c)| ≤ (1 − s)·Q + s·|Q·(1 − c)|. The guard covers what (3) cannot see
+  (pre-sliding inside a move, a plant change).
 
 The update runs once per repetition on the whole record, so L and Q may be non-causal. It is done in the
 frequency domain on the repetition's DFT grid f_j = j/(N·T) (a repetition starts and ends at rest, so the
@@ -69,6 +81,7 @@ __all__ = [
     "Repetition",
     "design_ilc",
     "ilc_update",
+    "learning_window",
     "process_sensitivity",
     "q_filter",
     "rms",
@@ -90,13 +103,13 @@ class IlcConfig:
     learning: str = param("inverse", desc="learning filter: inverse (alpha times the model's process "
                           "sensitivity inverse) or lead (scalar gain_n_m with phase lead lead_s)",
                           choices=("inverse", "lead"))
-    alpha: float = param(0.6, desc="learning gain as a fraction of the model inverse (inverse), or of "
+    alpha: float = param(1.0, desc="learning gain as a fraction of the model inverse (inverse), or of "
                          "1/|G| at q_cutoff_hz when gain_n_m is None (lead)", gt=0.0, le=1.0)
     gain_n_m: float | None = param(None, unit="N/m", desc="lead: scalar learning gain L (None: from alpha)",
                                    gt=0.0)
     lead_s: float | None = param(None, unit="s", desc="lead: phase lead λ (None: (1 + I/O delay) periods)",
                                  ge=0.0, le=0.1)
-    q_cutoff_hz: float = param(200.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
+    q_cutoff_hz: float = param(300.0, unit="Hz", desc="zero-phase robustness filter Q cut-off f_Q", gt=0.0)
     ramp_s: float = param(0.2, unit="s", desc="ramp of the learned force when learning is switched on/off",
                           ge=0.0, le=10.0)
     max_force_n: float = param(2.0, unit="N", desc="clamp of the learned force", gt=0.0)
@@ -105,6 +118,17 @@ class IlcConfig:
     min_coverage_fraction: float = param(0.98, desc="a repetition with fewer valid samples is not learned from",
                                          gt=0.0, le=1.0)
     max_repetition_s: float = param(60.0, unit="s", desc="longest repetition learned", gt=0.0, le=600.0)
+    window: str = param("moving", desc="where to learn: moving (only while the reference moves, plus "
+                        "window_tail_s after each stop, smooth edges) or all (the whole repetition)",
+                        choices=("moving", "all"))
+    window_tail_s: float = param(0.03, unit="s", desc="the learning window stays open this long after the "
+                                 "reference stops (the settling after a move)", ge=0.0, le=10.0)
+    window_taper_s: float = param(0.02, unit="s", desc="raised-cosine edges of the learning window", ge=0.0,
+                                  le=10.0)
+    guard_growth_fraction: float = param(
+        0.3, desc="divergence guard: a repetition whose RMS exceeds the previous one's by this fraction rolls the "
+        "last update back and halves the learning gain (it recovers x1.25 per repetition that does not grow; "
+        "0: off)", ge=0.0, le=10.0)
     store_dir: Path | None = param(None, desc="directory of saved learned signals <motion>.npz (relative to "
                                    "the config file; None: the current directory)")
 
@@ -261,16 +285,50 @@ def design_ilc(cfg: IlcConfig, plant: IlcPlant, n_samples: int) -> IlcDesign:
     return IlcDesign(n_samples, T, cfg.learning, f, learn, q, cfg.max_force_n, rho, rho_hz, rob, e, lead)
 
 
-def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign) -> np.ndarray:
-    """One learning step (1): u_{k+1} = clamp(Q·(u_k + L·e_k), ±max_force_n) [N] over one repetition.
+def learning_window(moving: np.ndarray, period_s: float, tail_s: float, taper_s: float) -> np.ndarray:
+    """The learning window W(t) in [0, 1] of one repetition (circular: the repetition is one period).
+
+    ``moving`` (bool per sample): the reference moves. W = 1 where it moves and for ``tail_s`` after each stop,
+    with raised-cosine edges ``taper_s`` wide centred on the edges of that set; 0 at rest beyond. No motion at
+    all gives W = 0.
+    """
+    m = np.asarray(moving, dtype=bool)
+    n = m.size
+    if not m.any():
+        return np.zeros(n)
+    tail = int(round(tail_s / period_s))
+    open_ = m.copy()
+    for lag in range(1, min(tail, n) + 1):  # stays open tail samples after every stop (circular)
+        open_ |= np.roll(m, lag)
+    w = int(round(taper_s / period_s))
+    if w < 2:
+        return open_.astype(float)
+    h = np.hanning(w + 2)[1:-1]
+    h /= h.sum()
+    k = np.zeros(n)
+    k[: h.size] = h
+    k = np.roll(k, -(h.size // 2))  # centred kernel: the edges are smoothed symmetrically
+    out = np.fft.irfft(np.fft.rfft(open_.astype(float)) * np.fft.rfft(k), n)
+    return np.asarray(np.clip(out, 0.0, 1.0))
+
+
+def ilc_update(u_applied: np.ndarray, e: np.ndarray, d: IlcDesign, window: np.ndarray | None = None,
+               scale: float = 1.0) -> np.ndarray:
+    """One learning step (1): u_{k+1} = clamp(W·Q·(u_k + s·L·e_k), ±max_force_n) [N] over one repetition.
 
     ``u_applied`` [N] and ``e`` [m] are the repetition's applied learned force and error (length
-    ``d.n_samples``), evaluated on the DFT grid (the repetition taken as one period). Pure.
+    ``d.n_samples``), evaluated on the DFT grid (the repetition taken as one period); ``window`` W (None: 1)
+    is the learning window of :func:`learning_window` (applied to the force only: ||W·M|| ≤ ||M||, so the
+    check (3) still bounds the iteration); ``scale`` s in (0, 1] the divergence guard's gain factor (s·L keeps
+    (3): |Q·(1 − s·c)| ≤ (1 − s)·Q + s·|Q·(1 − c)|). Pure.
     """
     n = d.n_samples
+    ea = np.asarray(e, dtype=float)
     U = np.fft.rfft(np.asarray(u_applied, dtype=float), n)
-    E = np.fft.rfft(np.asarray(e, dtype=float), n)
-    u = np.fft.irfft(d.q * (U + d.learn * E), n)
+    E = np.fft.rfft(ea, n)
+    u = np.fft.irfft(d.q * (U + scale * d.learn * E), n)
+    if window is not None:
+        u = window * u
     return np.asarray(np.clip(u, -d.max_force_n, d.max_force_n))
 
 
@@ -335,6 +393,12 @@ class IlcLearner:
         self._rec_e = np.zeros(0)
         self._rec_u = np.zeros(0)
         self._rec_ok = np.zeros(0, dtype=bool)
+        self._rec_mv = np.zeros(0, dtype=bool)
+        self.window: np.ndarray | None = None  # learning window of the current motion (window: moving)
+        self.record_only = False  # record the RMS per repetition without learning (a baseline run)
+        self.gain_scale = 1.0  # divergence guard: factor on L (halved on growth, recovers)
+        self.guard_rollbacks = 0
+        self._u_prev: np.ndarray | None = None  # the signal before the last update (for a roll-back)
         self._valid = False  # the repetition in progress started with learning on and is usable
         self._loaded = False  # the signal came from a file (kept when its length does not match a pass)
         self._u_out = 0.0
@@ -357,17 +421,22 @@ class IlcLearner:
             self.motion = rep.motion
             self.design = self._design_for(n)
             self.u = np.zeros(n)
+            self.window = None
+            self.gain_scale = 1.0
+            self._u_prev = None
             self.iteration = 0
             self.rms_history = []
             self.last_rms_m = math.nan
         self._rec_e = np.zeros(n)
         self._rec_u = np.zeros(n)
         self._rec_ok = np.zeros(n, dtype=bool)
+        self._rec_mv = np.zeros(n, dtype=bool)
 
     # ------------------------------------------------------------------ per cycle
-    def step(self, t_s: float, e_m: float, fresh: bool = True) -> float:
+    def step(self, t_s: float, e_m: float, fresh: bool = True, moving: bool = True) -> float:
         """The learned force for this cycle [N] (ramp applied), recording the error ``e_m`` [m] of this cycle
-        (``fresh`` False: a stale sample, not recorded). Runs the update (1) when a repetition ends."""
+        (``fresh`` False: a stale sample, not recorded) and whether the reference moves (``moving``: for the
+        learning window). Runs the update (1) when a repetition ends."""
         rep = self._repetition()
         target = 1.0 if (self.applying and self.frozen is None) else 0.0
         if self.gain != target:
@@ -389,7 +458,7 @@ class IlcLearner:
             if rep.motion != self.motion or (self.iteration == 0 and not self._loaded and n_rep != self.u.size):
                 self._bind(rep)
             self._rec_ok[:] = False
-            self._valid = self.learning and self.frozen is None and n_rep == self.u.size
+            self._valid = (self.learning or self.record_only) and self.frozen is None and n_rep == self.u.size
         i = int(round(rep.tau_s / self.period_s))
         n = self.u.size
         if n_rep == n and 0 <= i < n:  # (a first pass with an approach move has another length: not ours)
@@ -398,6 +467,7 @@ class IlcLearner:
                 self._rec_e[i] = e_m
                 self._rec_u[i] = u
                 self._rec_ok[i] = True
+                self._rec_mv[i] = moving
         else:
             u = 0.0
         self._u_out = u
@@ -418,7 +488,25 @@ class IlcLearner:
             del self.rms_history[0]
         if not (self.learning and self.frozen is None):
             return
-        self.u = ilc_update(u, e, self.design)  # from what was applied (ramps included)
+        h = self.rms_history
+        g = self.cfg.guard_growth_fraction
+        if g > 0 and len(h) >= 2 and h[-1] > (1.0 + g) * h[-2]:
+            if self._u_prev is not None:  # the last update made it worse (or the plant changed): roll it back
+                self.u = self._u_prev
+                self._u_prev = None
+                self.gain_scale = max(self.gain_scale * 0.5, 1.0 / 16.0)
+                self.guard_rollbacks += 1
+                return  # the next repetition runs the previous signal again, then learns at the lower gain
+        elif len(h) >= 2:
+            self.gain_scale = min(1.0, self.gain_scale * 1.25)
+        self._u_prev = self.u.copy()
+        w = None
+        if self.cfg.window == "moving":
+            if self.window is None or self.window.size != ok.size:  # the reference repeats: made once
+                self.window = learning_window(self._rec_mv | ~ok, self.period_s, self.cfg.window_tail_s,
+                                              self.cfg.window_taper_s)
+            w = self.window
+        self.u = ilc_update(u, e, self.design, w, self.gain_scale)  # from what was applied (ramps included)
         self.iteration += 1
 
     # ------------------------------------------------------------------ control
@@ -534,7 +622,11 @@ class IlcLearner:
         self._rec_e = np.zeros(u.size)
         self._rec_u = np.zeros(u.size)
         self._rec_ok = np.zeros(u.size, dtype=bool)
+        self._rec_mv = np.zeros(u.size, dtype=bool)
+        self.window = None
         self.rms_history = hist
+        self.gain_scale = 1.0
+        self._u_prev = None
         self.last_rms_m = hist[-1] if hist else math.nan
         self._rep_index = None
         self._valid = False
@@ -553,5 +645,7 @@ class IlcLearner:
             "motion": self.motion, "learning": self.learning, "applying": self.applying, "gain": self.gain,
             "frozen": self.frozen, "iteration": self.iteration, "last_rms_m": self.last_rms_m,
             "rms_m": list(self.rms_history[-20:]), "skipped_repetitions": self.skipped_repetitions,
+            "gain_scale": self.gain_scale, "guard_rollbacks": self.guard_rollbacks,
+            "window_fraction": float(np.mean(self.window)) if self.window is not None else None,
             "design": d.summary() if d is not None else None,
         }

@@ -17,6 +17,7 @@ from stagectl.control.ilc import (
     Repetition,
     design_ilc,
     ilc_update,
+    learning_window,
     process_sensitivity,
 )
 from stagectl.control.pid import PidConfig
@@ -97,7 +98,8 @@ def test_update_converges_on_a_linear_plant_with_a_wrong_mass():
 
 def test_no_divergence_when_the_plant_changes_between_repetitions():
     """Mass alternately −20 % / +20 % and one extra sample of delay every third repetition: the learned force
-    stays bounded and the error stays well below the first pass."""
+    stays bounded, the error does not grow and stays well below the first pass (a signal right for both masses
+    does not exist: with the default full inverse (α = 1) the error settles at 1/3 of the first pass)."""
     plant = IlcPlant(2.0, T, 1, PID)
     n = 400
     t = np.arange(n) * T
@@ -111,7 +113,8 @@ def test_no_divergence_when_the_plant_changes_between_repetitions():
         norms.append(float(np.linalg.norm(e)))
         u = ilc_update(u, e, d)
         u_norms.append(float(np.linalg.norm(u)))
-    assert max(norms[5:]) < 0.3 * norms[0], norms
+    assert max(norms[5:]) < 0.4 * norms[0], norms
+    assert max(norms[5:]) <= 1.05 * min(norms[5:]), norms  # no growth
     assert max(u_norms[10:]) < 1.5 * max(u_norms[:10]), u_norms
 
 
@@ -215,3 +218,53 @@ def test_the_learned_force_decays_when_the_repeated_motion_is_taken_over(tmp_pat
     outs = [lr.step(0.0, 0.0) for _ in range(30)]
     steps = np.abs(np.diff([u0, *outs]))
     assert steps.max() <= 0.5 * T / 0.02 + 1e-12 and outs[-1] == 0.0
+
+
+def test_learning_window_opens_where_the_reference_moves_with_a_tail_and_smooth_edges():
+    n = 1000
+    moving = np.zeros(n, dtype=bool)
+    moving[200:400] = True
+    w = learning_window(moving, T, tail_s=0.05, taper_s=0.02)
+    assert np.all((w >= 0) & (w <= 1))
+    assert np.allclose(w[215:440], 1.0) and np.abs(w[:185]).max() < 1e-12 and np.abs(w[465:]).max() < 1e-12
+    assert np.abs(np.diff(w)).max() < 0.1  # raised-cosine edges, no step
+    assert not learning_window(np.zeros(n, dtype=bool), T, 0.05, 0.02).any()
+
+
+def _circulant(h: np.ndarray, n: int) -> np.ndarray:
+    """Dense matrix of the real circulant operator with rfft-grid response ``h``."""
+    return np.stack([np.fft.irfft(h * np.fft.rfft(np.eye(n)[:, j]), n) for j in range(n)], axis=1)
+
+
+def test_the_window_on_the_force_keeps_the_check_and_on_the_error_would_not():
+    """Lifted (dense) oracle, plant 20 % heavier than the model: W·Q·(I − L·G), the update with the window on the
+    learned force, has 2-norm ≤ max_f |Q·(1 − L·G)| (the check (3), 1 in the unlearned DC bin); windowing the
+    error as well, W·Q·(I − L·W·G), exceeds 1: the window does not commute with L·G."""
+    n = 96
+    d = design_ilc(IlcConfig(), PLANT, n)
+    g = process_sensitivity(d.freq_hz, PLANT, mass_kg=2.4)
+    moving = np.zeros(n, dtype=bool)
+    moving[20:50] = True
+    W = np.diag(learning_window(moving, T, 0.01, 0.01))
+    Q, L, G = _circulant(d.q, n), _circulant(d.learn, n), _circulant(g, n)
+    bound = max(1.0, float(np.abs(d.q * (1 - d.learn * g)).max()))
+    eye = np.eye(n)
+    assert np.linalg.norm(W @ Q @ (eye - L @ G), 2) <= bound + 1e-9
+    assert np.linalg.norm(W @ Q @ (eye - L @ W @ G), 2) > 1.0
+
+
+def test_the_guard_rolls_an_update_back_and_halves_the_gain_when_the_error_grows(tmp_path):
+    lr, rep = _learner(tmp_path)
+    lr.start()
+    sine = lambda a: (lambda i: a * math.sin(2 * math.pi * i / 50))  # noqa: E731
+    for _ in range(3):
+        _run_rep(lr, rep, sine(2e-8))  # each learned from at the next boundary
+    assert lr.iteration == 2 and lr.gain_scale == 1.0 and lr.guard_rollbacks == 0
+    u2 = lr.u.copy()
+    _run_rep(lr, rep, sine(6e-8))  # repetition 3 learned from (u3); repetition 4: 3x the error, growth
+    assert lr.iteration == 3 and not np.array_equal(lr.u, u2)
+    rep.tau = 0.0
+    lr.step(0.0, 0.0)  # the boundary: the grown repetition is judged
+    assert lr.guard_rollbacks == 1 and lr.gain_scale == 0.5 and lr.iteration == 3
+    np.testing.assert_array_equal(lr.u, u2)  # the last update rolled back
+    assert lr.status()["guard_rollbacks"] == 1
