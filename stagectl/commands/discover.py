@@ -56,7 +56,10 @@ def run(args: argparse.Namespace) -> int:
     val = load_recording(args.validate, args.columns, min_rows=200) if args.validate else None
     start = load_start(args.model) if args.model else None
     progress.step(2, f"searching for missing effects (up to {args.max_rounds} rounds)")
-    res = discover(rec, validate=val, start=start, max_rounds=args.max_rounds, cutoff_hz=args.cutoff_hz)
+    search = Progress("discover", args.max_rounds, quiet=args.quiet, stream=progress.stream)
+    res = discover(rec, validate=val, start=start, max_rounds=args.max_rounds, cutoff_hz=args.cutoff_hz,
+                   progress=search.bounded)
+    search.close()
     sources = {"estimation": args.data, "validation": args.validate or "held-out blocks of estimation file"}
     if args.model:
         sources["start_model"] = args.model

@@ -34,7 +34,14 @@ class Progress:
             self._next = 0.0
         self.update(float(index - 1))
 
+    _bounded = False
+
     def line(self, done: float, now: float) -> str:
+        if self._bounded:
+            frac = min(max(done / self.total, 0.0), 1.0)
+            elapsed = now - self.t0
+            left = f", at most {elapsed * (1.0 - frac) / frac:.0f} s left" if frac > 0 else ""
+            return f"{self.label}: {self.what} ({elapsed:.0f} s elapsed{left})"
         if self.what and self.total <= 1:
             return f"{self.label}: {self.what} ({now - self.t0:.0f} s elapsed)"
         if self.what:
@@ -46,6 +53,13 @@ class Progress:
         left_txt = f", {left:.0f} s left" if frac > 0 else ""
         return (f"{self.label}: {100 * frac:3.0f} % ({done:.4g} of {self.total:.4g}{' ' + self.unit if self.unit else ''})"
                 f"{left_txt}")
+
+    def bounded(self, done: float, what: str) -> None:
+        """``done`` of at most ``total`` (work that may end early, e.g. discovery's rounds): the line names
+        ``what`` and gives the time left as an upper bound, from the rate so far."""
+        self.what = what
+        self._bounded = True
+        self.update(done)
 
     def update(self, done: float) -> None:
         if self.quiet:

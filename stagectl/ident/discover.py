@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -414,7 +415,8 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
     return row, cmp, r_new
 
 
-def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: FloatArray, force_rms: float
+def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: FloatArray, force_rms: float,
+           on_candidate: Callable[[int, int, str], None] | None = None,
            ) -> tuple[list[Candidate], dict[str, tuple[FitResult, Comparison, FloatArray]]]:
     """Every catalogue effect not in the model, added in turn, fitted and compared on validation data; a
     richer effect that contains a simpler one not yet in the model is also tried jointly with it
@@ -431,7 +433,9 @@ def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: Float
             if (simpler in catalogue and not cur.hyp.has(simpler)
                     and simpler not in fx.REGISTRY.get(name).implies):  # an implied effect is always fitted with it
                 labels.append(joint)
-    for label in labels:
+    for i, label in enumerate(labels):
+        if on_candidate is not None:
+            on_candidate(i, len(labels), label)
         try:
             fr = _fit_label(ds, cur, label)
         except _FIT_ERRORS as exc:  # a candidate that cannot be fitted here
@@ -556,9 +560,12 @@ def discover(
     catalogue: tuple[str, ...] | None = None,
     max_rounds: int = 6,
     cutoff_hz: float | None = None,
+    progress: Callable[[float, str], None] | None = None,
 ) -> DiscoveryResult:
     """Run the workflow (see module docstring). ``start`` is the starting hypothesis (None: m + Coulomb +
-    viscous); ``catalogue`` the effects to try (None: every registered effect)."""
+    viscous); ``catalogue`` the effects to try (None: every registered effect). ``progress(done, what)`` is told
+    before each candidate fit: ``done`` = rounds finished + the fraction of this round's candidates tried (of at
+    most ``max_rounds``)."""
     t0 = time.perf_counter()
     cat = fx.REGISTRY.names if catalogue is None else catalogue
     ds = make_dataset(rec, validate, cutoff_hz)
@@ -577,9 +584,12 @@ def discover(
     rejected: list[RejectedEffect] = []
     rounds: list[Round] = []
     history = [cur.hyp]
-    for _ in range(max_rounds):
+    for rnd in range(max_rounds):
         _, r_cur = gap(ds.val, ds.val_rows, cur.hyp)
-        info, cands = _round(ds, cur, cat, r_cur, force_rms)
+        tell = None if progress is None else (
+            lambda i, n, label, rnd=rnd: progress(rnd + i / max(n, 1), f"round {rnd + 1}, candidate {i + 1} of {n} "
+                                                  f"({label})"))
+        info, cands = _round(ds, cur, cat, r_cur, force_rms, tell)
         chosen = _choose(ds, cur, info, cands, force_rms)
         if chosen is None:
             pair = _try_pairs(ds, cur, cands, r_cur, force_rms)

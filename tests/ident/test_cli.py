@@ -204,3 +204,28 @@ def test_presliding_extent_finds_the_end_of_a_virgin_curve() -> None:
     assert got == pytest.approx(d0 * np.log(20.0), rel=1e-3)
     assert presliding_extent(d, 5.0 * d) == pytest.approx(d[int(np.argmax(d >= 0.95e-3))])
     assert presliding_extent(d, np.zeros_like(d)) == d[-1]
+
+
+def test_discover_reports_progress_per_candidate_with_a_bounded_time_left(spring_stage) -> None:
+    """discover(..., progress=) is told before every candidate fit, with a done value that only grows and stays
+    within max_rounds; the command's line gives the time left as an upper bound ("at most")."""
+    import io
+
+    from stagectl.commands.progress import Progress
+    from stagectl.ident.discover import discover
+    from stagectl.ident.recording import load_recording
+
+    est, val, _ = spring_stage
+    cols = "t=t_s,x=position_m,u=force_N,x_ref=reference_m"
+    seen: list[tuple[float, str]] = []
+    discover(load_recording(str(est), cols, min_rows=200), validate=load_recording(str(val), cols, min_rows=200),
+             max_rounds=3, progress=lambda done, what: seen.append((done, what)))
+    dones = [d for d, _ in seen]
+    assert len(seen) >= 5 and dones == sorted(dones) and 0.0 <= dones[0] and dones[-1] < 3.0
+    assert seen[0][1].startswith("round 1, candidate 1 of ") and any(w.startswith("round 2,") for _, w in seen)
+    out = io.StringIO()
+    p = Progress("discover", 3, stream=out, every_s=0.0)
+    p.bounded(1.5, "round 2, candidate 3 of 12 (cogging)")
+    line = out.getvalue()
+    assert line.startswith("discover: round 2, candidate 3 of 12 (cogging) (") and "s left)" in line
+    assert "at most" in line
