@@ -40,8 +40,8 @@ class Progress:
         if self._bounded:
             frac = min(max(done / self.total, 0.0), 1.0)
             elapsed = now - self.t0
-            left = f", at most {elapsed * (1.0 - frac) / frac:.0f} s left" if frac > 0 else ""
-            return f"{self.label}: {self.what} ({elapsed:.0f} s elapsed{left})"
+            bound = f", at most {elapsed * (1.0 - frac) / frac:.0f} s left" if frac > 0 else ""
+            return f"{self.label}: {self.what} ({elapsed:.0f} s elapsed{bound})"
         if self.what and self.total <= 1:
             return f"{self.label}: {self.what} ({now - self.t0:.0f} s elapsed)"
         if self.what:
