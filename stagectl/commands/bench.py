@@ -1,4 +1,4 @@
-"""``stagectl bench models|io|control|timing|loop|startup|telemetry|flood [--json] [...]``.
+"""``stagectl bench models|io|control|ilc|timing|loop|startup|telemetry|flood [--json] [...]``.
 
 Each benchmark lives in ``stagectl.bench.<kind>`` and exposes ``add_arguments(parser)`` and
 ``run(args) -> dict`` (and optionally ``exit_code(result) -> int``; otherwise the result's ``exit_code``
@@ -21,7 +21,7 @@ KINDS: dict[str, tuple[ModuleType, str]] = {
     "models": (models, "friction model + plant steps per second vs a pure-Python GMS baseline"),
     "io": (io, "cycle round trip and missed cycles: in-process CAN, socketcand TCP, serial streaming"),
     "control": (control, "tracking error of the controller variants on the seed stage"),
-    "ilc": (ilc, "learning feed-forward: RMS per repetition of the repeated triangle scan, 20 %-wrong model"),
+    "ilc": (ilc, "learning feed-forward: RMS per repetition of the repeated triangle scan, 20 %%-wrong model"),
     "timing": (timing, "tracking and fault reaction with late/dropped samples and jitter (simulated time)"),
     "loop": (loop, "loop timing: lateness p50/p99/max, overruns, CPU"),
     "startup": (startup, "time to the first control cycle from an empty and from a warm numba cache"),

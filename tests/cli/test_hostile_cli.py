@@ -184,3 +184,27 @@ def test_stdout_on_a_full_disk_is_one_error_line(tmp_path: Path) -> None:
                            stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=120)
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
     assert [bool(ERROR_LINE.match(line)) for line in p.stderr.splitlines()] == [True], p.stderr
+
+
+def test_every_command_and_subcommand_prints_its_help(capsys: pytest.CaptureFixture[str]) -> None:
+    """--help of every command and of every nested subcommand (bench KIND, model plot …) exits 0 with usage text:
+    argparse formats help strings with %, so a literal '%' in one (e.g. '20 %-wrong') crashes the whole help."""
+    import argparse
+
+    parser = cli.build_parser(None)
+
+    def walk(p: argparse.ArgumentParser, path: list[str]) -> list[list[str]]:
+        out = [path]
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    out += walk(sub, [*path, name])
+        return out
+
+    paths = walk(parser, [])
+    assert len(paths) > 20
+    for path in paths:
+        with pytest.raises(SystemExit) as ex:
+            cli.main([*path, "--help"])
+        assert ex.value.code == 0, path
+        assert "usage:" in capsys.readouterr().out, path
