@@ -298,10 +298,10 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
     several shallow local minima (a local solver started from a few vs lands in one of them depending on
     0.01 % changes of the data). So the fit is global on a grid: for each vs (``_STRIBECK_GRID`` log-spaced
-    values in [v_min/20, 20·v_max], 9 % apart) and δ in [0.5, 4], the linear parameters are the non-negative
-    least squares solution (Fc, Fs − Fc, σ2 ≥ 0; the free offset projected out); the grid's best local minima
-    (``_STRIBECK_REFINE``) are then refined by a bounded local least squares over all six parameters, and the
-    lowest cost of all wins.
+    values in [v_min/20, 20·v_max], 9 % apart for a 100:1 speed range) and δ in [0.5, 4], the linear
+    parameters are the non-negative least squares solution (Fc, Fs − Fc, σ2 ≥ 0; the free offset projected
+    out); the grid's best local minima (``_STRIBECK_REFINE``) are then refined by a bounded local least
+    squares over all six parameters, and the lowest cost of all wins.
     """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
