@@ -286,8 +286,23 @@ def constant_velocity_points(meas: Measured, min_len: int = 20, min_rev_dist_m: 
     return np.array(out_v), np.array(out_f)
 
 
+#: grid of the Stribeck fit: (log-spaced vs values, δ values)
+_STRIBECK_GRID = (121, 15)
+#: how many of the grid's local minima the Stribeck fit refines
+_STRIBECK_REFINE = 6
+
+
 def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
-    """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset]."""
+    """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset].
+
+    The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
+    several shallow local minima (a local solver started from a few vs lands in one of them depending on
+    0.01 % changes of the data). So the fit is global on a grid: for each vs (``_STRIBECK_GRID`` log-spaced
+    values in [v_min/20, 20·v_max], 9 % apart for a 100:1 speed range) and δ in [0.5, 4], the linear
+    parameters are the non-negative least squares solution (Fc, Fs − Fc, σ2 ≥ 0; the free offset projected
+    out); the grid's best local minima (``_STRIBECK_REFINE``) are then refined by a bounded local least
+    squares over all six parameters, and the lowest cost of all wins.
+    """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
     s = np.sign(v)
@@ -298,21 +313,49 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
         fc, ds, lvs, dl, fv, off = p
         return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
-    fc0 = float(np.median(np.abs(f)))
-    best = None
-    for vs0 in np.geomspace(max(vmin, 1e-9), max(vmax, 2e-9), 6):
-        p0 = np.array([fc0, 0.1 * fc0, math.log(vs0), 2.0, 0.0, 0.0])
-        try:
-            r = least_squares(lambda p: model(p) - f, p0,
-                              bounds=([0, 0, math.log(vmin / 20 + 1e-12), 0.5, 0, -np.inf],
-                                      [np.inf, np.inf, math.log(vmax * 20 + 1e-12), 4.0, np.inf, np.inf]))
-        except ValueError:
-            continue
-        if best is None or r.cost < best.cost:
-            best = r
-    assert best is not None
-    fc, ds, lvs, dl, fv, off = best.x
-    rms = float(np.sqrt(np.mean(best.fun ** 2)))
+    lo_lvs, hi_lvs = math.log(vmin / 20 + 1e-12), math.log(vmax * 20 + 1e-12)
+    lvs_grid = np.linspace(lo_lvs, hi_lvs, _STRIBECK_GRID[0])
+    dl_grid = np.linspace(0.5, 4.0, _STRIBECK_GRID[1])
+    cost = np.full((lvs_grid.size, dl_grid.size), np.inf)
+    lin_p = np.zeros((lvs_grid.size, dl_grid.size, 4))
+    for i, lvs in enumerate(lvs_grid.tolist()):
+        for j, dl in enumerate(dl_grid.tolist()):
+            e = np.exp(-((av / math.exp(lvs)) ** dl))
+            # columns Fc, Fs − Fc, σ2 (all ≥ 0); the free offset is projected out (columns and data centred)
+            a = np.column_stack([s, s * e, v])
+            try:
+                th, rnorm = nnls(a - a.mean(axis=0), f - f.mean())
+            except RuntimeError:  # nnls iteration limit (degenerate columns): skip this grid point
+                continue
+            if not (np.all(np.isfinite(th)) and math.isfinite(rnorm)):
+                continue
+            cost[i, j] = 0.5 * float(rnorm) ** 2
+            lin_p[i, j] = (th[0], th[1], th[2], float(np.mean(f - a @ th)))
+    if not np.isfinite(cost).any():
+        raise DataError("Stribeck fit: no grid point could be fitted")
+    # refine the grid's local minima (the best few) by a bounded local least squares over all six parameters
+    padded = np.pad(cost, 1, constant_values=np.inf)
+    neigh = np.min([padded[1 + di:padded.shape[0] - 1 + di, 1 + dj:padded.shape[1] - 1 + dj]
+                    for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj], axis=0)
+    minima = np.argwhere(np.isfinite(cost) & (cost <= neigh))
+    minima = minima[np.argsort(cost[minima[:, 0], minima[:, 1]])][:_STRIBECK_REFINE]
+    bounds = ([0, 0, lo_lvs, 0.5, 0, -np.inf], [np.inf, np.inf, hi_lvs, 4.0, np.inf, np.inf])
+    x_best: FloatArray | None = None
+    c_best = math.inf
+    for i, j in minima.tolist():
+        fc0, ds0, fv0, off0 = lin_p[i, j].tolist()
+        p0 = np.clip(np.array([fc0, ds0, lvs_grid[i], dl_grid[j], fv0, off0]), bounds[0], bounds[1])
+        # (from a degenerate grid minimum, e.g. vs far below the slowest speed, the solver may overflow on
+        # its way: such a result is not finite and simply loses)
+        with np.errstate(over="ignore", invalid="ignore"):
+            refined = least_squares(lambda q: model(q) - f, p0, bounds=bounds).x
+            for p in (p0, refined):
+                c = 0.5 * float(np.sum((model(p) - f) ** 2))
+                if math.isfinite(c) and c < c_best:
+                    c_best, x_best = c, np.asarray(p, dtype=np.float64)
+    assert x_best is not None
+    fc, ds, lvs, dl, fv, off = x_best
+    rms = float(np.sqrt(np.mean((model(x_best) - f) ** 2)))
     # plain Coulomb + viscous + offset: preferred unless the Stribeck terms reduce the RMS by 20 % and the
     # segments cover at least 3 distinct speeds (otherwise vs and Fs are not identifiable)
     a = np.column_stack([s, v, np.ones_like(v)])
