@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from commission_stage import HIDDEN, write_stage
+from commission_stage import HIDDEN, assert_identified, write_stage
 
 from stagectl.cli import main
 from stagectl.config import load_app_config
@@ -40,14 +40,12 @@ def test_identifies_the_hidden_plant_within_10_percent(commissioned: tuple[int, 
     rc, out = commissioned
     assert rc == 0
     rep = json.loads((out / "report.json").read_text())
-    assert rep["status"] == "complete"
+    assert_identified(rep, HIDDEN)
     f = rep["fitted"]
     for key, true in (("mass_kg", HIDDEN["mass_kg"]), ("coulomb_n", HIDDEN["fc_n"]),
                       ("viscous_n_s_m", HIDDEN["viscous_n_s_m"])):
-        assert abs(f[key]["value"] / true - 1) < 0.10, (key, f[key], true)
         assert 0 < f[key]["std"] < 0.1 * true, (key, f[key])
-    # the hidden effect is named, with its period
-    assert "cogging" in f["effects"]
+    # the hidden effect's period
     cog = next(e for e in rep["discovery"]["effects"] if e["name"] == "cogging")
     assert abs(cog["parameters"]["wavelength_m"] / HIDDEN["cogging_wavelength_m"] - 1) < 0.05
     # one I/O cycle of delay (the plant's delay_cycles: 1) besides the zero-order hold

@@ -25,6 +25,8 @@ import yaml
 sys.path.insert(0, str(Path(__file__).parent))
 from support import stop_process
 
+from commission_stage import assert_identified, controller_and_safety_yaml
+
 from stagectl.cli import main
 from stagectl.config import load_app_config
 from stagectl.ident.recording import load_recording
@@ -73,22 +75,7 @@ def commission_yaml(port: int) -> str:
         controller_heartbeat_s: 0.02
         drive_consumer_timeout_s: 0.5
         sdo_timeout_s: 5.0
-    controller:
-      mass_kg: 2.0
-      max_force_n: 10.0
-      pid: {{kp_n_m: 3.92e4, ki_n_m_s: 9.86e5, kd_n_s_m: 468.0, derivative_cutoff_hz: 200.0}}
-      dob: {{kind: qfilter, bandwidth_hz: 100.0}}
-      feedforward: {{kind: model, model_file: {SHIPPED}, inertia: true, lookahead_s: 0.0015}}
-    safety:
-      min_position_m: -0.005
-      max_position_m: 0.005
-      following_error_m: 5.0e-5
-      following_error_time_s: 0.01
-      max_force_n: 10.0
-      force_saturation_time_s: 0.5
-      max_velocity_m_s: 0.02
-      stale_cycles: 3
-    """)
+    """) + controller_and_safety_yaml()
 
 
 def start_plant(path: Path) -> tuple[subprocess.Popen[str], dict[str, Any]]:
@@ -132,12 +119,7 @@ def test_identifies_the_hidden_plant_across_processes(commissioned: tuple[int, P
     rc, out = commissioned
     assert rc == 0
     rep = json.loads((out / "report.json").read_text())
-    assert rep["status"] == "complete"
-    f = rep["fitted"]
-    for key, true in (("mass_kg", HIDDEN["mass_kg"]), ("coulomb_n", HIDDEN["fc_n"]),
-                      ("viscous_n_s_m", HIDDEN["viscous_n_s_m"])):
-        assert abs(f[key]["value"] / true - 1) < 0.10, (key, f[key], true)
-    assert "cogging" in f["effects"]  # the hidden effect, named
+    assert_identified(rep, HIDDEN)
     assert main(["check-config", "-q", str(out / "stage.yaml")]) == 0
     ch = rep["gains"]["chosen"]
     assert ch["measured"]["phase_margin_deg"] >= 40 and ch["measured"]["gain_margin_db"] >= 8
