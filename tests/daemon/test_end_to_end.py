@@ -13,6 +13,7 @@ import select
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +78,29 @@ def _stagectl() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
 
 
+def drain(proc: subprocess.Popen) -> subprocess.Popen:
+    """Read ``proc``'s stdout and stderr pipes in threads for its whole life. A test that does not read them
+    would let a full pipe (64 KiB of late-cycle warnings on a loaded machine) block the daemon, or the loop
+    process that inherits its stderr, in a log write. ``proc.communicate(timeout)`` then waits for the exit and
+    returns what was read (without waiting for a loop process that still holds the pipe)."""
+    got: dict[str, list[str]] = {"out": [], "err": []}
+    threads = []
+    for key, stream in (("out", proc.stdout), ("err", proc.stderr)):
+        if stream is not None:
+            t = threading.Thread(target=lambda s=stream, k=key: got[k].extend(iter(s.readline, "")), daemon=True)
+            t.start()
+            threads.append(t)
+
+    def communicate(timeout: float | None = None) -> tuple[str, str]:
+        proc.wait(timeout)
+        for t in threads:
+            t.join(5.0)
+        return "".join(got["out"]), "".join(got["err"])
+
+    proc.communicate = communicate  # type: ignore[method-assign]
+    return proc
+
+
 @pytest.fixture
 def daemon(tmp_path, notify_socket):
     cfg = _config(tmp_path)
@@ -84,14 +108,12 @@ def daemon(tmp_path, notify_socket):
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "WATCHDOG_USEC": "2000000",
            "PYTHONUNBUFFERED": "1"}
     env.pop("WATCHDOG_PID", None)
-    proc = subprocess.Popen([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = drain(subprocess.Popen([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     yield proc, cfg, run, notify_socket
     if proc.poll() is None:
         proc.kill()
-    proc.wait(30)
-    proc.stdout.close()
-    proc.stderr.close()
+    proc.communicate(30)
 
 
 def _wait_status(ns, prefix: str) -> dict:
@@ -315,7 +337,7 @@ def test_sigkilled_daemon_restarts_latched_until_reset(tmp_path, notify_socket):
     procs = []
     try:
         for attempt in range(2):
-            proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            proc = drain(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
             procs.append(proc)
             try:
                 ready = notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
@@ -346,8 +368,7 @@ def test_sigkilled_daemon_restarts_latched_until_reset(tmp_path, notify_socket):
         for p in procs:
             if p.poll() is None:
                 p.kill()
-            p.wait(30)
-            p.stderr.close()
+            p.communicate(30)
 
 
 def _gone(pid: int) -> bool:
