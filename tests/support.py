@@ -67,6 +67,29 @@ def stop_process(proc, timeout_s: float) -> None:
             stream.close()
 
 
+# ------------------------------------------------------------------------------------------ subprocesses
+def stagectl_cmd() -> list[str]:
+    """The ``stagectl`` entry point of this interpreter's environment (``python -m stagectl.cli`` without one)."""
+    import sys
+    from pathlib import Path
+
+    exe = Path(sys.executable).parent / "stagectl"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
+
+
+def absolutize_paths(node, base):
+    """A configuration mapping with its relative file paths (keys ``*_file``, ``eds``, ``file``) made absolute
+    against ``base``, so that it still loads from a temporary directory."""
+    import os
+
+    if isinstance(node, dict):
+        return {k: (str(base / v) if isinstance(v, str) and (k.endswith("_file") or k in ("eds", "file"))
+                    and not os.path.isabs(v) else absolutize_paths(v, base)) for k, v in node.items()}
+    if isinstance(node, list):
+        return [absolutize_paths(v, base) for v in node]
+    return node
+
+
 # ------------------------------------------------------------------------------------------ shipped configs
 def shipped_config_mapping(name: str) -> dict:
     """A shipped ``config/<name>`` as a mapping, its model-file paths made absolute (so it validates anywhere)."""

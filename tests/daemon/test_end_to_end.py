@@ -12,13 +12,13 @@ import os
 import select
 import signal
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from support import absolutize_paths, stagectl_cmd
 
 from stagectl.daemon.control import ControlClient
 
@@ -26,25 +26,11 @@ REPO = Path(__file__).resolve().parents[2]
 SIM_YAML = REPO / "config" / "sim.yaml"
 
 
-def _absolutize(node, base: Path):
-    """Make relative file paths absolute so the config still loads from a temporary directory."""
-    if isinstance(node, dict):
-        out = {}
-        for k, v in node.items():
-            if isinstance(v, str) and (k.endswith("_file") or k in ("eds", "file")) and not os.path.isabs(v):
-                out[k] = str(base / v)
-            else:
-                out[k] = _absolutize(v, base)
-        return out
-    if isinstance(node, list):
-        return [_absolutize(v, base) for v in node]
-    return node
-
 
 def _base_config() -> dict:
     if not SIM_YAML.exists():
         pytest.skip("config/sim.yaml (issue 4, the embedded simulated plant) is not in the repository yet")
-    return _absolutize(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
+    return absolutize_paths(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
 
 
 def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tuning: dict | None = None,
@@ -72,10 +58,6 @@ def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tun
     path.write_text(yaml.safe_dump(cfg))
     return path
 
-
-def _stagectl() -> list[str]:
-    exe = Path(sys.executable).parent / "stagectl"
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
 
 
 def drain(proc: subprocess.Popen) -> subprocess.Popen:
@@ -108,7 +90,7 @@ def daemon(tmp_path, notify_socket):
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "WATCHDOG_USEC": "2000000",
            "PYTHONUNBUFFERED": "1"}
     env.pop("WATCHDOG_PID", None)
-    proc = drain(subprocess.Popen([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+    proc = drain(subprocess.Popen([*stagectl_cmd(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
                                   env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     yield proc, cfg, run, notify_socket
     if proc.poll() is None:
@@ -332,7 +314,7 @@ def test_sigkilled_daemon_restarts_latched_until_reset(tmp_path, notify_socket):
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "PYTHONUNBUFFERED": "1"}
     for key in ("WATCHDOG_PID", "WATCHDOG_USEC", "STATE_DIRECTORY", "RUNTIME_DIRECTORY"):
         env.pop(key, None)
-    cmd = [*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run), "--state-dir", str(state)]
+    cmd = [*stagectl_cmd(), "daemon", "--config", str(cfg), "--runtime-dir", str(run), "--state-dir", str(state)]
     marker = state / "stagectl.running"
     procs = []
     try:
@@ -392,7 +374,7 @@ def test_loop_process_outlives_no_daemon_and_a_second_daemon_waits_its_turn(daem
     # telemetry writer and the supervisor are threads of the daemon
     assert len(os.listdir(f"/proc/{loop_pid}/task")) == 2
     assert len(os.listdir(f"/proc/{proc.pid}/task")) > 2
-    second = subprocess.run([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+    second = subprocess.run([*stagectl_cmd(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
                             capture_output=True, text=True, timeout=120, env={**os.environ, "NOTIFY_SOCKET": ""})
     assert second.returncode == 1 and f"pid {proc.pid}" in second.stderr, second.stderr[-2000:]
     assert (run / "control.sock").exists()  # the first one's socket survived

@@ -12,13 +12,12 @@ import os
 import selectors
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-from support import stop_process
+from support import absolutize_paths, stagectl_cmd, stop_process
 
 from stagectl.daemon.control import ControlClient
 
@@ -29,18 +28,6 @@ can = pytest.importorskip("can")
 canopen = pytest.importorskip("canopen")
 
 
-def _stagectl() -> list[str]:
-    exe = Path(sys.executable).parent / "stagectl"
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
-
-
-def _absolutize(node, base: Path):
-    if isinstance(node, dict):
-        return {k: (str(base / v) if isinstance(v, str) and k.endswith("_file") and not os.path.isabs(v)
-                    else _absolutize(v, base)) for k, v in node.items()}
-    if isinstance(node, list):
-        return [_absolutize(v, base) for v in node]
-    return node
 
 
 def _observer_bus(info: dict) -> can.BusABC:
@@ -72,7 +59,7 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 def sim_plant():
     if not HIL_YAML.exists():
         pytest.skip("config/hil-canopen.yaml not in the repository")
-    proc = subprocess.Popen([*_stagectl(), "sim-plant", "--config", str(HIL_YAML), "--port", "0"],
+    proc = subprocess.Popen([*stagectl_cmd(), "sim-plant", "--config", str(HIL_YAML), "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         info = None
@@ -96,7 +83,7 @@ def sim_plant():
 def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket):
     plant_proc, info = sim_plant
     port = info["can"]["port"]
-    cfg = _absolutize(yaml.safe_load(HIL_YAML.read_text()), HIL_YAML.parent)
+    cfg = absolutize_paths(yaml.safe_load(HIL_YAML.read_text()), HIL_YAML.parent)
     cfg["io"]["drive"]["can"]["port"] = port
     # a loaded 2-core CI machine misses TPDOs over TCP now and then; this test is about the kill, not timing
     # (timing and supervision while the daemon lives are tested elsewhere): generous windows so the drive is
@@ -114,7 +101,7 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
     bus = _observer_bus(info)
     network = canopen.Network(bus)
     network.notifier = can.Notifier(bus, network.listeners, 0.1)
-    daemon = subprocess.Popen([*_stagectl(), "daemon", "--config", str(path), "--runtime-dir", str(tmp_path / "run")],
+    daemon = subprocess.Popen([*stagectl_cmd(), "daemon", "--config", str(path), "--runtime-dir", str(tmp_path / "run")],
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                               start_new_session=True)
     try:

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import yaml
+from support import absolutize_paths, stagectl_cmd
 
 from stagectl.daemon.control import ControlClient
 
@@ -21,18 +21,6 @@ REPO = Path(__file__).resolve().parents[2]
 SIM_YAML = REPO / "config" / "sim.yaml"
 
 
-def _absolutize(node, base: Path):
-    if isinstance(node, dict):
-        return {k: (str(base / v) if isinstance(v, str) and k.endswith("_file") and not os.path.isabs(v)
-                    else _absolutize(v, base)) for k, v in node.items()}
-    if isinstance(node, list):
-        return [_absolutize(v, base) for v in node]
-    return node
-
-
-def _stagectl() -> list[str]:
-    exe = Path(sys.executable).parent / "stagectl"
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
 
 
 def _until(c: ControlClient, req: dict, cond, guard_s: float = 60.0) -> dict:
@@ -46,7 +34,7 @@ def _until(c: ControlClient, req: dict, cond, guard_s: float = 60.0) -> dict:
 
 
 def test_ilc_through_the_daemon(tmp_path, notify_socket):
-    cfg = _absolutize(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
+    cfg = absolutize_paths(yaml.safe_load(SIM_YAML.read_text()), SIM_YAML.parent)
     cfg["loop"]["healthy_overrun_fraction"] = 0.5
     cfg["loop"]["realtime"] = {**cfg["loop"]["realtime"], "fifo_priority": None, "mlock": False}
     cfg["daemon"] = {"allow_fault_injection": True, "status_interval_s": 0.1, "ready_timeout_s": 60,
@@ -57,7 +45,7 @@ def test_ilc_through_the_daemon(tmp_path, notify_socket):
     run = tmp_path / "run"
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "WATCHDOG_USEC": "2000000", "PYTHONUNBUFFERED": "1"}
     env.pop("WATCHDOG_PID", None)
-    proc = subprocess.Popen([*_stagectl(), "daemon", "--config", str(path), "--runtime-dir", str(run)],
+    proc = subprocess.Popen([*stagectl_cmd(), "daemon", "--config", str(path), "--runtime-dir", str(run)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         try:
@@ -84,7 +72,7 @@ def test_ilc_through_the_daemon(tmp_path, notify_socket):
             r = c.request({"request": "ilc", "action": "load", "motion": "steps-a"})
             assert r["ok"] and r["loaded"].endswith("steps-a.npz") and r["motion"] == "steps" and r["iteration"] >= 1, r
             # the client command
-            out = subprocess.run([*_stagectl(), "ilc", "status", "--socket", str(sock)], capture_output=True,
+            out = subprocess.run([*stagectl_cmd(), "ilc", "status", "--socket", str(sock)], capture_output=True,
                                  text=True, timeout=60)
             assert out.returncode == 0 and "motion steps " in out.stdout and "iteration 0" not in out.stdout, out.stdout
             # a fault freezes learning
