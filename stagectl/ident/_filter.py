@@ -57,6 +57,25 @@ def _zi(sos: FloatArray) -> FloatArray:
     return zi
 
 
+@kernel(inline="always")
+def _cascade(sos: FloatArray, zi: FloatArray, ext: FloatArray, st: FloatArray, start: int, stop: int,
+             step: int) -> None:  # pragma: no cover
+    """One pass of the section cascade (transposed direct form II) over ``ext[start:stop:step]`` in place, its
+    states ``st`` started at the steady state of the pass's first sample."""
+    ns = sos.shape[0]
+    for s in range(ns):
+        st[s, 0] = zi[s, 0] * ext[start]
+        st[s, 1] = zi[s, 1] * ext[start]
+    for i in range(start, stop, step):
+        v = ext[i]
+        for s in range(ns):
+            y = sos[s, 0] * v + st[s, 0]
+            st[s, 0] = sos[s, 1] * v - sos[s, 4] * y + st[s, 1]
+            st[s, 1] = sos[s, 2] * v - sos[s, 5] * y
+            v = y
+        ext[i] = v
+
+
 @kernel
 def _filtfilt_cols(sos: FloatArray, zi: FloatArray, x: FloatArray, edge: int) -> FloatArray:  # pragma: no cover
     """Forward-backward cascade over each column of ``x`` (n, k) with odd extension ``edge``."""
@@ -74,29 +93,8 @@ def _filtfilt_cols(sos: FloatArray, zi: FloatArray, x: FloatArray, edge: int) ->
             ext[edge + n + i] = 2.0 * x1 - x[n - 2 - i, c]
         for i in range(n):
             ext[edge + i] = x[i, c]
-        for s in range(ns):
-            st[s, 0] = zi[s, 0] * ext[0]
-            st[s, 1] = zi[s, 1] * ext[0]
-        for i in range(m):
-            v = ext[i]
-            for s in range(ns):
-                y = sos[s, 0] * v + st[s, 0]
-                st[s, 0] = sos[s, 1] * v - sos[s, 4] * y + st[s, 1]
-                st[s, 1] = sos[s, 2] * v - sos[s, 5] * y
-                v = y
-            ext[i] = v
-        y0 = ext[m - 1]
-        for s in range(ns):
-            st[s, 0] = zi[s, 0] * y0
-            st[s, 1] = zi[s, 1] * y0
-        for i in range(m - 1, -1, -1):
-            v = ext[i]
-            for s in range(ns):
-                y = sos[s, 0] * v + st[s, 0]
-                st[s, 0] = sos[s, 1] * v - sos[s, 4] * y + st[s, 1]
-                st[s, 1] = sos[s, 2] * v - sos[s, 5] * y
-                v = y
-            ext[i] = v
+        _cascade(sos, zi, ext, st, 0, m, 1)  # forward
+        _cascade(sos, zi, ext, st, m - 1, -1, -1)  # backward
         for i in range(n):
             out[i, c] = ext[edge + i]
     return out
