@@ -16,7 +16,8 @@ from stagectl.daemon.control import ControlClient
 from stagectl.daemon.stream import LoopTap
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_end_to_end import _config, _stagectl  # noqa: E402
+from support import stagectl_cmd  # noqa: E402
+from test_end_to_end import _config  # noqa: E402
 
 
 def test_loop_tap_hands_over_every_row_once_and_drops_what_was_overwritten():
@@ -41,7 +42,7 @@ def daemon_socket(tmp_path, notify_socket):
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "PYTHONUNBUFFERED": "1"}
     env.pop("WATCHDOG_PID", None)
     env.pop("WATCHDOG_USEC", None)
-    proc = subprocess.Popen([*_stagectl(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
+    proc = subprocess.Popen([*stagectl_cmd(), "daemon", "--config", str(cfg), "--runtime-dir", str(run)],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         notify_socket.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
