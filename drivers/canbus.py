@@ -228,6 +228,7 @@ def open_bus(mapping: Mapping[str, Any], *, path: str = "can") -> can.BusABC:
     if kw.get("interface") == "socketcand":
         quiet_can_loggers()
     try:
+        bus: can.BusABC
         if kw.get("interface") == "virtual" and kw.keys() <= INPROC_KEYS:
             bus = InprocBus(**kw)  # the same channels as python-can's virtual bus, less work per frame
         else:

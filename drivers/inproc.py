@@ -118,7 +118,7 @@ class _RxQueue:
                 self.waiting -= 1
 
 
-class InprocBus(can.BusABC):  # type: ignore[misc]
+class InprocBus(can.BusABC):
     """In-process CAN bus on a python-can ``virtual`` channel (see the module docstring).
 
     Parameters
@@ -144,7 +144,8 @@ class InprocBus(can.BusABC):  # type: ignore[misc]
         self._open = True
         self.queue = _RxQueue()
         with _stock.channels_lock:
-            self.channel: list[Any] = _stock.channels.setdefault(channel, [])
+            registry: dict[Any, list[Any]] = _stock.channels  # holds our queues too
+            self.channel: list[Any] = registry.setdefault(channel, [])
             self.channel.append(self.queue)
 
     def _closed(self) -> can.CanOperationError:
@@ -158,7 +159,7 @@ class InprocBus(can.BusABC):  # type: ignore[misc]
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The next frame, or None after ``timeout`` [s] (None: wait for ever, 0: poll)."""
         if self._filters is not None:
-            return super().recv(timeout)  # type: ignore[no-any-return]
+            return super().recv(timeout)
         if not self._open:
             raise self._closed()
         return self.queue.get(timeout)
