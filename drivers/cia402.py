@@ -634,7 +634,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     # ------------------------------------------------------------------ cyclic API
     def sync(self) -> None:
         """Drain stale frames, send SYNC and (every N cycles) the controller heartbeat. Real-time safe."""
-        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if self._state is not DeviceState.ENABLED:  # (the cycle's usual state, checked first)
+            self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
@@ -688,7 +689,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     def read(self) -> Measurement:
         """Measurement sampled at this cycle's SYNC (``fresh=False`` if the TPDO missed). Real-time safe."""
-        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if self._state is not DeviceState.ENABLED:  # (the cycle's usual state, checked first)
+            self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if not self._synced:
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
@@ -714,7 +716,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self.statusword = sw
             self._missed = 0
             if self._have_pos:
-                counts = unwrap32(self._raw, self._counts, raw)
+                counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)  # unwrap32
                 step = abs(counts - self._counts)
                 if step > self._max_step_counts * (1 + self._skipped_since_good):
                     fault = DeviceFault(
@@ -754,14 +756,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             )
         if fault is not None and self._state is not DeviceState.CONFIGURED:
             self._latch(fault)
-        return Measurement(
-            position_m=self._counts * self.cfg.resolution_m,
-            fresh=fresh,
-            counts=self._counts,
-            status=self.statusword,
-            fault=fault,
-            age_cycles=age,
-        )
+        # position_m, fresh, counts, status, fault, age_cycles
+        return Measurement(self._counts * self.resolution_m, fresh, self._counts, self.statusword, fault, age)
 
     @property
     def force_limit_n(self) -> float:
@@ -798,7 +794,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: write() needs an open, configured drive (state {self._state.value})")
 
     def _send_rpdo(self, cw: int, torque: int) -> None:
-        self._send(self._rpdo1.encode(cw, torque))
+        try:
+            self._bus.send(self._rpdo1.encode(cw, torque))  # type: ignore[union-attr]
+        except (can.CanError, OSError) as exc:
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"transmit failed: {exc}"))
 
     def quick_stop(self) -> None:
         """Controlword QUICK STOP with zero torque, now and in every following ``write``. Real-time safe."""
