@@ -93,11 +93,13 @@ class _RxQueue:
     def get(self, timeout: float | None) -> can.Message | None:
         """The oldest frame; waits up to ``timeout`` [s] (None: for ever; 0: no wait)."""
         items = self.items
-        try:
-            return items.popleft()
-        except IndexError:
-            if timeout is not None and timeout <= 0.0:
-                return None
+        if items:  # (a poll of an empty queue, the usual case, raises nothing)
+            try:
+                return items.popleft()
+            except IndexError:  # another reader took it
+                pass
+        if timeout is not None and timeout <= 0.0:
+            return None
         end = None if timeout is None else _mono() + timeout
         with self.cond:
             self.waiting += 1
