@@ -7,7 +7,9 @@
 * :func:`open_bus` opens a :class:`can.BusABC` from the YAML ``can:`` mapping, which is passed to
   ``can.Bus(**mapping)`` unchanged (so ``socketcan``, ``pcan``, ``kvaser``, ``virtual``, ``socketcand`` all
   work), except that ``tcp_tune`` is forced on for ``socketcand`` (docs/platform.md §1.2: without it Nagle
-  plus delayed ACK stall two back-to-back frames for ~44 ms). Vendor errors become
+  plus delayed ACK stall two back-to-back frames for ~44 ms), and that ``virtual`` with only the keys
+  :class:`~stagectl.drivers.inproc.InprocBus` implements opens that lighter bus on the same python-can
+  channel (it interoperates with stock ``virtual`` buses there). Vendor errors become
   :class:`~stagectl.errors.DriverInitError`.
 * :func:`quiet_can_loggers` silences python-can's socketcand client, which logs a WARNING on every TCP
   read that splits a frame.
@@ -40,6 +42,7 @@ from typing import Any
 
 import can
 
+from stagectl.drivers.inproc import INPROC_KEYS, InprocBus
 from stagectl.errors import ConfigError, DriverError, DriverInitError, short
 
 #: SocketCAN error class bits (linux/can/error.h) carried in an error frame's arbitration id
@@ -225,7 +228,11 @@ def open_bus(mapping: Mapping[str, Any], *, path: str = "can") -> can.BusABC:
     if kw.get("interface") == "socketcand":
         quiet_can_loggers()
     try:
-        bus = can.Bus(**kw)
+        bus: can.BusABC
+        if kw.get("interface") == "virtual" and kw.keys() <= INPROC_KEYS:
+            bus = InprocBus(**kw)  # the same channels as python-can's virtual bus, less work per frame
+        else:
+            bus = can.Bus(**kw)
     except (can.CanError, OSError, ValueError, TypeError, ImportError, TimeoutError) as exc:
         where = ", ".join(f"{k}={v!r}" for k, v in kw.items() if k in ("interface", "channel", "host", "port"))
         raise DriverInitError(f"{path}: cannot open CAN bus ({where}): {exc}") from exc

@@ -80,9 +80,7 @@ MODE_CST = 10
 SUPPORTED_CST_BIT = 1 << 9
 PDO_DISABLED = 0x80000000
 
-_TPDO1 = struct.Struct("<Hi")  # statusword 0x6041 (U16), position actual 0x6064 (INT32)
-_TPDO2 = struct.Struct("<i")  # velocity actual 0x606C (INT32)
-_RPDO1 = struct.Struct("<Hh")  # controlword 0x6040 (U16), target torque 0x6071 (INT16)
+_RPDO1 = pdo_codec.RPDO1  # controlword 0x6040 (U16), target torque 0x6071 (INT16)
 _EMCY = struct.Struct("<HB5s")
 
 
@@ -299,7 +297,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         # cyclic frames preallocated once, payloads packed in place (drivers/pdo_codec.py)
         self._sync_msg = pdo_codec.frame(SYNC_COB_ID)
         self._hb_msg = pdo_codec.frame(0x700 + cfg.controller_node_id, b"\x05")
-        self._rpdo1 = pdo_codec.Rpdo1Encoder(self._rpdo1_id)
+        self._use_layouts(pdo_codec.TPDO1_LAYOUT, pdo_codec.TPDO2_LAYOUT, pdo_codec.RPDO1_LAYOUT)
         units = cfg.max_force_n / cfg.force_per_unit_n
         self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
         self._reset_cyclic()
@@ -424,7 +422,9 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         except struct.error:
             return None
 
-    def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int], what: str) -> None:
+    def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int], what: str) -> pdo_codec.PdoLayout:
+        """Write one PDO's mapping and communication parameters, read them back and compare; the layout of
+        the cyclic codec comes from the mapping as read back (and the object dictionary's data types)."""
         self._sdo_write(comm, 1, "<I", cob_id | PDO_DISABLED, f"{what} COB-ID (disable)")
         self._sdo_write(mapping, 0, "<B", 0, f"{what} mapping count")
         for i, entry in enumerate(entries, 1):
@@ -444,6 +444,16 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 f"{[f'0x{e:08X}' for e in got]} count {n} COB-ID 0x{cob:08X} type {tt}, wrote {want[0]} count "
                 f"{want[1]} COB-ID 0x{cob_id:08X} type 1; check the drive's PDO mapping rules in its manual"
             )
+        try:
+            return pdo_codec.PdoLayout.from_mapping(got, self._od_type)
+        except ValueError as exc:
+            raise DriverInitError(f"{self.name}: configure: {what} {exc}") from exc
+
+    def _od_type(self, index: int, sub: int) -> int | None:
+        """CiA 301 data type of object ``index:sub`` in the drive's EDS (None: not there)."""
+        var = self._node.object_dictionary.get_variable(index, sub) if self._node is not None else None
+        dt = getattr(var, "data_type", None)
+        return int(dt) if isinstance(dt, int) else None
 
     def _disable_pdo(self, comm: int, cob_id: int) -> None:
         from canopen.sdo.exceptions import SdoError
@@ -474,14 +484,16 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._sdo_write(0x1017, 0, "<H", round(self.cfg.heartbeat_producer_s * 1000), "producer heartbeat [ms]")
             consumer = (self.cfg.controller_node_id << 16) | round(self.cfg.drive_consumer_timeout_s * 1000)
             self._sdo_write(0x1016, 1, "<I", consumer, "consumer heartbeat time")
-            self._map_pdo(0x1800, 0x1A00, 0x180 + nid, [0x60410010, 0x60640020], "TPDO1")
+            tpdo1 = self._map_pdo(0x1800, 0x1A00, 0x180 + nid, list(pdo_codec.TPDO1_MAPPING), "TPDO1")
+            tpdo2 = pdo_codec.TPDO2_LAYOUT
             if self.cfg.velocity:
-                self._map_pdo(0x1801, 0x1A01, 0x280 + nid, [0x606C0020], "TPDO2")
+                tpdo2 = self._map_pdo(0x1801, 0x1A01, 0x280 + nid, list(pdo_codec.TPDO2_MAPPING), "TPDO2")
             else:
                 self._disable_pdo(0x1801, 0x280 + nid)
             for n in (2, 3):
                 self._disable_pdo(0x1800 + n, 0x180 + 0x100 * n + nid)
-            self._map_pdo(0x1400, 0x1600, 0x200 + nid, [0x60400010, 0x60710010], "RPDO1")
+            rpdo1 = self._map_pdo(0x1400, 0x1600, 0x200 + nid, list(pdo_codec.RPDO1_MAPPING), "RPDO1")
+            self._use_layouts(tpdo1, tpdo2, rpdo1)
             for n in (1, 2, 3):
                 self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
             self._read_max_torque()
@@ -493,6 +505,15 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rebooted = False
         self._link_dead = False
         self.drive_nmt_state = None  # the next heartbeat tells (PRE-OPERATIONAL ones came during configure)
+
+    def _use_layouts(self, tpdo1: pdo_codec.PdoLayout, tpdo2: pdo_codec.PdoLayout,
+                     rpdo1: pdo_codec.PdoLayout) -> None:
+        """The cyclic codec from the layouts read back at configure (preallocated RPDO1 frame, unpackers)."""
+        self._tpdo1_unpack = tpdo1.struct.unpack_from
+        self._tpdo1_size = tpdo1.size
+        self._tpdo2_unpack = tpdo2.struct.unpack_from
+        self._tpdo2_size = tpdo2.size
+        self._rpdo1 = pdo_codec.Rpdo1Encoder(self._rpdo1_id, rpdo1)
 
     def _write_cycle_period(self) -> None:
         """0x1006 = loop period; optional on a drive that only consumes SYNC (abort 0x06020000 → skipped)."""
@@ -551,12 +572,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             return None  # CANopen CC uses 11-bit ids: a 29-bit frame is never one of ours
         if cid == self._tpdo1_id:
             self._bus_off = False
-            if len(msg.data) >= 6:
-                sw, raw = _TPDO1.unpack_from(msg.data)
-                return sw, raw
-            self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(msg.data)} bytes, need 6)"))
-        elif cid == self._tpdo2_id and len(msg.data) >= 4:
-            self.velocity_m_s = _TPDO2.unpack_from(msg.data)[0] * self.cfg.velocity_resolution_m_s
+            data = msg.data
+            if len(data) >= self._tpdo1_size:
+                return self._tpdo1_unpack(data)  # (statusword, raw position)
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(data)} bytes, need "
+                                                        f"{self._tpdo1_size})"))
+        elif cid == self._tpdo2_id and len(msg.data) >= self._tpdo2_size:
+            self.velocity_m_s = self._tpdo2_unpack(msg.data)[0] * self.cfg.velocity_resolution_m_s
         elif cid == self._emcy_id and len(msg.data) >= 3:
             code, reg, _ = _EMCY.unpack(bytes(msg.data[:8]).ljust(8, b"\0"))
             if code != 0:
@@ -612,7 +634,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     # ------------------------------------------------------------------ cyclic API
     def sync(self) -> None:
         """Drain stale frames, send SYNC and (every N cycles) the controller heartbeat. Real-time safe."""
-        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if self._state is not DeviceState.ENABLED:  # (the cycle's usual state, checked first)
+            self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
@@ -666,7 +689,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
 
     def read(self) -> Measurement:
         """Measurement sampled at this cycle's SYNC (``fresh=False`` if the TPDO missed). Real-time safe."""
-        self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
+        if self._state is not DeviceState.ENABLED:  # (the cycle's usual state, checked first)
+            self._require(DeviceState.CONFIGURED, DeviceState.ENABLED, DeviceState.FAULT)
         if not self._synced:
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
@@ -692,7 +716,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self.statusword = sw
             self._missed = 0
             if self._have_pos:
-                counts = unwrap32(self._raw, self._counts, raw)
+                counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)  # unwrap32
                 step = abs(counts - self._counts)
                 if step > self._max_step_counts * (1 + self._skipped_since_good):
                     fault = DeviceFault(
@@ -732,14 +756,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             )
         if fault is not None and self._state is not DeviceState.CONFIGURED:
             self._latch(fault)
-        return Measurement(
-            position_m=self._counts * self.cfg.resolution_m,
-            fresh=fresh,
-            counts=self._counts,
-            status=self.statusword,
-            fault=fault,
-            age_cycles=age,
-        )
+        # position_m, fresh, counts, status, fault, age_cycles
+        return Measurement(self._counts * self.resolution_m, fresh, self._counts, self.statusword, fault, age)
 
     @property
     def force_limit_n(self) -> float:
@@ -776,7 +794,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: write() needs an open, configured drive (state {self._state.value})")
 
     def _send_rpdo(self, cw: int, torque: int) -> None:
-        self._send(self._rpdo1.encode(cw, torque))
+        try:
+            self._bus.send(self._rpdo1.encode(cw, torque))  # type: ignore[union-attr]
+        except (can.CanError, OSError) as exc:
+            self._note(DeviceFault(FaultKind.BUS_ERROR, f"transmit failed: {exc}"))
 
     def quick_stop(self) -> None:
         """Controlword QUICK STOP with zero torque, now and in every following ``write``. Real-time safe."""

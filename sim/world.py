@@ -170,6 +170,8 @@ class SimWorld:
         self._closed = False
         self.drive: SimCia402Drive | None = None
         self.encoder: SimCia406Encoder | None = None
+        self._devs_of: tuple[SimCia402Drive | None, SimCia406Encoder | None] = (None, None)
+        self._devs: tuple[SimCanopenDevice, ...] = ()
         self.interferometer: SimInterferometer | None = None
         self.server: SocketcandServer | None = None
         self.frames_in = 0
@@ -186,8 +188,13 @@ class SimWorld:
         return cls(cfg, None, base_dir)
 
     @property
-    def devices(self) -> list[SimCanopenDevice]:
-        return [d for d in (self.drive, self.encoder) if d is not None]
+    def devices(self) -> tuple[SimCanopenDevice, ...]:
+        """The drive and the encoder present (rebuilt only when either is replaced: read several times a cycle)."""
+        d, e = self.drive, self.encoder
+        if d is not self._devs_of[0] or e is not self._devs_of[1]:
+            self._devs_of = (d, e)
+            self._devs = tuple(x for x in (d, e) if x is not None)
+        return self._devs
 
     def open(self) -> None:
         """Open the device-side bus, power the devices on (boot-up frames), start servers. Idempotent."""

@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 import threading
 import time
 from collections.abc import Callable
@@ -165,6 +166,17 @@ SLOW_DOWN_LEVELS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 def _next_level(lvl: float) -> float:
     i = SLOW_DOWN_LEVELS.index(lvl)
     return SLOW_DOWN_LEVELS[min(i + 1, len(SLOW_DOWN_LEVELS) - 1)]
+
+
+def _term_getter(names: tuple[str, ...]) -> Callable[[dict[str, float]], tuple[float, ...]]:
+    """``terms -> tuple(terms[n] for n in names)`` (KeyError for a missing name) at C speed."""
+    if len(names) == 1:
+        name = names[0]
+        return lambda terms: (terms[name],)
+    if not names:
+        return lambda terms: ()
+    get: Callable[[dict[str, float]], tuple[float, ...]] = operator.itemgetter(*names)
+    return get
 
 
 def _prev_level(lvl: float) -> float:
@@ -587,6 +599,10 @@ class ControlLoop:
         holds = isinstance(controller, HoldsOnStale)
         tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
+        lvl_at, up = math.nan, math.inf  # slow-down level whose step-up threshold ``up`` is current
+        term_row = _term_getter(term_names)  # the terms, in column order
+        no_terms = (0.0,) * len(term_names)
+        serve, execute = self._inbox.serve, self._execute
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -609,7 +625,7 @@ class ControlLoop:
                 m = sensor.read()
                 x = m.position_m
                 self._fresh = m.fresh
-                self._inbox.serve(self._execute, t, x)
+                serve(execute, t, x)
                 if self._just_reset:  # this cycle's sample predates the reset: restart cleanly next cycle
                     self._just_reset = False
                     m = Measurement(x, False)
@@ -636,8 +652,11 @@ class ControlLoop:
                             self.t_eff_s += min(1.0, dt / tau_slow) * (d_eff - self.t_eff_s)
                             r = self.t_eff_s / period
                             lvl = self.slow_down
-                            if lvl < SLOW_DOWN_LEVELS[-1] and r >= _next_level(lvl):
-                                lvl = _next_level(lvl)
+                            if lvl != lvl_at:  # the next level up, looked up once per level change
+                                lvl_at = lvl
+                                up = _next_level(lvl) if lvl < SLOW_DOWN_LEVELS[-1] else math.inf
+                            if r >= up:
+                                lvl = up
                             elif lvl > 1.0 and r < 0.9 * lvl:
                                 lvl = _prev_level(lvl)
                             if lvl != self.slow_down:
@@ -692,9 +711,15 @@ class ControlLoop:
                 u = self._u
                 if learner is not None:
                     lrow = learner.row()
-                row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tuple(
-                    [terms.get(n, 0.0) for n in term_names]
-                ) + lrow + (1.0 - fresh_row, float(skipped))
+                if not terms:
+                    tvals = no_terms
+                else:
+                    try:  # a step's terms name every column (one C-speed lookup); else a missing one is 0
+                        tvals = term_row(terms)
+                    except KeyError:
+                        tvals = tuple([terms.get(n, 0.0) for n in term_names])
+                row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tvals + lrow + (
+                    1.0 - fresh_row, float(skipped))
                 sinks.emit(row)
                 self._snap = (t, x, ref.x_m, u, k)
                 if on_cycle is not None:

@@ -1,4 +1,4 @@
-"""``stagectl bench loop``: real-time loop timing on the embedded simulated stage.
+"""``stagectl bench loop``: real-time loop timing on the embedded simulated stage, and the cycle's own cost.
 
 Runs the same :class:`~stagectl.loop.ControlLoop` as ``stagectl run`` (MonotonicClock, absolute-deadline
 ``clock_nanosleep``, ``loop.realtime`` settings: timer slack 1 ns, gc.freeze, optional FIFO/affinity/mlock)
@@ -8,6 +8,13 @@ clock by the skipped slots), with the demo motion
 on the embedded plant and every cycle's telemetry row appended to an in-memory recorder. Reports wake-up
 lateness (now − deadline) p50/p99/max, loop execution time per cycle, overruns (skipped slots) and CPU
 (loop thread and whole process, fraction of one core). Targets: lateness p99 ≤ 100 µs, overruns ≤ 0.1 %.
+
+``cycle_breakdown`` (``--breakdown-cycles``, :func:`breakdown`): the cycle's own cost without the simulated
+devices (their work, served in the loop thread through the drivers' lock-step pump, is timed apart: a real
+drive does it). ``hot``: cycles back to back in simulated time, per part (SYNC + drain, TPDO receive + decode,
+requests, safety checks, reference, controller, RPDO encode + send, telemetry sinks, cycle statistics, the
+rest of the loop body); target ≤ 30 µs. ``realtime``: the same cycles on the wall clock, beside the CPU an
+empty loop on the same sleep costs (waking up is not free, and the caches are cold after other processes ran).
 Timing is measured, never asserted in tests; the machine's load is reported alongside (``os.getloadavg``).
 """
 
@@ -15,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import threading
 import time
@@ -35,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fifo", type=int, default=None, help="SCHED_FIFO priority (needs privileges)")
     p.add_argument("--spin-us", type=float, default=None, help="hybrid wake-up: busy-wait the last N µs")
     p.add_argument("--breakdown-cycles", type=int, default=3000,
-                   help="cycles of the per-cycle cost breakdown run (0: skip; default 3000)")
+                   help="cycles of each per-cycle cost breakdown run, hot and real time (0: skip; default 3000)")
 
 
 #: the parts of one cycle timed by the breakdown run: (label, object attribute on the loop, method)
@@ -50,118 +58,222 @@ PARTS = (
     ("safety_checks", "safety", "limit_force"),
     ("actuator_write", "actuator", "write"),
     ("telemetry_sinks", "_sinks", "emit"),
+    ("cycle_stats", "stats", "record"),
 )
+#: the hot cycle's own cost the bench is held to (issue 14) [µs]
+HOT_TARGET_US = 30.0
 
 
-def breakdown(cfg: Any, cycles: int) -> dict[str, Any]:
-    """Per-cycle cost of each part of the cycle (µs, mean and p50 over ``cycles`` real-time cycles).
+def _wrap_pumps(loop: Any, clock_ns: Any, acc: list[int]) -> bool:
+    """Time the drivers' lock-step pumps (the simulated devices, served in the loop thread) into ``acc[0]``
+    [ns of ``clock_ns``], counting the calls in ``acc[1]``; False when no device has a pump (PlantIO, real
+    devices)."""
+    pumped: set[int] = set()
+    for attr in ("sync", "sensor", "actuator"):
+        drv = getattr(loop, attr, None)
+        pump = getattr(drv, "_pump", None)
+        if pump is None or id(drv) in pumped:
+            continue
+        pumped.add(id(drv))
 
-    A separate stage is built and every part's method is replaced, on that instance only, by a timing wrapper
-    (``perf_counter`` before and after); ``loop_other`` is the cycle's execution time minus the timed parts
-    (the loop body itself: statistics, the telemetry row, bookkeeping, from the p50s) and ``wrapper_overhead_us`` the cost of
-    one wrapper, measured here, which is subtracted from every part."""
-    import numpy as np
-
-    from stagectl.app import build_stage
-
-    perf = time.perf_counter
-    acc: dict[str, list[float]] = {}
-
-    def timed(label: str, fn: Any) -> Any:
-        store = acc.setdefault(label, [])
-
-        def w(*a: Any, **k: Any) -> Any:
-            t0 = perf()
+        def timed_pump(fn: Any = pump) -> Any:
+            c0 = clock_ns()
             try:
-                return fn(*a, **k)
+                return fn()
             finally:
-                store.append(perf() - t0)
+                acc[0] += clock_ns() - c0
+                acc[1] += 1
 
-        return w
+        setattr(drv, "_pump", timed_pump)
+    return bool(pumped)
 
-    # the cost of a wrapper around a no-op, to subtract
-    probe: list[float] = []
+
+def _clock_cost_ns(clock_ns: Any) -> float:
+    """What one call of ``clock_ns`` costs [ns], hot (``time.thread_time_ns`` is a system call here, not a vDSO
+    read: about 1 µs in this VM). A timed pump leaves about one such call outside its interval, in the loop's
+    count: subtracted per pump call."""
+    best = math.inf
+    for _ in range(5):
+        t0 = clock_ns()
+        for _ in range(1000):
+            clock_ns()
+        best = min(best, (clock_ns() - t0) / 1001)
+    return best
+
+
+def _wrapper_overhead_ns() -> float:
+    """What a timing wrapper around a call costs beyond what its inner timer sees [ns] (measured here)."""
+    import statistics
+
+    ns = time.perf_counter_ns
+    probe: list[int] = []
 
     def noop() -> None:
         return None
 
     def wn() -> None:
-        t0 = perf()
+        t0 = ns()
         try:
             return noop()
         finally:
-            probe.append(perf() - t0)
+            probe.append(ns() - t0)
 
-    t0 = perf()
-    for _ in range(20000):
-        wn()
-    overhead = (perf() - t0) / 20000 - float(np.median(probe))  # outer call cost not seen by the inner timer
-    overhead = max(overhead, 0.0)
+    best = math.inf
+    for _ in range(5):
+        probe.clear()
+        t0 = ns()
+        for _ in range(4000):
+            wn()
+        best = min(best, (ns() - t0) / 4000 - statistics.median(probe))
+    return max(best, 0.0)
 
-    with build_stage(cfg) as stage:
+
+def hot_breakdown(cfg: Any, cycles: int, repeats: int = 5) -> dict[str, Any]:
+    """The cycle's own cost *hot*: the same loop in simulated time (SimClock, lock-step devices), cycles back to
+    back, so nothing sleeps and the caches stay warm; the simulated devices (served through the drivers' pump)
+    are timed apart and left out, a telemetry row goes to an in-memory recorder every cycle.
+
+    ``own_us_per_cycle``: (thread CPU − pump CPU − one thread-clock call per pump call) / cycles between two
+    cycles of a run (its start-up and teardown left out), no wrappers, the lowest of ``repeats`` runs (the machine is shared: the lowest is the
+    least disturbed). ``parts``: a second stage with every part's method
+    wrapped (perf_counter_ns before and after, pump time inside subtracted, the wrapper's own cost subtracted),
+    p50 per call × calls per cycle; ``loop_other`` = own − Σ parts (the loop body itself: dt and slow-down
+    bookkeeping, the telemetry row, the snapshot)."""
+    import numpy as np
+
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.recorder import Recorder
+
+    n_run = max(100, cycles // repeats)
+    tns = time.thread_time_ns
+    own_runs: list[float] = []
+    dev_runs: list[float] = []
+    timer = _clock_cost_ns(tns)
+    with build_stage(cfg, clock=SimClock()) as stage:
         loop = stage.loop
         stage.load_scenario(cfg.demo.scenario, repeat=True)
+        loop.add_sink(Recorder(loop.columns, n_run * (repeats + 1) + 1024))
+        pump_ns = [0, 0]
+        _wrap_pumps(loop, tns, pump_ns)
+        # marks (thread CPU, pump CPU, pump calls) at the end of two cycles of a run: start-up and teardown
+        # (enable/disable cycles) stay outside; the hook's own cost (a counter and a compare) stays inside
+        count = [0]
+        marks: list[tuple[int, int, int]] = []
+        first, last = 20, n_run - 1
+
+        def mark() -> None:
+            count[0] += 1
+            if count[0] == first or count[0] == last:
+                marks.append((tns(), pump_ns[0], pump_ns[1]))
+
+        loop.on_cycle = mark
+        loop.run(cycles=n_run)  # warm-up: first calls, caches
+        for _ in range(repeats):
+            count[0] = 0
+            marks.clear()
+            loop.run(cycles=n_run)
+            if len(marks) == 2:
+                (c0, p0, k0), (c1, p1, k1) = marks
+                own_runs.append((c1 - c0 - (p1 - p0) - (k1 - k0) * timer) / (last - first) / 1e3)
+                dev_runs.append((p1 - p0) / (last - first) / 1e3)
+    overhead = _wrapper_overhead_ns()
+    pns = time.perf_counter_ns
+    acc: dict[str, list[int]] = {}
+    with build_stage(cfg, clock=SimClock()) as stage:
+        loop = stage.loop
+        stage.load_scenario(cfg.demo.scenario, repeat=True)
+        loop.add_sink(Recorder(loop.columns, 2 * n_run + 1024))
+        pump_ns = [0, 0]
+        _wrap_pumps(loop, pns, pump_ns)
+
+        def timed(label: str, fn: Any) -> Any:
+            store = acc.setdefault(label, [])
+
+            def w(*a: Any, **k: Any) -> Any:
+                p0 = pump_ns[0]
+                t0 = pns()
+                try:
+                    return fn(*a, **k)
+                finally:
+                    store.append(pns() - t0 - (pump_ns[0] - p0))
+
+            return w
+
         seen: set[tuple[int, str]] = set()
-        n_wrapped: dict[str, int] = {}
         for label, attr, meth in PARTS:
             obj = getattr(loop, attr, None)
             if obj is None or (id(obj), meth) in seen or not hasattr(obj, meth):
                 continue
             seen.add((id(obj), meth))
             setattr(obj, meth, timed(label, getattr(obj, meth)))
-            n_wrapped[label] = n_wrapped.get(label, 0) + 1
-        # the simulated devices (virtual drive, encoder, plant) are served inside the loop thread through the
-        # drivers' lock-step pump: on a real stage that work is done by the drive, so it is timed apart
-        dev_wall: list[float] = []
-        dev_cpu: list[float] = []
-        pumped: set[int] = set()
-        for attr in ("sync", "sensor", "actuator"):
-            drv = getattr(loop, attr, None)
-            pump = getattr(drv, "_pump", None)
-            if pump is None or id(drv) in pumped:
-                continue
-            pumped.add(id(drv))
-
-            def timed_pump(fn: Any = pump) -> Any:
-                w0, c0 = perf(), time.thread_time()
-                try:
-                    return fn()
-                finally:
-                    dev_cpu.append(time.thread_time() - c0)
-                    dev_wall.append(perf() - w0)
-
-            setattr(drv, "_pump", timed_pump)
-        cpu0 = time.thread_time()
-        res = loop.run(cycles=cycles)
-        cpu_cycles = time.thread_time() - cpu0
+        loop.run(cycles=n_run)  # warm-up
+        for xs in acc.values():
+            xs.clear()
+        res = loop.run(cycles=2 * n_run)
     n = max(1, res.cycles)
-    # skip the first 10 % (warm-up: caches, branch predictors, first-touch)
     parts: dict[str, dict[str, float]] = {}
-    total_parts = 0.0
+    total = 0.0
     for label, xs in acc.items():
-        arr = np.asarray(xs[len(xs) // 10:]) if xs else np.zeros(1)
-        calls_per_cycle = len(xs) / n
-        mean = max(float(arr.mean()) - overhead, 0.0) * calls_per_cycle * 1e6
-        parts[label] = {"mean_us": mean, "p50_us": max(float(np.median(arr)) - overhead, 0.0) * 1e6 * calls_per_cycle,
-                        "calls_per_cycle": calls_per_cycle}
-        total_parts += parts[label]["p50_us"]
-    exec_p50 = float(res.exec_us.p50)
-    wrappers = sum(p["calls_per_cycle"] for p in parts.values())
-    parts["loop_other"] = {"p50_us": exec_p50 - total_parts - wrappers * overhead * 1e6}
-    own: dict[str, float] | None = None
-    if dev_wall:
-        dev_w = sum(dev_wall) / n * 1e6
-        dev_c = sum(dev_cpu) / n * 1e6
-        own = {"loop_thread_cpu_per_cycle_us": cpu_cycles / n * 1e6,
-               "simulated_devices_cpu_per_cycle_us": dev_c,
-               "simulated_devices_wall_per_cycle_us": dev_w,
-               "own_cpu_per_cycle_us": cpu_cycles / n * 1e6 - dev_c}
-    return {"cycles": res.cycles, "exec_p50_us_with_wrappers": exec_p50, "wrapper_overhead_us": overhead * 1e6,
-            "parts": parts, "without_simulated_devices": own,
-            "note": "p50 per part, wrapper overhead subtracted; loop_other = exec p50 − Σ parts; "
-                    "without_simulated_devices: means over the run (thread CPU time), the virtual devices and "
-                    "the plant served through the drivers' lock-step pump counted apart (a real drive does "
-                    "that work), including the timing wrappers' own cost"}
+        arr = np.asarray(xs, dtype=float) if xs else np.zeros(1)
+        per = len(xs) / n
+        p50 = max(float(np.median(arr)) - overhead, 0.0) * per / 1e3
+        parts[label] = {"p50_us": p50, "mean_us": max(float(arr.mean()) - overhead, 0.0) * per / 1e3,
+                        "calls_per_cycle": per}
+        total += p50
+    own = min(own_runs)
+    parts["loop_other"] = {"p50_us": own - total}
+    return {"cycles_per_run": n_run, "runs": repeats, "own_us_per_cycle": own,
+            "own_us_per_cycle_runs": own_runs, "simulated_devices_us_per_cycle": float(np.median(dev_runs)),
+            "wrapper_overhead_us": overhead / 1e3, "thread_clock_call_us": timer / 1e3, "parts": parts,
+            "target_us": HOT_TARGET_US,
+            "target_met": own <= HOT_TARGET_US}
+
+
+def sleep_floor(period_s: float, cycles: int) -> float:
+    """Thread CPU per cycle [µs] of an empty loop on the same absolute-deadline sleep (MonotonicClock, the
+    loop's real-time settings already applied in this thread): what waking up and going back to sleep costs
+    by itself (kernel entry/exit, timer, the cold caches after other processes ran)."""
+    from stagectl.clock import MonotonicClock
+
+    clock = MonotonicClock()
+    t0 = clock.now() + period_s
+    c0 = time.thread_time_ns()
+    for k in range(cycles):
+        clock.sleep_until(t0 + k * period_s)
+    return (time.thread_time_ns() - c0) / max(1, cycles) / 1e3
+
+
+def breakdown(cfg: Any, cycles: int) -> dict[str, Any]:
+    """Per-cycle cost of the loop: :func:`hot_breakdown` (the parts, hot) and a real-time run of ``cycles``
+    cycles without wrappers (loop-thread CPU with the simulated devices' pump timed apart), beside the CPU an
+    empty loop on the same sleep costs (:func:`sleep_floor`, ``cycles // 3`` cycles in the same thread)."""
+    from stagectl.app import build_stage
+
+    hot = hot_breakdown(cfg, cycles)
+    tns = time.thread_time_ns
+    with build_stage(cfg) as stage:
+        loop = stage.loop
+        stage.load_scenario(cfg.demo.scenario, repeat=True)
+        pump_ns = [0, 0]
+        has_pump = _wrap_pumps(loop, tns, pump_ns)
+        cpu0 = tns()
+        res = loop.run(cycles=cycles)
+        cpu_cycles = tns() - cpu0
+        floor = sleep_floor(cfg.loop.period_s, max(300, cycles // 3))
+    n = max(1, res.cycles)
+    dev = pump_ns[0] / n / 1e3 if has_pump else 0.0
+    own = (cpu_cycles - pump_ns[1] * hot["thread_clock_call_us"] * 1e3) / n / 1e3 - dev
+    rt = {"cycles": res.cycles, "loop_thread_cpu_per_cycle_us": cpu_cycles / n / 1e3,
+          "simulated_devices_cpu_per_cycle_us": dev, "own_cpu_per_cycle_us": own,
+          "sleep_floor_cpu_per_cycle_us": floor, "own_minus_sleep_floor_us": own - floor}
+    return {"hot": hot, "realtime": rt,
+            "note": "hot: simulated time, cycles back to back, own = thread CPU minus the simulated devices "
+                    "(the drivers' lock-step pump: a real drive does that work) and minus one thread-clock call "
+                    "(a system call) per timed pump, lowest of the runs; parts p50 "
+                    "with the wrapper cost subtracted, loop_other = own − Σ parts. realtime: the same without "
+                    "wrappers at the config's rate on the wall clock (includes waking up and sleeping: "
+                    "sleep_floor is an empty loop on the same sleep, measured right after)"}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

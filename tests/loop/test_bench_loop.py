@@ -1,0 +1,36 @@
+"""``stagectl bench loop``'s per-cycle breakdown: every part of the cycle is timed, the simulated devices are
+counted apart, and the real-time pass reports the sleep floor beside the cycle. Structure only: timing figures
+are measured by the bench, never asserted here."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+from stagectl.bench import loop as bench_loop
+from stagectl.config import IoKind, load_app_config
+
+
+@pytest.mark.parametrize("io", [IoKind.EMBEDDED_CANOPEN, IoKind.PLANT_IO])
+def test_breakdown_times_every_part_and_keeps_the_simulated_devices_apart(io):
+    cfg = load_app_config(bench_loop.REPO_CONFIG)
+    rt_off = dataclasses.replace(cfg.loop.realtime, gc_freeze=False)  # (the test process keeps its gc)
+    cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=io),
+                              loop=dataclasses.replace(cfg.loop, realtime=rt_off))
+    out = bench_loop.breakdown(cfg, 300)
+    hot, rt = out["hot"], out["realtime"]
+    labels = {label for label, _, _ in bench_loop.PARTS}
+    assert set(hot["parts"]) == labels | {"loop_other"}
+    calls = {k: v["calls_per_cycle"] for k, v in hot["parts"].items() if k != "loop_other"}
+    assert calls["safety_checks"] == pytest.approx(3.0) and calls["controller"] == pytest.approx(1.0)
+    assert all(0.99 <= c <= 1.1 for k, c in calls.items() if k != "safety_checks")  # sync/read: + start-up
+    assert all(v["p50_us"] >= 0.0 for k, v in hot["parts"].items() if k != "loop_other")
+    assert len(hot["own_us_per_cycle_runs"]) == hot["runs"] and hot["own_us_per_cycle"] > 0.0
+    assert hot["target_met"] == (hot["own_us_per_cycle"] <= bench_loop.HOT_TARGET_US)
+    if io is IoKind.EMBEDDED_CANOPEN:  # the virtual drive and plant, served through the driver's pump
+        assert hot["simulated_devices_us_per_cycle"] > 0.0 and rt["simulated_devices_cpu_per_cycle_us"] > 0.0
+    else:  # PlantIO has no pump: nothing is taken out
+        assert hot["simulated_devices_us_per_cycle"] == 0.0 and rt["simulated_devices_cpu_per_cycle_us"] == 0.0
+    assert rt["cycles"] == 300 and rt["sleep_floor_cpu_per_cycle_us"] > 0.0
+    assert rt["own_minus_sleep_floor_us"] == pytest.approx(rt["own_cpu_per_cycle_us"]
+                                                           - rt["sleep_floor_cpu_per_cycle_us"])
