@@ -62,6 +62,13 @@ def test_steps_settle_without_limit_cycle_on_the_seed_stage(seed):
     dwell = seed.controller.settle.dwell_s
     for settle, ip in zip(r["settle_s"], r["in_position_after_s"], strict=True):
         assert ip is not None and ip <= settle + dwell + 1.5e-3
+    # the move-end diagnosis: one row per step, its error 30 ms later agrees with the settle verdict
+    end = r["at_move_end"]
+    assert len(end) == 4
+    for row, settle in zip(end, r["settle_s"], strict=True):
+        assert {"e_m", "v_m_s", "u_dob_n", "u_ff_n", "u_pd_n", "e_window_m"} <= set(row)
+        if settle <= r["window_s"]:
+            assert abs(row["e_window_m"]) <= r["tolerance_m"]
 
 
 def test_without_the_standstill_structure_the_same_gains_hunt(seed):
