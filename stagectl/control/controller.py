@@ -95,6 +95,15 @@ class FeedforwardConfig:
     reversal_threshold_m: float = param(5e-9, unit="m", desc="move-back that confirms a reversal", ge=0.0)
     reversal_velocity_m_s: float = param(1e-5, unit="m/s", desc="reverse velocity that confirms a reversal",
                                          gt=0.0)
+    adapt_bandwidth_hz: float = param(
+        0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
+        "takes over the observer's estimate while the reference moves (u_ff = θ·F̂, dθ/dt = γ·d̂/F̂; 0: off)",
+        ge=0.0, le=50.0)
+    adapt_min_force_n: float = param(
+        0.1, unit="N", desc="θ adapts only while |F̂| (model force) is at least this (no division near a zero "
+        "crossing)", gt=0.0)
+    adapt_max_change_fraction: float = param(
+        0.5, desc="θ stays within 1 ± this (the model's force is trusted to this fraction)", gt=0.0, lt=1.0)
     lookahead_s: float | None = param(
         None, unit="s", desc="evaluate the reference this far ahead, plus effects.delay (None: period_s/2, the "
         "zero-order-hold mid-point; add the I/O delay of the actuator path)", ge=0.0, le=0.1)
@@ -260,6 +269,7 @@ class StageController:
         self._vdt = math.nan
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
+        self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -318,6 +328,7 @@ class StageController:
             self.ff.reset(x_m)
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
         self.settle.reset()
+        self.ff_scale = 1.0
         self._ff_bump = None
         self._last_ref = None
         self._ff_ahead_s = 0.0
@@ -405,6 +416,22 @@ class StageController:
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
 
+    def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob
+               ) -> tuple[float, float]:
+        """Feed-forward scale adaptation (module docstring): θ += γ·dt·d̂/F̂ while the reference moves and
+        |F̂| >= ``adapt_min_force_n``; the force θ takes over leaves the observer (``dob.shift``): u unchanged."""
+        ffc = self.cfg.feedforward
+        th = self.ff_scale
+        f_raw = u_ff / th
+        if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) or abs(f_raw) < ffc.adapt_min_force_n:
+            return u_ff, d_hat
+        lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
+        th_new = min(hi, max(lo, th + 2.0 * math.pi * ffc.adapt_bandwidth_hz * dt * d_hat / f_raw))
+        delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
+        self.ff_scale = th_new
+        dob.shift(delta)
+        return th_new * f_raw, d_hat + delta
+
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
     accepts_learned_force = True
@@ -438,7 +465,7 @@ class StageController:
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
-        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) if ff is not None else 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -462,6 +489,8 @@ class StageController:
         # observer (residual form: its input is the previous command minus the previous friction FF)
         dob = self.dob
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
+        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None:
+            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob)
         # feedback + clamp
         pid = self.pid
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
@@ -516,7 +545,7 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        u_ff = ff.step(dt, ref)
+        u_ff = ff.step(dt, ref) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
