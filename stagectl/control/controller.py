@@ -418,8 +418,9 @@ class StageController:
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob
                ) -> tuple[float, float]:
-        """Feed-forward scale adaptation (module docstring): θ += γ·dt·d̂/F̂ while the reference moves and
-        |F̂| >= ``adapt_min_force_n``; the force θ takes over leaves the observer (``dob.shift``): u unchanged."""
+        """Feed-forward scale adaptation (module docstring): θ += γ·dt·d̂/F̂ while the reference moves,
+        |F̂| >= ``adapt_min_force_n`` and no learned force is applied (one learner at a time: with ILC on, θ
+        stays where it is); the force θ takes over leaves the observer (``dob.shift``): u unchanged."""
         ffc = self.cfg.feedforward
         th = self.ff_scale
         f_raw = u_ff / th
@@ -489,7 +490,7 @@ class StageController:
         # observer (residual form: its input is the previous command minus the previous friction FF)
         dob = self.dob
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
-        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None:
+        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:
             u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob)
         # feedback + clamp
         pid = self.pid
