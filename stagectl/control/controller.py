@@ -95,6 +95,12 @@ class FeedforwardConfig:
     reversal_threshold_m: float = param(5e-9, unit="m", desc="move-back that confirms a reversal", ge=0.0)
     reversal_velocity_m_s: float = param(1e-5, unit="m/s", desc="reverse velocity that confirms a reversal",
                                          gt=0.0)
+    rest_sync_hz: float = param(
+        0.0, unit="Hz", desc="with an observer and kind: model: at standstill, rate at which the observer's "
+        "estimate is moved into the friction model's pre-sliding state (the model is loaded by a virtual "
+        "displacement until its force is the one the plant holds; 0: off)", ge=0.0, le=200.0)
+    rest_sync_max_step_m: float = param(
+        2e-9, unit="m", desc="largest virtual displacement fed to the model per period by rest_sync_hz", gt=0.0)
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
         "takes over the observer's estimate while the reference moves (u_ff = θ·F̂, dθ/dt = γ·d̂/F̂; 0: off)",
@@ -270,6 +276,7 @@ class StageController:
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
+        self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -390,6 +397,7 @@ class StageController:
         self.mass_kg = parts.mass_kg
         self.dob = new_dob
         self.ff = parts.ff
+        self._k_ps = _stiffness(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
@@ -432,6 +440,25 @@ class StageController:
         self.ff_scale = th_new
         dob.shift(delta)
         return th_new * f_raw, d_hat + delta
+
+    def _rest_sync(self, dt: float, ff: FrictionFeedforward, u_ff: float, d_hat: float,
+                   dob: QFilterDob | KalmanDob) -> tuple[float, float]:
+        """Feed-forward through the stop: move λ·d̂ (λ = 1 − exp(−2π·rest_sync_hz·dt)) of the observer's estimate
+        into the model's state by a virtual displacement Δx = λ·d̂/(θ·k_ps) (k_ps: the model's largest,
+        initial pre-sliding stiffness, so the step never overshoots; |Δx| <= rest_sync_max_step_m). Whatever
+        force the model really takes (ΔF, less once its elements saturate) leaves the observer: u unchanged."""
+        ffc = self.cfg.feedforward
+        k = self._k_ps
+        if k <= 0.0 or d_hat == 0.0:
+            return u_ff, d_hat
+        th = self.ff_scale
+        lam = 1.0 - math.exp(-2.0 * math.pi * ffc.rest_sync_hz * dt)
+        lim = ffc.rest_sync_max_step_m
+        dx = max(-lim, min(lim, lam * d_hat / (th * k)))
+        new = th * ff.nudge(dx, dt)
+        delta = u_ff - new  # old − new feed-forward force: the observer carries it
+        dob.shift(delta)
+        return new, d_hat + delta
 
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
@@ -495,6 +522,8 @@ class StageController:
         # feedback + clamp
         pid = self.pid
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+        if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+            u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
         hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
@@ -562,6 +591,14 @@ class StageController:
         terms["u_inertia"] = u_in
         st.terms = terms
         return Command(u, terms, ("stale",))
+
+
+def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:
+    """Initial pre-sliding stiffness Σk [N/m] of a model feed-forward's friction model (0: none / not known)."""
+    if not isinstance(ff, FrictionFeedforward):
+        return 0.0
+    k = getattr(ff.model, "stiffness_n_m", None)
+    return float(k) if isinstance(k, (int, float)) and k > 0.0 else 0.0
 
 
 def _scaled_pid(p: PidConfig, s: float) -> PidConfig:

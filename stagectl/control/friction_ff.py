@@ -152,6 +152,24 @@ class FrictionFeedforward:
         return st.u_ff_n
 
 
+    def nudge(self, dx_m: float, dt: float) -> float:
+        """Move the model copy's *state* by a virtual displacement ``dx_m`` [m] over ``dt`` [s] without moving
+        its fed position (real-time safe): at standstill the controller loads the model's pre-sliding springs
+        so that its force matches the force the plant is measured to hold (feed-forward through the stop).
+        Returns the new u_ff [N] at the held reference."""
+        st = self.state
+        if dx_m == 0.0 or math.isnan(st.x_fed_m):
+            return st.u_ff_n
+        f = self.model.step(self._mstate, dx_m, dx_m / dt, dt)
+        self._f_model = f
+        eff = self.effects
+        x = st.x_fed_m
+        f = eff.modify_friction(f, x) + eff.velocity_force(0.0)
+        st.f_friction_n = f
+        st.u_ff_n = f + st.f_other_n
+        return st.u_ff_n
+
+
 class CoulombFeedforward:
     """Static baseline ``u_ff = d·F_c + c_v·v_r`` with the jitter-immune direction latch (``kind: coulomb``)."""
 
