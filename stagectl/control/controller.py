@@ -108,6 +108,10 @@ class FeedforwardConfig:
     adapt_min_force_n: float = param(
         0.1, unit="N", desc="θ adapts only while |F̂| (model force) is at least this (no division near a zero "
         "crossing)", gt=0.0)
+    adapt_presliding_m: float = param(
+        5e-6, unit="m", desc="adaptation: within this travel after a reversal (or the start of a motion) the "
+        "observer's estimate is taken as an error of the model's stiffness and adapts β, the scale of the "
+        "model's input (stiffness ×β, Stribeck velocity ÷β); beyond it, θ (0: θ only)", ge=0.0)
     adapt_max_change_fraction: float = param(
         0.5, desc="θ stays within 1 ± this (the model's force is trusted to this fraction)", gt=0.0, lt=1.0)
     lookahead_s: float | None = param(
@@ -333,6 +337,8 @@ class StageController:
             self.dob.reset(x_m)
         if self.ff is not None:
             self.ff.reset(x_m)
+            if isinstance(self.ff, FrictionFeedforward):
+                self.ff.input_scale = 1.0
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
         self.settle.reset()
         self.ff_scale = 1.0
@@ -435,7 +441,20 @@ class StageController:
         if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) or abs(f_raw) < ffc.adapt_min_force_n:
             return u_ff, d_hat
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
-        th_new = min(hi, max(lo, th + 2.0 * math.pi * ffc.adapt_bandwidth_hz * dt * d_hat / f_raw))
+        gam = 2.0 * math.pi * ffc.adapt_bandwidth_hz
+        ff = self.ff
+        if ffc.adapt_presliding_m > 0.0 and isinstance(ff, FrictionFeedforward):
+            fst = ff.state
+            if abs(fst.x_fed_m - fst.x_rev_m) < ffc.adapt_presliding_m:
+                # within adapt_presliding_m of the last reversal the model error is its stiffness: β, the scale
+                # of the model's input, takes it (dβ/dt = γ·β·d̂/(θ·ΔF̂), ΔF̂ = F̂ − F̂ at the reversal); the
+                # force level θ is left alone
+                df = f_raw - fst.f_rev_n
+                if abs(df) >= 0.5 * ffc.adapt_min_force_n:
+                    b = ff.input_scale
+                    ff.input_scale = min(hi, max(lo, b + gam * dt * d_hat / (th * df) * b))
+                return u_ff, d_hat
+        th_new = min(hi, max(lo, th + gam * dt * d_hat / f_raw))
         delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
         self.ff_scale = th_new
         dob.shift(delta)

@@ -44,14 +44,16 @@ def _cosine(cfg: Any, adapt_hz: float) -> tuple[float, Any, Any]:
 
 
 def test_scale_takes_over_the_model_error_and_lowers_the_tracking_error(seed):
-    """The plant's friction is ~11-25 % above the model's: θ rises above 1 and stays bounded, and the cosine
-    tracking error drops against the same run without adaptation (the observer no longer has to re-catch the
-    model's error at every reversal)."""
+    """The plant's friction is ~11-25 % above the model's: the force scale θ and the input scale β rise above 1
+    and stay bounded, and the cosine tracking error drops against the same run without adaptation (the observer
+    no longer has to re-catch the model's error at every reversal)."""
     rms_off, ctl_off, rec_off = _cosine(seed, 0.0)
     rms_on, ctl_on, rec = _cosine(seed, 1.0)
-    assert ctl_off.ff_scale == 1.0
+    assert ctl_off.ff_scale == 1.0 and ctl_off.ff.input_scale == 1.0
+    # the plant's force level is 1.11-1.125x the model's, its stiffness 1.25x: θ and θ·β move towards them
     assert 1.05 < ctl_on.ff_scale < 1.3
-    assert rms_on < 0.6 * rms_off
+    assert 1.1 < ctl_on.ff_scale * ctl_on.ff.input_scale < 1.4
+    assert rms_on < 0.2 * rms_off
     # the observer carries less once θ has taken over: its mean |d̂| after 1 s is at most half of the run without
     t = rec.col("t")
     late = t >= 1.0
@@ -67,7 +69,9 @@ def test_adaptation_is_bumpless_and_frozen_at_rest(seed):
     plant = seed.sim.plant
     model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
     c = seed.controller
-    on = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=5.0))
+    # θ only (β scales the model's later increments: it never steps u by itself)
+    on = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=5.0,
+                                                                 adapt_presliding_m=0.0))
     off = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=0.0))
     a = StageController(on, seed.timing, model=model)
     b = StageController(off, seed.timing, model=model)
