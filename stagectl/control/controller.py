@@ -27,6 +27,27 @@ L ≈ g·K_i/(k·s²) + g·K_p/(k·s), an under-damped mode at √(g·K_i/k) (�
 the integrator held the rest loop is first order (observer × P, no overshoot) and the observer alone removes
 any steady error; the integrator resumes with the next motion.
 
+Feed-forward through the stop (``feedforward.rest_sync_hz``, with an observer and ``kind: model``): while the
+reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer's estimate is moved into the model's
+*state* each period: the model copy is fed a virtual displacement Δx = λ·d̂/(θ·Σk) (Σk: its initial, largest
+pre-sliding stiffness, so the step never overshoots; |Δx| <= ``rest_sync_max_step_m``) and whatever force it
+takes leaves the observer (``dob.shift``; u unchanged). The next move then starts from a model holding the force
+the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
+re-learning a state mismatch during the first milliseconds of the move.
+
+Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
+reference moves and no learned force is applied)::
+
+    u_ff = θ·F̂(β·x_r)                    F̂: the model fed β times the reference increments
+    within adapt_presliding_m of the last reversal:  dβ/dt = γ·β·d̂/(θ·(F̂ − F̂_rev))   (stiffness ×β, Vs ÷β)
+    beyond it (sliding):                              dθ/dt = γ·d̂/F̂                  (force level ×θ)
+
+θ, β ∈ 1 ± ``adapt_max_change_fraction``; frozen at rest and while |F̂| (|F̂ − F̂_rev| for β) is below
+``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
+is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
+over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
+signal, so it carries over to any motion (ILC learns a signal per motion: with ILC on, θ and β stay put).
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
