@@ -124,7 +124,8 @@ class FeedforwardConfig:
         2e-9, unit="m", desc="largest virtual displacement fed to the model per period by rest_sync_hz", gt=0.0)
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
-        "takes over the observer's estimate while the reference moves (u_ff = θ·F̂, dθ/dt = γ·d̂/F̂; 0: off)",
+        "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
+        "dθ/dt = γ·d̂/F̂; 0: off)",
         ge=0.0, le=50.0)
     adapt_min_force_n: float = param(
         0.1, unit="N", desc="θ adapts only while |F̂| (model force) is at least this (no division near a zero "
@@ -134,7 +135,7 @@ class FeedforwardConfig:
         "observer's estimate is taken as an error of the model's stiffness and adapts β, the scale of the "
         "model's input (stiffness ×β, Stribeck velocity ÷β); beyond it, θ (0: θ only)", ge=0.0)
     adapt_max_change_fraction: float = param(
-        0.5, desc="θ stays within 1 ± this (the model's force is trusted to this fraction)", gt=0.0, lt=1.0)
+        0.5, desc="θ and β stay within 1 ± this (the model is trusted to this fraction)", gt=0.0, lt=1.0)
     lookahead_s: float | None = param(
         None, unit="s", desc="evaluate the reference this far ahead, plus effects.delay (None: period_s/2, the "
         "zero-order-hold mid-point; add the I/O delay of the actuator path)", ge=0.0, le=0.1)
