@@ -35,7 +35,10 @@ Targets (issue 12), reported as measured, met or not: ``pid_dob_gms_20`` ≥ 100
 in both tracking scenarios (and, as before, ≥ 3× lower than ``pid_coulomb``); **steps**: 10 µm steps with the
 20 %-wrong model (:func:`steps_check`, ``--hold`` s after each), every step inside ±10 nm within 30 ms of the
 end of the commanded move and staying there, no limit cycle in the hold; for the config's own controller and
-for the tuned ``pid_dob_gms_20`` one, with their margins. The margin floor of every sweep is PM 40° / GM 8 dB
+for the tuned ``pid_dob_gms_20`` one, with their margins. Each design's steps also report the loop's state at
+the end of every commanded move (``at_move_end``: error, velocity, d̂, u_ff, P + D force, error 30 ms later;
+:func:`move_end_state`), and ``config_exact_model`` repeats the config's steps with the exact model, so that what
+is left there is structure, not model error. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).
 """
 
