@@ -35,7 +35,10 @@ Targets (issue 12), reported as measured, met or not: ``pid_dob_gms_20`` ≥ 100
 in both tracking scenarios (and, as before, ≥ 3× lower than ``pid_coulomb``); **steps**: 10 µm steps with the
 20 %-wrong model (:func:`steps_check`, ``--hold`` s after each), every step inside ±10 nm within 30 ms of the
 end of the commanded move and staying there, no limit cycle in the hold; for the config's own controller and
-for the tuned ``pid_dob_gms_20`` one, with their margins. The margin floor of every sweep is PM 40° / GM 8 dB
+for the tuned ``pid_dob_gms_20`` one, with their margins. Each design's steps also report the loop's state at
+the end of every commanded move (``at_move_end``: error, velocity, d̂, u_ff, P + D force, error 30 ms later;
+:func:`move_end_state`), and ``config_exact_model`` repeats the config's steps with the exact model, so that what
+is left there is structure, not model error. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).
 """
 
@@ -171,9 +174,11 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
         res = stage.loop.run(duration_s=duration)
     steps = hold_report(rec, tol_m=tol_m, window_s=window_s)
     in_pos = tracking_summary(rec, tol_m=tol_m).get("in_position_after_s", [None] * len(steps))
+    at_end = move_end_state(rec, window_s=window_s)
     ok = [st["settle_s"] is not None and st["settle_s"] <= window_s + 1e-9 for st in steps]
     return {
         "steps": steps,
+        "at_move_end": at_end,
         "settle_s": [st["settle_s"] for st in steps],
         "in_position_after_s": in_pos,
         "max_hold_excursion_m": max((st["hold_excursion_m"] for st in steps), default=float("nan")),
@@ -189,6 +194,40 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
     }
 
 
+def move_end_state(rec: Any, *, window_s: float = 0.03) -> list[dict[str, float]]:
+    """Why a step settles slowly: the loop's state at the end of each commanded move (first sample at rest).
+
+    Per move: ``e_m`` (x_ref − x [m]) and ``v_m_s`` (measured velocity [m/s]) at the end of the move,
+    ``e_window_m`` (the error ``window_s`` later), and the force terms there [N]: ``u_dob_n`` (observer estimate
+    d̂: the friction-model error it carries), ``u_ff_n`` (friction feed-forward, held at rest), ``u_pd_n`` (P + D
+    terms, the only force that acts on a position error once d̂ has converged). Columns missing from the
+    recording are left out.
+    """
+    import numpy as np
+
+    out: list[dict[str, float]] = []
+    if not rec.n or "v_ref" not in rec.columns:
+        return out
+    t = rec.col("t")
+    v_ref, a_ref = rec.col("v_ref"), rec.col("a_ref")
+    moving = (v_ref != 0.0) | (a_ref != 0.0)
+    ends = np.nonzero(~moving[1:] & moving[:-1])[0] + 1
+    have = set(rec.columns)
+    for i0 in ends:
+        j = min(int(i0 + np.searchsorted(t[i0:] - t[i0], window_s - 1e-12)), rec.n - 1)
+        d: dict[str, float] = {"t_s": float(t[i0]), "e_m": float(rec.col("e")[i0]),
+                               "e_window_m": float(rec.col("e")[j])}
+        if "v" in have:
+            d["v_m_s"] = float(rec.col("v")[i0])
+        for col, key in (("u_dob", "u_dob_n"), ("u_ff", "u_ff_n")):
+            if col in have:
+                d[key] = float(rec.col(col)[i0])
+        if "u_p" in have and "u_d" in have:
+            d["u_pd_n"] = float(rec.col("u_p")[i0] + rec.col("u_d")[i0])
+        out.append(d)
+    return out
+
+
 def _variant(base: ControllerConfig, *, pid: PidConfig | None = None, dob_hz: float | None = None, dob: bool,
              ff: str, coulomb_n: float = 0.0, viscous: float = 0.0) -> ControllerConfig:
     c = base
@@ -199,6 +238,13 @@ def _variant(base: ControllerConfig, *, pid: PidConfig | None = None, dob_hz: fl
         d = dataclasses.replace(d, bandwidth_hz=dob_hz)
     fcfg = dataclasses.replace(c.feedforward, kind=ff, coulomb_n=coulomb_n, viscous_n_s_m=viscous)
     return dataclasses.replace(c, dob=d, feedforward=fcfg)
+
+
+def _end_table(rows: list[dict[str, float]]) -> list[dict[str, float]]:
+    """:func:`move_end_state` rows in report units (nm, µm/s, mN)."""
+    scale = {"e_m": ("e_end_nm", 1e9), "e_window_m": ("e_30ms_nm", 1e9), "v_m_s": ("v_end_um_s", 1e6),
+             "u_dob_n": ("u_dob_mn", 1e3), "u_ff_n": ("u_ff_mn", 1e3), "u_pd_n": ("u_pd_mn", 1e3)}
+    return [{scale[k][0]: round(v * scale[k][1], 2) for k, v in row.items() if k in scale} for row in rows]
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -314,6 +360,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         r = steps_check(cfg, ctl_cfg, model=m_off, hold_s=args.hold)
         steps_t[name] = {
             "settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],
+            "at_move_end": _end_table(r["at_move_end"]),
             "max_hold_excursion_nm": r["max_hold_excursion_m"] * 1e9,
             "limit_cycle": r["limit_cycle"],
             "fault": r["fault"],
@@ -322,8 +369,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "margins": margins(dataclasses.replace(ctl_cfg, dob=dataclasses.replace(
                 ctl_cfg.dob, kind=ctl_cfg.dob.kind))),
         }
+    # diagnosis: the config's design with the *exact* model (plant = model): what is left is not model error
+    r = steps_check(cfg, base, model=m_exact, hold_s=args.hold)
+    diag_exact = {"settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],
+                  "max_hold_excursion_nm": r["max_hold_excursion_m"] * 1e9, "limit_cycle": r["limit_cycle"],
+                  "at_move_end": _end_table(r["at_move_end"])}
     targets["steps"] = {"tolerance_nm": 10.0, "window_ms": 30.0, "hold_s": args.hold, "model": "20 %-wrong GMS",
-                        "designs": steps_t,
+                        "designs": steps_t, "config_exact_model": diag_exact,
                         "met": all(d["met_settle_30ms"] and d["met_no_limit_cycle"] for d in steps_t.values())}
     table = {v: {s: {k: out[v]["results"][s][k] for k in ("rms_error_nm", "max_error_nm")}
                  for s in SCENARIOS} for v in out}

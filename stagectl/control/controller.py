@@ -27,6 +27,27 @@ L ≈ g·K_i/(k·s²) + g·K_p/(k·s), an under-damped mode at √(g·K_i/k) (�
 the integrator held the rest loop is first order (observer × P, no overshoot) and the observer alone removes
 any steady error; the integrator resumes with the next motion.
 
+Feed-forward through the stop (``feedforward.rest_sync_hz``, with an observer and ``kind: model``): while the
+reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer's estimate is moved into the model's
+*state* each period: the model copy is fed a virtual displacement Δx = λ·d̂/(θ·Σk) (Σk: its initial, largest
+pre-sliding stiffness, so the step never overshoots; |Δx| <= ``rest_sync_max_step_m``) and whatever force it
+takes leaves the observer (``dob.shift``; u unchanged). The next move then starts from a model holding the force
+the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
+re-learning a state mismatch during the first milliseconds of the move.
+
+Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
+reference moves and no learned force is applied)::
+
+    u_ff = θ·F̂(β·x_r)                    F̂: the model fed β times the reference increments
+    within adapt_presliding_m of the last reversal:  dβ/dt = γ·β·d̂/(θ·(F̂ − F̂_rev))   (stiffness ×β, Vs ÷β)
+    beyond it (sliding):                              dθ/dt = γ·d̂/F̂                  (force level ×θ)
+
+θ, β ∈ 1 ± ``adapt_max_change_fraction``; frozen at rest and while |F̂| (|F̂ − F̂_rev| for β) is below
+``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
+is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
+over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
+signal, so it carries over to any motion (ILC learns a signal per motion: with ILC on, θ and β stay put).
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
@@ -95,6 +116,26 @@ class FeedforwardConfig:
     reversal_threshold_m: float = param(5e-9, unit="m", desc="move-back that confirms a reversal", ge=0.0)
     reversal_velocity_m_s: float = param(1e-5, unit="m/s", desc="reverse velocity that confirms a reversal",
                                          gt=0.0)
+    rest_sync_hz: float = param(
+        0.0, unit="Hz", desc="with an observer and kind: model: at standstill, rate at which the observer's "
+        "estimate is moved into the friction model's pre-sliding state (the model is loaded by a virtual "
+        "displacement until its force is the one the plant holds; 0: off)", ge=0.0, le=200.0)
+    rest_sync_max_step_m: float = param(
+        2e-9, unit="m", desc="largest virtual displacement fed to the model per period by rest_sync_hz", gt=0.0)
+    adapt_bandwidth_hz: float = param(
+        0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
+        "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
+        "dθ/dt = γ·d̂/F̂; 0: off)",
+        ge=0.0, le=50.0)
+    adapt_min_force_n: float = param(
+        0.1, unit="N", desc="θ adapts only while |F̂| (model force) is at least this (no division near a zero "
+        "crossing)", gt=0.0)
+    adapt_presliding_m: float = param(
+        5e-6, unit="m", desc="adaptation: within this travel after a reversal (or the start of a motion) the "
+        "observer's estimate is taken as an error of the model's stiffness and adapts β, the scale of the "
+        "model's input (stiffness ×β, Stribeck velocity ÷β); beyond it, θ (0: θ only)", ge=0.0)
+    adapt_max_change_fraction: float = param(
+        0.5, desc="θ and β stay within 1 ± this (the model is trusted to this fraction)", gt=0.0, lt=1.0)
     lookahead_s: float | None = param(
         None, unit="s", desc="evaluate the reference this far ahead, plus effects.delay (None: period_s/2, the "
         "zero-order-hold mid-point; add the I/O delay of the actuator path)", ge=0.0, le=0.1)
@@ -260,6 +301,8 @@ class StageController:
         self._vdt = math.nan
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
+        self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
+        self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -316,8 +359,11 @@ class StageController:
             self.dob.reset(x_m)
         if self.ff is not None:
             self.ff.reset(x_m)
+            if isinstance(self.ff, FrictionFeedforward):
+                self.ff.input_scale = 1.0
         self.state = ControllerState(x_prev_m=x_m, u_n=u_n, u_obs_prev_n=u_n)
         self.settle.reset()
+        self.ff_scale = 1.0
         self._ff_bump = None
         self._last_ref = None
         self._ff_ahead_s = 0.0
@@ -379,6 +425,7 @@ class StageController:
         self.mass_kg = parts.mass_kg
         self.dob = new_dob
         self.ff = parts.ff
+        self._k_ps = _stiffness(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
@@ -404,6 +451,55 @@ class StageController:
 
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
+
+    def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob
+               ) -> tuple[float, float]:
+        """Feed-forward scale adaptation (module docstring): θ += γ·dt·d̂/F̂ while the reference moves,
+        |F̂| >= ``adapt_min_force_n`` and no learned force is applied (one learner at a time: with ILC on, θ
+        stays where it is); the force θ takes over leaves the observer (``dob.shift``): u unchanged."""
+        ffc = self.cfg.feedforward
+        th = self.ff_scale
+        f_raw = u_ff / th
+        if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) or abs(f_raw) < ffc.adapt_min_force_n:
+            return u_ff, d_hat
+        lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
+        gam = 2.0 * math.pi * ffc.adapt_bandwidth_hz
+        ff = self.ff
+        if ffc.adapt_presliding_m > 0.0 and isinstance(ff, FrictionFeedforward):
+            fst = ff.state
+            if abs(fst.x_fed_m - fst.x_rev_m) < ffc.adapt_presliding_m:
+                # within adapt_presliding_m of the last reversal the model error is its stiffness: β, the scale
+                # of the model's input, takes it (dβ/dt = γ·β·d̂/(θ·ΔF̂), ΔF̂ = F̂ − F̂ at the reversal); the
+                # force level θ is left alone
+                df = f_raw - fst.f_rev_n
+                if abs(df) >= 0.5 * ffc.adapt_min_force_n:
+                    b = ff.input_scale
+                    ff.input_scale = min(hi, max(lo, b + gam * dt * d_hat / (th * df) * b))
+                return u_ff, d_hat
+        th_new = min(hi, max(lo, th + gam * dt * d_hat / f_raw))
+        delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
+        self.ff_scale = th_new
+        dob.shift(delta)
+        return th_new * f_raw, d_hat + delta
+
+    def _rest_sync(self, dt: float, ff: FrictionFeedforward, u_ff: float, d_hat: float,
+                   dob: QFilterDob | KalmanDob) -> tuple[float, float]:
+        """Feed-forward through the stop: move λ·d̂ (λ = 1 − exp(−2π·rest_sync_hz·dt)) of the observer's estimate
+        into the model's state by a virtual displacement Δx = λ·d̂/(θ·k_ps) (k_ps: the model's largest,
+        initial pre-sliding stiffness, so the step never overshoots; |Δx| <= rest_sync_max_step_m). Whatever
+        force the model really takes (ΔF, less once its elements saturate) leaves the observer: u unchanged."""
+        ffc = self.cfg.feedforward
+        k = self._k_ps
+        if k <= 0.0 or d_hat == 0.0:
+            return u_ff, d_hat
+        th = self.ff_scale
+        lam = 1.0 - math.exp(-2.0 * math.pi * ffc.rest_sync_hz * dt)
+        lim = ffc.rest_sync_max_step_m
+        dx = max(-lim, min(lim, lam * d_hat / (th * k)))
+        new = th * ff.nudge(dx, dt)
+        delta = u_ff - new  # old − new feed-forward force: the observer carries it
+        dob.shift(delta)
+        return new, d_hat + delta
 
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
@@ -438,7 +534,7 @@ class StageController:
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
-        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) if ff is not None else 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -462,9 +558,13 @@ class StageController:
         # observer (residual form: its input is the previous command minus the previous friction FF)
         dob = self.dob
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
+        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:
+            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob)
         # feedback + clamp
         pid = self.pid
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+        if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+            u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
         hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
@@ -516,7 +616,7 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        u_ff = ff.step(dt, ref)
+        u_ff = ff.step(dt, ref) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
@@ -532,6 +632,14 @@ class StageController:
         terms["u_inertia"] = u_in
         st.terms = terms
         return Command(u, terms, ("stale",))
+
+
+def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:
+    """Initial pre-sliding stiffness Σk [N/m] of a model feed-forward's friction model (0: none / not known)."""
+    if not isinstance(ff, FrictionFeedforward):
+        return 0.0
+    k = getattr(ff.model, "stiffness_n_m", None)
+    return float(k) if isinstance(k, (int, float)) and k > 0.0 else 0.0
 
 
 def _scaled_pid(p: PidConfig, s: float) -> PidConfig:

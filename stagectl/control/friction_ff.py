@@ -49,6 +49,8 @@ class FrictionFfState:
     x_extreme_m: float = math.nan  # extreme of the reference in the current direction
     holding: bool = False
     reversals: int = 0
+    x_rev_m: float = math.nan  # fed position at the last confirmed reversal (or first motion)
+    f_rev_n: float = 0.0  # model friction force there [N]
 
 
 class DirectionLatch:
@@ -100,6 +102,7 @@ class FrictionFeedforward:
         self.lookahead_s = lookahead_s + (effects.delay.delay_s if effects.delay is not None else 0.0)
         self.latch = DirectionLatch(reversal_threshold_m, reversal_velocity_m_s)
         self.state = FrictionFfState()
+        self.input_scale = 1.0  # β: the model is fed β·dx (pre-sliding stiffness ×β, Stribeck velocity ÷β)
         self._mstate = model.initial_state()
         self._f_model = 0.0
 
@@ -131,12 +134,16 @@ class FrictionFeedforward:
         changed = self.latch.update(xr, vr)
         if changed and st.direction != 0:
             st.reversals += 1
+        if changed:
+            st.x_rev_m = st.x_fed_m
+            st.f_rev_n = self._f_model
         d = self.latch.direction
         st.direction = d
         dx = xr - st.x_fed_m
         if d != 0 and dx * d > 0.0:
             # motion in the confirmed direction (includes the catch-up of a just-confirmed move-back)
-            f = self.model.step(self._mstate, dx, dx / dt, dt)
+            b = self.input_scale
+            f = self.model.step(self._mstate, b * dx, b * dx / dt, dt)
             st.x_fed_m = xr
             st.holding = False
             self._f_model = f
@@ -149,6 +156,24 @@ class FrictionFeedforward:
         st.f_friction_n, st.f_other_n = f, fo
         st.x_extreme_m = self.latch.extreme
         st.u_ff_n = f + fo
+        return st.u_ff_n
+
+
+    def nudge(self, dx_m: float, dt: float) -> float:
+        """Move the model copy's *state* by a virtual displacement ``dx_m`` [m] over ``dt`` [s] without moving
+        its fed position (real-time safe): at standstill the controller loads the model's pre-sliding springs
+        so that its force matches the force the plant is measured to hold (feed-forward through the stop).
+        Returns the new u_ff [N] at the held reference."""
+        st = self.state
+        if dx_m == 0.0 or math.isnan(st.x_fed_m):
+            return st.u_ff_n
+        f = self.model.step(self._mstate, dx_m, dx_m / dt, dt)
+        self._f_model = f
+        eff = self.effects
+        x = st.x_fed_m
+        f = eff.modify_friction(f, x) + eff.velocity_force(0.0)
+        st.f_friction_n = f
+        st.u_ff_n = f + st.f_other_n
         return st.u_ff_n
 
 
