@@ -26,9 +26,9 @@ from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize
 
 from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring, ViscousAsymmetry
+from stagectl.ident._minimize import nelder_mead
 from stagectl.ident.columns import (
     cached,
     element,
@@ -163,10 +163,9 @@ def _search_stribeck_shape_now(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     vs, delta, _ = best
     dl, _ = best_scalar(lambda d: rss(vs, d), [0.7, 1.0, 1.5, 2.0, 3.0], 0.5, 4.0, log=False, maxiter=8)
     lv = math.log(vs)
-    res = minimize(lambda p: rss(math.exp(p[0]), float(np.clip(p[1], 0.5, 4.0))), np.array([lv, dl]),
-                   method="Nelder-Mead", options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-12, "initial_simplex":
-                                                  np.array([[lv, dl], [lv + 0.2, dl], [lv, dl + 0.2]])})
-    return math.exp(float(res.x[0])), float(np.clip(res.x[1], 0.5, 4.0))
+    x = nelder_mead(lambda p: rss(math.exp(p[0]), float(np.clip(p[1], 0.5, 4.0))),
+                    np.array([[lv, dl], [lv + 0.2, dl], [lv, dl + 0.2]]), maxfev=40, xatol=1e-3, fatol=1e-12)
+    return math.exp(float(x[0])), float(np.clip(x[1], 0.5, 4.0))
 
 
 def _search_stribeck(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:

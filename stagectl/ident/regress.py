@@ -29,7 +29,7 @@ import numpy.typing as npt
 from stagectl.ident import effects as fx
 from stagectl.ident.columns import cached, given_force
 from stagectl.ident.hypothesis import Column, FitResult, Hyp
-from stagectl.ident.signals import Signals
+from stagectl.ident.signals import ArrayCache, Signals
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -183,22 +183,22 @@ def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, key
     cached on ``sig``: a search that changes one column recomputes one row of the Gram matrix, not all of it."""
     rk = "rows:" + str(hash(rows.tobytes()))
     store = cast(dict[tuple[str, str, str], float], sig.cache.setdefault("_gram", {}))
-    cols = cast(dict[tuple[str, str], FloatArray], sig.cache.setdefault("_rowcols", {}))
+    cols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
 
     def colv(j: int) -> FloatArray:
         k = keys[j]
         if k is None:
             return a[j][rows]
-        v = cols.get((rk, k))
+        v = cols.get(rk + "|" + k)
         if v is None:
             v = a[j][rows]
-            cols[(rk, k)] = v
+            cols[rk + "|" + k] = v
         return v
 
-    yv = cols.get((rk, ykey))
+    yv = cols.get(rk + "|" + ykey)
     if yv is None:
         yv = np.ascontiguousarray(y[rows])
-        cols[(rk, ykey)] = yv
+        cols[rk + "|" + ykey] = yv
     p = len(a)
     vs = [colv(j) for j in range(p)]
     g = np.empty((p, p))
