@@ -58,7 +58,7 @@ class ArrayCache(dict[str, object]):
         self.nbytes = 0
         self._lru: OrderedDict[str, int] = OrderedDict()  # array keys, least recently used first, with nbytes
 
-    def get(self, key: str, default: object = None) -> object:  # type: ignore[override]
+    def get(self, key: str, default: object = None) -> object:
         if key in self._lru:
             self._lru.move_to_end(key)
         return dict.get(self, key, default)
