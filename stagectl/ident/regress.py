@@ -329,6 +329,14 @@ def solve(nonneg: Sequence[bool], a: FloatArray, y: FloatArray) -> tuple[FloatAr
 def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     """Fit the linear parameters of ``h`` (shapes fixed) on ``rows``; two passes when a column depends on the
     previous fit (friction scaling, friction-following columns)."""
+    # the searches ask for the same fit again (the centre of each refinement grid, the winner refitted, the
+    # clean-up steps): the result depends on the hypothesis and the rows only, so it is kept on the signals
+    key = ("rows:" + str(hash(rows.tobytes())), h.effects, repr(sorted(h.shapes.items())),
+           repr(sorted(h.theta.items())), h.fixed_mass_kg, h.x_center_m, repr(h.given_spec))
+    memo = cast(dict[object, FitResult], sig.cache.setdefault("_fits", {}))
+    hit = memo.get(key)
+    if hit is not None:
+        return FitResult(hit.hyp.copy(), hit.rss, hit.n)
     passes = 2 if any(s.iterative for s in fx.REGISTRY.active(h)) else 1
     hh = h.copy()
     rss = np.inf
@@ -337,6 +345,7 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
         g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey)
         th, rss = solve_gram([c.nonneg for c in cols], g, b, yy, int(rows.sum()))
         hh.theta = dict(zip((c.name for c in cols), (float(v) for v in th)))
+    memo[key] = FitResult(hh.copy(), float(rss), int(rows.sum()))
     return FitResult(hh, float(rss), int(rows.sum()))
 
 
