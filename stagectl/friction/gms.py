@@ -211,7 +211,8 @@ class GmsParams:
     alpha: tuple[float, ...] = param(unit="", desc="element fractions α_i of the Stribeck force (sum ≈ 1)",
                                      gt=0.0, le=1.0)
     fc_n: float = param(unit="N", desc="Coulomb level Fc", gt=0.0)
-    fs_n: float = param(unit="N", desc="static (break-away) level Fs, >= fc_n", gt=0.0)
+    fs_n: float = param(unit="N", desc="static (break-away) level Fs (below fc_n: friction rising with speed)",
+                        gt=0.0)
     vs_m_s: float = param(1e-3, unit="m/s", desc="Stribeck velocity Vs", gt=0.0)
     delta: float = param(2.0, unit="", desc="Stribeck shape exponent δ", gt=0.0, le=10.0)
     c_n_s: float = param(1e4, unit="N/s", desc="attraction parameter C (slip relaxation rate)", gt=0.0)
@@ -229,8 +230,6 @@ class GmsParams:
             problems.append(f"alpha: needs {n} entries like k_n_m (got {len(self.alpha)})")
         elif n and abs(sum(self.alpha) - 1.0) > 0.05:
             problems.append(f"alpha: must sum to 1 within 0.05 (got {sum(self.alpha):.6g})")
-        if self.fs_n < self.fc_n:
-            problems.append(f"fs_n: must be >= fc_n ({self.fc_n:g} N) (got {self.fs_n:g} N)")
         if len(self.sigma1_n_s_m) == 1 and n > 1:
             object.__setattr__(self, "sigma1_n_s_m", tuple(self.sigma1_n_s_m) * n)
         elif len(self.sigma1_n_s_m) != n:

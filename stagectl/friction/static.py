@@ -11,9 +11,11 @@ first-order lag, ``de/dt = (e_ss(v) − e)/T_l``, integrated exactly for v froze
 ``lag_s = 0`` the model has **no state** (``n_states == 0``) and is exactly the static map; with
 ``lag_s > 0`` it has one state ``[e]``.
 
-Symbols → parameters: Fc = ``fc_n`` [N], Fs = ``fs_n`` [N] (>= Fc), Vs = ``vs_m_s`` [m/s],
+Symbols → parameters: Fc = ``fc_n`` [N], Fs = ``fs_n`` [N], Vs = ``vs_m_s`` [m/s],
 δ = ``delta`` [–], σ2 = ``viscous_n_s_m`` [N·s/m], T_l = ``lag_s`` [s].
-``fs_n = fc_n`` gives plain Coulomb + viscous.
+``fs_n = fc_n`` gives plain Coulomb + viscous. Fs > Fc is the Stribeck dip (friction falls with speed);
+Fs < Fc a friction that rises with speed from a lower break-away level, as measured on rolling contacts
+(ball screws, rolling guides: no dip, the force builds up over the first tens of mm/s).
 
 At v = 0 the map returns 0 (sgn(0) = 0); a plant needs a stick treatment there. The kernel reports
 ``breakaway_n = Fs`` and ``stick_velocity_m_s`` (Karnopp band half-width DV): inside ``|v| < DV`` the
@@ -66,7 +68,8 @@ class StribeckParams:
     """Parameters of the static Coulomb + viscous + Stribeck model (SI units)."""
 
     fc_n: float = param(unit="N", desc="Coulomb (kinetic) friction level Fc", ge=0.0)
-    fs_n: float = param(unit="N", desc="static (break-away) level Fs, >= fc_n", ge=0.0)
+    fs_n: float = param(unit="N", desc="static (break-away) level Fs (below fc_n: friction rising with speed)",
+                        ge=0.0)
     vs_m_s: float = param(1e-3, unit="m/s", desc="Stribeck velocity Vs", gt=0.0)
     delta: float = param(2.0, unit="", desc="Stribeck shape exponent δ", gt=0.0, le=10.0)
     viscous_n_s_m: float = param(0.0, unit="N·s/m", desc="viscous coefficient σ2", ge=0.0)
@@ -74,10 +77,6 @@ class StribeckParams:
                                       gt=0.0)
     lag_s: float = param(0.0, unit="s", desc="frictional lag time constant of the Stribeck excess (0 = none)",
                          ge=0.0)
-
-    def __post_init__(self) -> None:
-        if self.fs_n < self.fc_n:
-            raise ValueError(f"fs_n: must be >= fc_n ({self.fc_n:g} N) (got {self.fs_n:g} N)")
 
 
 @register

@@ -26,9 +26,9 @@ from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize
 
 from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring, ViscousAsymmetry
+from stagectl.ident._minimize import nelder_mead
 from stagectl.ident.columns import (
     cached,
     element,
@@ -114,8 +114,9 @@ def _stribeck_lag(h: Hyp) -> float:
 def _stribeck_columns(sig: Signals, h: Hyp) -> list[Column]:
     s = STRIBECK.shape(h)
     lag = _stribeck_lag(h)
-    return [Column("ds", stribeck_shape(sig, s.vs_m_s, s.delta, lag), f"ds:{s.vs_m_s:.6e}:{s.delta:g}:{lag:.6e}",
-                   nonneg=True)]
+    # either sign: Fs > Fc is the Stribeck dip, Fs < Fc a friction that rises with speed from a lower
+    # break-away level (rolling contacts); the physical bound is Fs >= 0 (_stribeck_bounds)
+    return [Column("ds", stribeck_shape(sig, s.vs_m_s, s.delta, lag), f"ds:{s.vs_m_s:.6e}:{s.delta:g}:{lag:.6e}")]
 
 
 def _stribeck_params(h: Hyp) -> StribeckParams:
@@ -125,10 +126,12 @@ def _stribeck_params(h: Hyp) -> StribeckParams:
 
 
 def _stribeck_evidence(ev: ResidualView, p: StribeckParams) -> str:
+    how = ("has the sign of the velocity: friction falls with speed (Stribeck dip)" if p.fs_n >= p.fc_n else
+           "has the opposite sign of the velocity: friction rises with speed from a lower break-away level "
+           "(no Stribeck dip, as on rolling contacts)")
     return (f"the residual is largest at low speed (RMS {ev.regime_rms('low_speed'):.4g} N vs "
-            f"{ev.regime_rms('constant_speed'):.4g} N at constant speed) and has the sign of the velocity: friction "
-            f"falls with speed; fitted Fs = {p.fs_n:.4g} N, Fc = {p.fc_n:.4g} N, vs = {p.vs_m_s:.3g} m/s, "
-            f"δ = {p.delta:.2g}")
+            f"{ev.regime_rms('constant_speed'):.4g} N at constant speed) and {how}; fitted Fs = {p.fs_n:.4g} N, "
+            f"Fc = {p.fc_n:.4g} N, vs = {p.vs_m_s:.3g} m/s, δ = {p.delta:.2g}")
 
 
 def _search_stribeck_shape(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
@@ -163,10 +166,9 @@ def _search_stribeck_shape_now(fitter: Fitter, h_s: Hyp) -> tuple[float, float]:
     vs, delta, _ = best
     dl, _ = best_scalar(lambda d: rss(vs, d), [0.7, 1.0, 1.5, 2.0, 3.0], 0.5, 4.0, log=False, maxiter=8)
     lv = math.log(vs)
-    res = minimize(lambda p: rss(math.exp(p[0]), float(np.clip(p[1], 0.5, 4.0))), np.array([lv, dl]),
-                   method="Nelder-Mead", options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-12, "initial_simplex":
-                                                  np.array([[lv, dl], [lv + 0.2, dl], [lv, dl + 0.2]])})
-    return math.exp(float(res.x[0])), float(np.clip(res.x[1], 0.5, 4.0))
+    x = nelder_mead(lambda p: rss(math.exp(p[0]), float(np.clip(p[1], 0.5, 4.0))),
+                    np.array([[lv, dl], [lv + 0.2, dl], [lv, dl + 0.2]]), maxfev=40, xatol=1e-3, fatol=1e-12)
+    return math.exp(float(x[0])), float(np.clip(x[1], 0.5, 4.0))
 
 
 def _search_stribeck(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
@@ -629,8 +631,8 @@ def _hide_backlash(st: HiddenStage) -> None:
 # ============================================================================================ bounds, keys
 def _stribeck_bounds(p: StribeckParams) -> list[str]:
     out = []
-    if p.fs_n <= p.fc_n * (1 + 1e-9):
-        out.append("Fs = Fc (lower bound Fs >= Fc: no Stribeck excess left)")
+    if p.fs_n < 0.0:
+        out.append(f"Fs = {p.fs_n:.3g} N below 0 (a friction at rest that pushes)")
     if p.delta <= 0.5 + 1e-6 or p.delta >= 4.0 - 1e-6:
         out.append(f"δ = {p.delta:.3g} at the search bound [0.5, 4]")
     return out

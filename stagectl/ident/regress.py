@@ -29,7 +29,7 @@ import numpy.typing as npt
 from stagectl.ident import effects as fx
 from stagectl.ident.columns import cached, given_force
 from stagectl.ident.hypothesis import Column, FitResult, Hyp
-from stagectl.ident.signals import Signals
+from stagectl.ident.signals import ArrayCache, Signals
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -183,22 +183,22 @@ def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, key
     cached on ``sig``: a search that changes one column recomputes one row of the Gram matrix, not all of it."""
     rk = "rows:" + str(hash(rows.tobytes()))
     store = cast(dict[tuple[str, str, str], float], sig.cache.setdefault("_gram", {}))
-    cols = cast(dict[tuple[str, str], FloatArray], sig.cache.setdefault("_rowcols", {}))
+    cols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
 
     def colv(j: int) -> FloatArray:
         k = keys[j]
         if k is None:
             return a[j][rows]
-        v = cols.get((rk, k))
+        v = cols.get(rk + "|" + k)
         if v is None:
             v = a[j][rows]
-            cols[(rk, k)] = v
+            cols[rk + "|" + k] = v
         return v
 
-    yv = cols.get((rk, ykey))
+    yv = cols.get(rk + "|" + ykey)
     if yv is None:
         yv = np.ascontiguousarray(y[rows])
-        cols[(rk, ykey)] = yv
+        cols[rk + "|" + ykey] = yv
     p = len(a)
     vs = [colv(j) for j in range(p)]
     g = np.empty((p, p))
@@ -329,6 +329,14 @@ def solve(nonneg: Sequence[bool], a: FloatArray, y: FloatArray) -> tuple[FloatAr
 def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     """Fit the linear parameters of ``h`` (shapes fixed) on ``rows``; two passes when a column depends on the
     previous fit (friction scaling, friction-following columns)."""
+    # the searches ask for the same fit again (the centre of each refinement grid, the winner refitted, the
+    # clean-up steps): the result depends on the hypothesis and the rows only, so it is kept on the signals
+    key = ("rows:" + str(hash(rows.tobytes())), h.effects, repr(sorted(h.shapes.items())),
+           repr(sorted(h.theta.items())), h.fixed_mass_kg, h.x_center_m, repr(h.given_spec))
+    memo = cast(dict[object, FitResult], sig.cache.setdefault("_fits", {}))
+    hit = memo.get(key)
+    if hit is not None:
+        return FitResult(hit.hyp.copy(), hit.rss, hit.n)
     passes = 2 if any(s.iterative for s in fx.REGISTRY.active(h)) else 1
     hh = h.copy()
     rss = np.inf
@@ -337,6 +345,7 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
         g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey)
         th, rss = solve_gram([c.nonneg for c in cols], g, b, yy, int(rows.sum()))
         hh.theta = dict(zip((c.name for c in cols), (float(v) for v in th)))
+    memo[key] = FitResult(hh.copy(), float(rss), int(rows.sum()))
     return FitResult(hh, float(rss), int(rows.sum()))
 
 

@@ -26,7 +26,9 @@ def base_model_text(h: Hyp) -> str:
         return f"base model: the given {h.given_spec.get('model')} friction model, rescaled"
     parts = ["mass", "Coulomb", "viscous friction"]
     if "stribeck" in names:
-        parts.append("a Stribeck curve" + (" with frictional lag" if "frictional_lag" in names else ""))
+        rising = h.theta.get("ds", 0.0) < 0.0  # Fs < Fc
+        parts.append(("a low-speed friction curve rising with speed (Fs < Fc)" if rising else "a Stribeck curve")
+                     + (" with frictional lag" if "frictional_lag" in names else ""))
     if "presliding" in names:
         parts.append("pre-sliding (Maxwell-slip elements)")
     tag = "gms" if "presliding" in names else "stribeck"

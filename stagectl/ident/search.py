@@ -8,8 +8,8 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize_scalar
 
+from stagectl.ident._minimize import bounded_scalar
 from stagectl.ident.signals import Signals
 
 FloatArray = npt.NDArray[np.float64]
@@ -28,15 +28,11 @@ def best_scalar(
     a, b = max(min(a, b), lo), min(max(a, b), hi)
     if b > a:
         if log and a > 0:
-            res = minimize_scalar(
-                lambda s: fun(math.exp(s)), bounds=(math.log(a), math.log(b)), method="bounded",
-                options={"maxiter": maxiter, "xatol": 1e-3},
-            )
-            xr = math.exp(float(res.x))
+            xs, fr = bounded_scalar(lambda s: fun(math.exp(s)), math.log(a), math.log(b), xatol=1e-3,
+                                    maxiter=maxiter)
+            xr = math.exp(xs)
         else:
-            res = minimize_scalar(fun, bounds=(a, b), method="bounded", options={"maxiter": maxiter})
-            xr = float(res.x)
-        fr = float(res.fun)
+            xr, fr = bounded_scalar(fun, a, b, maxiter=maxiter)
         if fr < best_f:
             best_x, best_f = xr, fr
     return best_x, best_f

@@ -286,7 +286,7 @@ def test_tv8_lugre_drifts():
 @pytest.mark.parametrize(
     "bad,key",
     [({"alpha": [0.5, 0.5]}, "alpha"), ({"alpha": [0.1] * 6}, "alpha"), ({"c_n_s": 0.0}, "friction.c_n_s"),
-     ({"k_n_m": [1.0, 2.0, 3.0, 4.0, 5.0, -6.0]}, "friction.k_n_m[5]"), ({"fs_n": 0.5}, "fs_n"),
+     ({"k_n_m": [1.0, 2.0, 3.0, 4.0, 5.0, -6.0]}, "friction.k_n_m[5]"), ({"fs_n": -0.5}, "fs_n"),
      ({"sigma1_n_s_m": [1.0, 2.0]}, "sigma1_n_s_m"), ({"sigma1_n_s_m": -1.0}, "friction.sigma1_n_s_m"),
      ({"c_ns": 1.0}, "friction.c_ns"), ({"delta": 0.0}, "friction.delta")],
 )

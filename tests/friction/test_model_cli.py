@@ -69,7 +69,7 @@ GOOD_GMS = "friction:\n  model: gms\n  k_n_m: [1.0e5, 2.0e4]\n  alpha: [0.5, 0.5
         (GOOD_GMS + "  viscous_n_s_m: abc\n", ["friction.viscous_n_s_m: expected a number N·s/m"]),
         (GOOD_GMS.replace("[1.0e5, 2.0e4]", "1.0e5"), ["friction.k_n_m: expected a list (values in N/m)"]),
         (GOOD_GMS.replace("fs_n: 0.9", "fs_n: .nan"), ["friction.fs_n: must be a finite number N, got NaN"]),
-        (GOOD_GMS.replace("fs_n: 0.9", "fs_n: 0.7"), ["friction.fs_n: must be >= fc_n (0.8 N) (got 0.7 N)"]),
+        (GOOD_GMS.replace("fs_n: 0.9", "fs_n: -0.7"), ["friction.fs_n: must be > 0 N (got -0.7 N)"]),
         (GOOD_GMS.replace("[0.5, 0.5]", "[1.0]") + "mass_kg: -2\neffects: {offset: {force_n: x}}\n",
          ["friction.alpha: needs 2 entries", "mass_kg: must be > 0 kg", "effects.offset.force_n: expected a number N"]),
     ],

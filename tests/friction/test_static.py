@@ -85,7 +85,7 @@ def test_lag_zero_limit_is_continuous():
 
 @pytest.mark.parametrize(
     "bad,key",
-    [({"fs_n": 0.5}, "fs_n"), ({"vs_m_s": 0.0}, "friction.vs_m_s"), ({"fc_n": -1.0}, "friction.fc_n"),
+    [({"fs_n": -0.5}, "fs_n"), ({"vs_m_s": 0.0}, "friction.vs_m_s"), ({"fc_n": -1.0}, "friction.fc_n"),
      ({"lag_s": -1.0}, "friction.lag_s"), ({"viscous": 1.0}, "friction.viscous"),
      ({"stick_velocity_m_s": 0.0}, "friction.stick_velocity_m_s")],
 )

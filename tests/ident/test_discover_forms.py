@@ -187,3 +187,26 @@ def test_one_directional_motion_reports_the_cogging_ripple_tie_with_the_separati
     # the note reaches the written report
     from stagectl.ident.report import _markdown, build_report
     assert f"tie with {other}" in _markdown(build_report(res, {"estimation": "synth"}), [])
+
+
+def test_friction_rising_with_speed_is_named_with_fs_below_fc(tmp_path: Path) -> None:
+    """Rolling contacts (ball screws, rolling guides) show no Stribeck dip: the friction rises from a lower
+    break-away level to the Coulomb level over tens of mm/s (the EMPS axis does, docs/discovery.md §11). The
+    Stribeck candidate takes that form (Fs < Fc), and the model file holds it."""
+    from stagectl.friction import load_model_file
+    from stagectl.ident.report import write_outputs
+
+    st, rng = _stage(1306)
+    fc = float(st["friction"]["fc_n"])
+    fs = fc * float(rng.uniform(0.4, 0.7))
+    st["friction"].update(fs_n=fs, vs_m_s=float(rng.uniform(4e-3, 10e-3)), delta=float(rng.uniform(1.0, 2.0)))
+    res = _run(st, 1306, LONG_STROKE)
+    acc = {e.name: e for e in res.effects}
+    assert list(acc)[:1] == ["stribeck"], res.rounds[0].candidates
+    p = acc["stribeck"].parameters
+    assert p.fs_n < p.fc_n and p.fs_n == pytest.approx(fs, rel=0.25) and p.fc_n == pytest.approx(fc, rel=0.1)
+    assert "rises with speed" in acc["stribeck"].evidence
+    write_outputs(res, tmp_path, {"estimation": "synth"}, plots=False)
+    model = load_model_file(tmp_path / "model.yaml")
+    assert model.friction.params.fs_n < model.friction.params.fc_n  # type: ignore[attr-defined]
+    assert "rising with speed" in (tmp_path / "model.yaml").read_text().splitlines()[0]

@@ -46,8 +46,10 @@ def test_offset_candidate_matches_published_offset_and_validates(emps: dsc.Datas
 def test_discovery_names_viscous_asymmetry_and_presliding_rejects_the_lead_ripple(emps_dir: Path) -> None:
     """Issue 13 targets on the real axis: viscous asymmetry with Fv+/Fv− within 5 % of the published
     direction-dependent model (166.7 / 240.4 N·s/m), pre-sliding named from the reversal regime, the 2.5 mm
-    (ball-screw lead) periodic candidates not accepted. The validation residual is reported, not asserted
-    against the 2.0 N target, which this model family does not reach (docs/discovery.md §7)."""
+    (ball-screw lead) periodic candidates not accepted, validation residual <= 2.0 N (the published model:
+    2.67 N). On the way: a friction rising with speed at low speed (Fs < Fc, no Stribeck dip) and, once it
+    is in the model, a force delay of a fraction of a sample that the estimation file alone supports
+    (docs/discovery.md §11). No offset: with the viscous asymmetry in the model it is a fraction of a newton."""
     est = load_recording(emps_dir / "DATA_EMPS.csv", COLUMNS)
     val = load_recording(emps_dir / "DATA_EMPS_PULSES.csv", COLUMNS)
     res = dsc.discover(est, validate=val)
@@ -58,4 +60,9 @@ def test_discovery_names_viscous_asymmetry_and_presliding_rejects_the_lead_rippl
     assert p.fv_minus_n_s_m == pytest.approx(240.4236, rel=0.05)
     assert "presliding" in got and "in its regime (near_reversal)" in got["presliding"].evidence
     assert "position_ripple" not in got and "cogging" not in got
-    assert res.gap_after < 0.6 * res.gap_before  # 4.23 N -> 2.24 N
+    assert "stribeck" in got
+    st = got["stribeck"].parameters
+    assert 0.4 * st.fc_n < st.fs_n < 0.9 * st.fc_n and 5e-3 < st.vs_m_s < 40e-3  # rising: 14.5 N vs 21.8 N
+    assert "delay" in got and 0.1e-3 < got["delay"].parameters.delay_s < 0.5e-3  # 0.28 ms
+    assert "offset" not in got
+    assert res.gap_after <= 2.0  # 4.23 N -> 1.64 N
