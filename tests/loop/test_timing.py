@@ -357,3 +357,65 @@ def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_
         v0, a_max = b.v0_m_s, lim / sim_cfg.controller.mass_kg
         assert abs(xs[-1] - xs[k]) <= v0 ** 2 / (2 * a_max) + v0 * 3e-3 + 1e-6
         assert world.drive.state.name == "SWITCH_ON_DISABLED" and abs(world.plant.v_m_s) < 1e-5
+
+
+def test_safety_tolerates_a_longer_gap_only_while_the_stage_stands():
+    """stale_rest_cycles applies while the reference is at rest and the last measured velocity is below the
+    quick-stop standstill; moving (or unset) the stale limit stays stale_cycles. A stale sample never feeds
+    the following-error window (it is the old position held)."""
+    from stagectl.safety import Safety, SafetyConfig
+
+    def gap(reference_at_rest, v, rest=20):
+        s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, stale_cycles=3, stale_rest_cycles=rest,
+                                following_error_m=1e-6), 1e-3)
+        s.check_measurement(0.0, 0, 0.0, True, None)
+        s.v_est_m_s = v
+        s.reference_at_rest = reference_at_rest
+        for k in range(1, 40):
+            if s.check_measurement(k * 1e-3, k, 0.0, False, None):
+                return k
+        return None
+
+    assert gap(True, 0.0) == 20
+    assert gap(True, 0.0, rest=None) == 3
+    assert gap(False, 0.0) == 3  # the reference moves
+    assert gap(True, 5e-4) == 3  # the stage still moves (above quick_stop_standstill_m_s)
+    s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, following_error_m=1e-6), 1e-3)
+    assert not s.check_tracking(0.0, 0, 0.0, 5e-6, fresh=False)  # a stale x against a moving reference
+    assert s.check_tracking(0.001, 1, 0.0, 5e-6) and s.fault.name == "following_error"
+
+
+@pytest.fixture(scope="module")
+def hil_lockstep():
+    """config/hil-canopen.yaml's driver, controller and safety on the in-process virtual bus (lock-step)."""
+    cfg = load_app_config(REPO / "config" / "hil-canopen.yaml")
+    return dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_hil_config_rides_out_a_silent_drive_at_rest_not_while_moving(hil_lockstep, moving):
+    """The HIL's sim-plant process is held off the CPU for 50-400 ms on a loaded machine (its TPDOs stop, the
+    controller keeps its 1 kHz): 400 dropped TPDOs with the stage at rest are ridden out (feedback held, no
+    fault, the stage stays put); the same silence during a 5 mm/s move is stale_position after 50 cycles,
+    not a following error computed from the held position."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.recorder import Recorder
+    from stagectl.sim.faults import FaultSpec, SimFault
+
+    with build_stage(hil_lockstep, clock=SimClock()) as stage:
+        loop = stage.loop
+        rec = Recorder(loop.columns, 1000)
+        loop.add_sink(rec)
+        if moving:
+            loop.submit(MoveRequest(target_m=1e-3, max_velocity_m_s=5e-3))
+        stage.world.inject(FaultSpec(kind=SimFault.DROP_TPDO, at_cycle=100, cycles=400))
+        res = loop.run(duration_s=0.7)
+        x_end = stage.world.plant.x_m
+    stale = rec.col("stale")
+    if moving:
+        assert res.fault is not None and res.fault.name == "stale_position"
+        assert res.fault.cycle - 99 <= hil_lockstep.safety.stale_cycles + 1
+    else:
+        assert res.fault is None and stale.sum() >= 390
+        assert abs(x_end) < 1e-8 and np.max(np.abs(rec.col("e")[stale == 0])) < 1e-8
