@@ -146,6 +146,17 @@ def test_holding_the_feedback_on_every_stale_sample_misses_the_cosine_target(sim
     assert dist["fault"] is None and dist["rms_error_nm"] > 2.0 * clean["rms_error_nm"], (dist, clean)
 
 
+def test_lost_force_writes_alone_cost_the_pre_sliding_cosine(sim_cfg):
+    """bench timing's held_force_only reference: every sample on time, but 10 % of the force writes lost (the
+    actuator holds the previous force one more period, as in a skipped slot): the 10 um cosine's error grows
+    although the controller misses nothing, so the skipped slots' cost is the held force, not the sampling."""
+    clean = run_tracking(sim_cfg, "cosine", stage_kind="plant_io", disturbed=False, duration_s=2.2, skip_s=0.5)
+    held = run_tracking(sim_cfg, "cosine", stage_kind="plant_io", disturbed=False, duration_s=2.2, skip_s=0.5,
+                        lose_writes=True)
+    assert held["fault"] is None and held["stale_cycles"] == 0 and held["skipped_slots"] == 0
+    assert held["rms_error_nm"] > 1.5 * clean["rms_error_nm"], (held, clean)
+
+
 def test_jitter_and_skipped_slots_keep_tracking_without_fault(sim_cfg):
     """PlantIO on a JitterClock: 10 % of the wake-ups one period late (slot skipped, the plant moves on
     under the held force), U(0, 0.2 T) jitter, 1 % of the samples dropped: no fault, triangle RMS within 2x
