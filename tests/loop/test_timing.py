@@ -430,3 +430,20 @@ def test_hil_config_rides_out_a_silent_drive_at_rest_not_while_moving(hil_lockst
     else:
         assert res.fault is None and stale.sum() >= 390
         assert abs(x_end) < 1e-8 and np.max(np.abs(rec.col("e")[stale == 0])) < 1e-8
+
+
+def test_loop_device_time_from_the_config(sim_cfg):
+    """loop.device_time (the HIL's sim-plant steps its plant one period per SYNC): the loop's time is its
+    executed cycles, so with a clock that skips slots the reference advances one period per cycle."""
+    from stagectl.app import build_stage
+    from stagectl.recorder import Recorder
+    from stagectl.sim.jitter import JitterClock
+
+    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, kind=IoKind.PLANT_IO),
+                              loop=dataclasses.replace(sim_cfg.loop, device_time=True))
+    with build_stage(cfg, clock=JitterClock(1e-3, late_fraction=0.3, seed=2)) as stage:
+        assert stage.loop.device_time
+        rec = Recorder(stage.loop.columns, 200)
+        stage.loop.add_sink(rec)
+        stage.loop.run(cycles=100)
+    assert np.allclose(np.diff(rec.col("t")), 1e-3) and rec.col("skipped").sum() > 10
