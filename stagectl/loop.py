@@ -625,7 +625,7 @@ class ControlLoop:
                     x += safety.v_est_m_s * (t - t_m)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
-                    safety.reference_at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+                    safety.reference_speed_m_s = abs(ref.v_m_s)
                     if safety.check_tracking(t, k, x, ref.x_m, m.fresh):
                         self._enter_fault(t, x)
                     elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):

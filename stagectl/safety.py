@@ -11,9 +11,10 @@ fault name             condition
                        the :class:`~stagectl.drivers.base.FaultKind` value (``drive_fault``, ``emcy``,
                        ``heartbeat_lost``, ``bus_off``, ``sensor_error``, ...)
 ``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample; ``stale_rest_cycles`` while
-                       the stage stands (reference at rest and \\|v̂\\| <= ``quick_stop_standstill_m_s`` at the
-                       last fresh sample): at rest under a held force it cannot run away unseen, and on a PC
-                       without a real-time kernel the drive's process may be held off the CPU for 0.1-0.4 s
+                       the stage (nearly) stands: reference speed and \\|v̂\\| at the last fresh sample both
+                       <= ``quick_stop_standstill_m_s``, so it travels at most that speed times the gap unseen
+                       (0.1 mm/s · 0.5 s = 50 µm); on a PC without a real-time kernel the drive's process may be
+                       held off the CPU for 0.1-0.4 s
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
 ``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s`` (fresh
                        samples only: a stale one holds the old position)
@@ -78,9 +79,9 @@ class SafetyConfig:
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
     stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
     stale_rest_cycles: int | None = param(
-        None, desc="the same while the stage stands (reference at rest, |v| <= quick_stop_standstill_m_s at the "
-        "last fresh sample; never below stale_cycles): a stage at rest under a held force cannot run away unseen "
-        "(None: stale_cycles)", ge=1)
+        None, desc="the same while the stage (nearly) stands: reference speed and |v| at the last fresh sample <= "
+        "quick_stop_standstill_m_s (it travels at most that speed times the gap unseen; never below stale_cycles; "
+        "None: stale_cycles)", ge=1)
     jump_margin_m: float = param(
         1e-6, unit="m", desc="sensor noise and sampling-jitter margin added to the physical per-cycle position bound "
         "(position_jump)", ge=0)
@@ -158,8 +159,8 @@ class Safety:
         self._stale = 0
         self._fe_since: float | None = None
         self._sat_since: float | None = None
-        #: the reference was at rest in the last cycle (set by the loop; selects ``stale_rest_cycles``)
-        self.reference_at_rest = False
+        #: |v_ref| of the last cycle [m/s] (set by the loop; selects ``stale_rest_cycles``)
+        self.reference_speed_m_s = math.inf
 
     # ----------------------------------------------------------------- latch / clear
     def latch(self, name: str, cause: str, t_s: float, cycle: int) -> SafetyFault:
@@ -226,8 +227,9 @@ class Safety:
         if not fresh:
             self._stale += 1
             limit = cfg.stale_cycles
-            if (cfg.stale_rest_cycles is not None and self.reference_at_rest
-                    and abs(self.v_est_m_s) <= cfg.quick_stop_standstill_m_s):
+            slow = cfg.quick_stop_standstill_m_s
+            if (cfg.stale_rest_cycles is not None and self.reference_speed_m_s <= slow
+                    and abs(self.v_est_m_s) <= slow):
                 limit = max(limit, cfg.stale_rest_cycles)
             if self._stale >= limit:
                 self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles", t_s, cycle)

@@ -371,26 +371,27 @@ def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_
 
 
 def test_safety_tolerates_a_longer_gap_only_while_the_stage_stands():
-    """stale_rest_cycles applies while the reference is at rest and the last measured velocity is below the
-    quick-stop standstill; moving (or unset) the stale limit stays stale_cycles. A stale sample never feeds
-    the following-error window (it is the old position held)."""
+    """stale_rest_cycles applies while the reference speed and the last measured velocity are both below the
+    quick-stop standstill (0.1 mm/s); moving (or unset) the stale limit stays stale_cycles. A stale sample
+    never feeds the following-error window (it is the old position held)."""
     from stagectl.safety import Safety, SafetyConfig
 
-    def gap(reference_at_rest, v, rest=20):
+    def gap(v_ref, v, rest=20):
         s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, stale_cycles=3, stale_rest_cycles=rest,
                                 following_error_m=1e-6), 1e-3)
         s.check_measurement(0.0, 0, 0.0, True, None)
         s.v_est_m_s = v
-        s.reference_at_rest = reference_at_rest
+        s.reference_speed_m_s = v_ref
         for k in range(1, 40):
             if s.check_measurement(k * 1e-3, k, 0.0, False, None):
                 return k
         return None
 
-    assert gap(True, 0.0) == 20
-    assert gap(True, 0.0, rest=None) == 3
-    assert gap(False, 0.0) == 3  # the reference moves
-    assert gap(True, 5e-4) == 3  # the stage still moves (above quick_stop_standstill_m_s)
+    assert gap(0.0, 0.0) == 20
+    assert gap(3e-5, 2e-5) == 20  # a slow scan (0.03 mm/s): at most 0.1 mm/s x the gap unseen
+    assert gap(0.0, 0.0, rest=None) == 3
+    assert gap(2e-3, 0.0) == 3  # the reference moves
+    assert gap(0.0, 5e-4) == 3  # the stage still moves (above quick_stop_standstill_m_s)
     s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, following_error_m=1e-6), 1e-3)
     assert not s.check_tracking(0.0, 0, 0.0, 5e-6, fresh=False)  # a stale x against a moving reference
     assert s.check_tracking(0.001, 1, 0.0, 5e-6) and s.fault.name == "following_error"
