@@ -448,3 +448,20 @@ def test_loop_device_time_from_the_config(sim_cfg):
         stage.loop.add_sink(rec)
         stage.loop.run(cycles=100)
     assert np.allclose(np.diff(rec.col("t")), 1e-3) and rec.col("skipped").sum() > 10
+
+
+def test_a_held_cycle_carries_the_learned_force_once(sim_cfg):
+    """hold(dt, ref, u_learn_n): the learned feed-forward replaces the last cycle's instead of adding to it
+    (before, the loop added the learner's force to a held command that already held the last one)."""
+    from stagectl.control.controller import StageController
+
+    cfg = dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0)
+    ctl = StageController(cfg, sim_cfg.timing)
+    ctl.reset(0.0)
+    ref = Reference(0.0, 0.0, 0.0)
+    for _ in range(20):
+        cmd = ctl.step(1e-3, 0.0, ref, 0.3)
+    held = ctl.hold(1e-3, ref, 0.3)
+    assert held.force_n == pytest.approx(cmd.force_n, abs=1e-12)
+    held2 = ctl.hold(1e-3, ref, 0.1)
+    assert held2.force_n == pytest.approx(cmd.force_n - 0.2, abs=1e-12)
