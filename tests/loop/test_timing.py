@@ -255,7 +255,7 @@ def test_stage_controller_predicts_short_stale_gaps_then_holds(sim_cfg):
     ctl = StageController(sim_cfg.controller, sim_cfg.timing)
     ctl.reset(0.0)
     for k in range(50):
-        cmd = ctl.step(1e-3, 1e-9 * k, Reference(1e-9 * k + 2e-9, 1e-6, 0.0))
+        ctl.step(1e-3, 1e-9 * k, Reference(1e-9 * k + 2e-9, 1e-6, 0.0))
     i0 = ctl.pid.state.i_n
     p1 = ctl.hold(1e-3, Reference(52e-9, 1e-6, 0.0))
     assert p1.limited[:2] == ("stale", "predicted")
