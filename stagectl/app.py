@@ -399,7 +399,8 @@ def build_stage(
             sync=io.sync,
             realtime=realtime,
             term_names=tuple(terms),
-            device_time=io.world is not None,  # virtual CANopen devices step one period per SYNC
+            # virtual CANopen devices (and a sim-plant without wall_clock_plant) step one period per SYNC
+            device_time=io.world is not None or cfg.loop.device_time,
             learner=learner,
         )
     except BaseException:

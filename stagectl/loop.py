@@ -28,9 +28,11 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
 * A late sample (``Measurement.age_cycles`` n > 0: a TPDO that answered the previous SYNC after its wait)
   is placed at ``t − n·T`` for the velocity estimate and extrapolated to ``t`` with it
   (x + v̂·n·T) for the controller, the tracking check and the telemetry.
-* A stale sample (no new position: late or dropped TPDO, missing frame) does not step the controller:
-  nothing integrates, no estimate moves; a controller with ``hold(dt, ref)`` (StageController) keeps its
-  feedback terms and moves its feed-forward along the reference, any other holds its last force;
+* A stale sample (no new position: late or dropped TPDO, missing frame) is not stepped on: a controller
+  with ``hold(dt, ref)`` (StageController) is called instead. It steps its first
+  ``controller.stale_predict_cycles`` stale cycles in a row on a predicted position (the last measured
+  tracking error held) and after that keeps its feedback terms (nothing integrates, no estimate moves) while
+  its feed-forward follows the reference; any other controller holds its last force.
   ``safety.stale_cycles`` in a row is a fault.
   Nor does a sample less than T/2 after the last stepped one (a late wake-up followed by an on-time one):
   Δx/dt over such a short interval is mostly quantisation noise; its row is marked stale.
@@ -639,7 +641,8 @@ class ControlLoop:
                     x += safety.v_est_m_s * (t - t_m)
                 if self.state is LoopState.ACTIVE:
                     ref = reference.sample(t)
-                    if safety.check_tracking(t, k, x, ref.x_m):
+                    safety.reference_speed_m_s = abs(ref.v_m_s)
+                    if safety.check_tracking(t, k, x, ref.x_m, m.fresh):
                         self._enter_fault(t, x)
                     elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):
                         t_prev = self._t_step
@@ -684,9 +687,16 @@ class ControlLoop:
                         stale_row = True
                         terms = held
                         if holds and self._t_step is not None and t_ctl is not None and t - t_ctl >= dt_min:
-                            cmd = controller.hold(min(dt_max, t - t_ctl), ref)  # type: ignore[attr-defined]
-                            if learner is not None:  # the learned force goes on along the motion (not recorded)
-                                cmd.force_n += learner.step(t, ref.x_m - x, fresh=False)
+                            dt_h = min(dt_max, t - t_ctl)
+                            if learner is None:
+                                cmd = controller.hold(dt_h, ref)  # type: ignore[attr-defined]
+                            else:  # the learned force goes on along the motion (not recorded)
+                                u_l = learner.step(t, ref.x_m - x, fresh=False)
+                                if learn_ctl is not None:
+                                    cmd = controller.hold(dt_h, ref, u_l)  # type: ignore[attr-defined]
+                                else:
+                                    cmd = controller.hold(dt_h, ref)  # type: ignore[attr-defined]
+                                    cmd.force_n += u_l
                             t_ctl = t
                             u = safety.limit_force(t, k, cmd.force_n)
                             if safety.fault is not None:

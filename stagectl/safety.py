@@ -10,9 +10,14 @@ fault name             condition
 ``<device kind>``      a device reports a fault (``Measurement.fault`` / ``device.fault``): the name is
                        the :class:`~stagectl.drivers.base.FaultKind` value (``drive_fault``, ``emcy``,
                        ``heartbeat_lost``, ``bus_off``, ``sensor_error``, ...)
-``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample
+``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample; ``stale_rest_cycles`` while
+                       the stage (nearly) stands: reference speed and \\|v̂\\| at the last fresh sample both
+                       <= ``quick_stop_standstill_m_s``, so it travels at most that speed times the gap unseen
+                       (0.1 mm/s · 0.5 s = 50 µm); on a PC without a real-time kernel the drive's process may be
+                       held off the CPU for 0.1-0.4 s
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
-``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s``
+``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s`` (fresh
+                       samples only: a stale one holds the old position)
 ``position_jump``      a fresh sample moved further since the previous fresh one than the stage physically
                        can: \\|Δx\\| > v_max·Δt + (F_max/m)·Δt²/2 + ``jump_margin_m`` (Δt: time between the two
                        samples, T when none was stale; v_max = ``max_velocity_m_s``, F_max = ``max_force_n``,
@@ -73,6 +78,10 @@ class SafetyConfig:
     max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
     stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+    stale_rest_cycles: int | None = param(
+        None, desc="the same while the stage (nearly) stands: reference speed and |v| at the last fresh sample <= "
+        "quick_stop_standstill_m_s (it travels at most that speed times the gap unseen; never below stale_cycles; "
+        "None: stale_cycles)", ge=1)
     jump_margin_m: float = param(
         1e-6, unit="m", desc="sensor noise and sampling-jitter margin added to the physical per-cycle position bound "
         "(position_jump)", ge=0)
@@ -150,6 +159,8 @@ class Safety:
         self._stale = 0
         self._fe_since: float | None = None
         self._sat_since: float | None = None
+        #: |v_ref| of the last cycle [m/s] (set by the loop; selects ``stale_rest_cycles``)
+        self.reference_speed_m_s = math.inf
 
     # ----------------------------------------------------------------- latch / clear
     def latch(self, name: str, cause: str, t_s: float, cycle: int) -> SafetyFault:
@@ -215,7 +226,12 @@ class Safety:
             return True
         if not fresh:
             self._stale += 1
-            if self._stale >= cfg.stale_cycles:
+            limit = cfg.stale_cycles
+            slow = cfg.quick_stop_standstill_m_s
+            if (cfg.stale_rest_cycles is not None and self.reference_speed_m_s <= slow
+                    and abs(self.v_est_m_s) <= slow):
+                limit = max(limit, cfg.stale_rest_cycles)
+            if self._stale >= limit:
                 self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles", t_s, cycle)
                 return True
             return self.fault is not None
@@ -261,11 +277,17 @@ class Safety:
                 return True
         return self.fault is not None
 
-    def check_tracking(self, t_s: float, cycle: int, x_m: float, x_ref_m: float) -> bool:
-        """Reference finiteness and following-error window. Returns True when a fault is latched."""
+    def check_tracking(self, t_s: float, cycle: int, x_m: float, x_ref_m: float, fresh: bool = True) -> bool:
+        """Reference finiteness and following-error window. Returns True when a fault is latched.
+
+        A stale sample (``fresh`` False) is the old position held: x_ref − x is then no measurement (a moving
+        reference would read as a growing error), so the window's timer neither starts nor resets on it; the
+        stale limits bound how long the loop runs blind."""
         if not _isfinite(x_ref_m):
             self.latch("not_finite", f"reference position is {x_ref_m}", t_s, cycle)
             return True
+        if not fresh:
+            return self.fault is not None
         e = x_ref_m - x_m
         if abs(e) > self.cfg.following_error_m:
             if self._fe_since is None:

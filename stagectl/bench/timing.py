@@ -9,7 +9,10 @@ disturbed, in the same run, through two stages:
   a stale cycle, the next sample arrives with a 2T interval) and ``drop_tpdo`` on 1 %;
 * ``plant_io``: the plant wrapped directly, following a :class:`~stagectl.sim.jitter.JitterClock`:
   10 % of the wake-ups one period late (the slot is skipped, the plant moves on under the held force for
-  2T), every wake-up late by U(0, 0.2T), and 1 % of the samples dropped (stale).
+  2T), every wake-up late by U(0, 0.2T), and 1 % of the samples dropped (stale). Its reference figure
+  ``held_force_only``: on-time timing, every sample seen, but 10 % of the force writes lost (the actuator
+  holds the previous force one more period): the part of a skipped slot's cost no controller can take back,
+  since nobody commands the actuator in the skipped slot.
 
 Figures: RMS and max of e = x_ref − x over the fresh samples after ``--skip`` s (a stale row holds the old
 sample: its error is not a measurement), the ratio disturbed/clean (target ≤ 2), faults,
@@ -49,8 +52,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_tracking(cfg: AppConfig, scenario: str, *, stage_kind: str, disturbed: bool, seed: int = 1,
-                 duration_s: float | None = None, skip_s: float = 1.0) -> dict[str, Any]:
-    """One closed-loop run in simulated time, clean or disturbed (module docstring); tracking metrics."""
+                 duration_s: float | None = None, skip_s: float = 1.0, lose_writes: bool = False) -> dict[str, Any]:
+    """One closed-loop run in simulated time, clean or disturbed (module docstring); tracking metrics.
+
+    ``lose_writes`` (plant_io, undisturbed timing): a random ``LATE_FRACTION`` of the force writes are lost,
+    the actuator keeps the previous force one more period. Every sample is seen on time: what a skipped slot
+    costs through the held force alone, whatever the controller does with its samples."""
     import random
 
     import numpy as np
@@ -93,6 +100,16 @@ def run_tracking(cfg: AppConfig, scenario: str, *, stage_kind: str, disturbed: b
                     drop(1)
 
             loop.on_cycle = on_cycle
+        if lose_writes:
+            rng_w = random.Random(seed + 2000)
+            act = stage.actuator
+            write = act.write
+
+            def lossy(force_n: float) -> None:
+                if rng_w.random() >= LATE_FRACTION:
+                    write(force_n)
+
+            setattr(act, "write", lossy)  # noqa: B010 (an instance attribute shadows the method)
         res = loop.run(duration_s=duration)
     t, e, stale = rec.col("t"), rec.col("e"), rec.col("stale")
     sel = (t >= t[0] + skip_s) & (stale == 0)  # a stale row's x is the held old sample: no measured error
@@ -190,6 +207,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             ok = ok and met
             tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio,
                                       "met_2x_no_fault": met}
+            if st == "plant_io":  # the floor a skipped slot sets through the held force alone
+                held = run_tracking(cfg, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
+                                    lose_writes=True)
+                tracking[f"{st}/{sc}"]["held_force_only"] = {
+                    "rms_error_nm": held["rms_error_nm"], "rms_ratio": held["rms_error_nm"] / clean["rms_error_nm"]}
     reaction = {"active_quick_stop": run_fault_reaction(cfg, braking=True),
                 "release_at_once": run_fault_reaction(cfg, braking=False)}
     c = cfg.controller

@@ -105,6 +105,9 @@ class FrictionFeedforward:
         self.input_scale = 1.0  # β: the model is fed β·dx (pre-sliding stiffness ×β, Stribeck velocity ÷β)
         self._mstate = model.initial_state()
         self._f_model = 0.0
+        # the model's first step loads its compiled kernel (numba: 0.5-0.9 s on a loaded PC): here, at
+        # construction, not in the control loop's first moving cycle (a drive's heartbeat consumer faults on that)
+        model.step(model.initial_state(), 1e-9, 1e-6, 1e-3)
 
     @property
     def model_state(self) -> FloatArray:

@@ -39,6 +39,11 @@ class LoopConfig:
     slow_down_time_s: float = param(
         0.5, unit="s", desc="time constant of the average measured sample interval that slows the controller's "
         "feedback down when cycles are skipped (crossover / (interval / T), in steps); 0 = never", ge=0)
+    device_time: bool = param(
+        False, desc="loop time = executed cycles x period_s, the time of a plant stepped one period per SYNC "
+        "(stagectl sim-plant without wall_clock_plant): a skipped slot then delays reference and plant alike; false: "
+        "the clock's time, as a real stage, which moves on in real time, needs (embedded virtual devices: always "
+        "device time)")
     startup_cycles: int = param(
         200, unit="cycles", desc="at start, SYNC periods to wait for the first fresh position (a loaded machine or "
         "a late first TPDO); the stale-position check applies from the first active cycle on", ge=1, le=100000

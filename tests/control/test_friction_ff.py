@@ -173,3 +173,20 @@ def test_any_library_model_drives_the_feedforward(name):
     assert np.all(np.isfinite(f))
     assert f.max() > 0.3 and f.min() < -0.3  # pre-sliding force of both signs (Fs ≈ 0.9 N)
     assert dut.state.reversals == 1
+
+
+def test_the_model_kernel_is_loaded_at_construction_not_in_the_first_moving_cycle():
+    """A fresh process: constructing the feed-forward loads the GMS model's compiled step (numba import and
+    cache load took 0.5-0.9 s in the HIL's first moving cycle, and the drive's heartbeat consumer faulted)."""
+    import subprocess
+
+    code = ("from stagectl.control.friction_ff import FrictionFeedforward\n"
+            "import stagectl.config as c, pathlib\n"
+            "m = c.load_app_config(pathlib.Path('config/sim.yaml')).controller.feedforward.model.friction\n"
+            "assert not type(m)._kstep.signatures\n"
+            "FrictionFeedforward(m)\n"
+            "print(len(type(m)._kstep.signatures))\n")
+    root = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.strip()) >= 1

@@ -132,7 +132,7 @@ def test_safety_config_bounds_and_cross_check():
                             "stale_cycle": 2}, "safety")
     msg = str(ei.value)
     assert "safety.max_force_n: must be > 0 N" in msg
-    assert "safety.stale_cycle: unknown key (did you mean stale_cycles?)" in msg
+    assert "safety.stale_cycle: unknown key (did you mean stale_cycles" in msg
 
 
 def test_safety_unit_checks():

@@ -125,24 +125,36 @@ def test_qfilter_dob_estimate_does_not_jump_when_dt_changes():
 
 
 @pytest.mark.parametrize("scenario", ["cosine", "triangle"])
-def test_late_and_dropped_tpdos_track_without_fault(sim_cfg, scenario):
+def test_late_and_dropped_tpdos_track_within_2x_without_fault(sim_cfg, scenario):
     """Lock-step CANopen: late_tpdo on 10 % of the SYNCs and drop_tpdo on 1 % (seeded): no fault (before,
     two late TPDOs in a row already tripped missed_frame / stale_position with the 3-cycle limits) and RMS
-    within 2.5x of the clean run (the issue's 2x: the strict xfail below)."""
+    within 2x of the clean run (issue 12), the 10 um cosine in pre-sliding included."""
     clean = run_tracking(sim_cfg, scenario, stage_kind="canopen", disturbed=False, duration_s=2.2, skip_s=0.5)
     dist = run_tracking(sim_cfg, scenario, stage_kind="canopen", disturbed=True, duration_s=2.2, skip_s=0.5)
     assert clean["fault"] is None and dist["fault"] is None
     assert 150 < dist["stale_cycles"] < 300  # the disturbance really happened (~10 % of 2200 cycles)
-    assert dist["rms_error_nm"] <= 2.5 * clean["rms_error_nm"], (dist, clean)
-
-
-@pytest.mark.xfail(strict=True, reason="issue 12 target missed: the 10 um cosine (pre-sliding) gets 2.1x the clean "
-                   "RMS in this 2.2 s run (2.4x in bench timing's 3.4 s run) with 10 % late and 1 % dropped "
-                   "TPDOs; fails loudly once met")
-def test_late_and_dropped_tpdos_cosine_within_2x(sim_cfg):
-    clean = run_tracking(sim_cfg, "cosine", stage_kind="canopen", disturbed=False, duration_s=2.2, skip_s=0.5)
-    dist = run_tracking(sim_cfg, "cosine", stage_kind="canopen", disturbed=True, duration_s=2.2, skip_s=0.5)
     assert dist["rms_error_nm"] <= 2.0 * clean["rms_error_nm"], (dist, clean)
+
+
+def test_holding_the_feedback_on_every_stale_sample_misses_the_cosine_target(sim_cfg):
+    """What the predicted stale steps are for: with ``stale_predict_cycles: 0`` (every stale cycle holds the
+    feedback and the observer, the next sample brings an interval of 2T) the same disturbance costs the
+    pre-sliding cosine more than 2x."""
+    hold = dataclasses.replace(sim_cfg, controller=dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0))
+    clean = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=False, duration_s=2.2, skip_s=0.5)
+    dist = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=True, duration_s=2.2, skip_s=0.5)
+    assert dist["fault"] is None and dist["rms_error_nm"] > 2.0 * clean["rms_error_nm"], (dist, clean)
+
+
+def test_lost_force_writes_alone_cost_the_pre_sliding_cosine(sim_cfg):
+    """bench timing's held_force_only reference: every sample on time, but 10 % of the force writes lost (the
+    actuator holds the previous force one more period, as in a skipped slot): the 10 um cosine's error grows
+    although the controller misses nothing, so the skipped slots' cost is the held force, not the sampling."""
+    clean = run_tracking(sim_cfg, "cosine", stage_kind="plant_io", disturbed=False, duration_s=2.2, skip_s=0.5)
+    held = run_tracking(sim_cfg, "cosine", stage_kind="plant_io", disturbed=False, duration_s=2.2, skip_s=0.5,
+                        lose_writes=True)
+    assert held["fault"] is None and held["stale_cycles"] == 0 and held["skipped_slots"] == 0
+    assert held["rms_error_nm"] > 1.5 * clean["rms_error_nm"], (held, clean)
 
 
 def test_jitter_and_skipped_slots_keep_tracking_without_fault(sim_cfg):
@@ -234,10 +246,35 @@ def test_unsafe_faults_still_release_at_once(sim_cfg, name):
     assert np.all(applied[k + 3:] == 0.0)
 
 
-def test_stage_controller_hold_keeps_feedback_and_follows_the_feed_forward(sim_cfg):
+def test_stage_controller_predicts_short_stale_gaps_then_holds(sim_cfg):
+    """The first stale_predict_cycles (2) stale cycles step the controller on x_r - e_last (the observer and the
+    integrator move on, at the loop's rate); from the third stale cycle on the feedback is held; the next fresh
+    sample is stepped with the rest of its interval since the last prediction (2T, the held cycle included)."""
     from stagectl.control.controller import StageController
 
     ctl = StageController(sim_cfg.controller, sim_cfg.timing)
+    ctl.reset(0.0)
+    for k in range(50):
+        ctl.step(1e-3, 1e-9 * k, Reference(1e-9 * k + 2e-9, 1e-6, 0.0))
+    i0 = ctl.pid.state.i_n
+    p1 = ctl.hold(1e-3, Reference(52e-9, 1e-6, 0.0))
+    assert p1.limited[:2] == ("stale", "predicted")
+    assert ctl.state.x_prev_m == pytest.approx(50e-9)  # x_r - e_last (e_last = 2 nm)
+    assert ctl.pid.state.i_n > i0  # the integrator went on with e_last
+    p2 = ctl.hold(1e-3, Reference(53e-9, 1e-6, 0.0))
+    assert "predicted" in p2.limited and ctl.state.x_prev_m == pytest.approx(51e-9)
+    i2, d2 = ctl.pid.state.i_n, ctl.state.d_hat_n
+    h3 = ctl.hold(1e-3, Reference(54e-9, 1e-6, 0.0))
+    assert h3.limited == ("stale",) and ctl.pid.state.i_n == i2 and ctl.state.d_hat_n == d2
+    ctl.step(4e-3, 53e-9, Reference(55e-9, 1e-6, 0.0))  # 4T since the last fresh sample, 2T of them predicted
+    assert ctl.state.v_hat_m_s == pytest.approx((53e-9 - 51e-9) / 2e-3)
+
+
+def test_stage_controller_hold_keeps_feedback_and_follows_the_feed_forward(sim_cfg):
+    from stagectl.control.controller import StageController
+
+    cfg = dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0)
+    ctl = StageController(cfg, sim_cfg.timing)
     ctl.reset(0.0)
     for k in range(50):
         cmd = ctl.step(1e-3, 1e-9 * k, Reference(1e-9 * k + 2e-9, 1e-6, 0.0))
@@ -331,3 +368,100 @@ def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_
         v0, a_max = b.v0_m_s, lim / sim_cfg.controller.mass_kg
         assert abs(xs[-1] - xs[k]) <= v0 ** 2 / (2 * a_max) + v0 * 3e-3 + 1e-6
         assert world.drive.state.name == "SWITCH_ON_DISABLED" and abs(world.plant.v_m_s) < 1e-5
+
+
+def test_safety_tolerates_a_longer_gap_only_while_the_stage_stands():
+    """stale_rest_cycles applies while the reference speed and the last measured velocity are both below the
+    quick-stop standstill (0.1 mm/s); moving (or unset) the stale limit stays stale_cycles. A stale sample
+    never feeds the following-error window (it is the old position held)."""
+    from stagectl.safety import Safety, SafetyConfig
+
+    def gap(v_ref, v, rest=20):
+        s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, stale_cycles=3, stale_rest_cycles=rest,
+                                following_error_m=1e-6), 1e-3)
+        s.check_measurement(0.0, 0, 0.0, True, None)
+        s.v_est_m_s = v
+        s.reference_speed_m_s = v_ref
+        for k in range(1, 40):
+            if s.check_measurement(k * 1e-3, k, 0.0, False, None):
+                return k
+        return None
+
+    assert gap(0.0, 0.0) == 20
+    assert gap(3e-5, 2e-5) == 20  # a slow scan (0.03 mm/s): at most 0.1 mm/s x the gap unseen
+    assert gap(0.0, 0.0, rest=None) == 3
+    assert gap(2e-3, 0.0) == 3  # the reference moves
+    assert gap(0.0, 5e-4) == 3  # the stage still moves (above quick_stop_standstill_m_s)
+    s = Safety(SafetyConfig(min_position_m=-1, max_position_m=1, following_error_m=1e-6), 1e-3)
+    assert not s.check_tracking(0.0, 0, 0.0, 5e-6, fresh=False)  # a stale x against a moving reference
+    assert s.check_tracking(0.001, 1, 0.0, 5e-6) and s.fault.name == "following_error"
+
+
+@pytest.fixture(scope="module")
+def hil_lockstep():
+    """config/hil-canopen.yaml's driver, controller and safety on the in-process virtual bus (lock-step)."""
+    cfg = load_app_config(REPO / "config" / "hil-canopen.yaml")
+    return dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_hil_config_rides_out_a_silent_drive_at_rest_not_while_moving(hil_lockstep, moving):
+    """The HIL's sim-plant process is held off the CPU for 50-400 ms on a loaded machine (its TPDOs stop, the
+    controller keeps its 1 kHz): 400 dropped TPDOs with the stage at rest are ridden out (feedback held, no
+    fault, the stage stays put); the same silence during a 5 mm/s move is stale_position after 50 cycles,
+    not a following error computed from the held position."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.recorder import Recorder
+    from stagectl.sim.faults import FaultSpec, SimFault
+
+    with build_stage(hil_lockstep, clock=SimClock()) as stage:
+        loop = stage.loop
+        rec = Recorder(loop.columns, 1000)
+        loop.add_sink(rec)
+        if moving:
+            loop.submit(MoveRequest(target_m=1e-3, max_velocity_m_s=5e-3))
+        stage.world.inject(FaultSpec(kind=SimFault.DROP_TPDO, at_cycle=100, cycles=400))
+        res = loop.run(duration_s=0.7)
+        x_end = stage.world.plant.x_m
+    stale = rec.col("stale")
+    if moving:
+        assert res.fault is not None and res.fault.name == "stale_position"
+        assert res.fault.cycle - 99 <= hil_lockstep.safety.stale_cycles + 1
+    else:
+        assert res.fault is None and stale.sum() >= 390
+        assert abs(x_end) < 1e-8 and np.max(np.abs(rec.col("e")[stale == 0])) < 1e-8
+
+
+def test_loop_device_time_from_the_config(sim_cfg):
+    """loop.device_time (the HIL's sim-plant steps its plant one period per SYNC): the loop's time is its
+    executed cycles, so with a clock that skips slots the reference advances one period per cycle."""
+    from stagectl.app import build_stage
+    from stagectl.recorder import Recorder
+    from stagectl.sim.jitter import JitterClock
+
+    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, kind=IoKind.PLANT_IO),
+                              loop=dataclasses.replace(sim_cfg.loop, device_time=True))
+    with build_stage(cfg, clock=JitterClock(1e-3, late_fraction=0.3, seed=2)) as stage:
+        assert stage.loop.device_time
+        rec = Recorder(stage.loop.columns, 200)
+        stage.loop.add_sink(rec)
+        stage.loop.run(cycles=100)
+    assert np.allclose(np.diff(rec.col("t")), 1e-3) and rec.col("skipped").sum() > 10
+
+
+def test_a_held_cycle_carries_the_learned_force_once(sim_cfg):
+    """hold(dt, ref, u_learn_n): the learned feed-forward replaces the last cycle's instead of adding to it
+    (before, the loop added the learner's force to a held command that already held the last one)."""
+    from stagectl.control.controller import StageController
+
+    cfg = dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0)
+    ctl = StageController(cfg, sim_cfg.timing)
+    ctl.reset(0.0)
+    ref = Reference(0.0, 0.0, 0.0)
+    for _ in range(20):
+        cmd = ctl.step(1e-3, 0.0, ref, 0.3)
+    held = ctl.hold(1e-3, ref, 0.3)
+    assert held.force_n == pytest.approx(cmd.force_n, abs=1e-12)
+    held2 = ctl.hold(1e-3, ref, 0.1)
+    assert held2.force_n == pytest.approx(cmd.force_n - 0.2, abs=1e-12)
