@@ -48,6 +48,8 @@ from collections.abc import Hashable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.bench import tell
+
 from stagectl.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -256,24 +258,38 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     and m["gain_margin_db"] >= args.min_gain_margin)
 
     Candidate = tuple[dict[str, Any], ControllerConfig, StageModel | None]
+    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths)
+    n_fc = 1 if args.quick else len(_floats(args.coulomb_levels))
+    # the plan in simulated runs, for the progress line: each sweep's candidates × scenarios + its steps run,
+    # and the two steps checks; a sweep that rejects candidates on their margins lowers the total
+    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 2}
+
+    def sim(what: str) -> None:
+        tell(args, sims["done"], sims["total"], what)
+        sims["done"] += 1
 
     def sweep(label: str, candidates: list[Candidate]) -> dict[str, Any]:
         best: tuple[float, dict[str, Any], ControllerConfig, StageModel | None, dict[str, Any]] | None = None
         tried: list[dict[str, Any]] = []
         kept = [cand for cand in candidates if robust(cand[1])] or candidates[:1]
+        sims["total"] -= (len(candidates) - len(kept)) * len(TRACKING)
         for params, ctl_cfg, _ in candidates:
             if not any(ctl_cfg is k[1] for k in kept):
                 m = margins(ctl_cfg)
                 tried.append({**params, "rejected": f"margins PM {m['phase_margin_deg']:.1f} deg, "
                               f"GM {m['gain_margin_db']:.1f} dB"})
-        for params, ctl_cfg, model in kept:
-            res = {s: run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip) for s in TRACKING}
+        for i, (params, ctl_cfg, model) in enumerate(kept):
+            res = {}
+            for s in TRACKING:
+                sim(f"{label}: candidate {i + 1} of {len(kept)}, {s}")
+                res[s] = run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip)
             sc = score(res) if not any(r["fault"] for r in res.values()) else float("inf")
             tried.append({**params, "tracking_rms_sum_nm": sc})
             if best is None or sc < best[0]:
                 best = (sc, params, ctl_cfg, model, res)
         assert best is not None
         _, params, ctl_cfg, model, res = best
+        sim(f"{label}: steps with the best candidate")
         res["steps"] = run_case(cfg, ctl_cfg, "steps", model=model)
         return {"tuning": params, "swept": tried if len(tried) > 1 else None, "results": res, "config": ctl_cfg}
 
@@ -285,7 +301,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
          _variant(base, pid=p, dob=False, ff="coulomb", coulomb_n=fc, viscous=sigma2), None)
         for k, p in pids.items() for fc in ([fc_true] if args.quick else _floats(args.coulomb_levels))
     ])
-    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths)
     for name, model, ff in (("pid_dob", None, "none"), ("pid_dob_gms", m_exact, "model"),
                             ("pid_dob_gms_20", m_off, "model")):
         out[name] = sweep(name, [({"pid": k, "dob_bandwidth_hz": g},
@@ -311,6 +326,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for name, ctl_cfg in designs.items():
         if name == "tuned" and ctl_cfg == designs["config"]:
             continue
+        sim(f"move and settle, the {name} design")
         r = steps_check(cfg, ctl_cfg, model=m_off, hold_s=args.hold)
         steps_t[name] = {
             "settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],

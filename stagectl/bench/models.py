@@ -26,6 +26,8 @@ import math
 import time
 from typing import Any
 
+from stagectl.bench import tell
+
 import numpy as np
 
 from stagectl.resources import config_dir
@@ -245,7 +247,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     u_batch = u_single[:n_batch_steps]
 
     results: dict[str, Any] = {}
-    for tag in tags:
+    for i, tag in enumerate(tags):
+        tell(args, i, len(tags) + 1, f"model {i + 1} of {len(tags)}, {tag}")
         entry: dict[str, Any] = {}
         results[tag] = entry
         spec = _spec_for(tag)
@@ -301,6 +304,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     # baseline: pure-Python GMS + plant, same equations and input
     gms_spec = SPECS["gms"]
+    tell(args, len(tags), len(tags) + 1, "the C reference and the pure-Python baseline")
     c_ref = None if getattr(args, "no_c", False) else _c_reference(
         gms_spec, mass, dt, u_single, u_batch, n_sets, rng, repeat, results.get("gms"),
         int(args.first_steps or (2_000_000 if quick else 10_000_000)))

@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     for kind, (mod, help_text) in KINDS.items():
         kp = kinds.add_parser(kind, help=help_text)
         kp.add_argument("--json", action="store_true", help="print the result as JSON")
-        kp.add_argument("--quiet", action="store_true", help="no elapsed-time line on stderr (for scripts)")
+        kp.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress line (case, elapsed, time left) on stderr (for scripts)")
         mod.add_arguments(kp)
         kp.set_defaults(func=_runner(mod))
     p.set_defaults(func=_no_kind)
@@ -52,7 +53,8 @@ def _runner(mod: ModuleType) -> Callable[[argparse.Namespace], int]:
     def fn(args: argparse.Namespace) -> int:
         from stagectl.commands.progress import Ticker
 
-        with Ticker(f"bench {args.bench_kind}", quiet=args.quiet):
+        with Ticker(f"bench {args.bench_kind}", quiet=args.quiet) as ticker:
+            args.progress = ticker.tell  # the benchmark tells its cases: stagectl.bench.tell
             result = mod.run(args)
         if args.json:
             json.dump(result, sys.stdout, indent=2, default=float)

@@ -58,7 +58,11 @@ def run(args: argparse.Namespace) -> int:
     progress.step(1, f"loading {args.data}")
     rec = load_recording(args.data, args.columns, min_rows=50)
     progress.step(2, f"fitting {args.model} to {len(rec)} rows, then its verdict")
-    res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
+    # the fit tells its own line: the stage, and the time left as an upper bound (its work in model runs
+    # along the recording, bounded by the optimiser's budget; see stagectl.ident.identify._Runs)
+    fit = Progress("identify", 1, quiet=args.quiet, stream=progress.stream)
+    res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz,
+                   progress=lambda done, total, what: fit.bounded(done, f"{args.model}: {what}", total))
     quality: dict[str, Any] = plain(res.quality, json=True)
     spec: dict[str, Any] = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
                                                            "data": args.data, "fit": quality.get("fit", {})}}
