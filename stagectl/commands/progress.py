@@ -42,13 +42,13 @@ class Progress:
         self._hist: list[tuple[float, float]] = [(self.t0, 0.0)]  # (time, done), one sample per 0.5 s
 
     def left_s(self, done: float, now: float) -> float:
-        """Seconds left: the units still to do over the rate of the last ``window_s`` seconds (nan before
-        any unit is done)."""
+        """Seconds left: the units still to do over the rate of the last ``window_s`` seconds (the whole run
+        while it is shorter). nan (no figure) until the rate rests on a second of work with some done."""
         t_old, d_old = next(((t, d) for t, d in self._hist if t >= now - self.window_s and d < done),
                             self._hist[0])
-        if not done > d_old or not now > t_old:
-            t_old, d_old = self.t0, 0.0
-        if not done > d_old or not now > t_old:
+        if not done > d_old or now - t_old < 1.0:
+            t_old, d_old = self._hist[0]
+        if not done > d_old or now - t_old < 1.0:
             return float("nan")
         return max(self.total - done, 0.0) * (now - t_old) / (done - d_old)
 
@@ -98,6 +98,8 @@ class Progress:
         self._plan(done, what, total, "about")
 
     def _plan(self, done: float, what: str, total: float | None, word: str) -> None:
+        if not self._left_word:  # the work starts now: its rate is measured from here (not from set-up)
+            self._hist = [(self.clock(), 0.0)]
         if total is not None:
             self.total = max(float(total), 1e-300)
         if what != self.what and self.tty:  # a new step shows at once on a terminal
@@ -153,9 +155,9 @@ class Ticker:
     """
 
     def __init__(self, label: str, *, quiet: bool = False, stream: TextIO | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, every_s: float | None = None) -> None:
         self.progress = Progress(label, 1.0, quiet=quiet, stream=stream, clock=clock)
-        self.progress.every_s = 1.0 if self.progress.tty else 30.0
+        self.progress.every_s = every_s if every_s is not None else 1.0 if self.progress.tty else 30.0
         self.progress._next = self.progress.t0 + self.progress.every_s
         self._plan: tuple[float, float, str, float, float] | None = None  # done, total, what, span, told at
         self._lock = threading.Lock()
