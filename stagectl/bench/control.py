@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # and the two steps checks; a sweep that rejects candidates on their margins lowers the total
     sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 2}
 
-    def sim(what: str) -> None:
+    def next_run(what: str) -> None:
         tell(args, sims["done"], sims["total"], what)
         sims["done"] += 1
 
@@ -281,7 +281,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for i, (params, ctl_cfg, model) in enumerate(kept):
             res = {}
             for s in TRACKING:
-                sim(f"{label}: candidate {i + 1} of {len(kept)}, {s}")
+                next_run(f"{label}: candidate {i + 1} of {len(kept)}, {s}")
                 res[s] = run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip)
             sc = score(res) if not any(r["fault"] for r in res.values()) else float("inf")
             tried.append({**params, "tracking_rms_sum_nm": sc})
@@ -289,7 +289,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 best = (sc, params, ctl_cfg, model, res)
         assert best is not None
         _, params, ctl_cfg, model, res = best
-        sim(f"{label}: steps with the best candidate")
+        next_run(f"{label}: steps with the best candidate")
         res["steps"] = run_case(cfg, ctl_cfg, "steps", model=model)
         return {"tuning": params, "swept": tried if len(tried) > 1 else None, "results": res, "config": ctl_cfg}
 
@@ -326,7 +326,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for name, ctl_cfg in designs.items():
         if name == "tuned" and ctl_cfg == designs["config"]:
             continue
-        sim(f"move and settle, the {name} design")
+        next_run(f"move and settle, the {name} design")
         r = steps_check(cfg, ctl_cfg, model=m_off, hold_s=args.hold)
         steps_t[name] = {
             "settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],

@@ -80,8 +80,8 @@ class Progress:
             return (f"{self.label}: step {done + 1:.0f} of {self.total:.0f}, {self.what} "
                     f"({now - self.t0:.0f} s elapsed)")
         frac = min(max(done / self.total, 0.0), 1.0)
-        left = self.left_s(done, now)
-        left_txt = f", {left:.0f} s left" if left == left else ""
+        secs = self.left_s(done, now)
+        left_txt = f", {secs:.0f} s left" if secs == secs else ""
         return (f"{self.label}: {100 * frac:3.0f} % ({done:.4g} of {self.total:.4g}{' ' + self.unit if self.unit else ''})"
                 f"{left_txt}")
 
