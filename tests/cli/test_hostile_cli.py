@@ -61,6 +61,7 @@ HOSTILE = [
     "simulate --config {tmp} --out {tmp}/o",
     "simulate --config config/sim.yaml --out /proc/stagectl-x",
     "identify {rec} --model gms --out /proc/stagectl-x.yaml",
+    "identify {rec} --model dahl --out /dev/full --quiet",  # the disk fills when the model file is written
     "identify {rec} --model gms --out {tmp}",
     "identify {tmp} --model gms --out {tmp}/m.yaml",
     "identify /dev/null --model gms --out {tmp}/m.yaml",
@@ -78,6 +79,8 @@ HOSTILE = [
     "move --by -1e-5 --socket {tmp}/none.sock",
     "reset --socket {tmp}/none.sock",
     "stop --socket {tmp}/none.sock",
+    "stop --json --socket {tmp}/none.sock",
+    "reset --json --socket {tmp}/none.sock",
     "record start x --socket {tmp}/none.sock",
     "plot {rec} --out {tmp}/p.txt",
     "plot {tmp}/missing.csv",
