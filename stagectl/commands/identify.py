@@ -72,7 +72,11 @@ def run(args: argparse.Namespace) -> int:
         spec = {"mass_kg": res.mass_kg, **spec}
     progress.step(3, "writing the model file" + (" and plots" if args.plot else ""))
     model = load(StageModel, plain(spec, json=True), "")
-    save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
+    try:
+        save_model_file(model, args.out,
+                        header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
+    except OSError as exc:  # a full disk (/dev/full), a vanished directory: name the file, not "output"
+        raise ConfigError(f"--out: cannot write {args.out!r} ({exc.strerror or exc})") from None
     out: dict[str, Any] = {"model_file": args.out, "model": plain(res.spec, json=True),
                            "effects": plain(res.effects, json=True), "mass_kg": res.mass_kg, "quality": quality}
     if args.plot:
