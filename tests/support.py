@@ -90,8 +90,11 @@ def run_on_pty(argv: list[str], *, interrupt_on: str | None = None, cwd=None, st
     import subprocess
 
     m, s = pty.openpty()
+    # preexec_fn: a test run in the background (no job control) ignores SIGINT and a child inherits SIG_IGN,
+    # in which case Python never raises KeyboardInterrupt; with SIG_DFL at exec it installs its handler
     p = subprocess.Popen([*stagectl_cmd(), *argv], cwd=cwd, stdout=stdout or subprocess.DEVNULL, stderr=s,
-                         env={**os.environ, "STAGECTL_TRACEBACK": ""})
+                         env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     os.close(s)
     buf = b""
     try:

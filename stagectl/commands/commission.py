@@ -38,6 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--lockstep", action="store_true",
                    help="the stage is a `stagectl sim-plant --lockstep` process: simulated time, each SYNC "
                         "answered before the next (deterministic, faster than real time)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress lines on stderr (for scripts; the summary, verdict and errors still)")
     p.set_defaults(func=run)
 
 
@@ -63,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out)
 
     def progress(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
 
     opts = Options(max_stroke_m=args.max_stroke, max_force_n=args.max_force, max_velocity_m_s=args.max_velocity,
                    verify=not args.no_verify, plots=not args.no_plots, inject_fault=fault, progress=progress,

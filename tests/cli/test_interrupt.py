@@ -23,7 +23,8 @@ def test_ctrl_c_in_simulate_keeps_what_was_simulated(tmp_path: Path) -> None:
     script = Path(sys.executable).with_name("stagectl")
     p = subprocess.Popen([str(script), "simulate", "--config", "config/sim.yaml", "--scenario", "cosine",
                           "--duration", "600", "--out", str(out), "--no-plots"], cwd=REPO, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "STAGECTL_TRACEBACK": ""})
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # see run_on_pty
     try:
         assert p.stderr is not None
         first = p.stderr.readline()  # the first progress line: the loop is running
