@@ -83,8 +83,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hold", type=float, default=2.0, help="hold after each 10 um step of the steps target [s]")
 
 
-def _floats(text: str) -> list[float]:
-    return [float(v) for v in text.split(",") if v.strip()]
+def _floats(text: str, option: str = "--pid-bandwidths") -> list[float]:
+    """A comma list of positive numbers (an option's value); anything else is one error line naming it."""
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or not all(0 < v < float("inf") for v in values):
+        raise ConfigError(f"{option}: expected a comma list of positive numbers, got {text[:60]!r}")
+    return values
 
 
 def mismatched(model: FrictionModel) -> FrictionModel:
@@ -258,8 +265,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     and m["gain_margin_db"] >= args.min_gain_margin)
 
     Candidate = tuple[dict[str, Any], ControllerConfig, StageModel | None]
-    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths)
-    n_fc = 1 if args.quick else len(_floats(args.coulomb_levels))
+    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths, "--dob-bandwidths")
+    n_fc = 1 if args.quick else len(_floats(args.coulomb_levels, "--coulomb-levels"))
     # the plan in simulated runs, for the progress line: each sweep's candidates × scenarios + its steps run,
     # and the two steps checks; a sweep that rejects candidates on their margins lowers the total
     sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 2}
@@ -299,7 +306,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out["pid_coulomb"] = sweep("pid_coulomb", [
         ({"pid": k, "coulomb_n": fc, "viscous_n_s_m": sigma2},
          _variant(base, pid=p, dob=False, ff="coulomb", coulomb_n=fc, viscous=sigma2), None)
-        for k, p in pids.items() for fc in ([fc_true] if args.quick else _floats(args.coulomb_levels))
+        for k, p in pids.items()
+        for fc in ([fc_true] if args.quick else _floats(args.coulomb_levels, "--coulomb-levels"))
     ])
     for name, model, ff in (("pid_dob", None, "none"), ("pid_dob_gms", m_exact, "model"),
                             ("pid_dob_gms_20", m_off, "model")):

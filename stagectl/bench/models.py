@@ -242,6 +242,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     build(SPECS["stribeck"])  # imports every model module
     tags = sorted(registry()) if not args.models else [t.strip() for t in args.models.split(",") if t.strip()]
+    unknown = [t for t in tags if t not in registry()]
+    if unknown or not tags:
+        from stagectl.errors import ConfigError
+
+        raise ConfigError(f"--models: unknown model {', '.join(unknown) or '(none given)'} "
+                          f"(known: {', '.join(sorted(registry()))})")
     t_axis = np.arange(n_single) * dt
     u_single = 1.5 * np.sin(2 * np.pi * 5.0 * t_axis)  # slides both ways and passes through pre-sliding
     u_batch = u_single[:n_batch_steps]

@@ -71,6 +71,9 @@ def _one(config: str, cache: Path) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from stagectl.config import load_app_config
+
+    load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
     load0 = os.getloadavg()
     cold: list[dict[str, float]] = []
     warm: list[dict[str, float]] = []
