@@ -73,7 +73,7 @@ def measure(rec: Recording, mass_kg: float | None = None, cutoff_hz: float | Non
     sig = prepare(rec, cutoff_hz=cutoff_hz, min_rows=50, require_motion=False) if len(rec) >= 50 else None
     if sig is None:
         raise DataError(f"{rec.source}: {len(rec)} rows; identification needs at least 50")
-    notes: list[str] = []
+    notes: list[str] = list(sig.notes)  # what the preparation did (irregular sampling resampled, ...)
     ub = signal.sosfiltfilt(sig.sos, sig.ubar())
     acc = signal.sosfiltfilt(sig.sos, sig.acc_raw)
     m = mass_kg
