@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--scenario", default=None,
                    help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "
                         "simulated stage, hold on a real one)")
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")
     p.add_argument("--ilc", action="store_true",
                    help="learn a feed-forward for the repeated motion (ilc: section, learning from the start)")
     p.add_argument("-q", "--quiet", action="store_true",
@@ -118,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"
     summary["out"] = str(out)
     write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)
-    print(f"stagectl run: telemetry, summary.json and plots in {out}", file=sys.stderr)
+    wrote = "telemetry.csv, summary.json" + (" and tracking.png" if (Path(out) / "tracking.png").is_file() else "")
+    print(f"stagectl run: {wrote} in {out}", file=sys.stderr)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0
