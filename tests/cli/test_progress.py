@@ -15,7 +15,6 @@ import pytest
 from stagectl.commands.progress import Progress, Ticker
 from support import run_on_pty
 
-REPO = Path(__file__).resolve().parents[2]
 LEFT = re.compile(r"\((\d+) s elapsed, (at most ~|about )(\d+) s left\)")
 
 
@@ -145,14 +144,3 @@ def test_bench_tell_reaches_the_line_only_when_there_is_one() -> None:
     tell(argparse.Namespace(progress=lambda *a: seen.append(a)), 1.0, 4.0, "case 2 of 4", 3.0)
     tell(argparse.Namespace(), 1.0, 4.0, "no line: nothing happens")
     assert seen == [(1.0, 4.0, "case 2 of 4", 3.0)]
-
-
-def test_bench_loop_on_a_terminal_tells_its_run_and_quiet_silences_it() -> None:
-    """A real `stagectl bench loop` (0.5 s of loop on the in-process plant): the line names the timed run
-    (its seconds are the units) and the breakdown after it; --quiet: no line at all."""
-    argv = ["bench", "loop", "--duration", "0.5", "--io", "plant_io", "--breakdown-cycles", "50"]
-    rc, err = run_on_pty(argv, cwd=REPO)
-    assert rc == 0, err
-    assert "bench loop: running the loop for 0.5 s (" in err and "bench loop: cycle breakdown (50 cycles)" in err, err
-    rc, err = run_on_pty([*argv, "--quiet"], cwd=REPO)
-    assert rc == 0 and "bench loop:" not in err, err
