@@ -13,7 +13,9 @@ import importlib
 import os
 import re
 import sys
+import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NoReturn
 
 #: command modules, in the order they appear in ``--help``
@@ -87,6 +89,39 @@ def one_blas_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
+def _end_progress_line() -> None:
+    """On a terminal a progress line (stagectl.commands.progress) may be standing without its newline: clear
+    it, so the error or interrupt message starts its own line."""
+    try:
+        if sys.stderr.isatty():
+            sys.stderr.write("\r\033[K")
+    except (OSError, ValueError):
+        pass
+
+
+def _after_interrupt(args: argparse.Namespace, started: float) -> str:
+    """What an interrupted command leaves: the output directories it created and left empty are removed; the
+    outputs it wrote to (files changed since it started) are named as incomplete; otherwise nothing."""
+    from stagectl.outputs import remove_created_if_empty
+
+    remove_created_if_empty()
+    kept: list[str] = []
+    for name in ("out", "plot"):
+        value = getattr(args, name, None)
+        if not isinstance(value, str) or not value:
+            continue
+        p = Path(value)
+        try:
+            files = [f for f in p.rglob("*") if f.is_file()] if p.is_dir() else [p] if p.is_file() else []
+            if any(f.stat().st_mtime >= started - 1.0 for f in files):
+                kept.append(value)
+        except OSError:
+            continue
+    if kept:
+        return f"; what was written so far is in {' and '.join(kept)} (incomplete)"
+    return "; no output was written" if any(getattr(args, n, None) for n in ("out", "plot")) else ""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from stagectl.errors import StageError
 
@@ -101,28 +136,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    started = time.time()
     try:
         return int(args.func(args) or 0)
     except StageError as exc:
+        _end_progress_line()
         msg = str(exc)
         lines = [line for line in msg.splitlines() if line.strip()] or [type(exc).__name__]
         for line in lines:  # one line per problem, each greppable as an error
             print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        out = getattr(args, "out", None)
-        where = f"; outputs in {out} are incomplete" if out else ""
-        print(f"stagectl: interrupted (Ctrl-C){where}", file=sys.stderr)
+        _end_progress_line()
+        print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
     except OSError as exc:  # the environment, not a bug: disk full, permission, a path that vanished
+        _end_progress_line()
         name = exc.filename if exc.filename is not None else "output"
         print(f"stagectl: error: {name}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug: one line for the user, the traceback on request
         if os.environ.get("STAGECTL_TRACEBACK"):
             raise
+        _end_progress_line()
         print(f"stagectl: internal error: {type(exc).__name__}: {str(exc)[:200]} "
               "(a bug in stagectl: please report it; STAGECTL_TRACEBACK=1 shows the traceback)", file=sys.stderr)
         return 70

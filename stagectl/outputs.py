@@ -21,7 +21,11 @@ from typing import Any
 
 from stagectl.errors import ConfigError
 
-__all__ = ["plain", "prefix_for", "prepare_out_dir", "prepare_out_file", "si"]
+__all__ = ["plain", "prefix_for", "prepare_out_dir", "prepare_out_file", "remove_created_if_empty", "si"]
+
+#: the directories :func:`prepare_out_dir` made in this process (the topmost one that did not exist), so that
+#: an interrupted command can take back the ones it left empty (:func:`remove_created_if_empty`)
+_created: list[Path] = []
 
 
 def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
@@ -43,14 +47,34 @@ def prepare_out_dir(path: str | Path, option: str = "--out") -> Path:
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option}: {str(p)!r} exists and is not a directory")
+    new = next((a for a in reversed([p, *p.parents]) if not a.exists()), None)
     try:
         p.mkdir(parents=True, exist_ok=True)
+        if new is not None and new not in _created:
+            _created.append(new)
         probe = p / ".stagectl-write-test"
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
         raise ConfigError(f"{option}: cannot write to directory {str(p)!r} ({exc.strerror or exc})") from None
     return p
+
+
+def remove_created_if_empty() -> list[str]:
+    """Remove the directories :func:`prepare_out_dir` created in this process that hold no file (after
+    Ctrl-C: an interrupted command leaves no empty output directories behind). Returns the removed paths."""
+    import shutil
+
+    removed: list[str] = []
+    for d in reversed(_created):
+        try:
+            if d.is_dir() and not any(f.is_file() or f.is_symlink() for f in d.rglob("*")):
+                shutil.rmtree(d)
+                removed.append(str(d))
+        except OSError:
+            continue
+    _created.clear()
+    return removed
 
 
 def prepare_out_file(path: str | Path, option: str = "--out") -> Path:

@@ -129,8 +129,8 @@ def _fig(title: str):  # type: ignore[no-untyped-def]
     return plt, fig, ax
 
 
-def _save(plt: Any, fig: Any, path: Path) -> Path:
-    fig.tight_layout()
+def _save(plt: Any, fig: Any, path: Path, rect: tuple[float, float, float, float] | None = None) -> Path:
+    fig.tight_layout(rect=rect)
     try:
         fig.savefig(path)
     except OSError as exc:
@@ -283,5 +283,5 @@ def plot_recording(columns: Sequence[str], data: FloatArray, path: str | Path, t
     axes[-1, 0].set_xlabel("time t [s]")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    return _save(plt, fig, Path(path))
+    # room for the title above the top panel (tight_layout alone lays the panels over it)
+    return _save(plt, fig, Path(path), rect=(0.0, 0.0, 1.0, 1.0 - (0.45 if title else 0.0) / fig.get_figheight()))

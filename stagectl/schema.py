@@ -120,6 +120,23 @@ def _fmt(v: Any) -> str:
     return repr(v)
 
 
+def yaml_kind(value: Any) -> str:
+    """What a parsed YAML value is, in YAML's words (``null``, ``true``, a list …), never a Python class name."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, Mapping):
+        return f"a mapping {short(dict(value))}"
+    if isinstance(value, (list, tuple)):
+        return f"list {short(list(value))}"
+    if isinstance(value, str):
+        return f"a string {short(value)}"
+    if isinstance(value, (int, float)):
+        return f"the number {short(value)}"
+    return f"a {type(value).__name__} value"
+
+
 def _check_number(value: Any, path: str, meta: Mapping[str, Any], problems: list[str], *, integer: bool) -> Any:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         # accept numeric strings like "1e-3" that YAML 1.1 leaves as str
@@ -130,8 +147,7 @@ def _check_number(value: Any, path: str, meta: Mapping[str, Any], problems: list
                 problems.append(f"{path}: expected a number{_unit(meta)}, got {short(value)}")
                 return None
         else:
-            problems.append(f"{path}: expected a number{_unit(meta)}, "
-                            f"got {type(value).__name__} {short(value)}")
+            problems.append(f"{path}: expected a number{_unit(meta)}, got {yaml_kind(value)}")
             return None
     if integer:
         if isinstance(value, float):
@@ -247,7 +263,7 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        problems.append(f"{where}: expected a mapping, got {type(data).__name__} {short(data)}")
+        problems.append(f"{where}: expected a mapping, got {yaml_kind(data)}")
         return None
     hints = typing.get_type_hints(cls)
     flds = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]

@@ -77,6 +77,50 @@ def stagectl_cmd() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "stagectl.cli"]
 
 
+def run_on_pty(argv: list[str], *, interrupt_on: str | None = None, cwd=None, stdout=None,
+               timeout_s: float = 180.0) -> tuple[int, str]:
+    """Run ``stagectl argv`` with its stderr on a pty (a terminal: progress lines are redrawn in place) and
+    return (exit status, what it wrote there). ``interrupt_on``: send a real SIGINT (Ctrl-C) as soon as that
+    text has appeared (the process's own progress line: no wall-clock sleep). ``stdout``: a file object for
+    its standard output (default: discarded)."""
+    import os
+    import pty
+    import select
+    import signal
+    import subprocess
+
+    m, s = pty.openpty()
+    # preexec_fn: a test run in the background (no job control) ignores SIGINT and a child inherits SIG_IGN,
+    # in which case Python never raises KeyboardInterrupt; with SIG_DFL at exec it installs its handler
+    p = subprocess.Popen([*stagectl_cmd(), *argv], cwd=cwd, stdout=stdout or subprocess.DEVNULL, stderr=s,
+                         env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    os.close(s)
+    buf = b""
+    try:
+        while True:
+            r, _, _ = select.select([m], [], [], timeout_s)
+            if not r:
+                raise AssertionError(f"stagectl {' '.join(argv)}: no output for {timeout_s} s: {buf[-500:]!r}")
+            try:
+                chunk = os.read(m, 4096)
+            except OSError:  # EIO: the child closed its end
+                break
+            if not chunk:
+                break
+            buf += chunk
+            if interrupt_on is not None and interrupt_on.encode() in buf:
+                p.send_signal(signal.SIGINT)
+                interrupt_on = None
+        p.wait(timeout_s)
+    finally:
+        os.close(m)
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
+    return p.returncode, buf.decode(errors="replace")
+
+
 def absolutize_paths(node, base):
     """A configuration mapping with its relative file paths (keys ``*_file``, ``eds``, ``file``) made absolute
     against ``base``, so that it still loads from a temporary directory."""

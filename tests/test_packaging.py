@@ -21,3 +21,16 @@ def test_every_package_directory_is_listed_in_pyproject():
         for init in d.rglob("__init__.py"):
             found.add(".".join((pkg, *init.parent.relative_to(d).parts)))
     assert found == listed, f"missing from pyproject: {sorted(found - listed)}; stale: {sorted(listed - found)}"
+
+
+def test_filterpy_is_a_test_dependency_only() -> None:
+    """Issue 15: the observer's test oracle (filterpy) is not installed with stagectl, and no module uses it."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    assert not any(d.lower().startswith("filterpy") for d in project["dependencies"])
+    assert any(d.lower().startswith("filterpy") for d in project["optional-dependencies"]["test"])
+    for pkg in ("stagectl", "drivers", "sim"):
+        for f in (root / pkg).rglob("*.py"):
+            assert "filterpy" not in f.read_text(encoding="utf-8"), f

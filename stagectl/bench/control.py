@@ -51,6 +51,8 @@ from collections.abc import Hashable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.bench import tell
+
 from stagectl.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -84,8 +86,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hold", type=float, default=2.0, help="hold after each 10 um step of the steps target [s]")
 
 
-def _floats(text: str) -> list[float]:
-    return [float(v) for v in text.split(",") if v.strip()]
+def _floats(text: str, option: str = "--pid-bandwidths") -> list[float]:
+    """A comma list of positive numbers (an option's value); anything else is one error line naming it."""
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or not all(0 < v < float("inf") for v in values):
+        raise ConfigError(f"{option}: expected a comma list of positive numbers, got {text[:60]!r}")
+    return values
 
 
 def mismatched(model: FrictionModel) -> FrictionModel:
@@ -302,24 +311,38 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     and m["gain_margin_db"] >= args.min_gain_margin)
 
     Candidate = tuple[dict[str, Any], ControllerConfig, StageModel | None]
+    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths, "--dob-bandwidths")
+    n_fc = 1 if args.quick else len(_floats(args.coulomb_levels, "--coulomb-levels"))
+    # the plan in simulated runs, for the progress line: each sweep's candidates × scenarios + its steps run,
+    # and the two steps checks; a sweep that rejects candidates on their margins lowers the total
+    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 2}
+
+    def next_run(what: str) -> None:
+        tell(args, sims["done"], sims["total"], what)
+        sims["done"] += 1
 
     def sweep(label: str, candidates: list[Candidate]) -> dict[str, Any]:
         best: tuple[float, dict[str, Any], ControllerConfig, StageModel | None, dict[str, Any]] | None = None
         tried: list[dict[str, Any]] = []
         kept = [cand for cand in candidates if robust(cand[1])] or candidates[:1]
+        sims["total"] -= (len(candidates) - len(kept)) * len(TRACKING)
         for params, ctl_cfg, _ in candidates:
             if not any(ctl_cfg is k[1] for k in kept):
                 m = margins(ctl_cfg)
                 tried.append({**params, "rejected": f"margins PM {m['phase_margin_deg']:.1f} deg, "
                               f"GM {m['gain_margin_db']:.1f} dB"})
-        for params, ctl_cfg, model in kept:
-            res = {s: run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip) for s in TRACKING}
+        for i, (params, ctl_cfg, model) in enumerate(kept):
+            res = {}
+            for s in TRACKING:
+                next_run(f"{label}: candidate {i + 1} of {len(kept)}, {s}")
+                res[s] = run_case(cfg, ctl_cfg, s, model=model, skip_s=args.skip)
             sc = score(res) if not any(r["fault"] for r in res.values()) else float("inf")
             tried.append({**params, "tracking_rms_sum_nm": sc})
             if best is None or sc < best[0]:
                 best = (sc, params, ctl_cfg, model, res)
         assert best is not None
         _, params, ctl_cfg, model, res = best
+        next_run(f"{label}: steps with the best candidate")
         res["steps"] = run_case(cfg, ctl_cfg, "steps", model=model)
         return {"tuning": params, "swept": tried if len(tried) > 1 else None, "results": res, "config": ctl_cfg}
 
@@ -329,9 +352,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out["pid_coulomb"] = sweep("pid_coulomb", [
         ({"pid": k, "coulomb_n": fc, "viscous_n_s_m": sigma2},
          _variant(base, pid=p, dob=False, ff="coulomb", coulomb_n=fc, viscous=sigma2), None)
-        for k, p in pids.items() for fc in ([fc_true] if args.quick else _floats(args.coulomb_levels))
+        for k, p in pids.items()
+        for fc in ([fc_true] if args.quick else _floats(args.coulomb_levels, "--coulomb-levels"))
     ])
-    dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths)
     for name, model, ff in (("pid_dob", None, "none"), ("pid_dob_gms", m_exact, "model"),
                             ("pid_dob_gms_20", m_off, "model")):
         out[name] = sweep(name, [({"pid": k, "dob_bandwidth_hz": g},
@@ -357,6 +380,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for name, ctl_cfg in designs.items():
         if name == "tuned" and ctl_cfg == designs["config"]:
             continue
+        next_run(f"move and settle, the {name} design")
         r = steps_check(cfg, ctl_cfg, model=m_off, hold_s=args.hold)
         steps_t[name] = {
             "settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],

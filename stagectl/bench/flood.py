@@ -34,6 +34,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 import yaml
 
 from stagectl.daemon.control import ControlClient
@@ -239,7 +241,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                            "fifo": args.fifo,
                            "half_open": args.half_open, "cpus": os.cpu_count(),
                            "loadavg_1min_at_start": os.getloadavg()[0]}
-    for kind in kinds:
+    for i, kind in enumerate(kinds):
+        tell(args, 2 * args.phase_s * i, 2 * args.phase_s * len(kinds),
+             f"case {i + 1} of {len(kinds)}, {kind} isolation (2 phases of {args.phase_s:g} s)", span=2 * args.phase_s)
         res[kind] = _measure(Path(args.config), kind, args.phase_s, args.clients, args.half_open, args.fifo)
     res["loadavg_1min_at_end"] = os.getloadavg()[0]
     json.dumps(res)  # plain data only

@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 from stagectl.errors import ConfigError
 
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
@@ -150,13 +152,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         controller=dataclasses.replace(cfg.controller, feedforward=dataclasses.replace(
             cfg.controller.feedforward, adapt_bandwidth_hz=0.0)))
     model = StageModel(friction=mismatched(plant.friction), effects=plant.effects, mass_kg=plant.mass_kg)
+    tell(args, 0, 3, f"run 1 of 3, no learning ({args.repetitions} repetitions)")
     base = run_repeated(cfg, args.scenario, args.repetitions, change_after=args.change_after,
                         friction_scale=args.friction_scale, model=model, learn=False)
-    runs = {
-        "nominal": run_repeated(cfg, args.scenario, args.repetitions, model=model),
-        "friction_change": run_repeated(cfg, args.scenario, args.repetitions, change_after=args.change_after,
-                                        friction_scale=args.friction_scale, model=model),
-    }
+    tell(args, 1, 3, f"run 2 of 3, learning ({args.repetitions} repetitions)")
+    runs = {"nominal": run_repeated(cfg, args.scenario, args.repetitions, model=model)}
+    tell(args, 2, 3, f"run 3 of 3, learning through a friction change ({args.repetitions} repetitions)")
+    runs["friction_change"] = run_repeated(cfg, args.scenario, args.repetitions, change_after=args.change_after,
+                                           friction_scale=args.friction_scale, model=model)
+    tell(args, 3, 3, "plots")
     tgt = args.target_nm * 1e-9
     out: dict[str, Any] = {}
     for name, r in runs.items():

@@ -37,6 +37,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 PLANT = {
     "mass_kg": 2.0,
     "friction": {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.5, "viscous_n_s_m": 10.0},
@@ -243,18 +245,35 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             out["scheduling"] = f"SCHED_OTHER (SCHED_FIFO {args.fifo} refused: {exc})"
     else:
         out["scheduling"] = "SCHED_OTHER"
-    out["baseline_sleep_loop"] = bench_baseline(rate, min(dur, 5.0))
-    out["canopen_virtual"] = bench_virtual(rate, dur)
-    if not args.skip_socketcand:
-        out["canopen_socketcand"] = bench_socketcand(rate, dur)
-    if not args.skip_serial:
+    # the cases and their planned seconds, for the progress line (each runs for a set wall-clock time)
+    serial = not args.skip_serial
+    if serial:
         try:
             from stagectl.bench.io_serial import run_serial_bench
         except ImportError:
             out["serial_1000hz"] = out["serial_5000hz"] = "not available"
+            serial = False
+    plan = [("baseline_sleep_loop", min(dur, 5.0)), ("canopen_virtual", dur)]
+    plan += [] if args.skip_socketcand else [("canopen_socketcand", dur)]
+    plan += [("serial_1000hz", 2 * dur), ("serial_5000hz", 2 * dur)] if serial else []  # pty, then tcp
+    total = sum(s for _, s in plan)
+    done = 0.0
+
+    def case(i: int) -> None:
+        tell(args, done, total, f"case {i + 1} of {len(plan)}, {plan[i][0]} ({plan[i][1]:g} s)", span=plan[i][1])
+
+    for i, (name, secs) in enumerate(plan):
+        case(i)
+        if name == "baseline_sleep_loop":
+            out[name] = bench_baseline(rate, secs)
+        elif name == "canopen_virtual":
+            out[name] = bench_virtual(rate, dur)
+        elif name == "canopen_socketcand":
+            out[name] = bench_socketcand(rate, dur)
         else:
-            out["serial_1000hz"] = run_serial_bench(1000.0, dur)
-            out["serial_5000hz"] = run_serial_bench(5000.0, dur)
+            out[name] = run_serial_bench(1000.0 if name == "serial_1000hz" else 5000.0, dur)
+        done += secs
+    tell(args, total, total, "done")
     checks = {"canopen_virtual_missed_pct": out["canopen_virtual"]["missed_pct"]
               <= TARGETS["canopen_virtual_missed_pct"]}
     p99s = [out["canopen_virtual"]["round_trip_us"]["p99"]]

@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 # The assembly, config and controller stack (numpy, numba, canopen: about 1 s) are imported where the benchmark
 # runs: `stagectl --help` builds every command's parser, and with it this module's arguments.
 
@@ -301,6 +303,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         t_run = time.monotonic()
         cpu_run = time.process_time()
         timer.start()
+        tell(args, 0.0, args.duration, f"running the loop for {args.duration:g} s", span=args.duration)
         try:
             res = stage.loop.run(stop=stop)
         finally:
@@ -309,6 +312,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         proc_cpu = (time.process_time() - cpu_run) / max(1e-9, wall_run)
     total = res.cycles + res.overruns
     period_us = cfg.loop.period_s * 1e6
+    tell(args, args.duration, args.duration, f"cycle breakdown ({int(args.breakdown_cycles)} cycles)")
     parts = breakdown(cfg, int(args.breakdown_cycles)) if args.breakdown_cycles > 0 else None
     summary = res.as_dict()
     late, ex = summary["lateness_us"], summary["exec_us"]

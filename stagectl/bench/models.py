@@ -26,6 +26,8 @@ import math
 import time
 from typing import Any
 
+from stagectl.bench import tell
+
 import numpy as np
 
 from stagectl.resources import config_dir
@@ -240,12 +242,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     build(SPECS["stribeck"])  # imports every model module
     tags = sorted(registry()) if not args.models else [t.strip() for t in args.models.split(",") if t.strip()]
+    unknown = [t for t in tags if t not in registry()]
+    if unknown or not tags:
+        from stagectl.errors import ConfigError
+
+        raise ConfigError(f"--models: unknown model {', '.join(unknown) or '(none given)'} "
+                          f"(known: {', '.join(sorted(registry()))})")
     t_axis = np.arange(n_single) * dt
     u_single = 1.5 * np.sin(2 * np.pi * 5.0 * t_axis)  # slides both ways and passes through pre-sliding
     u_batch = u_single[:n_batch_steps]
 
     results: dict[str, Any] = {}
-    for tag in tags:
+    for i, tag in enumerate(tags):
+        tell(args, i, len(tags) + 1, f"model {i + 1} of {len(tags)}, {tag}")
         entry: dict[str, Any] = {}
         results[tag] = entry
         spec = _spec_for(tag)
@@ -301,6 +310,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     # baseline: pure-Python GMS + plant, same equations and input
     gms_spec = SPECS["gms"]
+    tell(args, len(tags), len(tags) + 1, "the C reference and the pure-Python baseline")
     c_ref = None if getattr(args, "no_c", False) else _c_reference(
         gms_spec, mass, dt, u_single, u_batch, n_sets, rng, repeat, results.get("gms"),
         int(args.first_steps or (2_000_000 if quick else 10_000_000)))

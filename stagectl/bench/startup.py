@@ -25,6 +25,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 TARGET_COLD_S = 2.0
 TARGET_WARM_S = 1.0
@@ -69,12 +71,18 @@ def _one(config: str, cache: Path) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from stagectl.config import load_app_config
+
+    load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
     load0 = os.getloadavg()
     cold: list[dict[str, float]] = []
     warm: list[dict[str, float]] = []
-    for _ in range(max(1, int(args.repeat))):
+    n = max(1, int(args.repeat))
+    for i in range(n):
         with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
+            tell(args, 2 * i, 2 * n, f"run {2 * i + 1} of {2 * n}, empty numba cache")
             cold.append(_one(args.config, Path(tmp)))
+            tell(args, 2 * i + 1, 2 * n, f"run {2 * i + 2} of {2 * n}, warm numba cache")
             warm.append(_one(args.config, Path(tmp)))
     best_cold = min(cold, key=lambda r: r["first_cycle_s"])
     best_warm = min(warm, key=lambda r: r["first_cycle_s"])

@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 import numpy as np
 import numpy.typing as npt
 import yaml
@@ -52,6 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    tell(args, 0.0, args.duration_s, f"{args.duration_s:g} s of rows at {args.rate_hz:g} Hz"
+         + (f" through the daemon on {args.daemon}" if args.daemon else ""), span=args.duration_s)
     if args.daemon:
         return run_daemon(args.daemon, args.duration_s)
     return run_ring(args.duration_s, args.rate_hz, args.columns)

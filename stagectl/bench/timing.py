@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.bench import tell
+
 from stagectl.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -198,22 +200,33 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise ConfigError(f"--stages: unknown stage {s!r} (canopen, plant_io)")
     tracking: dict[str, Any] = {}
     ok = True
+    # clean + disturbed per stage and scenario, the held-force floor per plant_io scenario, 2 fault reactions
+    n_cases = 2 * len(stages) * len(TRACKING) + (len(TRACKING) if "plant_io" in stages else 0) + 2
+    done = 0
     for st in stages:
         for sc in TRACKING:
+            tell(args, done, n_cases, f"case {done + 1} of {n_cases}, {st}/{sc} clean")
             clean = run_tracking(cfg, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip)
+            tell(args, done + 1, n_cases, f"case {done + 2} of {n_cases}, {st}/{sc} disturbed")
             dist = run_tracking(cfg, sc, stage_kind=st, disturbed=True, seed=args.seed, skip_s=args.skip)
+            done += 2
             ratio = dist["rms_error_nm"] / clean["rms_error_nm"]
             met = ratio <= 2.0 and dist["fault"] is None and clean["fault"] is None
             ok = ok and met
             tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio,
                                       "met_2x_no_fault": met}
             if st == "plant_io":  # the floor a skipped slot sets through the held force alone
+                tell(args, done, n_cases, f"case {done + 1} of {n_cases}, {st}/{sc} held force only")
                 held = run_tracking(cfg, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
                                     lose_writes=True)
+                done += 1
                 tracking[f"{st}/{sc}"]["held_force_only"] = {
                     "rms_error_nm": held["rms_error_nm"], "rms_ratio": held["rms_error_nm"] / clean["rms_error_nm"]}
-    reaction = {"active_quick_stop": run_fault_reaction(cfg, braking=True),
-                "release_at_once": run_fault_reaction(cfg, braking=False)}
+    tell(args, done, n_cases, f"case {done + 1} of {n_cases}, fault reaction (active quick stop)")
+    reaction = {"active_quick_stop": run_fault_reaction(cfg, braking=True)}
+    tell(args, done + 1, n_cases, f"case {done + 2} of {n_cases}, fault reaction (release at once)")
+    reaction["release_at_once"] = run_fault_reaction(cfg, braking=False)
+    tell(args, n_cases, n_cases, "margins")
     c = cfg.controller
     mass = float(c.mass_kg or cfg.sim.plant.mass_kg or 2.0)
     dob_bw = c.dob.bandwidth_hz if c.dob.kind != "none" else None

@@ -16,6 +16,7 @@ from types import ModuleType
 from typing import Any
 
 from stagectl.bench import control, flood, ilc, io, loop, models, startup, telemetry, timing
+from stagectl.commands.args import number
 
 KINDS: dict[str, tuple[ModuleType, str]] = {
     "models": (models, "friction model + plant steps per second vs a pure-Python GMS baseline"),
@@ -36,10 +37,36 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     for kind, (mod, help_text) in KINDS.items():
         kp = kinds.add_parser(kind, help=help_text)
         kp.add_argument("--json", action="store_true", help="print the result as JSON")
-        kp.add_argument("--quiet", action="store_true", help="no elapsed-time line on stderr (for scripts)")
+        kp.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress line (case, elapsed, time left) on stderr (for scripts)")
         mod.add_arguments(kp)
+        _check_numbers(kp)
         kp.set_defaults(func=_runner(mod))
     p.set_defaults(func=_no_kind)
+
+
+#: the benchmarks' numeric options: unit and lower bound (exclusive when True); any other number must be
+#: finite and >= 0 in the unit "(a count)"
+_NUMBERS: dict[str, tuple[str, float, bool]] = {
+    "duration": ("s", 0.0, True), "duration_s": ("s", 0.0, True), "phase_s": ("s", 0.0, True),
+    "hold": ("s", 0.0, True), "skip": ("s", 0.0, False), "rate": ("Hz", 0.0, True), "rate_hz": ("Hz", 0.0, True),
+    "spin_us": ("µs", 0.0, False), "min_phase_margin": ("deg", 0.0, False), "min_gain_margin": ("dB", 0.0, False),
+    "target_nm": ("nm", 0.0, True), "friction_scale": ("(a factor)", 0.0, True), "baudrate": ("bit/s", 0.0, True),
+    "fifo": ("(a priority)", 1.0, False),
+    **{k: ("(a count)", 0.0, True) for k in ("steps", "sets", "repeat", "first_steps", "clients", "repetitions",
+                                           "within", "columns")},
+}
+
+
+def _check_numbers(p: argparse.ArgumentParser) -> None:
+    """Every numeric option of a benchmark refuses what it cannot run with (not finite, negative, zero where
+    it counts or divides) in one argparse line with its unit, before any work (benchmarks sit below this layer
+    and declare plain ``type=float``/``int``)."""
+    for action in p._actions:
+        if action.type in (float, int):
+            unit, lo, lo_open = _NUMBERS.get(action.dest, ("(a count)", 0.0, False))
+            action.type = number(unit, lo=lo, lo_open=lo_open, hi=99.0 if action.dest == "fifo" else None,
+                                 integer=action.type is int)
 
 
 def _no_kind(args: argparse.Namespace) -> int:
@@ -52,7 +79,8 @@ def _runner(mod: ModuleType) -> Callable[[argparse.Namespace], int]:
     def fn(args: argparse.Namespace) -> int:
         from stagectl.commands.progress import Ticker
 
-        with Ticker(f"bench {args.bench_kind}", quiet=args.quiet):
+        with Ticker(f"bench {args.bench_kind}", quiet=args.quiet) as ticker:
+            args.progress = ticker.tell  # the benchmark tells its cases: stagectl.bench.tell
             result = mod.run(args)
         if args.json:
             json.dump(result, sys.stdout, indent=2, default=float)

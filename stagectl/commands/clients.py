@@ -4,8 +4,8 @@
 
     stagectl status [--watch [S]] [--json]      state, position, loop timing, telemetry, faults
     stagectl move (--to M | --by M) [--max-velocity M_S]
-    stagectl stop                               decelerate and hold
-    stagectl reset                              clear a latched fault (re-enables the drive)
+    stagectl stop [--json]                      decelerate and hold
+    stagectl reset [--json]                     clear a latched fault (re-enables the drive)
     stagectl record start NAME | stop           capture telemetry to <telemetry dir>/NAME.csv
     stagectl gains [--json]                     the controller tuning in force
     stagectl ilc start|stop|status|save [--motion NAME]|load --motion NAME
@@ -73,10 +73,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
     p = sub.add_parser("stop", help="decelerate and hold position")
     _common(p)
+    p.add_argument("--json", action="store_true", help="print the reply as JSON (default: YAML)")
     p.set_defaults(func=lambda a: _simple(a, StopRequest().to_json()))
 
     p = sub.add_parser("reset", help="clear a latched fault and re-enable the drive")
     _common(p)
+    p.add_argument("--json", action="store_true", help="print the reply as JSON (default: YAML)")
     p.set_defaults(func=lambda a: _simple(a, ResetRequest().to_json()))
 
     p = sub.add_parser("record", help="start/stop capturing telemetry into a named CSV file")
@@ -101,7 +103,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
     p = sub.add_parser("gains", help="show the controller tuning in force")
     _common(p)
-    p.add_argument("--json", action="store_true", help="print as JSON")
+    p.add_argument("--json", action="store_true", help="print as JSON (default: YAML to paste into a config)")
     p.set_defaults(func=cmd_gains)
 
 
@@ -132,8 +134,28 @@ def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:
 def _simple(args: argparse.Namespace, req: dict[str, Any]) -> int:
     reply = _request(args, req)
     body = {k: v for k, v in reply.items() if k not in ("ok", "id")}
-    print(_yaml(body).rstrip() if body else "ok")
+    if getattr(args, "json", False):
+        print(json.dumps(body, indent=2))
+    else:
+        print(_yaml(body).rstrip() if body else "ok")
     return 0
+
+
+def config_form(ctl: Any) -> Any:
+    """The controller section as a config file writes it: keys left at their default (``None``: the config
+    refuses an explicit ``null`` there) are dropped, and so is ``feedforward.model``, the model the daemon
+    resolved from ``model_file``/``friction`` (an object, not a config key)."""
+    def drop_nulls(node: Any) -> Any:
+        if isinstance(node, dict):
+            return {k: drop_nulls(v) for k, v in node.items() if v is not None}
+        if isinstance(node, list):
+            return [drop_nulls(v) for v in node]
+        return node
+
+    out = drop_nulls(ctl)
+    if isinstance(out, dict) and isinstance(out.get("feedforward"), dict):
+        out["feedforward"].pop("model", None)
+    return out
 
 
 def _yaml(obj: Any) -> str:
@@ -165,12 +187,13 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_gains(args: argparse.Namespace) -> int:
     reply = _request(args, {"request": "gains"})
+    ctl = config_form(reply.get("controller"))
     if args.json:
-        json.dump({"controller": reply.get("controller"), "reload": reply.get("reload")}, sys.stdout, indent=2)
+        json.dump({"controller": ctl, "reload": reply.get("reload")}, sys.stdout, indent=2)
         sys.stdout.write("\n")
         return 0
     # the controller section as YAML, ready to paste into a config
-    print(_yaml({"controller": reply.get("controller")}).rstrip())
+    print(_yaml({"controller": ctl}).rstrip())
     rl = reply.get("reload")
     if rl:
         print(f"# last reload: {'applied' if rl.get('ok') else 'REJECTED: ' + str(rl.get('error'))}")

@@ -38,17 +38,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--lockstep", action="store_true",
                    help="the stage is a `stagectl sim-plant --lockstep` process: simulated time, each SYNC "
                         "answered before the next (deterministic, faster than real time)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress lines on stderr (for scripts; the summary, verdict and errors still)")
     p.set_defaults(func=run)
 
 
 def _parse_fault(spec: str | None) -> tuple[str, float] | None:
     if spec is None:
         return None
+    from stagectl.commission.sequence import VERIFY
+
     name, _, t = spec.partition("@")
     try:
-        return name, float(t or "0")
+        at = float(t or "0")
     except ValueError:
         raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {short(spec)}") from None
+    known = ["sanity", "frf", "friction_cv", "reversals", "slow_passes",
+             *(f"verify_{which}_{n}" for which in ("before", "after") for n in VERIFY)]
+    if name not in known:  # a fault that is never injected would let the whole commissioning run
+        raise ConfigError(f"--inject-fault: unknown experiment {short(name)} (one of {', '.join(known)})")
+    if not (at >= 0 and at < float("inf")):
+        raise ConfigError(f"--inject-fault: the time must be a finite number of seconds >= 0, got {short(t)}")
+    return name, at
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out)
 
     def progress(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
 
     opts = Options(max_stroke_m=args.max_stroke, max_force_n=args.max_force, max_velocity_m_s=args.max_velocity,
                    verify=not args.no_verify, plots=not args.no_plots, inject_fault=fault, progress=progress,

@@ -58,7 +58,11 @@ def run(args: argparse.Namespace) -> int:
     progress.step(1, f"loading {args.data}")
     rec = load_recording(args.data, args.columns, min_rows=50)
     progress.step(2, f"fitting {args.model} to {len(rec)} rows, then its verdict")
-    res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz)
+    # the fit tells its own line: the stage, and the time left as an upper bound (its work in model runs
+    # along the recording, bounded by the optimiser's budget; see stagectl.ident.identify._Runs)
+    fit = Progress("identify", 1, quiet=args.quiet, stream=progress.stream)
+    res = identify(rec, args.model, n_elements=args.elements, mass_kg=args.mass_kg, cutoff_hz=args.cutoff_hz,
+                   progress=lambda done, total, what: fit.bounded(done, f"{args.model}: {what}", total))
     quality: dict[str, Any] = plain(res.quality, json=True)
     spec: dict[str, Any] = {"friction": res.spec, "meta": {"source": f"stagectl identify --model {args.model}",
                                                            "data": args.data, "fit": quality.get("fit", {})}}
@@ -68,7 +72,11 @@ def run(args: argparse.Namespace) -> int:
         spec = {"mass_kg": res.mass_kg, **spec}
     progress.step(3, "writing the model file" + (" and plots" if args.plot else ""))
     model = load(StageModel, plain(spec, json=True), "")
-    save_model_file(model, args.out, header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
+    try:
+        save_model_file(model, args.out,
+                        header=f"identified by `stagectl identify --model {args.model}` from {args.data}")
+    except OSError as exc:  # a full disk (/dev/full), a vanished directory: name the file, not "output"
+        raise ConfigError(f"--out: cannot write {args.out!r} ({exc.strerror or exc})") from None
     out: dict[str, Any] = {"model_file": args.out, "model": plain(res.spec, json=True),
                            "effects": plain(res.effects, json=True), "mass_kg": res.mass_kg, "quality": quality}
     if args.plot:

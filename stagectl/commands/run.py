@@ -37,9 +37,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--scenario", default=None,
                    help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "
                         "simulated stage, hold on a real one)")
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")
     p.add_argument("--ilc", action="store_true",
                    help="learn a feed-forward for the repeated motion (ilc: section, learning from the start)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no start and progress lines on stderr (for scripts; warnings and errors still)")
     p.set_defaults(func=run)
 
 
@@ -86,15 +88,18 @@ def run(args: argparse.Namespace) -> int:
         cap_s = args.duration if args.duration is not None else 600.0
         rec = Recorder(loop.columns, capacity=int(cap_s / cfg.loop.period_s) + 1024)
         host = LoopHost(loop, sinks=[rec])
-        print(f"stagectl run: {cfg.path.name if cfg.path else '-'} io={cfg.io.kind.value} period={cfg.loop.period_s * 1e3:g} ms "
-              f"scenario={scenario} duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
+        if not args.quiet:
+            print(f"stagectl run: {cfg.path.name if cfg.path else '-'} io={cfg.io.kind.value} "
+                  f"period={cfg.loop.period_s * 1e3:g} ms scenario={scenario} "
+                  f"duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
         host.start(duration_s=args.duration)
         t_next = time.monotonic() + 1.0
         try:
             while not host.wait(max(0.0, t_next - time.monotonic())):
                 if time.monotonic() >= t_next:
                     t_next += 1.0
-                    print(progress_line(loop.status()), file=sys.stderr, flush=True)
+                    if not args.quiet:
+                        print(progress_line(loop.status()), file=sys.stderr, flush=True)
         except KeyboardInterrupt:
             print("stagectl run: stopping (Ctrl-C)", file=sys.stderr)
         res = host.finish(timeout_s=10.0)
@@ -113,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     title = f"run {scenario} ({cfg.path.name if cfg.path else ''})"
     summary["out"] = str(out)
     write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)
-    print(f"stagectl run: telemetry, summary.json and plots in {out}", file=sys.stderr)
+    wrote = "telemetry.csv, summary.json" + (" and tracking.png" if (Path(out) / "tracking.png").is_file() else "")
+    print(f"stagectl run: {wrote} in {out}", file=sys.stderr)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0

@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("simulate", help="closed loop in simulated time: telemetry CSV, summary.json, plots")
+    p = sub.add_parser("simulate", help="closed loop in simulated time: telemetry CSV, summary.json, tracking.png")
     p.add_argument("--config", required=True, help="stagectl YAML (e.g. config/sim.yaml)")
     p.add_argument("--scenario", default="cosine",
                    help="cosine | triangle | steps | demo | hold (default cosine)")
@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
     p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")
     p.add_argument("--repetitions", type=int, default=None,
                    help="run the scenario this many times back to back (a repeated motion; default once)")
     p.add_argument("--ilc", action="store_true",

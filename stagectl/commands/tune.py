@@ -358,7 +358,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  steps check ({name}): {r['error']}")
                 continue
             st = ", ".join("-" if v is None else f"{v * 1e3:.0f}" for v in r["settle_s"])
-            print(f"  steps check ({name}): settled {r['settled']}/{r['moves']} to +-10 nm after [{st}] ms, "
+            print(f"  steps check ({name}): settled {r['settled']}/{r['moves']} to +-10 nm within the "
+                  f"{CHECK_HOLD_S:g} s hold, after [{st}] ms, "
                   f"max hold excursion {r['max_hold_excursion_m'] * 1e9:.0f} nm, "
                   f"limit cycle {'YES' if r['limit_cycle'] else 'no'}, fault {r['fault'] or 'none'}")
     if d["refused"]:

@@ -31,7 +31,7 @@ from stagectl.control.controller import ControllerConfig, resolve_model
 from stagectl.errors import ConfigError, short
 from stagectl.friction import StageModel, load_model_file
 from stagectl.safety import SafetyConfig
-from stagectl.schema import load, load_yaml_file
+from stagectl.schema import load, load_yaml_file, yaml_kind
 from stagectl.sim.world import SimWorldConfig
 
 __all__ = ["ModelFiles", "load_app_config", "parse_app_config", "parse_sim_section"]
@@ -135,7 +135,7 @@ def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{p or '<config>'}: expected a mapping at the top level, got {type(data).__name__}")
+        raise ConfigError(f"{p or '<config>'}: expected a mapping at the top level, got {yaml_kind(data)}")
     problems: list[str] = []
     rest = {k: v for k, v in data.items() if k not in ("sim", "path")}
     if "path" in data:

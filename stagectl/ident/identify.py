@@ -32,6 +32,7 @@ from the virgin curve ``F = Fc(1 − exp(−σ0·d/Fc))``. **Hsieh**: spring mod
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +50,7 @@ from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.modelio import hyp_to_spec
 from stagectl.ident.recording import Recording
 from stagectl.ident.signals import Signals, prepare
-from stagectl.ident.verdict import assess
+from stagectl.ident.verdict import _leaves, assess
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -72,7 +73,7 @@ def measure(rec: Recording, mass_kg: float | None = None, cutoff_hz: float | Non
     sig = prepare(rec, cutoff_hz=cutoff_hz, min_rows=50, require_motion=False) if len(rec) >= 50 else None
     if sig is None:
         raise DataError(f"{rec.source}: {len(rec)} rows; identification needs at least 50")
-    notes: list[str] = []
+    notes: list[str] = list(sig.notes)  # what the preparation did (irregular sampling resampled, ...)
     ub = signal.sosfiltfilt(sig.sos, sig.ubar())
     acc = signal.sosfiltfilt(sig.sos, sig.acc_raw)
     m = mass_kg
@@ -398,9 +399,45 @@ def _fit_quality(meas: Measured, spec: dict[str, Any], rows: npt.NDArray[np.bool
             "samples": int(rows.sum())}
 
 
+class _Runs:
+    """identify's work counted in model runs along the recording (``force_along`` over every sample: where its
+    time goes on a long recording), told to ``progress(done, total, what)``. ``total`` is an upper bound: the
+    joint refinement's evaluation budget until it ends, then what it used; the verdict's runs (one per
+    parameter, plus one) once the model is known. Before the first run ``done`` is 0 (no rate yet)."""
+
+    def __init__(self, progress: Callable[[float, float, str], None] | None) -> None:
+        self.progress = progress
+        self.done = 0
+        self.total = 1
+        self.what = ""
+
+    def tell(self, what: str | None = None, total: int | None = None) -> None:
+        if what is not None:
+            self.what = what
+        if total is not None:
+            self.total = total
+        if self.progress is not None:
+            self.progress(float(self.done), float(max(self.total, self.done, 1)), self.what)
+
+    def ran(self) -> None:
+        self.done += 1
+        self.tell()
+
+
+def _refine_budget(model: str, max_nfev: int = 60) -> int:
+    """Most model runs :func:`refine_by_simulation` makes: the start, then per accepted step of least squares
+    (``max_nfev`` steps at most) one run and a forward-difference Jacobian of one run per parameter."""
+    keys = REFINE_KEYS.get(model)
+    return 0 if keys is None else 1 + max_nfev * (1 + len(keys))
+
+
 def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg: float | None = None,
-             cutoff_hz: float | None = None) -> Identified:
+             cutoff_hz: float | None = None,
+             progress: Callable[[float, float, str], None] | None = None) -> Identified:
     """Identify friction model ``model`` (one of :data:`MODELS`) from a recording.
+
+    ``progress(done, total, what)`` is told how far the fit is, in model runs along the recording (``total``
+    an upper bound that shrinks as the fits end early, ``done == total`` at the end; see :class:`_Runs`).
 
     Raises
     ------
@@ -410,8 +447,11 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
     """
     if model not in MODELS:
         raise DataError(f"--model: unknown model {short(model)} (known: {', '.join(MODELS)})")
+    runs = _Runs(progress)
+    runs.tell(f"measuring the friction force (inverse dynamics, {len(rec)} rows)")
     meas = measure(rec, mass_kg, cutoff_hz)
     quality: dict[str, Any] = {"notes": list(meas.notes)}
+    runs.tell("virgin curve and constant-velocity segments")
     virgin = None
     min_rev = 0.0
     if model in ("gms", "maxwell_slip", "dahl", "lugre", "hsieh"):
@@ -448,27 +488,44 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
             effects["offset"] = {"force_n": stri["offset_n"]}
             quality["notes"].append(f"constant force {stri['offset_n']:.4g} N found with the friction curve; "
                                     "written as effects.offset")
+        runs.tell("fit quality", total=2 + len(_leaves(spec)))
         quality["fit"] = _fit_quality(meas, spec, meas.sig.evaluate, effects)
+        runs.ran()
+        runs.tell(f"verdict: sensitivity to {len(_leaves(spec))} parameters")
         quality["verdict"] = assess(meas.sig, meas.force, spec, meas.sig.evaluate, model=model,
                                     mass_estimated=meas.mass_kg if mass_kg is None else None,
-                                    offset_n=effects.get("offset", {}).get("force_n", 0.0))
+                                    offset_n=effects.get("offset", {}).get("force_n", 0.0), on_run=runs.ran)
         return Identified(spec, meas.mass_kg, quality, meas, virgin, effects)
 
     assert virgin is not None or model == "lugre"
     best: tuple[float, dict[str, Any], dict[str, Any], Measured] | None = None
     # the sliding terms from constant-velocity segments are kept only if they improve the fit of the whole
     # record (pre-sliding-only data can show spurious "constant-velocity" segments)
-    for use_stri in ((True, False) if stri is not None else (False,)):
+    passes = (True, False) if stri is not None else (False,)
+    for i, use_stri in enumerate(passes):
         q: dict[str, Any] = {}
+        left = len(passes) - i  # this pass and the ones after it
+        runs.tell(f"fit {i + 1} of {len(passes)}: {model} "
+                  + ("with" if use_stri else "without") + " the sliding curve of the constant-velocity segments")
         spec = _build_spec(model, meas, virgin, stri if use_stri else None, n_elements, q)
+        # the bound: what this pass and the later ones may still run, and the verdict (one run per parameter)
+        # (refined parameters that start at zero are not counted by _leaves yet: counted here)
+        runs.total = (runs.done + left * (_refine_budget(model) + 1) + 1 + len(_leaves(spec))
+                      + len(REFINE_KEYS.get(model, ())))
         if model in REFINE_KEYS:
-            spec, note = refine_by_simulation(meas, spec, REFINE_KEYS[model], all_rows)
+            runs.tell(f"fit {i + 1} of {len(passes)}: joint least squares by simulation on "
+                      f"{len(REFINE_KEYS[model])} parameters")
+            before = runs.done
+            spec, note = refine_by_simulation(meas, spec, REFINE_KEYS[model], all_rows, on_run=runs.ran)
+            runs.total -= _refine_budget(model) - (runs.done - before)  # the budget it did not use
             q["joint_refinement"] = note
         m_q = meas
         if "mass_kg_from_loops" in q and mass_kg is None:
             m_q = measure(rec, q["mass_kg_from_loops"], cutoff_hz)
             m_q.notes = [f"mass {q['mass_kg_from_loops']:.6g} kg from the regression over all hysteresis loops"]
+        runs.tell(f"fit {i + 1} of {len(passes)}: fit quality")
         fq = _fit_quality(m_q, spec, all_rows)
+        runs.ran()
         if best is None or fq["force_rms_error_n"] < best[0]:
             best = (fq["force_rms_error_n"], spec, {**q, "fit": fq, "sliding_terms_from_segments": use_stri}, m_q)
     assert best is not None
@@ -479,8 +536,9 @@ def identify(rec: Recording, model: str, n_elements: int | None = None, mass_kg:
     notes = quality["notes"] + best[2].pop("notes", [])
     quality.update(best[2])
     quality["notes"] = notes
+    runs.tell(f"verdict: sensitivity to {len(_leaves(spec))} parameters", total=runs.done + 1 + len(_leaves(spec)))
     quality["verdict"] = assess(meas.sig, meas.force, spec, all_rows, model=model,
-                                mass_estimated=meas.mass_kg if mass_kg is None else None)
+                                mass_estimated=meas.mass_kg if mass_kg is None else None, on_run=runs.ran)
     return Identified(spec, meas.mass_kg, quality, meas, virgin)
 
 
@@ -566,9 +624,11 @@ REFINE_KEYS = {
 
 
 def refine_by_simulation(meas: Measured, spec: dict[str, Any], keys: tuple[str, ...],
-                         rows: npt.NDArray[np.bool_], max_nfev: int = 60) -> tuple[dict[str, Any], str]:
+                         rows: npt.NDArray[np.bool_], max_nfev: int = 60,
+                         on_run: Callable[[], None] | None = None) -> tuple[dict[str, Any], str]:
     """Least squares on log-parameters ``keys`` of the filtered model force along the measured trajectory
-    (every 4th sample of ``rows``). Zero-valued parameters start at a small positive value."""
+    (every 4th sample of ``rows``). Zero-valued parameters start at a small positive value. ``on_run()`` is
+    called after every model run (at most ``1 + max_nfev·(1 + len(keys))``, see :func:`_refine_budget`)."""
 
     sig = meas.sig
     idx = np.flatnonzero(rows)[::4]
@@ -595,6 +655,9 @@ def refine_by_simulation(meas: Measured, spec: dict[str, Any], keys: tuple[str, 
             r = force(p) - target
         except (ConfigError, ValueError, FloatingPointError):
             return np.full(idx.size, 1e3)
+        finally:
+            if on_run is not None:
+                on_run()
         return np.where(np.isfinite(r), r, 1e3)
 
     r0 = resid(np.array(p0))

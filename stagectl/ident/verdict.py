@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -84,7 +85,8 @@ def _set(spec: dict[str, Any], path: Any, value: float) -> dict[str, Any]:
 
 
 def assess(sig: Any, force: FloatArray, spec: dict[str, Any], rows: npt.NDArray[np.bool_], *,
-           mass_estimated: float | None, offset_n: float = 0.0, model: str = "") -> dict[str, Any]:
+           mass_estimated: float | None, offset_n: float = 0.0, model: str = "",
+           on_run: Callable[[], None] | None = None) -> dict[str, Any]:
     """The verdict dict (see module docstring) for ``spec`` fitted to ``force`` over ``rows``.
 
     ``sig`` is the recording's :class:`~stagectl.ident.signals.Signals` (time, filtered position, the
@@ -93,6 +95,8 @@ def assess(sig: Any, force: FloatArray, spec: dict[str, Any], rows: npt.NDArray[
 
     def predict(s: dict[str, Any]) -> FloatArray:
         f = build(s).force_along(sig.xf, sig.t) + offset_n
+        if on_run is not None:  # progress: one model run along the recording (1 + one per parameter)
+            on_run()
         return np.asarray(signal.sosfiltfilt(sig.sos, f), dtype=np.float64)[rows]
 
     f0 = predict(spec)

@@ -1,6 +1,7 @@
-"""Ctrl-C: a real SIGINT to a real `stagectl simulate` process. It says so in one line, exits 130 and keeps
-what it had simulated (telemetry and a summary marked interrupted). No wall-clock sleep: the test waits for
-the process's own progress line before it sends the signal."""
+"""Ctrl-C: a real SIGINT to a real `stagectl` process. It says so in one line and exits 130. simulate keeps
+what it had simulated (telemetry and a summary marked interrupted); identify, discover and bench leave no
+output (no model file, no empty output directory, no partial result). No wall-clock sleep: the test waits
+for the process's own progress line before it sends the signal."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+from support import run_on_pty
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -19,7 +23,8 @@ def test_ctrl_c_in_simulate_keeps_what_was_simulated(tmp_path: Path) -> None:
     script = Path(sys.executable).with_name("stagectl")
     p = subprocess.Popen([str(script), "simulate", "--config", "config/sim.yaml", "--scenario", "cosine",
                           "--duration", "600", "--out", str(out), "--no-plots"], cwd=REPO, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "STAGECTL_TRACEBACK": ""})
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # see run_on_pty
     try:
         assert p.stderr is not None
         first = p.stderr.readline()  # the first progress line: the loop is running
@@ -35,3 +40,45 @@ def test_ctrl_c_in_simulate_keeps_what_was_simulated(tmp_path: Path) -> None:
     assert summary["interrupted"] is True and summary["samples"] > 100
     rows = (out / "telemetry.csv").read_text().splitlines()
     assert len(rows) == summary["samples"] + 1  # header + every simulated row
+
+
+def _long_recording(tmp: Path) -> Path:
+    """30 s of a 0.5 Hz, ±1 mm sine (1 nm encoder) against Coulomb + viscous friction: a hsieh fit or a
+    discovery on it runs for many seconds, so the SIGINT lands mid-work."""
+    t = np.arange(0.0, 30.0, 1e-3)
+    x = np.round(1e-3 * np.sin(2 * np.pi * 0.5 * t) / 1e-9) * 1e-9
+    v = np.gradient(x, t)
+    u = 0.8 * np.tanh(v / 2e-4) + 50.0 * v + 2.0 * np.gradient(v, t)
+    p = tmp / "long.csv"
+    np.savetxt(p, np.column_stack([t, x, u, x]), delimiter=",", header="t,x,u,x_ref", comments="", fmt="%.10g")
+    return p
+
+
+def test_ctrl_c_in_identify_says_so_and_writes_nothing(tmp_path: Path) -> None:
+    """On a terminal the fit's line names the stage; Ctrl-C during it: one line, exit 130, no model file and
+    no plot directory left behind (it was created up front, to check it is writable)."""
+    rec = _long_recording(tmp_path)
+    rc, err = run_on_pty(["identify", str(rec), "--model", "hsieh", "--out", str(tmp_path / "m.yaml"),
+                          "--plot", str(tmp_path / "plots")], interrupt_on="joint least squares by simulation")
+    assert "identify: hsieh: fit 1 of " in err and "\r\x1b[K" in err, err
+    assert rc == 130, err
+    assert err.rstrip().endswith("stagectl: interrupted (Ctrl-C); no output was written") and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.csv"]
+
+
+def test_ctrl_c_in_discover_says_so_and_leaves_no_empty_report_dir(tmp_path: Path) -> None:
+    rec = _long_recording(tmp_path)
+    rc, err = run_on_pty(["discover", str(rec), "--out", str(tmp_path / "d" / "report")],
+                         interrupt_on="round 1, candidate")
+    assert rc == 130, err
+    assert err.rstrip().endswith("stagectl: interrupted (Ctrl-C); no output was written") and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.csv"]  # d/ was created by the run: gone too
+
+
+def test_ctrl_c_in_bench_says_so_and_prints_no_partial_result(tmp_path: Path) -> None:
+    with open(tmp_path / "stdout", "w") as out:
+        rc, err = run_on_pty(["bench", "timing"], interrupt_on="case 1 of ", cwd=REPO, stdout=out)
+    assert rc == 130, err
+    assert "bench timing: case 1 of 10, canopen/cosine clean (" in err, err  # its plan, on the terminal line
+    assert err.rstrip().endswith("stagectl: interrupted (Ctrl-C)") and "Traceback" not in err, err
+    assert (tmp_path / "stdout").read_text() == ""

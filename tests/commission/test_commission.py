@@ -96,11 +96,14 @@ def test_experiments_stay_inside_the_envelope(commissioned: tuple[int, Path]) ->
             assert rec.x.min() >= env["x_lo_m"] - 1e-4 and rec.x.max() <= env["x_hi_m"] + 1e-4, e["name"]
 
 
-def test_injected_fault_aborts_with_drive_disabled_and_recordings_kept(hidden_stage: Path, tmp_path: Path) -> None:
+def test_injected_fault_aborts_with_drive_disabled_and_recordings_kept(hidden_stage: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
     rc = main(["commission", "--config", str(hidden_stage), "--out", str(out), "--no-plots",
-               "--inject-fault", "friction_cv@1.0"])
+               "--inject-fault", "friction_cv@1.0", "--quiet"])
     assert rc == 1
+    err = capsys.readouterr().err  # --quiet: no progress lines, the abort still said
+    assert "commission:" not in err and err.startswith("stagectl: error: "), err
     rep = json.loads((out / "report.json").read_text())
     assert rep["status"] == "aborted"
     assert rep["aborted"]["experiment"] == "friction_cv"

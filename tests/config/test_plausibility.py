@@ -33,3 +33,15 @@ def test_implausible_value_is_one_line(path: str, value: object, expect: str) ->
 def test_shipped_configs_are_plausible(repo_root) -> None:
     for name in ("sim.yaml", "hil-canopen.yaml", "hil-serial.yaml", "stage-canopen.yaml"):
         parse_app_config(shipped_config_mapping(name), repo_root / "config" / name)
+
+
+@pytest.mark.parametrize(("path", "value", "expect"), [
+    ("loop.period_s", None, "loop.period_s: expected a number s, got null"),
+    ("controller.pid.kp_n_m", True, "controller.pid.kp_n_m: expected a number N/m, got true"),
+    ("controller.pid.kp_n_m", {"a": 1}, "controller.pid.kp_n_m: expected a number N/m, got a mapping {'a': 1}"),
+    ("loop", 5, "loop: expected a mapping, got the number 5"),
+])
+def test_wrong_kind_is_said_in_yaml_words(path: str, value: object, expect: str) -> None:
+    """null, true, a mapping: what the user wrote, not Python's NoneType/bool/dict."""
+    problems = config_problems(_set(shipped_config_mapping("sim.yaml"), path, value))
+    assert problems == ["x.yaml: " + expect], problems

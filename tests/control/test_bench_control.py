@@ -11,7 +11,14 @@ from stagectl.bench import control as bench
 def test_bench_control_quick_reports_errors_margins_and_targets():
     p = argparse.ArgumentParser()
     bench.add_arguments(p)
-    res = bench.run(p.parse_args(["--quick", "--hold", "0.3"]))
+    args = p.parse_args(["--quick", "--hold", "0.3"])
+    told: list[tuple[float, float, str, float]] = []
+    args.progress = lambda *a: told.append(a)  # `stagectl bench`'s progress line: one tell per simulated run
+    res = bench.run(args)
+    dones = [d for d, _, _, _ in told]
+    assert dones == list(range(len(told))) and told[0][2] == "pid: candidate 1 of 1, cosine"
+    # 5 sweeps x (2 tracking scenarios + the steps run), then 1 or 2 move-and-settle checks; the plan knew it
+    assert len(told) in (16, 17) and all(tot == 17 for _, tot, _, _ in told)
     json.dumps(res)  # JSON-serialisable as printed by --json
     assert set(res["table"]) == {"pid", "pid_coulomb", "pid_dob", "pid_dob_gms", "pid_dob_gms_20"}
     for v, row in res["table"].items():

@@ -165,3 +165,25 @@ def test_tune_refuses_an_unstable_design(repo_root, capsys):
     assert rc == 1
     assert "suggested YAML" not in cap.out and "this design is refused" in cap.out
     assert "pid+dob loop unstable" in cap.out and "no gains suggested" in cap.err
+
+
+def test_tune_never_offers_a_design_that_fails_its_steps_check():
+    """The verdict on the simulated steps check: a fault, a limit cycle, or a hold still more than 1 µm off in
+    its second half refuses the design (no YAML) with the reason; settling late only lowers the confidence."""
+    from stagectl.commands.tune import MAX_HOLD_EXCURSION_M, _verdict
+
+    healthy = {"pid": {"closed_loop_stable": True, "healthy": True, "phase_margin_deg": 50.0, "gain_margin_db": 12.0}}
+
+    def check(**kw):
+        r = {"fault": None, "limit_cycle": False, "max_late_excursion_m": 5e-9, "max_hold_excursion_m": 2e-8,
+             "settled": 4, "moves": 4, **kw}
+        return {"configured model": r, "20 %-wrong model": dict(r)}
+
+    assert _verdict(healthy, check())["confidence"] == "high"
+    late = _verdict(healthy, check(settled=3))
+    assert late["refused"] is False and late["confidence"] == "medium"
+    for bad, words in ((dict(fault="following_error"), "fault following_error"),
+                       (dict(limit_cycle=True), "limit cycle"),
+                       (dict(max_late_excursion_m=2 * MAX_HOLD_EXCURSION_M), "still 2000 nm off")):
+        v = _verdict(healthy, check(**bad))
+        assert v["refused"] is True and v["confidence"] is None and any(words in r for r in v["reasons"]), v

@@ -8,6 +8,7 @@ Every wait is on the notify socket, a control-socket reply or process exit; time
 from __future__ import annotations
 
 import csv
+import json
 import os
 import select
 import signal
@@ -269,14 +270,31 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert "moving to" in capsys.readouterr().out
     assert main(["move", "--to", "5", "--socket", str(sock)]) == 2
     assert "target_m" in capsys.readouterr().err
+    assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0  # a negative value, not an option
+    assert "moving to" in capsys.readouterr().out
     assert main(["gains", "--socket", str(sock)]) == 0
-    assert "kp_n_m" in capsys.readouterr().out
+    # YAML to paste into a config: the file with this controller section is valid and runs these gains
+    from stagectl.config import parse_app_config
+
+    pasted = yaml.safe_load(capsys.readouterr().out)["controller"]
+    cfg_now = yaml.safe_load((tmp_path / "stagectl.yaml").read_text())
+    assert pasted["pid"]["kp_n_m"] == pytest.approx(cfg_now["controller"]["pid"]["kp_n_m"])
+    parsed = parse_app_config({**cfg_now, "controller": pasted}, tmp_path / "stagectl.yaml")
+    assert parsed.controller.pid.kp_n_m == pytest.approx(cfg_now["controller"]["pid"]["kp_n_m"])
+    assert main(["gains", "--json", "--socket", str(sock)]) == 0
+    assert json.loads(capsys.readouterr().out)["controller"] == pasted
     assert main(["record", "start", "cli-rec", "--socket", str(sock)]) == 0
     assert "cli-rec.csv" in capsys.readouterr().out
     assert main(["record", "stop", "--socket", str(sock)]) == 0
     assert "rows to" in capsys.readouterr().out
     assert main(["stop", "--socket", str(sock)]) == 0
+    assert "None" not in (out := capsys.readouterr().out) and "x_m:" in out  # YAML, not Python
     assert main(["reset", "--socket", str(sock)]) == 0  # no fault latched: a no-op, still ok
+    assert "None" not in (out := capsys.readouterr().out) and "state: active" in out
+    assert main(["stop", "--json", "--socket", str(sock)]) == 0
+    assert "x_m" in json.loads(capsys.readouterr().out)
+    assert main(["reset", "--json", "--socket", str(sock)]) == 0
+    assert json.loads(capsys.readouterr().out)["state"] == "active"
     assert main(["status", "--json", "--socket", str(sock)]) == 0
     assert '"state": "active"' in capsys.readouterr().out
     assert main(["status", "--socket", str(tmp_path / "nowhere.sock")]) == 2

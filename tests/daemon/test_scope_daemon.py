@@ -92,3 +92,12 @@ def test_scope_shows_a_move_of_the_simulated_stage(daemon_socket):
     assert "µm" in values or "nm" in values, values
     ts = data.series("t")
     assert all(b > a for a, b in zip(ts, ts[1:])), "rows arrive in order, without repeats"
+    # the command a user types (README quick start): `stagectl scope --once`, one text frame, as a real process
+    p = subprocess.run([*stagectl_cmd(), "scope", "--once", "--socket", daemon_socket], capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    frame = p.stdout
+    assert frame.startswith("daemon active") and "drive enabled" in frame, frame[:300]
+    for panel in ("position [", "tracking error [", "force [", "velocity ["):
+        assert panel in frame, (panel, frame[:2000])
+    assert "faults: none" in frame and "Traceback" not in p.stderr

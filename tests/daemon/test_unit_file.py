@@ -152,3 +152,17 @@ def test_daemon_stops_within_the_units_stop_timeout():
     assert DaemonConfig().stop_timeout_s + 5.0 <= seconds(s["TimeoutStopSec"][0])
     assert s["KillMode"] == ["mixed"]  # SIGTERM to the daemon only; SIGKILL to everything after the timeout
     assert seconds(s["WatchdogSec"][0]) >= 2 * 0.5  # the supervisor checks health every <= 0.5 s
+
+
+def test_documentation_path_is_where_the_readme_install_puts_the_readme():
+    """Documentation= names the file pip installs: data files go under the environment's prefix, which is the
+    venv of the README's "Installing on a stage PC" (not /usr/local, where only the stagectl link lives)."""
+    import tomllib
+
+    root = UNIT.parents[1]
+    prefix = re.search(r"python3\.11 -m venv (/\S+) && \1/bin/pip install", (root / "README.md").read_text())
+    assert prefix, "README: the stage PC install into a venv"
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["data-files"]
+    assert "README.md" in data["share/doc/stagectl"]
+    doc = re.search(r"^Documentation=file://(\S+)$", UNIT.read_text(), re.M)
+    assert doc and doc.group(1) == f"{prefix.group(1)}/share/doc/stagectl/README.md"

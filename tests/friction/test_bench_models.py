@@ -13,7 +13,11 @@ def test_bench_models_quick_run_reports_every_figure_and_target(capsys):
     bench.add_arguments(parser)
     args = parser.parse_args(["--quick", "--steps", "3000", "--sets", "4", "--repeat", "1",
                               "--models", "gms,hsieh,stribeck", "--first-steps", "3000"])
+    told: list[tuple[float, float, str, float]] = []
+    args.progress = lambda *a: told.append(a)  # what `stagectl bench` puts there: its progress line's tell
     out = bench.run(args)
+    assert [(d, tot) for d, tot, _, _ in told] == [(0, 4), (1, 4), (2, 4), (3, 4)]  # 3 models, then the baselines
+    assert told[1][2] == "model 2 of 3, hsieh"
     json.dumps(out)  # --json must be able to print it
     assert out["baseline_python_gms_steps_per_s"] > 0
     assert set(out["models"]) == {"gms", "hsieh", "stribeck"}

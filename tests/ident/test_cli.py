@@ -224,8 +224,28 @@ def test_discover_reports_progress_per_candidate_with_a_bounded_time_left(spring
     assert len(seen) >= 5 and dones == sorted(dones) and 0.0 <= dones[0] and dones[-1] < 3.0
     assert seen[0][1].startswith("round 1, candidate 1 of ") and any(w.startswith("round 2,") for _, w in seen)
     out = io.StringIO()
-    p = Progress("discover", 3, stream=out, every_s=0.0)
+    now = [0.0]
+    p = Progress("discover", 3, stream=out, every_s=0.0, clock=lambda: now[0])
+    p.bounded(0.0, "round 1, candidate 1 of 12 (stribeck)")
+    now[0] = 30.0  # the test's clock: 1.5 rounds in 30 s, 1.5 rounds left at most
     p.bounded(1.5, "round 2, candidate 3 of 12 (cogging)")
-    line = out.getvalue()
-    assert line.startswith("discover: round 2, candidate 3 of 12 (cogging) (") and "s left)" in line
-    assert "at most" in line
+    line = out.getvalue().splitlines()[-1]
+    assert line == "discover: round 2, candidate 3 of 12 (cogging) (30 s elapsed, at most ~30 s left)"
+
+
+def test_identify_accepts_a_recording_with_gaps_and_says_it_resampled(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """identify too: skipped cycles are resampled (not refused) and the output says so."""
+    from stagectl.cli import main
+
+    t = np.arange(0.0, 2.0, 1e-3)
+    x = 5e-4 * np.sin(2 * np.pi * 1.0 * t)
+    u = 0.8 * np.tanh(np.gradient(x, t) / 1e-4)
+    keep = np.ones(t.size, bool)
+    keep[[300, 301, 302, 1200]] = False  # 4 skipped cycles
+    gappy = tmp_path / "gappy.csv"
+    np.savetxt(gappy, np.column_stack([t, x, u])[keep], delimiter=",", header="t,x,u", comments="", fmt="%.12g")
+    rc = main(["identify", str(gappy), "--model", "dahl", "--out", str(tmp_path / "m.yaml"), "--quiet"])
+    out = capsys.readouterr().out
+    assert rc in (0, 3) and (tmp_path / "m.yaml").is_file()
+    assert "note: irregular sampling" in out and "4 of 2000 grid samples were not measured" in out, out

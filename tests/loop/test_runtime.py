@@ -192,3 +192,22 @@ def test_one_recording_csv_writer_for_the_recorder_and_the_daemon(tmp_path):
     writer.stop()  # never started: drains in this thread
     (b,) = (tmp_path / "tel").glob("telemetry-*.csv")
     assert b.read_text() == dut.header + dut.rows(data)  # telemetry: 12
+
+
+def test_late_cycle_warnings_say_once_that_they_are_expected_without_realtime(caplog) -> None:
+    """Issue 15: the overrun warnings on an ordinary PC come with one hint line (why, and where the fix is),
+    then only the rate-limited counts."""
+    import logging
+
+    from stagectl.runtime.stats import LatenessWarner
+
+    w = LatenessWarner(late_s=500e-6, interval_s=10.0)
+    with caplog.at_level(logging.WARNING):
+        w.note(0.1, 2e-3, 0, 1e-3, 1)
+        w.note(0.2, 2e-3, 0, 1e-3, 2)  # within the interval: counted, not logged
+        w.note(10.5, 1e-4, 1, 1e-3, 3)  # a skipped slot after the interval: logged, no second hint
+        w.note(10.6, 1e-4, 0, 1e-3, 3)  # on time: nothing
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 3 and lines[0].startswith("loop timing: 1 late/overrun cycles")
+    assert "expected without real-time scheduling" in lines[1] and "Installing on a stage PC" in lines[1]
+    assert lines[2].startswith("loop timing: 2 late/overrun cycles")
