@@ -27,7 +27,9 @@ ahead of the first start (docs/performance.md).
 from __future__ import annotations
 
 import hashlib
+import importlib.abc
 import os
+import sys
 import types as pytypes
 from collections.abc import Callable
 from pathlib import Path
@@ -126,6 +128,33 @@ def _file_digest(path: str) -> str:
         return hashlib.sha256(fh.read()).hexdigest()
 
 
+class _NoScipyLinalg(importlib.abc.MetaPathFinder):
+    """Makes ``import scipy.linalg…`` fail (installed only around one import, see :func:`_numba_registries`)."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
+        if name == "scipy.linalg" or name.startswith("scipy.linalg."):
+            raise ImportError("hidden by stagectl.jit while numba loads its registries")
+        return None
+
+
+def _numba_registries() -> None:
+    """Import ``numba.np.arraymath`` (numba imports it at its first compile or cache load) with ``scipy.linalg``
+    hidden, unless either is imported already.
+
+    arraymath only asks whether a BLAS is there (``import scipy.linalg.cython_blas``: 0.1–0.3 s, a tenth of a
+    warm start) to pick BLAS or a plain loop for ``np.convolve``/``np.correlate`` inside kernels, which no
+    stagectl kernel uses; ``np.dot``/``np.linalg`` in a kernel still import scipy.linalg when typed. Python code
+    imports scipy.linalg normally afterwards."""
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    hide = _NoScipyLinalg()
+    sys.meta_path.insert(0, hide)
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        sys.meta_path.remove(hide)
+
+
 def _cache_class() -> Any:
     """The numba ``FunctionCache`` subclass (built on first use: importing numba's caching is not free)."""
     global _CACHE_CLASS
@@ -153,6 +182,10 @@ def _cache_class() -> Any:
         def __init__(self, py_func: Any) -> None:
             super().__init__(py_func)  # type: ignore[no-untyped-call]
             self._deps_hash: str | None = None
+
+        def load_overload(self, sig: Any, target_context: Any) -> Any:
+            _numba_registries()  # before numba's first target refresh, which this call starts
+            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]
 
         def deps_hash(self) -> str:
             if self._deps_hash is None:
