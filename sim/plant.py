@@ -192,6 +192,63 @@ def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float
 
 # ps (plant state) layout
 _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
+
+
+@kernel(inline="always")
+def load_state(ps):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """``(x, v, ff, stuck, win, wf, wo)`` of the plant state array ``ps`` (the loop's locals)."""
+    return ps[_X], ps[_V], ps[_FF], ps[_STUCK], ps[_WIN], ps[_WF], ps[_WO]
+
+
+@kernel(inline="always")
+def store_state(ps, x, v, ff, stuck, win, wf, wo):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Write the loop's locals back into ``ps`` (inverse of :func:`load_state`)."""
+    ps[_X] = x
+    ps[_V] = v
+    ps[_FF] = ff
+    ps[_STUCK] = stuck
+    ps[_WIN] = win
+    ps[_WF] = wf
+    ps[_WO] = wo
+
+
+@kernel(inline="always")
+def substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck, win, wf, wo):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One general sub-step h [s] (module docstring), inlined where it is used: the plant's general loop and the
+    friction side of ``stagectl.sim.backlash``. ``kstep`` is the friction kernel (parameters ``kp``, state ``fs``
+    advanced in place), ``ep`` the packed effects, ``fb``/``dv`` the Karnopp break-away [N] and band [m/s] (fb = 0:
+    no band), ``ua`` the applied force [N]. Returns the new ``(x, v, ff, stuck, win, wf, wo)``: position [m],
+    velocity [m/s], friction F' [N], stuck flag, work totals applied/friction/other [J]."""
+    fo = _other(ep, x)
+    fe = ua - fo
+    if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
+        # Karnopp band (static models): hold while the net force stays below break-away
+        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+        if abs(fe) <= lim:
+            kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
+            return x, 0.0, fe, 1.0, win, wf, wo
+        ff = lim if fe > 0.0 else -lim
+        v = v + h * (fe - ff) * inv_m
+        dx = h * v
+        kstep(kp, fs, dx, v, h)
+        return x + dx, v, ff, 0.0, win + ua * dx, wf + ff * dx, wo + fo * dx
+    v_old = v
+    v = v + h * (fe - ff) * inv_m
+    if fb > 0.0 and v * v_old < 0.0:
+        # velocity crossed zero inside the sub-step: stop here, the stick test follows
+        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
+        ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
+        kstep(kp, fs, 0.0, 0.0, h)
+        return x, 0.0, ff, 1.0, win, wf, wo
+    dx = h * v
+    x = x + dx
+    win = win + ua * dx
+    wf = wf + ff * dx
+    wo = wo + fo * dx
+    ff = _modify(ep, kstep(kp, fs, dx, v, h), x) + _vforce(ep, v)
+    return x, v, ff, stuck, win, wf, wo
+
+
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
 def _make_integrate(kstep: Any, plain_only: bool) -> Any:
@@ -218,13 +275,7 @@ def _make_integrate(kstep: Any, plain_only: bool) -> Any:
         tau = par[3]
         h = dt / nsub
         t = ps[_T]
-        x = ps[_X]
-        v = ps[_V]
-        ff = ps[_FF]
-        stuck = ps[_STUCK]
-        win = ps[_WIN]
-        wf = ps[_WF]
-        wo = ps[_WO]
+        x, v, ff, stuck, win, wf, wo = load_state(ps)
         ua = 0.0
         # no delay, no Karnopp band, no friction modifier, constant F_other: the plain loop
         plain = (tau == 0.0 and fb == 0.0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
@@ -264,15 +315,9 @@ def _make_integrate(kstep: Any, plain_only: bool) -> Any:
                         of[j] = ff
                     j += 1
             ps[_T] = t
-            ps[_X] = x
-            ps[_V] = v
-            ps[_FF] = ff
             ps[_FO] = fo_c
             ps[_UA] = ua
-            ps[_STUCK] = stuck
-            ps[_WIN] = win
-            ps[_WF] = wf
-            ps[_WO] = wo
+            store_state(ps, x, v, ff, stuck, win, wf, wo)
             return
         for k in range(u.shape[0]):
             nh = nh0 + k + 1
@@ -292,43 +337,8 @@ def _make_integrate(kstep: Any, plain_only: bool) -> Any:
                     if tau > 0.0:
                         t0 = t + i * h
                         ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
-                    fo = _other(ep, x)
-                    fe = ua - fo
-                    if fb > 0.0 and (stuck != 0.0 or abs(v) < dv):
-                        # Karnopp band (static models): hold while the net force stays below break-away
-                        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                        if abs(fe) <= lim:
-                            v = 0.0
-                            ff = fe
-                            stuck = 1.0
-                            kstep(kp, fs, 0.0, 0.0, h)  # lag states relax at rest
-                            continue
-                        stuck = 0.0
-                        ff = lim if fe > 0.0 else -lim
-                        v = v + h * (fe - ff) * inv_m
-                        dx = h * v
-                        x += dx
-                        win += ua * dx
-                        wf += ff * dx
-                        wo += fo * dx
-                        kstep(kp, fs, dx, v, h)
-                        continue
-                    v_old = v
-                    v = v + h * (fe - ff) * inv_m
-                    if fb > 0.0 and v * v_old < 0.0:
-                        # velocity crossed zero inside the sub-step: stop here, the stick test follows
-                        v = 0.0
-                        stuck = 1.0
-                        lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                        ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
-                        kstep(kp, fs, 0.0, 0.0, h)
-                        continue
-                    dx = h * v
-                    x += dx
-                    win += ua * dx
-                    wf += ff * dx
-                    wo += fo * dx
-                    ff = _modify(ep, kstep(kp, fs, dx, v, h), x) + _vforce(ep, v)
+                    x, v, ff, stuck, win, wf, wo = substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff,
+                                                           stuck, win, wf, wo)
             t = t + dt
             cnt += 1
             if cnt == every:
@@ -343,15 +353,9 @@ def _make_integrate(kstep: Any, plain_only: bool) -> Any:
                     of[j] = ff
                 j += 1
         ps[_T] = t
-        ps[_X] = x
-        ps[_V] = v
-        ps[_FF] = ff
         ps[_FO] = _other(ep, x)
         ps[_UA] = ua
-        ps[_STUCK] = stuck
-        ps[_WIN] = win
-        ps[_WF] = wf
-        ps[_WO] = wo
+        store_state(ps, x, v, ff, stuck, win, wf, wo)
 
     return integrate
 
