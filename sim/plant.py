@@ -50,7 +50,7 @@ from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects,
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
-from stagectl.jit import kernel
+from stagectl.jit import inlined, kernel
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -251,13 +251,80 @@ def substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck, win, wf, w
 
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
-def _make_integrate(kstep: Any, plain_only: bool) -> Any:
-    """The fused loop specialised on one friction kernel ``kstep`` (a direct call, inlined by LLVM: a call
-    through a function pointer cost ~40 % of the GMS step). One compiled loop per model, compiled on first
-    use and cached (``stagectl.jit``: keyed on the model kernel's module and source).
+@kernel(inline="always")
+def _store(ot, ox, ov, of, j, t, x, v, ff):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Outputs of one stored step into row ``j`` of those of ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N]
+    that are not empty."""
+    if ot.shape[0] > 0:
+        ot[j] = t
+    if ox.shape[0] > 0:
+        ox[j] = x
+    if ov.shape[0] > 0:
+        ov[j] = v
+    if of.shape[0] > 0:
+        of[j] = ff
 
-    ``plain_only``: a compile-time constant; True compiles only the plain loop (no delay, no Karnopp band, no
-    friction modifier, constant F_other), about half the code and compile time, for plants that are plain."""
+
+def _make_plain(kstep: Any) -> Any:
+    """The plain loop (no delay, no Karnopp band, no friction modifier, constant F_other) specialised on one
+    friction kernel; ``kstep`` is pasted into the sub-step (``stagectl.jit.inlined``): called as a function it
+    cost ~20 % of a GMS plant step. Compiled on first use and cached (keyed on the model kernel's module and
+    source). Same arguments as :func:`_make_integrate`'s loop; ``ht``, ``hu``, ``nh0`` are not used."""
+
+    @kernel
+    def plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
+        """``u[k]`` held for ``dt`` in ``nsub`` sub-steps each (see the module docstring)."""
+        if par[1] != 0.0 or par[3] != 0.0 or ep[0] != 0.0 or ep[1] != 0.0 or ep[4] != 0.0 or ep[8] != 0.0 \
+                or ep[11] != 0.0:
+            raise ValueError("plain plant loop called with delay, stick band or position effects")
+        inv_m = 1.0 / par[0]
+        h = dt / nsub
+        t = ps[_T]
+        x, v, ff, stuck, win, wf, wo = load_state(ps)
+        ua = 0.0
+        fo_c = ep[7]
+        st_t = ot.shape[0] > 0
+        st_x = ox.shape[0] > 0
+        st_v = ov.shape[0] > 0
+        st_f = of.shape[0] > 0
+        cnt = 0
+        j = 0
+        for k in range(u.shape[0]):
+            ua = u[k]
+            fe = ua - fo_c
+            for i in range(nsub):
+                v = v + h * (fe - ff) * inv_m
+                dx = h * v
+                x += dx
+                win += ua * dx
+                wf += ff * dx
+                wo += fo_c * dx
+                ff = kstep(kp, fs, dx, v, h)
+            t = t + dt
+            cnt += 1
+            if cnt == every:
+                cnt = 0
+                if st_t:
+                    ot[j] = t
+                if st_x:
+                    ox[j] = x
+                if st_v:
+                    ov[j] = v
+                if st_f:
+                    of[j] = ff
+                j += 1
+        ps[_T] = t
+        ps[_FO] = fo_c
+        ps[_UA] = ua
+        store_state(ps, x, v, ff, stuck, win, wf, wo)
+
+    return plain_loop
+
+
+def _make_integrate(kstep: Any, plain_loop: Any) -> Any:
+    """The general fused loop specialised on one friction kernel ``kstep`` (a direct call). A run that is plain
+    at run time goes to ``plain_loop`` (:func:`_make_plain`, one call per run). One compiled loop per model,
+    compiled on first use and cached (``stagectl.jit``: keyed on the model kernel's module and source)."""
 
     @kernel
     def integrate(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
@@ -273,84 +340,30 @@ def _make_integrate(kstep: Any, plain_only: bool) -> Any:
         fb = par[1]
         dv = par[2]
         tau = par[3]
+        if (tau == 0.0 and fb == 0.0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
+                and ep[11] == 0.0):
+            plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of)
+            return
         h = dt / nsub
         t = ps[_T]
         x, v, ff, stuck, win, wf, wo = load_state(ps)
         ua = 0.0
-        # no delay, no Karnopp band, no friction modifier, constant F_other: the plain loop
-        plain = (tau == 0.0 and fb == 0.0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
-                 and ep[11] == 0.0)
-        fo_c = ep[7]
-        st_t = ot.shape[0] > 0
-        st_x = ox.shape[0] > 0
-        st_v = ov.shape[0] > 0
-        st_f = of.shape[0] > 0
         cnt = 0
         j = 0
-        if plain_only:  # compile-time constant: the general loop below is not compiled at all
-            if not plain:
-                raise ValueError("plain-only plant loop called with delay, stick band or position effects")
-            for k in range(u.shape[0]):
-                ua = u[k]
-                fe = ua - fo_c
-                for i in range(nsub):
-                    v = v + h * (fe - ff) * inv_m
-                    dx = h * v
-                    x += dx
-                    win += ua * dx
-                    wf += ff * dx
-                    wo += fo_c * dx
-                    ff = kstep(kp, fs, dx, v, h)
-                t = t + dt
-                cnt += 1
-                if cnt == every:
-                    cnt = 0
-                    if st_t:
-                        ot[j] = t
-                    if st_x:
-                        ox[j] = x
-                    if st_v:
-                        ov[j] = v
-                    if st_f:
-                        of[j] = ff
-                    j += 1
-            ps[_T] = t
-            ps[_FO] = fo_c
-            ps[_UA] = ua
-            store_state(ps, x, v, ff, stuck, win, wf, wo)
-            return
         for k in range(u.shape[0]):
             nh = nh0 + k + 1
             ua = u[k]
-            if plain:
-                fe = ua - fo_c
-                for i in range(nsub):
-                    v = v + h * (fe - ff) * inv_m
-                    dx = h * v
-                    x += dx
-                    win += ua * dx
-                    wf += ff * dx
-                    wo += fo_c * dx
-                    ff = kstep(kp, fs, dx, v, h)
-            else:
-                for i in range(nsub):
-                    if tau > 0.0:
-                        t0 = t + i * h
-                        ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
-                    x, v, ff, stuck, win, wf, wo = substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff,
-                                                           stuck, win, wf, wo)
+            for i in range(nsub):
+                if tau > 0.0:
+                    t0 = t + i * h
+                    ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
+                x, v, ff, stuck, win, wf, wo = substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck,
+                                                       win, wf, wo)
             t = t + dt
             cnt += 1
             if cnt == every:
                 cnt = 0
-                if st_t:
-                    ot[j] = t
-                if st_x:
-                    ox[j] = x
-                if st_v:
-                    ov[j] = v
-                if st_f:
-                    of[j] = ff
+                _store(ot, ox, ov, of, j, t, x, v, ff)
                 j += 1
         ps[_T] = t
         ps[_FO] = _other(ep, x)
@@ -452,22 +465,23 @@ def batch_sets_loop(ksets: Any) -> Any:
     return got[0]
 
 
-_LOOPS: dict[tuple[int, bool], tuple[Any, Any, Any]] = {}
+_LOOPS: dict[int, tuple[Any, Any, Any, Any]] = {}
 _OUTPUTS = ("t", "x", "v", "friction", "x_meas")
 _EMPTY = np.empty(0)  # an output not stored
 _EMPTY1 = np.zeros(1)  # the command history when there is no delay
 
 
 def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
-    """(integrate, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel);
-    ``plain_only``: the plain loop alone (see :func:`_make_integrate`); run_batch is always the general one."""
-    got = _LOOPS.get((id(kstep), plain_only))
+    """(loop, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel). The loop is the
+    general one (:func:`_make_integrate`), or with ``plain_only`` the plain one alone (:func:`_make_plain`:
+    about half the compile time, for plants that are plain by configuration); run_batch is always general."""
+    got = _LOOPS.get(id(kstep))
     if got is None:
-        integ = _make_integrate(kstep, plain_only)
-        batch = loops_for(kstep, False)[1] if plain_only else _make_batch(kstep, integ)
-        got = (integ, batch, kstep)  # kstep kept alive: its id stays valid
-        _LOOPS[(id(kstep), plain_only)] = got
-    return got[0], got[1]
+        plain = _make_plain(inlined(kstep))
+        integ = _make_integrate(kstep, plain)
+        got = (plain, integ, _make_batch(kstep, integ), kstep)  # kstep kept alive: its id stays valid
+        _LOOPS[id(kstep)] = got
+    return (got[0] if plain_only else got[1]), got[2]
 
 
 # ================================================================================================ plant

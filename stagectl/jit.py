@@ -204,7 +204,8 @@ def _cache_class() -> Any:
             from numba.core.serialize import dumps
 
             cells = tuple(c.cell_contents for c in (self._py_func.__closure__ or ()))
-            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c)
+            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__, str(c.targetoptions.get("inline")))
+                    if _is_dispatcher(c)
                     else dumps(c)  # type: ignore[no-untyped-call]
                     for c in cells]
             code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
@@ -244,6 +245,26 @@ def kernel(fn: F | None = None, **options: Any) -> Any:
     return deco
 
 
+_INLINED: dict[int, tuple[Any, Any]] = {}
+
+
+def inlined(dispatcher: Any) -> Any:
+    """A second kernel of ``dispatcher``'s function with ``inline="always"`` (made once per dispatcher).
+
+    A compiled loop that calls a kernel through a closure cell or a global calls it as a function: numba links
+    the callee's machine code after optimising the caller, so LLVM cannot inline it, and the call (arrays
+    passed as seven scalars each, an exception status to test) cost ~20 % of a GMS plant step. Calling this
+    variant pastes the callee's body into the caller at numba's IR level. The original keeps being the one
+    called from Python."""
+    got = _INLINED.get(id(dispatcher))
+    if got is None:
+        opts = {k: v for k, v in dispatcher.targetoptions.items() if k not in ("cache", "nopython", "boundscheck")}
+        opts["inline"] = "always"
+        got = (kernel(**opts)(dispatcher.py_func), dispatcher)  # the original kept alive: its id stays valid
+        _INLINED[id(dispatcher)] = got
+    return got[0]
+
+
 def compiled_signatures(dispatcher: Any) -> int:
     """How many signatures ``dispatcher`` has compiled or loaded in this process (0: never used)."""
     return len(getattr(dispatcher, "overloads", {}))
@@ -254,5 +275,5 @@ def loaded_from_cache(dispatcher: Any) -> int:
     return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
 
 
-__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "kernel",
+__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "inlined", "kernel",
            "loaded_from_cache"]
