@@ -12,7 +12,7 @@ Equations (SI units; friction and F_other oppose motion, see ``stagectl.friction
 force ``u(t − τ)`` is exact for any τ, including sub-sample τ: each sub-step uses the time average of the
 delayed piecewise-constant command over the sub-step. Before the first command u = 0.
 
-Integration (fused, compiled with numba; the friction kernel is passed in as a first-class function):
+Integration (fused, compiled with numba, one loop per friction model with the model's step pasted in):
 ``step(dt)`` uses ``n = ceil(dt/substep_s)`` equal sub-steps h = dt/n of semi-implicit (symplectic) Euler::
 
     v ← v + h·(u_a − F' − F_other(x))/m ;  Δx = h·v ;  x ← x + Δx ;  F ← friction.step(state, Δx, v, h)
