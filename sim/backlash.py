@@ -59,7 +59,7 @@ _BS_N = 3
 def _make_loop(kstep: Any) -> Any:
     """The fused motor + load loop specialised on the friction side's kernel ``kstep`` (see module docstring)."""
 
-    @kernel
+    @kernel(_nrt=False)  # allocates nothing; no reference counting of the arrays handed to the inlined sub-step
     def run(kp, fs, ep, bp, ps, bs, u, nh):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
         """Hold ``u`` on the motor for ``nh`` coupling steps; side state ``ps``/``fs``, other body ``bs``."""
         m = bp[0]

@@ -268,10 +268,11 @@ def _store(ot, ox, ov, of, j, t, x, v, ff):  # type: ignore[no-untyped-def]  # p
 def _make_plain(kstep: Any) -> Any:
     """The plain loop (no delay, no Karnopp band, no friction modifier, constant F_other) specialised on one
     friction kernel; ``kstep`` is pasted into the sub-step (``stagectl.jit.inlined``): called as a function it
-    cost ~20 % of a GMS plant step. Compiled on first use and cached (keyed on the model kernel's module and
+    cost ~15 % of a GMS plant step; no reference counting (``_nrt=False``: it allocates nothing), which would
+    count the arrays handed to the pasted-in step on every sub-step. Compiled on first use and cached (keyed on the model kernel's module and
     source). Same arguments as :func:`_make_integrate`'s loop; ``ht``, ``hu``, ``nh0`` are not used."""
 
-    @kernel
+    @kernel(_nrt=False)
     def plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
         """``u[k]`` held for ``dt`` in ``nsub`` sub-steps each (see the module docstring)."""
         if par[1] != 0.0 or par[3] != 0.0 or ep[0] != 0.0 or ep[1] != 0.0 or ep[4] != 0.0 or ep[8] != 0.0 \
@@ -283,10 +284,6 @@ def _make_plain(kstep: Any) -> Any:
         x, v, ff, stuck, win, wf, wo = load_state(ps)
         ua = 0.0
         fo_c = ep[7]
-        st_t = ot.shape[0] > 0
-        st_x = ox.shape[0] > 0
-        st_v = ov.shape[0] > 0
-        st_f = of.shape[0] > 0
         cnt = 0
         j = 0
         for k in range(u.shape[0]):
@@ -304,14 +301,7 @@ def _make_plain(kstep: Any) -> Any:
             cnt += 1
             if cnt == every:
                 cnt = 0
-                if st_t:
-                    ot[j] = t
-                if st_x:
-                    ox[j] = x
-                if st_v:
-                    ov[j] = v
-                if st_f:
-                    of[j] = ff
+                _store(ot, ox, ov, of, j, t, x, v, ff)
                 j += 1
         ps[_T] = t
         ps[_FO] = fo_c
@@ -326,7 +316,7 @@ def _make_integrate(kstep: Any, plain_loop: Any) -> Any:
     at run time goes to ``plain_loop`` (:func:`_make_plain`, one call per run). One compiled loop per model,
     compiled on first use and cached (``stagectl.jit``: keyed on the model kernel's module and source)."""
 
-    @kernel
+    @kernel(_nrt=False)
     def integrate(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
         """``u[k]`` held for ``dt`` in ``nsub`` sub-steps each (see the module docstring).
 
