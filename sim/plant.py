@@ -267,10 +267,11 @@ def _store(ot, ox, ov, of, j, t, x, v, ff):  # type: ignore[no-untyped-def]  # p
 
 def _make_plain(kstep: Any) -> Any:
     """The plain loop (no delay, no Karnopp band, no friction modifier, constant F_other) specialised on one
-    friction kernel; ``kstep`` is pasted into the sub-step (``stagectl.jit.inlined``): called as a function it
-    cost ~15 % of a GMS plant step; no reference counting (``_nrt=False``: it allocates nothing), which would
-    count the arrays handed to the pasted-in step on every sub-step. Compiled on first use and cached (keyed on the model kernel's module and
-    source). Same arguments as :func:`_make_integrate`'s loop; ``ht``, ``hu``, ``nh0`` are not used."""
+    friction kernel; ``kstep`` is pasted into the sub-step (``stagectl.jit.inlined``: called as a function it
+    cost ~15 % of a GMS plant step). No reference counting (``_nrt=False``; the loop allocates nothing): numba
+    would count the arrays handed to the pasted-in step on every sub-step. Compiled on first use and cached
+    (keyed on the model kernel's module and source). Same arguments as :func:`_make_integrate`'s loop; ``ht``,
+    ``hu``, ``nh0`` are not used."""
 
     @kernel(_nrt=False)
     def plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
