@@ -192,16 +192,19 @@ def _u_avg(ht: FloatArray, hu: FloatArray, nh: int, a: float, b: float) -> float
 
 # ps (plant state) layout
 _T, _X, _V, _FF, _FO, _UA, _STUCK, _WIN, _WF, _WO = range(10)
+#: the loop's locals x, v, ff, stuck, win, wf, wo (see :func:`load_state`)
+_Locals = tuple[float, float, float, float, float, float, float]
 
 
 @kernel(inline="always")
-def load_state(ps):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def load_state(ps: FloatArray) -> _Locals:  # pragma: no cover - compiled
     """``(x, v, ff, stuck, win, wf, wo)`` of the plant state array ``ps`` (the loop's locals)."""
     return ps[_X], ps[_V], ps[_FF], ps[_STUCK], ps[_WIN], ps[_WF], ps[_WO]
 
 
 @kernel(inline="always")
-def store_state(ps, x, v, ff, stuck, win, wf, wo):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def store_state(ps: FloatArray, x: float, v: float, ff: float, stuck: float, win: float, wf: float,
+                wo: float) -> None:  # pragma: no cover - compiled
     """Write the loop's locals back into ``ps`` (inverse of :func:`load_state`)."""
     ps[_X] = x
     ps[_V] = v
@@ -213,7 +216,9 @@ def store_state(ps, x, v, ff, stuck, win, wf, wo):  # type: ignore[no-untyped-de
 
 
 @kernel(inline="always")
-def substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck, win, wf, wo):  # type: ignore[no-untyped-def]  # pragma: no cover
+def substep(kstep: Any, kp: FloatArray, fs: FloatArray, ep: FloatArray, fb: float, dv: float, inv_m: float,
+            h: float, ua: float, x: float, v: float, ff: float, stuck: float, win: float, wf: float,
+            wo: float) -> _Locals:  # pragma: no cover - compiled
     """One general sub-step h [s] (module docstring), inlined where it is used: the plant's general loop and the
     friction side of ``stagectl.sim.backlash``. ``kstep`` is the friction kernel (parameters ``kp``, state ``fs``
     advanced in place), ``ep`` the packed effects, ``fb``/``dv`` the Karnopp break-away [N] and band [m/s] (fb = 0:
@@ -252,7 +257,8 @@ def substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck, win, wf, w
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
 @kernel(inline="always")
-def _store(ot, ox, ov, of, j, t, x, v, ff):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def _store(ot: FloatArray, ox: FloatArray, ov: FloatArray, of: FloatArray, j: int, t: float, x: float, v: float,
+           ff: float) -> None:  # pragma: no cover - compiled
     """Outputs of one stored step into row ``j`` of those of ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N]
     that are not empty."""
     if ot.shape[0] > 0:
