@@ -17,7 +17,8 @@ Measured in one run (figures are never copied from elsewhere):
   feed-forward does, and ``StagePlant.step(u, dt)`` (10 sub-steps), in µs per call.
 
 JIT compile / cache-load time is excluded from every rate (each path is warmed up first) and reported
-separately as ``warmup_s``. Rates are the best of ``--repeat`` runs (least disturbed by other load).
+separately as ``warmup_s`` (wall clock). Rates are the best of ``--repeat`` runs in process CPU time (least
+disturbed by other load on a shared machine).
 """
 
 from __future__ import annotations
@@ -114,11 +115,12 @@ def python_gms_plant(n_steps: int, dt: float, mass: float, spec: dict[str, Any])
 
 # ---------------------------------------------------------------------------------------------- helpers
 def _best(fn: Any, repeat: int) -> float:
+    """Best of ``repeat`` runs in this process's CPU time (every run here is single-threaded in this process)."""
     best = math.inf
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         fn()
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return best
 
 
