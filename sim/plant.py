@@ -257,10 +257,15 @@ def substep(kstep: Any, kp: FloatArray, fs: FloatArray, ep: FloatArray, fb: floa
 # par layout: [mass, breakaway_n, stick_velocity, delay_s]
 
 @kernel(inline="always")
-def _store(ot: FloatArray, ox: FloatArray, ov: FloatArray, of: FloatArray, j: int, t: float, x: float, v: float,
-           ff: float) -> None:  # pragma: no cover - compiled
-    """Outputs of one stored step into row ``j`` of those of ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N]
-    that are not empty."""
+def _step_end(t: float, dt: float, cnt: int, every: int, j: int, ot: FloatArray, ox: FloatArray, ov: FloatArray,
+              of: FloatArray, x: float, v: float, ff: float) -> tuple[float, int, int]:  # pragma: no cover
+    """End of one held command of ``dt`` [s]: the time advanced and, every ``every``-th step, the outputs stored
+    into row ``j`` of those of ``ot`` [s], ``ox`` [m], ``ov`` [m/s], ``of`` [N] that are not empty. Returns the
+    new ``(t, cnt, j)``."""
+    t = t + dt
+    cnt += 1
+    if cnt != every:
+        return t, cnt, j
     if ot.shape[0] > 0:
         ot[j] = t
     if ox.shape[0] > 0:
@@ -269,6 +274,17 @@ def _store(ot: FloatArray, ox: FloatArray, ov: FloatArray, of: FloatArray, j: in
         ov[j] = v
     if of.shape[0] > 0:
         of[j] = ff
+    return t, 0, j + 1
+
+
+@kernel(inline="always")
+def _finish(ps: FloatArray, t: float, fo: float, ua: float, x: float, v: float, ff: float, stuck: float, win: float,
+            wf: float, wo: float) -> None:  # pragma: no cover - compiled
+    """The loop's end state into ``ps``: time, F_other, applied force and the locals of :func:`load_state`."""
+    ps[_T] = t
+    ps[_FO] = fo
+    ps[_UA] = ua
+    store_state(ps, x, v, ff, stuck, win, wf, wo)
 
 
 def _make_plain(kstep: Any) -> Any:
@@ -304,16 +320,8 @@ def _make_plain(kstep: Any) -> Any:
                 wf += ff * dx
                 wo += fo_c * dx
                 ff = kstep(kp, fs, dx, v, h)
-            t = t + dt
-            cnt += 1
-            if cnt == every:
-                cnt = 0
-                _store(ot, ox, ov, of, j, t, x, v, ff)
-                j += 1
-        ps[_T] = t
-        ps[_FO] = fo_c
-        ps[_UA] = ua
-        store_state(ps, x, v, ff, stuck, win, wf, wo)
+            t, cnt, j = _step_end(t, dt, cnt, every, j, ot, ox, ov, of, x, v, ff)
+        _finish(ps, t, fo_c, ua, x, v, ff, stuck, win, wf, wo)
 
     return plain_loop
 
@@ -356,16 +364,8 @@ def _make_integrate(kstep: Any, plain_loop: Any) -> Any:
                     ua = _u_avg(ht, hu, nh, t0 - tau, t0 + h - tau)
                 x, v, ff, stuck, win, wf, wo = substep(kstep, kp, fs, ep, fb, dv, inv_m, h, ua, x, v, ff, stuck,
                                                        win, wf, wo)
-            t = t + dt
-            cnt += 1
-            if cnt == every:
-                cnt = 0
-                _store(ot, ox, ov, of, j, t, x, v, ff)
-                j += 1
-        ps[_T] = t
-        ps[_FO] = _other(ep, x)
-        ps[_UA] = ua
-        store_state(ps, x, v, ff, stuck, win, wf, wo)
+            t, cnt, j = _step_end(t, dt, cnt, every, j, ot, ox, ov, of, x, v, ff)
+        _finish(ps, t, _other(ep, x), ua, x, v, ff, stuck, win, wf, wo)
 
     return integrate
 
