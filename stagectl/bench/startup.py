@@ -131,10 +131,22 @@ def _one(python: str, config: str, cache: Path) -> dict[str, float]:
     }
 
 
-def _pairs(python: str, config: str) -> tuple[dict[str, float], dict[str, float]]:
+def _tell(args: argparse.Namespace, done: int, total: int, what: str) -> None:
+    """``stagectl bench``'s progress line, where the command provides one (``args.progress``)."""
+    fn = getattr(args, "progress", None)
+    if fn is not None:
+        fn(done, total, what, 0.0)
+
+
+def _pairs(args: argparse.Namespace, python: str, done: int,
+           total: int) -> tuple[dict[str, float], dict[str, float]]:
+    """A cold and a warm run of ``python`` with a new private cache (runs ``done`` and ``done + 1`` of ``total``)."""
+    who = "baseline" if python != sys.executable else "this build"
     with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
-        cold = _one(python, config, Path(tmp))
-        warm = _one(python, config, Path(tmp))
+        _tell(args, done, total, f"run {done + 1} of {total} ({who}), empty numba cache")
+        cold = _one(python, args.config, Path(tmp))
+        _tell(args, done + 1, total, f"run {done + 2} of {total} ({who}), warm numba cache")
+        warm = _one(python, args.config, Path(tmp))
     return cold, warm
 
 
@@ -149,18 +161,26 @@ def _summary(cold: list[dict[str, float]], warm: list[dict[str, float]]) -> dict
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    load0 = os.getloadavg()
+    from stagectl.config import load_app_config
+    from stagectl.errors import ConfigError
+
+    load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
     against = getattr(args, "against", None)
+    if against and not (os.path.isfile(against) and os.access(against, os.X_OK)):
+        raise ConfigError(f"--against: {against} is not an executable Python interpreter")
+    load0 = os.getloadavg()
     cold: list[dict[str, float]] = []
     warm: list[dict[str, float]] = []
     b_cold: list[dict[str, float]] = []
     b_warm: list[dict[str, float]] = []
-    for _ in range(max(1, int(args.repeat))):
+    n = max(1, int(args.repeat))
+    per = 4 if against else 2
+    for i in range(n):
         if against:
-            c, w = _pairs(against, args.config)
+            c, w = _pairs(args, against, per * i, per * n)
             b_cold.append(c)
             b_warm.append(w)
-        c, w = _pairs(sys.executable, args.config)
+        c, w = _pairs(args, sys.executable, per * i + per - 2, per * n)
         cold.append(c)
         warm.append(w)
     res: dict[str, Any] = {"benchmark": "startup", "command": "stagectl run --config CONFIG --duration 0.05 "
