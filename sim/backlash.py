@@ -21,8 +21,9 @@ the evidence `stagectl discover` looks for (docs/discovery.md §10).
 
 Integration: one compiled call per ``step`` (:func:`loop_for`, a numba kernel specialised on the friction
 side's model kernel like the plant's own loop): per coupling step h the contact force, then the friction-free
-body (semi-implicit Euler), then the friction side in ``ceil(h/substep_s)`` sub-steps with the plant's
-sub-step (effects, Karnopp band of static models). :meth:`BacklashPlant.step_reference` is the same
+body (semi-implicit Euler), then the friction side in ``ceil(h/substep_s)`` sub-steps of the plant's own
+general sub-step (:func:`stagectl.sim.plant.substep`, inlined: effects, Karnopp band of static models; the body
+exists once). :meth:`BacklashPlant.step_reference` is the same
 integration in plain Python over :meth:`StagePlant.step`, kept as the oracle the kernel is tested against.
 A friction side with an actuation delay (``effects.delay``) uses the reference path (the kernel has no
 command history).
@@ -39,13 +40,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from stagectl.sim.plant import _FF, _STUCK, _T, _V, _WF, _WIN, _WO, _X, PlantConfig, StagePlant
+from stagectl.sim.plant import _T, PlantConfig, StagePlant, load_state, store_state, substep
 from stagectl.sim.plant import plant_from_model as _rigid_plant_from_model
 
 from stagectl.friction import StageModel
-from stagectl.friction.effects import modify_friction_kernel as _modify
-from stagectl.friction.effects import other_force_kernel as _other
-from stagectl.friction.effects import velocity_force_kernel as _vforce
 from stagectl.jit import kernel
 from stagectl.schema import load, param
 
@@ -61,7 +59,7 @@ _BS_N = 3
 def _make_loop(kstep: Any) -> Any:
     """The fused motor + load loop specialised on the friction side's kernel ``kstep`` (see module docstring)."""
 
-    @kernel
+    @kernel(_nrt=False)  # allocates nothing; no reference counting of the arrays handed to the inlined sub-step
     def run(kp, fs, ep, bp, ps, bs, u, nh):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
         """Hold ``u`` on the motor for ``nh`` coupling steps; side state ``ps``/``fs``, other body ``bs``."""
         m = bp[0]
@@ -76,13 +74,7 @@ def _make_loop(kstep: Any) -> Any:
         h = bp[8]
         ns = int(bp[9])
         hs = h / ns
-        x = ps[_X]
-        v = ps[_V]
-        ff = ps[_FF]
-        stuck = ps[_STUCK]
-        win = ps[_WIN]
-        wf = ps[_WF]
-        wo = ps[_WO]
+        x, v, ff, stuck, win, wf, wo = load_state(ps)
         xo = bs[0]
         vo = bs[1]
         fcon = bs[2]
@@ -107,49 +99,10 @@ def _make_loop(kstep: Any) -> Any:
             vo = vo + h * f_o * inv_mo
             xo = xo + h * vo
             for i in range(ns):  # the plant's general sub-step with the contact force held (tau = 0)
-                fo = _other(ep, x)
-                fe = ua - fo
-                if fb > 0.0 and (stuck != 0.0 or abs(v) < dvs):
-                    lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                    if abs(fe) <= lim:
-                        v = 0.0
-                        ff = fe
-                        stuck = 1.0
-                        kstep(kp, fs, 0.0, 0.0, hs)
-                        continue
-                    stuck = 0.0
-                    ff = lim if fe > 0.0 else -lim
-                    v = v + hs * (fe - ff) * inv_m
-                    dx = hs * v
-                    x += dx
-                    win += ua * dx
-                    wf += ff * dx
-                    wo += fo * dx
-                    kstep(kp, fs, dx, v, hs)
-                    continue
-                v_old = v
-                v = v + hs * (fe - ff) * inv_m
-                if fb > 0.0 and v * v_old < 0.0:
-                    v = 0.0
-                    stuck = 1.0
-                    lim = _modify(ep, fb, x) if fe > 0.0 else -_modify(ep, -fb, x)
-                    ff = fe if abs(fe) <= lim else (lim if fe > 0.0 else -lim)
-                    kstep(kp, fs, 0.0, 0.0, hs)
-                    continue
-                dx = hs * v
-                x += dx
-                win += ua * dx
-                wf += ff * dx
-                wo += fo * dx
-                ff = _modify(ep, kstep(kp, fs, dx, v, hs), x) + _vforce(ep, v)
+                x, v, ff, stuck, win, wf, wo = substep(kstep, kp, fs, ep, fb, dvs, inv_m, hs, ua, x, v, ff, stuck,
+                                                       win, wf, wo)
             ps[_T] = ps[_T] + h
-        ps[_X] = x
-        ps[_V] = v
-        ps[_FF] = ff
-        ps[_STUCK] = stuck
-        ps[_WIN] = win
-        ps[_WF] = wf
-        ps[_WO] = wo
+        store_state(ps, x, v, ff, stuck, win, wf, wo)
         bs[0] = xo
         bs[1] = vo
         bs[2] = fcon

@@ -27,7 +27,9 @@ ahead of the first start (docs/performance.md).
 from __future__ import annotations
 
 import hashlib
+import importlib.abc
 import os
+import sys
 import types as pytypes
 from collections.abc import Callable
 from pathlib import Path
@@ -126,6 +128,33 @@ def _file_digest(path: str) -> str:
         return hashlib.sha256(fh.read()).hexdigest()
 
 
+class _NoScipyLinalg(importlib.abc.MetaPathFinder):
+    """Makes ``import scipy.linalg…`` fail (installed only around one import, see :func:`_numba_registries`)."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
+        if name == "scipy.linalg" or name.startswith("scipy.linalg."):
+            raise ImportError("hidden by stagectl.jit while numba loads its registries")
+        return None
+
+
+def _numba_registries() -> None:
+    """Import ``numba.np.arraymath`` (numba imports it at its first compile or cache load) with ``scipy.linalg``
+    hidden, unless either is imported already.
+
+    arraymath only asks whether a BLAS is there (``import scipy.linalg.cython_blas``: 0.1–0.3 s, a tenth of a
+    warm start) to pick BLAS or a plain loop for ``np.convolve``/``np.correlate`` inside kernels, which no
+    stagectl kernel uses; ``np.dot``/``np.linalg`` in a kernel still import scipy.linalg when typed. Python code
+    imports scipy.linalg normally afterwards."""
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    hide = _NoScipyLinalg()
+    sys.meta_path.insert(0, hide)
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        sys.meta_path.remove(hide)
+
+
 def _cache_class() -> Any:
     """The numba ``FunctionCache`` subclass (built on first use: importing numba's caching is not free)."""
     global _CACHE_CLASS
@@ -154,6 +183,10 @@ def _cache_class() -> Any:
             super().__init__(py_func)  # type: ignore[no-untyped-call]
             self._deps_hash: str | None = None
 
+        def load_overload(self, sig: Any, target_context: Any) -> Any:
+            _numba_registries()  # before numba's first target refresh, which this call starts
+            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]
+
         def deps_hash(self) -> str:
             if self._deps_hash is None:
                 h = hashlib.sha256()
@@ -171,7 +204,8 @@ def _cache_class() -> Any:
             from numba.core.serialize import dumps
 
             cells = tuple(c.cell_contents for c in (self._py_func.__closure__ or ()))
-            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__) if _is_dispatcher(c)
+            desc = [("kernel", c.py_func.__module__, c.py_func.__qualname__, str(c.targetoptions.get("inline")))
+                    if _is_dispatcher(c)
                     else dumps(c)  # type: ignore[no-untyped-call]
                     for c in cells]
             code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
@@ -211,6 +245,27 @@ def kernel(fn: F | None = None, **options: Any) -> Any:
     return deco
 
 
+_INLINED: dict[int, tuple[Any, Any]] = {}
+
+
+def inlined(dispatcher: Any) -> Any:
+    """A second kernel of ``dispatcher``'s function with ``inline="always"`` (made once per dispatcher).
+
+    A compiled loop that calls a kernel through a closure cell or a global calls it as a function: numba links
+    the callee's machine code after optimising the caller, so LLVM cannot inline it, and the call (arrays
+    passed as seven scalars each, an exception status to test) cost ~15 % of a GMS plant step. Calling this
+    variant pastes the callee's body into the caller at numba's IR level. The original keeps being the one
+    called from Python. Compile the caller with ``_nrt=False`` if it allocates nothing: numba otherwise counts
+    references of the arrays handed to the pasted-in body on every call, which ate half of the gain."""
+    got = _INLINED.get(id(dispatcher))
+    if got is None:
+        opts = {k: v for k, v in dispatcher.targetoptions.items() if k not in ("cache", "nopython", "boundscheck")}
+        opts["inline"] = "always"
+        got = (kernel(**opts)(dispatcher.py_func), dispatcher)  # the original kept alive: its id stays valid
+        _INLINED[id(dispatcher)] = got
+    return got[0]
+
+
 def compiled_signatures(dispatcher: Any) -> int:
     """How many signatures ``dispatcher`` has compiled or loaded in this process (0: never used)."""
     return len(getattr(dispatcher, "overloads", {}))
@@ -221,5 +276,5 @@ def loaded_from_cache(dispatcher: Any) -> int:
     return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
 
 
-__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "kernel",
+__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "inlined", "kernel",
            "loaded_from_cache"]

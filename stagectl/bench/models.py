@@ -9,14 +9,16 @@ Measured in one run (figures are never copied from elsewhere):
 * **C reference** (``stagectl.bench.cref``): a minimal C implementation of the same GMS + plant recurrence,
   compiled with the system C compiler at ``-O2`` in this run (skipped with a note when there is none), single
   trajectory and a batch that interleaves the sets per time step; the GMS rates are reported as ratios to it
-  and the C and compiled trajectories are compared (``c_max_abs_dx_m``);
+  and the C and compiled trajectories are compared (``c_max_abs_dx_m``); these runs are timed in the process's
+  CPU time (``timer``), so that other load on a shared machine does not enter the ratios;
 * **first call**: a new plant's first ``simulate(u, outputs=("x",))`` of ``--first-steps`` steps (fresh
   output memory, kernel already loaded), against the C reference writing into fresh memory too;
 * **per-sample**: ``model.step(state, dx, v, dt)`` called from Python, as the control loop's
   feed-forward does, and ``StagePlant.step(u, dt)`` (10 sub-steps), in µs per call.
 
 JIT compile / cache-load time is excluded from every rate (each path is warmed up first) and reported
-separately as ``warmup_s``. Rates are the best of ``--repeat`` runs (least disturbed by other load).
+separately as ``warmup_s`` (wall clock). Rates are the best of ``--repeat`` runs in process CPU time (least
+disturbed by other load on a shared machine).
 """
 
 from __future__ import annotations
@@ -115,11 +117,12 @@ def python_gms_plant(n_steps: int, dt: float, mass: float, spec: dict[str, Any])
 
 # ---------------------------------------------------------------------------------------------- helpers
 def _best(fn: Any, repeat: int) -> float:
+    """Best of ``repeat`` runs in this process's CPU time (every run here is single-threaded in this process)."""
     best = math.inf
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         fn()
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return best
 
 
@@ -159,7 +162,8 @@ def _c_reference(spec: dict[str, Any], mass: float, dt: float, u_single: Any, u_
                  rng: np.random.Generator, repeat: int, gms_entry: dict[str, Any] | None,
                  n_first: int) -> dict[str, Any]:
     """The C GMS reference against the compiled plant, measured here, interleaved (C, compiled, C, …) so
-    that both see the same load; the best of each is kept."""
+    that both see the same load; the best of each is kept. Timed in this process's CPU time (both run in
+    this thread): time the process spends descheduled by other load on a shared machine does not count."""
     from stagectl.bench import cref
     from stagectl.friction import build
     from stagectl.sim.plant import PlantConfig, StagePlant, simulate_batch
@@ -178,27 +182,27 @@ def _c_reference(spec: dict[str, Any], mass: float, dt: float, u_single: Any, u_
     cref.single(lib, u_single[:10], dt, mass, par, xc[:10])
     t_c = t_n = math.inf
     for _ in range(max(3, repeat)):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         cref.single(lib, u_single, dt, mass, par, xc)
-        t_c = min(t_c, time.perf_counter() - t0)
+        t_c = min(t_c, time.process_time() - t0)
         plant.reset()
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         plant.simulate(u_single, dt, outputs=("x",), out={"x": xn})
-        t_n = min(t_n, time.perf_counter() - t0)
+        t_n = min(t_n, time.process_time() - t0)
     out: dict[str, Any] = {
-        "compiler": cref.compiler(), "flags": "-O2",
+        "compiler": cref.compiler(), "flags": "-O2", "timer": "process CPU time",
         "c_single_steps_per_s": n / t_c, "compiled_single_steps_per_s": n / t_n, "single_vs_c": t_c / t_n,
         "c_max_abs_dx_m": float(np.max(np.abs(xc - xn))),
     }
     # first call: fresh plant, fresh output memory (the kernel is loaded: compile time is warmup_s)
     u_first = 1.5 * np.sin(2 * np.pi * 5.0 * np.arange(n_first) * dt)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     cref.single(lib, u_first, dt, mass, par, np.empty(n_first))
-    t_cf = time.perf_counter() - t0
+    t_cf = time.process_time() - t0
     fresh = StagePlant(cfg)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     fresh.simulate(u_first, dt, outputs=("x",))
-    t_nf = time.perf_counter() - t0
+    t_nf = time.process_time() - t0
     out.update({"first_call_steps": n_first, "c_first_call_steps_per_s": n_first / t_cf,
                 "compiled_first_call_steps_per_s": n_first / t_nf, "first_call_vs_c": t_c / n * n_first / t_nf,
                 "first_call_vs_c_first_call": t_cf / t_nf})
@@ -208,16 +212,16 @@ def _c_reference(spec: dict[str, Any], mass: float, dt: float, u_single: Any, u_
     nb = u_batch.shape[0]
     xcb = np.empty((n_sets, nb))
     cref.batch(lib, u_batch[:10], dt, mass, P[:2], np.empty((2, 10)))
-    simulate_batch(cfg, sets[:2], u_batch[:10], dt)
+    simulate_batch(cfg, sets[:2], u_batch[:10], dt, outputs=("x",))
     t_cb = t_nb = math.inf
     res: dict[str, Any] = {}
     for _ in range(max(2, repeat - 1)):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         cref.batch(lib, u_batch, dt, mass, P, xcb)
-        t_cb = min(t_cb, time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        res = simulate_batch(cfg, sets, u_batch, dt)
-        t_nb = min(t_nb, time.perf_counter() - t0)
+        t_cb = min(t_cb, time.process_time() - t0)
+        t0 = time.process_time()
+        res = simulate_batch(cfg, sets, u_batch, dt, outputs=("x",))  # x only, as the C batch
+        t_nb = min(t_nb, time.process_time() - t0)
     out.update({"c_batch_set_steps_per_s": n_sets * nb / t_cb, "compiled_batch_set_steps_per_s": n_sets * nb / t_nb,
                 "batch_vs_c": t_cb / t_nb, "c_batch_max_abs_dx_m": float(np.max(np.abs(res["x"] - xcb)))})
     if gms_entry is not None:

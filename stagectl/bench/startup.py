@@ -1,14 +1,20 @@
-"""``stagectl bench startup [--config FILE] [--repeat N]``: time to the first control cycle.
+"""``stagectl bench startup [--config FILE] [--repeat N] [--against PYTHON]``: time to the first control cycle.
 
-Each run is a fresh interpreter (a real subprocess, ``python -c``) that does what ``stagectl run`` does up to
-its first cycle: import the assembly, load the config, build the stage (devices, plant, controller) and run
-one control cycle. The time is measured from just before the process is spawned to the end of that cycle
-(both on the system-wide ``CLOCK_MONOTONIC``), so interpreter start-up, imports, numba compilation or cache
-loading and device start-up are all in it. Two cases, in this order:
+Each run is a fresh interpreter (a real subprocess) running the real command
+``stagectl run --config FILE --duration 0.05 --no-plots --out TMP`` through ``stagectl.cli.main``. The child
+only adds time stamps: it wraps ``load_app_config``, ``build_stage`` and ``LoopHost.start`` (a telemetry sink
+that notes the first row) as their modules are imported, without importing anything early. The time is
+measured from just before the process is spawned to the first telemetry row, i.e. the end of the first
+control cycle (both on the system-wide ``CLOCK_MONOTONIC``), so interpreter start-up, imports, config
+validation, numba compilation or cache loading and device start-up are all in it. Two cases, in this order:
 
 * **cold**: an empty, private numba cache directory (``NUMBA_CACHE_DIR`` set to a new temporary
-  directory): every kernel the config uses is compiled;
+  directory): every kernel the command uses is compiled;
 * **warm**: the same directory again, now filled by the cold run: kernels are loaded from the cache.
+
+``--against PYTHON`` measures a second installation (e.g. a virtualenv of the previous release) the same way,
+alternated with this one run by run (its own private cache), and reports the ratios: a before/after comparison
+on a shared machine whose load drifts.
 
 Targets (issue 14): cold ≤ 2 s, warm ≤ 1 s. The machine's load average is reported alongside.
 """
@@ -18,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -25,77 +32,170 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stagectl.bench import tell
-
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 TARGET_COLD_S = 2.0
 TARGET_WARM_S = 1.0
 
-_CHILD = """
-import json, sys, time
-t_start = time.monotonic()
-from stagectl.app import build_stage
-from stagectl.config import load_app_config
-t_imp = time.monotonic()
-cfg = load_app_config(sys.argv[1])
-with build_stage(cfg) as stage:
-    t_built = time.monotonic()
-    stage.loop.run(cycles=1)
-    t_first = time.monotonic()
+_CHILD = r"""
+import time
+T = {"start": time.monotonic()}
+import importlib.abc, importlib.util, json, sys
+
+def _patch(mod):
+    name = mod.__name__
+    if name == "stagectl.config":
+        f0 = mod.load_app_config
+        def load_app_config(*a, **k):
+            T.setdefault("config", time.monotonic())
+            return f0(*a, **k)
+        mod.load_app_config = load_app_config
+    elif name == "stagectl.app":
+        f1 = mod.build_stage
+        def build_stage(*a, **k):
+            T.setdefault("build", time.monotonic())
+            st = f1(*a, **k)
+            T.setdefault("built", time.monotonic())
+            return st
+        mod.build_stage = build_stage
+    elif name == "stagectl.runtime.host":
+        start0 = mod.LoopHost.start
+        class First:
+            def append(self, row):
+                if "first" not in T:
+                    T["first"] = time.monotonic()
+        def start(self, **kw):
+            T.setdefault("host_start", time.monotonic())
+            self.sinks = (*self.sinks, First())
+            return start0(self, **kw)
+        mod.LoopHost.start = start
+
+class Hook(importlib.abc.MetaPathFinder):
+    names = {"stagectl.config", "stagectl.app", "stagectl.runtime.host"}
+    def find_spec(self, name, path, target=None):
+        if name not in self.names:
+            return None
+        sys.meta_path.remove(self)
+        try:
+            spec = importlib.util.find_spec(name)
+        finally:
+            sys.meta_path.insert(0, self)
+        ex = spec.loader.exec_module
+        def exec_module(module):
+            ex(module)
+            _patch(module)
+        spec.loader.exec_module = exec_module
+        return spec
+
+sys.meta_path.insert(0, Hook())
+from stagectl.cli import main
+rc = main(["run", "--config", sys.argv[1], "--duration", "0.05", "--no-plots", "--out", sys.argv[2]])
 from stagectl.jit import cache_dir
-print(json.dumps({"t_start": t_start, "t_imported": t_imp, "t_built": t_built, "t_first_cycle": t_first,
-                  "cache_dir": str(cache_dir())}))
+T["rc"] = rc
+T["cache_dir"] = str(cache_dir())
+with open(sys.argv[3], "w") as fh:
+    json.dump(T, fh)
 """
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=str(REPO_CONFIG), help="config (default config/sim.yaml)")
     p.add_argument("--repeat", type=int, default=1, help="cold/warm pairs; the best of each is reported")
+    p.add_argument("--against", default=None, metavar="PYTHON",
+                   help="interpreter of another stagectl installation, measured alternately as the baseline")
 
 
-def _one(config: str, cache: Path) -> dict[str, float]:
+def _one(python: str, config: str, cache: Path) -> dict[str, float]:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    t0 = time.monotonic()
-    out = subprocess.run([sys.executable, "-c", _CHILD, config], env=env, capture_output=True, text=True,
-                         timeout=600)
-    if out.returncode != 0:
-        raise RuntimeError(f"start-up run failed (exit {out.returncode}): {out.stderr.strip()[-2000:]}")
-    r = json.loads(out.stdout.strip().splitlines()[-1])
+    with tempfile.TemporaryDirectory(prefix="stagectl-startup-") as tmp:
+        stamps = Path(tmp) / "stamps.json"
+        ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.monotonic()
+        out = subprocess.run([python, "-c", _CHILD, config, str(Path(tmp) / "out"), str(stamps)], env=env,
+                             capture_output=True, text=True, timeout=600)
+        ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if out.returncode != 0 or not stamps.exists():
+            raise RuntimeError(f"start-up run failed (exit {out.returncode}): {out.stderr.strip()[-2000:]}")
+        r = json.loads(stamps.read_text())
+    if "first" not in r:
+        raise RuntimeError("start-up run: the loop recorded no cycle")
     return {
-        "first_cycle_s": r["t_first_cycle"] - t0,
-        "interpreter_s": r["t_start"] - t0,
-        "imports_s": r["t_imported"] - r["t_start"],
-        "config_and_build_s": r["t_built"] - r["t_imported"],
-        "start_and_first_cycle_s": r["t_first_cycle"] - r["t_built"],
+        "first_cycle_s": r["first"] - t0,
+        "interpreter_s": r["start"] - t0,
+        "imports_s": r["config"] - r["start"],
+        "config_s": r["build"] - r["config"],
+        "build_s": r["built"] - r["build"],
+        "start_and_first_cycle_s": r["first"] - r["built"],
+        # CPU time of the whole child (to its exit: includes the 0.05 s run and writing its outputs); less
+        # disturbed by other load than the wall-clock figures above
+        "process_cpu_s": (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime),
     }
+
+
+def _tell(args: argparse.Namespace, done: int, total: int, what: str) -> None:
+    """``stagectl bench``'s progress line, where the command provides one (``args.progress``)."""
+    fn = getattr(args, "progress", None)
+    if fn is not None:
+        fn(done, total, what, 0.0)
+
+
+def _pairs(args: argparse.Namespace, python: str, done: int,
+           total: int) -> tuple[dict[str, float], dict[str, float]]:
+    """A cold and a warm run of ``python`` with a new private cache (runs ``done`` and ``done + 1`` of ``total``)."""
+    who = "baseline" if python != sys.executable else "this build"
+    with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
+        _tell(args, done, total, f"run {done + 1} of {total} ({who}), empty numba cache")
+        cold = _one(python, args.config, Path(tmp))
+        _tell(args, done + 1, total, f"run {done + 2} of {total} ({who}), warm numba cache")
+        warm = _one(python, args.config, Path(tmp))
+    return cold, warm
+
+
+def _summary(cold: list[dict[str, float]], warm: list[dict[str, float]]) -> dict[str, Any]:
+    best_cold = min(cold, key=lambda r: r["first_cycle_s"])
+    best_warm = min(warm, key=lambda r: r["first_cycle_s"])
+    return {"cold": best_cold, "warm": best_warm,
+            "runs": {"cold_first_cycle_s": [r["first_cycle_s"] for r in cold],
+                     "warm_first_cycle_s": [r["first_cycle_s"] for r in warm],
+                     "cold_process_cpu_s": [r["process_cpu_s"] for r in cold],
+                     "warm_process_cpu_s": [r["process_cpu_s"] for r in warm]}}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import load_app_config
+    from stagectl.errors import ConfigError
 
     load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
+    against = getattr(args, "against", None)
+    if against and not (os.path.isfile(against) and os.access(against, os.X_OK)):
+        raise ConfigError(f"--against: {against} is not an executable Python interpreter")
     load0 = os.getloadavg()
     cold: list[dict[str, float]] = []
     warm: list[dict[str, float]] = []
+    b_cold: list[dict[str, float]] = []
+    b_warm: list[dict[str, float]] = []
     n = max(1, int(args.repeat))
+    per = 4 if against else 2
     for i in range(n):
-        with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
-            tell(args, 2 * i, 2 * n, f"run {2 * i + 1} of {2 * n}, empty numba cache")
-            cold.append(_one(args.config, Path(tmp)))
-            tell(args, 2 * i + 1, 2 * n, f"run {2 * i + 2} of {2 * n}, warm numba cache")
-            warm.append(_one(args.config, Path(tmp)))
-    best_cold = min(cold, key=lambda r: r["first_cycle_s"])
-    best_warm = min(warm, key=lambda r: r["first_cycle_s"])
-    return {
-        "benchmark": "startup",
-        "config": args.config,
-        "cold": best_cold,
-        "warm": best_warm,
-        "runs": {"cold_first_cycle_s": [r["first_cycle_s"] for r in cold],
-                 "warm_first_cycle_s": [r["first_cycle_s"] for r in warm]},
-        "targets": {"cold_le_2s": best_cold["first_cycle_s"] <= TARGET_COLD_S,
-                    "warm_le_1s": best_warm["first_cycle_s"] <= TARGET_WARM_S},
-        "loadavg_before": list(load0),
-        "loadavg_after": list(os.getloadavg()),
-        "cpus": os.cpu_count(),
-    }
+        if against:
+            c, w = _pairs(args, against, per * i, per * n)
+            b_cold.append(c)
+            b_warm.append(w)
+        c, w = _pairs(args, sys.executable, per * i + per - 2, per * n)
+        cold.append(c)
+        warm.append(w)
+    res: dict[str, Any] = {"benchmark": "startup", "command": "stagectl run --config CONFIG --duration 0.05 "
+                           "--no-plots (time to its first telemetry row)", "config": args.config,
+                           **_summary(cold, warm)}
+    res["targets"] = {"cold_le_2s": res["cold"]["first_cycle_s"] <= TARGET_COLD_S,
+                      "warm_le_1s": res["warm"]["first_cycle_s"] <= TARGET_WARM_S}
+    if against:
+        base = _summary(b_cold, b_warm)
+        res["baseline"] = {"python": against, **base}
+        res["vs_baseline"] = {
+            "cold_speedup": base["cold"]["first_cycle_s"] / res["cold"]["first_cycle_s"],
+            "warm_speedup": base["warm"]["first_cycle_s"] / res["warm"]["first_cycle_s"],
+            "cold_cpu_ratio": min(base["runs"]["cold_process_cpu_s"]) / min(res["runs"]["cold_process_cpu_s"]),
+            "warm_cpu_ratio": min(base["runs"]["warm_process_cpu_s"]) / min(res["runs"]["warm_process_cpu_s"]),
+        }
+    res.update({"loadavg_before": list(load0), "loadavg_after": list(os.getloadavg()), "cpus": os.cpu_count()})
+    return res

@@ -64,18 +64,22 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
         for i in range(n):
             tot += state[i]
         return tot
+    # the scalar parameters read once, up front (read where used, the plant's GMS step was ~5 % slower)
+    fc = p[1]
+    fs = p[2]
+    c = p[5]
+    viscous = p[6]
     s = 1.0 if v > 0.0 else -1.0
-    g = _g(p, v)
+    g = fc + (fs - fc) * stribeck_excess(v, p[3], p[4])
     inv_g = 1.0 / g
     # exp(−C·dt/g) once per step, before the element loop: computing it lazily on the first slipping element
     # put a hard-to-predict branch in the loop and cost ~12 % of a plant step
-    decay = math.exp(-p[5] * dt * inv_g)
+    decay = math.exp(-c * dt * inv_g)
     tot = 0.0
     for i in range(n):
-        k = p[_HDR + i]
-        a = p[_HDR + n + i]
         f = state[i]
         m = state[n + i]
+        a = p[_HDR + n + i]
         lim = a * g
         if m != 0.0 and m != s:  # rule 2: velocity reversal -> stick
             m = 0.0
@@ -84,7 +88,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
                 m = s
                 f = s * lim + (f - s * lim) * decay
             else:
-                f = f + k * dx
+                f = f + p[_HDR + i] * dx
                 if s * f >= lim:  # rule 1 + clamp at break-away
                     f = s * lim
                     m = s
@@ -98,7 +102,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
             tot += f + sig1 * rate
         else:
             tot += f
-    total: float = tot + p[6] * v
+    total: float = tot + viscous * v
     return total
 
 

@@ -54,6 +54,28 @@ def test_using_one_model_compiles_only_that_model(tmp_path: Path) -> None:
     assert got == {"dahl": 1, "gms": 0, "lugre": 0}
 
 
+def test_the_sim_configs_plant_and_feed_forward_compile_only_what_they_use(tmp_path: Path) -> None:
+    """What ``stagectl run --config config/sim.yaml`` compiles from an empty cache: the GMS step (feed-forward)
+    and the plant's plain loop with it pasted in; not the force kernel, not the general loop, no other model."""
+    repo = Path(__file__).resolve().parents[2]
+    got = json.loads(_run(f"""
+        import json, sys
+        from stagectl.config import load_app_config
+        from stagectl.friction import gms, lugre
+        from stagectl.sim import plant
+        cfg = load_app_config({str(repo / "config" / "sim.yaml")!r})
+        p = plant.StagePlant(cfg.sim.plant)
+        ff = cfg.controller.feedforward.model.friction
+        ff.step(ff.initial_state(), 1e-9, 1e-4, 1e-3)
+        p.step(0.5, 1e-3)
+        plain, integ, kstep = plant._LOOPS[id(gms._kstep)][0:2] + (gms._kstep,)
+        print(json.dumps({{"step": len(kstep.overloads), "force": len(gms._kforce.overloads),
+                          "plain": len(plain.overloads), "general": len(integ.overloads),
+                          "lugre": len(lugre._kstep.overloads), "scipy_linalg": "scipy.linalg" in sys.modules}}))
+    """, tmp_path / "nc"))
+    assert got == {"step": 1, "force": 0, "plain": 1, "general": 0, "lugre": 0, "scipy_linalg": False}
+
+
 def test_second_process_loads_from_the_cache_dir(tmp_path: Path) -> None:
     code = """
         import json

@@ -386,6 +386,17 @@ def test_every_model_in_the_plant_balances_energy_and_dissipates(tag):
     assert w["applied"] == pytest.approx(ke + w["friction"] + w["other"], abs=2e-3 * abs(w["applied"]) + 1e-9)
 
 
+@pytest.mark.parametrize("tag", sorted(ALL_MODELS))
+def test_relaxed_state_at_rest_carries_no_force_as_the_plant_assumes(tag):
+    """``StagePlant.reset`` starts with friction 0 without calling the model's force kernel (so a run does not
+    compile it): that holds only if every model's relaxed state at v = 0 has zero force."""
+    from stagectl.friction import build, load_model_file
+
+    model = build(ALL_MODELS[tag] or load_model_file(MODELS / "kamenar2016_hsieh.yaml").friction.spec())
+    assert model.force(model.initial_state(), 0.0) == 0.0
+    assert make(ALL_MODELS[tag] or model.spec(), mass_kg=2.0).friction_n == 0.0
+
+
 @pytest.mark.parametrize("tag,mass", [("hsieh", 2.0), ("lugre", 1.0), ("dahl", 0.01)])
 def test_substep_limit_applies_to_every_stiff_or_damped_model(tag, mass):
     from stagectl.friction import load_model_file

@@ -102,6 +102,17 @@ def test_batch_equals_one_run_per_parameter_set(spec):
             assert np.array_equal(got[name][j], one[name]), (j, name)
 
 
+def test_batch_outputs_subset_equals_the_full_run():
+    base = build(GMS)
+    sets = [base, base.replace(fc_n=0.85)]
+    cfg = PlantConfig(mass_kg=2.0, friction=base, substep_s=2e-5)
+    full = simulate_batch(cfg, sets, U[:200], DT)
+    only_x = simulate_batch(cfg, sets, U[:200], DT, outputs=("x",))
+    assert list(only_x) == ["x"] and np.array_equal(only_x["x"], full["x"])
+    with pytest.raises(ValueError, match="outputs: unknown"):
+        simulate_batch(cfg, sets, U[:10], DT, outputs=("x_meas",))
+
+
 def test_batch_with_effects_takes_the_general_path_and_still_matches():
     cfg = PlantConfig.from_mapping({"mass_kg": 2.0, "friction": GMS, "substep_s": 2e-5,
                                     "effects": {"cogging": {"amplitude_n": 0.05, "wavelength_m": 1e-4}}})
