@@ -58,7 +58,7 @@ PRESLIDING_SMOOTH = 10
 #: rows kept after the moving average (every PRESLIDING_DECIMATE-th) and evaluations of the free
 #: break-away refinement
 PRESLIDING_DECIMATE = 2
-PRESLIDING_MAX_EVALS = 400
+PRESLIDING_MAX_EVALS = 150
 #: rows used by the pre-sliding fit: mean |v| over the moving average below this fraction of the Stribeck
 #: velocity
 PRESLIDING_V_FRACTION = 0.5
@@ -279,8 +279,8 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
 
     deltas, k, cog, resid, lam, c, delay = grid, k0, cog0, res0, lam0, 0.0, delay_s
     if nd:
-        sol = least_squares(lambda p: solve(p)[2], p0, bounds=(lb, ub), method="trf", diff_step=1e-3,
-                            max_nfev=PRESLIDING_MAX_EVALS)
+        sol = least_squares(lambda p: solve(p)[2], p0, bounds=(lb, ub), method="trf", diff_step=1e-3, ftol=1e-6,
+                            xtol=1e-6, max_nfev=PRESLIDING_MAX_EVALS)
         k1, cog1, res1 = solve(sol.x)
         if float(np.sqrt(np.mean(res1 ** 2))) < float(np.sqrt(np.mean(res0 ** 2))):
             (deltas, lam, c, delay), k, cog, resid = unpack(sol.x), k1, cog1, res1
