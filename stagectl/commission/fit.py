@@ -130,7 +130,7 @@ class _Rows:
         c = c[self.skip:]
         cs = np.cumsum(np.concatenate([np.zeros((1,) + c.shape[1:]), c]), axis=0)
         L = PRESLIDING_SMOOTH
-        out = ((cs[L:] - cs[:-L]) / L)[::PRESLIDING_DECIMATE]
+        out: FloatArray = ((cs[L:] - cs[:-L]) / L)[::PRESLIDING_DECIMATE]
         return out if self.keep is None else out[self.keep]
 
     def target(self, delay_s: float) -> FloatArray:
@@ -195,8 +195,10 @@ def _presliding_lsq(rows: list[_Rows], deltas: FloatArray, fs: float, wavelength
     the backward difference). Returns the stiffnesses, the cogging [sin, cos] amplitudes and the residual."""
     from scipy.optimize import nnls
 
-    blocks, yy = [], []
+    blocks: list[FloatArray] = []
+    yy: list[FloatArray] = []
     for r in rows:
+        assert r.y is not None
         Z = _play(r.x, deltas, r.scale)
         if damping_s > 0.0:
             Z[1:] += damping_s * np.diff(Z, axis=0) / r.period_s
@@ -299,7 +301,7 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
     if lam is not None:
         amp = float(np.hypot(cog[0], cog[1]))
         cogging = {"amplitude_n": amp, "wavelength_m": float(lam), "phase_rad": float(math.atan2(cog[1], cog[0]))}
-    yy = np.concatenate([r.y for r in rows])
+    yy = np.concatenate([r.y for r in rows if r.y is not None])
     return {"k_n_m": [float(v_) for v_ in kk], "alpha": [float(v_) for v_ in alpha / alpha.sum()],
             "sigma1_n_s_m": [float(c * v_) for v_ in kk], "damping_s": c, "delay_s": delay,
             "break_away_m": [float(v_) for v_ in dd], "cogging": cogging,
