@@ -5,7 +5,7 @@ a hidden model the commissioning configuration does not contain), the commission
 Lock-step across processes: each SYNC the commissioning sends advances the sim-plant's plant by one period and
 the drive waits for its answer, so the run is deterministic and faster than real time (no wall-clock waits;
 the timeouts below are failure guards). Marked slow: the complete commissioning (about 90 s of plant time,
-some 60 000 frame round trips) takes about 30 s of CPU over the two processes.
+21 s of it the pre-sliding loops; some 90 000 SYNC round trips) is most of the test's CPU time.
 """
 
 from __future__ import annotations
