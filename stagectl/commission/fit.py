@@ -55,13 +55,14 @@ DISCOVER_RATE_HZ = 500.0
 #: (at Fs), moving-average length applied to every column (suppresses the acceleration's noise) [samples]
 PRESLIDING_ELEMENTS = 24
 PRESLIDING_DELTA_M = (30e-9, 100e-6)
+#: (40 samples blurred the break-aways: at a loop's speed they span 5-16 % of its travel)
 PRESLIDING_SMOOTH = 10
 #: rows kept after the moving average (every PRESLIDING_DECIMATE-th) and evaluations of the free
 #: break-away refinement
 PRESLIDING_DECIMATE = 2
 PRESLIDING_MAX_EVALS = 150
-#: rows used by the pre-sliding fit: mean |v| over the moving average below this fraction of the Stribeck
-#: velocity
+#: rows used by the pre-sliding fit: at least PRESLIDING_SETTLE_S [s] after the last sample faster than
+#: PRESLIDING_V_FRACTION of the Stribeck velocity
 PRESLIDING_V_FRACTION = 0.5
 PRESLIDING_SETTLE_S = 0.15
 #: upper bound of the stiffness-proportional micro-damping σ1_i/k_i [sampling periods]
