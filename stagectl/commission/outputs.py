@@ -198,6 +198,13 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                 L.append(f"| {k} | {_fmt(v['value'], digits=5)}{sd} | {v['from']} |")
         if "effects" in f:
             L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | reversals / friction_cv |")
+        pr = (rep.get("discovery") or {}).get("presliding_regression") or {}
+        if pr.get("k_n_m"):
+            ba = ", ".join(f"{1e6 * d:.3g}" for d in pr["break_away_m"])
+            L.append(f"| pre-sliding elements | {len(pr['k_n_m'])}, total stiffness {_fmt(sum(pr['k_n_m']), digits=4)} "
+                     f"N/m, break-aways {ba} µm, σ1/k {_fmt(pr['damping_s'], digits=3)} s, delay "
+                     f"{_fmt(pr['delay_s'], digits=3)} s (residual {_fmt(pr['residual_rms_n'], digits=2)} N) "
+                     "| reversals / presliding / friction_cv |")
     if "plant" in rep:
         p = rep["plant"]
         L += ["", (f"Mass and delay from the lines above {p['fit_band_hz'][0]:.3g} Hz; the stiffness term of that "

@@ -61,7 +61,7 @@ def test_outputs_are_complete_and_valid(commissioned: tuple[int, Path]) -> None:
     assert abs(cfg.controller.mass_kg / HIDDEN["mass_kg"] - 1) < 0.10
     rep = json.loads((out / "report.json").read_text())
     names = {e["name"] for e in rep["experiments"]}
-    assert {"sanity", "frf", "friction_cv", "reversals", "slow_passes"} <= names
+    assert {"sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes"} <= names
     for e in rep["experiments"]:
         rec = load_recording(out / e["csv"], min_rows=50)
         assert len(rec) == e["rows"]
@@ -78,7 +78,7 @@ def test_outputs_are_complete_and_valid(commissioned: tuple[int, Path]) -> None:
              or d["after"]["moves_settled"] < d["before"]["moves_settled"]]
     assert rep["verdict"]["recommend"] == ("given" if worse else "new")
     md = (out / "report.md").read_text()
-    assert "RMS before" in md and "frf.png" in md
+    assert "RMS before" in md and "frf.png" in md and "pre-sliding elements" in md
     assert (out / "frf.png").stat().st_size > 1000
 
 

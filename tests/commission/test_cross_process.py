@@ -5,7 +5,7 @@ a hidden model the commissioning configuration does not contain), the commission
 Lock-step across processes: each SYNC the commissioning sends advances the sim-plant's plant by one period and
 the drive waits for its answer, so the run is deterministic and faster than real time (no wall-clock waits;
 the timeouts below are failure guards). Marked slow: the complete commissioning (about 90 s of plant time,
-some 60 000 frame round trips) takes about 30 s of CPU over the two processes.
+21 s of it the pre-sliding loops; some 90 000 SYNC round trips) is most of the test's CPU time.
 """
 
 from __future__ import annotations
@@ -152,8 +152,13 @@ def against_exact(commissioned: tuple[int, Path]) -> dict[str, dict[str, dict[st
     exact_model["friction"].update(fc_n=HIDDEN["fc_n"], fs_n=HIDDEN["fs_n"], viscous_n_s_m=HIDDEN["viscous_n_s_m"])
     exact_model["effects"] = {"cogging": HIDDEN["cogging"]}
     (out / "exact.yaml").write_text(yaml.safe_dump(exact_model))
+    # the same total look-ahead: the commissioned feed-forward adds its model's effects.delay (when discover
+    # named one) to lookahead_s; the exact model has none
+    comm_delay = float((yaml.safe_load(Path(ctl["feedforward"]["model_file"]).read_text()).get("effects") or {})
+                       .get("delay", {}).get("delay_s", 0.0))
     exact = dict(ctl, mass_kg=HIDDEN["mass_kg"],
-                 feedforward=dict(ctl["feedforward"], model_file=str(out / "exact.yaml")))
+                 feedforward=dict(ctl["feedforward"], model_file=str(out / "exact.yaml"),
+                                  lookahead_s=float(ctl["feedforward"]["lookahead_s"]) + comm_delay))
     res = {}
     for name, c in (("new", ctl), ("exact", exact)):
         res[name] = simulate_verification(load_app_config(_on_hidden_plant(out, f"check-{name}", c)), 0.002, 10e-9)
@@ -161,28 +166,24 @@ def against_exact(commissioned: tuple[int, Path]) -> dict[str, dict[str, dict[st
     return res
 
 
-def test_commissioned_controller_tracks_near_the_exact_model_one(
+def test_commissioned_controller_tracks_within_2x_of_the_exact_model_one(
         against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
-    """What holds today (the issue's 2x and all-steps-settle criteria are the xfail test below): within 4x
-    of the exact-model controller on the triangle (sliding) and the 10 um steps (with discover's pre-sliding
-    elements: 10-280x), the steps settling as often as with the exact model, and the 10 um cosine within 100 nm
-    RMS. The cosine stays in pre-sliding, where the exact-model controller now reaches the sensor's noise
-    (1.5 nm, integrator held at rest) and the identified elements (3-5 % off in total stiffness) leave 30-60 nm
-    after each reversal: about 20x, not within 4x (docs/commissioning.md)."""
-    new, ex = against_exact["new"], against_exact["exact"]
-    assert new["triangle"]["rms_error_m"] <= 4.0 * ex["triangle"]["rms_error_m"], (new["triangle"], ex["triangle"])
-    assert new["steps"]["rms_error_m"] <= 4.0 * ex["steps"]["rms_error_m"], (new["steps"], ex["steps"])
-    assert new["cosine"]["rms_error_m"] < 100e-9, (new["cosine"], ex["cosine"])
-    assert new["steps"]["moves_settled"] >= min(1, ex["steps"]["moves_settled"]), (new["steps"], ex["steps"])
-
-
-@pytest.mark.xfail(strict=True, reason="issue 11 criteria not met yet: cosine 20x, triangle 1.2x the exact-model "
-                   "controller, 1 of 4 steps settles (docs/commissioning.md, 'What the tests show')")
-def test_issue_criteria_2x_of_exact_model_and_all_steps_settle(
-        against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
+    """The issue's tracking criterion: DIR/stage.yaml's controller within 2x of the same gains given the exact
+    hidden model on the cosine (pre-sliding: the identified GMS elements) and the triangle (sliding), and
+    the 10 um steps within 4x and settling as often as with the exact model. Measured: cosine 2.0 / 1.5 nm,
+    triangle 108 / 104 nm, steps 118 / 128 nm with 2/4 settled each (docs/commissioning.md)."""
     new, ex = against_exact["new"], against_exact["exact"]
     for sc in ("cosine", "triangle"):
         assert new[sc]["rms_error_m"] <= 2.0 * ex[sc]["rms_error_m"], (sc, new[sc], ex[sc])
+    assert new["steps"]["rms_error_m"] <= 4.0 * ex["steps"]["rms_error_m"], (new["steps"], ex["steps"])
+    assert new["steps"]["moves_settled"] >= min(1, ex["steps"]["moves_settled"]), (new["steps"], ex["steps"])
+
+
+@pytest.mark.xfail(strict=True, reason="issue 11 criterion not met yet: 2 of 4 10 um steps settle within +-10 nm, "
+                   "as with the exact-model controller (a limit of the control structure, not of the model; "
+                   "docs/commissioning.md, 'What the tests show')")
+def test_issue_criterion_all_10um_steps_settle(against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
+    new = against_exact["new"]
     assert new["steps"]["moves_settled"] == new["steps"]["moves"], new["steps"]
 
 
