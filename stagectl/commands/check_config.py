@@ -14,9 +14,11 @@ from stagectl.errors import ConfigError
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("check-config", help="validate a configuration file (exactly as the daemon does)")
-    p.add_argument("file", help="stagectl YAML file")
+    p.add_argument("file", nargs="?", help="stagectl YAML file")
+    p.add_argument("--config", dest="config_file", metavar="FILE",
+                   help="the same file, given the way the other commands take it")
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing when the file is valid")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, parser=p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -26,6 +28,11 @@ def run(args: argparse.Namespace) -> int:
     # parse_app_config(load_yaml_file(path), path)
     from stagectl.schema import load_yaml_file
 
+    config_file = getattr(args, "config_file", None)
+    if (args.file is None) == (config_file is None):
+        args.parser.error("give the file once: check-config FILE or check-config --config FILE")
+    if args.file is None:
+        args.file = config_file
     try:
         data = load_yaml_file(args.file)
         from stagectl.config import parse_app_config  # here, not at module level: keeps `stagectl --help` light

@@ -144,6 +144,13 @@ def test_check_config_cli_exit_code(tmp_path):
     assert r.returncode == 2
     assert "safety.bogus: unknown key" in r.stderr
     assert "Traceback" not in r.stderr
+    # the same file as the other commands take it (--config), and a file given twice refused
+    r2 = subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", "--config", str(p)],
+                        capture_output=True, text=True, timeout=120)
+    assert (r2.returncode, r2.stderr) == (r.returncode, r.stderr)
+    r3 = subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", str(p), "--config", str(p)],
+                        capture_output=True, text=True, timeout=120)
+    assert r3.returncode == 2 and r3.stderr.count("\n") == 1 and "give the file once" in r3.stderr
 
 
 def test_sensor_choice_for_plant_io_rejected(tmp_path):
