@@ -165,6 +165,13 @@ class ControllerConfig:
         True, desc="with an observer: hold the PID integrator while the reference is at rest (the observer "
         "integrates already; both together hunt on the friction's pre-sliding stiffness)")
     settle: SettleConfig = param(default_factory=SettleConfig, desc="in-position (settle) detector")
+    rest_stiffness_fraction: float = param(
+        0.0, desc="with an observer and kind: model: at standstill the observer's nominal plant is the mass on a "
+        "spring of this fraction of the model's pre-sliding stiffness about the reference, so that the stuck "
+        "stage's own friction spring is not estimated away as a disturbance (0: off)", ge=0.0, le=1.0)
+    rest_spring_range_m: float = param(
+        2e-7, unit="m", desc="the rest spring's displacement |x - x_ref| is clamped to this (the pre-sliding "
+        "range it stands for)", gt=0.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
@@ -311,6 +318,7 @@ class StageController:
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
+        self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -513,6 +521,26 @@ class StageController:
         dob.shift(delta)
         return new, d_hat + delta
 
+    def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
+                     dob: QFilterDob | KalmanDob) -> float:
+        """Rest spring (module docstring): at standstill d̂ := d̂ − s, s = LPF_g(k_v·clamp(x − x_r)); at the
+        start of a move s is folded into the observer (d̂ and its input history move by −s: u continuous)."""
+        cfg = self.cfg
+        if not at_rest:
+            s = self._s_rest
+            if s != 0.0:
+                self._s_rest = 0.0
+                dob.shift(-s)
+                self.state.u_obs_prev_n -= s
+                return d_hat - s
+            return d_hat
+        kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
+        r = cfg.rest_spring_range_m
+        target = kv * max(-r, min(r, x_m - ref.x_m))
+        a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz * dt)
+        self._s_rest = a * self._s_rest + (1.0 - a) * target
+        return d_hat - self._s_rest
+
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
     accepts_learned_force = True
@@ -588,6 +616,8 @@ class StageController:
         # feedback + clamp
         pid = self.pid
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+        if dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0:
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest, dob)
         if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
         hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
