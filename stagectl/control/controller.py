@@ -403,6 +403,7 @@ class StageController:
         self._gap = 0
         self._e_last = math.nan
         self._u_learn = 0.0
+        self._s_rest = 0.0
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -426,6 +427,12 @@ class StageController:
     def _apply(self, parts: _Parts) -> None:
         st = self.state
         transfer = 0.0
+        if self._s_rest != 0.0 and self.dob is not None:
+            # fold the rest spring into the observer first (as at a move start): the new settings start from
+            # the same d̂ and rebuild the spring at rest if they have one
+            self.dob.shift(-self._s_rest)
+            st.u_obs_prev_n -= self._s_rest
+        self._s_rest = 0.0
         # observer
         old_dob = self.dob
         new_dob = parts.dob
@@ -553,7 +560,7 @@ class StageController:
         kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
         r = cfg.rest_spring_range_m
         target = kv * max(-r, min(r, x_m - ref.x_m))
-        a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz * dt)
+        a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz / self.timing_scale * dt)
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 

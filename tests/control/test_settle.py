@@ -169,3 +169,26 @@ def test_the_rest_spring_is_bumpless_and_leaves_the_observer_at_a_move_start(see
     # with no plant moving the position)
     assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
     assert cmd.terms["u_dob"] == pytest.approx(ctl.dob.state.d_hat_n)
+
+
+def test_switching_the_rest_spring_off_at_rest_is_bumpless(seed):
+    """A retune at standstill folds the rest spring into the observer first: d̂ does not step by s."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    c = seed.controller
+    ctl = StageController(c, seed.timing)
+    ctl.reset(0.0)
+    dt = seed.loop.period_s
+    rest = Reference(0.0, 0.0, 0.0)
+    d_prev = 0.0
+    for _ in range(200):
+        d_prev = ctl.state.d_hat_n
+        cmd = ctl.step(dt, -50e-9, rest)
+    s_rest = ctl._s_rest
+    assert abs(s_rest) > 10e-3
+    d_rest = cmd.terms["u_dob"]
+    ctl.retune(dataclasses.replace(c, rest_stiffness_fraction=0.0))
+    cmd = ctl.step(dt, -50e-9, rest)
+    assert ctl._s_rest == 0.0
+    assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
