@@ -38,7 +38,9 @@ end of the commanded move and staying there, no limit cycle in the hold; for the
 for the tuned ``pid_dob_gms_20`` one, with their margins. Each design's steps also report the loop's state at
 the end of every commanded move (``at_move_end``: error, velocity, d̂, u_ff, P + D force, error 30 ms later;
 :func:`move_end_state`), and ``config_exact_model`` repeats the config's steps with the exact model, so that what
-is left there is structure, not model error. The margin floor of every sweep is PM 40° / GM 8 dB
+is left there is structure, not model error. ``rest_margins`` gives each steps design's rest loop margins
+(:func:`stagectl.control.design.analyse_rest`: PD + observer + rest spring, on the stuck plant and on the free
+mass), which the rest spring (``controller.rest_stiffness_fraction``) lowers. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).
 """
 
@@ -259,7 +261,7 @@ def _end_table(rows: list[dict[str, float]]) -> list[dict[str, float]]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import IoKind, load_app_config
     from stagectl.control.controller import ControllerConfig
-    from stagectl.control.design import analyse_design, design_pid
+    from stagectl.control.design import analyse_design, analyse_rest, design_pid
     from stagectl.friction import StageModel
 
     t_start = time.perf_counter()
@@ -309,6 +311,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         m = margins(c)
         return bool(m["closed_loop_stable"] and m["phase_margin_deg"] >= args.min_phase_margin
                     and m["gain_margin_db"] >= args.min_gain_margin)
+
+    def rest_margins(c: ControllerConfig, model: StageModel) -> dict[str, Any] | None:
+        """Linear margins of the rest loop (:func:`stagectl.control.design.analyse_rest`): the plant stuck on
+        the real friction's pre-sliding spring, and the free mass; the controller's rest spring from ``model``."""
+        k_plant = getattr(exact, "stiffness_n_m", None)
+        c_plant = getattr(exact, "damping_n_s_m", None)
+        if c.dob.kind != "qfilter" or not isinstance(k_plant, float) or not isinstance(c_plant, float):
+            return None
+        k_model = getattr(model.friction, "stiffness_n_m", 0.0)
+        kv = c.rest_stiffness_fraction * float(k_model) if c.feedforward.kind == "model" else 0.0
+        out_r: dict[str, Any] = {"rest_spring_n_m": kv, "plant_stiffness_n_m": k_plant,
+                                 "plant_damping_n_s_m": c_plant}
+        for a in analyse_rest(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz,
+                              c.dob.command_delay_samples, k_plant, c_plant, kv, c.velocity_cutoff_hz):
+            out_r[a.name.split("/")[1]] = {"phase_margin_deg": round(a.phase_margin_deg, 1),
+                                           "gain_margin_db": round(a.gain_margin_db, 1),
+                                           "closed_loop_stable": a.stable}
+        return out_r
 
     Candidate = tuple[dict[str, Any], ControllerConfig, StageModel | None]
     dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths, "--dob-bandwidths")
@@ -392,6 +412,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "met_no_limit_cycle": not r["limit_cycle"] and r["fault"] is None,
             "margins": margins(dataclasses.replace(ctl_cfg, dob=dataclasses.replace(
                 ctl_cfg.dob, kind=ctl_cfg.dob.kind))),
+            "rest_margins": rest_margins(ctl_cfg, m_off),
         }
     # diagnosis: the config's design with the *exact* model (plant = model): what is left is not model error
     r = steps_check(cfg, base, model=m_exact, hold_s=args.hold)

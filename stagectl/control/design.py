@@ -23,6 +23,7 @@ plant input is ``L = P·(C + H_y)/(1 − H_u)``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -312,6 +313,37 @@ def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_sample
             Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz, period_s, dob_command_delay_samples, velocity_cutoff_hz)
         out.append(analyse("pid+dob", dob_loop(P, C, Hu, Hy, period_s), period_s))
     return out
+
+
+def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int, dob_bandwidth_hz: float,
+                 dob_command_delay_samples: int, stiffness_n_m: float, damping_n_s_m: float,
+                 rest_spring_n_m: float, velocity_cutoff_hz: float | None = None) -> list[LoopAnalysis]:
+    """Margins of the *rest* loop (:mod:`stagectl.control.controller`, "Rest spring"): PD (integrator held at
+    rest) + Q-filter DOB + the rest spring C_s = k_v·(1−α)z/(z−α) (α = exp(−2π·bandwidth·T), the observer's
+    low-pass; k_v = ``rest_spring_n_m`` = φ·θ·Σk of the controller's model, 0: off) on two plants, both with
+    the I/O delay:
+
+    * ``rest/stuck``: the stage stuck in pre-sliding, 1/(m·s² + c·s + k) (c = ``damping_n_s_m``, the friction's
+      σ2 + Σσ1; k its initial stiffness Σk);
+    * ``rest/free``: the free mass 1/(m·s²) (the stage slipping while the reference is at rest).
+
+    The spring term enters the command like the PID's, and the residual-form observer does not see it (its input
+    includes it), so L = P·(C_PD + C_s + H_y)/(1 − H_u).
+    """
+    import control
+
+    C = pid_tf(dataclasses.replace(pid, ki_n_m_s=0.0), period_s)
+    if rest_spring_n_m > 0.0:
+        a = math.exp(-2 * math.pi * dob_bandwidth_hz * period_s)
+        z = control.tf([1.0, 0.0], [1.0], period_s)
+        C = C + rest_spring_n_m * (1 - a) * z / (z - a)
+    Hu, Hy = qfilter_tfs(mass_kg, dob_bandwidth_hz, period_s, dob_command_delay_samples, velocity_cutoff_hz)
+    stuck = control.c2d(control.tf([1.0], [mass_kg, damping_n_s_m, stiffness_n_m]), period_s, "zoh")
+    if delay_samples:
+        stuck = stuck * _zinv(period_s, delay_samples)
+    free = plant_tf(mass_kg, period_s, delay_samples)
+    return [analyse("rest/stuck", dob_loop(stuck, C, Hu, Hy, period_s), period_s, 2000),
+            analyse("rest/free", dob_loop(free, C, Hu, Hy, period_s), period_s, 2000)]
 
 
 def dob_loop(P: Any, C: Any, Hu: Any, Hy: Any, dt: float) -> Any:

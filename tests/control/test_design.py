@@ -187,3 +187,22 @@ def test_tune_never_offers_a_design_that_fails_its_steps_check():
                        (dict(max_late_excursion_m=2 * MAX_HOLD_EXCURSION_M), "still 2000 nm off")):
         v = _verdict(healthy, check(**bad))
         assert v["refused"] is True and v["confidence"] is None and any(words in r for r in v["reasons"]), v
+
+
+def test_rest_loop_margins_on_the_stuck_and_the_free_plant():
+    """analyse_rest: without the rest spring the free-mass rest loop is the PD + observer design (same margins as
+    analyse_design with the integrator off); the stuck plant's closed loop is stable, and the spring costs phase
+    margin there and makes the free-mass loop unstable (it is a ~10^5 N/m position gain)."""
+    import dataclasses
+
+    from stagectl.control.design import analyse_rest
+    from stagectl.control.pid import PidConfig
+
+    pid = PidConfig(kp_n_m=9847.0, ki_n_m_s=1.237e5, kd_n_s_m=235.1, derivative_cutoff_hz=100.0)
+    stuck0, free0 = analyse_rest(2.0, 1e-3, pid, 1, 100.0, 1, 6.39e5, 236.0, 0.0)
+    ref = analyse_design(2.0, 1e-3, dataclasses.replace(pid, ki_n_m_s=0.0), 1, 100.0, 1)[-1]
+    assert free0.phase_margin_deg == pytest.approx(ref.phase_margin_deg, abs=0.2)
+    assert free0.stable and stuck0.stable
+    stuck, free = analyse_rest(2.0, 1e-3, pid, 1, 100.0, 1, 6.39e5, 236.0, 2.56e5)
+    assert stuck.stable and stuck.phase_margin_deg < stuck0.phase_margin_deg
+    assert not free.stable

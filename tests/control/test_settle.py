@@ -80,7 +80,7 @@ def test_without_the_standstill_structure_the_same_gains_hunt(seed):
     from stagectl.bench.control import steps_check
 
     c = seed.controller
-    bad = dataclasses.replace(c, hold_integrator_at_rest=False,
+    bad = dataclasses.replace(c, hold_integrator_at_rest=False, rest_stiffness_fraction=0.0,
                               feedforward=dataclasses.replace(c.feedforward, inertia_lookahead=False,
                                                               rest_sync_hz=0.0, adapt_bandwidth_hz=0.0))
     r = steps_check(seed, bad, hold_s=2.0)
@@ -125,3 +125,70 @@ def test_the_model_carries_the_standstill_force_into_the_next_move(seed):
     assert len(on) == len(off) == 3
     assert max(abs(d) for d in on) < 3e-3
     assert max(abs(d) for d in off) > 10e-3
+
+
+def test_the_rest_spring_settles_exact_model_steps_within_the_window(seed):
+    """Rest spring (``rest_stiffness_fraction``): with the exact model every 10 µm step settles to ±10 nm within
+    30 ms of the end of the move and stays, no limit cycle; the same controller without it leaves the stuck
+    stage's spring to the observer and at least one step takes over 100 ms (the slow rest mode)."""
+    from stagectl.bench.control import steps_check
+
+    c = seed.controller
+    assert c.rest_stiffness_fraction > 0.0
+    on = steps_check(seed, c, hold_s=0.5)
+    off = steps_check(seed, dataclasses.replace(c, rest_stiffness_fraction=0.0), hold_s=0.5)
+    assert on["fault"] is None and on["limit_cycle"] is False
+    assert on["settled_within_window"] is True
+    assert on["max_late_excursion_m"] <= 10e-9
+    assert max(s for s in off["settle_s"] if s is not None) > 0.1
+
+
+def test_the_rest_spring_is_bumpless_and_leaves_the_observer_at_a_move_start(seed):
+    """At rest d̂ is reduced by the low-passed spring force s; when the reference starts to move, s is folded into
+    the observer: the estimate (and so the command) does not jump, and the term is gone."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    c = seed.controller
+    ctl = StageController(c, seed.timing)
+    ctl.reset(0.0)
+    dt = seed.loop.period_s
+    x = -50e-9  # stuck 50 nm short of the reference
+    rest = Reference(0.0, 0.0, 0.0)
+    d_prev = 0.0
+    for _ in range(200):
+        d_prev = ctl.state.d_hat_n
+        cmd = ctl.step(dt, x, rest)
+    s_rest = ctl._s_rest
+    k = ctl._k_ps
+    assert s_rest == pytest.approx(-c.rest_stiffness_fraction * k * 50e-9, rel=0.02)  # −16 mN: pulls to x_r
+    d_rest = cmd.terms["u_dob"]
+    cmd = ctl.step(dt, x, Reference(1e-9, 1e-6, 0.0))
+    assert ctl._s_rest == 0.0
+    # no step of s (16 mN) in d̂: it changes as it did in the last rest period (the observer's own drift here,
+    # with no plant moving the position)
+    assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
+    assert cmd.terms["u_dob"] == pytest.approx(ctl.dob.state.d_hat_n)
+
+
+def test_switching_the_rest_spring_off_at_rest_is_bumpless(seed):
+    """A retune at standstill folds the rest spring into the observer first: d̂ does not step by s."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    c = seed.controller
+    ctl = StageController(c, seed.timing)
+    ctl.reset(0.0)
+    dt = seed.loop.period_s
+    rest = Reference(0.0, 0.0, 0.0)
+    d_prev = 0.0
+    for _ in range(200):
+        d_prev = ctl.state.d_hat_n
+        cmd = ctl.step(dt, -50e-9, rest)
+    s_rest = ctl._s_rest
+    assert abs(s_rest) > 10e-3
+    d_rest = cmd.terms["u_dob"]
+    ctl.retune(dataclasses.replace(c, rest_stiffness_fraction=0.0))
+    cmd = ctl.step(dt, -50e-9, rest)
+    assert ctl._s_rest == 0.0
+    assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
