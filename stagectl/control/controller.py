@@ -198,8 +198,9 @@ class ControllerConfig:
     rest_spring_rearm_s: float = param(
         0.05, unit="s", desc="dwell within rest_spring_rearm_m before the released rest spring is re-armed", ge=0.0)
     rest_spring_max_releases: int = param(
-        2, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
-        "reference moves again (a stage that is not stuck does not get it back)", ge=1, le=100)
+        1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
+        "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
+        "one more release)", ge=1, le=100)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
