@@ -36,7 +36,7 @@ def _low_friction(cfg, k_scale: float = 0.1, f_scale: float = 0.2):
 
 def test_a_low_friction_stage_holds_with_the_rest_spring_on(seed):
     """Plant friction ×0.2, stiffness ×0.1 against the shipped controller: with the guard every 10 µm step settles
-    as without the spring and holds for 2 s without a limit cycle; the same spring without the guard (never
+    (within 0.1 s of the controller without the spring: one burst of hunting before the release) and holds for 2 s without a limit cycle; the same spring without the guard (never
     released) hunts by hundreds of nm (the risk the guard removes)."""
     from stagectl.bench.control import steps_check
 
@@ -49,7 +49,8 @@ def test_a_low_friction_stage_holds_with_the_rest_spring_on(seed):
                             hold_s=2.0)
     assert on["fault"] is None and on["limit_cycle"] is False
     assert on["settled"] == 4 and on["max_late_excursion_m"] <= 10e-9
-    assert max(on["settle_s"]) <= max(off["settle_s"]) + 5e-3
+    # at most one burst of hunting before the release: settles within 0.1 s of the spring-less controller
+    assert max(on["settle_s"]) <= max(off["settle_s"]) + 0.1
     assert unguarded["limit_cycle"] is True and unguarded["max_late_excursion_m"] > 100e-9
 
 
