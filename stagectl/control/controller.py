@@ -55,7 +55,7 @@ plant with friction ×0.2 and stiffness ×0.1 of the model hunted by 0.5–1 µm
 Guard (the spring acts only while the stage behaves stuck): it is *released* — s folded into the observer as
 at a move start, bumpless — when |x − x_r| > ``rest_spring_release_m`` (5 µm: the stage has slid) or when
 x − x_r swings from beyond ±``rest_spring_rearm_m`` (50 nm) to beyond the other side and back (hunting: a
-stuck stage pulled in by the spring approaches without such a swing). After ``rest_spring_max_releases``
+stuck stage pulled in by the spring approaches without such a swing). After ``rest_spring_max_release_count``
 releases in one standstill (default 1) it stays off until the reference moves; with more, it is re-armed once
 |x − x_r| stayed within ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, bumplessly: s starts at
 k_v·(x − x_r) and the observer is moved by +s, so the command does not step (the spring's force then builds in
@@ -210,7 +210,7 @@ class ControllerConfig:
         "after |x - x_ref| stayed within this for rest_spring_rearm_s", gt=0.0)
     rest_spring_rearm_s: float = param(
         0.05, unit="s", desc="dwell within rest_spring_rearm_m before the released rest spring is re-armed", ge=0.0)
-    rest_spring_max_releases: int = param(
+    rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
         "one more release)", ge=1, le=100)
@@ -586,7 +586,7 @@ class StageController:
         start of a move, and when |x − x_r| leaves ``rest_spring_range_m`` (the stage is not stuck), s is folded
         into the observer (d̂ and its input history move by −s: u continuous) and the spring is released; it is
         re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
-        ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_releases`` − 1 times per
+        ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
         standstill; a move re-arms it."""
         cfg = self.cfg
         e_x = x_m - ref.x_m
@@ -616,7 +616,7 @@ class StageController:
             return d_hat
         kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
         if not self._rs_armed:
-            if self._rs_releases >= cfg.rest_spring_max_releases or abs(e_x) > band:
+            if self._rs_releases >= cfg.rest_spring_max_release_count or abs(e_x) > band:
                 self._rs_band_s = 0.0
                 return d_hat
             self._rs_band_s += dt

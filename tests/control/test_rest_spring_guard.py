@@ -87,12 +87,12 @@ def test_hunting_releases_the_spring_a_stuck_approach_does_not(seed):
 def test_release_and_rearm_are_bumpless(seed):
     """At the release (|x − x_r| beyond rest_spring_release_m) the spring force s (tens of mN) goes into the
     observer: the command equals, to within one step of the spring's low-pass, that of the same controller
-    keeping the spring. The re-arm (rest_spring_max_releases 2, after rest_spring_rearm_s within the band) loads
+    keeping the spring. The re-arm (rest_spring_max_release_count 2, after rest_spring_rearm_s within the band) loads
     the observer with the spring's force first: at the re-arm sample the command is the one without the re-arm;
     the spring's force then builds in over several samples (the observer's time constant), no step."""
     from stagectl.control.controller import StageController
 
-    c = dataclasses.replace(seed.controller, rest_spring_max_releases=2)
+    c = dataclasses.replace(seed.controller, rest_spring_max_release_count=2)
     dt = seed.loop.period_s
     ctl = StageController(c, seed.timing)
     ctl.reset(0.0)
@@ -112,7 +112,7 @@ def test_release_and_rearm_are_bumpless(seed):
     _at_rest(ctl, dt, x_in, n_dwell - 1)
     assert not ctl._rs_armed
     no_rearm = copy.deepcopy(ctl)
-    no_rearm.cfg = dataclasses.replace(c, rest_spring_max_releases=1)
+    no_rearm.cfg = dataclasses.replace(c, rest_spring_max_release_count=1)
     u_a = [_at_rest(ctl, dt, x_in, 1).force_n]
     u_b = [_at_rest(no_rearm, dt, x_in, 1).force_n]
     assert ctl._rs_armed and not no_rearm._rs_armed
