@@ -215,7 +215,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, T: float, nd: int) -> dict[str, An
         return None
     k_model = getattr(model_fr, "stiffness_n_m", None)
     spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
-    kv = ctl.rest_stiffness_fraction * float(k_model) if spring else 0.0
+    kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
     loops = design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples, k_plant,
                                 c_plant, kv, ctl.velocity_cutoff_hz)
     summ = {a.name: {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import json
 
 import pytest
@@ -123,14 +124,14 @@ def test_release_and_rearm_are_bumpless(seed):
         u_a.append(_at_rest(ctl, dt, x_in, 1).force_n)
         u_b.append(_at_rest(no_rearm, dt, x_in, 1).force_n)
     diff = [a - b for a, b in zip(u_a, u_b, strict=True)]
-    assert max(abs(d1 - d0) for d0, d1 in zip(diff, diff[1:])) < 0.5 * abs(s_new)
+    assert max(abs(d1 - d0) for d0, d1 in itertools.pairwise(diff)) < 0.5 * abs(s_new)
 
 
 def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, capsys):
     """``stagectl tune`` shows the configured rest loop (stuck and free plant) beside the moving loop, the same
     margins as design.analyse_rest, and says it is below the floor and relies on a stuck stage."""
-    from stagectl.control.design import analyse_rest
     from stagectl.config import load_app_config
+    from stagectl.control.design import analyse_rest
 
     path = repo_root / "config" / "sim.yaml"
     args = ["tune", "--config", str(path), "--bandwidth-hz", "200"]  # refused design: no steps check (fast)
