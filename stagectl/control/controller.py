@@ -302,6 +302,9 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
     if controller_mass(cfg, sm) is None:
         problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
                         "or give mass_kg in the model file)")
+    if cfg.rest_spring_rearm_m >= cfg.rest_spring_release_m:
+        problems.append(f"controller.rest_spring_rearm_m: {cfg.rest_spring_rearm_m:g} m must be below "
+                        f"rest_spring_release_m ({cfg.rest_spring_release_m:g} m)")
     return problems
 
 

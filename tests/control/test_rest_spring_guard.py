@@ -46,7 +46,7 @@ def test_a_low_friction_stage_holds_with_the_rest_spring_on(seed):
     assert c.rest_stiffness_fraction > 0.0
     on = steps_check(low, c, hold_s=2.0)
     off = steps_check(low, dataclasses.replace(c, rest_stiffness_fraction=0.0), hold_s=2.0)
-    unguarded = steps_check(low, dataclasses.replace(c, rest_spring_release_m=1.0, rest_spring_rearm_m=1.0),
+    unguarded = steps_check(low, dataclasses.replace(c, rest_spring_release_m=2.0, rest_spring_rearm_m=1.0),
                             hold_s=2.0)
     assert on["fault"] is None and on["limit_cycle"] is False
     assert on["settled"] == 4 and on["max_late_excursion_m"] <= 10e-9
@@ -151,3 +151,12 @@ def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, caps
     out = capsys.readouterr().out
     assert "rest/stuck" in out and "rest/free" in out and "pid+dob" in out
     assert "the rest loop is below the PM 40 deg / GM 8 dB floor: it relies on the stage being stuck" in out
+
+
+def test_a_rearm_band_outside_the_release_distance_is_a_config_error():
+    from stagectl.control.controller import controller_from_mapping
+    from stagectl.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"rest_spring_rearm_m: 1e-05 m must be below rest_spring_release_m"):
+        controller_from_mapping({"mass_kg": 2.0, "feedforward": {"kind": "none"}, "rest_spring_rearm_m": 1e-5,
+                                 "rest_spring_release_m": 5e-6}, 1e-3)
