@@ -8,6 +8,9 @@ and crossover frequency of the *configured* controller and of the *designed* one
 Inputs: the application config (``stagectl.config.load_app_config``: ``loop.period_s``,
 ``controller.*``, ``controller.mass_kg`` or the simulated plant's mass, ``controller.design_delay_samples`` or
 ``io.delay_cycles``); flags override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
+With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (integrator held, the
+rest spring of ``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
+mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor.
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
 included), else shown as thin.
 
@@ -160,6 +163,9 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         conf["stable"] = not unstable
         if unstable:
             exit_code = 1
+        rest = _rest_loops(inp["app"], ctl, m_dob, T, nd)
+        if rest is not None:
+            conf["rest"] = rest
         result["configured"] = conf
     bw, dbw, pid, loops, searched = _design(args, m, T, nd)
     for a in loops:
@@ -188,6 +194,42 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         result["bode_png"] = str(png)
     result["exit_code"] = exit_code
     return result, exit_code
+
+
+def _rest_loops(app: Any, ctl: Any, m: float, T: float, nd: int) -> dict[str, Any] | None:
+    """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: integrator held, PD +
+    Q-filter observer + the rest spring k_v = φ·Σk of the controller's model) on the stage stuck in
+    pre-sliding (the config's simulated plant's friction stiffness and damping, else the controller model's)
+    and on the free mass. None when it does not apply (no Q-filter observer, or no pre-sliding stiffness
+    known)."""
+    from stagectl.control import design
+
+    if ctl.dob.kind != "qfilter":
+        return None
+    model = ctl.feedforward.model
+    model_fr = model.friction if model is not None else None
+    plant_fr = app.sim.plant.friction if app is not None and app.sim is not None else model_fr
+    k_plant = getattr(plant_fr, "stiffness_n_m", None)
+    c_plant = getattr(plant_fr, "damping_n_s_m", None)
+    if not isinstance(k_plant, float) or not isinstance(c_plant, float) or k_plant <= 0.0:
+        return None
+    k_model = getattr(model_fr, "stiffness_n_m", None)
+    spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
+    kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
+    loops = design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples, k_plant,
+                                c_plant, kv, ctl.velocity_cutoff_hz)
+    summ = {a.name: {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
+    healthy = all(v["healthy"] for v in summ.values())
+    relies = None
+    if not healthy:
+        relies = (f"the stage being stuck in pre-sliding at standstill (stiffness {k_plant:.3g} N/m); "
+                  + (f"the rest spring is released (bumplessly) when |x - x_ref| exceeds "
+                     f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across +-{ctl.rest_spring_rearm_m * 1e9:.0f}"
+                     f" nm twice, and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
+                     if spring else "with the integrator held the rest loop is PD + observer only"))
+    return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
+            "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
+            "relies_on": relies}
 
 
 def _design(args: argparse.Namespace, m: float, T: float, nd: int) -> tuple[float, float, PidConfig, list[Any],
@@ -318,7 +360,7 @@ def _fmt_loop(name: str, s: dict[str, Any]) -> str:
         st = f"   (thin: below PM {HEALTHY_PHASE_MARGIN_DEG:g} deg / GM {HEALTHY_GAIN_MARGIN_DB:g} dB)"
     else:
         st = ""
-    return (f"  {name:<10s} crossover {s['crossover_hz']:7.2f} Hz   phase margin {s['phase_margin_deg']:6.1f} deg   "
+    return (f"  {name:<11s} crossover {s['crossover_hz']:7.2f} Hz   phase margin {s['phase_margin_deg']:6.1f} deg   "
             f"gain margin {gm_s:>8s} (at {s['phase_crossover_hz']:.1f} Hz){st}")
 
 
@@ -342,6 +384,16 @@ def run(args: argparse.Namespace) -> int:
             kg = ", ".join(f"{k:.4g}" for k in c["dob"]["kalman_gain"])
             print(f"  kalman filter gain [{kg}] (x, v, d), observer bandwidth "
                   f"{c['dob']['observer_bandwidth_hz']:.1f} Hz")
+        rest = c.get("rest")
+        if rest is not None:
+            print(f"  at standstill (integrator held, rest spring {rest['rest_spring_n_m']:.3g} N/m = "
+                  f"{rest['rest_stiffness_fraction']:g} x the model's pre-sliding stiffness; plant stuck at "
+                  f"{rest['plant_stiffness_n_m']:.3g} N/m, or free):")
+            for name, s in rest["loops"].items():
+                print(_fmt_loop(name, s))
+            if not rest["healthy"]:
+                print(f"  the rest loop is below the PM {HEALTHY_PHASE_MARGIN_DEG:g} deg / GM "
+                      f"{HEALTHY_GAIN_MARGIN_DB:g} dB floor: it relies on {rest['relies_on']}")
     d = result["designed"]
     p = d["pid"]
     print(f"designed for a {d['target_crossover_hz']:g} Hz crossover: Kp {p['kp_n_m']:.4g} N/m, "

@@ -46,10 +46,23 @@ observer's nominal plant at rest is the mass on φ·θ·Σk about the reference:
 (α as in the Q filter), so it estimates only F(x_r) − u_ff + (k − φ·θ·Σk)·(x − x_r) and the stage's own spring
 pulls it to x_r: the quasi-static rest mode becomes g·(K_p + φ·k)/(k + K_p) ≈ g·φ. When the reference starts
 to move, s is folded into the observer (d̂ and its input history move by −s: u continuous). Linear margins of
-the rest loop (PD + observer + spring, 1 kHz, one cycle of I/O delay, φ = 0.5): on the stuck plant (2 kg on
-6.4e5 N/m with the model's Σσ1 = 226 N·s/m) PM 30.7°, GM 6.1 dB (φ = 0: 39.9°, 6.6 dB); on a *free* mass the
-rest loop is unstable in the small, its force bounded by φ·θ·Σk·rest_spring_range_m (64 mN at 200 nm), far
-below the break-away force: it relies on the stage being stuck at rest.
+the rest loop (PD + observer + spring, 1 kHz, one cycle of I/O delay, φ = 0.5; ``stagectl tune`` prints them):
+on the stuck plant (2 kg on 6.4e5 N/m with the model's Σσ1 = 226 N·s/m) PM 30.8°, GM 6.1 dB (φ = 0: 39.9°,
+6.6 dB); on a *free* mass the spring (a ~3e5 N/m position gain) makes the rest loop unstable, its force bounded
+by φ·θ·Σk·rest_spring_range_m (64 mN at 200 nm): it relies on the stage being stuck at rest. Without a guard a
+plant with friction ×0.2 and stiffness ×0.1 of the model hunted by 0.5–1 µm in the holds.
+
+Guard (the spring acts only while the stage behaves stuck): it is *released* — s folded into the observer as
+at a move start, bumpless — when |x − x_r| > ``rest_spring_release_m`` (5 µm: the stage has slid) or when
+x − x_r swings from beyond ±``rest_spring_rearm_m`` (50 nm) to beyond the other side and back (hunting: a
+stuck stage pulled in by the spring approaches without such a swing). After ``rest_spring_max_release_count``
+releases in one standstill (default 1) it stays off until the reference moves; with more, it is re-armed once
+|x − x_r| stayed within ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, bumplessly: s starts at
+k_v·(x − x_r) and the observer is moved by +s, so the command does not step (the spring's force then builds in
+over the observer's time constant, a few samples). Every move re-arms it. On plants with 0.01–0.5 of the
+model's stiffness and 0.01–1 of its friction the guarded steps hold with no limit cycle and a late error of
+±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
+the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
 Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
 reference moves and no learned force is applied)::
@@ -188,6 +201,19 @@ class ControllerConfig:
     rest_spring_range_m: float = param(
         2e-7, unit="m", desc="the rest spring's displacement |x - x_ref| is clamped to this (the pre-sliding "
         "range it stands for)", gt=0.0)
+    rest_spring_release_m: float = param(
+        5e-6, unit="m", desc="the rest spring is released (folded into the observer, bumpless) when |x - x_ref| "
+        "exceeds this at standstill: the stage has slid, not stuck (25x the default rest_spring_range_m)", gt=0.0)
+    rest_spring_rearm_m: float = param(
+        5e-8, unit="m", desc="hunting band of the rest spring: it is released when x - x_ref swings from beyond "
+        "+this to beyond -this and back (an oscillation, not a stuck stage); once released it is re-armed only "
+        "after |x - x_ref| stayed within this for rest_spring_rearm_s", gt=0.0)
+    rest_spring_rearm_s: float = param(
+        0.05, unit="s", desc="dwell within rest_spring_rearm_m before the released rest spring is re-armed", ge=0.0)
+    rest_spring_max_release_count: int = param(
+        1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
+        "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
+        "one more release)", ge=1, le=100)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
@@ -276,6 +302,9 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
     if controller_mass(cfg, sm) is None:
         problems.append("controller.mass_kg: required key missing kg (nominal moving mass; "
                         "or give mass_kg in the model file)")
+    if cfg.rest_spring_rearm_m >= cfg.rest_spring_release_m:
+        problems.append(f"controller.rest_spring_rearm_m: {cfg.rest_spring_rearm_m:g} m must be below "
+                        f"rest_spring_release_m ({cfg.rest_spring_release_m:g} m)")
     return problems
 
 
@@ -335,6 +364,11 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
+        self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
+        self._rs_releases = 0  # releases in this standstill
+        self._rs_band_s = 0.0  # time within rest_spring_rearm_m since the release [s]
+        self._rs_side = 0  # side of x − x_r beyond the hunting band (+1/−1; 0: not left it yet)
+        self._rs_swings = 0  # sign changes of x − x_r across the hunting band since the spring was armed
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -404,6 +438,11 @@ class StageController:
         self._e_last = math.nan
         self._u_learn = 0.0
         self._s_rest = 0.0
+        self._rs_armed = True
+        self._rs_releases = 0
+        self._rs_band_s = 0.0
+        self._rs_side = 0
+        self._rs_swings = 0
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -547,9 +586,30 @@ class StageController:
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
                      dob: QFilterDob | KalmanDob) -> float:
         """Rest spring (module docstring): at standstill d̂ := d̂ − s, s = LPF_g(k_v·clamp(x − x_r)); at the
-        start of a move s is folded into the observer (d̂ and its input history move by −s: u continuous)."""
+        start of a move, and when |x − x_r| leaves ``rest_spring_range_m`` (the stage is not stuck), s is folded
+        into the observer (d̂ and its input history move by −s: u continuous) and the spring is released; it is
+        re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
+        ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
+        standstill; a move re-arms it."""
         cfg = self.cfg
-        if not at_rest:
+        e_x = x_m - ref.x_m
+        r = cfg.rest_spring_range_m
+        band = cfg.rest_spring_rearm_m
+        if at_rest and self._rs_armed and abs(e_x) > band:
+            side = 1 if e_x > 0.0 else -1
+            if self._rs_side != 0 and side != self._rs_side:
+                self._rs_swings += 1
+            self._rs_side = side
+        if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2)):
+            self._rs_side = 0
+            self._rs_swings = 0
+            if at_rest:
+                self._rs_armed = False
+                self._rs_releases += 1
+                self._rs_band_s = 0.0
+            else:
+                self._rs_armed = True
+                self._rs_releases = 0
             s = self._s_rest
             if s != 0.0:
                 self._s_rest = 0.0
@@ -558,8 +618,21 @@ class StageController:
                 return d_hat - s
             return d_hat
         kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
-        r = cfg.rest_spring_range_m
-        target = kv * max(-r, min(r, x_m - ref.x_m))
+        if not self._rs_armed:
+            if self._rs_releases >= cfg.rest_spring_max_release_count or abs(e_x) > band:
+                self._rs_band_s = 0.0
+                return d_hat
+            self._rs_band_s += dt
+            if self._rs_band_s + 1e-9 * dt < cfg.rest_spring_rearm_s:
+                return d_hat
+            # re-arm bumplessly: the spring starts at its steady force, which the observer takes over first
+            self._rs_armed = True
+            s = kv * e_x
+            self._s_rest = s
+            dob.shift(s)
+            self.state.u_obs_prev_n += s
+            return d_hat
+        target = kv * max(-r, min(r, e_x))
         a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz / self.timing_scale * dt)
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
