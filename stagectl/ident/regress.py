@@ -19,7 +19,7 @@ is iterated (two passes).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.ident import effects as fx
-from stagectl.ident.columns import cached, given_force
+from stagectl.ident.columns import given_force
 from stagectl.ident.hypothesis import Column, FitResult, Hyp
 from stagectl.ident.signals import ArrayCache, Signals
 
@@ -105,10 +105,6 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
     return cols, target
 
 
-def _filtered(sig: Signals, key: str, raw: FloatArray) -> FloatArray:
-    return cached(sig, "F:" + key, lambda: sig.filt(raw))
-
-
 def _filtered_design(
     sig: Signals, h: Hyp, f_prev: FloatArray | None = None
 ) -> tuple[list[Column], _Stack, FloatArray]:
@@ -135,22 +131,46 @@ def _filtered_design(
     keys: list[str | None] = [None] * len(cols)
     todo: list[int] = []
     skey = None if sgn_f is None else "sgn:" + str(hash(sgn_f.astype(np.int8).tobytes()))
+    # every filtered column this design needs that the cache does not hold, filtered in one batched call
+    got: dict[str, FloatArray] = {}
+    need: dict[str, FloatArray] = {}
+
+    def want(key: str, raw_of: Callable[[], FloatArray]) -> None:
+        if key in got or key in need:
+            return
+        hit = sig.cache.get("F:" + key)
+        if hit is None:
+            need[key] = raw_of()
+        else:
+            got[key] = cast(FloatArray, hit)
+
+    scaled_key: dict[int, str] = {}
     for j, c in enumerate(cols):
         if c.cache_key is None:
             todo.append(j)
             continue
-        base = _filtered(sig, c.cache_key, raw[j])
-        keys[j] = c.cache_key
+        want(c.cache_key, lambda j=j: raw[j])  # type: ignore[misc]
         if sgn_f is not None and skey is not None and j < n_friction:
-            base = base + r * _filtered(sig, c.cache_key + "|" + skey, raw[j] * sgn_f)
+            scaled_key[j] = c.cache_key + "|" + skey
+            want(scaled_key[j], lambda j=j: raw[j] * sgn_f)  # type: ignore[misc]
+    ykey = f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}"
+    want(ykey, lambda: target)
+    filt = sig.filt_rows([*need.values(), *(raw[j] for j in todo)])
+    for key, f in zip(need, filt):
+        sig.cache["F:" + key] = f
+        got[key] = f
+    for i, j in enumerate(todo):
+        out[j] = filt[len(need) + i]
+    for j, c in enumerate(cols):
+        if c.cache_key is None:
+            continue
+        base = got[c.cache_key]
+        keys[j] = c.cache_key
+        if j in scaled_key:
+            base = base + r * got[scaled_key[j]]
             keys[j] = f"{c.cache_key}|{skey}|{r!r}"
         out[j] = base
-    if todo:
-        filt = sig.filt_many(np.column_stack([raw[j] for j in todo]))
-        for i, j in enumerate(todo):
-            out[j] = filt[:, i]
-    ykey = f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}"
-    y = _filtered(sig, ykey, target)
+    y = got[ykey]
     return cols, _Stack(cast(list[FloatArray], out), keys, ykey), y
 
 

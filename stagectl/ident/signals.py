@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.errors import DataError
-from stagectl.ident._filter import butter_lowpass_sos, sosfiltfilt
+from stagectl.ident._filter import butter_lowpass_sos, filtfilt_rows, sosfiltfilt
 from stagectl.ident.recording import Recording
 
 FloatArray = npt.NDArray[np.float64]
@@ -139,7 +139,15 @@ class Signals:
 
     def filt(self, raw: FloatArray) -> FloatArray:
         """``L[moving · raw]``: zero stuck samples, then zero-phase low-pass."""
-        return np.asarray(sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
+        return np.asarray(filtfilt_rows(self.sos, np.reshape(raw, (1, -1)), self.moving)[0], dtype=np.float64)
+
+    def filt_rows(self, raws: list[FloatArray]) -> list[FloatArray]:
+        """:meth:`filt` of each of ``raws`` in one call (two at a time in the compiled loop, ~2x faster than
+        one by one); each result is a contiguous row of one (k, n) array."""
+        if not raws:
+            return []
+        out = filtfilt_rows(self.sos, np.stack(raws), self.moving)
+        return list(out)
 
     def noise_floor_n(self, mass_kg: float) -> float:
         """Force-residual RMS [N] that white position noise (and quantisation) alone produce.
@@ -154,8 +162,7 @@ class Signals:
 
     def filt_many(self, raw: FloatArray) -> FloatArray:
         """:meth:`filt` applied to every column of ``raw`` (shape ``(n, k)``) in one call."""
-        m = self.moving[:, None]
-        return np.asarray(sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
+        return np.ascontiguousarray(filtfilt_rows(self.sos, np.asarray(raw).T, self.moving).T)
 
     def ubar(self, delay_s: float = 0.0) -> FloatArray:
         """Applied force seen by the second difference at ``t[k]`` for an actuation delay ``delay_s`` [N].
