@@ -197,49 +197,83 @@ def filtered_design(
     return cols, st.matrix(), y
 
 
+class _GramStore:
+    """Products of fit-independent filtered columns over one row set, kept in a matrix indexed by the columns'
+    cache keys (NaN: not computed yet), so that a fit reads its whole cached block in one indexing step."""
+
+    #: keys beyond which the store starts afresh (4096² products: 128 MB)
+    MAX_KEYS = 4096
+
+    def __init__(self) -> None:
+        self.index: dict[str, int] = {}
+        self.m = np.full((64, 64), np.nan)
+
+    def ids(self, keys: Sequence[str]) -> list[int]:
+        if len(self.index) + len(keys) > self.MAX_KEYS:
+            self.__init__()  # type: ignore[misc]
+        out = []
+        for k in keys:
+            i = self.index.get(k)
+            if i is None:
+                i = len(self.index)
+                self.index[k] = i
+                if i >= self.m.shape[0]:
+                    cap = 2 * self.m.shape[0]
+                    m = np.full((cap, cap), np.nan)
+                    m[: self.m.shape[0], : self.m.shape[0]] = self.m
+                    self.m = m
+            out.append(i)
+        return out
+
+
 def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, keys: Sequence[str | None],
           ykey: str) -> tuple[FloatArray, FloatArray, float]:
     """``AᵀA``, ``Aᵀy`` and ``yᵀy`` over ``rows``, with every product of two cached (fit-independent) columns
-    cached on ``sig``: a search that changes one column recomputes one row of the Gram matrix, not all of it."""
+    cached on ``sig`` (:class:`_GramStore`): a search that changes one column computes one row of the Gram
+    matrix, not all of it, and reads the rest in one step."""
     rk = "rows:" + str(hash(rows.tobytes()))
-    store = cast(dict[tuple[str, str, str], float], sig.cache.setdefault("_gram", {}))
-    cols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
+    stores = cast(dict[str, _GramStore], sig.cache.setdefault("_gram", {}))
+    gs = stores.get(rk)
+    if gs is None:
+        gs = stores[rk] = _GramStore()
+    rowcols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
+    p = len(a)
+    allk = [*keys, ykey]
+    allv = [*a, y]
+    vecs: dict[int, FloatArray] = {}
 
-    def colv(j: int) -> FloatArray:
-        k = keys[j]
-        if k is None:
-            return a[j][rows]
-        v = cols.get(rk + "|" + k)
+    def vec(j: int) -> FloatArray:
+        """Column ``j`` (``p``: the target) on ``rows``."""
+        v = vecs.get(j)
         if v is None:
-            v = a[j][rows]
-            cols[rk + "|" + k] = v
+            k = allk[j]
+            if k is None:
+                v = allv[j][rows]
+            else:
+                v = rowcols.get(rk + "|" + k)
+                if v is None:
+                    v = np.ascontiguousarray(allv[j][rows])
+                    rowcols[rk + "|" + k] = v
+            vecs[j] = v
         return v
 
-    yv = cols.get(rk + "|" + ykey)
-    if yv is None:
-        yv = np.ascontiguousarray(y[rows])
-        cols[rk + "|" + ykey] = yv
-    p = len(a)
-    vs = [colv(j) for j in range(p)]
-    g = np.empty((p, p))
-    b = np.empty(p)
-
-    def dot(i: int, ki: str | None, v: FloatArray, kj: str | None, w: FloatArray) -> float:
-        if ki is None or kj is None:
-            return float(v @ w)
-        kk = (rk, ki, kj) if ki <= kj else (rk, kj, ki)
-        got = store.get(kk)
-        if got is None:
-            got = float(v @ w)
-            store[kk] = got
-        return got
-
-    for i in range(p):
-        for j in range(i, p):
-            g[i, j] = g[j, i] = dot(i, keys[i], vs[i], keys[j], vs[j])
-        b[i] = dot(i, keys[i], vs[i], ykey, yv)
-    yy = dot(0, ykey, yv, ykey, yv)
-    return g, b, yy
+    full = np.empty((p + 1, p + 1))
+    kj = [j for j in range(p + 1) if allk[j] is not None]
+    ids = gs.ids([cast(str, allk[j]) for j in kj])
+    sub = gs.m[np.ix_(ids, ids)]
+    missing = np.isnan(sub)
+    if missing.any():
+        for u, w in zip(*np.nonzero(np.triu(missing))):
+            val = float(vec(kj[u]) @ vec(kj[w]))
+            sub[u, w] = sub[w, u] = val
+            gs.m[ids[u], ids[w]] = gs.m[ids[w], ids[u]] = val
+    full[np.ix_(kj, kj)] = sub
+    for j in range(p + 1):
+        if allk[j] is None:  # a fit-dependent column: every product afresh
+            for i in range(p + 1):
+                if allk[i] is not None or i <= j:
+                    full[i, j] = full[j, i] = float(vec(min(i, j)) @ vec(max(i, j)))
+    return full[:p, :p].copy(), full[:p, p].copy(), float(full[p, p])
 
 
 def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_]) -> FloatArray:
