@@ -218,6 +218,19 @@ def _edge(sos: FloatArray) -> int:
     return int(3 * ntaps)
 
 
+_PREPARED: dict[bytes, tuple[FloatArray, FloatArray, int]] = {}
+
+
+def _prepared(sos: FloatArray) -> tuple[FloatArray, FloatArray, int]:
+    """``sos`` (contiguous), its start-up states and its padding, computed once per filter."""
+    key = np.asarray(sos, dtype=np.float64).tobytes()
+    got = _PREPARED.get(key)
+    if got is None:
+        s = np.ascontiguousarray(sos, dtype=np.float64)
+        got = _PREPARED[key] = (s, _zi(s), _edge(s))
+    return got
+
+
 def filtfilt_rows(sos: FloatArray, rows: FloatArray, mask: npt.NDArray[np.bool_] | None = None) -> FloatArray:
     """:func:`sosfiltfilt` of each row of ``rows`` (k, n) set to 0 where ``mask`` is False (all kept when None),
     as ``sosfiltfilt(sos, np.where(mask, rows, 0.0), axis=-1)``, bit for bit; returns (k, n) with each
@@ -228,15 +241,15 @@ def filtfilt_rows(sos: FloatArray, rows: FloatArray, mask: npt.NDArray[np.bool_]
         raise ValueError("filtfilt_rows: rows must be 2-D (signals, samples)")
     n = x.shape[1]
     m = np.ones(n, dtype=np.bool_) if mask is None else np.ascontiguousarray(mask, dtype=np.bool_)
-    edge = _edge(sos)
+    sos, zi, edge = _prepared(sos)
     if n <= edge:
         raise ValueError(f"sosfiltfilt: the data must be longer than the padding ({edge} samples)")
     if m.shape != (n,):
         raise ValueError("filtfilt_rows: mask must have one entry per sample")
     if sos.shape[0] == 2:
-        return np.asarray(_filtfilt_rows2(np.ascontiguousarray(sos), _zi(sos), x, m, edge), dtype=np.float64)
+        return np.asarray(_filtfilt_rows2(sos, zi, x, m, edge), dtype=np.float64)
     cols = np.ascontiguousarray(np.where(m, x, 0.0).T)
-    return np.ascontiguousarray(_filtfilt_cols(np.ascontiguousarray(sos), _zi(sos), cols, edge).T)
+    return np.ascontiguousarray(_filtfilt_cols(sos, zi, cols, edge).T)
 
 
 def sosfiltfilt(sos: FloatArray, x: npt.ArrayLike, axis: int = -1) -> FloatArray:
