@@ -418,21 +418,24 @@ def prepare(
 
 
 def _reversal_distance(xf: FloatArray, v: FloatArray, v_th: float) -> FloatArray:
-    """|x − x_r| with x_r the position at the last change of the direction of motion."""
+    """|x − x_r| with x_r the position at the last change of the direction of motion (inf before the first
+    reversal). The direction is sgn(v) outside ±v_th; where it changes at sample k (to a direction other than
+    the last one seen), x_r = x[k−1], the extreme position since the last change."""
     n = xf.shape[0]
-    out = np.empty(n)
-    direction = 0.0
-    xr = float(xf[0])
-    big = np.inf
-    started = False
-    for k in range(n):
-        vk = v[k]
-        d = 1.0 if vk > v_th else (-1.0 if vk < -v_th else 0.0)
-        if d != 0.0 and d != direction:
-            if direction != 0.0:
-                started = True
-            # reversal point: extreme position since the last direction change
-            xr = float(xf[k - 1]) if k > 0 else float(xf[k])
-            direction = d
-        out[k] = abs(float(xf[k]) - xr) if started else big
+    out = np.full(n, np.inf)
+    d = np.where(v > v_th, 1.0, np.where(v < -v_th, -1.0, 0.0))
+    nz = np.flatnonzero(d != 0.0)
+    if nz.size == 0:
+        return out
+    dn = d[nz]
+    change = np.empty(nz.size, dtype=bool)
+    change[0] = True
+    change[1:] = dn[1:] != dn[:-1]
+    ev = nz[change]  # the samples where the direction of motion changes (the first one: motion starts)
+    if ev.size < 2:
+        return out
+    xr = xf[np.maximum(ev - 1, 0)]
+    k0 = int(ev[1])
+    last = np.searchsorted(ev, np.arange(k0, n), side="right") - 1
+    out[k0:] = np.abs(xf[k0:] - xr[last])
     return out
