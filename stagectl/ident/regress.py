@@ -55,9 +55,12 @@ def friction_columns(sig: Signals, h: Hyp) -> list[Column]:
 
 def friction_force(sig: Signals, h: Hyp, theta: dict[str, float] | None = None) -> FloatArray:
     """Friction force before scaling effects [N] (raw, unfiltered)."""
-    th = h.theta if theta is None else theta
+    return _force_of(sig, friction_columns(sig, h), h.theta if theta is None else theta)
+
+
+def _force_of(sig: Signals, fcols: list[Column], th: dict[str, float]) -> FloatArray:
     out = np.zeros(sig.n)
-    for c in friction_columns(sig, h):
+    for c in fcols:
         out += th.get(c.name, 0.0) * c.values
     return out
 
@@ -74,17 +77,26 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
     force of ``h``'s coefficients, or sgn(v) before the first fit). ``scaled=False`` leaves the friction
     scaling out (:func:`filtered_design` applies it after filtering).
     """
+    cols, target, _ = _design(sig, h, f_prev, scaled)
+    return cols, target
+
+
+def _design(sig: Signals, h: Hyp, f_prev: FloatArray | None, scaled: bool
+            ) -> tuple[list[Column], FloatArray, int]:
+    """:func:`design`, and how many of the columns are friction columns (they come first)."""
     active = fx.REGISTRY.active(h)
     needs_f = any(s.scaling is not None or s.iterative for s in active)  # else no column reads the estimate
+    fcols = friction_columns(sig, h)
     if f_prev is None:
-        f_prev = friction_force(sig, h) if h.theta and needs_f else sig.direction
+        f_prev = _force_of(sig, fcols, h.theta) if h.theta and needs_f else sig.direction
     mult: FloatArray | None = None
     if scaled:
         for s in active:
             if s.scaling is not None:
                 m1 = 1.0 + s.scaling(h) * np.sign(f_prev)
                 mult = m1 if mult is None else mult * m1
-    cols = friction_columns(sig, h)
+    n_friction = len(fcols)
+    cols = list(fcols)
     if mult is not None:
         cols = [Column(c.name, c.values * mult, c.cache_key, c.nonneg) for c in cols]
     f_est = f_prev if mult is None else f_prev * mult
@@ -102,7 +114,7 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
         cols.append(Column("m", sig.acc_raw, "m", nonneg=True))
     else:
         target = target - h.fixed_mass_kg * sig.acc_raw
-    return cols, target
+    return cols, target, n_friction
 
 
 def _filtered_design(
@@ -119,11 +131,11 @@ def _filtered_design(
     sgn_f: FloatArray | None = None
     if scaling:
         r = scaling[0].scaling(h)  # type: ignore[misc]  # not None: filtered above
-        fp = f_prev if f_prev is not None else (friction_force(sig, h) if h.theta else sig.direction)
-        sgn_f = np.sign(fp)
-    cols, target = design(sig, h, f_prev, scaled=False)
+        # the estimate design() would compute itself (a scaling effect reads it), computed once
+        f_prev = f_prev if f_prev is not None else (friction_force(sig, h) if h.theta else sig.direction)
+        sgn_f = np.sign(f_prev)
+    cols, target, n_friction = _design(sig, h, f_prev, scaled=False)
     raw = [c.values for c in cols]
-    n_friction = len(friction_columns(sig, h))
     if sgn_f is not None:
         # friction-following columns carry the scaling of the friction estimate
         raw = [v * (1.0 + r * sgn_f) if c.follows_friction else v for c, v in zip(cols, raw)]
