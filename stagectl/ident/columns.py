@@ -77,7 +77,10 @@ def position_sin_cos(sig: Signals, lam: float) -> tuple[FloatArray, FloatArray]:
     """``sin(2πx/λ)`` and ``cos(2πx/λ)`` of the filtered position for wavelength ``lam`` [m]."""
     def make() -> FloatArray:
         ph = 2.0 * np.pi * sig.xf / lam
-        return np.stack([np.sin(ph), np.cos(ph)])
+        both = np.empty((2, ph.shape[0]))
+        np.sin(ph, out=both[0])
+        np.cos(ph, out=both[1])
+        return both
 
     both = cached(sig, f"sincos2:{lam:.9e}", make)
     return both[0], both[1]

@@ -331,7 +331,7 @@ class ViscousAsymmetryParams:
 
 
 def _vasym_columns(sig: Signals, h: Hyp) -> list[Column]:
-    return [Column("dv", np.abs(sig.v), "dv")]
+    return [Column("dv", cached(sig, "absv", lambda: np.abs(sig.v)), "dv")]
 
 
 def _vasym_params(h: Hyp) -> ViscousAsymmetryParams:

@@ -222,6 +222,7 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
     def __init__(self, specs: Sequence[EffectSpec[Any, Any]]) -> None:
         self._specs = tuple(specs)
         self._by_name = {s.name: s for s in self._specs}
+        self._active: dict[tuple[str, ...], tuple[EffectSpec[Any, Any], ...]] = {}
         problems = []
         if len(self._by_name) != len(self._specs):
             problems.append("duplicate effect names")
@@ -266,7 +267,12 @@ class Registry(Sequence[EffectSpec[Any, Any]]):
 
     def active(self, h: Hyp) -> list[EffectSpec[Any, Any]]:
         """The specs of the effects in ``h`` (registered ones only), in design-column order."""
-        return sorted((s for s in self._specs if h.has(s.name)), key=lambda s: s.column_rank)
+        key = tuple(h.effects)
+        got = self._active.get(key)  # asked several times per fit: kept per tuple of effect names
+        if got is None:
+            got = self._active[key] = tuple(sorted((s for s in self._specs if h.has(s.name)),
+                                                         key=lambda s: s.column_rank))
+        return list(got)
 
     def nested(self) -> dict[str, tuple[str, ...]]:
         """Richer effect -> the simpler effects it contains, the latest-registered richer effect first (the

@@ -19,7 +19,7 @@ is iterated (two passes).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.ident import effects as fx
-from stagectl.ident.columns import cached, given_force
+from stagectl.ident.columns import given_force
 from stagectl.ident.hypothesis import Column, FitResult, Hyp
 from stagectl.ident.signals import ArrayCache, Signals
 
@@ -55,9 +55,12 @@ def friction_columns(sig: Signals, h: Hyp) -> list[Column]:
 
 def friction_force(sig: Signals, h: Hyp, theta: dict[str, float] | None = None) -> FloatArray:
     """Friction force before scaling effects [N] (raw, unfiltered)."""
-    th = h.theta if theta is None else theta
+    return _force_of(sig, friction_columns(sig, h), h.theta if theta is None else theta)
+
+
+def _force_of(sig: Signals, fcols: list[Column], th: dict[str, float]) -> FloatArray:
     out = np.zeros(sig.n)
-    for c in friction_columns(sig, h):
+    for c in fcols:
         out += th.get(c.name, 0.0) * c.values
     return out
 
@@ -74,17 +77,26 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
     force of ``h``'s coefficients, or sgn(v) before the first fit). ``scaled=False`` leaves the friction
     scaling out (:func:`filtered_design` applies it after filtering).
     """
+    cols, target, _ = _design(sig, h, f_prev, scaled)
+    return cols, target
+
+
+def _design(sig: Signals, h: Hyp, f_prev: FloatArray | None, scaled: bool
+            ) -> tuple[list[Column], FloatArray, int]:
+    """:func:`design`, and how many of the columns are friction columns (they come first)."""
     active = fx.REGISTRY.active(h)
     needs_f = any(s.scaling is not None or s.iterative for s in active)  # else no column reads the estimate
+    fcols = friction_columns(sig, h)
     if f_prev is None:
-        f_prev = friction_force(sig, h) if h.theta and needs_f else sig.direction
+        f_prev = _force_of(sig, fcols, h.theta) if h.theta and needs_f else sig.direction
     mult: FloatArray | None = None
     if scaled:
         for s in active:
             if s.scaling is not None:
                 m1 = 1.0 + s.scaling(h) * np.sign(f_prev)
                 mult = m1 if mult is None else mult * m1
-    cols = friction_columns(sig, h)
+    n_friction = len(fcols)
+    cols = list(fcols)
     if mult is not None:
         cols = [Column(c.name, c.values * mult, c.cache_key, c.nonneg) for c in cols]
     f_est = f_prev if mult is None else f_prev * mult
@@ -102,11 +114,7 @@ def design(sig: Signals, h: Hyp, f_prev: FloatArray | None = None, scaled: bool 
         cols.append(Column("m", sig.acc_raw, "m", nonneg=True))
     else:
         target = target - h.fixed_mass_kg * sig.acc_raw
-    return cols, target
-
-
-def _filtered(sig: Signals, key: str, raw: FloatArray) -> FloatArray:
-    return cached(sig, "F:" + key, lambda: sig.filt(raw))
+    return cols, target, n_friction
 
 
 def _filtered_design(
@@ -123,11 +131,11 @@ def _filtered_design(
     sgn_f: FloatArray | None = None
     if scaling:
         r = scaling[0].scaling(h)  # type: ignore[misc]  # not None: filtered above
-        fp = f_prev if f_prev is not None else (friction_force(sig, h) if h.theta else sig.direction)
-        sgn_f = np.sign(fp)
-    cols, target = design(sig, h, f_prev, scaled=False)
+        # the estimate design() would compute itself (a scaling effect reads it), computed once
+        f_prev = f_prev if f_prev is not None else (friction_force(sig, h) if h.theta else sig.direction)
+        sgn_f = np.sign(f_prev)
+    cols, target, n_friction = _design(sig, h, f_prev, scaled=False)
     raw = [c.values for c in cols]
-    n_friction = len(friction_columns(sig, h))
     if sgn_f is not None:
         # friction-following columns carry the scaling of the friction estimate
         raw = [v * (1.0 + r * sgn_f) if c.follows_friction else v for c, v in zip(cols, raw)]
@@ -135,22 +143,46 @@ def _filtered_design(
     keys: list[str | None] = [None] * len(cols)
     todo: list[int] = []
     skey = None if sgn_f is None else "sgn:" + str(hash(sgn_f.astype(np.int8).tobytes()))
+    # every filtered column this design needs that the cache does not hold, filtered in one batched call
+    got: dict[str, FloatArray] = {}
+    need: dict[str, FloatArray] = {}
+
+    def want(key: str, raw_of: Callable[[], FloatArray]) -> None:
+        if key in got or key in need:
+            return
+        hit = sig.cache.get("F:" + key)
+        if hit is None:
+            need[key] = raw_of()
+        else:
+            got[key] = cast(FloatArray, hit)
+
+    scaled_key: dict[int, str] = {}
     for j, c in enumerate(cols):
         if c.cache_key is None:
             todo.append(j)
             continue
-        base = _filtered(sig, c.cache_key, raw[j])
-        keys[j] = c.cache_key
+        want(c.cache_key, lambda j=j: raw[j])  # type: ignore[misc]
         if sgn_f is not None and skey is not None and j < n_friction:
-            base = base + r * _filtered(sig, c.cache_key + "|" + skey, raw[j] * sgn_f)
+            scaled_key[j] = c.cache_key + "|" + skey
+            want(scaled_key[j], lambda j=j: raw[j] * sgn_f)  # type: ignore[misc]
+    ykey = f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}"
+    want(ykey, lambda: target)
+    filt = sig.filt_rows([*need.values(), *(raw[j] for j in todo)])
+    for key, f in zip(need, filt):
+        sig.cache["F:" + key] = f
+        got[key] = f
+    for i, j in enumerate(todo):
+        out[j] = filt[len(need) + i]
+    for j, c in enumerate(cols):
+        if c.cache_key is None:
+            continue
+        base = got[c.cache_key]
+        keys[j] = c.cache_key
+        if j in scaled_key:
+            base = base + r * got[scaled_key[j]]
             keys[j] = f"{c.cache_key}|{skey}|{r!r}"
         out[j] = base
-    if todo:
-        filt = sig.filt_many(np.column_stack([raw[j] for j in todo]))
-        for i, j in enumerate(todo):
-            out[j] = filt[:, i]
-    ykey = f"target:{_target_delay(h):.6e}:{h.fixed_mass_kg}"
-    y = _filtered(sig, ykey, target)
+    y = got[ykey]
     return cols, _Stack(cast(list[FloatArray], out), keys, ykey), y
 
 
@@ -177,56 +209,97 @@ def filtered_design(
     return cols, st.matrix(), y
 
 
+class _GramStore:
+    """Products of fit-independent filtered columns over one row set, kept in a matrix indexed by the columns'
+    cache keys (NaN: not computed yet), so that a fit reads its whole cached block in one indexing step."""
+
+    #: keys beyond which the store starts afresh (2048² products: 32 MB; EMPS discovery uses 1850 keys)
+    MAX_KEYS = 2048
+
+    def __init__(self) -> None:
+        self.index: dict[str, int] = {}
+        self.m = np.full((64, 64), np.nan)
+
+    def ids(self, keys: Sequence[str]) -> list[int]:
+        if len(self.index) + len(keys) > self.MAX_KEYS:
+            self.__init__()  # type: ignore[misc]
+        out = []
+        for k in keys:
+            i = self.index.get(k)
+            if i is None:
+                i = len(self.index)
+                self.index[k] = i
+                if i >= self.m.shape[0]:
+                    cap = 2 * self.m.shape[0]
+                    m = np.full((cap, cap), np.nan)
+                    m[: self.m.shape[0], : self.m.shape[0]] = self.m
+                    self.m = m
+            out.append(i)
+        return out
+
+
 def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, keys: Sequence[str | None],
           ykey: str) -> tuple[FloatArray, FloatArray, float]:
     """``AᵀA``, ``Aᵀy`` and ``yᵀy`` over ``rows``, with every product of two cached (fit-independent) columns
-    cached on ``sig``: a search that changes one column recomputes one row of the Gram matrix, not all of it."""
+    cached on ``sig`` (:class:`_GramStore`): a search that changes one column computes one row of the Gram
+    matrix, not all of it, and reads the rest in one step."""
     rk = "rows:" + str(hash(rows.tobytes()))
-    store = cast(dict[tuple[str, str, str], float], sig.cache.setdefault("_gram", {}))
-    cols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
+    stores = cast(dict[str, _GramStore], sig.cache.setdefault("_gram", {}))
+    gs = stores.get(rk)
+    if gs is None:
+        gs = stores[rk] = _GramStore()
+    rowcols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
+    p = len(a)
+    allk = [*keys, ykey]
+    allv = [*a, y]
+    vecs: dict[int, FloatArray] = {}
 
-    def colv(j: int) -> FloatArray:
-        k = keys[j]
-        if k is None:
-            return a[j][rows]
-        v = cols.get(rk + "|" + k)
+    def vec(j: int) -> FloatArray:
+        """Column ``j`` (``p``: the target) on ``rows``."""
+        v = vecs.get(j)
         if v is None:
-            v = a[j][rows]
-            cols[rk + "|" + k] = v
+            k = allk[j]
+            if k is None:
+                v = allv[j][rows]
+            else:
+                v = rowcols.get(rk + "|" + k)
+                if v is None:
+                    v = np.ascontiguousarray(allv[j][rows])
+                    rowcols[rk + "|" + k] = v
+            vecs[j] = v
         return v
 
-    yv = cols.get(rk + "|" + ykey)
-    if yv is None:
-        yv = np.ascontiguousarray(y[rows])
-        cols[rk + "|" + ykey] = yv
-    p = len(a)
-    vs = [colv(j) for j in range(p)]
-    g = np.empty((p, p))
-    b = np.empty(p)
-
-    def dot(i: int, ki: str | None, v: FloatArray, kj: str | None, w: FloatArray) -> float:
-        if ki is None or kj is None:
-            return float(v @ w)
-        kk = (rk, ki, kj) if ki <= kj else (rk, kj, ki)
-        got = store.get(kk)
-        if got is None:
-            got = float(v @ w)
-            store[kk] = got
-        return got
-
-    for i in range(p):
-        for j in range(i, p):
-            g[i, j] = g[j, i] = dot(i, keys[i], vs[i], keys[j], vs[j])
-        b[i] = dot(i, keys[i], vs[i], ykey, yv)
-    yy = dot(0, ykey, yv, ykey, yv)
-    return g, b, yy
+    full = np.empty((p + 1, p + 1))
+    kj = [j for j in range(p + 1) if allk[j] is not None]
+    ids = gs.ids([cast(str, allk[j]) for j in kj])
+    sub = gs.m[np.ix_(ids, ids)]
+    missing = np.isnan(sub)
+    if missing.any():
+        for u, w in zip(*np.nonzero(np.triu(missing))):
+            val = float(vec(kj[u]) @ vec(kj[w]))
+            sub[u, w] = sub[w, u] = val
+            gs.m[ids[u], ids[w]] = gs.m[ids[w], ids[u]] = val
+    full[np.ix_(kj, kj)] = sub
+    for j in range(p + 1):
+        if allk[j] is None:  # a fit-dependent column: every product afresh
+            for i in range(p + 1):
+                if allk[i] is not None or i <= j:
+                    full[i, j] = full[j, i] = float(vec(min(i, j)) @ vec(max(i, j)))
+    return full[:p, :p].copy(), full[:p, p].copy(), float(full[p, p])
 
 
-def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_]) -> FloatArray:
+def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_],
+                 start: npt.NDArray[np.bool_] | None = None) -> FloatArray:
     """``argmin ‖c − R·θ‖²`` subject to ``θ_j >= 0`` where ``nonneg[j]`` (the others free), for a small square
     upper-triangular ``R`` (p <= ~30): the Lawson-Hanson active-set method on the normal equations
     ``G = RᵀR``, ``b = Rᵀc``, with the free variables always in the passive set. Checked against
-    ``scipy.optimize.lsq_linear(method="bvls")`` in tests/ident/test_regress_solver.py."""
+    ``scipy.optimize.lsq_linear(method="bvls")`` in tests/ident/test_regress_solver.py.
+
+    ``start``: a guess of the passive set (e.g. ``θ > 0`` of a neighbouring problem in a shape search). If the
+    unbounded solution on it is feasible, the iterations start there instead of from the free variables
+    alone: a valid Lawson-Hanson state, so they end at the same optimum, whose passive set is unique for a
+    positive definite ``G`` and whose solution is computed from that set alone (the same result, in a few
+    solves instead of one per element that carries force)."""
     g = r.T @ r
     b = r.T @ c
     p = b.shape[0]
@@ -240,7 +313,15 @@ def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_]) ->
         return z
 
     tol = 1e-12 * max(float(np.max(np.abs(b))), 1e-300)  # gradient components below it count as zero
-    x = sub(passive)
+    x: FloatArray | None = None
+    if start is not None and start.shape == passive.shape:
+        p0 = passive | (start & nonneg)
+        if (p0 != passive).any():
+            z0 = sub(p0)
+            if not (p0 & nonneg & (z0 <= 0.0)).any():
+                passive, x = p0, z0
+    if x is None:
+        x = sub(passive)
     for _ in range(3 * p + 10):
         w = b - g @ x
         cand = nonneg & ~passive & (w > tol)
@@ -265,9 +346,10 @@ def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_]) ->
     return x
 
 
-def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float, n: int
-               ) -> tuple[FloatArray, float]:
-    """:func:`solve` from the normal equations ``G = AᵀA``, ``b = Aᵀy``, ``yᵀy`` of ``n`` rows."""
+def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float, n: int,
+               start: npt.NDArray[np.bool_] | None = None) -> tuple[FloatArray, float]:
+    """:func:`solve` from the normal equations ``G = AᵀA``, ``b = Aᵀy``, ``yᵀy`` of ``n`` rows (``start``: a
+    guess of the passive set for :func:`nonneg_lstsq`)."""
     scale = np.sqrt(np.maximum(np.diag(g0), 0.0) / max(n, 1))
     scale[scale == 0] = 1.0
     g = g0 / np.outer(scale, scale)
@@ -286,7 +368,7 @@ def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float
     sol = np.linalg.solve(r, c)
     th = sol / scale
     if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
-        sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo))
+        sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo), start)
         th = sol / scale
     e = c - r @ sol
     return np.asarray(th, dtype=np.float64), base + float(e @ e)
@@ -340,10 +422,16 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     passes = 2 if any(s.iterative for s in fx.REGISTRY.active(h)) else 1
     hh = h.copy()
     rss = np.inf
+    # the passive set of the last bounded fit with the same columns starts the next one (a shape search
+    # refits the same columns many times)
+    warm = cast(dict[object, npt.NDArray[np.bool_]], sig.cache.setdefault("_passive", {}))
     for _ in range(passes):
         cols, st, y = _filtered_design(sig, hh)
         g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey)
-        th, rss = solve_gram([c.nonneg for c in cols], g, b, yy, int(rows.sum()))
+        nonneg = [c.nonneg for c in cols]
+        wkey = (key[0], tuple(c.name for c in cols))
+        th, rss = solve_gram(nonneg, g, b, yy, int(rows.sum()), warm.get(wkey))
+        warm[wkey] = ~np.asarray(nonneg, dtype=bool) | (th > 0.0)
         hh.theta = dict(zip((c.name for c in cols), (float(v) for v in th)))
     memo[key] = FitResult(hh.copy(), float(rss), int(rows.sum()))
     return FitResult(hh, float(rss), int(rows.sum()))

@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.errors import DataError
-from stagectl.ident._filter import butter_lowpass_sos, sosfiltfilt
+from stagectl.ident._filter import butter_lowpass_sos, filtfilt_rows, sosfiltfilt
 from stagectl.ident.recording import Recording
 
 FloatArray = npt.NDArray[np.float64]
@@ -139,7 +139,15 @@ class Signals:
 
     def filt(self, raw: FloatArray) -> FloatArray:
         """``L[moving · raw]``: zero stuck samples, then zero-phase low-pass."""
-        return np.asarray(sosfiltfilt(self.sos, np.where(self.moving, raw, 0.0)), dtype=np.float64)
+        return np.asarray(filtfilt_rows(self.sos, np.reshape(raw, (1, -1)), self.moving)[0], dtype=np.float64)
+
+    def filt_rows(self, raws: list[FloatArray]) -> list[FloatArray]:
+        """:meth:`filt` of each of ``raws`` in one call (two at a time in the compiled loop, ~2x faster than
+        one by one); each result is a contiguous row of one (k, n) array."""
+        if not raws:
+            return []
+        out = filtfilt_rows(self.sos, np.stack(raws), self.moving)
+        return list(out)
 
     def noise_floor_n(self, mass_kg: float) -> float:
         """Force-residual RMS [N] that white position noise (and quantisation) alone produce.
@@ -154,8 +162,7 @@ class Signals:
 
     def filt_many(self, raw: FloatArray) -> FloatArray:
         """:meth:`filt` applied to every column of ``raw`` (shape ``(n, k)``) in one call."""
-        m = self.moving[:, None]
-        return np.asarray(sosfiltfilt(self.sos, np.where(m, raw, 0.0), axis=0), dtype=np.float64)
+        return np.ascontiguousarray(filtfilt_rows(self.sos, np.asarray(raw).T, self.moving).T)
 
     def ubar(self, delay_s: float = 0.0) -> FloatArray:
         """Applied force seen by the second difference at ``t[k]`` for an actuation delay ``delay_s`` [N].
@@ -411,21 +418,24 @@ def prepare(
 
 
 def _reversal_distance(xf: FloatArray, v: FloatArray, v_th: float) -> FloatArray:
-    """|x − x_r| with x_r the position at the last change of the direction of motion."""
+    """|x − x_r| with x_r the position at the last change of the direction of motion (inf before the first
+    reversal). The direction is sgn(v) outside ±v_th; where it changes at sample k (to a direction other than
+    the last one seen), x_r = x[k−1], the extreme position since the last change."""
     n = xf.shape[0]
-    out = np.empty(n)
-    direction = 0.0
-    xr = float(xf[0])
-    big = np.inf
-    started = False
-    for k in range(n):
-        vk = v[k]
-        d = 1.0 if vk > v_th else (-1.0 if vk < -v_th else 0.0)
-        if d != 0.0 and d != direction:
-            if direction != 0.0:
-                started = True
-            # reversal point: extreme position since the last direction change
-            xr = float(xf[k - 1]) if k > 0 else float(xf[k])
-            direction = d
-        out[k] = abs(float(xf[k]) - xr) if started else big
+    out = np.full(n, np.inf)
+    d = np.where(v > v_th, 1.0, np.where(v < -v_th, -1.0, 0.0))
+    nz = np.flatnonzero(d != 0.0)
+    if nz.size == 0:
+        return out
+    dn = d[nz]
+    change = np.empty(nz.size, dtype=bool)
+    change[0] = True
+    change[1:] = dn[1:] != dn[:-1]
+    ev = nz[change]  # the samples where the direction of motion changes (the first one: motion starts)
+    if ev.size < 2:
+        return out
+    xr = xf[np.maximum(ev - 1, 0)]
+    k0 = int(ev[1])
+    last = np.searchsorted(ev, np.arange(k0, n), side="right") - 1
+    out[k0:] = np.abs(xf[k0:] - xr[last])
     return out

@@ -31,3 +31,23 @@ def test_matches_bvls_on_random_bounded_problems() -> None:
         assert f_got <= f_ref * (1 + 1e-9) + 1e-12, (trial, f_got, f_ref)
         active += int(np.sum(got[nonneg] == 0.0))
     assert active > 100  # the bounds were active often: the active set was exercised
+
+
+def test_a_warm_start_ends_at_the_cold_start_solution_bit_for_bit() -> None:
+    """Shape searches start each bounded fit from the previous fit's passive set; from any guess (right,
+    wrong, infeasible) the solver must return exactly what it returns from a cold start."""
+    rng = np.random.default_rng(7)
+    warm_used = 0
+    for trial in range(300):
+        p = int(rng.integers(2, 16))
+        a = rng.standard_normal((80, p))
+        y = rng.standard_normal(80) * 2.0 + a @ rng.standard_normal(p)
+        r = np.linalg.qr(a, mode="r")
+        c = np.linalg.solve(r.T, a.T @ y)
+        nonneg = rng.random(p) < 0.7
+        cold = nonneg_lstsq(r, c, nonneg)
+        right = ~nonneg | (cold > 0.0)
+        for guess in (right, rng.random(p) < 0.5, np.ones(p, dtype=bool), right ^ (rng.random(p) < 0.2)):
+            assert np.array_equal(nonneg_lstsq(r, c, nonneg, guess), cold), trial
+        warm_used += int((right & nonneg).any())
+    assert warm_used > 100
