@@ -7,7 +7,7 @@ Each case failed on the commissioning that took the effects from ``discover``'s 
   ended Stribeck-only and the cosine was 3.7 µm RMS against 1.6 nm;
 * generated plant 6 (3.6 kg, six elements of 1–10 µm): the pre-sliding elements held to the passes'
   extrapolated break-away level, 2 % low: 16 nm against 1.0 nm.
-Marked slow: a commissioning is about 12 s of CPU, the two checks 5 s.
+Marked slow: 19 s and 47 s wall per case in the last run (load average 4; a commissioning is 10–16 s of CPU).
 """
 
 from __future__ import annotations
