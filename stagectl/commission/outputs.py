@@ -197,7 +197,13 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                 sd = f" ± {_fmt(v['std'], digits=2)}" if v.get("std") is not None else ""
                 L.append(f"| {k} | {_fmt(v['value'], digits=5)}{sd} | {v['from']} |")
         if "effects" in f:
-            L.append(f"| effects found by discover | {', '.join(f['effects']) or 'none'} | reversals / friction_cv |")
+            L.append(f"| effects found | {', '.join(f['effects']) or 'none'} | discover on reversals / friction_cv; "
+                     "cogging and pre-sliding by their experiments (below) |")
+        for name, ev in ((rep.get("discovery") or {}).get("evidence") or {}).items():
+            src = "slow_passes (period scan)" if name == "cogging" else "reversals, presliding (Maxwell-slip vs rigid)"
+            L.append(f"| {name} | {'present' if ev['present'] else 'absent'}, evidence ratio {_fmt(ev['ratio'], digits=3)},"
+                     f" confidence {ev['confidence']} (discover {'accepted' if ev['discover'] else 'rejected'} it)"
+                     f" | {src} |")
         pr = (rep.get("discovery") or {}).get("presliding_regression") or {}
         if pr.get("k_n_m"):
             ba = ", ".join(f"{1e6 * d:.3g}" for d in pr["break_away_m"])
