@@ -97,3 +97,48 @@ def test_adaptation_is_bumpless_and_frozen_at_rest(seed):
     for _ in range(20):
         a.step(dt, x_end - 20e-9, Reference(x_end, 0.0, 0.0))
     assert a.ff_scale == th
+
+
+def _move_after_loaded_rest(cfg: Any, block: bool) -> tuple[list[float], list[float], list[float]]:
+    """A controller holds 150 nm off its reference (the rest spring loads), then the reference moves at 1 mm/s
+    while the stage lags by 50 nm; returns the reference position, θ and β per moving step. ``block=False``
+    switches the post-rest block off (the test's counter-example)."""
+    from stagectl.control.controller import StageController
+    from stagectl.friction import StageModel
+
+    plant = cfg.sim.plant
+    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    c = dataclasses.replace(cfg.controller, feedforward=dataclasses.replace(cfg.controller.feedforward,
+                                                                             adapt_bandwidth_hz=5.0))
+    assert c.rest_stiffness_fraction > 0.0 and c.feedforward.adapt_presliding_m > 0.0
+    ctl = StageController(c, cfg.timing, model=model)
+    dt = cfg.loop.period_s
+    for _ in range(200):
+        ctl.step(dt, 150e-9, Reference(0.0, 0.0, 0.0))
+    assert ctl._s_rest != 0.0  # the rest spring holds a force
+    xs, th, be = [], [], []
+    v = 1e-3
+    for k in range(1, 20):
+        x_r = v * k * dt
+        ctl.step(dt, x_r - 50e-9, Reference(x_r, v, 0.0))
+        if not block:
+            ctl._x_rest_m = float("nan")
+        xs.append(x_r)
+        th.append(ctl.ff_scale)
+        be.append(ctl.ff.input_scale)
+    return xs, th, be
+
+
+def test_no_adaptation_on_the_rest_spring_force_folded_at_a_move_start(seed):
+    """A move that starts with the rest spring loaded folds that force into the observer, which carries it for
+    a while: θ and β must not learn from it in the first adapt_presliding_m of travel (they did, and the cosine
+    after a positioning move was 20x worse), and learn again beyond it."""
+    travel = seed.controller.feedforward.adapt_presliding_m
+    xs, th, be = _move_after_loaded_rest(seed, block=True)
+    near = [i for i, x in enumerate(xs) if x < travel]
+    far = [i for i, x in enumerate(xs) if x >= travel]
+    assert near and far
+    assert all(th[i] == 1.0 and be[i] == 1.0 for i in near)
+    assert any(th[i] != 1.0 or be[i] != 1.0 for i in far)  # learning resumes once the travel is done
+    _, th_u, be_u = _move_after_loaded_rest(seed, block=False)
+    assert any(th_u[i] != 1.0 or be_u[i] != 1.0 for i in near)  # without the block it learns from the fold
