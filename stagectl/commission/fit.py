@@ -96,6 +96,8 @@ COGGING_MIN_SAMPLES = 10
 #: cogging on a generated plant, tests/commission/plant_gen.py seed 2; the per-direction constant and slope
 #: keep a linear trend from posing as a long period)
 COGGING_MIN_PERIODS = 1.5
+#: a scan peak at or beyond this fraction of the longest period scanned is a trend, not a period
+COGGING_EDGE_FRACTION = 0.95
 
 
 @kernel
@@ -386,8 +388,10 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     peak amplitude over the median amplitude of the scan (the floor of what the residual's noise and
     unmodelled force give at any period); and the two directions fitted separately at the peak's ``λ`` agree
     in phase within 45° and in amplitude within 2× (a cogging force does not depend on the direction; a
-    friction ripple changes sign with it). Named when the ratio ≥ ``COGGING_EVIDENCE_RATIO`` and the
-    directions agree; confidence ``high`` at twice the ratio. Returns the decision, the ratio, ``A, λ, φ``."""
+    friction ripple changes sign with it). Named when the ratio ≥ ``COGGING_EVIDENCE_RATIO``, the
+    directions agree and the peak is inside the scan (below ``COGGING_EDGE_FRACTION`` of its longest period:
+    a smooth force along the pass, e.g. a spring's curvature, peaks at that edge); confidence ``high`` at
+    twice the ratio. Returns the decision, the ratio, ``A, λ, φ``."""
     T = period_s
     x = np.asarray(rec.col("x"), np.float64)
     u = np.asarray(rec.col("u"), np.float64)
@@ -446,9 +450,17 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
                               2.0 * math.pi))
     amp_ratio = max(per_dir[0][0], per_dir[1][0]) / max(min(per_dir[0][0], per_dir[1][0]), 1e-12)
     agree = dphi < math.pi / 4 and amp_ratio < 2.0
-    present = bool(ratio >= COGGING_EVIDENCE_RATIO and agree)
+    # a peak at the longest period scanned is no period: a smooth force along the pass (a spring's curvature,
+    # a slow transient) peaks there too, since the scan's sinusoids are the closest thing to it it has
+    at_edge = lam >= COGGING_EDGE_FRACTION * lam_hi
+    present = bool(ratio >= COGGING_EVIDENCE_RATIO and agree and not at_edge)
     conf = "none" if not present else ("high" if ratio >= 2 * COGGING_EVIDENCE_RATIO else "moderate")
-    return {"present": present, "confidence": conf, "ratio": ratio, "floor_n": floor, "amplitude_n": A,
+    extra: dict[str, Any] = {}
+    if at_edge and ratio >= COGGING_EVIDENCE_RATIO:
+        extra["reason"] = (f"the peak is at the longest period scanned ({lam * 1e3:.3g} mm, travel "
+                           f"{span * 1e3:.3g} mm): a smooth trend along the pass, not told from a period; "
+                           "only a longer stroke could tell them apart")
+    return {**extra, "present": present, "confidence": conf, "ratio": ratio, "floor_n": floor, "amplitude_n": A,
             "wavelength_m": lam, "phase_rad": float(math.atan2(cb, ca)), "directions_phase_deg": math.degrees(dphi),
             "directions_amplitude_ratio": float(amp_ratio), "rows": int(xs.shape[0]),
             "scan_m": [lam_lo, lam_hi, int(grid.shape[0])]}

@@ -203,7 +203,7 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             src = "slow_passes (period scan)" if name == "cogging" else "reversals, presliding (Maxwell-slip vs rigid)"
             L.append(f"| {name} | {'present' if ev['present'] else 'absent'}, evidence ratio {_fmt(ev['ratio'], digits=3)},"
                      f" confidence {ev['confidence']} (discover {'accepted' if ev['discover'] else 'rejected'} it)"
-                     f" | {src} |")
+                     f"{': ' + ev['reason'] if ev.get('reason') else ''} | {src} |")
         pr = (rep.get("discovery") or {}).get("presliding_regression") or {}
         if pr.get("k_n_m"):
             ba = ", ".join(f"{1e6 * d:.3g}" for d in pr["break_away_m"])

@@ -210,3 +210,17 @@ def test_cogging_evidence_names_a_periodic_force_the_same_both_ways() -> None:
     assert not cogging_evidence(ripple, 1.0, 1e-3)["present"]
     plain_ = cogging_evidence(_slow_passes(lambda x, d: 0.5 * d + 800.0 * x), 1.0, 1e-3)  # friction and a spring
     assert not plain_["present"] and plain_["ratio"] < 5.0, plain_
+
+
+def test_cogging_evidence_does_not_name_a_smooth_trend_along_the_pass() -> None:
+    """A force that curves smoothly with position (a nonlinear spring: 2e4·x² N, 20 mN at the ends of the
+    ±1 mm pass) is no cogging, although the longest sinusoid scanned fits it well (ratio ≈ 66: it was named
+    with "high" confidence); a true cogging of two periods over the travel still is, at its period."""
+    from stagectl.commission.fit import cogging_evidence
+
+    trend = cogging_evidence(_slow_passes(lambda x, d: 0.5 * d + 800.0 * x + 2e4 * x * x), 1.0, 1e-3)
+    assert trend["ratio"] >= 5.0 and not trend["present"], trend  # strong scan peak, rejected as a trend
+    assert "trend" in trend["reason"]
+    lam = 1.0e-3  # two periods over the 2 mm travel
+    cog = cogging_evidence(_slow_passes(lambda x, d: 0.5 * d + 0.02 * np.sin(2 * np.pi * x / lam)), 1.0, 1e-3)
+    assert cog["present"] and abs(cog["wavelength_m"] / lam - 1) < 0.03, cog
