@@ -442,6 +442,11 @@ class StageController:
         self._gap = 0
         self._e_last = math.nan
         self._u_learn = 0.0
+        self._reset_rest_spring()
+
+    def _reset_rest_spring(self) -> None:
+        """The rest spring and its guard as at start (armed, no force, no swings or releases counted; no
+        post-rest adaptation block): reset() and a retune, whose new settings rebuild the spring at rest."""
         self._s_rest = 0.0
         self._x_rest_m = math.nan
         self._rs_armed = True
@@ -477,7 +482,7 @@ class StageController:
             # the same d̂ and rebuild the spring at rest if they have one
             self.dob.shift(-self._s_rest)
             st.u_obs_prev_n -= self._s_rest
-        self._s_rest = 0.0
+        self._reset_rest_spring()
         # observer
         old_dob = self.dob
         new_dob = parts.dob
@@ -500,6 +505,7 @@ class StageController:
         # feed-forward
         if parts.ff_rebuilt:
             self._ff_bump = st.u_ff_n  # settled against the new feed-forward's first output in step()
+            self.ff_scale = 1.0  # θ was learned for the old model (the bump above keeps u continuous)
             if parts.ff is not None:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
@@ -563,7 +569,7 @@ class StageController:
                 # within adapt_presliding_m of the last reversal the model error is its stiffness: β, the scale
                 # of the model's input, takes it (dβ/dt = γ·β·d̂/(θ·ΔF̂), ΔF̂ = F̂ − F̂ at the reversal); the
                 # force level θ is left alone
-                df = f_raw - fst.f_rev_n
+                df = ff.model_force_n - fst.f_rev_n  # both the model's own friction force (no effects)
                 if abs(df) >= 0.5 * ffc.adapt_min_force_n:
                     b = ff.input_scale
                     ff.input_scale = min(hi, max(lo, b + gam * dt * d_hat / (th * df) * b))
@@ -596,7 +602,7 @@ class StageController:
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
                      dob: QFilterDob | KalmanDob) -> float:
         """Rest spring (module docstring): at standstill d̂ := d̂ − s, s = LPF_g(k_v·clamp(x − x_r)); at the
-        start of a move, and when |x − x_r| leaves ``rest_spring_range_m`` (the stage is not stuck), s is folded
+        start of a move, and when |x − x_r| leaves ``rest_spring_release_m`` or the stage hunts (it is not stuck), s is folded
         into the observer (d̂ and its input history move by −s: u continuous) and the spring is released; it is
         re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
         ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
@@ -637,7 +643,7 @@ class StageController:
                 return d_hat
             # re-arm bumplessly: the spring starts at its steady force, which the observer takes over first
             self._rs_armed = True
-            s = kv * e_x
+            s = kv * max(-r, min(r, e_x))
             self._s_rest = s
             dob.shift(s)
             self.state.u_obs_prev_n += s
@@ -721,6 +727,8 @@ class StageController:
             # a move starts with the rest spring loaded: _rest_spring folds its force into the observer, which
             # carries it for a while; _adapt leaves it alone for the first adapt_presliding_m of travel
             self._x_rest_m = ref.x_m
+        elif ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0:
+            self._x_rest_m = math.nan  # set again only by a move that starts with the spring loaded
         elif abs(ref.x_m - self._x_rest_m) >= ffc.adapt_presliding_m:
             self._x_rest_m = math.nan
         if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:

@@ -127,6 +127,11 @@ class FrictionFeedforward:
             return ref.x_m, ref.v_m_s
         return (ref.x_m + ref.v_m_s * ta + 0.5 * ref.a_m_s2 * ta * ta, ref.v_m_s + ref.a_m_s2 * ta)
 
+    @property
+    def model_force_n(self) -> float:
+        """The friction model's own force at the last step [N] (before effects, scales and velocity terms)."""
+        return self._f_model
+
     def step(self, dt: float, ref: Reference) -> float:
         """Advance the model copy along the reference; return u_ff [N]."""
         check_dt(dt)
