@@ -73,12 +73,13 @@ class _RxQueue:
     No lost wake-up: a reader registers (``waiting``) and re-checks the deque under the lock before it waits;
     a writer appends first and then looks at ``waiting`` (the GIL orders the two)."""
 
-    __slots__ = ("items", "cond", "waiting")
+    __slots__ = ("items", "cond", "waiting", "closed")
 
     def __init__(self) -> None:
         self.items: deque[can.Message] = deque()
         self.cond = threading.Condition(threading.Lock())
         self.waiting = 0
+        self.closed = False
 
     def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
         self.items.append(item)
@@ -86,8 +87,10 @@ class _RxQueue:
             with self.cond:
                 self.cond.notify()
 
-    def wake_all(self) -> None:
+    def close(self) -> None:
+        """The bus shut down: a reader blocked in :meth:`get` (and any later one) raises ``CanOperationError``."""
         with self.cond:
+            self.closed = True
             self.cond.notify_all()
 
     def get(self, timeout: float | None) -> can.Message | None:
@@ -109,6 +112,8 @@ class _RxQueue:
                         return items.popleft()
                     except IndexError:
                         pass
+                    if self.closed:
+                        raise can.CanOperationError("Cannot operate on a closed bus")
                     if end is None:
                         self.cond.wait()
                     else:
@@ -193,4 +198,4 @@ class InprocBus(can.BusABC):
                     pass
                 if not self.channel and _stock.channels.get(self.channel_id) is self.channel:
                     del _stock.channels[self.channel_id]
-            self.queue.wake_all()
+            self.queue.close()

@@ -113,3 +113,26 @@ def test_a_closed_bus_leaves_the_channel_and_refuses_io(channel):
     from can.interfaces.virtual import channels
 
     assert channel not in channels
+
+
+def test_shutdown_wakes_a_reader_blocked_for_ever(channel):
+    """A reader blocked in ``recv(None)`` when its bus shuts down gets ``CanOperationError`` (it used to be
+    woken and go back to waiting for ever)."""
+    import os
+
+    rx = InprocBus(channel=channel)
+    out: list[object] = []
+
+    def reader() -> None:
+        try:
+            out.append(rx.recv(None))
+        except can.CanOperationError as exc:
+            out.append(exc)
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    while rx.queue.waiting == 0 and t.is_alive():  # until the reader blocks in the queue's wait
+        os.sched_yield()
+    rx.shutdown()
+    t.join(30.0)  # a failure guard: the reader returns at once
+    assert not t.is_alive() and len(out) == 1 and isinstance(out[0], can.CanOperationError), out
