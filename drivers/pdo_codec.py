@@ -82,8 +82,9 @@ class PdoLayout:
         Raises
         ------
         ValueError
-            An entry that is not byte-aligned, an unknown or non-basic data type, a length that differs from
-            the type's, or more than 64 bits in all (one line naming the entry).
+            An entry that is not byte-aligned, an unknown or non-basic data type, a data type that differs from
+            the one CiA 402 defines for the object, a length that differs from the type's, or more than 64 bits
+            in all (one line naming the entry).
         """
         codes = []
         bits = 0
@@ -91,8 +92,13 @@ class PdoLayout:
             index, sub, length = (e >> 16) & 0xFFFF, (e >> 8) & 0xFF, e & 0xFF
             where = f"mapping entry 0x{e:08X} (0x{index:04X}:{sub:02X}, {length} bits)"
             dt = data_type(index, sub)
+            std = CIA402_TYPES.get((index, sub))
             if dt is None:
-                dt = CIA402_TYPES.get((index, sub))
+                dt = std
+            elif std is not None and dt != std:
+                # e.g. a signed torque declared unsigned: the first negative value would not pack
+                raise ValueError(f"{where}: the drive's object dictionary gives data type 0x{dt:02X}, CiA 402 "
+                                 f"defines 0x{std:02X} for this object; correct the EDS")
             if dt is None or dt not in STRUCT_CODES:
                 raise ValueError(f"{where}: data type {'unknown' if dt is None else f'0x{dt:02X}'} is not a "
                                  f"basic type the cyclic codec packs")

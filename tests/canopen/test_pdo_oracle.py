@@ -133,3 +133,16 @@ def test_the_driver_builds_its_codec_from_the_mapping_it_read_back(make_world, m
     drive.write(0.5)
     assert m.fresh and m.status == drive.statusword and world.drive is not None
     assert abs(m.position_m - world.plant.x_m) < 1e-6  # sensor resolution 1 nm
+
+
+def test_an_eds_type_that_contradicts_cia402_is_refused_at_configure_time() -> None:
+    """An EDS that declares the target torque 0x6071 UNSIGNED16 (CiA 402: INTEGER16) would make the first
+    negative torque fail to pack in the cycle (a loop fault); the layout is refused up front, naming it."""
+    def unsigned_torque(index: int, sub: int) -> int | None:
+        return 0x06 if (index, sub) == (0x6071, 0) else pdo_codec.CIA402_TYPES.get((index, sub))
+
+    with pytest.raises(ValueError, match=r"0x6071:00.*0x06.*CiA 402 defines 0x03"):
+        pdo_codec.PdoLayout.from_mapping(pdo_codec.RPDO1_MAPPING, unsigned_torque)
+    # the standard's own types pass, and a negative torque packs
+    std = pdo_codec.PdoLayout.from_mapping(pdo_codec.RPDO1_MAPPING, lambda i, s: pdo_codec.CIA402_TYPES.get((i, s)))
+    std.struct.pack(0x0F, -5)
