@@ -46,15 +46,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 def _parse_fault(spec: str | None) -> tuple[str, float] | None:
     if spec is None:
         return None
-    from stagectl.commission.sequence import VERIFY
+    from stagectl.commission.sequence import EXPERIMENTS, VERIFY
 
     name, _, t = spec.partition("@")
     try:
         at = float(t or "0")
     except ValueError:
         raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {short(spec)}") from None
-    known = ["sanity", "frf", "friction_cv", "reversals", "slow_passes",
-             *(f"verify_{which}_{n}" for which in ("before", "after") for n in VERIFY)]
+    known = [*EXPERIMENTS, *(f"verify_{which}_{n}" for which in ("before", "after") for n in VERIFY)]
     if name not in known:  # a fault that is never injected would let the whole commissioning run
         raise ConfigError(f"--inject-fault: unknown experiment {short(name)} (one of {', '.join(known)})")
     if not (at >= 0 and at < float("inf")):

@@ -89,6 +89,8 @@ PRESLIDING_LOOPS = 6
 PRESLIDING_MOVE_S = 0.75
 
 VERIFY = ("cosine", "triangle", "steps")
+#: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
+EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
 #: (the constant-velocity regression gives the levels to well under 1 %; the pre-sliding regression's
 #: stiffness error is a few per cent)
@@ -313,8 +315,9 @@ class Commissioning:
         # a rough plan for the time-left figures (refined as the sequence learns the stage)
         cv_t = CV_SPEEDS * 2 * (CV_PASS_S + 0.6)
         pl_t = 2 * (2.0 + PRESLIDING_LOOPS * 2 * (PRESLIDING_MOVE_S + 0.1))
-        self._planned = [("sanity", 6.0), ("frf", 1.0 + (FRF_PERIODS + 1) * 1.0), ("friction_cv", cv_t),
-                         ("reversals", 8.0), ("presliding", pl_t), ("slow_passes", 2 * SLOW_PASS_S + 2.0)]
+        plan = {"sanity": 6.0, "frf": 1.0 + (FRF_PERIODS + 1) * 1.0, "friction_cv": cv_t, "reversals": 8.0,
+                "presliding": pl_t, "slow_passes": 2 * SLOW_PASS_S + 2.0}
+        self._planned = [(name, plan[name]) for name in EXPERIMENTS]
         if self.opts.verify:
             for which in ("before", "after"):
                 self._planned += [(f"verify_{which}_{n}", 4.0) for n in VERIFY]

@@ -239,3 +239,17 @@ def test_experiment_tuning_is_the_one_the_identification_was_validated_with(hidd
         worst = max(worst, abs(cmd.terms["u_inertia"] - 2.0 * r.a_m_s2))
         jerk_steps += r.a_m_s2 != 0.0
     assert jerk_steps > 20 and worst == 0.0
+
+
+def test_every_planned_experiment_can_take_an_injected_fault() -> None:
+    """--inject-fault accepts each experiment the sequence runs (the hand-written list once missed
+    ``presliding``) and refuses anything else."""
+    from stagectl.commands.commission import _parse_fault
+    from stagectl.commission.sequence import EXPERIMENTS
+    from stagectl.errors import ConfigError
+
+    assert "presliding" in EXPERIMENTS
+    for name in EXPERIMENTS:
+        assert _parse_fault(f"{name}@0.5") == (name, 0.5)
+    with pytest.raises(ConfigError, match="unknown experiment"):
+        _parse_fault("warp_drive@1")
