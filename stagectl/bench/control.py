@@ -334,8 +334,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     dobs = [base.dob.bandwidth_hz] if args.quick else _floats(args.dob_bandwidths, "--dob-bandwidths")
     n_fc = 1 if args.quick else len(_floats(args.coulomb_levels, "--coulomb-levels"))
     # the plan in simulated runs, for the progress line: each sweep's candidates × scenarios + its steps run,
-    # and the two steps checks; a sweep that rejects candidates on their margins lowers the total
-    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 2}
+    # and the three steps checks (config, tuned, config with the exact model); a sweep that rejects candidates
+    # on their margins, or a tuned design equal to the config's, lowers the total
+    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 3}
 
     def next_run(what: str) -> None:
         tell(args, sims["done"], sims["total"], what)
@@ -399,6 +400,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     steps_t: dict[str, Any] = {}
     for name, ctl_cfg in designs.items():
         if name == "tuned" and ctl_cfg == designs["config"]:
+            sims["total"] -= 1
             continue
         next_run(f"move and settle, the {name} design")
         r = steps_check(cfg, ctl_cfg, model=m_off, hold_s=args.hold)
@@ -415,6 +417,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "rest_margins": rest_margins(ctl_cfg, m_off),
         }
     # diagnosis: the config's design with the *exact* model (plant = model): what is left is not model error
+    next_run("move and settle, the config's design with the exact model")
     r = steps_check(cfg, base, model=m_exact, hold_s=args.hold)
     diag_exact = {"settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],
                   "max_hold_excursion_nm": r["max_hold_excursion_m"] * 1e9, "limit_cycle": r["limit_cycle"],

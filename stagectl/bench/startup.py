@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from stagectl.bench import tell
+
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 TARGET_COLD_S = 2.0
 TARGET_WARM_S = 1.0
@@ -131,21 +133,14 @@ def _one(python: str, config: str, cache: Path) -> dict[str, float]:
     }
 
 
-def _tell(args: argparse.Namespace, done: int, total: int, what: str) -> None:
-    """``stagectl bench``'s progress line, where the command provides one (``args.progress``)."""
-    fn = getattr(args, "progress", None)
-    if fn is not None:
-        fn(done, total, what, 0.0)
-
-
 def _pairs(args: argparse.Namespace, python: str, done: int,
            total: int) -> tuple[dict[str, float], dict[str, float]]:
     """A cold and a warm run of ``python`` with a new private cache (runs ``done`` and ``done + 1`` of ``total``)."""
     who = "baseline" if python != sys.executable else "this build"
     with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
-        _tell(args, done, total, f"run {done + 1} of {total} ({who}), empty numba cache")
+        tell(args, done, total, f"run {done + 1} of {total} ({who}), empty numba cache")
         cold = _one(python, args.config, Path(tmp))
-        _tell(args, done + 1, total, f"run {done + 2} of {total} ({who}), warm numba cache")
+        tell(args, done + 1, total, f"run {done + 2} of {total} ({who}), warm numba cache")
         warm = _one(python, args.config, Path(tmp))
     return cold, warm
 
