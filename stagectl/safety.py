@@ -12,9 +12,11 @@ fault name             condition
                        ``heartbeat_lost``, ``bus_off``, ``sensor_error``, ...)
 ``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample; ``stale_rest_cycles`` while
                        the stage (nearly) stands: reference speed and \\|v̂\\| at the last fresh sample both
-                       <= ``quick_stop_standstill_m_s``, so it travels at most that speed times the gap unseen
-                       (0.1 mm/s · 0.5 s = 50 µm); on a PC without a real-time kernel the drive's process may be
-                       held off the CPU for 0.1-0.4 s
+                       <= ``quick_stop_standstill_m_s``. Unseen it travels that speed times the gap (0.1 mm/s ·
+                       0.5 s = 50 µm) plus what the held force does: nothing while friction holds it (stuck),
+                       up to (F_held/m)·gap²/2 if it slides (10 mN on 2 kg: 0.6 mm in 0.5 s). Use it only
+                       where the held force at rest stays below break-away; on a PC without a real-time kernel
+                       the drive's process may be held off the CPU for 0.1-0.4 s
 ``position_limit``     x < ``min_position_m`` or x > ``max_position_m`` (soft limits)
 ``following_error``    \\|x_ref − x\\| > ``following_error_m`` for longer than ``following_error_time_s`` (fresh
                        samples only: a stale one holds the old position)
@@ -80,8 +82,8 @@ class SafetyConfig:
     stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
     stale_rest_cycles: int | None = param(
         None, desc="the same while the stage (nearly) stands: reference speed and |v| at the last fresh sample <= "
-        "quick_stop_standstill_m_s (it travels at most that speed times the gap unseen; never below stale_cycles; "
-        "None: stale_cycles)", ge=1)
+        "quick_stop_standstill_m_s (unseen it travels that speed times the gap, plus (F_held/m)*gap^2/2 if the "
+        "held force makes it slide; never below stale_cycles; None: stale_cycles)", ge=1)
     jump_margin_m: float = param(
         1e-6, unit="m", desc="sensor noise and sampling-jitter margin added to the physical per-cycle position bound "
         "(position_jump)", ge=0)
