@@ -546,15 +546,15 @@ class StageController:
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
 
-    def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob
-               ) -> tuple[float, float]:
+    def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
+               at_rest: bool) -> tuple[float, float]:
         """Feed-forward scale adaptation (module docstring): θ += γ·dt·d̂/F̂ while the reference moves,
         |F̂| >= ``adapt_min_force_n`` and no learned force is applied (one learner at a time: with ILC on, θ
         stays where it is); the force θ takes over leaves the observer (``dob.shift``): u unchanged."""
         ffc = self.cfg.feedforward
         th = self.ff_scale
         f_raw = u_ff / th
-        if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) or abs(f_raw) < ffc.adapt_min_force_n:
+        if at_rest or abs(f_raw) < ffc.adapt_min_force_n:
             return u_ff, d_hat
         if abs(ref.x_m - self._x_rest_m) < ffc.adapt_presliding_m:
             # the first adapt_presliding_m after a move started with the rest spring folded into the observer:
@@ -630,7 +630,6 @@ class StageController:
             if s != 0.0:
                 self._s_rest = 0.0
                 dob.shift(-s)
-                self.state.u_obs_prev_n -= s
                 return d_hat - s
             return d_hat
         kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
@@ -646,7 +645,6 @@ class StageController:
             s = kv * max(-r, min(r, e_x))
             self._s_rest = s
             dob.shift(s)
-            self.state.u_obs_prev_n += s
             return d_hat
         target = kv * max(-r, min(r, e_x))
         a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz / self.timing_scale * dt)
@@ -723,19 +721,19 @@ class StageController:
         # observer (residual form: its input is the previous command minus the previous friction FF)
         dob = self.dob
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
-        if self._s_rest != 0.0 and not (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0):
+        at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+        if self._s_rest != 0.0 and not at_rest:
             # a move starts with the rest spring loaded: _rest_spring folds its force into the observer, which
             # carries it for a while; _adapt leaves it alone for the first adapt_presliding_m of travel
             self._x_rest_m = ref.x_m
-        elif ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0:
+        elif at_rest:
             self._x_rest_m = math.nan  # set again only by a move that starts with the spring loaded
         elif abs(ref.x_m - self._x_rest_m) >= ffc.adapt_presliding_m:
             self._x_rest_m = math.nan
         if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:
-            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob)
+            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob, at_rest)
         # feedback + clamp
         pid = self.pid
-        at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
         if dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0:
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest, dob)
         if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
@@ -749,7 +747,6 @@ class StageController:
             i_n = pid.state.i_n
             dob.shift(i_n)
             d_hat += i_n
-            st.u_obs_prev_n += i_n
             pid.state.i_n = 0.0
         u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
