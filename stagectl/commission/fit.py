@@ -342,7 +342,6 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
     for r in rows:
         r.y = r.target(delay)
     _k, _c, res_rigid = _presliding_lsq(rows, np.array([PRESLIDING_DELTA_M[0]]), fs, lam)
-    _k, _c, resid = _presliding_lsq(rows, deltas, fs, lam, c)
     keep = k > 0
     order = np.argsort(deltas[keep])
     kk, dd = k[keep][order], deltas[keep][order]
