@@ -794,10 +794,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: write() needs an open, configured drive (state {self._state.value})")
 
     def _send_rpdo(self, cw: int, torque: int) -> None:
-        try:
-            self._bus.send(self._rpdo1.encode(cw, torque))  # type: ignore[union-attr]
-        except (can.CanError, OSError) as exc:
-            self._note(DeviceFault(FaultKind.BUS_ERROR, f"transmit failed: {exc}"))
+        self._send(self._rpdo1.encode(cw, torque))
 
     def quick_stop(self) -> None:
         """Controlword QUICK STOP with zero torque, now and in every following ``write``. Real-time safe."""

@@ -33,6 +33,8 @@ from typing import Any
 
 import can
 
+from stagectl.drivers.inproc import copy_message
+
 __all__ = ["RPDO1", "RPDO1_MAPPING", "STRUCT_CODES", "TPDO1", "TPDO1_MAPPING", "TPDO2", "TPDO2_MAPPING",
            "CIA402_TYPES", "CyclicFrame", "PdoLayout", "Rpdo1Encoder", "decode_tpdo1", "decode_tpdo2", "frame"]
 
@@ -136,12 +138,7 @@ class CyclicFrame(can.Message):
     __slots__ = ()
 
     def __deepcopy__(self, memo: dict[int, Any] | None = None) -> can.Message:
-        return can.Message(timestamp=self.timestamp, arbitration_id=self.arbitration_id,
-                           is_extended_id=self.is_extended_id, is_remote_frame=self.is_remote_frame,
-                           is_error_frame=self.is_error_frame, channel=self.channel, dlc=self.dlc,
-                           data=bytearray(self.data), is_fd=self.is_fd, is_rx=self.is_rx,
-                           bitrate_switch=self.bitrate_switch, error_state_indicator=self.error_state_indicator,
-                           check=False)
+        return copy_message(self)
 
 
 def frame(cob_id: int, data: bytes = b"") -> CyclicFrame:
