@@ -239,16 +239,22 @@ class _GramStore:
 
 
 def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, keys: Sequence[str | None],
-          ykey: str) -> tuple[FloatArray, FloatArray, float]:
+          ykey: str, rk: str | None = None) -> tuple[FloatArray, FloatArray, float]:
     """``AᵀA``, ``Aᵀy`` and ``yᵀy`` over ``rows``, with every product of two cached (fit-independent) columns
     cached on ``sig`` (:class:`_GramStore`): a search that changes one column computes one row of the Gram
     matrix, not all of it, and reads the rest in one step."""
-    rk = "rows:" + str(hash(rows.tobytes()))
+    if rk is None:  # the rows' key (fit_linear passes the one it made)
+        rk = "rows:" + str(hash(rows.tobytes()))
     stores = cast(dict[str, _GramStore], sig.cache.setdefault("_gram", {}))
     gs = stores.get(rk)
     if gs is None:
         gs = stores[rk] = _GramStore()
     rowcols = cast(dict[str, FloatArray], sig.cache.setdefault("_rowcols", ArrayCache()))
+    # the rows as indices: ``v.take(idx)`` is ``v[rows]`` (the same values, contiguous) at a third of the cost
+    idx_of = cast(dict[str, npt.NDArray[np.intp]], sig.cache.setdefault("_rowidx", {}))
+    idx = idx_of.get(rk)
+    if idx is None:
+        idx = idx_of[rk] = np.flatnonzero(rows)
     p = len(a)
     allk = [*keys, ykey]
     allv = [*a, y]
@@ -260,11 +266,11 @@ def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, key
         if v is None:
             k = allk[j]
             if k is None:
-                v = allv[j][rows]
+                v = allv[j].take(idx)
             else:
                 v = rowcols.get(rk + "|" + k)
                 if v is None:
-                    v = np.ascontiguousarray(allv[j][rows])
+                    v = allv[j].take(idx)
                     rowcols[rk + "|" + k] = v
             vecs[j] = v
         return v
@@ -413,7 +419,8 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     previous fit (friction scaling, friction-following columns)."""
     # the searches ask for the same fit again (the centre of each refinement grid, the winner refitted, the
     # clean-up steps): the result depends on the hypothesis and the rows only, so it is kept on the signals
-    key = ("rows:" + str(hash(rows.tobytes())), h.effects, repr(sorted(h.shapes.items())),
+    rk = "rows:" + str(hash(rows.tobytes()))
+    key = (rk, h.effects, repr(sorted(h.shapes.items())),
            repr(sorted(h.theta.items())), h.fixed_mass_kg, h.x_center_m, repr(h.given_spec))
     memo = cast(dict[object, FitResult], sig.cache.setdefault("_fits", {}))
     hit = memo.get(key)
@@ -425,16 +432,17 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     # the passive set of the last bounded fit with the same columns starts the next one (a shape search
     # refits the same columns many times)
     warm = cast(dict[object, npt.NDArray[np.bool_]], sig.cache.setdefault("_passive", {}))
+    n = int(rows.sum())
     for _ in range(passes):
         cols, st, y = _filtered_design(sig, hh)
-        g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey)
+        g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey, rk)
         nonneg = [c.nonneg for c in cols]
-        wkey = (key[0], tuple(c.name for c in cols))
-        th, rss = solve_gram(nonneg, g, b, yy, int(rows.sum()), warm.get(wkey))
+        wkey = (rk, tuple(c.name for c in cols))
+        th, rss = solve_gram(nonneg, g, b, yy, n, warm.get(wkey))
         warm[wkey] = ~np.asarray(nonneg, dtype=bool) | (th > 0.0)
         hh.theta = dict(zip((c.name for c in cols), (float(v) for v in th)))
-    memo[key] = FitResult(hh.copy(), float(rss), int(rows.sum()))
-    return FitResult(hh, float(rss), int(rows.sum()))
+    memo[key] = FitResult(hh.copy(), float(rss), n)
+    return FitResult(hh, float(rss), n)
 
 
 def residual(sig: Signals, h: Hyp) -> FloatArray:

@@ -107,6 +107,11 @@ def write_outputs(res: dsc.DiscoveryResult, out_dir: str | Path, sources: dict[s
 #: at most this many points per scatter series: the residual-by-position/velocity clouds of a long recording
 #: look the same thinned evenly, and Agg draws markers one by one
 MAX_SCATTER_POINTS = 4000
+#: PNG encoder options: zlib level 1 instead of PIL's 6 (a third of the encoding time for files ~20 % larger;
+#: the pixels are the same). Titles are placed at y = 1 explicitly (``set_title(..., y=1.0)``): the automatic
+#: placement measures every tick label's extent to avoid top-side labels these axes do not have, the same
+#: place for a quarter of the drawing time.
+_PNG = {"compress_level": 1}
 
 
 def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
@@ -135,12 +140,12 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     ax[0].plot(t, r1p, lw=0.6, label=f"final model (RMS {res.gap_after:.4g} N)")
     ax[0].set_ylabel("force residual [N]")
     ax[0].legend(loc="upper right", fontsize=8)
-    ax[0].set_title("validation residual over time")
+    ax[0].set_title("validation residual over time", y=1.0)
     ax[1].plot(t, sig.xf, lw=0.8, color="k")
     ax[1].set_ylabel("position [m]")
     ax[1].set_xlabel("time [s]")
     fig.subplots_adjust(left=0.08, right=0.98, top=0.95, bottom=0.09, hspace=0.12)  # fixed: tight_layout draws twice
-    fig.savefig(out / "residual_time.png", dpi=90)
+    fig.savefig(out / "residual_time.png", dpi=90, pil_kwargs=_PNG)
     files.append("residual_time.png")
 
     regs = regimes(sig, rows)
@@ -153,10 +158,10 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     ax.barh(y + 0.2, a, 0.4, label="final model")
     ax.set_yticks(y, [n.split(" (")[0] for n in names], fontsize=8)
     ax.set_xlabel("RMS force residual [N]")
-    ax.set_title("validation residual by regime")
+    ax.set_title("validation residual by regime", y=1.0)
     ax.legend(fontsize=8)
     fig.subplots_adjust(left=0.2, right=0.98, top=0.9, bottom=0.13)
-    fig.savefig(out / "residual_regimes.png", dpi=90)
+    fig.savefig(out / "residual_regimes.png", dpi=90, pil_kwargs=_PNG)
     files.append("residual_regimes.png")
 
     fig, ax = subplots(1, 2, figsize=(11, 4))
@@ -170,10 +175,10 @@ def _plots(res: dsc.DiscoveryResult, out: Path) -> list[str]:
     for a_ in ax:
         a_.set_ylabel("force residual [N]")
         a_.legend(fontsize=8, markerscale=8)
-    ax[0].set_title("residual by position")
-    ax[1].set_title("residual by velocity")
+    ax[0].set_title("residual by position", y=1.0)
+    ax[1].set_title("residual by velocity", y=1.0)
     fig.subplots_adjust(left=0.07, right=0.99, top=0.92, bottom=0.13, wspace=0.25)
-    fig.savefig(out / "residual_position_velocity.png", dpi=90)
+    fig.savefig(out / "residual_position_velocity.png", dpi=90, pil_kwargs=_PNG)
     files.append("residual_position_velocity.png")
     return files
 
