@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import numpy.typing as npt
 from numba import njit
-
-from stagectl.jit import kernel
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -52,21 +48,4 @@ def first_order_lag(e_ss: FloatArray, dt: float, tau: float, e0: float) -> Float
     for k in range(1, n):
         e = e_ss[k] + (e - e_ss[k]) * a
         out[k] = e
-    return out
-
-
-@kernel
-def sin_cos_rows(a: FloatArray, lam: float) -> FloatArray:  # pragma: no cover - compiled
-    """``[sin(φ), cos(φ)]`` (shape (2, n)) of ``φ = a/λ``, each φ the same double numpy's ``a / lam`` gives.
-
-    The same libm ``sin``/``cos`` numpy calls for float64 (bit for bit where numpy's float64 sine is libm's,
-    tests/ident/test_speed_equivalence.py), but LLVM pairs the two calls on one argument into one ``sincos``:
-    0.6 ms instead of 1.0 ms for 25 000 samples, and the discovery's periodic searches build a few hundred of
-    these pairs."""
-    n = a.shape[0]
-    out = np.empty((2, n))
-    for i in range(n):
-        ph = a[i] / lam
-        out[0, i] = math.sin(ph)
-        out[1, i] = math.cos(ph)
     return out

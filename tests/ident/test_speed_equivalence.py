@@ -1,12 +1,10 @@
 """Rewrites made for speed give the results of the plain code they replaced, bit for bit (discovery's
-reports do not move): the reversal distance, vectorised, against its sample-by-sample loop; the compiled
-sin/cos pair of the periodic columns against numpy's sin and cos."""
+reports do not move): the reversal distance, vectorised, against its sample-by-sample loop."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from stagectl.ident._kernels import sin_cos_rows
 from stagectl.ident.signals import _reversal_distance
 
 
@@ -33,18 +31,3 @@ def test_vectorised_reversal_distance_equals_the_loop() -> None:
         xf = rng.normal(0.0, 1.0, n).cumsum()
         th = float(rng.uniform(0.0, 1.5))
         assert np.array_equal(_reversal_distance(xf, v, th), _reversal_distance_loop(xf, v, th))
-
-
-def test_compiled_sin_cos_pair_equals_numpy() -> None:
-    """Phases as the periodic searches make them (2π·x/λ over a travel of many wavelengths, up to ~1e5 rad),
-    plus special values: the one-pass sincos gives numpy's sin and cos exactly."""
-    rng = np.random.default_rng(1)
-    x = np.concatenate([rng.uniform(-0.3, 0.3, 20000), [0.0, -0.0, 1e-300, np.inf, -np.inf, np.nan]])
-    a = np.ascontiguousarray(2.0 * np.pi * x)
-    for lam in (2.5e-3, 1.7e-5, 0.31, 3.0):
-        got = sin_cos_rows(a, lam)
-        ph = 2.0 * np.pi * x / lam
-        with np.errstate(invalid="ignore"):  # sin(±inf) is NaN
-            want_sin, want_cos = np.sin(ph), np.cos(ph)
-        assert np.array_equal(got[0], want_sin, equal_nan=True)
-        assert np.array_equal(got[1], want_cos, equal_nan=True)
