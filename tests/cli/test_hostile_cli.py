@@ -56,6 +56,10 @@ HOSTILE = [
     "discover {rec} --out {tmp}/d --cutoff-hz 10000",
     "discover {rec} --out {tmp}/d --max-rounds -1",
     "tune --config config/sim.yaml --bandwidth-hz -3",
+    "tune --config config/sim.yaml --period-s 1e-9",  # was a ZeroDivisionError (internal error, exit 70)
+    "tune --config config/sim.yaml --delay-samples 100000",  # was a MemoryError: a 10^5-state model
+    "tune --config config/sim.yaml --dob-bandwidth-hz 1e6",  # above Nyquist: was designed and refused (exit 1)
+    "tune --mass-kg 2 --period-s 1",
     # benchmarks: every numeric option checked before any work; names checked against what exists
     "bench loop --duration -1",
     "bench loop --duration nan",
