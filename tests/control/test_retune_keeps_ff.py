@@ -4,6 +4,7 @@ feed-forward running: its model state, θ and β survive; a key that defines the
 from __future__ import annotations
 
 import dataclasses
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +49,20 @@ def _running(cfg):
     ("adapt_bandwidth_hz: 1.0", "adapt_bandwidth_hz: 1.0"),  # nothing changed, the model file read again
 ])
 def test_live_keys_keep_the_feedforward_and_apply(repo_root, tmp_path, old, new):
+    from stagectl.control.controller import FF_LIVE_KEYS
+
     a, b = _reload(repo_root, tmp_path, old, new)
     ctl = _running(a)
     ff, th, beta = ctl.ff, ctl.ff_scale, ctl.ff.input_scale
     mstate = ff.model_state.copy()
-    ctl.request_retune(b.controller)
+    sent = pickle.loads(pickle.dumps(b.controller))  # as the daemon hands it to its loop process
+    ctl.request_retune(sent)
     dt = a.loop.period_s
     x_r = 1e-3 * 60 * dt
     ctl.step(dt, x_r - 50e-9, Reference(x_r, 0.0, 0.0))  # the swap happens at this step's start
-    assert ctl.ff is ff and ctl.cfg.feedforward == b.controller.feedforward  # the new live value is in force
+    assert ctl.ff is ff and ctl.cfg is sent  # the new live values are in force
+    assert {k: getattr(ctl.cfg.feedforward, k) for k in FF_LIVE_KEYS} == \
+        {k: getattr(b.controller.feedforward, k) for k in FF_LIVE_KEYS}
     assert ctl.ff_scale == th and ff.input_scale == beta
     assert not np.array_equal(ff.model_state, np.zeros_like(mstate)) and ctl.state.u_ff_n != 0.0
 
