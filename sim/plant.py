@@ -287,6 +287,17 @@ def _finish(ps: FloatArray, t: float, fo: float, ua: float, x: float, v: float, 
     store_state(ps, x, v, ff, stuck, win, wf, wo)
 
 
+def plain_effects(ep: FloatArray) -> bool:
+    """Whether the packed effects ``ep`` (:meth:`~stagectl.friction.Effects.packed`) are the plain loops' kind:
+    no friction modifier (asymmetry, position ripple), no velocity force (viscous asymmetry) and a constant
+    F_other (no cogging, no spring; an offset is constant). The delay is the caller's to check."""
+    return bool(ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0 and ep[11] == 0.0)
+
+
+#: :func:`plain_effects` for the compiled loops (pasted in)
+_plain_effects = kernel(inline="always")(plain_effects)
+
+
 def _make_plain(kstep: Any) -> Any:
     """The plain loop (no delay, no Karnopp band, no friction modifier, constant F_other) specialised on one
     friction kernel; ``kstep`` is pasted into the sub-step (``stagectl.jit.inlined``: called as a function it
@@ -298,8 +309,7 @@ def _make_plain(kstep: Any) -> Any:
     @kernel(_nrt=False)
     def plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of):  # type: ignore[no-untyped-def]  # pragma: no cover
         """``u[k]`` held for ``dt`` in ``nsub`` sub-steps each (see the module docstring)."""
-        if par[1] != 0.0 or par[3] != 0.0 or ep[0] != 0.0 or ep[1] != 0.0 or ep[4] != 0.0 or ep[8] != 0.0 \
-                or ep[11] != 0.0:
+        if par[1] != 0.0 or par[3] != 0.0 or not _plain_effects(ep):
             raise ValueError("plain plant loop called with delay, stick band or position effects")
         inv_m = 1.0 / par[0]
         h = dt / nsub
@@ -345,8 +355,7 @@ def _make_integrate(kstep: Any, plain_loop: Any) -> Any:
         fb = par[1]
         dv = par[2]
         tau = par[3]
-        if (tau == 0.0 and fb == 0.0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
-                and ep[11] == 0.0):
+        if tau == 0.0 and fb == 0.0 and _plain_effects(ep):
             plain_loop(kp, fs, ep, par, ps, ht, hu, nh0, u, dt, nsub, every, ot, ox, ov, of)
             return
         h = dt / nsub
@@ -380,8 +389,7 @@ def _make_batch(kstep: Any, integrate: Any) -> Any:
         constant F_other) interleave the sets per time step: their dependency chains overlap in the CPU.
         Anything else runs :func:`integrate` set by set."""
         n_sets = P.shape[0]
-        plain = (nh0 < 0 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
-                 and ep[11] == 0.0)
+        plain = nh0 < 0 and _plain_effects(ep)
         for q in range(n_sets):
             if PAR[q, 1] != 0.0 or PAR[q, 3] != 0.0:
                 plain = False
@@ -508,8 +516,7 @@ class StagePlant:
         self._kstep = kern.step
         ep = cfg.effects.packed()
         plain = (kern.breakaway_n == 0.0 and not (cfg.effects.delay is not None and cfg.effects.delay.delay_s > 0.0)
-                 and ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0
-                 and ep[11] == 0.0)
+                 and plain_effects(ep))
         self._integrate, _ = loops_for(kern.step, plain_only=plain)
         self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
         self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
@@ -821,8 +828,7 @@ def simulate_batch(cfg: PlantConfig, frictions: Sequence[FrictionModel], u: npt.
     ox, ov, of = (np.empty((P.shape[0], n)) for _ in range(3))  # not written are not touched (no page faults)
     ksets = getattr(type(frictions[0]), "_ksets", None)
     ep = plant._ep
-    plain_fx = ep[0] == 0.0 and ep[1] == 0.0 and ep[4] == 0.0 and ep[8] == 0.0 and ep[11] == 0.0  # no effects
-    if (ksets is not None and plant._tau == 0.0 and plain_fx and all(k.breakaway_n == 0.0 for k in kerns)
+    if (ksets is not None and plant._tau == 0.0 and plain_effects(ep) and all(k.breakaway_n == 0.0 for k in kerns)
             and S.shape[1] > 0 and float(plant._ps[_FF]) == 0.0 and float(plant._ps[_V]) == 0.0):
         # branch-free many-sets kernel, parameters and states one column per set
         PT = np.ascontiguousarray(P.T)

@@ -99,6 +99,13 @@ def _end_progress_line() -> None:
         pass
 
 
+def _remove_created_if_empty() -> None:
+    """A command refused (bad data found after its ``--out`` directory was made) leaves no empty directory."""
+    from stagectl.outputs import remove_created_if_empty
+
+    remove_created_if_empty()
+
+
 def _after_interrupt(args: argparse.Namespace, started: float) -> str:
     """What an interrupted command leaves: the output directories it created and left empty are removed; the
     outputs it wrote to (files changed since it started) are named as incomplete; otherwise nothing."""
@@ -141,6 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except StageError as exc:
         _end_progress_line()
+        _remove_created_if_empty()
         msg = str(exc)
         lines = [line for line in msg.splitlines() if line.strip()] or [type(exc).__name__]
         for line in lines:  # one line per problem, each greppable as an error
@@ -154,6 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except OSError as exc:  # the environment, not a bug: disk full, permission, a path that vanished
         _end_progress_line()
+        _remove_created_if_empty()
         name = exc.filename if exc.filename is not None else "output"
         print(f"stagectl: error: {name}: {exc.strerror or exc}", file=sys.stderr)
         return 2

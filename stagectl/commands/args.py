@@ -33,3 +33,18 @@ def number(unit: str, *, lo: float | None = None, hi: float | None = None, lo_op
     convert.__name__ = "integer" if integer else "number"  # argparse names the type in some messages
     return convert
 
+
+
+#: rows of telemetry a foreground ``run`` or ``simulate`` keeps in memory (its recording, preallocated for the
+#: duration asked): 2^25, 9.3 h at 1 kHz, about 5 GB at 18 columns
+MAX_RECORDED_ROWS = 1 << 25
+
+
+def recorded_duration_problem(option: str, duration_s: float, period_s: float) -> str | None:
+    """Why ``duration_s`` cannot be recorded in memory at ``period_s`` (None: it can); ``option`` names the
+    command-line option that set it."""
+    rows = duration_s / period_s
+    if rows <= MAX_RECORDED_ROWS:
+        return None
+    return (f"{option}: {duration_s:.6g} s is {rows:.3g} periods of {period_s * 1e3:g} ms; the recording kept in "
+            f"memory holds at most {MAX_RECORDED_ROWS} rows ({MAX_RECORDED_ROWS * period_s:.6g} s at this period)")

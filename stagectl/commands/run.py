@@ -21,6 +21,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from stagectl.commands.args import recorded_duration_problem
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 from stagectl.runtime.status import LoopResult, LoopStatus
@@ -74,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = load_app_config(args.config)
+    too_long = None if args.duration is None else recorded_duration_problem("--duration", args.duration,
+                                                                            cfg.loop.period_s)
+    if too_long:
+        raise ConfigError(too_long)
     if getattr(args, "ilc", False):
         cfg = dataclasses.replace(cfg, ilc=dataclasses.replace(cfg.ilc, enabled=True, autostart=True))
     out = Path(args.out) if args.out else Path("runs") / datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")

@@ -16,7 +16,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from stagectl.commands.args import number
+from stagectl.commands.args import number, recorded_duration_problem
 from stagectl.commands.progress import Progress, ProgressSink
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
@@ -73,14 +73,19 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
         cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
     sc = get_scenario(scenario)
     if repetitions is not None and not 1 <= repetitions <= 100000:
-        raise ConfigError(f"--repetitions: must be >= 1 (got {repetitions})")
-    prepare_out_dir(out_dir)
+        raise ConfigError(f"--repetitions: must be between 1 and 100000 (got {repetitions})")
+    given_s = duration_s
     if duration_s is None:
         x0 = cfg.sim.plant.x0_m if cfg.sim is not None else 0.0
         one = sc.duration_s(x0) if sc is not None else 1.0
         duration_s = (one + cfg.loop.period_s) * (repetitions or 1) + 0.2
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise ConfigError(f"--duration: must be > 0 s (got {duration_s})")
+    too_long = recorded_duration_problem("--duration" if given_s is not None else "--repetitions", duration_s,
+                                         cfg.loop.period_s)
+    if too_long:
+        raise ConfigError(too_long)
+    prepare_out_dir(out_dir)
     progress = Progress("simulate", duration_s, "s simulated", quiet=quiet)
     interrupted = False
     with build_stage(cfg, clock=SimClock()) as stage:

@@ -28,6 +28,7 @@ step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -76,9 +77,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.set_defaults(func=run)
 
 
+def _bounds(cls: type, name: str) -> tuple[float, float]:
+    """The [ge, le] bounds of the configuration key ``name`` of the schema dataclass ``cls``."""
+    meta = next(f.metadata for f in dataclasses.fields(cls) if f.name == name)
+    return float(meta["ge"]), float(meta["le"])
+
+
 def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import IoKind, load_app_config
-    from stagectl.control.controller import controller_mass
+    from stagectl.control.controller import ControllerConfig, controller_mass
+    from stagectl.runtime.config import LoopConfig
 
     out: dict[str, Any] = {"controller": None, "mass_kg": None, "period_s": None, "delay_samples": None,
                            "app": None}
@@ -100,18 +108,23 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         if flag is not None:
             out[key] = flag
     problems = []
+    # the bounds a configuration takes (loop.period_s, controller.design_delay_samples): outside them the
+    # analysis divides by zero (a period of 1 ns) or allocates a state space of the delay's size (10^5 cycles)
+    t_lo, t_hi = _bounds(LoopConfig, "period_s")
+    d_lo, d_hi = _bounds(ControllerConfig, "design_delay_samples")
     if out["mass_kg"] is None:
         problems.append("--mass-kg: required (no controller.mass_kg or plant mass in the config)")
     elif not (out["mass_kg"] > 0 and math.isfinite(out["mass_kg"])):
         problems.append(f"--mass-kg: must be > 0 kg (got {out['mass_kg']})")
     if out["period_s"] is None:
         problems.append("--period-s: required (no loop.period_s in the config)")
-    elif not (out["period_s"] > 0 and math.isfinite(out["period_s"])):
-        problems.append(f"--period-s: must be > 0 s (got {out['period_s']})")
+    elif not t_lo <= out["period_s"] <= t_hi:
+        problems.append(f"--period-s: must be within [{t_lo:g}, {t_hi:g}] s, as loop.period_s (got {out['period_s']:g})")
     if out["delay_samples"] is None:
         out["delay_samples"] = 1
-    if out["delay_samples"] < 0:
-        problems.append(f"--delay-samples: must be >= 0 (got {out['delay_samples']})")
+    if not d_lo <= out["delay_samples"] <= d_hi:
+        problems.append(f"--delay-samples: must be within [{d_lo:g}, {d_hi:g}] periods, as "
+                        f"controller.design_delay_samples (got {out['delay_samples']})")
     bw = args.bandwidth_hz
     if bw is not None and not (bw > 0 and math.isfinite(bw)):
         problems.append(f"--bandwidth-hz: must be > 0 Hz (got {bw})")
@@ -120,6 +133,9 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     dbw = args.dob_bandwidth_hz
     if dbw is not None and not (dbw > 0 and math.isfinite(dbw)):
         problems.append(f"--dob-bandwidth-hz: must be > 0 Hz (got {dbw})")
+    elif out["period_s"] is not None and dbw is not None and dbw >= 0.5 / out["period_s"]:
+        problems.append(f"--dob-bandwidth-hz: {dbw:g} Hz must be below the Nyquist frequency "
+                        f"{0.5 / out['period_s']:g} Hz")
     if problems:
         raise ConfigError(problems)
     return out

@@ -177,6 +177,28 @@ class FeedforwardConfig:
         "configuration loader, not a YAML key", parse=lambda value, path, problems: _not_a_key(path, problems))
 
 
+#: FeedforwardConfig keys read live at each step: a retune that changes only these keeps the feed-forward object
+#: (its friction state, θ and β); any other key defines the friction feed-forward and rebuilds it
+FF_LIVE_KEYS = frozenset({"inertia", "inertia_lookahead", "mass_kg", "rest_sync_hz", "rest_sync_max_step_m",
+                          "adapt_bandwidth_hz", "adapt_min_force_n", "adapt_presliding_m",
+                          "adapt_max_change_fraction"})
+
+
+def same_friction_ff(a: FeedforwardConfig, b: FeedforwardConfig) -> bool:
+    """Whether ``a`` and ``b`` define the same feed-forward object: equal in every key but :data:`FF_LIVE_KEYS`,
+    models by value (their ``spec()``: two loads of one model file are the same model; ``model_file``, the
+    file's name, is left out for the model the loader resolved from it)."""
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if f.name in FF_LIVE_KEYS or x is y or (f.name == "model_file" and a.model is not None):
+            continue
+        if type(x) is type(y) and hasattr(x, "spec"):
+            x, y = x.spec(), y.spec()
+        if x != y:
+            return False
+    return True
+
+
 def _not_a_key(path: str, problems: list[str]) -> None:
     """Parse hook of :attr:`FeedforwardConfig.model`: the loader fills it, a YAML file may not."""
     problems.append(f"{path}: unknown key (the model is given with friction: or model_file:)")
@@ -382,7 +404,7 @@ class StageController:
         if problems:
             raise ConfigError(problems)
         ffc = cfg.feedforward
-        same_ff = old is not None and old.cfg.feedforward == ffc
+        same_ff = old is not None and same_friction_ff(old.cfg.feedforward, ffc)
         sm = _model_of(cfg, self._model_arg)
         mass = controller_mass(cfg, sm)
         if mass is None:  # excluded by check_controller
@@ -468,9 +490,10 @@ class StageController:
 
         PID: the PID term keeps its value (integrator absorbs the gain change). Observer of the same kind:
         d̂ keeps its value. Observer switched off: its last d̂ moves into the integrator; switched on: it
-        starts at d̂ = 0. Feed-forward changed: the new one starts relaxed at the current reference and the
-        difference Δ (old − new force) moves into the observer's estimate (``dob.shift``) or, without an
-        observer, into the integrator.
+        starts at d̂ = 0. Feed-forward changed (a key outside :data:`FF_LIVE_KEYS`): the new one starts relaxed
+        at the current reference and the difference Δ (old − new force) moves into the observer's estimate
+        (``dob.shift``) or, without an observer, into the integrator; else the running one (state, θ, β) goes on
+        with the new live keys.
         """
         self._apply(self.prepare_retune(new_cfg))
 
@@ -857,6 +880,7 @@ __all__ = [
     "ControllerConfig",
     "ControllerState",
     "DobConfig",
+    "FF_LIVE_KEYS",
     "FeedforwardConfig",
     "PidConfig",
     "StageController",
@@ -864,4 +888,5 @@ __all__ = [
     "controller_from_mapping",
     "controller_mass",
     "resolve_model",
+    "same_friction_ff",
 ]

@@ -42,6 +42,9 @@ HOSTILE = [
     "simulate --config config/sim.yaml --out {tmp}/o --tolerance -1",
     "simulate --config config/sim.yaml --out {tmp}/o --tolerance abc",
     "simulate --config config/sim.yaml --out {tmp}/o --duration 0",
+    "simulate --config config/sim.yaml --out {tmp}/o --duration 1e12",  # was a MemoryError (128 PiB recording)
+    "simulate --config config/sim.yaml --out {tmp}/o --scenario steps --repetitions 100000",
+    "run --config config/sim.yaml --duration 1e12 --out {tmp}/o",
     "status --timeout -1 --socket {tmp}/none.sock",
     "status --timeout inf --socket {tmp}/none.sock",
     "move --to nan --socket {tmp}/none.sock",
@@ -56,6 +59,10 @@ HOSTILE = [
     "discover {rec} --out {tmp}/d --cutoff-hz 10000",
     "discover {rec} --out {tmp}/d --max-rounds -1",
     "tune --config config/sim.yaml --bandwidth-hz -3",
+    "tune --config config/sim.yaml --period-s 1e-9",  # was a ZeroDivisionError (internal error, exit 70)
+    "tune --config config/sim.yaml --delay-samples 100000",  # was a MemoryError: a 10^5-state model
+    "tune --config config/sim.yaml --dob-bandwidth-hz 1e6",  # above Nyquist: was designed and refused (exit 1)
+    "tune --mass-kg 2 --period-s 1",
     # benchmarks: every numeric option checked before any work; names checked against what exists
     "bench loop --duration -1",
     "bench loop --duration nan",
@@ -131,8 +138,12 @@ def test_hostile_arguments_give_one_error_line_and_exit_2(case: str, rec: Path, 
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(REPO)
     argv = shlex.split(case.format(rec=rec, tmp=tmp_path))
+    dirs_before = {p for p in tmp_path.rglob("*") if p.is_dir()}
     rc, err = _run(argv, capsys)  # an uncaught exception fails the test here: that is a traceback
     lines = [line for line in err.splitlines() if line.strip()]
+    # a refused command leaves no empty output directory behind (it made --out before finding the problem)
+    left = [p for p in tmp_path.rglob("*") if p.is_dir() and p not in dirs_before and not any(p.iterdir())]
+    assert not left, (left, err)
     if argv[0] == "daemon":  # the service logs to the journal (<3> = error priority), not as a CLI error
         lines = [line for line in lines if line.startswith("<3>")]
         assert rc == 2 and lines and "Traceback" not in err, err
