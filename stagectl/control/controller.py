@@ -81,7 +81,7 @@ is continuous. The observer's estimate in the residual form is exactly the model
 over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
 signal, so it carries over to any motion (ILC learns a signal per motion: with ILC on, θ and β stay put).
 
-Learning from earlier moves (``feedforward.learn_moves_gain`` = κ, with an observer and ``kind: model``): the
+Learning from earlier moves (``feedforward.learn_moves_fraction`` = κ, with an observer and ``kind: model``): the
 continuous adaptation above is slow (1 Hz: a 30 ms move moves θ by ~1 %), and it cannot be faster without
 hurting the scans (the 10 µm cosine's error grows 5x at 5 Hz). Every move instead contributes a least-squares
 fit of the model's error *at the reference* to its two parameters, applied when the reference comes to rest::
@@ -184,7 +184,7 @@ class FeedforwardConfig:
         "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
         "dθ/dt = γ·d̂/F̂; 0: off)",
         ge=0.0, le=50.0)
-    learn_moves_gain: float = param(
+    learn_moves_fraction: float = param(
         0.0, desc="with an observer and kind: model: at the end of every move (the reference comes to rest) θ "
         "and β are moved this fraction of the way to the least-squares fit of the observer's estimate during "
         "the move (the model's sensitivities to θ and β, filtered like the observer, as regressors); learns "
@@ -488,7 +488,7 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
-        self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_gain)
+        self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
         self._x_rest_m = math.nan  # reference where a move folded the rest spring, until adapt_presliding_m away [m]
         self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
         self._rs_releases = 0  # releases in this standstill
@@ -708,7 +708,7 @@ class StageController:
     def _learn_moves(self, dt: float, ff: FrictionFeedforward, u_ff: float, d_hat: float,
                      dob: QFilterDob | KalmanDob, at_rest: bool, learning: bool,
                      e_m: float) -> tuple[float, float]:
-        """Learning from earlier moves (``feedforward.learn_moves_gain`` = κ; module docstring): while the
+        """Learning from earlier moves (``feedforward.learn_moves_fraction`` = κ; module docstring): while the
         reference moves, accumulate the least-squares normal equations of the model's error at the reference
         against its sensitivities to θ and ln β (:class:`_MoveFit`); when it comes to rest, move θ and β the
         fraction κ towards the fit over this and the earlier moves (θ bumplessly: the force it takes leaves the
@@ -744,7 +744,7 @@ class StageController:
         if fit is None:
             return u_ff, d_hat
         ffc = self.cfg.feedforward
-        k = ffc.learn_moves_gain
+        k = ffc.learn_moves_fraction
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
         th_new = min(hi, max(lo, th + k * (fit[0] - th)))
         b = ff.input_scale
@@ -904,7 +904,7 @@ class StageController:
             self._x_rest_m = math.nan  # set again only by a move that starts with the spring loaded
         elif abs(ref.x_m - self._x_rest_m) >= ffc.adapt_presliding_m:
             self._x_rest_m = math.nan
-        if ffc.learn_moves_gain > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+        if ffc.learn_moves_fraction > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, u_learn_n != 0.0,
                                             ref.x_m - x_meas_m)
         if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:

@@ -1,4 +1,4 @@
-"""Learning from earlier moves (``feedforward.learn_moves_gain``): 10 µm steps in simulated time (lock-step)
+"""Learning from earlier moves (``feedforward.learn_moves_fraction``): 10 µm steps in simulated time (lock-step)
 with feed-forward models wrong in different ways; and the model's tangent stiffness it uses."""
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class _Recording:
 
 def _steps(cfg: Any, how: str, gain: float, hold_s: float = 0.3) -> tuple[dict[str, Any], Any, _Recording]:
     """bench control's move-and-settle steps (+10, +10, −10, −10 µm, ``hold_s`` after each; plant_io) with
-    ``learn_moves_gain`` = ``gain``: per-step settle times and limit cycles, the state at each move end, fault."""
+    ``learn_moves_fraction`` = ``gain``: per-step settle times and limit cycles, the state at each move end, fault."""
     from stagectl.app import build_stage
     from stagectl.bench.control import move_end_state, steps_scenario
     from stagectl.clock import SimClock
@@ -66,7 +66,7 @@ def _steps(cfg: Any, how: str, gain: float, hold_s: float = 0.3) -> tuple[dict[s
     cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
         cfg.safety, following_error_m=1e-3))
     c = cfg.controller
-    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_gain=gain))
+    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=gain))
     ctl = StageController(ctl_cfg, cfg.timing, model=_model(cfg, how))
     rec_ctl = _Recording(ctl)
     sc = steps_scenario(hold_s)
@@ -120,7 +120,7 @@ def test_no_learning_while_a_learned_force_is_applied(seed):
     from stagectl.control.controller import StageController
 
     c = seed.controller
-    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_gain=1.0,
+    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=1.0,
                                                                      adapt_bandwidth_hz=0.0))
     ctl = StageController(ctl_cfg, seed.timing, model=_model(seed, "off20"))
     dt = seed.loop.period_s
