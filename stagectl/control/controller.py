@@ -346,6 +346,8 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
 #: information) towards the model as given
 LEARN_FORGET = 0.9
 LEARN_RIDGE = 0.05
+#: ... and the model's tangent stiffness is probed every this many cycles of a move
+LEARN_TANGENT_EVERY = 2
 
 
 @dataclass
@@ -364,6 +366,8 @@ class _MoveFit:
     f0: float = 0.0  # model force (θ = 1) at the start [N]
     d0: float = 0.0  # observer estimate at the start [N]
     x0: float = 0.0  # the model's fed position at the start [m]
+    k_t: float = 0.0  # the model's tangent stiffness, last probed [N/m], and the direction it was probed in
+    dir: int = 0
     g_th: float = 0.0  # the last raw regressors [N]
     g_b: float = 0.0
     f_th: float = 0.0  # filtered regressors [N]
@@ -385,6 +389,7 @@ class _MoveFit:
     def start(self, th: float, b: float, f0: float, d0: float, x0: float) -> None:
         self.rest, self.valid = False, True
         self.th0, self.b0, self.f0, self.d0, self.x0 = th, b, f0, d0, x0
+        self.dir = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
         self.n = 0
@@ -713,7 +718,7 @@ class StageController:
         against its sensitivities to θ and ln β (:class:`_MoveFit`); when it comes to rest, move θ and β the
         fraction κ towards the fit over this and the earlier moves (θ bumplessly: the force it takes leaves the
         observer; β changes only the model's next increments). Real-time safe (scalars; two probe steps of the
-        model per moving cycle for its tangent stiffness)."""
+        model every other moving cycle for its tangent stiffness)."""
         ml = self._ml
         th = self.ff_scale
         f_raw = u_ff / th
@@ -729,7 +734,12 @@ class StageController:
             # the branch: from the last reversal or, if later, the start of this move (the standstill's rest sync
             # has re-loaded the model's elements there)
             x_b = fst.x_rev_m if (fst.x_rev_m - ml.x0) * fst.direction > 0.0 else ml.x0
-            k_t = ff.tangent_n_m(fst.direction) if fst.direction else 0.0
+            if ml.n % LEARN_TANGENT_EVERY == 0 or fst.direction != ml.dir:
+                # the model's tangent stiffness changes smoothly along a move: probed every other cycle (two model
+                # steps; the moving step costs 7.3 instead of 5.3 µs hot, 8.4 µs probing every cycle)
+                ml.k_t = ff.tangent_n_m(fst.direction) if fst.direction else 0.0
+                ml.dir = fst.direction
+            k_t = ml.k_t
             g_b = th * (fst.x_fed_m - x_b) * k_t
             y = d_hat + (th - ml.th0) * f_raw - ml.d0  # the estimate against the model at the start of the move
             a = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
