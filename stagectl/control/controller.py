@@ -96,13 +96,13 @@ stiffness for going on in the direction of motion (:meth:`FrictionFeedforward.ta
 elements not yet slipping; ~0 when sliding, so β is learned in pre-sliding only), x_b the start of the branch
 (the last reversal, or the start of the move). The term θ·k_t·e matters: a stage lagging the reference by e sits
 lower on its friction curve, F(x) = F(x_r) − k·e, and the observer estimates that spring too; without it the
-fit took a stiffness error for a scale error (on a model with only its stiffness 20 % low it learned θ 1.04,
-β 1.05; with it θ 1.01, β 1.28). The ridge keeps θ and β apart where they are nearly collinear (pre-sliding)
+fit took a stiffness error for a scale error (on a model with only its stiffness 20 % low it learned θ 1.05,
+β 1.02 in four steps; with it θ 1.01, β 1.21, true β 1.25). The ridge keeps θ and β apart where they are nearly collinear (pre-sliding)
 and, with the forgetting, keeps one noisy move from walking the model away (with the exact model θ, β stay
 within 1 ± 0.03 over 20 moves). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones settle in 20–30 ms instead of 50–64 ms. Not while a learned force (ILC) is applied; a retune that
+later ones in 17–29 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
