@@ -324,7 +324,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         out_r: dict[str, Any] = {"rest_spring_n_m": kv, "plant_stiffness_n_m": k_plant,
                                  "plant_damping_n_s_m": c_plant}
         for a in analyse_rest(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz,
-                              c.dob.command_delay_samples, k_plant, c_plant, kv, c.velocity_cutoff_hz):
+                              c.dob.command_delay_samples, k_plant, c_plant, kv, c.velocity_cutoff_hz,
+                              dob_mass_kg=c.dob.nominal_mass_kg, integrator_held=c.hold_integrator_at_rest):
             out_r[a.name.split("/")[1]] = {"phase_margin_deg": round(a.phase_margin_deg, 1),
                                            "gain_margin_db": round(a.gain_margin_db, 1),
                                            "closed_loop_stable": a.stable}

@@ -8,8 +8,9 @@ and crossover frequency of the *configured* controller and of the *designed* one
 Inputs: the application config (``stagectl.config.load_app_config``: ``loop.period_s``,
 ``controller.*``, ``controller.mass_kg`` or the simulated plant's mass, ``controller.design_delay_samples`` or
 ``io.delay_cycles``); flags override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
-With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (integrator held, the
-rest spring of ``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
+With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (the PID's integrator
+held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
+``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
 mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor.
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
 included), else shown as thin.
@@ -179,7 +180,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         conf["stable"] = not unstable
         if unstable:
             exit_code = 1
-        rest = _rest_loops(inp["app"], ctl, m_dob, T, nd)
+        rest = _rest_loops(inp["app"], ctl, m, m_dob, T, nd)
         if rest is not None:
             conf["rest"] = rest
         result["configured"] = conf
@@ -212,9 +213,10 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     return result, exit_code
 
 
-def _rest_loops(app: Any, ctl: Any, m: float, T: float, nd: int) -> dict[str, Any] | None:
-    """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: integrator held, PD +
-    Q-filter observer + the rest spring k_v = φ·Σk of the controller's model) on the stage stuck in
+def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
+    """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
+    integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
+    ``m_dob`` + the rest spring k_v = φ·Σk of the controller's model) on a stage of mass ``m`` [kg] stuck in
     pre-sliding (the config's simulated plant's friction stiffness and damping, else the controller model's)
     and on the free mass. None when it does not apply (no Q-filter observer, or no pre-sliding stiffness
     known)."""
@@ -232,8 +234,9 @@ def _rest_loops(app: Any, ctl: Any, m: float, T: float, nd: int) -> dict[str, An
     k_model = getattr(model_fr, "stiffness_n_m", None)
     spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
     kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
+    held = bool(ctl.hold_integrator_at_rest)
     loops = design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples, k_plant,
-                                c_plant, kv, ctl.velocity_cutoff_hz)
+                                c_plant, kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob, integrator_held=held)
     summ = {a.name: {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
     healthy = all(v["healthy"] for v in summ.values())
     relies = None
@@ -242,8 +245,10 @@ def _rest_loops(app: Any, ctl: Any, m: float, T: float, nd: int) -> dict[str, An
                   + (f"the rest spring is released (bumplessly) when |x - x_ref| exceeds "
                      f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across +-{ctl.rest_spring_rearm_m * 1e9:.0f}"
                      f" nm twice, and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
-                     if spring else "with the integrator held the rest loop is PD + observer only"))
+                     if spring else ("with the integrator held the rest loop is PD + observer only" if held
+                                     else "the rest loop is the full PID + observer")))
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
+            "mass_kg": m, "observer_mass_kg": m_dob, "integrator_held": held,
             "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
             "relies_on": relies}
 
@@ -402,7 +407,10 @@ def run(args: argparse.Namespace) -> int:
                   f"{c['dob']['observer_bandwidth_hz']:.1f} Hz")
         rest = c.get("rest")
         if rest is not None:
-            print(f"  at standstill (integrator held, rest spring {rest['rest_spring_n_m']:.3g} N/m = "
+            held = "integrator held" if rest["integrator_held"] else "integrator running"
+            obs = (f", observer mass {rest['observer_mass_kg']:g} kg"
+                   if rest["observer_mass_kg"] != rest["mass_kg"] else "")
+            print(f"  at standstill ({held}{obs}, rest spring {rest['rest_spring_n_m']:.3g} N/m = "
                   f"{rest['rest_stiffness_fraction']:g} x the model's pre-sliding stiffness; plant stuck at "
                   f"{rest['plant_stiffness_n_m']:.3g} N/m, or free):")
             for name, s in rest["loops"].items():

@@ -104,6 +104,7 @@ class FrictionFeedforward:
         self.state = FrictionFfState()
         self.input_scale = 1.0  # β: the model is fed β·dx (pre-sliding stiffness ×β, Stribeck velocity ÷β)
         self._mstate = model.initial_state()
+        self._probe: FloatArray | None = None
         self._f_model = 0.0
         # the model's first step loads its compiled kernel (numba: 0.5-0.9 s on a loaded PC): here, at
         # construction, not in the control loop's first moving cycle (a drive's heartbeat consumer faults on that)
@@ -166,6 +167,24 @@ class FrictionFeedforward:
         st.u_ff_n = f + fo
         return st.u_ff_n
 
+
+    def tangent_n_m(self, direction: int, probe_m: float = 1e-8, probe_s: float = 1.0) -> float:
+        """The model's stiffness for a further displacement of the reference in ``direction`` (+1/−1) from its
+        present state [N/m] (real-time safe: two probe steps on a copy of the state in a buffer kept for it; the
+        state itself is not changed). Probes of ``probe_m`` and 2·``probe_m`` taken slowly (over ``probe_s``, so
+        that rate terms such as GMS's micro-damping σ1·v do not count), differenced so that elements already
+        slipping count in neither. Includes the input scale β. GMS: Σk_i of the elements not at their slip
+        limit in that direction (all of them right after a reversal, none in gross sliding)."""
+        buf = self._probe
+        if buf is None or buf.shape != self._mstate.shape:
+            buf = self._probe = self._mstate.copy()
+        sgn = 1.0 if direction >= 0 else -1.0
+        dx = self.input_scale * probe_m * sgn
+        buf[:] = self._mstate
+        f1 = self.model.step(buf, dx, dx / probe_s, probe_s)
+        buf[:] = self._mstate
+        f2 = self.model.step(buf, 2.0 * dx, 2.0 * dx / probe_s, probe_s)
+        return (f2 - f1) / (probe_m * sgn)
 
     def nudge(self, dx_m: float, dt: float) -> float:
         """Move the model copy's *state* by a virtual displacement ``dx_m`` [m] over ``dt`` [s] without moving

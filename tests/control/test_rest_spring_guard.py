@@ -160,3 +160,39 @@ def test_a_rearm_band_outside_the_release_distance_is_a_config_error():
     with pytest.raises(ConfigError, match=r"rest_spring_rearm_m: 1e-05 m must be below rest_spring_release_m"):
         controller_from_mapping({"mass_kg": 2.0, "feedforward": {"kind": "none"}, "rest_spring_rearm_m": 1e-5,
                                  "rest_spring_release_m": 5e-6}, 1e-3)
+
+
+def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
+    """The rest loop of ``stagectl tune`` is the configured one: the observer's own nominal mass
+    (``dob.nominal_mass_kg``, here 30 % above the plant's) and the full PID when the integrator is not held at
+    rest (``hold_integrator_at_rest: false``); its margins are design.analyse_rest's for exactly those, and differ
+    from the one-mass, integrator-held analysis."""
+    import yaml
+
+    from stagectl.config import load_app_config
+    from stagectl.control.design import analyse_rest
+    from tests.support import shipped_config_mapping
+
+    data = shipped_config_mapping("sim.yaml")
+    data["controller"]["dob"]["nominal_mass_kg"] = 2.6
+    data["controller"]["hold_integrator_at_rest"] = False
+    path = tmp_path / "rest.yaml"
+    path.write_text(yaml.safe_dump(data))
+    main(["tune", "--config", str(path), "--bandwidth-hz", "200", "--json"])  # refused design: no steps check
+    rest = json.loads(capsys.readouterr().out)["configured"]["rest"]
+    assert rest["mass_kg"] == 2.0 and rest["observer_mass_kg"] == 2.6 and rest["integrator_held"] is False
+    cfg = load_app_config(path)
+    c = cfg.controller
+    fr = cfg.sim.plant.friction
+    args = (2.0, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz, c.dob.command_delay_samples,
+            fr.stiffness_n_m, fr.damping_n_s_m, rest["rest_spring_n_m"], c.velocity_cutoff_hz)
+    stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False)
+    old_stuck, old_free = analyse_rest(*args)
+    got = rest["loops"]
+    assert got["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
+    assert got["rest/free"]["phase_margin_deg"] == pytest.approx(free.phase_margin_deg)
+    assert got["rest/stuck"]["gain_margin_db"] == pytest.approx(stuck.gain_margin_db)
+    assert abs(stuck.phase_margin_deg - old_stuck.phase_margin_deg) > 0.5
+    assert abs(free.gain_margin_db - old_free.gain_margin_db) > 0.1
+    main(["tune", "--config", str(path), "--bandwidth-hz", "200"])
+    assert "at standstill (integrator running, observer mass 2.6 kg" in capsys.readouterr().out
