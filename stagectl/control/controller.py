@@ -210,7 +210,7 @@ class FeedforwardConfig:
 #: (its friction state, θ and β); any other key defines the friction feed-forward and rebuilds it
 FF_LIVE_KEYS = frozenset({"inertia", "inertia_lookahead", "mass_kg", "rest_sync_hz", "rest_sync_max_step_m",
                           "adapt_bandwidth_hz", "adapt_min_force_n", "adapt_presliding_m",
-                          "adapt_max_change_fraction"})
+                          "adapt_max_change_fraction", "learn_moves_fraction"})
 
 
 def same_friction_ff(a: FeedforwardConfig, b: FeedforwardConfig) -> bool:

@@ -46,6 +46,7 @@ def _running(cfg):
     ("rest_sync_hz: 30.0", "rest_sync_hz: 10.0"),
     ("rest_sync_max_step_m: 5.0e-9", "rest_sync_max_step_m: 3.0e-9"),
     ("inertia: true", "inertia: false"),
+    ("learn_moves_fraction: 1.0", "learn_moves_fraction: 0.0"),
     ("adapt_bandwidth_hz: 1.0", "adapt_bandwidth_hz: 1.0"),  # nothing changed, the model file read again
 ])
 def test_live_keys_keep_the_feedforward_and_apply(repo_root, tmp_path, old, new):
