@@ -26,6 +26,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,16 @@ PARTS = (
 )
 #: the hot cycle's own cost the bench is held to (issue 14) [µs]
 HOT_TARGET_US = 30.0
+#: wall time of the hot breakdown stage per ``--breakdown-cycles`` cycle [s] (two stages of about 3 and 2 runs
+#: of the cycles in simulated time, plus building the stage twice; measured here 0.6 ms), for the progress plan
+HOT_S_PER_CYCLE = 0.6e-3
+
+
+def breakdown_plan(period_s: float, cycles: int) -> tuple[float, float]:
+    """Planned wall time [s] of :func:`breakdown`'s two stages: (hot, real time). The hot stage is an estimate
+    (:data:`HOT_S_PER_CYCLE`); the real-time stage runs ``cycles`` plus :func:`sleep_floor`'s
+    ``max(300, cycles // 3)`` cycles at the config's period."""
+    return HOT_S_PER_CYCLE * cycles, (cycles + max(300, cycles // 3)) * period_s
 
 
 def _wrap_pumps(loop: Any, clock_ns: Any, acc: list[int]) -> bool:
@@ -246,13 +257,19 @@ def sleep_floor(period_s: float, cycles: int) -> float:
     return (time.thread_time_ns() - c0) / max(1, cycles) / 1e3
 
 
-def breakdown(cfg: Any, cycles: int) -> dict[str, Any]:
+def breakdown(cfg: Any, cycles: int, on_stage: Callable[[str, float], None] | None = None) -> dict[str, Any]:
     """Per-cycle cost of the loop: :func:`hot_breakdown` (the parts, hot) and a real-time run of ``cycles``
     cycles without wrappers (loop-thread CPU with the simulated devices' pump timed apart), beside the CPU an
-    empty loop on the same sleep costs (:func:`sleep_floor`, ``cycles // 3`` cycles in the same thread)."""
+    empty loop on the same sleep costs (:func:`sleep_floor`, ``cycles // 3`` cycles in the same thread).
+    ``on_stage(what, planned_s)`` is called as each of the two stages starts (:func:`breakdown_plan`)."""
     from stagectl.app import build_stage
 
+    hot_s, rt_s = breakdown_plan(cfg.loop.period_s, cycles)
+    if on_stage is not None:
+        on_stage(f"cycle breakdown, hot ({cycles} cycles in simulated time)", hot_s)
     hot = hot_breakdown(cfg, cycles)
+    if on_stage is not None:
+        on_stage(f"cycle breakdown, real time ({cycles} cycles)", rt_s)
     tns = time.thread_time_ns
     with build_stage(cfg) as stage:
         loop = stage.loop
@@ -291,6 +308,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rt = dataclasses.replace(rt, spin_us=args.spin_us)
     io = cfg.io if args.io == "config" else dataclasses.replace(cfg.io, kind=IoKind(args.io))
     cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, realtime=rt), io=io)
+    n_bd = max(0, int(args.breakdown_cycles))
+    plan_s = args.duration + (sum(breakdown_plan(cfg.loop.period_s, n_bd)) if n_bd > 0 else 0.0)
     load0 = os.getloadavg()
     cpu0 = time.process_time()
     wall0 = time.monotonic()
@@ -303,7 +322,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         t_run = time.monotonic()
         cpu_run = time.process_time()
         timer.start()
-        tell(args, 0.0, args.duration, f"running the loop for {args.duration:g} s", span=args.duration)
+        tell(args, 0.0, plan_s, f"running the loop for {args.duration:g} s", span=args.duration)
         try:
             res = stage.loop.run(stop=stop)
         finally:
@@ -312,8 +331,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         proc_cpu = (time.process_time() - cpu_run) / max(1e-9, wall_run)
     total = res.cycles + res.overruns
     period_us = cfg.loop.period_s * 1e6
-    tell(args, args.duration, args.duration, f"cycle breakdown ({int(args.breakdown_cycles)} cycles)")
-    parts = breakdown(cfg, int(args.breakdown_cycles)) if args.breakdown_cycles > 0 else None
+    parts = None
+    if n_bd > 0:
+        done = [args.duration, 0.0]  # seconds of the plan finished, the stage running now
+
+        def on_stage(what: str, planned_s: float) -> None:
+            done[0] += done[1]
+            done[1] = planned_s
+            tell(args, done[0], plan_s, what, span=planned_s)
+
+        parts = breakdown(cfg, n_bd, on_stage=on_stage)
+    tell(args, plan_s, plan_s, "done")
     summary = res.as_dict()
     late, ex = summary["lateness_us"], summary["exec_us"]
     return {
