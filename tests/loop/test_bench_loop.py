@@ -44,7 +44,7 @@ def test_progress_plan_includes_the_breakdown(monkeypatch):
     of the plan is still ahead (the review leftover: that stage showed "0 s left")."""
     import argparse
 
-    import stagectl.config as config
+    from stagectl import config
 
     load = config.load_app_config
 
