@@ -175,6 +175,7 @@ class SimWorld:
         self.interferometer: SimInterferometer | None = None
         self.server: SocketcandServer | None = None
         self.frames_in = 0
+        self.frames_out = 0
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
@@ -232,6 +233,7 @@ class SimWorld:
     def _send(self, msg: can.Message) -> None:
         bus = self._bus
         if bus is not None:
+            self.frames_out += 1
             bus.send(msg)
 
     # ------------------------------------------------------------------ time
@@ -318,7 +320,10 @@ class SimWorld:
                 msg = bus.recv(0.002)
                 with self._lock:
                     while msg is not None:
+                        out = self.frames_out
                         self._dispatch(msg)
+                        if self.frames_out != out:  # answered: let the receiver run first (we give up the
+                            os.sched_yield()  # GIL and, on one CPU under FIFO, the CPU) before our timers
                         if time.monotonic() - self._last_tick >= TICK_EVERY_S:  # steady traffic must not
                             self._tick()  # starve the timers (heartbeat) while frames keep coming
                         msg = bus.recv(0.0)
