@@ -37,6 +37,13 @@ def test_breakdown_times_every_part_and_keeps_the_simulated_devices_apart(io):
     assert rt["cycles"] == 300 and rt["sleep_floor_cpu_per_cycle_us"] > 0.0
     assert rt["own_minus_sleep_floor_us"] == pytest.approx(rt["own_cpu_per_cycle_us"]
                                                            - rt["sleep_floor_cpu_per_cycle_us"])
+    spun = rt["spinning"]  # the same cycles busy-waiting through the period: the CPU is never given up
+    assert spun["cycles"] == 300 and spun["exec_p50_us"] > 0.0
+    assert rt["cold_after_sleep_us"]["cycle_exec_p50"] == pytest.approx(rt["exec_p50_us"] - spun["exec_p50_us"])
+    assert set(rt["during_cycles"]) == {"page_faults", "voluntary_switches_per_cycle", "involuntary_switches",
+                                        "gc_collections"}
+    assert rt["during_cycles"]["voluntary_switches_per_cycle"] > 0.5  # it sleeps every cycle ...
+    assert spun["during_cycles"]["voluntary_switches_per_cycle"] < 0.5  # ... and spinning, it does not
 
 
 def test_progress_plan_includes_the_breakdown(monkeypatch):
