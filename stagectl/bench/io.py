@@ -1,4 +1,5 @@
-"""``stagectl bench io [--json] [--duration S] [--rate HZ]``: I/O cycle timing.
+"""``stagectl bench io [--json] [--duration S] [--rate HZ] [--fifo PRIO] [--cpus LIST] [--spin-us US]``: I/O cycle
+timing.
 
 Cases (each ``--duration`` seconds at ``--rate``, default 20 s at 1 kHz):
 
@@ -19,6 +20,18 @@ skipped because the previous cycle overran its deadline (skipped, never burst). 
 missed / slots; ``max_consecutive_missed_tpdo`` is the longest run of reads without a fresh TPDO (skipped
 slots neither extend nor break it), i.e. what the driver's ``max_missed`` must tolerate. Targets (this machine): missed ≤ 0.1 % in-process, ≤ 0.5 % across processes, p99 round
 trip ≤ 500 µs. The loop process CPU share is reported as (user + system time) / wall time.
+
+Scheduling: ``--fifo`` puts the process under SCHED_FIFO (threads started later and the sim-plant child inherit
+it); ``--cpus`` pins it, by default under ``--fifo`` to one CPU (the highest allowed). On one CPU the loop and the
+simulated devices' thread hand each frame over by a context switch (the receiver runs as soon as the sender
+blocks or yields), where across two CPUs every hand-off wakes the other, often idle, virtual CPU: on this VM that
+doubled the round trip and caused the missed TPDOs (docs/performance.md §4). ``--spin-us`` sleeps to that many µs
+before each deadline and busy-waits the rest (the hybrid wake-up of :class:`~stagectl.clock.MonotonicClock`),
+in the baseline and the CANopen loops alike. What the kernel actually applied is read back per case
+(``threads``: each thread's policy, priority and CPUs; ``rt_throttling``), with the wake-up lateness
+(``wake_late_us``, now − deadline) and what else happened during the cycles (``during_cycles``: page faults,
+context switches, gc collections). ``baseline_sleep_loop`` runs on the same CPUs and scheduling: the floor of
+missed slots for any loop at this rate on this machine now.
 """
 
 from __future__ import annotations

@@ -14,7 +14,10 @@ devices (their work, served in the loop thread through the drivers' lock-step pu
 drive does it). ``hot``: cycles back to back in simulated time, per part (SYNC + drain, TPDO receive + decode,
 requests, safety checks, reference, controller, RPDO encode + send, telemetry sinks, cycle statistics, the
 rest of the loop body); target ≤ 30 µs. ``realtime``: the same cycles on the wall clock, beside the CPU an
-empty loop on the same sleep costs (waking up is not free, and the caches are cold after other processes ran).
+empty loop on the same sleep costs (waking up is not free), and the same cycles once more busy-waiting through the
+period instead of sleeping (``spinning``): the difference in execution time, ``cold_after_sleep_us``, is what
+coming back to caches that other processes used meanwhile costs; page faults, context switches and gc
+collections during the cycles are counted.
 Timing is measured, never asserted in tests; the machine's load is reported alongside (``os.getloadavg``).
 """
 
