@@ -73,10 +73,10 @@ class _RxQueue:
     Hand-off: ``wake`` is a plain lock, held while no signal is pending. A writer appends, then releases it (a
     signal); a reader that finds the deque empty waits in ``wake.acquire(timeout)``: one C call each side (a
     ``threading.Condition`` allocates a lock per wait and runs its bookkeeping in Python: about 10 µs more per
-    send → receive hand-off on this machine). No lost wake-up: the writer signals after it appended, the reader
-    re-checks the deque after every wake-up. A signal nobody waited for only makes the next wait return at once:
-    the reader finds the deque empty and waits again for the time left. A reader that leaves frames behind
-    signals again, so a second blocked reader gets them."""
+    send → receive hand-off on this machine). No lost wake-up: the writer signals after it appended, the
+    reader re-checks the deque after every wake-up. A signal nobody waited for only makes the next wait return
+    at once: the reader finds the deque empty and waits again for the time left. A reader that leaves frames
+    behind signals again, so a second blocked reader gets them."""
 
     __slots__ = ("items", "wake", "closed", "waiting")
 

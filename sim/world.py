@@ -4,10 +4,10 @@ Two ways to run the virtual devices, switchable at any time:
 
 * **thread mode** (``start()``): one background thread receives the device-side bus and serves the devices
   (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Used for SDO configuration,
-  real-time runs, ``stagectl sim-plant`` and canopen's own master in tests. After a frame the devices answered
-  (a SYNC's TPDOs, an SDO response) the thread yields (``os.sched_yield``: it gives up the GIL, and on a CPU it
-  shares with the receiver under SCHED_FIFO the CPU too), so the receiver handles the answer before the
-  thread's own timers run.
+  real-time runs, ``stagectl sim-plant`` and canopen's own master in tests. After a frame the devices
+  answered (a SYNC's TPDOs, an SDO response) the thread yields (``os.sched_yield``: it gives up the GIL, and
+  on a CPU it shares with the receiver under SCHED_FIFO the CPU too), so the receiver handles the answer
+  before the thread's own timers run.
 * **lock-step mode** (``pump()``): the caller's thread drains the device-side bus with ``recv(timeout=0)``
   and processes every frame synchronously; device time is simulated: each SYNC advances it by the drive's
   communication cycle period (0x1006), ``advance(dt_s)`` advances it without SYNC (e.g. to let the drive's

@@ -1,5 +1,5 @@
-"""``stagectl bench io [--json] [--duration S] [--rate HZ] [--fifo PRIO] [--cpus LIST] [--spin-us US]``: I/O cycle
-timing.
+"""``stagectl bench io [--json] [--duration S] [--rate HZ] [--fifo PRIO] [--cpus LIST] [--spin-us US]``:
+I/O cycle timing.
 
 Cases (each ``--duration`` seconds at ``--rate``, default 20 s at 1 kHz):
 
@@ -21,17 +21,19 @@ missed / slots; ``max_consecutive_missed_tpdo`` is the longest run of reads with
 slots neither extend nor break it), i.e. what the driver's ``max_missed`` must tolerate. Targets (this machine): missed ≤ 0.1 % in-process, ≤ 0.5 % across processes, p99 round
 trip ≤ 500 µs. The loop process CPU share is reported as (user + system time) / wall time.
 
-Scheduling: ``--fifo`` puts the process under SCHED_FIFO (threads started later and the sim-plant child inherit
-it); ``--cpus`` pins it, by default under ``--fifo`` to one CPU (the highest allowed). On one CPU the loop and the
-simulated devices' thread hand each frame over by a context switch (the receiver runs as soon as the sender
-blocks or yields), where across two CPUs every hand-off wakes the other, often idle, virtual CPU: on this VM that
-doubled the round trip and caused the missed TPDOs (docs/performance.md §4). ``--spin-us`` sleeps to that many µs
-before each deadline and busy-waits the rest (the hybrid wake-up of :class:`~stagectl.clock.MonotonicClock`),
-in the baseline and the CANopen loops alike. What the kernel actually applied is read back per case
-(``threads``: each thread's policy, priority and CPUs; ``rt_throttling``), with the wake-up lateness
-(``wake_late_us``, now − deadline) and what else happened during the cycles (``during_cycles``: page faults,
-context switches, gc collections). ``baseline_sleep_loop`` runs on the same CPUs and scheduling: the floor of
-missed slots for any loop at this rate on this machine now.
+Scheduling: ``--fifo`` puts the process under SCHED_FIFO (threads started later and the sim-plant child
+inherit it); ``--cpus`` pins it, by default under ``--fifo`` to one CPU (the highest allowed) for the baseline
+and the CANopen cases, the serial cases then running on all CPUs again (a streaming pty on one CPU under FIFO
+starved the kernel worker that moves its bytes: frames lost, latencies up to 0.7 s). On one CPU the loop and
+the simulated devices' thread hand each frame over by a context switch (the receiver runs as soon as the
+sender blocks or yields), where across two CPUs every hand-off wakes the other, often idle, virtual CPU: on
+this VM that doubled the round trip and caused the missed TPDOs (docs/performance.md §4). ``--spin-us`` sleeps
+to that many µs before each deadline and busy-waits the rest (the hybrid wake-up of
+:class:`~stagectl.clock.MonotonicClock`), in the baseline and the CANopen loops alike. What the kernel
+actually applied is read back per case (``threads``: each thread's policy, priority and CPUs;
+``rt_throttling``), with the wake-up lateness (``wake_late_us``, now − deadline) and what else happened during
+the cycles (``during_cycles``: page faults, context switches, gc collections). ``baseline_sleep_loop`` runs on
+the same CPUs and scheduling: the floor of missed slots for any loop at this rate on this machine now.
 """
 
 from __future__ import annotations
@@ -70,11 +72,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the loop, the sim thread and the sim-plant child under SCHED_FIFO PRIO "
                              "(needs CAP_SYS_NICE; threads and the child inherit it)")
     parser.add_argument("--cpus", default=None, metavar="LIST",
-                        help="CPUs the bench runs on, e.g. 1 or 0,1, or 'all' (threads and the sim-plant child "
-                             "inherit it); default with --fifo: one CPU, the highest allowed, so the loop and the "
-                             "simulated devices hand each frame over on one CPU; without --fifo: all")
+                        help="CPUs the bench runs on, e.g. 1 or 0,1, or 'all' (threads and the sim-plant "
+                             "child inherit it); default with --fifo: one CPU, the highest allowed, for the "
+                             "baseline and the CANopen cases (the loop and the simulated devices hand each "
+                             "frame over on one CPU), all for the serial cases; without --fifo: all")
     parser.add_argument("--spin-us", type=float, default=0.0, metavar="US",
-                        help="hybrid wake-up: sleep to US µs before each deadline, then busy-wait (default 0)")
+                        help="hybrid wake-up: sleep to US µs before each deadline, then busy-wait "
+                             "(default 0)")
 
 
 def _pct(xs: list[float], q: float) -> float:
@@ -82,6 +86,10 @@ def _pct(xs: list[float], q: float) -> float:
         return math.nan
     s = sorted(xs)
     return s[min(len(s) - 1, max(0, math.ceil(q / 100.0 * len(s)) - 1))]
+
+
+def _stats(xs: list[float]) -> dict[str, float]:
+    return {"p50": _pct(xs, 50), "p99": _pct(xs, 99), "max": max(xs, default=math.nan)}
 
 
 _POLICIES = {getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR", "SCHED_BATCH", "SCHED_IDLE")
@@ -208,9 +216,9 @@ def _cycle_loop(can_cfg: dict[str, Any], node_id: int, rate_hz: float, duration_
         "skipped_overrun": skipped,
         "missed_pct": 100.0 * missed / n_slots if n_slots else math.nan,
         "max_consecutive_missed_tpdo": worst_run,
-        "round_trip_us": {"p50": _pct(rtt_l, 50), "p99": _pct(rtt_l, 99), "max": max(rtt_l, default=math.nan)},
-        "response_us": {"p50": _pct(resp_l, 50), "p99": _pct(resp_l, 99), "max": max(resp_l, default=math.nan)},
-        "wake_late_us": {"p50": _pct(late_l, 50), "p99": _pct(late_l, 99), "max": max(late_l, default=math.nan)},
+        "round_trip_us": _stats(rtt_l),
+        "response_us": _stats(resp_l),
+        "wake_late_us": _stats(late_l),
         "loop_process_cpu_pct": 100.0 * ((cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)) / wall,
         # what else happened in this process during the cycles: page faults, context switches, collections
         "during_cycles": {"page_faults": ru1[0] - ru0[0],
@@ -330,7 +338,8 @@ def _set_cpus(spec: str | None, fifo: bool) -> list[int]:
         try:
             want = sorted({int(x) for x in spec.split(",") if x.strip()})
         except ValueError:
-            raise ConfigError(f"bench io: --cpus: expected CPU numbers like 1 or 0,1, or all (got {spec!r})") from None
+            raise ConfigError(f"bench io: --cpus: expected CPU numbers like 1 or 0,1, or all "
+                              f"(got {spec!r})") from None
         bad = [c for c in want if c not in allowed]
         if not want or bad:
             raise ConfigError(f"bench io: --cpus: CPU {bad or spec!r} not available (allowed: {allowed})")
@@ -361,13 +370,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         out["cpus_used"] = _set_cpus(args.cpus, args.fifo is not None)
         out["rt_throttling"] = rt_throttling()
         out["spin_us"] = max(0.0, float(args.spin_us))
-        _run_cases(args, out, rate, dur)
+        _run_cases(args, out, rate, dur, affinity0)
     finally:
         os.sched_setaffinity(0, affinity0)
     return out
 
 
-def _run_cases(args: argparse.Namespace, out: dict[str, Any], rate: float, dur: float) -> None:
+def _run_cases(args: argparse.Namespace, out: dict[str, Any], rate: float, dur: float,
+               affinity0: set[int]) -> None:
     spin = out["spin_us"] * 1e-6
     # the cases and their planned seconds, for the progress line (each runs for a set wall-clock time)
     serial = not args.skip_serial
@@ -395,6 +405,11 @@ def _run_cases(args: argparse.Namespace, out: dict[str, Any], rate: float, dur: 
         elif name == "canopen_socketcand":
             out[name] = bench_socketcand(rate, dur, spin)
         else:
+            if args.cpus is None and sorted(affinity0) != out["cpus_used"]:
+                # the default pinning is for the CANopen cases: a streaming pty on one CPU under FIFO starves
+                # the kernel worker moving its bytes (a 1 kHz pty lost 0.55 % of frames, latencies to 0.7 s)
+                os.sched_setaffinity(0, affinity0)
+                out["cpus_used_serial"] = sorted(affinity0)
             out[name] = run_serial_bench(1000.0 if name == "serial_1000hz" else 5000.0, dur)
         done += secs
     tell(args, total, total, "done")

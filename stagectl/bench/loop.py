@@ -14,9 +14,9 @@ devices (their work, served in the loop thread through the drivers' lock-step pu
 drive does it). ``hot``: cycles back to back in simulated time, per part (SYNC + drain, TPDO receive + decode,
 requests, safety checks, reference, controller, RPDO encode + send, telemetry sinks, cycle statistics, the
 rest of the loop body); target ≤ 30 µs. ``realtime``: the same cycles on the wall clock, beside the CPU an
-empty loop on the same sleep costs (waking up is not free), and the same cycles once more busy-waiting through the
-period instead of sleeping (``spinning``): the difference in execution time, ``cold_after_sleep_us``, is what
-coming back to caches that other processes used meanwhile costs; page faults, context switches and gc
+empty loop on the same sleep costs (waking up is not free), and the same cycles once more busy-waiting through
+the period instead of sleeping (``spinning``): the difference in execution time, ``cold_after_sleep_us``, is
+what coming back to caches that other processes used meanwhile costs; page faults, context switches and gc
 collections during the cycles are counted.
 Timing is measured, never asserted in tests; the machine's load is reported alongside (``os.getloadavg``).
 """
@@ -68,15 +68,16 @@ PARTS = (
 )
 #: the hot cycle's own cost the bench is held to (issue 14) [µs]
 HOT_TARGET_US = 30.0
-#: wall time of the hot breakdown stage per ``--breakdown-cycles`` cycle [s] (two stages of about 3 and 2 runs
-#: of the cycles in simulated time, plus building the stage twice; measured here 0.6 ms), for the progress plan
+#: wall time of the hot breakdown stage per ``--breakdown-cycles`` cycle [s] (two stages of about 3 and 2
+#: runs of the cycles in simulated time, plus building the stage twice; measured here 0.6 ms), for the
+#: progress plan
 HOT_S_PER_CYCLE = 0.6e-3
 
 
 def breakdown_plan(period_s: float, cycles: int) -> tuple[float, float]:
     """Planned wall time [s] of :func:`breakdown`'s two stages: (hot, real time). The hot stage is an estimate
-    (:data:`HOT_S_PER_CYCLE`); the real-time stage runs ``cycles``, then :func:`sleep_floor`'s and the spinning
-    pass's ``max(300, cycles // 3)`` cycles each, at the config's period."""
+    (:data:`HOT_S_PER_CYCLE`); the real-time stage runs ``cycles``, then :func:`sleep_floor`'s and the
+    spinning pass's ``max(300, cycles // 3)`` cycles each, at the config's period."""
     return HOT_S_PER_CYCLE * cycles, (cycles + 2 * max(300, cycles // 3)) * period_s
 
 
@@ -292,9 +293,10 @@ def _realtime_pass(cfg: Any, cycles: int, spin_through: bool) -> dict[str, Any]:
         u1 = _thread_usage()
         floor = None if spin_through else sleep_floor(cfg.loop.period_s, max(300, cycles // 3))
     n = max(1, res.cycles)
-    return {"cycles": res.cycles, "cpu_ns": cpu, "pump_ns": pump_ns[0] if has_pump else 0, "pump_calls": pump_ns[1],
-            "exec_p50_us": res.as_dict()["exec_us"]["p50"], "floor": floor,
-            "during_cycles": {"page_faults": u1[0] - u0[0], "voluntary_switches_per_cycle": (u1[1] - u0[1]) / n,
+    return {"cycles": res.cycles, "cpu_ns": cpu, "pump_ns": pump_ns[0] if has_pump else 0,
+            "pump_calls": pump_ns[1], "exec_p50_us": res.as_dict()["exec_us"]["p50"], "floor": floor,
+            "during_cycles": {"page_faults": u1[0] - u0[0],
+                              "voluntary_switches_per_cycle": (u1[1] - u0[1]) / n,
                               "involuntary_switches": u1[2] - u0[2], "gc_collections": u1[3] - u0[3]}}
 
 
@@ -325,7 +327,8 @@ def breakdown(cfg: Any, cycles: int, on_stage: Callable[[str, float], None] | No
           "sleep_floor_cpu_per_cycle_us": floor, "own_minus_sleep_floor_us": own - floor,
           "exec_p50_us": slept["exec_p50_us"], "during_cycles": slept["during_cycles"],
           "spinning": {"cycles": spun["cycles"], "exec_p50_us": spun["exec_p50_us"],
-                       "simulated_devices_cpu_per_cycle_us": dev_spun, "during_cycles": spun["during_cycles"]},
+                       "simulated_devices_cpu_per_cycle_us": dev_spun,
+                       "during_cycles": spun["during_cycles"]},
           "cold_after_sleep_us": {"cycle_exec_p50": slept["exec_p50_us"] - spun["exec_p50_us"],
                                   "simulated_devices_cpu": dev - dev_spun}}
     return {"hot": hot, "realtime": rt,
@@ -334,9 +337,10 @@ def breakdown(cfg: Any, cycles: int, on_stage: Callable[[str, float], None] | No
                     "(a system call) per timed pump, lowest of the runs; parts p50 "
                     "with the wrapper cost subtracted, loop_other = own − Σ parts. realtime: the same without "
                     "wrappers at the config's rate on the wall clock (includes waking up and sleeping: "
-                    "sleep_floor is an empty loop on the same sleep, measured right after); spinning: the same "
-                    "cycles busy-waiting through the period (the CPU never given up), cold_after_sleep = "
-                    "sleeping − spinning (caches and TLB refilled after other processes ran)"}
+                    "sleep_floor is an empty loop on the same sleep, measured right after); spinning: the "
+                    "same cycles busy-waiting through the period (the CPU never given up), "
+                    "cold_after_sleep = sleeping − spinning (caches and TLB refilled after other "
+                    "processes ran)"}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
