@@ -4,7 +4,10 @@ Two ways to run the virtual devices, switchable at any time:
 
 * **thread mode** (``start()``): one background thread receives the device-side bus and serves the devices
   (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Used for SDO configuration,
-  real-time runs, ``stagectl sim-plant`` and canopen's own master in tests.
+  real-time runs, ``stagectl sim-plant`` and canopen's own master in tests. After a frame the devices
+  answered (a SYNC's TPDOs, an SDO response) the thread yields (``os.sched_yield``: it gives up the GIL, and
+  on a CPU it shares with the receiver under SCHED_FIFO the CPU too), so the receiver handles the answer
+  before the thread's own timers run.
 * **lock-step mode** (``pump()``): the caller's thread drains the device-side bus with ``recv(timeout=0)``
   and processes every frame synchronously; device time is simulated: each SYNC advances it by the drive's
   communication cycle period (0x1006), ``advance(dt_s)`` advances it without SYNC (e.g. to let the drive's
@@ -175,6 +178,7 @@ class SimWorld:
         self.interferometer: SimInterferometer | None = None
         self.server: SocketcandServer | None = None
         self.frames_in = 0
+        self.frames_out = 0
         self._serial_bytes = 0  # bytes written by the simulated interferometer in lock-step pumps
         self._ifm_on_sync = False  # interferometer triggered by SYNC (trigger: sync) instead of streaming
         self._thread_error: BaseException | None = None
@@ -232,6 +236,7 @@ class SimWorld:
     def _send(self, msg: can.Message) -> None:
         bus = self._bus
         if bus is not None:
+            self.frames_out += 1
             bus.send(msg)
 
     # ------------------------------------------------------------------ time
@@ -318,7 +323,10 @@ class SimWorld:
                 msg = bus.recv(0.002)
                 with self._lock:
                     while msg is not None:
+                        out = self.frames_out
                         self._dispatch(msg)
+                        if self.frames_out != out:  # answered: let the receiver run first (we give up the
+                            os.sched_yield()  # GIL and, on one CPU under FIFO, the CPU) before our timers
                         if time.monotonic() - self._last_tick >= TICK_EVERY_S:  # steady traffic must not
                             self._tick()  # starve the timers (heartbeat) while frames keep coming
                         msg = bus.recv(0.0)

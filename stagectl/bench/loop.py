@@ -14,7 +14,10 @@ devices (their work, served in the loop thread through the drivers' lock-step pu
 drive does it). ``hot``: cycles back to back in simulated time, per part (SYNC + drain, TPDO receive + decode,
 requests, safety checks, reference, controller, RPDO encode + send, telemetry sinks, cycle statistics, the
 rest of the loop body); target ≤ 30 µs. ``realtime``: the same cycles on the wall clock, beside the CPU an
-empty loop on the same sleep costs (waking up is not free, and the caches are cold after other processes ran).
+empty loop on the same sleep costs (waking up is not free), and the same cycles once more busy-waiting through
+the period instead of sleeping (``spinning``): the difference in execution time, ``cold_after_sleep_us``, is
+what coming back to caches that other processes used meanwhile costs; page faults, context switches and gc
+collections during the cycles are counted.
 Timing is measured, never asserted in tests; the machine's load is reported alongside (``os.getloadavg``).
 """
 
@@ -26,6 +29,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +68,17 @@ PARTS = (
 )
 #: the hot cycle's own cost the bench is held to (issue 14) [µs]
 HOT_TARGET_US = 30.0
+#: wall time of the hot breakdown stage per ``--breakdown-cycles`` cycle [s] (two stages of about 3 and 2
+#: runs of the cycles in simulated time, plus building the stage twice; measured here 0.6 ms), for the
+#: progress plan
+HOT_S_PER_CYCLE = 0.6e-3
+
+
+def breakdown_plan(period_s: float, cycles: int) -> tuple[float, float]:
+    """Planned wall time [s] of :func:`breakdown`'s two stages: (hot, real time). The hot stage is an estimate
+    (:data:`HOT_S_PER_CYCLE`); the real-time stage runs ``cycles``, then :func:`sleep_floor`'s and the
+    spinning pass's ``max(300, cycles // 3)`` cycles each, at the config's period."""
+    return HOT_S_PER_CYCLE * cycles, (cycles + 2 * max(300, cycles // 3)) * period_s
 
 
 def _wrap_pumps(loop: Any, clock_ns: Any, acc: list[int]) -> bool:
@@ -246,36 +261,86 @@ def sleep_floor(period_s: float, cycles: int) -> float:
     return (time.thread_time_ns() - c0) / max(1, cycles) / 1e3
 
 
-def breakdown(cfg: Any, cycles: int) -> dict[str, Any]:
-    """Per-cycle cost of the loop: :func:`hot_breakdown` (the parts, hot) and a real-time run of ``cycles``
-    cycles without wrappers (loop-thread CPU with the simulated devices' pump timed apart), beside the CPU an
-    empty loop on the same sleep costs (:func:`sleep_floor`, ``cycles // 3`` cycles in the same thread)."""
+def _thread_usage() -> tuple[int, int, int, int]:
+    """(page faults, voluntary and involuntary context switches) of the calling thread, and gc collections."""
+    import gc
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_THREAD)
+    return (ru.ru_minflt + ru.ru_majflt, ru.ru_nvcsw, ru.ru_nivcsw,
+            sum(st["collections"] for st in gc.get_stats()))
+
+
+def _realtime_pass(cfg: Any, cycles: int, spin_through: bool) -> dict[str, Any]:
+    """``cycles`` of the loop on the wall clock, no wrappers, the simulated devices' pump timed apart (thread
+    CPU). ``spin_through``: the clock busy-waits the whole period (``spin_us`` = 2 periods), so the thread
+    never gives up its CPU between cycles."""
     from stagectl.app import build_stage
 
-    hot = hot_breakdown(cfg, cycles)
+    if spin_through:
+        rt = dataclasses.replace(cfg.loop.realtime, spin_us=2e6 * cfg.loop.period_s)
+        cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, realtime=rt))
     tns = time.thread_time_ns
     with build_stage(cfg) as stage:
         loop = stage.loop
         stage.load_scenario(cfg.demo.scenario, repeat=True)
         pump_ns = [0, 0]
         has_pump = _wrap_pumps(loop, tns, pump_ns)
+        u0 = _thread_usage()
         cpu0 = tns()
         res = loop.run(cycles=cycles)
-        cpu_cycles = tns() - cpu0
-        floor = sleep_floor(cfg.loop.period_s, max(300, cycles // 3))
+        cpu = tns() - cpu0
+        u1 = _thread_usage()
+        floor = None if spin_through else sleep_floor(cfg.loop.period_s, max(300, cycles // 3))
     n = max(1, res.cycles)
-    dev = pump_ns[0] / n / 1e3 if has_pump else 0.0
-    own = (cpu_cycles - pump_ns[1] * hot["thread_clock_call_us"] * 1e3) / n / 1e3 - dev
-    rt = {"cycles": res.cycles, "loop_thread_cpu_per_cycle_us": cpu_cycles / n / 1e3,
+    return {"cycles": res.cycles, "cpu_ns": cpu, "pump_ns": pump_ns[0] if has_pump else 0,
+            "pump_calls": pump_ns[1], "exec_p50_us": res.as_dict()["exec_us"]["p50"], "floor": floor,
+            "during_cycles": {"page_faults": u1[0] - u0[0],
+                              "voluntary_switches_per_cycle": (u1[1] - u0[1]) / n,
+                              "involuntary_switches": u1[2] - u0[2], "gc_collections": u1[3] - u0[3]}}
+
+
+def breakdown(cfg: Any, cycles: int, on_stage: Callable[[str, float], None] | None = None) -> dict[str, Any]:
+    """Per-cycle cost of the loop: :func:`hot_breakdown` (the parts, hot) and a real-time run of ``cycles``
+    cycles without wrappers (loop-thread CPU with the simulated devices' pump timed apart), beside the CPU an
+    empty loop on the same sleep costs (:func:`sleep_floor`, ``cycles // 3`` cycles in the same thread), and a
+    run of ``max(300, cycles // 3)`` cycles that busy-waits through the period instead of sleeping
+    (``spinning``): the same work, but the CPU and its caches stay the loop's between cycles. What it costs to
+    come back to a CPU that ran other processes meanwhile is ``cold_after_sleep_us`` = cycle execution p50
+    sleeping − spinning, for the loop as a whole and for the simulated devices' pure computation.
+    ``on_stage(what, planned_s)`` is called as each of the two stages starts (:func:`breakdown_plan`)."""
+    hot_s, rt_s = breakdown_plan(cfg.loop.period_s, cycles)
+    if on_stage is not None:
+        on_stage(f"cycle breakdown, hot ({cycles} cycles in simulated time)", hot_s)
+    hot = hot_breakdown(cfg, cycles)
+    if on_stage is not None:
+        on_stage(f"cycle breakdown, real time ({cycles} cycles, then {max(300, cycles // 3)} spinning)", rt_s)
+    slept = _realtime_pass(cfg, cycles, spin_through=False)
+    spun = _realtime_pass(cfg, max(300, cycles // 3), spin_through=True)
+    n = max(1, slept["cycles"])
+    dev = slept["pump_ns"] / n / 1e3
+    own = (slept["cpu_ns"] - slept["pump_calls"] * hot["thread_clock_call_us"] * 1e3) / n / 1e3 - dev
+    floor = slept["floor"]
+    dev_spun = spun["pump_ns"] / max(1, spun["cycles"]) / 1e3
+    rt = {"cycles": slept["cycles"], "loop_thread_cpu_per_cycle_us": slept["cpu_ns"] / n / 1e3,
           "simulated_devices_cpu_per_cycle_us": dev, "own_cpu_per_cycle_us": own,
-          "sleep_floor_cpu_per_cycle_us": floor, "own_minus_sleep_floor_us": own - floor}
+          "sleep_floor_cpu_per_cycle_us": floor, "own_minus_sleep_floor_us": own - floor,
+          "exec_p50_us": slept["exec_p50_us"], "during_cycles": slept["during_cycles"],
+          "spinning": {"cycles": spun["cycles"], "exec_p50_us": spun["exec_p50_us"],
+                       "simulated_devices_cpu_per_cycle_us": dev_spun,
+                       "during_cycles": spun["during_cycles"]},
+          "cold_after_sleep_us": {"cycle_exec_p50": slept["exec_p50_us"] - spun["exec_p50_us"],
+                                  "simulated_devices_cpu": dev - dev_spun}}
     return {"hot": hot, "realtime": rt,
             "note": "hot: simulated time, cycles back to back, own = thread CPU minus the simulated devices "
                     "(the drivers' lock-step pump: a real drive does that work) and minus one thread-clock call "
                     "(a system call) per timed pump, lowest of the runs; parts p50 "
                     "with the wrapper cost subtracted, loop_other = own − Σ parts. realtime: the same without "
                     "wrappers at the config's rate on the wall clock (includes waking up and sleeping: "
-                    "sleep_floor is an empty loop on the same sleep, measured right after)"}
+                    "sleep_floor is an empty loop on the same sleep, measured right after); spinning: the "
+                    "same cycles busy-waiting through the period (the CPU never given up), "
+                    "cold_after_sleep = sleeping − spinning (caches and TLB refilled after other "
+                    "processes ran)"}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -291,6 +356,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rt = dataclasses.replace(rt, spin_us=args.spin_us)
     io = cfg.io if args.io == "config" else dataclasses.replace(cfg.io, kind=IoKind(args.io))
     cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, realtime=rt), io=io)
+    n_bd = max(0, int(args.breakdown_cycles))
+    plan_s = args.duration + (sum(breakdown_plan(cfg.loop.period_s, n_bd)) if n_bd > 0 else 0.0)
     load0 = os.getloadavg()
     cpu0 = time.process_time()
     wall0 = time.monotonic()
@@ -303,7 +370,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         t_run = time.monotonic()
         cpu_run = time.process_time()
         timer.start()
-        tell(args, 0.0, args.duration, f"running the loop for {args.duration:g} s", span=args.duration)
+        tell(args, 0.0, plan_s, f"running the loop for {args.duration:g} s", span=args.duration)
         try:
             res = stage.loop.run(stop=stop)
         finally:
@@ -312,8 +379,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         proc_cpu = (time.process_time() - cpu_run) / max(1e-9, wall_run)
     total = res.cycles + res.overruns
     period_us = cfg.loop.period_s * 1e6
-    tell(args, args.duration, args.duration, f"cycle breakdown ({int(args.breakdown_cycles)} cycles)")
-    parts = breakdown(cfg, int(args.breakdown_cycles)) if args.breakdown_cycles > 0 else None
+    parts = None
+    if n_bd > 0:
+        done = [args.duration, 0.0]  # seconds of the plan finished, the stage running now
+
+        def on_stage(what: str, planned_s: float) -> None:
+            done[0] += done[1]
+            done[1] = planned_s
+            tell(args, done[0], plan_s, what, span=planned_s)
+
+        parts = breakdown(cfg, n_bd, on_stage=on_stage)
+    tell(args, plan_s, plan_s, "done")
     summary = res.as_dict()
     late, ex = summary["lateness_us"], summary["exec_us"]
     return {

@@ -136,3 +136,48 @@ def test_shutdown_wakes_a_reader_blocked_for_ever(channel):
     rx.shutdown()
     t.join(30.0)  # a failure guard: the reader returns at once
     assert not t.is_alive() and len(out) == 1 and isinstance(out[0], can.CanOperationError), out
+
+
+def test_a_signal_nobody_waited_for_does_not_end_a_later_wait_early(buses, channel):
+    """Every send signals the receive queue's wake-up lock; frames taken by polling leave that signal pending.
+    A later blocking receive must still wait its time-out (not return None at once) and take a frame sent
+    meanwhile."""
+    import time
+
+    rx = buses(InprocBus, channel)
+    tx = buses(InprocBus, channel)
+    for i in range(3):
+        tx.send(can.Message(arbitration_id=0x180 + i, is_extended_id=False))
+    got = [rx.recv(0.0) for _ in range(3)]
+    assert [m.arbitration_id for m in got if m is not None] == [0x180, 0x181, 0x182]
+    t0 = time.monotonic()
+    assert rx.recv(0.02) is None
+    assert time.monotonic() - t0 >= 0.02  # a lower bound only: the wait was not cut short by the stale signal
+    threading.Timer(0.01, lambda: tx.send(can.Message(arbitration_id=0x201, is_extended_id=False))).start()
+    got = rx.recv(30.0)
+    assert got is not None and got.arbitration_id == 0x201
+
+
+def test_two_blocked_readers_of_one_bus_both_get_a_frame(buses, channel):
+    """Two threads blocked in ``recv`` on the same bus: two frames sent back to back wake both (a reader that
+    leaves frames behind passes the wake-up on)."""
+    import os
+
+    rx = buses(InprocBus, channel)
+    tx = buses(InprocBus, channel)
+    got: list[int] = []
+
+    def reader() -> None:
+        m = rx.recv(30.0)  # a lost wake-up would hang here for the full 30 s
+        got.append(-1 if m is None else m.arbitration_id)
+
+    threads = [threading.Thread(target=reader) for _ in range(2)]
+    for t in threads:
+        t.start()
+    while rx.queue.waiting < 2 and all(t.is_alive() for t in threads):  # until both block in the wait
+        os.sched_yield()
+    tx.send(can.Message(arbitration_id=0x181, is_extended_id=False))
+    tx.send(can.Message(arbitration_id=0x182, is_extended_id=False))
+    for t in threads:
+        t.join(10.0)  # (a reader left without its wake-up would sit out its 30 s time-out)
+    assert not any(t.is_alive() for t in threads) and sorted(got) == [0x181, 0x182]
