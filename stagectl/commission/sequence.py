@@ -404,10 +404,16 @@ class Commissioning:
                      Move(to_m=xc - L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100),
                      Dwell(0.1)]
         segs.append(self._move_to(xc, v_rep, m))
-        # the ladder's own tuning: its Coulomb + viscous feed-forward learns from the passes already run
-        cv_inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
-        assert isinstance(cv_inner.ff, CoulombFeedforward)
-        ladder = SpeedLadderFeedforward(cv_inner.ff, LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T))
+        # on a stage the default tuning cannot hold (the stiffer tuning was chosen) the ladder's Coulomb +
+        # viscous feed-forward learns from the passes already run; elsewhere the passes are run as before:
+        # the pre-sliding fit downstream is sensitive at the nm level to how they end (config of
+        # tests/commission/commission_stage.py with the ladder always on: cosine 3.4 nm instead of 2.1 nm)
+        ladder = None
+        cv_inner = inner
+        if xp != COMMISSION_CROSSOVER_X_PERIOD:
+            cv_inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
+            assert isinstance(cv_inner.ff, CoulombFeedforward)
+            ladder = SpeedLadderFeedforward(cv_inner.ff, LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T))
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
@@ -415,7 +421,7 @@ class Commissioning:
                                   ladder=ladder)
         finally:
             ctl.ladder = None
-            if ladder.updates and self.res.experiments and self.res.experiments[-1].name == "friction_cv":
+            if ladder is not None and ladder.updates and self.res.experiments and self.res.experiments[-1].name == "friction_cv":
                 self.res.experiments[-1].params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
