@@ -425,7 +425,7 @@ class Commissioning:
                 self.res.experiments[-1].params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m))
+                                             cv_rec.col("a_ref"), m, speeds=speeds))
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
         # nested reversals after a long move, both ways
