@@ -563,7 +563,7 @@ class Commissioning:
         return chosen
 
     def _rest_spring(self, entry: dict[str, Any], mass_kg: float, nd: int, spec: dict[str, Any],
-                     on_twin: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
+                     on_twin: Callable[..., dict[str, Any]]) -> dict[str, Any]:
         """Whether the new configuration gets the rest spring (``REST_SPRING``: the observer leaves a fraction of
         the model's pre-sliding stiffness to the stuck stage at standstill, and the model's pre-sliding state
         follows the observer; see ``stagectl.control.controller``), checked before it is advised:
@@ -577,8 +577,11 @@ class Commissioning:
           bounded by k_v·rest_spring_range_m, and it is released when the stage slides or hunts), which the
           report states (``relies_on``);
         * the mismatched twin (:meth:`_rank_on_twin`) runs the verification with it (nonlinear: the clamp and
-          the release included): more 10 µm steps must settle than without, and the cosine and triangle RMS
-          stay within ``REST_MAX_RMS_RATIO`` of without.
+          the release included): more 10 µm steps must settle than without; and on the *matched* twin (the
+          identified model as the plant, so that the cosine is at the sensor's noise and not at the
+          mismatch's 20–45 nm) the cosine and triangle RMS stay within ``REST_MAX_RMS_RATIO`` of without.
+          (Checked on the mismatched twin only, the spring passed on generated plant 5, where on the plant it
+          took the cosine from 1.5 to 10 nm RMS, with the exact model too.)
 
         Confidence ``high`` when every twin step settles and the stuck loop is healthy, else ``medium``."""
         from stagectl.control import design
@@ -616,8 +619,12 @@ class Commissioning:
         out["twin"] = with_rs
         n_base = sum(int(v["moves_settled"]) for v in base.values())
         n_rs = sum(int(v["moves_settled"]) for v in with_rs.values())
-        worse = [nm for nm in ("cosine", "triangle") if nm in base and not
-                 (float(with_rs[nm]["rms_error_m"]) <= REST_MAX_RMS_RATIO * float(base[nm]["rms_error_m"]))]
+        base_m = on_twin(entry, "matched.yaml")
+        rs_m = on_twin({**entry, "rest": {**out, "enabled": True}}, "matched.yaml")
+        out["matched_twin"] = {"without": base_m, "with": rs_m}
+        worse = [f"{nm} ({tw})" for tw, b, w in (("twin", base, with_rs), ("matched twin", base_m, rs_m))
+                 for nm in ("cosine", "triangle") if nm in b and not
+                 (float(w[nm]["rms_error_m"]) <= REST_MAX_RMS_RATIO * float(b[nm]["rms_error_m"]))]
         if n_rs <= n_base or worse:
             return {**out, "reason": f"on the twin: settled moves {n_rs} (without: {n_base})"
                                      + (f"; {', '.join(worse)} RMS more than {REST_MAX_RMS_RATIO:g}x" if worse else "")}
@@ -681,6 +688,7 @@ class Commissioning:
         twin["effects"] = {k: v for k, v in dict(spec.get("effects") or {}).items() if k != "delay"}
         if not twin["effects"]:
             del twin["effects"]
+        matched = dict(twin, friction=dict(twin["friction"]))  # the identified model itself (delay effect aside)
         fr = twin["friction"]
         for key in ("fc_n", "fs_n"):
             if key in fr:
@@ -692,12 +700,13 @@ class Commissioning:
             tdir = Path(td)
             (tdir / "model.yaml").write_text(yaml.safe_dump(plain_spec(spec)))
             (tdir / "twin.yaml").write_text(yaml.safe_dump(plain_spec(twin)))
+            (tdir / "matched.yaml").write_text(yaml.safe_dump(plain_spec(matched)))
 
-            def on_twin(entry: dict[str, Any]) -> dict[str, Any]:
+            def on_twin(entry: dict[str, Any], plant_file: str = "twin.yaml") -> dict[str, Any]:
                 ctl = controller_mapping(entry, mass_kg, nd, T, plant.delay_s, spec, self.cfg.controller.max_force_n,
                                          "model.yaml")
                 mapping = {"loop": {"period_s": T}, "io": {"kind": "plant_io", "sensor": "drive", "delay_cycles": nd},
-                           "sim": {"plant": {"model_file": "twin.yaml", "actuator": {"max_force_n": 1e6},
+                           "sim": {"plant": {"model_file": plant_file, "actuator": {"max_force_n": 1e6},
                                              "sensor": {"resolution_m": quantum, "noise_std_m": 0.5 * quantum},
                                              "seed": 1}},
                            "controller": ctl, "safety": safety}
