@@ -406,10 +406,10 @@ class Commissioning:
         segs.append(self._move_to(xc, v_rep, m))
         # on a stage the default tuning cannot hold (the stiffer tuning was chosen) the ladder's Coulomb +
         # viscous feed-forward learns from the passes already run, and the fit takes the passes only (not
-        # the one-way repositioning cruises, analysis.cv_segments); elsewhere all is as before (the fit on
-        # the passes only took generated plant 6's cosine from 1.2 to 10 nm):
-        # the pre-sliding fit downstream is sensitive at the nm level to how they end (config of
-        # tests/commission/commission_stage.py with the ladder always on: cosine 3.4 nm instead of 2.1 nm)
+        # the one-way repositioning cruises, analysis.cv_segments). Elsewhere all is as before: the fits
+        # downstream are sensitive at the nm level to both (on every stage, the ladder took the seed stage
+        # of tests/commission/commission_stage.py to a 3.4 nm cosine instead of 2.1 nm, and the passes-only
+        # fit generated plant 6's from 1.2 to 10 nm)
         ladder = None
         cv_inner = inner
         if xp != COMMISSION_CROSSOVER_X_PERIOD:
@@ -423,8 +423,9 @@ class Commissioning:
                                   ladder=ladder)
         finally:
             ctl.ladder = None
-            if ladder is not None and ladder.updates and self.res.experiments and self.res.experiments[-1].name == "friction_cv":
-                self.res.experiments[-1].params["feedforward_learned"] = [
+            last = self.res.experiments[-1] if self.res.experiments else None
+            if ladder is not None and ladder.updates and last is not None and last.name == "friction_cv":
+                last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
                                              cv_rec.col("a_ref"), m,
