@@ -141,6 +141,14 @@ def _play(x: FloatArray, deltas: FloatArray, scale: FloatArray) -> FloatArray:
     return out
 
 
+def _moving_average(c: FloatArray, length: int, every: int) -> FloatArray:
+    """Moving average of ``length`` samples along axis 0, every ``every``-th (``(Σ_{j<L} c[i+j])/L`` for
+    i = 0, every, ...; valid part only)."""
+    cs = np.cumsum(np.concatenate([np.zeros((1,) + c.shape[1:]), c]), axis=0)
+    out: FloatArray = ((cs[length:] - cs[:-length]) / length)[::every]
+    return out
+
+
 @dataclass
 class _Rows:
     """One recording's pieces for the pre-sliding regression (:func:`fit_presliding`)."""
@@ -155,12 +163,9 @@ class _Rows:
     y: FloatArray | None = None     # smoothed target force at the current delay [N]
 
     def smooth(self, c: FloatArray) -> FloatArray:
-        """Moving average of ``PRESLIDING_SMOOTH`` samples after ``skip``, every ``PRESLIDING_DECIMATE``-th
-        (columns along axis 0), the kept rows only."""
-        c = c[self.skip:]
-        cs = np.cumsum(np.concatenate([np.zeros((1,) + c.shape[1:]), c]), axis=0)
-        L = PRESLIDING_SMOOTH
-        out: FloatArray = ((cs[L:] - cs[:-L]) / L)[::PRESLIDING_DECIMATE]
+        """:func:`_moving_average` of ``PRESLIDING_SMOOTH`` samples after ``skip``, every
+        ``PRESLIDING_DECIMATE``-th, the kept rows only."""
+        out = _moving_average(c[self.skip:], PRESLIDING_SMOOTH, PRESLIDING_DECIMATE)
         return out if self.keep is None else out[self.keep]
 
     def target(self, delay_s: float) -> FloatArray:
@@ -407,12 +412,9 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     for i in range(1, n):
         run[i] = run[i - 1] + 1 if cruise[i] else 0
     ok = cruise & (run >= settle)
-    L_ = COGGING_SMOOTH
 
     def sm(c: FloatArray) -> FloatArray:
-        cs = np.cumsum(np.concatenate([[0.0], c]))
-        out: FloatArray = ((cs[L_:] - cs[:-L_]) / L_)[::COGGING_DECIMATE]
-        return out
+        return _moving_average(c, COGGING_SMOOTH, COGGING_DECIMATE)
 
     okd = sm(ok.astype(np.float64)) == 1.0
     xs, ys, ds = sm(x)[okd], sm(y)[okd], np.sign(sm(vr))[okd]

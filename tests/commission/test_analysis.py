@@ -224,3 +224,42 @@ def test_cogging_evidence_does_not_name_a_smooth_trend_along_the_pass() -> None:
     lam = 1.0e-3  # two periods over the 2 mm travel
     cog = cogging_evidence(_slow_passes(lambda x, d: 0.5 * d + 0.02 * np.sin(2 * np.pi * x / lam)), 1.0, 1e-3)
     assert cog["present"] and abs(cog["wavelength_m"] / lam - 1) < 0.03, cog
+
+
+def test_speed_ladder_feedforward_learns_the_friction_line_from_paired_cruises() -> None:
+    """The constant-velocity ladder's feed-forward (controllers.SpeedLadderFeedforward) against the plain line
+    F(v) = sgn(v)·Fc + b·v: each cruise's commanded force also carries a position-dependent force (cogging,
+    offset: the same in both directions over a pass) that the pairing must cancel; the slowest speed's level
+    is distorted (short pass, elements still loading) and must not enter the slope; a one-way cruise (the
+    repositioning move) updates nothing; the Coulomb term is off while the reference stands."""
+    from stagectl.commission.controllers import SpeedLadderFeedforward
+    from stagectl.control.api import Reference
+    from stagectl.control.friction_ff import CoulombFeedforward
+
+    fc, b, fc0, T = 0.46, 35.0, 0.40, 1e-3
+    ff = CoulombFeedforward(fc0)
+    lad = SpeedLadderFeedforward(ff, settle_s=0.05)
+
+    def cruise(v: float, extra_n: float, n: int = 300) -> None:
+        for _ in range(n):
+            lad.before(Reference(0.0, v, 0.0))
+            assert ff.coulomb_n == lad.coulomb_n
+            lad.observe(T, Reference(0.0, v, 0.0), math.copysign(fc, v) + b * v + extra_n)
+        for _ in range(20):  # dwell
+            lad.before(Reference(0.0, 0.0, 0.0))
+            assert ff.coulomb_n == 0.0
+            lad.observe(T, Reference(0.0, 0.0, 0.0), 0.0)
+
+    speeds = [0.16e-3, 0.4e-3, 1.0e-3, 2.5e-3]
+    for i, v in enumerate(speeds):
+        slow_bias = -0.1 if i == 0 else 0.0  # the slowest pass reads low in both directions
+        cruise(v, 0.07 * (i + 1) + math.copysign(slow_bias, v))
+        cruise(-v, 0.07 * (i + 1) - math.copysign(slow_bias, v))
+        if i == 1:
+            # slope from the two fastest speeds only, the slowest left out: nothing yet
+            assert ff.viscous_n_s_m == 0.0
+    assert len(lad.updates) == len(speeds)
+    assert ff.viscous_n_s_m == pytest.approx(b, rel=1e-9)
+    assert lad.coulomb_n == pytest.approx(min(fc, fc0))  # never above the probe's starting level
+    cruise(-8e-3, 0.3)  # a one-way cruise (repositioning): no pair, no update
+    assert len(lad.updates) == len(speeds)

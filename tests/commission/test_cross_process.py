@@ -170,8 +170,8 @@ def test_commissioned_controller_tracks_within_2x_of_the_exact_model_one(
         against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
     """The issue's tracking criterion: DIR/stage.yaml's controller within 2x of the same gains given the exact
     hidden model on the cosine (pre-sliding: the identified GMS elements) and the triangle (sliding), and
-    the 10 um steps within 4x and settling as often as with the exact model. Measured: cosine 2.0 / 1.5 nm,
-    triangle 108 / 104 nm, steps 118 / 128 nm with 2/4 settled each (docs/commissioning.md)."""
+    the 10 um steps within 4x and settling as often as with the exact model. Measured: cosine 2.36 / 1.62 nm,
+    triangle 109 / 105 nm, steps 60.5 / 63.7 nm with 4/4 settled each (docs/commissioning.md)."""
     new, ex = against_exact["new"], against_exact["exact"]
     for sc in ("cosine", "triangle"):
         assert new[sc]["rms_error_m"] <= 2.0 * ex[sc]["rms_error_m"], (sc, new[sc], ex[sc])
@@ -179,10 +179,10 @@ def test_commissioned_controller_tracks_within_2x_of_the_exact_model_one(
     assert new["steps"]["moves_settled"] >= min(1, ex["steps"]["moves_settled"]), (new["steps"], ex["steps"])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 11 criterion not met yet: 2 of 4 10 um steps settle within +-10 nm, "
-                   "as with the exact-model controller (a limit of the control structure, not of the model; "
-                   "docs/commissioning.md, 'What the tests show')")
 def test_issue_criterion_all_10um_steps_settle(against_exact: dict[str, dict[str, dict[str, Any]]]) -> None:
+    """The issue's settling criterion: every 10 um step of DIR/stage.yaml's controller settles within +-10 nm on
+    the hidden plant. It did not (2 of 4, as with the exact model and the same gains) until the commissioning
+    offered the rest spring, checked on the twin before it is advised (docs/commissioning.md, *gains*)."""
     new = against_exact["new"]
     assert new["steps"]["moves_settled"] == new["steps"]["moves"], new["steps"]
 

@@ -59,3 +59,24 @@ def test_commissioned_cosine_within_2x_of_the_exact_model(case: str, tmp_path: P
     new, ex = res["new"], res["exact"]
     assert new["cosine"]["rms_error_m"] <= 2.0 * ex["cosine"]["rms_error_m"], (new["cosine"], ex["cosine"])
     assert new["triangle"]["rms_error_m"] <= 2.0 * ex["triangle"]["rms_error_m"], (new["triangle"], ex["triangle"])
+
+
+def test_light_viscous_stage_completes(tmp_path: Path) -> None:
+    """Generated plant 3: 0.69 kg, 0.46 N Coulomb, 35 N s/m viscous. The experiments' 15 Hz tuning (1.8 kN/m
+    for the probe's 0.56 N breakaway: 314 um, 6 following-error limits) hunted in the slow experiments and
+    the constant-velocity passes ran 50 um behind at 16 mm/s without a viscous feed-forward: the sequence
+    faulted in friction_cv. Now the experiments run stiffer (a healthy design on the measured FRF) and the
+    ladder feeds forward the viscous slope of the passes already run, and the commissioning completes."""
+    plant = hidden_plant(3)
+    cfg = stage_yaml(tmp_path / "stage.yaml", plant)
+    out = tmp_path / "out"
+    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
+                 "--max-stroke", "0.002"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "complete"
+    cv = next(e for e in rep["experiments"] if e["name"] == "friction_cv")
+    assert cv["params"]["tuning"]["crossover_hz"] > 15.0, cv["params"]["tuning"]
+    learned = cv["params"]["feedforward_learned"][-1]["viscous_n_s_m"]
+    true_v = plant["friction"]["viscous_n_s_m"]
+    assert abs(learned / true_v - 1) < 0.3, (learned, true_v)
+    assert abs(rep["fitted"]["viscous_n_s_m"]["value"] / true_v - 1) < 0.15, rep["fitted"]["viscous_n_s_m"]
