@@ -226,6 +226,12 @@ class ControllerConfig:
         2, unit="cycles", desc="stale samples in a row (late or dropped) stepped on a predicted position (the last "
         "measured tracking error held), so feedback and observer keep their sample rate; later ones hold the "
         "feedback (0: always hold)", ge=0, le=10)
+    stale_force_limit_n: float | None = param(
+        None, unit="N", desc="stale-data policy: while samples are stale (predicted and held cycles), |u - m*a_ref - u_learn| <= this. "
+        "None: the friction feed-forward's Coulomb (kinetic) level times its adapted scale: a sliding stage "
+        "feels at least that friction and a stuck one needs the higher static level to break away, so a "
+        "controller without data holds or slows down, never accelerates the stage beyond the reference; "
+        "inf (or no friction feed-forward): no limit", gt=0.0, allow_inf=True)
 
 
 @dataclass
@@ -362,6 +368,7 @@ class StageController:
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self._pred_s = 0.0  # time covered by predicted steps (hold) since the last fresh sample
         self._gap = 0  # stale cycles since the last fresh sample
+        self._f_kin = _kinetic_level(self.ff)  # the friction model's Coulomb level [N] (nan: no model)
         self._e_last = math.nan  # the last measured tracking error x_r − x [m]
         self._u_learn = 0.0  # the learned force in the last command [N]
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
@@ -520,6 +527,7 @@ class StageController:
         self.dob = new_dob
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
+        self._f_kin = _kinetic_level(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
@@ -675,6 +683,28 @@ class StageController:
         self._e_last = ref.x_m - x_meas_m
         return cmd
 
+    def stale_force_limit(self) -> float:
+        """Half-width L [N] of the stale-data force band about m·a_ref + u_learn (see :meth:`hold`):
+        ``stale_force_limit_n``, else θ·F_c (the feed-forward's Coulomb level times its adapted scale θ); inf
+        without either."""
+        lim = self.cfg.stale_force_limit_n
+        if lim is None:
+            lim = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else math.inf
+        return max(lim, abs(self.state.u_ff_n))
+
+    def _stale_limit(self, cmd: Command, flags: tuple[str, ...]) -> Command:
+        """Limit ``cmd`` to the stale-data band (:meth:`hold`); the observer is told the force applied."""
+        st = self.state
+        lim = self.stale_force_limit()
+        c = st.u_inertia_n + self._u_learn
+        u = cmd.force_n
+        if c - lim <= u <= c + lim:
+            return Command(u, cmd.terms, flags + cmd.limited) if flags else cmd
+        u = c + lim if u > c else c - lim
+        st.u_n = u
+        st.u_obs_prev_n = u - st.u_ff_n
+        return Command(u, cmd.terms, flags + ("stale_force",) + cmd.limited)
+
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float) -> Command:
         if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
             raise ValueError(f"reference must be finite (got {ref})")
@@ -820,7 +850,25 @@ class StageController:
         terms["u_ff"] = u_ff
         terms["u_inertia"] = u_in
         st.terms = terms
-        return Command(u, terms, ("stale",))
+        return self._stale_limit(Command(u, terms, ()), ("stale",))
+
+
+def _kinetic_level(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:
+    """The friction feed-forward's Coulomb (kinetic) level F_c [N]: ``coulomb_n``, the model's ``fc_n``, else
+    its total slip force (``fs_n`` or Σ ``w_n``, a model without a Stribeck dip); nan without one."""
+    if isinstance(ff, CoulombFeedforward):
+        return float(ff.coulomb_n) if ff.coulomb_n > 0.0 else math.nan
+    if not isinstance(ff, FrictionFeedforward):
+        return math.nan
+    q = getattr(ff.model, "params", None)
+    for name in ("fc_n", "fs_n"):
+        v = getattr(q, name, None)
+        if isinstance(v, (int, float)) and v > 0.0:
+            return float(v)
+    w = getattr(q, "w_n", None)
+    if isinstance(w, tuple) and w:
+        return float(sum(w))
+    return math.nan
 
 
 def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:
