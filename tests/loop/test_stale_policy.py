@@ -190,3 +190,19 @@ def test_the_jump_bound_after_a_rest_gap_is_the_rest_allowance():
     assert gap_then(100e-6, 400) is not None  # accepted before: the bound over 0.4 s was 0.41 m
     # a short gap (within stale_cycles) keeps the physical bound over its interval
     assert gap_then(0.5 * Safety(cfg, T, mass_kg=2.0).max_step_m(3 * T), 2) is None
+
+
+def test_the_skipped_slot_actuation_floor_is_below_the_disturbed_run():
+    """bench timing's skipped_slot_actuation_only: every sample on time, but 10 % of the slots actuated as a
+    skipped slot is (the previous force one more period, then the command from before the skip a period
+    late). It already costs the pre-sliding cosine more than 1.5x the clean run with a controller that misses
+    no sample, and stays at or below the run with the skipped wake-ups themselves."""
+    from stagectl.bench.timing import run_tracking
+
+    cfg = load_app_config(REPO / "config" / "sim.yaml")
+    kw = dict(stage_kind="plant_io", duration_s=2.2, skip_s=0.5)
+    clean = run_tracking(cfg, "cosine", disturbed=False, **kw)
+    slip = run_tracking(cfg, "cosine", disturbed=False, slip_writes=True, **kw)
+    dist = run_tracking(cfg, "cosine", disturbed=True, **kw)
+    assert slip["fault"] is None and slip["stale_cycles"] == 0 and slip["skipped_slots"] == 0
+    assert 1.5 * clean["rms_error_nm"] < slip["rms_error_nm"] <= dist["rms_error_nm"], (clean, slip, dist)
