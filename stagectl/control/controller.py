@@ -227,11 +227,12 @@ class ControllerConfig:
         "measured tracking error held), so feedback and observer keep their sample rate; later ones hold the "
         "feedback (0: always hold)", ge=0, le=10)
     stale_force_limit_n: float | None = param(
-        None, unit="N", desc="stale-data policy: while samples are stale (predicted and held cycles), |u - m*a_ref - u_learn| <= this. "
-        "None: the friction feed-forward's Coulomb (kinetic) level times its adapted scale: a sliding stage "
-        "feels at least that friction and a stuck one needs the higher static level to break away, so a "
-        "controller without data holds or slows down, never accelerates the stage beyond the reference; "
-        "inf (or no friction feed-forward): no limit", gt=0.0, allow_inf=True)
+        None, unit="N", desc="stale-data policy: while the feedback is held on stale samples (after the predicted "
+        "ones), |u - m*a_ref - u_learn| <= max(this, |u_ff|), u_ff the reference's friction feed-forward. None: "
+        "the feed-forward's Coulomb (kinetic) level times its adapted scale: a sliding stage feels at least "
+        "that friction and a stuck one needs the higher static level to break away, so a controller without "
+        "data holds or slows down; inf (or no friction feed-forward and None): no limit", gt=0.0,
+        allow_inf=True)
 
 
 @dataclass
@@ -685,25 +686,25 @@ class StageController:
 
     def stale_force_limit(self) -> float:
         """Half-width L [N] of the stale-data force band about m·a_ref + u_learn (see :meth:`hold`):
-        ``stale_force_limit_n``, else θ·F_c (the feed-forward's Coulomb level times its adapted scale θ); inf
-        without either."""
+        max(``stale_force_limit_n`` or else θ·F_c, |u_ff|) (F_c: the feed-forward's Coulomb level, θ its adapted
+        scale, u_ff the last friction feed-forward); inf without a limit and without a friction level."""
         lim = self.cfg.stale_force_limit_n
         if lim is None:
             lim = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else math.inf
         return max(lim, abs(self.state.u_ff_n))
 
-    def _stale_limit(self, cmd: Command, flags: tuple[str, ...]) -> Command:
-        """Limit ``cmd`` to the stale-data band (:meth:`hold`); the observer is told the force applied."""
+    def _stale_limit(self, u: float, terms: dict[str, float]) -> Command:
+        """A held cycle's force ``u`` [N] limited to the stale-data band (:meth:`hold`); the state (and so the
+        observer's next input and the next held cycle) takes the limited force."""
         st = self.state
         lim = self.stale_force_limit()
         c = st.u_inertia_n + self._u_learn
-        u = cmd.force_n
         if c - lim <= u <= c + lim:
-            return Command(u, cmd.terms, flags + cmd.limited) if flags else cmd
+            return Command(u, terms, ("stale",))
         u = c + lim if u > c else c - lim
         st.u_n = u
         st.u_obs_prev_n = u - st.u_ff_n
-        return Command(u, cmd.terms, flags + ("stale_force",) + cmd.limited)
+        return Command(u, terms, ("stale", "stale_force"))
 
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float) -> Command:
         if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
@@ -815,11 +816,18 @@ class StageController:
         the prediction the error stays at the clean run's). The next fresh sample corrects the prediction.
 
         Later stale cycles hold the feedback terms (u_pid, d̂) at their last values: nothing integrates, no
-        estimate moves, so a controller without data cannot run away. The feed-forward follows the reference
-        (it needs no measurement): the friction model is advanced by ``dt`` (the next :meth:`step` advances it
-        only by the rest of its own dt) and the inertia term is m·a_ref::
+        estimate moves. The feed-forward follows the reference (it needs no measurement): the friction model is
+        advanced by ``dt`` (the next :meth:`step` advances it only by the rest of its own dt) and the inertia
+        term is m·a_ref. The force is limited to the stale-data band (hold or slow down, never run away)::
 
             u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±max_force_n )
+            u = clamp( u, m_ff·a_ref + u_l ± L ),   L = max(θ·F_c or stale_force_limit_n, |u_ff(ref)|)
+
+        A feedback force built up before the gap (a break-away, a disturbance) is not held blind: a sliding
+        stage feels at least the Coulomb level F_c (Stribeck and viscous friction only add), and a stuck one
+        needs the static level to break away, so with |u − m·a_ref| ≤ F_c the stage does not accelerate
+        beyond the reference; |u_ff| (pre-sliding up to the static level, the sliding friction at the
+        reference's speed) is what following the reference needs. The limited force is held from then on.
         """
         check_dt(dt)
         st = self.state
@@ -850,7 +858,7 @@ class StageController:
         terms["u_ff"] = u_ff
         terms["u_inertia"] = u_in
         st.terms = terms
-        return self._stale_limit(Command(u, terms, ()), ("stale",))
+        return self._stale_limit(u, terms)
 
 
 def _kinetic_level(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:

@@ -92,10 +92,11 @@ def _breakaway_run(cfg, limit):
     """Demo motion through the CiA 402 driver and the virtual drive (lock-step, device time): at cycle 20, as
     the stage breaks away on its 2 mm/s move, a 5 µm glitch kicks the feedback and the next 7 TPDOs are
     dropped. Returns the loop result, the recorder and the true plant positions per cycle."""
+    from stagectl.sim.faults import FaultSpec, SimFault
+
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
     from stagectl.recorder import Recorder
-    from stagectl.sim.faults import FaultSpec, SimFault
 
     cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN),
                               controller=dataclasses.replace(cfg.controller, stale_force_limit_n=limit))
@@ -200,7 +201,7 @@ def test_the_skipped_slot_actuation_floor_is_below_the_disturbed_run():
     from stagectl.bench.timing import run_tracking
 
     cfg = load_app_config(REPO / "config" / "sim.yaml")
-    kw = dict(stage_kind="plant_io", duration_s=2.2, skip_s=0.5)
+    kw = {"stage_kind": "plant_io", "duration_s": 2.2, "skip_s": 0.5}
     clean = run_tracking(cfg, "cosine", disturbed=False, **kw)
     slip = run_tracking(cfg, "cosine", disturbed=False, slip_writes=True, **kw)
     dist = run_tracking(cfg, "cosine", disturbed=True, **kw)
