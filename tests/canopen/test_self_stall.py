@@ -7,7 +7,6 @@ hand here (no wall clock): ``threaded`` marks the drive as served in thread mode
 from __future__ import annotations
 
 import pytest
-
 from stagectl.sim.cia402_drive import SELF_STALL_GRACE_S, DriveState
 
 SHUTDOWN, SWITCH_ON, ENABLE = 0x06, 0x07, 0x0F
