@@ -1,7 +1,8 @@
 """The HIL's sim-plant held off the CPU (thread mode on a loaded machine) must not judge the master silent
-from its own stall: in a demo run the drive ran the plant on its own clock through a ~0.3 s stall under the
-last torque (the stage slid 39 µm in what the controller saw as one period: ``position_jump``), or faulted
-EMCY 0x8130 (heartbeat consumer) although the controller's frames were only queued. Device time is driven by
+from its own stall: it would run the plant on its own clock through the whole stall under the last torque (a
+demo run tracking within 40 nm at 0.9 N saw the stage 39 µm further one period later: ``position_jump``,
+what a ~0.3 s take-over at the break-away level does), or fault EMCY 0x8130 (heartbeat consumer, another
+run) although the controller's frames were only queued. Device time is driven by
 hand here (no wall clock): ``threaded`` marks the drive as served in thread mode."""
 
 from __future__ import annotations
