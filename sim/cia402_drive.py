@@ -54,7 +54,10 @@ While the power stage is on and SYNC is missing the drive runs the plant on its 
 device time): in QUICK STOP / FAULT REACTION ACTIVE after three silent periods (a ramp completes without SYNC),
 in OPERATION ENABLED after half of ``sync_timeout_s`` (the stage keeps moving under the last torque; a merely
 late SYNC on a loaded machine does not move it), until SYNC supervision (``sync_timeout_s``) faults the drive
-with EMCY 0x8700.
+with EMCY 0x8700. In thread mode a timer tick more than ``SELF_STALL_S`` after the previous one means this
+process itself was held off the CPU (the HIL's sim-plant on a loaded machine): for ``SELF_STALL_GRACE_S`` the
+master's heartbeat and SYNC are not judged missing, since its frames from the stall are still queued (before,
+the drive ran the plant on its own clock through the whole stall under the last torque, or faulted 0x8130).
 
 The protocol constants are written out here on purpose, independently of the driver in
 :mod:`stagectl.drivers.cia402`, so that the two sides check each other (and canopen's BaseNode402 checks both).
@@ -92,6 +95,11 @@ EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_PDO_LENGTH_EXCEEDED = 0x8220
 EMCY_SYNC_LOST = 0x8700  # CiA 402: sync controller
 EMCY_INTERNAL = 0x6100  # internal software
+#: thread mode: a timer tick this long after the previous one means this process was held off the CPU ...
+SELF_STALL_S = 0.02
+#: ... and for this long after it the master's heartbeat and SYNC are not judged missing (its queued frames
+#: are worked off first); lock-step (device time) is not affected
+SELF_STALL_GRACE_S = 0.05
 #: late_tpdo: a held TPDO is due this fraction of a period after its SYNC (after the driver's rx time-out)
 LATE_FRACTION = 0.9
 
@@ -210,6 +218,11 @@ class SimCanopenDevice:
         self._late: list[tuple[float, can.Message]] = []
         self._pdo_dirty = False
         self.last_sync_t = 0.0
+        self._tick_t: float | None = None  # device time of the previous timer tick
+        self._grace_until = -1.0  # thread mode: no judging of the master's silence before this time (own stall)
+        #: False while this process was just held off the CPU (thread mode): the frames the master sent
+        #: meanwhile are still queued, so its heartbeat and SYNC are not judged missing yet
+        self.judging_silence = True
         self.error_register = 0
         self.emcy_sent: list[int] = []
         self.heartbeat_lost_events = 0
@@ -641,6 +654,13 @@ class SimCanopenDevice:
             self._internal_error("timer")
 
     def _tick(self, t_s: float) -> None:
+        prev, self._tick_t = self._tick_t, t_s
+        if self.threaded and prev is not None and t_s - prev > SELF_STALL_S:
+            # this process (the HIL's sim-plant) was held off the CPU: what the master sent meanwhile is still
+            # queued behind this tick; judging its heartbeat or SYNC missing now would fault (EMCY 0x8130 /
+            # 0x8700) or run the plant on the drive's own clock for the whole stall under the last torque
+            self._grace_until = t_s + SELF_STALL_GRACE_S
+        self.judging_silence = not self.threaded or t_s >= self._grace_until
         if self._late:
             self.release_late(t_s)
         if self.nmt_state == NMT_INITIALISING:
@@ -652,7 +672,8 @@ class SimCanopenDevice:
             self._next_hb_t += self._hb_period_s
             if self._next_hb_t <= t_s:
                 self._next_hb_t = t_s + self._hb_period_s
-        if self._consumer_armed and t_s - self._consumer_last_t > self._consumer_timeout_s + 1e-12:
+        if (self._consumer_armed and self.judging_silence
+                and t_s - self._consumer_last_t > self._consumer_timeout_s + 1e-12):
             self._consumer_armed = False
             self.heartbeat_lost_events += 1
             self.send_emcy(EMCY_HEARTBEAT)
@@ -967,6 +988,8 @@ class SimCia402Drive(SimCanopenDevice):
             self.enter_fault(spec.code if spec else 0x2310)
 
     def on_tick(self, t_s: float) -> None:
+        if not self.judging_silence:  # right after this process's own stall: the SYNCs may still be queued
+            return
         T = self.period_s
         silent_s = t_s - self.last_sync_t
         if (self._sync_seen and self.cfg.sync_timeout_s > 0 and self.state is _S.OPERATION_ENABLED

@@ -98,6 +98,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._glitch: float | None = None
         self._glitch_n = 0
         self._offset, self._offset_n = 0.0, 0
+        self._stall_n, self._stall_rate = 0, 1
+        self._backlog: deque[tuple[float, int]] | None = None  # samples a stalled drive has yet to send
         self._inject: DeviceFault | None = None
         self._cause: DeviceFault | None = None
         self.n_sync = 0
@@ -169,6 +171,33 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._glitch = float(value_m)
         self._glitch_n = int(cycles)
 
+    def stall(self, cycles: int, catch_up_per_cycle: int = 2) -> None:
+        """A drive process held off the CPU (the HIL's sim-plant on a loaded machine), in device time: the
+        plant moves on, but the next ``cycles`` reads are stale; then the drive works off its backlog of
+        unanswered SYNCs at ``catch_up_per_cycle`` (>= 2) per period, so each read returns, as a *fresh*
+        on-time sample, the position of the newest SYNC answered so far: the backlog b shrinks by
+        ``catch_up_per_cycle`` − 1 per cycle, and the sample is b periods older than the loop believes (the
+        CiA 402 driver cannot tell: a TPDO carries no SYNC number)."""
+        if catch_up_per_cycle < 2:
+            raise ValueError(f"catch_up_per_cycle: must be >= 2 (got {catch_up_per_cycle})")
+        self._stall_n, self._stall_rate = int(cycles), int(catch_up_per_cycle)
+        self._backlog = deque()
+
+    def _stalled(self, x: float, counts: int) -> tuple[float, int, bool]:
+        """(x, counts, fresh) of a stalled drive (see :meth:`stall`); the stall ends with its backlog."""
+        bl = self._backlog
+        assert bl is not None
+        bl.append((x, counts))
+        if self._stall_n > 0:
+            self._stall_n -= 1
+            return self._meas.position_m, self._meas.counts, False
+        got = bl[0]
+        for _ in range(min(self._stall_rate, len(bl))):
+            got = bl.popleft()
+        if not bl:
+            self._backlog = None
+        return got[0], got[1], True
+
     # ------------------------------------------------------------------ cyclic
     def sync(self) -> None:
         """Advance the plant to this SYNC, apply the latched command, sample the position. Real-time safe."""
@@ -208,7 +237,9 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             fault = self._latch(self._inject)
             self._zero()
         fresh = True
-        if self._drop:
+        if self._backlog is not None:
+            x, counts, fresh = self._stalled(x, counts)
+        elif self._drop:
             if self._drop > 0:
                 self._drop -= 1
             fresh = False

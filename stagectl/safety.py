@@ -23,7 +23,10 @@ fault name             condition
 ``position_jump``      a fresh sample moved further since the previous fresh one than the stage physically
                        can: \\|Δx\\| > v_max·Δt + (F_max/m)·Δt²/2 + ``jump_margin_m`` (Δt: time between the two
                        samples, T when none was stale; v_max = ``max_velocity_m_s``, F_max = ``max_force_n``,
-                       m the moving mass given to :class:`Safety`; off without a mass)
+                       m the moving mass given to :class:`Safety`; off without a mass). After a gap of
+                       ``stale_cycles`` or more (only the rest allowance lets one through: the stage stood, the
+                       controller held a force below break-away) the bound is what that allowance assumes,
+                       v_s·Δt + the one-period bound (v_s = ``quick_stop_standstill_m_s``), if smaller
 ``velocity_limit``     \\|v̂\\| > ``max_velocity_m_s``; v̂ is the backward difference Δx/Δt between fresh samples,
                        Δt their measured interval (loop time; a sample less than T/2 after the last one waits for the
                        next), low-passed at
@@ -237,6 +240,7 @@ class Safety:
                 self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles", t_s, cycle)
                 return True
             return self.fault is not None
+        gap = self._stale
         self._stale = 0
         if x_m < cfg.min_position_m or x_m > cfg.max_position_m:
             self.latch(
@@ -255,6 +259,8 @@ class Safety:
         if xp is not None:
             if self.max_accel_m_s2 is not None:
                 bound = self.max_step_m(dt)
+                if gap >= cfg.stale_cycles:  # only the rest allowance lets such a gap through: the stage stood
+                    bound = min(bound, cfg.quick_stop_standstill_m_s * dt + self.max_step_m(T))
                 if abs(x_m - xp) > bound:
                     self.latch(
                         "position_jump",

@@ -277,6 +277,13 @@ class ControllerConfig:
         2, unit="cycles", desc="stale samples in a row (late or dropped) stepped on a predicted position (the last "
         "measured tracking error held), so feedback and observer keep their sample rate; later ones hold the "
         "feedback (0: always hold)", ge=0, le=10)
+    stale_force_limit_n: float | None = param(
+        None, unit="N", desc="stale-data policy: while the feedback is held on stale samples (after the predicted "
+        "ones), |u - m*a_ref - u_learn| <= max(this, |u_ff|), u_ff the reference's friction feed-forward. None: "
+        "the feed-forward's Coulomb (kinetic) level times its adapted scale: a sliding stage feels at least "
+        "that friction and a stuck one needs the higher static level to break away, so a controller without "
+        "data holds or slows down; inf (or no friction feed-forward and None): no limit", gt=0.0,
+        allow_inf=True)
 
 
 @dataclass
@@ -509,6 +516,7 @@ class StageController:
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self._pred_s = 0.0  # time covered by predicted steps (hold) since the last fresh sample
         self._gap = 0  # stale cycles since the last fresh sample
+        self._f_kin = _kinetic_level(self.ff)  # the friction model's Coulomb level [N] (nan: no model)
         self._e_last = math.nan  # the last measured tracking error x_r − x [m]
         self._u_learn = 0.0  # the learned force in the last command [N]
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
@@ -673,6 +681,7 @@ class StageController:
         self.dob = new_dob
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
+        self._f_kin = _kinetic_level(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
@@ -882,6 +891,28 @@ class StageController:
         self._e_last = ref.x_m - x_meas_m
         return cmd
 
+    def stale_force_limit(self) -> float:
+        """Half-width L [N] of the stale-data force band about m·a_ref + u_learn (see :meth:`hold`):
+        max(``stale_force_limit_n`` or else θ·F_c, |u_ff|) (F_c: the feed-forward's Coulomb level, θ its adapted
+        scale, u_ff the last friction feed-forward); inf without a limit and without a friction level."""
+        lim = self.cfg.stale_force_limit_n
+        if lim is None:
+            lim = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else math.inf
+        return max(lim, abs(self.state.u_ff_n))
+
+    def _stale_limit(self, u: float, terms: dict[str, float]) -> Command:
+        """A held cycle's force ``u`` [N] limited to the stale-data band (:meth:`hold`); the state (and so the
+        observer's next input and the next held cycle) takes the limited force."""
+        st = self.state
+        lim = self.stale_force_limit()
+        c = st.u_inertia_n + self._u_learn
+        if c - lim <= u <= c + lim:
+            return Command(u, terms, ("stale",))
+        u = c + lim if u > c else c - lim
+        st.u_n = u
+        st.u_obs_prev_n = u - st.u_ff_n
+        return Command(u, terms, ("stale", "stale_force"))
+
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float) -> Command:
         if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
             raise ValueError(f"reference must be finite (got {ref})")
@@ -995,11 +1026,18 @@ class StageController:
         the prediction the error stays at the clean run's). The next fresh sample corrects the prediction.
 
         Later stale cycles hold the feedback terms (u_pid, d̂) at their last values: nothing integrates, no
-        estimate moves, so a controller without data cannot run away. The feed-forward follows the reference
-        (it needs no measurement): the friction model is advanced by ``dt`` (the next :meth:`step` advances it
-        only by the rest of its own dt) and the inertia term is m·a_ref::
+        estimate moves. The feed-forward follows the reference (it needs no measurement): the friction model is
+        advanced by ``dt`` (the next :meth:`step` advances it only by the rest of its own dt) and the inertia
+        term is m·a_ref. The force is limited to the stale-data band (hold or slow down, never run away)::
 
             u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±max_force_n )
+            u = clamp( u, m_ff·a_ref + u_l ± L ),   L = max(θ·F_c or stale_force_limit_n, |u_ff(ref)|)
+
+        A feedback force built up before the gap (a break-away, a disturbance) is not held blind: a sliding
+        stage feels at least the Coulomb level F_c (Stribeck and viscous friction only add), and a stuck one
+        needs the static level to break away, so with |u − m·a_ref| ≤ F_c the stage does not accelerate
+        beyond the reference; |u_ff| (pre-sliding up to the static level, the sliding friction at the
+        reference's speed) is what following the reference needs. The limited force is held from then on.
         """
         check_dt(dt)
         st = self.state
@@ -1030,7 +1068,25 @@ class StageController:
         terms["u_ff"] = u_ff
         terms["u_inertia"] = u_in
         st.terms = terms
-        return Command(u, terms, ("stale",))
+        return self._stale_limit(u, terms)
+
+
+def _kinetic_level(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:
+    """The friction feed-forward's Coulomb (kinetic) level F_c [N]: ``coulomb_n``, the model's ``fc_n``, else
+    its total slip force (``fs_n`` or Σ ``w_n``, a model without a Stribeck dip); nan without one."""
+    if isinstance(ff, CoulombFeedforward):
+        return float(ff.coulomb_n) if ff.coulomb_n > 0.0 else math.nan
+    if not isinstance(ff, FrictionFeedforward):
+        return math.nan
+    q = getattr(ff.model, "params", None)
+    for name in ("fc_n", "fs_n"):
+        v = getattr(q, name, None)
+        if isinstance(v, (int, float)) and v > 0.0:
+            return float(v)
+    w = getattr(q, "w_n", None)
+    if isinstance(w, tuple) and w:
+        return float(sum(w))
+    return math.nan
 
 
 def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:

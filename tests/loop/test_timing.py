@@ -452,10 +452,11 @@ def test_loop_device_time_from_the_config(sim_cfg):
 
 def test_a_held_cycle_carries_the_learned_force_once(sim_cfg):
     """hold(dt, ref, u_learn_n): the learned feed-forward replaces the last cycle's instead of adding to it
-    (before, the loop added the learner's force to a held command that already held the last one)."""
+    (before, the loop added the learner's force to a held command that already held the last one). The stale
+    force limit is off here (.inf): it would clamp this stuck stage's 1.8 N (test_stale_policy.py)."""
     from stagectl.control.controller import StageController
 
-    cfg = dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0)
+    cfg = dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0, stale_force_limit_n=math.inf)
     ctl = StageController(cfg, sim_cfg.timing)
     ctl.reset(0.0)
     ref = Reference(0.0, 0.0, 0.0)
