@@ -450,13 +450,16 @@ class _MoveFit:
         self.r2 = lam * self.r2 + r2
         # prior: LEARN_RIDGE of the accumulated information on each parameter, towards the model as given (1, 0);
         # also what keeps θ and β apart where they are nearly collinear (pre-sliding)
-        w1, w2 = LEARN_RIDGE * self.c11, LEARN_RIDGE * self.c22
+        # (on β at least LEARN_RIDGE² of θ's: a stiffness the moves say next to nothing about, as a static model's
+        # whose tangent stiffness is ~0, stays at its prior instead of the ratio of two tiny sums)
+        w1, w2 = LEARN_RIDGE * self.c11, LEARN_RIDGE * max(self.c22, LEARN_RIDGE * self.c11)
         a11, a22, a12 = self.c11 + w1, self.c22 + w2, self.c12
         det = a11 * a22 - a12 * a12
         if not det > 0.0:
             return None
         q1, q2 = self.r1 + w1 * 1.0, self.r2
-        return ((a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det)
+        th, u = (a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det
+        return (th, u) if math.isfinite(th) and math.isfinite(u) else None
 
 
 @dataclass
@@ -746,8 +749,9 @@ class StageController:
         th = self.ff_scale
         f_raw = u_ff / th
         if not at_rest:
-            if ml.rest:  # a move starts: the model and observer as they are now are the baseline
-                ml.start(th, ff.input_scale, f_raw, d_hat, ff.state.x_fed_m)
+            if ml.rest:  # a move starts: the model and observer as they were at rest are the baseline (the model
+                # force of the last step: this step's has already moved, by all of its jump for a static model)
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat, ff.state.x_fed_m)
             if learning:  # a learned force (ILC) is applied: one learner at a time
                 ml.valid = False
             if not ml.valid:
@@ -781,7 +785,8 @@ class StageController:
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
         th_new = min(hi, max(lo, th + k * (fit[0] - th)))
         b = ff.input_scale
-        ff.input_scale = min(hi, max(lo, b + k * (math.exp(fit[1]) - b)))
+        beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
+        ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
         delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
         self.ff_scale = th_new
         dob.shift(delta)

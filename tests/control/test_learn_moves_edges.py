@@ -1,0 +1,56 @@
+"""Learning from earlier moves (``feedforward.learn_moves_fraction``) at its edges: a static friction model (its
+force jumps in the first moving cycle; its tangent stiffness is ~0, so the moves say nothing about β)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def seed(repo_root):
+    from stagectl.config import load_app_config
+
+    return load_app_config(repo_root / "config" / "sim.yaml")
+
+
+def _steps_static(cfg: Any, plant_scale: float) -> tuple[Any, Any]:
+    """bench control's 10 µm steps (+10, +10, −10, −10 µm; plant_io, simulated time) of a stage with static
+    Stribeck friction ``plant_scale`` × the controller's model, learning on (κ = 1, continuous adaptation off)."""
+    from stagectl.app import build_stage
+    from stagectl.bench.control import steps_scenario
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.control.controller import StageController
+    from stagectl.friction import StageModel, build
+
+    spec = {"model": "stribeck", "fc_n": 0.8, "fs_n": 0.9, "viscous_n_s_m": 10.0}
+    model = StageModel(friction=build(spec), mass_kg=2.0)
+    plant_fr = build({**spec, "fc_n": 0.8 * plant_scale, "fs_n": 0.9 * plant_scale})
+    c = cfg.controller
+    ctl_cfg = dataclasses.replace(c, rest_stiffness_fraction=0.0, feedforward=dataclasses.replace(
+        c.feedforward, learn_moves_fraction=1.0, adapt_bandwidth_hz=0.0))
+    ctl = StageController(ctl_cfg, cfg.timing, model=model)
+    cfg = dataclasses.replace(
+        cfg, io=dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO),
+        safety=dataclasses.replace(cfg.safety, following_error_m=1e-3),
+        sim=dataclasses.replace(cfg.sim, plant=dataclasses.replace(cfg.sim.plant, friction=plant_fr)))
+    sc = steps_scenario(0.1)
+    with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+        stage.load_scenario(sc)
+        res = stage.loop.run(duration_s=sc.duration_s(0.0))
+    return ctl, res
+
+
+@pytest.mark.parametrize("plant_scale", [0.8, 1.4])
+def test_a_static_model_learns_its_force_level_and_leaves_beta(seed, plant_scale):
+    """The move's baseline is the model force at rest (before the move's first step, in which a static model
+    jumps to ±F_s): θ follows the plant's friction level. β, about which these moves carry no information
+    (tangent stiffness ~0), stays at 1 instead of the ratio of two tiny sums (e^555 once: an OverflowError
+    in the loop)."""
+    ctl, res = _steps_static(seed, plant_scale)
+    assert res.fault is None
+    assert abs(ctl.ff_scale - plant_scale) < 0.5 * abs(plant_scale - 1.0), ctl.ff_scale
+    assert ctl.ff.input_scale == pytest.approx(1.0, abs=0.02)
