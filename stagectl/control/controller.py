@@ -750,8 +750,10 @@ class StageController:
         f_raw = u_ff / th
         if not at_rest:
             if ml.rest:  # a move starts: the model and observer as they were at rest are the baseline (the model
-                # force of the last step: this step's has already moved, by all of its jump for a static model)
-                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat, ff.state.x_fed_m)
+                # force of the last step: this step's has already moved, by all of its jump for a static model);
+                # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
+                # into the observer below
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
             if learning:  # a learned force (ILC) is applied: one learner at a time
                 ml.valid = False
             if not ml.valid:

@@ -54,3 +54,25 @@ def test_a_static_model_learns_its_force_level_and_leaves_beta(seed, plant_scale
     assert res.fault is None
     assert abs(ctl.ff_scale - plant_scale) < 0.5 * abs(plant_scale - 1.0), ctl.ff_scale
     assert ctl.ff.input_scale == pytest.approx(1.0, abs=0.02)
+
+
+def test_a_move_from_a_loaded_rest_spring_starts_from_the_estimate_the_loop_goes_on_with(seed):
+    """A move that starts with the rest spring loaded (the stage held 150 nm off the reference: s ≈ 48 mN) folds
+    the spring's force into the observer. The learning's baseline is the estimate after that fold: else the
+    whole move's model error is off by s (up to k_v·rest_spring_range_m = 64 mN, against model changes of
+    0.1–1.6 N per move)."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    c = seed.controller
+    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=1.0,
+                                                                     adapt_bandwidth_hz=0.0))
+    ctl = StageController(ctl_cfg, seed.timing, model=seed.sim.plant)
+    dt = seed.loop.period_s
+    for _ in range(300):  # at rest, the stage stuck 150 nm off the reference
+        ctl.step(dt, 150e-9, Reference(0.0, 0.0, 0.0))
+    s = ctl._s_rest
+    assert abs(s) > 0.03  # N: the spring is loaded
+    cmd = ctl.step(dt, 150e-9, Reference(1e-9, 1e-3, 1.0))  # the move starts
+    assert ctl._s_rest == 0.0  # folded into the observer
+    assert ctl._ml.d0 == pytest.approx(cmd.terms["u_dob"], abs=1e-3 * abs(s))
