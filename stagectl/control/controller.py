@@ -79,7 +79,8 @@ made the cosine after a positioning move 20x worse: 41.6 against 7.0 nm RMS in t
 ``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
 is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
 over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
-signal, so it carries over to any motion (ILC learns a signal per motion: with ILC on, θ and β stay put).
+signal, so it carries over to any motion (ILC learns a signal per motion: while it applies a learned force, θ
+and β stay put).
 
 Learning from earlier moves (``feedforward.learn_moves_fraction`` = κ, with an observer and ``kind: model``): the
 continuous adaptation above is slow (1 Hz: a 30 ms move moves θ by ~1 %), and it cannot be faster without
@@ -102,7 +103,7 @@ and, with the forgetting, keeps one noisy move from walking the model away (with
 within 1 ± 0.03 over 20 moves). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones in 17–29 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
+later ones in 19–30 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
