@@ -76,3 +76,36 @@ def test_a_move_from_a_loaded_rest_spring_starts_from_the_estimate_the_loop_goes
     cmd = ctl.step(dt, 150e-9, Reference(1e-9, 1e-3, 1.0))  # the move starts
     assert ctl._s_rest == 0.0  # folded into the observer
     assert ctl._ml.d0 == pytest.approx(cmd.terms["u_dob"], abs=1e-3 * abs(s))
+
+
+@pytest.mark.xfail(strict=True, reason="open: the per-move fit attributes the observer's timing residuals to θ, β; "
+                   "in pre-sliding the two are nearly collinear and the 5 % ridge is the only restoring force, so a "
+                   "small per-move bias settles ~20x larger (review rev5)")
+@pytest.mark.parametrize("size_m", [3e-7, 5e-6])
+def test_the_exact_model_stays_under_short_moves_at_the_default_move_limits(seed, size_m):
+    """With the exact model there is nothing to learn. Alternating moves of 0.3 or 5 µm at the default move limits
+    (1 mm/s, 0.1 m/s², 100 m/s³: 5 and 15 ms long) should leave θ and β near 1; on main they walk to θ 1.39
+    (0.3 µm) and β 0.86 (5 µm), and with lookahead_s = T/2 or without rest_sync to the ±50 % bounds."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Dwell, Move, Scenario
+    from stagectl.friction import StageModel
+
+    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
+        seed.safety, following_error_m=1e-3))
+    plant = cfg.sim.plant
+    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    c = cfg.controller
+    ctl = StageController(dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=0.0)),
+                          cfg.timing, model=model)
+    segs: list[Move | Dwell] = []
+    for i in range(24):
+        segs += [Move(by_m=size_m if i % 2 == 0 else -size_m), Dwell(0.1)]
+    sc = Scenario(name="short_moves", segments=tuple(segs), start_m=0.0)
+    with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+        stage.load_scenario(sc)
+        res = stage.loop.run(duration_s=sc.duration_s(0.0))
+    assert res.fault is None
+    assert abs(ctl.ff_scale - 1.0) < 0.1 and abs(ctl.ff.input_scale - 1.0) < 0.1, (ctl.ff_scale, ctl.ff.input_scale)
