@@ -371,6 +371,13 @@ LEARN_FORGET = 0.9
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
+#: confidence gates: a move is learned from only if the observer's estimate at its start is at most this fraction of
+#: the RMS of its regressors (at rest the friction is indeterminate: an estimate the rest synchronisation has not yet
+#: moved into the model is a mismatch of the model's *state*, which sliding erases, not an error of θ or β) ...
+LEARN_START_FRACTION = 0.05
+#: ... and only if it lasts at least this many observer time constants 1/(2π·dob.bandwidth_hz) (a shorter move's
+#: estimate is mostly the observer's transient and timing, which the fit would take for θ and β)
+LEARN_MIN_TIME_CONSTANTS = 15.0
 
 
 @dataclass
@@ -439,6 +446,8 @@ class _MoveFit:
         n = self.n
         if n == 0 or self.a11 + self.a22 < n * min_force_n * min_force_n:
             return None
+        if self.d0 * self.d0 * n > LEARN_START_FRACTION ** 2 * (self.a11 + self.a22):
+            return None  # the move started from an estimate that is not a model error (LEARN_START_FRACTION)
         # this move's equations A·(p − p0) = b about its start p0 = (θ0, ln β0), in absolute parameters
         u0 = math.log(self.b0)
         r1 = self.b1 + self.a11 * self.th0 + self.a12 * u0
@@ -780,7 +789,9 @@ class StageController:
         if ml.rest:
             return u_ff, d_hat
         ml.rest = True
-        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid else None
+        long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
+                       >= LEARN_MIN_TIME_CONSTANTS)
+        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid and long_enough else None
         if fit is None:
             return u_ff, d_hat
         ffc = self.cfg.feedforward

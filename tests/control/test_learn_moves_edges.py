@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import numpy as np
 import pytest
 
 
@@ -78,14 +79,12 @@ def test_a_move_from_a_loaded_rest_spring_starts_from_the_estimate_the_loop_goes
     assert ctl._ml.d0 == pytest.approx(cmd.terms["u_dob"], abs=1e-3 * abs(s))
 
 
-@pytest.mark.xfail(strict=True, reason="open: the per-move fit attributes the observer's timing residuals to θ, β; "
-                   "in pre-sliding the two are nearly collinear and the 5 % ridge is the only restoring force, so a "
-                   "small per-move bias settles ~20x larger (review rev5)")
 @pytest.mark.parametrize("size_m", [3e-7, 5e-6])
 def test_the_exact_model_stays_under_short_moves_at_the_default_move_limits(seed, size_m):
     """With the exact model there is nothing to learn. Alternating moves of 0.3 or 5 µm at the default move limits
-    (1 mm/s, 0.1 m/s², 100 m/s³: 5 and 15 ms long) should leave θ and β near 1; on main they walk to θ 1.39
-    (0.3 µm) and β 0.86 (5 µm), and with lookahead_s = T/2 or without rest_sync to the ±50 % bounds."""
+    (1 mm/s, 0.1 m/s², 100 m/s³: 5 and 15 ms long) leave θ and β at 1: moves shorter than LEARN_MIN_TIME_CONSTANTS
+    observer time constants are not learned from (their estimate is mostly the observer's transient; learned, they
+    walked θ to 1.33 at 0.3 µm and β to 0.86 at 5 µm, and to the ±50 % bounds with lookahead_s = T/2)."""
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
     from stagectl.config import IoKind
@@ -109,3 +108,45 @@ def test_the_exact_model_stays_under_short_moves_at_the_default_move_limits(seed
         res = stage.loop.run(duration_s=sc.duration_s(0.0))
     assert res.fault is None
     assert abs(ctl.ff_scale - 1.0) < 0.1 and abs(ctl.ff.input_scale - 1.0) < 0.1, (ctl.ff_scale, ctl.ff.input_scale)
+
+
+def test_a_fast_positioning_move_then_a_cosine_keeps_the_exact_model(seed):
+    """The commissioning verification's motion: a fast 200 µm positioning move out (6.8 mm/s, 0.36 m/s²), 0.1 s,
+    back, 0.3 s, then the 10 µm cosine; exact model. The move back starts before the rest synchronisation has
+    moved the observer's 0.56 N into the model (a mismatch of the model's state, not of θ): it is not learned from
+    (it was: θ 0.66, and the cosine's error 230 nm RMS instead of 8). θ and β stay within 2 % of 1, and the cosine
+    tracks within 2x the run without learning."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Cosine, Dwell, Move, Scenario
+    from stagectl.friction import StageModel
+    from stagectl.recorder import Recorder
+
+    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
+        seed.safety, following_error_m=1e-3))
+    plant = cfg.sim.plant
+    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    sc = Scenario(name="verify", segments=(
+        Move(by_m=-200e-6, max_velocity_m_s=6.82e-3, max_acceleration_m_s2=0.3556, max_jerk_m_s3=35.56), Dwell(0.1),
+        Move(by_m=200e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0), Dwell(0.3),
+        Cosine(amplitude_m=10e-6, frequency_hz=1.0, cycles=3)), start_m=0.0)
+    out = {}
+    for kappa in (0.0, 1.0):
+        c = cfg.controller
+        ctl = StageController(dataclasses.replace(c, feedforward=dataclasses.replace(
+            c.feedforward, learn_moves_fraction=kappa)), cfg.timing, model=model)
+        with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+            stage.load_scenario(sc)
+            dur = sc.duration_s(0.0)
+            rec = Recorder(stage.loop.columns, int(dur / cfg.loop.period_s) + 16)
+            stage.loop.add_sink(rec)
+            res = stage.loop.run(duration_s=dur)
+        assert res.fault is None
+        t, e = rec.col("t"), rec.col("e")
+        cos = t > t[-1] - 3.0
+        out[kappa] = (ctl, float(np.sqrt(np.mean(e[cos] ** 2))))
+    ctl, rms = out[1.0]
+    assert abs(ctl.ff_scale - 1.0) < 0.02 and abs(ctl.ff.input_scale - 1.0) < 0.02, (ctl.ff_scale, ctl.ff.input_scale)
+    assert rms < 2.0 * out[0.0][1], (rms, out[0.0][1])
