@@ -100,7 +100,14 @@ lower on its friction curve, F(x) = F(x_r) − k·e, and the observer estimates 
 fit took a stiffness error for a scale error (on a model with only its stiffness 20 % low it learned θ 1.05,
 β 1.02 in four steps; with it θ 1.01, β 1.21, true β 1.25). The ridge keeps θ and β apart where they are nearly collinear (pre-sliding)
 and, with the forgetting, keeps one noisy move from walking the model away (with the exact model θ, β stay
-within 1 ± 0.03 over 20 moves). θ changes bumplessly (its force leaves the observer), β changes only the next
+within 1 ± 0.03 over 20 moves). Learned only where identifiable (confidence gates): not from a move that starts
+while the observer still carries more than LEARN_START_FRACTION of the move's regressor RMS (at rest the friction
+is indeterminate; what the stop synchronisation has not yet moved into the model is a mismatch of its state, which
+sliding erases: after a fast 200 µm move and 0.1 s at rest it was 0.56 N, and learned as θ 0.66 with the exact
+model), nor from a move shorter than LEARN_MIN_TIME_CONSTANTS observer time constants (there the estimate is
+mostly the observer's transient: alternating 0.3 µm moves at the default move limits walked the exact model to
+θ 1.33). The baseline is the model force at rest, the step before the move (a static model jumps in the move's
+first step). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
 later ones in 19–30 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
