@@ -79,7 +79,8 @@ made the cosine after a positioning move 20x worse: 41.6 against 7.0 nm RMS in t
 ``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
 is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
 over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
-signal, so it carries over to any motion (ILC learns a signal per motion: with ILC on, θ and β stay put).
+signal, so it carries over to any motion (ILC learns a signal per motion: while it applies a learned force, θ
+and β stay put).
 
 Learning from earlier moves (``feedforward.learn_moves_fraction`` = κ, with an observer and ``kind: model``): the
 continuous adaptation above is slow (1 Hz: a 30 ms move moves θ by ~1 %), and it cannot be faster without
@@ -99,10 +100,17 @@ lower on its friction curve, F(x) = F(x_r) − k·e, and the observer estimates 
 fit took a stiffness error for a scale error (on a model with only its stiffness 20 % low it learned θ 1.05,
 β 1.02 in four steps; with it θ 1.01, β 1.21, true β 1.25). The ridge keeps θ and β apart where they are nearly collinear (pre-sliding)
 and, with the forgetting, keeps one noisy move from walking the model away (with the exact model θ, β stay
-within 1 ± 0.03 over 20 moves). θ changes bumplessly (its force leaves the observer), β changes only the next
+within 1 ± 0.03 over 20 moves). Learned only where identifiable (confidence gates): not from a move that starts
+while the observer still carries more than LEARN_START_FRACTION of the move's regressor RMS (at rest the friction
+is indeterminate; what the stop synchronisation has not yet moved into the model is a mismatch of its state, which
+sliding erases: after a fast 200 µm move and 0.1 s at rest it was 0.56 N, and learned as θ 0.66 with the exact
+model), nor from a move shorter than LEARN_MIN_TIME_CONSTANTS observer time constants (there the estimate is
+mostly the observer's transient: alternating 0.3 µm moves at the default move limits walked the exact model to
+θ 1.33). The baseline is the model force at rest, the step before the move (a static model jumps in the move's
+first step). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones in 17–29 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
+later ones in 19–30 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
@@ -377,6 +385,13 @@ LEARN_FORGET = 0.9
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
+#: confidence gates: a move is learned from only if the observer's estimate at its start is at most this fraction of
+#: the RMS of its regressors (at rest the friction is indeterminate: an estimate the rest synchronisation has not yet
+#: moved into the model is a mismatch of the model's *state*, which sliding erases, not an error of θ or β) ...
+LEARN_START_FRACTION = 0.05
+#: ... and only if it lasts at least this many observer time constants 1/(2π·dob.bandwidth_hz) (a shorter move's
+#: estimate is mostly the observer's transient and timing, which the fit would take for θ and β)
+LEARN_MIN_TIME_CONSTANTS = 15.0
 
 
 @dataclass
@@ -445,6 +460,8 @@ class _MoveFit:
         n = self.n
         if n == 0 or self.a11 + self.a22 < n * min_force_n * min_force_n:
             return None
+        if self.d0 * self.d0 * n > LEARN_START_FRACTION ** 2 * (self.a11 + self.a22):
+            return None  # the move started from an estimate that is not a model error (LEARN_START_FRACTION)
         # this move's equations A·(p − p0) = b about its start p0 = (θ0, ln β0), in absolute parameters
         u0 = math.log(self.b0)
         r1 = self.b1 + self.a11 * self.th0 + self.a12 * u0
@@ -457,13 +474,16 @@ class _MoveFit:
         self.r2 = lam * self.r2 + r2
         # prior: LEARN_RIDGE of the accumulated information on each parameter, towards the model as given (1, 0);
         # also what keeps θ and β apart where they are nearly collinear (pre-sliding)
-        w1, w2 = LEARN_RIDGE * self.c11, LEARN_RIDGE * self.c22
+        # (on β at least LEARN_RIDGE² of θ's: a stiffness the moves say next to nothing about, as a static model's
+        # whose tangent stiffness is ~0, stays at its prior instead of the ratio of two tiny sums)
+        w1, w2 = LEARN_RIDGE * self.c11, LEARN_RIDGE * max(self.c22, LEARN_RIDGE * self.c11)
         a11, a22, a12 = self.c11 + w1, self.c22 + w2, self.c12
         det = a11 * a22 - a12 * a12
         if not det > 0.0:
             return None
         q1, q2 = self.r1 + w1 * 1.0, self.r2
-        return ((a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det)
+        th, u = (a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det
+        return (th, u) if math.isfinite(th) and math.isfinite(u) else None
 
 
 @dataclass
@@ -755,8 +775,11 @@ class StageController:
         th = self.ff_scale
         f_raw = u_ff / th
         if not at_rest:
-            if ml.rest:  # a move starts: the model and observer as they are now are the baseline
-                ml.start(th, ff.input_scale, f_raw, d_hat, ff.state.x_fed_m)
+            if ml.rest:  # a move starts: the model and observer as they were at rest are the baseline (the model
+                # force of the last step: this step's has already moved, by all of its jump for a static model);
+                # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
+                # into the observer below
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
             if learning:  # a learned force (ILC) is applied: one learner at a time
                 ml.valid = False
             if not ml.valid:
@@ -782,7 +805,9 @@ class StageController:
         if ml.rest:
             return u_ff, d_hat
         ml.rest = True
-        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid else None
+        long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
+                       >= LEARN_MIN_TIME_CONSTANTS)
+        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid and long_enough else None
         if fit is None:
             return u_ff, d_hat
         ffc = self.cfg.feedforward
@@ -790,7 +815,8 @@ class StageController:
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
         th_new = min(hi, max(lo, th + k * (fit[0] - th)))
         b = ff.input_scale
-        ff.input_scale = min(hi, max(lo, b + k * (math.exp(fit[1]) - b)))
+        beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
+        ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
         delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
         self.ff_scale = th_new
         dob.shift(delta)
