@@ -3,7 +3,9 @@
 Two ways to run the virtual devices, switchable at any time:
 
 * **thread mode** (``start()``): one background thread receives the device-side bus and serves the devices
-  (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Used for SDO configuration,
+  (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Over socketcand the client's
+  frames are served at once in the server's reader thread that parsed them (``_serve_now``; the world thread
+  then only runs the timers): no hand-over between threads delays a SYNC's answer. Used for SDO configuration,
   real-time runs, ``stagectl sim-plant`` and canopen's own master in tests.
 * **lock-step mode** (``pump()``): the caller's thread drains the device-side bus with ``recv(timeout=0)``
   and processes every frame synchronously; device time is simulated: each SYNC advances it by the drive's
@@ -285,8 +287,32 @@ class SimWorld:
             self._thread = threading.Thread(target=self._run_lockstep if lockstep else self._run,
                                             name="sim-world", daemon=True)
             self._thread.start()
+            if not lockstep and self.server is not None:
+                self.server.on_receive = self._serve_now  # answer in the socketcand reader thread
         if self.interferometer is not None and not self._ifm_on_sync:
             self.interferometer.start()
+
+    def _serve_now(self, msg: can.Message) -> bool:
+        """Real-time thread mode over socketcand: handle one client frame in the reader thread that received
+        it (a SYNC is answered at once: drive TPDO, triggered interferometer frame). Returns False (the frame
+        is queued for the world thread instead) once the thread is being stopped.
+
+        Why not the world thread: its ``queue.get`` wake-up after the reader's ``put`` needs the OS to run a
+        second thread and hand it the GIL; on a loaded 2-core machine that was measured to hold SYNCs for
+        50–540 ms while the reader thread kept running, so the interferometer fell silent for 50 loop cycles
+        (MISSED_FRAME) although the process had the CPU (docs/platform.md §1.3).
+        """
+        try:
+            with self._lock:
+                if self._stop_evt.is_set() or self._thread is None or self._lockstep_thread:
+                    return False
+                self._dispatch(msg)
+                if time.monotonic() - self._last_tick >= TICK_EVERY_S:
+                    self._tick()
+        except Exception as exc:  # noqa: BLE001 - reported by pump()/stop(), as a world-thread failure
+            self._thread_error = exc
+            log.exception("sim world: serving a frame failed")
+        return True
 
     def _run_lockstep(self) -> None:
         """Served lock-step: block for the next frame, then handle it and everything queued behind it as
@@ -331,6 +357,8 @@ class SimWorld:
         t = self._thread
         if t is None:
             return
+        if self.server is not None:
+            self.server.on_receive = None  # from now on frames are queued for pump()
         self._stop_evt.set()
         t.join(5.0)
         if not self._lockstep_thread:
