@@ -277,6 +277,8 @@ class SocketcandServer:
         self._thread: threading.Thread | None = None
         #: see the class docstring; None: every client frame is queued for :meth:`recv`
         self.on_receive: Callable[[can.Message], bool] | None = None
+        #: client frames handled by ``on_receive`` in a reader thread (not queued)
+        self.served_in_reader = 0
 
     # ------------------------------------------------------------------ bus-like side for the world
     def recv(self, timeout: float | None = None) -> can.Message | None:
@@ -297,7 +299,9 @@ class SocketcandServer:
         # the SYNC is on the wire before any TPDO it triggers)
         self._broadcast(format_frame(msg, msg.timestamp), origin)
         handler = self.on_receive
-        if handler is None or not handler(msg):
+        if handler is not None and handler(msg):
+            self.served_in_reader += 1
+        else:
             self._incoming.put(msg)
 
     def _broadcast(self, data: bytes, exclude: _Client | None) -> None:
