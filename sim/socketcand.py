@@ -254,7 +254,7 @@ class SocketcandServer:
     the reader thread that parsed it; when it returns True the frame is handled and not queued for
     :meth:`recv`. The devices then answer a SYNC in the thread that received it, with no hand-over to a
     second thread: on a loaded machine that hand-over (a ``queue.get`` woken by the reader, then the GIL)
-    was measured to hold a SYNC for 50–400 ms while the reader kept parsing (docs/platform.md §1.3).
+    was measured to hold SYNCs for 53–69 ms while the reader kept parsing (docs/platform.md §1.3).
     """
 
     def __init__(self, channel: str = "", host: str = "127.0.0.1", port: int = 0, can_name: str = "can0") -> None:

@@ -3,9 +3,7 @@
 Two ways to run the virtual devices, switchable at any time:
 
 * **thread mode** (``start()``): one background thread receives the device-side bus and serves the devices
-  (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Over socketcand the client's
-  frames are served at once in the server's reader thread that parsed them (``_serve_now``; the world thread
-  then only runs the timers): no hand-over between threads delays a SYNC's answer. Used for SDO configuration,
+  (SDO, NMT, SYNC→TPDO, heartbeats) in real time; device time = wall clock. Used for SDO configuration,
   real-time runs, ``stagectl sim-plant`` and canopen's own master in tests.
 * **lock-step mode** (``pump()``): the caller's thread drains the device-side bus with ``recv(timeout=0)``
   and processes every frame synchronously; device time is simulated: each SYNC advances it by the drive's
@@ -20,6 +18,10 @@ Two ways to run the virtual devices, switchable at any time:
   for each SYNC's TPDO (``io.drive.rx_timeout_s`` large, a :class:`~stagectl.clock.SimClock` loop) then runs
   the plant deterministically and as fast as the two processes exchange frames: ``stagectl sim-plant
   --lockstep`` (docs/commissioning.md, "Across processes").
+
+Real-time thread mode over socketcand (``stagectl sim-plant``): the client's frames are served at once in the
+server's reader thread that parsed them (``_serve_now``, under the world lock; the world thread then only runs
+the timers), so no hand-over between threads delays a SYNC's answer (docs/platform.md §1.3).
 
 Transports: ``virtual`` (python-can in-process bus; channel name unique per world unless given, so
 tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
@@ -299,7 +301,7 @@ class SimWorld:
 
         Why not the world thread: its ``queue.get`` wake-up after the reader's ``put`` needs the OS to run a
         second thread and hand it the GIL; on a loaded 2-core machine that was measured to hold SYNCs for
-        50–540 ms while the reader thread kept running, so the interferometer fell silent for 50 loop cycles
+        53–69 ms while the reader thread kept running, so the interferometer fell silent for 50 loop cycles
         (MISSED_FRAME) although the process had the CPU (docs/platform.md §1.3).
         """
         try:

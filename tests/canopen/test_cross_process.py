@@ -187,7 +187,7 @@ def test_two_socketcand_clients_share_the_bus(make_world, make_drive):
 def test_thread_mode_answers_each_sync_in_the_reader_thread(make_world, make_drive):
     """Real-time thread mode over socketcand (what `stagectl sim-plant` runs): every SYNC is answered (drive TPDO
     and the SYNC-triggered interferometer frame over TCP) in the socketcand reader thread that received it, none
-    waits in the queue for the world's own thread (the hand-over that held SYNCs for 50-540 ms on a loaded
+    waits in the queue for the world's own thread (the hand-over that held SYNCs for 53-69 ms on a loaded
     machine, docs/platform.md section 1.3)."""
     from stagectl.drivers.interferometer import InterferometerConfig, SerialInterferometer
 
