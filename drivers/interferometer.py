@@ -18,7 +18,9 @@ SENSOR_ERROR       a frame has any status bit set (signal lost, glitch, laser un
                    signal strength < ``min_signal``, or a jump > ``max_step_m`` per frame between frames
 CRC_ERRORS         ≥ ``max_crc_errors`` CRC failures within the last ``crc_window_cycles`` reads
 SEQUENCE_GAP       a frame arrives with more than ``max_sequence_gap`` frames missing before it
-MISSED_FRAME       ``stale_cycles`` consecutive reads without a new frame
+MISSED_FRAME       ``stale_cycles`` consecutive reads without a new frame (reads, not wall time: a loop held off
+                   the CPU reads once after the stall and finds the frames that arrived meanwhile, so its own
+                   lateness never counts as the device's silence)
 DISCONNECTED       the port reports EOF or an I/O error (device unplugged, socket closed)
 =================  =========================================================================================
 
@@ -273,7 +275,11 @@ class SerialInterferometer(PositionSensor):
         else:
             self._stale += 1
             if fault is None and self._stale >= cfg.stale_cycles:
-                fault = DeviceFault(FaultKind.MISSED_FRAME, f"no frame for {self._stale} cycles on {cfg.url}")
+                # real time: also the wall time since the last bytes (reads, not time, are counted: a loop held
+                # off the CPU reads once after its stall and finds the frames that came meanwhile)
+                ago = (f" (last bytes {(time.monotonic_ns() - self.last_rx_ns) * 1e-6:.1f} ms ago)"
+                       if self._pump is None and self.last_rx_ns else "")
+                fault = DeviceFault(FaultKind.MISSED_FRAME, f"no frame for {self._stale} cycles{ago} on {cfg.url}")
         if fault is not None:
             self._latch(fault)
         last = self._last

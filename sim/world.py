@@ -22,6 +22,10 @@ Two ways to run the virtual devices, switchable at any time:
   the plant deterministically and as fast as the two processes exchange frames: ``stagectl sim-plant
   --lockstep`` (docs/commissioning.md, "Across processes").
 
+Real-time thread mode over socketcand (``stagectl sim-plant``): the client's frames are served at once in the
+server's reader thread that parsed them (``_serve_now``, under the world lock; the world thread then only runs
+the timers), so no hand-over between threads delays a SYNC's answer (docs/platform.md §1.3).
+
 Transports: ``virtual`` (python-can in-process bus; channel name unique per world unless given, so
 tests are xdist-safe) or ``socketcand`` (a TCP server, :mod:`stagectl.sim.socketcand`, so another
 process connects with python-can's stock socketcand client). ``ready_info()`` says where to connect.
@@ -290,8 +294,32 @@ class SimWorld:
             self._thread = threading.Thread(target=self._run_lockstep if lockstep else self._run,
                                             name="sim-world", daemon=True)
             self._thread.start()
+            if not lockstep and self.server is not None:
+                self.server.on_receive = self._serve_now  # answer in the socketcand reader thread
         if self.interferometer is not None and not self._ifm_on_sync:
             self.interferometer.start()
+
+    def _serve_now(self, msg: can.Message) -> bool:
+        """Real-time thread mode over socketcand: handle one client frame in the reader thread that received
+        it (a SYNC is answered at once: drive TPDO, triggered interferometer frame). Returns False (the frame
+        is queued for the world thread instead) once the thread is being stopped.
+
+        Why not the world thread: its ``queue.get`` wake-up after the reader's ``put`` needs the OS to run a
+        second thread and hand it the GIL; on a loaded 2-core machine that was measured to hold SYNCs for
+        53–69 ms while the reader thread kept running, so the interferometer fell silent for 50 loop cycles
+        (MISSED_FRAME) although the process had the CPU (docs/platform.md §1.3).
+        """
+        try:
+            with self._lock:
+                if self._stop_evt.is_set() or self._thread is None or self._lockstep_thread:
+                    return False
+                self._dispatch(msg)
+                if time.monotonic() - self._last_tick >= TICK_EVERY_S:
+                    self._tick()
+        except Exception as exc:  # noqa: BLE001 - reported by pump()/stop(), as a world-thread failure
+            self._thread_error = exc
+            log.exception("sim world: serving a frame failed")
+        return True
 
     def _run_lockstep(self) -> None:
         """Served lock-step: block for the next frame, then handle it and everything queued behind it as
@@ -339,6 +367,8 @@ class SimWorld:
         t = self._thread
         if t is None:
             return
+        if self.server is not None:
+            self.server.on_receive = None  # from now on frames are queued for pump()
         self._stop_evt.set()
         t.join(5.0)
         if not self._lockstep_thread:

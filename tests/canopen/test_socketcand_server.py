@@ -128,3 +128,23 @@ def test_error_frame_and_timestamp_format():
     stamps = [timestamp() for _ in range(2000)]
     assert all(b >= a for a, b in zip(stamps, stamps[1:]))
     assert re.fullmatch(rb"< frame 080 \d+\.\d{6}  >", format_frame(can.Message(arbitration_id=0x80, is_extended_id=False)))
+
+
+def test_on_receive_serves_a_frame_in_the_reader_thread(server, client):
+    """With ``on_receive`` set, a client frame is handled in the reader thread that parsed it (the world answers a
+    SYNC there, with no hand-over to its own thread); a frame the handler declines is queued for recv()."""
+    import threading
+
+    seen = []
+
+    def handler(msg):
+        seen.append((msg.arbitration_id, threading.current_thread().name))
+        return msg.arbitration_id == 0x080
+
+    server.on_receive = handler
+    c = client()
+    c.s.sendall(b"< send 080 0 >< send 201 2 0f 00 >")
+    queued = server.recv(5.0)  # failure guard only
+    assert queued is not None and queued.arbitration_id == 0x201 and bytes(queued.data) == b"\x0f\x00"
+    assert seen == [(0x080, "socketcand-client"), (0x201, "socketcand-client")]
+    assert server.served_in_reader == 1 and server.recv(0) is None  # the SYNC was not queued

@@ -360,3 +360,46 @@ def test_rx_timeout_waits_for_a_triggered_frame(transport, tmp_path):
             m = dut.read()
             t.join()
             assert m.fresh and m.counts == round(plant.measure() / RES_M) and m.fault is None
+
+
+def test_backlog_burst_after_silence_is_fresh_and_true_silence_still_faults(transport, tmp_path):
+    """A SYNC-triggered device held off the CPU (a loaded sim-plant) answers its backlog of triggers in one burst:
+    the read that gets it takes the newest frame, fresh, no sequence gap and no fault, and the silent reads
+    before it (49 of ``stale_cycles`` 50) did not fault. A device that then stays silent for 50 reads faults
+    MISSED_FRAME on exactly the 50th. Lock-step: the pump returns the bytes the device wrote (none while silent),
+    so the frame timing is controlled, with no wall-clock wait."""
+    from stagectl.drivers.interferometer_protocol import LinkBytes
+
+    plant = ScriptedPlant()
+    with make_sim(transport, tmp_path, plant, trigger="sync") as sim, SerialInterferometer(
+        InterferometerConfig(url=sim.url, resolution_m=RES_M, stale_cycles=50)
+    ) as dut:
+        backlog = [0]  # triggers not answered yet
+        answer = [True]
+
+        def pump() -> LinkBytes:
+            plant.step(1e-3)
+            backlog[0] += 1
+            if not answer[0]:
+                return LinkBytes(0)
+            n = sum(int(sim.trigger()) for _ in range(backlog[0]))
+            backlog[0] = 0
+            return LinkBytes(n)
+
+        dut.set_pump(pump)
+        dut.configure()
+        for _ in range(5):
+            assert dut.read().fresh
+        answer[0] = False
+        for k in range(49):
+            m = dut.read()
+            assert not m.fresh and m.fault is None, k
+        answer[0] = True
+        m = dut.read()  # 50 frames at once
+        assert m.fresh and m.fault is None and m.counts == sim.last_counts
+        assert dut.stats.sequence_gaps == 0 and dut.last_frame is not None and dut.last_frame.seq == sim.seq - 1
+        answer[0] = False
+        for k in range(49):
+            assert dut.read().fault is None, k
+        m = dut.read()
+        assert m.fault is not None and m.fault.kind is FaultKind.MISSED_FRAME and "50 cycles" in m.fault.detail
