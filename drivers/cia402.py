@@ -28,10 +28,14 @@ n−1 or older: age ≥ 1; one that arrives in read()'s wait after SYNC n: age �
 type 1: the drive answers every SYNC once, in order, so the j-th TPDO1 answers the j-th SYNC, less the
 answers lost: a drive working off a backlog after its process was held off the CPU sends answers that arrive
 "on time" yet are b SYNCs old). age = arrival bound + backlog b, b = (n − j) − L, L the lost answers
-(:meth:`Cia402Drive._count_tpdo`: the smallest n − j seen, raised when b > 0 did not shrink over
-``LOST_AFTER_TPDOS`` TPDOs in a row: a backlog shrinks as the drive catches up, a lost frame does not). A drive
-that stays behind by a constant b for longer is indistinguishable from one that lost b answers: it is then
-aged by arrival only. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
+(:meth:`Cia402Drive._count_tpdo`: the smallest n − j seen). A drive works off a backlog faster than SYNC
+comes, so its answers come in bursts (two or more TPDO1s between two reads) and b shrinks; lost answers
+(dropped frames) leave b standing with one TPDO1 per cycle: b > 0 with a single TPDO1 since the last read
+raises L by b at once (age 0 or 1 by arrival), as does a b that did not shrink over ``LOST_AFTER_TPDOS``
+TPDO1s in a row. A drive that stays behind by a constant b, one answer per SYNC, is indistinguishable from
+one that lost b answers: it is aged by arrival only. So is a sample whose count says one period more than
+its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
+one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
 as stale (``loop.STALE_AGE_CYCLES``).
 
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
@@ -368,6 +372,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._lost: int | None = None
         self._rx_excess = 0
         self._excess_run = 0
+        self._rx_burst = 0  # TPDO1s received since the last read()
+        self._prev_excess = 0  # the backlog age of the sample the last read() returned
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -640,6 +646,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         so its ``c`` falls; a lost answer leaves it standing). ``_rx_excess = c − L`` is the backlog age.
         """
         self._n_rx += 1
+        self._rx_burst += 1
         c = self._n_sync - self._n_rx
         lost = self._lost
         if lost is None or c <= lost:
@@ -691,6 +698,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
+            self._rx_burst = 0
             self._evaluate(got)
         elif self.cfg.sync_producer:
             self._late = got  # ... kept as a late sample (age 1) in case this SYNC's answer is late too
@@ -743,11 +751,23 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
         got = self._wait_tpdo()
-        age = self._rx_excess if got is not None and self.cfg.sync_producer else 0  # a backlog's answer
+        age, excess = 0, self._rx_excess
         if got is None and self._held is not None:
             got = self._held
         elif got is None and self._late is not None:
-            got, age = self._late, 1 + self._late_excess  # arrived before this SYNC: one period old or more
+            got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
+            excess = self._late_excess
+        if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
+            if self._rx_burst == 1:  # one answer in the cycle: answers were lost (a backlog comes in bursts)
+                assert self._lost is not None
+                self._lost += excess
+                self._rx_excess = self._late_excess = self._excess_run = 0
+            elif age + excess >= 2 or self._prev_excess == excess + 1:  # ≥ 2 old, or a backlog shrinking
+                age += excess
+            else:  # 1 period old, or on time after lost answers and a late one: not told apart, arrival only
+                excess = 0
+        self._prev_excess = excess if got is not None else 0
+        self._rx_burst = 0
         self._held = self._late = None
         return self._evaluate(got, age)
 
