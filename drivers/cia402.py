@@ -20,6 +20,24 @@ Cyclic exchange, each period (all real-time safe; hot path packed with :mod:`str
                     # returned as a fresh sample with age_cycles = 1 (a loaded machine answering late)
     drive.write(f)  # RPDO1 (controlword, target torque); the drive applies it at the next SYNC
 
+Sample age (``Measurement.age_cycles``, sync producer). A TPDO carries no SYNC number, and the SYNC counter of
+CiA 301 (0x1019 overflow value 2..240, one counter byte in the SYNC) does not help: it tells the *drive* which
+SYNC it received (for TPDO SYNC start value 0x18xx:06), nothing in the TPDO returns it. So the driver ties
+each TPDO1 to its SYNC from two facts of its own: arrival (a TPDO drained before SYNC n was sent answers SYNC
+n−1 or older: age ≥ 1; one that arrives in read()'s wait after SYNC n: age ≥ 0) and counting (transmission
+type 1: the drive answers every SYNC once, in order, so the j-th TPDO1 answers the j-th SYNC, less the
+answers lost: a drive working off a backlog after its process was held off the CPU sends answers that arrive
+"on time" yet are b SYNCs old). age = arrival bound + backlog b, b = (n − j) − L, L the lost answers
+(:meth:`Cia402Drive._count_tpdo`: the smallest n − j seen). A drive works off a backlog faster than SYNC
+comes, so its answers come in bursts (two or more TPDO1s between two reads) and b shrinks; lost answers
+(dropped frames) leave b standing with one TPDO1 per cycle: b > 0 with a single TPDO1 since the last read
+raises L by b at once (age 0 or 1 by arrival), as does a b that did not shrink over ``LOST_AFTER_TPDOS``
+TPDO1s in a row. A drive that stays behind by a constant b, one answer per SYNC, is indistinguishable from
+one that lost b answers: it is aged by arrival only. So is a sample whose count says one period more than
+its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
+one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
+as stale (``loop.STALE_AGE_CYCLES``).
+
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
 ``rated force F_r`` [N] one unit is ``F_r / 1000`` newtons, so ``force_per_unit_n = F_r / 1000``::
 
@@ -74,6 +92,8 @@ log = logging.getLogger(__name__)
 DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 
 SYNC_COB_ID = 0x080
+#: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
+LOST_AFTER_TPDOS = 3
 #: CiA 402 "cyclic synchronous torque" mode of operation (0x6060)
 MODE_CST = 10
 #: 0x6502 bit for CST support
@@ -344,6 +364,16 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     def _reset_cyclic(self) -> None:
         self._held: tuple[int, int] | None = None
         self._late: tuple[int, int] | None = None  # the newest late answer to an earlier SYNC (sync producer)
+        self._late_excess = 0  # its backlog age beyond the arrival bound (see _count_tpdo)
+        # which SYNC a TPDO1 answers (sync producer): SYNCs sent, TPDO1s received, the count offset (lost
+        # answers), the backlog age of the newest TPDO1 and how many in a row did not shrink it
+        self._n_sync = 0
+        self._n_rx = 0
+        self._lost: int | None = None
+        self._rx_excess = 0
+        self._excess_run = 0
+        self._rx_burst = 0  # TPDO1s received since the last read()
+        self._prev_excess = 0  # the backlog age of the sample the last read() returned
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -574,6 +604,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._bus_off = False
             data = msg.data
             if len(data) >= self._tpdo1_size:
+                self._count_tpdo()
                 return self._tpdo1_unpack(data)  # (statusword, raw position)
             self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(data)} bytes, need "
                                                         f"{self._tpdo1_size})"))
@@ -604,6 +635,28 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._note(DeviceFault(FaultKind.BUS_ERROR, "second SYNC producer on the bus (COB-ID 0x080): "
                                                         "set drive.sync_producer false if another node produces SYNC"))
         return None
+
+    def _count_tpdo(self) -> None:
+        """Tie a received TPDO1 to the SYNC it answers (sync producer; module docstring, "Sample age").
+
+        The j-th TPDO1 (transmission type 1: one per SYNC, in order) answers the j-th SYNC, less the answers
+        lost on the way: ``c = n − j`` (n = SYNCs sent when it arrived) is its age at arrival plus the lost
+        ones. The lost count ``L`` is the smallest ``c`` seen, raised to ``c`` when ``c − L`` > 0 did not shrink
+        over ``LOST_AFTER_TPDOS`` TPDOs in a row (a drive working off a backlog answers faster than SYNC comes,
+        so its ``c`` falls; a lost answer leaves it standing). ``_rx_excess = c − L`` is the backlog age.
+        """
+        self._n_rx += 1
+        self._rx_burst += 1
+        c = self._n_sync - self._n_rx
+        lost = self._lost
+        if lost is None or c <= lost:
+            self._lost, e, self._excess_run = c, 0, 0
+        else:
+            e = c - lost
+            self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
+            if self._excess_run >= LOST_AFTER_TPDOS:  # answers lost (or a lasting lag: then arrival time only)
+                self._lost, e, self._excess_run = c, 0, 0
+        self._rx_excess = e
 
     def _note(self, fault: DeviceFault) -> None:
         if self._pending is None:
@@ -640,10 +693,12 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
         self._late = None
+        self._late_excess = self._rx_excess
         if not self.cfg.sync_producer:
             self._held = got  # ... unless another node produces SYNC: its newest answer may already be here
         if self._unread:  # ... but the answer to the previous SYNC when only write() ran in that cycle
             self._unread = False
+            self._rx_burst = 0
             self._evaluate(got)
         elif self.cfg.sync_producer:
             self._late = got  # ... kept as a late sample (age 1) in case this SYNC's answer is late too
@@ -651,6 +706,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._send(self._hb_msg)
         if self.cfg.sync_producer:
             self._send(self._sync_msg)
+            self._n_sync += 1
         self._cycle += 1
         self._hb_age += 1
         self._synced = True
@@ -695,11 +751,23 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverError(f"{self.name}: read() before sync() in this cycle")
         self._synced = False
         got = self._wait_tpdo()
-        age = 0
+        age, excess = 0, self._rx_excess
         if got is None and self._held is not None:
             got = self._held
         elif got is None and self._late is not None:
-            got, age = self._late, 1  # a late answer to the previous SYNC: newer than the last read
+            got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
+            excess = self._late_excess
+        if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
+            if self._rx_burst == 1:  # one answer in the cycle: answers were lost (a backlog comes in bursts)
+                assert self._lost is not None
+                self._lost += excess
+                self._rx_excess = self._late_excess = self._excess_run = 0
+            elif age + excess >= 2 or self._prev_excess == excess + 1:  # ≥ 2 old, or a backlog shrinking
+                age += excess
+            else:  # 1 period old, or on time after lost answers and a late one: not told apart, arrival only
+                excess = 0
+        self._prev_excess = excess if got is not None else 0
+        self._rx_burst = 0
         self._held = self._late = None
         return self._evaluate(got, age)
 

@@ -28,6 +28,9 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
 * A late sample (``Measurement.age_cycles`` n > 0: a TPDO that answered the previous SYNC after its wait)
   is placed at ``t − n·T`` for the velocity estimate and extrapolated to ``t`` with it
   (x + v̂·n·T) for the controller, the tracking check and the telemetry.
+* A sample ``STALE_AGE_CYCLES`` (2) or more periods old (a drive working off a backlog of SYNCs after its
+  process was held off the CPU: the CiA 402 driver ties each TPDO to its SYNC by counting) is stale, not
+  fresh: stepping the observer on a position 2–3 periods old as if current gave force spikes of 26 N.
 * A stale sample (no new position: late or dropped TPDO, missing frame) is not stepped on: a controller
   with ``hold(dt, ref)`` (StageController) is called instead. It steps its first
   ``controller.stale_predict_cycles`` stale cycles in a row on a predicted position (the last measured
@@ -159,6 +162,8 @@ BASE_COLUMNS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "v")
 FLAG_COLUMNS = ("stale", "skipped")
 DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
 #: the controller's dt is clamped to [MIN_DT_PERIODS·T, MAX_DT_PERIODS·T] (module docstring)
+#: a sample this many periods old (``Measurement.age_cycles``) is treated as stale, not stepped on
+STALE_AGE_CYCLES = 2
 MIN_DT_PERIODS = 0.5
 MAX_DT_PERIODS = 10.0
 #: feedback slow-down steps (effective sample interval / T); a step down needs the average 10 % below it
@@ -625,6 +630,8 @@ class ControlLoop:
                 if sync is not None:
                     sync.sync()
                 m = sensor.read()
+                if m.age_cycles >= STALE_AGE_CYCLES and m.fresh:  # too old to step on: stale (predicted/held)
+                    m = Measurement(m.position_m, False, m.counts, m.status, m.fault, m.age_cycles)
                 x = m.position_m
                 self._fresh = m.fresh
                 serve(execute, t, x)

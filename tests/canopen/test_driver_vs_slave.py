@@ -276,3 +276,45 @@ def test_mapping_read_back_mismatch_is_refused(slave_and_driver):
     slave, dut = slave_and_driver(misreport=((0x1A00, 2), 0x60630020))
     with pytest.raises(DriverInitError, match=r"TPDO1 read back differs .*0x60630020"):
         dut.configure()
+
+
+def test_a_backlog_of_syncs_is_aged_by_the_independent_slave(slave_and_driver):
+    """The slave's process held off for 4 SYNCs, then answering 2 queued SYNCs per cycle (its TPDOs arrive
+    "on time" but answer older SYNCs): the driver's age of each sample equals the age the slave's own position
+    tells (it moves 100 counts per SYNC it handles, so counts/100 numbers the SYNC a TPDO answers)."""
+    from collections import deque
+
+    slave, dut = slave_and_driver()
+    dut.cfg = dut.cfg.__class__(**{**dut.cfg.__dict__, "max_missed": 10})
+    dut.configure()
+    dut.enable()
+    queue: deque = deque()
+    budget = [None]
+
+    def throttled_pump():
+        with slave.lock:
+            while (msg := slave.bus.recv(0.0)) is not None:
+                queue.append(msg)
+            while queue:
+                if queue[0].arbitration_id == 0x80 and budget[0] is not None:
+                    if budget[0] <= 0:
+                        break
+                    budget[0] -= 1
+                slave._frame(queue.popleft())
+        return 0
+
+    dut.set_pump(throttled_pump)
+    ages, truth = [], []
+    for k in range(40):
+        budget[0] = 0 if 20 <= k < 24 else (2 if 24 <= k < 32 else None)
+        dut.sync()
+        m = dut.read()
+        dut.write(1.0)  # 100 units: the slave moves 100 counts per SYNC it handles
+        assert m.fault is None
+        if m.fresh and k >= 5:
+            ages.append(m.age_cycles)
+            truth.append(k - m.counts // 100)
+    offset = truth[0]  # (SYNCs before the torque reached the slave)
+    truth = [t - offset for t in truth]
+    assert max(truth) == 3  # the slave really answered 3-periods-old SYNCs
+    assert ages == truth, (ages, truth)
