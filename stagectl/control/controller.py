@@ -39,18 +39,27 @@ Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: mode
 stuck on the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage). With a free-mass nominal plant
 the observer estimates that spring's force k·(x − x_r) as a disturbance and cancels it, so only P (+D) removes a
 position error: the rest mode is g·K_p/(k + K_p) ≈ 9 s⁻¹ (100-500 ms settles). With the rest spring the
-observer's nominal plant at rest is the mass on φ·θ·Σk about the reference::
+observer's nominal plant at rest is the mass on k_v = φ·min(θ, 1)·Σk about the reference::
 
-    d̂_rest = d̂ − s,    s_k = α·s_{k−1} + (1 − α)·φ·θ·Σk·clamp(x_k − x_r, ±rest_spring_range_m)   [N]
+    d̂_rest = d̂ − s,    s_k = α·s_{k−1} + (1 − α)·k_v·clamp(x_k − x_r, ±rest_spring_range_m)   [N]
 
-(α as in the Q filter), so it estimates only F(x_r) − u_ff + (k − φ·θ·Σk)·(x − x_r) and the stage's own spring
+(α as in the Q filter), so it estimates only F(x_r) − u_ff + (k − k_v)·(x − x_r) and the stage's own spring
 pulls it to x_r: the quasi-static rest mode becomes g·(K_p + φ·k)/(k + K_p) ≈ g·φ. When the reference starts
 to move, s is folded into the observer (d̂ and its input history move by −s: u continuous). Linear margins of
 the rest loop (PD + observer + spring, 1 kHz, one cycle of I/O delay, φ = 0.5; ``stagectl tune`` prints them):
 on the stuck plant (2 kg on 6.4e5 N/m with the model's Σσ1 = 226 N·s/m) PM 30.8°, GM 6.1 dB (φ = 0: 39.9°,
 6.6 dB); on a *free* mass the spring (a ~3e5 N/m position gain) makes the rest loop unstable, its force bounded
-by φ·θ·Σk·rest_spring_range_m (64 mN at 200 nm): it relies on the stage being stuck at rest. Without a guard a
+by k_v·rest_spring_range_m (64 mN at 200 nm): it relies on the stage being stuck at rest. Without a guard a
 plant with friction ×0.2 and stiffness ×0.1 of the model hunted by 0.5–1 µm in the holds.
+
+Why min(θ, 1): the spring is a position gain of the rest loop, and the loop's margins fall as k_v grows (stuck
+plant above, φ = 0.5: θ = 0.5 → PM 36.5°, GM 6.5 dB; 1 → 30.8°, 6.1 dB; 1.5 → 21.9°, 5.5 dB). θ is learned from
+the force *level* while sliding (the adaptation, the learning from moves; 1 ± ``adapt_max_change_fraction``) and
+says little about the stiffness the stage is stuck on at rest, so a θ above 1 must not raise the loop gain beyond
+the one designed at θ = 1; following θ down keeps the spring below a plant whose friction the model
+overestimates (less gain: more margin). The cost is that a plant stiffer than its model keeps more of its own
+spring in the observer (a slower rest mode), never a thinner margin. ``stagectl tune`` reports the rest loop over
+the θ range the configuration allows, worst case (with the cap: θ = 1).
 
 Guard (the spring acts only while the stage behaves stuck): it is *released* — s folded into the observer as
 at a move start, bumpless — when |x − x_r| > ``rest_spring_release_m`` (5 µm: the stage has slid) or when
@@ -877,7 +886,7 @@ class StageController:
                 dob.shift(-s)
                 return d_hat - s
             return d_hat
-        kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
+        kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
         if not self._rs_armed:
             if self._rs_releases >= cfg.rest_spring_max_release_count or abs(e_x) > band:
                 self._rs_band_s = 0.0
