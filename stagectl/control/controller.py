@@ -121,7 +121,7 @@ mostly the observer's transient: alternating 0.3 µm moves at the default move l
 first step). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones in 19–30 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
+later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
