@@ -676,7 +676,7 @@ class ControlLoop:
                         else:  # the learned feed-forward of a repeated motion (ilc:)
                             u_l = learner.step(t, ref.x_m - x, moving=ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0)
                             if learn_ctl is not None:
-                                cmd = learn_ctl.step(dt, x, ref, u_l)
+                                cmd = learn_ctl.step(dt, x, ref, u_l, learner.active)
                             else:
                                 cmd = controller.step(dt, x, ref)
                                 cmd.force_n += u_l

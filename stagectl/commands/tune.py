@@ -11,7 +11,10 @@ Inputs: the application config (``stagectl.config.load_app_config``: ``loop.peri
 With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (the PID's integrator
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
 ``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
-mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor.
+mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor. The spring
+follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
+the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
+is on).
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
 included), else shown as thin.
 
@@ -22,8 +25,8 @@ config's simulated plant (``sim:``) through 10 µm steps with 0.5 s holds
 It is **refused** (no suggested YAML, exit 1, the reasons printed) when it is unstable, its margins are thin,
 or it hunts in a limit cycle, is still more than 1 µm off in the second half of a hold, or faults on the steps. Otherwise it is offered with a confidence: ``high`` (every
 step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every step settles within the hold),
-``low`` (margins only: no ``sim:`` plant to check on). Exit code 1 also when the configured loop is unstable,
-2 on bad input.
+``low`` (margins only: no ``sim:`` plant to check on). Exit code 1 also when the configured loop is unstable
+(moving, or at standstill on the stuck stage anywhere in the θ range), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -54,6 +57,8 @@ CHECK_HOLD_S = 0.5
 #: an error above this in the second half of a hold is a drift, not a settle: the design is refused [m]
 #: (10 % of the step)
 MAX_HOLD_EXCURSION_M = 1e-6
+#: values of the feed-forward scale θ at which the rest loop is analysed over its configured range
+THETA_POINTS = 5
 
 
 def _healthy(s: dict[str, Any]) -> bool:
@@ -183,6 +188,8 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         rest = _rest_loops(inp["app"], ctl, m, m_dob, T, nd)
         if rest is not None:
             conf["rest"] = rest
+            if rest["stuck_unstable_at_theta"]:  # the configured controller oscillates at standstill there
+                exit_code = 1
         result["configured"] = conf
     bw, dbw, pid, loops, searched = _design(args, m, T, nd)
     for a in loops:
@@ -216,10 +223,18 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
 def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
     integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
-    ``m_dob`` + the rest spring k_v = φ·Σk of the controller's model) on a stage of mass ``m`` [kg] stuck in
-    pre-sliding (the config's simulated plant's friction stiffness and damping, else the controller model's)
+    ``m_dob`` + the rest spring k_v = φ·min(θ, 1)·Σk of the controller's model) on a stage of mass ``m`` [kg] stuck
+    in pre-sliding (the config's simulated plant's friction stiffness and damping, else the controller model's)
     and on the free mass. None when it does not apply (no Q-filter observer, or no pre-sliding stiffness
-    known)."""
+    known).
+
+    θ (the feed-forward's force scale) moves within 1 ± ``adapt_max_change_fraction`` when the adaptation or the
+    learning from moves is on, else it stays 1; the spring follows it up to 1 (the controller caps it there: a
+    larger spring thins the rest loop's margins, see :mod:`stagectl.control.controller`, "Rest spring"). The loop
+    is analysed at ``THETA_POINTS`` values of θ over that range and each loop's figures are the worst case (the
+    lowest phase margin, with its θ; the lowest gain margin; unstable if unstable anywhere); ``theta_sweep``
+    lists the stuck plant's margins per θ. ``stuck_unstable_at_theta`` names the θ values where the stuck plant's
+    rest loop is unstable (the configured controller would oscillate at standstill there)."""
     from stagectl.control import design
 
     if ctl.dob.kind != "qfilter":
@@ -235,9 +250,27 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
     kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
     held = bool(ctl.hold_integrator_at_rest)
-    loops = design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples, k_plant,
-                                c_plant, kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob, integrator_held=held)
-    summ = {a.name: {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
+    ffc = ctl.feedforward
+    learns = ffc.adapt_bandwidth_hz > 0.0 or ffc.learn_moves_fraction > 0.0
+    lo = 1.0 - ffc.adapt_max_change_fraction if learns else 1.0
+    hi = 1.0  # the spring's θ is capped at 1 (above it θ still scales the feed-forward, not the spring)
+    thetas = [1.0] if not spring or lo == hi else [lo + (hi - lo) * i / (THETA_POINTS - 1)
+                                                    for i in range(THETA_POINTS)]
+    per: list[tuple[float, list[Any]]] = []
+    for th in thetas:
+        per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
+                                            k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
+                                            integrator_held=held)))
+    summ: dict[str, dict[str, Any]] = {}
+    for j, a0 in enumerate(per[0][1]):
+        rows = [(th, loops[j].summary()) for th, loops in per]
+        th_w, worst = min(rows, key=lambda r: (r[1]["closed_loop_stable"], r[1]["phase_margin_deg"]))
+        w = {**worst, "gain_margin_db": min(r[1]["gain_margin_db"] for r in rows),
+             "closed_loop_stable": all(r[1]["closed_loop_stable"] for r in rows), "theta": th_w}
+        summ[a0.name] = {**w, "healthy": _healthy(w)}
+    sweep = [{"theta": th, "phase_margin_deg": loops[0].phase_margin_deg, "gain_margin_db": loops[0].gain_margin_db,
+              "closed_loop_stable": loops[0].stable} for th, loops in per]
+    unstable_at = [r["theta"] for r in sweep if not r["closed_loop_stable"]]
     healthy = all(v["healthy"] for v in summ.values())
     relies = None
     if not healthy:
@@ -250,6 +283,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
             "mass_kg": m, "observer_mass_kg": m_dob, "integrator_held": held,
             "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
+            "theta_range": [thetas[0], thetas[-1]], "theta_sweep": sweep, "stuck_unstable_at_theta": unstable_at,
             "relies_on": relies}
 
 
@@ -410,11 +444,19 @@ def run(args: argparse.Namespace) -> int:
             held = "integrator held" if rest["integrator_held"] else "integrator running"
             obs = (f", observer mass {rest['observer_mass_kg']:g} kg"
                    if rest["observer_mass_kg"] != rest["mass_kg"] else "")
+            lo, hi = rest["theta_range"]
+            over = (f"; worst case over the feed-forward scale theta {lo:g}..{hi:g} the adaptation allows (the "
+                    f"spring follows theta up to 1)" if lo != hi else "")
             print(f"  at standstill ({held}{obs}, rest spring {rest['rest_spring_n_m']:.3g} N/m = "
                   f"{rest['rest_stiffness_fraction']:g} x the model's pre-sliding stiffness; plant stuck at "
-                  f"{rest['plant_stiffness_n_m']:.3g} N/m, or free):")
+                  f"{rest['plant_stiffness_n_m']:.3g} N/m, or free{over}):")
             for name, s in rest["loops"].items():
-                print(_fmt_loop(name, s))
+                print(_fmt_loop(name, s) + (f" (lowest PM at theta {s['theta']:g})" if lo != hi else ""))
+            if rest["stuck_unstable_at_theta"]:
+                at = ", ".join(f"{t:g}" for t in rest["stuck_unstable_at_theta"])
+                print(f"  the rest loop is UNSTABLE on the stuck stage at theta {at}: the design fails there (the stage "
+                      f"hunts at standstill until the guard releases the spring); lower "
+                      f"controller.rest_stiffness_fraction or the PID/observer gains")
             if not rest["healthy"]:
                 print(f"  the rest loop is below the PM {HEALTHY_PHASE_MARGIN_DEG:g} deg / GM "
                       f"{HEALTHY_GAIN_MARGIN_DB:g} dB floor: it relies on {rest['relies_on']}")

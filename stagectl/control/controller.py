@@ -39,18 +39,27 @@ Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: mode
 stuck on the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage). With a free-mass nominal plant
 the observer estimates that spring's force k·(x − x_r) as a disturbance and cancels it, so only P (+D) removes a
 position error: the rest mode is g·K_p/(k + K_p) ≈ 9 s⁻¹ (100-500 ms settles). With the rest spring the
-observer's nominal plant at rest is the mass on φ·θ·Σk about the reference::
+observer's nominal plant at rest is the mass on k_v = φ·min(θ, 1)·Σk about the reference::
 
-    d̂_rest = d̂ − s,    s_k = α·s_{k−1} + (1 − α)·φ·θ·Σk·clamp(x_k − x_r, ±rest_spring_range_m)   [N]
+    d̂_rest = d̂ − s,    s_k = α·s_{k−1} + (1 − α)·k_v·clamp(x_k − x_r, ±rest_spring_range_m)   [N]
 
-(α as in the Q filter), so it estimates only F(x_r) − u_ff + (k − φ·θ·Σk)·(x − x_r) and the stage's own spring
+(α as in the Q filter), so it estimates only F(x_r) − u_ff + (k − k_v)·(x − x_r) and the stage's own spring
 pulls it to x_r: the quasi-static rest mode becomes g·(K_p + φ·k)/(k + K_p) ≈ g·φ. When the reference starts
 to move, s is folded into the observer (d̂ and its input history move by −s: u continuous). Linear margins of
 the rest loop (PD + observer + spring, 1 kHz, one cycle of I/O delay, φ = 0.5; ``stagectl tune`` prints them):
 on the stuck plant (2 kg on 6.4e5 N/m with the model's Σσ1 = 226 N·s/m) PM 30.8°, GM 6.1 dB (φ = 0: 39.9°,
 6.6 dB); on a *free* mass the spring (a ~3e5 N/m position gain) makes the rest loop unstable, its force bounded
-by φ·θ·Σk·rest_spring_range_m (64 mN at 200 nm): it relies on the stage being stuck at rest. Without a guard a
+by k_v·rest_spring_range_m (64 mN at 200 nm): it relies on the stage being stuck at rest. Without a guard a
 plant with friction ×0.2 and stiffness ×0.1 of the model hunted by 0.5–1 µm in the holds.
+
+Why min(θ, 1): the spring is a position gain of the rest loop, and the loop's margins fall as k_v grows (stuck
+plant above, φ = 0.5: θ = 0.5 → PM 36.5°, GM 6.5 dB; 1 → 30.8°, 6.1 dB; 1.5 → 21.9°, 5.5 dB). θ is learned from
+the force *level* while sliding (the adaptation, the learning from moves; 1 ± ``adapt_max_change_fraction``) and
+says little about the stiffness the stage is stuck on at rest, so a θ above 1 must not raise the loop gain beyond
+the one designed at θ = 1; following θ down keeps the spring below a plant whose friction the model
+overestimates (less gain: more margin). The cost is that a plant stiffer than its model keeps more of its own
+spring in the observer (a slower rest mode), never a thinner margin. ``stagectl tune`` reports the rest loop over
+the θ range the configuration allows, worst case (with the cap: θ = 1).
 
 Guard (the spring acts only while the stage behaves stuck): it is *released* — s folded into the observer as
 at a move start, bumpless — when |x − x_r| > ``rest_spring_release_m`` (5 µm: the stage has slid) or when
@@ -79,8 +88,10 @@ made the cosine after a positioning move 20x worse: 41.6 against 7.0 nm RMS in t
 ``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
 is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
 over what the observer would otherwise re-learn at every reversal; it is a model correction, not a learned
-signal, so it carries over to any motion (ILC learns a signal per motion: while it applies a learned force, θ
-and β stay put).
+signal, so it carries over to any motion. One learner at a time: while ILC takes part in the motion (it is
+armed and records — its first repetition applies no force — or applies a learned force; ``learn_active`` or
+u_learn ≠ 0 in :meth:`StageController.step`), θ and β stay put, for this adaptation and for the learning from
+moves below alike, so ILC learns against a fixed feed-forward.
 
 Learning from earlier moves (``feedforward.learn_moves_fraction`` = κ, with an observer and ``kind: model``): the
 continuous adaptation above is slow (1 Hz: a 30 ms move moves θ by ~1 %), and it cannot be faster without
@@ -110,7 +121,7 @@ mostly the observer's transient: alternating 0.3 µm moves at the default move l
 first step). θ changes bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones in 19–30 ms instead of 51–64 ms. Not while a learned force (ILC) is applied; a retune that
+later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
@@ -727,6 +738,7 @@ class StageController:
 
     _last_ref: Reference | None = None
     _ff_bump: float | None = None
+    _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
                at_rest: bool) -> tuple[float, float]:
@@ -780,7 +792,7 @@ class StageController:
                 # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
                 # into the observer below
                 ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
-            if learning:  # a learned force (ILC) is applied: one learner at a time
+            if learning:  # the learner (ILC) is active for this motion: one learner at a time
                 ml.valid = False
             if not ml.valid:
                 return u_ff, d_hat
@@ -874,7 +886,7 @@ class StageController:
                 dob.shift(-s)
                 return d_hat - s
             return d_hat
-        kv = cfg.rest_stiffness_fraction * self.ff_scale * self._k_ps
+        kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
         if not self._rs_armed:
             if self._rs_releases >= cfg.rest_spring_max_release_count or abs(e_x) > band:
                 self._rs_band_s = 0.0
@@ -897,13 +909,17 @@ class StageController:
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
     accepts_learned_force = True
 
-    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0) -> Command:
+    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0,
+             learn_active: bool = False) -> Command:
         """One control step on a fresh sample (real-time safe). Raises ``ValueError`` on bad dt or non-finite
         inputs.
 
         ``dt`` [s] is the time since the previous fresh sample; stale cycles in between that :meth:`hold` stepped
         on a predicted position are taken off it. ``u_learn_n`` [N]: a learned feed-forward force added to the
-        command (ILC); the observer counts it as applied, so it does not estimate it away."""
+        command (ILC); the observer counts it as applied, so it does not estimate it away. ``learn_active``:
+        the learner (ILC) takes part in this motion — armed and recording (its first repetition applies
+        nothing) or applying; with it, or with u_learn_n ≠ 0, neither the adaptation nor the learning from
+        moves changes θ, β (one learner at a time)."""
         check_dt(dt)
         if not math.isfinite(x_meas_m):
             raise ValueError(f"x_meas_m must be finite (got {x_meas_m})")
@@ -913,7 +929,8 @@ class StageController:
             if rest > 1e-6 * dt:
                 dt = self.period_s if abs(rest - self.period_s) <= 1e-6 * self.period_s else rest
         self._gap = 0
-        cmd = self._step(dt, x_meas_m, ref, u_learn_n)
+        self._learn_active = learn_active  # the predicted steps of hold() keep the last fresh step's
+        cmd = self._step(dt, x_meas_m, ref, u_learn_n, learn_active or u_learn_n != 0.0)
         self._e_last = ref.x_m - x_meas_m
         return cmd
 
@@ -939,7 +956,7 @@ class StageController:
         st.u_obs_prev_n = u - st.u_ff_n
         return Command(u, terms, ("stale", "stale_force"))
 
-    def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float) -> Command:
+    def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
         if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
             raise ValueError(f"reference must be finite (got {ref})")
         pend = self._pending
@@ -995,9 +1012,8 @@ class StageController:
         elif abs(ref.x_m - self._x_rest_m) >= ffc.adapt_presliding_m:
             self._x_rest_m = math.nan
         if ffc.learn_moves_fraction > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
-            u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, u_learn_n != 0.0,
-                                            ref.x_m - x_meas_m)
-        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and u_learn_n == 0.0:
+            u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc, ref.x_m - x_meas_m)
+        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and not ilc:
             u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob, at_rest)
         # feedback + clamp
         pid = self.pid
@@ -1070,7 +1086,7 @@ class StageController:
         if (self._gap < self.cfg.stale_predict_cycles and math.isfinite(self._e_last)
                 and self._pending is None and self._ff_ahead_s == 0.0):
             self._gap += 1
-            cmd = self._step(dt, ref.x_m - self._e_last, ref, u_learn_n)
+            cmd = self._step(dt, ref.x_m - self._e_last, ref, u_learn_n, self._learn_active or u_learn_n != 0.0)
             self._pred_s += dt
             return Command(cmd.force_n, cmd.terms, ("stale", "predicted") + cmd.limited)
         self._gap += 1

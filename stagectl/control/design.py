@@ -324,7 +324,7 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     ``hold_integrator_at_rest: false`` runs) + Q-filter DOB with nominal mass ``dob_mass_kg`` (None: the plant's
     ``mass_kg``; the controller's ``dob.nominal_mass_kg`` when it differs) + the rest spring
     C_s = k_v·(1−α)z/(z−α) (α = exp(−2π·bandwidth·T), the observer's low-pass; k_v = ``rest_spring_n_m`` =
-    φ·θ·Σk of the controller's model, 0: off) on two plants of mass ``mass_kg`` [kg], both with the I/O delay:
+    φ·min(θ, 1)·Σk of the controller's model, 0: off) on two plants of mass ``mass_kg`` [kg], both with the I/O delay:
 
     * ``rest/stuck``: the stage stuck in pre-sliding, 1/(m·s² + c·s + k) (c = ``damping_n_s_m``, the friction's
       σ2 + Σσ1; k its initial stiffness Σk);

@@ -404,6 +404,12 @@ class IlcLearner:
         self._u_out = 0.0
         self._ramp_step = 1.0
         self._tail_step = 0.0
+        #: the learner takes part in this cycle's motion (set by :meth:`step`): a repeated motion runs while it
+        #: learns (armed or recording, applying nothing yet in the first repetition) or applies a learned force
+        #: (ramping in or out, or the tail after the motion ended). The controller does not adapt its own
+        #: feed-forward model then (one learner at a time: ILC learns against a fixed feed-forward). A
+        #: record-only baseline run is not active: it learns nothing and applies nothing.
+        self.active = False
 
     # ------------------------------------------------------------------ setup
     def _design_for(self, n: int) -> IlcDesign:
@@ -449,6 +455,7 @@ class IlcLearner:
                 self._tail_step = abs(self._u_out) * self._ramp_step_of_cfg()
             u_prev = self._u_out
             self._u_out = 0.0 if abs(u_prev) <= self._tail_step else u_prev - math.copysign(self._tail_step, u_prev)
+            self.active = self._u_out != 0.0
             return self._u_out
         n_rep = int(round(rep.length_s / self.period_s)) + 1
         if rep.index != self._rep_index:
@@ -471,6 +478,7 @@ class IlcLearner:
         else:
             u = 0.0
         self._u_out = u
+        self.active = (self.learning and self.frozen is None) or self.gain > 0.0 or u != 0.0
         return u
 
     def _finish(self) -> None:
@@ -568,6 +576,7 @@ class IlcLearner:
         self._valid = False
         self.gain = 0.0
         self._u_out = 0.0
+        self.active = False
 
     def _ramp_step_of_cfg(self) -> float:
         return 1.0 if self.cfg.ramp_s <= 0 else min(1.0, self.period_s / self.cfg.ramp_s)

@@ -39,12 +39,16 @@ class TakesLearnedForce(Protocol):
 
     accepts_learned_force: bool
 
-    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0) -> Command: ...
+    def step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float = 0.0,
+             learn_active: bool = False) -> Command: ...
 
 
 class Learner(Protocol):
     """The loop's learning hook (:class:`stagectl.control.ilc.IlcLearner`): stepped once per active cycle
-    before the controller, frozen on a fault, driven by ``ilc`` requests at the cycle boundary."""
+    before the controller, frozen on a fault, driven by ``ilc`` requests at the cycle boundary. ``active``: it
+    learns from or applies a force to this cycle's motion (the controller then keeps its own model still)."""
+
+    active: bool
 
     @property
     def columns(self) -> tuple[str, ...]: ...
