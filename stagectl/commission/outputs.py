@@ -94,7 +94,8 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["model"] = res.model_spec
     fitted: dict[str, Any] = {}
     if res.plant is not None:
-        fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg, "from": "frf"}
+        fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg,
+                              "from": res.plant.mass_from}
         used = (res.discovery or {}).get("mass_kg_used")
         if used is not None and used != res.plant.mass_kg:
             fitted["mass_kg_frf"] = fitted["mass_kg"]
