@@ -91,9 +91,10 @@ def probe_levels(breakaway_n: float, f_cap_n: float) -> tuple[float, float]:
     (F_max/2 = 3.5 N: 2.9 N and 3.5 N, too close for the ACC2 step). When ``F2 < PROBE_MIN_LEVEL_RATIO·F1``
     the limits leave too little force for a mass estimate (:func:`analysis.evaluate_probe` refuses with one
     line)."""
-    f2 = min(PROBE_TOP_X_BREAKAWAY * breakaway_n, f_cap_n)
-    f1 = breakaway_n + (f2 - breakaway_n) / 3.0
-    return f1, f2
+    if PROBE_TOP_X_BREAKAWAY * breakaway_n <= f_cap_n:
+        return 1.5 * breakaway_n, PROBE_TOP_X_BREAKAWAY * breakaway_n   # the same levels as before, exactly
+    f2 = f_cap_n
+    return breakaway_n + (f2 - breakaway_n) / 3.0, f2
 
 
 class SanityProbe:

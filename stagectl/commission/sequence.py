@@ -373,7 +373,8 @@ class Commissioning:
         amp0 = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
         tun = inner.cfg
         f_lines = bins.astype(np.float64) / (n_per * T)
-        K0 = an.controller_response(f_lines, T, tun.pid, tun.dob.kind, tun.dob.bandwidth_hz, tun.mass_kg,
+        K0 = an.controller_response(f_lines, T, tun.pid, tun.dob.kind,
+                                    tun.dob.bandwidth_hz or COMMISSION_DOB_X_PERIOD / T, m0,
                                     tun.dob.command_delay_samples)
         wave = multisine(n_per, bins, 1.0)
         fa = an.frf_amplitude(wave, bins, amp0, T, m0, K0, (max(self.cfg.io.delay_cycles, 1) + 0.5) * T,
