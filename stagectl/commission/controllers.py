@@ -74,23 +74,50 @@ class ProbeDirection:
     max_reverse_m: float = 0.0
 
 
+#: the probe's acceleration levels: the upper one at PROBE_TOP_X_BREAKAWAY × F_b (or the force cap), the lower
+#: one a third of the way up from F_b; the ACC2 step needs F2 ≥ PROBE_MIN_LEVEL_RATIO · F1
+PROBE_TOP_X_BREAKAWAY = 2.5
+PROBE_MIN_LEVEL_RATIO = 1.2
+
+
+def probe_levels(breakaway_n: float, f_cap_n: float) -> tuple[float, float]:
+    """The sanity probe's two acceleration forces [N] for a measured breakaway force ``F_b`` and a cap::
+
+        F2 = min(PROBE_TOP_X_BREAKAWAY·F_b, f_cap),    F1 = F_b + (F2 − F_b)/3
+
+    i.e. 1.5·F_b and 2.5·F_b when they fit, otherwise the headroom ``f_cap − F_b`` the limits leave above the
+    breakaway, split 1 : 3 so that both levels accelerate the stage (``F_i > F_b``) and differ. Two fixed
+    multiples of ``F_b`` under a fixed ``F_max/2`` did not fit on a 1.67 kg stage with 1.9 N stiction
+    (F_max/2 = 3.5 N: 2.9 N and 3.5 N, too close for the ACC2 step). When ``F2 < PROBE_MIN_LEVEL_RATIO·F1``
+    the limits leave too little force for a mass estimate (:func:`analysis.evaluate_probe` refuses with one
+    line)."""
+    if PROBE_TOP_X_BREAKAWAY * breakaway_n <= f_cap_n:
+        return 1.5 * breakaway_n, PROBE_TOP_X_BREAKAWAY * breakaway_n   # the same levels as before, exactly
+    f2 = f_cap_n
+    return breakaway_n + (f2 - breakaway_n) / 3.0, f2
+
+
 class SanityProbe:
     """Open-loop force probe, per direction ``s = +1`` then ``−1`` (see ``docs/commissioning.md`` §1)::
 
         RAMP   u = s·f_lim·τ/t_ramp       until s·(x − x_start) ≥ d_detect   (breakaway force F_b = |u|)
                                            or τ ≥ t_ramp (no motion) or −s·(x − x_start) ≥ d_detect (wrong sign)
-        ACC1   u = s·F1, F1 = min(1.5·F_b, f_lim)   until d_acc more, v ≥ v_stop/3 or t_acc
-        ACC2   u = s·F2, F2 = min(2.5·F_b, f_lim)   until 3·d_acc more, v ≥ v_stop or t_acc
+        ACC1   u = s·F1                    until d_acc more, v ≥ v_stop/3 or t_acc
+        ACC2   u = s·F2                    until 3·d_acc more, v ≥ v_stop or t_acc
         BRAKE  u = −s·F2                   until the velocity (5-sample difference) reverses, or t_acc
         REST   u = 0                       for t_rest
 
     ACC1/ACC2 positions are kept: with a rigid mass and a friction force that does not depend on the force,
     ``a_i = (F_i − F_friction)/m``, so ``m = (F2 − F1)/(a2 − a1)`` does not depend on the friction.
+    The levels ``F1``, ``F2`` come from the measured ``F_b`` and the force cap ``f_acc`` (:func:`probe_levels`);
+    the ramp only goes to ``f_lim`` (≤ ``f_acc``), a gentle search for the breakaway.
     """
 
     def __init__(self, *, f_lim_n: float, d_detect_m: float, d_acc_m: float, v_stop_m_s: float,
-                 t_ramp_s: float = 2.0, t_acc_s: float = 0.5, t_rest_s: float = 0.3) -> None:
+                 f_acc_n: float | None = None, t_ramp_s: float = 2.0, t_acc_s: float = 0.5,
+                 t_rest_s: float = 0.3) -> None:
         self.f_lim = f_lim_n
+        self.f_acc = max(f_acc_n if f_acc_n is not None else f_lim_n, f_lim_n)
         self.d_detect = d_detect_m
         self.d_acc = d_acc_m
         self.v_stop = v_stop_m_s
@@ -139,8 +166,7 @@ class SanityProbe:
             if disp >= self.d_detect:
                 u_now = self.f_lim * min(self._tau / self.t_ramp, 1.0)
                 d.breakaway_n = u_now
-                d.f1_n = min(1.5 * u_now, self.f_lim)
-                d.f2_n = min(2.5 * u_now, self.f_lim)
+                d.f1_n, d.f2_n = probe_levels(u_now, self.f_acc)
                 self._next("ACC1", x)
                 return s * d.f1_n
             if self._tau >= self.t_ramp:
@@ -154,7 +180,7 @@ class SanityProbe:
             span = self.d_acc if ph == "ACC1" else 3.0 * self.d_acc
             v_end = self.v_stop / 3.0 if ph == "ACC1" else self.v_stop
             if s * (x - self._xp) >= span or s * v >= v_end or self._tau >= self.t_acc:
-                if ph == "ACC1" and d.f2_n > 1.2 * d.f1_n:
+                if ph == "ACC1" and d.f2_n >= PROBE_MIN_LEVEL_RATIO * d.f1_n:
                     self._next("ACC2", x)
                     return s * d.f2_n
                 self._next("BRAKE", x)

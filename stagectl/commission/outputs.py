@@ -94,7 +94,8 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["model"] = res.model_spec
     fitted: dict[str, Any] = {}
     if res.plant is not None:
-        fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg, "from": "frf"}
+        fitted["mass_kg"] = {"value": res.plant.mass_kg, "std": res.plant.mass_std_kg,
+                              "from": res.plant.mass_from}
         used = (res.discovery or {}).get("mass_kg_used")
         if used is not None and used != res.plant.mass_kg:
             fitted["mass_kg_frf"] = fitted["mass_kg"]
@@ -172,6 +173,11 @@ def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
     return f"{v * scale:.{digits}g}{unit}"
 
 
+def _num(v: Any, fmt: str) -> str:
+    """A figure for the report's tables; "—" where there is none (e.g. no phase crossover: infinite GM)."""
+    return "—" if v is None else format(v, fmt)
+
+
 def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     L: list[str] = ["# Commissioning report", "", f"Configuration: `{rep.get('config')}`; status: **{rep['status']}**"]
     if "aborted" in rep:
@@ -227,17 +233,17 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                + (f"Q-filter DOB {ch['dob_bandwidth_hz']:.3g} Hz." if ch["dob_kind"] == "qfilter" else "no DOB.")),
               "",
               "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
-              (f"| model | {ch['model']['phase_margin_deg']:.1f} | {ch['model']['gain_margin_db']:.1f} | "
-              f"{ch['model']['crossover_hz']:.3g} |")]
+              (f"| model | {_num(ch['model']['phase_margin_deg'], '.1f')} | {_num(ch['model']['gain_margin_db'], '.1f')} | "
+              f"{_num(ch['model']['crossover_hz'], '.3g')} |")]
         if "measured" in ch:
             mm = ch["measured"]
-            L.append(f"| measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
-                     f"{mm['crossover_hz']:.3g} |")
+            L.append(f"| measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | {_num(mm['gain_margin_db'], '.1f')} | "
+                     f"{_num(mm['crossover_hz'], '.3g')} |")
         gv = rep["gains"].get("given")
         if gv:
             mm = gv["measured"]
-            L.append(f"| given controller, measured FRF | {mm['phase_margin_deg']:.1f} | {mm['gain_margin_db']:.1f} | "
-                     f"{mm['crossover_hz']:.3g} |")
+            L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
+                     f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

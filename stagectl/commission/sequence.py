@@ -342,15 +342,17 @@ class Commissioning:
 
         # 1. sanity ----------------------------------------------------------------------------------
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
+        # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max
         probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
-                            v_stop_m_s=0.9 * env.v_max_m_s)
+                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n)
         follow = FollowMeasured()
         ctl.set_probe(probe, follow)
         stage.loop.reference = follow
         try:
             self._run(stage, "sanity", "open-loop force probe: sign, scale (mass), breakaway, both directions",
                       probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5,
-                      {"f_lim_n": probe.f_lim, "d_detect_m": d_detect, "d_acc_m": probe.d_acc})
+                      {"f_lim_n": probe.f_lim, "f_acc_n": probe.f_acc, "d_detect_m": d_detect,
+                       "d_acc_m": probe.d_acc})
         finally:
             stage.loop.reference = stage.reference
             ctl.probe = None
@@ -368,7 +370,20 @@ class Commissioning:
         inner = StageController(self._commission_tuning(m0, coulomb=False), self.cfg.timing)
         n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
-        amp = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
+        amp0 = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
+        tun = inner.cfg
+        f_lines = bins.astype(np.float64) / (n_per * T)
+        K0 = an.controller_response(f_lines, T, tun.pid, tun.dob.kind,
+                                    tun.dob.bandwidth_hz or COMMISSION_DOB_X_PERIOD / T, m0,
+                                    tun.dob.command_delay_samples)
+        wave = multisine(n_per, bins, 1.0)
+        fa = an.frf_amplitude(wave, bins, amp0, T, m0, K0, (max(self.cfg.io.delay_cycles, 1) + 0.5) * T,
+                              min(r.sanity.breakaway_n), env.following_error_m, _quantum_guess(stage))
+        amp = fa.amplitude_n
+        if fa.limit != "nominal":
+            self.opts.progress(f"commission: FRF amplitude {amp:.3g} N per line ({amp / amp0:.2f} x nominal, "
+                               f"limited by the {fa.limit}: predicted sliding peak error "
+                               f"{fa.predicted_peak_error_m * 1e6:.3g} um, peak force {fa.peak_force_n:.3g} N)")
         exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
         v_rep = 0.5 * env.v_max_m_s
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
@@ -378,13 +393,22 @@ class Commissioning:
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
-                               "f_hi_hz": float(bins[-1] / (n_per * T)), "amplitude_per_line_n": amp,
+                               "f_hi_hz": float(bins[-1] / (n_per * T)), **fa.as_dict(),
                                "periods_averaged": FRF_PERIODS, "period_samples": n_per}, excitation=exc,
                            exc_start=n0)
         x, u = rec.col("x"), rec.col("u")
         k0 = _first_excited_row(rec)
         r.frf = an.estimate_frf(x[k0:], u[k0:], n_per, bins, T)
         r.plant = an.fit_plant(r.frf, T, m0)
+        lo, hi = an.FRF_MASS_PLAUSIBLE
+        pm = r.plant
+        if not (lo * m0 <= pm.mass_kg <= hi * m0 and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
+            self.opts.progress(f"commission: FRF mass {pm.mass_kg:.3g} ± {pm.mass_std_kg:.2g} kg not credible "
+                               f"against the probe's {m0:.4g} kg (stage held by its pre-sliding spring): using "
+                               "the probe's mass")
+            md = r.sanity.mass_by_direction_kg
+            r.plant = dataclasses.replace(pm, mass_kg=m0, mass_std_kg=(max(md) - min(md)) / 2 + 0.05 * m0,
+                                          mass_from="probe")
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
@@ -432,6 +456,14 @@ class Commissioning:
                                              speeds=speeds if ladder is not None else None))
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
+        # on a stage with much friction for its mass (the stiffer tuning was chosen), the Coulomb feed-forward
+        # is off for the reversals and the pre-sliding loops: it flips by 2·F_c when the reference reverses
+        # while the friction only follows along the pre-sliding curve, and the difference threw such stages
+        # (0.8-1.7 kg, 0.7-1.8 N Coulomb) 30 um past a 1 um reversal, stuck there until the observer broke
+        # them loose the other way (following-error fault). The observer carries the friction instead.
+        if xp != COMMISSION_CROSSOVER_X_PERIOD:
+            inner = StageController(self._commission_tuning(m, coulomb=False, crossover_x_period=xp),
+                                    self.cfg.timing)
         # nested reversals after a long move, both ways
         a0 = min(0.0125 * S, 2e-4)
         amps = [a0 / 3 ** i for i in range(4)]

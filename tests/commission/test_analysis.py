@@ -11,8 +11,9 @@ import pytest
 from scipy import signal
 
 from stagectl.commission import analysis as an
-from stagectl.commission.controllers import SanityProbe, log_bins, multisine
+from stagectl.commission.controllers import SanityProbe, log_bins, multisine, probe_levels
 from stagectl.control import design
+from stagectl.errors import StageError
 from stagectl.recorder import Recorder
 
 
@@ -64,10 +65,11 @@ def test_measured_margins_agree_with_python_control_on_an_exact_frf() -> None:
     assert ours.gain_margin_db == pytest.approx(ref.gain_margin_db, abs=0.3)
 
 
-def _drive_probe(sign: int, m: float = 2.0, f_c: float = 0.5) -> SanityProbe:
+def _drive_probe(sign: int, m: float = 2.0, f_c: float = 0.5, f_lim: float = 4.0,
+                 f_acc: float | None = None) -> SanityProbe:
     """The probe against a plain mass with Coulomb friction whose force input has the given sign."""
     T = 1e-3
-    probe = SanityProbe(f_lim_n=4.0, d_detect_m=2e-5, d_acc_m=1e-4, v_stop_m_s=0.02)
+    probe = SanityProbe(f_lim_n=f_lim, d_detect_m=2e-5, d_acc_m=1e-4, v_stop_m_s=0.02, f_acc_n=f_acc)
     x = v = 0.0
     probe.reset(x)
     for _ in range(20000):
@@ -94,6 +96,62 @@ def test_sanity_probe_measures_the_mass_and_catches_a_wrong_sign() -> None:
         an.evaluate_probe(bad.dirs, bad.f_lim, bad.d_detect, expected_mass_kg=2.0)
     with pytest.raises(an.SanityError, match="scale"):
         an.evaluate_probe(ok.dirs, ok.f_lim, ok.d_detect, expected_mass_kg=20.0)
+
+
+def test_probe_levels_scale_with_the_breakaway_and_the_force_cap() -> None:
+    # room under the cap: 1.5 and 2.5 x the breakaway (the levels of every stage that fitted before)
+    assert probe_levels(1.0, 7.0) == pytest.approx((1.5, 2.5))
+    # a high-friction stage: the headroom above F_b, split 1 : 3, both levels above F_b and apart
+    f1, f2 = probe_levels(2.2, 3.5)
+    assert 2.2 < f1 < f2 == 3.5 and f2 >= 1.2 * f1
+    # a 1.67 kg stage with 1.9 N Coulomb friction: under F_max/2 = 3.5 N only, the old fixed multiples gave no
+    # mass; the levels scaled up to F_max = 7 N measure it
+    ok = _drive_probe(+1, m=1.67, f_c=1.9, f_lim=3.5, f_acc=7.0)
+    assert an.evaluate_probe(ok.dirs, ok.f_lim, ok.d_detect, None).mass_kg == pytest.approx(1.67, rel=0.1)
+    tight = _drive_probe(+1, m=1.67, f_c=1.9, f_lim=2.2, f_acc=2.2)
+    with pytest.raises(an.SanityError, match="too little force under the cap"):
+        an.evaluate_probe(tight.dirs, tight.f_lim, tight.d_detect, None)
+
+
+def test_frf_amplitude_keeps_a_sliding_stage_in_the_following_error_band() -> None:
+    """The predicted peak error against a plain time-domain simulation of the linear loop (python-control),
+    and the amplitude rule: nominal on a heavy stage, scaled down on a light one."""
+    import control
+
+    T, n_per, fe = 1e-3, 1000, 50e-6
+    bins = log_bins(n_per, 2, int(0.45 * n_per), 60)
+    wave = multisine(n_per, bins, 1.0)
+    f = bins / (n_per * T)
+    nominal = 0.08 * 7.0 * math.sqrt(2.0 / bins.shape[0])
+
+    def amp(m: float, fb: float, fe_m: float = fe) -> tuple[an.FrfAmplitude, object, object]:
+        pid = design.design_pid(m, 15.0, T, 1)
+        K = an.controller_response(f, T, pid, "qfilter", 50.0, m, 1)
+        a = an.frf_amplitude(wave, bins, nominal, T, m, K, 1.5 * T, fb, fe_m, 1e-9)
+        Hu, Hy = design.qfilter_tfs(m, 50.0, T, 1)
+        return a, design.plant_tf(m, T, 1), (design.pid_tf(pid, T) + Hy) / (1 - Hu)
+
+    heavy, _, _ = amp(5.2, 0.5)
+    assert heavy.amplitude_n == nominal and heavy.limit == "nominal"
+    # a 2 kg stage with 0.97 N breakaway slides clearly under the nominal 2 N peak and keeps it
+    assert amp(2.0, 0.97)[0].limit == "nominal"
+    # frictionless 0.8 kg: scaled to 0.6 following-error limits ...
+    light, P, K = amp(0.8, 0.0)
+    assert light.amplitude_n < 0.6 * nominal and light.limit == "sliding error"
+    assert light.predicted_peak_error_m == pytest.approx(an.FRF_SLIDE_ERROR_X_FE * fe)
+    # ... checked against the frictionless mass under the loop, three periods, peak of the last
+    t = np.arange(3 * n_per) * T
+    resp = control.forced_response(control.feedback(P, K), t, np.tile(wave * light.amplitude_n, 3))
+    peak = float(np.abs(np.asarray(resp.outputs)[-n_per:]).max())
+    assert peak == pytest.approx(light.predicted_peak_error_m, rel=0.15)
+    assert peak < fe
+    # light stages with much friction (0.80 kg / 0.78 N, 1.26 kg / 1.66 N): no sliding amplitude keeps the band
+    # without stick-slip, so the peak force stays at half the breakaway
+    for m, fb in ((0.8, 0.78), (1.26, 1.66)):
+        sticky, _, _ = amp(m, fb)
+        assert sticky.limit == "breakaway" and sticky.peak_force_n == pytest.approx(an.FRF_STICK_X_BREAKAWAY * fb)
+    with pytest.raises(StageError, match="frf: the largest safe multisine"):
+        amp(0.8, 0.0, fe_m=1e-9)
 
 
 # ---------------------------------------------------------------------------------------- pre-sliding fit

@@ -80,3 +80,24 @@ def test_light_viscous_stage_completes(tmp_path: Path) -> None:
     true_v = plant["friction"]["viscous_n_s_m"]
     assert abs(learned / true_v - 1) < 0.3, (learned, true_v)
     assert abs(rep["fitted"]["viscous_n_s_m"]["value"] / true_v - 1) < 0.15, rep["fitted"]["viscous_n_s_m"]
+
+
+def test_light_high_friction_stage_completes(tmp_path: Path) -> None:
+    """Generated plant 11: 0.80 kg, 0.73 N Coulomb (0.78 N breakaway). The FRF multisine at its nominal
+    0.08·F_max RMS made it slide out of the 50 um following-error band. Now the amplitude follows the
+    breakaway (the stage stands on its pre-sliding spring), the FRF's mass is not credible there and the
+    probe's is used, and the sequence completes with the mass and Coulomb level within 10 %."""
+    plant = hidden_plant(11)
+    cfg = stage_yaml(tmp_path / "stage.yaml", plant)
+    out = tmp_path / "out"
+    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
+                 "--max-stroke", "0.002"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "complete"
+    frf = next(e for e in rep["experiments"] if e["name"] == "frf")["params"]
+    assert frf["amplitude_limit"] == "breakaway"
+    assert frf["amplitude_per_line_n"] < 0.5 * frf["nominal_per_line_n"]
+    fit = rep["fitted"]
+    assert fit["mass_kg"]["from"] == "probe"
+    assert abs(fit["mass_kg"]["value"] / plant["mass_kg"] - 1) < 0.1, fit["mass_kg"]
+    assert abs(fit["coulomb_n"]["value"] / plant["friction"]["fc_n"] - 1) < 0.1, fit["coulomb_n"]
