@@ -32,8 +32,13 @@ answers lost: a drive working off a backlog after its process was held off the C
 comes, so its answers come in bursts (two or more TPDO1s between two reads) and b shrinks; lost answers
 (dropped frames) leave b standing with one TPDO1 per cycle: b > 0 with a single TPDO1 since the last read
 raises L by b at once (age 0 or 1 by arrival), as does a b that did not shrink over ``LOST_AFTER_TPDOS``
-TPDO1s in a row. A drive that stays behind by a constant b, one answer per SYNC, is indistinguishable from
-one that lost b answers: it is aged by arrival only. So is a sample whose count says one period more than
+TPDO1s in a row -- but only for b <= ``MAX_LOST_ANSWERS`` (2). A drive that stays behind by a constant b, one
+answer per SYNC, is indistinguishable from one that lost b answers; a longer b is taken for what it nearly
+always is, a backlog (the HIL's sim-plant held off the CPU for 0.3 s, then answering one SYNC per cycle: taken
+for lost answers, 0.3 s old samples were used as fresh, the controller wound up to -3 N against a stage that
+seemed not to move, and the queued commands ran the stage 9.5 mm): its samples stay stale (the loop's stale
+limits fault) until it is worked off, or until it stood unchanged over ``LOST_BLOCK_AFTER_TPDOS`` TPDO1s.
+A b <= 2 that stands is aged by arrival only. So is a sample whose count says one period more than
 its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
 one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
 as stale (``loop.STALE_AGE_CYCLES``).
@@ -94,6 +99,11 @@ DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 SYNC_COB_ID = 0x080
 #: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
 LOST_AFTER_TPDOS = 3
+#: at most this many answers in a row are taken for lost frames; a longer gap in the count is a backlog (the
+#: drive's process held off the CPU, then answering one SYNC per cycle): its samples keep their age (stale) ...
+MAX_LOST_ANSWERS = 2
+#: ... unless it stood unchanged over this many TPDO1s in a row (answers really lost, e.g. a dropped block)
+LOST_BLOCK_AFTER_TPDOS = 1000
 #: CiA 402 "cyclic synchronous torque" mode of operation (0x6060)
 MODE_CST = 10
 #: 0x6502 bit for CST support
@@ -654,7 +664,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         else:
             e = c - lost
             self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
-            if self._excess_run >= LOST_AFTER_TPDOS:  # answers lost (or a lasting lag: then arrival time only)
+            if self._excess_run >= (LOST_AFTER_TPDOS if e <= MAX_LOST_ANSWERS else LOST_BLOCK_AFTER_TPDOS):
+                # answers lost (a short gap; a long one only when it stood for LOST_BLOCK_AFTER_TPDOS TPDOs)
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
 
@@ -758,7 +769,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
             excess = self._late_excess
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
-            if self._rx_burst == 1:  # one answer in the cycle: answers were lost (a backlog comes in bursts)
+            if self._rx_burst == 1 and excess <= MAX_LOST_ANSWERS:  # one answer in the cycle: answers were lost
+                # (a backlog comes in bursts; but a long one worked off one SYNC per cycle stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
                 self._rx_excess = self._late_excess = self._excess_run = 0
