@@ -149,7 +149,9 @@ def test_a_long_backlog_worked_off_one_answer_per_cycle_stays_old(lockstep):
     backlog of ~300 periods): the first cycle with a single answer used to take the whole backlog for lost
     answers, so ~0.3 s old samples were returned as fresh (age 0). The controller then wound up against a stage
     that seemed not to respond (-3 N), those queued commands ran the stage 9.5 mm after the fault. A backlog
-    longer than MAX_LOST_ANSWERS is an age: the samples are stale (>= 2) until it is worked off."""
+    longer than MAX_LOST_ANSWERS behind a silent drive heartbeat (the process was held off the CPU, frames were
+    not lost: tests/loop/test_timing.py rides out 400 dropped TPDOs with the heartbeat running) is an age: the
+    samples are stale (>= 2) until it is worked off."""
     from stagectl.drivers.cia402 import MAX_LOST_ANSWERS
 
     got = _long_backlog(lockstep, stall=150, after=60)
