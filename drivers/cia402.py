@@ -32,8 +32,15 @@ answers lost: a drive working off a backlog after its process was held off the C
 comes, so its answers come in bursts (two or more TPDO1s between two reads) and b shrinks; lost answers
 (dropped frames) leave b standing with one TPDO1 per cycle: b > 0 with a single TPDO1 since the last read
 raises L by b at once (age 0 or 1 by arrival), as does a b that did not shrink over ``LOST_AFTER_TPDOS``
-TPDO1s in a row. A drive that stays behind by a constant b, one answer per SYNC, is indistinguishable from
-one that lost b answers: it is aged by arrival only. So is a sample whose count says one period more than
+TPDO1s in a row -- for b > ``MAX_LOST_ANSWERS`` (10) only if the drive's heartbeat kept coming meanwhile. A
+drive that stays behind by a constant b, one answer per SYNC, is indistinguishable by counting from one that
+lost b answers; but frames lost on the way leave its heartbeat running, while a drive process held off the CPU
+falls silent altogether. So a longer b behind a heartbeat silent for 1.5 producer periods is a backlog (the
+HIL's sim-plant held off the CPU for 0.3 s, then answering about one SYNC per cycle: taken for lost answers,
+0.3 s old samples were used as fresh, the controller wound up to -3 N against a stage that seemed not to move,
+and the queued commands ran the stage 9.5 mm): its samples stay stale (the loop's stale limits fault) until it
+is worked off, or until it stood unchanged over ``LOST_BLOCK_AFTER_TPDOS`` TPDO1s. A b taken for lost answers
+that stands is aged by arrival only. So is a sample whose count says one period more than
 its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
 one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
 as stale (``loop.STALE_AGE_CYCLES``).
@@ -94,6 +101,12 @@ DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 SYNC_COB_ID = 0x080
 #: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
 LOST_AFTER_TPDOS = 3
+#: at most this many answers in a row are always taken for lost frames (a lag this short, misjudged, costs at
+#: most this many periods of feedback delay); a longer gap in the count while the drive's heartbeat was silent
+#: too (its process held off the CPU, not frames lost on the way) is a backlog: its samples keep their age ...
+MAX_LOST_ANSWERS = 10
+#: ... unless it stood unchanged over this many TPDO1s in a row (answers really lost, e.g. a dropped block)
+LOST_BLOCK_AFTER_TPDOS = 1000
 #: CiA 402 "cyclic synchronous torque" mode of operation (0x6060)
 MODE_CST = 10
 #: 0x6502 bit for CST support
@@ -347,6 +360,9 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._period_s = t.period_s
         self._hb_every = t.every(self.cfg.controller_heartbeat_s)
         self._hb_timeout_cycles = t.cycles(self.cfg.heartbeat_timeout_s)
+        # the drive's heartbeat missing this long (1.5 producer periods): its process was held off the CPU
+        hb = self.cfg.heartbeat_producer_s
+        self._hb_silent_cycles = t.cycles(1.5 * hb) + 2 if hb > 0 else 0
         self._max_step_counts = t.per_cycle(self.cfg.max_speed_m_s) / self.cfg.resolution_m
         # following an external SYNC producer, the TPDO may come at any time within the period
         self._rx_wait_s = self.cfg.rx_timeout_s if self.cfg.sync_producer else max(
@@ -374,6 +390,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._excess_run = 0
         self._rx_burst = 0  # TPDO1s received since the last read()
         self._prev_excess = 0  # the backlog age of the sample the last read() returned
+        self._hb_silent_in_gap = False  # the drive's heartbeat fell silent since its answers were last on time
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -651,12 +668,18 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         lost = self._lost
         if lost is None or c <= lost:
             self._lost, e, self._excess_run = c, 0, 0
+            self._hb_silent_in_gap = False
         else:
             e = c - lost
             self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
-            if self._excess_run >= LOST_AFTER_TPDOS:  # answers lost (or a lasting lag: then arrival time only)
+            if self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS):
+                # answers lost (or a lasting lag: then arrival time only)
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
+
+    def _may_be_lost(self, b: int) -> bool:
+        """Whether a count gap of ``b`` answers may be taken for lost frames (module docstring, "Sample age")."""
+        return b <= MAX_LOST_ANSWERS or not self._hb_silent_in_gap
 
     def _note(self, fault: DeviceFault) -> None:
         if self._pending is None:
@@ -709,6 +732,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._n_sync += 1
         self._cycle += 1
         self._hb_age += 1
+        if self._hb_silent_cycles and self._hb_age > self._hb_silent_cycles:
+            self._hb_silent_in_gap = True
         self._synced = True
 
     def _wait_tpdo(self) -> tuple[int, int] | None:
@@ -758,7 +783,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
             excess = self._late_excess
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
-            if self._rx_burst == 1:  # one answer in the cycle: answers were lost (a backlog comes in bursts)
+            if self._rx_burst == 1 and self._may_be_lost(excess):  # one answer in the cycle: answers were lost
+                # (a backlog comes in bursts; a long one behind a silent heartbeat stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
                 self._rx_excess = self._late_excess = self._excess_run = 0

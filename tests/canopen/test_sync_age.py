@@ -142,3 +142,39 @@ def test_the_loop_holds_on_old_samples_and_the_force_stays_bounded():
     spike_blind = float(np.max(np.abs(ub - u0)))
     assert spike < 0.02, spike  # measured 0.004 N
     assert spike_blind > 5.0 * spike, (spike_blind, spike)  # measured 0.062 N
+
+
+def test_a_long_backlog_worked_off_one_answer_per_cycle_stays_old(lockstep):
+    """The HIL runaway (sim-plant held off the CPU for ~0.3 s, then answering one SYNC per cycle, a constant
+    backlog of ~300 periods): the first cycle with a single answer used to take the whole backlog for lost
+    answers, so ~0.3 s old samples were returned as fresh (age 0). The controller then wound up against a stage
+    that seemed not to respond (-3 N), those queued commands ran the stage 9.5 mm after the fault. A backlog
+    longer than MAX_LOST_ANSWERS behind a silent drive heartbeat (the process was held off the CPU, frames were
+    not lost: tests/loop/test_timing.py rides out 400 dropped TPDOs with the heartbeat running) is an age: the
+    samples are stale (>= 2) until it is worked off."""
+    from stagectl.drivers.cia402 import MAX_LOST_ANSWERS
+
+    got = _long_backlog(lockstep, stall=150, after=60)
+    assert len(got) == 60
+    ages = [a for a, _ in got]
+    truth = [t for _, t in got]
+    assert min(truth) > MAX_LOST_ANSWERS  # the oracle: the drive's own count of unanswered SYNCs
+    assert ages == truth, (ages[:5], truth[:5])  # every sample carries its real age: all stale (>= 2)
+
+
+def _long_backlog(lockstep, stall: int, after: int):
+    w, dut = lockstep(max_missed=stall + 10, max_late_cycles=stall + after + 10)
+    th = ThrottledDrive(w)
+    dut.set_pump(th.pump)
+    sent, base = 0, w.drive.sync_count
+    out = []
+    for k in range(20 + stall + after):
+        th.budget = None if k < 20 else (0 if k < 20 + stall else 1)
+        dut.sync()
+        sent += 1
+        m = dut.read()
+        assert m.fault is None, m.fault
+        if k >= 20 + stall and m.fresh:
+            out.append((m.age_cycles, sent - (w.drive.sync_count - base)))
+        dut.write(0.0)
+    return out
