@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -64,7 +65,15 @@ def test_service_lifecycle_end_to_end_in_process(tmp_path, notify_socket, rig_lo
         notify_socket.wait_for("WATCHDOG", "1")  # the supervisor saw the cycle counter advance
         with ControlClient(tmp_path / "run" / "control.sock") as c:
             st = c.request({"request": "status"})["status"]
-            assert st["state"] == "active" and st["drive_enabled"] is True and st["loop"]["healthy"]
+            assert st["state"] == "active" and st["drive_enabled"] is True
+            # "healthy" is the loop's recent overrun fraction within the rig's 50 %: the in-process loop thread
+            # shares its interpreter with the daemon and the test, and a loaded CI machine once pushed it over;
+            # it must come back (30 s failure guard)
+            end = time.monotonic() + 30
+            while not st["loop"]["healthy"] and time.monotonic() < end:
+                time.sleep(0.05)
+                st = c.request({"request": "status"})["status"]
+            assert st["loop"]["healthy"], st["loop"]
             r = c.request({"request": "move", "target_m": 1e-4, "id": 1})
             assert r["ok"] and r["target_m"] == 1e-4 and r["id"] == 1
             r = c.request({"request": "move", "target_m": 0.5})
