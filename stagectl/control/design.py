@@ -251,7 +251,8 @@ def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
 
     f = np.logspace(-1, math.log10(0.5 / dt * 0.999), n_points)
     w = 2 * math.pi * f
-    resp = np.array([complex(L(z)) for z in np.exp(1j * w * dt)])
+    # one vectorised evaluation (python-control's per-point call retries its slycot import every time)
+    resp = np.asarray(L(np.exp(1j * w * dt)), dtype=complex).reshape(-1)
     mag = np.abs(resp)
     ph = np.unwrap(np.angle(resp))
     # margins from the dense response (robust against high-order numerics), checked against control.margin
