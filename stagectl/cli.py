@@ -129,8 +129,48 @@ def _after_interrupt(args: argparse.Namespace, started: float) -> str:
     return "; no output was written" if any(getattr(args, n, None) for n in ("out", "plot")) else ""
 
 
+#: set by :func:`_on_sigint`: a Ctrl-C arrived in this process
+_interrupted = False
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    """Python's own SIGINT behaviour (raise KeyboardInterrupt), remembering that it happened: a
+    KeyboardInterrupt raised half way through a module import or class creation can come out as another
+    exception (the next use of the half-made module fails with ImportError/AttributeError), which
+    :func:`main` must still report as the interrupt, not as a bug."""
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+def _catch_sigint() -> None:
+    """Install :func:`_on_sigint` where Python's default handler is in place (not over SIG_IGN: a job
+    started in the background or under nohup keeps ignoring Ctrl-C)."""
+    import signal
+
+    try:
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _on_sigint)
+    except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handler
+        pass
+
+
+def _was_interrupted(exc: BaseException) -> bool:
+    """A Ctrl-C arrived in this process, or ``exc`` was raised while handling a KeyboardInterrupt."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return _interrupted
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from stagectl.errors import StageError
+
+    _catch_sigint()
 
     argv = list(sys.argv[1:] if argv is None else argv)
     one_blas_thread()
@@ -155,24 +195,33 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        _end_progress_line()
-        print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
-        return 130
+        return _interrupt_exit(args, started)
     except BrokenPipeError:
         return 0
     except OSError as exc:  # the environment, not a bug: disk full, permission, a path that vanished
+        if _was_interrupted(exc):
+            return _interrupt_exit(args, started)
         _end_progress_line()
         _remove_created_if_empty()
         name = exc.filename if exc.filename is not None else "output"
         print(f"stagectl: error: {name}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug: one line for the user, the traceback on request
+        if _was_interrupted(exc):  # a Ctrl-C that came out as another exception: still the interrupt
+            return _interrupt_exit(args, started)
         if os.environ.get("STAGECTL_TRACEBACK"):
             raise
         _end_progress_line()
         print(f"stagectl: internal error: {type(exc).__name__}: {str(exc)[:200]} "
               "(a bug in stagectl: please report it; STAGECTL_TRACEBACK=1 shows the traceback)", file=sys.stderr)
         return 70
+
+
+def _interrupt_exit(args: argparse.Namespace, started: float) -> int:
+    """Ctrl-C: one line saying so (and what output it left), exit 130."""
+    _end_progress_line()
+    print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -83,3 +83,30 @@ def test_ctrl_c_in_bench_says_so_and_prints_no_partial_result(tmp_path: Path) ->
     assert re.search(r"bench timing: case 1 of \d+, canopen/cosine clean \(", err), err  # its plan, on the terminal line
     assert err.rstrip().endswith("stagectl: interrupted (Ctrl-C)") and "Traceback" not in err, err
     assert (tmp_path / "stdout").read_text() == ""
+
+
+def test_ctrl_c_that_surfaces_as_another_exception_still_ends_as_an_interrupt(tmp_path: Path) -> None:
+    """A SIGINT can land where Python turns its KeyboardInterrupt into another exception on the way out (half
+    way through a module import or a class creation: the next use of the half-made module fails with an
+    ImportError/AttributeError; or in code that catches BaseException and raises its own). Deterministic
+    stand-in: a real SIGINT to a real process, inside a command whose code turns it into an ImportError.
+    Exit 130 with the one interrupt line, not exit 70 "internal error"."""
+    code = (
+        "import os, signal, sys\n"
+        "import stagectl.commands.model as m\n"
+        "def boom(args):\n"
+        "    try:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        signal.pause()  # the KeyboardInterrupt is raised here, after the handler ran\n"
+        "    except BaseException:\n"
+        "        raise ImportError('cannot import name Stage from partially initialized module stagectl.app')\n"
+        "    return 0\n"
+        "m.run_plot = boom\n"
+        "from stagectl.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code, "model", "plot", "x.yaml", "--out", "d"], cwd=tmp_path, text=True,
+                       capture_output=True, timeout=60, env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 130, p.stderr
+    assert p.stderr.strip().splitlines() == ["stagectl: interrupted (Ctrl-C); no output was written"], p.stderr
