@@ -14,7 +14,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
@@ -143,16 +143,25 @@ def _on_sigint(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _catch_sigint() -> None:
+def _catch_sigint() -> Callable[[], None]:
     """Install :func:`_on_sigint` where Python's default handler is in place (not over SIG_IGN: a job
-    started in the background or under nohup keeps ignoring Ctrl-C)."""
+    started in the background or under nohup keeps ignoring Ctrl-C); returns what puts the old one back
+    (main() called in-process, e.g. by a test, leaves the process as it found it)."""
     import signal
 
+    global _interrupted
+    _interrupted = False
     try:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             signal.signal(signal.SIGINT, _on_sigint)
+
+            def restore() -> None:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+            return restore
     except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handler
         pass
+    return lambda: None
 
 
 def _was_interrupted(exc: BaseException) -> bool:
@@ -168,9 +177,15 @@ def _was_interrupted(exc: BaseException) -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from stagectl.errors import StageError
+    restore = _catch_sigint()
+    try:
+        return _main(argv)
+    finally:
+        restore()
 
-    _catch_sigint()
+
+def _main(argv: Sequence[str] | None) -> int:
+    from stagectl.errors import StageError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     one_blas_thread()
