@@ -202,6 +202,8 @@ def _main(argv: Sequence[str] | None) -> int:
     try:
         return int(args.func(args) or 0)
     except StageError as exc:
+        if _was_interrupted(exc):  # e.g. a device's reply lost to the Ctrl-C: the interrupt, not the device
+            return _interrupt_exit(args, started)
         _end_progress_line()
         _remove_created_if_empty()
         msg = str(exc)

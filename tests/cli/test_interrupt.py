@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from support import run_on_pty
 
 REPO = Path(__file__).resolve().parents[2]
@@ -85,21 +86,26 @@ def test_ctrl_c_in_bench_says_so_and_prints_no_partial_result(tmp_path: Path) ->
     assert (tmp_path / "stdout").read_text() == ""
 
 
-def test_ctrl_c_that_surfaces_as_another_exception_still_ends_as_an_interrupt(tmp_path: Path) -> None:
+@pytest.mark.parametrize("raised", ["ImportError('cannot import name Stage from partially initialized module')",
+                                    "DriverInitError('drive: SDO 0x6041 timed out')",
+                                    "OSError(5, 'Input/output error')"])
+def test_ctrl_c_that_surfaces_as_another_exception_still_ends_as_an_interrupt(tmp_path: Path, raised: str) -> None:
     """A SIGINT can land where Python turns its KeyboardInterrupt into another exception on the way out (half
     way through a module import or a class creation: the next use of the half-made module fails with an
     ImportError/AttributeError; or in code that catches BaseException and raises its own). Deterministic
-    stand-in: a real SIGINT to a real process, inside a command whose code turns it into an ImportError.
+    stand-in: a real SIGINT to a real process, inside a command whose code turns it into another exception
+    (ImportError: exit 70 before; a driver error or OSError: exit 2 before).
     Exit 130 with the one interrupt line, not exit 70 "internal error"."""
     code = (
         "import os, signal, sys\n"
+        "from stagectl.errors import DriverInitError\n"
         "import stagectl.commands.model as m\n"
         "def boom(args):\n"
         "    try:\n"
         "        os.kill(os.getpid(), signal.SIGINT)\n"
         "        signal.pause()  # the KeyboardInterrupt is raised here, after the handler ran\n"
         "    except BaseException:\n"
-        "        raise ImportError('cannot import name Stage from partially initialized module stagectl.app')\n"
+        f"        raise {raised} from None\n"
         "    return 0\n"
         "m.run_plot = boom\n"
         "from stagectl.cli import main\n"
