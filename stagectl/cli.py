@@ -14,7 +14,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
@@ -129,7 +129,62 @@ def _after_interrupt(args: argparse.Namespace, started: float) -> str:
     return "; no output was written" if any(getattr(args, n, None) for n in ("out", "plot")) else ""
 
 
+#: set by :func:`_on_sigint`: a Ctrl-C arrived in this process
+_interrupted = False
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    """Python's own SIGINT behaviour (raise KeyboardInterrupt), remembering that it happened: a
+    KeyboardInterrupt raised half way through a module import or class creation can come out as another
+    exception (the next use of the half-made module fails with ImportError/AttributeError), which
+    :func:`main` must still report as the interrupt, not as a bug."""
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+def _catch_sigint() -> Callable[[], None]:
+    """Install :func:`_on_sigint` where Python's default handler is in place (not over SIG_IGN: a job
+    started in the background or under nohup keeps ignoring Ctrl-C); returns what puts the old one back
+    (main() called in-process, e.g. by a test, leaves the process as it found it)."""
+    import signal
+
+    global _interrupted
+    _interrupted = False
+    try:
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _on_sigint)
+
+            def restore() -> None:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+            return restore
+    except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handler
+        pass
+    return lambda: None
+
+
+def _was_interrupted(exc: BaseException) -> bool:
+    """A Ctrl-C arrived in this process, or ``exc`` was raised while handling a KeyboardInterrupt."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return _interrupted
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    restore = _catch_sigint()
+    try:
+        return _main(argv)
+    finally:
+        restore()
+
+
+def _main(argv: Sequence[str] | None) -> int:
     from stagectl.errors import StageError
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -147,6 +202,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except StageError as exc:
+        if _was_interrupted(exc):  # e.g. a device's reply lost to the Ctrl-C: the interrupt, not the device
+            return _interrupt_exit(args, started)
         _end_progress_line()
         _remove_created_if_empty()
         msg = str(exc)
@@ -155,24 +212,33 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"stagectl: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        _end_progress_line()
-        print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
-        return 130
+        return _interrupt_exit(args, started)
     except BrokenPipeError:
         return 0
     except OSError as exc:  # the environment, not a bug: disk full, permission, a path that vanished
+        if _was_interrupted(exc):
+            return _interrupt_exit(args, started)
         _end_progress_line()
         _remove_created_if_empty()
         name = exc.filename if exc.filename is not None else "output"
         print(f"stagectl: error: {name}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug: one line for the user, the traceback on request
+        if _was_interrupted(exc):  # a Ctrl-C that came out as another exception: still the interrupt
+            return _interrupt_exit(args, started)
         if os.environ.get("STAGECTL_TRACEBACK"):
             raise
         _end_progress_line()
         print(f"stagectl: internal error: {type(exc).__name__}: {str(exc)[:200]} "
               "(a bug in stagectl: please report it; STAGECTL_TRACEBACK=1 shows the traceback)", file=sys.stderr)
         return 70
+
+
+def _interrupt_exit(args: argparse.Namespace, started: float) -> int:
+    """Ctrl-C: one line saying so (and what output it left), exit 130."""
+    _end_progress_line()
+    print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -26,6 +26,7 @@ from typing import Any, Protocol
 
 from stagectl.config.daemon import DaemonConfig
 from stagectl.daemon.lifecycle import Assembly
+from stagectl.daemon.paths import ServicePaths
 from stagectl.daemon.reload import Reloader
 from stagectl.daemon.stream import handle_subscribe
 from stagectl.daemon.telemetry import TelemetryWriter
@@ -48,6 +49,7 @@ class ServiceView(Protocol):
     writer: TelemetryWriter | None
 
     reloader: Reloader
+    paths: ServicePaths
 
     def status(self) -> dict[str, Any]: ...
 
@@ -92,8 +94,12 @@ def handle_loop_request(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrF
 
 def handle_gains(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:
     _only(req)
-    ctl = svc.asm.controller_config if svc.asm else None
-    return {"controller": plain(ctl, json=True), "reload": bounded_texts(svc.reloader.status)}
+    ctl = plain(svc.asm.controller_config if svc.asm else None, json=True)
+    ff = ctl.get("feedforward") if isinstance(ctl, dict) else None
+    if isinstance(ff, dict) and isinstance(ff.get("model_file"), str):
+        # the config names it relative to its own folder: absolute, so the section pasted elsewhere still works
+        ff["model_file"] = str((svc.paths.config.parent / ff["model_file"]).resolve())
+    return {"controller": ctl, "reload": bounded_texts(svc.reloader.status)}
 
 
 def handle_record(svc: ServiceView, req: Mapping[str, object]) -> ReplyOrFuture:

@@ -160,10 +160,28 @@ def load_model_file(path: str | Path) -> StageModel:
                           f"got {type(data).__name__} {data!r:.60}")
     if isinstance(data, Mapping) and "model" in data and "friction" not in data:
         data = {"friction": data}
+    if isinstance(data, Mapping) and "friction" not in data and {"controller", "io", "sim"} & set(data):
+        raise ConfigError(_stage_config_given(path, data))
     try:
         return load(StageModel, data, "")
     except ConfigError as exc:
         raise ConfigError([f"{path}: {p}" for p in exc.problems]) from None
+
+
+def _stage_config_given(path: str | Path, data: Mapping[str, Any]) -> str:
+    """The one line for a stage config (``controller:``/``io:``/``sim:``) given where a model file belongs,
+    naming the model file the config uses (relative names resolved against the config's folder)."""
+    named = []
+    for keys in (("controller", "feedforward", "model_file"), ("sim", "plant", "model_file")):
+        node: Any = data
+        for k in keys:
+            node = node.get(k) if isinstance(node, Mapping) else None
+        if isinstance(node, str) and node:
+            p = Path(node) if Path(node).is_absolute() else Path(path).resolve().parent / node
+            named.append(f"{'.'.join(keys)} is {p}")
+    hint = f"; its {named[0]}" if named else ""
+    return (f"{path}: is a stage config, not a model file; expected a friction model file (mass_kg, friction, "
+            f"effects, meta){hint}")
 
 
 def save_model_file(model: StageModel, path: str | Path, header: str = "") -> None:

@@ -1,15 +1,17 @@
-"""Compiled inner loops for identification (numba, cached on disk)."""
+"""Compiled inner loops for identification (numba kernels declared with :func:`stagectl.jit.kernel`: compiled
+on first use, cached in its cache directory)."""
 
 from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
+
+from stagectl.jit import kernel
 
 FloatArray = npt.NDArray[np.float64]
 
 
-@njit(cache=True)
+@kernel
 def maxwell_unit_states(x: FloatArray, deltas: FloatArray) -> FloatArray:  # pragma: no cover - compiled
     """Normalised Maxwell-slip element deflections ``z_i/Δ_i`` ∈ [−1, 1] along ``x`` (relaxed start).
 
@@ -34,7 +36,7 @@ def maxwell_unit_states(x: FloatArray, deltas: FloatArray) -> FloatArray:  # pra
     return out
 
 
-@njit(cache=True)
+@kernel
 def first_order_lag(e_ss: FloatArray, dt: float, tau: float, e0: float) -> FloatArray:  # pragma: no cover
     """``τ·de/dt = e_ss − e`` integrated exactly with ``e_ss`` frozen over each interval, ``e[0] = e0``.
 

@@ -156,6 +156,21 @@ def test_hostile_arguments_give_one_error_line_and_exit_2(case: str, rec: Path, 
     assert "Traceback" not in err and "internal error" not in err, err
 
 
+@pytest.mark.parametrize("command", ["discover {rec} --out {tmp}/d --model config/sim.yaml",
+                                     "model plot config/sim.yaml --out {tmp}/p"])
+def test_a_stage_config_given_for_a_model_file_says_so_in_one_line(command: str, rec: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str],
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stage config where a friction model file belongs: one line naming the mistake and the model file
+    the config itself uses (not one "unknown key" line per section), exit 2."""
+    monkeypatch.chdir(REPO)
+    rc, err = _run(shlex.split(command.format(rec=rec, tmp=tmp_path)), capsys)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2, err
+    assert len(lines) == 1 and "is a stage config, not a model file" in lines[0], err
+    assert str(REPO / "config" / "models" / "kamenar2016_gms.yaml") in lines[0], err
+
+
 def test_negative_scientific_values_are_values_not_options(capsys: pytest.CaptureFixture[str],
                                                            tmp_path: Path) -> None:
     rc, err = _run(["move", "--by", "-1e-5", "--socket", str(tmp_path / "none.sock")], capsys)

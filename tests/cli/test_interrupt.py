@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from support import run_on_pty
 
 REPO = Path(__file__).resolve().parents[2]
@@ -83,3 +84,35 @@ def test_ctrl_c_in_bench_says_so_and_prints_no_partial_result(tmp_path: Path) ->
     assert re.search(r"bench timing: case 1 of \d+, canopen/cosine clean \(", err), err  # its plan, on the terminal line
     assert err.rstrip().endswith("stagectl: interrupted (Ctrl-C)") and "Traceback" not in err, err
     assert (tmp_path / "stdout").read_text() == ""
+
+
+@pytest.mark.parametrize("raised", ["ImportError('cannot import name Stage from partially initialized module')",
+                                    "DriverInitError('drive: SDO 0x6041 timed out')",
+                                    "OSError(5, 'Input/output error')"])
+def test_ctrl_c_that_surfaces_as_another_exception_still_ends_as_an_interrupt(tmp_path: Path, raised: str) -> None:
+    """A SIGINT can land where Python turns its KeyboardInterrupt into another exception on the way out (half
+    way through a module import or a class creation: the next use of the half-made module fails with an
+    ImportError/AttributeError; or in code that catches BaseException and raises its own). Deterministic
+    stand-in: a real SIGINT to a real process, inside a command whose code turns it into another exception
+    (ImportError: exit 70 before; a driver error or OSError: exit 2 before).
+    Exit 130 with the one interrupt line, not exit 70 "internal error"."""
+    code = (
+        "import os, signal, sys\n"
+        "from stagectl.errors import DriverInitError\n"
+        "import stagectl.commands.model as m\n"
+        "def boom(args):\n"
+        "    try:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        signal.pause()  # the KeyboardInterrupt is raised here, after the handler ran\n"
+        "    except BaseException:\n"
+        f"        raise {raised} from None\n"
+        "    return 0\n"
+        "m.run_plot = boom\n"
+        "from stagectl.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code, "model", "plot", "x.yaml", "--out", "d"], cwd=tmp_path, text=True,
+                       capture_output=True, timeout=60, env={**os.environ, "STAGECTL_TRACEBACK": ""},
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 130, p.stderr
+    assert p.stderr.strip().splitlines() == ["stagectl: interrupted (Ctrl-C); no output was written"], p.stderr

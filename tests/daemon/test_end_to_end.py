@@ -12,6 +12,7 @@ import json
 import os
 import select
 import signal
+import shutil
 import subprocess
 import threading
 from pathlib import Path
@@ -55,6 +56,11 @@ def _config(tmp_path: Path, kp_scale: float | None = 1.0, bad: bool = False, tun
     for key, value in (tuning or {}).items():  # e.g. {"feedforward": {...}, "dob": {...}}
         ctl[key] = {**(ctl.get(key) or {}), **value}
     cfg["safety"] = {**cfg["safety"], **(safety or {})}
+    ff = ctl.get("feedforward") or {}
+    if isinstance(ff.get("model_file"), str):  # relative to the config's folder, as a user writes it
+        (tmp_path / "models").mkdir(exist_ok=True)
+        shutil.copy(ff["model_file"], tmp_path / "models" / Path(ff["model_file"]).name)
+        ff["model_file"] = f"models/{Path(ff['model_file']).name}"
     path = tmp_path / "stagectl.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -287,6 +293,11 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert pasted["pid"]["kp_n_m"] == pytest.approx(cfg_now["controller"]["pid"]["kp_n_m"])
     parsed = parse_app_config({**cfg_now, "controller": pasted}, tmp_path / "stagectl.yaml")
     assert parsed.controller.pid.kp_n_m == pytest.approx(cfg_now["controller"]["pid"]["kp_n_m"])
+    # the model file is named by its absolute path: the section pasted into a config in another folder works
+    assert cfg_now["controller"]["feedforward"]["model_file"] == "models/kamenar2016_gms.yaml"
+    assert pasted["feedforward"]["model_file"] == str((tmp_path / "models" / "kamenar2016_gms.yaml").resolve())
+    (tmp_path / "elsewhere").mkdir()
+    parse_app_config({**cfg_now, "controller": pasted}, tmp_path / "elsewhere" / "x.yaml")
     assert main(["gains", "--json", "--socket", str(sock)]) == 0
     assert json.loads(capsys.readouterr().out)["controller"] == pasted
     assert main(["record", "start", "cli-rec", "--socket", str(sock)]) == 0

@@ -195,3 +195,31 @@ def test_a_constant_imported_from_another_module_is_part_of_the_key(tmp_path: Pa
     assert json.loads(_run(code, cache, pkg)) == {"r": 3.0, "hits": 1}
     (pkg / "jit_c.py").write_text("SCALE = 4.0\n")
     assert json.loads(_run(code, cache, pkg)) == {"r": 6.0, "hits": 0}
+
+
+def test_identification_kernels_use_the_stagectl_cache_dir(tmp_path: Path) -> None:
+    """stagectl.ident's compiled loops are declared with ``kernel`` like every other: without
+    ``NUMBA_CACHE_DIR`` they are cached under ``$XDG_CACHE_HOME/stagectl/numba`` (not in ``__pycache__`` next
+    to the source, which an installed package may not be allowed to write), and a second process loads them."""
+    code = """
+        import json
+        import numpy as np
+        from stagectl.ident._kernels import first_order_lag, maxwell_unit_states
+        from stagectl.jit import loaded_from_cache
+        maxwell_unit_states(np.linspace(0.0, 1e-5, 50), np.array([1e-6, 3e-6]))
+        first_order_lag(np.ones(20), 1e-3, 1e-2, 0.0)
+        print(json.dumps({"hits": loaded_from_cache(maxwell_unit_states) + loaded_from_cache(first_order_lag)}))
+    """
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "CACHE_DIRECTORY")}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), PYTHONDONTWRITEBYTECODE="1")
+
+    def run() -> dict[str, int]:
+        out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    assert run() == {"hits": 0}
+    cached = {p.name.split(".")[1].split("-")[0] for p in (tmp_path / "xdg" / "stagectl" / "numba").rglob("*.nbi")}
+    assert {"maxwell_unit_states", "first_order_lag"} <= cached, cached
+    assert run() == {"hits": 2}
