@@ -768,8 +768,13 @@ class StageController:
                     b = ff.input_scale
                     ff.input_scale = min(hi, max(lo, b + gam * dt * d_hat / (th * df) * b))
                 return u_ff, d_hat
-        th_new = min(hi, max(lo, th + gam * dt * d_hat / f_raw))
-        delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
+        return self._set_theta(min(hi, max(lo, th + gam * dt * d_hat / f_raw)), f_raw, d_hat, dob)
+
+    def _set_theta(self, th_new: float, f_raw: float, d_hat: float,
+                   dob: QFilterDob | KalmanDob) -> tuple[float, float]:
+        """θ := ``th_new`` bumplessly: the old − new feed-forward force (θ − θ_new)·F̂ [N] moves into the
+        observer (``dob.shift``), so u is unchanged; returns the new (u_ff, d̂)."""
+        delta = (self.ff_scale - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
         self.ff_scale = th_new
         dob.shift(delta)
         return th_new * f_raw, d_hat + delta
@@ -829,10 +834,7 @@ class StageController:
         b = ff.input_scale
         beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
         ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
-        delta = (th - th_new) * f_raw  # old − new feed-forward force: the observer carries it from now
-        self.ff_scale = th_new
-        dob.shift(delta)
-        return th_new * f_raw, d_hat + delta
+        return self._set_theta(th_new, f_raw, d_hat, dob)
 
     def _rest_sync(self, dt: float, ff: FrictionFeedforward, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> tuple[float, float]:
