@@ -244,6 +244,11 @@ class Cia402Config:
         0.05, unit="s", desc="enable/disable/fault reset give up after this long without any TPDO (drive not "
         "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
+    quick_stop_option: int | None = param(
+        3, desc="quick stop option code written to 0x605A at configure (0x605E fault reaction gets 3 or 4 with "
+        "it): 3/7 (4/8) = the drive brakes the stage on its current (voltage) limit by itself, even when the "
+        "controller is starved; then the loop releases to it at once. A drive that refuses it keeps its own "
+        "codes and the loop brakes over the bus. null = leave the drive's codes", ge=-1, le=8)
 
     def __post_init__(self) -> None:
         if self.heartbeat_producer_s > 0 and self.heartbeat_timeout_s <= self.heartbeat_producer_s:
@@ -339,6 +344,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self.velocity_m_s = 0.0
         #: the drive's max torque 0x6072 read at configure (None: the drive has no 0x6072)
         self.drive_max_units: int | None = None
+        #: the drive brakes the stage itself on a quick stop (0x605A 3, 4, 7, 8 accepted at configure)
+        self.brakes_itself = False
         self._rebooted = False
         self._link_dead = False
         self._bus_off = False
@@ -544,6 +551,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             for n in (1, 2, 3):
                 self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
             self._read_max_torque()
+            self._select_quick_stop()
             self._sdo_write(0x6060, 0, "<b", MODE_CST, "mode of operation (CST)")
             self._wait_mode(MODE_CST)
             self._node.nmt.send_command(0x01)  # NMT start: OPERATIONAL, PDOs run
@@ -588,6 +596,35 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             log.info("%s: drive max torque 0x6072 = %d (%.4g N) limits the command (max_force_n %.4g N)",
                      self.name, limit, limit * self.cfg.force_per_unit_n, self.cfg.max_force_n)
             self._max_units = limit
+
+    def _select_quick_stop(self) -> None:
+        """Write ``quick_stop_option`` to 0x605A (and 0x605E = 3 / 4 for the braking codes); optional objects.
+
+        ``brakes_itself`` is True when the drive took a braking code (3, 4, 7, 8: slow down on the current /
+        voltage limit, CiA 402 / IEC 61800-7-201), so the loop's fault reaction is the drive's quick stop at
+        once; a drive without the object or refusing the value (any SDO abort) keeps its codes and
+        ``brakes_itself`` False (the loop brakes over the bus)."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        self.brakes_itself = False
+        opt = self.cfg.quick_stop_option
+        if opt is None:
+            return
+        try:
+            self._node.sdo.download(0x605A, 0, struct.pack("<h", opt))
+        except SdoAbortedError as exc:
+            log.info("%s: quick stop option code 0x605A = %d refused (%s): the loop brakes over the bus",
+                     self.name, opt, explain_sdo_error(exc))
+            return
+        brakes = opt in (3, 4, 7, 8)
+        if brakes:
+            reaction = 3 if opt in (3, 7) else 4
+            try:
+                self._node.sdo.download(0x605E, 0, struct.pack("<h", reaction))
+            except SdoAbortedError as exc:
+                log.info("%s: fault reaction option code 0x605E = %d refused (%s)", self.name, reaction,
+                         explain_sdo_error(exc))
+        self.brakes_itself = brakes
 
     def _wait_mode(self, mode: int) -> None:
         """Poll 0x6061 until it shows ``mode``, for at most ``mode_switch_timeout_s`` (wall clock: SDO time)."""
