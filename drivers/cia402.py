@@ -244,7 +244,7 @@ class Cia402Config:
         0.05, unit="s", desc="enable/disable/fault reset give up after this long without any TPDO (drive not "
         "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
-    quick_stop_option: int | None = param(
+    quick_stop_option_code: int | None = param(
         3, desc="quick stop option code written to 0x605A at configure (0x605E fault reaction gets 3 or 4 with "
         "it): 3/7 (4/8) = the drive brakes the stage on its current (voltage) limit by itself, even when the "
         "controller is starved; then the loop releases to it at once. A drive that refuses it keeps its own "
@@ -598,7 +598,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._max_units = limit
 
     def _select_quick_stop(self) -> None:
-        """Write ``quick_stop_option`` to 0x605A (and 0x605E = 3 / 4 for the braking codes); optional objects.
+        """Write ``quick_stop_option_code`` to 0x605A (and 0x605E = 3 / 4 for the braking codes); optional objects.
 
         ``brakes_itself`` is True when the drive took a braking code (3, 4, 7, 8: slow down on the current /
         voltage limit, CiA 402 / IEC 61800-7-201), so the loop's fault reaction is the drive's quick stop at
@@ -607,7 +607,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         from canopen.sdo.exceptions import SdoAbortedError
 
         self.brakes_itself = False
-        opt = self.cfg.quick_stop_option
+        opt = self.cfg.quick_stop_option_code
         if opt is None:
             return
         try:

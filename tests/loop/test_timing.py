@@ -345,7 +345,7 @@ def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_
 
     from stagectl.app import embedded_drive_config
 
-    drive = dataclasses.replace(embedded_drive_config(None, sim_cfg.sim.drive, {}), quick_stop_option=2)
+    drive = dataclasses.replace(embedded_drive_config(None, sim_cfg.sim.drive, {}), quick_stop_option_code=2)
     cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, drive=drive))
     with build_stage(cfg, clock=SimClock()) as stage:
         loop, world = stage.loop, stage.world
@@ -482,7 +482,7 @@ def _starved_fault_stop(cfg, option):
 
     from stagectl.app import embedded_drive_config
 
-    drive = dataclasses.replace(embedded_drive_config(cfg.io.drive, cfg.sim.drive, {}), quick_stop_option=option)
+    drive = dataclasses.replace(embedded_drive_config(cfg.io.drive, cfg.sim.drive, {}), quick_stop_option_code=option)
     cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, drive=drive))
     with build_stage(cfg, clock=SimClock()) as stage:
         loop, world = stage.loop, stage.world
