@@ -42,7 +42,14 @@ and the queued commands ran the stage 9.5 mm): its samples stay stale (the loop'
 is worked off, or until it stood unchanged over ``LOST_BLOCK_AFTER_TPDOS`` TPDO1s. A b taken for lost answers
 that stands is aged by arrival only. So is a sample whose count says one period more than
 its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
-one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
+one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step.
+Motion tells the two apart where counting cannot: before a count gap of b answers is taken for lost ones, the
+TPDO1's position is compared with the last two fresh samples extrapolated to the newest SYNC (lost answers) and
+to the SYNC b earlier (backlog); nearer the older one, it stays a backlog (``_looks_old``; only when the two lie
+``AGE_EVIDENCE_COUNTS`` apart). A drive process held off the CPU for 5-40 ms, heartbeat still running, that
+then works off its backlog at about one SYNC per cycle was taken for lost answers: its 2-30 periods old samples
+were stepped on as age 1, and the observer answered the apparent stop and jump of the stage with ±1 N spikes
+(the HIL demo's following-error episodes). The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
 as stale (``loop.STALE_AGE_CYCLES``).
 
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
@@ -99,6 +106,10 @@ log = logging.getLogger(__name__)
 DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 
 SYNC_COB_ID = 0x080
+#: motion evidence on a count gap (Cia402Drive._looks_old) only when the two hypotheses lie this many counts apart
+AGE_EVIDENCE_COUNTS = 20
+#: ... and for at most this many gaps in a row kept as a backlog by it
+AGE_EVIDENCE_RUNS = 50
 #: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
 LOST_AFTER_TPDOS = 3
 #: at most this many answers in a row are always taken for lost frames (a lag this short, misjudged, costs at
@@ -398,6 +409,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rx_burst = 0  # TPDO1s received since the last read()
         self._prev_excess = 0  # the backlog age of the sample the last read() returned
         self._hb_silent_in_gap = False  # the drive's heartbeat fell silent since its answers were last on time
+        # motion evidence for a count gap (_looks_old): the last fresh sample's SYNC number and counts, the
+        # velocity between the last two [counts per period], the raw position of the TPDO1 being counted, and
+        # how many gaps in a row the evidence kept as a backlog
+        self._ref_idx: int | None = None
+        self._ref_counts = 0
+        self._v_cpp: float | None = None
+        self._rx_raw = 0
+        self._old_run = 0
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -658,8 +677,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._bus_off = False
             data = msg.data
             if len(data) >= self._tpdo1_size:
+                got = self._tpdo1_unpack(data)  # (statusword, raw position)
+                self._rx_raw = got[1]
                 self._count_tpdo()
-                return self._tpdo1_unpack(data)  # (statusword, raw position)
+                return got
             self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(data)} bytes, need "
                                                         f"{self._tpdo1_size})"))
         elif cid == self._tpdo2_id and len(msg.data) >= self._tpdo2_size:
@@ -706,13 +727,31 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if lost is None or c <= lost:
             self._lost, e, self._excess_run = c, 0, 0
             self._hb_silent_in_gap = False
+            self._old_run = 0
         else:
             e = c - lost
             self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
-            if self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS):
+            if (self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS)
+                    and not self._looks_old(self._rx_raw, e)):
                 # answers lost (or a lasting lag: then arrival time only)
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
+
+    def _looks_old(self, raw: int, b: int) -> bool:
+        """Motion evidence on a count gap of ``b`` answers (module docstring, "Sample age"): True when the TPDO1's
+        position ``raw`` is nearer where the stage was b SYNCs ago than where it is now, extrapolated from the
+        last two fresh samples at their SYNC numbers; False when the stage is too slow to tell (|v|·b below
+        ``AGE_EVIDENCE_COUNTS``), without two fresh samples, or after ``AGE_EVIDENCE_RUNS`` such verdicts since
+        the last answer without a gap (then the counting rule decides: a stage that stopped dead must not look
+        old for ever)."""
+        v, ref = self._v_cpp, self._ref_idx
+        if v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS or self._old_run >= AGE_EVIDENCE_RUNS:
+            return False
+        counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
+        now = self._n_sync  # the newest SYNC sent: the lost-answers hypothesis; the backlog one is b older
+        old = abs(counts - (self._ref_counts + v * (now - b - ref))) < abs(counts - (self._ref_counts + v * (now - ref)))
+        self._old_run = self._old_run + 1 if old else 0
+        return old
 
     def _may_be_lost(self, b: int) -> bool:
         """Whether a count gap of ``b`` answers may be taken for lost frames (module docstring, "Sample age")."""
@@ -820,7 +859,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
             excess = self._late_excess
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
-            if self._rx_burst == 1 and self._may_be_lost(excess):  # one answer in the cycle: answers were lost
+            if (self._rx_burst == 1 and self._may_be_lost(excess)  # one answer in the cycle: answers were lost
+                    and not self._looks_old(got[1], excess)):
                 # (a backlog comes in bursts; a long one behind a silent heartbeat stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
@@ -832,7 +872,14 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._prev_excess = excess if got is not None else 0
         self._rx_burst = 0
         self._held = self._late = None
-        return self._evaluate(got, age)
+        m = self._evaluate(got, age)
+        if got is not None and self.cfg.sync_producer:  # the motion evidence's reference (_looks_old)
+            idx = self._n_sync - age
+            if self._ref_idx is not None and idx > self._ref_idx:
+                self._v_cpp = (self._counts - self._ref_counts) / (idx - self._ref_idx)
+            if self._ref_idx is None or idx > self._ref_idx:
+                self._ref_idx, self._ref_counts = idx, self._counts
+        return m
 
     def _evaluate(self, got: tuple[int, int] | None, age: int = 0) -> Measurement:
         self.cycles += 1
