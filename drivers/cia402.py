@@ -732,14 +732,15 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             e = c - lost
             self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
             if (self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS)
-                    and not self._looks_old(self._rx_raw, e)):
+                    and not self._looks_old(self._rx_raw, e, self._n_sync)):
                 # answers lost (or a lasting lag: then arrival time only)
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
 
-    def _looks_old(self, raw: int, b: int) -> bool:
+    def _looks_old(self, raw: int, b: int, now: int) -> bool:
         """Motion evidence on a count gap of ``b`` answers (module docstring, "Sample age"): True when the TPDO1's
-        position ``raw`` is nearer where the stage was b SYNCs ago than where it is now, extrapolated from the
+        position ``raw`` is nearer where the stage was b SYNCs before SYNC number ``now`` (the newest it can answer
+        by its arrival) than where it was at ``now``, extrapolated from the
         last two fresh samples at their SYNC numbers; False when the stage is too slow to tell (|v|·b below
         ``AGE_EVIDENCE_COUNTS``), without two fresh samples, or after ``AGE_EVIDENCE_RUNS`` such verdicts since
         the last answer without a gap (then the counting rule decides: a stage that stopped dead must not look
@@ -748,7 +749,6 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS or self._old_run >= AGE_EVIDENCE_RUNS:
             return False
         counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
-        now = self._n_sync  # the newest SYNC sent: the lost-answers hypothesis; the backlog one is b older
         old = abs(counts - (self._ref_counts + v * (now - b - ref))) < abs(counts - (self._ref_counts + v * (now - ref)))
         self._old_run = self._old_run + 1 if old else 0
         return old
@@ -860,7 +860,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             excess = self._late_excess
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
             if (self._rx_burst == 1 and self._may_be_lost(excess)  # one answer in the cycle: answers were lost
-                    and not self._looks_old(got[1], excess)):
+                    and not self._looks_old(got[1], excess, self._n_sync - age)):
                 # (a backlog comes in bursts; a long one behind a silent heartbeat stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
