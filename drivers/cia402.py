@@ -256,10 +256,10 @@ class Cia402Config:
         "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
     quick_stop_option_code: int | None = param(
-        3, desc="quick stop option code written to 0x605A at configure (0x605E fault reaction gets 3 or 4 with "
-        "it): 3/7 (4/8) = the drive brakes the stage on its current (voltage) limit by itself, even when the "
-        "controller is starved; then the loop releases to it at once. A drive that refuses it keeps its own "
-        "codes and the loop brakes over the bus. null = leave the drive's codes", ge=-1, le=8)
+        3, desc="quick stop option code written to 0x605A at configure: 3/7 (4/8) = the drive brakes the stage "
+        "on its current (voltage) limit by itself, even when the controller is starved; then the loop releases "
+        "to it at once. A drive that refuses it keeps its own code and the loop brakes over the bus. null = "
+        "leave the drive's code", ge=-1, le=8)
 
     def __post_init__(self) -> None:
         if self.heartbeat_producer_s > 0 and self.heartbeat_timeout_s <= self.heartbeat_producer_s:
@@ -415,6 +415,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._ref_idx: int | None = None
         self._ref_counts = 0
         self._v_cpp: float | None = None
+        self._v_last: float | None = None
         self._rx_raw = 0
         self._old_run = 0
         self._cycle = 0
@@ -617,7 +618,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._max_units = limit
 
     def _select_quick_stop(self) -> None:
-        """Write ``quick_stop_option_code`` to 0x605A (and 0x605E = 3 / 4 for the braking codes); optional objects.
+        """Write ``quick_stop_option_code`` to 0x605A (optional object). The fault reaction 0x605E is left to
+        the drive: after a drive fault the loop releases at once (its power stage may be what failed).
 
         ``brakes_itself`` is True when the drive took a braking code (3, 4, 7, 8: slow down on the current /
         voltage limit, CiA 402 / IEC 61800-7-201), so the loop's fault reaction is the drive's quick stop at
@@ -635,15 +637,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             log.info("%s: quick stop option code 0x605A = %d refused (%s): the loop brakes over the bus",
                      self.name, opt, explain_sdo_error(exc))
             return
-        brakes = opt in (3, 4, 7, 8)
-        if brakes:
-            reaction = 3 if opt in (3, 7) else 4
-            try:
-                self._node.sdo.download(0x605E, 0, struct.pack("<h", reaction))
-            except SdoAbortedError as exc:
-                log.info("%s: fault reaction option code 0x605E = %d refused (%s)", self.name, reaction,
-                         explain_sdo_error(exc))
-        self.brakes_itself = brakes
+        self.brakes_itself = opt in (3, 4, 7, 8)
 
     def _wait_mode(self, mode: int) -> None:
         """Poll 0x6061 until it shows ``mode``, for at most ``mode_switch_timeout_s`` (wall clock: SDO time)."""
@@ -741,15 +735,18 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         """Motion evidence on a count gap of ``b`` answers (module docstring, "Sample age"): True when the TPDO1's
         position ``raw`` is nearer where the stage was b SYNCs before SYNC number ``now`` (the newest it can answer
         by its arrival) than where it was at ``now``, extrapolated from the
-        last two fresh samples at their SYNC numbers; False when the stage is too slow to tell (|v|·b below
-        ``AGE_EVIDENCE_COUNTS``), without two fresh samples, or after ``AGE_EVIDENCE_RUNS`` such verdicts since
+        last fresh samples at their SYNC numbers; False when the stage is too slow to tell (|v|·b below
+        ``AGE_EVIDENCE_COUNTS``), when its velocity is not steady (the last two intervals disagree by more than
+        20 %: a glitch, a break-away, a reversal), or after ``AGE_EVIDENCE_RUNS`` such verdicts since
         the last answer without a gap (then the counting rule decides: a stage that stopped dead must not look
         old for ever)."""
         v, ref = self._v_cpp, self._ref_idx
-        if v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS or self._old_run >= AGE_EVIDENCE_RUNS:
+        if (v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS
+                or self._old_run >= AGE_EVIDENCE_RUNS):
             return False
         counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
-        old = abs(counts - (self._ref_counts + v * (now - b - ref))) < abs(counts - (self._ref_counts + v * (now - ref)))
+        p_now = self._ref_counts + v * (now - ref)
+        old = abs(counts - (p_now - v * b)) < abs(counts - p_now)
         self._old_run = self._old_run + 1 if old else 0
         return old
 
@@ -876,7 +873,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if got is not None and self.cfg.sync_producer:  # the motion evidence's reference (_looks_old)
             idx = self._n_sync - age
             if self._ref_idx is not None and idx > self._ref_idx:
-                self._v_cpp = (self._counts - self._ref_counts) / (idx - self._ref_idx)
+                # the velocity counts as evidence only when two intervals in a row agree (a position glitch,
+                # a break-away or a reversal leaves it out)
+                v = (self._counts - self._ref_counts) / (idx - self._ref_idx)
+                vp = self._v_last
+                self._v_cpp = v if vp is not None and abs(v - vp) <= max(AGE_EVIDENCE_COUNTS, 0.2 * abs(v)) \
+                    and v * vp > 0 else None
+                self._v_last = v
             if self._ref_idx is None or idx > self._ref_idx:
                 self._ref_idx, self._ref_counts = idx, self._counts
         return m
