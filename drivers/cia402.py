@@ -108,8 +108,9 @@ DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 SYNC_COB_ID = 0x080
 #: motion evidence on a count gap (Cia402Drive._looks_old) only when the two hypotheses lie this many counts apart
 AGE_EVIDENCE_COUNTS = 20
-#: ... and for at most this many gaps in a row kept as a backlog by it
-AGE_EVIDENCE_RUNS = 50
+#: ... and for at most this many verdicts since the last answer without a gap (a standing backlog is then
+#: taken for lost answers by the counting rule, as before: holding its samples stale faulted stale_position)
+AGE_EVIDENCE_RUNS = 10
 #: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
 LOST_AFTER_TPDOS = 3
 #: at most this many answers in a row are always taken for lost frames (a lag this short, misjudged, costs at
