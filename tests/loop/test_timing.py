@@ -518,3 +518,18 @@ def test_fault_stop_with_a_starved_master(sim_cfg):
     assert brake3 is None  # released to the drive at once
     assert state3 == "SWITCH_ON_DISABLED" and v_end < 1e-5
     assert dist3 < 0.5 * dist and dist3 <= v03 ** 2 / (2 * lim3 / m) + v03 * 3e-3, (dist3, v03)
+
+
+def test_bus_brake_holds_its_force_only_briefly_without_samples():
+    """The loop's bus brake (a drive without a braking quick stop): through a gap without fresh samples it holds
+    its last force 2 cycles, then applies 0 (it held up to F_max blind for stale_cycles, pushing a stage that
+    had stopped on); the next fresh sample resumes braking."""
+    from stagectl.runtime.quickstop import HOLD_STALE_CYCLES, QuickStopBrake
+
+    b = QuickStopBrake(0.0, 0.0, 0.01, mass_kg=2.0, max_force_n=10.0, deceleration_m_s2=4.5,
+                       standstill_m_s=1e-4, stale_limit=50)
+    u0 = b.step(0.001, 1e-5, True)
+    assert u0 < -5.0
+    held = [b.step(0.001 * (2 + i), 1e-5, False) for i in range(6)]
+    assert held[:HOLD_STALE_CYCLES] == [u0] * HOLD_STALE_CYCLES and held[HOLD_STALE_CYCLES:] == [0.0] * 4
+    assert not b.done and b.step(0.008, 5e-5, True) < 0.0
