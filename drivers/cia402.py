@@ -42,7 +42,14 @@ and the queued commands ran the stage 9.5 mm): its samples stay stale (the loop'
 is worked off, or until it stood unchanged over ``LOST_BLOCK_AFTER_TPDOS`` TPDO1s. A b taken for lost answers
 that stands is aged by arrival only. So is a sample whose count says one period more than
 its arrival (one period in all) unless the previous read's backlog was 2: a lost answer followed by a late
-one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step. The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
+one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong age 2 only a predicted step.
+Motion tells the two apart where counting cannot: before a count gap of b answers is taken for lost ones, the
+TPDO1's position is compared with the last two fresh samples extrapolated to the newest SYNC (lost answers) and
+to the SYNC b earlier (backlog); nearer the older one, it stays a backlog (``_looks_old``; only when the two lie
+``AGE_EVIDENCE_COUNTS`` apart). A drive process held off the CPU for 5-40 ms, heartbeat still running, that
+then works off its backlog at about one SYNC per cycle was taken for lost answers: its 2-30 periods old samples
+were stepped on as age 1, and the observer answered the apparent stop and jump of the stage with ±1 N spikes
+(the HIL demo's following-error episodes). The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
 as stale (``loop.STALE_AGE_CYCLES``).
 
 Force scaling. 0x6071 is INT16 in per-mille of the drive's rated torque (CiA 402); for a linear motor
@@ -99,6 +106,11 @@ log = logging.getLogger(__name__)
 DEFAULT_EDS = EDS_DIR / "stagectl_cia402.eds"
 
 SYNC_COB_ID = 0x080
+#: motion evidence on a count gap (Cia402Drive._looks_old) only when the two hypotheses lie this many counts apart
+AGE_EVIDENCE_COUNTS = 20
+#: ... and for at most this many verdicts since the last answer without a gap (a standing backlog is then
+#: taken for lost answers by the counting rule, as before: holding its samples stale faulted stale_position)
+AGE_EVIDENCE_RUNS = 10
 #: TPDO1s in a row whose backlog age did not shrink before it is taken for lost answers (module docstring)
 LOST_AFTER_TPDOS = 3
 #: at most this many answers in a row are always taken for lost frames (a lag this short, misjudged, costs at
@@ -244,6 +256,11 @@ class Cia402Config:
         0.05, unit="s", desc="enable/disable/fault reset give up after this long without any TPDO (drive not "
         "answering: bus-off, unpowered) instead of waiting state_timeout_s", gt=0)
     eds_file: str = param("", desc="EDS of the drive (empty = stagectl's config/eds/stagectl_cia402.eds)")
+    quick_stop_option_code: int | None = param(
+        3, desc="quick stop option code written to 0x605A at configure: 3/7 (4/8) = the drive brakes the stage "
+        "on its current (voltage) limit by itself, even when the controller is starved; then the loop releases "
+        "to it at once. A drive that refuses it keeps its own code and the loop brakes over the bus. null = "
+        "leave the drive's code", ge=-1, le=8)
 
     def __post_init__(self) -> None:
         if self.heartbeat_producer_s > 0 and self.heartbeat_timeout_s <= self.heartbeat_producer_s:
@@ -339,6 +356,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self.velocity_m_s = 0.0
         #: the drive's max torque 0x6072 read at configure (None: the drive has no 0x6072)
         self.drive_max_units: int | None = None
+        #: the drive brakes the stage itself on a quick stop (0x605A 3, 4, 7, 8 accepted at configure)
+        self.brakes_itself = False
         self._rebooted = False
         self._link_dead = False
         self._bus_off = False
@@ -391,6 +410,15 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rx_burst = 0  # TPDO1s received since the last read()
         self._prev_excess = 0  # the backlog age of the sample the last read() returned
         self._hb_silent_in_gap = False  # the drive's heartbeat fell silent since its answers were last on time
+        # motion evidence for a count gap (_looks_old): the last fresh sample's SYNC number and counts, the
+        # velocity between the last two [counts per period], the raw position of the TPDO1 being counted, and
+        # how many gaps in a row the evidence kept as a backlog
+        self._ref_idx: int | None = None
+        self._ref_counts = 0
+        self._v_cpp: float | None = None
+        self._v_last: float | None = None
+        self._rx_raw = 0
+        self._old_run = 0
         self._cycle = 0
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
@@ -544,6 +572,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             for n in (1, 2, 3):
                 self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
             self._read_max_torque()
+            self._select_quick_stop()
             self._sdo_write(0x6060, 0, "<b", MODE_CST, "mode of operation (CST)")
             self._wait_mode(MODE_CST)
             self._node.nmt.send_command(0x01)  # NMT start: OPERATIONAL, PDOs run
@@ -589,6 +618,28 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                      self.name, limit, limit * self.cfg.force_per_unit_n, self.cfg.max_force_n)
             self._max_units = limit
 
+    def _select_quick_stop(self) -> None:
+        """Write ``quick_stop_option_code`` to 0x605A (optional object). The fault reaction 0x605E is left to
+        the drive: after a drive fault the loop releases at once (its power stage may be what failed).
+
+        ``brakes_itself`` is True when the drive took a braking code (3, 4, 7, 8: slow down on the current /
+        voltage limit, CiA 402 / IEC 61800-7-201), so the loop's fault reaction is the drive's quick stop at
+        once; a drive without the object or refusing the value (any SDO abort) keeps its codes and
+        ``brakes_itself`` False (the loop brakes over the bus)."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        self.brakes_itself = False
+        opt = self.cfg.quick_stop_option_code
+        if opt is None:
+            return
+        try:
+            self._node.sdo.download(0x605A, 0, struct.pack("<h", opt))
+        except SdoAbortedError as exc:
+            log.info("%s: quick stop option code 0x605A = %d refused (%s): the loop brakes over the bus",
+                     self.name, opt, explain_sdo_error(exc))
+            return
+        self.brakes_itself = opt in (3, 4, 7, 8)
+
     def _wait_mode(self, mode: int) -> None:
         """Poll 0x6061 until it shows ``mode``, for at most ``mode_switch_timeout_s`` (wall clock: SDO time)."""
         deadline = time.monotonic() + self.cfg.mode_switch_timeout_s
@@ -621,8 +672,10 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._bus_off = False
             data = msg.data
             if len(data) >= self._tpdo1_size:
+                got = self._tpdo1_unpack(data)  # (statusword, raw position)
+                self._rx_raw = got[1]
                 self._count_tpdo()
-                return self._tpdo1_unpack(data)  # (statusword, raw position)
+                return got
             self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(data)} bytes, need "
                                                         f"{self._tpdo1_size})"))
         elif cid == self._tpdo2_id and len(msg.data) >= self._tpdo2_size:
@@ -669,13 +722,34 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if lost is None or c <= lost:
             self._lost, e, self._excess_run = c, 0, 0
             self._hb_silent_in_gap = False
+            self._old_run = 0
         else:
             e = c - lost
             self._excess_run = self._excess_run + 1 if e >= self._rx_excess else 0
-            if self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS):
+            if (self._excess_run >= (LOST_AFTER_TPDOS if self._may_be_lost(e) else LOST_BLOCK_AFTER_TPDOS)
+                    and not self._looks_old(self._rx_raw, e, self._n_sync)):
                 # answers lost (or a lasting lag: then arrival time only)
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
+
+    def _looks_old(self, raw: int, b: int, now: int) -> bool:
+        """Motion evidence on a count gap of ``b`` answers (module docstring, "Sample age"): True when the TPDO1's
+        position ``raw`` is nearer where the stage was b SYNCs before SYNC number ``now`` (the newest it can answer
+        by its arrival) than where it was at ``now``, extrapolated from the
+        last fresh samples at their SYNC numbers; False when the stage is too slow to tell (|v|·b below
+        ``AGE_EVIDENCE_COUNTS``), when its velocity is not steady (the last two intervals disagree by more than
+        20 %: a glitch, a break-away, a reversal), or after ``AGE_EVIDENCE_RUNS`` such verdicts since
+        the last answer without a gap (then the counting rule decides: a stage that stopped dead must not look
+        old for ever)."""
+        v, ref = self._v_cpp, self._ref_idx
+        if (v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS
+                or self._old_run >= AGE_EVIDENCE_RUNS):
+            return False
+        counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
+        p_now = self._ref_counts + v * (now - ref)
+        old = abs(counts - (p_now - v * b)) < abs(counts - p_now)
+        self._old_run = self._old_run + 1 if old else 0
+        return old
 
     def _may_be_lost(self, b: int) -> bool:
         """Whether a count gap of ``b`` answers may be taken for lost frames (module docstring, "Sample age")."""
@@ -783,7 +857,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
             excess = self._late_excess
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
-            if self._rx_burst == 1 and self._may_be_lost(excess):  # one answer in the cycle: answers were lost
+            if (self._rx_burst == 1 and self._may_be_lost(excess)  # one answer in the cycle: answers were lost
+                    and not self._looks_old(got[1], excess, self._n_sync - age)):
                 # (a backlog comes in bursts; a long one behind a silent heartbeat stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
@@ -795,7 +870,20 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._prev_excess = excess if got is not None else 0
         self._rx_burst = 0
         self._held = self._late = None
-        return self._evaluate(got, age)
+        m = self._evaluate(got, age)
+        if got is not None and self.cfg.sync_producer:  # the motion evidence's reference (_looks_old)
+            idx = self._n_sync - age
+            if self._ref_idx is not None and idx > self._ref_idx:
+                # the velocity counts as evidence only when two intervals in a row agree (a position glitch,
+                # a break-away or a reversal leaves it out)
+                v = (self._counts - self._ref_counts) / (idx - self._ref_idx)
+                vp = self._v_last
+                self._v_cpp = v if vp is not None and abs(v - vp) <= max(AGE_EVIDENCE_COUNTS, 0.2 * abs(v)) \
+                    and v * vp > 0 else None
+                self._v_last = v
+            if self._ref_idx is None or idx > self._ref_idx:
+                self._ref_idx, self._ref_counts = idx, self._counts
+        return m
 
     def _evaluate(self, got: tuple[int, int] | None, age: int = 0) -> Measurement:
         self.cycles += 1

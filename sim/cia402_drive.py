@@ -711,6 +711,14 @@ OWN_CLOCK_PERIODS = 3
 #: wall_clock_plant: most periods one SYNC steps the plant by: a skipped controller slot or two are physical, a
 #: longer gap is mostly this process held off the CPU (its SYNCs then arrive bunched) and is lost, as without
 MAX_CATCH_UP_PERIODS = 5
+#: quick-stop / fault-reaction option codes that brake on the current (3, 7) or voltage (4, 8) limit
+BRAKE_OPTIONS = frozenset({3, 4, 7, 8})
+#: the braking slow-down ends once |v| stays below this [m/s] ...
+BRAKE_STANDSTILL_M_S = 1e-5
+#: ... for this many periods
+BRAKE_STILL_PERIODS = 5
+#: the braking slow-down gives up after this long [s] (power off / FAULT, as at the end of a ramp)
+BRAKE_MAX_S = 2.0
 #: statusword bit 12 in CST: the drive follows the target torque
 SW_CST_FOLLOWING = 0x1000
 
@@ -745,6 +753,19 @@ class SimCia402Drive(SimCanopenDevice):
 
     When it reaches 0: 0x605A 1–4 → SWITCH ON DISABLED, 5–8 stay in QUICK STOP ACTIVE (transition 16 to
     OPERATION ENABLED allowed from then on); a fault reaction ends in FAULT.
+
+    In a torque mode the slow-down and quick-stop *ramps* (options 1, 2, 5, 6) are torque ramps: they only take
+    the force away, and a moving stage coasts on against its friction. Options 3, 4, 7, 8 ("slow down on current
+    limit / voltage limit", CiA 402 / IEC 61800-7-201 0x605A; 0x605E 3, 4) brake the motor: the drive closes its
+    own velocity loop on its encoder at the torque limit, every period, on its own clock when SYNC is missing (a
+    starved master cannot let the stage coast)::
+
+        F = clamp(−k_v·v, ±F_lim),   k_v = m / (2·T)   (half the dead-beat gain: no overshoot per period)
+
+    F_lim = 0x6072 max torque × force_per_unit_n (the current limit), m the plant's moving mass (the drive's
+    velocity loop is tuned to its load). The slow-down ends when |v| < ``BRAKE_STANDSTILL_M_S`` for
+    ``BRAKE_STILL_PERIODS`` periods (or after ``BRAKE_MAX_S``): then as for the ramps above (3, 4 → SWITCH ON
+    DISABLED, 7, 8 stay in QUICK STOP ACTIVE at zero force, fault reaction → FAULT).
     """
 
     def __init__(self, plant: Any, cfg: SimDriveConfig, send: Callable[[can.Message], None],
@@ -772,6 +793,10 @@ class SimCia402Drive(SimCanopenDevice):
         self._own_steps = 0  # plant periods stepped on the drive's own clock since the last SYNC
         self._max_torque: int | None = None
         self._ramp: float | None = None  # torque slope [N/s] while a quick-stop / fault-reaction ramp runs
+        self._braking = False  # a current-limit slow-down (options 3, 4, 7, 8) runs (with _ramp = inf)
+        self._brake_still = 0
+        self._brake_t = 0.0
+        self.brake_periods = 0  # periods of the last braking slow-down (diagnostics, tests)
 
     # ------------------------------------------------------------------ process values
     @property
@@ -851,6 +876,7 @@ class SimCia402Drive(SimCanopenDevice):
         if not cw & 0x02:  # disable voltage (7, 9, 10, 12)
             self.state = _S.SWITCH_ON_DISABLED
             self._ramp = None
+            self._braking = False
         elif cw & 0x06 == 0x02:  # quick stop (7, 10, 11)
             if st is _S.OPERATION_ENABLED:
                 self.state = _S.QUICK_STOP_ACTIVE
@@ -879,20 +905,53 @@ class SimCia402Drive(SimCanopenDevice):
 
     def _start_ramp(self, option: int) -> None:
         """Begin a quick-stop / fault-reaction torque ramp (option 0: power stage off at once)."""
+        self._braking = False
         if option <= 0:
             self._ramp = None
             self.force_n = 0.0
             return
+        if option in BRAKE_OPTIONS:  # brake on the current limit (class docstring)
+            self._braking = True
+            self._ramp = float("inf")
+            self._brake_still = 0
+            self._brake_t = 0.0
+            self.brake_periods = 0
+            self.force_n = self._brake_force()
+            return
         self._ramp = max(1, self._stored(0x6087, 0, "<I", 1_000_000)) * self.cfg.force_per_unit_n
+
+    def _brake_force(self) -> float:
+        """The current-limit slow-down's force [N]: clamp(−m/(2T)·v, ±0x6072·force_per_unit_n)."""
+        v = float(getattr(self.plant, "v_m_s", 0.0))
+        mass = getattr(getattr(self.plant, "cfg", None), "mass_kg", None)
+        m = float(mass) if isinstance(mass, (int, float)) and mass > 0 else 1.0
+        lim = self.max_torque_units * self.cfg.force_per_unit_n
+        f = -m / (2.0 * self.period_s) * v
+        return lim if f > lim else -lim if f < -lim else f
 
     def _advance_ramp(self) -> None:
         """After one period: the next force on the ramp; at zero the ramp ends (see class docstring)."""
         if self._ramp is None:
             return
-        left = abs(self.force_n) - self._ramp * self.period_s
-        if left > 1e-12:
-            self.force_n = left if self.force_n > 0 else -left
-            return
+        if self._braking:
+            self.brake_periods += 1
+            self._brake_t += self.period_s
+            v = float(getattr(self.plant, "v_m_s", 0.0))
+            self._brake_still = self._brake_still + 1 if abs(v) < BRAKE_STANDSTILL_M_S else 0
+            if self._brake_still < BRAKE_STILL_PERIODS and self._brake_t < BRAKE_MAX_S:
+                self.force_n = self._brake_force()
+                return
+            if self.state is _S.QUICK_STOP_ACTIVE and self._option(0x605A, 2) >= 5:
+                self._ramp = None  # 7, 8: stay in QUICK STOP ACTIVE, the velocity loop holds the stage
+                self._braking = False
+                self.force_n = 0.0
+                return
+            self._braking = False
+        else:
+            left = abs(self.force_n) - self._ramp * self.period_s
+            if left > 1e-12:
+                self.force_n = left if self.force_n > 0 else -left
+                return
         self._ramp = None
         self.force_n = 0.0
         if self.state is _S.FAULT_REACTION_ACTIVE:
@@ -915,6 +974,7 @@ class SimCia402Drive(SimCanopenDevice):
     def on_internal_error(self) -> None:
         self.force_n = 0.0
         self._ramp = None
+        self._braking = False
         self.state = _S.FAULT
         self.error_code = EMCY_INTERNAL
 
@@ -930,6 +990,7 @@ class SimCia402Drive(SimCanopenDevice):
         elif action == 2:
             self.state = _S.SWITCH_ON_DISABLED
             self._ramp = None
+            self._braking = False
             self.force_n = 0.0
         elif action == 3 and self.state is _S.OPERATION_ENABLED:
             self.state = _S.QUICK_STOP_ACTIVE

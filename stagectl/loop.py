@@ -48,7 +48,9 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
   (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
   then commands the actuator's ``quick_stop()``; the fault is latched and logged at once, the state is
-  FAULT while braking. Every other fault (device, drive, NaN, stale position, loop error) quick-stops at
+  FAULT while braking. An actuator that brakes by itself (``brakes_itself``: a CiA 402 drive that took quick
+  stop option code 3/4/7/8, slow down on its current / voltage limit, on its own encoder and clock) gets its
+  ``quick_stop()`` at once instead: its braking does not depend on the loop getting CPU time or fresh samples. Every other fault (device, drive, NaN, stale position, loop error) quick-stops at
   once (zero force). Braking needs the moving mass (the controller's ``mass_kg``); without one the loop
   quick-stops at once.
 
@@ -427,7 +429,9 @@ class ControlLoop:
         brake = self._make_brake(t, x) if fault is not None and fault.name in BRAKE_FAULTS else None
         if brake is None:
             self._devs.quick_stop(fault)
-            log.error("FAULT %s; drive quick-stopped", fault)
+            by_drive = getattr(self.actuator, "brakes_itself", False) is True
+            log.error("FAULT %s; drive quick-stopped%s", fault,
+                      " (it brakes the stage on its current limit)" if by_drive else "")
             self._state_changed()
             return
         self.brake = self.last_brake = brake
@@ -460,6 +464,8 @@ class ControlLoop:
             return None
         if self.actuator.state is not DeviceState.ENABLED:
             return None
+        if getattr(self.actuator, "brakes_itself", False) is True:
+            return None  # the drive brakes on its own velocity (CiA 402 0x605A 3/4/7/8), starved master or not
         c = self.safety.cfg
         lim = c.max_force_n  # and the actuator's own limit when it has one (CiA 402: 0x6072 max torque)
         act_lim = getattr(self.actuator, "force_limit_n", None)

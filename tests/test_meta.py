@@ -29,6 +29,7 @@ from stagectl.schema import describe
 DIMENSIONLESS = frozenset({
     "alpha", "delta", "a", "ratio", "amplitude", "exponent", "seed", "node_id", "controller_node_id", "code",
     "port", "cycles", "count", "signal", "min_signal", "fifo_priority", "cpus", "at_frame", "at_cycle",
+    "quick_stop_option_code",
     "max_missed", "max_sequence_gap", "max_clients", "max_crc_errors", "keep_files", "stats_window",
 })
 #: count-like integer names: a number of cycles, steps, samples, ...

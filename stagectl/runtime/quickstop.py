@@ -21,7 +21,9 @@ distance is v₀²/(2a) plus the distance covered during the detection and I/O d
 
 Release (then ``quick_stop()``): the ramp has ended and |v̂| < ``standstill_m_s`` for
 ``STANDSTILL_SAMPLES`` fresh samples, or the ramp time plus ``EXTRA_TIME_S`` has passed, or no fresh sample
-for ``stale_limit`` cycles (the law holds its last force meanwhile), or the position is not finite.
+for ``stale_limit`` cycles, or the position is not finite. Meanwhile the law holds its last force for
+``HOLD_STALE_CYCLES`` stale cycles, then applies 0 (a force held blind for a long gap on a loaded PC, up to
+F_max, drove a stage that had already stopped on for hundreds of µm).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ BRAKE_BANDWIDTH_HZ = 30.0
 VELOCITY_FILTER_HZ = 200.0
 #: consecutive fresh samples below the standstill velocity that end the brake
 STANDSTILL_SAMPLES = 5
+#: on stale samples the last force is held this many cycles, then the brake applies 0 until a fresh sample
+HOLD_STALE_CYCLES = 2
 #: the brake gives up this long after its ramp should have ended [s]
 EXTRA_TIME_S = 0.1
 
@@ -105,6 +109,8 @@ class QuickStopBrake:
             self._stale += 1
             if self._stale >= self.stale_limit:
                 return self._finish(f"no fresh position for {self._stale} cycles")
+            if self._stale > HOLD_STALE_CYCLES:  # blind: no braking force is held (friction stops a coasting
+                self.u_n = 0.0                     # stage; a held 10 N pushes it on for the whole gap)
             return self.u_n
         self._stale = 0
         dt = t_s - self._t_prev

@@ -158,3 +158,29 @@ def test_wrong_device_type_rejected(make_world, make_drive):
     dut.open()
     with pytest.raises(DriverInitError, match="not a CiA 402"):
         dut.configure()
+
+
+@pytest.mark.parametrize("refuse", [False, True])
+def test_quick_stop_option_code_selected_at_configure(make_world, make_drive, monkeypatch, refuse):
+    """configure writes io.drive.quick_stop_option_code (3) to 0x605A: the drive then brakes itself
+    (``brakes_itself``); a drive that refuses the write (SDO abort: object missing) still configures and
+    enables, keeps its own code, and ``brakes_itself`` is False (the loop brakes over the bus)."""
+    from stagectl.sim import cia402_drive as simd
+
+    if refuse:  # a drive without 0x605A (before the world builds it: canopen keeps the bound callback)
+        orig = simd.SimCia402Drive._on_sdo_write
+
+        def no_605a(self, index, subindex, od, data):
+            if index == 0x605A:
+                raise simd._abort(simd.ABORT_NO_OBJECT)
+            return orig(self, index, subindex, od, data)
+
+        monkeypatch.setattr(simd.SimCia402Drive, "_on_sdo_write", no_605a)
+    w = make_world()
+    dut = make_drive(w.ready_info()["can"])
+    dut.set_pump(w.pump)
+    dut.open()
+    dut.configure()
+    dut.enable()
+    assert dut.brakes_itself is (not refuse)
+    assert w.drive._option(0x605A, 2) == (2 if refuse else 3)

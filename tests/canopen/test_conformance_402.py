@@ -168,3 +168,36 @@ def test_sync_supervision_faults_and_stage_keeps_moving(master):
     world.advance(0.5)
     v = world.plant.v_m_s
     assert world.drive.force_n == 0.0 and world.plant.x_m >= x and v >= 0.0
+
+
+@pytest.mark.parametrize("option", [2, 3, 7])
+def test_quick_stop_on_the_current_limit_brakes_a_moving_stage_without_sync(master, option):
+    """0x605A = 3 / 7 (slow down on current limit): the drive brakes the moving stage on its own velocity at the
+    torque limit 0x6072, on its own clock with no SYNC at all (a starved master), to standstill; then SWITCH ON
+    DISABLED (3) or QUICK STOP ACTIVE (7). 0x605A = 2 in a torque mode only ramps the torque away: the stage
+    coasts on against its friction, several times farther."""
+    world, m = master()
+    m.download(0x605A, 0, "<h", option)
+    m.download(0x6072, 0, "<H", 500)  # 5 N
+    _enable_cst(world, m, 400)  # 4 N accelerate the 2 kg seed stage
+    m.sync(20)
+    v0, x0 = world.plant.v_m_s, world.plant.x_m
+    assert v0 > 0.02
+    m.download(0x6040, 0, "<H", QUICK_STOP)
+    forces = []
+    for _ in range(300):
+        if option == 2:
+            m.sync()  # (the plant is stepped by SYNC once the power stage is off)
+        else:
+            world.advance(0.001)
+        forces.append(world.drive.force_n)
+    dist = world.plant.x_m - x0
+    a_lim = 5.0 / 2.0  # m/s^2 at the torque limit, friction only helps
+    if option == 2:
+        assert _is(_sw(m), "SOD") and dist > 3 * v0 ** 2 / (2 * a_lim), (dist, v0)
+        return
+    assert min(forces) == pytest.approx(-5.0) and max(forces) <= 1e-9  # braking at the limit, never pushing
+    assert abs(world.plant.v_m_s) < 1e-5
+    assert 0 < dist <= v0 ** 2 / (2 * a_lim) + v0 * 0.004, (dist, v0)
+    assert _is(_sw(m), "SOD" if option == 3 else "QSA")
+    assert world.drive.force_n == 0.0

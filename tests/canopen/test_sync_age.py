@@ -178,3 +178,42 @@ def _long_backlog(lockstep, stall: int, after: int):
             out.append((m.age_cycles, sent - (w.drive.sync_count - base)))
         dut.write(0.0)
     return out
+
+
+def _moving_backlog(lockstep, stalls: int = 6, stall: int = 8, after: int = 4):
+    """The stage moving under 3 N; the drive's process held off the CPU ``stall`` cycles (its heartbeat still
+    running), then answering one SYNC per cycle for ``after`` cycles (a standing backlog), then catching up,
+    ``stalls`` times.
+    Returns (reported age, true age) of every fresh sample after the first stall."""
+    w, dut = lockstep(max_missed=stall + 10, max_late_cycles=stalls * (stall + after) + 50)
+    th = ThrottledDrive(w)
+    dut.set_pump(th.pump)
+    sent, base = 0, w.drive.sync_count
+    out = []
+    period = stall + after + 7
+    for k in range(20 + stalls * period):
+        j = (k - 20) % period
+        th.budget = None if k < 20 or j >= stall + after else (0 if j < stall else 1)
+        dut.sync()
+        sent += 1
+        m = dut.read()
+        assert m.fault is None, m.fault
+        if k >= 20 and m.fresh:
+            out.append((m.age_cycles, sent - (w.drive.sync_count - base)))
+        dut.write(3.0)
+    return out
+
+
+def test_a_moving_stage_tells_a_standing_backlog_from_lost_answers(lockstep, monkeypatch):
+    """A backlog worked off one answer per cycle with the drive's heartbeat running is, by counting, the same as
+    lost answers (taken for lost: its samples came out 1 period old while 2-30 old on the HIL). With the stage
+    moving, its position tells: every sample carries its real age. Without the motion evidence (the driver
+    before) they are reported younger than they are."""
+    import stagectl.drivers.cia402 as drv
+
+    got = _moving_backlog(lockstep)
+    under = [(a, t) for a, t in got if a < t]
+    assert max(t for _, t in got) >= 8 and not under, under[:5]
+    monkeypatch.setattr(drv, "AGE_EVIDENCE_COUNTS", float("inf"))
+    blind = _moving_backlog(lockstep)
+    assert sum(1 for a, t in blind if a < t) >= 15  # the counting rule alone: the backlog's samples too young

@@ -343,7 +343,11 @@ def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
 
-    with build_stage(sim_cfg, clock=SimClock()) as stage:
+    from stagectl.app import embedded_drive_config
+
+    drive = dataclasses.replace(embedded_drive_config(None, sim_cfg.sim.drive, {}), quick_stop_option_code=2)
+    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, drive=drive))
+    with build_stage(cfg, clock=SimClock()) as stage:
         loop, world = stage.loop, stage.world
         forces = []
         xs = []
@@ -466,3 +470,66 @@ def test_a_held_cycle_carries_the_learned_force_once(sim_cfg):
     assert held.force_n == pytest.approx(cmd.force_n, abs=1e-12)
     held2 = ctl.hold(1e-3, ref, 0.1)
     assert held2.force_n == pytest.approx(cmd.force_n - 0.2, abs=1e-12)
+
+
+def _starved_fault_stop(cfg, option):
+    """A velocity_limit fault at 15 mm/s through the virtual CiA 402 drive with quick stop option ``option``;
+    from the cycle after the fault 40 TPDOs in a row are lost (the sim-plant held off the CPU on a loaded
+    machine). Returns (distance from the fault to rest [m], v0 [m/s], the loop's brake or None, drive state)."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.sim.faults import FaultSpec, SimFault
+
+    from stagectl.app import embedded_drive_config
+
+    drive = dataclasses.replace(embedded_drive_config(cfg.io.drive, cfg.sim.drive, {}), quick_stop_option_code=option)
+    cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, drive=drive))
+    with build_stage(cfg, clock=SimClock()) as stage:
+        loop, world = stage.loop, stage.world
+        loop.submit(MoveRequest(target_m=4e-3, max_velocity_m_s=0.015))
+        low = dataclasses.replace(loop.safety.cfg, max_velocity_m_s=0.013)
+        at = {}
+
+        def hook():
+            if loop.safety.fault is None and loop.safety.v_est_m_s > 0.0145:
+                loop.safety.cfg = low
+            elif loop.safety.fault is not None and not at:
+                at["x"], at["v"] = world.plant.x_m, world.plant.v_m_s
+                world.inject(FaultSpec(kind=SimFault.DROP_TPDO, cycles=40))
+
+        loop.on_cycle = hook
+        res = loop.run(duration_s=0.8)
+        assert res.fault is not None and res.fault.name == "velocity_limit"
+        return (abs(world.plant.x_m - at["x"]), at["v"], loop.last_brake, world.drive.state.name,
+                abs(world.plant.v_m_s), stage.actuator.force_limit_n)
+
+
+def test_fault_stop_with_a_starved_master(sim_cfg):
+    """Mechanism of the HIL's post-fault travel: the loop brakes over the bus, so its stop depends on fresh
+    samples; when they stop coming (a starved master / stalled drive process) its brake gives up and the drive's
+    torque-mode quick stop (0x605A = 2, a torque ramp) lets the stage coast on past the braking distance. With
+    quick stop option 3 (the default now: slow down on the current limit) the drive brakes on its own velocity
+    and clock, the loop releases to it at once, and the stage stops within v0²/(2·F_lim/m) + 3 periods."""
+    m = sim_cfg.controller.mass_kg
+    dist, v0, brake, _, _, lim = _starved_fault_stop(sim_cfg, 2)  # torque ramp: the loop brakes over the bus
+    bound = v0 ** 2 / (2 * lim / m) + v0 * 3e-3
+    assert brake is not None and dist > bound, (dist, bound)  # the bus brake gave up: the stage coasted
+    dist3, v03, brake3, state3, v_end, lim3 = _starved_fault_stop(sim_cfg, 3)
+    assert brake3 is None  # released to the drive at once
+    assert state3 == "SWITCH_ON_DISABLED" and v_end < 1e-5
+    assert dist3 < 0.5 * dist and dist3 <= v03 ** 2 / (2 * lim3 / m) + v03 * 3e-3, (dist3, v03)
+
+
+def test_bus_brake_holds_its_force_only_briefly_without_samples():
+    """The loop's bus brake (a drive without a braking quick stop): through a gap without fresh samples it holds
+    its last force 2 cycles, then applies 0 (it held up to F_max blind for stale_cycles, pushing a stage that
+    had stopped on); the next fresh sample resumes braking."""
+    from stagectl.runtime.quickstop import HOLD_STALE_CYCLES, QuickStopBrake
+
+    b = QuickStopBrake(0.0, 0.0, 0.01, mass_kg=2.0, max_force_n=10.0, deceleration_m_s2=4.5,
+                       standstill_m_s=1e-4, stale_limit=50)
+    u0 = b.step(0.001, 1e-5, True)
+    assert u0 < -5.0
+    held = [b.step(0.001 * (2 + i), 1e-5, False) for i in range(6)]
+    assert held[:HOLD_STALE_CYCLES] == [u0] * HOLD_STALE_CYCLES and held[HOLD_STALE_CYCLES:] == [0.0] * 4
+    assert not b.done and b.step(0.008, 5e-5, True) < 0.0
