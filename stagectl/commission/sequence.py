@@ -181,6 +181,13 @@ class Results:
     recordings: dict[str, Recorder] = field(default_factory=dict)
 
 
+def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
+    """The constant-velocity segment means (velocities [m/s], forces [N]) the Stribeck curve was fitted to."""
+    if cv is None or not cv.segments:
+        return None
+    return (np.array([s.v_m_s for s in cv.segments], np.float64), np.array([s.f_n for s in cv.segments], np.float64))
+
+
 def _plain_pid(p: PidConfig) -> dict[str, float]:
     return {"kp_n_m": p.kp_n_m, "ki_n_m_s": p.ki_n_m_s, "kd_n_s_m": p.kd_n_s_m,
             "derivative_cutoff_hz": p.derivative_cutoff_hz}
@@ -498,7 +505,8 @@ class Commissioning:
         # 4.-5. models, gains, new configuration -----------------------------------------------------
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
                                                              r.cv.stribeck if r.cv is not None else None,
-                                                             r.plant.delay_s if r.plant is not None else None)
+                                                             r.plant.delay_s if r.plant is not None else None,
+                                                             _cv_points(r.cv))
         m = float(self.res.discovery.get("mass_kg_used", m))
         self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m))
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
