@@ -391,16 +391,17 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
 
 def _cogging_scan(x: FloatArray, y: FloatArray, nuis: FloatArray, lams: FloatArray) -> FloatArray:
     """Amplitudes of ``a·sin(2πx/λ) + b·cos(2πx/λ)`` fitted to ``y`` jointly with the nuisance columns, for
-    each ``λ`` in ``lams``; returns (len(lams), 3): amplitude [N], ``a``, ``b``."""
+    each ``λ`` in ``lams``; returns (len(lams), 4): amplitude [N], ``a``, ``b``, residual sum of squares [N²]."""
     q, _ = np.linalg.qr(nuis)
     y0 = y - q @ (q.T @ y)
-    out = np.zeros((lams.shape[0], 3))
+    out = np.zeros((lams.shape[0], 4))
     for i, lam in enumerate(lams.tolist()):
         ph = 2.0 * math.pi * x / lam
         sc = np.column_stack([np.sin(ph), np.cos(ph)])
         sc -= q @ (q.T @ sc)
         ab = np.linalg.lstsq(sc, y0, rcond=None)[0]
-        out[i] = (math.hypot(ab[0], ab[1]), ab[0], ab[1])
+        r = y0 - sc @ ab
+        out[i] = (math.hypot(ab[0], ab[1]), ab[0], ab[1], float(r @ r))
     return out
 
 
@@ -458,10 +459,13 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     nuis = np.column_stack([pos, neg, pos * xc, neg * xc])
     amp = _cogging_scan(xs, ys, nuis, grid)
     i = int(np.argmax(amp[:, 0]))
-    # refine between the neighbours
-    fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.shape[0] - 1)], 41)
+    # refine between the second neighbours, by least squares (the lowest residual): the largest amplitude
+    # is biased where few periods fit the travel, since the nuisance slope takes a part of the sinusoid that
+    # grows with λ (generated plant 3, 1.135 mm over 2 mm: 1.073 mm by amplitude, 1.135 mm by residual; the
+    # commissioned triangle 157 nm against 95 nm with the true period)
+    fine = np.linspace(grid[max(i - 2, 0)], grid[min(i + 2, grid.shape[0] - 1)], 81)
     famp = _cogging_scan(xs, ys, nuis, fine)
-    j = int(np.argmax(famp[:, 0]))
+    j = int(np.argmin(famp[:, 3]))
     lam, A, ca, cb = float(fine[j]), float(famp[j, 0]), float(famp[j, 1]), float(famp[j, 2])
     floor = float(np.median(amp[:, 0]))
     ratio = A / max(floor, 1e-12)
