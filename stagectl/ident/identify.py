@@ -293,7 +293,7 @@ _STRIBECK_GRID = (121, 15)
 _STRIBECK_REFINE = 6
 
 
-def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
+def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) -> dict[str, float]:
     """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset].
 
     The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
@@ -303,6 +303,13 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     parameters are the non-negative least squares solution (Fc, Fs − Fc, σ2 ≥ 0; the free offset projected
     out); the grid's best local minima (``_STRIBECK_REFINE``) are then refined by a bounded local least
     squares over all six parameters, and the lowest cost of all wins.
+
+    ``fs_n``: the static level measured elsewhere (the pre-sliding elements' ``Σ k_i·Δ_i``, at rest). Then
+    ``F = sgn(v)(Fc(1 − e) + Fs·e) + σ2·v + offset`` with ``e = exp(−|v/vs|^δ)`` is linear in (Fc, σ2, offset)
+    for fixed (vs, δ), and the same grid and refinement run with Fs held. Constant-velocity means alone do
+    not fix Fs when the curve has dropped by the slowest speed: on a generated plant (vs 0.30 mm/s, slowest
+    pass 0.16 mm/s) Fs came out 2.30 N (vs 32 µm/s, δ 0.5) for a true 1.73 N, with a lower residual than the
+    true curve's. Returned: ``v_min_m_s`` (the slowest speed) and ``fs_fixed``.
     """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
@@ -310,8 +317,13 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     av = np.abs(v)
     vmin, vmax = float(av.min()), float(av.max())
 
+    fixed = fs_n is not None
+    fs_fix = float(fs_n) if fs_n is not None else 0.0
+
     def model(p: FloatArray) -> FloatArray:
         fc, ds, lvs, dl, fv, off = p
+        if fixed:  # ds is ignored: Fs − Fc follows Fc
+            ds = fs_fix - fc
         return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
     lo_lvs, hi_lvs = math.log(vmin / 20 + 1e-12), math.log(vmax * 20 + 1e-12)
@@ -322,16 +334,21 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     for i, lvs in enumerate(lvs_grid.tolist()):
         for j, dl in enumerate(dl_grid.tolist()):
             e = np.exp(-((av / math.exp(lvs)) ** dl))
-            # columns Fc, Fs − Fc, σ2 (all ≥ 0); the free offset is projected out (columns and data centred)
-            a = np.column_stack([s, s * e, v])
+            # columns Fc, Fs − Fc, σ2 (all ≥ 0); the free offset is projected out (columns and data centred);
+            # with Fs fixed: columns Fc·(1 − e), σ2 on f − sgn(v)·Fs·e
+            a = np.column_stack([s * (1.0 - e), v]) if fixed else np.column_stack([s, s * e, v])
+            y = f - s * fs_fix * e if fixed else f
             try:
-                th, rnorm = nnls(a - a.mean(axis=0), f - f.mean())
+                th, rnorm = nnls(a - a.mean(axis=0), y - y.mean())
             except RuntimeError:  # nnls iteration limit (degenerate columns): skip this grid point
                 continue
             if not (np.all(np.isfinite(th)) and math.isfinite(rnorm)):
                 continue
             cost[i, j] = 0.5 * float(rnorm) ** 2
-            lin_p[i, j] = (th[0], th[1], th[2], float(np.mean(f - a @ th)))
+            if fixed:
+                lin_p[i, j] = (th[0], fs_fix - th[0], th[1], float(np.mean(y - a @ th)))
+            else:
+                lin_p[i, j] = (th[0], th[1], th[2], float(np.mean(f - a @ th)))
     if not np.isfinite(cost).any():
         raise DataError("Stribeck fit: no grid point could be fitted")
     # refine the grid's local minima (the best few) by a bounded local least squares over all six parameters
@@ -363,13 +380,13 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray) -> dict[str, float]:
     lin, *_ = np.linalg.lstsq(a, f, rcond=None)
     rms_lin = float(np.sqrt(np.mean((a @ lin - f) ** 2)))
     levels = np.unique(np.round(np.log(av) / 0.1))
-    if levels.size < 3 or rms > 0.8 * rms_lin:
+    if not fixed and (levels.size < 3 or rms > 0.8 * rms_lin):
         return {"fc_n": float(max(lin[0], 0.0)), "fs_n": float(max(lin[0], 0.0)), "vs_m_s": 1e-3, "delta": 2.0,
                 "viscous_n_s_m": float(max(lin[1], 0.0)), "offset_n": float(lin[2]), "rms_n": rms_lin,
-                "segments": float(v.size), "stribeck_identified": False}
-    return {"fc_n": float(fc), "fs_n": float(fc + ds), "vs_m_s": float(math.exp(lvs)), "delta": float(dl),
-            "viscous_n_s_m": float(fv), "offset_n": float(off), "rms_n": rms, "segments": float(v.size),
-            "stribeck_identified": True}
+                "segments": float(v.size), "stribeck_identified": False, "v_min_m_s": vmin, "fs_fixed": False}
+    return {"fc_n": float(fc), "fs_n": fs_fix if fixed else float(fc + ds), "vs_m_s": float(math.exp(lvs)),
+            "delta": float(dl), "viscous_n_s_m": float(fv), "offset_n": float(off), "rms_n": rms,
+            "segments": float(v.size), "stribeck_identified": True, "v_min_m_s": vmin, "fs_fixed": fixed}
 
 
 # ================================================================================================ driver

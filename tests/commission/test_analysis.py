@@ -284,6 +284,32 @@ def test_cogging_evidence_does_not_name_a_smooth_trend_along_the_pass() -> None:
     assert cog["present"] and abs(cog["wavelength_m"] / lam - 1) < 0.03, cog
 
 
+def test_cogging_period_is_the_least_squares_one_when_few_periods_fit_the_travel() -> None:
+    """1.76 periods over the ±1 mm pass (generated plant 3: 82 mN at 1.135 mm with a 23 mN offset): the
+    period is the one with the lowest residual, not the largest amplitude (the per-direction slope takes a
+    part of a long sinusoid, and the largest amplitude came out 1.073 mm, 5 % short). Oracle: a plain dense
+    least squares over λ (1 µm steps) with the same constant and slope per direction."""
+    from stagectl.commission.fit import cogging_evidence
+
+    lam, A = 1.135e-3, 0.0824
+    rec = _slow_passes(lambda x, d: 0.46 * d + 0.023 + A * np.sin(2 * np.pi * x / lam))
+    ev = cogging_evidence(rec, 1.0, 1e-3)
+    assert ev["present"], ev
+    x, u, d = rec.col("x"), rec.col("u"), np.sign(rec.col("v_ref"))
+    sel = d != 0
+    x, u, d = x[sel], u[sel], d[sel]
+    xc = x - 0.5 * (x.max() + x.min())
+    pos, neg = (d > 0).astype(float), (d < 0).astype(float)
+    best = (np.inf, 0.0)
+    for lam_i in np.arange(1.0e-3, 1.3e-3, 1e-6):
+        cols = np.column_stack([pos, neg, pos * xc, neg * xc, np.sin(2 * np.pi * x / lam_i),
+                                np.cos(2 * np.pi * x / lam_i)])
+        r = u - cols @ np.linalg.lstsq(cols, u, rcond=None)[0]
+        best = min(best, (float(r @ r), float(lam_i)))
+    assert abs(best[1] / lam - 1) < 0.003, best
+    assert abs(ev["wavelength_m"] / best[1] - 1) < 0.005 and abs(ev["amplitude_n"] / A - 1) < 0.03, (ev, best)
+
+
 def test_speed_ladder_feedforward_learns_the_friction_line_from_paired_cruises() -> None:
     """The constant-velocity ladder's feed-forward (controllers.SpeedLadderFeedforward) against the plain line
     F(v) = sgn(v)·Fc + b·v: each cruise's commanded force also carries a position-dependent force (cogging,

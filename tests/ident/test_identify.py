@@ -201,3 +201,43 @@ def test_stribeck_curve_fit_finds_the_global_minimum() -> None:
             r = (a @ th)[..., 0] - f
             best = min(best, float(np.sqrt(np.mean(r ** 2, axis=1)).min()))
         assert fit["rms_n"] <= best * 1.001, (seed, fit["rms_n"], best)
+
+
+def test_stribeck_curve_fit_with_the_static_level_held() -> None:
+    """Fs held at a level measured elsewhere (commission: the pre-sliding elements' Σ k_i·Δ_i) when the passes
+    start above the Stribeck velocity. Segment means of generated plant 12 (tests/commission/plant_gen.py:
+    Fc 1.636 N, Fs 1.729 N, vs 0.30 mm/s, δ 2, 10.1 N s/m; slowest pass 0.16 mm/s). Free, the fit
+    extrapolates Fs (2.30 N at vs 32 µm/s, δ 0.5 in the commissioning run); with Fs held it recovers the
+    curve. Oracle: a plain dense search over (vs, δ) with ordinary least squares for Fc, σ2 and the offset
+    on f − sgn(v)·Fs·e; the held fit's cost may not be higher."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    v = np.array([1.6e-4, 4.02e-4, 1.009e-3, 2.533e-3, 6.352e-3, 1.613e-2])
+    v = np.concatenate([v, -v])
+    s, av = np.sign(v), np.abs(v)
+    fc, fs, vs, dl, fv = 1.6362, 1.7291, 3.02e-4, 2.0, 10.127
+    f_true = s * (fc + (fs - fc) * np.exp(-((av / vs) ** dl))) + fv * v
+    f = f_true + 1e-3 * np.random.default_rng(3).standard_normal(v.size)
+    free = fit_stribeck_curve(v, f)
+    held = fit_stribeck_curve(v, f, fs_n=fs)
+    assert held["fs_fixed"] and not free["fs_fixed"] and held["fs_n"] == fs
+    assert held["v_min_m_s"] == pytest.approx(1.6e-4)
+    assert abs(held["fc_n"] - fc) < 0.005 and abs(held["viscous_n_s_m"] / fv - 1) < 0.05, held
+    assert abs(held["vs_m_s"] / vs - 1) < 0.25, held
+    # the held curve agrees with the true one below the slowest pass (where the free one extrapolates)
+    vv = np.geomspace(1e-6, 1.6e-4, 20)
+
+    def g(p: dict[str, float]) -> np.ndarray:
+        return p["fc_n"] + (p["fs_n"] - p["fc_n"]) * np.exp(-((vv / p["vs_m_s"]) ** p["delta"]))
+
+    assert np.max(np.abs(g(held) - g({"fc_n": fc, "fs_n": fs, "vs_m_s": vs, "delta": dl}))) < 0.01
+    best = np.inf
+    dls = np.arange(0.5, 4.0, 0.02)[:, None]
+    for vsg in np.geomspace(8e-6, 0.33, 400):
+        e = np.exp(-((av / vsg) ** dls))
+        y = f - s * fs * e
+        a = np.stack([s * (1 - e), np.broadcast_to(v, e.shape), np.ones_like(e)], -1)
+        at = a.transpose(0, 2, 1)
+        th = np.linalg.solve(at @ a, (at @ y[..., None]))
+        best = min(best, float(np.sqrt(np.mean(((a @ th)[..., 0] - y) ** 2, axis=1)).min()))
+    assert held["rms_n"] <= best * 1.001, (held["rms_n"], best)
