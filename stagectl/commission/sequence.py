@@ -82,9 +82,7 @@ CV_PASS_S = 2.0
 #: the friction experiments' tuning is raised (Commissioning._experiment_crossover) when the breakaway force over
 #: the default tuning's K_p exceeds this many following-error limits; up to this crossover × period, with at
 #: least these margins on the measured FRF
-STICTION_LENGTH_X_FE = 4.0
-#: (5 left generated plant 1, 3.3 kg, 1.56/1.90 N breakaway: 4.2 limits, at 15 Hz where it faulted on the
-#: following error in friction_cv; the other generated plants measured are at 0.3-3.8 or 6.3-8.8 limits)
+STICTION_LENGTH_X_FE = 5.0
 STIFF_CROSSOVER_X_PERIOD = 0.026
 STIFF_MIN_PHASE_MARGIN_DEG = 30.0
 STIFF_MIN_GAIN_MARGIN_DB = 6.0
