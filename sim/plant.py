@@ -12,7 +12,9 @@ Equations (SI units; friction and F_other oppose motion, see ``stagectl.friction
 force ``u(t − τ)`` is exact for any τ, including sub-sample τ: each sub-step uses the time average of the
 delayed piecewise-constant command over the sub-step. Before the first command u = 0.
 
-Integration (fused, compiled with numba, one loop per friction model with the model's step pasted in):
+Integration (fused, compiled with numba, one loop per friction model with the model's step pasted in; a plain
+plant's ``step`` runs a small per-cycle kernel that calls the model's compiled step instead, cheap to compile for
+a cold start, same arithmetic and bits):
 ``step(dt)`` uses ``n = ceil(dt/substep_s)`` equal sub-steps h = dt/n of semi-implicit (symplectic) Euler::
 
     v ← v + h·(u_a − F' − F_other(x))/m ;  Δx = h·v ;  x ← x + Δx ;  F ← friction.step(state, Δx, v, h)
@@ -555,8 +557,9 @@ class StagePlant:
     """Rigid-body stage with friction, effects, sensor and actuator models (see module docstring).
 
     ``step`` and ``measure`` are cheap (one compiled call, a few µs) and allocation-free apart from
-    the delay history; the constructor compiles or loads the numba cache of the friction model's kernels, so
-    the first ``step`` costs no more than the others.
+    the delay history; the constructor compiles or loads the numba cache of the kernel ``step`` runs, so
+    the first ``step`` costs no more than the others. ``simulate`` compiles (or loads) its loop on its first
+    call.
     """
 
     _HIST_CAP = 4096
