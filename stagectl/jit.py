@@ -237,8 +237,9 @@ def _at_opt(compiler: Any, level: int) -> None:
     cls = _COMPILER_CLASSES.get(base)
     if cls is None:
         def _compile_core(self: Any, args: Any, return_type: Any) -> Any:
-            from numba.core import config
+            from numba.core import config as _config
 
+            config: Any = _config  # numba sets its settings as module attributes at run time
             old = config.OPT
             config.OPT = config._OptLevel(self._stagectl_opt)
             try:
@@ -259,7 +260,7 @@ def base_opt() -> int:
     if _BASE_OPT is None:
         from numba.core import config
 
-        _BASE_OPT = int(config.OPT)
+        _BASE_OPT = int(getattr(config, "OPT"))  # noqa: B009 - set at run time, unknown to the type checker
     return _BASE_OPT
 
 

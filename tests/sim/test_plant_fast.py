@@ -102,8 +102,8 @@ def test_the_per_cycle_step_equals_the_simulate_loop_bit_for_bit(spec):
             got["x"].append(a.x_m)
             got["v"].append(a.v_m_s)
             got["friction"].append(a.friction_n)
-        for k in got:
-            np.testing.assert_array_equal(got[k], want[k])
+        for k, seq in got.items():
+            np.testing.assert_array_equal(seq, want[k])
         np.testing.assert_array_equal(a._ps, b._ps)  # time, F_other, applied force, work totals too
         np.testing.assert_array_equal(a._fs, b._fs)
     assert abs(a.x_m) > 5e-6 and a.work_j()["friction"] > 0.0  # it moved beyond pre-sliding
