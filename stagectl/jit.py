@@ -24,6 +24,8 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
   instead of numba's process-wide ``NUMBA_OPT`` (3): for small per-cycle loops whose compile, not their run
   time, is what a cold start pays. Every kernel compiles at its own level (set around its compile only, and
   kept when a kernel is compiled while another one is being compiled); the level is part of the cache key.
+  numba's own helpers compiled meanwhile take the level in effect; a caller's module passes optimise the code
+  it links in again at the caller's level.
 
 ``stagectl warm`` (``stagectl.commands.warm``) compiles the kernels a configuration uses into the cache
 ahead of the first start (docs/performance.md).
