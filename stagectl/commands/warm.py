@@ -3,8 +3,8 @@
 Run it at install time (and as the daemon unit's ``ExecStartPre``) so that the first start loads compiled
 kernels instead of compiling them (docs/performance.md). With ``--config`` it compiles, for every friction model
 and every simulated plant found in the configuration, exactly the kernels ``stagectl run`` / the daemon use:
-the model's step and force (feed-forward), the plant's per-cycle step and its fused ``simulate`` loop. ``--all`` does it for every
-registered friction model (a GMS, LuGre, … parameter set each) instead. Prints one JSON line: the cache
+the model's step and force (feed-forward), the plant's per-cycle step and its fused ``simulate`` loop. ``--all``
+does it for every registered friction model (a GMS, LuGre, … parameter set each) instead. Prints one JSON line: the cache
 directory, the kernels compiled and loaded, the time taken.
 """
 
