@@ -12,7 +12,9 @@ Equations (SI units; friction and F_other oppose motion, see ``stagectl.friction
 force ``u(t − τ)`` is exact for any τ, including sub-sample τ: each sub-step uses the time average of the
 delayed piecewise-constant command over the sub-step. Before the first command u = 0.
 
-Integration (fused, compiled with numba, one loop per friction model with the model's step pasted in):
+Integration (fused, compiled with numba, one loop per friction model with the model's step pasted in; a plain
+plant's ``step`` runs a small per-cycle kernel that calls the model's compiled step instead, cheap to compile for
+a cold start, same arithmetic and bits):
 ``step(dt)`` uses ``n = ceil(dt/substep_s)`` equal sub-steps h = dt/n of semi-implicit (symplectic) Euler::
 
     v ← v + h·(u_a − F' − F_other(x))/m ;  Δx = h·v ;  x ← x + Δx ;  F ← friction.step(state, Δx, v, h)
@@ -336,6 +338,49 @@ def _make_plain(kstep: Any) -> Any:
     return plain_loop
 
 
+def _make_cycle(kstep: Any) -> Any:
+    """The per-cycle step of a plain plant (what :meth:`StagePlant.step` runs: one held command, a few to a
+    few hundred sub-steps) specialised on one friction kernel. Unlike :func:`_make_plain`'s loop it *calls*
+    ``kstep`` (the same compiled kernel the feed-forward calls: compiled once per process or cache, not pasted
+    in and typed again) and runs LLVM's passes at level 1 (``stagectl.jit.kernel(opt=1)``): a cold start
+    compiles it in ~0.15 s instead of the plain loop's ~0.75 s, and a step runs as fast (docs/performance.md).
+    The arithmetic is the plain loop's, in the same order: its results are bit-identical
+    (``tests/sim/test_plant_fast.py``). ``simulate`` keeps the fully optimised plain loop."""
+
+    @kernel(_nrt=False, opt=1)
+    def cycle(kp, fs, ps, inv_m, fo_c, u, dt, nsub):  # type: ignore[no-untyped-def]  # pragma: no cover
+        """``u`` [N] held for ``dt`` [s] in ``nsub`` sub-steps (1/m ``inv_m`` [1/kg], constant F_other
+        ``fo_c`` [N]); plant state in ``ps``, friction state in ``fs`` (both advanced in place)."""
+        # written out, not load_state/_finish: pasting kernels in is what costs compile time here
+        h = dt / nsub
+        x = ps[_X]
+        v = ps[_V]
+        ff = ps[_FF]
+        win = ps[_WIN]
+        wf = ps[_WF]
+        wo = ps[_WO]
+        fe = u - fo_c
+        for i in range(nsub):
+            v = v + h * (fe - ff) * inv_m
+            dx = h * v
+            x += dx
+            win += u * dx
+            wf += ff * dx
+            wo += fo_c * dx
+            ff = kstep(kp, fs, dx, v, h)
+        ps[_T] = ps[_T] + dt
+        ps[_X] = x
+        ps[_V] = v
+        ps[_FF] = ff
+        ps[_FO] = fo_c
+        ps[_UA] = u
+        ps[_WIN] = win
+        ps[_WF] = wf
+        ps[_WO] = wo
+
+    return cycle
+
+
 def _make_integrate(kstep: Any, plain_loop: Any) -> Any:
     """The general fused loop specialised on one friction kernel ``kstep`` (a direct call). A run that is plain
     at run time goes to ``plain_loop`` (:func:`_make_plain`, one call per run). One compiled loop per model,
@@ -479,6 +524,7 @@ def batch_sets_loop(ksets: Any) -> Any:
 
 
 _LOOPS: dict[int, tuple[Any, Any, Any, Any]] = {}
+_CYCLES: dict[int, tuple[Any, Any]] = {}
 _OUTPUTS = ("t", "x", "v", "friction", "x_meas")
 _EMPTY = np.empty(0)  # an output not stored
 _EMPTY1 = np.zeros(1)  # the command history when there is no delay
@@ -497,13 +543,23 @@ def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
     return (got[0] if plain_only else got[1]), got[2]
 
 
+def cycle_for(kstep: Any) -> Any:
+    """:func:`_make_cycle` made once per friction kernel: the per-cycle step of plain plants."""
+    got = _CYCLES.get(id(kstep))
+    if got is None:
+        got = (_make_cycle(kstep), kstep)  # kstep kept alive: its id stays valid
+        _CYCLES[id(kstep)] = got
+    return got[0]
+
+
 # ================================================================================================ plant
 class StagePlant:
     """Rigid-body stage with friction, effects, sensor and actuator models (see module docstring).
 
     ``step`` and ``measure`` are cheap (one compiled call, a few µs) and allocation-free apart from
-    the delay history; the constructor compiles or loads the numba cache of the friction model's kernels, so
-    the first ``step`` costs no more than the others.
+    the delay history; the constructor compiles or loads the numba cache of the kernel ``step`` runs, so
+    the first ``step`` costs no more than the others. ``simulate`` compiles (or loads) its loop on its first
+    call.
     """
 
     _HIST_CAP = 4096
@@ -518,10 +574,15 @@ class StagePlant:
         plain = (kern.breakaway_n == 0.0 and not (cfg.effects.delay is not None and cfg.effects.delay.delay_s > 0.0)
                  and plain_effects(ep))
         self._integrate, _ = loops_for(kern.step, plain_only=plain)
+        #: the per-cycle step of a plain plant (``step``); ``simulate`` runs ``_integrate``, compiled on its first
+        #: call. None: the general loop serves ``step`` too.
+        self._cycle = cycle_for(kern.step) if plain else None
         self._kp = np.ascontiguousarray(kern.p, dtype=np.float64)
         self._ep = np.ascontiguousarray(cfg.effects.packed(), dtype=np.float64)
         self._tau = float(cfg.effects.delay.delay_s) if cfg.effects.delay is not None else 0.0
         self._par = np.array([cfg.mass_kg, kern.breakaway_n, kern.stick_velocity_m_s, self._tau])
+        self._inv_m = 1.0 / float(cfg.mass_kg)  # as the plain loop computes it (1.0 / par[0])
+        self._fo_c = float(self._ep[7])  # the constant F_other of a plain plant
         self._umax = float(cfg.actuator.max_force_n)
         self._res = float(cfg.sensor.resolution_m)
         self._noise = float(cfg.sensor.noise_std_m)
@@ -534,9 +595,9 @@ class StagePlant:
         self._nh = 0
         self._ring = np.zeros(self._nd + 1, dtype=np.int64)
         self._ri = 0
-        # Compile (or load from the numba cache) the integration kernel now, not on the first cycle: a
-        # virtual drive that built this plant would otherwise stall for the compile (0.01 s from a warm cache,
-        # ~2 s from an empty one) inside the cyclic exchange and look like a dead drive to its master.
+        # Compile (or load from the numba cache) the kernel of ``step`` now, not on the first cycle: a virtual
+        # drive that built this plant would otherwise stall for the compile (0.01 s from a warm cache, ~0.5 s
+        # from an empty one) inside the cyclic exchange and look like a dead drive to its master.
         self.reset()
         self.step(0.0, self.cfg.substep_s)
         self.reset()
@@ -599,6 +660,10 @@ class StagePlant:
         """
         nsub = self._nsub(dt_s)
         u = self._clamp(u_n)
+        if self._cycle is not None:
+            self._cycle(self._kp, self._fs, self._ps, self._inv_m, self._fo_c, u, float(dt_s), nsub)
+            self._sample(self._ps[_X])
+            return
         nh0 = -1
         if self._tau > 0.0:
             self._push_command(self._ps[_T], u)

@@ -3,8 +3,8 @@
 Run it at install time (and as the daemon unit's ``ExecStartPre``) so that the first start loads compiled
 kernels instead of compiling them (docs/performance.md). With ``--config`` it compiles, for every friction model
 and every simulated plant found in the configuration, exactly the kernels ``stagectl run`` / the daemon use:
-the model's step and force (feed-forward), the plant's fused loop for that model. ``--all`` does it for every
-registered friction model (a GMS, LuGre, … parameter set each) instead. Prints one JSON line: the cache
+the model's step and force (feed-forward), the plant's per-cycle step and its fused ``simulate`` loop. ``--all``
+does it for every registered friction model (a GMS, LuGre, … parameter set each) instead. Prints one JSON line: the cache
 directory, the kernels compiled and loaded, the time taken.
 """
 
@@ -50,7 +50,8 @@ def _collect(obj: Any, models: list[Any], plants: list[Any], seen: set[int]) -> 
 
 
 def warm_models(models: list[Any], plants: list[Any]) -> dict[str, Any]:
-    """Compile (or load) the kernels of ``models`` (step, force) and of ``plants`` (fused loop, batch not)."""
+    """Compile (or load) the kernels of ``models`` (step, force) and of ``plants`` (per-cycle step, fused loop,
+    batch not)."""
     import numpy as np
 
     from stagectl.jit import cache_dir, compiled_signatures, loaded_from_cache
@@ -69,6 +70,8 @@ def warm_models(models: list[Any], plants: list[Any]) -> dict[str, Any]:
         plant.step(0.0, 1e-3)
         plant.simulate(np.zeros(2), 1e-3, outputs=("x",))
         disps.append(plant._integrate)
+        if plant._cycle is not None:  # the per-cycle step of a plain plant (what run/the daemon step)
+            disps.append(plant._cycle)
     uniq = {id(d): d for d in disps}.values()
     return {
         "cache_dir": str(cache_dir()),

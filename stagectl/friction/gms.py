@@ -58,7 +58,7 @@ def _g(p: FloatArray, v: float) -> float:  # pragma: no cover - compiled
 
 @kernel
 def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> float:  # pragma: no cover
-    n = int(p[0])
+    n = np.int64(p[0])  # a cast; int() would compile numba's int overload (~0.03 s of a cold start)
     if v == 0.0:  # rule 3: hold
         tot = 0.0
         for i in range(n):
@@ -108,7 +108,7 @@ def _kstep(p: FloatArray, state: FloatArray, dx: float, v: float, dt: float) -> 
 
 @kernel
 def _kforce(p: FloatArray, state: FloatArray, v: float) -> float:  # pragma: no cover
-    n = int(p[0])
+    n = np.int64(p[0])  # a cast, not int() (see _kstep)
     tot = 0.0
     if v == 0.0:
         for i in range(n):
@@ -143,7 +143,7 @@ def _ksets(PT: FloatArray, ST: FloatArray, dx: FloatArray, v: FloatArray, dt: fl
     the mode logic as selects, so the loop over the sets (innermost) has no data-dependent branches and the
     sets' dependency chains overlap. Results are bit-identical to :func:`_kstep` set by set.
     """
-    n = int(PT[0, 0])
+    n = np.int64(PT[0, 0])
     ns = PT.shape[1]
     for q in range(ns):
         out[q] = 0.0

@@ -84,6 +84,32 @@ def test_fused_loop_equals_a_plain_python_rigid_body_loop(spec):
 
 
 @pytest.mark.parametrize("spec", [GMS, DAHL])
+def test_the_per_cycle_step_equals_the_simulate_loop_bit_for_bit(spec):
+    """``step`` of a plain plant runs its own kernel (the model's step called, LLVM level 1), ``simulate`` the
+    fully optimised loop with the step pasted in: the same arithmetic in the same order, so the same bits in
+    every state variable, with a constant F_other (offset) and 1-, 5- and 7-sub-step cycles."""
+    from stagectl.friction import parse_effects
+
+    problems: list[str] = []
+    eff = parse_effects({"offset": {"force_n": 0.2}}, "effects", problems)
+    a, b = (plant(spec, effects=eff) for _ in range(2))
+    assert a._cycle is not None and not problems
+    for dt in (2e-5, DT, 1.4e-4):
+        want = b.simulate(U[:300], dt, outputs=("x", "v", "friction"))
+        got = {"x": [], "v": [], "friction": []}
+        for u in U[:300]:
+            a.step(u, dt)
+            got["x"].append(a.x_m)
+            got["v"].append(a.v_m_s)
+            got["friction"].append(a.friction_n)
+        for k, seq in got.items():
+            np.testing.assert_array_equal(seq, want[k])
+        np.testing.assert_array_equal(a._ps, b._ps)  # time, F_other, applied force, work totals too
+        np.testing.assert_array_equal(a._fs, b._fs)
+    assert abs(a.x_m) > 5e-6 and a.work_j()["friction"] > 0.0  # it moved beyond pre-sliding
+
+
+@pytest.mark.parametrize("spec", [GMS, DAHL])
 def test_batch_equals_one_run_per_parameter_set(spec):
     base = build(spec)
     rng = np.random.default_rng(1)
