@@ -342,12 +342,12 @@ def _make_cycle(kstep: Any) -> Any:
     """The per-cycle step of a plain plant (what :meth:`StagePlant.step` runs: one held command, a few to a
     few hundred sub-steps) specialised on one friction kernel. Unlike :func:`_make_plain`'s loop it *calls*
     ``kstep`` (the same compiled kernel the feed-forward calls: compiled once per process or cache, not pasted
-    in and typed again) and runs LLVM's passes at level 1 (``stagectl.jit.kernel(opt=1)``): a cold start
+    in and typed again): a cold start
     compiles it in ~0.15 s instead of the plain loop's ~0.75 s, and a step runs as fast (docs/performance.md).
     The arithmetic is the plain loop's, in the same order: its results are bit-identical
     (``tests/sim/test_plant_fast.py``). ``simulate`` keeps the fully optimised plain loop."""
 
-    @kernel(_nrt=False, opt=1)
+    @kernel(_nrt=False)
     def cycle(kp, fs, ps, inv_m, fo_c, u, dt, nsub):  # type: ignore[no-untyped-def]  # pragma: no cover
         """``u`` [N] held for ``dt`` [s] in ``nsub`` sub-steps (1/m ``inv_m`` [1/kg], constant F_other
         ``fo_c`` [N]); plant state in ``ps``, friction state in ``fs`` (both advanced in place)."""

@@ -20,13 +20,6 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
   the plant's per-model loop) is cached under a stable description of its cells (module and name of the
   kernel), where numba's own key (a pickle of the cells) would change from one process to the next.
 
-* **Optimisation level per kernel.** ``kernel(opt=1)`` compiles that kernel's own LLVM passes at level 1
-  instead of numba's process-wide ``NUMBA_OPT`` (3): for small per-cycle loops whose compile, not their run
-  time, is what a cold start pays. Every kernel compiles at its own level (set around its compile only, and
-  kept when a kernel is compiled while another one is being compiled); the level is part of the cache key.
-  numba's own helpers compiled meanwhile take the level in effect; a caller's module passes optimise the code
-  it links in again at the caller's level.
-
 ``stagectl warm`` (``stagectl.commands.warm``) compiles the kernels a configuration uses into the cache
 ahead of the first start (docs/performance.md).
 """
@@ -45,9 +38,6 @@ from typing import Any, TypeVar, overload
 F = TypeVar("F", bound=Callable[..., Any])
 
 _CACHE_CLASS: Any = None
-_COMPILER_CLASSES: dict[type, type] = {}
-#: numba's process-wide optimisation level (``NUMBA_OPT``), read when the first kernel is declared
-_BASE_OPT: int | None = None
 
 
 def cache_dir() -> Path:
@@ -189,10 +179,9 @@ def _cache_class() -> Any:
 
         _impl_class = _Impl
 
-        def __init__(self, py_func: Any, opt: int) -> None:
+        def __init__(self, py_func: Any) -> None:
             super().__init__(py_func)  # type: ignore[no-untyped-call]
             self._deps_hash: str | None = None
-            self._opt = opt
 
         def load_overload(self, sig: Any, target_context: Any) -> Any:
             _numba_registries()  # before numba's first target refresh, which this call starts
@@ -221,49 +210,10 @@ def _cache_class() -> Any:
                     for c in cells]
             code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
             cellh = hashlib.sha256(repr(desc).encode()).hexdigest()
-            # the LLVM optimisation level the kernel compiles at (kernel(opt=...)): numba's key does not hold it
-            return (sig, codegen.magic_tuple(), (code, cellh), self.deps_hash(), ("opt", self._opt))
+            return (sig, codegen.magic_tuple(), (code, cellh), self.deps_hash())
 
     _CACHE_CLASS = HonestCache
     return HonestCache
-
-
-def _at_opt(compiler: Any, level: int) -> None:
-    """Make numba's function compiler of one dispatcher run its compiles at LLVM optimisation ``level``.
-
-    numba reads ``numba.core.config.OPT`` when it builds its LLVM pass pipelines (while lowering the kernel);
-    the target machine (instruction selection) keeps the process's level. The level is set around this
-    dispatcher's own compile and restored after it, also when the compile fails; a kernel that this compile
-    makes numba compile (a callee) sets its own level the same way."""
-    base = type(compiler)
-    cls = _COMPILER_CLASSES.get(base)
-    if cls is None:
-        def _compile_core(self: Any, args: Any, return_type: Any) -> Any:
-            from numba.core import config as _config
-
-            config: Any = _config  # numba sets its settings as module attributes at run time
-            old = config.OPT
-            config.OPT = config._OptLevel(self._stagectl_opt)
-            try:
-                return base._compile_core(self, args, return_type)
-            finally:
-                config.OPT = old
-
-        cls = type(f"AtOpt{base.__name__}", (base,), {"_compile_core": _compile_core})
-        _COMPILER_CLASSES[base] = cls
-    compiler.__class__ = cls
-    compiler._stagectl_opt = level
-
-
-def base_opt() -> int:
-    """numba's process-wide LLVM optimisation level (``NUMBA_OPT``, 3 by default): the level of every kernel
-    declared without ``opt``."""
-    global _BASE_OPT
-    if _BASE_OPT is None:
-        from numba.core import config
-
-        _BASE_OPT = int(getattr(config, "OPT"))  # noqa: B009 - set at run time, unknown to the type checker
-    return _BASE_OPT
 
 
 @overload
@@ -278,22 +228,16 @@ def kernel(fn: F | None = None, **options: Any) -> Any:
     """``numba.njit(**options)`` compiled lazily, cached in :func:`cache_dir` with an honest key.
 
     Use as ``@kernel`` or ``@kernel(inline="always")``. ``cache`` is always on; a signature cannot be given
-    (it would compile at import). ``opt`` (0–3) is the LLVM optimisation level of this kernel's own compile
-    (default: numba's, ``NUMBA_OPT``); see the module docstring."""
+    (it would compile at import)."""
     if "cache" in options:
         raise TypeError("kernel(): the cache is always on")
-    opt = options.pop("opt", None)
-    if opt is not None and (isinstance(opt, bool) or not isinstance(opt, int) or not 0 <= opt <= 3):
-        raise ValueError(f"kernel(): opt must be an LLVM optimisation level 0..3 (got {opt!r})")
 
     def deco(f: F) -> Any:
         from numba import njit
 
         disp = njit(**options)(f)
         if not os.environ.get("NUMBA_DISABLE_JIT"):
-            level = base_opt() if opt is None else opt
-            _at_opt(disp._compiler, level)
-            disp._cache = _cache_class()(f, level)
+            disp._cache = _cache_class()(f)
         return disp
 
     if fn is not None:
@@ -332,12 +276,5 @@ def loaded_from_cache(dispatcher: Any) -> int:
     return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
 
 
-def opt_level(dispatcher: Any) -> int | None:
-    """The LLVM optimisation level ``dispatcher`` (a :func:`kernel`) compiles at (None: not a kernel)."""
-    comp = getattr(dispatcher, "_compiler", None)
-    level = getattr(comp, "_stagectl_opt", None)
-    return None if level is None else int(level)
-
-
-__all__ = ["base_opt", "cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "inlined",
-           "kernel", "loaded_from_cache", "opt_level"]
+__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "inlined", "kernel",
+           "loaded_from_cache"]

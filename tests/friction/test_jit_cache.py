@@ -56,7 +56,7 @@ def test_using_one_model_compiles_only_that_model(tmp_path: Path) -> None:
 
 def test_the_sim_configs_plant_and_feed_forward_compile_only_what_they_use(tmp_path: Path) -> None:
     """What ``stagectl run --config config/sim.yaml`` compiles from an empty cache: the GMS step (the feed-forward
-    calls it) and the plant's per-cycle step, which calls that same compiled step, at LLVM level 1; not the force
+    calls it) and the plant's per-cycle step, which calls that same compiled step; not the force
     kernel, not the plain or general ``simulate`` loops, no other model."""
     repo = Path(__file__).resolve().parents[2]
     got = json.loads(_run(f"""
@@ -69,15 +69,13 @@ def test_the_sim_configs_plant_and_feed_forward_compile_only_what_they_use(tmp_p
         ff = cfg.controller.feedforward.model.friction
         ff.step(ff.initial_state(), 1e-9, 1e-4, 1e-3)
         p.step(0.5, 1e-3)
-        from stagectl.jit import opt_level
         plain, integ, kstep = plant._LOOPS[id(gms._kstep)][0:2] + (gms._kstep,)
         print(json.dumps({{"step": len(kstep.overloads), "force": len(gms._kforce.overloads),
-                          "cycle": len(p._cycle.overloads), "cycle_opt": opt_level(p._cycle),
-                          "step_opt": opt_level(kstep),
+                          "cycle": len(p._cycle.overloads),
                           "plain": len(plain.overloads), "general": len(integ.overloads),
                           "lugre": len(lugre._kstep.overloads), "scipy_linalg": "scipy.linalg" in sys.modules}}))
     """, tmp_path / "nc"))
-    assert got == {"step": 1, "force": 0, "cycle": 1, "cycle_opt": 1, "step_opt": 3, "plain": 0, "general": 0,
+    assert got == {"step": 1, "force": 0, "cycle": 1, "plain": 0, "general": 0,
                    "lugre": 0, "scipy_linalg": False}
 
 
@@ -228,48 +226,3 @@ def test_identification_kernels_use_the_stagectl_cache_dir(tmp_path: Path) -> No
     cached = {p.name.split(".")[1].split("-")[0] for p in (tmp_path / "xdg" / "stagectl" / "numba").rglob("*.nbi")}
     assert {"maxwell_unit_states", "first_order_lag"} <= cached, cached
     assert run() == {"hits": 2}
-
-
-
-def test_a_kernels_optimisation_level_is_its_own_and_part_of_the_key(tmp_path: Path) -> None:
-    """``kernel(opt=1)`` runs that kernel's LLVM passes at level 1 and nothing else's: a level-3 kernel that
-    numba compiles while typing it (its callee) is optimised at 3, and numba's level is 3 again afterwards. The
-    level is in the cache key: the same unchanged source declared at another level is compiled, not loaded."""
-    pkg = tmp_path / "src"
-    pkg.mkdir()
-    (pkg / "jit_e.py").write_text(textwrap.dedent("""
-        import os
-        from stagectl.jit import kernel
-
-        @kernel
-        def callee(x):
-            return x * 0.5
-
-        @kernel(opt=int(os.environ.get("JIT_E_OPT", "1")))
-        def caller(x):
-            return callee(x) + 1.0
-    """))
-    code = """
-        import json
-        from numba.core import codegen, config
-        import jit_e
-        from stagectl.jit import loaded_from_cache, opt_level
-
-        levels = {}
-        orig = codegen.CPUCodeLibrary._optimize_final_module
-        def spy(self):  # numba's module passes of one compiled library, at the level in effect
-            levels[self.name.split(".")[-1]] = int(config.OPT)
-            return orig(self)
-        codegen.CPUCodeLibrary._optimize_final_module = spy
-        r = jit_e.caller(3.0)
-        print(json.dumps({"r": r, "levels": levels, "after": int(config.OPT), "opt": opt_level(jit_e.caller),
-                          "hits": loaded_from_cache(jit_e.caller)}))
-    """
-    cache = tmp_path / "nc"
-    first = json.loads(_run(code, cache, pkg))
-    assert first["r"] == 2.5 and first["opt"] == 1 and first["after"] == 3 and first["hits"] == 0
-    assert {k: v for k, v in first["levels"].items() if k in ("caller", "callee")} == {"caller": 1, "callee": 3}
-    second = json.loads(_run(code, cache, pkg))
-    assert second["hits"] == 1 and not {"caller", "callee"} & set(second["levels"])  # loaded, nothing optimised
-    third = json.loads(_run(code, cache, pkg, env={"JIT_E_OPT": "2"}))
-    assert third["opt"] == 2 and third["hits"] == 0 and third["levels"].get("caller") == 2

@@ -85,7 +85,7 @@ def test_fused_loop_equals_a_plain_python_rigid_body_loop(spec):
 
 @pytest.mark.parametrize("spec", [GMS, DAHL])
 def test_the_per_cycle_step_equals_the_simulate_loop_bit_for_bit(spec):
-    """``step`` of a plain plant runs its own kernel (the model's step called, LLVM level 1), ``simulate`` the
+    """``step`` of a plain plant runs its own kernel (the model's step called), ``simulate`` the
     fully optimised loop with the step pasted in: the same arithmetic in the same order, so the same bits in
     every state variable, with a constant F_other (offset) and 1-, 5- and 7-sub-step cycles."""
     from stagectl.friction import parse_effects
