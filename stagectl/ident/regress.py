@@ -284,7 +284,9 @@ def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, key
     sub = gs.m[ia[:, None], ia]
     missing = np.isnan(sub)
     if missing.any():
-        for u, w in zip(*np.nonzero(np.triu(missing))):
+        mu, mw = np.nonzero(missing)  # row-major, as np.nonzero(np.triu(missing)) after keeping u <= w
+        upper = mu <= mw
+        for u, w in zip(mu[upper].tolist(), mw[upper].tolist()):
             val = float(vec(kj[u]) @ vec(kj[w]))
             sub[u, w] = sub[w, u] = val
             gs.m[ids[u], ids[w]] = gs.m[ids[w], ids[u]] = val
@@ -460,7 +462,10 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     # the passive set of the last bounded fit with the same columns starts the next one (a shape search
     # refits the same columns many times)
     warm = cast(dict[object, npt.NDArray[np.bool_]], sig.cache.setdefault("_passive", {}))
-    n = int(rows.sum())
+    counts = cast(dict[str, int], sig.cache.setdefault("_rowcount", {}))
+    n = counts.get(rk)
+    if n is None:
+        n = counts[rk] = int(rows.sum())
     for _ in range(passes):
         cols, st, y = _filtered_design(sig, hh)
         g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey, rk)

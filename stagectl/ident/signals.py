@@ -59,9 +59,11 @@ class ArrayCache(dict[str, object]):
         self._lru: OrderedDict[str, int] = OrderedDict()  # array keys, least recently used first, with nbytes
 
     def get(self, key: str, default: object = None) -> object:
-        if key in self._lru:
-            self._lru.move_to_end(key)
-        return dict.get(self, key, default)
+        try:
+            self._lru.move_to_end(key)  # an array: now the most recently used
+        except KeyError:
+            return dict.get(self, key, default)
+        return dict.__getitem__(self, key)
 
     def __setitem__(self, key: str, value: object) -> None:
         if key in self._lru:
