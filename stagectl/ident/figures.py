@@ -206,7 +206,7 @@ class Panel:
         if not self.legend_items:
             return
         d, fnt = self.fig.draw, _font(font)
-        x0, y0, x1, y1 = self.box
+        _, y0, x1, y1 = self.box
         line_h = (font + 5) * SS
         key = 18 * SS
         w = max(fnt.getlength(lab) for lab, _, _ in self.legend_items) + key + 10 * SS

@@ -25,7 +25,6 @@ from typing import cast
 
 import numpy as np
 import numpy.typing as npt
-
 from numpy.linalg import _umath_linalg
 
 from stagectl.ident import effects as fx

@@ -148,7 +148,9 @@ class Signals:
         one by one); each result is a contiguous row of one (k, n) array."""
         if not raws:
             return []
-        out = filtfilt_rows(self.sos, np.stack(raws), self.moving)
+        # one signal (most calls of a shape search): a (1, n) view, not a stacked copy
+        x = np.reshape(raws[0], (1, -1)) if len(raws) == 1 else np.stack(raws)
+        out = filtfilt_rows(self.sos, x, self.moving)
         return list(out)
 
     def noise_floor_n(self, mass_kg: float) -> float:

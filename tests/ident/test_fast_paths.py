@@ -70,11 +70,12 @@ def test_discover_in_process_returns_its_code_and_the_console_script_exits_with_
     called in-process it returns its exit code; as a process it exits with the same code and its output."""
     import subprocess
 
-    from stagectl.cli import main
     from support import stagectl_cmd
+
+    from stagectl.cli import main
 
     missing = str(tmp_path / "missing.csv")
     assert main(["discover", missing, "--out", str(tmp_path / "a")]) == 2  # still running: returned, not exited
-    p = subprocess.run([*stagectl_cmd(), "discover", missing, "--out", str(tmp_path / "b")], capture_output=True,
-                       text=True, timeout=120)
+    p = subprocess.run([*stagectl_cmd(), "discover", missing, "--out", str(tmp_path / "b")], check=False,
+                       capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "missing.csv" in p.stderr and p.stderr.endswith("\n")
