@@ -176,34 +176,12 @@ def _was_interrupted(exc: BaseException) -> bool:
     return _interrupted
 
 
-#: set by :func:`_main` when the command asked to skip the interpreter's teardown (``fast_exit`` in its defaults)
-_fast_exit = False
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    global _fast_exit
-    _fast_exit = False
     restore = _catch_sigint()
     try:
-        rc = _main(argv)
+        return _main(argv)
     finally:
         restore()
-    if argv is None and _fast_exit:  # the console script (in-process callers pass argv and get rc back)
-        _exit_without_teardown(rc)
-    return rc
-
-
-def _exit_without_teardown(rc: int) -> None:
-    """End the process now, after flushing stdout and stderr: a one-shot command that has written and closed
-    its outputs skips the interpreter's teardown (finalising the numba/LLVM and numpy modules and freeing
-    hundreds of MB of caches), 0.1-0.2 s of CPU after `stagectl discover` on EMPS. No atexit handler
-    is run, so only commands without one (no threads, no logging to files) opt in."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe: the output is gone either way
-            pass
-    os._exit(rc)
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -217,8 +195,6 @@ def _main(argv: Sequence[str] | None) -> int:
     first = COMMAND_ALIASES.get(argv[0], first) if first is not None else None
     parser = build_parser(first if first in COMMAND_MODULES else None)
     args = parser.parse_args(argv)
-    global _fast_exit
-    _fast_exit = bool(getattr(args, "fast_exit", False))
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -37,9 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr (for scripts)")
-    # one-shot: outputs written and closed when run() returns, so the console script ends without the
-    # interpreter's teardown (stagectl.cli._exit_without_teardown, 0.1-0.2 s of CPU)
-    p.set_defaults(func=run, fast_exit=True)
+    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

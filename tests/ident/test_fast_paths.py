@@ -63,19 +63,3 @@ def test_figure_draws_the_line_where_the_data_are(tmp_path: Path) -> None:
     on_line = np.abs(rows - 50) <= 1
     assert on_line.sum() > 50
     assert cols[on_line].max() + 20 < 0.1 * 200 + 0.5 * 160 + 3
-
-
-def test_discover_in_process_returns_its_code_and_the_console_script_exits_with_it(tmp_path: Path) -> None:
-    """`discover` skips the interpreter's teardown only as the console script (argv from the command line):
-    called in-process it returns its exit code; as a process it exits with the same code and its output."""
-    import subprocess
-
-    from support import stagectl_cmd
-
-    from stagectl.cli import main
-
-    missing = str(tmp_path / "missing.csv")
-    assert main(["discover", missing, "--out", str(tmp_path / "a")]) == 2  # still running: returned, not exited
-    p = subprocess.run([*stagectl_cmd(), "discover", missing, "--out", str(tmp_path / "b")], check=False,
-                       capture_output=True, text=True, timeout=120)
-    assert p.returncode == 2 and "missing.csv" in p.stderr and p.stderr.endswith("\n")
