@@ -51,18 +51,3 @@ def first_order_lag(e_ss: FloatArray, dt: float, tau: float, e0: float) -> Float
         e = e_ss[k] + (e - e_ss[k]) * a
         out[k] = e
     return out
-
-
-@kernel
-def sin_cos_of_position(x: FloatArray, wavelength: float) -> FloatArray:  # pragma: no cover - compiled
-    """``[sin(2πx/λ), cos(2πx/λ)]`` as a (2, n) array, with the phase ``2π·x/λ`` rounded as numpy rounds
-    ``2.0 * np.pi * x / lam`` and the same libm sin/cos numpy calls for float64 (the same values, checked in
-    tests/ident/test_kernels_sincos.py), in one pass over ``x`` instead of three array passes."""
-    n = x.shape[0]
-    out = np.empty((2, n))
-    c = 2.0 * np.pi
-    for i in range(n):
-        ph = c * x[i] / wavelength
-        out[0, i] = np.sin(ph)
-        out[1, i] = np.cos(ph)
-    return out

@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.friction import build
-from stagectl.ident._kernels import first_order_lag, maxwell_unit_states, sin_cos_of_position
+from stagectl.ident._kernels import first_order_lag, maxwell_unit_states
 from stagectl.ident.signals import Signals
 
 FloatArray = npt.NDArray[np.float64]
@@ -75,5 +75,12 @@ def stribeck_shape(sig: Signals, vs: float, delta: float, lag_s: float) -> Float
 
 def position_sin_cos(sig: Signals, lam: float) -> tuple[FloatArray, FloatArray]:
     """``sin(2πx/λ)`` and ``cos(2πx/λ)`` of the filtered position for wavelength ``lam`` [m]."""
-    both = cached(sig, f"sincos2:{lam:.9e}", lambda: sin_cos_of_position(np.ascontiguousarray(sig.xf), float(lam)))
+    def make() -> FloatArray:
+        ph = 2.0 * np.pi * sig.xf / lam
+        both = np.empty((2, ph.shape[0]))
+        np.sin(ph, out=both[0])
+        np.cos(ph, out=both[1])
+        return both
+
+    both = cached(sig, f"sincos2:{lam:.9e}", make)
     return both[0], both[1]
