@@ -25,6 +25,7 @@ from typing import cast
 
 import numpy as np
 import numpy.typing as npt
+from numpy.linalg import _umath_linalg
 
 from stagectl.ident import effects as fx
 from stagectl.ident.columns import given_force
@@ -278,20 +279,48 @@ def _gram(sig: Signals, rows: BoolArray, a: list[FloatArray], y: FloatArray, key
     full = np.empty((p + 1, p + 1))
     kj = [j for j in range(p + 1) if allk[j] is not None]
     ids = gs.ids([cast(str, allk[j]) for j in kj])
-    sub = gs.m[np.ix_(ids, ids)]
+    ia = np.asarray(ids)
+    sub = gs.m[ia[:, None], ia]
     missing = np.isnan(sub)
     if missing.any():
-        for u, w in zip(*np.nonzero(np.triu(missing))):
+        mu, mw = np.nonzero(missing)  # row-major, as np.nonzero(np.triu(missing)) after keeping u <= w
+        upper = mu <= mw
+        for u, w in zip(mu[upper].tolist(), mw[upper].tolist()):
             val = float(vec(kj[u]) @ vec(kj[w]))
             sub[u, w] = sub[w, u] = val
             gs.m[ids[u], ids[w]] = gs.m[ids[w], ids[u]] = val
-    full[np.ix_(kj, kj)] = sub
+    ka = np.asarray(kj)
+    full[ka[:, None], ka] = sub
     for j in range(p + 1):
         if allk[j] is None:  # a fit-dependent column: every product afresh
             for i in range(p + 1):
                 if allk[i] is not None or i <= j:
                     full[i, j] = full[j, i] = float(vec(min(i, j)) @ vec(max(i, j)))
     return full[:p, :p].copy(), full[:p, p].copy(), float(full[p, p])
+
+
+# ---------------------------------------------------------------------------------------------- small solves
+# The fits solve thousands of p x p systems (p <= ~30): numpy.linalg's argument checks cost 3-4 times the LAPACK
+# call itself. These call the same gufuncs under the same floating-point error handling (same results, bit for
+# bit; a singular or indefinite matrix raises LinAlgError as numpy.linalg does).
+def _raise_singular(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("Singular matrix")
+
+
+def _raise_nonposdef(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+
+def _lsolve(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``np.linalg.solve(a, b)`` for a float64 square ``a`` and vector ``b``."""
+    with np.errstate(call=_raise_singular, invalid="call", over="ignore", divide="ignore", under="ignore"):
+        return cast(FloatArray, _umath_linalg.solve1(a, b, signature="dd->d"))
+
+
+def _cholesky(a: FloatArray) -> FloatArray:
+    """``np.linalg.cholesky(a)`` (lower factor) for a float64 square ``a``."""
+    with np.errstate(call=_raise_nonposdef, invalid="call", over="ignore", divide="ignore", under="ignore"):
+        return cast(FloatArray, _umath_linalg.cholesky_lo(a, signature="d->d"))
 
 
 def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_],
@@ -315,7 +344,7 @@ def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_],
         z = np.zeros(p)
         if mask.any():
             idx = np.flatnonzero(mask)
-            z[idx] = np.linalg.solve(g[np.ix_(idx, idx)], b[idx])
+            z[idx] = _lsolve(g[idx[:, None], idx], b[idx])
         return z
 
     tol = 1e-12 * max(float(np.max(np.abs(b))), 1e-300)  # gradient components below it count as zero
@@ -363,15 +392,15 @@ def solve_gram(nonneg: Sequence[bool], g0: FloatArray, b0: FloatArray, yy: float
     p = g.shape[0]
     g[np.diag_indices(p)] += 1e-12 * max(float(np.trace(g)), 1e-300)
     try:
-        r = np.linalg.cholesky(g).T
+        r = _cholesky(g).T
     except np.linalg.LinAlgError:
         g[np.diag_indices(p)] += 1e-8 * float(np.trace(g))
-        r = np.linalg.cholesky(g).T
-    c = np.linalg.solve(r.T, b)
+        r = _cholesky(g).T
+    c = _lsolve(r.T, b)
     base = max(yy - float(c @ c), 0.0)
     lo = np.array([0.0 if nn else -np.inf for nn in nonneg])
     hi = np.full(p, np.inf)
-    sol = np.linalg.solve(r, c)
+    sol = _lsolve(r, c)
     th = sol / scale
     if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
         sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo), start)
@@ -396,16 +425,16 @@ def solve(nonneg: Sequence[bool], a: FloatArray, y: FloatArray) -> tuple[FloatAr
     p = g.shape[0]
     g[np.diag_indices(p)] += 1e-12 * max(float(np.trace(g)), 1e-300)
     try:
-        r = np.linalg.cholesky(g).T
+        r = _cholesky(g).T
     except np.linalg.LinAlgError:
         g[np.diag_indices(p)] += 1e-8 * float(np.trace(g))
-        r = np.linalg.cholesky(g).T
-    c = np.linalg.solve(r.T, b)
+        r = _cholesky(g).T
+    c = _lsolve(r.T, b)
     yy = float(y @ y)
     base = max(yy - float(c @ c), 0.0)
     lo = np.array([0.0 if nn else -np.inf for nn in nonneg])
     hi = np.full(p, np.inf)
-    sol = np.linalg.solve(r, c)
+    sol = _lsolve(r, c)
     th = sol / scale
     if not (np.all(th >= lo - 1e-12) and np.all(th <= hi + 1e-12)):
         sol = nonneg_lstsq(r, np.asarray(c, dtype=np.float64), np.isfinite(lo))
@@ -432,7 +461,10 @@ def fit_linear(sig: Signals, h: Hyp, rows: BoolArray) -> FitResult:
     # the passive set of the last bounded fit with the same columns starts the next one (a shape search
     # refits the same columns many times)
     warm = cast(dict[object, npt.NDArray[np.bool_]], sig.cache.setdefault("_passive", {}))
-    n = int(rows.sum())
+    counts = cast(dict[str, int], sig.cache.setdefault("_rowcount", {}))
+    n = counts.get(rk)
+    if n is None:
+        n = counts[rk] = int(rows.sum())
     for _ in range(passes):
         cols, st, y = _filtered_design(sig, hh)
         g, b, yy = _gram(sig, rows, st.cols, y, st.keys, st.ykey, rk)

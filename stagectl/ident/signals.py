@@ -59,9 +59,11 @@ class ArrayCache(dict[str, object]):
         self._lru: OrderedDict[str, int] = OrderedDict()  # array keys, least recently used first, with nbytes
 
     def get(self, key: str, default: object = None) -> object:
-        if key in self._lru:
-            self._lru.move_to_end(key)
-        return dict.get(self, key, default)
+        try:
+            self._lru.move_to_end(key)  # an array: now the most recently used
+        except KeyError:
+            return dict.get(self, key, default)
+        return dict.__getitem__(self, key)
 
     def __setitem__(self, key: str, value: object) -> None:
         if key in self._lru:
@@ -146,7 +148,9 @@ class Signals:
         one by one); each result is a contiguous row of one (k, n) array."""
         if not raws:
             return []
-        out = filtfilt_rows(self.sos, np.stack(raws), self.moving)
+        # one signal (most calls of a shape search): a (1, n) view, not a stacked copy
+        x = np.reshape(raws[0], (1, -1)) if len(raws) == 1 else np.stack(raws)
+        out = filtfilt_rows(self.sos, x, self.moving)
         return list(out)
 
     def noise_floor_n(self, mass_kg: float) -> float:

@@ -5,8 +5,10 @@ nearly collinear columns and free columns."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.optimize import lsq_linear
 
+from stagectl.ident import regress as rg
 from stagectl.ident.regress import nonneg_lstsq
 
 
@@ -51,3 +53,21 @@ def test_a_warm_start_ends_at_the_cold_start_solution_bit_for_bit() -> None:
             assert np.array_equal(nonneg_lstsq(r, c, nonneg, guess), cold), trial
         warm_used += int((right & nonneg).any())
     assert warm_used > 100
+
+
+def test_direct_lapack_calls_equal_numpy_linalg_and_raise_the_same() -> None:
+    """The fits call numpy's LAPACK gufuncs without numpy.linalg's argument checks: the same values bit for bit,
+    and singular or indefinite matrices still raise LinAlgError."""
+
+    rng = np.random.default_rng(4)
+    for p in (1, 3, 9, 25):
+        a = rng.standard_normal((p, p))
+        g = a @ a.T + p * np.eye(p)
+        b = rng.standard_normal(p)
+        assert np.array_equal(rg._lsolve(g, b), np.linalg.solve(g, b))
+        assert np.array_equal(rg._lsolve(g.T, b), np.linalg.solve(g.T, b))
+        assert np.array_equal(rg._cholesky(g), np.linalg.cholesky(g))
+    with pytest.raises(np.linalg.LinAlgError):
+        rg._lsolve(np.zeros((3, 3)), np.ones(3))
+    with pytest.raises(np.linalg.LinAlgError):
+        rg._cholesky(-np.eye(3))
