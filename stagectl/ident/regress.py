@@ -21,11 +21,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
-from numpy.linalg import _umath_linalg
 
 from stagectl.ident import effects as fx
 from stagectl.ident.columns import given_force
@@ -311,16 +310,44 @@ def _raise_nonposdef(err: str, flag: int) -> None:
     raise np.linalg.LinAlgError("Matrix is not positive definite")
 
 
-def _lsolve(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``np.linalg.solve(a, b)`` for a float64 square ``a`` and vector ``b``."""
+def _fast_lsolve(a: FloatArray, b: FloatArray) -> FloatArray:
     with np.errstate(call=_raise_singular, invalid="call", over="ignore", divide="ignore", under="ignore"):
-        return cast(FloatArray, _umath_linalg.solve1(a, b, signature="dd->d"))
+        return cast(FloatArray, _UL.solve1(a, b, signature="dd->d"))
 
 
-def _cholesky(a: FloatArray) -> FloatArray:
-    """``np.linalg.cholesky(a)`` (lower factor) for a float64 square ``a``."""
+def _fast_cholesky(a: FloatArray) -> FloatArray:
     with np.errstate(call=_raise_nonposdef, invalid="call", over="ignore", divide="ignore", under="ignore"):
-        return cast(FloatArray, _umath_linalg.cholesky_lo(a, signature="d->d"))
+        return cast(FloatArray, _UL.cholesky_lo(a, signature="d->d"))
+
+
+def _public_lsolve(a: FloatArray, b: FloatArray) -> FloatArray:
+    return cast(FloatArray, np.linalg.solve(a, b))
+
+
+def _public_cholesky(a: FloatArray) -> FloatArray:
+    return cast(FloatArray, np.linalg.cholesky(a))
+
+
+def _pick_solvers() -> tuple[Callable[[FloatArray, FloatArray], FloatArray], Callable[[FloatArray], FloatArray]]:
+    """numpy's private gufuncs when they exist and agree bit for bit with numpy.linalg on a probe (numpy may
+    rename or change them in any release), else numpy.linalg itself: same results, only slower."""
+    try:
+        a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+        b = np.array([1.0, -2.0, 0.5])
+        if (np.array_equal(_fast_lsolve(a, b), np.linalg.solve(a, b))
+                and np.array_equal(_fast_cholesky(a), np.linalg.cholesky(a))):
+            return _fast_lsolve, _fast_cholesky
+    except Exception:  # noqa: BLE001 - any failure of a private API means: use the public one
+        pass
+    return _public_lsolve, _public_cholesky
+
+
+_UL: Any
+try:
+    from numpy.linalg import _umath_linalg as _UL  # private: guarded by _pick_solvers
+except ImportError:  # pragma: no cover - a numpy without it
+    _UL = None
+_lsolve, _cholesky = _pick_solvers()
 
 
 def nonneg_lstsq(r: FloatArray, c: FloatArray, nonneg: npt.NDArray[np.bool_],

@@ -71,3 +71,14 @@ def test_direct_lapack_calls_equal_numpy_linalg_and_raise_the_same() -> None:
         rg._lsolve(np.zeros((3, 3)), np.ones(3))
     with pytest.raises(np.linalg.LinAlgError):
         rg._cholesky(-np.eye(3))
+
+
+def test_a_numpy_without_the_private_gufuncs_falls_back_to_numpy_linalg(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fast small solves use numpy's private gufuncs only when they exist and agree with numpy.linalg on a
+    probe; a numpy that renamed or changed them gets numpy.linalg (same results, slower), never an error."""
+    assert rg._pick_solvers() == (rg._fast_lsolve, rg._fast_cholesky)  # this numpy: the fast path is taken
+    monkeypatch.setattr(rg, "_UL", object())  # renamed gufuncs: AttributeError inside the probe
+    lsolve, chol = rg._pick_solvers()
+    assert (lsolve, chol) == (rg._public_lsolve, rg._public_cholesky)
+    a = np.array([[2.0, 0.5], [0.5, 1.0]])
+    assert np.array_equal(lsolve(a, np.array([1.0, 2.0])), np.linalg.solve(a, np.array([1.0, 2.0])))
