@@ -335,6 +335,8 @@ def lockstep_sdo_reader(sdo: Any, bus: can.BusABC, listeners: list[can.Listener]
     from canopen.sdo.client import SdoClient
     from canopen.sdo.exceptions import SdoCommunicationError
 
+    canopen_read: Callable[[Any], bytes] = SdoClient.read_response
+
     def dispatch(msg: can.Message | None) -> None:
         while msg is not None:
             for listener in listeners:
@@ -347,8 +349,7 @@ def lockstep_sdo_reader(sdo: Any, bus: can.BusABC, listeners: list[can.Listener]
             pump()
             dispatch(bus.recv(0.0))
             if not sdo.responses.empty():
-                response: bytes = SdoClient.read_response(sdo)  # returns at once (raises on an abort)
-                return response
+                return canopen_read(sdo)  # returns at once (raises SdoAbortedError on an abort)
             now = time.monotonic()
             if deadline is None:
                 deadline = now + sdo.RESPONSE_TIMEOUT
