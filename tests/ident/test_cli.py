@@ -158,8 +158,8 @@ def test_discover_accepts_a_recording_with_gaps_and_says_it_resampled(spring_sta
     np.savetxt(gappy, data[keep], delimiter=",", header="t_s,position_m,force_N,reference_m", comments="",
                fmt="%.17g")
     out = tmp_path / "out"
-    p = _cli("discover", str(gappy), "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m", "--out",
-             str(out), "--json", "--no-plots", "--max-rounds", "1")
+    p = cli_in_process(["discover", str(gappy), "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m",
+                        "--out", str(out), "--json", "--no-plots", "--max-rounds", "1"])  # the note, not the process
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
     assert any("resampled onto a uniform" in n for n in rep["data_notes"]), rep["data_notes"]
