@@ -32,6 +32,7 @@ import inspect
 import logging
 import re
 import threading
+import time
 import typing
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -318,6 +319,47 @@ def pumping(pump: Callable[[], object] | None, name: str) -> Iterator[None]:
         raise DriverError(f"{name}: simulated peer failed while configuring: {errors[0]}") from errors[0]
 
 
+def lockstep_sdo_reader(sdo: Any, bus: can.BusABC, listeners: list[can.Listener],
+                        pump: Callable[[], object]) -> Callable[[], bytes]:
+    """Lock-step replacement for canopen's ``SdoClient.read_response`` (installed per client instance).
+
+    canopen waits for an SDO answer on a queue that a Notifier thread fills, for ``RESPONSE_TIMEOUT`` of wall
+    time; with a simulated peer served by ``pump()`` from yet another thread, a loaded machine that left those
+    threads unscheduled for that long aborted the transfer (0x05040000) although the peer would have answered.
+    Here the waiting thread does it all in order: ``pump()`` (the peer handles the request and answers), then
+    every frame on the bus goes to canopen's listeners, as the Notifier would pass it. An in-process peer has
+    answered after the first round, so the outcome never depends on the wall clock. Only when a round brought
+    no answer (a peer in another process, or none) does it wait for frames, pumping again, for
+    ``RESPONSE_TIMEOUT`` as canopen would.
+    """
+    from canopen.sdo.client import SdoClient
+    from canopen.sdo.exceptions import SdoCommunicationError
+
+    canopen_read: Callable[[Any], bytes] = SdoClient.read_response
+
+    def dispatch(msg: can.Message | None) -> None:
+        while msg is not None:
+            for listener in listeners:
+                listener(msg)
+            msg = bus.recv(0.0)
+
+    def read_response() -> bytes:
+        deadline: float | None = None
+        while True:
+            pump()
+            dispatch(bus.recv(0.0))
+            if not sdo.responses.empty():
+                return canopen_read(sdo)  # returns at once (raises SdoAbortedError on an abort)
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + sdo.RESPONSE_TIMEOUT
+            elif now >= deadline:
+                raise SdoCommunicationError("No SDO response received")
+            dispatch(bus.recv(min(0.002, deadline - now)))
+
+    return read_response
+
+
 class CanopenNode:
     """Mixin for drivers of one CANopen node: bus + canopen ``Network`` + ``RemoteNode`` (SDO), and a
     ``can.Notifier`` that runs only while canopen has to receive (configuration over SDO); during cyclic
@@ -348,21 +390,55 @@ class CanopenNode:
             raise DriverInitError(f"{self.name}: cannot start CANopen network: {exc}") from exc
 
     def _start_notifier(self) -> None:
+        """Let canopen receive: a Notifier thread, or in lock-step (a ``pump`` was set before ``open``) the
+        SDO client's waiting thread itself (:func:`lockstep_sdo_reader`, no wall-clock race)."""
         if self._notifier is None and self._bus is not None and self._network is not None:
+            pump: Callable[[], object] | None = getattr(self, "_pump", None)
+            if pump is not None:
+                if "read_response" not in vars(self._node.sdo):
+                    self._node.sdo.read_response = lockstep_sdo_reader(self._node.sdo, self._bus,
+                                                                       self._network.listeners, pump)
+                return
             self._notifier = can.Notifier(self._bus, self._network.listeners, 0.05)
 
+    @property
+    def _sdo_lockstep(self) -> bool:
+        """True while the SDO client serves the simulated peer itself (then no helper thread may pump)."""
+        return self._node is not None and "read_response" in vars(self._node.sdo)
+
     def _stop_notifier(self) -> None:
-        if self._notifier is not None:
-            try:
-                self._notifier.stop(0.5)
-            except Exception:  # noqa: BLE001 - close paths must not raise
-                logging.getLogger(__name__).debug("notifier stop failed", exc_info=True)
-            self._notifier = None
+        """Stop the Notifier and wait for its thread to end (at most ~0.5 s).
+
+        A Ctrl-C (KeyboardInterrupt) that arrives while ``Notifier.stop`` joins the thread is re-raised only
+        after the thread has ended: raised at once, it left the thread reading a bus that the caller's
+        clean-up then closed, and python-can printed the thread's exception with a traceback over the one
+        "interrupted" line (or the interpreter's exit cut it off half way)."""
+        if self._node is not None:
+            vars(self._node.sdo).pop("read_response", None)  # lock-step reader: canopen's own again
+        notifier, self._notifier = self._notifier, None
+        if notifier is None:
+            return
+        try:
+            notifier.stop(0.5)
+        except Exception:  # noqa: BLE001 - close paths must not raise
+            logging.getLogger(__name__).debug("notifier stop failed", exc_info=True)
+        except BaseException:  # KeyboardInterrupt / SystemExit half way through the join: finish it, then raise
+            for _ in range(3):  # a further Ctrl-C during this join: join again (the first one is raised anyway)
+                try:
+                    notifier.stop(0.5)  # idempotent: the thread is already told to stop; join and unregister
+                    break
+                except KeyboardInterrupt:
+                    continue
+                except Exception:  # noqa: BLE001 - close paths must not raise
+                    break
+            raise
 
     def _teardown(self) -> None:
-        """Stop the Notifier and close the bus; never raises."""
-        self._stop_notifier()
-        close_bus(self._bus)
-        self._bus = None
-        self._network = None
-        self._node = None
+        """Stop the Notifier and close the bus; never raises (but passes a Ctrl-C on, bus closed)."""
+        try:
+            self._stop_notifier()
+        finally:
+            close_bus(self._bus)
+            self._bus = None
+            self._network = None
+            self._node = None

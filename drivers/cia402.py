@@ -68,7 +68,9 @@ counted per cycle (heartbeat age) use ``cycles × period_s``, so they hold in lo
 Once a fault is latched, ``write()`` sends quick stop (controlword 0x0002) with zero torque.
 
 Lock-step: with ``set_pump(pump)``, waiting for the TPDO is ``pump()`` followed by non-blocking polls;
-during ``configure`` (SDO) a helper thread keeps pumping while the SDO client waits.
+during ``configure`` (SDO) the SDO client's waiting thread pumps and reads the answer itself
+(:func:`~stagectl.drivers.canbus.lockstep_sdo_reader`: no wall-clock time-out race on a loaded machine) when the
+pump was set before ``open``; set later, a helper thread keeps pumping while canopen's Notifier receives.
 """
 
 from __future__ import annotations
@@ -543,7 +545,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     def _do_configure(self) -> None:
         self._start_notifier()
         nid = self.cfg.node_id
-        with pumping(self._pump, self.name):
+        with pumping(None if self._sdo_lockstep else self._pump, self.name):
             self._node.nmt.send_command(0x80)  # enter PRE-OPERATIONAL (PDOs off while remapping)
             dtype = self._sdo_read(0x1000, 0, "<I", "device type")
             if dtype & 0xFFFF != 402:

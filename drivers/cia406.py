@@ -124,7 +124,7 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
     def _do_configure(self) -> None:
         self._start_notifier()
         nid = self.cfg.node_id
-        with pumping(self._pump, self.name):
+        with pumping(None if self._sdo_lockstep else self._pump, self.name):
             self._node.nmt.send_command(0x80)
             dtype = self._sdo(0x1000, 0, "<I", None, "device type")
             if dtype & 0xFFFF != 406:

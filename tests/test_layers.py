@@ -170,8 +170,16 @@ def import_graph(sources: dict[str, tuple[str, bool]],
                  modules: dict[str, tuple[Path, bool]]) -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {}
     for mod, (src, is_pkg) in sources.items():
-        graph[mod] = {imp for imp, _ in imports_of(mod, src, is_pkg, modules) if imp in modules and imp != mod}
+        key = (mod, src, is_pkg, id(modules))  # a module's imports are parsed once per source text (a mutated
+        if key not in _EDGES:  # module's new text is parsed afresh)
+            _EDGES[key] = frozenset(imp for imp, _ in imports_of(mod, src, is_pkg, modules)
+                                    if imp in modules and imp != mod)
+        graph[mod] = set(_EDGES[key])
     return graph
+
+
+#: import_graph's parsed edges by (module, source text, is package, id of the module table)
+_EDGES: dict[tuple[str, str, bool, int], frozenset[str]] = {}
 
 
 def cycles(graph: dict[str, set[str]]) -> list[list[str]]:

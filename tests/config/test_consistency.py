@@ -3,8 +3,6 @@ with the simulated devices they talk to, and the simulated devices an ``embedded
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,7 +15,7 @@ from stagectl.config import parse_app_config
 from stagectl.drivers.interferometer import InterferometerConfig
 from stagectl.errors import ConfigError
 
-from support import config_problems, shipped_config_mapping
+from support import cli_in_process, config_problems, shipped_config_mapping
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -27,8 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 def _check_config(tmp_path: Path, data: dict) -> tuple[int, list[str], str]:
     p = tmp_path / "bad.yaml"
     p.write_text(yaml.safe_dump(data))
-    r = subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", str(p)], capture_output=True,
-                       text=True, timeout=120)
+    r = cli_in_process(["check-config", str(p)])  # what check-config says, not a process start
     lines = [ln.removeprefix("stagectl: error: bad.yaml: ") for ln in r.stderr.splitlines()
              if ln.startswith("stagectl: error:")]
     return r.returncode, lines, r.stdout + r.stderr

@@ -4,7 +4,6 @@ interface, model files resolved once, and check-config running exactly the daemo
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,7 @@ from stagectl.config import AppConfig, load_app_config, parse_app_config
 from stagectl.config.checks import force_chain_problems
 from stagectl.errors import ConfigError
 
-from support import config_problems, shipped_config_mapping
+from support import cli_in_process, config_problems, shipped_config_mapping
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -25,8 +24,7 @@ REPO = Path(__file__).resolve().parents[2]
 def _check_config(tmp_path: Path, data: dict) -> subprocess.CompletedProcess[str]:
     p = tmp_path / "bad.yaml"
     p.write_text(yaml.safe_dump(data))
-    return subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", str(p)], capture_output=True,
-                          text=True, timeout=120)
+    return cli_in_process(["check-config", str(p)])  # what check-config says, not a process start
 
 
 def _error_lines(stderr: str) -> list[str]:

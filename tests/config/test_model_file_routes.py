@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -16,6 +14,8 @@ from stagectl.friction import load_model_file
 from stagectl.schema import load
 from stagectl.sim.plant import PlantConfig
 from stagectl.sim.world import SimWorldConfig
+
+from support import cli_in_process
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "config" / "models" / "kamenar2016_gms.yaml"
@@ -51,8 +51,7 @@ def test_check_config_still_reads_the_model_file(tmp_path):
     data["controller"]["feedforward"]["model_file"] = str(MODEL)
     p = tmp_path / "bad.yaml"
     p.write_text(yaml.safe_dump(data))
-    r = subprocess.run([sys.executable, "-m", "stagectl.cli", "check-config", str(p)], capture_output=True,
-                       text=True, timeout=120)
+    r = cli_in_process(["check-config", str(p)])  # what check-config says, not a process start
     assert r.returncode == 2 and "Traceback" not in r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith("stagectl: error:")]
     assert len(lines) == 1 and "sim.plant.model_file:" in lines[0] and "exist.yaml" in lines[0]

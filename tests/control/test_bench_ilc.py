@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 from stagectl.bench import ilc as bench
+
+from support import cli_in_process
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -52,7 +52,7 @@ def test_bench_ilc_triangle_learns_and_the_guard_catches_the_friction_change(tmp
 
 
 def test_simulate_ilc_needs_repetitions(tmp_path):
-    exe = Path(sys.executable).parent / "stagectl"
-    r = subprocess.run([str(exe), "simulate", "--config", str(REPO / "config" / "sim.yaml"), "--scenario", "steps",
-                        "--ilc", "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    # in process: the refusal is what is tested, not the installed script's start
+    r = cli_in_process(["simulate", "--config", str(REPO / "config" / "sim.yaml"), "--scenario", "steps", "--ilc",
+                        "--out", str(tmp_path)])
     assert r.returncode == 2 and "--repetitions" in r.stderr and "Traceback" not in r.stderr, r.stderr

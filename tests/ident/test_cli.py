@@ -13,6 +13,8 @@ import pytest
 from stagectl.friction import build, load_model_file
 from stagectl.ident import synth
 
+from support import cli_in_process
+
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "stagectl.cli", *args], capture_output=True, text=True,
@@ -156,8 +158,8 @@ def test_discover_accepts_a_recording_with_gaps_and_says_it_resampled(spring_sta
     np.savetxt(gappy, data[keep], delimiter=",", header="t_s,position_m,force_N,reference_m", comments="",
                fmt="%.17g")
     out = tmp_path / "out"
-    p = _cli("discover", str(gappy), "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m", "--out",
-             str(out), "--json", "--no-plots", "--max-rounds", "1")
+    p = cli_in_process(["discover", str(gappy), "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m",
+                        "--out", str(out), "--json", "--no-plots", "--max-rounds", "1"])  # the note, not the process
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
     assert any("resampled onto a uniform" in n for n in rep["data_notes"]), rep["data_notes"]
@@ -180,8 +182,9 @@ def test_extreme_but_valid_recordings_give_one_error_line(spring_stage, tmp_path
     bad = tmp_path / "bad.csv"
     np.savetxt(bad, data, delimiter=",", header="t_s,position_m,force_N,reference_m", comments="", fmt="%.17g")
     for cmd, extra in (("discover", ()), ("identify", ("--model", "stribeck"))):
-        p = _cli(cmd, str(bad), *extra, "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m", "--out",
-                 str(tmp_path / f"{cmd}.yaml"))
+        # in process: the refusal is what is tested (the subprocess runs are the tests above and below)
+        p = cli_in_process([cmd, str(bad), *extra, "--columns", "t=t_s,x=position_m,u=force_N,x_ref=reference_m",
+                            "--out", str(tmp_path / f"{cmd}.yaml")])
         assert p.returncode == 2, (cmd, p.stdout, p.stderr)
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("stagectl: error:"), p.stderr
