@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from stagectl.bench import tell
+from stagectl.errors import StageError
 
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
 TARGET_COLD_S = 2.0
@@ -128,10 +129,13 @@ def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) 
                              capture_output=True, text=True, timeout=600)
         ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         if out.returncode != 0 or not stamps.exists():
-            raise RuntimeError(f"start-up run failed (exit {out.returncode}): {out.stderr.strip()[-2000:]}")
+            last = (out.stderr.strip().splitlines() or ["no output"])[-1][:300]
+            raise StageError(f"bench startup: the start with {python} failed (exit {out.returncode}): {last}")
         r = json.loads(stamps.read_text())
     if "first" not in r:
-        raise RuntimeError("start-up run: the loop recorded no cycle")
+        raise StageError(f"bench startup: the start with {python} ran no control cycle this bench can see (an "
+                         "older stagectl lacks the module it hooks, stagectl.runtime.host); give --against an "
+                         "installation of the same layout")
     return {
         "first_cycle_s": r["first"] - t0,
         "interpreter_s": r["start"] - t0,
