@@ -52,7 +52,7 @@ def seed(repo_root):
 def test_steps_settle_without_limit_cycle_on_the_seed_stage(seed):
     """Shipped sim.yaml gains (PM >= 40 deg): every 10 µm step settles to ±10 nm and stays (no hunting); the
     controller's own detector reports in-position no later than the recording's settle time plus its dwell.
-    (The exact-model steps settle in 15-500 ms, README "Move and settle": the hold is 1.5 s so that "stays"
+    (The exact-model steps settle in about 20 ms, README "Move and settle"; the hold is 1.5 s so that "stays"
     is judged on its last 0.75 s.)"""
     from stagectl.bench.control import steps_check
 
