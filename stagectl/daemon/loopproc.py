@@ -121,8 +121,14 @@ def _arm_backstop() -> None:
         return
     _Ending.armed = True
     grace = _Ending.grace_s
-    signal.setitimer(signal.ITIMER_REAL, grace + HARD_KILL_AFTER_S)  # SIGALRM: SIG_DFL, set at the start
-    faulthandler.dump_traceback_later(grace, exit=True, file=2)
+    try:  # (never raise: this may run in a signal handler, at any point of the loop thread)
+        signal.setitimer(signal.ITIMER_REAL, grace + HARD_KILL_AFTER_S)  # SIGALRM: SIG_DFL, set at the start
+    except (OSError, ValueError):
+        pass
+    try:
+        faulthandler.dump_traceback_later(grace, exit=True, file=2)  # stacks to stderr (the journal), _exit(1)
+    except (OSError, ValueError, RuntimeError):
+        pass
 
 
 def _on_sigterm(stop: threading.Event) -> Callable[[int, Any], None]:
@@ -328,6 +334,8 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm(stop))
+    # the forking thread's signal mask is inherited: SIGTERM (the daemon's death) and SIGALRM must get through
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM, signal.SIGALRM})
     _set_pdeathsig(signal.SIGTERM)
     if os.getppid() != parent_pid:  # the daemon died before the request took effect
         return 1
