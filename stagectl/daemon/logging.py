@@ -156,11 +156,20 @@ class DaemonLogging:
     def dropped(self) -> int:
         return self.handler.dropped
 
-    def close(self) -> None:
-        """Flush queued records and restore the previous handlers."""
+    def close(self, timeout_s: float | None = None) -> None:
+        """Flush queued records and restore the previous handlers. ``timeout_s``: wait at most this long [s]
+        for the writer (None: until it has written everything; a writer blocked on a full stderr, e.g. a
+        stalled journal or a pipe nobody reads, then blocks this call for as long)."""
+        writer = self.listener._thread
         try:
-            self.listener.stop()
-        except Exception:  # noqa: BLE001 - stopping twice
+            if timeout_s is None:
+                self.listener.stop()
+            else:
+                self.listener.enqueue_sentinel()
+                if writer is not None:
+                    writer.join(timeout_s)
+                self.listener._thread = None
+        except Exception:  # noqa: BLE001 - stopping twice, or the queue full (then the writer is not waited for)
             pass
         self.root.removeHandler(self.handler)
         for h in self._old_handlers:
@@ -168,6 +177,8 @@ class DaemonLogging:
         self.root.setLevel(self._old_level)
         for name, lvl in self._quiet.items():
             logging.getLogger(name).setLevel(lvl)
+        if writer is not None and writer.is_alive():
+            return  # still blocked in a write, holding the stream handler's lock: a flush would wait for it
         try:
             self.stream_handler.flush()
         except Exception:  # noqa: BLE001

@@ -16,6 +16,22 @@ process**:
    status snapshot, take queued requests at the cycle boundary, post replies, end on request;
 5. sends its :class:`~stagectl.runtime.status.LoopResult`, closes the devices and exits with ``os._exit``.
 
+**Ending is bounded** (:func:`_arm_backstop`). From the moment the loop process is told to end (SIGTERM, which
+is also what the daemon's death delivers) or begins closing its devices for any reason, it is gone within
+:data:`END_GRACE_S` (5 s, the time the daemon itself gives it before SIGKILL): ``faulthandler`` then writes
+every thread's stack to stderr (the journal) and calls ``_exit(1)`` from its own C thread, which needs neither
+the GIL nor any lock of the process; should that write block (stderr full), the kernel ends the process
+:data:`HARD_KILL_AFTER_S` later on SIGALRM, whose default action nothing in this process overrides. Killed
+that way the drive is not disabled over the bus: it stops itself, since the SYNC and the controller heartbeat
+stop with the process (the drive's heartbeat consumer 0x1016 / SYNC supervision, docs/safety.md §7). That is
+the fault reaction the drive has anyway for a crashed controller; what the backstop prevents is an orphan that
+keeps the devices and the instance lock (a daemon restart waits 10 s for a dead daemon's loop process) with no
+end. Two ways a close could hang for ever are removed as well: the log writer's stop joined its thread without
+a time-out (a writer blocked on a full stderr, e.g. a stalled journal or a pipe nobody reads, kept the process
+forever; now :meth:`DaemonLogging.close` waits at most 1 s here), and the SIGTERM handler set the ``stop``
+event, which takes the event's lock: arriving while the loop thread (the main thread, where Python runs
+handlers) was inside its own ``stop.set()`` for the daemon's stop request, it waited for its own thread.
+
 Besides the loop thread it has only the queued log writer and, during a reload, one thread that designs
 the new tuning (observer gains) before the loop swaps it in. No client, socket, reload parsing, journal or
 telemetry file of the daemon can take this process's interpreter lock. The exclusive instance lock's file
@@ -25,6 +41,7 @@ descriptor is inherited, so a second daemon cannot start while an orphaned loop 
 from __future__ import annotations
 
 import ctypes
+import faulthandler
 import logging
 import math
 import os
@@ -80,6 +97,52 @@ log = logging.getLogger("stagectl.loop")
 Builder = Callable[[Any], Assembly]
 _KINDS = {v: k for k, v in KIND_CODES.items()}
 
+#: [s] once told to end (SIGTERM / the daemon's death) or closing, the loop process is gone within this long
+#: (faulthandler dumps the stacks and exits); the daemon's own RemoteLoop.close gives it as long before SIGKILL
+END_GRACE_S = 5.0
+#: [s] after END_GRACE_S the kernel ends the process on SIGALRM (default action) should the dump's write block
+HARD_KILL_AFTER_S = 2.0
+
+
+class _Ending:
+    """The loop process's end, shared with its SIGTERM handler (plain attributes: a handler takes no lock)."""
+
+    armed = False  # the backstop runs
+    setting_stop = False  # the loop thread is inside its own stop.set(): the handler must not call it too
+    grace_s = END_GRACE_S
+
+
+def _arm_backstop() -> None:
+    """From now on this process ends within ``grace_s`` (+ HARD_KILL_AFTER_S) whatever it is blocked in.
+
+    Idempotent (a second SIGTERM does not push the end back). Safe in a signal handler: a system call and
+    faulthandler's watchdog, no lock of this process."""
+    if _Ending.armed:
+        return
+    _Ending.armed = True
+    grace = _Ending.grace_s
+    try:  # (never raise: this may run in a signal handler, at any point of the loop thread)
+        signal.setitimer(signal.ITIMER_REAL, grace + HARD_KILL_AFTER_S)  # SIGALRM: SIG_DFL, set at the start
+    except (OSError, ValueError):
+        pass
+    try:
+        faulthandler.dump_traceback_later(grace, exit=True, file=2)  # stacks to stderr (the journal), _exit(1)
+    except (OSError, ValueError, RuntimeError):
+        pass
+
+
+def _on_sigterm(stop: threading.Event) -> Callable[[int, Any], None]:
+    def handler(signum: int, frame: Any) -> None:
+        _arm_backstop()
+        if _Ending.setting_stop:  # the loop thread (or this handler, nested), interrupted in set(), completes it
+            return
+        _Ending.setting_stop = True
+        try:
+            stop.set()
+        finally:
+            _Ending.setting_stop = False
+    return handler
+
 
 def _error_payload(exc: BaseException) -> dict[str, Any]:
     msg = str(exc) or type(exc).__name__
@@ -116,8 +179,12 @@ class Bridge:
             self.chained()
         self.publish()
         ctl = self.shm.ctl
-        if ctl[STOP_REQ]:
-            self.stop.set()
+        if ctl[STOP_REQ] and not self.stop.is_set():
+            _Ending.setting_stop = True  # a SIGTERM handler running inside set() must not take its lock again
+            try:
+                self.stop.set()
+            finally:
+                _Ending.setting_stop = False
         if ctl[CMD_HEAD] != ctl[CMD_TAIL]:
             self.take_requests()
 
@@ -259,12 +326,16 @@ def _set_pdeathsig(sig: int) -> None:
 
 
 def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemetry_buffer_s: float,
-           parent_pid: int, log_level: int, rt: tuple[int, int] | None) -> int:
+           parent_pid: int, log_level: int, rt: tuple[int, int] | None, end_grace_s: float) -> int:
     """The loop process's body (see the module docstring); returns its exit code."""
     stop = threading.Event()
+    _Ending.grace_s = end_grace_s
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)  # the backstop's last resort: the kernel ends the process
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda s, f: stop.set())
+    signal.signal(signal.SIGTERM, _on_sigterm(stop))
+    # the forking thread's signal mask is inherited: SIGTERM (the daemon's death) and SIGALRM must get through
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM, signal.SIGALRM})
     _set_pdeathsig(signal.SIGTERM)
     if os.getppid() != parent_pid:  # the daemon died before the request took effect
         return 1
@@ -323,6 +394,7 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
             conn.send({"result": result})
             return 0
         finally:
+            _arm_backstop()  # closing: bounded from here, whatever asm.close or the log writer block in
             try:
                 asm.close()
             except Exception:
@@ -331,7 +403,8 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
                 bridge.publish(running=False)
                 bridge.shm.ctl[PHASE] = 2
     finally:
-        logs.close()
+        _arm_backstop()
+        logs.close(timeout_s=1.0)  # a writer blocked on a full stderr must not keep the process
 
 
 def _is_config_error(exc: BaseException) -> bool:
@@ -341,11 +414,12 @@ def _is_config_error(exc: BaseException) -> bool:
 
 
 def spawn_loop_process(build: Builder, app_cfg: Any, *, telemetry_buffer_s: float, timeout_s: float,
-                       stopping: Callable[[], bool]) -> Assembly:
+                       stopping: Callable[[], bool], end_grace_s: float = END_GRACE_S) -> Assembly:
     """Fork the loop process, let it build the stage, attach its shared block; returns an Assembly whose
     ``loop`` is a :class:`~stagectl.daemon.remote.RemoteLoop` (``close`` ends the process).
     ``telemetry_buffer_s`` (0 = no telemetry) sizes the shared ring in loop time. Raises StageError (or ConfigError) when the
-    build fails or takes longer than ``timeout_s``."""
+    build fails or takes longer than ``timeout_s``. ``end_grace_s``: the loop process's backstop (see the
+    module docstring)."""
     parent_conn, child_conn = Pipe(duplex=True)
     wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
     parent_pid = os.getpid()
@@ -357,7 +431,8 @@ def spawn_loop_process(build: Builder, app_cfg: Any, *, telemetry_buffer_s: floa
         try:
             parent_conn.close()
             os.close(wake_r)
-            code = _child(build, app_cfg, child_conn, wake_w, telemetry_buffer_s, parent_pid, level, rt)
+            code = _child(build, app_cfg, child_conn, wake_w, telemetry_buffer_s, parent_pid, level, rt,
+                          end_grace_s)
         except BaseException:  # noqa: BLE001 - never return into the daemon's code
             traceback.print_exc()
         finally:

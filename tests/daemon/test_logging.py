@@ -52,3 +52,35 @@ def test_daemon_logging_writes_prefixed_lines_and_restores():
     dut.close()  # flushes the queue
     assert buf.getvalue() == "<6>stagectl.daemon: ready\n"
     assert root.handlers == before
+
+
+def test_close_with_a_timeout_returns_while_the_writer_is_blocked_on_a_full_stream():
+    """The loop process closes its logging with a time-out: a writer blocked on a full stderr (a stalled journal,
+    a pipe nobody reads) must not keep it alive (stagectl.daemon.loopproc)."""
+    import fcntl
+    import os
+
+    r, w = os.pipe()
+    try:
+        fcntl.fcntl(w, fcntl.F_SETFL, os.O_NONBLOCK)
+        try:
+            while True:
+                os.write(w, b"x" * 65536)
+        except BlockingIOError:
+            pass  # the pipe is full
+        fcntl.fcntl(w, fcntl.F_SETFL, 0)  # writes block again
+        stream = open(w, "w", closefd=False)
+        logs = DaemonLogging(logging.INFO, stream=stream, journal=True)
+        writer = logs.listener._thread
+        try:
+            logging.getLogger("stagectl.test").error("this write blocks")
+            logs.close(timeout_s=0.2)  # returns (the writer is not waited for beyond the time-out)
+            assert writer is not None and writer.is_alive()  # still blocked in its write: close did not wait
+            assert logging.getLogger().handlers == logs._old_handlers  # handlers restored all the same
+        finally:
+            while writer is not None and writer.is_alive():  # unblock and end it (the sentinel is queued)
+                os.read(r, 1 << 20)
+                writer.join(0.05)
+    finally:
+        os.close(r)
+        os.close(w)

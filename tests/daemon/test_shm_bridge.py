@@ -209,3 +209,38 @@ def test_a_state_change_wakes_the_daemon_side_once_published(pair):
     remote.collect_replies()
     assert reset.result(0)["state"] == "active"
     assert remote.check_state_change() and calls == [LoopState.FAULT, LoopState.ACTIVE]
+
+
+def test_sigterm_inside_the_loop_threads_own_stop_set_does_not_deadlock(pair, monkeypatch):
+    """The daemon's stop request makes the loop thread set ``stop`` (Bridge.on_cycle); a SIGTERM arriving right
+    then runs its handler in that same thread (Python runs handlers in the main thread: the loop process's loop
+    thread) while ``threading.Event.set`` holds the event's lock. The handler must not take it again: it would
+    wait for its own thread for ever (before: ``lambda s, f: stop.set()``)."""
+    import signal
+
+    from stagectl.daemon import loopproc
+
+    loop, remote, bridge, _ = pair
+    monkeypatch.setattr(loopproc._Ending, "armed", True)  # no backstop (faulthandler exit) in the test process
+    handled = []
+
+    class SignalInsideSet(threading.Event):
+        def set(self):
+            with self._cond:  # where threading.Event.set holds its lock
+                handler(signal.SIGTERM, None)  # a SIGTERM delivered now runs its handler here
+                handled.append(True)
+            super().set()
+
+    stop = SignalInsideSet()
+    handler = loopproc._on_sigterm(stop)
+    bridge.stop = stop
+    remote.request_end()
+    result = {}
+    th = threading.Thread(target=lambda: result.setdefault("r", loop.run(stop=stop)), daemon=True)
+    th.start()
+    th.join(30)  # failure guard: a handler waiting for the lock never returns
+    assert not th.is_alive() and handled == [True] and result["r"].ended_by == "stop"
+    # outside any set(), the handler sets the event itself
+    other = threading.Event()
+    loopproc._on_sigterm(other)(signal.SIGTERM, None)
+    assert other.is_set()

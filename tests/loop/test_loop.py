@@ -149,11 +149,26 @@ def test_status_from_another_thread_while_running(rig):
     loop, io, plant, ctl, clock, sink = rig
     stop = threading.Event()
     result = {}
+    submitted: list = []
+    after = [0]  # cycles ended since the move was served
+    one_more = threading.Event()
+
+    def on_cycle():  # the loop's per-cycle hook, called once the cycle's status snapshot is taken
+        if submitted and submitted[0].done():
+            after[0] += 1
+            if after[0] == 2:  # the cycle that served the move, and the next one, have ended
+                one_more.set()
+
+    loop.on_cycle = on_cycle
     th = threading.Thread(target=lambda: result.setdefault("r", loop.run(stop=stop)))
     th.start()
     try:
         fut = loop.submit(MoveRequest(target_m=1e-6))
+        submitted.append(fut)
         fut.result(timeout=30)  # served at a cycle boundary in the loop thread
+        # the future completes inside the serving cycle: a status read now may still show the cycle before it;
+        # wait (on the loop's own hook, not the clock) until a later cycle has ended
+        assert one_more.wait(timeout=30)
         st = loop.status()
         assert st.running and st.healthy and st.state is LoopState.ACTIVE
         assert st.cycle >= 1
