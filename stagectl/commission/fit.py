@@ -300,7 +300,9 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
 
     The force balance ``u(t − τ) − m·a − F_v·v − F_eff(x) = Σ_i k_i·(z_i + c·ż_i) + A·sin(2πx/λ + φ)``
     holds with ``z_i`` the element deflections of :func:`_play` for break-away displacements ``Δ_i`` (at
-    Fs; scaled by ``g(v)/Fs``, ``g`` the constant-velocity Stribeck curve), ``c`` a stiffness-proportional
+    Fs; scaled by ``g(v)/Fs``, ``g`` the constant-velocity Stribeck curve) along the measured path
+    interpolated to ``PRESLIDING_UPSAMPLE`` points a period (:func:`upsample_path`; the turning points of
+    the ringing after a fast move fall between samples) and read at the samples, ``c`` a stiffness-proportional
     micro-damping (σ1_i = c·k_i), ``τ`` the force's delay plus half a sample (zero-order hold), ``a`` the
     second difference of ``x``, ``F_eff`` the discovered position-dependent effects other than cogging and
     ``A, λ, φ`` the cogging force (when discover named one; refitted here). For fixed ``Δ_i, c, τ, λ`` the
