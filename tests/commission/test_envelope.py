@@ -9,8 +9,8 @@ import pytest
 from stagectl.commission.envelope import make_envelope
 from stagectl.errors import ConfigError
 
-_CFG = dict(min_position_m=-0.005, max_position_m=0.005, safety_force_n=10.0, controller_force_n=10.0,
-            max_velocity_m_s=0.02, period_s=0.001, following_error_m=1e-4)
+_CFG = {"min_position_m": -0.005, "max_position_m": 0.005, "safety_force_n": 10.0, "controller_force_n": 10.0,
+        "max_velocity_m_s": 0.02, "period_s": 0.001, "following_error_m": 1e-4}
 
 
 @pytest.mark.parametrize(
