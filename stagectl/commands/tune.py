@@ -126,6 +126,8 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         problems.append("--period-s: required (no loop.period_s in the config)")
     elif not t_lo <= out["period_s"] <= t_hi:
         problems.append(f"--period-s: must be within [{t_lo:g}, {t_hi:g}] s, as loop.period_s (got {out['period_s']:g})")
+    # the Nyquist checks below divide by the period: only a period inside its bounds (0 divided by zero)
+    nyquist_hz = 0.5 / out["period_s"] if out["period_s"] is not None and t_lo <= out["period_s"] <= t_hi else None
     if out["delay_samples"] is None:
         out["delay_samples"] = 1
     if not d_lo <= out["delay_samples"] <= d_hi:
@@ -134,14 +136,13 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
     bw = args.bandwidth_hz
     if bw is not None and not (bw > 0 and math.isfinite(bw)):
         problems.append(f"--bandwidth-hz: must be > 0 Hz (got {bw})")
-    if out["period_s"] is not None and bw is not None and bw >= 0.5 / out["period_s"]:
-        problems.append(f"--bandwidth-hz: {bw:g} Hz must be below the Nyquist frequency {0.5 / out['period_s']:g} Hz")
+    elif nyquist_hz is not None and bw is not None and bw >= nyquist_hz:
+        problems.append(f"--bandwidth-hz: {bw:g} Hz must be below the Nyquist frequency {nyquist_hz:g} Hz")
     dbw = args.dob_bandwidth_hz
     if dbw is not None and not (dbw > 0 and math.isfinite(dbw)):
         problems.append(f"--dob-bandwidth-hz: must be > 0 Hz (got {dbw})")
-    elif out["period_s"] is not None and dbw is not None and dbw >= 0.5 / out["period_s"]:
-        problems.append(f"--dob-bandwidth-hz: {dbw:g} Hz must be below the Nyquist frequency "
-                        f"{0.5 / out['period_s']:g} Hz")
+    elif nyquist_hz is not None and dbw is not None and dbw >= nyquist_hz:
+        problems.append(f"--dob-bandwidth-hz: {dbw:g} Hz must be below the Nyquist frequency {nyquist_hz:g} Hz")
     if problems:
         raise ConfigError(problems)
     return out

@@ -52,7 +52,9 @@ class Envelope:
 def _lower(name: str, given: float | None, configured: float, unit: str, key: str) -> float:
     if given is None:
         return configured
-    if not (given > 0 and math.isfinite(given)):
+    if not math.isfinite(given):
+        raise ConfigError(f"{name}: must be a finite number > 0 {unit} (got {given:g})")
+    if not given > 0:
         raise ConfigError(f"{name}: must be > 0 {unit} (got {given:g})")
     if given > configured:
         raise ConfigError(f"{name}: {given:g} {unit} exceeds {key} {configured:g} {unit} (the command line can only "

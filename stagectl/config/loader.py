@@ -136,6 +136,11 @@ def parse_app_config(data: Any, path: str | Path | None = None) -> AppConfig:
         data = {}
     if not isinstance(data, Mapping):
         raise ConfigError(f"{p or '<config>'}: expected a mapping at the top level, got {yaml_kind(data)}")
+    if "friction" in data and not any(k in data for k in ("safety", "controller", "io", "loop", "sim")):
+        # a model file where the stage config belongs: one line instead of one per unknown/missing key
+        raise ConfigError(f"{p or '<config>'}: is a friction model file, not a stage config; a stage config has "
+                          "safety:, controller:, io:/sim: sections and names this file as "
+                          "controller.feedforward.model_file or sim.plant.model_file (e.g. config/sim.yaml)")
     problems: list[str] = []
     rest = {k: v for k, v in data.items() if k not in ("sim", "path")}
     if "path" in data:

@@ -227,6 +227,10 @@ def load_recording(
                 line += 1
                 if not row or all(not c.strip() for c in row):
                     continue
+                if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
+                    # a decimal comma or a stray field shifts every later column: refuse, never misread
+                    raise DataError(f"{p}: row {line}: {len(row)} values, the header has {len(header)} columns "
+                                    "(a decimal comma? use '.' for decimals)")
                 vals: list[float] = []
                 for key, ci in zip(order, cols_idx):
                     if ci >= len(row):
@@ -242,7 +246,8 @@ def load_recording(
                         ) from None
                     if not math.isfinite(val):
                         raise DataError(f"{p}: row {line}, column {short(wanted[key])}: "
-                                        f"{short(cell, 30)} is not a finite number")
+                                        f"{short(cell, 30)} is not a finite number "
+                                        f"(expected a number in {UNITS.get(key, 'SI units')})")
                     vals.append(val)
                 rows.append(vals)
                 ev: list[float] = []

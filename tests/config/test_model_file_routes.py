@@ -55,3 +55,14 @@ def test_check_config_still_reads_the_model_file(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith("stagectl: error:")]
     assert len(lines) == 1 and "sim.plant.model_file:" in lines[0] and "exist.yaml" in lines[0]
+
+
+@pytest.mark.parametrize("command", [["check-config"], ["simulate", "--scenario", "cosine", "--out", "OUT", "--config"]])
+def test_a_model_file_given_as_a_stage_config_is_one_line(command, tmp_path):
+    # the reverse of `model plot STAGE.yaml`: a user passes the model file where the stage config belongs
+    argv = [a.replace("OUT", str(tmp_path / "out")) for a in command] + [str(MODEL)]
+    r = cli_in_process(argv)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("stagectl: error:")]
+    assert len(lines) == 1, r.stderr
+    assert "is a friction model file, not a stage config" in lines[0] and "model_file" in lines[0], lines[0]

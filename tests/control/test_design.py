@@ -206,3 +206,13 @@ def test_rest_loop_margins_on_the_stuck_and_the_free_plant():
     stuck, free = analyse_rest(2.0, 1e-3, pid, 1, 100.0, 1, 6.39e5, 236.0, 2.56e5)
     assert stuck.stable and stuck.phase_margin_deg < stuck0.phase_margin_deg
     assert not free.stable
+
+
+@pytest.mark.parametrize("period", ["0", "-1e-3", "inf", "10"])
+def test_tune_cli_bad_period_is_named_before_nyquist(period, capsys):
+    # a period outside loop.period_s's bounds is the one error: no division by it (0 was an internal error,
+    # exit 70) and no Nyquist frequency of -500 Hz or 0 Hz computed from it
+    rc = main(["tune", "--mass-kg", "2", "--bandwidth-hz", "20", "--dob-bandwidth-hz", "100", "--period-s", period])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "--period-s: must be within" in err and "Nyquist" not in err and "internal error" not in err, err

@@ -51,12 +51,14 @@ def test_round_trip_save_csv(tmp_path: Path) -> None:
         ("t,x\n0,0\n0.001,0\n0.002,0\n", None, ["missing required column 'u'", "--columns u=NAME"]),
         ("t_s,x,u\n0,0,0\n0.001,0,0\n0.002,0,0\n", "t=time", ["missing required column 'time'"]),
         ("t,x,u\n0,0,0\n0.001,abc,0\n0.002,0,0\n", None, ["row 3", "column 'x'", "non-numeric", "'abc'"]),
-        ("t,x,u\n0,0,0\n0.001,0,nan\n0.002,0,0\n", None, ["row 3", "column 'u'", "not a finite number"]),
+        ("t,x,u\n0,0,0\n0.001,0,nan\n0.002,0,0\n", None, ["row 3", "column 'u'", "not a finite number", "in N"]),
         ("t,x,u\n0,0,0\n0.001,inf,0\n0.002,0,0\n", None, ["row 3", "column 'x'", "not a finite"]),
         ("t,x,u\n0,0,0\n0.001,0,0\n0.001,0,0\n", None, ["row 4", "column 't'", "not strictly increasing"]),
         ("t,x,u\n0,0,0\n0.002,0,0\n0.001,0,0\n", None, ["row 4", "column 't'", "not strictly increasing"]),
         ("t,x,u\n0,0,0\n", None, ["1 data rows", "at least 3"]),
         ("t,x,u\n0,0,0\n0.001,0\n0.002,0,0\n", None, ["row 3", "column 'u'", "row too short"]),
+        # a decimal comma (or a stray field) shifts the columns: refused, not read from the wrong places
+        ("t,x,u\n0,0,0\n0.001,0,0,5\n0.002,0,0\n", None, ["row 3", "4 values", "header has 3 columns"]),
         ("", None, ["empty file"]),
     ],
 )
@@ -68,6 +70,12 @@ def test_bad_files_name_row_and_column(tmp_path: Path, text: str, columns: str |
     assert str(p) in msg
     for frag in fragments:
         assert frag in msg, msg
+
+
+def test_trailing_empty_fields_are_accepted(tmp_path: Path) -> None:
+    # spreadsheet exports often end rows with a separator: empty cells beyond the header are not values
+    dut = load_recording(_write(tmp_path, "t,x,u\n0,0,1,\n0.001,0,2,\n0.002,0,3,,\n"))
+    np.testing.assert_allclose(dut.u, [1, 2, 3])
 
 
 def test_missing_file_is_a_data_error(tmp_path: Path) -> None:
