@@ -35,7 +35,8 @@ takes leaves the observer (``dob.shift``; u unchanged). The next move then start
 the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
 re-learning a state mismatch during the first milliseconds of the move.
 
-Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``): at standstill the stage is
+Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
+part, since its load at each stop would differ between repetitions): at standstill the stage is
 stuck on the friction's pre-sliding spring (Σk ≈ 6.4e5 N/m on the seed stage). With a free-mass nominal plant
 the observer estimates that spring's force k·(x − x_r) as a disturbance and cancels it, so only P (+D) removes a
 position error: the rest mode is g·K_p/(k + K_p) ≈ 9 s⁻¹ (100-500 ms settles). With the rest spring the
@@ -1020,7 +1021,10 @@ class StageController:
         # feedback + clamp
         pid = self.pid
         if dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0:
-            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest, dob)
+            # while ILC takes part the spring stays released (folded into the observer, as at a move's start):
+            # its load at each stop depends on where the previous repetition ended, so it would make the
+            # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc, dob)
         if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
         hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
