@@ -71,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
     fault = _parse_fault(args.inject_fault)
     check_daemon(cfg, args.runtime_dir, args.state_dir)
     out = prepare_out_dir(args.out)
+    held = [n for n in ("report.json", "model.yaml", "stage.yaml", "recordings") if (out / n).exists()]
+    if held:  # a previous commissioning's recordings and report are never overwritten
+        raise ConfigError(f"--out: {str(out)!r} already holds a commissioning ({', '.join(held)}); choose a new "
+                          "directory or remove that one (nothing was written)")
 
     def progress(line: str) -> None:
         if not args.quiet:

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
+from support import cli_in_process
 
 from stagectl.commission.envelope import make_envelope
 from stagectl.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
 
 _CFG = {"min_position_m": -0.005, "max_position_m": 0.005, "safety_force_n": 10.0, "controller_force_n": 10.0,
         "max_velocity_m_s": 0.02, "period_s": 0.001, "following_error_m": 1e-4}
@@ -36,3 +40,16 @@ def test_limits_only_lower_the_envelope() -> None:
     env = make_envelope(**_CFG, max_stroke_m=0.002)
     assert env.stroke_m == pytest.approx(0.002)
     assert make_envelope(**_CFG).stroke_m > 0.002
+
+
+def test_an_out_directory_holding_a_commissioning_is_refused_and_left_as_it_was(tmp_path: Path) -> None:
+    """A previous commissioning's report and recordings are never overwritten: one line naming --out, exit 2,
+    before any experiment runs (the daemon guard and the config are checked first, nothing is written)."""
+    out = tmp_path / "c"
+    (out / "recordings").mkdir(parents=True)
+    (out / "report.json").write_text('{"status": "complete"}')
+    r = cli_in_process(["commission", "--config", str(REPO / "config" / "sim.yaml"), "--out", str(out), "-q"])
+    rc, err = r.returncode, r.stderr
+    assert rc == 2 and err.count("\n") == 1 and "--out" in err and "already holds a commissioning" in err, err
+    assert (out / "report.json").read_text() == '{"status": "complete"}'
+    assert sorted(p.name for p in out.iterdir()) == ["recordings", "report.json"]
