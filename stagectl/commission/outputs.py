@@ -244,6 +244,7 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             mm = gv["measured"]
             L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
                      f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
+        L += _rest_lines(ch.get("rest"))
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]
@@ -261,6 +262,29 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         L += ["", "## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in pngs]
     return "\n".join(L) + "\n"
 
+
+
+def _rest_lines(rest: dict[str, Any] | None) -> list[str]:
+    """report.md lines on the rest spring stage.yaml carries (or why it does not), from report.json's
+    ``gains.chosen.rest``."""
+    if not rest:
+        return []
+    if not rest.get("enabled"):
+        why = rest.get("reason")
+        return ["", "Rest spring: not used" + (f" ({why})." if why else ".")]
+    out = ["", (f"Rest spring: on in stage.yaml (`rest_stiffness_fraction` {_num(rest.get('rest_stiffness_fraction'), '.3g')}, "
+                f"{_num(rest.get('rest_spring_n_m'), '.3g')} N/m on the identified pre-sliding stiffness "
+                f"{_num(rest.get('stiffness_n_m'), '.3g')} N/m), confidence {rest.get('confidence', '-')}"
+                + (f": {rest['reason']}" if rest.get("reason") else "") + ".")]
+    loops = rest.get("loops") or {}
+    stuck = loops.get("rest/stuck")
+    if stuck:
+        out.append(f"Its rest loop on the stuck stage: phase margin {_num(stuck.get('phase_margin_deg'), '.1f')} deg, "
+                   f"gain margin {_num(stuck.get('gain_margin_db'), '.1f')} dB"
+                   + ("" if stuck.get("healthy") else f" (below the {MIN_PM:g} deg / {MIN_GM:g} dB floor)") + ".")
+    if rest.get("relies_on"):
+        out.append(f"It relies on {rest['relies_on']}.")
+    return out
 
 def write_report(res: Results, out: Path, plots: bool) -> dict[str, Any]:
     rep = report_dict(res)

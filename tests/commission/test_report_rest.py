@@ -1,0 +1,33 @@
+"""report.md names the rest spring stage.yaml carries, with its confidence and its stuck-stage rest loop's margins
+(the audit found it only in report.json), or that it is not used."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from stagectl.commission.outputs import report_markdown
+
+
+def _rep(rest: dict[str, Any]) -> dict[str, Any]:
+    chosen = {"crossover_target_hz": 22.0, "dob_kind": "qfilter", "dob_bandwidth_hz": 110.0,
+              "pid": {"kp_n_m": 1.2e4, "ki_n_m_s": 1.6e5, "kd_n_s_m": 250.0},
+              "model": {"phase_margin_deg": 40.4, "gain_margin_db": 8.5, "crossover_hz": 50.9}, "rest": rest}
+    return {"status": "complete", "config": "x.yaml", "experiments": [], "gains": {"chosen": chosen},
+            "envelope": {"x_lo_m": -0.002, "x_hi_m": 0.002, "f_max_n": 10.0, "v_max_m_s": 0.02}}
+
+
+def test_the_report_names_the_advised_rest_spring_and_its_thin_margins() -> None:
+    md = report_markdown(_rep({
+        "enabled": True, "rest_stiffness_fraction": 0.5, "rest_spring_n_m": 3.19e5, "stiffness_n_m": 6.38e5,
+        "confidence": "medium", "reason": "on the twin: settled moves 6 (without: 5)",
+        "relies_on": "the stage being stuck in pre-sliding at standstill",
+        "loops": {"rest/stuck": {"phase_margin_deg": 28.2, "gain_margin_db": 5.7, "healthy": False}}}), [])
+    assert "Rest spring: on in stage.yaml (`rest_stiffness_fraction` 0.5, 3.19e+05 N/m" in md
+    assert "confidence medium: on the twin: settled moves 6 (without: 5)" in md
+    assert "phase margin 28.2 deg, gain margin 5.7 dB (below the 40 deg / 8 dB floor)" in md
+    assert "It relies on the stage being stuck" in md
+
+
+def test_the_report_says_when_no_rest_spring_is_used() -> None:
+    md = report_markdown(_rep({"enabled": False, "reason": "its rest loop is unstable on the stuck stage"}), [])
+    assert "Rest spring: not used (its rest loop is unstable on the stuck stage)." in md
