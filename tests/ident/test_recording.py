@@ -87,3 +87,23 @@ def test_missing_file_is_a_data_error(tmp_path: Path) -> None:
 def test_bad_columns_spec(spec: str) -> None:
     with pytest.raises(DataError, match="--columns"):
         parse_columns(spec)
+
+
+def test_a_yaml_file_given_as_a_recording_is_named_as_such(tmp_path, repo_root) -> None:
+    """A config or model file given where a recording belongs (the audit: `identify config/sim.yaml`) gets one
+    line saying it is not a recording, not "missing required column 't'" over the YAML's first line."""
+    import pytest
+
+    from stagectl.errors import DataError
+    from stagectl.ident.recording import load_recording
+
+    for src in (repo_root / "config" / "sim.yaml", repo_root / "config" / "models" / "seed_gms.yaml"):
+        if not src.exists():
+            continue
+        with pytest.raises(DataError) as ei:
+            load_recording(src)
+        assert "not a recording but YAML-like text" in str(ei.value) and "missing" not in str(ei.value)
+    odd = tmp_path / "notes.txt"
+    odd.write_text("# stagectl: a model\nfriction:\n  model: gms\n")
+    with pytest.raises(DataError, match="not a recording"):
+        load_recording(odd)
