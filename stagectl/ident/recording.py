@@ -191,8 +191,9 @@ def load_recording(
         except UnicodeDecodeError as exc:
             raise DataError(f"{p}: line 1: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
         header = [h.strip() for h in header]
-        if (p.suffix.lower() in (".yaml", ".yml") or header[0].startswith("#")  # recordings have no comments
-                or (len(header) == 1 and header[0].endswith(":"))):
+        first = header[0] if header else ""
+        if (p.suffix.lower() in (".yaml", ".yml") or first.startswith("#")  # recordings have no comments
+                or (len(header) == 1 and first.endswith(":"))):
             raise DataError(f"{p}: not a recording but YAML-like text (a config or model file?); a recording is a "
                             f"CSV whose header row names the columns {', '.join(required)} (docs/recordings.md)")
         index = {name: i for i, name in enumerate(header)}
