@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +53,17 @@ class ThrottledDrive:
         return n
 
 
+
+def _ages(dut: Any, n: int) -> list[int | None]:
+    """``n`` cycles of SYNC, read, write 0 N: each sample's age in periods (None: no fresh sample)."""
+    got: list[int | None] = []
+    for _ in range(n):
+        dut.sync()
+        m = dut.read()
+        got.append(m.age_cycles if m.fresh else None)
+        dut.write(0.0)
+    return got
+
 def test_a_backlog_is_aged_by_counting_and_lost_answers_are_not(lockstep):
     w, dut = lockstep(max_missed=10)
     th = ThrottledDrive(w)
@@ -78,21 +90,11 @@ def test_a_backlog_is_aged_by_counting_and_lost_answers_are_not(lockstep):
     assert ages == truth  # every sample's age is the drive's own count of unanswered SYNCs
     # lost answers (drop_tpdo) are not a backlog: after LOST_AFTER_TPDOS TPDOs the ages are 0 again
     w.inject("drop_tpdo", cycles=2)
-    got = []
-    for _ in range(10):
-        dut.sync()
-        m = dut.read()
-        got.append(m.age_cycles if m.fresh else None)
-        dut.write(0.0)
+    got = _ages(dut, 10)
     assert got[:2] == [None, None] and max(got[2:]) <= 2 and got[-4:] == [0] * 4, got
     # and a TPDO that arrives after the next SYNC was sent (late_tpdo) is still one period old
     w.inject("late_tpdo", cycles=3)
-    got = []
-    for _ in range(8):
-        dut.sync()
-        m = dut.read()
-        got.append(m.age_cycles if m.fresh else None)
-        dut.write(0.0)
+    got = _ages(dut, 8)
     assert got[:4] == [None, 1, 1, 0] and got[-4:] == [0] * 4, got
 
 

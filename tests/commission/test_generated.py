@@ -39,6 +39,13 @@ def _seed_stage_with_coulomb(path: Path, fc_n: float) -> dict[str, Any]:
     return dict(plant)
 
 
+def _commission(cfg: Path, out: Path) -> dict[str, Any]:
+    """``commission --no-verify --max-stroke 0.002`` of the stage ``cfg`` into ``out`` (exit 0); report.json."""
+    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
+                 "--max-stroke", "0.002"]) == 0
+    return dict(json.loads((out / "report.json").read_text()))
+
+
 @pytest.mark.parametrize("case", ["coulomb_1.0", "generated_6"])
 def test_commissioned_cosine_within_2x_of_the_exact_model(case: str, tmp_path: Path) -> None:
     cfg = tmp_path / "stage.yaml"
@@ -48,9 +55,7 @@ def test_commissioned_cosine_within_2x_of_the_exact_model(case: str, tmp_path: P
         plant = hidden_plant(int(case.split("_")[1]))
         stage_yaml(cfg, plant)
     out = tmp_path / "out"
-    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
-                 "--max-stroke", "0.002"]) == 0
-    rep = json.loads((out / "report.json").read_text())
+    rep = _commission(cfg, out)
     ev = rep["discovery"]["evidence"]
     assert ev["presliding"]["present"] and ev["presliding"]["confidence"] == "high", ev
     assert ev["cogging"]["present"] == ("cogging" in (plant.get("effects") or {})), ev
@@ -70,9 +75,7 @@ def test_light_viscous_stage_completes(tmp_path: Path) -> None:
     plant = hidden_plant(3)
     cfg = stage_yaml(tmp_path / "stage.yaml", plant)
     out = tmp_path / "out"
-    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
-                 "--max-stroke", "0.002"]) == 0
-    rep = json.loads((out / "report.json").read_text())
+    rep = _commission(cfg, out)
     assert rep["status"] == "complete"
     cv = next(e for e in rep["experiments"] if e["name"] == "friction_cv")
     assert cv["params"]["tuning"]["crossover_hz"] > 15.0, cv["params"]["tuning"]
@@ -90,9 +93,7 @@ def test_light_high_friction_stage_completes(tmp_path: Path) -> None:
     plant = hidden_plant(11)
     cfg = stage_yaml(tmp_path / "stage.yaml", plant)
     out = tmp_path / "out"
-    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "--no-verify", "--quiet",
-                 "--max-stroke", "0.002"]) == 0
-    rep = json.loads((out / "report.json").read_text())
+    rep = _commission(cfg, out)
     assert rep["status"] == "complete"
     frf = next(e for e in rep["experiments"] if e["name"] == "frf")["params"]
     assert frf["amplitude_limit"] == "breakaway"
