@@ -34,6 +34,7 @@ A model file can carry the play (``backlash:`` of :class:`stagectl.friction.Stag
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -110,16 +111,10 @@ def _make_loop(kstep: Any) -> Any:
     return run
 
 
-_LOOPS: dict[int, tuple[Any, Any]] = {}
-
-
+@functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
 def loop_for(kstep: Any) -> Any:
     """:func:`_make_loop` made once per friction kernel."""
-    got = _LOOPS.get(id(kstep))
-    if got is None:
-        got = (_make_loop(kstep), kstep)  # kstep kept alive: its id stays valid
-        _LOOPS[id(kstep)] = got
-    return got[0]
+    return _make_loop(kstep)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ plus white Gaussian noise (std ``noise_std_m``, drawn once per step), quantised 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -511,20 +512,13 @@ def _make_batch_sets(ksets: Any) -> Any:
     return run_sets
 
 
-_SETS: dict[int, tuple[Any, Any]] = {}
-
-
+@functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
 def batch_sets_loop(ksets: Any) -> Any:
     """:func:`_make_batch_sets` made once per many-sets kernel."""
-    got = _SETS.get(id(ksets))
-    if got is None:
-        got = (_make_batch_sets(ksets), ksets)
-        _SETS[id(ksets)] = got
-    return got[0]
+    return _make_batch_sets(ksets)
 
 
 _LOOPS: dict[int, tuple[Any, Any, Any, Any]] = {}
-_CYCLES: dict[int, tuple[Any, Any]] = {}
 _OUTPUTS = ("t", "x", "v", "friction", "x_meas")
 _EMPTY = np.empty(0)  # an output not stored
 _EMPTY1 = np.zeros(1)  # the command history when there is no delay
@@ -543,13 +537,10 @@ def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
     return (got[0] if plain_only else got[1]), got[2]
 
 
+@functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
 def cycle_for(kstep: Any) -> Any:
     """:func:`_make_cycle` made once per friction kernel: the per-cycle step of plain plants."""
-    got = _CYCLES.get(id(kstep))
-    if got is None:
-        got = (_make_cycle(kstep), kstep)  # kstep kept alive: its id stays valid
-        _CYCLES[id(kstep)] = got
-    return got[0]
+    return _make_cycle(kstep)
 
 
 # ================================================================================================ plant
