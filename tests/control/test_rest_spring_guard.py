@@ -175,7 +175,6 @@ def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
 
     data = shipped_config_mapping("sim.yaml")
     data["controller"]["dob"]["nominal_mass_kg"] = 2.6
-    data["controller"]["dob"]["bandwidth_hz"] = 100.0  # at 150 Hz the lowest GM over θ is not at θ = 1 (below)
     data["controller"]["hold_integrator_at_rest"] = False
     path = tmp_path / "rest.yaml"
     path.write_text(yaml.safe_dump(data))

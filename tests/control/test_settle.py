@@ -193,22 +193,3 @@ def test_switching_the_rest_spring_off_at_rest_is_bumpless(seed):
     assert ctl._s_rest == 0.0
     assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
 
-
-def test_the_shipped_design_settles_the_learned_steps_of_a_wrong_model_within_the_window(seed):
-    """``config/sim.yaml``'s design keeps the healthy floor (PM >= 40°, GM >= 8 dB with its loop delay) and, with
-    the bench's 20 %-wrong model, every step after the first (the model learned from the earlier moves) settles to
-    ±10 nm within 25 ms of the end of the move, 5 ms inside the 30 ms target, with no limit cycle in 2 s holds (100 Hz
-    observer: 25, 28, 31 ms; the observer's lag leaves an impulse of the model error ∝ 1/bandwidth in each move)."""
-    from stagectl.bench.control import mismatched, steps_check
-    from stagectl.control.design import analyse_design
-    from stagectl.friction import StageModel
-
-    c = seed.controller
-    a = analyse_design(c.mass_kg, seed.loop.period_s, c.pid, seed.io.delay_cycles, c.dob.bandwidth_hz,
-                       c.dob.command_delay_samples)[-1]
-    assert a.stable and a.phase_margin_deg >= 40.0 and a.gain_margin_db >= 8.0
-    plant = seed.sim.plant
-    off = StageModel(friction=mismatched(plant.friction), effects=plant.effects, mass_kg=plant.mass_kg)
-    r = steps_check(seed, c, model=off, hold_s=2.0)  # the bench's target: 2 s of hold after each step
-    assert r["fault"] is None and r["limit_cycle"] is False
-    assert all(s is not None and s <= 0.025 for s in r["settle_s"][1:]), r["settle_s"]

@@ -139,12 +139,11 @@ def test_late_and_dropped_tpdos_track_within_2x_without_fault(sim_cfg, scenario)
 def test_holding_the_feedback_on_every_stale_sample_misses_the_cosine_target(sim_cfg):
     """What the predicted stale steps are for: with ``stale_predict_cycles: 0`` (every stale cycle holds the
     feedback and the observer, the next sample brings an interval of 2T) the same disturbance costs the
-    pre-sliding cosine more than 1.5x (1.9x with the shipped 150 Hz observer, 2.4x with a 100 Hz one; with the
-    prediction ~0.9x, bench timing)."""
+    pre-sliding cosine more than 2x."""
     hold = dataclasses.replace(sim_cfg, controller=dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0))
     clean = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=False, duration_s=2.2, skip_s=0.5)
     dist = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=True, duration_s=2.2, skip_s=0.5)
-    assert dist["fault"] is None and dist["rms_error_nm"] > 1.5 * clean["rms_error_nm"], (dist, clean)
+    assert dist["fault"] is None and dist["rms_error_nm"] > 2.0 * clean["rms_error_nm"], (dist, clean)
 
 
 def test_lost_force_writes_alone_cost_the_pre_sliding_cosine(sim_cfg):
