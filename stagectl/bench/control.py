@@ -39,7 +39,8 @@ for the tuned ``pid_dob_gms_20`` one, with their margins. Each design's steps al
 the end of every commanded move (``at_move_end``: error, velocity, d̂, u_ff, P + D force, error 30 ms later;
 :func:`move_end_state`), and ``config_exact_model`` repeats the config's steps with the exact model, so that what
 is left there is structure, not model error; ``--draws N`` adds ``config_other_draws``, the config's steps on N
-other wrong models (:func:`mismatched_draw`, seeds 1..N), so that a change is not judged on one model alone. ``rest_margins`` gives each steps design's rest loop margins
+other wrong models (:func:`mismatched_draw`, seeds 1..N), so that a change is not judged on one model alone.
+``rest_margins`` gives each steps design's rest loop margins
 (:func:`stagectl.control.design.analyse_rest`: PD + observer + rest spring, on the stuck plant and on the free
 mass), which the rest spring (``controller.rest_stiffness_fraction``) lowers. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).

@@ -119,11 +119,12 @@ sliding erases: after a fast 200 µm move and 0.1 s at rest it was 0.56 N, and l
 model), nor from a move shorter than LEARN_MIN_TIME_CONSTANTS observer time constants (there the estimate is
 mostly the observer's transient: alternating 0.3 µm moves at the default move limits walked the exact model to
 θ 1.33), nor from one shorter than LEARN_MIN_MOVE_S whatever the observer (short moves bias β low: with a 150 Hz
-observer, 15 time constants admitted 5-7 µm moves, which walked the exact model to β 0.88). The baseline is the model force at rest, the step before the move (a static model jumps in the move's
-first step). θ changes bumplessly (its force leaves the observer), β changes only the next
+observer, 15 time constants admitted 5-7 µm moves, which walked the exact model to β 0.88). The baseline is the
+model force at rest, the step before the move (a static model jumps in the move's first step). θ changes
+bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
-later ones in 25–31 ms instead of 51–64 ms (16–23 ms with the 150 Hz observer of ``config/sim.yaml``). Not while ILC takes part in the motion (above); a retune that
+later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference

@@ -192,4 +192,3 @@ def test_switching_the_rest_spring_off_at_rest_is_bumpless(seed):
     cmd = ctl.step(dt, -50e-9, rest)
     assert ctl._s_rest == 0.0
     assert abs((cmd.terms["u_dob"] - d_rest) - (d_rest - d_prev)) < 0.1 * abs(s_rest)
-
