@@ -38,7 +38,9 @@ end of the commanded move and staying there, no limit cycle in the hold; for the
 for the tuned ``pid_dob_gms_20`` one, with their margins. Each design's steps also report the loop's state at
 the end of every commanded move (``at_move_end``: error, velocity, d̂, u_ff, P + D force, error 30 ms later;
 :func:`move_end_state`), and ``config_exact_model`` repeats the config's steps with the exact model, so that what
-is left there is structure, not model error. ``rest_margins`` gives each steps design's rest loop margins
+is left there is structure, not model error; ``--draws N`` adds ``config_other_draws``, the config's steps on N
+other wrong models (:func:`mismatched_draw`, seeds 1..N), so that a change is not judged on one model alone.
+``rest_margins`` gives each steps design's rest loop margins
 (:func:`stagectl.control.design.analyse_rest`: PD + observer + rest spring, on the stuck plant and on the free
 mass), which the rest spring (``controller.rest_stiffness_fraction``) lowers. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).
@@ -86,6 +88,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-gain-margin", type=float, default=8.0,
                    help="sweeps keep only tunings with at least this linear gain margin [dB] (default 8)")
     p.add_argument("--hold", type=float, default=2.0, help="hold after each 10 um step of the steps target [s]")
+    p.add_argument("--draws", type=int, default=0,
+                   help="also run the config design's steps on this many other wrong models, seeded draws 1..N "
+                        "(mismatched_draw; default 0)")
 
 
 def _floats(text: str, option: str = "--pid-bandwidths") -> list[float]:
@@ -110,6 +115,25 @@ def mismatched(model: FrictionModel) -> FrictionModel:
     spec["vs_m_s"] = 1.2e-3
     spec["viscous_n_s_m"] = 0.8 * float(spec.get("viscous_n_s_m", 0.0))
     return build(spec)
+
+
+def mismatched_draw(model: FrictionModel, seed: int) -> tuple[FrictionModel, dict[str, float]]:
+    """Another wrong model than :func:`mismatched`'s, for checks beyond the bench's one: Σk (every k_i), F_s, F_c,
+    V_s and σ2 each scaled by 1 ± U(0.1, 0.2), the sign at random (``random.Random(seed)``), F_c at most F_s.
+    Returns the model and the scale factors drawn (``k``, ``fs``, ``fc``, ``vs``, ``sigma2``)."""
+    import random
+
+    from stagectl.friction import build
+
+    rng = random.Random(seed)
+    f = {name: 1.0 + rng.choice((-1.0, 1.0)) * rng.uniform(0.1, 0.2) for name in ("k", "fs", "fc", "vs", "sigma2")}
+    spec = dict(model.spec())
+    spec["k_n_m"] = [f["k"] * k for k in spec["k_n_m"]]
+    spec["fs_n"] = f["fs"] * float(spec["fs_n"])
+    spec["fc_n"] = min(f["fc"] * float(spec["fc_n"]), spec["fs_n"])
+    spec["vs_m_s"] = f["vs"] * float(spec["vs_m_s"])
+    spec["viscous_n_s_m"] = f["sigma2"] * float(spec.get("viscous_n_s_m", 0.0))
+    return build(spec), f
 
 
 def run_case(cfg: AppConfig, ctl_cfg: ControllerConfig, scenario: str, *, model: StageModel | None = None,
@@ -337,7 +361,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # the plan in simulated runs, for the progress line: each sweep's candidates × scenarios + its steps run,
     # and the three steps checks (config, tuned, config with the exact model); a sweep that rejects candidates
     # on their margins, or a tuned design equal to the config's, lowers the total
-    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 3}
+    if args.draws < 0:
+        raise ConfigError(f"--draws: expected a count >= 0, got {args.draws}")
+    sims = {"done": 0, "total": len(pids) * (1 + n_fc + 3 * len(dobs)) * len(TRACKING) + 5 + 3 + args.draws}
 
     def next_run(what: str) -> None:
         tell(args, sims["done"], sims["total"], what)
@@ -423,8 +449,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     diag_exact = {"settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],
                   "max_hold_excursion_nm": r["max_hold_excursion_m"] * 1e9, "limit_cycle": r["limit_cycle"],
                   "at_move_end": _end_table(r["at_move_end"])}
+    draws: list[dict[str, Any]] = []
+    for seed in range(1, args.draws + 1):
+        next_run(f"move and settle, the config's design, wrong model draw {seed}")
+        fr, scale = mismatched_draw(exact, seed)
+        r = steps_check(cfg, base, model=StageModel(friction=fr, effects=plant.effects, mass_kg=plant.mass_kg),
+                        hold_s=args.hold)
+        draws.append({"seed": seed, "scale": {k: round(v, 3) for k, v in scale.items()},
+                      "settle_ms": [None if v is None else v * 1e3 for v in r["settle_s"]],
+                      "limit_cycle": r["limit_cycle"], "fault": r["fault"]})
     targets["steps"] = {"tolerance_nm": 10.0, "window_ms": 30.0, "hold_s": args.hold, "model": "20 %-wrong GMS",
-                        "designs": steps_t, "config_exact_model": diag_exact,
+                        "designs": steps_t, "config_exact_model": diag_exact, "config_other_draws": draws,
                         "met": all(d["met_settle_30ms"] and d["met_no_limit_cycle"] for d in steps_t.values())}
     table = {v: {s: {k: out[v]["results"][s][k] for k in ("rms_error_nm", "max_error_nm")}
                  for s in SCENARIOS} for v in out}

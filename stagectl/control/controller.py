@@ -118,8 +118,10 @@ is indeterminate; what the stop synchronisation has not yet moved into the model
 sliding erases: after a fast 200 µm move and 0.1 s at rest it was 0.56 N, and learned as θ 0.66 with the exact
 model), nor from a move shorter than LEARN_MIN_TIME_CONSTANTS observer time constants (there the estimate is
 mostly the observer's transient: alternating 0.3 µm moves at the default move limits walked the exact model to
-θ 1.33). The baseline is the model force at rest, the step before the move (a static model jumps in the move's
-first step). θ changes bumplessly (its force leaves the observer), β changes only the next
+θ 1.33), nor from one shorter than LEARN_MIN_MOVE_S whatever the observer (short moves bias β low: with a 150 Hz
+observer, 15 time constants admitted 5-7 µm moves, which walked the exact model to β 0.88). The baseline is the
+model force at rest, the step before the move (a static model jumps in the move's first step). θ changes
+bumplessly (its force leaves the observer), β changes only the next
 increments. Measured on the seed stage's 10 µm steps with the 20 %-wrong model (``stagectl bench control``):
 the first move from a relaxed start cannot profit (nothing learned yet; it settles in ~60 ms as before), the
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
@@ -404,6 +406,11 @@ LEARN_START_FRACTION = 0.05
 #: ... and only if it lasts at least this many observer time constants 1/(2π·dob.bandwidth_hz) (a shorter move's
 #: estimate is mostly the observer's transient and timing, which the fit would take for θ and β)
 LEARN_MIN_TIME_CONSTANTS = 15.0
+#: ... and at least this long [s] whatever the observer's bandwidth: short moves bias the fit in β whatever the
+#: observer (exact model, alternating moves at the default limits, 15 time constants only: 12 µm (21 ms) moves
+#: walked β to 0.92 and 5-7 µm (15-18 ms) ones to 0.88 with a 150 Hz observer; 15 µm 0.96 at 100 and 150 Hz alike).
+#: Just below 15 time constants at 100 Hz (23.9 ms), so a 100 Hz observer's gate is unchanged by it.
+LEARN_MIN_MOVE_S = 0.0235
 
 
 @dataclass
@@ -824,7 +831,7 @@ class StageController:
             return u_ff, d_hat
         ml.rest = True
         long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
-                       >= LEARN_MIN_TIME_CONSTANTS)
+                       >= LEARN_MIN_TIME_CONSTANTS and ml.n * self.period_s >= LEARN_MIN_MOVE_S)
         fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid and long_enough else None
         if fit is None:
             return u_ff, d_hat

@@ -37,3 +37,30 @@ def test_bench_control_quick_reports_errors_margins_and_targets():
     assert len(d["settle_ms"]) == 4 and d["max_hold_excursion_nm"] >= 0.0 and d["fault"] is None
     assert d["margins"]["phase_margin_deg"] >= 40.0 and d["margins"]["gain_margin_db"] >= 8.0
     assert st["met"] == all(x["met_settle_30ms"] and x["met_no_limit_cycle"] for x in st["designs"].values())
+
+
+def test_other_wrong_model_draws_are_seeded_and_run_through_the_steps_check():
+    """``--draws N``: the config design's steps on N other wrong models. Each draw is reproducible from its seed,
+    scales Σk, F_s, F_c, V_s and σ2 by 10-20 % either way (F_c at most F_s), and differs from the other seeds'."""
+    from stagectl.config import load_app_config
+
+    exact = load_app_config(bench.REPO_CONFIG).sim.plant.friction
+    spec = exact.spec()
+    a, fa = bench.mismatched_draw(exact, 1)
+    b, fb = bench.mismatched_draw(exact, 1)
+    c, fc = bench.mismatched_draw(exact, 2)
+    assert a.spec() == b.spec() and fa == fb and fa != fc
+    assert all(0.1 <= abs(v - 1.0) <= 0.2 for v in fa.values())
+    sa = a.spec()
+    assert sa["k_n_m"][0] == spec["k_n_m"][0] * fa["k"] and sa["fc_n"] <= sa["fs_n"]
+    assert sa["vs_m_s"] == spec["vs_m_s"] * fa["vs"]
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    args = p.parse_args(["--quick", "--hold", "0.3", "--draws", "1"])
+    told: list[tuple[float, float, str, float]] = []
+    args.progress = lambda *a: told.append(a)
+    res = bench.run(args)
+    assert told[-1][2] == "move and settle, the config's design, wrong model draw 1" and told[-1][1] == len(told)
+    (d,) = res["targets"]["steps"]["config_other_draws"]
+    assert d["seed"] == 1 and d["scale"] == {k: round(v, 3) for k, v in fa.items()}
+    assert len(d["settle_ms"]) == 4 and d["fault"] is None and d["limit_cycle"] is False

@@ -150,3 +150,35 @@ def test_a_fast_positioning_move_then_a_cosine_keeps_the_exact_model(seed):
     ctl, rms = out[1.0]
     assert abs(ctl.ff_scale - 1.0) < 0.02 and abs(ctl.ff.input_scale - 1.0) < 0.02, (ctl.ff_scale, ctl.ff.input_scale)
     assert rms < 2.0 * out[0.0][1], (rms, out[0.0][1])
+
+
+def test_short_moves_are_not_learned_from_with_a_faster_observer(seed):
+    """The length gate holds in seconds too (LEARN_MIN_MOVE_S): with a 150 Hz observer 15 time constants are only
+    16 ms, and alternating 7 µm moves at the default limits (18 ms) walked the exact model to β 0.88; not learned
+    from, θ and β stay at 1. A 40 µm move (36 ms) is still learned from and leaves them within 2 %."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.config import IoKind
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Dwell, Move, Scenario
+    from stagectl.friction import StageModel
+
+    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
+        seed.safety, following_error_m=1e-3))
+    plant = cfg.sim.plant
+    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    c = cfg.controller
+    c = dataclasses.replace(c, dob=dataclasses.replace(c.dob, bandwidth_hz=150.0),
+                            feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=0.0))
+    for size_m, tol in ((7e-6, 1e-9), (4e-5, 0.02)):
+        ctl = StageController(c, cfg.timing, model=model)
+        segs: list[Move | Dwell] = []
+        for i in range(12):
+            segs += [Move(by_m=size_m if i % 2 == 0 else -size_m), Dwell(0.1)]
+        sc = Scenario(name="moves", segments=tuple(segs), start_m=0.0)
+        with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+            stage.load_scenario(sc)
+            res = stage.loop.run(duration_s=sc.duration_s(0.0))
+        assert res.fault is None
+        assert abs(ctl.ff_scale - 1.0) <= tol and abs(ctl.ff.input_scale - 1.0) <= tol, (size_m, ctl.ff_scale,
+                                                                                         ctl.ff.input_scale)
