@@ -155,15 +155,23 @@ done = {}
 
 def load():
     t = time.monotonic()
+    c0 = time.thread_time()  # this thread's CPU time: the parts' cost without the loop thread's
     import numpy as np
+    import numba
+    c1 = time.thread_time()
     from stagectl.friction import build
     from stagectl.sim.plant import cycle_for
+    c2 = time.thread_time()
     model = build(job["spec"])
     model.step(model.initial_state(), 1e-9, 1e-6, period)      # compiles or loads the GMS step (as the FF does)
+    c3 = time.thread_time()
     kstep = type(model)._kstep
     cyc = cycle_for(kstep)
     cyc(np.asarray(p), np.zeros(job["n_states"]), np.zeros(10), inv_m, fo_c, 0.0, period, nsub)   # and the cycle
+    c4 = time.thread_time()
     done["load_s"] = time.monotonic() - t
+    done["cpu_s"] = {"import_numba": c1 - c0, "import_friction_and_plant": c2 - c1,
+                     "gms_step_first_call": c3 - c2, "plant_cycle_first_call": c4 - c3}
     ready.update(np=np, kstep=kstep, cycle=cyc)
 
 if tier == "compiled":
@@ -208,6 +216,7 @@ while k < n or (tier == "switch" and (sw is None or k < sw + 100) and clock.now(
     if now > nxt + period:  # more than a period behind: skip the missed slots, as the loop does
         nxt += math.floor((now - nxt) / period) * period
 res = {"late_s": late, "cost_s": cost, "switch_cycle": sw, "switch_t_s": sw_t, "load_s": done.get("load_s"),
+       "load_cpu_s": done.get("cpu_s"),
        "out": xs, "cpu_s": time.process_time(), "loop_start_s": t_start - T0}
 json.dump(res, open(sys.argv[2], "w"))
 """
@@ -240,6 +249,8 @@ def _case(python: str, job: dict[str, Any], cache: Path) -> dict[str, Any]:
         "first_cycle_after_s": d["loop_start_s"],  # from the child's first line (plain: no numba imported)
     }
     sw = d["switch_cycle"]
+    if d["load_cpu_s"]:
+        out["load_thread_cpu_s"] = d["load_cpu_s"]  # the loading thread's CPU time per part
     if job["tier"] == "switch":
         out["switch_cycle"] = sw
         out["load_s"] = d["load_s"]
