@@ -74,6 +74,12 @@ def test_plain_plant_cycle_equals_the_compiled_cycle_and_the_layout_is_the_plant
     np.testing.assert_allclose(fs_p, fs_c, rtol=0.0, atol=RTOL * GMS.params.fs_n)
 
 
+def test_a_config_without_a_simulated_gms_plant_is_skipped_with_a_reason() -> None:
+    stage = load_app_config(str(config_dir() / "stage-canopen.yaml"))
+    assert tier.job_for(stage, cycles=10) is None
+    assert "GMS" in tier.run_switch(stage, 10, None, lambda *a: None)["skipped"]
+
+
 def test_the_switch_to_the_compiled_kernels_is_bumpless_in_a_real_child() -> None:
     """The bench's child on the plant path: plain kernels until the background thread has loaded numba's, then
     the compiled ones with the state carried over. The trajectory (a function of the cycle count, not of time)
