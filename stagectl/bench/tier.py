@@ -285,8 +285,9 @@ def job_for(config: Any, cycles: int, switch_interval_s: float | None = None) ->
 
 def run_switch(config: Any, cycles: int, switch_interval_s: float | None, tell: Any) -> dict[str, Any]:
     """The tiered-start experiment for ``config`` (an ``AppConfig`` with a GMS ``sim.plant``): for both paths,
-    runs ``plain``, ``switch`` (cold), ``switch`` (warm), ``compiled``; ``cycles`` cycles each (a switch run goes on
-    to 100 cycles past its switch). Returns the figures, or ``{"skipped": reason}``."""
+    runs ``switch`` (cold), ``switch`` (warm), ``plain``, ``compiled``; ``cycles`` cycles each (a switch run goes on
+    to 100 cycles past its switch; the plain and compiled runs then as long as the longer switch window). Returns
+    the figures, or ``{"skipped": reason}``."""
     job0 = job_for(config, cycles, switch_interval_s)
     if job0 is None:
         return {"skipped": "needs a config with a simulated plant with GMS friction (the plain tier transcribes GMS)"}
@@ -294,7 +295,9 @@ def run_switch(config: Any, cycles: int, switch_interval_s: float | None, tell: 
     res: dict[str, Any] = {"period_s": period, "nsub": job0["nsub"], "cycles": int(cycles),
                            "switch_interval_s": switch_interval_s if switch_interval_s else sys.getswitchinterval(),
                            "loadavg_before": list(os.getloadavg())}
-    order = [("plain", False), ("switch", False), ("switch", True), ("compiled", True)]
+    # the switch runs first (cold fills the path's private cache, warm reads it), then the plain and the compiled
+    # run (warm) for at least as many cycles as a switch run's window, so that both compare over the same count
+    order = [("switch", False), ("switch", True), ("plain", False), ("compiled", True)]
     total = 2 * len(order)
     i = 0
     for path in ("ff", "plant"):
@@ -303,7 +306,8 @@ def run_switch(config: Any, cycles: int, switch_interval_s: float | None, tell: 
             for tier, warm in order:
                 name = tier if tier != "switch" else f"switch_{'warm' if warm else 'cold'}"
                 tell(i, total, f"{path}: {name}")
-                cases[name] = _case(sys.executable, dict(job0, path=path, tier=tier), Path(cache))
+                n = max([int(cycles)] + [int(c.get("window_cycles") or 0) for c in cases.values()])
+                cases[name] = _case(sys.executable, dict(job0, path=path, tier=tier, cycles=n), Path(cache))
                 i += 1
         for name in ("switch_cold", "switch_warm"):
             c = cases[name]
