@@ -72,6 +72,8 @@ def _patch(mod):
             def append(self, row):
                 if "first" not in T:
                     T["first"] = time.monotonic()
+                    # the tier the first cycle ran on: numba's compiled kernels, or plain Python (no numba)
+                    T["first_tier"] = "compiled" if "numba" in sys.modules else "plain"
         def start(self, **kw):
             T.setdefault("host_start", time.monotonic())
             self.sinks = (*self.sinks, First())
@@ -111,9 +113,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeat", type=int, default=1, help="cold/warm pairs; the best of each is reported")
     p.add_argument("--against", default=None, metavar="PYTHON",
                    help="interpreter of another stagectl installation, measured alternately as the baseline")
+    p.add_argument("--switch", action="store_true",
+                   help="also measure a tiered start (plain-Python kernels first, numba's loaded in a background "
+                        "thread, then switched to): loop lateness around the switch vs plain and compiled runs "
+                        "(stagectl.bench.tier)")
+    p.add_argument("--switch-cycles", type=int, default=2000, help="cycles per --switch run (default 2000)")
+    p.add_argument("--switch-interval", type=float, default=None, metavar="S",
+                   help="sys.setswitchinterval in the --switch runs [s] (default Python's, 0.005)")
 
 
-def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) -> dict[str, float]:
+def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) -> dict[str, Any]:
     """One start of ``python`` with the numba cache ``cache`` and the byte-code cache ``pyc`` (written only
     when ``prime``)."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPYCACHEPREFIX=str(pyc))
@@ -143,6 +152,9 @@ def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) 
         "config_s": r["build"] - r["config"],
         "build_s": r["built"] - r["build"],
         "start_and_first_cycle_s": r["first"] - r["built"],
+        # which kernels the first cycle ran on, and from when (after the spawn) the compiled ones ran
+        "first_cycle_tier": r.get("first_tier", "compiled"),
+        "compiled_tier_from_s": r["first"] - t0 if r.get("first_tier", "compiled") == "compiled" else None,
         # CPU time of the whole child (to its exit: includes the 0.05 s run and writing its outputs); less
         # disturbed by other load than the wall-clock figures above
         "process_cpu_s": (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime),
@@ -150,7 +162,7 @@ def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) 
 
 
 def _pairs(args: argparse.Namespace, python: str, pyc: Path, done: int,
-           total: int) -> tuple[dict[str, float], dict[str, float]]:
+           total: int) -> tuple[dict[str, Any], dict[str, Any]]:
     """A cold and a warm run of ``python`` with a new private cache (runs ``done`` and ``done + 1`` of ``total``)."""
     who = "baseline" if python != sys.executable else "this build"
     with tempfile.TemporaryDirectory(prefix="stagectl-numba-") as tmp:
@@ -169,7 +181,7 @@ def _prime(args: argparse.Namespace, python: str, pyc: Path) -> None:
         _one(python, args.config, Path(tmp), pyc, prime=True)
 
 
-def _summary(cold: list[dict[str, float]], warm: list[dict[str, float]]) -> dict[str, Any]:
+def _summary(cold: list[dict[str, Any]], warm: list[dict[str, Any]]) -> dict[str, Any]:
     best_cold = min(cold, key=lambda r: r["first_cycle_s"])
     best_warm = min(warm, key=lambda r: r["first_cycle_s"])
     return {"cold": best_cold, "warm": best_warm,
@@ -183,15 +195,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import load_app_config
     from stagectl.errors import ConfigError
 
-    load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
+    cfg = load_app_config(args.config)  # a bad config is one error line here, not the child's traceback
     against = getattr(args, "against", None)
     if against and not (os.path.isfile(against) and os.access(against, os.X_OK)):
         raise ConfigError(f"--against: {against} is not an executable Python interpreter")
     load0 = os.getloadavg()
-    cold: list[dict[str, float]] = []
-    warm: list[dict[str, float]] = []
-    b_cold: list[dict[str, float]] = []
-    b_warm: list[dict[str, float]] = []
+    cold: list[dict[str, Any]] = []
+    warm: list[dict[str, Any]] = []
+    b_cold: list[dict[str, Any]] = []
+    b_warm: list[dict[str, Any]] = []
     n = max(1, int(args.repeat))
     per = 4 if against else 2
     with tempfile.TemporaryDirectory(prefix="stagectl-pyc-") as pyc_root:
@@ -224,4 +236,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "warm_cpu_ratio": min(base["runs"]["warm_process_cpu_s"]) / min(res["runs"]["warm_process_cpu_s"]),
         }
     res.update({"loadavg_before": list(load0), "loadavg_after": list(os.getloadavg()), "cpus": os.cpu_count()})
+    if getattr(args, "switch", False):
+        from stagectl.bench import tier
+
+        def progress(done: float, total: float, what: str) -> None:
+            tell(args, done, total, f"tiered start: {what}")
+
+        res["switch"] = tier.run_switch(cfg, max(1, int(args.switch_cycles)), args.switch_interval, progress)
     return res

@@ -52,9 +52,9 @@ _NUMBERS: dict[str, tuple[str, float, bool]] = {
     "hold": ("s", 0.0, True), "skip": ("s", 0.0, False), "rate": ("Hz", 0.0, True), "rate_hz": ("Hz", 0.0, True),
     "spin_us": ("µs", 0.0, False), "min_phase_margin": ("deg", 0.0, False), "min_gain_margin": ("dB", 0.0, False),
     "target_nm": ("nm", 0.0, True), "friction_scale": ("(a factor)", 0.0, True), "baudrate": ("bit/s", 0.0, True),
-    "fifo": ("(a priority)", 1.0, False),
+    "fifo": ("(a priority)", 1.0, False), "switch_interval": ("s", 0.0, True),
     **{k: ("(a count)", 0.0, True) for k in ("steps", "sets", "repeat", "first_steps", "clients", "repetitions",
-                                           "within", "columns")},
+                                           "within", "columns", "switch_cycles")},
 }
 
 

@@ -71,6 +71,8 @@ HOSTILE = [
     "bench models --steps -5 --quick",
     "bench models --models nosuch --quick",
     "bench startup --repeat -1",
+    "bench startup --switch --switch-cycles 0",
+    "bench startup --switch --switch-interval -1",
     "bench startup --config {tmp}/missing.yaml",
     "bench control --pid-bandwidths abc",
     "bench io --fifo 0",
