@@ -80,6 +80,7 @@ def test_a_config_without_a_simulated_gms_plant_is_skipped_with_a_reason() -> No
     assert "GMS" in tier.run_switch(stage, 10, None, lambda *a: None)["skipped"]
 
 
+@pytest.mark.slow  # a real 1 kHz loop in a child until numba is loaded: seconds of wall clock under load
 def test_the_switch_to_the_compiled_kernels_is_bumpless_in_a_real_child() -> None:
     """The bench's child on the plant path: plain kernels until the background thread has loaded numba's, then
     the compiled ones with the state carried over. The trajectory (a function of the cycle count, not of time)
