@@ -324,6 +324,31 @@ def resample_uniform(rec: Recording, dt_s: float, bridge: int = 1
     return out, synthetic, int((off_grid & ~hole).sum())
 
 
+#: beyond these a recording is in SI units only if the machine is no precision stage: more likely positions in mm
+#: or µm, or time in ms, written as SI (a note, not a refusal: the analysis runs, the user is told)
+PLAUSIBLE_SPAN_M = 10.0
+PLAUSIBLE_SPEED_M_S = 10.0
+PLAUSIBLE_PERIOD_S = 0.05
+
+
+def unit_notes(sig: Signals) -> list[str]:
+    """One note per implausible scale (travel, speed, sample period) naming the likely unit mix-up."""
+    out = []
+    span = float(np.ptp(sig.x))
+    if span > PLAUSIBLE_SPAN_M:
+        out.append(f"units: the positions span {span:.4g} m (more than {PLAUSIBLE_SPAN_M:g} m, implausible for a "
+                   "stage): if x is in mm or µm, convert to metres (or the fitted mass and friction are off by the "
+                   "same factor)")
+    vmax = float(np.max(np.abs(sig.v))) if sig.v.size else 0.0
+    if vmax > PLAUSIBLE_SPEED_M_S:
+        out.append(f"units: the speed reaches {vmax:.4g} m/s (more than {PLAUSIBLE_SPEED_M_S:g} m/s): if x is in mm "
+                   "or µm, or t in ms, convert to metres and seconds")
+    if sig.dt_s > PLAUSIBLE_PERIOD_S:
+        out.append(f"units: the sample period is {sig.dt_s:.4g} s ({1 / sig.dt_s:.3g} Hz, slower than any control "
+                   "loop): if t is in ms, convert to seconds")
+    return out
+
+
 #: relative size of the low-pass's zero-phase impulse response below which a sample is out of its reach
 FILTER_REACH = 1e-4
 
@@ -489,7 +514,7 @@ def prepare(
         noise_diff_m=_robust_std(np.diff(x, 4)) / math.sqrt(70.0) if n > 8 else 0.0,
     )
     sig.acc_f = sig.filt(acc_raw)
-    sig.notes = notes
+    sig.notes = notes + unit_notes(sig)
     if require_motion and int(evaluate.sum()) < 50:
         holes = "" if not synthetic.any() else (
             f" and outside the holes of the recording ({int(synthetic.sum())} grid samples not measured, and "

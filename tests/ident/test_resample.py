@@ -79,3 +79,15 @@ def test_samples_the_filter_carries_a_long_hole_into_are_not_evaluated() -> None
     assert reach > sig.guard
     assert not sig.evaluate[3000 - reach : 4000 + reach].any()
     assert sig.evaluate[: 3000 - reach].sum() > 1000 and sig.evaluate[4000 + reach :].sum() > 1000
+
+
+def test_positions_in_mm_or_time_in_ms_give_a_unit_note() -> None:
+    """A recording in mm (or ms) written as SI runs, with a note naming the likely unit; SI gives none."""
+    t = DT * np.arange(3000)
+    rec = _rec(t, t, np.random.default_rng(5))
+    assert not any(n.startswith("units:") for n in prepare(rec).notes)
+    mm = Recording(rec.t, 1e3 * rec.x, rec.u, None, None, "mm.csv", {})
+    mm.x = 1e3 * mm.x  # positions in µm: a 5 mm stroke spans 5000 "m"
+    assert any(n.startswith("units: the positions span") and "µm" in n for n in prepare(mm).notes)
+    ms = Recording(1e3 * rec.t, rec.x, rec.u, None, None, "ms.csv", {})
+    assert any(n.startswith("units: the sample period") and "ms" in n for n in prepare(ms).notes)
