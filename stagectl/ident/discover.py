@@ -153,7 +153,8 @@ def make_dataset(
     est_rows = est.evaluate & ~vmask & ~boundary
     if val_rows.sum() < 50 or est_rows.sum() < 50:
         raise DataError(f"{rec.source}: not enough moving samples to hold out validation blocks")
-    blocks = ", ".join(f"{rec.t[edges[b]]:.3g}-{rec.t[edges[b + 1] - 1]:.3g} s" for b in HOLDOUT_VALIDATION)
+    # est.t, not rec.t: a resampled recording has a different number of samples
+    blocks = ", ".join(f"{est.t[edges[b]]:.3g}-{est.t[edges[b + 1] - 1]:.3g} s" for b in HOLDOUT_VALIDATION)
     return Dataset(est, est_rows, est, val_rows, f"held-out contiguous blocks of {rec.source}: {blocks}")
 
 

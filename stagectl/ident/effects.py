@@ -610,8 +610,23 @@ def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
             "does not compensate the play)")
 
 
+def backlash_split(p: BacklashParams) -> tuple[bool, float]:
+    """How a backlash fit maps onto a motor + load plant: (friction on the load, mass of the side without
+    friction [kg]). The friction is on the load when more than half the Coulomb level is lost inside the play;
+    the side without it is the mass carried inside the play (friction on the motor) or lost in it (on the
+    load). A valid plant needs that mass strictly between 0 and the total mass."""
+    on_load = p.coulomb_lost_n >= 0.5 * abs(p.coulomb_n)
+    return on_load, (p.mass_kg - p.mass_lost_kg if on_load else p.mass_lost_kg)
+
+
 def _backlash_bounds(p: BacklashParams) -> list[str]:
     out = []
+    on_load, other = backlash_split(p)
+    if p.mass_kg > 0 and not 0.0 < other < p.mass_kg:
+        # the bound of the model file's motor + load plant: a fit it cannot represent is not accepted (before,
+        # such a fit was accepted and then refused by the model writer, failing the whole run)
+        out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg of m = {p.mass_kg:.3g} kg leaves no motor/load "
+                   f"split (the {'motor' if on_load else 'load'}-side mass would be {other:.3g} kg, outside (0, m))")
     if not (-0.1 * abs(p.coulomb_n) <= p.coulomb_lost_n <= 1.1 * abs(p.coulomb_n)):
         out.append(f"friction lost in the play {p.coulomb_lost_n:.3g} N outside [0, Fc = {p.coulomb_n:.3g} N]")
     if p.mass_kg > 0 and not (-0.1 * p.mass_kg <= p.mass_lost_kg <= p.mass_kg):

@@ -91,8 +91,7 @@ def hyp_to_spec(h: Hyp, meta: Mapping[str, Any] | None = None) -> dict[str, Any]
 def _backlash_spec(h: Hyp) -> dict[str, Any]:
     """The ``backlash:`` mapping of a fitted hypothesis with the backlash effect (see the module docstring)."""
     p = fx.BACKLASH.params(h)
-    on_load = p.coulomb_lost_n >= 0.5 * abs(p.coulomb_n)
-    other = p.mass_kg - p.mass_lost_kg if on_load else p.mass_lost_kg
+    on_load, other = fx.backlash_split(p)
     if not (0.0 < other < p.mass_kg):
         raise ConfigError(f"backlash: the fitted mass lost in the play ({p.mass_lost_kg:.4g} kg of "
                           f"{p.mass_kg:.4g} kg) leaves no valid motor/load split; not written (not clipped)")

@@ -260,23 +260,108 @@ def check_ranges(rec: Recording) -> None:
                             f"[{MIN_DT_S:g}, {MAX_DT_S:g}] s (wrong time unit?)")
 
 
-def resample_uniform(rec: Recording, dt_s: float) -> tuple[Recording, npt.NDArray[np.bool_]]:
-    """``rec`` on a uniform grid of period ``dt_s`` [s] from its first sample: position (and other columns)
-    linearly interpolated, the command ``u`` held (zero-order hold: the last command sent before each grid
-    time). Returns the recording and a mask of the grid samples farther than dt/10 from any measured one."""
+#: a sample is "clearly smoother" in one time base when the robust scatter of its fourth difference is below this
+#: fraction of the other's (used to tell jittered time stamps from irregular sampling, :func:`stamps_jitter`)
+SMOOTHER = 0.5
+
+
+def _roughness(x: FloatArray) -> float:
+    """Robust scatter [m] of the fourth difference of ``x``: noise plus interpolation or time-base errors."""
+    return _robust_std(np.diff(x, 4)) if x.size > 8 else 0.0
+
+
+def _interp_x(tg: FloatArray, t: FloatArray, x: FloatArray) -> FloatArray:
+    """Position at ``tg`` by monotone piecewise-cubic (PCHIP) interpolation: its error over a hole of length h
+    is O(h³) (linear interpolation: a·h²/8, which the second difference turns into an acceleration error of the
+    order of the acceleration itself), and it never overshoots across a long hole."""
+    from scipy.interpolate import PchipInterpolator
+
+    return np.asarray(PchipInterpolator(t, x, extrapolate=True)(tg), dtype=np.float64)
+
+
+def stamps_jitter(rec: Recording) -> float | None:
+    """The uniform sample period [s] when the samples were taken at a uniform period and only their time stamps
+    jitter (host-side stamping of a polled drive), else None: no sample is missing (every stamp lies within half
+    a period of the least-squares line ``t0 + k·T``) and the positions are clearly smoother
+    (:data:`SMOOTHER`) in sample order than interpolated onto that grid by their stamps. With truly irregular
+    sampling it is the other way round."""
+    n = rec.t.size
+    if n < 16:
+        return None
+    k = np.arange(n, dtype=np.float64)
+    period, t0 = (float(c) for c in np.polyfit(k, rec.t, 1))  # least-squares line t ≈ t0 + k·T
+    tg = t0 + period * k
+    if not period > 0 or float(np.max(np.abs(rec.t - tg))) >= 0.5 * period:
+        return None
+    by_stamp = _interp_x(np.clip(tg, rec.t[0], rec.t[-1]), rec.t, rec.x)
+    return period if _roughness(rec.x) < SMOOTHER * _roughness(by_stamp) else None
+
+
+def resample_uniform(rec: Recording, dt_s: float, bridge: int = 1
+                     ) -> tuple[Recording, npt.NDArray[np.bool_], int]:
+    """``rec`` on a uniform grid of period ``dt_s`` [s] from its first sample: position (and reference)
+    interpolated (:func:`_interp_x`), other columns linearly, the command ``u`` held (zero-order hold: the last
+    command sent before each grid time). Returns the recording, the mask of grid samples that are not usable
+    (inside a hole longer than ``bridge`` periods between measured samples, and farther than dt/10 from any
+    measured one) and the number of grid samples interpolated across shorter holes (jitter, a few dropped
+    samples: shorter than the low-pass's time resolution, which cannot tell them from measured samples)."""
     t = rec.t
     m = int(math.floor((t[-1] - t[0]) / dt_s + 1e-9)) + 1
     tg = t[0] + dt_s * np.arange(m)
     idx = np.clip(np.searchsorted(t, tg + 1e-9 * dt_s, side="right") - 1, 0, t.size - 1)
-    nearest = np.minimum(np.abs(t[idx] - tg), np.abs(t[np.minimum(idx + 1, t.size - 1)] - tg))
-    synthetic = nearest > 0.1 * dt_s
+    nxt = np.minimum(idx + 1, t.size - 1)
+    nearest = np.minimum(np.abs(t[idx] - tg), np.abs(t[nxt] - tg))
+    off_grid = nearest > 0.1 * dt_s
+    hole = (t[nxt] - t[idx]) > (bridge + 0.5) * dt_s
+    synthetic = off_grid & hole
 
-    def lin(a: FloatArray | None) -> FloatArray | None:
-        return None if a is None else np.interp(tg, t, a)
+    def interp(a: FloatArray | None) -> FloatArray | None:
+        return None if a is None else _interp_x(tg, t, a)
 
-    out = Recording(tg, np.interp(tg, t, rec.x), rec.u[idx].copy(), lin(rec.x_ref), lin(rec.v),
+    out = Recording(tg, _interp_x(tg, t, rec.x), rec.u[idx].copy(), interp(rec.x_ref),
+                    None if rec.v is None else np.interp(tg, t, rec.v),
                     f"{rec.source} (resampled)", {k: np.interp(tg, t, v) for k, v in rec.extra.items()})
-    return out, synthetic
+    return out, synthetic, int((off_grid & ~hole).sum())
+
+
+#: beyond these a recording is in SI units only if the machine is no precision stage: more likely positions in mm
+#: or µm, or time in ms, written as SI (a note, not a refusal: the analysis runs, the user is told)
+PLAUSIBLE_SPAN_M = 10.0
+PLAUSIBLE_SPEED_M_S = 10.0
+PLAUSIBLE_PERIOD_S = 0.05
+
+
+def unit_notes(sig: Signals) -> list[str]:
+    """One note per implausible scale (travel, speed, sample period) naming the likely unit mix-up."""
+    out = []
+    span = float(np.ptp(sig.x))
+    if span > PLAUSIBLE_SPAN_M:
+        out.append(f"units: the positions span {span:.4g} m (more than {PLAUSIBLE_SPAN_M:g} m, implausible for a "
+                   "stage): if x is in mm or µm, convert to metres (or the fitted mass and friction are off by the "
+                   "same factor)")
+    vmax = float(np.max(np.abs(sig.v))) if sig.v.size else 0.0
+    if vmax > PLAUSIBLE_SPEED_M_S:
+        out.append(f"units: the speed reaches {vmax:.4g} m/s (more than {PLAUSIBLE_SPEED_M_S:g} m/s): if x is in mm "
+                   "or µm, or t in ms, convert to metres and seconds")
+    if sig.dt_s > PLAUSIBLE_PERIOD_S:
+        out.append(f"units: the sample period is {sig.dt_s:.4g} s ({1 / sig.dt_s:.3g} Hz, slower than any control "
+                   "loop): if t is in ms, convert to seconds")
+    return out
+
+
+#: relative size of the low-pass's zero-phase impulse response below which a sample is out of its reach
+FILTER_REACH = 1e-4
+
+
+def filter_reach(sos: FloatArray) -> int:
+    """Samples on either side over which the zero-phase low-pass ``sos`` spreads one sample by more than
+    :data:`FILTER_REACH` of its peak (about 5 periods of the cut-off for the 4th-order Butterworth)."""
+    n = 4097
+    imp = np.zeros(n)
+    imp[n // 2] = 1.0
+    h = np.abs(sosfiltfilt(sos, imp))
+    big = np.flatnonzero(h > FILTER_REACH * h.max())
+    return int(max(big.max() - n // 2, n // 2 - big.min()))
 
 
 def prepare(
@@ -317,14 +402,32 @@ def prepare(
     dt = float(np.median(dts))
     jitter = float(np.max(np.abs(dts - dt)) / dt)
     if jitter > 0.05:
-        # irregular sampling (a USB-polled drive, skipped cycles): resample onto a uniform grid at the median
-        # period; samples that are not measured ones are kept out of the residual (treated like stick samples)
+        # irregular time stamps (a USB-polled drive, skipped cycles). Either the stamps jitter around a uniform
+        # sampling (positions smoother in sample order: keep the samples, uniform period) or the sampling is
+        # irregular: resample onto a uniform grid at the median period, interpolating across holes shorter than
+        # the low-pass's time resolution; samples in longer holes are kept out of the residual
         k = int(np.argmax(np.abs(dts - dt))) + 1
-        rec, synthetic = resample_uniform(rec, dt)
-        notes.append(f"irregular sampling: the sample period varies by up to {100 * jitter:.0f} % of the median "
-                     f"{dt:.6g} s (first at row {k + 2}); resampled onto a uniform {dt:.6g} s grid (x linearly "
-                     f"interpolated, u held as commanded), {int(synthetic.sum())} of {rec.t.size} grid samples "
-                     "were not measured and are excluded from the fit")
+        fc0 = min(0.1 / dt, DEFAULT_MAX_CUTOFF_HZ)
+        if cutoff_hz is not None and math.isfinite(cutoff_hz) and 0.0 < cutoff_hz < 0.5 / dt:
+            fc0 = float(cutoff_hz)
+        bridge = max(2, int(math.ceil(0.5 / (dt * fc0))))
+        period = stamps_jitter(rec)
+        if period is not None:
+            rec = Recording(rec.t[0] + period * np.arange(n), rec.x, rec.u, rec.x_ref, rec.v,
+                            f"{rec.source} (uniform time base)", rec.extra)
+            notes.append(f"time-stamp jitter: the sample period varies by up to {100 * jitter:.0f} % of the median "
+                         f"{dt:.6g} s (first at row {k + 2}), but no sample is missing and the positions are "
+                         "smoother in sample order than by their stamps: the samples were taken uniformly and only "
+                         f"the stamps jitter; the uniform period {period:.6g} s (fitted to all stamps) is used")
+            dt = period
+        else:
+            rec, synthetic, bridged = resample_uniform(rec, dt, bridge)
+            notes.append(f"irregular sampling: the sample period varies by up to {100 * jitter:.0f} % of the median "
+                         f"{dt:.6g} s (first at row {k + 2}); resampled onto a uniform {dt:.6g} s grid (x interpolated "
+                         f"piecewise-cubic, u held as commanded), {int(synthetic.sum()) + bridged} of {rec.t.size} "
+                         f"grid samples were not measured: {bridged} interpolated across holes of at most {bridge} "
+                         f"periods (shorter than the low-pass's time resolution), {int(synthetic.sum())} in longer "
+                         "holes are excluded from the fit")
         n = len(rec)
     if cutoff_hz is not None and not (0.0 < float(cutoff_hz) < 0.5 / dt):
         raise DataError(f"--cutoff-hz: {cutoff_hz:g} Hz is outside (0, {0.5 / dt:.6g}) Hz (the Nyquist frequency of "
@@ -363,10 +466,12 @@ def prepare(
     by_disp = np.abs(dxc) > thr
     by_speed = np.abs(v) > v_th
     moving = by_disp & by_speed
-    if synthetic.any():  # resampled, not measured: like a stick sample (and its neighbours' differences)
-        near_syn = synthetic.copy()
-        near_syn[1:] |= synthetic[:-1]
-        near_syn[:-1] |= synthetic[1:]
+    if synthetic.any():
+        # in a long hole, not measured: like a stick sample, and so is every sample whose filtered value the
+        # hole reaches (:func:`filter_reach`): the held command and interpolated position across a hole are
+        # made up, and a jump of the held command at the hole's end rings through the zero-phase low-pass
+        reach = filter_reach(sos)
+        near_syn = np.convolve(synthetic.astype(np.float64), np.ones(2 * reach + 3), mode="same") > 0
         moving &= ~near_syn
     moving[0] = moving[-1] = False
     # a reversal without a stick phase happens inside an interval: the friction changes sign mid-interval,
@@ -409,14 +514,17 @@ def prepare(
         noise_diff_m=_robust_std(np.diff(x, 4)) / math.sqrt(70.0) if n > 8 else 0.0,
     )
     sig.acc_f = sig.filt(acc_raw)
-    sig.notes = notes
+    sig.notes = notes + unit_notes(sig)
     if require_motion and int(evaluate.sum()) < 50:
+        holes = "" if not synthetic.any() else (
+            f" and outside the holes of the recording ({int(synthetic.sum())} grid samples not measured, and "
+            f"{filter_reach(sos)} samples on either side that the low-pass carries them into)")
         raise DataError(
             f"{rec.source}: only {int(evaluate.sum())} samples usable in motion (identification needs 50): a sample "
             f"counts as moving when its central displacement |x[k+1] − x[k−1]| exceeds {thr:.3g} m (the noise band: "
             f"6·√2 × position noise {noise:.3g} m, at least 2.5 counts of {q:.3g} m; {int(by_disp.sum())} samples "
             f"pass) and its filtered speed exceeds {v_th:.3g} m/s ({int(by_speed.sum())} pass), {guard} samples "
-            "away from any stop; record longer or faster moves, or a finer position sensor"
+            f"away from any stop{holes}; record longer or faster moves, or a finer position sensor"
         )
     return sig
 
