@@ -355,7 +355,7 @@ class ControlLoop:
             target = req.target_m
         else:
             rel = req.relative_m if req.relative_m is not None else 0.0
-            target = self.limits.check_position(self.reference.target_m + rel, "relative_m")
+            target = self.limits.check_relative(self.reference.target_m, rel)
         duration = self.reference.move(t, target, req.max_velocity_m_s)
         return {"target_m": target, "duration_s": float(duration)}
 
