@@ -254,3 +254,20 @@ def test_every_command_and_subcommand_prints_its_help(capsys: pytest.CaptureFixt
             cli.main([*path, "--help"])
         assert ex.value.code == 0, path
         assert "usage:" in capsys.readouterr().out, path
+
+
+@pytest.mark.parametrize(("case", "flag", "unit"), [
+    ("run --config config/sim.yaml --duration abc", "--duration", "in s"),
+    ("simulate --config config/sim.yaml --out {tmp}/o --duration 10s", "--duration", "in s"),
+    ("tune --mass-kg 2kg", "--mass-kg", "in kg"),
+    ("tune --mass-kg 2 --bandwidth-hz fast", "--bandwidth-hz", "in Hz"),
+    ("tune --mass-kg 2 --period-s 1ms", "--period-s", "in s"),
+    ("commission --config config/sim.yaml --out {tmp}/c --max-force 1N", "--max-force", "in N"),
+    ("commission --config config/sim.yaml --out {tmp}/c --max-velocity 1mm/s", "--max-velocity", "in m/s"),
+])
+def test_a_number_option_given_text_names_its_unit(case: str, flag: str, unit: str, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)
+    rc, err = _run(shlex.split(case.format(tmp=tmp_path)), capsys)
+    assert rc == 2 and err.count("\n") == 1 and unit in err and flag in err, err
