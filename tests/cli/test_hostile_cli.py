@@ -271,3 +271,19 @@ def test_a_number_option_given_text_names_its_unit(case: str, flag: str, unit: s
     monkeypatch.chdir(REPO)
     rc, err = _run(shlex.split(case.format(tmp=tmp_path)), capsys)
     assert rc == 2 and err.count("\n") == 1 and unit in err and flag in err, err
+
+
+def test_a_recording_in_other_units_names_the_units_not_a_fitted_parameter(tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """x logged in µm (values ~100 instead of 1e-4): the fit's mass comes out negative; the line says to check
+    the recording's units and shows the span it read, not only 'mass_kg: must be > 0 kg'."""
+    t = np.arange(0, 2.0, 1e-3)
+    x_um = 100.0 * np.sin(2 * np.pi * t)
+    u = 2.0 * np.sign(np.cos(2 * np.pi * t))
+    p = tmp_path / "um.csv"
+    np.savetxt(p, np.column_stack([t, x_um, u]), delimiter=",", header="t,x,u", comments="", fmt="%.10g")
+    rc, err = _run(["identify", str(p), "--model", "gms", "--out", str(tmp_path / "m.yaml"), "--quiet"], capsys)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2 and len(lines) == 1 and ERROR_LINE.match(lines[0]), err
+    assert "um.csv" in err and "units" in err and "x in m" in err and "x spans 200 m" in err, err
+    assert not (tmp_path / "m.yaml").exists()
