@@ -186,7 +186,7 @@ def cmd_move(args: argparse.Namespace) -> int:
     except StageError as exc:
         raise StageError(move_error_for_user(str(exc))) from None
     print(f"moving to {reply.get('target_m', float('nan')):.9g} m"
-          + (f" ({reply['duration_s']:.3f} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
+          + (f" ({reply['duration_s']:.4g} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
     return 0
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import select
 import signal
 import shutil
@@ -288,6 +289,11 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert "relative_m" not in err and err.count("\n") == 1
     assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0  # a negative value, not an option
     assert "moving to" in capsys.readouterr().out
+    assert main(["move", "--by", "1e-6", "--max-velocity", "1e-250", "--socket", str(sock)]) == 0
+    out = capsys.readouterr().out  # a crawl of ~1e247 s: its duration in 4 digits, not 248 of them
+    assert re.fullmatch(r"moving to \S+ m \(\d\.\d+e\+\d+ s\)\n", out) and len(out) < 60, out
+    assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0
+    capsys.readouterr()
     assert main(["gains", "--socket", str(sock)]) == 0
     # YAML to paste into a config: the file with this controller section is valid and runs these gains
     from stagectl.config import parse_app_config
