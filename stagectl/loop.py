@@ -686,7 +686,7 @@ class ControlLoop:
                             else:
                                 cmd = controller.step(dt, x, ref)
                                 cmd.force_n += u_l
-                        u = safety.limit_force(t, k, cmd.force_n)
+                        u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                         if safety.fault is not None:
                             self._enter_fault(t, x)
                         else:
@@ -711,7 +711,7 @@ class ControlLoop:
                                     cmd = controller.hold(dt_h, ref)  # type: ignore[attr-defined]
                                     cmd.force_n += u_l
                             t_ctl = t
-                            u = safety.limit_force(t, k, cmd.force_n)
+                            u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                             if safety.fault is not None:
                                 self._enter_fault(t, x)
                             else:
