@@ -119,6 +119,18 @@ def open_client(socket_path: str | None, timeout_s: float) -> Iterator[ControlCl
         raise StageError(f"{path}: no control socket (is the daemon running? use --socket PATH)") from None
     except PermissionError:
         raise StageError(f"{path}: permission denied (is your user in the daemon's group?)") from None
+    except ConnectionRefusedError:
+        import stat
+
+        try:
+            mode = os.stat(path).st_mode
+        except OSError:
+            mode = 0
+        if mode and not stat.S_ISSOCK(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "a file"
+            raise StageError(f"{path}: not a control socket but {kind} (use --socket PATH)") from None
+        raise StageError(f"{path}: no daemon listening (a socket left by a daemon that stopped? start it, or "
+                         f"use --socket PATH)") from None
     except (ConnectionError, TimeoutError, OSError) as exc:
         raise StageError(f"{path}: {exc}") from None
 

@@ -287,3 +287,18 @@ def test_a_recording_in_other_units_names_the_units_not_a_fitted_parameter(tmp_p
     assert rc == 2 and len(lines) == 1 and ERROR_LINE.match(lines[0]), err
     assert "um.csv" in err and "units" in err and "x in m" in err and "x spans 200 m" in err, err
     assert not (tmp_path / "m.yaml").exists()
+
+
+def test_a_stale_socket_or_a_directory_is_named_as_such(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A daemon killed with SIGKILL leaves its socket file: 'no daemon listening', not '[Errno 111] Connection
+    refused'; a directory given as --socket is named a directory."""
+    import socket
+
+    stale = tmp_path / "control.sock"
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(stale))
+    s.close()  # the file stays, nobody listens
+    rc, err = _run(["status", "--socket", str(stale)], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "no daemon listening" in err and "Errno" not in err, err
+    rc, err = _run(["stop", "--socket", str(tmp_path)], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "not a control socket but a directory" in err, err
