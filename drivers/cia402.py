@@ -322,15 +322,19 @@ ABORT_HINTS: dict[int, tuple[str, str]] = {
 }
 
 
-def explain_sdo_error(exc: BaseException) -> str:
-    """One line for an SDO failure: ``abort 0x06020000 (meaning); check …`` or the exception text."""
+def explain_sdo_error(exc: BaseException, timeout_s: float | None = None, option: str = "sdo_timeout_s") -> str:
+    """One line for an SDO failure: ``abort 0x06020000 (meaning); check …`` or the exception text; a missing
+    answer names the time waited (``timeout_s``) and the ``option`` that sets it."""
     code = getattr(exc, "code", None)
     if isinstance(code, int):
         meaning, check = ABORT_HINTS.get(code, ("abort code not in CiA 301", "the drive manual"))
         return f"abort 0x{code:08X} ({meaning}); check {check}"
     text = " ".join(str(exc).split())
     if "timeout" in text.lower() or "no sdo response" in text.lower():
-        return f"no SDO answer ({text}); check the drive's power, node id and bit rate, and the bus wiring"
+        within = f" within {option} {timeout_s:g} s" if timeout_s is not None else ""
+        slow = f", or raise {option} for a drive that answers slowly" if timeout_s is not None else ""
+        return (f"no SDO answer{within} ({text}); check the drive's power, node id and bit rate, and the bus "
+                f"wiring{slow}")
     return text
 
 
@@ -481,7 +485,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         except SdoError as exc:
             raise DriverInitError(
                 f"{self.name}: configure: writing {what} 0x{index:04X}:{sub:02X} = 0x{value & 0xFFFFFFFF:X} failed: "
-                f"{explain_sdo_error(exc)}"
+                f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}"
             ) from exc
         except (can.CanError, OSError) as exc:
             raise DriverInitError(f"{self.name}: configure: CAN error writing {what} 0x{index:04X}:{sub:02X}: "
@@ -495,7 +499,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             return int(struct.unpack_from(fmt, data)[0])
         except SdoError as exc:
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
         except struct.error as exc:
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X}: answer too "
                                   f"short for its data type; check the drive's EDS") from exc
@@ -514,7 +518,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             if exc.code in (0x06020000, 0x06090011):
                 return None
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
         except struct.error:
             return None
 
@@ -630,7 +634,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         except SdoAbortedError as exc:
             if exc.code not in (0x06020000, 0x06090011):
                 raise DriverInitError(f"{self.name}: configure: writing communication cycle period 0x1006:00 = "
-                                      f"{us} µs failed: {explain_sdo_error(exc)}") from exc
+                                      f"{us} µs failed: {explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
             log.info("%s: drive has no 0x1006 (communication cycle period): it follows SYNC only", self.name)
         except (can.CanError, OSError) as exc:
             raise DriverInitError(f"{self.name}: configure: CAN error writing 0x1006:00: "

@@ -119,7 +119,7 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
                 return value or 0
             op = "reading" if value is None else f"writing 0x{value & 0xFFFFFFFF:X} to"
             raise DriverInitError(f"{self.name}: configure: {op} {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'encoder.sdo_timeout_s')}") from exc
 
     def _do_configure(self) -> None:
         self._start_notifier()

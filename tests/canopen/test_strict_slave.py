@@ -23,7 +23,7 @@ import pytest
 
 from stagectl.drivers import canbus
 from stagectl.drivers.base import DeviceState, FaultKind
-from stagectl.errors import DriveFault
+from stagectl.errors import DriveFault, DriverInitError
 
 NID = 3
 PERIOD_S = 0.001
@@ -344,3 +344,19 @@ def test_nmt_stop_by_another_node_faults_both_sides(strict):
     assert slave.nmt == 5 and slave.get(0x6041) == SOD
     dut.enable()
     assert slave.nmt == 5 and slave.get(0x6041) == OE
+
+
+def test_sdo_answers_slower_than_the_timeout_are_one_line_naming_it(make_drive):
+    slave = StrictSlave(f"stagectl-strict-slow-{id(make_drive):x}", sdo_delay_s=0.2)
+    try:
+        dut = make_drive({"interface": "virtual", "channel": slave.channel}, period_s=PERIOD_S, node_id=NID,
+                         sdo_timeout_s=0.05)
+        dut.set_pump(slave.pump)
+        dut.open()
+        with pytest.raises(DriverInitError) as ei:
+            dut.configure()
+        msg = str(ei.value)
+        assert "\n" not in msg and "0x1000:00" in msg
+        assert "no SDO answer within drive.sdo_timeout_s 0.05 s" in msg and "raise drive.sdo_timeout_s" in msg
+    finally:
+        slave.close()
