@@ -210,6 +210,17 @@ def bus_kwargs(mapping: Mapping[str, Any], *, path: str = "can") -> dict[str, An
             if key not in kw:
                 problems.append(f"{path}.{key}: required for interface socketcand")
         kw["tcp_tune"] = True  # mandatory: Nagle stalls otherwise (docs/platform.md §1.2)
+        host = kw.get("host")
+        if "host" in kw and (not isinstance(host, str) or not host.strip()):
+            problems.append(f"{path}.host: must be a host name or address (got {short(host)})")
+    # values python-can would only refuse at open time (after a 10 s connect attempt for a socketcand port),
+    # or not at all (a bitrate typed as text reaches the adapter's driver)
+    port = kw.get("port")
+    if "port" in kw and (isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535):
+        problems.append(f"{path}.port: must be a TCP port, an integer 1..65535 (got {short(port)})")
+    rate = kw.get("bitrate")
+    if "bitrate" in kw and (isinstance(rate, bool) or not isinstance(rate, int) or rate <= 0):
+        problems.append(f"{path}.bitrate: must be a positive integer in bit/s (got {short(rate)})")
     if problems:
         raise ConfigError(problems)
     return kw

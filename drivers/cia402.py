@@ -126,6 +126,25 @@ MODE_CST = 10
 #: 0x6502 bit for CST support
 SUPPORTED_CST_BIT = 1 << 9
 PDO_DISABLED = 0x80000000
+PDO_NO_RTR = 0x40000000  # PDO COB-ID bit 30: no RTR allowed on this PDO
+
+
+
+def cob_id_writes(current: int, cob_id: int) -> tuple[list[tuple[int, str]], int]:
+    """The PDO COB-ID writes (value, what) that make a PDO now at ``current`` invalid on 11-bit ``cob_id``
+    before its mapping is changed, and the value that validates it afterwards.
+
+    CiA 301 §7.5.2.35: bits 0-29 may change only while the PDO is invalid (bit 31), so it is invalidated on the
+    COB-ID it has (a drive may have stored another one), then given ours; bit 30 (RTR not allowed, fixed at 1
+    on many drives) is kept as the drive has it."""
+    keep = current & PDO_NO_RTR
+    writes = []
+    if not current & PDO_DISABLED:
+        writes.append((current | PDO_DISABLED, "COB-ID (disable)"))
+    if current & 0x3FFFFFFF != keep | cob_id:
+        writes.append((PDO_DISABLED | keep | cob_id, "COB-ID (set while disabled)"))
+    return writes, keep | cob_id
+
 
 _RPDO1 = pdo_codec.RPDO1  # controlword 0x6040 (U16), target torque 0x6071 (INT16)
 _EMCY = struct.Struct("<HB5s")
@@ -303,15 +322,19 @@ ABORT_HINTS: dict[int, tuple[str, str]] = {
 }
 
 
-def explain_sdo_error(exc: BaseException) -> str:
-    """One line for an SDO failure: ``abort 0x06020000 (meaning); check …`` or the exception text."""
+def explain_sdo_error(exc: BaseException, timeout_s: float | None = None, option: str = "sdo_timeout_s") -> str:
+    """One line for an SDO failure: ``abort 0x06020000 (meaning); check …`` or the exception text; a missing
+    answer names the time waited (``timeout_s``) and the ``option`` that sets it."""
     code = getattr(exc, "code", None)
     if isinstance(code, int):
         meaning, check = ABORT_HINTS.get(code, ("abort code not in CiA 301", "the drive manual"))
         return f"abort 0x{code:08X} ({meaning}); check {check}"
     text = " ".join(str(exc).split())
     if "timeout" in text.lower() or "no sdo response" in text.lower():
-        return f"no SDO answer ({text}); check the drive's power, node id and bit rate, and the bus wiring"
+        within = f" within {option} {timeout_s:g} s" if timeout_s is not None else ""
+        slow = f", or raise {option} for a drive that answers slowly" if timeout_s is not None else ""
+        return (f"no SDO answer{within} ({text}); check the drive's power, node id and bit rate, and the bus "
+                f"wiring{slow}")
     return text
 
 
@@ -462,7 +485,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         except SdoError as exc:
             raise DriverInitError(
                 f"{self.name}: configure: writing {what} 0x{index:04X}:{sub:02X} = 0x{value & 0xFFFFFFFF:X} failed: "
-                f"{explain_sdo_error(exc)}"
+                f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}"
             ) from exc
         except (can.CanError, OSError) as exc:
             raise DriverInitError(f"{self.name}: configure: CAN error writing {what} 0x{index:04X}:{sub:02X}: "
@@ -476,7 +499,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             return int(struct.unpack_from(fmt, data)[0])
         except SdoError as exc:
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
         except struct.error as exc:
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X}: answer too "
                                   f"short for its data type; check the drive's EDS") from exc
@@ -495,20 +518,22 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             if exc.code in (0x06020000, 0x06090011):
                 return None
             raise DriverInitError(f"{self.name}: configure: reading {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
         except struct.error:
             return None
 
     def _map_pdo(self, comm: int, mapping: int, cob_id: int, entries: list[int], what: str) -> pdo_codec.PdoLayout:
         """Write one PDO's mapping and communication parameters, read them back and compare; the layout of
         the cyclic codec comes from the mapping as read back (and the object dictionary's data types)."""
-        self._sdo_write(comm, 1, "<I", cob_id | PDO_DISABLED, f"{what} COB-ID (disable)")
+        writes, valid = cob_id_writes(self._sdo_read(comm, 1, "<I", f"{what} COB-ID"), cob_id)
+        for value, step in writes:
+            self._sdo_write(comm, 1, "<I", value, f"{what} {step}")
         self._sdo_write(mapping, 0, "<B", 0, f"{what} mapping count")
         for i, entry in enumerate(entries, 1):
             self._sdo_write(mapping, i, "<I", entry, f"{what} mapping entry {i}")
         self._sdo_write(mapping, 0, "<B", len(entries), f"{what} mapping count")
         self._sdo_write(comm, 2, "<B", 1, f"{what} transmission type (synchronous)")
-        self._sdo_write(comm, 1, "<I", cob_id, f"{what} COB-ID (enable)")
+        self._sdo_write(comm, 1, "<I", valid, f"{what} COB-ID (enable)")
         # read back: a drive may accept a download and keep another value (or map a different length)
         got = [self._sdo_read(mapping, i, "<I", f"{what} mapping entry {i}") for i in range(1, len(entries) + 1)]
         n = self._sdo_read(mapping, 0, "<B", f"{what} mapping count")
@@ -532,15 +557,21 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         dt = getattr(var, "data_type", None)
         return int(dt) if isinstance(dt, int) else None
 
-    def _disable_pdo(self, comm: int, cob_id: int) -> None:
-        from canopen.sdo.exceptions import SdoError
-
+    def _disable_pdo(self, comm: int, what: str) -> None:
+        """Invalidate a PDO we do not use, on the COB-ID the drive has for it (bits 0-29 must not change while
+        it is valid). Not on the drive: nothing to do. An RPDO the drive refuses to invalidate is a start-up
+        failure (another node's frame on its COB-ID would command the drive); a TPDO only costs bus load."""
         if self._node is None or comm not in self._node.object_dictionary:
             return
+        cur = self._sdo_read_optional(comm, 1, "<I", f"{what} COB-ID")
+        if cur is None or cur & PDO_DISABLED:
+            return
         try:
-            self._node.sdo.download(comm, 1, struct.pack("<I", cob_id | PDO_DISABLED))
-        except SdoError:
-            pass  # not present on this drive: nothing to disable
+            self._sdo_write(comm, 1, "<I", cur | PDO_DISABLED, f"{what} COB-ID (disable unused PDO)")
+        except DriverInitError as exc:
+            if comm < 0x1800:
+                raise
+            log.warning("%s (it keeps sending)", exc)
 
     def _do_configure(self) -> None:
         self._start_notifier()
@@ -566,13 +597,13 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             if self.cfg.velocity:
                 tpdo2 = self._map_pdo(0x1801, 0x1A01, 0x280 + nid, list(pdo_codec.TPDO2_MAPPING), "TPDO2")
             else:
-                self._disable_pdo(0x1801, 0x280 + nid)
+                self._disable_pdo(0x1801, "TPDO2")
             for n in (2, 3):
-                self._disable_pdo(0x1800 + n, 0x180 + 0x100 * n + nid)
+                self._disable_pdo(0x1800 + n, f"TPDO{n + 1}")
             rpdo1 = self._map_pdo(0x1400, 0x1600, 0x200 + nid, list(pdo_codec.RPDO1_MAPPING), "RPDO1")
             self._use_layouts(tpdo1, tpdo2, rpdo1)
             for n in (1, 2, 3):
-                self._disable_pdo(0x1400 + n, 0x200 + 0x100 * n + nid)
+                self._disable_pdo(0x1400 + n, f"RPDO{n + 1}")
             self._read_max_torque()
             self._select_quick_stop()
             self._sdo_write(0x6060, 0, "<b", MODE_CST, "mode of operation (CST)")
@@ -603,7 +634,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         except SdoAbortedError as exc:
             if exc.code not in (0x06020000, 0x06090011):
                 raise DriverInitError(f"{self.name}: configure: writing communication cycle period 0x1006:00 = "
-                                      f"{us} µs failed: {explain_sdo_error(exc)}") from exc
+                                      f"{us} µs failed: {explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'drive.sdo_timeout_s')}") from exc
             log.info("%s: drive has no 0x1006 (communication cycle period): it follows SYNC only", self.name)
         except (can.CanError, OSError) as exc:
             raise DriverInitError(f"{self.name}: configure: CAN error writing 0x1006:00: "
@@ -1089,32 +1120,38 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._link_dead:
             raise DriverIOError(f"{self.name}: fault reset: CAN link closed; check the socketcand server / adapter")
         self._drain()
-        if self._rebooted or (self.drive_nmt_state is not None and self.drive_nmt_state != 5):
-            log.warning("%s: drive was reset (boot-up or NMT state %s): configuring it again", self.name,
-                        self.drive_nmt_state)
-            self._do_configure()
-        self._pending = None
-        self._missed = 0
-        self._late_run = 0
-        self._hb_age = 0
-        sent_low = [False]
+        for attempt in (1, 2):
+            if self._rebooted or (self.drive_nmt_state is not None and self.drive_nmt_state != 5):
+                log.warning("%s: drive was reset (boot-up or NMT state %s): configuring it again", self.name,
+                            self.drive_nmt_state)
+                self._do_configure()
+            self._pending = None
+            self._missed = 0
+            self._late_run = 0
+            self._hb_age = 0
+            sent_low = [False]
 
-        def choose(state: State402 | None) -> int | None:
-            if state is None:
-                return int(Controlword.DISABLE_VOLTAGE)
-            if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
-                return None
-            if not sent_low[0]:  # fault reset acts on the rising edge of bit 7
-                sent_low[0] = True
-                return int(Controlword.DISABLE_VOLTAGE)
-            sent_low[0] = False
-            return int(Controlword.FAULT_RESET)
+            def choose(state: State402 | None) -> int | None:
+                if state is None:
+                    return int(Controlword.DISABLE_VOLTAGE)
+                if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+                    return None
+                if not sent_low[0]:  # fault reset acts on the rising edge of bit 7
+                    sent_low[0] = True
+                    return int(Controlword.DISABLE_VOLTAGE)
+                sent_low[0] = False
+                return int(Controlword.FAULT_RESET)
 
-        try:
-            self._step_cycles(choose, "fault reset (leave FAULT)")
-        except DriverTimeoutError:
-            self._stuck_in_fault = bool(self.statusword & STATUSWORD_FAULT)
-            raise
+            try:
+                self._step_cycles(choose, "fault reset (leave FAULT)")
+                break
+            except DriverTimeoutError:
+                # another node stopped the drive (NMT) just before: the fault came from the missing TPDOs and
+                # the heartbeat saying so arrived only while we waited for them; configure it again, once
+                if attempt == 1 and (self._rebooted or self.drive_nmt_state not in (None, 5)):
+                    continue
+                self._stuck_in_fault = bool(self.statusword & STATUSWORD_FAULT)
+                raise
         self._stuck_in_fault = False
         self._cw = int(Controlword.SHUTDOWN)
         self._pending = None

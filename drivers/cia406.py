@@ -30,7 +30,7 @@ import can
 from stagectl.clock import Timing
 from stagectl.drivers.base import DeviceFault, DeviceState, FaultKind, Measurement, PositionSensor, SyncProducer
 from stagectl.drivers.canbus import CanopenNode, error_frame_is_bus_off, link_closed, pumping
-from stagectl.drivers.cia402 import PDO_DISABLED, SYNC_COB_ID, _default_can, explain_sdo_error, unwrap32
+from stagectl.drivers.cia402 import SYNC_COB_ID, _default_can, cob_id_writes, explain_sdo_error, unwrap32
 from stagectl.errors import ConfigError, DriverInitError, DriverIOError
 from stagectl.resources import EDS_DIR
 from stagectl.schema import param
@@ -119,7 +119,7 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
                 return value or 0
             op = "reading" if value is None else f"writing 0x{value & 0xFFFFFFFF:X} to"
             raise DriverInitError(f"{self.name}: configure: {op} {what} 0x{index:04X}:{sub:02X} failed: "
-                                  f"{explain_sdo_error(exc)}") from exc
+                                  f"{explain_sdo_error(exc, self.cfg.sdo_timeout_s, 'encoder.sdo_timeout_s')}") from exc
 
     def _do_configure(self) -> None:
         self._start_notifier()
@@ -132,12 +132,14 @@ class Cia406Encoder(CanopenNode, PositionSensor, SyncProducer):
             self._sdo(0x1006, 0, "<I", round(self.period_s * 1e6), "communication cycle period [µs]")
             self._sdo(0x1017, 0, "<H", round(self.cfg.heartbeat_producer_s * 1000), "producer heartbeat [ms]")
             cob = 0x180 + nid
-            self._sdo(0x1800, 1, "<I", cob | PDO_DISABLED, "TPDO1 COB-ID (disable)")
+            writes, valid = cob_id_writes(self._sdo(0x1800, 1, "<I", None, "TPDO1 COB-ID"), cob)
+            for value, step in writes:
+                self._sdo(0x1800, 1, "<I", value, f"TPDO1 {step}")
             self._sdo(0x1A00, 0, "<B", 0, "TPDO1 mapping count")
             self._sdo(0x1A00, 1, "<I", 0x60040020, "TPDO1 mapping: position value 0x6004")
             self._sdo(0x1A00, 0, "<B", 1, "TPDO1 mapping count")
             self._sdo(0x1800, 2, "<B", 1, "TPDO1 transmission type (synchronous)")
-            self._sdo(0x1800, 1, "<I", cob, "TPDO1 COB-ID (enable)")
+            self._sdo(0x1800, 1, "<I", valid, "TPDO1 COB-ID (enable)")
             self._node.nmt.send_command(0x01)
         self._stop_notifier()  # pump mode: the loop thread reads the bus itself from now on
         self._reset_cyclic()

@@ -94,6 +94,7 @@ EMCY_RESET = 0x0000
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_PDO_LENGTH_EXCEEDED = 0x8220
 EMCY_SYNC_LOST = 0x8700  # CiA 402: sync controller
+EMCY_COMMUNICATION = 0x8100  # communication, generic: NMT left OPERATIONAL (STOPPED / reset communication)
 EMCY_INTERNAL = 0x6100  # internal software
 #: thread mode: a timer tick this long after the previous one means this process was held off the CPU ...
 SELF_STALL_S = 0.02
@@ -110,6 +111,8 @@ ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_INCOMPATIBLE = 0x06040043
 ABORT_INVALID_VALUE = 0x06090030
+ABORT_COMMAND = 0x05040001  # client/server command specifier not valid or unknown
+ABORT_LENGTH = 0x06070010  # data type does not match, length of service parameter does not match
 _EPS = 1e-12
 
 
@@ -217,6 +220,11 @@ class SimCanopenDevice:
         self._hb_stopped = False
         self._late: list[tuple[float, can.Message]] = []
         self._pdo_dirty = False
+        self._sdo_seg: str | None = None  # segmented transfer in progress: "up", "down" or None
+        self._sdo_mux = b"\0\0\0"  # index and sub-index of that transfer (for the abort frame)
+        self._sdo_size: int | None = None  # segmented download: size the client indicated (None: not given)
+        self._sdo_got = 0  # segmented download: bytes received so far
+        self._sdo_resp = 0  # first byte of the SDO server's last response
         self.last_sync_t = 0.0
         self._tick_t: float | None = None  # device time of the previous timer tick
         self._grace_until = -1.0  # thread mode: no judging of the master's silence before this time (own stall)
@@ -247,6 +255,9 @@ class SimCanopenDevice:
     def on_reset(self) -> None:
         """NMT reset node: restore the application state."""
 
+    def on_connection_aborted(self) -> None:
+        """NMT left OPERATIONAL for STOPPED or a reset communication: the CiA 402 "abort connection" event."""
+
     def on_internal_error(self) -> None:
         """A handler raised (already logged, EMCY 0x6100 sent): put the application in a safe state."""
 
@@ -260,7 +271,47 @@ class SimCanopenDevice:
         self._send_raw(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
 
     def _send_sdo(self, can_id: int, data: bytes) -> None:
+        self._sdo_resp = data[0] if data else 0
         self.send(can_id, bytes(data))
+
+    def _sdo_abort(self, code: int) -> None:
+        self._sdo_seg = None
+        self._send_sdo(0x580 + self.node_id, b"\x80" + self._sdo_mux + struct.pack("<I", code))
+
+    def _sdo_request(self, cid: int, data: bytes, timestamp: float) -> None:
+        """One SDO request, with the transfer state canopen's server does not keep (CiA 301 §7.2.4.3): a
+        segment request outside a segmented transfer of its direction is aborted 0x05040001 (not served from
+        a stale buffer, which could write a stray segment into the last object addressed), a client's abort
+        ends the transfer, a segmented download must deliver the size it indicated (0x06070010), and block
+        transfer is not offered (0x05040001; the switch to a normal upload needs the client's protocol switch
+        threshold, which this server does not evaluate)."""
+        ccs = data[0] >> 5 if data else 7
+        if ccs == 4:  # abort transfer (client): no answer
+            self._sdo_seg = None
+            return
+        if ccs in (1, 2, 5, 6, 7):  # initiate (or unknown): a new transfer replaces any unfinished one
+            self._sdo_seg = None
+            self._sdo_mux = bytes(data[1:4]).ljust(3, b"\0")
+        if ccs in (5, 7) or (ccs == 3 and self._sdo_seg != "up") or (ccs == 0 and self._sdo_seg != "down"):
+            self._sdo_abort(ABORT_COMMAND)
+            return
+        if ccs == 0:
+            self._sdo_got += 7 - ((data[0] >> 1) & 7)
+            if data[0] & 0x01 and self._sdo_size is not None and self._sdo_got != self._sdo_size:
+                self._sdo_abort(ABORT_LENGTH)
+                return
+        self._sdo_resp = 0
+        self.node.sdo.on_request(cid, data, timestamp)  # type: ignore[no-untyped-call]
+        if self._sdo_resp == 0x80:  # the server aborted
+            self._sdo_seg = None
+        elif ccs == 2 and self._sdo_resp & 0xE3 == 0x41:  # segmented upload initiated
+            self._sdo_seg = "up"
+        elif ccs == 1 and not data[0] & 0x02:  # segmented download initiated
+            self._sdo_seg = "down"
+            self._sdo_size = struct.unpack_from("<I", data, 4)[0] if data[0] & 0x01 and len(data) >= 8 else None
+            self._sdo_got = 0
+        elif ccs == 3 and self._sdo_resp & 0x01 or ccs == 0 and data[0] & 0x01:  # last segment
+            self._sdo_seg = None
 
     def send_emcy(self, code: int, register_bits: int | None = None) -> None:
         """Raise (``code`` ≠ 0) or clear (0) an error: error register 0x1001 and, unless 0x1014 bit 31 is
@@ -270,7 +321,8 @@ class SimCanopenDevice:
         else:
             self.error_register = 0
         self.emcy_sent.append(code)
-        if self.emcy_cob_id is not None:
+        # CiA 301 §7.3.2.2 (services per NMT state): no EMCY in STOPPED or INITIALISING (register still kept)
+        if self.emcy_cob_id is not None and self.nmt_state in (NMT_PRE_OPERATIONAL, NMT_OPERATIONAL):
             self.send(self.emcy_cob_id, struct.pack("<HB5s", code, self.error_register, b""))
 
     def _internal_error(self, where: str) -> None:
@@ -316,6 +368,7 @@ class SimCanopenDevice:
         if len(data) < 2 or data[1] not in (0, self.node_id):
             return
         cmd = data[0]
+        was_operational = self.nmt_state == NMT_OPERATIONAL
         if cmd == 0x01:
             if self.nmt_state != NMT_OPERATIONAL:
                 for p in self._tpdos:
@@ -323,6 +376,8 @@ class SimCanopenDevice:
             self.nmt_state = NMT_OPERATIONAL
         elif cmd == 0x02:
             self.nmt_state = NMT_STOPPED
+            if was_operational:
+                self.on_connection_aborted()  # no RPDO can reach it any more
         elif cmd == 0x80:
             self.nmt_state = NMT_PRE_OPERATIONAL
         elif cmd in (0x81, 0x82):
@@ -335,6 +390,8 @@ class SimCanopenDevice:
             self._latched.clear()
             self._late.clear()
             self.power_on(self.t_s)
+            if cmd == 0x82 and was_operational:
+                self.on_connection_aborted()  # the application kept running: its master connection is gone
 
     # ------------------------------------------------------------------ PDO parameters
     def _pdo_of(self, index: int) -> tuple[bool, bool, int] | None:
@@ -612,7 +669,7 @@ class SimCanopenDevice:
         elif cid == 0x600 + self.node_id:
             if not self._silent and self.nmt_state in (NMT_PRE_OPERATIONAL, NMT_OPERATIONAL):
                 try:
-                    self.node.sdo.on_request(cid, data, msg.timestamp)  # type: ignore[no-untyped-call]
+                    self._sdo_request(cid, data, msg.timestamp)
                 finally:
                     if self._pdo_dirty:
                         self._compile_pdos()  # PDO parameters take effect at once (also in OPERATIONAL)
@@ -959,16 +1016,18 @@ class SimCia402Drive(SimCanopenDevice):
         elif self.state is _S.QUICK_STOP_ACTIVE and self._option(0x605A, 2) <= 4:
             self.state = _S.SWITCH_ON_DISABLED
 
-    def enter_fault(self, code: int) -> None:
-        """A fault: EMCY ``code``, FAULT REACTION ACTIVE (0x605E ramp or power off), then FAULT."""
+    def enter_fault(self, code: int, emcy_sent: bool = False) -> None:
+        """A fault: EMCY ``code`` (once: not again if the caller already sent it), FAULT REACTION ACTIVE (0x605E
+        ramp or power off), then FAULT."""
         if self.state in (_S.FAULT, _S.FAULT_REACTION_ACTIVE):
-            if code and code != self.error_code:
+            if code and code != self.error_code and not emcy_sent:
                 self.send_emcy(code)
             return
         was_powered = self.state in _POWERED
         self.state = _S.FAULT_REACTION_ACTIVE
         self.error_code = code
-        self.send_emcy(code)
+        if not emcy_sent:
+            self.send_emcy(code)
         self._start_ramp(self._option(0x605E, 0) if was_powered else 0)
 
     def on_internal_error(self) -> None:
@@ -979,14 +1038,22 @@ class SimCia402Drive(SimCanopenDevice):
         self.error_code = EMCY_INTERNAL
 
     def on_heartbeat_lost(self) -> None:
+        self._abort_connection(EMCY_HEARTBEAT, emcy_sent=True)  # the consumer already sent EMCY 0x8130
+
+    def on_connection_aborted(self) -> None:
+        self._abort_connection(EMCY_COMMUNICATION, emcy_sent=False)
+
+    def _abort_connection(self, code: int, emcy_sent: bool) -> None:
+        """CiA 402 abort connection option code 0x6007 (heartbeat loss, NMT STOPPED, reset communication):
+        1 fault, 2 disable voltage, 3 quick stop; only while the power stage is on."""
         if self.state in (_S.FAULT, _S.FAULT_REACTION_ACTIVE):
-            self.error_code = EMCY_HEARTBEAT  # 0x603F shows the last error
+            self.error_code = code  # 0x603F shows the last error
             return
         if self.state not in (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE):
             return
         action = self._option(0x6007, 1)
         if action == 1:
-            self.enter_fault(EMCY_HEARTBEAT)
+            self.enter_fault(code, emcy_sent=emcy_sent)
         elif action == 2:
             self.state = _S.SWITCH_ON_DISABLED
             self._ramp = None

@@ -355,7 +355,7 @@ class ControlLoop:
             target = req.target_m
         else:
             rel = req.relative_m if req.relative_m is not None else 0.0
-            target = self.limits.check_position(self.reference.target_m + rel, "relative_m")
+            target = self.limits.check_relative(self.reference.target_m, rel)
         duration = self.reference.move(t, target, req.max_velocity_m_s)
         return {"target_m": target, "duration_s": float(duration)}
 
@@ -686,7 +686,7 @@ class ControlLoop:
                             else:
                                 cmd = controller.step(dt, x, ref)
                                 cmd.force_n += u_l
-                        u = safety.limit_force(t, k, cmd.force_n)
+                        u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                         if safety.fault is not None:
                             self._enter_fault(t, x)
                         else:
@@ -711,7 +711,7 @@ class ControlLoop:
                                     cmd = controller.hold(dt_h, ref)  # type: ignore[attr-defined]
                                     cmd.force_n += u_l
                             t_ctl = t
-                            u = safety.limit_force(t, k, cmd.force_n)
+                            u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                             if safety.fault is not None:
                                 self._enter_fault(t, x)
                             else:

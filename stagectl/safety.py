@@ -33,7 +33,9 @@ fault name             condition
                        ``velocity_filter_hz`` (first order: v̂ += α(Δx/Δt − v̂), α = 1 − e^{−2π f Δt}), so a
                        skipped cycle or a dropped sample does not read as a velocity jump
 ``force_limit``        the output is clamped to ±``max_force_n`` every cycle; being clamped continuously
-                       for longer than ``force_saturation_time_s`` (a blocked stage) is a fault
+                       for longer than ``force_saturation_time_s`` (a blocked stage, a limit cycle at full force)
+                       is a fault; the controller's own output clamp (``Command.limited`` holds ``"force"``)
+                       counts as clamped too, else a controller clamping at or below ``max_force_n`` hides it
 ``loop_error``         an unexpected exception in the cycle (raised by the loop, recorded here)
 ``unclean_shutdown``   latched at start by the daemon when the previous run did not end cleanly
 =====================  ===============================================================================
@@ -312,25 +314,28 @@ class Safety:
             self._fe_since = None
         return self.fault is not None
 
-    def limit_force(self, t_s: float, cycle: int, u_n: float) -> float:
-        """Clamp ``u_n`` to ±max_force_n; latch ``not_finite`` / ``force_limit``. Returns the force to write
-        (0.0 when a fault is latched by this call)."""
+    def limit_force(self, t_s: float, cycle: int, u_n: float, clamped: bool = False) -> float:
+        """Clamp ``u_n`` to ±max_force_n; latch ``not_finite`` / ``force_limit``. ``clamped``: the controller
+        already clamped its output (its own force limit), which counts as saturated as well. Returns the force
+        to write (0.0 when a fault is latched by this call)."""
         if not _isfinite(u_n):
             self.latch("not_finite", f"controller output is {u_n}", t_s, cycle)
             return 0.0
         lim = self.cfg.max_force_n
-        if -lim <= u_n <= lim:
+        inside = -lim <= u_n <= lim
+        if inside and not clamped:
             self._sat_since = None
             return u_n
         if self._sat_since is None:
             self._sat_since = t_s
         elif t_s - self._sat_since >= self.cfg.force_saturation_time_s:
+            what = f"±{lim:g} N" if not inside else f"the controller's limit ({abs(u_n):.4g} N)"
             self.latch(
                 "force_limit",
-                f"force clamped at ±{lim:g} N for {t_s - self._sat_since:.3f} s "
+                f"force clamped at {what} for {t_s - self._sat_since:.3f} s "
                 f"(force_saturation_time_s {self.cfg.force_saturation_time_s:g} s)",
                 t_s,
                 cycle,
             )
             return 0.0
-        return lim if u_n > 0 else -lim
+        return u_n if inside else lim if u_n > 0 else -lim

@@ -119,6 +119,18 @@ def open_client(socket_path: str | None, timeout_s: float) -> Iterator[ControlCl
         raise StageError(f"{path}: no control socket (is the daemon running? use --socket PATH)") from None
     except PermissionError:
         raise StageError(f"{path}: permission denied (is your user in the daemon's group?)") from None
+    except ConnectionRefusedError:
+        import stat
+
+        try:
+            mode = os.stat(path).st_mode
+        except OSError:
+            mode = 0
+        if mode and not stat.S_ISSOCK(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "a file"
+            raise StageError(f"{path}: not a control socket but {kind} (use --socket PATH)") from None
+        raise StageError(f"{path}: no daemon listening (a socket left by a daemon that stopped? start it, or "
+                         f"use --socket PATH)") from None
     except (ConnectionError, TimeoutError, OSError) as exc:
         raise StageError(f"{path}: {exc}") from None
 
@@ -163,14 +175,30 @@ def _yaml(obj: Any) -> str:
     return yaml.safe_dump(obj, sort_keys=False, default_flow_style=False, allow_unicode=True)
 
 
+#: the move request's fields as the user typed them on the command line
+MOVE_FLAGS = {"target_m": "--to", "relative_m": "--by", "max_velocity_m_s": "--max-velocity"}
+
+
+def move_error_for_user(message: str) -> str:
+    """A refused move's ``"<field>: reason"`` (the socket's convention) named by the user's option instead:
+    ``relative_m: ...`` becomes ``move --by: ...``; other messages are returned unchanged."""
+    for field, flag in MOVE_FLAGS.items():
+        if message.startswith(field + ": "):
+            return f"move {flag}: {message[len(field) + 2:]}"
+    return message
+
+
 # ---------------------------------------------------------------------------------------------- commands
 def cmd_move(args: argparse.Namespace) -> int:
     # validated here (finite numbers, velocity > 0) before anything is sent; the daemon checks the limits
-    req = MoveRequest(target_m=args.to, relative_m=args.by if args.to is None else None,
-                      max_velocity_m_s=args.max_velocity)
-    reply = _request(args, req.to_json())
+    try:
+        req = MoveRequest(target_m=args.to, relative_m=args.by if args.to is None else None,
+                          max_velocity_m_s=args.max_velocity)
+        reply = _request(args, req.to_json())
+    except StageError as exc:
+        raise StageError(move_error_for_user(str(exc))) from None
     print(f"moving to {reply.get('target_m', float('nan')):.9g} m"
-          + (f" ({reply['duration_s']:.3f} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
+          + (f" ({reply['duration_s']:.4g} s)" if isinstance(reply.get("duration_s"), (int, float)) else ""))
     return 0
 
 

@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from stagectl.commands.args import number
 from stagectl.errors import ConfigError, short
 from stagectl.outputs import prepare_out_dir
 
@@ -23,11 +24,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p = sub.add_parser("commission", help="identify, tune and verify a stage in one run (report, model, config)")
     p.add_argument("--config", required=True, help="stagectl YAML of the stage")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--max-stroke", type=float, default=None, metavar="M",
+    p.add_argument("--max-stroke", type=number("m"), default=None, metavar="M",
                    help="lower the travel used by the experiments [m] (default: soft limits less 5 %% margins)")
-    p.add_argument("--max-force", type=float, default=None, metavar="N",
+    p.add_argument("--max-force", type=number("N"), default=None, metavar="N",
                    help="lower the force limit of the experiments [N] (default: the configured one)")
-    p.add_argument("--max-velocity", type=float, default=None, metavar="M_S",
+    p.add_argument("--max-velocity", type=number("m/s"), default=None, metavar="M_S",
                    help="lower the velocity limit of the experiments [m/s]")
     p.add_argument("--no-verify", action="store_true", help="skip the before/after verification runs")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

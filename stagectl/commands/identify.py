@@ -71,7 +71,13 @@ def run(args: argparse.Namespace) -> int:
     if res.mass_kg is not None:
         spec = {"mass_kg": res.mass_kg, **spec}
     progress.step(3, "writing the model file" + (" and plots" if args.plot else ""))
-    model = load(StageModel, plain(spec, json=True), "")
+    try:
+        model = load(StageModel, plain(spec, json=True), "")
+    except ConfigError as exc:  # e.g. a negative mass: the fit ran on data in other units than SI
+        raise ConfigError(
+            f"{args.data}: the {args.model} fit is not physical ({exc}); check the recording's units: t in s, x in "
+            f"m, u in N (here x spans {float(rec.x.max() - rec.x.min()):.4g} m, |u| up to "
+            f"{float(abs(rec.u).max()):.4g} N)") from None
     try:
         save_model_file(model, args.out,
                         header=f"identified by `stagectl identify --model {args.model}` from {args.data}")

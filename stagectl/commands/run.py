@@ -21,7 +21,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from stagectl.commands.args import recorded_duration_problem
+from stagectl.commands.args import number, recorded_duration_problem
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 from stagectl.runtime.status import LoopResult, LoopStatus
@@ -33,7 +33,7 @@ from stagectl.runtime.status import LoopResult, LoopStatus
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("run", help="run the real-time control loop (demo motion on a simulated stage)")
     p.add_argument("--config", required=True, help="stagectl YAML (e.g. config/sim.yaml)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C)")
+    p.add_argument("--duration", type=number("s"), default=None, help="seconds to run (default: until Ctrl-C)")
     p.add_argument("--out", default=None, help="output directory (default ./runs/<timestamp>)")
     p.add_argument("--scenario", default=None,
                    help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "

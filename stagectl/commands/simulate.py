@@ -34,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--scenario", default="cosine",
                    help="cosine | triangle | steps | demo | hold (default cosine)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--duration", type=number("s"), default=None,
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
     p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
     p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")

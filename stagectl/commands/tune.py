@@ -39,6 +39,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from stagectl.commands.args import number
 from stagectl.errors import ConfigError
 from stagectl.outputs import prepare_out_dir
 
@@ -71,12 +72,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--config", help="stagectl YAML (period, mass, current controller)")
     p.add_argument("--out", help="directory for tune_bode.png (default: no plot)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument("--mass-kg", type=float, help="moving mass [kg] (default: controller.mass_kg / plant mass)")
-    p.add_argument("--bandwidth-hz", type=float,
+    p.add_argument("--mass-kg", type=number("kg"), help="moving mass [kg] (default: controller.mass_kg / plant mass)")
+    p.add_argument("--bandwidth-hz", type=number("Hz"),
                    help="target PID crossover [Hz] (default: 0.02/period, e.g. 20 Hz at 1 kHz)")
-    p.add_argument("--dob-bandwidth-hz", type=float,
+    p.add_argument("--dob-bandwidth-hz", type=number("Hz"),
                    help="Q-filter DOB bandwidth [Hz] for the design (default: min(5 x crossover, 0.1/period))")
-    p.add_argument("--period-s", type=float, help="control period [s] (default: loop.period_s)")
+    p.add_argument("--period-s", type=number("s"), help="control period [s] (default: loop.period_s)")
     p.add_argument("--delay-samples", type=int,
                    help="I/O delay in whole periods (default: controller.design_delay_samples, else "
                    "io.delay_cycles for plant_io, else 1)")

@@ -105,6 +105,16 @@ class MotionLimits:
                                       f"{self.max_position_m:g}] m")
         return x_m
 
+    def check_relative(self, current_m: float, relative_m: float) -> float:
+        """The target ``current_m + relative_m`` [m] inside the soft limits, else RequestError naming
+        ``relative_m`` with the distance the user gave, where it would end and the limits."""
+        x_m = current_m + relative_m
+        if not (self.min_position_m <= x_m <= self.max_position_m):
+            raise RequestError("relative_m", f"{relative_m:g} m from the current target {current_m:.9g} m ends at "
+                                             f"{x_m:.9g} m, outside soft limits [{self.min_position_m:g}, "
+                                             f"{self.max_position_m:g}] m")
+        return x_m
+
 
 @dataclass(frozen=True)
 class MoveRequest:

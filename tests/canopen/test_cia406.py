@@ -136,3 +136,38 @@ def test_heartbeat_stop_on_encoder(rig):
         if m.fault:
             break
     assert m.fault is not None and m.fault.kind is FaultKind.HEARTBEAT_LOST and 15 < k <= 28
+
+
+def test_encoder_with_a_stored_foreign_tpdo_cob_id_is_configured(lockstep):
+    """An encoder whose TPDO1 an earlier tool left valid on another COB-ID (0x190): bits 0-29 may change only
+    while the PDO is invalid (CiA 301), so the driver invalidates it on the id it has, then sets 0x185. (The
+    virtual encoder, like CANopenNode, also takes invalidating and re-addressing in one write; the strict slave
+    of test_strict_slave.py does not, and holds the driver's side of this rule.)"""
+    import struct
+
+    import can
+
+    from stagectl.drivers import canbus
+
+    world, drive = lockstep(world_kw={"encoder": {"node_id": 5, "resolution_m": 5e-9}})
+    bus = canbus.open_bus(world.ready_info()["can"])
+    try:
+        for value in (0x80000185, 0x80000190, 0x00000190):  # a raw SDO client: expedited downloads
+            bus.send(can.Message(arbitration_id=0x605, data=struct.pack("<BHBI", 0x23, 0x1800, 1, value),
+                                 is_extended_id=False))
+            world.pump()
+            while (m := bus.recv(0.0)) is not None:
+                assert m.arbitration_id != 0x585 or m.data[0] == 0x60, m
+    finally:
+        canbus.close_bus(bus)
+    enc = Cia406Encoder(Cia406Config(node_id=5, can=world.ready_info()["can"], resolution_m=5e-9, sdo_timeout_s=3.0),
+                        timing=0.001)
+    try:
+        enc.set_pump(world.pump)
+        enc.open()
+        enc.configure()
+        drive.sync()
+        drive.read()
+        assert enc.read().fresh
+    finally:
+        enc.close()

@@ -256,3 +256,51 @@ def test_every_command_and_subcommand_prints_its_help(capsys: pytest.CaptureFixt
             cli.main([*path, "--help"])
         assert ex.value.code == 0, path
         assert "usage:" in capsys.readouterr().out, path
+
+
+@pytest.mark.parametrize(("case", "flag", "unit"), [
+    ("run --config config/sim.yaml --duration abc", "--duration", "in s"),
+    ("simulate --config config/sim.yaml --out {tmp}/o --duration 10s", "--duration", "in s"),
+    ("tune --mass-kg 2kg", "--mass-kg", "in kg"),
+    ("tune --mass-kg 2 --bandwidth-hz fast", "--bandwidth-hz", "in Hz"),
+    ("tune --mass-kg 2 --period-s 1ms", "--period-s", "in s"),
+    ("commission --config config/sim.yaml --out {tmp}/c --max-force 1N", "--max-force", "in N"),
+    ("commission --config config/sim.yaml --out {tmp}/c --max-velocity 1mm/s", "--max-velocity", "in m/s"),
+])
+def test_a_number_option_given_text_names_its_unit(case: str, flag: str, unit: str, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)
+    rc, err = _run(shlex.split(case.format(tmp=tmp_path)), capsys)
+    assert rc == 2 and err.count("\n") == 1 and unit in err and flag in err, err
+
+
+def test_a_recording_in_other_units_names_the_units_not_a_fitted_parameter(tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """x logged in µm (values ~100 instead of 1e-4): the fit's mass comes out negative; the line says to check
+    the recording's units and shows the span it read, not only 'mass_kg: must be > 0 kg'."""
+    t = np.arange(0, 2.0, 1e-3)
+    x_um = 100.0 * np.sin(2 * np.pi * t)
+    u = 2.0 * np.sign(np.cos(2 * np.pi * t))
+    p = tmp_path / "um.csv"
+    np.savetxt(p, np.column_stack([t, x_um, u]), delimiter=",", header="t,x,u", comments="", fmt="%.10g")
+    rc, err = _run(["identify", str(p), "--model", "gms", "--out", str(tmp_path / "m.yaml"), "--quiet"], capsys)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2 and len(lines) == 1 and ERROR_LINE.match(lines[0]), err
+    assert "um.csv" in err and "units" in err and "x in m" in err and "x spans 200 m" in err, err
+    assert not (tmp_path / "m.yaml").exists()
+
+
+def test_a_stale_socket_or_a_directory_is_named_as_such(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A daemon killed with SIGKILL leaves its socket file: 'no daemon listening', not '[Errno 111] Connection
+    refused'; a directory given as --socket is named a directory."""
+    import socket
+
+    stale = tmp_path / "control.sock"
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(stale))
+    s.close()  # the file stays, nobody listens
+    rc, err = _run(["status", "--socket", str(stale)], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "no daemon listening" in err and "Errno" not in err, err
+    rc, err = _run(["stop", "--socket", str(tmp_path)], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "not a control socket but a directory" in err, err

@@ -147,3 +147,29 @@ def test_can_check_runs_once(monkeypatch):
     assert calls == ["io.drive.can"]
     assert ei.value.problems == ["x.yaml: io.drive.can.bitrat: unknown key for interface socketcan "
                                  "(did you mean bitrate?)"]
+
+
+@pytest.mark.parametrize(("can", "line"), [
+    ({"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 70000},
+     "io.drive.can.port: must be a TCP port, an integer 1..65535 (got 70000)"),
+    ({"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": "29536"},
+     "io.drive.can.port: must be a TCP port, an integer 1..65535 (got '29536')"),
+    ({"interface": "socketcand", "channel": "can0", "host": "", "port": 29536},
+     "io.drive.can.host: must be a host name or address (got '')"),
+    ({"interface": "socketcan", "channel": "can0", "bitrate": "fast"},
+     "io.drive.can.bitrate: must be a positive integer in bit/s (got 'fast')"),
+    ({"interface": "pcan", "channel": "PCAN_USBBUS1", "bitrate": -500000},
+     "io.drive.can.bitrate: must be a positive integer in bit/s (got -500000)"),
+])
+def test_bad_port_host_or_bitrate_is_refused_before_opening(can, line):
+    """python-can would refuse a socketcand port only after a 10 s connect attempt, a text bitrate not at all."""
+    with pytest.raises(canbus.ConfigError) as ei:
+        bus_kwargs(can, path="io.drive.can")
+    assert str(ei.value) == line
+
+
+def test_check_config_names_a_bad_can_port(tmp_path):
+    data = _canopen_config({"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 70000})
+    r = _check_config(tmp_path, data)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "io.drive.can.port: must be a TCP port, an integer 1..65535 (got 70000)" in r.stderr, r.stderr

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import select
 import signal
 import shutil
@@ -281,9 +282,18 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert main(["move", "--by=-1e-6", "--socket", str(sock)]) == 0
     assert "moving to" in capsys.readouterr().out
     assert main(["move", "--to", "5", "--socket", str(sock)]) == 2
-    assert "target_m" in capsys.readouterr().err
+    assert "move --to: 5 m outside soft limits" in capsys.readouterr().err  # the user's option, not target_m
+    assert main(["move", "--by", "1", "--socket", str(sock)]) == 2
+    err = capsys.readouterr().err  # the user's --by value and the limits in metres, one line
+    assert "move --by: 1 m from the current target" in err and "outside soft limits" in err
+    assert "relative_m" not in err and err.count("\n") == 1
     assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0  # a negative value, not an option
     assert "moving to" in capsys.readouterr().out
+    assert main(["move", "--by", "1e-6", "--max-velocity", "1e-250", "--socket", str(sock)]) == 0
+    out = capsys.readouterr().out  # a crawl of ~1e247 s: its duration in 4 digits, not 248 of them
+    assert re.fullmatch(r"moving to \S+ m \(\d\.\d+e\+\d+ s\)\n", out) and len(out) < 60, out
+    assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0
+    capsys.readouterr()
     assert main(["gains", "--socket", str(sock)]) == 0
     # YAML to paste into a config: the file with this controller section is valid and runs these gains
     from stagectl.config import parse_app_config

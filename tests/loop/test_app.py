@@ -189,3 +189,17 @@ def test_retune_with_the_stage_controller(plant_io_cfg):
         assert fut.result(timeout=0) == {"retuned": True}
         assert ctl.cfg.pid.kp_n_m == pytest.approx(old.pid.kp_n_m * 0.5)
         assert loop.status().fault is None
+
+
+def test_a_controller_hunting_at_its_own_clamp_latches_force_limit(tmp_path):
+    """controller.mass_kg 2000 (grams typed as kg) on the 2 kg stage: the real controller hunts at ±10 N, its own
+    clamp, which equals safety.max_force_n, so the safety never saw a force outside its limit; it ran so for
+    ever (±10 N, 12 µm error, below the following-error window). Its ``limited`` flag now keeps the saturation
+    clock running: force_limit after force_saturation_time_s."""
+    data = yaml.safe_load(SIM_YAML.read_text())
+    data["io"]["kind"] = "plant_io"
+    data["controller"]["mass_kg"] = 2000.0
+    s = simulate(parse_app_config(data, SIM_YAML), "cosine", 0.8, tmp_path, plots=False)
+    assert s["fault"] is not None and s["fault"]["name"] == "force_limit", s["fault"]
+    assert "controller's limit" in s["fault"]["cause"]
+    assert s["fault"]["t_s"] == pytest.approx(data["safety"]["force_saturation_time_s"], abs=0.05)

@@ -65,6 +65,19 @@ def test_limits_are_checked_by_the_request_against_the_stage():
     with pytest.raises(RequestError, match=r"max_velocity_m_s: must be > 0 and <= 0.05 m/s"):
         MoveRequest(relative_m=0.0, max_velocity_m_s=0.06).check_limits(lim)
     MoveRequest(relative_m=0.5).check_limits(lim)  # relative: only the loop knows where it ends
+    assert lim.check_relative(0.004, 0.006) == pytest.approx(0.01)
+    with pytest.raises(RequestError, match=r"relative_m: 0.007 m from the current target 0.004 m ends at 0.011 m, "
+                                           r"outside soft limits \[-0.01, 0.01\] m"):
+        lim.check_relative(0.004, 0.007)  # the distance the user gave, not only where it ends
+
+
+def test_move_errors_name_the_users_option():
+    from stagectl.commands.clients import move_error_for_user
+
+    assert move_error_for_user("relative_m: 1 m from ...") == "move --by: 1 m from ..."
+    assert move_error_for_user("target_m: 5 m outside") == "move --to: 5 m outside"
+    assert move_error_for_user("max_velocity_m_s: must be > 0") == "move --max-velocity: must be > 0"
+    assert move_error_for_user("move: loop is fault; reset first") == "move: loop is fault; reset first"
 
 
 def test_socket_parsing_and_the_typed_form_build_the_same_requests():

@@ -157,6 +157,23 @@ def test_safety_unit_checks():
         limits.check_position(2e-3, "target_m")
 
 
+def test_the_controllers_own_clamp_counts_as_saturated():
+    """A controller clamping at (or below) max_force_n never hands the safety a force outside ±max_force_n:
+    its ``limited`` flag keeps the saturation clock running, so a blocked stage or a full-force limit cycle
+    still latches force_limit."""
+    s = Safety(SafetyConfig(min_position_m=-1e-3, max_position_m=1e-3, max_force_n=10.0,
+                            force_saturation_time_s=0.002), 1e-3)
+    s.restart(0.0)
+    assert s.limit_force(0.000, 0, 10.0, clamped=True) == 10.0
+    assert s.limit_force(0.001, 1, -8.0, clamped=True) == -8.0  # the controller's own, lower limit
+    assert s.limit_force(0.002, 2, 10.0, clamped=True) == 0.0 and s.fault.name == "force_limit"
+    assert "controller's limit (10 N)" in s.fault.cause
+    s.clear()
+    assert s.limit_force(0.010, 3, 10.0, clamped=True) == 10.0
+    assert s.limit_force(0.011, 4, 3.0) == 3.0  # not clamped: the clock restarts
+    assert s.limit_force(0.012, 5, 10.0, clamped=True) == 10.0 and s.fault is None
+
+
 def test_not_finite_anywhere_latches():
     """NaN/inf in the measurement, the reference or the controller output each latch ``not_finite``."""
     cfg = SafetyConfig(min_position_m=-1e-3, max_position_m=1e-3)
