@@ -549,8 +549,9 @@ class Commissioning:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
                     continue
                 d = approach_m(S)
-                approach: list[SegmentSpec] = [self._move_to(xc - d, v_rep, m), Dwell(0.1), approach_move(d),
-                                               Dwell(0.3)]
+                # the verification's controllers carry the whole model: its approach keeps v_max/2
+                approach: list[SegmentSpec] = [self._move_to(xc - d, 0.5 * env.v_max_m_s, m), Dwell(0.1),
+                                               approach_move(d), Dwell(0.3)]
                 segs = [*approach, *sc.segments]
                 rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller", inner_v, segs,
                                    {"scenario": nm, "approach_m": d}, extra_s=0.3)

@@ -14,10 +14,10 @@ from __future__ import annotations
 import math
 
 from stagectl.commission import sequence as seq
-from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
-from stagectl.control.dob import DobConfig
 from stagectl.control import design
 from stagectl.control.api import Reference
+from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
+from stagectl.control.dob import DobConfig
 
 T = 1e-3
 E_MAX = 50e-6
@@ -36,8 +36,8 @@ def _trapezoid(x0: float, x1: float, v: float, a: float) -> list[Reference]:
     tc = (L - a * ta * ta) / v
     out: list[Reference] = []
     tt = 2 * ta + tc
-    n = int(math.ceil(tt / T))
-    for k in range(n + int(0.2 / T)):
+    n = math.ceil(tt / T)
+    for k in range(n + round(0.2 / T)):
         t = min(k * T, tt)
         if t < ta:
             p, vv, aa = 0.5 * a * t * t, a * t, a
@@ -87,7 +87,7 @@ def _peak_error_of_return(mass: float, fb: float, fc: float, visc: float, v: flo
 
 
 # a light stage with much friction (generated plant 32's mass, friction and viscous coefficient)
-STAGE = dict(mass=0.903, fb=0.931, fc=0.836, visc=10.16)
+STAGE = {"mass": 0.903, "fb": 0.931, "fc": 0.836, "visc": 10.16}
 
 
 def test_reposition_speed_keeps_a_sticky_stage_within_the_band() -> None:
