@@ -91,10 +91,14 @@ COULOMB_GUESS_FRACTION = 0.8
 #: the experiments' peak following error grows with the *stiction ratio* ρ = λ/e_max (the stiction length with the
 #: experiments' own tuning over safety.following_error_m): a move that starts or reverses from a stuck stage runs
 #: ahead of (or behind) the stage while the loop builds the breakaway force. Measured on 15 generated plants
-#: (commission8): peak error 0.2-0.25 λ, nearly all of it where the Coulomb feed-forward flips sign at a
-#: standstill or reversal while the friction only follows the pre-sliding curve. Above this ratio the slow
-#: reversal experiments (reversals, pre-sliding loops) run without the Coulomb feed-forward (0.25 λ ≤ e_max/2)
-STICKY_FF_OFF_RATIO = 2.0
+#: (seeds 20-34 on main): peak error 0.2-0.25 λ, nearly all of it where the Coulomb feed-forward flips sign at a
+#: standstill or reversal while the friction only follows the pre-sliding curve. Where that predicts the limit
+#: itself (0.25 λ ≥ e_max) the slow reversal experiments (reversals, pre-sliding loops, slow passes) run without
+#: the Coulomb feed-forward. With a margin (ρ > 2, 0.25 λ ≤ e_max/2) the feed-forward was off on config/sim.yaml
+#: (ρ = 3.6) too and its commissioned cosine went from 2.14 to 2.36 nm (1.87 nm with the feed-forward on), the
+#: cross-process test stage's to 2.16x the exact model's: the experiments without the feed-forward identify
+#: such stages less well, so it is turned off only where it would fault.
+STICKY_FF_OFF_RATIO = 4.0
 #: the ladder's feed-forward takes a cruise's force after this many closed-loop time constants 1/(2π f_c)
 LADDER_SETTLE_X_CROSSOVER_PERIOD = 5.0
 SLOW_PASS_S = 6.0
@@ -487,9 +491,9 @@ class Commissioning:
         # while the friction only follows along the pre-sliding curve, and the difference threw such stages
         # (0.8-1.7 kg, 0.7-1.8 N Coulomb) 30 um past a 1 um reversal, stuck there until the observer broke
         # them loose the other way (following-error fault). The observer carries the friction instead.
-        # The criterion is the stiction ratio with the chosen tuning, not whether a stiffer tuning was chosen: a
-        # stage whose margins allow none (generated plant 29, 0.60 kg, 0.86 N breakaway: ρ = 8.3) was thrown
-        # 54 µm by the flip, and gen 1 (3.3 kg, 1.72 N, ρ = 4.2) 51 µm.
+        # The criterion is also the stiction ratio with the chosen tuning, not only whether a stiffer tuning was
+        # chosen: a stage whose margins allow none (generated plant 29, 0.60 kg, 0.86 N breakaway: ρ = 8.3) was
+        # thrown 54 µm by the flip, and gen 1 (3.3 kg, 1.72 N, ρ = 4.2) 51 µm.
         if coulomb_off:
             inner = StageController(self._commission_tuning(m, coulomb=False, crossover_x_period=xp),
                                     self.cfg.timing)
