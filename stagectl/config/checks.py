@@ -217,10 +217,10 @@ def time_base_problems(cfg: AppConfig | Sections) -> list[str]:
     if str(can.get("interface", "")) != "socketcand" or can.get("port") != sim.transport.port or \
             str(can.get("host", "")) != sim.transport.host:
         return []
-    return [f"loop.device_time: false, but io.drive talks to the sim-plant of this file's sim: section "
-            f"({sim.transport.host}:{sim.transport.port}), which steps its plant one period per SYNC "
-            "(sim.drive.wall_clock_plant: false): each skipped loop slot would put the reference a period ahead "
-            "of the stage; set loop.device_time: true"]
+    return [(f"loop.device_time: false, but io.drive talks to the sim-plant of this file's sim: section "
+             f"({sim.transport.host}:{sim.transport.port}), which steps its plant one period per SYNC "
+             "(sim.drive.wall_clock_plant: false): each skipped loop slot would put the reference a period ahead "
+             "of the stage; set loop.device_time: true")]
 
 
 def demo_problems(cfg: AppConfig | Sections) -> list[str]:
