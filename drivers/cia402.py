@@ -46,7 +46,13 @@ one looks the same, and a wrong age 1 costs an extrapolation by v̂·T, a wrong 
 Motion tells the two apart where counting cannot: before a count gap of b answers is taken for lost ones, the
 TPDO1's position is compared with the last two fresh samples extrapolated to the newest SYNC (lost answers) and
 to the SYNC b earlier (backlog); nearer the older one, it stays a backlog (``_looks_old``; only when the two lie
-``AGE_EVIDENCE_COUNTS`` apart). A drive process held off the CPU for 5-40 ms, heartbeat still running, that
+``AGE_EVIDENCE_COUNTS`` apart). Where nothing tells (the stage slower than that, its velocity not steady, or
+the evidence used up) a single answer after a gap of b ≥ 2 is still counted as lost answers (the next one is on
+time), but that one sample is reported b periods old, the age it has if it is a backlog: the loop holds on it
+(stale) instead of stepping on a position that may be b periods old. A wrong guess costs one held cycle; the
+other costs an observer kick (the HIL demo at load 9-12: a 17-periods-old sample at a move's start taken for
+this SYNC's, the next one 2 µm further, the observer's -1.9 N held blind through the next gap, the stage stuck
+and ``following_error``). A drive process held off the CPU for 5-40 ms, heartbeat still running, that
 then works off its backlog at about one SYNC per cycle was taken for lost answers: its 2-30 periods old samples
 were stepped on as age 1, and the observer answered the apparent stop and jump of the stage with ±1 N spikes
 (the HIL demo's following-error episodes). The loop steps on samples of age 0 and 1 (age 1 extrapolated by v̂·T) and treats age ≥ 2
@@ -765,7 +771,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 self._lost, e, self._excess_run = c, 0, 0
         self._rx_excess = e
 
-    def _looks_old(self, raw: int, b: int, now: int) -> bool:
+    def _looks_old(self, raw: int, b: int, now: int) -> bool | None:
         """Motion evidence on a count gap of ``b`` answers (module docstring, "Sample age"): True when the TPDO1's
         position ``raw`` is nearer where the stage was b SYNCs before SYNC number ``now`` (the newest it can answer
         by its arrival) than where it was at ``now``, extrapolated from the
@@ -773,11 +779,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         ``AGE_EVIDENCE_COUNTS``), when its velocity is not steady (the last two intervals disagree by more than
         20 %: a glitch, a break-away, a reversal), or after ``AGE_EVIDENCE_RUNS`` such verdicts since
         the last answer without a gap (then the counting rule decides: a stage that stopped dead must not look
-        old for ever)."""
+        old for ever). None (falsy) in those cases: no evidence either way."""
         v, ref = self._v_cpp, self._ref_idx
         if (v is None or ref is None or b <= 0 or abs(v) * b < AGE_EVIDENCE_COUNTS
                 or self._old_run >= AGE_EVIDENCE_RUNS):
-            return False
+            return None
         counts = self._counts + (((raw - self._raw + 0x80000000) & 0xFFFFFFFF) - 0x80000000)
         p_now = self._ref_counts + v * (now - ref)
         old = abs(counts - (p_now - v * b)) < abs(counts - p_now)
@@ -889,13 +895,18 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         elif got is None and self._late is not None:
             got, age = self._late, 1  # arrived before this SYNC was sent: one period old or more ...
             excess = self._late_excess
+        unsure = False
         if got is not None and self.cfg.sync_producer and excess > 0:  # ... plus the backlog counted
+            verdict: bool | None = True
             if (self._rx_burst == 1 and self._may_be_lost(excess)  # one answer in the cycle: answers were lost
-                    and not self._looks_old(got[1], excess, self._n_sync - age)):
+                    and not (verdict := self._looks_old(got[1], excess, self._n_sync - age))):
                 # (a backlog comes in bursts; a long one behind a silent heartbeat stays a backlog)
                 assert self._lost is not None
                 self._lost += excess
                 self._rx_excess = self._late_excess = self._excess_run = 0
+                if verdict is None and excess >= 2:  # nothing tells lost from old: this one as old as a backlog
+                    age += excess  # would make it (>= 2: the loop holds on it); the next answer counts as on time
+                    unsure = True
             elif age + excess >= 2 or self._prev_excess == excess + 1:  # ≥ 2 old, or a backlog shrinking
                 age += excess
             else:  # 1 period old, or on time after lost answers and a late one: not told apart, arrival only
@@ -904,7 +915,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rx_burst = 0
         self._held = self._late = None
         m = self._evaluate(got, age)
-        if got is not None and self.cfg.sync_producer:  # the motion evidence's reference (_looks_old)
+        if got is not None and self.cfg.sync_producer and not unsure:  # the motion evidence's reference
             idx = self._n_sync - age
             if self._ref_idx is not None and idx > self._ref_idx:
                 # the velocity counts as evidence only when two intervals in a row agree (a position glitch,

@@ -43,7 +43,11 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   ``loop.slow_down_time_s``): T_eff += min(1, dt/τ)·(dt + n·T − T_eff). When T_eff/T reaches the next of ``SLOW_DOWN_LEVELS`` (1.5, 2, 2.5,
   ...) the loop calls ``controller.set_timing_scale(level)``: the feedback crossover is divided by it
   (the design keeps the margins it has for T at the interval actually seen); it steps back when T_eff/T
-  falls 10 % below the level. Logged at each change.
+  falls 10 % below the level. Logged at each change. The motion slows down with it: while the level is s the
+  reference's own time runs at 1/s of the loop's (t_r += Δt/s, so v_r and a_r are scaled by 1/s and 1/s²):
+  feedback at crossover/s cannot hold a full-speed reference (the HIL demo at load 12: at s = 4 the stage
+  stuck in static friction and the 2 mm/s reference ran 60 µm ahead, ``following_error``). At s = 1 t_r = t
+  exactly (simulated time unchanged); moves and stops are timed in t_r.
 * Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
   drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
   (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
@@ -276,6 +280,7 @@ class ControlLoop:
         self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
         self.slow_down = 1.0  # the feedback slow-down factor in force (SLOW_DOWN_LEVELS)
         self.slow_downs = 0  # level changes so far
+        self.ref_lag_s = 0.0  # loop time minus the reference's own time (the motion slowed down with the feedback)
         self.brake: QuickStopBrake | None = None  # the fault reaction's brake while it runs
         self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
         #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
@@ -336,7 +341,7 @@ class ControlLoop:
                         raise LoopStateError(f"ilc: loop is {self.state.value}; reset first")
                     if not isinstance(self.reference, RunsScenarios):
                         raise RequestError("motion", "this reference source runs no named motions")
-                    out["repetition_s"] = self.reference.run_scenario(t, req.motion)
+                    out["repetition_s"] = self.reference.run_scenario(t - self.ref_lag_s, req.motion)
                 return {**self.learner.request(req.action, req.motion if req.action != "start" else None), **out}
             except ValueError as exc:
                 field, _, msg = str(exc).partition(": ")
@@ -350,13 +355,13 @@ class ControlLoop:
             why = f" ({fault})" if fault else ""
             raise LoopStateError(f"{req.KIND}: loop is {self.state.value}{why}; reset first")
         if isinstance(req, StopRequest):
-            return {"x_m": float(self.reference.stop(t))}
+            return {"x_m": float(self.reference.stop(t - self.ref_lag_s))}
         if req.target_m is not None:
             target = req.target_m
         else:
             rel = req.relative_m if req.relative_m is not None else 0.0
             target = self.limits.check_relative(self.reference.target_m, rel)
-        duration = self.reference.move(t, target, req.max_velocity_m_s)
+        duration = self.reference.move(t - self.ref_lag_s, target, req.max_velocity_m_s)
         return {"target_m": target, "duration_s": float(duration)}
 
     def _reset(self, t: float, x: float) -> dict[str, Any]:
@@ -376,7 +381,7 @@ class ControlLoop:
         self.safety.clear()
         self.safety.restart(x, t)
         self.controller.reset(x)
-        self.reference.hold(t, x)
+        self.reference.hold(t - self.ref_lag_s, x)
         self._u = 0.0
         self._t_step = None
         self.state = LoopState.ACTIVE
@@ -530,6 +535,7 @@ class ControlLoop:
                              f"within loop.startup_cycles {n_max} cycles")
         self.safety.restart(x0)
         self.controller.reset(x0)
+        self.ref_lag_s = 0.0
         self.reference.hold(0.0, x0)
         self.state = LoopState.ACTIVE
         self._snap = (0.0, x0, x0, 0.0, self.cycle)
@@ -616,6 +622,7 @@ class ControlLoop:
         term_row = _term_getter(term_names)  # the terms, in column order
         no_terms = (0.0,) * len(term_names)
         serve, execute = self._inbox.serve, self._execute
+        t_last = math.nan  # the previous cycle's loop time (the reference's own time: module docstring)
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -630,6 +637,11 @@ class ControlLoop:
                 t = clock.now() - t0
             if t >= t_end - 1e-6 * period:
                 return "duration"
+            s_ref = self.slow_down
+            if s_ref != 1.0 and t_last == t_last:
+                self.ref_lag_s += (t - t_last) * (1.0 - 1.0 / s_ref)
+            t_last = t
+            t_r = t - self.ref_lag_s if self.ref_lag_s else t
             c0 = perf()
             # ------------------------------------------------------ one cycle
             try:
@@ -653,7 +665,9 @@ class ControlLoop:
                 if t_m != t and math.isfinite(x):
                     x += safety.v_est_m_s * (t - t_m)
                 if self.state is LoopState.ACTIVE:
-                    ref = reference.sample(t)
+                    ref = reference.sample(t_r)
+                    if s_ref != 1.0:  # the motion slowed down with the feedback
+                        ref = Reference(ref.x_m, ref.v_m_s / s_ref, ref.a_m_s2 / (s_ref * s_ref))
                     safety.reference_speed_m_s = abs(ref.v_m_s)
                     if safety.check_tracking(t, k, x, ref.x_m, m.fresh):
                         self._enter_fault(t, x)
@@ -680,7 +694,7 @@ class ControlLoop:
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
-                            u_l = learner.step(t, ref.x_m - x, moving=ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0)
+                            u_l = learner.step(t_r, ref.x_m - x, moving=ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0)
                             if learn_ctl is not None:
                                 cmd = learn_ctl.step(dt, x, ref, u_l, learner.active)
                             else:
@@ -704,7 +718,7 @@ class ControlLoop:
                             if learner is None:
                                 cmd = controller.hold(dt_h, ref)  # type: ignore[attr-defined]
                             else:  # the learned force goes on along the motion (not recorded)
-                                u_l = learner.step(t, ref.x_m - x, fresh=False)
+                                u_l = learner.step(t_r, ref.x_m - x, fresh=False)
                                 if learn_ctl is not None:
                                     cmd = controller.hold(dt_h, ref, u_l)  # type: ignore[attr-defined]
                                 else:
@@ -724,7 +738,7 @@ class ControlLoop:
                         if dev_fault is not None:  # the drive no longer obeys: release at once
                             self.brake.step(t, math.nan, False)
                         self._brake_cycle(t, x, m.fresh)
-                    ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t)
+                    ref = x_prev_ref if self.state is LoopState.FAULT else reference.sample(t_r)
                     terms = {}
                 x_prev_ref = ref
                 if stale_row:

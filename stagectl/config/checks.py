@@ -16,6 +16,8 @@
 * :func:`device_match_problems` -- a real driver (``io.drive``, ``io.encoder``, ``io.interferometer``) and the
   simulated device it talks to (``sim.drive``, ``sim.encoder``, ``sim.interferometer``: in-process for
   ``embedded_canopen``, served by ``stagectl sim-plant`` otherwise) must agree on node id and scaling.
+* :func:`time_base_problems` -- a HIL file (``io.kind: canopen`` to the ``stagectl sim-plant`` its own ``sim:``
+  section serves) whose sim-plant steps its plant one period per SYNC must run the loop on device time.
 * :func:`sim_device_problems` -- what the simulated world needs: for ``embedded_canopen`` the simulated sensor
   ``io.sensor`` names, distinct node ids on its bus, and ``sim.faults`` naming configured devices only.
 
@@ -40,7 +42,7 @@ from stagectl.safety import SafetyConfig
 from stagectl.sim.world import SimWorldConfig
 
 __all__ = ["INT16_MAX", "Sections", "can_problems", "controller_problems", "cross_checks", "demo_problems",
-           "device_match_problems", "force_chain_problems", "sim_device_problems"]
+           "device_match_problems", "force_chain_problems", "sim_device_problems", "time_base_problems"]
 
 #: largest target torque 0x6071 (INT16) a CiA 402 drive accepts, in units of force_per_unit_n
 INT16_MAX = 32767
@@ -198,6 +200,29 @@ def sim_device_problems(cfg: AppConfig | Sections) -> list[str]:
     return problems
 
 
+def time_base_problems(cfg: AppConfig | Sections) -> list[str]:
+    """``loop.device_time`` where the loop talks to the ``stagectl sim-plant`` of this file's own ``sim:`` section
+    (``io.kind: canopen``, ``io.drive.can`` at ``sim.transport``'s host and port) and that sim-plant steps its
+    plant exactly one period per SYNC (``sim.drive.wall_clock_plant: false``): the stage's time is then the
+    number of SYNCs it answered. On the wall clock every skipped loop slot (a loaded PC without real-time
+    scheduling skips 2-25 %) puts the reference one period ahead of the stage for good: at 2 mm/s, 2 µm per
+    slot, and ``config/hil-serial.yaml`` ran up a 37 µm error in 60 s at load 3 and faulted ``following_error``
+    after 10 s at load 8-10 (docs/platform.md §7.3). With device time the reference waits with the plant."""
+    s = _sections(cfg)
+    io, sim, loop = s.io, s.sim, s.loop
+    if (io is None or sim is None or loop is None or io.kind is not IoKind.CANOPEN or io.drive is None
+            or loop.device_time or sim.drive.wall_clock_plant or sim.transport.kind != "socketcand"):
+        return []
+    can = io.drive.can
+    if str(can.get("interface", "")) != "socketcand" or can.get("port") != sim.transport.port or \
+            str(can.get("host", "")) != sim.transport.host:
+        return []
+    return [(f"loop.device_time: false, but io.drive talks to the sim-plant of this file's sim: section "
+             f"({sim.transport.host}:{sim.transport.port}), which steps its plant one period per SYNC "
+             "(sim.drive.wall_clock_plant: false): each skipped loop slot would put the reference a period ahead "
+             "of the stage; set loop.device_time: true")]
+
+
 def demo_problems(cfg: AppConfig | Sections) -> list[str]:
     """``demo.scenario`` must name a scenario of :func:`stagectl.control.reference.scenario_names`."""
     demo = _sections(cfg).demo
@@ -282,5 +307,6 @@ def cross_checks(cfg: AppConfig | Sections) -> list[str]:
     problems += force_chain_problems(s)
     problems += device_match_problems(s)
     problems += sim_device_problems(s)
+    problems += time_base_problems(s)
     problems += plausibility_problems(s)
     return problems

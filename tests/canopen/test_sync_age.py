@@ -219,3 +219,40 @@ def test_a_moving_stage_tells_a_standing_backlog_from_lost_answers(lockstep, mon
     monkeypatch.setattr(drv, "AGE_EVIDENCE_COUNTS", float("inf"))
     blind = _moving_backlog(lockstep)
     assert sum(1 for a, t in blind if a < t) >= 15  # the counting rule alone: the backlog's samples too young
+
+
+def _start_in_a_stall(lockstep, stall: int = 8, force_n: float = 3.0):
+    """The HIL demo's move start at load 9-12: the stage at rest, the drive's process held off the CPU for
+    ``stall`` cycles (heartbeat running) while the move's force goes out, then it answers one SYNC in one cycle
+    (while the driver waits for this SYNC's) and the rest of its backlog in a burst at the next. Returns
+    (reported age, true age) of each fresh sample after the stall began."""
+    w, dut = lockstep(max_missed=stall + 10)
+    th = ThrottledDrive(w)
+    dut.set_pump(th.pump)
+    sent, base = 0, w.drive.sync_count
+    out = []
+    for k in range(20 + stall + 10):
+        j = k - 20
+        th.budget = None if j < 0 or j > stall else 0
+        dut.sync()
+        sent += 1
+        if j == stall:  # the one answer arrives while the driver waits for this SYNC's
+            th.budget = 1
+        m = dut.read()
+        assert m.fault is None, m.fault
+        if j >= 0 and m.fresh:
+            out.append((m.age_cycles, sent - (w.drive.sync_count - base)))
+        dut.write(0.0 if j < 0 else force_n)
+    return out
+
+
+def test_an_answer_of_unknown_age_is_not_taken_for_this_syncs(lockstep):
+    """At rest the motion cannot tell a backlog from lost answers, and one answer after a gap of b was taken
+    for lost ones: a sample b periods old stepped on as this SYNC's (the observer's kick at a move's start, held
+    blind through the next gap; the HIL then faulted following_error). Now such a sample is reported as old as a
+    backlog would make it (the loop holds on it); the answers after it carry their real ages."""
+    got = _start_in_a_stall(lockstep)
+    first_age, first_truth = got[0]
+    assert first_truth >= 6  # the oracle: the drive's own count of unanswered SYNCs
+    assert first_age >= 2, got[:3]  # not stepped on (the loop's STALE_AGE_CYCLES); before: 0
+    assert [a for a, _ in got[1:]] == [t for _, t in got[1:]], got  # the burst and after: their real ages

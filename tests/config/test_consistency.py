@@ -185,3 +185,21 @@ def test_a_missing_required_section_has_no_follow_up_noise():
                      "x.yaml: controller: required key missing (controller tuning (pid, dob, feedforward))",
                      "x.yaml: loop.perod_s: unknown key (did you mean period_s?)",
                      "x.yaml: sim: required for io.kind plant_io (the simulated stage)"]
+
+
+# ------------------------------------------------------------------------------------ HIL time base
+@pytest.mark.parametrize("name", ["hil-canopen.yaml", "hil-serial.yaml"])
+def test_a_sim_plant_stepped_per_sync_needs_device_time(name):
+    """A HIL file whose own sim-plant steps its plant once per SYNC must run the loop on device time (on the
+    wall clock each skipped slot puts the reference a period ahead of the stage); a sim-plant on the wall
+    clock, or a drive elsewhere, needs no such thing."""
+    data = shipped_config_mapping(name)
+    parse_app_config(data, REPO / "config" / "x.yaml")  # fine as shipped
+    data["loop"]["device_time"] = False
+    probs = config_problems(data)
+    assert len(probs) == 1 and "loop.device_time: false" in probs[0] and "set loop.device_time: true" in probs[0]
+    wall = {**data, "sim": {**data["sim"], "drive": {**data["sim"]["drive"], "wall_clock_plant": True}}}
+    parse_app_config(wall, REPO / "config" / "x.yaml")
+    elsewhere = {**data, "io": {**data["io"], "drive": {**data["io"]["drive"],
+                                                         "can": {**data["io"]["drive"]["can"], "port": 29999}}}}
+    parse_app_config(elsewhere, REPO / "config" / "x.yaml")
