@@ -564,6 +564,8 @@ class BacklashParams:
     mass_lost_kg: float
     coulomb_n: float  # the full Coulomb level, for the bounds
     mass_kg: float
+    impact_mass_kg: float = 0.0  # effective mass of the engagement impact (coefficient of (v_m − v_l)/dt)
+    viscous_n_s_m: float = math.inf  # the full viscous coefficient, for the bounds (inf: not known)
 
 
 def _play_open(sig: Signals, gap: float) -> FloatArray:
@@ -621,19 +623,25 @@ def _backlash_params(h: Hyp) -> BacklashParams:
     s = BACKLASH.shape(h)
     if "bl" in th:
         ml = -th["bl"]
-        return BacklashParams(float(s.gap_m), ml * s.dec_c_m_s2, ml * s.dec_v_1_s, ml, coulomb_level(h), float(m))
+        return BacklashParams(float(s.gap_m), ml * s.dec_c_m_s2, ml * s.dec_v_1_s, ml, coulomb_level(h), float(m),
+                              float(th.get("bi", 0.0)), float(th.get("fv", math.inf)))
     return BacklashParams(float(s.gap_m), -th.get("bc", 0.0), -th.get("bv", 0.0), -th.get("bm", 0.0),
-                          coulomb_level(h), float(m))
+                          coulomb_level(h), float(m), float(th.get("bi", 0.0)), float(th.get("fv", math.inf)))
 
 
 def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
-    """Play b by a 1-D search with the play opening at reversals only (the load stops at once when it leaves
-    the motor); then the same with the load simulated under its own friction (:func:`_load_state`), its
-    deceleration per unit mass first taken from the current fit (friction and 80 % of the mass on the load)
-    and then iterated from the fitted lost friction and mass (dec_c = lost Coulomb / lost mass, dec_v = lost
-    viscous / lost mass). The RSS over b has several minima (a small play that only moves the engagement
-    impacts fits them too, with an unphysical negative lost mass), so the grid is fine (ratio 1.4) and a fit
-    outside the physical bounds (:func:`_backlash_bounds`) ranks behind every fit inside them."""
+    """Two forms, the better physical fit wins.
+
+    1. Reversal-only (the shape's default ``dec_c = inf``): the play operator on the motor position; free
+       lost Coulomb, viscous and mass coefficients; b by a 1-D search (12-point grid + Brent).
+    2. The load simulated along the measured motor trajectory (:func:`_load_state`) with all the friction on
+       the load: ``dec_c = Fc/m_l``, ``dec_v = Fv/m_l`` from the current fit's Fc, Fv and a load mass m_l
+       that starts at 0.8·m and is iterated from the fitted lost mass (one coefficient, column ``bl``, so the
+       lost friction is m_l·(dec_c, dec_v) by construction). The RSS over b has several minima (a small play
+       that only moves the engagement impacts fits them too, with an unphysical lost mass), so the grid is
+       fine (ratio 1.4) and a fit outside the physical bounds (:func:`_backlash_bounds`) ranks behind every
+       fit inside them.
+    """
     sig = fitter.sig
     span = float(np.ptp(sig.xf))
     lo = max(4.0 * sig.noise_m, 2.0 * sig.quantum_m, 1e-7)
@@ -701,6 +709,16 @@ def _backlash_bounds(p: BacklashParams) -> list[str]:
         out.append(f"friction lost in the play {p.coulomb_lost_n:.3g} N outside [0, Fc = {p.coulomb_n:.3g} N]")
     if p.mass_kg > 0 and not (-0.1 * p.mass_kg <= p.mass_lost_kg <= p.mass_kg):
         out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg outside [0, m = {p.mass_kg:.3g} kg]")
+    if p.viscous_lost_n_s_m > 1.1 * max(p.viscous_n_s_m, 0.0) + 1e-9:
+        out.append(f"viscous friction lost in the play {p.viscous_lost_n_s_m:.3g} N·s/m above all the viscous "
+                   f"friction Fv = {p.viscous_n_s_m:.3g} N·s/m")
+    if p.mass_kg > 0 and p.impact_mass_kg > 3.0 * max(p.mass_lost_kg, 0.0) + 0.02 * p.mass_kg:
+        # an engagement hands the load at most its own momentum: about m_l·Δv, with m_l the mass lost in the
+        # play (the column's Δv is taken at the engagement sample, partly after the impact, hence the margin
+        # of 3). A larger impact coefficient is the impact column fitting something else (a null recording
+        # with a hole once gave a 2 µm "backlash" with an impact mass 19x the mass lost)
+        out.append(f"impact mass {p.impact_mass_kg:.3g} kg above the mass lost in the play {p.mass_lost_kg:.3g} kg "
+                   "(an engagement cannot hand over more than the load's momentum)")
     return out
 
 
