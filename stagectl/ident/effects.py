@@ -660,7 +660,7 @@ def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
         return best
     fv = max(float(th.get("fv", 0.0)), 0.0)
     ml = 0.8 * m
-    ngrid = max(int(math.ceil(math.log(hi / lo) / math.log(1.4))), 8)
+    ngrid = max(math.ceil(math.log(hi / lo) / math.log(1.4)), 8)
     for it in range(3):
         dc, dv = fc / ml, fv / ml
 
