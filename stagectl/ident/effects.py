@@ -660,6 +660,7 @@ def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
         return best
     fv = max(float(th.get("fv", 0.0)), 0.0)
     ml = 0.8 * m
+    lo = min(max(lo, 1e-6), 0.1 * hi)  # a play below 1 µm: the reversal-only form covers it, the overrun is nil
     ngrid = max(math.ceil(math.log(hi / lo) / math.log(1.4)), 8)
     for it in range(3):
         dc, dv = fc / ml, fv / ml
