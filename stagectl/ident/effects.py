@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stagectl.friction.effects import Asymmetry, Cogging, Delay, Offset, PositionRipple, Spring, ViscousAsymmetry
+from stagectl.ident._kernels import backlash_load
 from stagectl.ident._minimize import nelder_mead
 from stagectl.ident.columns import (
     cached,
@@ -546,6 +547,10 @@ def _hide_delay(st: HiddenStage) -> None:
 @dataclass(frozen=True)
 class BacklashShape:
     gap_m: float = 1e-5  # total play b between motor and load [m]
+    # the load's own friction per unit load mass, a_l = −(dec_c·sgn v_l + dec_v·v_l): dec_c [m/s²], dec_v [1/s];
+    # inf: the load stops at once when it leaves the motor (the play opens only at reversals)
+    dec_c_m_s2: float = math.inf
+    dec_v_1_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -559,6 +564,8 @@ class BacklashParams:
     mass_lost_kg: float
     coulomb_n: float  # the full Coulomb level, for the bounds
     mass_kg: float
+    impact_mass_kg: float = 0.0  # effective mass of the engagement impact (coefficient of (v_m − v_l)/dt)
+    viscous_n_s_m: float = math.inf  # the full viscous coefficient, for the bounds (inf: not known)
 
 
 def _play_open(sig: Signals, gap: float) -> FloatArray:
@@ -569,35 +576,107 @@ def _play_open(sig: Signals, gap: float) -> FloatArray:
         np.abs(element(sig, 0.5 * gap)) < 1.0 - 1e-9, dtype=np.float64))
 
 
+def _load_state(sig: Signals, s: BacklashShape) -> FloatArray:
+    """(play open, engagement velocity step / dt) of the load simulated from the motor trajectory
+    (:func:`stagectl.ident._kernels.backlash_load`), or the reversal-only play operator when ``dec_c`` is inf."""
+    def make() -> FloatArray:
+        if math.isinf(s.dec_c_m_s2):
+            g = _play_open(sig, s.gap_m)
+            eng = np.zeros(sig.n)
+            eng[1:] = (g[:-1] > 0.5) & (g[1:] < 0.5)  # the play closes: the load is engaged (an impact)
+            return np.vstack([g, eng * sig.v / sig.dt_s])
+        return np.asarray(backlash_load(np.ascontiguousarray(sig.xf), np.ascontiguousarray(sig.v),
+                                        np.ascontiguousarray(sig.acc_f), float(s.gap_m), float(s.dec_c_m_s2),
+                                        float(s.dec_v_1_s), float(sig.dt_s)), dtype=np.float64)
+
+    return cached(sig, "load:" + _shape_key(s), make)
+
+
+def _shape_key(s: BacklashShape) -> str:
+    return f"{s.gap_m:.6e}:{s.dec_c_m_s2:.6e}:{s.dec_v_1_s:.6e}"
+
+
 def _backlash_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
     """While the play is open (g = 1) the motor carries neither the load's friction nor its mass: columns
     g·sgn(v), g·v, g·a with coefficients −(lost Coulomb, viscous, mass). When it closes, the load is engaged
     at once, an inelastic impact: the motor's measured acceleration has a one-sample spike of the momentum
-    handed to the load, column ``δ_engage·v/dt`` (coefficient: the effective impact mass [kg]; without it the
-    spike leaks into the mass column and pushes the lost mass beyond the total)."""
-    b = BACKLASH.shape(h).gap_m
-    g = _play_open(sig, b)
-    eng = np.zeros(sig.n)
-    eng[1:] = (g[:-1] > 0.5) & (g[1:] < 0.5)  # the play closes: the load is engaged (an impact)
-    return [Column("bc", g * sig.direction, f"bc:{b:.6e}"), Column("bv", g * sig.v, f"bv:{b:.6e}"),
-            Column("bm", g * sig.acc_raw, f"bm:{b:.6e}"), Column("bi", eng * sig.v / sig.dt_s, f"bi:{b:.6e}")]
+    handed to the load, column ``δ_engage·(v_m − v_l)/dt`` (coefficient: the effective impact mass [kg];
+    without it the spike leaks into the mass column and pushes the lost mass beyond the total).
+
+    g comes from the load simulated along the measured motor trajectory (:func:`_load_state`): the play opens
+    at reversals and also while the motor decelerates harder than the load's own friction decelerates the
+    load (|a| > (Fc + Fv·|v|)/m_load), when the load runs ahead through the play."""
+    s = BACKLASH.shape(h)
+    st = _load_state(sig, s)
+    g = st[0]
+    k = _shape_key(s)
+    if not math.isinf(s.dec_c_m_s2):  # one coefficient, the load mass: the lost friction is m_l·(dec_c, dec_v)
+        return [Column("bl", g * (sig.acc_raw + s.dec_c_m_s2 * sig.direction + s.dec_v_1_s * sig.v), f"bl:{k}"),
+                Column("bi", st[1], f"bi:{k}")]
+    return [Column("bc", g * sig.direction, f"bc:{k}"), Column("bv", g * sig.v, f"bv:{k}"),
+            Column("bm", g * sig.acc_raw, f"bm:{k}"), Column("bi", st[1], f"bi:{k}")]
 
 
 def _backlash_params(h: Hyp) -> BacklashParams:
     th = h.theta
     m = th.get("m", h.fixed_mass_kg or 0.0)
-    return BacklashParams(float(BACKLASH.shape(h).gap_m), -th.get("bc", 0.0), -th.get("bv", 0.0), -th.get("bm", 0.0),
-                          coulomb_level(h), float(m))
+    s = BACKLASH.shape(h)
+    if "bl" in th:
+        ml = -th["bl"]
+        return BacklashParams(float(s.gap_m), ml * s.dec_c_m_s2, ml * s.dec_v_1_s, ml, coulomb_level(h), float(m),
+                              float(th.get("bi", 0.0)), float(th.get("fv", math.inf)))
+    return BacklashParams(float(s.gap_m), -th.get("bc", 0.0), -th.get("bv", 0.0), -th.get("bm", 0.0),
+                          coulomb_level(h), float(m), float(th.get("bi", 0.0)), float(th.get("fv", math.inf)))
 
 
 def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    """Two forms, the better physical fit wins.
+
+    1. Reversal-only (the shape's default ``dec_c = inf``): the play operator on the motor position; free
+       lost Coulomb, viscous and mass coefficients; b by a 1-D search (12-point grid + Brent).
+    2. The load simulated along the measured motor trajectory (:func:`_load_state`) with all the friction on
+       the load: ``dec_c = Fc/m_l``, ``dec_v = Fv/m_l`` from the current fit's Fc, Fv and a load mass m_l
+       that starts at 0.8·m and is iterated from the fitted lost mass (one coefficient, column ``bl``, so the
+       lost friction is m_l·(dec_c, dec_v) by construction). The RSS over b has several minima (a small play
+       that only moves the engagement impacts fits them too, with an unphysical lost mass), so the grid is
+       fine (ratio 1.4) and a fit outside the physical bounds (:func:`_backlash_bounds`) ranks behind every
+       fit inside them.
+    """
     sig = fitter.sig
     span = float(np.ptp(sig.xf))
     lo = max(4.0 * sig.noise_m, 2.0 * sig.quantum_m, 1e-7)
     hi = max(min(0.02 * span, 2e-3), 20 * lo)
+
+    def score(r: FitResult) -> float:
+        return r.rss + (2.0 * cur.rss if _backlash_bounds(_backlash_params(r.hyp)) else 0.0)
+
     b, _ = best_scalar(lambda g: BACKLASH.fit_with(fitter, h, gap_m=g).rss, list(np.geomspace(lo, hi, 12)), lo, hi,
                        maxiter=10)
-    return BACKLASH.fit_with(fitter, h, gap_m=b)
+    best = BACKLASH.fit_with(fitter, h, gap_m=b)
+    th = cur.hyp.theta
+    m = float(th.get("m", cur.hyp.fixed_mass_kg or 0.0))
+    fc = coulomb_level(cur.hyp)
+    if m <= 0.0 or fc <= 0.0:
+        return best
+    fv = max(float(th.get("fv", 0.0)), 0.0)
+    ml = 0.8 * m
+    lo = min(max(lo, 1e-6), 0.1 * hi)  # a play below 1 µm: the reversal-only form covers it, the overrun is nil
+    ngrid = max(math.ceil(math.log(hi / lo) / math.log(1.4)), 8)
+    for it in range(3):
+        dc, dv = fc / ml, fv / ml
+
+        def phys(g: float, dc: float = dc, dv: float = dv) -> float:
+            return score(BACKLASH.fit_with(fitter, h, gap_m=g, dec_c_m_s2=dc, dec_v_1_s=dv))
+        grid = list(np.geomspace(lo, hi, ngrid)) if it == 0 else [b / 1.2, b, b * 1.2]
+        b, _ = best_scalar(phys, grid, lo, hi, maxiter=6 if it == 0 else 4)
+        res = BACKLASH.fit_with(fitter, h, gap_m=b, dec_c_m_s2=dc, dec_v_1_s=dv)
+        if score(res) < score(best):
+            best = res
+        p = _backlash_params(res.hyp)
+        if _backlash_bounds(p) or abs(p.mass_lost_kg - ml) < 0.02 * m:
+            break
+        ml = p.mass_lost_kg
+    return best
 
 
 def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
@@ -631,6 +710,16 @@ def _backlash_bounds(p: BacklashParams) -> list[str]:
         out.append(f"friction lost in the play {p.coulomb_lost_n:.3g} N outside [0, Fc = {p.coulomb_n:.3g} N]")
     if p.mass_kg > 0 and not (-0.1 * p.mass_kg <= p.mass_lost_kg <= p.mass_kg):
         out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg outside [0, m = {p.mass_kg:.3g} kg]")
+    if p.viscous_lost_n_s_m > 1.1 * max(p.viscous_n_s_m, 0.0) + 1e-9:
+        out.append(f"viscous friction lost in the play {p.viscous_lost_n_s_m:.3g} N·s/m above all the viscous "
+                   f"friction Fv = {p.viscous_n_s_m:.3g} N·s/m")
+    if p.mass_kg > 0 and p.impact_mass_kg > 3.0 * max(p.mass_lost_kg, 0.0) + 0.02 * p.mass_kg:
+        # an engagement hands the load at most its own momentum: about m_l·Δv, with m_l the mass lost in the
+        # play (the column's Δv is taken at the engagement sample, partly after the impact, hence the margin
+        # of 3). A larger impact coefficient is the impact column fitting something else (a null recording
+        # with a hole once gave a 2 µm "backlash" with an impact mass 19x the mass lost)
+        out.append(f"impact mass {p.impact_mass_kg:.3g} kg above the mass lost in the play {p.mass_lost_kg:.3g} kg "
+                   "(an engagement cannot hand over more than the load's momentum)")
     return out
 
 

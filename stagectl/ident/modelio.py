@@ -95,6 +95,9 @@ def _backlash_spec(h: Hyp) -> dict[str, Any]:
     if not (0.0 < other < p.mass_kg):
         raise ConfigError(f"backlash: the fitted mass lost in the play ({p.mass_lost_kg:.4g} kg of "
                           f"{p.mass_kg:.4g} kg) leaves no valid motor/load split; not written (not clipped)")
+    beyond = fx.BACKLASH.bounds(p) if fx.BACKLASH.bounds is not None else []
+    if beyond:  # discovery never accepts such a fit; refuse it here too rather than write an unphysical plant
+        raise ConfigError(f"backlash: the fit is beyond a physical bound ({'; '.join(beyond)}); not written")
     return {"gap_m": float(p.gap_m), "other_mass_kg": float(other), "friction_side": "load" if on_load else "motor",
             "sensor_side": "motor"}
 
