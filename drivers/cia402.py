@@ -147,7 +147,7 @@ def cob_id_writes(current: int, cob_id: int) -> tuple[list[tuple[int, str]], int
     writes = []
     if not current & PDO_DISABLED:
         writes.append((current | PDO_DISABLED, "COB-ID (disable)"))
-    if current & 0x3FFFFFFF != keep | cob_id:
+    if current & ~PDO_DISABLED & 0xFFFFFFFF != keep | cob_id:  # bits 0-30: ours (bit 30 as the drive has it)
         writes.append((PDO_DISABLED | keep | cob_id, "COB-ID (set while disabled)"))
     return writes, keep | cob_id
 

@@ -285,6 +285,9 @@ class ControlLoop:
         self.last_brake: QuickStopBrake | None = None  # the last one that ran (diagnostics, tests)
         #: False: release at once on every fault (the reaction before active braking; benchmarks compare)
         self.active_braking = True
+        #: False: the reference keeps the loop's time while the feedback is slowed down (the loop before the
+        #: motion slowed down with it; tests and benchmarks compare)
+        self.slow_motion = True
         self.realtime_report: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ sinks
@@ -623,6 +626,7 @@ class ControlLoop:
         no_terms = (0.0,) * len(term_names)
         serve, execute = self._inbox.serve, self._execute
         t_last = math.nan  # the previous cycle's loop time (the reference's own time: module docstring)
+        slow_motion = self.slow_motion
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -637,7 +641,7 @@ class ControlLoop:
                 t = clock.now() - t0
             if t >= t_end - 1e-6 * period:
                 return "duration"
-            s_ref = self.slow_down
+            s_ref = self.slow_down if slow_motion else 1.0
             if s_ref != 1.0 and t_last == t_last:
                 self.ref_lag_s += (t - t_last) * (1.0 - 1.0 / s_ref)
             t_last = t

@@ -182,3 +182,5 @@ def test_short_moves_are_not_learned_from_with_a_faster_observer(seed):
         assert res.fault is None
         assert abs(ctl.ff_scale - 1.0) <= tol and abs(ctl.ff.input_scale - 1.0) <= tol, (size_m, ctl.ff_scale,
                                                                                          ctl.ff.input_scale)
+        if size_m > 1e-5:  # learned from (θ and β left exactly 1 would pass the band above without a fit)
+            assert (ctl.ff_scale, ctl.ff.input_scale) != (1.0, 1.0)

@@ -245,7 +245,8 @@ def _starved_run(cfg, slow_motion: bool):
     """Through the CiA 402 driver and the virtual drive (lock-step, device time), 60 % of the drive's answers
     dropped from cycle 5 on (a sim-plant that answers only now and then on a loaded PC): the average sample
     interval passes 2 T and the loop slows the feedback down; then, at 0.4 s, a 100 µm move at 2 mm/s.
-    ``slow_motion`` False: the reference keeps the loop's time (the loop before). Returns loop, result, recorder."""
+    ``slow_motion`` False: the reference keeps the loop's time, position and speed (the loop before:
+    ``ControlLoop.slow_motion``). Returns loop, result, recorder."""
     from stagectl.sim.faults import FaultSpec, SimFault
 
     from stagectl.app import build_stage
@@ -259,13 +260,12 @@ def _starved_run(cfg, slow_motion: bool):
         stage.load_scenario("hold")
         rec = Recorder(loop.columns, 1000)
         loop.add_sink(rec)
+        loop.slow_motion = slow_motion
         stage.world.inject(FaultSpec(kind=SimFault.DROP_TPDO, at_cycle=5, sync_fraction=0.6, seed=3))
 
         def on_cycle() -> None:
             if loop.cycle == 400:
                 loop.submit(MoveRequest(relative_m=100e-6, max_velocity_m_s=2e-3))
-            if not slow_motion:
-                loop.ref_lag_s = 0.0
 
         loop.on_cycle = on_cycle
         res = loop.run(duration_s=0.6)
@@ -275,12 +275,14 @@ def _starved_run(cfg, slow_motion: bool):
 def test_the_motion_slows_down_with_the_feedback(hil_cfg):
     """A controller facing stale data must hold or slow down, never run away: with the feedback at crossover/s
     the reference runs at 1/s of its speed too, so the stage is not left behind it (before: the full-speed
-    reference with the slowed feedback, the HIL demo's following_error at load 12)."""
+    reference with the slowed feedback; in lock-step here 8.1 µm of error, in the HIL demo at load 12
+    following_error)."""
     loop, res, rec = _starved_run(hil_cfg, True)
     loop0, res0, rec0 = _starved_run(hil_cfg, False)
-    assert loop.slow_down >= 2.0 and loop0.slow_down >= 2.0  # the feedback slowed down in both (measured 3)
-    assert res.fault is None, res.fault
-    assert res0.fault is not None and res0.fault.name == "following_error"  # measured 65 µm at 0.449 s
+    assert loop.slow_down >= 2.0 and loop0.slow_down >= 2.0  # the feedback slowed down in both (measured 3, 4)
+    assert res.fault is None and res0.fault is None, (res.fault, res0.fault)
     assert 0.0 < np.max(np.abs(rec.col("v_ref"))) <= 2e-3 / loop.slow_down + 1e-12  # the move, slowed
-    fresh = rec.col("stale") < 0.5
-    assert np.max(np.abs(rec.col("e")[fresh])) < 5e-6  # measured 0.67 µm
+    assert np.max(np.abs(rec0.col("v_ref"))) == pytest.approx(2e-3)  # before: at full speed
+    e = np.max(np.abs(rec.col("e")[rec.col("stale") < 0.5]))
+    e0 = np.max(np.abs(rec0.col("e")[rec0.col("stale") < 0.5]))
+    assert e < 5e-6 and e < 0.25 * e0, (e, e0)  # measured 0.67 µm against 8.07 µm (the loop before)
