@@ -231,8 +231,12 @@ def _case(python: str, job: dict[str, Any], cache: Path) -> dict[str, Any]:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
     with tempfile.TemporaryDirectory(prefix="stagectl-tier-") as tmp:
         outp = Path(tmp) / "out.json"
-        r = subprocess.run([python, "-c", _CHILD, json.dumps(job), str(outp)], check=False, env=env,
-                           capture_output=True, text=True, timeout=600)
+        try:
+            r = subprocess.run([python, "-c", _CHILD, json.dumps(job), str(outp)], check=False, env=env,
+                               capture_output=True, text=True, timeout=600)
+        except subprocess.TimeoutExpired:
+            raise StageError(f"bench startup --switch: the {job['path']}/{job['tier']} run took over 600 s "
+                             "(the machine is too loaded for this benchmark)") from None
         if r.returncode != 0 or not outp.exists():
             last = (r.stderr.strip().splitlines() or ["no output"])[-1][:300]
             raise StageError(f"bench startup --switch: the {job['path']}/{job['tier']} run failed: {last}")
