@@ -47,7 +47,8 @@ Timing of the control law (a PC without a real-time kernel wakes late, skips slo
   reference's own time runs at 1/s of the loop's (t_r += Δt/s, so v_r and a_r are scaled by 1/s and 1/s²):
   feedback at crossover/s cannot hold a full-speed reference (the HIL demo at load 12: at s = 4 the stage
   stuck in static friction and the 2 mm/s reference ran 60 µm ahead, ``following_error``). At s = 1 t_r = t
-  exactly (simulated time unchanged); moves and stops are timed in t_r.
+  exactly (simulated time unchanged); moves and stops are timed in t_r, and a move's reply gives its
+  duration on the loop's clock (s × the planned duration while slowed).
 * Fault reaction: after ``following_error``, ``velocity_limit`` or ``position_limit`` (position valid,
   drive obeying) the loop brakes the stage to standstill on a velocity ramp within ``max_force_n``
   (:class:`~stagectl.runtime.quickstop.QuickStopBrake`, deceleration ``safety.quick_stop_deceleration_m_s2``),
@@ -365,6 +366,8 @@ class ControlLoop:
             rel = req.relative_m if req.relative_m is not None else 0.0
             target = self.limits.check_relative(self.reference.target_m, rel)
         duration = self.reference.move(t - self.ref_lag_s, target, req.max_velocity_m_s)
+        if self.slow_motion and self.slow_down != 1.0:  # the reference runs at 1/s of loop time while slowed
+            duration *= self.slow_down
         return {"target_m": target, "duration_s": float(duration)}
 
     def _reset(self, t: float, x: float) -> dict[str, Any]:

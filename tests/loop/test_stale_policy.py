@@ -263,12 +263,15 @@ def _starved_run(cfg, slow_motion: bool):
         loop.slow_motion = slow_motion
         stage.world.inject(FaultSpec(kind=SimFault.DROP_TPDO, at_cycle=5, sync_fraction=0.6, seed=3))
 
+        replies = []
+
         def on_cycle() -> None:
             if loop.cycle == 400:
-                loop.submit(MoveRequest(relative_m=100e-6, max_velocity_m_s=2e-3))
+                replies.append(loop.submit(MoveRequest(relative_m=100e-6, max_velocity_m_s=2e-3)))
 
         loop.on_cycle = on_cycle
         res = loop.run(duration_s=0.6)
+        loop.move_reply = replies[0].result(timeout=0)  # type: ignore[attr-defined]
     return loop, res, rec
 
 
@@ -286,3 +289,6 @@ def test_the_motion_slows_down_with_the_feedback(hil_cfg):
     e = np.max(np.abs(rec.col("e")[rec.col("stale") < 0.5]))
     e0 = np.max(np.abs(rec0.col("e")[rec0.col("stale") < 0.5]))
     assert e < 5e-6 and e < 0.25 * e0, (e, e0)  # measured 0.67 µm against 8.07 µm (the loop before)
+    # the move's reply gives the time it takes on the loop's clock: s times the planned duration while slowed
+    assert 0.05 <= loop0.move_reply["duration_s"] < 0.1  # 100 µm at 2 mm/s with its ramps (measured 71 ms)
+    assert loop.move_reply["duration_s"] == pytest.approx(loop0.move_reply["duration_s"] * loop.slow_down, rel=0.05)
