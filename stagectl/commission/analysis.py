@@ -347,8 +347,7 @@ class CvSegment:
 
 
 def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
-                mass_kg: float, min_samples: int = 50, speeds: FloatArray | None = None,
-                settle_s: float = 0.0) -> list[CvSegment]:
+                mass_kg: float, min_samples: int = 50, speeds: FloatArray | None = None) -> list[CvSegment]:
     """Steady constant-velocity segments (``a_ref = 0``, ``v_ref ≠ 0``), each trimmed by 20 % at both ends;
     mean force ``ū − m·ā`` with its standard error (from the sample spread, decorrelated over 20 samples).
     With ``speeds`` [m/s] only segments whose ``|v_ref|`` is one of them (relative 1e-6): the passes, not
@@ -359,11 +358,14 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
     (the cogging and offset over the pass's range then enter both means alike and cancel in the odd part
     ``Fc·sgn(v) + Fv·v`` the fit reads).
 
-    ``settle_s`` [s]: the loop's transient after the reference's acceleration ends is skipped too (the start
-    trim is ``max(n/5, settle_s/dt)`` samples), and a segment needs ``min_samples`` after the trims. The fastest pass of an 8.9 kg stage (50 samples at 16 mm/s)
-    never settled: its speed went 2.6 % over and 1.7 % under, its force mean read 32 mN (2 %) high in both
-    directions, and the fit's viscous came out 14 % high. A speed criterion cannot replace it: the cogging
-    ripples the speed of well-settled passes by 5-7 %."""
+    With ``speeds``, a pass also needs ``min_samples`` after the trims (not before): the loop's transient
+    after the reference's acceleration ends must be well behind. The fastest pass of an 8.9 kg stage (50
+    samples at 16 mm/s) never settled: its speed went 2.6 % over and 1.7 % under, its force mean read 32 mN
+    (2 %) high in both directions, and the fit's viscous came out 14 % high. A speed criterion cannot tell
+    it: the cogging ripples the speed of settled passes by 5-7 %. A fixed settling time (five crossover
+    periods over 2π, 53 ms) cannot either: it also dropped the 16 mm/s passes of light stages, which had
+    settled within 4 mN, and without them the Stribeck tail and the viscous term traded (viscous −45 % on a
+    0.60 kg stage with vs 2.9 mm/s)."""
     out: list[CvSegment] = []
     steady = (np.abs(a_ref) < 1e-12) & (np.abs(v_ref) > 0)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], steady.astype(np.int8), [0]])))
@@ -374,8 +376,8 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
             continue
         if speeds is not None and not np.any(np.abs(abs(float(v_ref[i0])) / speeds - 1.0) < 1e-6):
             continue
-        j0, j1 = i0 + max(n // 5, int(math.ceil(settle_s / dt))), i1 - n // 5
-        if settle_s > 0 and j1 - j0 < min_samples:  # not enough of it settled
+        j0, j1 = i0 + n // 5, i1 - n // 5
+        if speeds is not None and j1 - j0 < min_samples:  # too short to have settled
             continue
         vel = (x[j1 - 1] - x[j0]) / (t[j1 - 1] - t[j0])
         acc = np.gradient(np.gradient(x[j0:j1], dt), dt)

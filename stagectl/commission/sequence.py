@@ -483,10 +483,9 @@ class Commissioning:
             if ladder is not None and ladder.updates and last is not None and last.name == "friction_cv":
                 last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
-        # the fit reads the designed passes only, both ways, after the loop's transient (analysis.cv_segments)
+        # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m, speeds=speeds,
-                                             settle_s=LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T)),
+                                             cv_rec.col("a_ref"), m, speeds=speeds),
                               vs_max_x_top=CV_VS_MAX_X_TOP)
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
