@@ -413,16 +413,11 @@ class CvFriction:
                              for s in self.segments]}
 
 
-def cv_friction(segs: list[CvSegment], vs_max_x_top: float | None = None) -> CvFriction:
+def cv_friction(segs: list[CvSegment]) -> CvFriction:
     """Friction from the segment means (module docstring): the Stribeck curve
     (:func:`stagectl.ident.identify.fit_stribeck_curve`) where the data allow it, then, with its Stribeck excess
     removed, the linear regression ``F = Fc·sgn(v) + Fv·v + F0`` whose standard errors are reported. Every
-    segment weighs the same (with the passes only, each speed gives one per direction).
-
-    ``vs_max_x_top``: the Stribeck velocity is at most this fraction of the fastest segment's speed. A
-    curve with ``vs`` at the top speed is no Stribeck drop but a bend that trades with the viscous term:
-    on a 6.6 kg stage (Fc 0.53 N, Fs 0.55 N, vs 2.2 mm/s, 30 N s/m) the free fit gave Fc 0, Fs 0.54 N,
-    vs 16 mm/s (the top speed), viscous 51 N s/m."""
+    segment weighs the same (with the passes only, each speed gives one per direction)."""
     from stagectl.ident.identify import fit_stribeck_curve
 
     if len(segs) < 4:
@@ -432,8 +427,7 @@ def cv_friction(segs: list[CvSegment], vs_max_x_top: float | None = None) -> CvF
     excess = np.zeros_like(v)
     stri: dict[str, float] | None = None
     try:
-        vs_max = None if vs_max_x_top is None else vs_max_x_top * float(np.abs(v).max())
-        stri = fit_stribeck_curve(v, f, vs_max_m_s=vs_max)
+        stri = fit_stribeck_curve(v, f)
         excess = np.sign(v) * (stri["fs_n"] - stri["fc_n"]) * np.exp(-np.abs(v / stri["vs_m_s"]) ** stri["delta"])
     except (StageError, ValueError):
         stri = None

@@ -79,9 +79,6 @@ FRF_PERIODS = 5
 CV_SPEEDS = 6
 CV_SPAN = 100.0
 CV_PASS_S = 2.0
-#: the constant-velocity fit's Stribeck velocity is at most this fraction of the fastest pass used
-#: (analysis.cv_friction)
-CV_VS_MAX_X_TOP = 1.0 / 3.0
 #: the friction experiments' tuning is raised (Commissioning._experiment_crossover) when the breakaway force over
 #: the default tuning's K_p exceeds this many following-error limits; up to this crossover × period, with at
 #: least these margins on the measured FRF
@@ -464,8 +461,8 @@ class Commissioning:
         # on a stage the default tuning cannot hold (the stiffer tuning was chosen) the ladder's Coulomb +
         # viscous feed-forward learns from the passes already run. Elsewhere it is off (on every stage, the
         # ladder took the seed stage of tests/commission/commission_stage.py to a 3.4 nm cosine instead of
-        # 2.1 nm). The fit takes the passes only, on every stage (docs/commissioning.md, *Constant-velocity
-        # fit*)
+        # 2.1 nm). The fit takes the passes only, on every stage (docs/commissioning.md, *The constant-velocity
+        # fit reads the passes only*)
         ladder = None
         cv_inner = inner
         if xp != COMMISSION_CROSSOVER_X_PERIOD:
@@ -485,8 +482,7 @@ class Commissioning:
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m, speeds=speeds),
-                              vs_max_x_top=CV_VS_MAX_X_TOP)
+                                             cv_rec.col("a_ref"), m, speeds=speeds))
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
         # on a stage with much friction for its mass (the stiffer tuning was chosen), the Coulomb feed-forward

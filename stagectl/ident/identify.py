@@ -293,8 +293,7 @@ _STRIBECK_GRID = (121, 15)
 _STRIBECK_REFINE = 6
 
 
-def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
-                       vs_max_m_s: float | None = None) -> dict[str, float]:
+def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) -> dict[str, float]:
     """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset].
 
     The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
@@ -311,8 +310,6 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
     not fix Fs when the curve has dropped by the slowest speed: on a generated plant (vs 0.30 mm/s, slowest
     pass 0.16 mm/s) Fs came out 2.30 N (vs 32 µm/s, δ 0.5) for a true 1.73 N, with a lower residual than the
     true curve's. Returned: ``v_min_m_s`` (the slowest speed) and ``fs_fixed``.
-
-    ``vs_max_m_s``: an upper bound on vs [m/s] (grid and refinement) instead of ``20·v_max``.
     """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
@@ -330,8 +327,6 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
         return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
     lo_lvs, hi_lvs = math.log(vmin / 20 + 1e-12), math.log(vmax * 20 + 1e-12)
-    if vs_max_m_s is not None:
-        hi_lvs = max(min(hi_lvs, math.log(vs_max_m_s + 1e-12)), lo_lvs + 1e-6)
     lvs_grid = np.linspace(lo_lvs, hi_lvs, _STRIBECK_GRID[0])
     dl_grid = np.linspace(0.5, 4.0, _STRIBECK_GRID[1])
     cost = np.full((lvs_grid.size, dl_grid.size), np.inf)
