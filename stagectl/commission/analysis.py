@@ -354,7 +354,18 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
     the repositioning moves between them. Those run one way only, so an offset and the cogging over their
     range do not cancel, and they are short: on a 0.69 kg stage with 35 N s/m the 8 mm/s repositioning
     cruise (36 samples) read 54 mN off the true curve, every pass within 1 mN, and the fit's Coulomb came
-    out 10 % low and its viscous 9 % high."""
+    out 10 % low and its viscous 9 % high. With ``speeds``, a speed is kept only when both directions are
+    (the cogging and offset over the pass's range then enter both means alike and cancel in the odd part
+    ``Fc·sgn(v) + Fv·v`` the fit reads).
+
+    With ``speeds``, a pass also needs ``min_samples`` after the trims (not before): the loop's transient
+    after the reference's acceleration ends must be well behind. The fastest pass of an 8.9 kg stage (50
+    samples at 16 mm/s) never settled: its speed went 2.6 % over and 1.7 % under, its force mean read 32 mN
+    (2 %) high in both directions, and the fit's viscous came out 14 % high. A speed criterion cannot tell
+    it: the cogging ripples the speed of settled passes by 5-7 %. A fixed settling time (five crossover
+    periods over 2π, 53 ms) cannot either: it also dropped the 16 mm/s passes of light stages, which had
+    settled within 4 mN, and without them the Stribeck tail and the viscous term traded (viscous −45 % on a
+    0.60 kg stage with vs 2.9 mm/s)."""
     out: list[CvSegment] = []
     steady = (np.abs(a_ref) < 1e-12) & (np.abs(v_ref) > 0)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], steady.astype(np.int8), [0]])))
@@ -366,11 +377,18 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
         if speeds is not None and not np.any(np.abs(abs(float(v_ref[i0])) / speeds - 1.0) < 1e-6):
             continue
         j0, j1 = i0 + n // 5, i1 - n // 5
+        if speeds is not None and j1 - j0 < min_samples:  # too short to have settled
+            continue
         vel = (x[j1 - 1] - x[j0]) / (t[j1 - 1] - t[j0])
         acc = np.gradient(np.gradient(x[j0:j1], dt), dt)
         f = u[j0:j1] - mass_kg * acc
         se = float(np.std(f) / math.sqrt(max((j1 - j0) / 20.0, 1.0)))
         out.append(CvSegment(float(vel), float(np.mean(f)), se, int(j1 - j0)))
+    if speeds is not None:  # both directions of each speed, or neither
+        def key(sg: CvSegment) -> int:
+            return int(np.argmin(np.abs(np.log(abs(sg.v_m_s) / speeds))))
+        ways = {(key(sg), sg.v_m_s > 0) for sg in out}
+        out = [sg for sg in out if (key(sg), sg.v_m_s <= 0) in ways]
     return out
 
 
@@ -398,7 +416,8 @@ class CvFriction:
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
     """Friction from the segment means (module docstring): the Stribeck curve
     (:func:`stagectl.ident.identify.fit_stribeck_curve`) where the data allow it, then, with its Stribeck excess
-    removed, the linear regression ``F = Fc·sgn(v) + Fv·v + F0`` whose standard errors are reported."""
+    removed, the linear regression ``F = Fc·sgn(v) + Fv·v + F0`` whose standard errors are reported. Every
+    segment weighs the same (with the passes only, each speed gives one per direction)."""
     from stagectl.ident.identify import fit_stribeck_curve
 
     if len(segs) < 4:

@@ -459,11 +459,10 @@ class Commissioning:
                      Dwell(0.1)]
         segs.append(self._move_to(xc, v_rep, m))
         # on a stage the default tuning cannot hold (the stiffer tuning was chosen) the ladder's Coulomb +
-        # viscous feed-forward learns from the passes already run, and the fit takes the passes only (not
-        # the one-way repositioning cruises, analysis.cv_segments). Elsewhere all is as before: the fits
-        # downstream are sensitive at the nm level to both (on every stage, the ladder took the seed stage
-        # of tests/commission/commission_stage.py to a 3.4 nm cosine instead of 2.1 nm, and the passes-only
-        # fit generated plant 6's from 1.2 to 10 nm)
+        # viscous feed-forward learns from the passes already run. Elsewhere it is off (on every stage, the
+        # ladder took the seed stage of tests/commission/commission_stage.py to a 3.4 nm cosine instead of
+        # 2.1 nm). The fit takes the passes only, on every stage (docs/commissioning.md, *The constant-velocity
+        # fit reads the passes only*)
         ladder = None
         cv_inner = inner
         if xp != COMMISSION_CROSSOVER_X_PERIOD:
@@ -481,9 +480,9 @@ class Commissioning:
             if ladder is not None and ladder.updates and last is not None and last.name == "friction_cv":
                 last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
+        # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m,
-                                             speeds=speeds if ladder is not None else None))
+                                             cv_rec.col("a_ref"), m, speeds=speeds))
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
         # on a stage with much friction for its mass (the stiffer tuning was chosen), the Coulomb feed-forward

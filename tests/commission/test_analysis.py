@@ -380,3 +380,88 @@ def test_speed_ladder_feedforward_learns_the_friction_line_from_paired_cruises()
     assert lad.coulomb_n == pytest.approx(min(fc, fc0))  # never above the probe's starting level
     cruise(-8e-3, 0.3)  # a one-way cruise (repositioning): no pair, no update
     assert len(lad.updates) == len(speeds)
+
+
+def _trapezoid(x0: float, x1: float, v: float, a: float, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain trapezoidal move x0 → x1 at ``v`` [m/s], ``a`` [m/s²]: reference x, v, a per period ``T``."""
+    d, s = abs(x1 - x0), math.copysign(1.0, x1 - x0)
+    ta = v / a
+    if a * ta * ta > d:  # triangular
+        ta = math.sqrt(d / a)
+        v = a * ta
+    tc = (d - a * ta * ta) / v
+    te = 2 * ta + tc
+    t = np.arange(int(math.ceil(te / T)) + 1) * T
+    vel = np.clip(np.minimum(a * t, a * (te - t)), 0.0, v)
+    acc = np.where(t < ta, a, np.where(t <= ta + tc, 0.0, np.where(t < te, -a, 0.0)))
+    pos = x0 + s * np.where(t < ta, 0.5 * a * t * t, np.where(
+        t <= ta + tc, 0.5 * a * ta * ta + v * (t - ta), d - 0.5 * a * np.clip(te - t, 0.0, None) ** 2))
+    return pos, s * vel, s * acc
+
+
+def _cv_plant_record(m: float, fc: float, fs: float, vs: float, fv: float, cog_n: float, cog_l: float,
+                     off: float, speeds: np.ndarray, v_rep: float, T: float = 1e-3, stroke: float = 2e-3
+                     ) -> tuple[np.ndarray, ...]:
+    """Plain reference: a mass with Stribeck + viscous friction (Karnopp stick), a cogging force and an
+    offset, under a PD + integral + inertia feed-forward loop (15 Hz, as the experiments), driven through the commissioning's
+    layout of constant-velocity passes (each speed both ways, one-way repositioning cruises at ``v_rep``
+    between them); Euler at T/8. Returns t, x, u, v_ref, a_ref."""
+    refs = []
+    pos = stroke / 2  # where the experiment before left it
+    for v in speeds.tolist():
+        L = min(stroke, max(v * 2.0, 0.05 * stroke))
+        a = min(v * v / (0.1 * L), 2.0 / m)
+        for x1, vv in ((-L / 2, v_rep), (L / 2, v), (-L / 2, v)):
+            if abs(x1 - pos) > 1e-12:
+                refs.append(_trapezoid(pos, x1, vv, 3.0 / m if vv == v_rep else a, T))
+                pos = x1
+            refs.append((np.full(100, pos), np.zeros(100), np.zeros(100)))  # dwell
+    refs.append(_trapezoid(pos, 0.0, v_rep, 3.0 / m, T))
+    xr, vr, ar = (np.concatenate([r[i] for r in refs]) for i in range(3))
+    w = 2 * math.pi * 15.0
+    kp, kd, ki = m * w * w, 2 * 0.7 * m * w, m * w ** 3 / 10
+    sub, h = 8, T / 8
+    x = v = integ = 0.0
+    xs, us = np.zeros(xr.size), np.zeros(xr.size)
+    for i in range(xr.size):
+        e = xr[i] - x
+        integ += e * T
+        u = kp * e + kd * (vr[i] - v) + ki * integ + m * ar[i]
+        xs[i], us[i] = x, u
+        for _ in range(sub):
+            drive = u - cog_n * math.sin(2 * math.pi * x / cog_l) - off
+            if v == 0.0 and abs(drive) <= fs:
+                continue  # stuck
+            sgn = math.copysign(1.0, v if v != 0.0 else drive)
+            fr = sgn * (fc + (fs - fc) * math.exp(-((v / vs) ** 2))) + fv * v
+            vn = v + h * (drive - fr) / m
+            if v != 0.0 and vn * v < 0.0:
+                vn = 0.0  # sticks on a velocity reversal within the step
+            x += h * 0.5 * (v + vn)
+            v = vn
+    return np.arange(xr.size) * T, xs, us, vr, ar
+
+
+def test_constant_velocity_fit_reads_the_settled_passes_only() -> None:
+    """Coulomb and viscous from the constant-velocity passes of a plain simulated stage (a heavy one with
+    cogging and an offset, like generated plant 21), called as the commissioning calls it (the designed
+    passes, both ways, each long enough to have settled): every segment it reads lies on the simulation's own
+    friction curve within 2 mN, and Coulomb and viscous come out within 2 %. The previous call (every
+    steady reference segment, as on stages without the speed ladder) also read the one-way repositioning cruises, one of them 56 mN off the curve,
+    and its viscous term was more than 5 % off."""
+    m, fc, fs, vs, fv, off = 8.9, 0.89, 1.08, 1.4e-3, 39.0, -0.07
+    speeds = np.geomspace(16e-3 / 100, 16e-3, 6)
+    t, x, u, v_ref, a_ref = _cv_plant_record(m, fc, fs, vs, fv, 0.2, 1.14e-3, off, speeds, 8e-3)
+
+    def curve(v: float) -> float:
+        return math.copysign(fc + (fs - fc) * math.exp(-((v / vs) ** 2)), v) + fv * v + off
+
+    segs = an.cv_segments(t, x, u, v_ref, a_ref, m, speeds=speeds)
+    assert len(segs) >= 10 and {s.v_m_s > 0 for s in segs} == {True, False}
+    assert max(abs(s.f_n - curve(s.v_m_s)) for s in segs) < 2e-3
+    new = an.cv_friction(segs)
+    assert new.coulomb_n == pytest.approx(fc, rel=0.02)
+    assert new.viscous_n_s_m == pytest.approx(fv, rel=0.02)
+    old_segs = an.cv_segments(t, x, u, v_ref, a_ref, m)
+    assert max(abs(s.f_n - curve(s.v_m_s)) for s in old_segs) > 0.03
+    assert abs(an.cv_friction(old_segs).viscous_n_s_m / fv - 1) > 0.05
