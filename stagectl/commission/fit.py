@@ -559,7 +559,11 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     if cv_points is None or presliding["evidence_ratio"] < PRESLIDING_EVIDENCE_RATIO:
         return None
     v_min, vs, dl = float(fr.get("v_min_m_s", 0.0)), float(fr["vs_m_s"]), float(fr["delta"])
-    if not force and (v_min <= 0.0 or fr["fs_n"] <= fr["fc_n"]
+    # passes left out as stick-slip (analysis.cv_segments): the dip lies below the slowest sliding pass, so
+    # whatever the free curve made of Fs there is an extrapolation (generated plant 36: Fc 0 N, vs 51 mm/s on
+    # a plain simulation of it, or Fs 0.62 N for a true 0.78 N)
+    stick_slip = float(fr.get("stick_slip_m_s", 0.0)) > 0.0
+    if not force and not stick_slip and (v_min <= 0.0 or fr["fs_n"] <= fr["fc_n"]
                       or math.exp(-((v_min / vs) ** dl)) >= STRIBECK_OBSERVED_FRACTION):
         return None
     level = float(presliding["level_n"])
@@ -635,6 +639,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     if sliding is not None and fr.get("model") in ("gms", "stribeck"):
         pre_recs = [res_recordings[k] for k in ("reversals", "presliding", "friction_cv") if k in res_recordings]
         fr["v_min_m_s"] = float(sliding.get("v_min_m_s", 0.0))
+        fr["stick_slip_m_s"] = float(sliding.get("stick_slip_m_s", 0.0))
         tau = period_s if delay_s is None else delay_s
         try:
             presliding = fit_presliding(pre_recs, m, period_s, tau, fr, spec.get("effects"))
@@ -655,6 +660,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         except DataError as exc:
             presliding = {"error": str(exc)}
         fr.pop("v_min_m_s", None)
+        fr.pop("stick_slip_m_s", None)
         if "error" not in presliding:
             ratio = presliding["evidence_ratio"]
             present = bool(ratio >= PRESLIDING_EVIDENCE_RATIO and len(presliding["k_n_m"]) > 0)
