@@ -498,3 +498,22 @@ def test_stick_slip_passes_are_not_read_as_sliding_friction() -> None:
     refit = cfit._refit_stribeck({"evidence_ratio": 10 * cfit.PRESLIDING_EVIDENCE_RATIO, "level_n": fs}, fr, pts)
     assert refit is not None and refit["fs_n"] == pytest.approx(fs)
     assert refit["fc_n"] == pytest.approx(fc, rel=0.02)
+
+
+def test_a_friction_ripple_is_kept_only_when_the_slow_passes_show_it() -> None:
+    """The slow passes (plain force functions: the oracle) decide a friction ripple discover named. A
+    claimed 1.6 µm ripple of 16 % (generated plant 38's, not in that plant) on passes without it is refused;
+    a true 10 % ripple of 20 µm is confirmed; one the passes cannot sample (< 4 rows per period) is refused
+    as unchecked. Before, discover's word was final (plant 38's cosine: 270× the exact model's)."""
+    from stagectl.commission.fit import ripple_evidence
+
+    plain = _slow_passes(lambda x, d: 0.5 * d + 0.05)
+    claim = {"amplitude": 0.16, "wavelength_m": 1.6e-6, "phase_rad": 0.0}
+    ev = ripple_evidence(plain, 1.0, 1e-3, claim, 0.5)
+    assert not ev["present"] and ev["measured_n"] < 0.1 * ev["predicted_n"], ev
+    lam, phi = 20e-6, 0.4
+    real = _slow_passes(lambda x, d: 0.5 * d * (1 + 0.1 * np.sin(2 * np.pi * x / lam + phi)) + 0.05)
+    ev = ripple_evidence(real, 1.0, 1e-3, {"amplitude": 0.1, "wavelength_m": lam, "phase_rad": phi}, 0.5)
+    assert ev["present"] and ev["measured_n"] == pytest.approx(0.05, rel=0.1), ev
+    ev = ripple_evidence(real, 1.0, 1e-3, {"amplitude": 0.1, "wavelength_m": 0.8e-6, "phase_rad": 0.0}, 0.5)
+    assert not ev["present"] and ev["rows_per_period"] < 4
