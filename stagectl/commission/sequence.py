@@ -481,8 +481,17 @@ class Commissioning:
                 last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
+        stuck: list[an.CvSegment] = []
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m, speeds=speeds))
+                                             cv_rec.col("a_ref"), m, speeds=speeds, dropped=stuck))
+        if stuck:
+            r.notes.append("friction_cv: passes at " + ", ".join(f"{1e3 * s.v_m_s:+.3g}" for s in stuck)
+                           + " mm/s stick-slip (the stage stood in " + ", ".join(f"{100 * s.stuck_fraction:.0f}"
+                                                                            for s in stuck)
+                           + " % of their samples): not points of the sliding curve, left out of the fit; the "
+                           "Stribeck dip lies below the slowest sliding pass, so its Fs is the pre-sliding level")
+            if r.cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
+                r.cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
         # on a stage with much friction for its mass (the stiffer tuning was chosen), the Coulomb feed-forward
