@@ -50,6 +50,8 @@ def test_identifies_the_hidden_plant_within_10_percent(commissioned: tuple[int, 
     assert abs(cog["parameters"]["wavelength_m"] / HIDDEN["cogging_wavelength_m"] - 1) < 0.05
     # one I/O cycle of delay (the plant's delay_cycles: 1) besides the zero-order hold
     assert abs(f["delay_s"]["value"] - 1e-3) < 0.25e-3
+    # nothing named that the plant does not have (its structure: no backlash, no offset, no ripple)
+    assert not {"backlash", "offset", "position_ripple"} & set(f["effects"]), f["effects"]
 
 
 def test_friction_fit_reads_the_designed_passes_both_ways_on_the_plant_curve(commissioned: tuple[int, Path]) -> None:
@@ -311,3 +313,15 @@ def test_every_planned_experiment_can_take_an_injected_fault() -> None:
         assert _parse_fault(f"{name}@0.5") == (name, 0.5)
     with pytest.raises(ConfigError, match="unknown experiment"):
         _parse_fault("warp_drive@1")
+
+
+@pytest.mark.slow  # the README's quick start: a full commissioning, ~15 s of CPU
+def test_the_quick_start_names_only_what_the_seed_stage_has(tmp_path: Path) -> None:
+    """README's commissioning of config/sim.yaml (the seed stage: GMS friction, i.e. Stribeck and pre-sliding;
+    no backlash, offset, ripple or cogging). The experiments run a linear loop: with the observer anti-wind-up
+    on in them, the force at every reversal was bent and discover named a false 24 µm backlash."""
+    cfg = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+    out = tmp_path / "out"
+    assert main(["commission", "--config", str(cfg), "--out", str(out), "--no-plots", "-q"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert set(rep["fitted"]["effects"]) == {"stribeck", "presliding"}, rep["fitted"]["effects"]
