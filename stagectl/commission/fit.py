@@ -423,6 +423,27 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
             "force_rms_n": float(yy.std()), "samples": int(yy.shape[0])}
 
 
+
+def _settled_cruise_rows(rec: Recorder, mass_kg: float, period_s: float
+                         ) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
+    """Position x [m], the force less inertia y = u − m·ẍ [N] (ẍ by central differences), the reference
+    speed v_ref [m/s], and the mask of rows at least ``COGGING_SETTLE_S`` into a cruise (v_ref ≠ 0, a_ref = 0)."""
+    T = period_s
+    x = np.asarray(rec.col("x"), np.float64)
+    u = np.asarray(rec.col("u"), np.float64)
+    vr = np.asarray(rec.col("v_ref"), np.float64)
+    ar = np.asarray(rec.col("a_ref"), np.float64)
+    n = x.shape[0]
+    a = np.zeros(n)
+    a[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (T * T)
+    cruise = (np.abs(vr) > 0.0) & (ar == 0.0)
+    settle = max(1, round(COGGING_SETTLE_S / T))
+    run = np.zeros(n, np.int64)
+    for i in range(1, n):
+        run[i] = run[i - 1] + 1 if cruise[i] else 0
+    return x, u - mass_kg * a, vr, cruise & (run >= settle)
+
+
 def _cogging_scan(x: FloatArray, y: FloatArray, nuis: FloatArray, lams: FloatArray) -> FloatArray:
     """Amplitudes of ``a·sin(2πx/λ) + b·cos(2πx/λ)`` fitted to ``y`` jointly with the nuisance columns, for
     each ``λ`` in ``lams``; returns (len(lams), 4): amplitude [N], ``a``, ``b``, residual sum of squares [N²]."""
@@ -454,22 +475,7 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     directions agree and the peak is inside the scan (below ``COGGING_EDGE_FRACTION`` of its longest period:
     a smooth force along the pass, e.g. a spring's curvature, peaks at that edge); confidence ``high`` at
     twice the ratio. Returns the decision, the ratio, ``A, λ, φ``."""
-    T = period_s
-    x = np.asarray(rec.col("x"), np.float64)
-    u = np.asarray(rec.col("u"), np.float64)
-    vr = np.asarray(rec.col("v_ref"), np.float64)
-    ar = np.asarray(rec.col("a_ref"), np.float64)
-    n = x.shape[0]
-    a = np.zeros(n)
-    a[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (T * T)
-    y = u - mass_kg * a
-    cruise = (np.abs(vr) > 0.0) & (ar == 0.0)
-    # rows at least COGGING_SETTLE_S into a cruise
-    settle = max(1, round(COGGING_SETTLE_S / T))
-    run = np.zeros(n, np.int64)
-    for i in range(1, n):
-        run[i] = run[i - 1] + 1 if cruise[i] else 0
-    ok = cruise & (run >= settle)
+    x, y, vr, ok = _settled_cruise_rows(rec, mass_kg, period_s)
 
     def sm(c: FloatArray) -> FloatArray:
         return _moving_average(c, COGGING_SMOOTH, COGGING_DECIMATE)
@@ -544,21 +550,7 @@ def ripple_evidence(rec: Recorder, mass_kg: float, period_s: float, ripple: dict
     ripple is not backed by the experiment designed for position-dependent effects and is left out.
     Generated plant 38 (no ripple): discover named λ = 1.6 µm, a = 0.16 (25 mN predicted), accepted as a
     pair with a true offset on the reversals/passes validation; it made the cosine 270× the exact model's."""
-    T = period_s
-    x = np.asarray(rec.col("x"), np.float64)
-    u = np.asarray(rec.col("u"), np.float64)
-    vr = np.asarray(rec.col("v_ref"), np.float64)
-    ar = np.asarray(rec.col("a_ref"), np.float64)
-    n = x.shape[0]
-    a = np.zeros(n)
-    a[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (T * T)
-    y = u - mass_kg * a
-    cruise = (np.abs(vr) > 0.0) & (ar == 0.0)
-    settle = max(1, round(COGGING_SETTLE_S / T))
-    run = np.zeros(n, np.int64)
-    for i in range(1, n):
-        run[i] = run[i - 1] + 1 if cruise[i] else 0
-    ok = cruise & (run >= settle)
+    x, y, vr, ok = _settled_cruise_rows(rec, mass_kg, period_s)
     lam, amp = float(ripple["wavelength_m"]), float(ripple["amplitude"])
     predicted = abs(amp * level_n)
     d = np.sign(vr[ok])
