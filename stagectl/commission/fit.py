@@ -557,7 +557,12 @@ def ripple_evidence(rec: Recorder, mass_kg: float, period_s: float, ripple: dict
     out: dict[str, Any] = {"wavelength_m": lam, "predicted_n": predicted, "present": False}
     if ok.sum() < 50 or not ((d > 0).any() and (d < 0).any()):
         return {**out, "reason": "too few slow-pass rows in both directions"}
-    step = float(np.median(np.abs(np.diff(x[ok]))))
+    # the spatial sampling: the travel per row at the passes' speed, or the sensor's quantum (the smallest
+    # step it reports) where that is coarser (a 1 µm quantum at 0.3 µm per row: most rows repeat the position,
+    # the median step is 0 and λ = 1.6 µm looked sampled 1.6e9 times per period)
+    dx = np.abs(np.diff(x[ok]))
+    moved = dx[dx > 0.0]
+    step = max(float(np.median(np.abs(vr[ok]))) * period_s, float(moved.min()) if moved.size else 0.0)
     out["rows_per_period"] = lam / max(step, 1e-15)
     if out["rows_per_period"] < 4.0:
         return {**out, "reason": f"the slow passes sample λ = {lam:.3g} m with {out['rows_per_period']:.2g} rows "

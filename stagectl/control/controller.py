@@ -879,9 +879,9 @@ class StageController:
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, v_hat: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
         """Observer anti-wind-up against the friction feed-forward (module docstring): while the reference moves
-        in direction d, is ahead of the stage (d·(x_r − x) > 0), the stage is measured stuck (|v̂| <=
-        STUCK_SPEED_FRACTION·|v_r|) and the feed-forward pushes along d, the estimate may cancel at most the
-        model's own uncertainty of it: d·d̂ >= −δ·|u_ff| (δ = ``feedforward.adapt_max_change_fraction``). An
+        in direction d, is ahead of the stage (d·(x_r − x) > 0), the stage is measured stuck (its speed between
+        the last two fresh samples <= STUCK_SPEED_FRACTION·|v_r|; ``v_hat`` is not used) and the feed-forward pushes along d, the estimate may cancel at most the
+        model's own uncertainty of it: d·d̂ >= −δ·|u_ff| (δ = ``stuck_dob_fraction``). An
         estimate beyond it is returned towards the bound at the observer's rate (excess ×(1 − a) per step, a as
         in the Q filter): no step in u. ``dob.shift`` moves the observer's state with it."""
         v_r = ref.v_m_s

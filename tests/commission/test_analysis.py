@@ -517,3 +517,24 @@ def test_a_friction_ripple_is_kept_only_when_the_slow_passes_show_it() -> None:
     assert ev["present"] and ev["measured_n"] == pytest.approx(0.05, rel=0.1), ev
     ev = ripple_evidence(real, 1.0, 1e-3, {"amplitude": 0.1, "wavelength_m": 0.8e-6, "phase_rad": 0.0}, 0.5)
     assert not ev["present"] and ev["rows_per_period"] < 4
+
+
+def test_a_ripple_finer_than_the_sensor_quantum_is_not_checked() -> None:
+    """The slow passes at 0.3 µm per row through a 1 µm sensor quantum: most rows repeat the position (median
+    step 0), so λ = 1.6 µm is sampled at most 1.6 times per period; a true 16 % ripple there cannot be checked,
+    and the evidence must say so (before: 1.6e9 rows per period and "the slow passes show 36.7 mN" of 80 mN)."""
+    from stagectl.commission.fit import ripple_evidence
+    from stagectl.recorder import Recorder
+
+    lam, q = 1.6e-6, 1e-6
+    fine = _slow_passes(lambda x, d: 0.5 * d * (1 + 0.16 * np.sin(2 * np.pi * x / lam)) + 0.05)
+    rec = Recorder(("t", "x", "u", "v_ref", "a_ref"), capacity=len(fine.col("t")))
+    xq = np.round(np.asarray(fine.col("x")) / q) * q
+    for row in zip(fine.col("t"), xq, fine.col("u"), fine.col("v_ref"), fine.col("a_ref"), strict=True):
+        rec.append(tuple(float(c) for c in row))
+    claim = {"amplitude": 0.16, "wavelength_m": lam, "phase_rad": 0.0}
+    ev = ripple_evidence(rec, 1.0, 1e-3, claim, 0.5)
+    assert not ev["present"] and ev["rows_per_period"] == pytest.approx(1.6, rel=0.01), ev
+    assert "cannot be checked" in ev["reason"]
+    ev = ripple_evidence(fine, 1.0, 1e-3, claim, 0.5)  # the same passes with a 1 nm-class sensor: confirmed
+    assert ev["present"] and ev["rows_per_period"] == pytest.approx(lam / 0.3e-6, rel=0.01), ev
