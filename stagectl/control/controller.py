@@ -45,7 +45,10 @@ own rate, moved with ``dob.shift`` (state and input history): no step in u. Lock
 exact model, a knock that slides the stage 10 µm past its target, then 100 µm at 0.2 mm/s): estimate −0.93 N
 against 0.897 N, 198 stuck cycles and 31.5 µm error before; 98 cycles and 14.7 µm with δ = 0.2
 (``tests/control/test_stuck_dob.py``). It never acts while the stage follows: the bench's scans and steps are
-bit-for-bit the same figures (``stagectl bench control``).
+bit-for-bit the same figures (``stagectl bench control``). Off by default, on (0.2) in the HIL configurations,
+whose model is the simulated plant's: with the model's friction more than ~25 % too high and no adaptation the
+bound stops the observer from correcting the excess after each reversal (50 µm cosine, model ×1.6: 540 → 1081 nm
+RMS; ×2: 1092 → 2034 nm; with ``feedforward.adapt_bandwidth_hz`` on it never acts).
 
 Feed-forward through the stop (``feedforward.rest_sync_hz``, with an observer and ``kind: model``): while the
 reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer's estimate is moved into the model's
@@ -316,10 +319,11 @@ class ControllerConfig:
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
         ge=0, le=8)
     stuck_dob_fraction: float = param(
-        0.2, desc="observer anti-wind-up: while the reference moves ahead of a stage measured stuck (it moves at "
-        "most a quarter of the reference's speed between fresh samples), the observer's estimate may cancel at "
-        "most this fraction of the friction feed-forward (the model's own uncertainty); a larger estimate is "
-        "returned to that bound at the observer's rate (inf: off)", ge=0.0, allow_inf=True)
+        math.inf, desc="observer anti-wind-up: while the reference moves ahead of a stage measured stuck (it moves "
+        "at most a quarter of the reference's speed between fresh samples), the observer's estimate may cancel at "
+        "most this fraction of the friction feed-forward (the model's own uncertainty: set it only where the "
+        "model is known that well); a larger estimate is returned to that bound at the observer's rate (inf, "
+        "the default: off)", ge=0.0, allow_inf=True)
     stale_predict_cycles: int = param(
         2, unit="cycles", desc="stale samples in a row (late or dropped) stepped on a predicted position (the last "
         "measured tracking error held), so feedback and observer keep their sample rate; later ones hold the "
