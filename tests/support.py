@@ -182,3 +182,16 @@ def cli_in_process(argv: list[str]):
         except SystemExit as exc:  # argparse's refusals
             rc = exc.code if isinstance(exc.code, int) else 1
     return subprocess.CompletedProcess(argv, rc, out.getvalue(), err.getvalue())
+
+
+def cycle_drive(dut, n: int, force_n: float):
+    """``n`` bus cycles of a driver (SYNC, read, write ``force_n``) or until a read reports a fault; returns the
+    last measurement."""
+    m = None
+    for _ in range(n):
+        dut.sync()
+        m = dut.read()
+        if m.fault is not None:
+            return m
+        dut.write(force_n)
+    return m

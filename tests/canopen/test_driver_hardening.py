@@ -8,13 +8,14 @@ import struct
 
 import can
 import pytest
-
 from stagectl.drivers import canbus
 from stagectl.drivers.base import DeviceState, FaultKind
 from stagectl.drivers.cia406 import Cia406Config, Cia406Encoder
-from stagectl.errors import DriverTimeoutError
 from stagectl.sim.cia402_drive import NMT_OPERATIONAL, DriveState
 from stagectl.sim.faults import SimFault
+from support import cycle_drive
+
+from stagectl.errors import DriverTimeoutError
 
 
 @pytest.fixture
@@ -32,14 +33,7 @@ def raw_bus():
 
 
 def _cycles(dut, n, force=0.5):
-    m = None
-    for _ in range(n):
-        dut.sync()
-        m = dut.read()
-        if m.fault is not None:
-            return m
-        dut.write(force)
-    return m
+    return cycle_drive(dut, n, force)
 
 
 @pytest.mark.parametrize("cid, what", [(0x201, "RPDO1"), (0x080, "SYNC")])

@@ -20,9 +20,10 @@ import time
 
 import can
 import pytest
-
 from stagectl.drivers import canbus
 from stagectl.drivers.base import DeviceState, FaultKind
+from support import cycle_drive
+
 from stagectl.errors import DriveFault, DriverInitError
 
 NID = 3
@@ -276,14 +277,7 @@ def strict(make_drive):
 
 
 def _run(dut, n, force=0.0):
-    m = None
-    for _ in range(n):
-        dut.sync()
-        m = dut.read()
-        if m.fault is not None:
-            return m
-        dut.write(force)
-    return m
+    return cycle_drive(dut, n, force)
 
 
 def test_configure_by_the_rules_enable_cycle_fault_and_disable(strict):
