@@ -17,6 +17,33 @@ def seed(repo_root):
     return load_app_config(repo_root / "config" / "sim.yaml")
 
 
+def _exact_plant_io(seed: Any) -> tuple[Any, Any]:
+    """The seed configuration on the plant_io path (simulated time, following-error limit 1 mm) and the
+    controller's model equal to the simulated plant's (the exact model)."""
+    from stagectl.config import IoKind
+    from stagectl.friction import StageModel
+
+    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
+        seed.safety, following_error_m=1e-3))
+    plant = cfg.sim.plant
+    return cfg, StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+
+
+def _alternating_moves(cfg: Any, ctl: Any, size_m: float, n: int) -> Any:
+    """``n`` moves of ±``size_m`` [m] at the default move limits, each followed by 0.1 s of rest; the loop's result."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.control.trajectory import Dwell, Move, Scenario
+
+    segs: list[Move | Dwell] = []
+    for i in range(n):
+        segs += [Move(by_m=size_m if i % 2 == 0 else -size_m), Dwell(0.1)]
+    sc = Scenario(name="moves", segments=tuple(segs), start_m=0.0)
+    with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
+        stage.load_scenario(sc)
+        return stage.loop.run(duration_s=sc.duration_s(0.0))
+
+
 def _steps_static(cfg: Any, plant_scale: float) -> tuple[Any, Any]:
     """bench control's 10 µm steps (+10, +10, −10, −10 µm; plant_io, simulated time) of a stage with static
     Stribeck friction ``plant_scale`` × the controller's model, learning on (κ = 1, continuous adaptation off)."""
@@ -85,27 +112,13 @@ def test_the_exact_model_stays_under_short_moves_at_the_default_move_limits(seed
     (1 mm/s, 0.1 m/s², 100 m/s³: 5 and 15 ms long) leave θ and β at 1: moves shorter than LEARN_MIN_TIME_CONSTANTS
     observer time constants are not learned from (their estimate is mostly the observer's transient; learned, they
     walked θ to 1.33 at 0.3 µm and β to 0.86 at 5 µm, and to the ±50 % bounds with lookahead_s = T/2)."""
-    from stagectl.app import build_stage
-    from stagectl.clock import SimClock
-    from stagectl.config import IoKind
     from stagectl.control.controller import StageController
-    from stagectl.control.trajectory import Dwell, Move, Scenario
-    from stagectl.friction import StageModel
 
-    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
-        seed.safety, following_error_m=1e-3))
-    plant = cfg.sim.plant
-    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    cfg, model = _exact_plant_io(seed)
     c = cfg.controller
     ctl = StageController(dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=0.0)),
                           cfg.timing, model=model)
-    segs: list[Move | Dwell] = []
-    for i in range(24):
-        segs += [Move(by_m=size_m if i % 2 == 0 else -size_m), Dwell(0.1)]
-    sc = Scenario(name="short_moves", segments=tuple(segs), start_m=0.0)
-    with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
-        stage.load_scenario(sc)
-        res = stage.loop.run(duration_s=sc.duration_s(0.0))
+    res = _alternating_moves(cfg, ctl, size_m, 24)
     assert res.fault is None
     assert abs(ctl.ff_scale - 1.0) < 0.1 and abs(ctl.ff.input_scale - 1.0) < 0.1, (ctl.ff_scale, ctl.ff.input_scale)
 
@@ -118,16 +131,11 @@ def test_a_fast_positioning_move_then_a_cosine_keeps_the_exact_model(seed):
     tracks within 2x the run without learning."""
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
-    from stagectl.config import IoKind
     from stagectl.control.controller import StageController
     from stagectl.control.trajectory import Cosine, Dwell, Move, Scenario
-    from stagectl.friction import StageModel
     from stagectl.recorder import Recorder
 
-    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
-        seed.safety, following_error_m=1e-3))
-    plant = cfg.sim.plant
-    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    cfg, model = _exact_plant_io(seed)
     sc = Scenario(name="verify", segments=(
         Move(by_m=-200e-6, max_velocity_m_s=6.82e-3, max_acceleration_m_s2=0.3556, max_jerk_m_s3=35.56), Dwell(0.1),
         Move(by_m=200e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0), Dwell(0.3),
@@ -156,29 +164,15 @@ def test_short_moves_are_not_learned_from_with_a_faster_observer(seed):
     """The length gate holds in seconds too (LEARN_MIN_MOVE_S): with a 150 Hz observer 15 time constants are only
     16 ms, and alternating 7 µm moves at the default limits (18 ms) walked the exact model to β 0.88; not learned
     from, θ and β stay at 1. A 40 µm move (36 ms) is still learned from and leaves them within 2 %."""
-    from stagectl.app import build_stage
-    from stagectl.clock import SimClock
-    from stagectl.config import IoKind
     from stagectl.control.controller import StageController
-    from stagectl.control.trajectory import Dwell, Move, Scenario
-    from stagectl.friction import StageModel
 
-    cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
-        seed.safety, following_error_m=1e-3))
-    plant = cfg.sim.plant
-    model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
+    cfg, model = _exact_plant_io(seed)
     c = cfg.controller
     c = dataclasses.replace(c, dob=dataclasses.replace(c.dob, bandwidth_hz=150.0),
                             feedforward=dataclasses.replace(c.feedforward, adapt_bandwidth_hz=0.0))
     for size_m, tol in ((7e-6, 1e-9), (4e-5, 0.02)):
         ctl = StageController(c, cfg.timing, model=model)
-        segs: list[Move | Dwell] = []
-        for i in range(12):
-            segs += [Move(by_m=size_m if i % 2 == 0 else -size_m), Dwell(0.1)]
-        sc = Scenario(name="moves", segments=tuple(segs), start_m=0.0)
-        with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
-            stage.load_scenario(sc)
-            res = stage.loop.run(duration_s=sc.duration_s(0.0))
+        res = _alternating_moves(cfg, ctl, size_m, 12)
         assert res.fault is None
         assert abs(ctl.ff_scale - 1.0) <= tol and abs(ctl.ff.input_scale - 1.0) <= tol, (size_m, ctl.ff_scale,
                                                                                          ctl.ff.input_scale)
