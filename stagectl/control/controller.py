@@ -880,12 +880,13 @@ class StageController:
         ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
         return self._set_theta(th_new, f_raw, d_hat, dob)
 
-    def _stuck_dob(self, dt: float, ref: Reference, x_m: float, v_hat: float, u_ff: float, d_hat: float,
+    def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
         """Observer anti-wind-up against the friction feed-forward (module docstring): while the reference moves
         in direction d, is ahead of the stage (d·(x_r − x) > 0), the stage is measured stuck (its speed between
-        the last two fresh samples <= STUCK_SPEED_FRACTION·|v_r|; ``v_hat`` is not used) and the feed-forward pushes along d, the estimate may cancel at most the
-        model's own uncertainty of it: d·d̂ >= −δ·|u_ff| (δ = ``stuck_dob_fraction``). An
+        the last two fresh samples <= STUCK_SPEED_FRACTION·|v_r|, not the filtered velocity) and the
+        feed-forward pushes along d, the estimate may cancel at most the model's own uncertainty of it:
+        d·d̂ >= −δ·|u_ff| (δ = ``stuck_dob_fraction``). An
         estimate beyond it is returned towards the bound at the observer's rate (excess ×(1 − a) per step, a as
         in the Q filter): no step in u. ``dob.shift`` moves the observer's state with it."""
         v_r = ref.v_m_s
@@ -1074,7 +1075,7 @@ class StageController:
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
         at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
         if dob is not None and not at_rest and ff is not None and cfg.stuck_dob_fraction != math.inf:
-            d_hat = self._stuck_dob(dt, ref, x_meas_m, v_hat, u_ff, d_hat, dob)
+            d_hat = self._stuck_dob(dt, ref, x_meas_m, u_ff, d_hat, dob)
         if self._s_rest != 0.0 and not at_rest:
             # a move starts with the rest spring loaded: _rest_spring folds its force into the observer, which
             # carries it for a while; _adapt leaves it alone for the first adapt_presliding_m of travel
