@@ -517,14 +517,14 @@ def prepare(
         x_rev_dist=_reversal_distance(xf, v, v_th),
         direction=np.where(moving, np.sign(dxc), 0.0),
         source=rec.source,
-        noise_diff_m=_robust_std(np.diff(x, 4)) / math.sqrt(70.0) if n > 8 else 0.0,
+        noise_diff_m=_roughness(x) / math.sqrt(70.0),
     )
     sig.acc_f = sig.filt(acc_raw)
     sig.notes = notes + unit_notes(sig)
     if require_motion and int(evaluate.sum()) < 50:
         holes = "" if not synthetic.any() else (
             f" and outside the holes of the recording ({int(synthetic.sum())} grid samples not measured, and "
-            f"{filter_reach(sos)} samples on either side that the low-pass carries them into)")
+            f"{reach} samples on either side that the low-pass carries them into)")
         raise DataError(
             f"{rec.source}: only {int(evaluate.sum())} samples usable in motion (identification needs 50): a sample "
             f"counts as moving when its central displacement |x[k+1] − x[k−1]| exceeds {thr:.3g} m (the noise band: "
