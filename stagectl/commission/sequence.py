@@ -594,7 +594,7 @@ class Commissioning:
         # controller itself (controller_mapping) keeps the look-ahead, the default.
         # stuck_dob_fraction off: the observer anti-wind-up acts while the stage sticks behind a moving reference,
         # i.e. at every reversal of the reversal experiments; it bent the force there and discover then named a
-        # false 24 um backlash on config/sim.yaml. The commissioned controller keeps it (the default).
+        # false 24 um backlash on config/sim.yaml (it was on by default then). Off here whatever the default.
         return ControllerConfig(mass_kg=mass_kg, max_force_n=self.env.f_max_n, pid=pid,
                                 hold_integrator_at_rest=False, stuck_dob_fraction=math.inf,
                                 dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
