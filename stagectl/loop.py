@@ -173,6 +173,8 @@ DEFAULT_TERMS = ("u_pid", "u_dob", "u_ff", "u_inertia")
 STALE_AGE_CYCLES = 2
 MIN_DT_PERIODS = 0.5
 MAX_DT_PERIODS = 10.0
+#: the longest move a request may plan [s]; a slower ``max_velocity_m_s`` is refused as a likely typo
+MAX_MOVE_S = 86400.0
 #: feedback slow-down steps (effective sample interval / T); a step down needs the average 10 % below it
 SLOW_DOWN_LEVELS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 
@@ -365,7 +367,13 @@ class ControlLoop:
         else:
             rel = req.relative_m if req.relative_m is not None else 0.0
             target = self.limits.check_relative(self.reference.target_m, rel)
-        duration = self.reference.move(t - self.ref_lag_s, target, req.max_velocity_m_s)
+        v = req.max_velocity_m_s
+        if v is not None:  # a typo (1e-250 for 1e-5) would otherwise plan a move that outlives the machine
+            crawl_s = abs(target - self.reference.target_m) / v
+            if crawl_s > MAX_MOVE_S:
+                raise RequestError("max_velocity_m_s", f"{v:g} m/s over {abs(target - self.reference.target_m):g} m "
+                                   f"would take {crawl_s:.3g} s, more than {MAX_MOVE_S:g} s (a day)")
+        duration = self.reference.move(t - self.ref_lag_s, target, v)
         if self.slow_motion and self.slow_down != 1.0:  # the reference runs at 1/s of loop time while slowed
             duration *= self.slow_down
         return {"target_m": target, "duration_s": float(duration)}

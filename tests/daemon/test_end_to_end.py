@@ -289,8 +289,11 @@ def test_daemon_end_to_end(daemon, tmp_path, capsys):
     assert "relative_m" not in err and err.count("\n") == 1
     assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0  # a negative value, not an option
     assert "moving to" in capsys.readouterr().out
-    assert main(["move", "--by", "1e-6", "--max-velocity", "1e-250", "--socket", str(sock)]) == 0
-    out = capsys.readouterr().out  # a crawl of ~1e247 s: its duration in 4 digits, not 248 of them
+    assert main(["move", "--by", "1e-6", "--max-velocity", "1e-250", "--socket", str(sock)]) == 2
+    err = capsys.readouterr().err  # a crawl of ~1e244 s is a typo: refused, naming the user's option
+    assert "error: move --max-velocity: 1e-250 m/s over 1e-06 m would take" in err and err.count("\n") == 1, err
+    assert main(["move", "--by", "1e-6", "--max-velocity", "3e-11", "--socket", str(sock)]) == 0
+    out = capsys.readouterr().out  # a crawl of ~3.3e4 s (under a day): its duration in 4 digits
     assert re.fullmatch(r"moving to \S+ m \(\d\.\d+e\+\d+ s\)\n", out) and len(out) < 60, out
     assert main(["move", "--by", "-1e-6", "--socket", str(sock)]) == 0
     capsys.readouterr()

@@ -79,3 +79,20 @@ def test_default_velocity_never_exceeds_the_planned_fraction():
     with pytest.raises(RequestError, match="max_velocity_m_s"):
         MoveRequest(target_m=0.0, max_velocity_m_s=0.0101).check_limits(lim)
     assert dataclasses.replace(lim, move_velocity_fraction=1.0).move_velocity_m_s == 0.02
+
+
+def test_a_move_slower_than_a_day_is_refused_and_the_stage_holds():
+    """``--max-velocity 1e-250`` (a typo) planned a ~1e244 s crawl; now one line naming the field, and the
+    reference keeps its target. A slow but plausible crawl (1 µm at 1 nm/s: 1000 s) is still accepted."""
+    cfg = _seed()
+    with build_stage(cfg, clock=SimClock()) as stage:
+        bad = stage.loop.submit(MoveRequest(relative_m=1e-6, max_velocity_m_s=1e-250))
+        ok = stage.loop.submit(MoveRequest(relative_m=1e-6, max_velocity_m_s=1e-9))
+        before = stage.reference.target_m
+        stage.loop.run(duration_s=0.01)
+        with pytest.raises(RequestError) as ei:
+            bad.result(timeout=0)
+        assert ei.value.field == "max_velocity_m_s" and "\n" not in str(ei.value)
+        assert "would take 1e+244 s, more than 86400 s" in str(ei.value)
+        assert ok.result(timeout=0)["duration_s"] == pytest.approx(1000.0, rel=0.01)
+        assert stage.reference.target_m == pytest.approx(before + 1e-6, abs=1e-12)
