@@ -11,6 +11,8 @@
   :class:`~stagectl.drivers.inproc.InprocBus` implements opens that lighter bus on the same python-can
   channel (it interoperates with stock ``virtual`` buses there). Vendor errors become
   :class:`~stagectl.errors.DriverInitError`.
+  For ``socketcand`` the server is probed first (:func:`probe_socketcand`): python-can's client retries a
+  refused connection for 10 s, warning on each try, where a wrong port should be one line at once.
 * :func:`quiet_can_loggers` silences python-can's socketcand client, which logs a WARNING on every TCP
   read that splits a frame.
 * :func:`close_bus` shuts a bus down and never raises (used from ``close()`` paths).
@@ -31,6 +33,7 @@ import importlib
 import inspect
 import logging
 import re
+import socket
 import threading
 import time
 import typing
@@ -239,6 +242,7 @@ def open_bus(mapping: Mapping[str, Any], *, path: str = "can") -> can.BusABC:
     kw = bus_kwargs(mapping, path=path)
     if kw.get("interface") == "socketcand":
         quiet_can_loggers()
+        probe_socketcand(str(kw["host"]), int(kw["port"]), path=path)
     try:
         bus: can.BusABC
         if kw.get("interface") == "virtual" and kw.keys() <= INPROC_KEYS:
@@ -252,6 +256,32 @@ def open_bus(mapping: Mapping[str, Any], *, path: str = "can") -> can.BusABC:
         OPEN_BUSES.add(bus)
         _open_names[id(bus)] = str(kw.get("channel"))
     return bus
+
+
+#: how long :func:`probe_socketcand` waits for a socketcand server to accept [s] (a server just started)
+SOCKETCAND_PROBE_S = 2.0
+
+
+def probe_socketcand(host: str, port: int, *, path: str = "can", wait_s: float | None = None) -> None:
+    """Connect to ``host:port`` and close again, retrying a refused connection for up to ``wait_s`` [s].
+
+    Raises :class:`DriverInitError` (one line: host, port, the OS's reason) when nothing accepts in that time
+    (``wait_s`` None: :data:`SOCKETCAND_PROBE_S`).
+    python-can's socketcand client would spin on the refused port for 10 s, logging each attempt.
+    """
+    wait_s = SOCKETCAND_PROBE_S if wait_s is None else wait_s
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=max(wait_s, 0.1)):
+                return
+        except OSError as exc:
+            if time.monotonic() >= deadline or not isinstance(exc, ConnectionRefusedError):
+                raise DriverInitError(f"{path}: cannot open CAN bus (interface='socketcand', host={host!r}, "
+                                      f"port={port}): nothing accepts a connection there ({exc.strerror or exc}); "
+                                      f"is the socketcand server (or `stagectl sim-plant`) running on that port?"
+                                      ) from exc
+            time.sleep(0.05)
 
 
 def close_bus(bus: can.BusABC | None) -> None:

@@ -15,7 +15,7 @@ from stagectl.sim.cia402_drive import NMT_OPERATIONAL, DriveState
 from stagectl.sim.faults import SimFault
 from support import cycle_drive
 
-from stagectl.errors import DriverTimeoutError
+from stagectl.errors import DriverInitError, DriverTimeoutError
 
 
 @pytest.fixture
@@ -204,3 +204,21 @@ def test_persisting_heartbeat_loss_clears_when_beats_return(lockstep):
     world.drive._hb_stopped = False  # the drive's heartbeat producer runs again (no SYNC needed)
     world.advance(0.02)
     assert dut.persisting_faults() == ()
+
+
+def test_a_closed_socketcand_port_is_one_line_at_once(monkeypatch):
+    """Nothing listens on the port (a typo, the sim-plant not started): one line naming host and port, without
+    python-can's 10 s of refused retries. A listening server is accepted (the probe only connects)."""
+    import socket
+
+    free = socket.socket()
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()  # bound once, now closed: nothing listens there
+    monkeypatch.setattr(canbus, "SOCKETCAND_PROBE_S", 0.0)
+    with pytest.raises(DriverInitError) as ei:
+        canbus.open_bus({"interface": "socketcand", "host": "127.0.0.1", "port": port, "channel": "can0"})
+    msg = str(ei.value)
+    assert "\n" not in msg and f"port={port}" in msg and "nothing accepts a connection" in msg, msg
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        canbus.probe_socketcand("127.0.0.1", srv.getsockname()[1], wait_s=0.0)
