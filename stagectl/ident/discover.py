@@ -377,6 +377,22 @@ def _regime_mask(ds: Dataset, name: str) -> BoolArray | None:
     return None
 
 
+def _event_gains(ds: Dataset, m: BoolArray, r0: FloatArray, r1: FloatArray) -> FloatArray:
+    """Per-event sums of the squared-residual reduction r0² − r1² over the regime samples ``m`` (a mask over
+    the validation rows), an event being a run of regime samples with no gap longer than the filter guard."""
+    idx = np.flatnonzero(ds.val_rows)[m]
+    if idx.size == 0:
+        return np.zeros(0)
+    d = (r0 * r0 - r1 * r1)[m]
+    cut = np.flatnonzero(np.diff(idx) > max(ds.val.guard, 1)) + 1
+    return np.asarray([float(x.sum()) for x in np.split(d, cut)])
+
+
+def _sign_p(k: int, n: int) -> float:
+    """One-sided sign-test p-value: P(X >= k) for X ~ Binomial(n, 1/2)."""
+    return float(sum(math.comb(n, j) for j in range(k, n + 1)) / 2.0 ** n) if n else 1.0
+
+
 def _fit_label(ds: Dataset, cur: FitResult, label: str) -> FitResult:
     """Fit a candidate label: one effect, or ``rich+simple`` (the richer effect searched with the nested
     simpler one already in the model, so that neither is fitted with the other frozen)."""
@@ -405,14 +421,24 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
         m = _regime_mask(ds, regime)
         if m is not None and int(m.sum()) >= MIN_REGIME_SAMPLES:
             rc = compare(r_cur[m], r_new[m], ds.est.dt_s, force_rms)
+    unresolved = tuple(u for sp in specs if sp.resolved is not None
+                       for u in sp.resolved(ds.val, ds.val_rows, fr.hyp, force_rms))
     in_regime = rc is not None and rc.significant and cmp.gap_after <= cmp.gap_before
-    ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds
+    if regime is not None and rc is not None:
+        import os
+        if os.environ.get("D11_DEBUG"):
+            ev = _event_gains(ds, m, r_cur, r_new)
+            k = int((ev > 0).sum())
+            print(f"D11 {label} regime={regime} sig={rc.significant} rel={rc.rel_gain:.3f} glob={cmp.rel_gain:.3f} "
+                  f"events={ev.size} pos={k} p={_sign_p(k, ev.size):.3g} top={ev.max() / max(ev[ev>0].sum(),1e-300) if (ev>0).any() else 0:.2f} "
+                  f"bounds={bool(bounds)} est={est_gain:.3f} keys={keys} unres={unresolved}", flush=True)
+    ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds and not unresolved
     row = CandidateFit(
         label, params[0] if len(params) == 1 else tuple(params), est_gain, cmp.gap_before, cmp.gap_after,
         cmp.rel_gain, cmp.boot_lower, cmp.block, cmp.explained_n, cmp.min_explained_n, ok, key_parameter=keys,
         regime=regime, regime_gap_before=None if rc is None else rc.gap_before,
         regime_gap_after=None if rc is None else rc.gap_after, regime_rel_gain=None if rc is None else rc.rel_gain,
-        regime_significant=None if rc is None else rc.significant, bounds=bounds)
+        regime_significant=None if rc is None else rc.significant, bounds=bounds, unresolved=unresolved)
     return row, cmp, r_new
 
 
@@ -521,6 +547,8 @@ def _why_not(c: CandidateFit) -> str:
     """Why a candidate was not accepted, in the words of the acceptance rule (docs/discovery.md §4, §7)."""
     if c.bounds:
         return "fit at or beyond a physical bound, so not accepted (and not clipped): " + "; ".join(c.bounds)
+    if c.unresolved:
+        return "the recording does not resolve its defining evidence, so not accepted: " + "; ".join(c.unresolved)
     if c.estimation_rel_gain <= 0.0:
         return f"no gain on the estimation data ({100 * c.estimation_rel_gain:.1f} %)"
     txt = (f"estimation gain {100 * c.estimation_rel_gain:.1f} %, validation gap {c.gap_before:.4g} N -> "
