@@ -23,8 +23,12 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 An effect that acts in one regime (``EffectSpec.regime``: pre-sliding and backlash near reversals, Stribeck
 and frictional lag at low speed) is also acceptable when these tests pass on the validation samples of its
 regime and the global gap does not get worse (docs/discovery.md §7). A fit at or beyond a physical bound
-(``EffectSpec.bounds``) or without gain on estimation data is never acceptable. A richer effect is also tried
-jointly with the simpler one it contains (``asymmetry+offset``), so that neither is fitted with the other frozen.
+(``EffectSpec.bounds``), without gain on estimation data, or whose defining evidence the validation data do not
+resolve (``EffectSpec.resolved``: a backlash that leaves the friction on the motor must show the load's lost
+inertia above the explained-force floor, docs/discovery.md §10) is never acceptable. A richer effect is also tried
+jointly with the simpler one it contains (``asymmetry+offset``), so that neither is fitted with the other frozen;
+forms that occur together are tried jointly too (``viscous_asymmetry+offset``: independent viscous and Coulomb
+asymmetries, ``EffectSpec.tried_with``).
 
 Among acceptable candidates the one with the smallest validation gap is named, except that a simpler candidate
 (fewer effects, or one the chosen contains) that it does not beat significantly is preferred (parsimony);
@@ -377,22 +381,6 @@ def _regime_mask(ds: Dataset, name: str) -> BoolArray | None:
     return None
 
 
-def _event_gains(ds: Dataset, m: BoolArray, r0: FloatArray, r1: FloatArray) -> FloatArray:
-    """Per-event sums of the squared-residual reduction r0² − r1² over the regime samples ``m`` (a mask over
-    the validation rows), an event being a run of regime samples with no gap longer than the filter guard."""
-    idx = np.flatnonzero(ds.val_rows)[m]
-    if idx.size == 0:
-        return np.zeros(0)
-    d = (r0 * r0 - r1 * r1)[m]
-    cut = np.flatnonzero(np.diff(idx) > max(ds.val.guard, 1)) + 1
-    return np.asarray([float(x.sum()) for x in np.split(d, cut)])
-
-
-def _sign_p(k: int, n: int) -> float:
-    """One-sided sign-test p-value: P(X >= k) for X ~ Binomial(n, 1/2)."""
-    return float(sum(math.comb(n, j) for j in range(k, n + 1)) / 2.0 ** n) if n else 1.0
-
-
 def _fit_label(ds: Dataset, cur: FitResult, label: str) -> FitResult:
     """Fit a candidate label: one effect, or ``rich+simple`` (the richer effect searched with the nested
     simpler one already in the model, so that neither is fitted with the other frozen)."""
@@ -423,18 +411,7 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
             rc = compare(r_cur[m], r_new[m], ds.est.dt_s, force_rms)
     unresolved = tuple(u for sp in specs if sp.resolved is not None
                        for u in sp.resolved(ds.val, ds.val_rows, fr.hyp, force_rms))
-    import os
-    if os.environ.get("D11_NORES"):
-        unresolved = ()
     in_regime = rc is not None and rc.significant and cmp.gap_after <= cmp.gap_before
-    if regime is not None and rc is not None:
-        import os
-        if os.environ.get("D11_DEBUG"):
-            ev = _event_gains(ds, m, r_cur, r_new)
-            k = int((ev > 0).sum())
-            print(f"D11 {label} regime={regime} sig={rc.significant} rel={rc.rel_gain:.3f} glob={cmp.rel_gain:.3f} "
-                  f"events={ev.size} pos={k} p={_sign_p(k, ev.size):.3g} top={ev.max() / max(ev[ev>0].sum(),1e-300) if (ev>0).any() else 0:.2f} "
-                  f"bounds={bool(bounds)} est={est_gain:.3f} keys={keys} unres={unresolved}", flush=True)
     ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds and not unresolved
     row = CandidateFit(
         label, params[0] if len(params) == 1 else tuple(params), est_gain, cmp.gap_before, cmp.gap_after,
@@ -458,10 +435,11 @@ def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: Float
         if cur.hyp.has(name):
             continue
         labels.append(name)
-        for simpler in fx.REGISTRY.get(name).contains:
+        spec = fx.REGISTRY.get(name)
+        for simpler in (*spec.contains, *spec.tried_with):
             joint = f"{name}+{simpler}"
             if (simpler in catalogue and not cur.hyp.has(simpler)
-                    and simpler not in fx.REGISTRY.get(name).implies):  # an implied effect is always fitted with it
+                    and simpler not in spec.implies):  # an implied effect is always fitted with it
                 labels.append(joint)
     for i, label in enumerate(labels):
         if on_candidate is not None:

@@ -745,10 +745,12 @@ def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_
     s = BACKLASH.shape(h)
     g = _load_state(sig, s)[0]
     near = rows & (sig.x_rev_dist < 2.0 * s.gap_m)
-    rms = 0.0
-    if near.any():
-        f = sig.filt(p.mass_lost_kg * g * sig.acc_raw)[near]
-        rms = float(np.sqrt(np.mean(f * f)))
+    if not near.any():
+        return [f"less than half the friction is lost in the play ({p.coulomb_lost_n:.3g} N of {p.coulomb_n:.3g} N) "
+                f"and no validation sample lies within 2·b = {2e6 * s.gap_m:.3g} µm of a reversal to show the "
+                "load's lost inertia"]
+    f = sig.filt(p.mass_lost_kg * g * sig.acc_raw)[near]
+    rms = float(np.sqrt(np.mean(f * f)))
     if rms >= floor_n:
         return []
     return [f"less than half the friction is lost in the play ({p.coulomb_lost_n:.3g} N of {p.coulomb_n:.3g} N: the "
@@ -836,7 +838,7 @@ ASYMMETRY: EffectSpec[AsymmetryShape, Asymmetry] = EffectSpec(
                 "viscous parts vs a viscous-only difference)")
 VISCOUS_ASYMMETRY: EffectSpec[NoShape, ViscousAsymmetryParams] = EffectSpec(
     "viscous_asymmetry", NoShape, _vasym_params, _vasym_evidence, _fit_as_is, column_rank=26,
-    friction_columns=_vasym_columns, twin="viscous_asymmetry",
+    friction_columns=_vasym_columns, twin="viscous_asymmetry", tried_with=("offset",),
     to_twin=lambda p: ViscousAsymmetry(difference_n_s_m=float(p.difference_n_s_m)),
     from_twin=lambda h, e: h.adding("viscous_asymmetry"), hide=_hide_vasym, bounds=_vasym_bounds,
     key=lambda p: f"Fv+ = {p.fv_plus_n_s_m:.4g}, Fv− = {p.fv_minus_n_s_m:.4g} N·s/m",

@@ -192,6 +192,9 @@ class EffectSpec(Generic[S, P]):
     iterative: bool = False
     implies: tuple[str, ...] = ()
     contains: tuple[str, ...] = ()
+    #: effects this one is also tried jointly with (``name+other``), without nesting: forms that occur together
+    #: (a viscous and a Coulomb asymmetry, the latter an offset while sliding, docs/discovery.md §1)
+    tried_with: tuple[str, ...] = ()
     twin: str | None = None
     to_twin: Callable[[P], object] | None = None
     from_twin: Callable[[Hyp, Any], Hyp] | None = None
