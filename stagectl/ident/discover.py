@@ -23,8 +23,12 @@ refitted on estimation data and scored on validation data. An effect is *accepta
 An effect that acts in one regime (``EffectSpec.regime``: pre-sliding and backlash near reversals, Stribeck
 and frictional lag at low speed) is also acceptable when these tests pass on the validation samples of its
 regime and the global gap does not get worse (docs/discovery.md §7). A fit at or beyond a physical bound
-(``EffectSpec.bounds``) or without gain on estimation data is never acceptable. A richer effect is also tried
-jointly with the simpler one it contains (``asymmetry+offset``), so that neither is fitted with the other frozen.
+(``EffectSpec.bounds``), without gain on estimation data, or whose defining evidence the validation data do not
+resolve (``EffectSpec.resolved``: a backlash that leaves the friction on the motor must show the load's lost
+inertia above the explained-force floor, docs/discovery.md §10) is never acceptable. A richer effect is also tried
+jointly with the simpler one it contains (``asymmetry+offset``), so that neither is fitted with the other frozen;
+forms that occur together are tried jointly too (``viscous_asymmetry+offset``: independent viscous and Coulomb
+asymmetries, ``EffectSpec.tried_with``).
 
 Among acceptable candidates the one with the smallest validation gap is named, except that a simpler candidate
 (fewer effects, or one the chosen contains) that it does not beat significantly is preferred (parsimony);
@@ -405,14 +409,16 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
         m = _regime_mask(ds, regime)
         if m is not None and int(m.sum()) >= MIN_REGIME_SAMPLES:
             rc = compare(r_cur[m], r_new[m], ds.est.dt_s, force_rms)
+    unresolved = tuple(u for sp in specs if sp.resolved is not None
+                       for u in sp.resolved(ds.val, ds.val_rows, fr.hyp, force_rms))
     in_regime = rc is not None and rc.significant and cmp.gap_after <= cmp.gap_before
-    ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds
+    ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds and not unresolved
     row = CandidateFit(
         label, params[0] if len(params) == 1 else tuple(params), est_gain, cmp.gap_before, cmp.gap_after,
         cmp.rel_gain, cmp.boot_lower, cmp.block, cmp.explained_n, cmp.min_explained_n, ok, key_parameter=keys,
         regime=regime, regime_gap_before=None if rc is None else rc.gap_before,
         regime_gap_after=None if rc is None else rc.gap_after, regime_rel_gain=None if rc is None else rc.rel_gain,
-        regime_significant=None if rc is None else rc.significant, bounds=bounds)
+        regime_significant=None if rc is None else rc.significant, bounds=bounds, unresolved=unresolved)
     return row, cmp, r_new
 
 
@@ -429,10 +435,11 @@ def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: Float
         if cur.hyp.has(name):
             continue
         labels.append(name)
-        for simpler in fx.REGISTRY.get(name).contains:
+        spec = fx.REGISTRY.get(name)
+        for simpler in (*spec.contains, *spec.tried_with):
             joint = f"{name}+{simpler}"
             if (simpler in catalogue and not cur.hyp.has(simpler)
-                    and simpler not in fx.REGISTRY.get(name).implies):  # an implied effect is always fitted with it
+                    and simpler not in spec.implies):  # an implied effect is always fitted with it
                 labels.append(joint)
     for i, label in enumerate(labels):
         if on_candidate is not None:
@@ -521,6 +528,8 @@ def _why_not(c: CandidateFit) -> str:
     """Why a candidate was not accepted, in the words of the acceptance rule (docs/discovery.md §4, §7)."""
     if c.bounds:
         return "fit at or beyond a physical bound, so not accepted (and not clipped): " + "; ".join(c.bounds)
+    if c.unresolved:
+        return "the recording does not resolve its defining evidence, so not accepted: " + "; ".join(c.unresolved)
     if c.estimation_rel_gain <= 0.0:
         return f"no gain on the estimation data ({100 * c.estimation_rel_gain:.1f} %)"
     txt = (f"estimation gain {100 * c.estimation_rel_gain:.1f} %, validation gap {c.gap_before:.4g} N -> "

@@ -723,6 +723,43 @@ def _backlash_bounds(p: BacklashParams) -> list[str]:
     return out
 
 
+def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float) -> list[str]:
+    """What shows lost motion, by the motor/load split the model file would write (:func:`backlash_split`).
+
+    * Friction on the load (at least half the Coulomb level lost inside the play): the lost friction itself,
+      a force of the order of the whole friction level, is the evidence; the acceptance rule judges its gain.
+    * Friction on the motor: the load the file describes carries no friction, so the only thing the play
+      takes away is the load's inertia. Its force ``L[m_lost·g·a]`` (g = 1 while the play is open) must
+      reach ``floor_n`` in RMS over the validation samples within 2·b after a reversal. Below it, what the
+      fit explains is a small change of the friction force right after reversals, which the model file
+      would not even keep, and which any friction model that is slightly off there gives (a rate-dependent
+      pre-sliding fitted by a rate-independent one, a controller whose force bends near reversals).
+
+    Measured (docs/discovery.md §10): a GMS stage without play, whose commissioning experiments ran with the
+    observer anti-wind-up on, gave a 24 µm "play" losing 0.05 N of 0.82 N and 0.35 g of 1.95 kg: lost
+    inertia 4e-6 N RMS against a floor of 1.7e-3 N."""
+    p = _backlash_params(h)
+    on_load, _ = backlash_split(p)
+    if on_load:
+        return []
+    s = BACKLASH.shape(h)
+    g = _load_state(sig, s)[0]
+    near = rows & (sig.x_rev_dist < 2.0 * s.gap_m)
+    if not near.any():
+        return [f"less than half the friction is lost in the play ({p.coulomb_lost_n:.3g} N of {p.coulomb_n:.3g} N) "
+                f"and no validation sample lies within 2·b = {2e6 * s.gap_m:.3g} µm of a reversal to show the "
+                "load's lost inertia"]
+    f = sig.filt(p.mass_lost_kg * g * sig.acc_raw)[near]
+    rms = float(np.sqrt(np.mean(f * f)))
+    if rms >= floor_n:
+        return []
+    return [f"less than half the friction is lost in the play ({p.coulomb_lost_n:.3g} N of {p.coulomb_n:.3g} N: the "
+            f"friction stays on the motor side), and the load's inertia lost while it is open (m_lost = "
+            f"{p.mass_lost_kg:.3g} kg, {100 * p.mass_lost_kg / max(p.mass_kg, 1e-300):.2g} % of m) is {rms:.3g} N "
+            f"RMS near reversals, below the {floor_n:.3g} N the acceptance rule credits: the data show a small "
+            "friction change right after reversals, not lost motion"]
+
+
 def _hide_backlash(st: HiddenStage) -> None:
     """Motor + load with a play of 5-30 µm; the motor side is 10-25 % of the load mass; friction on the load,
     sensor on the motor (a ball-screw axis with a rotary encoder)."""
@@ -769,6 +806,7 @@ def _ripple_bounds(p: PositionRipple) -> list[str]:
 BACKLASH: EffectSpec[BacklashShape, BacklashParams] = EffectSpec(
     "backlash", BacklashShape, _backlash_params, _backlash_evidence, _search_backlash, column_rank=80,
     columns=_backlash_columns, hide=_hide_backlash, regime="near_reversal", bounds=_backlash_bounds,
+    resolved=_backlash_resolved,
     key=lambda p: f"play = {1e6 * p.gap_m:.3g} µm",
     separate_by="slow small reversals with a load-side sensor, or compare motor and load positions (lost motion "
                 "is a step; pre-sliding a gradual build-up)")
@@ -800,7 +838,7 @@ ASYMMETRY: EffectSpec[AsymmetryShape, Asymmetry] = EffectSpec(
                 "viscous parts vs a viscous-only difference)")
 VISCOUS_ASYMMETRY: EffectSpec[NoShape, ViscousAsymmetryParams] = EffectSpec(
     "viscous_asymmetry", NoShape, _vasym_params, _vasym_evidence, _fit_as_is, column_rank=26,
-    friction_columns=_vasym_columns, twin="viscous_asymmetry",
+    friction_columns=_vasym_columns, twin="viscous_asymmetry", tried_with=("offset",),
     to_twin=lambda p: ViscousAsymmetry(difference_n_s_m=float(p.difference_n_s_m)),
     from_twin=lambda h, e: h.adding("viscous_asymmetry"), hide=_hide_vasym, bounds=_vasym_bounds,
     key=lambda p: f"Fv+ = {p.fv_plus_n_s_m:.4g}, Fv− = {p.fv_minus_n_s_m:.4g} N·s/m",

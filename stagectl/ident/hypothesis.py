@@ -171,7 +171,10 @@ class EffectSpec(Generic[S, P]):
     Report and acceptance: ``regime`` names the motion regime the effect acts in (a prefix of a
     :func:`stagectl.ident.localise.regimes` key, e.g. ``near_reversal``): the effect may be accepted on its gain
     there while the global gap does not get worse (docs/discovery.md §7); ``bounds(params)`` lists the physical
-    bounds the fitted parameters reach or cross (a fit outside is never accepted, and never clipped); ``key``
+    bounds the fitted parameters reach or cross (a fit outside is never accepted, and never clipped);
+    ``resolved(sig, rows, h, floor_n)`` lists what the effect's defining evidence lacks on the validation
+    samples ``rows`` of ``sig`` (a force below ``floor_n`` [N], the smallest force the acceptance rule credits):
+    a fit whose signature the recording does not resolve is not accepted, whatever its gain; ``key``
     formats the key parameter (wavelength, ratio, ...) for the report; ``separate_by`` is the experiment that
     tells this effect from a look-alike when the data cannot.
     """
@@ -189,6 +192,9 @@ class EffectSpec(Generic[S, P]):
     iterative: bool = False
     implies: tuple[str, ...] = ()
     contains: tuple[str, ...] = ()
+    #: effects this one is also tried jointly with (``name+other``), without nesting: forms that occur together
+    #: (a viscous and a Coulomb asymmetry, the latter an offset while sliding, docs/discovery.md §1)
+    tried_with: tuple[str, ...] = ()
     twin: str | None = None
     to_twin: Callable[[P], object] | None = None
     from_twin: Callable[[Hyp, Any], Hyp] | None = None
@@ -199,6 +205,7 @@ class EffectSpec(Generic[S, P]):
     bounds: Callable[[P], list[str]] | None = None
     key: Callable[[P], str] | None = None
     separate_by: str = ""
+    resolved: Callable[[Signals, npt.NDArray[np.bool_], Hyp, float], list[str]] | None = None
 
     def shape(self, h: Hyp) -> S:
         """This effect's shape in ``h`` (its defaults when ``h`` has none)."""

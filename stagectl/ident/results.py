@@ -116,6 +116,7 @@ class CandidateFit:
     regime_rel_gain: float | None = None
     regime_significant: bool | None = None
     bounds: tuple[str, ...] = ()  # physical bounds reached or crossed by the fit
+    unresolved: tuple[str, ...] = ()  # defining evidence the recording does not resolve (EffectSpec.resolved)
     verdict: str | None = None  # accepted / rejected / superseded, with the reason
 
     def as_json(self) -> dict[str, Any]:

@@ -78,6 +78,22 @@ def test_mixed_asymmetry_is_named_in_its_proportional_form() -> None:
     assert res.gap_after <= 0.5 * res.gap_before
 
 
+def test_independent_coulomb_and_viscous_asymmetry_are_named_as_offset_and_viscous_asymmetry() -> None:
+    """Coulomb and viscous levels asymmetric with different ratios: the pair offset + viscous_asymmetry is
+    tried as one candidate and wins on parsimony over asymmetry+offset, the same force while sliding."""
+    st, rng = _stage(1306)
+    fc, fv = st["friction"]["fc_n"], st["friction"]["viscous_n_s_m"]
+    rc = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.2, 0.35))
+    rv = -float(np.sign(rc)) * float(rng.uniform(0.2, 0.35))  # the viscous part the other way
+    # asymmetry r scales both parts; the viscous_asymmetry term sets the viscous difference to rv·Fv
+    st["effects"] = {"asymmetry": {"ratio": rc}, "viscous_asymmetry": {"difference_n_s_m": (rv - rc) * fv}}
+    res = _run(st, 1306)
+    got = {e.name: e.parameters for e in res.effects}
+    assert set(got) == {"offset", "viscous_asymmetry"}, res.rounds[0].candidates
+    assert got["offset"].force_n == pytest.approx(rc * fc, rel=0.2)
+    assert got["viscous_asymmetry"].difference_n_s_m == pytest.approx(rv * fv, rel=0.2)
+
+
 def test_presliding_on_a_long_stroke_axis_is_named_from_its_regime() -> None:
     """Reversals are rare, so pre-sliding cannot cut the global residual by 20 %: it is judged near reversals,
     and the global gap must not get worse (docs/discovery.md §7)."""
