@@ -185,6 +185,7 @@ from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
 from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.control.settle import SettleConfig, SettleDetector
+from stagectl.control.settle_move import SettleMove
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
@@ -672,6 +673,8 @@ class StageController:
         self._v_fresh = 0.0
         self._u_learn = 0.0
         self._ml = _MoveFit()
+        self._sm = SettleMove()  # settle move (settle.move_s) and the friction model's offset it left [m]
+        self._ff_off = 0.0
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -716,6 +719,8 @@ class StageController:
         self._reset_rest_spring()
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
+            self._ff_off = 0.0  # the new model starts at the reference (a settle move goes on without it)
+            self._sm.ff_active = False
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
         # observer
         old_dob = self.dob
@@ -879,6 +884,45 @@ class StageController:
         beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
         ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
         return self._set_theta(th_new, f_raw, d_hat, dob)
+
+    def _settle_move(self, dt: float, ref: Reference, x_m: float, v_hat: float,
+                     ilc: bool) -> tuple[Reference, Reference, float]:
+        """Settle move (``settle.move_s``; :mod:`stagectl.control.settle_move`): at the first sample at rest after
+        a move, with an observer, a model feed-forward and no ILC taking part, a stage behind the reference in the
+        move's direction by more than ``settle.move_min_m`` (None: ``rest_spring_range_m``) starts the continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c,
+        v_r − ċ, a_r − c̈), the friction model's reference (offset along the continuation, monotone, no
+        look-ahead; then by the offset it left) and the continuation's time τ of this step [s] (nan: none)."""
+        sm = self._sm
+        scfg = self.cfg.settle
+        if (sm.observe(ref.v_m_s, ref.a_m_s2) and scfg.move_s > 0.0 and not ilc and self.dob is not None
+                and isinstance(self.ff, FrictionFeedforward)):
+            e0 = ref.x_m - x_m
+            e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
+            if sm.direction * e0 > e_min:
+                sm.start(e0, -v_hat, scfg.move_s)
+        if not sm.active:
+            return ref, self._ff_ref(ref), math.nan
+        tau = sm.tau_s
+        c, cd, cdd = sm.sample(tau)
+        sm.tau_s = tau + dt
+        ref_fb = Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd)
+        if sm.ff_active and (ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0):
+            self._ff_off += sm.x_ff_m  # the reference moves again: the model follows it from the offset reached
+            sm.ff_active = False
+        if sm.ff_active:
+            ref_ff = Reference(ref.x_m + self._ff_off + sm.feed(c), 0.0, 0.0)
+        else:
+            ref_ff = self._ff_ref(ref)
+        if sm.tau_s > sm.duration_s + 1e-9 * dt:  # done: the offset the model was fed stays
+            if sm.ff_active:
+                self._ff_off += sm.x_ff_m
+            sm.active = sm.ff_active = False
+        return ref_fb, ref_ff, tau
+
+    def _ff_ref(self, ref: Reference) -> Reference:
+        """The friction feed-forward's reference: ``ref`` moved by the offset settle moves left in its model."""
+        off = self._ff_off + (self._sm.x_ff_m if self._sm.ff_active else 0.0)
+        return ref if off == 0.0 else Reference(ref.x_m + off, ref.v_m_s, ref.a_m_s2)
 
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
@@ -1045,11 +1089,13 @@ class StageController:
                 self._vdt = dt
                 self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
+        # settle move (settle.move_s): the feedback's reference and the friction model's feed; tau_c: its time
+        ref_fb, ref_ff, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
-        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref_ff) * self.ff_scale if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -1067,6 +1113,8 @@ class StageController:
                 la = ff.lookahead_s if ff is not None else (
                     0.5 * dt if ffc.lookahead_s is None else ffc.lookahead_s)
                 a_r += (a_r - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
+            if tau_c == tau_c:  # along the settle move: m·(a_r − c̈), with the same look-ahead
+                a_r -= self._sm.sample(tau_c + (la if ffc.inertia_lookahead and last is not None else 0.0))[2]
             u_in = m_ff * a_r
         else:
             u_in = 0.0
@@ -1094,10 +1142,10 @@ class StageController:
             # while ILC takes part the spring stays released (folded into the observer, as at a move's start):
             # its load at each stop depends on where the previous repetition ended, so it would make the
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
-            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc, dob)
-        if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and tau_c != tau_c, dob)
+        if at_rest and tau_c != tau_c and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
-        hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
+        hold = at_rest and tau_c != tau_c and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
             # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer
@@ -1107,7 +1155,7 @@ class StageController:
             dob.shift(i_n)
             d_hat += i_n
             pid.state.i_n = 0.0
-        u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
+        u = pid.step(dt, ref_fb.x_m, x_meas_m, ref_fb.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, ref.x_m - x_meas_m, at_rest)
         st.x_prev_m = x_meas_m
@@ -1170,7 +1218,7 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        u_ff = ff.step(dt, ref) * self.ff_scale
+        u_ff = ff.step(dt, self._ff_ref(ref)) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
