@@ -673,8 +673,7 @@ class StageController:
         self._v_fresh = 0.0
         self._u_learn = 0.0
         self._ml = _MoveFit()
-        self._sm = SettleMove()  # settle move (settle.move_s) and the friction model's offset it left [m]
-        self._ff_off = 0.0
+        self._sm = SettleMove()  # settle move (settle.move_s)
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -719,8 +718,6 @@ class StageController:
         self._reset_rest_spring()
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
-            self._ff_off = 0.0  # the new model starts at the reference (a settle move goes on without it)
-            self._sm.ff_active = False
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
         # observer
         old_dob = self.dob
@@ -886,12 +883,12 @@ class StageController:
         return self._set_theta(th_new, f_raw, d_hat, dob)
 
     def _settle_move(self, dt: float, ref: Reference, x_m: float, v_hat: float,
-                     ilc: bool) -> tuple[Reference, Reference, float]:
+                     ilc: bool) -> tuple[Reference, float]:
         """Settle move (``settle.move_s``; :mod:`stagectl.control.settle_move`): at the first sample at rest after
         a move, with an observer, a model feed-forward and no ILC taking part, a stage behind the reference in the
-        move's direction by more than ``settle.move_min_m`` (None: ``rest_spring_range_m``) starts the continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c,
-        v_r − ċ, a_r − c̈), the friction model's reference (offset along the continuation, monotone, no
-        look-ahead; then by the offset it left) and the continuation's time τ of this step [s] (nan: none)."""
+        move's direction by more than ``settle.move_min_m`` (None: ``rest_spring_range_m``) starts the
+        continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c, v_r − ċ, a_r − c̈)
+        and the continuation's time τ at this step [s] (nan: none; the inertia term adds −m·c̈(τ + τ_a))."""
         sm = self._sm
         scfg = self.cfg.settle
         if (sm.observe(ref.v_m_s, ref.a_m_s2) and scfg.move_s > 0.0 and not ilc and self.dob is not None
@@ -901,28 +898,13 @@ class StageController:
             if sm.direction * e0 > e_min:
                 sm.start(e0, -v_hat, scfg.move_s)
         if not sm.active:
-            return ref, self._ff_ref(ref), math.nan
+            return ref, math.nan
         tau = sm.tau_s
         c, cd, cdd = sm.sample(tau)
         sm.tau_s = tau + dt
-        ref_fb = Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd)
-        if sm.ff_active and (ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0):
-            self._ff_off += sm.x_ff_m  # the reference moves again: the model follows it from the offset reached
-            sm.ff_active = False
-        if sm.ff_active:
-            ref_ff = Reference(ref.x_m + self._ff_off + sm.feed(c), 0.0, 0.0)
-        else:
-            ref_ff = self._ff_ref(ref)
-        if sm.tau_s > sm.duration_s + 1e-9 * dt:  # done: the offset the model was fed stays
-            if sm.ff_active:
-                self._ff_off += sm.x_ff_m
-            sm.active = sm.ff_active = False
-        return ref_fb, ref_ff, tau
-
-    def _ff_ref(self, ref: Reference) -> Reference:
-        """The friction feed-forward's reference: ``ref`` moved by the offset settle moves left in its model."""
-        off = self._ff_off + (self._sm.x_ff_m if self._sm.ff_active else 0.0)
-        return ref if off == 0.0 else Reference(ref.x_m + off, ref.v_m_s, ref.a_m_s2)
+        if sm.tau_s > sm.duration_s + 1e-9 * dt:
+            sm.active = False
+        return Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd), tau
 
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
@@ -1089,13 +1071,13 @@ class StageController:
                 self._vdt = dt
                 self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
-        # settle move (settle.move_s): the feedback's reference and the friction model's feed; tau_c: its time
-        ref_fb, ref_ff, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
+        # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
+        ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
-        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref_ff) * self.ff_scale if ff is not None else 0.0
+        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -1218,7 +1200,7 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        u_ff = ff.step(dt, self._ff_ref(ref)) * self.ff_scale
+        u_ff = ff.step(dt, ref) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0

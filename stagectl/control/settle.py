@@ -30,8 +30,8 @@ class SettleConfig:
     move_s: float = param(
         0.0, unit="s", desc="settle move (with an observer and feedforward kind: model): a move that ends with "
         "the stage behind the reference in its direction by more than move_min_m is continued from the stage's "
-        "measured position and speed to the target by a quintic of this duration (feedback reference, inertia "
-        "and friction feed-forward along it; the reference is unchanged; 0: off)", ge=0.0, le=0.1)
+        "measured position and speed to the target by a quintic of this duration (the feedback's reference and "
+        "the inertia feed-forward follow it; the reference is unchanged; 0: off)", ge=0.0, le=0.1)
     move_min_m: float | None = param(
         None, unit="m", desc="settle move: the least error behind the reference at the end of a move that starts "
         "one (None: controller.rest_spring_range_m, the range the rest spring covers)", gt=0.0)

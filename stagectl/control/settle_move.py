@@ -1,27 +1,24 @@
 """Settle move: the end of a move re-planned once from the stage's measured state (two degrees of freedom).
 
 A move that ends with the stage still *behind* the reference in the move's direction (on the soft side of its
-friction: the friction feed-forward was too low during the move, so the stage lags, docs/control.md §2.4) by
-more than ``settle.move_min_m`` gets one short continuation move. At the first sample at
-rest, with the error e₀ = x_r − x [m] and ė₀ = −v̂ [m/s] (v̂: the velocity estimate), a quintic
+friction: the friction feed-forward was too low during the move, so the stage lags; docs/control.md §2.4–2.5) by
+more than ``settle.move_min_m`` gets one short continuation. At the first sample at rest, with the error
+e₀ = x_r − x [m] and ė₀ = −v̂ [m/s] (v̂: the velocity estimate), a quintic
 
     c(τ) = e₀ + ė₀·τ + c₃τ³ + c₄τ⁴ + c₅τ⁵,   0 <= τ <= T = ``settle.move_s``
     c₃ = −(10e₀ + 6ė₀T)/T³,   c₄ = (15e₀ + 8ė₀T)/T⁴,   c₅ = −(6e₀ + 3ė₀T)/T⁵
 
-takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. For T the controller then tracks
+takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. For T the controller tracks
 
-* feedback (PID) reference  x_r − c,  v_r − ċ   (starts at the stage's own position and speed: no P or D step),
-* inertia feed-forward       m·(a_r − c̈(τ + τ_a))   (the look-ahead of the inertia term),
-* friction feed-forward      the model fed on by the increments of −c (the stage's path, in the direction it
-  was going: no reversal; monotone by construction of the feed), so it carries the sliding friction
-  along the continuation instead of holding the force at the end of the move.
+* feedback (PID) reference  x_r − c,  v_r − ċ   (starts at the stage's own position and speed: no P or D step,
+  so the PID no longer pushes the stage through the break-away and the overshoot that followed),
+* inertia feed-forward       m·(a_r − c̈(τ + τ_a))   (with the inertia term's look-ahead),
 
-The observer's input is the applied force, so the planned acceleration is not estimated away. The reference
-itself (and so the settle time measured from the end of the commanded move, the in-position detector, the
-learning from moves and the adaptation) is unchanged: the continuation is not part of the move. While it runs
-the controller's rest logic (rest spring, rest synchronisation, integrator hold) waits; it takes over at τ = T.
-The friction model ends displaced by e₀ against the reference; the controller keeps that offset for every later
-feed (the model is shift-invariant; position-dependent effects are evaluated e₀ further on, a few µm at most).
+while the friction feed-forward holds the model where the move left it (the observer, whose input is the applied
+force, supplies the sliding friction of the short continuation). The reference itself, and so the settle time
+measured from the end of the commanded move, the in-position detector, the learning from moves and the adaptation,
+is unchanged: the continuation is not part of the move. While it runs the controller's rest logic (rest spring,
+rest synchronisation, integrator hold) waits; it takes over at τ = T.
 
 Pure, scalar, real-time safe.
 """
@@ -42,11 +39,8 @@ class SettleMove:
         self.moving = False  # the reference moved at the last sample
         self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one)
         self.active = False  # a continuation is running
-        self.ff_active = False  # ... and the friction model is fed along it
         self.tau_s = 0.0
         self.duration_s = 0.0
-        self.e0_m = 0.0
-        self.x_ff_m = 0.0  # the last position fed to the friction model along the continuation (offset) [m]
         self._k = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     def observe(self, v_r: float, a_r: float) -> bool:
@@ -66,10 +60,7 @@ class SettleMove:
         T = duration_s
         self.duration_s = T
         self.tau_s = 0.0
-        self.e0_m = e0_m
-        self.x_ff_m = 0.0
         self.active = True
-        self.ff_active = True
         self._k = (e0_m, v0_m_s, -(10.0 * e0_m + 6.0 * v0_m_s * T) / T**3,
                    (15.0 * e0_m + 8.0 * v0_m_s * T) / T**4, -(6.0 * e0_m + 3.0 * v0_m_s * T) / T**5)
 
@@ -83,15 +74,6 @@ class SettleMove:
         cd = k1 + t * t * (3.0 * k3 + t * (4.0 * k4 + t * 5.0 * k5))
         cdd = t * (6.0 * k3 + t * (12.0 * k4 + t * 20.0 * k5))
         return c, cd, cdd
-
-    def feed(self, c_m: float) -> float:
-        """The friction model's offset along the continuation, e₀ − c, kept monotone in the direction of the
-        move (never a move-back, so never a model reversal) [m]."""
-        x = self.e0_m - c_m
-        d = 1.0 if self.e0_m > 0.0 else -1.0
-        if d * x > d * self.x_ff_m:
-            self.x_ff_m = x
-        return self.x_ff_m
 
 
 __all__ = ["SettleMove"]
