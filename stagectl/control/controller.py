@@ -150,6 +150,14 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
+Settle move (``settle.move_s`` = T, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
+first sample at rest, by a quintic c from the stage's error and speed to rest at the target in T: the PID's
+reference is x_r − c, the inertia term m·(a_r − c̈); the friction model is held, the reference is unchanged (so
+the settle detector, the learning from moves and the adaptation see the move as it was commanded), and the rest
+logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. Not while ILC takes part. Measured
+in docs/control.md §2.5 (first 20 %-wrong step 63 → 32 ms at T = 14 ms; some later moves 1–6 ms slower).
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
@@ -1073,6 +1081,7 @@ class StageController:
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
         # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
         ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
+        settling = not math.isnan(tau_c)
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
@@ -1095,7 +1104,7 @@ class StageController:
                 la = ff.lookahead_s if ff is not None else (
                     0.5 * dt if ffc.lookahead_s is None else ffc.lookahead_s)
                 a_r += (a_r - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
-            if tau_c == tau_c:  # along the settle move: m·(a_r − c̈), with the same look-ahead
+            if settling:  # along the settle move: m·(a_r − c̈), with the same look-ahead
                 a_r -= self._sm.sample(tau_c + (la if ffc.inertia_lookahead and last is not None else 0.0))[2]
             u_in = m_ff * a_r
         else:
@@ -1124,10 +1133,11 @@ class StageController:
             # while ILC takes part the spring stays released (folded into the observer, as at a move's start):
             # its load at each stop depends on where the previous repetition ended, so it would make the
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
-            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and tau_c != tau_c, dob)
-        if at_rest and tau_c != tau_c and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling, dob)
+        if (at_rest and not settling and ffc.rest_sync_hz > 0.0 and dob is not None
+                and isinstance(ff, FrictionFeedforward)):
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
-        hold = at_rest and tau_c != tau_c and dob is not None and cfg.hold_integrator_at_rest
+        hold = at_rest and not settling and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
             # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer

@@ -25,8 +25,6 @@ Pure, scalar, real-time safe.
 
 from __future__ import annotations
 
-import math
-
 
 class SettleMove:
     """The continuation quintic and the move bookkeeping (see module docstring)."""

@@ -77,7 +77,7 @@ def _run(cfg: Any, move_s: float, scale: float, by_m: float = 10e-6, hold_s: flo
     sub = 100
     h = PERIOD / sub
     rows = []
-    n = int(round((0.035 + hold_s) / PERIOD))
+    n = round((0.035 + hold_s) / PERIOD)
     for _ in range(n):
         ref = gen.step(PERIOD)
         cmd = ctl.step(PERIOD, x, ref)
