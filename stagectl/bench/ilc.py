@@ -150,9 +150,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         safety=dataclasses.replace(cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)),
         # one learner at a time: the feed-forward scale adaptation, and the learning from earlier moves, would
         # take over the same residual as ILC; the rest spring, which the controller holds released while ILC
-        # takes part, is off here too, so the baseline without learning is the same controller as the learning runs
+        # takes part, is off here too, so the baseline without learning is the same controller as the learning runs;
+        # so is the settle move, which the controller does not start while ILC takes part
         controller=dataclasses.replace(cfg.controller, rest_stiffness_fraction=0.0, feedforward=dataclasses.replace(
-            cfg.controller.feedforward, adapt_bandwidth_hz=0.0, learn_moves_fraction=0.0)))
+            cfg.controller.feedforward, adapt_bandwidth_hz=0.0, learn_moves_fraction=0.0),
+            settle=dataclasses.replace(cfg.controller.settle, move_s=0.0)))
     model = StageModel(friction=mismatched(plant.friction), effects=plant.effects, mass_kg=plant.mass_kg)
     tell(args, 0, 3, f"run 1 of 3, no learning ({args.repetitions} repetitions)")
     base = run_repeated(cfg, args.scenario, args.repetitions, change_after=args.change_after,

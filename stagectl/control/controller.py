@@ -150,6 +150,14 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
+Settle move (``settle.move_s`` = T, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
+first sample at rest, by a quintic c from the stage's error and speed to rest at the target in T: the PID's
+reference is x_r − c, the inertia term m·(a_r − c̈); the friction model is held, the reference is unchanged (so
+the settle detector, the learning from moves and the adaptation see the move as it was commanded), and the rest
+logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. Not while ILC takes part. Measured
+in docs/control.md §2.5 (first 20 %-wrong step 63 → 32 ms at T = 14 ms; some later moves 1–6 ms slower).
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
@@ -185,6 +193,7 @@ from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
 from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.control.settle import SettleConfig, SettleDetector
+from stagectl.control.settle_move import SettleMove
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
@@ -672,6 +681,7 @@ class StageController:
         self._v_fresh = 0.0
         self._u_learn = 0.0
         self._ml = _MoveFit()
+        self._sm = SettleMove()  # settle move (settle.move_s)
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -880,6 +890,30 @@ class StageController:
         ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
         return self._set_theta(th_new, f_raw, d_hat, dob)
 
+    def _settle_move(self, dt: float, ref: Reference, x_m: float, v_hat: float,
+                     ilc: bool) -> tuple[Reference, float]:
+        """Settle move (``settle.move_s``; :mod:`stagectl.control.settle_move`): at the first sample at rest after
+        a move, with an observer, a model feed-forward and no ILC taking part, a stage behind the reference in the
+        move's direction by more than ``settle.move_min_m`` (None: ``rest_spring_range_m``) starts the
+        continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c, v_r − ċ, a_r − c̈)
+        and the continuation's time τ at this step [s] (nan: none; the inertia term adds −m·c̈(τ + τ_a))."""
+        sm = self._sm
+        scfg = self.cfg.settle
+        if (sm.observe(ref.v_m_s, ref.a_m_s2) and scfg.move_s > 0.0 and not ilc and self.dob is not None
+                and isinstance(self.ff, FrictionFeedforward)):
+            e0 = ref.x_m - x_m
+            e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
+            if sm.direction * e0 > e_min:
+                sm.start(e0, -v_hat, scfg.move_s)
+        if not sm.active:
+            return ref, math.nan
+        tau = sm.tau_s
+        c, cd, cdd = sm.sample(tau)
+        sm.tau_s = tau + dt
+        if sm.tau_s > sm.duration_s + 1e-9 * dt:
+            sm.active = False
+        return Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd), tau
+
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
         """Observer anti-wind-up against the friction feed-forward (module docstring): while the reference moves
@@ -1045,6 +1079,9 @@ class StageController:
                 self._vdt = dt
                 self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
             v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
+        # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
+        ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
+        settling = not math.isnan(tau_c)
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         ff = self.ff
         dt_ff = dt - self._ff_ahead_s
@@ -1067,6 +1104,8 @@ class StageController:
                 la = ff.lookahead_s if ff is not None else (
                     0.5 * dt if ffc.lookahead_s is None else ffc.lookahead_s)
                 a_r += (a_r - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
+            if settling:  # along the settle move: m·(a_r − c̈), with the same look-ahead
+                a_r -= self._sm.sample(tau_c + (la if ffc.inertia_lookahead and last is not None else 0.0))[2]
             u_in = m_ff * a_r
         else:
             u_in = 0.0
@@ -1094,10 +1133,11 @@ class StageController:
             # while ILC takes part the spring stays released (folded into the observer, as at a move's start):
             # its load at each stop depends on where the previous repetition ended, so it would make the
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
-            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc, dob)
-        if at_rest and ffc.rest_sync_hz > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling, dob)
+        if (at_rest and not settling and ffc.rest_sync_hz > 0.0 and dob is not None
+                and isinstance(ff, FrictionFeedforward)):
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
-        hold = at_rest and dob is not None and cfg.hold_integrator_at_rest
+        hold = at_rest and not settling and dob is not None and cfg.hold_integrator_at_rest
         pid.hold_integrator = hold
         if hold and dob is not None and pid.state.i_n != 0.0:
             # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer
@@ -1107,7 +1147,7 @@ class StageController:
             dob.shift(i_n)
             d_hat += i_n
             pid.state.i_n = 0.0
-        u = pid.step(dt, ref.x_m, x_meas_m, ref.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
+        u = pid.step(dt, ref_fb.x_m, x_meas_m, ref_fb.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, ref.x_m - x_meas_m, at_rest)
         st.x_prev_m = x_meas_m

@@ -66,7 +66,9 @@ def _steps(cfg: Any, how: str, gain: float, hold_s: float = 0.3) -> tuple[dict[s
     cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
         cfg.safety, following_error_m=1e-3))
     c = cfg.controller
-    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=gain))
+    # the settle move (settle.move_s) off: these tests compare the moves' ends with and without the learning
+    ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=gain),
+                                  settle=dataclasses.replace(c.settle, move_s=0.0))
     ctl = StageController(ctl_cfg, cfg.timing, model=_model(cfg, how))
     rec_ctl = _Recording(ctl)
     sc = steps_scenario(hold_s)

@@ -23,8 +23,11 @@ def _exact_plant_io(seed: Any) -> tuple[Any, Any]:
     from stagectl.config import IoKind
     from stagectl.friction import StageModel
 
+    # the settle move (settle.move_s) off: these tests are about what the learning from moves takes from a move
+    # (with it the cosine after the positioning moves tracks at 3.8 nm RMS without learning, 9.4 nm with)
     cfg = dataclasses.replace(seed, io=dataclasses.replace(seed.io, kind=IoKind.PLANT_IO), safety=dataclasses.replace(
-        seed.safety, following_error_m=1e-3))
+        seed.safety, following_error_m=1e-3), controller=dataclasses.replace(
+        seed.controller, settle=dataclasses.replace(seed.controller.settle, move_s=0.0)))
     plant = cfg.sim.plant
     return cfg, StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
 

@@ -1,0 +1,77 @@
+"""Settle move: the end of a move re-planned once from the stage's measured state (two degrees of freedom).
+
+A move that ends with the stage still *behind* the reference in the move's direction (on the soft side of its
+friction: the friction feed-forward was too low during the move, so the stage lags; docs/control.md §2.4–2.5) by
+more than ``settle.move_min_m`` gets one short continuation. At the first sample at rest, with the error
+e₀ = x_r − x [m] and ė₀ = −v̂ [m/s] (v̂: the velocity estimate), a quintic
+
+    c(τ) = e₀ + ė₀·τ + c₃τ³ + c₄τ⁴ + c₅τ⁵,   0 <= τ <= T = ``settle.move_s``
+    c₃ = −(10e₀ + 6ė₀T)/T³,   c₄ = (15e₀ + 8ė₀T)/T⁴,   c₅ = −(6e₀ + 3ė₀T)/T⁵
+
+takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. For T the controller tracks
+
+* feedback (PID) reference  x_r − c,  v_r − ċ   (starts at the stage's own position and speed: no P or D step,
+  so the PID no longer pushes the stage through the break-away and the overshoot that followed),
+* inertia feed-forward       m·(a_r − c̈(τ + τ_a))   (with the inertia term's look-ahead),
+
+while the friction feed-forward holds the model where the move left it (the observer, whose input is the applied
+force, supplies the sliding friction of the short continuation). The reference itself, and so the settle time
+measured from the end of the commanded move, the in-position detector, the learning from moves and the adaptation,
+is unchanged: the continuation is not part of the move. While it runs the controller's rest logic (rest spring,
+rest synchronisation, integrator hold) waits; it takes over at τ = T.
+
+Pure, scalar, real-time safe.
+"""
+
+from __future__ import annotations
+
+
+class SettleMove:
+    """The continuation quintic and the move bookkeeping (see module docstring)."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """No move under way, no continuation."""
+        self.moving = False  # the reference moved at the last sample
+        self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one)
+        self.active = False  # a continuation is running
+        self.tau_s = 0.0
+        self.duration_s = 0.0
+        self._k = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def observe(self, v_r: float, a_r: float) -> bool:
+        """Track the reference's motion; True at the first sample at rest after a motion (a move's end)."""
+        if v_r == 0.0 and a_r == 0.0:
+            ended = self.moving
+            self.moving = False
+            return ended
+        if not self.moving:
+            self.moving = True
+            s = v_r if v_r != 0.0 else a_r
+            self.direction = 1.0 if s > 0.0 else -1.0
+        return False
+
+    def start(self, e0_m: float, v0_m_s: float, duration_s: float) -> None:
+        """Plan c from (e0_m, v0_m_s, 0) to rest at 0 over ``duration_s`` [s] (> 0)."""
+        T = duration_s
+        self.duration_s = T
+        self.tau_s = 0.0
+        self.active = True
+        self._k = (e0_m, v0_m_s, -(10.0 * e0_m + 6.0 * v0_m_s * T) / T**3,
+                   (15.0 * e0_m + 8.0 * v0_m_s * T) / T**4, -(6.0 * e0_m + 3.0 * v0_m_s * T) / T**5)
+
+    def sample(self, tau_s: float) -> tuple[float, float, float]:
+        """(c [m], ċ [m/s], c̈ [m/s²]) at ``tau_s`` after the start; zero from T on."""
+        if tau_s >= self.duration_s:
+            return 0.0, 0.0, 0.0
+        k0, k1, k3, k4, k5 = self._k
+        t = tau_s
+        c = k0 + t * (k1 + t * t * (k3 + t * (k4 + t * k5)))
+        cd = k1 + t * t * (3.0 * k3 + t * (4.0 * k4 + t * 5.0 * k5))
+        cdd = t * (6.0 * k3 + t * (12.0 * k4 + t * 20.0 * k5))
+        return c, cd, cdd
+
+
+__all__ = ["SettleMove"]
