@@ -319,11 +319,12 @@ class ControllerConfig:
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
         ge=0, le=8)
     stuck_dob_fraction: float = param(
-        math.inf, desc="observer anti-wind-up: while the reference moves ahead of a stage measured stuck (it moves "
-        "at most a quarter of the reference's speed between fresh samples), the observer's estimate may cancel at "
-        "most this fraction of the friction feed-forward (the model's own uncertainty: set it only where the "
-        "model is known that well); a larger estimate is returned to that bound at the observer's rate (inf, "
-        "the default: off)", ge=0.0, allow_inf=True)
+        0.2, desc="observer anti-wind-up: while the reference moves ahead of a stage measured stuck (its travel "
+        "between fresh samples is at most a quarter of the reference's), the observer's estimate may cancel at "
+        "most this fraction of the friction feed-forward (the model's own uncertainty) plus the share it was "
+        "seen to take back while the stage last followed the reference (a model too high); no bound before "
+        "such evidence; a larger estimate is returned to that bound at the observer's rate (inf: off)",
+        ge=0.0, allow_inf=True)
     stale_predict_cycles: int = param(
         2, unit="cycles", desc="stale samples in a row (late or dropped) stepped on a predicted position (the last "
         "measured tracking error held), so feedback and observer keep their sample rate; later ones hold the "
