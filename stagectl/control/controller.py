@@ -937,10 +937,15 @@ class StageController:
                 self._ev_den = lam * self._ev_den + abs(u_ff)
         if d * (ref.x_m - x_m) <= 0.0 or abs(dx) > STUCK_SPEED_FRACTION * dxr:
             return d_hat
+        a = math.exp(-g * dt)
+        ps = self.pid.state
+        if d * ps.i_n < 0.0:
+            # the PID integrator wound against the motion too (while the stage stood ahead of the reference):
+            # it cancels feed-forward the stuck stage needs, so it goes back towards 0 at the same rate
+            ps.i_n *= a
         excess = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff) - d * d_hat
         if excess <= 0.0:
             return d_hat
-        a = math.exp(-g * dt)
         delta = d * (1.0 - a) * excess
         dob.shift(delta)
         return d_hat + delta
