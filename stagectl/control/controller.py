@@ -27,28 +27,39 @@ L ≈ g·K_i/(k·s²) + g·K_p/(k·s), an under-damped mode at √(g·K_i/k) (�
 the integrator held the rest loop is first order (observer × P, no overshoot) and the observer alone removes
 any steady error; the integrator resumes with the next motion.
 
-Observer anti-wind-up against the friction feed-forward (``stuck_dob_fraction`` = δ, with an observer and a
-friction feed-forward). While the stage is stuck its friction is indeterminate (anything up to the static level),
-so the observer's estimate says nothing about the model's error there; with the stage stuck it integrates the
-feedback (d̂ → d̂ + g·∫(u_pid + m·a_r) dt). After a stick-slip overshoot the stage stands *ahead* of the reference,
-the feedback pulls back and d̂ winds against the feed-forward; when the reference then passes the stuck stage
-the command has lost the feed-forward (d̂ ≈ −u_ff) and the stage stays stuck until the slowed feedback has
-unwound it (the HIL at crossover/3: −0.8 N against 0.9 N, ``following_error``). So while the reference moves
+Observer anti-wind-up against the friction feed-forward (``stuck_dob_fraction`` = δ, default 0.2, with an
+observer and a friction feed-forward). While the stage is stuck its friction is indeterminate (anything up to the
+static level), so the observer's estimate says nothing about the model's error there; with the stage stuck it
+integrates the feedback (d̂ → d̂ + g·∫(u_pid + m·a_r) dt). After a stick-slip overshoot the stage stands *ahead* of
+the reference, the feedback pulls back and d̂ winds against the feed-forward; when the reference then passes the
+stuck stage the command has lost the feed-forward (d̂ ≈ −u_ff) and the stage stays stuck until the slowed feedback
+has unwound it (the HIL at crossover/3: −0.8 N against 0.9 N, ``following_error``). So while the reference moves
 in direction d = sgn(v_r), is ahead of the stage (d·(x_r − x) > 0), the feed-forward pushes along d and the
-stage is measured stuck (speed between the last two fresh samples <= ``STUCK_SPEED_FRACTION``·|v_r|; predicted
-positions do not count), the estimate may cancel at most δ of the feed-forward (the model's own uncertainty)::
+stage is measured stuck (its travel between the last two fresh samples <= ``STUCK_SPEED_FRACTION`` × the
+reference's over the same interval; predicted positions do not count; a ratio of travels, so a gap longer than
+the loop's dt cap does not make the stage look faster), the estimate may cancel at most δ of the feed-forward (the
+model's own uncertainty) plus ε, the share of it the stage was seen not to need::
 
-    d·d̂ >= −δ·|u_ff|;   beyond it:  d̂ += d·(1 − a)·(−δ·|u_ff| − d·d̂),   a = exp(−2π·f_dob/s·dt)
+    d·d̂ >= −(δ + ε)·|u_ff|;   beyond it:  d̂ += d·(1 − a)·(−(δ + ε)·|u_ff| − d·d̂),   a = exp(−g·dt)
+    ε = max(0, Σ λ^j·(−d·d̂)_j / Σ λ^j·|u_ff|_j)     over fresh samples while the stage *follows*
 
-(f_dob/s: the observer's bandwidth at the loop's slow-down level s), i.e. the excess goes back at the observer's
-own rate, moved with ``dob.shift`` (state and input history): no step in u. Lock-step at crossover/3 (HIL gains,
-exact model, a knock that slides the stage 10 µm past its target, then 100 µm at 0.2 mm/s): estimate −0.93 N
-against 0.897 N, 198 stuck cycles and 31.5 µm error before; 98 cycles and 14.7 µm with δ = 0.2
-(``tests/control/test_stuck_dob.py``). It never acts while the stage follows: the bench's scans and steps are
-bit-for-bit the same figures (``stagectl bench control``). Off by default, on (0.2) in the HIL configurations,
-whose model is the simulated plant's: with the model's friction more than ~25 % too high and no adaptation the
-bound stops the observer from correcting the excess after each reversal (50 µm cosine, model ×1.6: 540 → 1081 nm
-RMS; ×2: 1092 → 2034 nm; with ``feedforward.adapt_bandwidth_hz`` on it never acts).
+(g = 2π·f_dob/s, the observer's bandwidth at the loop's slow-down level s for a Q filter; a Kalman observer is not
+slowed down, so g = 2π·f_dob), i.e. the excess goes back at the observer's own rate, moved with ``dob.shift``
+(state and input history): no step in u. *Follows*: the stage's travel within ±25 % of the reference's for
+``STUCK_EVIDENCE_TIME_CONSTANTS`` observer time constants in a row, |u_ff| >= ``adapt_min_force_n`` along the
+motion and at least ``adapt_presliding_m`` since the motion started or reversed; there the friction is the
+sliding one and the estimate is the (adapted, θ·F̂) model's error: −d·d̂ > 0 says the model is too high by that
+share of u_ff. λ = exp(−dt/``STUCK_EVIDENCE_TIME_S``) per such sample. No bound before any such evidence (ε = ∞):
+a model far too high keeps the stage from ever following steadily, and a bound there would lock its excess in.
+Why ε: with δ alone and the model's friction more than ~25 % too high (no adaptation) the bound stopped the
+observer from taking the excess back after each reversal and doubled the error (50 µm cosine, model ×1.6:
+533 → 1060 nm RMS, ×2: 1072 → 2007 nm); with ε no row of that table is worse than without the bound
+(``tests/control/test_stuck_dob_table.py``). In the same stuck state a PID integrator wound against the motion
+(d·I < 0) goes back towards 0 at the same rate (I ← a·I). Lock-step at crossover/3 (HIL gains, exact model, a
+knock that slides the stage 10 µm past its target, then 100 µm at 0.2 mm/s): 152 stuck cycles and 31.5 µm error
+without the bound; 35 cycles and 14.9 µm with it (ε = 0.015 from the first move;
+``tests/control/test_stuck_dob.py``). It never acts while the stage follows: the bench's scans and steps are
+bit-for-bit the same figures (``stagectl bench control``). The commissioning experiments run without it.
 
 Feed-forward through the stop (``feedforward.rest_sync_hz``, with an observer and ``kind: model``): while the
 reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer's estimate is moved into the model's
@@ -752,6 +763,7 @@ class StageController:
         if parts.ff_rebuilt:
             self._ff_bump = st.u_ff_n  # settled against the new feed-forward's first output in step()
             self.ff_scale = 1.0  # θ was learned for the old model (the bump above keeps u continuous)
+            self._ev_num = self._ev_den = 0.0  # so was the anti-wind-up's evidence ε (_stuck_dob)
             if parts.ff is not None:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
@@ -938,12 +950,14 @@ class StageController:
         if d * (ref.x_m - x_m) <= 0.0 or abs(dx) > STUCK_SPEED_FRACTION * dxr:
             return d_hat
         a = math.exp(-g * dt)
+        bound = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff)
         ps = self.pid.state
-        if d * ps.i_n < 0.0:
-            # the PID integrator wound against the motion too (while the stage stood ahead of the reference):
-            # it cancels feed-forward the stuck stage needs, so it goes back towards 0 at the same rate
+        if d * ps.i_n < 0.0 and d * (d_hat + ps.i_n) < bound:
+            # the PID integrator wound against the motion too (while the stage stood ahead of the reference) and,
+            # with the estimate, cancels more of the feed-forward than the bound allows: it goes back towards 0
+            # at the same rate
             ps.i_n *= a
-        excess = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff) - d * d_hat
+        excess = bound - d * d_hat
         if excess <= 0.0:
             return d_hat
         delta = d * (1.0 - a) * excess

@@ -25,6 +25,16 @@ Algorithm per step, in LinuxCNC ``pid`` order:
    limit *and* sgn(u*) = sgn(e) (saturated in the direction of the error). I is then clamped to
    ±``integrator_limit_n``.
 3. u_pid = clamp(P + I + D, ±``max_force_n``); total u = clamp(u_pid + u_other, ±limit_n).
+4. Back-calculation (for the next step): when a clamp cut the command, the excess
+   x = P + I + D + u_other − u is taken out of I at the tracking rate, as far as I pushes the same way
+   (I moves towards 0, never across it: the other terms' share is not I's)::
+
+       I ← I − x·min(1, dt/T_t)   if x·I > 0,      T_t = √(T_i·T_d), T_i = Kp/Ki, T_d = Kd/Kp  (T_i if Kd = 0)
+
+   then |I| <= min(``integrator_limit_n``, limit_n): I alone never needs more than the force clamp gives.
+   Step 2 alone let I integrate on every cycle clamped *against* the error: with another term (an
+   observer's estimate in an unstable loop) swinging across the clamp, I spiked to 31-38 N against a 10 N
+   clamp (``tests/control/test_integrator_windup.py``). Slowed gains (Kp/s², Ki/s³, Kd/s) give s·T_t.
 
 The integral is stored as a force [N] (I = Ki·∫e), so gains can change without a jump in I.
 """
