@@ -54,20 +54,28 @@ def cosine_rms_nm(scale: float, delta: float, slow: float = 1.0, adapt_hz: float
     return float(math.sqrt(np.mean(res["e"] ** 2))) * 1e9
 
 
-def table() -> list[tuple[float, float, float, float, float]]:
-    """Rows (slow-down, adapt_hz, model scale, RMS off, RMS on) [nm]."""
+#: the rows the test runs (CPU): the full-gain block, and where the bound as first built was worse elsewhere
+TEST_CASES = [(1.0, 0.0, s) for s in SCALES] + [(3.0, 0.0, 1.6), (3.0, 0.0, 2.0), (1.0, 1.0, 2.0)]
+
+
+def table(cases=None) -> list[tuple[float, float, float, float, float]]:
+    """Rows (slow-down, adapt_hz, model scale, RMS off, RMS on) [nm]; all of BLOCKS × SCALES by default."""
+    if cases is None:
+        cases = [(slow, hz, s) for slow, hz in BLOCKS for s in SCALES]
     return [(slow, hz, s, cosine_rms_nm(s, math.inf, slow, hz), cosine_rms_nm(s, 0.2, slow, hz))
-            for slow, hz in BLOCKS for s in SCALES]
+            for slow, hz, s in cases]
 
 
 @pytest.fixture(scope="module")
 def rows():
-    return table()
+    return table(TEST_CASES)
 
 
 def test_no_wrong_model_is_tracked_worse_with_the_bound(rows):
     for slow, hz, s, off, on in rows:
-        assert on <= 1.02 * off + 1.0, (slow, hz, s, off, on)  # measured: equal or better in every row
+        # measured: equal or better in every row (before: x1.6 533 -> 1060, x2 1072 -> 2007 nm; slowed x3 at x1.6
+        # 5963 -> 16 560, x2 11 435 -> 32 884 nm; adapting at x2 312 -> 321 nm)
+        assert on <= 1.02 * off + 1.0, (slow, hz, s, off, on)
 
 
 def test_the_bound_still_acts_where_the_model_is_low(rows):
