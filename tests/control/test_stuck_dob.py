@@ -102,3 +102,52 @@ def test_without_stick_slip_nothing_changes():
     b = _run(False, stuck_dob_fraction=0.2)
     assert np.max(np.abs(a["e"][N1 + NR:])) > 5e-6  # a slowed-down feedback: the second move lags (12 µm)
     assert np.array_equal(a["u"], b["u"])
+
+
+def _gap_case(delta: float, crawl: float, kind: str = "qfilter", slow: float = 1.0, gap_cycles: int = 20,
+              eps: list[float] | None = None) -> float:
+    """The stage follows 0.2 mm/s for 0.3 s (evidence: ε ≈ 0), the observer is wound 0.7 N against the 0.8 N
+    Coulomb feed-forward, then one fresh sample after a 20 ms gap that the loop passes on capped at its dt limit
+    (10 T), the stage having crawled ``crawl`` × the reference's travel in it. Returns d̂ after that step [N]."""
+    cfg = controller_cfg(pid={"kp_n_m": 9847.0, "ki_n_m_s": 1.237e5, "kd_n_s_m": 235.1},
+                         dob={"kind": kind, "bandwidth_hz": 100.0, "command_delay_samples": 1},
+                         feedforward={"kind": "coulomb", "coulomb_n": 0.8, "inertia": True},
+                         stuck_dob_fraction=delta)
+    ctl = StageController(cfg, T)
+    ctl.reset(0.0)
+    ctl.set_timing_scale(slow)
+    xr = 0.0
+    for _ in range(300):
+        xr += V * T
+        ctl.step(T, xr - 1e-7, Reference(xr, V, 0.0))
+    if eps is not None:
+        eps.append(ctl.stuck_excess_fraction())
+    ctl.dob.shift(-0.7 - ctl.state.d_hat_n)
+    x = xr - 1e-7
+    gap = gap_cycles * T
+    return ctl.step(min(gap, 10 * T), x + crawl * V * gap, Reference(xr + V * gap, V, 0.0)).terms["u_dob"]
+
+
+def test_the_stuck_test_is_not_blinded_by_the_dt_cap():
+    """After a gap longer than the loop's dt cap the stage's speed Δx/dt came out too high (dt is capped, the
+    travel is not): a stage crawling at 1/5 of the reference's speed looked like 2/5 and not stuck. The test
+    now compares travels: the bound acts on it (the estimate moves towards −(δ + ε)·0.8 N)."""
+    eps: list[float] = []
+    off, on = _gap_case(math.inf, 0.2), _gap_case(0.2, 0.2, eps=eps)
+    assert eps[0] < 0.05  # the stage followed with the exact friction level: no excess seen
+    assert on > off + 0.1  # measured −0.16 against −0.67 N (before: the same −0.67 N, no action)
+    # a stage that really follows (travel = the reference's) is not stuck: no action
+    assert _gap_case(0.2, 1.0) == _gap_case(math.inf, 1.0)
+
+
+@pytest.mark.parametrize("kind", ["qfilter", "kalman"])
+def test_the_excess_goes_back_at_the_observers_own_rate_while_slowed(kind):
+    """Slowed ×3, one stuck step: the estimate moves (1 − a) of the way to the bound, a = exp(−2π·f·T) with f the
+    observer's bandwidth as it runs: /3 for the Q filter, which the loop slows down, unslowed for the Kalman
+    form, which it does not (before: /3 for both, so a Kalman observer gave its excess back 2.5x slower)."""
+    eps: list[float] = []
+    off = _gap_case(math.inf, 0.0, kind, 3.0, 1)
+    on = _gap_case(0.2, 0.0, kind, 3.0, 1, eps=eps)
+    bound = -(0.2 + eps[0]) * 0.8
+    f = 100.0 / 3.0 if kind == "qfilter" else 100.0
+    assert (on - off) / (bound - off) == pytest.approx(1.0 - math.exp(-2.0 * math.pi * f * T), rel=1e-6)
