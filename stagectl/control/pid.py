@@ -25,6 +25,16 @@ Algorithm per step, in LinuxCNC ``pid`` order:
    limit *and* sgn(u*) = sgn(e) (saturated in the direction of the error). I is then clamped to
    ±``integrator_limit_n``.
 3. u_pid = clamp(P + I + D, ±``max_force_n``); total u = clamp(u_pid + u_other, ±limit_n).
+4. Back-calculation (for the next step): when a clamp cut the command, the excess
+   x = P + I + D + u_other − u is taken out of I at the tracking rate, as far as I pushes the same way
+   (I moves towards 0, never across it: the other terms' share is not I's)::
+
+       I ← I − x·min(1, dt/T_t)   if x·I > 0,      T_t = √(T_i·T_d), T_i = Kp/Ki, T_d = Kd/Kp  (T_i if Kd = 0)
+
+   then |I| <= min(``integrator_limit_n``, limit_n): I alone never needs more than the force clamp gives.
+   Step 2 alone let I integrate on every cycle clamped *against* the error: with another term (an
+   observer's estimate in an unstable loop) swinging across the clamp, I spiked to 31-38 N against a 10 N
+   clamp (``tests/control/test_integrator_windup.py``). Slowed gains (Kp/s², Ki/s³, Kd/s) give s·T_t.
 
 The integral is stored as a force [N] (I = Ki·∫e), so gains can change without a jump in I.
 """
@@ -130,6 +140,15 @@ class Pid:
         if self.state.enabled:
             self.preload(u_prev)
 
+    def tracking_time_s(self) -> float:
+        """Back-calculation time constant T_t [s] = √(T_i·T_d) (T_i = Kp/Ki, T_d = Kd/Kp), T_i without a D term
+        (Åström & Hägglund); gains scaled for a slowed loop (Kp/s², Ki/s³, Kd/s) give s·T_t."""
+        c = self.cfg
+        if c.ki_n_m_s <= 0.0 or c.kp_n_m <= 0.0:
+            return self._dt if self._dt == self._dt else 1e-3
+        ti = c.kp_n_m / c.ki_n_m_s
+        return math.sqrt(ti * c.kd_n_s_m / c.kp_n_m) if c.kd_n_s_m > 0.0 else ti
+
     def step(self, dt: float, x_ref_m: float, x_meas_m: float, v_ref_m_s: float = 0.0,
              u_other_n: float = 0.0, limit_n: float = math.inf) -> float:
         """One step; returns the total force clamp(u_pid + u_other, ±limit_n) [N]."""
@@ -183,6 +202,18 @@ class Pid:
             u, st.saturated = -lim, -1
         else:
             st.saturated = 0
+        if (st.saturated or u_pid != p + st.i_n + d) and c.ki_n_m_s > 0.0 and not self.hold_integrator:
+            # back-calculation (next step's I): the part of the command the clamps cut off leaves I at 1/T_t,
+            # as far as I pushes that way (I is unwound towards 0, never driven across it by the other terms)
+            excess = p + st.i_n + d + u_other_n - u
+            if excess * st.i_n > 0.0:
+                back = excess * min(1.0, dt / self.tracking_time_s())
+                st.i_n = max(0.0, st.i_n - back) if st.i_n > 0.0 else min(0.0, st.i_n - back)
+        ib = min(c.integrator_limit_n, lim)  # I alone never needs more than the force clamp gives
+        if st.i_n > ib:
+            st.i_n = ib
+        elif st.i_n < -ib:
+            st.i_n = -ib
         st.p_n, st.d_n, st.u_pid_n, st.u_n, st.error_m = p, d, u_pid, u, e
         st.last_meas_m = x_meas_m
         st.last_error_m = e
