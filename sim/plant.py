@@ -53,7 +53,7 @@ from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects,
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
-from stagectl.jit import dispatcher, inlined, kernel
+from stagectl.jit import dispatcher, inlined, kernel, plain
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -546,6 +546,15 @@ def cycle_for(kstep: Any) -> Any:
     if dispatcher(kstep) is not kstep:
         return cycle_for(dispatcher(kstep))  # one cycle per kernel, however it is handed in
     return _make_cycle(kstep)
+
+
+@functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
+def plain_cycle(kstep: Any) -> Any:
+    """:func:`_make_cycle`'s per-cycle step as plain Python (:func:`stagectl.jit.plain`: the same source, ``kstep``'s
+    twin inside; no numba), on lists ``kp``, ``fs``, ``ps``: the same arithmetic in the same order
+    (``tests/loop/test_bench_tier.py``). For ``stagectl bench startup --switch``: too slow for the loop (~240 µs a
+    1 ms cycle of 100 sub-steps, docs/performance.md §1)."""
+    return plain(_make_cycle(kstep))
 
 
 # ================================================================================================ plant
