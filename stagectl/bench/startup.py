@@ -143,8 +143,10 @@ def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) 
         stamps = Path(tmp) / "stamps.json"
         ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.monotonic()
-        out = subprocess.run([python, "-c", _CHILD, config, str(Path(tmp) / "out"), str(stamps)], env=env,
-                             capture_output=True, text=True, timeout=600)
+        # run in the temporary directory: ``python -c`` puts the working directory first on sys.path, and from a
+        # checkout's root the baseline interpreter would import *this* checkout's stagectl package
+        out = subprocess.run([python, "-c", _CHILD, os.path.abspath(config), str(Path(tmp) / "out"), str(stamps)],
+                             env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
         ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         if out.returncode != 0 or not stamps.exists():
             last = (out.stderr.strip().splitlines() or ["no output"])[-1][:300]
