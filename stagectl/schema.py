@@ -302,7 +302,7 @@ def field_type(cls: type, name: str) -> Any:
 def type_hints(cls: type) -> dict[str, Any]:
     """:func:`field_type` of every field of dataclass ``cls`` (what ``typing.get_type_hints`` gives, with the
     lazily imported types of ``LAZY_TYPES`` imported)."""
-    return {f.name: field_type(cls, f.name) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    return {f.name: field_type(cls, f.name) for f in dataclasses.fields(cls)}
 
 
 def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | None:
@@ -326,7 +326,7 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
         sub = f"{prefix}{name}"
         if name in data:
             n_before = len(problems)
-            val = _parse_value(field_type(cls, name), data[name], sub, f.metadata, problems)
+            val = _parse_value(field_type(typing.cast(type, cls), name), data[name], sub, f.metadata, problems)
             if len(problems) > n_before:
                 ok = False
                 continue

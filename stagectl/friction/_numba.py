@@ -64,7 +64,8 @@ def _numba_types() -> None:
     step_fn = types.FunctionType(step_sig)
     force_fn = types.FunctionType(force_sig)
     g.update(STEP_SIG=step_sig, FORCE_SIG=force_sig, STEP_FN=step_fn, FORCE_FN=force_fn,
-             STEP_LIST=types.ListType(step_fn), FORCE_LIST=types.ListType(force_fn), List=List)
+             STEP_LIST=types.ListType(step_fn),  # type: ignore[no-untyped-call]  # numba types are unannotated
+             FORCE_LIST=types.ListType(force_fn), List=List)  # type: ignore[no-untyped-call]
 
 
 def __getattr__(name: str) -> Any:
