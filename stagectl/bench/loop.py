@@ -405,9 +405,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     io = cfg.io if args.io == "config" else dataclasses.replace(cfg.io, kind=IoKind(args.io))
     cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, realtime=rt), io=io)
     n_bd = max(0, int(args.breakdown_cycles))
-    tell(args, 0.0, 1.0, "feed-forward cost: plain Python, then compiled")
-    ff_cost = feedforward_cost(cfg, max(0, int(getattr(args, "ff_cycles", 0) or 0)))  # before numba is imported
     plan_s = args.duration + (sum(breakdown_plan(cfg.loop.period_s, n_bd)) if n_bd > 0 else 0.0)
+    tell(args, 0.0, plan_s, "feed-forward cost: plain Python, then compiled", span=0.0)
+    ff_cost = feedforward_cost(cfg, max(0, int(getattr(args, "ff_cycles", 0) or 0)))  # before numba is imported
     load0 = os.getloadavg()
     cpu0 = time.process_time()
     wall0 = time.monotonic()
