@@ -31,14 +31,17 @@ def test_importing_friction_and_plant_compiles_nothing(tmp_path: Path) -> None:
         from stagectl.friction import _numba, dahl, effects, gms, hsieh, lugre, maxwell, static
         from stagectl.sim import plant
         mods = (_numba, dahl, effects, gms, hsieh, lugre, maxwell, static, plant)
+        import sys
+        numba_imported = "numba" in sys.modules  # kernels are LazyKernels: numba comes with the first compiled use
         n = {m.__name__: sum(len(d.overloads) for d in vars(m).values() if hasattr(d, "overloads"))
              for m in mods}
         import os
         files = [f for _, _, fs in os.walk(os.environ["NUMBA_CACHE_DIR"]) for f in fs]
-        print(json.dumps({"compiled": n, "cache_files": len(files)}))
+        print(json.dumps({"compiled": n, "cache_files": len(files), "numba_imported": numba_imported}))
     """, tmp_path / "nc"))
     assert got["compiled"] and all(v == 0 for v in got["compiled"].values()), got
     assert got["cache_files"] == 0
+    assert got["numba_imported"] is False
 
 
 def test_using_one_model_compiles_only_that_model(tmp_path: Path) -> None:
