@@ -178,6 +178,23 @@ def test_stagectl_warm_fills_the_cache_the_next_start_loads(tmp_path: Path) -> N
     assert second["loaded_from_cache"] == second["signatures"] == first["signatures"]
 
 
+def test_stagectl_warm_on_a_real_stage_config_warms_nothing_and_imports_no_numba(tmp_path: Path) -> None:
+    """A real stage (``io.kind: canopen``, no ``sim:``) steps its feed-forward as plain Python: the unit's
+    ``ExecStartPre`` warm has nothing to compile or load, and does not import numba."""
+    repo = Path(__file__).resolve().parents[2]
+    code = ("import json, sys\nfrom stagectl.cli import main\n"
+            f"main(['warm', '--config', {str(repo / 'config' / 'stage-canopen.yaml')!r}])\n"
+            "print(json.dumps({'numba': 'numba' in sys.modules}))\n")
+    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nc")),
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    got = json.loads(lines[-2])
+    assert got["kernels"] == 0 and got["models"] == [] and got["plain_feedforward"] == [
+        str(repo / "config" / "stage-canopen.yaml")]
+    assert json.loads(lines[-1]) == {"numba": False}
+
+
 def test_a_constant_imported_from_another_module_is_part_of_the_key(tmp_path: Path) -> None:
     """numba freezes global constants into the machine code; one imported from another module changes the
     compiled result, so its value is in the key."""
