@@ -545,7 +545,7 @@ def cycle_for(kstep: Any) -> Any:
     """:func:`_make_cycle` made once per friction kernel: the per-cycle step of plain plants."""
     if dispatcher(kstep) is not kstep:
         return cycle_for(dispatcher(kstep))  # one cycle per kernel, however it is handed in
-    return _make_cycle(kstep)
+    return dispatcher(_make_cycle(kstep))  # StagePlant.step calls it every cycle: the dispatcher, no proxy
 
 
 @functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive

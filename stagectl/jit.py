@@ -250,7 +250,19 @@ class LazyKernel:
             if not os.environ.get("NUMBA_DISABLE_JIT"):
                 d._cache = _cache_class()(self.py_func)
             self._disp = d
+            self._swap_class_attributes(d)
         return d
+
+    def _swap_class_attributes(self, d: Any) -> None:
+        """Class attributes of the kernel's module that hold it (``_kstep = staticmethod(_kstep)`` of a friction
+        model) hold the dispatcher from now on: calling through this proxy from Python costs ~1 µs a call
+        (``model.step`` on the feed-forward's compiled path), the dispatcher itself ~1.3 µs in all."""
+        mod = sys.modules.get(self.py_func.__module__)
+        for cls in list(vars(mod).values()) if mod is not None else ():
+            if isinstance(cls, type):
+                for name, attr in list(vars(cls).items()):
+                    if isinstance(attr, staticmethod) and attr.__func__ is self:
+                        setattr(cls, name, staticmethod(d))
 
     @property
     def _numba_type_(self) -> Any:
@@ -259,7 +271,10 @@ class LazyKernel:
         return types.Dispatcher(self.dispatcher())
 
     def __call__(self, *args: Any) -> Any:
-        return (self._disp or self.dispatcher())(*args)
+        d = self._disp
+        if d is None:
+            d = self.dispatcher()
+        return d(*args)
 
     def __getattr__(self, name: str) -> Any:
         # overloads, signatures, compile, disable_compile, _cache_hits, ...: the dispatcher's
