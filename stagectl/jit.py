@@ -4,7 +4,9 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
 
 * **Lazy.** No signature is given, so nothing is compiled at import; a kernel is compiled (or loaded from
   the on-disk cache) the first time it is called or passed to a compiled loop. Importing
-  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses.
+  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses. numba itself is
+  imported only then (:class:`LazyKernel`), and :func:`plain` runs a kernel's own source as plain Python: a real
+  stage's controller (no simulated plant in the process) never imports numba (docs/performance.md §1).
 * **Cache directory** (:func:`cache_dir`), first that applies: ``$NUMBA_CACHE_DIR`` if set;
   ``$CACHE_DIRECTORY/numba`` (systemd's ``CacheDirectory=`` of the daemon's unit); ``$XDG_CACHE_HOME`` (or
   ``~/.cache``) ``/stagectl/numba``. If that directory cannot be created or written, numba's own locators
