@@ -53,7 +53,7 @@ from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects,
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
-from stagectl.jit import inlined, kernel
+from stagectl.jit import dispatcher, inlined, kernel, plain
 from stagectl.schema import load, param
 
 FloatArray = npt.NDArray[np.float64]
@@ -515,6 +515,8 @@ def _make_batch_sets(ksets: Any) -> Any:
 @functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
 def batch_sets_loop(ksets: Any) -> Any:
     """:func:`_make_batch_sets` made once per many-sets kernel."""
+    if dispatcher(ksets) is not ksets:
+        return batch_sets_loop(dispatcher(ksets))  # one loop per kernel, however it is handed in
     return _make_batch_sets(ksets)
 
 
@@ -528,6 +530,7 @@ def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
     """(loop, run_batch) specialised on the friction kernel ``kstep`` (made once per kernel). The loop is the
     general one (:func:`_make_integrate`), or with ``plain_only`` the plain one alone (:func:`_make_plain`:
     about half the compile time, for plants that are plain by configuration); run_batch is always general."""
+    kstep = dispatcher(kstep)  # one set of loops per kernel, however it is handed in
     got = _LOOPS.get(id(kstep))
     if got is None:
         plain = _make_plain(inlined(kstep))
@@ -540,7 +543,18 @@ def loops_for(kstep: Any, plain_only: bool = False) -> tuple[Any, Any]:
 @functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
 def cycle_for(kstep: Any) -> Any:
     """:func:`_make_cycle` made once per friction kernel: the per-cycle step of plain plants."""
-    return _make_cycle(kstep)
+    if dispatcher(kstep) is not kstep:
+        return cycle_for(dispatcher(kstep))  # one cycle per kernel, however it is handed in
+    return dispatcher(_make_cycle(kstep))  # StagePlant.step calls it every cycle: the dispatcher, no proxy
+
+
+@functools.cache  # keyed on the kernel object itself (identity), which the cache keeps alive
+def plain_cycle(kstep: Any) -> Any:
+    """:func:`_make_cycle`'s per-cycle step as plain Python (:func:`stagectl.jit.plain`: the same source, ``kstep``'s
+    twin inside; no numba), on lists ``kp``, ``fs``, ``ps``: the same arithmetic in the same order
+    (``tests/loop/test_bench_tier.py``). For ``stagectl bench startup --switch``: too slow for the loop (~240 µs a
+    1 ms cycle of 100 sub-steps, docs/performance.md §1)."""
+    return plain(_make_cycle(kstep))
 
 
 # ================================================================================================ plant

@@ -26,7 +26,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from stagectl.clock import Clock, MonotonicClock, SimClock, Timing
 from stagectl.config import AppConfig, IoKind, SensorSource
@@ -42,13 +42,14 @@ from stagectl.errors import ConfigError, StageError
 from stagectl.loop import Controller, ControlLoop
 from stagectl.runtime.protocols import NamesTerms
 from stagectl.safety import Safety
-from stagectl.sim.cia402_drive import SimDriveConfig
-from stagectl.sim.cia406_encoder import SimEncoderConfig
-from stagectl.sim.direct import PlantIO
-from stagectl.sim.faults import inject_plant_io_fault, world_fault
-from stagectl.sim.interferometer import SimInterferometerConfig
-from stagectl.sim.plant import StagePlant
-from stagectl.sim.world import SimWorld
+
+if TYPE_CHECKING:  # imported where a simulated stage is built: a real stage's process never imports stagectl.sim
+    from stagectl.sim.cia402_drive import SimDriveConfig
+    from stagectl.sim.cia406_encoder import SimEncoderConfig
+    from stagectl.sim.direct import PlantIO
+    from stagectl.sim.interferometer import SimInterferometerConfig
+    from stagectl.sim.plant import StagePlant
+    from stagectl.sim.world import SimWorld
 
 log = logging.getLogger("stagectl.app")
 
@@ -176,9 +177,13 @@ class Stage:
             Not a simulated stage.
         """
         if self.plant_io is not None:
+            from stagectl.sim.faults import inject_plant_io_fault
+
             inject_plant_io_fault(self.plant_io, kind, kw)
             return {"injected": kind}
         if self.world is not None:
+            from stagectl.sim.faults import world_fault
+
             spec = world_fault(kind, kw)
             return {"injected": self.world.inject_fault(spec.pop("kind"), **spec)}
         raise StageError("inject_fault: only available on a simulated stage")  # simulated: a plant or a world
@@ -204,6 +209,9 @@ class Stage:
 # ====================================================================================== I/O builders
 def _build_plant_io(ctx: BuildContext) -> StageIO:
     """The simulated plant wrapped directly (:class:`~stagectl.sim.direct.PlantIO`), no protocol."""
+    from stagectl.sim.direct import PlantIO
+    from stagectl.sim.plant import StagePlant
+
     cfg = ctx.cfg
     if cfg.sim is None:  # excluded by the configuration's cross-checks
         raise ConfigError("sim: required for io.kind plant_io (the simulated stage)")
@@ -266,6 +274,8 @@ def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
     The virtual devices are served synchronously by the loop thread (the drivers' ``set_pump``) in simulated
     AND real time: each SYNC steps the plant by exactly one period, no thread hop can make a TPDO late.
     """
+    from stagectl.sim.world import SimWorld
+
     cfg = ctx.cfg
     if cfg.sim is None:  # excluded by the configuration's cross-checks
         raise ConfigError("sim: required for io.kind embedded_canopen (the simulated stage)")
@@ -331,10 +341,12 @@ IO_BUILDERS: dict[IoKind, Callable[[BuildContext], StageIO]] = {
 
 
 # ====================================================================================== assembly
-def make_controller(cfg: AppConfig, controller_config: ControllerConfig | None = None) -> StageController:
+def make_controller(cfg: AppConfig, controller_config: ControllerConfig | None = None, *,
+                    plain_ff: bool = False) -> StageController:
     """The StageController for ``controller_config`` (default: the file's), with the model the configuration
-    loader resolved (``feedforward.model``)."""
-    return StageController(controller_config or cfg.controller, cfg.timing)
+    loader resolved (``feedforward.model``); ``plain_ff``: its model feed-forward steps as plain Python (no numba),
+    as :func:`build_stage` chooses for a stage without a simulated plant in the process."""
+    return StageController(controller_config or cfg.controller, cfg.timing, plain_ff=plain_ff)
 
 
 def make_learner(cfg: AppConfig, reference: TrajectoryReference) -> IlcLearner:
@@ -380,7 +392,11 @@ def build_stage(
     td = Teardown()
     try:
         io = IO_BUILDERS[cfg.io.kind](BuildContext(cfg, clk, timing, td))
-        ctl: Controller = controller if controller is not None else make_controller(cfg)
+        # no plant in this process (real drives, or a sim-plant in another): the feed-forward's friction model
+        # steps as plain Python and numba is never imported (docs/performance.md §1); a simulated plant runs
+        # numba's kernels anyway, and the feed-forward shares the plant's compiled step
+        plain_ff = io.plant is None
+        ctl: Controller = controller if controller is not None else make_controller(cfg, plain_ff=plain_ff)
         # the moving mass bounds a plausible position step (safety's position_jump check)
         mass = ctl.mass_kg if isinstance(ctl, StageController) else cfg.controller.mass_kg
         safety = Safety(cfg.safety, timing, mass_kg=mass)

@@ -4,7 +4,9 @@ Every numba kernel of the package is declared with :func:`kernel` instead of ``n
 
 * **Lazy.** No signature is given, so nothing is compiled at import; a kernel is compiled (or loaded from
   the on-disk cache) the first time it is called or passed to a compiled loop. Importing
-  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses.
+  ``stagectl.friction`` therefore compiles nothing; a command pays only for the models it uses. numba itself is
+  imported only then (:class:`LazyKernel`), and :func:`plain` runs a kernel's own source as plain Python: a real
+  stage's controller (no simulated plant in the process) never imports numba (docs/performance.md §1).
 * **Cache directory** (:func:`cache_dir`), first that applies: ``$NUMBA_CACHE_DIR`` if set;
   ``$CACHE_DIRECTORY/numba`` (systemd's ``CacheDirectory=`` of the daemon's unit); ``$XDG_CACHE_HOME`` (or
   ``~/.cache``) ``/stagectl/numba``. If that directory cannot be created or written, numba's own locators
@@ -53,7 +55,8 @@ def cache_dir() -> Path:
 
 
 def _is_dispatcher(obj: Any) -> bool:
-    return hasattr(obj, "py_func") and hasattr(obj, "overloads")
+    """A kernel: a :class:`LazyKernel` (without making its dispatcher) or a numba dispatcher."""
+    return isinstance(obj, LazyKernel) or (hasattr(obj, "py_func") and hasattr(obj, "overloads"))
 
 
 def _names(code: pytypes.CodeType) -> set[str]:
@@ -216,6 +219,86 @@ def _cache_class() -> Any:
     return HonestCache
 
 
+class LazyKernel:
+    """A kernel declared with :func:`kernel`: numba is imported, and the ``njit`` dispatcher made, only when the
+    kernel is first called, passed to numba or asked for something only the dispatcher has.
+
+    Until then a process that only needs the plain-Python twins (:func:`plain`: a real stage's feed-forward)
+    never imports numba. Calling it from Python calls the compiled dispatcher (compiling or loading it first).
+    numba sees it through the duck type it checks: ``py_func`` and ``targetoptions`` (its inlining pass pastes
+    ``inline="always"`` kernels in) and ``_numba_type_`` (the dispatcher's type, for a global or closure cell
+    that holds it). Where a kernel is handed to compiled code as a value from Python (a first-class function
+    argument), hand :func:`dispatcher` of it."""
+
+    __slots__ = ("py_func", "targetoptions", "_disp", "__weakref__")
+
+    def __init__(self, fn: Callable[..., Any], options: dict[str, Any]) -> None:
+        self.py_func = fn
+        self.targetoptions = {"nopython": True, **options}
+        self._disp: Any = None
+
+    @property
+    def __name__(self) -> str:
+        return str(self.py_func.__name__)
+
+    def dispatcher(self) -> Any:
+        """The numba dispatcher (made on first use: this imports numba; compiles nothing by itself)."""
+        d = self._disp
+        if d is None:
+            from numba import njit
+
+            opts = {k: v for k, v in self.targetoptions.items() if k != "nopython"}
+            d = njit(**opts)(self.py_func)
+            if not os.environ.get("NUMBA_DISABLE_JIT"):
+                d._cache = _cache_class()(self.py_func)
+            self._disp = d
+            self._swap_class_attributes(d)
+        return d
+
+    def _swap_class_attributes(self, d: Any) -> None:
+        """Class attributes of the kernel's module that hold it (``_kstep = staticmethod(_kstep)`` of a friction
+        model) hold the dispatcher from now on: calling through this proxy from Python costs ~1 µs a call
+        (``model.step`` on the feed-forward's compiled path), the dispatcher itself ~1.3 µs in all."""
+        mod = sys.modules.get(self.py_func.__module__)
+        for cls in list(vars(mod).values()) if mod is not None else ():
+            if isinstance(cls, type):
+                for name, attr in list(vars(cls).items()):
+                    if isinstance(attr, staticmethod) and attr.__func__ is self:
+                        setattr(cls, name, staticmethod(d))
+
+    @property
+    def _numba_type_(self) -> Any:
+        from numba.core import types
+
+        return types.Dispatcher(self.dispatcher())
+
+    def __call__(self, *args: Any) -> Any:
+        d = self._disp
+        if d is None:
+            d = self.dispatcher()
+        return d(*args)
+
+    def __getattr__(self, name: str) -> Any:
+        # overloads, signatures, compile, disable_compile, _cache_hits, ...: the dispatcher's
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.dispatcher(), name)
+
+    def __repr__(self) -> str:
+        state = "made" if self._disp is not None else "not made yet"
+        return f"<kernel {self.py_func.__module__}.{self.py_func.__qualname__} ({state})>"
+
+
+def dispatcher(k: Any) -> Any:
+    """The numba dispatcher of kernel ``k`` (a :class:`LazyKernel`, made now; a dispatcher is returned as is)."""
+    return k.dispatcher() if isinstance(k, LazyKernel) else k
+
+
+def numba_loaded() -> bool:
+    """Whether this process has imported numba (a real stage's run and daemon do not: docs/performance.md)."""
+    return "numba" in sys.modules
+
+
 @overload
 def kernel(fn: F) -> F: ...
 
@@ -228,17 +311,13 @@ def kernel(fn: F | None = None, **options: Any) -> Any:
     """``numba.njit(**options)`` compiled lazily, cached in :func:`cache_dir` with an honest key.
 
     Use as ``@kernel`` or ``@kernel(inline="always")``. ``cache`` is always on; a signature cannot be given
-    (it would compile at import)."""
+    (it would compile at import). Returns a :class:`LazyKernel`: numba is not imported until the kernel is
+    used compiled; :func:`plain` runs the same source as plain Python."""
     if "cache" in options:
         raise TypeError("kernel(): the cache is always on")
 
     def deco(f: F) -> Any:
-        from numba import njit
-
-        disp = njit(**options)(f)
-        if not os.environ.get("NUMBA_DISABLE_JIT"):
-            disp._cache = _cache_class()(f)
-        return disp
+        return LazyKernel(f, dict(options))
 
     if fn is not None:
         return deco(fn)
@@ -266,15 +345,74 @@ def inlined(dispatcher: Any) -> Any:
     return got[0]
 
 
+_PLAIN: dict[int, tuple[Callable[..., Any], Any]] = {}
+
+
+class _PlainModule:
+    """A module seen by a plain twin: its kernels' plain twins for the attributes the code names, else the
+    module's own attributes."""
+
+    def __init__(self, mod: pytypes.ModuleType, subst: dict[str, Any]) -> None:
+        self._mod = mod
+        self.__dict__.update(subst)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._mod, name)
+
+
+def plain(k: Any) -> Callable[..., Any]:
+    """The plain-Python twin of kernel ``k``: its own Python source (``py_func``) run by the interpreter, with every
+    kernel it calls (globals, attributes of imported modules, closure cells; transitively) replaced by that
+    kernel's twin. Imports no numba. The same operations in the same order as the compiled kernel; IEEE double
+    arithmetic and the C library's ``exp``/``pow`` in both, so the results agree bit for bit in practice
+    (``tests/friction/test_plain_twins.py``; numba's default compiles without fast-math, so no reassociation or
+    fused multiply-add). numpy's integer casts run as Python's ``int`` (same value, faster). Fastest on Python
+    lists (a numpy array works too, its scalars are slower). Made once per kernel."""
+    py = k.py_func
+    got = _PLAIN.get(id(py))
+    if got is not None:
+        return got[0]
+    g: dict[str, Any] = dict(py.__globals__)
+    cells = py.__closure__
+    fn = pytypes.FunctionType(py.__code__, g, py.__name__, py.__defaults__,
+                              tuple(pytypes.CellType(c.cell_contents) for c in cells) if cells else None)
+    fn.__qualname__ = py.__qualname__
+    fn.__doc__ = py.__doc__
+    fn.__module__ = py.__module__
+    _PLAIN[id(py)] = (fn, py)  # before the recursion: a kernel reached twice gets the same twin; py kept alive
+    names = _names(py.__code__)
+    for name in names:
+        obj = g.get(name)
+        if _is_dispatcher(obj):
+            g[name] = plain(obj)
+        elif getattr(obj, "__name__", None) == "numpy" and isinstance(obj, pytypes.ModuleType):
+            # numpy's integer casts (np.int64(p[0]): a cast in a kernel) as Python's int: the same value, and a
+            # numpy integer is slow in the interpreter (every index computed from it: 4.3 µs for a GMS N = 6 step
+            # against 2.3 µs)
+            g[name] = _PlainModule(obj, {"int64": int, "int32": int, "intp": int})
+        elif isinstance(obj, pytypes.ModuleType):
+            subst = {n: plain(getattr(obj, n)) for n in names if _is_dispatcher(getattr(obj, n, None))}
+            if subst:
+                g[name] = _PlainModule(obj, subst)
+    for cell in fn.__closure__ or ():
+        if _is_dispatcher(cell.cell_contents):
+            cell.cell_contents = plain(cell.cell_contents)
+    return fn
+
+
 def compiled_signatures(dispatcher: Any) -> int:
     """How many signatures ``dispatcher`` has compiled or loaded in this process (0: never used)."""
+    if isinstance(dispatcher, LazyKernel) and dispatcher._disp is None:
+        return 0
     return len(getattr(dispatcher, "overloads", {}))
 
 
 def loaded_from_cache(dispatcher: Any) -> int:
     """Cache hits of ``dispatcher`` in this process (numba's per-signature counters)."""
+    if isinstance(dispatcher, LazyKernel) and dispatcher._disp is None:
+        return 0
     return int(sum(getattr(dispatcher, "_cache_hits", {}).values()))
 
 
-__all__ = ["cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "inlined", "kernel",
-           "loaded_from_cache"]
+__all__ = ["LazyKernel", "cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "dispatcher",
+           "inlined", "kernel", "loaded_from_cache", "numba_loaded", "plain"]

@@ -29,9 +29,12 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import enum
+import functools
+import importlib
 import math
 import operator
 import re
+import sys
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -258,6 +261,50 @@ def _parse_value(tp: Any, value: Any, path: str, meta: Mapping[str, Any], proble
     return None
 
 
+class _LazyTypes(Mapping[str, Any]):
+    """The names of a module's ``LAZY_TYPES`` (``{"Name": "package.module"}``: types its annotations name but that
+    it imports only under ``TYPE_CHECKING``), each imported when an annotation is evaluated that needs it."""
+
+    def __init__(self, module: Any) -> None:
+        self._module = module
+        self._lazy: Mapping[str, str] = getattr(module, "LAZY_TYPES", {})
+
+    def __getitem__(self, name: str) -> Any:
+        where = self._lazy.get(name)
+        if where is None:
+            raise KeyError(name)
+        value = getattr(importlib.import_module(where), name)
+        setattr(self._module, name, value)  # once imported, the module's own global (typing.get_type_hints finds it)
+        return value
+
+    def __iter__(self) -> typing.Iterator[str]:
+        return iter(self._lazy)
+
+    def __len__(self) -> int:
+        return len(self._lazy)
+
+
+@functools.cache
+def field_type(cls: type, name: str) -> Any:
+    """The evaluated type annotation of field ``name`` of dataclass ``cls`` (``typing.get_type_hints(cls)[name]``,
+    evaluated for this field alone: a field whose type lives in a module imported only when needed, named in its
+    module's ``LAZY_TYPES``, imports it only when that field is parsed or described; e.g. ``AppConfig.sim``,
+    whose ``stagectl.sim`` a real stage's process never imports)."""
+    for base in cls.__mro__:
+        ann = base.__dict__.get("__annotations__", {})
+        if name in ann:
+            module = sys.modules[base.__module__]
+            holder = types.SimpleNamespace(__annotations__={name: ann[name]})
+            return typing.get_type_hints(holder, globalns=vars(module), localns=_LazyTypes(module))[name]
+    raise KeyError(f"{cls.__name__} has no field {name!r}")
+
+
+def type_hints(cls: type) -> dict[str, Any]:
+    """:func:`field_type` of every field of dataclass ``cls`` (what ``typing.get_type_hints`` gives, with the
+    lazily imported types of ``LAZY_TYPES`` imported)."""
+    return {f.name: field_type(cls, f.name) for f in dataclasses.fields(cls)}
+
+
 def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | None:
     where = path or "<top>"
     if data is None:
@@ -265,7 +312,6 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
     if not isinstance(data, Mapping):
         problems.append(f"{where}: expected a mapping, got {yaml_kind(data)}")
         return None
-    hints = typing.get_type_hints(cls)
     flds = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     prefix = f"{path}." if path else ""
     for key in data:
@@ -280,7 +326,7 @@ def _load_into(cls: type[T], data: Any, path: str, problems: list[str]) -> T | N
         sub = f"{prefix}{name}"
         if name in data:
             n_before = len(problems)
-            val = _parse_value(hints[name], data[name], sub, f.metadata, problems)
+            val = _parse_value(field_type(typing.cast(type, cls), name), data[name], sub, f.metadata, problems)
             if len(problems) > n_before:
                 ok = False
                 continue
@@ -515,10 +561,9 @@ def load_yaml_file(path: str | Path) -> Any:
 def describe(cls: type) -> list[tuple[str, str, str, str]]:
     """Flatten a config dataclass into rows ``(key path, unit, default, description)`` for docs/tests."""
     rows: list[tuple[str, str, str, str]] = []
-    hints = typing.get_type_hints(cls)
 
     def walk(c: type, prefix: str) -> None:
-        h = typing.get_type_hints(c)
+        h = type_hints(c)
         for f in dataclasses.fields(c):
             key = f"{prefix}{f.name}"
             tp = h[f.name]
@@ -534,6 +579,5 @@ def describe(cls: type) -> list[tuple[str, str, str, str]]:
             if dataclasses.is_dataclass(inner) and f.metadata.get("parse") is None:
                 walk(inner, key + ".")  # type: ignore[arg-type]
 
-    del hints
     walk(cls, "")
     return rows

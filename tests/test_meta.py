@@ -23,7 +23,7 @@ import typing
 
 import pytest
 
-from stagectl.schema import describe
+from stagectl.schema import describe, type_hints
 
 #: dimensionless parameters (paper symbols, ratios, identifiers) that need no unit suffix
 DIMENSIONLESS = frozenset({
@@ -116,7 +116,7 @@ def test_every_config_field_has_a_description(name):
 @pytest.mark.parametrize("name", sorted(CLASSES))
 def test_numeric_keys_carry_their_unit_suffix(name):
     cls = CLASSES[name]
-    hints = typing.get_type_hints(cls)
+    hints = type_hints(cls)  # typing.get_type_hints, with the lazily imported types (AppConfig.sim) imported
     bad = []
     for f in dataclasses.fields(cls):
         if not _numeric(hints[f.name]) or f.name in SUFFIX_EXCEPTIONS:

@@ -18,6 +18,10 @@ empty loop on the same sleep costs (waking up is not free), and the same cycles 
 the period instead of sleeping (``spinning``): the difference in execution time, ``cold_after_sleep_us``, is
 what coming back to caches that other processes used meanwhile costs; page faults, context switches and gc
 collections during the cycles are counted.
+``feedforward`` (``--ff-cycles``, :func:`feedforward_cost`): one model feed-forward step per cycle along a cosine
+reference (50 µm, 1 Hz: pre-sliding, sliding and reversals), its cost per call on the plain-Python twin of the
+model's kernel (what a real stage runs, without numba: measured first, before this process imports numba) and on
+the compiled kernel, with the largest difference of their forces.
 Timing is measured, never asserted in tests; the machine's load is reported alongside (``os.getloadavg``).
 """
 
@@ -48,6 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override io.kind (default: as in the config)")
     p.add_argument("--fifo", type=int, default=None, help="SCHED_FIFO priority (needs privileges)")
     p.add_argument("--spin-us", type=float, default=None, help="hybrid wake-up: busy-wait the last N µs")
+    p.add_argument("--ff-cycles", type=int, default=20000,
+                   help="cycles of the feed-forward cost run, plain Python and compiled (0: skip; default 20000)")
     p.add_argument("--breakdown-cycles", type=int, default=3000,
                    help="cycles of each per-cycle cost breakdown run, hot and real time (0: skip; default 3000)")
 
@@ -343,6 +349,48 @@ def breakdown(cfg: Any, cycles: int, on_stage: Callable[[str, float], None] | No
                     "processes ran)"}
 
 
+def feedforward_cost(cfg: Any, cycles: int) -> dict[str, Any] | None:
+    """µs per call of the model feed-forward's ``step`` (``cfg``'s controller model and effects, the loop's period)
+    along a cosine reference of ``cycles`` cycles: ``plain`` (the kernel's plain twin; run first, so that a process
+    that has not imported numba yet measures it without numba) and ``compiled``; p50, p99, mean. None: the config
+    has no model feed-forward."""
+    import sys
+
+    from stagectl.control.api import Reference
+    from stagectl.control.friction_ff import FrictionFeedforward
+
+    ffc = cfg.controller.feedforward
+    sm = ffc.model
+    if ffc.kind != "model" or sm is None or cycles <= 0:
+        return None
+    dt = float(cfg.loop.period_s)
+    amp, w = 5e-5, 2.0 * math.pi
+    refs = [Reference(amp * (1.0 - math.cos(w * k * dt)), amp * w * math.sin(w * k * dt),
+                      amp * w * w * math.cos(w * k * dt)) for k in range(cycles)]
+    out: dict[str, Any] = {"cycles": cycles, "model": sm.friction.tag}
+    forces: dict[str, list[float]] = {}
+    for tier in ("plain", "compiled"):
+        before = "numba" in sys.modules
+        ff = FrictionFeedforward(sm.friction, sm.effects, plain=tier == "plain",
+                                 lookahead_s=dt / 2.0 if ffc.lookahead_s is None else ffc.lookahead_s)
+        ns = time.perf_counter_ns
+        cost = []
+        f = []
+        for r in refs:
+            t0 = ns()
+            u = ff.step(dt, r)
+            cost.append(ns() - t0)
+            f.append(u)
+        cost.sort()
+        forces[tier] = f
+        out[tier] = {"p50_us": cost[len(cost) // 2] / 1e3, "p99_us": cost[int(0.99 * len(cost))] / 1e3,
+                     "mean_us": sum(cost) / len(cost) / 1e3, "plain_python": ff.plain,
+                     "numba_imported_before": before, "numba_imported_after": "numba" in sys.modules}
+    out["max_force_difference_n"] = max(abs(a - b) for a, b in zip(forces["plain"], forces["compiled"]))
+    out["force_range_n"] = max(forces["plain"]) - min(forces["plain"])
+    return out
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.app import build_stage
     from stagectl.config import IoKind, load_app_config
@@ -358,6 +406,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, realtime=rt), io=io)
     n_bd = max(0, int(args.breakdown_cycles))
     plan_s = args.duration + (sum(breakdown_plan(cfg.loop.period_s, n_bd)) if n_bd > 0 else 0.0)
+    tell(args, 0.0, plan_s, "feed-forward cost: plain Python, then compiled", span=0.0)
+    ff_cost = feedforward_cost(cfg, max(0, int(getattr(args, "ff_cycles", 0) or 0)))  # before numba is imported
     load0 = os.getloadavg()
     cpu0 = time.process_time()
     wall0 = time.monotonic()
@@ -417,6 +467,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         },
         "period_us": period_us,
         "cycle_breakdown": parts,
+        "feedforward": ff_cost,
         "setup_s": t_run - wall0,
         "total_cpu_s": time.process_time() - cpu0,
     }

@@ -22,6 +22,11 @@ would depend on whether ``__pycache__`` happened to be writable.
 alternated with this one run by run (its own private cache), and reports the ratios: a before/after comparison
 on a shared machine whose load drifts.
 
+``--stage`` measures a real stage's start instead (default config ``config/hil-canopen.yaml``): the config's
+``sim:`` section runs once in a ``stagectl sim-plant`` process (socketcand on an ephemeral loopback port, this
+build's interpreter), and every measured start runs the config *without* its ``sim:`` section against it, as a
+stage PC runs it (real drivers, no simulated plant in the process: no numba, the feed-forward in plain Python).
+
 Targets (issue 14): cold ≤ 2 s, warm ≤ 1 s. The machine's load average is reported alongside.
 """
 
@@ -42,6 +47,7 @@ from stagectl.bench import tell
 from stagectl.errors import StageError
 
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+STAGE_CONFIG = REPO_CONFIG.with_name("hil-canopen.yaml")
 TARGET_COLD_S = 2.0
 TARGET_WARM_S = 1.0
 
@@ -113,6 +119,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeat", type=int, default=1, help="cold/warm pairs; the best of each is reported")
     p.add_argument("--against", default=None, metavar="PYTHON",
                    help="interpreter of another stagectl installation, measured alternately as the baseline")
+    p.add_argument("--stage", action="store_true",
+                   help="a real stage's start: the config's sim: section in a sim-plant process, the measured starts "
+                        "on the config without it (default config config/hil-canopen.yaml)")
     p.add_argument("--switch", action="store_true",
                    help="also measure a tiered start (plain-Python kernels first, numba's loaded in a background "
                         "thread, then switched to): loop lateness around the switch vs plain and compiled runs "
@@ -134,8 +143,10 @@ def _one(python: str, config: str, cache: Path, pyc: Path, prime: bool = False) 
         stamps = Path(tmp) / "stamps.json"
         ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.monotonic()
-        out = subprocess.run([python, "-c", _CHILD, config, str(Path(tmp) / "out"), str(stamps)], env=env,
-                             capture_output=True, text=True, timeout=600)
+        # run in the temporary directory: ``python -c`` puts the working directory first on sys.path, and from a
+        # checkout's root the baseline interpreter would import *this* checkout's stagectl package
+        out = subprocess.run([python, "-c", _CHILD, os.path.abspath(config), str(Path(tmp) / "out"), str(stamps)],
+                             env=env, capture_output=True, text=True, timeout=600, cwd=tmp)
         ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         if out.returncode != 0 or not stamps.exists():
             last = (out.stderr.strip().splitlines() or ["no output"])[-1][:300]
@@ -191,7 +202,91 @@ def _summary(cold: list[dict[str, Any]], warm: list[dict[str, Any]]) -> dict[str
                      "warm_process_cpu_s": [r["process_cpu_s"] for r in warm]}}
 
 
+def _absolute(node: Any, base: Path) -> Any:
+    """A config mapping with its relative file paths (``*_file``, ``eds``, ``file``) made absolute against ``base``."""
+    if isinstance(node, dict):
+        return {k: (str(base / v) if isinstance(v, str) and (k.endswith("_file") or k in ("eds", "file"))
+                    and not os.path.isabs(v) else _absolute(v, base)) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_absolute(v, base) for v in node]
+    return node
+
+
+class _SimPlant:
+    """``stagectl sim-plant`` on the ``sim:`` section of ``config`` (socketcand, ephemeral port) and the same config
+    without ``sim:`` pointed at it (``stage_config``), for ``--stage``. A context manager; stops the process."""
+
+    def __init__(self, config: str, tmp: Path) -> None:
+        import yaml
+
+        from stagectl.errors import ConfigError
+        from stagectl.schema import load_yaml_file
+
+        data = load_yaml_file(config)
+        if not isinstance(data, dict) or not isinstance(data.get("sim"), dict):
+            raise ConfigError(f"--stage: {config} has no sim: section (the stage for the sim-plant process)")
+        data = _absolute(data, Path(config).resolve().parent)
+        drive = (data.get("io") or {}).get("drive") or {}
+        if (data["io"].get("kind") != "canopen" or (drive.get("can") or {}).get("interface") != "socketcand"):
+            raise ConfigError(f"--stage: {config}: needs io.kind canopen with io.drive.can.interface socketcand "
+                              "(a controller that talks to a sim-plant process)")
+        plant = dict(data, sim=dict(data["sim"], transport=dict(data["sim"].get("transport") or {},
+                                                                kind="socketcand", port=0)))
+        self._plant_cfg = tmp / "plant.yaml"
+        self._plant_cfg.write_text(yaml.safe_dump(plant))
+        self._data = data
+        self.stage_config = tmp / "stage.yaml"
+        self._proc: subprocess.Popen[str] | None = None
+
+    def __enter__(self) -> _SimPlant:
+        import selectors
+
+        import yaml
+
+        self._proc = subprocess.Popen([sys.executable, "-m", "stagectl.cli", "sim-plant", "--config",
+                                       str(self._plant_cfg)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                      text=True)
+        assert self._proc.stdout is not None
+        sel = selectors.DefaultSelector()
+        sel.register(self._proc.stdout, selectors.EVENT_READ)
+        line = self._proc.stdout.readline() if sel.select(300.0) else ""
+        if not line:
+            self.__exit__(None, None, None)
+            raise StageError("bench startup --stage: the sim-plant process printed no ready line")
+        port = json.loads(line)["can"]["port"]
+        stage = {k: v for k, v in self._data.items() if k != "sim"}
+        stage["io"]["drive"]["can"]["port"] = port
+        self.stage_config.write_text(yaml.safe_dump(stage))
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(10.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(10.0)
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "stage", False):
+        if args.config == str(REPO_CONFIG):
+            args.config = str(STAGE_CONFIG)
+        with tempfile.TemporaryDirectory(prefix="stagectl-stage-") as tmp, _SimPlant(args.config, Path(tmp)) as sp:
+            source = args.config
+            args.config = str(sp.stage_config)
+            try:
+                res = _run(args)
+            finally:
+                args.config = source
+            res["stage"] = {"source_config": source, "note": "measured starts run the config without its sim: "
+                            "section against a stagectl sim-plant process (socketcand on loopback)"}
+            return res
+    return _run(args)
+
+
+def _run(args: argparse.Namespace) -> dict[str, Any]:
     from stagectl.config import load_app_config
     from stagectl.errors import ConfigError
 

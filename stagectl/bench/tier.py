@@ -20,9 +20,10 @@ cost (p50, p99), and for ``switch`` when the compiled tier took over (cycles and
 and the worst lateness from the loop's start to 100 cycles after the switch, against the worst lateness of the
 ``plain`` and ``compiled`` runs over the same number of cycles in the same bench.
 
-The plain kernels are transcriptions of ``friction.gms._kstep`` and ``sim.plant._make_cycle``'s ``cycle`` (the
-same operations in the same order, on Python lists): ``tests/loop/test_bench_tier.py`` checks them against the
-compiled kernels (equal within 1e-12 relative; in practice bit-identical). This module imports no numba.
+The plain kernels are the plain twins (``stagectl.jit.plain``: the kernel's own source run as Python) of
+``friction.gms._kstep`` and ``sim.plant._make_cycle``'s ``cycle``, on Python lists: ``tests/loop/test_bench_tier.py``
+checks them against the compiled kernels (equal within 1e-12 relative; in practice bit-identical). Importing this
+module imports no numba.
 """
 
 from __future__ import annotations
@@ -39,103 +40,24 @@ from typing import Any
 
 from stagectl.errors import StageError
 
-#: friction.gms's packed layout: [N, fc, fs, vs, delta, C, viscous, k_1..N, alpha_1..N, sigma1_1..N, C/k_1..N]
-_HDR = 7
+from stagectl.friction import gms
+from stagectl.jit import plain
+from stagectl.sim import plant as _plant
+
 #: sim.plant's plant-state layout (``ps``): t, x, v, friction, F_other, applied u, stuck, work in/friction/other
-PS_T, PS_X, PS_V, PS_FF, PS_FO, PS_UA, PS_STUCK, PS_WIN, PS_WF, PS_WO = range(10)
+PS_T, PS_X, PS_V, PS_FF, PS_FO, PS_UA, PS_STUCK, PS_WIN, PS_WF, PS_WO = (
+    _plant._T, _plant._X, _plant._V, _plant._FF, _plant._FO, _plant._UA, _plant._STUCK, _plant._WIN, _plant._WF,
+    _plant._WO)
 
+#: ``friction.gms._kstep`` as plain Python (its plain twin, :func:`stagectl.jit.plain`): advance ``state``
+#: (``[F_1..F_N, mode_1..mode_N]``, a list) in place over ``dx`` [m] at ``v`` [m/s] during ``dt`` [s]; returns the
+#: friction force [N]. The same twin a real stage's feed-forward runs (``FrictionModel.plain_stepper``).
+gms_step_plain = plain(gms._kstep)
 
-def _stribeck_excess(v: float, vs: float, delta: float) -> float:
-    """exp(−|v/Vs|^δ) as ``friction._numba.stribeck_excess`` computes it."""
-    r = abs(v / vs)
-    if delta == 2.0:
-        e = r * r
-    elif delta == 1.0:
-        e = r
-    else:
-        e = r**delta
-    if e > 745.0:
-        return 0.0
-    return math.exp(-e)
-
-
-def gms_step_plain(p: Sequence[float], state: list[float], dx: float, v: float, dt: float) -> float:
-    """``friction.gms._kstep`` in plain Python: advance ``state`` (``[F_1..F_N, mode_1..mode_N]``) in place over
-    ``dx`` [m] at ``v`` [m/s] during ``dt`` [s]; return the friction force [N] (equations in ``friction.gms``)."""
-    n = int(p[0])
-    if v == 0.0:
-        tot = 0.0
-        for i in range(n):
-            tot += state[i]
-        return tot
-    fc = p[1]
-    fs = p[2]
-    c = p[5]
-    viscous = p[6]
-    s = 1.0 if v > 0.0 else -1.0
-    g = fc + (fs - fc) * _stribeck_excess(v, p[3], p[4])
-    inv_g = 1.0 / g
-    decay = math.exp(-c * dt * inv_g)
-    tot = 0.0
-    for i in range(n):
-        f = state[i]
-        m = state[n + i]
-        a = p[_HDR + n + i]
-        lim = a * g
-        if m != 0.0 and m != s:
-            m = 0.0
-        if m == 0.0:
-            if s * f >= lim:
-                m = s
-                f = s * lim + (f - s * lim) * decay
-            else:
-                f = f + p[_HDR + i] * dx
-                if s * f >= lim:
-                    f = s * lim
-                    m = s
-        else:
-            f = s * lim + (f - s * lim) * decay
-        state[i] = f
-        state[n + i] = m
-        sig1 = p[_HDR + 2 * n + i]
-        if sig1 != 0.0:
-            rate = v if m == 0.0 else p[_HDR + 3 * n + i] * (s * a - f * inv_g)
-            tot += f + sig1 * rate
-        else:
-            tot += f
-    return tot + viscous * v
-
-
-def plant_cycle_plain(kp: Sequence[float], fs: list[float], ps: list[float], inv_m: float, fo_c: float, u: float,
-                      dt: float, nsub: int) -> None:
-    """``sim.plant``'s per-cycle step of a plain plant with GMS friction, in plain Python: ``u`` [N] held for
-    ``dt`` [s] in ``nsub`` semi-implicit Euler sub-steps (1/m ``inv_m`` [1/kg], constant F_other ``fo_c`` [N]);
-    plant state ``ps`` (layout ``PS_*``) and friction state ``fs`` advanced in place."""
-    h = dt / nsub
-    x = ps[PS_X]
-    v = ps[PS_V]
-    ff = ps[PS_FF]
-    win = ps[PS_WIN]
-    wf = ps[PS_WF]
-    wo = ps[PS_WO]
-    fe = u - fo_c
-    for _ in range(nsub):
-        v = v + h * (fe - ff) * inv_m
-        dx = h * v
-        x += dx
-        win += u * dx
-        wf += ff * dx
-        wo += fo_c * dx
-        ff = gms_step_plain(kp, fs, dx, v, h)
-    ps[PS_T] = ps[PS_T] + dt
-    ps[PS_X] = x
-    ps[PS_V] = v
-    ps[PS_FF] = ff
-    ps[PS_FO] = fo_c
-    ps[PS_UA] = u
-    ps[PS_WIN] = win
-    ps[PS_WF] = wf
-    ps[PS_WO] = wo
+#: ``sim.plant``'s per-cycle step of a plain plant with GMS friction as plain Python
+#: (:func:`stagectl.sim.plant.plain_cycle`): ``(kp, fs, ps, inv_m, fo_c, u, dt, nsub)``, ``u`` [N] held for ``dt``
+#: [s] in ``nsub`` sub-steps, plant state ``ps`` (layout ``PS_*``) and friction state ``fs`` advanced in place.
+plant_cycle_plain = _plant.plain_cycle(gms._kstep)
 
 
 # The child: a 1 kHz loop in the main thread; argv[1] is a JSON job (see _case).

@@ -3,7 +3,10 @@
 Run it at install time (and as the daemon unit's ``ExecStartPre``) so that the first start loads compiled
 kernels instead of compiling them (docs/performance.md). With ``--config`` it compiles, for every friction model
 and every simulated plant found in the configuration, exactly the kernels ``stagectl run`` / the daemon use:
-the model's step and force (feed-forward), the plant's per-cycle step and its fused ``simulate`` loop. ``--all``
+the model's step and force (feed-forward), the plant's per-cycle step and its fused ``simulate`` loop. A config
+with ``io.kind: canopen`` (a real stage: no plant in that process) has a plain-Python feed-forward and nothing to
+warm but its ``sim:`` section's plant, if any (for ``stagectl sim-plant``); its path is listed under
+``plain_feedforward``, and without a ``sim:`` section numba is not even imported. ``--all``
 does it for every registered friction model (a GMS, LuGre, … parameter set each) instead. Prints one JSON line: the cache
 directory, the kernels compiled and loaded, the time taken.
 """
@@ -89,12 +92,22 @@ def run(args: argparse.Namespace) -> int:
 
     models: list[Any] = []
     plants: list[Any] = []
+    plain_ff: list[str] = []
     if args.config:
         from stagectl.config import load_app_config
 
+        from stagectl.config import IoKind
+
         seen: set[int] = set()
         for path in args.config:
-            _collect(load_app_config(path), models, plants, seen)
+            cfg = load_app_config(path)
+            if cfg.io.kind is IoKind.CANOPEN:
+                # no plant in run's/the daemon's process: the feed-forward steps its model as plain Python (no
+                # numba, nothing to warm); a sim: section's plant is for a sim-plant process, which compiles
+                plain_ff.append(str(path))
+                _collect(cfg.sim, models, plants, seen)
+            else:
+                _collect(cfg, models, plants, seen)
     if args.all or not args.config:
         from stagectl.bench.models import SPECS, _spec_for
         from stagectl.sim.plant import PlantConfig
@@ -109,5 +122,5 @@ def run(args: argparse.Namespace) -> int:
                 plants.append(PlantConfig(mass_kg=1.0, friction=m, substep_s=1e-6))
             except ValueError:  # a sub-step limit of this parameter set: the model kernels are warmed anyway
                 pass
-    print(json.dumps(warm_models(models, plants)))
+    print(json.dumps({**warm_models(models, plants), "plain_feedforward": plain_ff}))
     return 0

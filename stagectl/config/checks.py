@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from stagectl.config.sections import AppConfig, DemoConfig, IoConfig, IoKind, SensorSource
 from stagectl.control.controller import ControllerConfig, check_controller
@@ -39,7 +39,9 @@ from stagectl.drivers.canbus import bus_kwargs, can_key_problems
 from stagectl.errors import ConfigError, short
 from stagectl.runtime.config import LoopConfig
 from stagectl.safety import SafetyConfig
-from stagectl.sim.world import SimWorldConfig
+
+if TYPE_CHECKING:
+    from stagectl.sim.world import SimWorldConfig
 
 __all__ = ["INT16_MAX", "Sections", "can_problems", "controller_problems", "cross_checks", "demo_problems",
            "device_match_problems", "force_chain_problems", "sim_device_problems", "time_base_problems"]

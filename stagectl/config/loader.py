@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from stagectl.config.checks import Sections, cross_checks
 from stagectl.config.sections import AppConfig, DemoConfig, IoConfig
@@ -32,7 +32,9 @@ from stagectl.errors import ConfigError, short
 from stagectl.friction import StageModel, load_model_file
 from stagectl.safety import SafetyConfig
 from stagectl.schema import load, load_yaml_file, yaml_kind
-from stagectl.sim.world import SimWorldConfig
+
+if TYPE_CHECKING:
+    from stagectl.sim.world import SimWorldConfig
 
 __all__ = ["ModelFiles", "load_app_config", "parse_app_config", "parse_sim_section"]
 
@@ -86,6 +88,8 @@ def parse_sim_section(data: Any, models: ModelFiles, problems: list[str],
     if not isinstance(data, Mapping):
         problems.append(f"{path}: expected a mapping, got {short(data)}")
         return None
+    from stagectl.sim.world import SimWorldConfig  # here: a config without sim: never imports stagectl.sim
+
     n0 = len(problems)
     model_file = _get(data, "plant", "model_file")
     model = models.load(model_file, f"{path}.plant.model_file", problems)

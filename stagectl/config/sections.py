@@ -21,6 +21,7 @@ import dataclasses
 import enum
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from stagectl.clock import Timing
 from stagectl.config.daemon import DaemonConfig
@@ -33,7 +34,13 @@ from stagectl.errors import ConfigError
 from stagectl.loop import LoopConfig
 from stagectl.safety import SafetyConfig
 from stagectl.schema import param
-from stagectl.sim.world import SimWorldConfig
+
+if TYPE_CHECKING:
+    from stagectl.sim.world import SimWorldConfig
+
+#: ``AppConfig.sim``'s type, imported (with the rest of ``stagectl.sim``) only when a ``sim:`` section is parsed
+#: or the schema is described (``stagectl.schema.field_type``): a real stage's process never imports stagectl.sim
+LAZY_TYPES = {"SimWorldConfig": "stagectl.sim.world"}
 
 __all__ = ["AppConfig", "DemoConfig", "IoConfig", "IoKind", "SensorSource"]
 

@@ -595,11 +595,13 @@ class StageController:
     """
 
     def __init__(self, cfg: ControllerConfig, timing: Timing | float,
-                 model: StageModel | FrictionModel | None = None) -> None:
+                 model: StageModel | FrictionModel | None = None, *, plain_ff: bool = False) -> None:
         check_dt(timing.period_s if isinstance(timing, Timing) else timing)
         self.timing = Timing.of(timing)
         self.period_s = self.timing.period_s
         self._model_arg = model
+        #: the model feed-forward steps as plain Python (no numba: a real stage's process), not compiled
+        self.plain_ff = plain_ff
         self.state = ControllerState()
         self._pending: _Parts | None = None
         parts = self._build(cfg, None)
@@ -648,7 +650,7 @@ class StageController:
         if same_ff and old is not None:
             ff = old.ff
         elif ffc.kind == "model" and sm is not None:
-            ff = FrictionFeedforward(sm.friction, sm.effects, **kw)
+            ff = FrictionFeedforward(sm.friction, sm.effects, plain=self.plain_ff, **kw)
         elif ffc.kind == "coulomb":
             eff = ffc.effects if ffc.effects is not None else Effects()
             ff = CoulombFeedforward(ffc.coulomb_n, ffc.viscous_n_s_m, eff, **kw)

@@ -22,6 +22,11 @@ extreme in the current direction by more than ``reversal_threshold_m`` **or** it
 (not stepped, its force kept); on confirmation the whole move-back is fed at once, so no displacement is
 lost. The model's own reversal logic therefore sees one clean reversal per real one.
 
+Two forms of the model's step, the same arithmetic: the compiled kernel (numba; what a process that simulates a
+plant uses anyway) or, with ``plain=True``, the kernel's own source run as plain Python
+(:meth:`~stagectl.friction.FrictionModel.plain_stepper`, ~2-3 µs for GMS N = 6): a real stage's controller then
+never imports numba (``stagectl.app.build_stage`` chooses it when no plant runs in the process).
+
 Coulomb baseline (``kind: coulomb``): u_ff = d·F_c + c_v·v_r (+ effects' other force) with the same
 direction latch (no sgn(v) chatter), ``coulomb_n`` = F_c [N], ``viscous_n_s_m`` = c_v [N·s/m].
 """
@@ -29,7 +34,9 @@ direction latch (no sgn(v) chatter), ``coulomb_n`` = F_c [N], ``viscous_n_s_m`` 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from stagectl.control.api import Reference
 from stagectl.control.pid import check_dt
@@ -96,28 +103,36 @@ class FrictionFeedforward:
     """Model-based friction feed-forward (``kind: model``). ``step`` is real-time safe if the model's is."""
 
     def __init__(self, model: FrictionModel, effects: Effects = NO_EFFECTS, *, reversal_threshold_m: float = 5e-9,
-                 reversal_velocity_m_s: float = 1e-5, lookahead_s: float = 0.0):
+                 reversal_velocity_m_s: float = 1e-5, lookahead_s: float = 0.0, plain: bool = False):
         self.model = model
+        stepper = model.plain_stepper() if plain else None
+        #: True: the model steps as plain Python on a state list (no numba); False: its compiled kernel
+        self.plain = stepper is not None
+        self._step: Callable[[Any, float, float, float], float] = stepper if stepper is not None else model.step
         self.effects = effects
         self.lookahead_s = lookahead_s + (effects.delay.delay_s if effects.delay is not None else 0.0)
         self.latch = DirectionLatch(reversal_threshold_m, reversal_velocity_m_s)
         self.state = FrictionFfState()
         self.input_scale = 1.0  # β: the model is fed β·dx (pre-sliding stiffness ×β, Stribeck velocity ÷β)
-        self._mstate = model.initial_state()
-        self._probe: FloatArray | None = None
+        self._mstate = self._relaxed()
+        self._probe: Any = None
         self._f_model = 0.0
         # the model's first step loads its compiled kernel (numba: 0.5-0.9 s on a loaded PC): here, at
         # construction, not in the control loop's first moving cycle (a drive's heartbeat consumer faults on that)
-        model.step(model.initial_state(), 1e-9, 1e-6, 1e-3)
+        self._step(self._relaxed(), 1e-9, 1e-6, 1e-3)
+
+    def _relaxed(self) -> Any:
+        s = self.model.initial_state()
+        return s.tolist() if self.plain else s
 
     @property
     def model_state(self) -> FloatArray:
-        """The model copy's internal state (the array itself; do not modify)."""
-        return self._mstate
+        """The model copy's internal state (the array itself, a list when :attr:`plain`; do not modify)."""
+        return self._mstate  # type: ignore[no-any-return]
 
     def reset(self, x_m: float) -> None:
         """Relaxed model state (no pre-sliding memory) at ``x_m``; the plant should be relaxed too (§6.2)."""
-        self._mstate = self.model.initial_state()
+        self._mstate = self._relaxed()
         self._f_model = 0.0
         self.latch.reset(x_m)
         self.state = FrictionFfState(x_fed_m=x_m, x_extreme_m=x_m)
@@ -152,7 +167,7 @@ class FrictionFeedforward:
         if d != 0 and dx * d > 0.0:
             # motion in the confirmed direction (includes the catch-up of a just-confirmed move-back)
             b = self.input_scale
-            f = self.model.step(self._mstate, b * dx, b * dx / dt, dt)
+            f = self._step(self._mstate, b * dx, b * dx / dt, dt)
             st.x_fed_m = xr
             st.holding = False
             self._f_model = f
@@ -176,14 +191,14 @@ class FrictionFeedforward:
         slipping count in neither. Includes the input scale β. GMS: Σk_i of the elements not at their slip
         limit in that direction (all of them right after a reversal, none in gross sliding)."""
         buf = self._probe
-        if buf is None or buf.shape != self._mstate.shape:
+        if buf is None or len(buf) != len(self._mstate):
             buf = self._probe = self._mstate.copy()
         sgn = 1.0 if direction >= 0 else -1.0
         dx = self.input_scale * probe_m * sgn
         buf[:] = self._mstate
-        f1 = self.model.step(buf, dx, dx / probe_s, probe_s)
+        f1 = self._step(buf, dx, dx / probe_s, probe_s)
         buf[:] = self._mstate
-        f2 = self.model.step(buf, 2.0 * dx, 2.0 * dx / probe_s, probe_s)
+        f2 = self._step(buf, 2.0 * dx, 2.0 * dx / probe_s, probe_s)
         return (f2 - f1) / (probe_m * sgn)
 
     def nudge(self, dx_m: float, dt: float) -> float:
@@ -194,7 +209,7 @@ class FrictionFeedforward:
         st = self.state
         if dx_m == 0.0 or math.isnan(st.x_fed_m):
             return st.u_ff_n
-        f = self.model.step(self._mstate, dx_m, dx_m / dt, dt)
+        f = self._step(self._mstate, dx_m, dx_m / dt, dt)
         self._f_model = f
         eff = self.effects
         x = st.x_fed_m

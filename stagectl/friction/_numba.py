@@ -21,27 +21,58 @@ Also here: the Stribeck curve, used by every model that has one::
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import types
-from numba.typed import List
 
-from stagectl.jit import kernel
+from stagectl.jit import dispatcher, kernel, plain
 
 FloatArray = npt.NDArray[np.float64]
 
-_arr = types.float64[::1]
-#: signature of a kernel ``step(p, state, dx, v, dt) -> F``
-STEP_SIG = types.float64(_arr, _arr, types.float64, types.float64, types.float64)
-#: signature of a kernel ``force(p, state, v) -> F``
-FORCE_SIG = types.float64(_arr, _arr, types.float64)
-#: first-class function types for compiled loops that take kernels as arguments
-STEP_FN = types.FunctionType(STEP_SIG)
-FORCE_FN = types.FunctionType(FORCE_SIG)
+#: numba's types for compiled loops that take kernels as arguments, made on first use (:func:`_numba_types`;
+#: importing this module imports no numba): ``STEP_SIG``/``FORCE_SIG`` the signatures of a kernel
+#: ``step(p, state, dx, v, dt) -> F`` / ``force(p, state, v) -> F``, ``STEP_FN``/``FORCE_FN`` their first-class
+#: function types, ``STEP_LIST``/``FORCE_LIST`` typed lists of them, ``List`` numba's typed list. Read them as
+#: attributes of this module.
+_NUMBA_NAMES = ("STEP_SIG", "FORCE_SIG", "STEP_FN", "FORCE_FN", "STEP_LIST", "FORCE_LIST", "List")
+# declared, not assigned: the names exist once _numba_types() ran (the module __getattr__ runs it)
+STEP_SIG: Any
+FORCE_SIG: Any
+STEP_FN: Any
+FORCE_FN: Any
+STEP_LIST: Any
+FORCE_LIST: Any
+List: Any
+
+
+def _numba_types() -> None:
+    """Put numba's types of :data:`_NUMBA_NAMES` into this module's globals (where the compiled wrappers below
+    read them; this imports numba)."""
+    g = globals()
+    if "STEP_FN" in g:
+        return
+    from numba import types
+    from numba.typed import List
+
+    arr = types.float64[::1]
+    step_sig = types.float64(arr, arr, types.float64, types.float64, types.float64)
+    force_sig = types.float64(arr, arr, types.float64)
+    step_fn = types.FunctionType(step_sig)
+    force_fn = types.FunctionType(force_sig)
+    g.update(STEP_SIG=step_sig, FORCE_SIG=force_sig, STEP_FN=step_fn, FORCE_FN=force_fn,
+             STEP_LIST=types.ListType(step_fn),  # type: ignore[no-untyped-call]  # numba types are unannotated
+             FORCE_LIST=types.ListType(force_fn), List=List)  # type: ignore[no-untyped-call]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _NUMBA_NAMES:
+        _numba_types()
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @kernel(inline="always")
@@ -76,10 +107,8 @@ def stribeck_g(v: float, fc: float, fs: float, vs: float, delta: float) -> float
     return fc + (fs - fc) * stribeck_excess(v, vs, delta)
 
 
-#: typed lists holding one kernel function each. Passing a first-class function from Python costs
-#: ~20-30 µs per call (boxing); a typed list holding it unboxes in ~1 µs (plant step, short force_along).
-STEP_LIST = types.ListType(STEP_FN)  # type: ignore[no-untyped-call]  # numba types are unannotated
-FORCE_LIST = types.ListType(FORCE_FN)  # type: ignore[no-untyped-call]
+# typed lists holding one kernel function each (STEP_LIST, FORCE_LIST). Passing a first-class function from Python
+# costs ~20-30 µs per call (boxing); a typed list holding it unboxes in ~1 µs (plant step, short force_along).
 
 
 @kernel
@@ -136,9 +165,11 @@ _KEEP: list[Any] = []  # the dispatchers behind _LISTS' ids stay alive
 
 
 def _typed_list(kind: str, fn: Any) -> Any:
+    fn = dispatcher(fn)  # compiled code takes numba's dispatcher as a first-class function, not a LazyKernel
     key = (kind, id(fn))
     got = _LISTS.get(key)
     if got is None:
+        _numba_types()
         wrap: Any
         wrap, sig = (wrap_step, STEP_LIST(STEP_FN)) if kind == "step" else (wrap_force, FORCE_LIST(FORCE_FN))
         if not wrap.signatures:
@@ -234,9 +265,16 @@ class KernelModel(FrictionModel):
     def force(self, state: FloatArray, v: float) -> float:
         return float(type(self)._kforce(self._p, state, float(v)))
 
+    def plain_stepper(self) -> Callable[[list[float], float, float, float], float]:
+        """The model's step kernel run as plain Python (:func:`stagectl.jit.plain`: its own source, the kernels
+        it calls likewise) with the packed parameters as a list: ``f(state, dx, v, dt) -> F``. A GMS (N = 6)
+        step costs ~2-3 µs in the interpreter (docs/performance.md)."""
+        return functools.partial(plain(type(self)._kstep), self._p.tolist())
+
     def kernel(self) -> FrictionKernel:
         fb, dv = self._stick()
-        return FrictionKernel(type(self)._kstep, type(self)._kforce, self._p.copy(), fb, dv)
+        # the compiled form: numba's dispatchers (this imports numba), which compiled loops take as values
+        return FrictionKernel(dispatcher(type(self)._kstep), dispatcher(type(self)._kforce), self._p.copy(), fb, dv)
 
     def force_along(self, x: npt.ArrayLike, t: npt.ArrayLike) -> FloatArray:
         xa, ta = _check_xt(x, t)

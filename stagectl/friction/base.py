@@ -104,6 +104,12 @@ class FrictionModel(ABC):
     def force(self, state: FloatArray, v: float) -> float:
         """Friction force [N] for the current ``state`` at velocity ``v`` [m/s], without advancing."""
 
+    def plain_stepper(self) -> Callable[[list[float], float, float, float], float] | None:
+        """:meth:`step` in plain Python, imports no numba: ``f(state, dx, v, dt) -> F`` on a state *list*
+        (``initial_state().tolist()``, the same layout), advanced in place; the same results as :meth:`step`
+        (bit for bit in the tests). None: this model has no plain form (then :meth:`step` is the only one)."""
+        return None
+
     def derivative(self, state: FloatArray, v: float) -> FloatArray:
         """State derivative d(state)/dt at velocity ``v`` (for ODE cross-checks). Static models: empty."""
         raise NotImplementedError(f"{self.tag}: no continuous-time derivative form")

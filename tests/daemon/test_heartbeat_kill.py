@@ -123,6 +123,12 @@ def test_sigkill_daemon_drive_stops_by_itself(sim_plant, tmp_path, notify_socket
             assert st["state"] == "active" and st["drive_enabled"], st["loop"].get("fault")
         sw = int.from_bytes(node.sdo.upload(0x6041, 0), "little")
         assert sw & 0x6F == 0x27, hex(sw)
+        # no plant in the controller's processes: neither the daemon nor its loop process imported numba (its
+        # extension modules would be mapped); the feed-forward steps its model as plain Python (docs/performance.md)
+        kids = [int(c) for t in Path(f"/proc/{daemon.pid}/task").iterdir()
+                for c in (t / "children").read_text().split()]
+        assert kids, "the daemon's loop process was not found"
+        assert [p for p in (daemon.pid, *kids) if "/numba/" in Path(f"/proc/{p}/maps").read_text()] == []
         emcys: list[tuple[int, float]] = []
         node.emcy.add_callback(lambda e: emcys.append((e.code, time.monotonic())))
 

@@ -31,14 +31,17 @@ def test_importing_friction_and_plant_compiles_nothing(tmp_path: Path) -> None:
         from stagectl.friction import _numba, dahl, effects, gms, hsieh, lugre, maxwell, static
         from stagectl.sim import plant
         mods = (_numba, dahl, effects, gms, hsieh, lugre, maxwell, static, plant)
+        import sys
+        numba_imported = "numba" in sys.modules  # kernels are LazyKernels: numba comes with the first compiled use
         n = {m.__name__: sum(len(d.overloads) for d in vars(m).values() if hasattr(d, "overloads"))
              for m in mods}
         import os
         files = [f for _, _, fs in os.walk(os.environ["NUMBA_CACHE_DIR"]) for f in fs]
-        print(json.dumps({"compiled": n, "cache_files": len(files)}))
+        print(json.dumps({"compiled": n, "cache_files": len(files), "numba_imported": numba_imported}))
     """, tmp_path / "nc"))
     assert got["compiled"] and all(v == 0 for v in got["compiled"].values()), got
     assert got["cache_files"] == 0
+    assert got["numba_imported"] is False
 
 
 def test_using_one_model_compiles_only_that_model(tmp_path: Path) -> None:
@@ -69,7 +72,8 @@ def test_the_sim_configs_plant_and_feed_forward_compile_only_what_they_use(tmp_p
         ff = cfg.controller.feedforward.model.friction
         ff.step(ff.initial_state(), 1e-9, 1e-4, 1e-3)
         p.step(0.5, 1e-3)
-        plain, integ, kstep = plant._LOOPS[id(gms._kstep)][0:2] + (gms._kstep,)
+        from stagectl.jit import dispatcher
+        plain, integ, kstep = plant._LOOPS[id(dispatcher(gms._kstep))][0:2] + (gms._kstep,)
         print(json.dumps({{"step": len(kstep.overloads), "force": len(gms._kforce.overloads),
                           "cycle": len(p._cycle.overloads),
                           "plain": len(plain.overloads), "general": len(integ.overloads),
@@ -172,6 +176,23 @@ def test_stagectl_warm_fills_the_cache_the_next_start_loads(tmp_path: Path) -> N
     assert first["kernels"] == 4 and first["loaded_from_cache"] == 0  # step, force, per-cycle step, plain loop
     second = warm()
     assert second["loaded_from_cache"] == second["signatures"] == first["signatures"]
+
+
+def test_stagectl_warm_on_a_real_stage_config_warms_nothing_and_imports_no_numba(tmp_path: Path) -> None:
+    """A real stage (``io.kind: canopen``, no ``sim:``) steps its feed-forward as plain Python: the unit's
+    ``ExecStartPre`` warm has nothing to compile or load, and does not import numba."""
+    repo = Path(__file__).resolve().parents[2]
+    code = ("import json, sys\nfrom stagectl.cli import main\n"
+            f"main(['warm', '--config', {str(repo / 'config' / 'stage-canopen.yaml')!r}])\n"
+            "print(json.dumps({'numba': 'numba' in sys.modules}))\n")
+    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nc")),
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    got = json.loads(lines[-2])
+    assert got["kernels"] == 0 and got["models"] == [] and got["plain_feedforward"] == [
+        str(repo / "config" / "stage-canopen.yaml")]
+    assert json.loads(lines[-1]) == {"numba": False}
 
 
 def test_a_constant_imported_from_another_module_is_part_of_the_key(tmp_path: Path) -> None:

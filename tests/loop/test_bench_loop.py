@@ -75,3 +75,7 @@ def test_progress_plan_includes_the_breakdown(monkeypatch):
     assert len(stages) == 2
     assert all(t - d >= sp > 0.0 for d, t, sp in stages)
     assert stages[1][0] == pytest.approx(0.1 + hot_s) and told[-1][:2] == (told[-1][1], told[-1][1])
+    # the feed-forward cost: the plain-Python twin and the compiled kernel computed the same forces
+    ff = out["feedforward"]
+    assert ff["plain"]["plain_python"] and not ff["compiled"]["plain_python"] and ff["model"] == "gms"
+    assert ff["max_force_difference_n"] == 0.0 and ff["force_range_n"] > 1.0  # it slid both ways (Fc 1 N)
