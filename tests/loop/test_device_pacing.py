@@ -106,9 +106,9 @@ def test_a_frozen_sim_plant_is_waited_for_not_run_blind(hil):
     # paced: the loop waited the whole stall, ran no cycle blind and tracked as without it
     assert paced.fault is None, paced.fault
     assert 95 <= paced.device_waits <= 105
-    assert rec.col("stale").sum() <= 2
+    assert rec.col("stale").sum() <= 2  # measured 1 (the cycle whose SYNC the frozen drive left unanswered)
     e0, e = _true_error(rec0, x0), _true_error(rec, x)
-    assert e <= 1.5 * e0 + 0.2e-6, (e, e0)
+    assert e <= 1.1 * e0, (e, e0)  # measured 0.913 µm against 0.903 µm
     # loop time is the drive's: the run covers the same 0.4 s of motion, the reference is where the stage is
     assert rec.n == rec0.n
     # unpaced (the loop before): the SYNCs of the stall ran the plant blind once worked off: stale_position
