@@ -138,3 +138,58 @@ def test_a_dead_drive_process_faults_after_max_missed_wall_slots(hil):
     assert abs(loop.device_waits - hil.io.drive.max_missed) <= 2
     assert rec.col("stale")[: res.fault.cycle].sum() <= 1  # no cycle run blind before it (then: FAULT)
     assert np.ptp(x[99:]) < 1e-9  # the plant stood still from the stall on
+
+
+def test_the_wait_keeps_the_controller_heartbeat_and_ends_on_the_drives(make_lockstep_drive):
+    """While the loop waits, the driver still sends the controller heartbeat on the wall clock (the drive's
+    consumer must not stop a stage that only waits), and a drive heartbeat arriving during the wait ends it: the
+    drive's process runs, so its answers were lost, not delayed (the stale limits then judge them)."""
+    w, dut, frozen = make_lockstep_drive
+    dut.sync()
+    assert not dut.read().fresh  # the frozen drive did not answer
+    dut.write(0.0)
+    slots = 0
+    for _ in range(100):
+        assert dut.behind(1, 1)
+        slots += 1
+    hb = [m for m in frozen if m.arbitration_id == 0x700 + dut.cfg.controller_node_id]
+    assert len(hb) == round(slots * 1e-3 / dut.cfg.controller_heartbeat_s)  # 5 beats in 100 ms
+    assert sum(m.arbitration_id == 0x080 for m in frozen) == 1  # no SYNC after the unanswered one
+    w.drive.send(0x700 + w.drive.node_id, bytes([5]))  # the drive's process runs: its heartbeat
+    assert not dut.behind(1, 1)
+
+
+@pytest.fixture
+def make_lockstep_drive():
+    from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
+    from stagectl.sim.world import SimWorld, SimWorldConfig
+
+    w = SimWorld.from_config(SimWorldConfig.from_mapping({"plant": {
+        "mass_kg": 2.0, "friction": {"model": "stribeck", "fc_n": 1.0, "fs_n": 1.5, "viscous_n_s_m": 10.0},
+        "sensor": {"resolution_m": 1e-9}}}))
+    dut = Cia402Drive(Cia402Config(node_id=1, can=w.ready_info()["can"], sdo_timeout_s=3.0, max_missed=1000,
+                                   heartbeat_timeout_s=1.0), timing=1e-3)
+    frozen: list = []
+    state = {"frozen": False}
+
+    def pump() -> int:
+        if state["frozen"]:
+            while (msg := w._bus.recv(0.0)) is not None:
+                frozen.append(msg)
+            return 0
+        return w.pump()
+
+    try:
+        dut.set_pump(pump)
+        dut.open()
+        dut.configure()
+        dut.enable()
+        for _ in range(5):
+            dut.sync()
+            assert dut.read().fresh
+            dut.write(0.0)
+        state["frozen"] = True
+        yield w, dut, frozen
+    finally:
+        dut.close()
+        w.stop()
