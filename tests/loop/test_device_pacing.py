@@ -64,10 +64,11 @@ def _run(cfg, *, pace: int, stall: tuple[float, float] | None = None, drop: int 
          duration_s: float = 0.4):
     """A 300 µm move at 2 mm/s from rest; the drive frozen over ``stall`` (simulated clock, s) or ``drop`` of its
     answers lost from cycle 100 on (its plant running on). Returns (result, loop, rows, true plant x per row)."""
+    from stagectl.sim.faults import FaultSpec, SimFault
+
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
     from stagectl.recorder import Recorder
-    from stagectl.sim.faults import FaultSpec, SimFault
 
     cfg = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, pace_cycles=pace))
     clock = SimClock()
@@ -100,8 +101,8 @@ def _true_error(rec, xs) -> float:
 def test_a_frozen_sim_plant_is_waited_for_not_run_blind(hil):
     clean, _, rec0, x0 = _run(hil, pace=1)
     # 100 ms without the drive, mid-move at 2 mm/s (twice safety.stale_cycles)
-    paced, loop, rec, x = _run(hil, pace=1, stall=(0.1, 0.2))
-    blind, _, recb, xb = _run(hil, pace=0, stall=(0.1, 0.2))
+    paced, _, rec, x = _run(hil, pace=1, stall=(0.1, 0.2))
+    blind, _, _, _ = _run(hil, pace=0, stall=(0.1, 0.2))
     assert clean.fault is None and clean.device_waits == 0
     # paced: the loop waited the whole stall, ran no cycle blind and tracked as without it
     assert paced.fault is None, paced.fault
