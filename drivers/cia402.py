@@ -451,6 +451,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._rx_raw = 0
         self._old_run = 0
         self._cycle = 0
+        # device-time pacing (behind()): TPDO1 drained while the loop waited, wall slots waited since the last
+        # TPDO1, a drive heartbeat seen meanwhile
+        self._paced_got: tuple[int, int] | None = None
+        self._wait_slots = 0
+        self._hb_in_wait = False
         self._cw = int(Controlword.SHUTDOWN)
         self._synced = False
         self._unread = False
@@ -714,6 +719,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 got = self._tpdo1_unpack(data)  # (statusword, raw position)
                 self._rx_raw = got[1]
                 self._count_tpdo()
+                self._wait_slots = 0
                 return got
             self._note(DeviceFault(FaultKind.BUS_ERROR, f"TPDO1 too short ({len(data)} bytes, need "
                                                         f"{self._tpdo1_size})"))
@@ -726,6 +732,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
                 self._note(DeviceFault(FaultKind.EMCY, f"EMCY error register 0x{reg:02X}", code))
         elif cid == self._hb_id and msg.data:
             self._hb_age = 0
+            self._hb_in_wait = self._wait_slots > 0
             self._hb_seen = True
             self._bus_off = False
             nmt = msg.data[0] & 0x7F
@@ -828,6 +835,9 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._pump is not None:
             self._pump()
         got = self._drain()  # TPDOs that answered an earlier SYNC: stale for read() ...
+        if self._paced_got is not None:  # (one drained while the loop waited for it: behind())
+            got = got or self._paced_got
+            self._paced_got = None
         self._late = None
         self._late_excess = self._rx_excess
         if not self.cfg.sync_producer:
@@ -848,6 +858,48 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         if self._hb_silent_cycles and self._hb_age > self._hb_silent_cycles:
             self._hb_silent_in_gap = True
         self._synced = True
+
+    def behind(self, unanswered: int, slots: int) -> bool:
+        """Device-time pacing (``loop.pace_cycles``): True when ``unanswered`` or more of our SYNCs have no answer
+        yet, so the loop should not start a cycle (no SYNC, no RPDO) in this slot. Real-time safe.
+
+        For a drive whose plant advances one period per SYNC (the HIL's ``stagectl sim-plant``, ``loop.device_time``):
+        a drive process held off the CPU then neither answers nor moves its plant, and the loop's time waits with it
+        instead of sending SYNCs (and forces) it cannot see answered: each of those is one period of the plant run
+        blind once the drive works them off. Meanwhile this drains the bus (an answer arriving is kept for the next
+        :meth:`sync` as its late sample), sends the controller heartbeat on its wall-clock schedule and ages the
+        drive's heartbeat by ``slots`` (wall slots since the last call: 1 + skipped). It stops waiting (False) when
+        the drive's heartbeat came during the wait (the drive runs: answers were lost, not delayed; the loop's
+        stale limits judge them as usual) and, with a ``MISSED_FRAME`` fault for the next :meth:`read`, after
+        ``max_missed`` wall slots without any answer (a dead drive process).
+        """
+        if self._state is not DeviceState.ENABLED or not self.cfg.sync_producer or unanswered <= 0:
+            return False
+        if self._pump is not None:
+            self._pump()
+        got = self._drain()
+        if got is not None:
+            self._paced_got = got
+        lost = self._lost or 0
+        if self._n_sync - self._n_rx - lost < unanswered:
+            self._wait_slots = 0
+            self._hb_in_wait = False
+            return False
+        if self._hb_in_wait:  # the drive's process runs: its answers were lost, stop waiting for them (the
+            self._hb_in_wait = False  # wall slots waited still count towards max_missed until an answer comes)
+            return False
+        for _ in range(slots):
+            if self._cycle % self._hb_every == 0:
+                self._send(self._hb_msg)
+            self._cycle += 1
+        self._hb_age += slots
+        self._wait_slots += slots
+        if self._wait_slots >= self.cfg.max_missed:
+            self._note(DeviceFault(FaultKind.MISSED_FRAME, f"no TPDO for {self._wait_slots} cycles while the loop "
+                                                           f"waited for the drive (device time)"))
+            self._wait_slots = 0
+            return False
+        return True
 
     def _wait_tpdo(self) -> tuple[int, int] | None:
         bus = self._bus

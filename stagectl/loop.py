@@ -122,6 +122,7 @@ from stagectl.runtime.protocols import (
     HoldsOnStale,
     Learner,
     NamesTerms,
+    PacesDevice,
     PreparesRetune,
     ReferenceSource,
     RunsScenarios,
@@ -275,6 +276,8 @@ class ControlLoop:
         self.stats = CycleStats(cfg.stats_window)  # preallocated
         self.cycle = 0
         self.overruns = 0
+        #: wall slots the loop waited for a device behind its SYNCs (``loop.pace_cycles``, device time)
+        self.device_waits = 0
         self.faults = 0  # faults entered since construction (a fault cleared by a reset between two looks counts)
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
@@ -574,6 +577,7 @@ class ControlLoop:
         wall0 = time.monotonic()
         cycle0 = self.cycle
         overruns0 = self.overruns
+        waits0 = self.device_waits
         try:
             if self.realtime:
                 rt = self.cfg.realtime
@@ -601,6 +605,7 @@ class ControlLoop:
             cpu_fraction=cpu / wall,
             fault=fault,
             realtime=self.realtime_report,
+            device_waits=self.device_waits - waits0,
         )
 
     def _cycles(
@@ -638,6 +643,7 @@ class ControlLoop:
         serve, execute = self._inbox.serve, self._execute
         t_last = math.nan  # the previous cycle's loop time (the reference's own time: module docstring)
         slow_motion = self.slow_motion
+        pace = int(self.cfg.pace_cycles) if device_time and isinstance(sync, PacesDevice) else 0
         while True:
             # ------------------------------------------------------ stop conditions
             if k == max_cycles:
@@ -652,6 +658,21 @@ class ControlLoop:
                 t = clock.now() - t0
             if t >= t_end - 1e-6 * period:
                 return "duration"
+            if pace and self.state is LoopState.ACTIVE and sync.behind(pace, 1 + skipped):  # type: ignore[union-attr]
+                # device time: the drive has not answered our last SYNCs (its process held off the CPU, its
+                # plant frozen); the loop's time waits with it: no SYNC, no force, no row in this slot
+                self.device_waits += 1 + skipped
+                slot += 1
+                deadline = t0 + slot * period
+                clock.sleep_until(deadline)
+                late = clock.now() - deadline
+                skipped = 0
+                if late >= period * (1.0 - 1e-9):
+                    skipped = max(1, int(late // period))
+                    slot += skipped
+                    late -= skipped * period
+                    self.overruns += skipped
+                continue
             s_ref = self.slow_down if slow_motion else 1.0
             if s_ref != 1.0 and t_last == t_last:
                 self.ref_lag_s += (t - t_last) * (1.0 - 1.0 / s_ref)

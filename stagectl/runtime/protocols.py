@@ -33,6 +33,14 @@ class PreparesRetune(Protocol):
 
 
 @runtime_checkable
+class PacesDevice(Protocol):
+    """A SYNC producer that tells whether its device is behind (``loop.pace_cycles``, device time only:
+    :meth:`stagectl.drivers.cia402.Cia402Drive.behind`): True = do not start a cycle in this slot."""
+
+    def behind(self, unanswered: int, slots: int) -> bool: ...
+
+
+@runtime_checkable
 class TakesLearnedForce(Protocol):
     """A controller with the learned feed-forward input: ``step(..., u_learn_n)`` adds it to the command as an
     applied force (the observer counts it as applied, so it does not fight it)."""

@@ -104,6 +104,8 @@ class LoopResult:
     cpu_fraction: float
     fault: FaultInfo | None
     realtime: dict[str, Any] = field(default_factory=dict)
+    #: wall slots the loop waited for a device behind its SYNCs (``loop.pace_cycles``, device time)
+    device_waits: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         """Plain data for summaries (timing as {p50, p99, max} µs, the fault as {name, cause, t_s, cycle})."""
@@ -118,5 +120,6 @@ class LoopResult:
             "cpu_fraction": self.cpu_fraction,
             "fault": self.fault,
             "realtime": self.realtime,
+            "device_waits": self.device_waits,
         })
         return out

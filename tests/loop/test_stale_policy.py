@@ -28,7 +28,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def hil_cfg():
-    return load_app_config(REPO / "config" / "hil-canopen.yaml")
+    """config/hil-canopen.yaml, unpaced (``loop.pace_cycles`` 0): the dropped answers here come from a drive whose
+    plant runs on, which a paced loop in device time never lets happen (it sends no SYNC until answered:
+    tests/loop/test_device_pacing.py); unpaced, the loop faces them as it faces a real drive's."""
+    cfg = load_app_config(REPO / "config" / "hil-canopen.yaml")
+    return dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, pace_cycles=0))
 
 
 def _pushed_controller(cfg, limit):

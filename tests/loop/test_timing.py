@@ -403,9 +403,12 @@ def test_safety_tolerates_a_longer_gap_only_while_the_stage_stands():
 
 @pytest.fixture(scope="module")
 def hil_lockstep():
-    """config/hil-canopen.yaml's driver, controller and safety on the in-process virtual bus (lock-step)."""
+    """config/hil-canopen.yaml's driver, controller and safety on the in-process virtual bus (lock-step), unpaced
+    (``loop.pace_cycles`` 0: lost answers of a drive whose plant runs on, as a real drive's; paced:
+    tests/loop/test_device_pacing.py)."""
     cfg = load_app_config(REPO / "config" / "hil-canopen.yaml")
-    return dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN))
+    return dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=IoKind.EMBEDDED_CANOPEN),
+                               loop=dataclasses.replace(cfg.loop, pace_cycles=0))
 
 
 @pytest.mark.parametrize("moving", [False, True])
