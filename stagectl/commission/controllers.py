@@ -28,9 +28,13 @@ import numpy.typing as npt
 from stagectl.control.api import Command, Reference
 from stagectl.control.controller import TERM_NAMES, StageController
 from stagectl.control.friction_ff import CoulombFeedforward
+from stagectl.control.reference import TrajectoryReference
 
 FloatArray = npt.NDArray[np.float64]
 
+#: SpeedLadderFeedforward(viscous_only=True): the slope of the friction-speed line below the fastest pair may
+#: exceed the fastest pair's by this factor at most for the viscous feed-forward to be used
+VISCOUS_SLOPE_RISE_TOL = 1.2
 #: telemetry terms of the commissioning controller: the closed-loop terms plus the excitation [N]
 TERMS = (*TERM_NAMES, "u_exc")
 
@@ -235,8 +239,12 @@ class SpeedLadderFeedforward:
     identification uses the total commanded force, so the feed-forward does not bias it.
     """
 
-    def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10) -> None:
+    def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10,
+                 viscous_only: bool = False) -> None:
         self.ff = ff
+        #: viscous_only: the Coulomb term stays as given (on at rest too); only c_v is learned, and only while
+        #: the fit is sound (:meth:`_update`)
+        self.viscous_only = viscous_only
         self.coulomb0_n = ff.coulomb_n
         self.coulomb_n = ff.coulomb_n
         self.settle_s = settle_s
@@ -251,6 +259,8 @@ class SpeedLadderFeedforward:
 
     def before(self, ref: Reference) -> None:
         """Before the controller's step: no Coulomb term while the reference stands."""
+        if self.viscous_only:
+            return
         self.ff.coulomb_n = 0.0 if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) else self.coulomb_n
 
     def observe(self, dt: float, ref: Reference, u_n: float) -> None:
@@ -281,10 +291,95 @@ class SpeedLadderFeedforward:
         if len(pts) >= 2 and pts[-2][0] > min(self.levels):
             va, fa = pts[-2]
             cv = max(0.0, (fb - fa) / (vb - va))
+        if self.viscous_only:
+            # sound: a slope from two speeds above the slowest, no more viscous force at v_b than the whole
+            # friction measured there, and where a third speed is known the secant slopes rise with the speed
+            # (a Stribeck curve plus c_v·v has secants below c_v that rise towards it; a slope that falls is
+            # cogging or noise that did not cancel). Under that curve the secant never exceeds c_v.
+            sound = len(pts) >= 2 and pts[-2][0] > min(self.levels) and 0.0 < cv * vb <= fb
+            if sound and len(pts) >= 3 and pts[-3][0] > min(self.levels):
+                (v1, f1), (v2, f2) = pts[-3], pts[-2]
+                sound = (f2 - f1) / (v2 - v1) <= VISCOUS_SLOPE_RISE_TOL * cv
+            self.ff.viscous_n_s_m = cv if sound else 0.0
+            self.updates.append((self.coulomb_n, self.ff.viscous_n_s_m))
+            return
         fc = min(max(fb - cv * vb, 0.0), self.coulomb0_n)
         self.coulomb_n = fc
         self.ff.viscous_n_s_m = cv
         self.updates.append((fc, cv))
+
+
+class StandGate:
+    """Reference source for an experiment whose dwells wait for the stage to stand (bounded).
+
+    Wraps the stage's :class:`~stagectl.control.reference.TrajectoryReference`. When a ``dwell`` segment that
+    has more segments after it is about to end while the stage still moves, the reference's own time stops
+    (it holds the dwell's position) until the stage stands or the dwell has been stretched by ``max_wait_s``;
+    the reference then runs on from where it stopped (its time runs ``lag_s`` behind the loop's). *Stands*:
+    the measured position (:meth:`observe`, fed by :class:`CommissionController` each step) moved less than
+    ``v_stand_m_s·W`` over the last window ``W = window_s``.
+
+    Why: a fixed 0.1 s dwell after a fast pass can end while the stage still creeps out of its stop overshoot
+    (generated plant 44: 0.4-0.8 mm/s, plant 35: 0.37 mm/s, with the observer wound against it); the next move
+    then starts from a sliding stage with the Coulomb feed-forward flipping against the friction it meets
+    (docs/commissioning.md, *Pass ramps and the stop*)."""
+
+    def __init__(self, inner: TrajectoryReference, period_s: float, v_stand_m_s: float, window_s: float,
+                 max_wait_s: float) -> None:
+        self.inner = inner
+        self.period_s = period_s
+        self.n = max(2, round(window_s / period_s))
+        self.v_stand_m_s = v_stand_m_s
+        self.max_wait_s = max_wait_s
+        self.lag_s = 0.0
+        self._t = 0.0
+        self._hist: list[float] = []
+        self._waited = 0.0
+        #: (loop time the dwell ended [s], how long it was stretched [s], stood) per stretched dwell
+        self.waits: list[tuple[float, float, bool]] = []
+
+    def observe(self, x_m: float) -> None:
+        h = self._hist
+        h.append(x_m)
+        if len(h) > self.n + 1:
+            del h[0]
+
+    def still(self) -> bool:
+        h = self._hist
+        return len(h) > self.n and abs(h[-1] - h[0]) <= self.v_stand_m_s * self.n * self.period_s
+
+    def sample(self, t_s: float) -> Reference:
+        dt = t_s - self._t
+        self._t = t_s
+        gen = self.inner.gen
+        if dt > 0.0:
+            ending = gen.state.segment == "dwell" and gen.queued > 0 and gen.segment_left_s <= dt + 1e-9
+            if ending and self._waited + dt <= self.max_wait_s and not self.still():
+                self._waited += dt
+                self.lag_s += dt
+            elif self._waited > 0.0:
+                self.waits.append((t_s, self._waited, self.still()))
+                self._waited = 0.0
+        return self.inner.sample(t_s - self.lag_s)
+
+    def hold(self, t_s: float, x_m: float) -> None:
+        self._t = t_s
+        self.lag_s = 0.0
+        self.inner.hold(t_s, x_m)
+
+    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
+        return self.inner.move(t_s - self.lag_s, target_m, max_velocity_m_s)
+
+    def stop(self, t_s: float) -> float:
+        return self.inner.stop(t_s - self.lag_s)
+
+    @property
+    def target_m(self) -> float:
+        return self.inner.target_m
+
+    @property
+    def done(self) -> bool:
+        return self.inner.gen.done
 
 
 class CommissionController:
@@ -301,6 +396,7 @@ class CommissionController:
         self.limit_n = math.inf
         self.on_probe_done: Callable[[], None] | None = None
         self.ladder: SpeedLadderFeedforward | None = None
+        self.gate: StandGate | None = None
 
     def set_closed(self, inner: StageController, excitation: FloatArray | None = None,
                    limit_n: float = math.inf, ladder: SpeedLadderFeedforward | None = None) -> None:
@@ -336,6 +432,8 @@ class CommissionController:
             if self.follow is not None:
                 self.follow.x_m = x_meas_m
             return Command(u, {"u_exc": u})
+        if self.gate is not None:
+            self.gate.observe(x_meas_m)
         if self.ladder is not None:
             self.ladder.before(ref)
         cmd = self.inner.step(dt, x_meas_m, ref)
