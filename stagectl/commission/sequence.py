@@ -60,6 +60,7 @@ from stagectl.control.trajectory import Dwell, Move, Scenario, SegmentSpec, benc
 from stagectl.errors import StageError
 from stagectl.recorder import Recorder, tracking_summary
 from stagectl.runtime.host import LoopHost
+from stagectl.loop import ControlLoop, LoopState
 from stagectl.runtime.status import LoopResult
 
 FloatArray = npt.NDArray[np.float64]
@@ -335,7 +336,7 @@ class Commissioning:
             # the dwells may stretch (StandGate): room for every one at its bound, ended once the motion is done
             n_dwell = sum(isinstance(g, Dwell) for g in segments[:-1])
             dur += n_dwell * gate.max_wait_s
-            end = _EndWhenDone(gate, extra_s)
+            end = _EndWhenDone(gate, extra_s, stage.loop)
             stage.loop.reference = gate
             ctl.gate = gate
         else:
@@ -965,16 +966,17 @@ class _Progress:
 
 
 class _EndWhenDone:
-    """Telemetry sink that ends a run ``tail_s`` after its :class:`StandGate`'s motion is done."""
+    """Telemetry sink that ends a run ``tail_s`` after its :class:`StandGate`'s motion is done (or a fault)."""
 
-    def __init__(self, gate: StandGate, tail_s: float) -> None:
+    def __init__(self, gate: StandGate, tail_s: float, loop: ControlLoop) -> None:
+        self.loop = loop
         self.gate = gate
         self.tail_s = tail_s
         self.event = threading.Event()
         self._t_done = math.nan
 
     def append(self, row: tuple[float, ...]) -> None:
-        if not self.gate.done:
+        if not self.gate.done and self.loop.state is not LoopState.FAULT:
             self._t_done = math.nan
         elif self._t_done != self._t_done:
             self._t_done = row[0]
