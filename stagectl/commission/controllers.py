@@ -28,7 +28,6 @@ import numpy.typing as npt
 from stagectl.control.api import Command, Reference
 from stagectl.control.controller import TERM_NAMES, StageController
 from stagectl.control.friction_ff import CoulombFeedforward
-from stagectl.control.reference import TrajectoryReference
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -309,79 +308,6 @@ class SpeedLadderFeedforward:
         self.updates.append((fc, cv))
 
 
-class StandGate:
-    """Reference source for an experiment whose dwells wait for the stage to stand (bounded).
-
-    Wraps the stage's :class:`~stagectl.control.reference.TrajectoryReference`. When a ``dwell`` segment that
-    has more segments after it is about to end while the stage still moves, the reference's own time stops
-    (it holds the dwell's position) until the stage stands or the dwell has been stretched by ``max_wait_s``;
-    the reference then runs on from where it stopped (its time runs ``lag_s`` behind the loop's). *Stands*:
-    the measured position (:meth:`observe`, fed by :class:`CommissionController` each step) moved less than
-    ``v_stand_m_s·W`` over the last window ``W = window_s``.
-
-    Why: a fixed 0.1 s dwell after a fast pass can end while the stage still creeps out of its stop overshoot
-    (generated plant 44: 0.4-0.8 mm/s, plant 35: 0.37 mm/s, with the observer wound against it); the next move
-    then starts from a sliding stage with the Coulomb feed-forward flipping against the friction it meets
-    (docs/commissioning.md, *Pass ramps and the stop*)."""
-
-    def __init__(self, inner: TrajectoryReference, period_s: float, v_stand_m_s: float, window_s: float,
-                 max_wait_s: float) -> None:
-        self.inner = inner
-        self.period_s = period_s
-        self.n = max(2, round(window_s / period_s))
-        self.v_stand_m_s = v_stand_m_s
-        self.max_wait_s = max_wait_s
-        self.lag_s = 0.0
-        self._t = 0.0
-        self._hist: list[float] = []
-        self._waited = 0.0
-        #: (loop time the dwell ended [s], how long it was stretched [s], stood) per stretched dwell
-        self.waits: list[tuple[float, float, bool]] = []
-
-    def observe(self, x_m: float) -> None:
-        h = self._hist
-        h.append(x_m)
-        if len(h) > self.n + 1:
-            del h[0]
-
-    def still(self) -> bool:
-        h = self._hist
-        return len(h) > self.n and abs(h[-1] - h[0]) <= self.v_stand_m_s * self.n * self.period_s
-
-    def sample(self, t_s: float) -> Reference:
-        dt = t_s - self._t
-        self._t = t_s
-        gen = self.inner.gen
-        if dt > 0.0:
-            ending = gen.state.segment == "dwell" and gen.queued > 0 and gen.segment_left_s <= dt + 1e-9
-            if ending and self._waited + dt <= self.max_wait_s and not self.still():
-                self._waited += dt
-                self.lag_s += dt
-            elif self._waited > 0.0:
-                self.waits.append((t_s, self._waited, self.still()))
-                self._waited = 0.0
-        return self.inner.sample(t_s - self.lag_s)
-
-    def hold(self, t_s: float, x_m: float) -> None:
-        self._t = t_s
-        self.lag_s = 0.0
-        self.inner.hold(t_s, x_m)
-
-    def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
-        return self.inner.move(t_s - self.lag_s, target_m, max_velocity_m_s)
-
-    def stop(self, t_s: float) -> float:
-        return self.inner.stop(t_s - self.lag_s)
-
-    @property
-    def target_m(self) -> float:
-        return self.inner.target_m
-
-    @property
-    def done(self) -> bool:
-        return self.inner.gen.done
-
-
 class CommissionController:
     """The one controller object the loop drives during commissioning (see the module docstring)."""
 
@@ -396,7 +322,6 @@ class CommissionController:
         self.limit_n = math.inf
         self.on_probe_done: Callable[[], None] | None = None
         self.ladder: SpeedLadderFeedforward | None = None
-        self.gate: StandGate | None = None
 
     def set_closed(self, inner: StageController, excitation: FloatArray | None = None,
                    limit_n: float = math.inf, ladder: SpeedLadderFeedforward | None = None) -> None:
@@ -432,8 +357,6 @@ class CommissionController:
             if self.follow is not None:
                 self.follow.x_m = x_meas_m
             return Command(u, {"u_exc": u})
-        if self.gate is not None:
-            self.gate.observe(x_meas_m)
         if self.ladder is not None:
             self.ladder.before(ref)
         cmd = self.inner.step(dt, x_meas_m, ref)

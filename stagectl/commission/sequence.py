@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -45,23 +44,21 @@ from stagectl.commission.controllers import (
     FollowMeasured,
     SanityProbe,
     SpeedLadderFeedforward,
-    StandGate,
     log_bins,
     multisine,
 )
 from stagectl.commission.envelope import Envelope, make_envelope
 from stagectl.commission.fit import fit_models
 from stagectl.config import AppConfig, IoKind
+from stagectl.control.api import Reference
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController, controller_mass
 from stagectl.control.dob import DobConfig
 from stagectl.control.friction_ff import CoulombFeedforward
 from stagectl.control.pid import PidConfig
-from stagectl.control.api import Reference
 from stagectl.control.trajectory import Dwell, Move, Scenario, SegmentSpec, benchmark_scenarios
 from stagectl.errors import StageError
 from stagectl.recorder import Recorder, tracking_summary
 from stagectl.runtime.host import LoopHost
-from stagectl.loop import ControlLoop, LoopState
 from stagectl.runtime.status import LoopResult
 
 FloatArray = npt.NDArray[np.float64]
@@ -106,11 +103,6 @@ STICKY_FF_OFF_RATIO = 4.0
 #: the ladder's feed-forward takes a cruise's force after this many closed-loop time constants 1/(2π f_c)
 LADDER_SETTLE_X_CROSSOVER_PERIOD = 5.0
 SLOW_PASS_S = 6.0
-#: friction_cv's dwells wait (StandGate) until the stage moved slower than this fraction of the slowest pass's
-#: speed over STAND_WINDOW_S, at most STAND_MAX_WAIT_S longer
-STAND_SPEED_X_SLOWEST = 0.25
-STAND_WINDOW_S = 0.02
-STAND_MAX_WAIT_S = 1.0
 #: pre-sliding loops: reversal travels from the nested reversals' largest down by PRESLIDING_RATIO per loop,
 #: PRESLIDING_LOOPS of them (25 µm ... 0.8 µm on a 2 mm stroke)
 PRESLIDING_RATIO = 2.0
@@ -250,13 +242,10 @@ class Commissioning:
         self.experiment_tuning: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ running one experiment
-    def _run(self, stage: Stage, name: str, purpose: str, duration_s: float, params: dict[str, Any],
-             end: _EndWhenDone | None = None) -> Recorder:
+    def _run(self, stage: Stage, name: str, purpose: str, duration_s: float, params: dict[str, Any]) -> Recorder:
         loop = stage.loop
         rec = Recorder(loop.columns, capacity=int(duration_s / self.T) + 64)
         loop.add_sink(rec)
-        if end is not None:
-            loop.add_sink(end)
         injector = None
         if self.opts.inject_fault is not None and self.opts.inject_fault[0] == name:
             injector = _FaultInjector(stage, self.opts.inject_fault[1])
@@ -270,7 +259,7 @@ class Commissioning:
             if self.sim_time:
                 loop.add_sink(prog)
                 try:
-                    res = loop.run(duration_s=duration_s, stop=end.event if end is not None else None)
+                    res = loop.run(duration_s=duration_s)
                 finally:
                     loop.remove_sink(prog)
             else:
@@ -278,10 +267,8 @@ class Commissioning:
                     host = LoopHost(loop)
                     host.start(duration_s=duration_s)
                     try:
-                        while not host.wait(0.2 if end is not None else 1.0):
+                        while not host.wait(1.0):
                             prog.show(loop.status(timing=False).t_s)
-                            if end is not None and end.event.is_set():
-                                host.stop()
                     except KeyboardInterrupt:
                         interrupted = True
                         host.stop()
@@ -298,8 +285,6 @@ class Commissioning:
             interrupted = True
         finally:
             loop.remove_sink(rec)
-            if end is not None:
-                loop.remove_sink(end)
             if injector is not None:
                 loop.remove_sink(injector)
             csv = self.rec_dir / f"{name}.csv"
@@ -320,8 +305,7 @@ class Commissioning:
 
     def _closed(self, stage: Stage, name: str, purpose: str, inner: StageController, segments: list[SegmentSpec],
                 params: dict[str, Any], extra_s: float = 0.3, excitation: FloatArray | None = None,
-                exc_start: int = 0, ladder: SpeedLadderFeedforward | None = None,
-                gate: StandGate | None = None) -> Recorder:
+                exc_start: int = 0, ladder: SpeedLadderFeedforward | None = None) -> Recorder:
         ctl = stage.controller
         assert isinstance(ctl, CommissionController)
         if excitation is not None and exc_start:
@@ -329,24 +313,11 @@ class Commissioning:
         # the experiments' own tunings stay inside the envelope's force; the given and the new controller
         # (verification) only inside the configuration's limits
         ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith("verify") else math.inf, ladder)
+        stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
         dur = sc.duration_s(0.0) + extra_s
-        end = None
-        if gate is not None:
-            # the dwells may stretch (StandGate): room for every one at its bound, ended once the motion is done
-            n_dwell = sum(isinstance(g, Dwell) for g in segments[:-1])
-            dur += n_dwell * gate.max_wait_s
-            end = _EndWhenDone(gate, extra_s, stage.loop)
-            stage.loop.reference = gate
-            ctl.gate = gate
-        else:
-            stage.loop.reference = stage.reference
-        try:
-            return self._run(stage, name, purpose, dur, params, end=end)
-        finally:
-            ctl.gate = None
-            stage.loop.reference = stage.reference
+        return self._run(stage, name, purpose, dur, params)
 
     # ------------------------------------------------------------------ the sequence
     def run(self) -> Results:
@@ -507,18 +478,14 @@ class Commissioning:
         assert isinstance(cv_inner.ff, CoulombFeedforward)
         ladder = SpeedLadderFeedforward(cv_inner.ff, LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T),
                                         viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD)
-        gate = StandGate(stage.reference, T, STAND_SPEED_X_SLOWEST * float(speeds[0]), STAND_WINDOW_S,
-                         STAND_MAX_WAIT_S)
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
                                   {"speeds_m_s": speeds.tolist(), "tuning": self.experiment_tuning},
-                                  ladder=ladder, gate=gate)
+                                  ladder=ladder)
         finally:
             ctl.ladder = None
             last = self.res.experiments[-1] if self.res.experiments else None
-            if gate.waits and last is not None and last.name == "friction_cv":
-                last.params["dwells_stretched"] = [{"t_s": t, "waited_s": w, "stood": st} for t, w, st in gate.waits]
             if ladder is not None and ladder.updates and last is not None and last.name == "friction_cv":
                 last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
@@ -988,25 +955,6 @@ class _Progress:
         if t >= self._next * self.dur:
             self._next += 0.25
             self.show(t)
-
-
-class _EndWhenDone:
-    """Telemetry sink that ends a run ``tail_s`` after its :class:`StandGate`'s motion is done (or a fault)."""
-
-    def __init__(self, gate: StandGate, tail_s: float, loop: ControlLoop) -> None:
-        self.loop = loop
-        self.gate = gate
-        self.tail_s = tail_s
-        self.event = threading.Event()
-        self._t_done = math.nan
-
-    def append(self, row: tuple[float, ...]) -> None:
-        if not self.gate.done and self.loop.state is not LoopState.FAULT:
-            self._t_done = math.nan
-        elif self._t_done != self._t_done:
-            self._t_done = row[0]
-        elif row[0] - self._t_done >= self.tail_s:
-            self.event.set()
 
 
 class _FaultInjector:

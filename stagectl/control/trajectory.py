@@ -502,16 +502,6 @@ class TrajectoryGenerator:
     def done(self) -> bool:
         return math.isinf(self._cur.duration) and not self._queue
 
-    @property
-    def segment_left_s(self) -> float:
-        """Time [s] left in the current segment (inf while holding with an empty queue)."""
-        return self._cur.duration - self.state.tau_s
-
-    @property
-    def queued(self) -> int:
-        """Segments queued after the current one."""
-        return len(self._queue)
-
     def _advance_segment(self, start: Reference, keep_time: bool = False) -> None:
         if self._queue:
             spec = self._queue.popleft()
