@@ -731,18 +731,13 @@ class Commissioning:
                 "reason": f"on the twin: settled moves {n_rs} (without: {n_base})"}
 
     def _ramp_budget(self, tuning: ControllerConfig, mass_kg: float, ff_flip: float) -> RampBudget:
-        """The passes' error budget (:func:`pass_acceleration`) for the friction experiments' ``tuning``; the
-        Coulomb feed-forward changes by ``ff_flip``·F_b at a start from standstill."""
+        """The passes' error budget (:func:`pass_budget`) for the friction experiments' ``tuning``."""
         r = self.res
-        nd = max(1, round(r.plant.delay_s / self.T)) if r.plant is not None else 1
-        g_step, g_ramp = loop_error_gains(tuning, self.T, nd)
-        m_probe = r.sanity.mass_kg if r.sanity is not None else mass_kg
-        m_std = r.plant.mass_std_kg if r.plant is not None else 0.0
-        d_mass = max(abs(m_probe - mass_kg), 2.0 * m_std) / mass_kg
-        fb = max(r.sanity.breakaway_n) if r.sanity is not None else 0.0
-        return RampBudget(g_step_m_n=g_step, g_ramp_m_n_s=g_ramp, mass_kg=mass_kg, mass_error=d_mass,
-                          viscous_n_s_m=0.0, reversal_n=(2.0 - ff_flip) * fb,
-                          error_m=0.5 * self.env.following_error_m)
+        return pass_budget(tuning, self.T, max(1, round(r.plant.delay_s / self.T)) if r.plant is not None else 1,
+                           r.sanity.mass_kg if r.sanity is not None else mass_kg,
+                           r.plant.mass_std_kg if r.plant is not None else 0.0,
+                           max(r.sanity.breakaway_n) if r.sanity is not None else 0.0, ff_flip,
+                           self.env.following_error_m)
 
     def _accel(self, v: float, length: float, mass_kg: float) -> float:
         """Acceleration for a pass at ``v`` over ``length``: the ramps take at most 10 % of it, the inertia
@@ -1074,6 +1069,21 @@ class RampBudget:
 
     def as_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)
+
+
+def pass_budget(tuning: ControllerConfig, period_s: float, delay_cycles: int, probe_mass_kg: float,
+                mass_std_kg: float, breakaway_n: float, ff_flip: float, following_error_m: float) -> RampBudget:
+    """The passes' :class:`RampBudget` for the friction experiments' ``tuning`` (its mass ``m`` is the FRF's):
+    the mass uncertainty ``δm`` is the probe's and the FRF's disagreement (at least two FRF standard
+    deviations), ``|m_probe − m|/m``; ``ΔF = (2 − ff_flip)·F_b`` (``F_b`` the larger probe breakaway, the
+    Coulomb feed-forward changing by ``ff_flip·F_b`` at a start); the viscous force is fed forward from the
+    slower passes (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`), so ``c = 0``; the
+    budget is half the following-error limit."""
+    g_step, g_ramp = loop_error_gains(tuning, period_s, delay_cycles)
+    m = tuning.mass_kg
+    return RampBudget(g_step_m_n=g_step, g_ramp_m_n_s=g_ramp, mass_kg=m,
+                      mass_error=max(abs(probe_mass_kg - m), 2.0 * mass_std_kg) / m, viscous_n_s_m=0.0,
+                      reversal_n=(2.0 - ff_flip) * breakaway_n, error_m=0.5 * following_error_m)
 
 
 def pass_acceleration(a_m_s2: float, v_m_s: float, b: RampBudget) -> float:
