@@ -1023,6 +1023,12 @@ def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error
     return float(min(0.5 * v_max_m_s, cap))
 
 
+def _tuning_mass(tuning: ControllerConfig) -> float:
+    if tuning.mass_kg is None or not tuning.mass_kg > 0.0:
+        raise ValueError("the experiments' tuning needs its mass (controller mass_kg > 0)")
+    return float(tuning.mass_kg)
+
+
 def loop_error_gains(tuning: ControllerConfig, period_s: float, delay_cycles: int,
                      horizon_s: float = 1.0) -> tuple[float, float]:
     """Peak position error of a loop with ``tuning`` per unit force disturbance: ``(g_step [m/N], g_ramp
@@ -1032,7 +1038,7 @@ def loop_error_gains(tuning: ControllerConfig, period_s: float, delay_cycles: in
     of the tuning (PID, observer, filters) is in it."""
     cfg = dataclasses.replace(tuning, feedforward=FeedforwardConfig(kind="none", inertia=False),
                               max_force_n=math.inf)
-    m = cfg.mass_kg
+    m = _tuning_mass(cfg)
     out = []
     sub = 10
     h = period_s / sub
@@ -1080,7 +1086,7 @@ def pass_budget(tuning: ControllerConfig, period_s: float, delay_cycles: int, pr
     slower passes (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`), so ``c = 0``; the
     budget is half the following-error limit."""
     g_step, g_ramp = loop_error_gains(tuning, period_s, delay_cycles)
-    m = tuning.mass_kg
+    m = _tuning_mass(tuning)
     return RampBudget(g_step_m_n=g_step, g_ramp_m_n_s=g_ramp, mass_kg=m,
                       mass_error=max(abs(probe_mass_kg - m), 2.0 * mass_std_kg) / m, viscous_n_s_m=0.0,
                       reversal_n=(2.0 - ff_flip) * breakaway_n, error_m=0.5 * following_error_m)
