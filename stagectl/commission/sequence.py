@@ -462,7 +462,7 @@ class Commissioning:
         xc = env.x_c_m
         for v in speeds.tolist():
             L = min(S, max(v * CV_PASS_S, 0.05 * S))
-            a = pass_acceleration(self._accel(v, L, m), v, budget)
+            a = pass_acceleration(self._accel(v, L, m), v, budget, readable_acceleration(v, L, T))
             segs += [self._move_to(xc - L / 2, v_rep, m), Dwell(0.1),
                      Move(to_m=xc + L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100),
                      Dwell(0.1),
@@ -1092,7 +1092,17 @@ def pass_budget(tuning: ControllerConfig, period_s: float, delay_cycles: int, pr
                       reversal_n=(2.0 - ff_flip) * breakaway_n, error_m=0.5 * following_error_m)
 
 
-def pass_acceleration(a_m_s2: float, v_m_s: float, b: RampBudget) -> float:
+def readable_acceleration(v_m_s: float, length_m: float, period_s: float, min_samples: int = 50,
+                          jerk_x_accel: float = 100.0) -> float:
+    """The lowest ramp acceleration [m/s²] that leaves a pass at ``v`` over ``length`` readable by the fit
+    (:func:`analysis.cv_segments`: ``min_samples`` in the middle 60 % of its constant-speed part): with the
+    sequence's jerk ``j = jerk_x_accel·a`` a ramp lasts ``v/a + 1/jerk_x_accel`` and covers ``v/2`` of that,
+    so the cruise lasts ``L/v − v/a − 1/jerk_x_accel ≥ min_samples·T/0.6``. 0 when no ramp is that short."""
+    room = length_m / v_m_s - 1.0 / jerk_x_accel - min_samples * period_s / 0.6
+    return v_m_s / room if room > 0.0 else 0.0
+
+
+def pass_acceleration(a_m_s2: float, v_m_s: float, b: RampBudget, a_readable_m_s2: float = 0.0) -> float:
     """Ramp acceleration [m/s²] of a constant-velocity pass at ``v``: ``a`` (the pass's own, ramps ≤ 10 % of
     the pass) unless the error budget needs a slower one::
 
@@ -1104,14 +1114,16 @@ def pass_acceleration(a_m_s2: float, v_m_s: float, b: RampBudget) -> float:
     breakaway of the new one, ``2·F_b``, less the feed-forward's change ``f·F_b``: its flip, f = 2φ, or with
     the speed ladder, off at rest, f = φ), is spread over the ramp's time
     ``v/a``, a ramp of ``ΔF·a/v``. ``g_step``, ``g_ramp``: the loop's peak error per N of a force step and per
-    N/s of a force ramp (:func:`loop_error_gains`). Only the fast passes of stages with much friction for their
+    N/s of a force ramp (:func:`loop_error_gains`). Never below ``a_readable`` (:func:`readable_acceleration`):
+    a pass the fit cannot read is lost for the viscous term (generated plant 36, whose slow passes stick-slip,
+    lost its 16 mm/s pair to 0.34 m/s² ramps and its fit went to F_c −48 %, F_v +870 %). Only the fast passes of stages with much friction for their
     mass and tuning get slower ramps: generated plant 35 (1.5 kg, F_b 0.96 N, φ = 0.8) ran its 16 mm/s pass at
     1.28 m/s² (budget 0.8 m/s²), stopped 16 µm past its end, stuck there with the observer wound up and faulted
     on the way back (docs/commissioning.md, *The passes' error budget*)."""
     k = b.mass_error * b.mass_kg * b.g_step_m_n + (b.viscous_n_s_m + b.reversal_n / max(v_m_s, 1e-12)) * b.g_ramp_m_n_s
     if k <= 0.0:
         return a_m_s2
-    return float(min(a_m_s2, b.error_m / k))
+    return float(min(a_m_s2, max(b.error_m / k, a_readable_m_s2)))
 
 
 def approach_m(stroke_m: float) -> float:
