@@ -239,11 +239,12 @@ class SpeedLadderFeedforward:
     """
 
     def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10,
-                 viscous_only: bool = False) -> None:
+                 viscous_only: bool = False, min_viscous_n_s_m: float = 0.0) -> None:
         self.ff = ff
-        #: viscous_only: the Coulomb term stays as given (on at rest too); only c_v is learned, and only while
-        #: the fit is sound (:meth:`_update`)
+        #: viscous_only: the Coulomb term stays as given (on at rest too); only c_v is learned, and fed forward
+        #: only while the fit is sound and c_v ≥ min_viscous_n_s_m (:meth:`_update`)
         self.viscous_only = viscous_only
+        self.min_viscous_n_s_m = min_viscous_n_s_m
         self.coulomb0_n = ff.coulomb_n
         self.coulomb_n = ff.coulomb_n
         self.settle_s = settle_s
@@ -299,7 +300,7 @@ class SpeedLadderFeedforward:
             if sound and len(pts) >= 3 and pts[-3][0] > min(self.levels):
                 (v1, f1), (v2, f2) = pts[-3], pts[-2]
                 sound = (f2 - f1) / (v2 - v1) <= VISCOUS_SLOPE_RISE_TOL * cv
-            self.ff.viscous_n_s_m = cv if sound else 0.0
+            self.ff.viscous_n_s_m = cv if sound and cv >= self.min_viscous_n_s_m else 0.0
             self.updates.append((self.coulomb_n, self.ff.viscous_n_s_m))
             return
         fc = min(max(fb - cv * vb, 0.0), self.coulomb0_n)

@@ -103,6 +103,9 @@ STICKY_FF_OFF_RATIO = 4.0
 #: the ladder's feed-forward takes a cruise's force after this many closed-loop time constants 1/(2π f_c)
 LADDER_SETTLE_X_CROSSOVER_PERIOD = 5.0
 SLOW_PASS_S = 6.0
+#: friction_cv on a default-tuned stage feeds the learned viscous force forward only where c·v_max·g_step
+#: exceeds this many following-error limits
+VISCOUS_FF_X_FE = 0.25
 #: pre-sliding loops: reversal travels from the nested reversals' largest down by PRESLIDING_RATIO per loop,
 #: PRESLIDING_LOOPS of them (25 µm ... 0.8 µm on a 2 mm stroke)
 PRESLIDING_RATIO = 2.0
@@ -476,8 +479,15 @@ class Commissioning:
         # fit reads the passes only*)
         cv_inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
         assert isinstance(cv_inner.ff, CoulombFeedforward)
+        # default-tuned stages: only the viscous term is learned, and fed forward only where the viscous force at
+        # the top speed would take the loop (g_step) past a quarter of the following-error limit: on
+        # config/sim.yaml (10 N s/m, 0.16 N at 16 mm/s: 3.7 um) the feed-forward changed the recordings enough
+        # for discover to name a false backlash; on generated plant 44 (35 N s/m: 35 um) it is what keeps the
+        # fastest passes' stops from overshooting (docs/commissioning.md, *The passes' error budget*)
         ladder = SpeedLadderFeedforward(cv_inner.ff, LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T),
-                                        viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD)
+                                        viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD,
+                                        min_viscous_n_s_m=VISCOUS_FF_X_FE * env.following_error_m
+                                        / (budget.g_step_m_n * env.v_max_m_s))
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
