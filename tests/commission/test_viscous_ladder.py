@@ -145,3 +145,22 @@ def test_an_unsound_slope_is_not_fed_forward() -> None:
     lad._update()
     assert math.isclose(ff.viscous_n_s_m, 30.0, rel_tol=1e-9)
     assert ff.coulomb_n == 0.3       # the Coulomb term stays as given
+
+
+def test_only_stages_whose_viscous_force_the_loop_cannot_carry_get_the_feedforward() -> None:
+    """The sequence's gate (``VISCOUS_FF_X_FE``): c·v_max·g_step ≥ e_max/4 with the experiments' tuning. Plant
+    44 (0.731 kg in the loop, 35 N s/m: the loop would lag ~35 µm) gets it; config/sim.yaml's stage (1.95 kg,
+    10 N s/m: ~4 µm) does not, and runs its passes as before."""
+    e_max = 50e-6
+
+    def threshold(m_est: float) -> float:
+        pid = design.design_pid(m_est, seq.COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
+        cfg = ControllerConfig(mass_kg=m_est, max_force_n=7.0, pid=pid, hold_integrator_at_rest=False,
+                               stuck_dob_fraction=math.inf,
+                               dob=DobConfig(kind="qfilter", bandwidth_hz=seq.COMMISSION_DOB_X_PERIOD / T,
+                                             command_delay_samples=1))
+        g_step, _ = seq.loop_error_gains(cfg, T, 1)
+        return seq.VISCOUS_FF_X_FE * e_max / (g_step * V_MAX)
+
+    assert threshold(STAGE["m_est"]) < 0.9 * STAGE["visc"]
+    assert threshold(1.953) > 1.5 * 10.0
