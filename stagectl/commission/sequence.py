@@ -1062,7 +1062,7 @@ def loop_error_gains(tuning: ControllerConfig, period_s: float, delay_cycles: in
         ctl.reset(0.0)
         x = v = peak = 0.0
         pending = [0.0] * delay_cycles
-        for k in range(int(round(horizon_s / period_s))):
+        for k in range(round(horizon_s / period_s)):
             pending.append(ctl.step(period_s, x, Reference(0.0)).force_n)
             u = pending.pop(0)
             for i in range(sub):
@@ -1131,9 +1131,9 @@ def pass_acceleration(a_m_s2: float, v_m_s: float, b: RampBudget, a_readable_m_s
     ``v/a``, a ramp of ``ΔF·a/v``. ``g_step``, ``g_ramp``: the loop's peak error per N of a force step and per
     N/s of a force ramp (:func:`loop_error_gains`). Never below ``a_readable`` (:func:`readable_acceleration`):
     a pass the fit cannot read is lost for the viscous term (generated plant 36, whose slow passes stick-slip,
-    lost its 16 mm/s pair to 0.34 m/s² ramps and its fit went to F_c −48 %, F_v +870 %). Only the fast passes of stages with much friction for their
-    mass and tuning get slower ramps: generated plant 35 (1.5 kg, F_b 0.96 N, φ = 0.8) ran its 16 mm/s pass at
-    1.28 m/s² (budget 0.8 m/s²), stopped 16 µm past its end, stuck there with the observer wound up and faulted
+    lost its 16 mm/s pair to 0.34 m/s² ramps and its fit went to F_c −48 %, F_v +870 %). Generated plant 35
+    (1.5 kg, F_b 0.96 N, ρ = 4.3: f = 0) ran its 16 mm/s pass at 1.28 m/s² (budget 0.20, readable from 0.51),
+    stopped 16 µm past its end, stuck there with the observer wound up and faulted
     on the way back (docs/commissioning.md, *The passes' error budget*)."""
     k = b.mass_error * b.mass_kg * b.g_step_m_n + (b.viscous_n_s_m + b.reversal_n / max(v_m_s, 1e-12)) * b.g_ramp_m_n_s
     if k <= 0.0:

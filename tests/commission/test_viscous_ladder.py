@@ -12,6 +12,7 @@ the viscous coefficient (``viscous_only``), as the sequence runs default-tuned s
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -107,7 +108,7 @@ def test_secants_of_a_stribeck_curve_stay_below_its_viscous_coefficient() -> Non
     f = [_curve(float(v)) for v in vs]
     sec = [(f[i + 1] - f[i]) / (vs[i + 1] - vs[i]) for i in range(1, len(vs) - 1)]
     assert all(s < STAGE["visc"] for s in sec)
-    assert all(b >= a for a, b in zip(sec, sec[1:]))
+    assert all(b >= a for a, b in itertools.pairwise(sec))
 
 
 def test_viscous_feedforward_learned_from_the_slower_passes() -> None:
