@@ -31,6 +31,9 @@ from stagectl.control.friction_ff import CoulombFeedforward
 
 FloatArray = npt.NDArray[np.float64]
 
+#: SpeedLadderFeedforward(viscous_only=True): the slope of the friction-speed line below the fastest pair may
+#: exceed the fastest pair's by this factor at most for the viscous feed-forward to be used
+VISCOUS_SLOPE_RISE_TOL = 1.2
 #: telemetry terms of the commissioning controller: the closed-loop terms plus the excitation [N]
 TERMS = (*TERM_NAMES, "u_exc")
 
@@ -235,8 +238,13 @@ class SpeedLadderFeedforward:
     identification uses the total commanded force, so the feed-forward does not bias it.
     """
 
-    def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10) -> None:
+    def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10,
+                 viscous_only: bool = False, min_viscous_n_s_m: float = 0.0) -> None:
         self.ff = ff
+        #: viscous_only: the Coulomb term stays as given (on at rest too); only c_v is learned, and fed forward
+        #: only while the fit is sound and c_v ≥ min_viscous_n_s_m (:meth:`_update`)
+        self.viscous_only = viscous_only
+        self.min_viscous_n_s_m = min_viscous_n_s_m
         self.coulomb0_n = ff.coulomb_n
         self.coulomb_n = ff.coulomb_n
         self.settle_s = settle_s
@@ -251,6 +259,8 @@ class SpeedLadderFeedforward:
 
     def before(self, ref: Reference) -> None:
         """Before the controller's step: no Coulomb term while the reference stands."""
+        if self.viscous_only:
+            return
         self.ff.coulomb_n = 0.0 if (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) else self.coulomb_n
 
     def observe(self, dt: float, ref: Reference, u_n: float) -> None:
@@ -281,6 +291,18 @@ class SpeedLadderFeedforward:
         if len(pts) >= 2 and pts[-2][0] > min(self.levels):
             va, fa = pts[-2]
             cv = max(0.0, (fb - fa) / (vb - va))
+        if self.viscous_only:
+            # sound: a slope from two speeds above the slowest, no more viscous force at v_b than the whole
+            # friction measured there, and where a third speed is known the secant slopes rise with the speed
+            # (a Stribeck curve plus c_v·v has secants below c_v that rise towards it; a slope that falls is
+            # cogging or noise that did not cancel). Under that curve the secant never exceeds c_v.
+            sound = len(pts) >= 2 and pts[-2][0] > min(self.levels) and 0.0 < cv * vb <= fb
+            if sound and len(pts) >= 3 and pts[-3][0] > min(self.levels):
+                (v1, f1), (v2, f2) = pts[-3], pts[-2]
+                sound = (f2 - f1) / (v2 - v1) <= VISCOUS_SLOPE_RISE_TOL * cv
+            self.ff.viscous_n_s_m = cv if sound and cv >= self.min_viscous_n_s_m else 0.0
+            self.updates.append((self.coulomb_n, self.ff.viscous_n_s_m))
+            return
         fc = min(max(fb - cv * vb, 0.0), self.coulomb0_n)
         self.coulomb_n = fc
         self.ff.viscous_n_s_m = cv
