@@ -870,7 +870,8 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         :meth:`sync` as its late sample), sends the controller heartbeat on its wall-clock schedule and ages the
         drive's heartbeat by ``slots`` (wall slots since the last call: 1 + skipped). It stops waiting (False) when
         the drive's heartbeat came during the wait (the drive runs: answers were lost, not delayed; the loop's
-        stale limits judge them as usual) and, with a ``MISSED_FRAME`` fault for the next :meth:`read`, after
+        stale limits judge them as usual), at once when a fault was noted meanwhile (bus error, EMCY, a closed
+        socketcand link: the next :meth:`read` latches it) and, with a ``MISSED_FRAME`` fault for the next :meth:`read`, after
         ``max_missed`` wall slots without any answer (a dead drive process).
         """
         if self._state is not DeviceState.ENABLED or not self.cfg.sync_producer or unanswered <= 0:
@@ -885,6 +886,11 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             self._wait_slots = 0
             self._hb_in_wait = False
             return False
+        if self._pending is None and not self._link_dead and link_closed(self._bus):  # type: ignore[arg-type]
+            self._link_dead = True  # the socketcand server went away while we waited: nothing will answer
+            self._note(DeviceFault(FaultKind.DISCONNECTED, "CAN link closed by the socketcand server"))
+        if self._pending is not None:  # a fault came (or the link died) during the wait: the next cycle's
+            return False  # read() latches it now, not after max_missed wall slots
         if self._hb_in_wait:  # the drive's process runs: its answers were lost, stop waiting for them (the
             self._hb_in_wait = False  # wall slots waited still count towards max_missed until an answer comes)
             return False

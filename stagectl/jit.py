@@ -32,6 +32,7 @@ import hashlib
 import importlib.abc
 import os
 import sys
+import threading
 import types as pytypes
 from collections.abc import Callable
 from pathlib import Path
@@ -219,6 +220,10 @@ def _cache_class() -> Any:
     return HonestCache
 
 
+#: makes a LazyKernel's dispatcher once (re-entrant: making one may import a module that makes another)
+_MAKE_LOCK = threading.RLock()
+
+
 class LazyKernel:
     """A kernel declared with :func:`kernel`: numba is imported, and the ``njit`` dispatcher made, only when the
     kernel is first called, passed to numba or asked for something only the dispatcher has.
@@ -242,17 +247,21 @@ class LazyKernel:
         return str(self.py_func.__name__)
 
     def dispatcher(self) -> Any:
-        """The numba dispatcher (made on first use: this imports numba; compiles nothing by itself)."""
+        """The numba dispatcher (made on first use: this imports numba; compiles nothing by itself). One per
+        kernel also when threads use it first together (each extra dispatcher would compile it again)."""
         d = self._disp
         if d is None:
-            from numba import njit
+            with _MAKE_LOCK:
+                d = self._disp
+                if d is None:
+                    from numba import njit
 
-            opts = {k: v for k, v in self.targetoptions.items() if k != "nopython"}
-            d = njit(**opts)(self.py_func)
-            if not os.environ.get("NUMBA_DISABLE_JIT"):
-                d._cache = _cache_class()(self.py_func)
-            self._disp = d
-            self._swap_class_attributes(d)
+                    opts = {k: v for k, v in self.targetoptions.items() if k != "nopython"}
+                    d = njit(**opts)(self.py_func)
+                    if not os.environ.get("NUMBA_DISABLE_JIT"):
+                        d._cache = _cache_class()(self.py_func)
+                    self._swap_class_attributes(d)
+                    self._disp = d
         return d
 
     def _swap_class_attributes(self, d: Any) -> None:

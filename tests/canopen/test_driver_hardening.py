@@ -5,6 +5,7 @@ producer, a socketcand link that dies; ``persisting_faults()`` says which causes
 from __future__ import annotations
 
 import struct
+import time
 
 import can
 import pytest
@@ -128,6 +129,33 @@ def test_dead_socketcand_link_faults_without_spinning(make_world, make_drive):
         assert not dut.read().fresh
     assert dut._link_dead
     assert "disconnected: CAN link closed" in dut.persisting_faults()
+
+
+def test_dead_socketcand_link_ends_a_device_time_wait(make_world, make_drive):
+    """The socketcand server goes away while the loop waits for the drive (loop.pace_cycles): behind() stops
+    waiting and the next read() reports DISCONNECTED, instead of waiting out max_missed wall slots on a link
+    that can never answer."""
+    world = make_world(transport={"kind": "socketcand"})
+    world.start()
+    dut = make_drive(world.ready_info()["can"], rx_timeout_s=0.05, max_missed=1000, heartbeat_timeout_s=5.0)
+    dut.open()
+    dut.configure()
+    dut.enable()
+    world.stop()
+    dut.sync()
+    dut._wait_tpdo = lambda: None  # (this cycle's answer is simply not there yet: no link check in read())
+    dut.read()
+    del dut._wait_tpdo
+    dut.write(0.0)
+    slots = 0
+    deadline = time.monotonic() + 5.0
+    while dut.behind(1, 1) and time.monotonic() < deadline:
+        slots += 1
+        time.sleep(0.001)
+    assert slots < 100, slots  # measured 999 before (the whole max_missed)
+    dut.sync()
+    m = dut.read()  # (the controller heartbeat sent while waiting may find the broken pipe first)
+    assert m.fault is not None and m.fault.kind in (FaultKind.DISCONNECTED, FaultKind.BUS_ERROR), m
 
 
 def test_encoder_persisting_faults(make_world):

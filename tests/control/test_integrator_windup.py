@@ -53,6 +53,24 @@ def test_the_back_calculation_only_unwinds():
     assert 0.0 <= dut.state.i_n < 0.5
 
 
+def test_the_integrator_may_exceed_the_clamp_by_what_the_other_terms_oppose():
+    """A 2 kg stage held against a constant +9 N load, another term of +3 N in the command (a feed-forward
+    pushing the wrong way), force clamp 10 N: the command needed, −9 N, is inside the clamp, but it takes
+    I = −12 N. Clamping |I| to the force clamp alone left a steady error of 198 µm (I = −10 N, P = −2 N); I is
+    bounded by the clamp plus |u_other| (beyond that it cannot change the clamped command)."""
+    dut = Pid(PidConfig(kp_n_m=1e4, ki_n_m_s=1e5, kd_n_s_m=200.0))
+    x = v = u = 0.0
+    h = 1e-4
+    for k in range(20000):  # 2 s: the loop at 1 kHz, the plant at 10 kHz
+        if k % 10 == 0:
+            u = dut.step(T, 0.0, x, 0.0, u_other_n=3.0, limit_n=10.0)
+        v += (u + 9.0 - 50.0 * v) / 2.0 * h
+        x += v * h
+    assert abs(u + 9.0) < 1e-3
+    assert dut.state.i_n == pytest.approx(-12.0, abs=0.01)
+    assert abs(x) < 1e-7, x  # measured 0 µm; 198 µm with |I| <= 10 N
+
+
 class StickSlip:
     """Mass on Karnopp friction (static fs, kinetic fc + viscous c), the force applied one cycle late."""
 

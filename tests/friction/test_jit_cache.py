@@ -247,3 +247,34 @@ def test_identification_kernels_use_the_stagectl_cache_dir(tmp_path: Path) -> No
     cached = {p.name.split(".")[1].split("-")[0] for p in (tmp_path / "xdg" / "stagectl" / "numba").rglob("*.nbi")}
     assert {"maxwell_unit_states", "first_order_lag"} <= cached, cached
     assert run() == {"hits": 2}
+
+
+def test_threads_that_first_use_a_kernel_together_share_one_dispatcher(tmp_path: Path) -> None:
+    """The first compiled use from two threads at once (the daemon's loop thread and another) makes one dispatcher:
+    each extra one would compile the kernel again, and the module's class attributes would hold another object
+    than the kernel's own. A fresh interpreter, so the first trial also races numba's own import."""
+    (tmp_path / "racemod.py").write_text("def f(x):\n    return x + 1.0\n")
+    got = json.loads(_run("""
+        import json, threading
+        from stagectl.jit import kernel
+        from racemod import f
+
+        distinct = []
+        for _ in range(40):
+            k = kernel(f)
+            bar = threading.Barrier(4)
+            got = []
+
+            def run():
+                bar.wait()
+                got.append(k.dispatcher())
+
+            ts = [threading.Thread(target=run) for _ in range(4)]
+            for t in ts:
+                t.start()
+            for t in ts:
+                t.join()
+            distinct.append(len({id(d) for d in got}))
+        print(json.dumps(distinct))
+    """, tmp_path / "cache", extra_path=tmp_path))
+    assert got == [1] * 40, got  # on main: e.g. [4, 1, 2, 1, 1, 2, ...]

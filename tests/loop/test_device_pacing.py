@@ -160,6 +160,24 @@ def test_the_wait_keeps_the_controller_heartbeat_and_ends_on_the_drives(make_loc
     assert not dut.behind(1, 1)
 
 
+def test_a_fault_noted_during_the_wait_ends_it(make_lockstep_drive):
+    """A fault the driver notes while the loop waits (here a second SYNC producer on the bus; a bus error, an
+    EMCY) ends the wait at once, so the next cycle's read() latches it: the wait must not hold it back for up
+    to max_missed wall slots (1 s in the HIL configs)."""
+    import can
+
+    w, dut, _ = make_lockstep_drive
+    dut.sync()
+    assert not dut.read().fresh
+    dut.write(0.0)
+    assert dut.behind(1, 1)
+    w._bus.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))  # someone else's SYNC
+    assert not dut.behind(1, 1)
+    dut.sync()
+    m = dut.read()
+    assert m.fault is not None and "second SYNC producer" in m.fault.detail, m.fault
+
+
 @pytest.fixture
 def make_lockstep_drive():
     from stagectl.drivers.cia402 import Cia402Config, Cia402Drive
