@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from stagectl.clock import Clock, MonotonicClock, SimClock, Timing
 from stagectl.config import AppConfig, IoKind, SensorSource
+from stagectl.config.checks import sim_plant_only_note
 from stagectl.control.controller import TERM_NAMES, ControllerConfig, StageController, controller_mass
 from stagectl.control.ilc import IlcLearner, IlcPlant
 from stagectl.control.reference import TrajectoryReference, get_scenario
@@ -422,5 +423,8 @@ def build_stage(
     except BaseException:
         td.close()
         raise
+    note = sim_plant_only_note(cfg)
+    if note:
+        log.warning("%s", note)
     return Stage(cfg, clock=clk, timing=timing, io=io, controller=ctl, safety=safety, reference=reference,
                  loop=loop, teardown=td)

@@ -50,4 +50,9 @@ def run(args: argparse.Namespace) -> int:
             f"{args.file}: OK (io {cfg.io.kind.value}, sensor {sensor}, period {cfg.loop.period_s * 1e3:g} ms, "
             f"limits [{cfg.safety.min_position_m:g}, {cfg.safety.max_position_m:g}] m)"
         )
+    from stagectl.config.checks import sim_plant_only_note
+
+    note = sim_plant_only_note(cfg)
+    if note:
+        print(f"stagectl: note: {args.file}: {note}", file=sys.stderr)
     return 0

@@ -225,6 +225,21 @@ def time_base_problems(cfg: AppConfig | Sections) -> list[str]:
              "of the stage; set loop.device_time: true")]
 
 
+def sim_plant_only_note(cfg: AppConfig) -> str | None:
+    """A note (not a problem) for ``loop.device_time`` / ``loop.pace_cycles`` in a file without a ``sim:``
+    section: both take the stage's time from the drive and, paced, stop sending forces while a SYNC is
+    unanswered. That is right for a ``stagectl sim-plant`` stepped per SYNC (its plant waits too), wrong for a
+    real drive, whose stage moves on the clock while the loop waits. The file alone cannot tell the two apart
+    (a HIL stage PC talks to a sim-plant elsewhere), so this is said, not refused."""
+    loop = cfg.loop
+    if cfg.sim is not None or not (loop.device_time or loop.pace_cycles > 0):
+        return None
+    keys = " and ".join(k for k, on in (("loop.device_time", loop.device_time),
+                                        ("loop.pace_cycles", loop.pace_cycles > 0)) if on)
+    return (f"{keys}: set for a stage whose plant is a `stagectl sim-plant` stepped per SYNC; on a real drive set "
+            "loop.device_time: false and loop.pace_cycles: 0 (the stage moves on the clock while the loop waits)")
+
+
 def demo_problems(cfg: AppConfig | Sections) -> list[str]:
     """``demo.scenario`` must name a scenario of :func:`stagectl.control.reference.scenario_names`."""
     demo = _sections(cfg).demo

@@ -149,3 +149,27 @@ def test_the_resolved_model_is_not_a_yaml_key():
     data["controller"]["feedforward"]["model"] = {"model": "gms"}
     probs = "\n".join(config_problems(data))
     assert "controller.feedforward.model: unknown key" in probs
+
+
+# ------------------------------------------------------------------------------------------ device time
+@pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "config").glob("*.yaml")))
+def test_shipped_configs_check_without_a_note(tmp_path, name):
+    r = _check_config(tmp_path, shipped_config_mapping(name))
+    assert r.returncode == 0 and "note:" not in r.stderr, r.stderr
+
+
+def test_a_hil_file_without_its_sim_section_is_told_pacing_is_for_a_sim_plant(tmp_path):
+    """A stage-PC file made from a HIL file keeps device time and pacing: on a real drive the loop would stop
+    sending forces while the stage moves on. The file cannot tell a real drive from a sim-plant elsewhere, so it
+    is valid, with one note naming both keys and what to set (review12, finding 4)."""
+    data = shipped_config_mapping("hil-canopen.yaml")
+    assert data["loop"]["device_time"] is True and data["loop"]["pace_cycles"] > 0
+    del data["sim"]
+    r = _check_config(tmp_path, data)
+    assert r.returncode == 0 and "OK" in r.stdout
+    notes = [ln for ln in r.stderr.splitlines() if ln.startswith("stagectl: note:")]
+    assert len(notes) == 1 and "loop.device_time and loop.pace_cycles" in notes[0], r.stderr
+    assert "loop.device_time: false and loop.pace_cycles: 0" in notes[0]
+    data["loop"].update(device_time=False, pace_cycles=0)
+    r = _check_config(tmp_path, data)
+    assert r.returncode == 0 and "note:" not in r.stderr
