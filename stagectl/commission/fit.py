@@ -510,7 +510,12 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     # is biased where few periods fit the travel, since the nuisance slope takes a part of the sinusoid that
     # grows with λ (generated plant 3, 1.135 mm over 2 mm: 1.073 mm by amplitude, 1.135 mm by residual; the
     # commissioned triangle 157 nm against 95 nm with the true period)
-    fine = np.linspace(grid[max(i - 2, 0)], grid[min(i + 2, grid.shape[0] - 1)], 81)
+    hi = grid[min(i + 2, grid.shape[0] - 1)]
+    if grid[i] >= COGGING_EDGE_FRACTION * lam_hi:
+        # a peak at the scan's edge: the least-squares period may lie beyond it, up to one period over the
+        # travel (a 1.412 mm cogging over 1.86 mm of settled rows read 1.336 mm at the grid's end)
+        hi = max(hi, span)
+    fine = np.linspace(grid[max(i - 2, 0)], hi, 81)
     famp = _cogging_scan(xs, ys, nuis, fine)
     j = int(np.argmin(famp[:, 3]))
     lam, A, ca, cb = float(fine[j]), float(famp[j, 0]), float(famp[j, 1]), float(famp[j, 2])
