@@ -13,8 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-import numpy as np
-
 from stagectl.commission.fit import cogging_evidence
 from stagectl.recorder import Recorder
 
