@@ -276,6 +276,10 @@ def load_recording(
                 raise DataError(f"{p}: column {short(name)} given for {short(key)} by --columns "
                                 "is not in the header")
         for key, name in wanted.items():
+            both = [k for k, n in wanted.items() if n == name]
+            if len(both) > 1:
+                raise DataError(f"{p}: column {short(name)} would be read as both {' and '.join(both)}; map each "
+                                "canonical column to its own file column with --columns")
             at = [i + 1 for i, h in enumerate(header) if h == name]
             if len(at) > 1:  # csv would take the last: which one is meant cannot be known
                 raise DataError(f"{p}: line 1: column {short(name)} appears {len(at)} times (columns "

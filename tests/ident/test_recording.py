@@ -155,3 +155,9 @@ def test_a_non_utf8_byte_is_named_by_its_line_and_file_offset(tmp_path: Path) ->
     p.write_bytes(b"t,x,u\n0,0,0\n\xff\xfe\n")
     with pytest.raises(DataError, match=r"line 3: not UTF-8 text \(invalid start byte at byte 12\)"):
         load_recording(p)
+
+
+def test_one_file_column_read_as_two_columns_is_refused(tmp_path: Path) -> None:
+    # `--columns x=u`: the force read as the position too; the fit ran on it and wrote a model file
+    with pytest.raises(DataError, match=r"column 'u' would be read as both x and u"):
+        load_recording(_write(tmp_path, GOOD), "x=u")
