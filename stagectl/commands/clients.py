@@ -131,8 +131,25 @@ def open_client(socket_path: str | None, timeout_s: float) -> Iterator[ControlCl
             raise StageError(f"{path}: not a control socket but {kind} (use --socket PATH)") from None
         raise StageError(f"{path}: no daemon listening (a socket left by a daemon that stopped? start it, or "
                          f"use --socket PATH)") from None
+    except BrokenPipeError:
+        if _stdout_broken():  # `stagectl scope --once | head`: the reader went away, not the daemon
+            raise  # (cli.main ends quietly on it)
+        raise StageError(f"{path}: the daemon closed the connection (broken pipe)") from None
     except (ConnectionError, TimeoutError, OSError) as exc:
         raise StageError(f"{path}: {exc}") from None
+
+
+def _stdout_broken() -> bool:
+    """Whether standard output is a pipe whose reader has gone (Linux reports POLLERR on such a write end)."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & select.POLLERR for _, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):
+        return False
+    return False
 
 
 def _request(args: argparse.Namespace, req: dict[str, Any]) -> dict[str, Any]:

@@ -75,8 +75,10 @@ def _accel(t: list[float], x: list[float]) -> float:
 
 
 def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float,
-                   expected_mass_kg: float | None) -> SanityResult:
-    """Check the probe's outcome and estimate the mass (see the module docstring).
+                   expected_mass_kg: float | None, v_stop_m_s: float | None = None) -> SanityResult:
+    """Check the probe's outcome and estimate the mass (see the module docstring). ``v_stop_m_s``: the speed
+    that ends the second acceleration level (0.9 × the envelope's velocity, which ``--max-velocity`` lowers),
+    named when no mass could be measured.
 
     Raises
     ------
@@ -110,8 +112,12 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
                           f"{short[0].f2_n:.3g} N for two acceleration levels (need {PROBE_MIN_LEVEL_RATIO:g}x apart); "
                           "raise --max-force, safety.max_force_n or controller.max_force_n")
     if not masses:
+        if v_stop_m_s is None:
+            raise SanityError("sanity: the accelerations under two force levels could not be measured (too little "
+                              "travel or force); raise --max-stroke or --max-force")
         raise SanityError("sanity: the accelerations under two force levels could not be measured (too little "
-                          "travel or force); raise --max-stroke or --max-force")
+                          f"travel, force or speed: the levels end at {v_stop_m_s / 3:.3g} and {v_stop_m_s:.3g} m/s, "
+                          "0.24 and 0.72 of the velocity cap); raise --max-stroke, --max-force or --max-velocity")
     m = float(np.median(masses))
     if not (m > 0 and math.isfinite(m)):
         raise SanityError(f"sanity: moving mass estimate {m:.3g} kg is not positive: check io.drive.force_per_unit_n "

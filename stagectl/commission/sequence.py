@@ -382,7 +382,7 @@ class Commissioning:
             ctl.probe = None
         ctl_cfg = self.cfg.controller
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
-        r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected)
+        r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
         m0 = r.sanity.mass_kg
         self._coulomb_guess = COULOMB_GUESS_FRACTION * min(r.sanity.breakaway_n)
         self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} kg, breakaway "

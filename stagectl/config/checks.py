@@ -209,9 +209,34 @@ def time_base_problems(cfg: AppConfig | Sections) -> list[str]:
     number of SYNCs it answered. On the wall clock every skipped loop slot (a loaded PC without real-time
     scheduling skips 2-25 %) puts the reference one period ahead of the stage for good: at 2 mm/s, 2 µm per
     slot, and ``config/hil-serial.yaml`` ran up a 37 µm error in 60 s at load 3 and faulted ``following_error``
-    after 10 s at load 8-10 (docs/platform.md §7.3). With device time the reference waits with the plant."""
+    after 10 s at load 8-10 (docs/platform.md §7.3). With device time the reference waits with the plant.
+
+    The other way round, ``loop.device_time`` towards a drive not reached over socketcand (the only transport a
+    sim-plant speaks) is a real drive, whose stage moves on the clock: refused. ``loop.pace_cycles`` without
+    device time towards any CANopen drive is ignored by the loop: refused, so that it is not taken for a
+    protection."""
     s = _sections(cfg)
     io, sim, loop = s.io, s.sim, s.loop
+    if io is not None and loop is not None and io.kind is IoKind.CANOPEN and io.drive is not None:
+        iface = str(io.drive.can.get("interface", ""))
+        if loop.device_time and iface != "socketcand":
+            # a sim-plant is reached over socketcand only: anything else is a bus with a real drive on it
+            return [(f"loop.device_time: true, but io.drive.can.interface is {short(iface)}: a real drive, whose "
+                     "stage moves on the clock; on device time each skipped loop slot is a period the stage moved "
+                     "and the controller did not count (wrong dt, reference behind); remove it (it is for a "
+                     "sim-plant stepped one period per SYNC)")]
+    own = _own_sim_plant_problems(io, sim, loop)
+    if own or io is None or loop is None or io.kind is not IoKind.CANOPEN:
+        return own
+    if loop.pace_cycles and not loop.device_time:
+        return [(f"loop.pace_cycles: {loop.pace_cycles} cycles does nothing without loop.device_time: true (a "
+                 "real drive's silence is judged on the clock, safety.stale_cycles); remove it, or set "
+                 "device_time for a sim-plant stepped one period per SYNC")]
+    return []
+
+
+def _own_sim_plant_problems(io: IoConfig | None, sim: SimWorldConfig | None, loop: LoopConfig | None) -> list[str]:
+    """Wall-clock time towards this file's own sim-plant stepped per SYNC (:func:`time_base_problems`)."""
     if (io is None or sim is None or loop is None or io.kind is not IoKind.CANOPEN or io.drive is None
             or loop.device_time or sim.drive.wall_clock_plant or sim.transport.kind != "socketcand"):
         return []

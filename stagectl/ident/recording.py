@@ -33,6 +33,68 @@ FloatArray = npt.NDArray[np.float64]
 
 #: canonical column -> unit (for messages)
 UNITS = {"t": "s", "x": "m", "u": "N", "x_ref": "m", "v": "m/s", "v_ref": "m/s", "a_ref": "m/s^2", "e": "m"}
+#: canonical column -> the dimension its SI unit measures
+_DIMENSION = {"t": "time", "x": "length", "u": "force", "x_ref": "length", "v": "velocity", "v_ref": "velocity",
+              "a_ref": "acceleration", "e": "length"}
+#: a unit a column name may end in (``x_mm``, ``x [mm]``, ``v_mm_s``), lower case -> (dimension, is SI); what is
+#: not listed here is not taken for a unit (``position``, ``ref``)
+_NAMED_UNITS = {
+    **{u: ("length", u == "m") for u in ("m", "mm", "um", "µm", "nm", "cm", "in", "mil", "deg", "rad", "counts")},
+    **{u: ("time", u == "s") for u in ("s", "ms", "us", "µs", "ns", "min")},
+    **{u: ("force", u == "n") for u in ("n", "kn", "mn", "un", "kgf", "lbf", "a", "ma", "pct", "percent",
+                                         "permille")},
+    **{f"{u}/s": ("velocity", u == "m") for u in ("m", "mm", "um", "µm", "nm", "deg", "rad", "counts")},
+    **{f"{u}/{s}": ("acceleration", u == "m") for u in ("m", "mm", "um") for s in ("s^2", "s2")},
+}
+
+
+def _named_unit(name: str) -> str | None:
+    """The unit a column name ends in, as written (``x_mm`` -> ``mm``, ``v_mm_s`` -> ``mm/s``, ``x [um]`` ->
+    ``um``), or None when its end is not a unit of :data:`_NAMED_UNITS`."""
+    n = name.strip()
+    if n.endswith(("]", ")")) and ("[" in n or "(" in n):
+        unit = n[max(n.rfind("["), n.rfind("(")) + 1:-1].strip()
+        return unit if unit.lower() in _NAMED_UNITS else None
+    parts = n.replace(" ", "_").split("_")
+    if len(parts) >= 3 and f"{parts[-2]}/{parts[-1]}".lower() in _NAMED_UNITS:
+        return f"{parts[-2]}/{parts[-1]}"
+    if len(parts) >= 2 and parts[-1].lower() in _NAMED_UNITS:
+        return parts[-1]
+    return None
+
+
+def _unit_problem(p: Path, key: str, name: str) -> str | None:
+    """A column read as ``key`` whose name says it is in another unit than ``key``'s SI unit: the values would
+    be read 10^3 or 10^6 off (or as another quantity) without any other sign of it."""
+    unit = _named_unit(name)
+    if unit is None:
+        return None
+    dim, si = _NAMED_UNITS[unit.lower()]
+    if dim == _DIMENSION.get(key) and si:
+        return None
+    what = f"in {unit} by its name" if dim == _DIMENSION.get(key) else f"a {dim} in {unit} by its name"
+    return (f"{p}: column {short(name)} read as {key} is {what}; {key} must be in {UNITS[key]} "
+            "(docs/recordings.md): convert the column to SI units, or rename it if its name is wrong")
+
+
+def _utf8_problem(p: Path) -> str:
+    """Where the first byte that is not UTF-8 sits: the file's line and byte offset (the text reader decodes in
+    blocks, so its own error names neither)."""
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        return f"{p}: cannot read recording ({exc.strerror or exc})"
+    start = 3 if raw.startswith(b"\xef\xbb\xbf") else 0
+    try:
+        raw[start:].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        at = start + exc.start
+        line = raw.count(b"\n", 0, at) + 1
+        return (f"{p}: line {line}: not UTF-8 text ({exc.reason} at byte {at}); save the "
+                "recording as UTF-8 CSV")
+    return f"{p}: not UTF-8 text; save the recording as UTF-8 CSV"
+
+
 REQUIRED = ("t", "x", "u")
 OPTIONAL = ("x_ref", "v")
 
@@ -188,8 +250,8 @@ def load_recording(
             raise DataError(f"{p}: empty file (expected a header row with columns {', '.join(required)})") from None
         except csv.Error as exc:
             raise DataError(f"{p}: line 1: malformed CSV ({exc})") from None
-        except UnicodeDecodeError as exc:
-            raise DataError(f"{p}: line 1: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+        except UnicodeDecodeError:
+            raise DataError(_utf8_problem(p)) from None
         header = [h.strip() for h in header]
         first = header[0] if header else ""
         if (p.suffix.lower() in (".yaml", ".yml") or first.startswith("#")  # recordings have no comments
@@ -213,6 +275,18 @@ def load_recording(
             if key not in wanted and name not in index:
                 raise DataError(f"{p}: column {short(name)} given for {short(key)} by --columns "
                                 "is not in the header")
+        for key, name in wanted.items():
+            both = [k for k, n in wanted.items() if n == name]
+            if len(both) > 1:
+                raise DataError(f"{p}: column {short(name)} would be read as both {' and '.join(both)}; map each "
+                                "canonical column to its own file column with --columns")
+            at = [i + 1 for i, h in enumerate(header) if h == name]
+            if len(at) > 1:  # csv would take the last: which one is meant cannot be known
+                raise DataError(f"{p}: line 1: column {short(name)} appears {len(at)} times (columns "
+                                f"{', '.join(map(str, at))}); each column of the header needs its own name")
+            problem = _unit_problem(p, key, name)
+            if problem is not None:
+                raise DataError(problem)
         used = set(wanted.values())
         extra_names = [h for h in header if h and h not in used]
         fast = _read_fast(p, len(header))
@@ -265,9 +339,8 @@ def load_recording(
                 extra_rows.append(ev)
         except csv.Error as exc:
             raise DataError(f"{p}: row {line + 1}: malformed CSV ({exc})") from None
-        except UnicodeDecodeError as exc:
-            raise DataError(f"{p}: row {line + 1}: not UTF-8 text ({exc.reason}); save the recording as UTF-8 "
-                            "CSV") from None
+        except UnicodeDecodeError:
+            raise DataError(_utf8_problem(p)) from None
     n = len(rows)
     arr = np.asarray(rows, dtype=np.float64).reshape(n, len(order))
     data = {k: np.ascontiguousarray(arr[:, i]) for i, k in enumerate(order)}

@@ -48,7 +48,8 @@ class LoopConfig:
         0, unit="cycles", desc="with device_time: the loop starts no cycle (no SYNC, no force) while this many of its "
         "SYNCs are unanswered, so the time of a drive process held off the CPU (its plant frozen) and the loop's "
         "wait for each other instead of the loop sending forces it cannot see answered (docs/control.md section 5); "
-        "0 = off. Ignored without device_time: a real drive's silence is judged on the clock", ge=0, le=1000)
+        "0 = off. Without device_time the loop ignores it (a real drive's silence is judged on the clock) and "
+        "check-config refuses it for a CANopen drive", ge=0, le=1000)
     startup_cycles: int = param(
         200, unit="cycles", desc="at start, SYNC periods to wait for the first fresh position (a loaded machine or "
         "a late first TPDO); the stale-position check applies from the first active cycle on", ge=1, le=100000

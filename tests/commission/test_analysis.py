@@ -66,10 +66,10 @@ def test_measured_margins_agree_with_python_control_on_an_exact_frf() -> None:
 
 
 def _drive_probe(sign: int, m: float = 2.0, f_c: float = 0.5, f_lim: float = 4.0,
-                 f_acc: float | None = None) -> SanityProbe:
+                 f_acc: float | None = None, v_stop: float = 0.02) -> SanityProbe:
     """The probe against a plain mass with Coulomb friction whose force input has the given sign."""
     T = 1e-3
-    probe = SanityProbe(f_lim_n=f_lim, d_detect_m=2e-5, d_acc_m=1e-4, v_stop_m_s=0.02, f_acc_n=f_acc)
+    probe = SanityProbe(f_lim_n=f_lim, d_detect_m=2e-5, d_acc_m=1e-4, v_stop_m_s=v_stop, f_acc_n=f_acc)
     x = v = 0.0
     probe.reset(x)
     for _ in range(20000):
@@ -96,6 +96,17 @@ def test_sanity_probe_measures_the_mass_and_catches_a_wrong_sign() -> None:
         an.evaluate_probe(bad.dirs, bad.f_lim, bad.d_detect, expected_mass_kg=2.0)
     with pytest.raises(an.SanityError, match="scale"):
         an.evaluate_probe(ok.dirs, ok.f_lim, ok.d_detect, expected_mass_kg=20.0)
+
+
+def test_a_probe_stopped_by_the_velocity_cap_names_max_velocity() -> None:
+    """`commission --max-velocity 1e-4` (0.1 mm/s) on the seed stage: each acceleration level ends at the speed
+    cap within a few samples, so no mass is measured; the message must name the cap that did it (it advised
+    only --max-stroke or --max-force)."""
+    slow = _drive_probe(+1, v_stop=0.9 * 0.8 * 1e-4)
+    with pytest.raises(an.SanityError) as err:
+        an.evaluate_probe(slow.dirs, slow.f_lim, slow.d_detect, None, v_stop_m_s=slow.v_stop)
+    msg = str(err.value)
+    assert "--max-velocity" in msg and "7.2e-05 m/s" in msg and "\n" not in msg, msg
 
 
 def test_probe_levels_scale_with_the_breakaway_and_the_force_cap() -> None:

@@ -198,8 +198,28 @@ def test_a_sim_plant_stepped_per_sync_needs_device_time(name):
     data["loop"]["device_time"] = False
     probs = config_problems(data)
     assert len(probs) == 1 and "loop.device_time: false" in probs[0] and "set loop.device_time: true" in probs[0]
-    wall = {**data, "sim": {**data["sim"], "drive": {**data["sim"]["drive"], "wall_clock_plant": True}}}
+    wall = {**data, "loop": {**data["loop"], "pace_cycles": 0},  # (pacing needs device time)
+            "sim": {**data["sim"], "drive": {**data["sim"]["drive"], "wall_clock_plant": True}}}
     parse_app_config(wall, REPO / "config" / "x.yaml")
-    elsewhere = {**data, "io": {**data["io"], "drive": {**data["io"]["drive"],
-                                                         "can": {**data["io"]["drive"]["can"], "port": 29999}}}}
+    drive = {**data["io"]["drive"], "can": {**data["io"]["drive"]["can"], "port": 29999}}
+    elsewhere = {**data, "loop": {**data["loop"], "pace_cycles": 0}, "io": {**data["io"], "drive": drive}}
     parse_app_config(elsewhere, REPO / "config" / "x.yaml")
+
+
+def test_a_real_drive_refuses_device_time_and_pacing():
+    """config/stage-canopen.yaml (SocketCAN: a real drive, whose stage moves on the clock) with the HIL's
+    loop.device_time would run reference and controller steps on executed cycles (each skipped slot a period
+    the stage moved and the loop did not count); pace_cycles without device_time is ignored by the loop. Both
+    are refused, one line each naming the key; the shipped files stay valid."""
+    data = shipped_config_mapping("stage-canopen.yaml")
+    parse_app_config(data, REPO / "config" / "x.yaml")  # fine as shipped
+    dt = {**data, "loop": {**data["loop"], "device_time": True}}
+    probs = config_problems(dt)
+    assert len(probs) == 1 and ("loop.device_time: true, but io.drive.can.interface "
+                                                   "is 'socketcan'") in probs[0], probs
+    paced = {**data, "loop": {**data["loop"], "pace_cycles": 1}}
+    probs = config_problems(paced)
+    assert len(probs) == 1 and ("loop.pace_cycles: 1 cycles does nothing without "
+                                                   "loop.device_time: true") in probs[0], probs
+    for name in ("hil-canopen.yaml", "hil-serial.yaml"):
+        parse_app_config(shipped_config_mapping(name), REPO / "config" / "x.yaml")

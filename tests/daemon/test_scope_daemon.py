@@ -101,3 +101,11 @@ def test_scope_shows_a_move_of_the_simulated_stage(daemon_socket):
     for panel in ("position [", "tracking error [", "force [", "velocity ["):
         assert panel in frame, (panel, frame[:2000])
     assert "faults: none" in frame and "Traceback" not in p.stderr
+    # `stagectl scope --once | head -1`: the reader of stdout went away, not the daemon; it said
+    # "control.sock: [Errno 32] Broken pipe" and exit 2
+    q = subprocess.Popen([*stagectl_cmd(), "scope", "--once", "--socket", daemon_socket], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    assert q.stdout is not None
+    q.stdout.close()  # no reader: every write to stdout fails with EPIPE
+    _, err = q.communicate(timeout=120)
+    assert q.returncode == 0 and err == "", (q.returncode, err)

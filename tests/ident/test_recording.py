@@ -107,3 +107,57 @@ def test_a_yaml_file_given_as_a_recording_is_named_as_such(tmp_path, repo_root) 
     odd.write_text("# stagectl: a model\nfriction:\n  model: gms\n")
     with pytest.raises(DataError, match="not a recording"):
         load_recording(odd)
+
+
+@pytest.mark.parametrize(("header", "columns", "fragments"), [
+    # a column whose name gives a unit other than the canonical column's SI unit would be read 1000x off
+    ("t,x_mm,u", "x=x_mm", ["'x_mm'", "mm", "x must be in m"]),
+    ("t_ms,x,u", "t=t_ms", ["'t_ms'", "ms", "t must be in s"]),
+    ("t,x,u_kN", "u=u_kN", ["'u_kN'", "kN", "u must be in N"]),
+    ("t,x,current_A", "u=current_A", ["'current_A'", "A", "u must be in N"]),
+    ("t,x [um],u", "x=x [um]", ["'x [um]'", "um", "x must be in m"]),
+    ("t,x,u,v_mm_s", "v=v_mm_s", ["'v_mm_s'", "mm/s", "v must be in m/s"]),
+])
+def test_a_column_named_in_another_unit_is_refused(tmp_path: Path, header: str, columns: str,
+                                                   fragments: list[str]) -> None:
+    n = len(header.split(","))
+    rows = "".join(",".join([f"{k * 1e-3:g}"] + ["0"] * (n - 1)) + "\n" for k in range(4))
+    with pytest.raises(DataError) as err:
+        load_recording(_write(tmp_path, header + "\n" + rows), columns)
+    msg = str(err.value)
+    assert "\n" not in msg
+    for f in fragments:
+        assert f in msg, (f, msg)
+
+
+@pytest.mark.parametrize("header", ["t_s,position_m,force_N,reference_m", "time_s,x_m,u_n,x_ref_m"])
+def test_si_unit_suffixes_are_accepted(tmp_path: Path, header: str) -> None:
+    names = header.split(",")
+    spec = ",".join(f"{k}={v}" for k, v in zip(("t", "x", "u", "x_ref"), names))
+    dut = load_recording(_write(tmp_path, header + "\n0,0,1,0\n0.001,1e-6,2,0\n0.002,2e-6,3,0\n"), spec)
+    np.testing.assert_allclose(dut.u, [1, 2, 3])
+
+
+def test_a_duplicated_column_name_is_refused(tmp_path: Path) -> None:
+    # which of the two 'u' columns is the force is ambiguous: never pick one silently
+    with pytest.raises(DataError, match=r"column 'u' appears 2 times \(columns 3, 4\)"):
+        load_recording(_write(tmp_path, "t,x,u,u\n0,0,1,9\n0.001,0,1,9\n0.002,0,1,9\n"))
+
+
+def test_a_non_utf8_byte_is_named_by_its_line_and_file_offset(tmp_path: Path) -> None:
+    p = tmp_path / "rec.csv"
+    good = "".join(f"{k * 1e-3:.3f},0,0\n" for k in range(5000))
+    p.write_bytes(("t,x,u\n" + good).encode() + b"0.5,\xff,0\n")
+    with pytest.raises(DataError) as err:
+        load_recording(p)
+    offset = len(("t,x,u\n" + good).encode()) + 4
+    assert f"line 5002: not UTF-8 text (invalid start byte at byte {offset})" in str(err.value)
+    p.write_bytes(b"t,x,u\n0,0,0\n\xff\xfe\n")
+    with pytest.raises(DataError, match=r"line 3: not UTF-8 text \(invalid start byte at byte 12\)"):
+        load_recording(p)
+
+
+def test_one_file_column_read_as_two_columns_is_refused(tmp_path: Path) -> None:
+    # `--columns x=u`: the force read as the position too; the fit ran on it and wrote a model file
+    with pytest.raises(DataError, match=r"column 'u' would be read as both x and u"):
+        load_recording(_write(tmp_path, GOOD), "x=u")
