@@ -16,7 +16,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 #: command modules, in the order they appear in ``--help``
 COMMAND_MODULES = (
@@ -154,14 +154,36 @@ def _catch_sigint() -> Callable[[], None]:
     try:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             signal.signal(signal.SIGINT, _on_sigint)
+            old_hook = sys.unraisablehook
+            sys.unraisablehook = _unraisable
 
             def restore() -> None:
                 signal.signal(signal.SIGINT, signal.default_int_handler)
+                sys.unraisablehook = old_hook
 
             return restore
     except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handler
         pass
     return lambda: None
+
+
+def _unraisable(u: Any) -> None:
+    """A Ctrl-C that lands in a C callback (llvmlite's, while numba compiles) is swallowed there and printed as
+    "Exception ignored ... Traceback"; deliver it to the main thread instead, silently. Anything else goes to
+    Python's default hook."""
+    if isinstance(u.exc_value, KeyboardInterrupt):
+        import signal
+        import threading
+
+        # a real SIGINT again (it also wakes a blocking call), but not from here: the main thread would take it
+        # inside this hook, which swallows it; 5 ms later it is back in the command (or in another callback,
+        # which comes here again)
+        main_id = threading.main_thread().ident
+        t = threading.Timer(0.005, signal.pthread_kill, (main_id, signal.SIGINT))
+        t.daemon = True
+        t.start()
+        return
+    sys.__unraisablehook__(u)
 
 
 def _was_interrupted(exc: BaseException) -> bool:

@@ -116,3 +116,32 @@ def test_ctrl_c_that_surfaces_as_another_exception_still_ends_as_an_interrupt(tm
                        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert p.returncode == 130, p.stderr
     assert p.stderr.strip().splitlines() == ["stagectl: interrupted (Ctrl-C); no output was written"], p.stderr
+
+
+def test_a_ctrl_c_swallowed_by_a_c_callback_reaches_the_command_silently(capsys) -> None:
+    """A Ctrl-C landing in a ctypes callback (llvmlite's, while numba compiles on a cold cache) used to be
+    printed as "Exception ignored on calling ctypes callback function ... Traceback" and lost: the command
+    went on. With the CLI's handlers in place it is delivered to the main thread, and nothing is printed."""
+    import ctypes
+
+    from stagectl import cli
+
+    @ctypes.CFUNCTYPE(None)
+    def callback() -> None:  # what a SIGINT during a C callback leaves: KeyboardInterrupt inside it
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh `stagectl` process
+    restore = cli._catch_sigint()
+    try:
+        assert sys.unraisablehook is cli._unraisable
+        with pytest.raises(KeyboardInterrupt):
+            callback()  # swallowed by ctypes, handed to sys.unraisablehook
+            import time
+
+            time.sleep(10)  # a command going on; the re-delivered interrupt ends the wait (not a timed wait)
+    finally:
+        restore()
+        signal.signal(signal.SIGINT, before)
+    assert cli._interrupted
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "Exception ignored" not in err, err
