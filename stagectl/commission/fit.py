@@ -540,7 +540,7 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
         # found, the force only rises or bends along the stroke (a cable carrier's saturating pull, |x|);
         # one hump of a sinusoid is not told from such a force (plain-simulation oracle, both were named)
         trend = True
-        extra["reason"] = (f"the least-squares period runs to the travel ({span * 1e3:.3g} mm): a smooth force "
+        extra["reason"] = (f"the least-squares period runs to the travel ({span * 1e3:.3g} mm): a smooth trend "
                            "along the stroke, not a period; only a longer stroke could tell them apart")
     elif at_edge and ratio >= COGGING_EVIDENCE_RATIO:
         # told from a smooth trend by the curvature terms: refit the sinusoid at λ with, per direction, a
