@@ -535,7 +535,14 @@ def cogging_evidence(rec: Recorder, mass_kg: float, period_s: float) -> dict[str
     at_edge = lam >= COGGING_EDGE_FRACTION * lam_hi
     extra: dict[str, Any] = {}
     trend = False
-    if at_edge and ratio >= COGGING_EVIDENCE_RATIO:
+    if at_edge and ratio >= COGGING_EVIDENCE_RATIO and j == fine.shape[0] - 1 and hi >= span:
+        # the least squares still falls at one period over the travel, the longest allowed: no period was
+        # found, the force only rises or bends along the stroke (a cable carrier's saturating pull, |x|);
+        # one hump of a sinusoid is not told from such a force (plain-simulation oracle, both were named)
+        trend = True
+        extra["reason"] = (f"the least-squares period runs to the travel ({span * 1e3:.3g} mm): a smooth trend "
+                           "along the stroke, not a period; only a longer stroke could tell them apart")
+    elif at_edge and ratio >= COGGING_EVIDENCE_RATIO:
         # told from a smooth trend by the curvature terms: refit the sinusoid at λ with, per direction, a
         # constant, x, x² and x³; a sinusoid keeps its amplitude, a trend goes to the polynomial
         xn = xc / max(0.5 * span, 1e-12)

@@ -70,3 +70,14 @@ def test_smooth_trend_at_the_scan_edge_is_not_cogging() -> None:
     ev = cogging_evidence(_slow_passes(lambda x: 0.12 * math.exp(x / 0.5e-3) / math.exp(2.0)), 0.79, T)
     assert not ev["present"], ev
     assert ev["wavelength_m"] > 0.9 * ev["scan_m"][1], ev  # the trend peaked at the scan's edge
+
+
+def test_a_force_whose_period_runs_to_the_travel_is_not_cogging() -> None:
+    """A cable carrier's pull that saturates along the stroke and a V-shaped force (0.1 N over the stroke,
+    the same both ways): neither is periodic, the least-squares period runs to the whole travel, and the
+    cubic does not take them (they are not polynomials). Both were named cogging by the edge rule alone."""
+    for name, force in (("saturating pull", lambda x: 0.1 * (1.0 - math.exp(-(x + 1e-3) / 0.3e-3))),
+                        ("|x|", lambda x: 100.0 * abs(x))):
+        ev = cogging_evidence(_slow_passes(force), 0.79, T)
+        assert ev["ratio"] >= 5.0, (name, ev)  # the scan's peak is strong: only the period's bound refuses it
+        assert not ev["present"], (name, ev)

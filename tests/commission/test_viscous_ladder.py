@@ -63,7 +63,9 @@ def _run(viscous: bool) -> tuple[SpeedLadderFeedforward, float, float]:
     segs: list[Move | Dwell] = []
     for v in np.geomspace(V_MAX / seq.CV_SPAN, V_MAX, seq.CV_SPEEDS).tolist():
         L = min(S, max(v * seq.CV_PASS_S, 0.05 * S))
-        a = seq.pass_acceleration(max(min(max(v * v / (0.1 * L), 0.02), 0.3 * 7.0 / st["m_est"]), 1e-6), v, budget)
+        # with the readability floor, as the sequence runs them (16 mm/s over 2 mm: 0.505 m/s², above the budget)
+        a = seq.pass_acceleration(max(min(max(v * v / (0.1 * L), 0.02), 0.3 * 7.0 / st["m_est"]), 1e-6), v, budget,
+                                  seq.readable_acceleration(v, L, T))
         segs += [Move(to_m=-L / 2, max_velocity_m_s=V_REP, max_acceleration_m_s2=A_REP, max_jerk_m_s3=100 * A_REP),
                  Dwell(0.1),
                  Move(to_m=L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1),
@@ -129,8 +131,10 @@ def test_viscous_feedforward_learned_from_the_slower_passes() -> None:
     lack = STAGE["fc"] - STAGE["ff"]
     assert abs(dob - lack) < 0.1 * f_visc, dob
     assert abs(dob_without - (lack + f_visc)) < 0.1 * f_visc, dob_without
-    # and the passes stay inside half the following-error band either way (the budget's ramps)
-    assert max(peak, peak_without) < 25e-6, (peak, peak_without)
+    # the fastest pass's ramps are held at the readability floor (0.505 m/s², above the budget): the viscous
+    # feed-forward is what keeps the passes inside half the following-error band (23.6 µm; 45.4 µm without,
+    # near the 50 µm fault)
+    assert peak < 25e-6 < peak_without, (peak, peak_without)
 
 
 def test_an_unsound_slope_is_not_fed_forward() -> None:
