@@ -293,7 +293,8 @@ def plausibility_problems(cfg: AppConfig | Sections) -> list[str]:
       window could never trip;
     * a sensor's ``resolution_m`` coarser than 1 % of the stroke (metres given where µm or nm were meant);
     * a filter or observer at or above the Nyquist frequency ``1/(2·loop.period_s)``: a discrete filter
-      cannot act there (the observer, the PID's derivative low-pass, the velocity filters).
+      cannot act there (the observer, the PID's derivative low-pass, the velocity filters);
+    * a settle move (``controller.settle.move_s``) shorter than two loop periods.
     """
     s = _sections(cfg)
     problems: list[str] = []
@@ -334,6 +335,11 @@ def plausibility_problems(cfg: AppConfig | Sections) -> list[str]:
             if hz is not None and hz >= nyquist:
                 problems.append(f"{key}: {hz:g} Hz is at or above the Nyquist frequency {nyquist:g} Hz of "
                                 f"loop.period_s {s.loop.period_s:g} s (a sampled filter cannot act there)")
+        move_s = s.controller.settle.move_s if s.controller is not None else 0.0
+        if 0.0 < move_s < 2.0 * s.loop.period_s:
+            problems.append(f"controller.settle.move_s: {move_s:g} s is shorter than two loop periods "
+                            f"({2.0 * s.loop.period_s:g} s): the settle move would end before it acts (0 turns it "
+                            "off)")
     return problems
 
 

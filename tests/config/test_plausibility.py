@@ -24,6 +24,8 @@ def _set(data: dict, path: str, value: object) -> dict:
                                              "frequency 500 Hz")),
     ("controller.pid.derivative_cutoff_hz", 600.0, "controller.pid.derivative_cutoff_hz: 600 Hz"),
     ("safety.velocity_filter_hz", 500.0, "safety.velocity_filter_hz: 500 Hz is at or above"),
+    ("controller.settle.move_s", 0.0001, ("controller.settle.move_s: 0.0001 s is shorter than two loop periods "
+                                          "(0.002 s)")),
 ])
 def test_implausible_value_is_one_line(path: str, value: object, expect: str) -> None:
     problems = config_problems(_set(shipped_config_mapping("sim.yaml"), path, value))
