@@ -101,6 +101,9 @@ def report_dict(res: Results) -> dict[str, Any]:
             fitted["mass_kg_frf"] = fitted["mass_kg"]
             fitted["mass_kg"] = {"value": used, "std": float("nan"),
                                  "from": "inverse dynamics of friction_cv (the FRF disagreed)"}
+        elif (res.discovery or {}).get("mass_warning"):
+            fitted["mass_kg_inverse_dynamics"] = {"value": (res.discovery or {}).get("mass_kg_inverse_dynamics"),
+                                                  "std": float("nan"), "from": "friction_cv (not used)"}
         fitted["delay_s"] = {"value": res.plant.delay_s, "std": res.plant.delay_std_s, "from": "frf"}
     if res.cv is not None:
         fitted["coulomb_n"] = {"value": res.cv.coulomb_n, "std": res.cv.coulomb_std_n, "from": "friction_cv"}
