@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stagectl.commission import analysis as an
 from stagectl.errors import DataError
 from stagectl.ident.discover import discover
 from stagectl.ident.hypothesis import Hyp
@@ -55,6 +56,8 @@ FloatArray = npt.NDArray[np.float64]
 
 #: relative difference between the FRF mass and the inverse-dynamics mass that the report warns about
 MASS_DISAGREEMENT = 0.2
+#: the inverse-dynamics mass replaces the FRF's only within this factor of it (:func:`reconcile_mass`)
+MASS_ID_MAX_RATIO = 2.0
 #: highest sample rate handed to discover [Hz]
 DISCOVER_RATE_HZ = 500.0
 #: pre-sliding regression: number of Maxwell-slip elements, range of their break-away displacements [m]
@@ -654,6 +657,33 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     return out
 
 
+def reconcile_mass(mass_kg: float, mass_id_kg: float | None) -> tuple[float, str | None]:
+    """The mass the model and the gains use [kg], and the report's note on it (None when nothing to say).
+
+    ``mass_kg`` is the FRF's (or the probe's, when the FRF's was not credible), ``mass_id_kg`` the
+    inverse-dynamics regression's over the passes' ramps. With ``r = m_id/m``:
+
+    * ``|r − 1| ≤ MASS_DISAGREEMENT`` (20 %): the FRF mass, no note;
+    * ``1/MASS_ID_MAX_RATIO ≤ r ≤ MASS_ID_MAX_RATIO`` otherwise: the inverse-dynamics mass (an FRF on a
+      stage held by its friction measures the friction, not the mass), with a note;
+    * outside: the FRF mass, with a note. The FRF mass used here already passed ``FRF_MASS_PLAUSIBLE``
+      against the probe with a relative std of at most ``FRF_MASS_MAX_REL_STD`` (25 %): a factor 2 is 4σ of
+      the loosest FRF mass admitted, more than its uncertainty explains, so the inverse-dynamics regression
+      is the suspect (a cogging left in the ramps with a wrong phase gave 1.6–4.9 kg for a 0.79 kg stage).
+    """
+    if mass_id_kg is None or not math.isfinite(mass_id_kg) or abs(mass_id_kg / mass_kg - 1) <= MASS_DISAGREEMENT:
+        return mass_kg, None
+    r = mass_id_kg / mass_kg
+    head = (f"the FRF mass {mass_kg:.4g} kg and the inverse-dynamics mass {mass_id_kg:.4g} kg of the "
+            f"constant-velocity passes differ by more than {100 * MASS_DISAGREEMENT:.0f} %")
+    if 1.0 / MASS_ID_MAX_RATIO <= r <= MASS_ID_MAX_RATIO:
+        return float(mass_id_kg), (f"{head}: the FRF probably measured a stage held by its friction; the model "
+                                   "and the gains use the inverse-dynamics mass")
+    return mass_kg, (f"{head} by more than a factor {MASS_ID_MAX_RATIO:g}, which the FRF's uncertainty (at most "
+                     f"{100 * an.FRF_MASS_MAX_REL_STD:.0f} %) does not explain: the model and the gains keep the "
+                     "FRF mass (the inverse-dynamics regression is suspect: a cogging or an offset left in its ramps)")
+
+
 def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                sliding: dict[str, float] | None = None,
                delay_s: float | None = None,
@@ -684,15 +714,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         m_id = measure(cv_rec).mass_kg
     except DataError:
         m_id = None
-    m = mass_kg
-    warning = None
-    if m_id is not None and abs(m_id / mass_kg - 1) > MASS_DISAGREEMENT:
-        # the FRF stands still: on a stage held by its friction it measures the friction, not the mass
-        m = float(m_id)
-        warning = (f"the FRF mass {mass_kg:.4g} kg and the inverse-dynamics mass {m_id:.4g} kg of the "
-                   f"constant-velocity passes differ by more than {100 * MASS_DISAGREEMENT:.0f} %: the FRF "
-                   "probably measured a stage held by its friction; the model and the gains use the "
-                   "inverse-dynamics mass")
+    m, warning = reconcile_mass(mass_kg, m_id)
     # discover's cost grows with the samples: the loop rate is decimated to at most DISCOVER_RATE_HZ
     step = max(1, round(1.0 / (period_s * DISCOVER_RATE_HZ)))
     est = to_recording(res_recordings["reversals"], "reversals", step)

@@ -101,6 +101,9 @@ def report_dict(res: Results) -> dict[str, Any]:
             fitted["mass_kg_frf"] = fitted["mass_kg"]
             fitted["mass_kg"] = {"value": used, "std": float("nan"),
                                  "from": "inverse dynamics of friction_cv (the FRF disagreed)"}
+        elif (res.discovery or {}).get("mass_warning"):
+            fitted["mass_kg_inverse_dynamics"] = {"value": (res.discovery or {}).get("mass_kg_inverse_dynamics"),
+                                                  "std": float("nan"), "from": "friction_cv (not used)"}
         fitted["delay_s"] = {"value": res.plant.delay_s, "std": res.plant.delay_std_s, "from": "frf"}
     if res.cv is not None:
         fitted["coulomb_n"] = {"value": res.cv.coulomb_n, "std": res.cv.coulomb_std_n, "from": "friction_cv"}
@@ -131,12 +134,26 @@ def report_dict(res: Results) -> dict[str, Any]:
     return plain(r, json=True)  # type: ignore[no-any-return]
 
 
+#: the verdict's tolerance on a scenario's RMS error: the commissioned controller "tracks at least as well" when
+#: its RMS is at most (1 + VERDICT_RMS_TOL) times the given one's. The before and after runs are single runs of
+#: a few seconds starting from different states (the given controller's right after the sequence's last
+#: move), and on a real stage their RMS carries the sensor's noise and the stage's drift: a 1 % difference
+#: (HIL commissioning: cosine 17.4 nm after vs 17.2 before, while triangle settled 1/1 after vs 0/1 and
+#: steps 4/4 vs 3/4) is not a measured difference. 5 % stays well under the gains a retuning is for (the
+#: quick start: 6.78 -> 2.06 nm on the cosine, 14 % on the steps).
+VERDICT_RMS_TOL = 0.05
+
+
 def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The advice, checked before it is given: ``stage.yaml`` is recommended only if, on every verification
-    scenario, its RMS error is not above the given controller's and no fewer moves settle; otherwise the
-    report says which scenarios got worse and recommends keeping the given controller."""
+    """The advice, checked before it is given. A scenario got worse when the commissioned controller's RMS
+    error exceeds ``(1 + VERDICT_RMS_TOL)·`` the given controller's, or fewer of its moves settle.
+    ``stage.yaml`` is recommended only if no scenario got worse; the text states the rule, each scenario's
+    RMS change and the settled moves before and after over all scenarios. Otherwise the report says which
+    scenarios got worse and recommends keeping the given controller."""
     worse: list[str] = []
     better: list[str] = []
+    tol = 100 * VERDICT_RMS_TOL
+    n_b = n_a = n_moves = 0
     for name, d in ver.items():
         b, a = d.get("before"), d.get("after")
         if not b or not a:
@@ -144,27 +161,36 @@ def verdict(ver: dict[str, dict[str, Any]]) -> dict[str, Any]:
         rb, ra = b.get("rms_error_m"), a.get("rms_error_m")
         if rb is None or ra is None or not (math.isfinite(rb) and math.isfinite(ra)):
             continue
-        fewer = a.get("moves_settled", 0) < b.get("moves_settled", 0)
-        if ra > rb or fewer:
+        sb, sa = int(b.get("moves_settled", 0)), int(a.get("moves_settled", 0))
+        n_b, n_a, n_moves = n_b + sb, n_a + sa, n_moves + int(a.get("moves", 0))
+        rms_worse = ra > (1.0 + VERDICT_RMS_TOL) * rb
+        fewer = sa < sb
+        change = f"RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before ({100 * (ra / rb - 1) if rb > 0 else 0.0:+.1f} %)"
+        settled = f"settled {sa}/{a.get('moves')} after vs {sb}/{b.get('moves')} before"
+        if rms_worse or fewer:
             what = []  # name exactly what got worse, and what did not
-            if ra > rb:
-                what.append(f"RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
+            if rms_worse:
+                what.append(change)
             if fewer:
-                what.append(f"settled {a.get('moves_settled')}/{a.get('moves')} after vs "
-                            f"{b.get('moves_settled')}/{b.get('moves')} before")
-            if ra <= rb:
-                what.append(f"though its RMS is lower, {ra * 1e9:.3g} vs {rb * 1e9:.3g} nm")
+                what.append(settled)
+            if not rms_worse:
+                what.append(f"though its RMS is within the {tol:.0f} % tolerance: {ra * 1e9:.3g} vs {rb * 1e9:.3g} nm")
             worse.append(f"{name}: " + ", ".join(what))
         else:
-            better.append(f"{name}: RMS {ra * 1e9:.3g} nm after vs {rb * 1e9:.3g} nm before")
+            better.append(f"{name}: {change}" + (f", {settled}" if sa != sb else ""))
+    rule = (f"rule: on every scenario the RMS error at most {tol:.0f} % above the given controller's (run-to-run "
+            "noise) and no fewer moves settled")
     if not worse and not better:
-        return {"recommend": "unverified", "worse": [], "better": [],
+        return {"recommend": "unverified", "worse": [], "better": [], "rms_tolerance": VERDICT_RMS_TOL,
                 "text": "not verified (no before/after runs): check stage.yaml with `stagectl simulate`/`run` first"}
+    tally = f"moves settled {n_a}/{n_moves} after vs {n_b}/{n_moves} before"
     if worse:
-        return {"recommend": "given", "worse": worse, "better": better,
-                "text": "keep the given controller: the commissioned one is worse on " + "; ".join(worse)}
-    return {"recommend": "new", "worse": [], "better": better,
-            "text": "use stage.yaml: it tracks at least as well on every scenario (" + "; ".join(better) + ")"}
+        return {"recommend": "given", "worse": worse, "better": better, "rms_tolerance": VERDICT_RMS_TOL,
+                "text": (f"keep the given controller ({rule}; {tally}): the commissioned one is worse on "
+                         + "; ".join(worse))}
+    return {"recommend": "new", "worse": [], "better": better, "rms_tolerance": VERDICT_RMS_TOL,
+            "text": (f"use stage.yaml: it tracks at least as well on every scenario ({rule}; {tally}): "
+                     + "; ".join(better))}
 
 
 def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
