@@ -42,7 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--ilc", action="store_true",
                    help="learn a feed-forward for the repeated motion (ilc: section, learning from the start)")
     p.add_argument("-q", "--quiet", action="store_true",
-                   help="no start and progress lines on stderr (for scripts; warnings and errors still)")
+                   help="no start, progress or outputs lines on stderr (for scripts; warnings and errors still)")
     p.set_defaults(func=run)
 
 
@@ -124,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     summary["out"] = str(out)
     write_outputs(rec, out, summary, plots=not args.no_plots and rec.n > 1, title=title)
     wrote = "telemetry.csv, summary.json" + (" and tracking.png" if (Path(out) / "tracking.png").is_file() else "")
-    print(f"stagectl run: {wrote} in {out}", file=sys.stderr)
+    if not args.quiet:  # -q: the summary on stdout names the directory (``out``)
+        print(f"stagectl run: {wrote} in {out}", file=sys.stderr)
     print(json.dumps(summary, default=str, separators=(",", ":")))
     return 1 if summary["fault"] else 0

@@ -146,6 +146,18 @@ def test_run_command_smoke(tmp_path, capsys):
     assert json.loads((tmp_path / "summary.json").read_text())["scenario"] == "demo"
 
 
+def test_run_quiet_says_nothing_but_warnings(tmp_path, capsys):
+    """`run -q` (scripts): no start, progress or outputs line on stderr; the summary on stdout names the
+    directory."""
+    from stagectl.cli import main
+
+    rc = main(["run", "--config", str(SIM_YAML), "--duration", "0.1", "--out", str(tmp_path), "--no-plots", "-q"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "stagectl run:" not in out.err, out.err
+    assert json.loads(out.out.strip().splitlines()[-1])["out"] == str(tmp_path)
+
+
 def test_stop_decelerates_and_holds_without_going_back():
     from stagectl.control.reference import TrajectoryReference
 
