@@ -195,3 +195,15 @@ def cycle_drive(dut, n: int, force_n: float):
             return m
         dut.write(force_n)
     return m
+
+
+def friction_moves(seed: int, n: int):
+    """A random velocity history for stepping friction kernels: pre-sliding wiggles, sliding both ways,
+    reversals, pauses (v = 0), tiny and large steps. Returns ``(v [m/s], dt [s])``, 40 samples per level."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    v = np.repeat(rng.choice([-5e-3, -1e-3, -2e-4, -1e-5, 0.0, 1e-5, 3e-4, 1e-3, 8e-3], n // 40), 40)
+    v *= rng.uniform(0.5, 1.5, v.size)
+    dt = rng.uniform(5e-5, 1e-3, v.size)
+    return v, dt

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from support import friction_moves
 
 from stagectl.friction import build, load_model_file
 from stagectl.jit import LazyKernel, plain
@@ -37,14 +38,6 @@ MODELS = {
 }
 
 
-def _moves(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pre-sliding wiggles, sliding both ways, reversals, pauses (v = 0), tiny and large steps."""
-    rng = np.random.default_rng(seed)
-    v = np.repeat(rng.choice([-5e-3, -1e-3, -2e-4, -1e-5, 0.0, 1e-5, 3e-4, 1e-3, 8e-3], n // 40), 40)
-    v *= rng.uniform(0.5, 1.5, v.size)
-    dt = rng.uniform(5e-5, 1e-3, v.size)
-    return v, dt
-
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_the_plain_step_equals_the_compiled_step(name: str) -> None:
@@ -54,7 +47,7 @@ def test_the_plain_step_equals_the_compiled_step(name: str) -> None:
     s_c = model.initial_state()
     s_p = s_c.tolist()
     scale = max(1.0, float(np.max(np.abs([model.step(model.initial_state(), 1e-3, 1e-2, 0.1)]))))
-    v, dt = _moves(3, 4000)
+    v, dt = friction_moves(3, 4000)
     worst = 0.0
     forces = []
     for vk, dtk in zip(v, dt):

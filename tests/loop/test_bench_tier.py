@@ -10,13 +10,14 @@ import sys
 
 import numpy as np
 import pytest
+from stagectl.sim import plant as plant_mod
+from support import friction_moves
 
 from stagectl.bench import tier
 from stagectl.config import load_app_config
 from stagectl.friction import build
 from stagectl.jit import cache_dir
 from stagectl.resources import config_dir
-from stagectl.sim import plant as plant_mod
 
 #: the stated tolerance between the plain and the compiled kernels (relative to the force/position scale); the
 #: same operations in the same order, so in practice they agree bit for bit
@@ -29,21 +30,13 @@ OTHER = build({"model": "gms", "k_n_m": [3e5, 8e4], "alpha": [0.7, 0.3], "fc_n":
                "delta": 1.4, "c_n_s": 3e3, "sigma1_n_s_m": [20.0, 5.0], "viscous_n_s_m": 0.7})
 
 
-def _moves(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pre-sliding wiggles, sliding both ways, reversals, pauses (v = 0)."""
-    rng = np.random.default_rng(seed)
-    v = np.repeat(rng.choice([-5e-3, -1e-3, -2e-4, -1e-5, 0.0, 1e-5, 3e-4, 1e-3, 8e-3], n // 40), 40)
-    v *= rng.uniform(0.5, 1.5, v.size)
-    dt = rng.uniform(5e-5, 1e-3, v.size)
-    return v, dt
-
 
 @pytest.mark.parametrize("model", [GMS, OTHER], ids=["table1", "damped"])
 def test_plain_gms_step_equals_the_compiled_step(model) -> None:
     p = model.kernel().p
     s_c = model.initial_state()
     s_p = s_c.tolist()
-    v, dt = _moves(3, 4000)
+    v, dt = friction_moves(3, 4000)
     n = model.n_states // 2
     worst = 0.0
     modes: set[float] = set()
