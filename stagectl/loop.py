@@ -372,10 +372,10 @@ class ControlLoop:
             target = self.limits.check_relative(self.reference.target_m, rel)
         v = req.max_velocity_m_s
         if v is not None:  # a typo (1e-250 for 1e-5) would otherwise plan a move that outlives the machine
-            crawl_s = abs(target - self.reference.target_m) / v
-            if crawl_s > MAX_MOVE_S:
-                raise RequestError("max_velocity_m_s", f"{v:g} m/s over {abs(target - self.reference.target_m):g} m "
-                                   f"would take {crawl_s:.3g} s, more than {MAX_MOVE_S:g} s (a day)")
+            dist = abs(target - self.reference.target_m)
+            if dist / v > MAX_MOVE_S:
+                raise RequestError("max_velocity_m_s", f"{v:g} m/s over {dist:g} m would take {dist / v:.3g} s, "
+                                   f"more than {MAX_MOVE_S:g} s (a day)")
         duration = self.reference.move(t - self.ref_lag_s, target, v)
         if self.slow_motion and self.slow_down != 1.0:  # the reference runs at 1/s of loop time while slowed
             duration *= self.slow_down
@@ -662,16 +662,8 @@ class ControlLoop:
                 # device time: the drive has not answered our last SYNCs (its process held off the CPU, its
                 # plant frozen); the loop's time waits with it: no SYNC, no force, no row in this slot
                 self.device_waits += 1 + skipped
-                slot += 1
-                deadline = t0 + slot * period
-                clock.sleep_until(deadline)
-                late = clock.now() - deadline
-                skipped = 0
-                if late >= period * (1.0 - 1e-9):
-                    skipped = max(1, int(late // period))
-                    slot += skipped
-                    late -= skipped * period
-                    self.overruns += skipped
+                slot, late, skipped = _sleep_to_slot(clock, t0, slot + 1, period)
+                self.overruns += skipped
                 continue
             s_ref = self.slow_down if slow_motion else 1.0
             if s_ref != 1.0 and t_last == t_last:
@@ -811,16 +803,8 @@ class ControlLoop:
             k += 1
             self.cycle = k
             # ------------------------------------------------------ schedule: absolute deadline
-            slot += 1
-            deadline = t0 + slot * period
-            clock.sleep_until(deadline)
-            late = clock.now() - deadline
-            skipped = 0
-            if late >= period * (1.0 - 1e-9):  # (a wake-up one period late is a skipped slot, rounding aside)
-                skipped = max(1, int(late // period))
-                slot += skipped
-                late -= skipped * period
-                self.overruns += skipped
+            slot, late, skipped = _sleep_to_slot(clock, t0, slot + 1, period)
+            self.overruns += skipped
             if warner is not None:
                 warner.note(t, late, skipped, period, self.overruns)
 
@@ -835,6 +819,21 @@ class ControlLoop:
 
     def _fail_pending(self) -> None:
         self._inbox.fail_pending(lambda: LoopStateError("the control loop is not running"))
+
+
+def _sleep_to_slot(clock: Clock, t0: float, slot: int, period: float) -> tuple[int, float, int]:
+    """Sleep until ``slot``'s deadline ``t0 + slot·period`` [s]; returns ``(slot, late, skipped)``: a wake-up a
+    period or more late skips the slots it missed (``slot`` advanced by ``skipped``, ``late`` [s] within the
+    slot now current)."""
+    deadline = t0 + slot * period
+    clock.sleep_until(deadline)
+    late = clock.now() - deadline
+    skipped = 0
+    if late >= period * (1.0 - 1e-9):  # (a wake-up one period late is a skipped slot, rounding aside)
+        skipped = max(1, int(late // period))
+        slot += skipped
+        late -= skipped * period
+    return slot, late, skipped
 
 
 def _in_position(controller: object) -> bool | None:
