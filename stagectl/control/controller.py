@@ -698,7 +698,6 @@ class StageController:
         self._gap = 0
         self._e_last = math.nan
         self._x_fresh = x_m
-        self._v_fresh = 0.0
         self._xr_fresh = math.nan
         self._dx_fresh = self._dxr_fresh = 0.0
         self._ev_num = self._ev_den = 0.0
@@ -816,7 +815,6 @@ class StageController:
 
     _last_ref: Reference | None = None
     _x_fresh = math.nan  # the last fresh (measured, not predicted) position [m]
-    _v_fresh = 0.0  # the speed between the last two fresh samples [m/s]
     _xr_fresh = math.nan  # the reference at the last fresh sample [m]
     _dx_fresh = 0.0  # the stage's travel between the last two fresh samples [m]
     _dxr_fresh = 0.0  # the reference's travel between the last two fresh samples [m]
@@ -1104,7 +1102,6 @@ class StageController:
         x_f, xr_f = self._x_fresh, self._xr_fresh
         self._dx_fresh = 0.0 if math.isnan(x_f) else x_meas_m - x_f
         self._dxr_fresh = ref.v_m_s * dt if math.isnan(xr_f) else ref.x_m - xr_f
-        self._v_fresh = self._dx_fresh / dt
         self._x_fresh = x_meas_m
         self._xr_fresh = ref.x_m
         if self._pred_s:
