@@ -303,11 +303,6 @@ def dispatcher(k: Any) -> Any:
     return k.dispatcher() if isinstance(k, LazyKernel) else k
 
 
-def numba_loaded() -> bool:
-    """Whether this process has imported numba (a real stage's run and daemon do not: docs/performance.md)."""
-    return "numba" in sys.modules
-
-
 @overload
 def kernel(fn: F) -> F: ...
 
@@ -424,4 +419,4 @@ def loaded_from_cache(dispatcher: Any) -> int:
 
 
 __all__ = ["LazyKernel", "cache_dir", "compiled_signatures", "dependency_constants", "dependency_files", "dispatcher",
-           "inlined", "kernel", "loaded_from_cache", "numba_loaded", "plain"]
+           "inlined", "kernel", "loaded_from_cache", "plain"]
