@@ -36,6 +36,7 @@ model file's content (``docs/commissioning.md`` §4).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +45,7 @@ import numpy.typing as npt
 
 from stagectl.commission import analysis as an
 from stagectl.errors import DataError
+from stagectl.friction.effects import Cogging, Effects
 from stagectl.ident.discover import discover
 from stagectl.ident.hypothesis import Hyp
 from stagectl.ident.modelio import hyp_to_spec
@@ -357,10 +359,9 @@ def fit_presliding(recs: Recorder | list[Recorder], mass_kg: float, period_s: fl
         # the rows see less than COGGING_MIN_PERIODS periods: the amplitude would trade with the element
         # levels (0.33 N fitted for a true 0.069 N at 1.06 mm over 1 mm of rows, tests/commission/plant_gen.py
         # seed 2); the cogging the slow passes measured over the stroke is subtracted as it is
-        A, ph = float(cog_in["amplitude_n"]), float(cog_in.get("phase_rad", 0.0))
         for r in rows:
             assert r.rest is not None
-            r.rest = r.rest + r.smooth(A * np.sin(2.0 * math.pi * r.x / float(cog_in["wavelength_m"]) + ph))
+            r.rest = r.rest + r.smooth(_cogging_force(cog_in, r.x))
             r.y = r.target(delay_s)
         lam0 = None
     grid = np.geomspace(*PRESLIDING_DELTA_M, PRESLIDING_ELEMENTS)
@@ -657,6 +658,14 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     return out
 
 
+def _cogging_force(cog: Mapping[str, Any], x_m: FloatArray) -> FloatArray:
+    """The force ``A·sin(2πx/λ + φ)`` [N] at ``x_m`` [m] of a cogging given as ``amplitude_n``, ``wavelength_m``,
+    ``phase_rad``: the model's own definition (:class:`~stagectl.friction.effects.Cogging`)."""
+    c = Cogging(amplitude_n=float(cog["amplitude_n"]), wavelength_m=float(cog["wavelength_m"]),
+                phase_rad=float(cog.get("phase_rad", 0.0)))
+    return Effects(cogging=c).other_force_array(x_m)
+
+
 def reconcile_mass(mass_kg: float, mass_id_kg: float | None) -> tuple[float, str | None]:
     """The mass the model and the gains use [kg], and the report's note on it (None when nothing to say).
 
@@ -708,8 +717,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     if "slow_passes" in res_recordings:
         ce0 = cogging_evidence(res_recordings["slow_passes"], mass_kg, period_s)
         if ce0["present"]:
-            cv_rec.u = cv_rec.u - float(ce0["amplitude_n"]) * np.sin(
-                2.0 * math.pi * cv_rec.x / float(ce0["wavelength_m"]) + float(ce0["phase_rad"]))
+            cv_rec.u = cv_rec.u - _cogging_force(ce0, cv_rec.x)
     try:
         m_id = measure(cv_rec).mass_kg
     except DataError:
