@@ -403,6 +403,27 @@ MAX_YAML_DEPTH = 32
 MAX_YAML_NODES = 100_000
 
 
+#: configuration keys that hold a path besides those ending in ``_file`` (``model_file``, ``eds_file``)
+PATH_KEYS = ("directory",)
+
+
+def absolute_paths(node: Any, base: Path, *, resolve: bool = False) -> Any:
+    """A parsed configuration (mappings, lists) with its relative paths, the values of keys ending in ``_file``
+    or in :data:`PATH_KEYS`, made absolute against ``base`` (``resolve``: symlinks resolved too), so that the
+    same files load when the mapping is written to another directory."""
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            if isinstance(v, str) and (k.endswith("_file") or k in PATH_KEYS) and not Path(v).is_absolute():
+                out[k] = str((base / v).resolve()) if resolve else str(base / v)
+            else:
+                out[k] = absolute_paths(v, base, resolve=resolve)
+        return out
+    if isinstance(node, list):
+        return [absolute_paths(v, base, resolve=resolve) for v in node]
+    return node
+
+
 class _YamlRefused(Exception):
     """A bound of the bounded loader was exceeded (message: what and where)."""
 

@@ -122,16 +122,11 @@ def run_on_pty(argv: list[str], *, interrupt_on: str | None = None, cwd=None, st
 
 
 def absolutize_paths(node, base):
-    """A configuration mapping with its relative file paths (keys ``*_file``, ``eds``, ``file``) made absolute
-    against ``base``, so that it still loads from a temporary directory."""
-    import os
+    """A configuration mapping with its relative file paths made absolute against ``base``, so that it still loads
+    from a temporary directory (:func:`stagectl.schema.absolute_paths`)."""
+    from stagectl.schema import absolute_paths
 
-    if isinstance(node, dict):
-        return {k: (str(base / v) if isinstance(v, str) and (k.endswith("_file") or k in ("eds", "file"))
-                    and not os.path.isabs(v) else absolutize_paths(v, base)) for k, v in node.items()}
-    if isinstance(node, list):
-        return [absolutize_paths(v, base) for v in node]
-    return node
+    return absolute_paths(node, base)
 
 
 # ------------------------------------------------------------------------------------------ shipped configs

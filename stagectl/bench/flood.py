@@ -39,7 +39,7 @@ from stagectl.bench import tell
 import yaml
 
 from stagectl.daemon.control import ControlClient
-from stagectl.schema import load_yaml_file
+from stagectl.schema import absolute_paths, load_yaml_file
 
 __all__ = ["add_arguments", "run"]
 
@@ -94,15 +94,7 @@ def _measure(config: Path, isolation: str, phase_s: float, clients: int, half_op
         d = Path(tmp)
         base = config.resolve().parent
 
-        def absolutize(node: Any) -> Any:  # relative *_file paths keep pointing where they did
-            if isinstance(node, dict):
-                return {k: (str(base / v) if isinstance(v, str) and k.endswith("_file") and not os.path.isabs(v)
-                            else absolutize(v)) for k, v in node.items()}
-            if isinstance(node, list):
-                return [absolutize(v) for v in node]
-            return node
-
-        raw = absolutize(load_yaml_file(config) or {})
+        raw = absolute_paths(load_yaml_file(config) or {}, base)  # relative paths keep pointing where they did
         if fifo is not None:
             loop = raw.setdefault("loop", {}) or {}
             loop["realtime"] = {**(loop.get("realtime") or {}), "fifo_priority": fifo}

@@ -202,16 +202,6 @@ def _summary(cold: list[dict[str, Any]], warm: list[dict[str, Any]]) -> dict[str
                      "warm_process_cpu_s": [r["process_cpu_s"] for r in warm]}}
 
 
-def _absolute(node: Any, base: Path) -> Any:
-    """A config mapping with its relative file paths (``*_file``, ``eds``, ``file``) made absolute against ``base``."""
-    if isinstance(node, dict):
-        return {k: (str(base / v) if isinstance(v, str) and (k.endswith("_file") or k in ("eds", "file"))
-                    and not os.path.isabs(v) else _absolute(v, base)) for k, v in node.items()}
-    if isinstance(node, list):
-        return [_absolute(v, base) for v in node]
-    return node
-
-
 class _SimPlant:
     """``stagectl sim-plant`` on the ``sim:`` section of ``config`` (socketcand, ephemeral port) and the same config
     without ``sim:`` pointed at it (``stage_config``), for ``--stage``. A context manager; stops the process."""
@@ -220,12 +210,12 @@ class _SimPlant:
         import yaml
 
         from stagectl.errors import ConfigError
-        from stagectl.schema import load_yaml_file
+        from stagectl.schema import absolute_paths, load_yaml_file
 
         data = load_yaml_file(config)
         if not isinstance(data, dict) or not isinstance(data.get("sim"), dict):
             raise ConfigError(f"--stage: {config} has no sim: section (the stage for the sim-plant process)")
-        data = _absolute(data, Path(config).resolve().parent)
+        data = absolute_paths(data, Path(config).resolve().parent)
         drive = (data.get("io") or {}).get("drive") or {}
         if (data["io"].get("kind") != "canopen" or (drive.get("can") or {}).get("interface") != "socketcand"):
             raise ConfigError(f"--stage: {config}: needs io.kind canopen with io.drive.can.interface socketcand "

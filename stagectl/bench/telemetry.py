@@ -41,7 +41,7 @@ import yaml
 from stagectl.clock import MonotonicClock
 from stagectl.daemon.control import ControlClient
 from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
-from stagectl.schema import load_yaml_file
+from stagectl.schema import absolute_paths, load_yaml_file
 
 __all__ = ["add_arguments", "exit_code", "run", "run_daemon", "run_ring"]
 
@@ -167,15 +167,7 @@ def run_daemon(config: str, duration_s: float = 600.0) -> dict[str, Any]:
     src = Path(config).resolve()
     data = load_yaml_file(src)  # the bounded loader, as the daemon reads it
 
-    def absolutize(node: Any) -> Any:
-        if isinstance(node, dict):
-            return {k: (str(src.parent / v) if isinstance(v, str) and k.endswith("_file") and not os.path.isabs(v)
-                        else absolutize(v)) for k, v in node.items()}
-        if isinstance(node, list):
-            return [absolutize(v) for v in node]
-        return node
-
-    data = absolutize(data)
+    data = absolute_paths(data, src.parent)
     data.setdefault("daemon", {})
     data["daemon"] = {**(data["daemon"] or {}), "telemetry": {"directory": str(d / "telemetry")}}
     cfg = d / "stagectl.yaml"

@@ -21,23 +21,7 @@ from stagectl.commission.sequence import Results, controller_mapping
 from stagectl.config import AppConfig, load_app_config
 from stagectl.friction import StageModel, save_model_file
 from stagectl.outputs import plain
-from stagectl.schema import load, load_yaml_file
-
-PATH_KEYS = ("model_file", "eds", "eds_file", "directory")
-
-
-def _absolute_paths(node: Any, base: Path) -> Any:
-    if isinstance(node, dict):
-        out = {}
-        for k, v in node.items():
-            if isinstance(v, str) and (k in PATH_KEYS or k.endswith("_file")) and not Path(v).is_absolute():
-                out[k] = str((base / v).resolve())
-            else:
-                out[k] = _absolute_paths(v, base)
-        return out
-    if isinstance(node, list):
-        return [_absolute_paths(v, base) for v in node]
-    return node
+from stagectl.schema import absolute_paths, load, load_yaml_file
 
 
 def controller_section(res: Results) -> dict[str, Any]:
@@ -56,7 +40,7 @@ def write_config(res: Results, out: Path) -> AppConfig:
     cfg = res.config
     data = load_yaml_file(cfg.path) if cfg.path is not None else {}
     assert isinstance(data, dict)
-    data = _absolute_paths(dict(data), cfg.base_dir)
+    data = absolute_paths(dict(data), cfg.base_dir, resolve=True)
     res.controller_yaml = controller_section(res)
     data["controller"] = res.controller_yaml
     data["description"] = f"{data.get('description', '')} (commissioned by stagectl commission)".strip()
