@@ -75,10 +75,10 @@ from typing import Any
 
 import can
 from canopen.objectdictionary import ODVariable
+from stagectl.sim.faults import FaultSchedule, FaultSpec, SimFault
 
 from stagectl.resources import EDS_DIR
-from stagectl.schema import param
-from stagectl.sim.faults import FaultSchedule, FaultSpec, SimFault
+from stagectl.world_schema import SimDriveConfig as SimDriveConfig
 
 log = logging.getLogger(__name__)
 
@@ -778,25 +778,6 @@ BRAKE_STILL_PERIODS = 5
 BRAKE_MAX_S = 2.0
 #: statusword bit 12 in CST: the drive follows the target torque
 SW_CST_FOLLOWING = 0x1000
-
-
-@dataclass(frozen=True)
-class SimDriveConfig:
-    """The simulated drive (YAML ``sim.drive``)."""
-
-    node_id: int = param(1, desc="CANopen node id", ge=1, le=127)
-    resolution_m: float = param(1e-9, unit="m", desc="position per count of 0x6064", ge=1e-15)
-    force_per_unit_n: float = param(0.01, unit="N", desc="newtons per unit of target torque 0x6071", gt=0)
-    velocity_resolution_m_s: float = param(1e-6, unit="m/s", desc="velocity per unit of 0x606C", gt=0)
-    sync_timeout_s: float = param(
-        0.5, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
-        "fault (0 = off)", ge=0)
-    eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia402.eds)")
-    wall_clock_plant: bool = param(
-        False, desc="thread mode (stagectl sim-plant): at each SYNC step the plant by the whole periods of wall "
-        "time since its last step (at most MAX_CATCH_UP_PERIODS, the first ones under the held force), so a "
-        "skipped controller cycle lets the stage move on as a real one does; false: one period per SYNC "
-        "(deterministic). Lock-step runs are one period per SYNC either way")
 
 
 class SimCia402Drive(SimCanopenDevice):

@@ -14,26 +14,15 @@ status 0x6500 error bit and sends the EMCY (no state machine).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import can
-
-from stagectl.schema import param
-from stagectl.resources import EDS_DIR
 from stagectl.sim.cia402_drive import SimCanopenDevice
 from stagectl.sim.faults import SimFault
 
-
-@dataclass(frozen=True)
-class SimEncoderConfig:
-    """The simulated CiA 406 encoder (YAML ``sim.encoder``)."""
-
-    node_id: int = param(2, desc="CANopen node id", ge=1, le=127)
-    resolution_m: float = param(1e-9, unit="m", desc="measuring step (position per count of 0x6004)",
-                                 ge=1e-15)
-    eds_file: str = param("", desc="EDS (empty = config/eds/stagectl_cia406.eds)")
+from stagectl.resources import EDS_DIR
+from stagectl.world_schema import SimEncoderConfig as SimEncoderConfig
 
 
 class SimCia406Encoder(SimCanopenDevice):

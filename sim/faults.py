@@ -38,7 +38,6 @@ Loop-level names (the daemon's ``fault`` debug request) are aliases, resolved he
 
 from __future__ import annotations
 
-import enum
 import math
 import random
 from collections.abc import Mapping
@@ -46,39 +45,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from stagectl.drivers.base import FaultKind
-from stagectl.errors import short
-from stagectl.schema import param
 from stagectl.sim.direct import PlantIO
 
-
-class SimFault(enum.Enum):
-    DRIVE_FAULT = "drive_fault"
-    HEARTBEAT_STOP = "heartbeat_stop"
-    DROP_TPDO = "drop_tpdo"
-    LATE_TPDO = "late_tpdo"
-    BUS_OFF = "bus_off"
-    POSITION_JUMP = "position_jump"
-
-
-@dataclass(frozen=True)
-class FaultSpec:
-    """One scripted fault (YAML ``sim.faults[i]``)."""
-
-    kind: SimFault = param(desc="drive_fault, heartbeat_stop, drop_tpdo, late_tpdo, bus_off or position_jump")
-    device: str = param("drive", desc="which virtual CANopen device: drive or encoder", choices=("drive", "encoder"))
-    at_cycle: int | None = param(None, desc="first SYNC (counted from 1) affected", ge=1)
-    at_time_s: float | None = param(None, unit="s", desc="first SYNC at or after this simulated time", ge=0)
-    cycles: int = param(0, desc="number of SYNCs the fault lasts (0 = for ever; drive_fault is one-shot)", ge=0)
-    code: int = param(0x2310, desc="drive_fault: CiA 301 error code sent by EMCY and shown in 0x603F", ge=1,
-                      le=0xFFFF)
-    jump_m: float = param(0.005, unit="m", desc="position_jump: offset added to the reported position")
-    sync_fraction: float = param(1.0, desc="fraction of the SYNCs in the window the fault hits, drawn at random "
-                               "per SYNC (1 = every SYNC; not for drive_fault)", ge=0, le=1)
-    seed: int = param(0, desc="seed of the random draws for sync_fraction < 1 (reproducible runs)", ge=0)
-
-    def __post_init__(self) -> None:
-        if self.at_cycle is not None and self.at_time_s is not None:
-            raise ValueError("give at_cycle or at_time_s, not both")
+from stagectl.errors import short
+from stagectl.world_schema import FaultSpec as FaultSpec
+from stagectl.world_schema import SimFault as SimFault
 
 
 @dataclass

@@ -48,7 +48,6 @@ does not advance), ``disconnect`` (the sim closes the link: TCP connection or pt
 
 from __future__ import annotations
 
-import enum
 import os
 import random
 import select
@@ -57,14 +56,15 @@ import tempfile
 import threading
 import time
 import tty
-from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol
 
 from stagectl.drivers.interferometer_protocol import LinkBytes, Status, encode_frame
 from stagectl.errors import ConfigError
-from stagectl.schema import param
+from stagectl.world_schema import SerialFaultKind as SerialFaultKind
+from stagectl.world_schema import SimInterferometerConfig as SimInterferometerConfig
+from stagectl.world_schema import SimInterferometerFault as SimInterferometerFault
 
 __all__ = [
     "SerialFaultKind",
@@ -78,54 +78,6 @@ class PlantLike(Protocol):
     t_s: float
 
     def measure(self) -> float: ...
-
-
-class SerialFaultKind(enum.Enum):
-    CORRUPT = "corrupt"
-    DROP = "drop"
-    GARBAGE = "garbage"
-    SIGNAL_LOST = "signal_lost"
-    LASER_UNLOCKED = "laser_unlocked"
-    GLITCH = "glitch"
-    LOW_SIGNAL = "low_signal"
-    STOP = "stop"
-    DISCONNECT = "disconnect"
-
-
-@dataclass(frozen=True)
-class SimInterferometerFault:
-    """One scripted fault: ``kind`` on ``count`` sample slots starting at slot ``at_frame``."""
-
-    kind: SerialFaultKind = param(desc="fault kind: corrupt, drop, garbage, signal_lost, laser_unlocked, "
-                                  "glitch, low_signal, stop, disconnect")
-    at_frame: int = param(0, desc="first sample slot (frame index since start) affected", ge=0)
-    count: int = param(1, desc="number of consecutive sample slots affected", ge=1)
-    garbage_bytes: int = param(16, unit="B", desc="garbage: bytes inserted before each affected frame", ge=1)
-    glitch_m: float = param(1e-6, unit="m", desc="glitch: position jump added to affected frames")
-    flag: bool = param(True, desc="glitch: also set the GLITCH status bit")
-    signal: int = param(10, desc="low_signal: signal strength byte sent (0..255)", ge=0, le=255)
-
-
-@dataclass(frozen=True)
-class SimInterferometerConfig:
-    """Virtual interferometer settings (YAML block ``interferometer_sim`` or built in tests)."""
-
-    transport: str = param("pty", desc="pty (a pseudo-terminal with a symlink) or tcp (loopback server)",
-                           choices=("pty", "tcp"))
-    link_path: str | None = param(None, desc="pty: symlink path published to clients (None: unique temp path)")
-    host: str = param("127.0.0.1", desc="tcp: listen address")
-    port: int = param(0, desc="tcp: listen port (0: ephemeral, see .url)", ge=0, le=65535)
-    rate_hz: float = param(1000.0, unit="Hz", desc="streaming rate (start()) and lock-step plant_time rate", gt=0)
-    resolution_m: float = param(1e-9, unit="m", desc="position resolution per count", ge=1e-15)
-    signal: int = param(230, desc="signal strength byte sent when healthy (0..255)", ge=0, le=255)
-    baudrate: int | None = param(None, unit="bit/s", desc="pace frames as on an 8N1 line (None: unpaced)", gt=0)
-    lockstep: str = param("per_pump", desc="pump(): per_pump = one frame per call; plant_time = one frame "
-                          "per elapsed 1/rate_hz of plant time", choices=("per_pump", "plant_time"))
-    trigger: str = param("rate", desc="rate = free-running at rate_hz; sync = one frame per CANopen SYNC, sampled "
-                         "right after the drive stepped the plant (external trigger input; SimWorld only)",
-                         choices=("rate", "sync"))
-    seed: int = param(0, desc="seed of the garbage generator")
-    faults: tuple[SimInterferometerFault, ...] = param((), desc="scripted faults")
 
 
 class SimInterferometer:

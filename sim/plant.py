@@ -42,131 +42,21 @@ import dataclasses
 import functools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from stagectl.errors import ConfigError, short
-from stagectl.friction import Effects, FrictionModel, StageModel, parse_effects, parse_friction
+from stagectl.friction import FrictionModel, StageModel
 from stagectl.friction.effects import modify_friction_kernel as _modify
 from stagectl.friction.effects import other_force_kernel as _other
 from stagectl.friction.effects import velocity_force_kernel as _vforce
 from stagectl.jit import dispatcher, inlined, kernel, plain
-from stagectl.schema import load, param
+from stagectl.world_schema import ActuatorConfig as ActuatorConfig
+from stagectl.world_schema import PlantConfig as PlantConfig
+from stagectl.world_schema import SensorConfig as SensorConfig
 
 FloatArray = npt.NDArray[np.float64]
-
-
-# ================================================================================================ config
-@dataclass(frozen=True)
-class SensorConfig:
-    """Position sensor model: noise, then quantisation, then a delay in whole plant steps."""
-
-    resolution_m: float = param(1e-9, unit="m", desc="quantisation step (one count)", ge=1e-15)
-    noise_std_m: float = param(0.0, unit="m", desc="white Gaussian noise std added before quantisation", ge=0.0,
-                               le=1.0)
-    delay_steps: int = param(0, unit="", desc="measurement delay in plant.step() calls", ge=0, le=100000)
-
-
-@dataclass(frozen=True)
-class ActuatorConfig:
-    """Force actuator limit (its delay is ``effects.delay``, the single source of truth)."""
-
-    max_force_n: float = param(math.inf, unit="N", desc="force saturation |u| <= max_force_n", gt=0.0,
-                               allow_inf=True)
-
-
-def _unresolved_model_file(value: Any, path: str, problems: list[str]) -> None:
-    """Parse hook of ``PlantConfig.model_file``: the schema never accepts the key by itself (through
-    :func:`~stagectl.schema.load`, a section parser or an enclosing section), since nothing there reads the
-    file; only :meth:`PlantConfig.from_mapping`, handed the resolved model, takes it."""
-    if value is None:
-        return None
-    if not isinstance(value, str):
-        problems.append(f"{path}: expected a path string, got {short(value)}")
-    else:
-        problems.append(f"{path}: {value} is not loaded (load the configuration with stagectl.config, or pass "
-                        "the StageModel to PlantConfig.from_mapping as model=)")
-    return None
-
-
-@dataclass(frozen=True)
-class PlantConfig:
-    """Stage plant configuration (YAML block, e.g. ``plant:``). Build from YAML with :meth:`from_mapping`."""
-
-    mass_kg: float = param(unit="kg", desc="moving mass m", gt=0.0)
-    friction: FrictionModel = param(desc="friction model (model: tag + parameters)", parse=parse_friction)
-    effects: Effects = param(default_factory=Effects, desc="additional effects (offset, ripple, cogging, ...)",
-                             parse=parse_effects)
-    substep_s: float = param(1e-5, unit="s", desc="maximum integration sub-step h", ge=1e-7, le=1e-2)
-    sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
-    actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
-    x0_m: float = param(0.0, unit="m", desc="initial position")
-    seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
-    model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
-                                   "inline keys override; relative to the YAML file's directory (loaded by "
-                                   "the configuration layer and handed to from_mapping as model=)",
-                                   parse=_unresolved_model_file)
-
-    def __post_init__(self) -> None:
-        # explicit-integration stability (module docstring): h·√(K/m) < 2 and h·c/m < 1, checked with margin
-        # for models that declare their pre-sliding stiffness K / total damping c
-        k = getattr(self.friction, "stiffness_n_m", None)
-        if isinstance(k, float) and k > 0.0 and self.substep_s * math.sqrt(k / self.mass_kg) > 1.0:
-            h_max = 1.0 / math.sqrt(k / self.mass_kg)
-            raise ValueError(f"substep_s: must be <= {h_max:.3g} s for stiffness {k:.4g} N/m and mass "
-                             f"{self.mass_kg:g} kg (h·√(K/m) <= 1; got {self.substep_s:g} s)")
-        c = getattr(self.friction, "damping_n_s_m", None)
-        if isinstance(c, float) and c > 0.0 and self.substep_s * c / self.mass_kg > 0.5:
-            raise ValueError(f"substep_s: must be <= {0.5 * self.mass_kg / c:.3g} s for damping {c:.4g} N·s/m "
-                             f"and mass {self.mass_kg:g} kg (h·c/m <= 0.5; got {self.substep_s:g} s)")
-
-    @classmethod
-    def from_mapping(cls, data: Any, path: str = "plant", model: StageModel | None = None) -> PlantConfig:
-        """Validate a YAML mapping into a :class:`PlantConfig`, merged over ``model``.
-
-        ``model`` is the stage model of ``model_file`` as loaded by the configuration layer (this method
-        reads no file): its ``mass_kg``, ``friction`` and ``effects`` are the defaults; inline keys override
-        them. An inline ``friction`` mapping without ``model:`` updates the model's friction parameters; an
-        inline ``effects`` mapping updates the model's effects one effect at a time.
-
-        Raises
-        ------
-        ConfigError
-            Every problem at once, each prefixed with its key path; ``model_file`` given without ``model``.
-        """
-        if data is None:
-            data = {}
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__} {short(data)}")
-        merged: dict[str, Any] = dict(data)
-        mf = merged.get("model_file")
-        if mf is not None and not isinstance(mf, str):
-            raise ConfigError(f"{path}.model_file: expected a path string, got {short(mf)}")
-        if mf is not None and model is None:
-            problems: list[str] = []
-            _unresolved_model_file(mf, f"{path}.model_file", problems)
-            raise ConfigError(problems)
-        if mf is not None:
-            del merged["model_file"]  # resolved: given to the dataclass below, past the schema's refusal
-        sm = model
-        if sm is not None:
-            if "mass_kg" not in merged and sm.mass_kg is not None:
-                merged["mass_kg"] = sm.mass_kg
-            fr = merged.get("friction")
-            if fr is None:
-                merged["friction"] = sm.friction
-            elif isinstance(fr, Mapping) and "model" not in fr:
-                merged["friction"] = {**sm.friction.spec(), **fr}
-            eff = merged.get("effects")
-            if eff is None:
-                merged["effects"] = sm.effects
-            elif isinstance(eff, Mapping):
-                merged["effects"] = {**sm.effects.spec(), **eff}
-        cfg = load(cls, merged, path)
-        return dataclasses.replace(cfg, model_file=mf) if mf is not None else cfg
 
 
 # ================================================================================================ kernels

@@ -57,8 +57,6 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -67,90 +65,21 @@ import can
 from stagectl.drivers.canbus import close_bus, open_bus
 from stagectl.drivers.interferometer_protocol import LinkBytes
 from stagectl.errors import ConfigError, short
-from stagectl.friction import StageModel
-from stagectl.schema import load, param, section_parser
-from stagectl.sim.cia402_drive import SimCanopenDevice, SimCia402Drive, SimDriveConfig
-from stagectl.sim.cia406_encoder import SimCia406Encoder, SimEncoderConfig
+from stagectl.schema import load
+from stagectl.sim.cia402_drive import SimCanopenDevice, SimCia402Drive
+from stagectl.sim.cia406_encoder import SimCia406Encoder
 from stagectl.sim.faults import FaultSpec, SimFault
-from stagectl.sim.interferometer import SimInterferometer, SimInterferometerConfig
-from stagectl.sim.plant import PlantConfig, StagePlant
+from stagectl.sim.interferometer import SimInterferometer
+from stagectl.sim.plant import StagePlant
 from stagectl.sim.socketcand import SocketcandServer
+from stagectl.world_schema import SimTransportConfig as SimTransportConfig
+from stagectl.world_schema import SimWorldConfig as SimWorldConfig
 
 log = logging.getLogger(__name__)
 
 _counter = itertools.count(1)
 #: thread mode: run the device timers at least this often while frames keep arriving [s]
 TICK_EVERY_S = 0.0005
-
-
-def _parse_faults(value: Any, path: str, problems: list[str]) -> tuple[FaultSpec, ...] | None:
-    if value is None:
-        return ()
-    if not isinstance(value, (list, tuple)):
-        problems.append(f"{path}: expected a list of faults, got {short(value)}")
-        return None
-    out: list[FaultSpec] = []
-    n0 = len(problems)
-    for i, item in enumerate(value):
-        try:
-            out.append(load(FaultSpec, item, f"{path}[{i}]"))
-        except ConfigError as exc:
-            problems.extend(exc.problems)
-    return tuple(out) if len(problems) == n0 else None
-
-
-@dataclass(frozen=True)
-class SimTransportConfig:
-    """Where the virtual devices listen (YAML ``sim.transport``)."""
-
-    kind: str = param("virtual", desc="virtual (in-process python-can bus) or socketcand (loopback TCP server)",
-                      choices=("virtual", "socketcand"))
-    channel: str = param("", desc="virtual bus channel name (empty = a unique name per world)")
-    host: str = param("127.0.0.1", desc="socketcand: listen address")
-    port: int = param(0, desc="socketcand: listen port (0 = ephemeral, see ready_info)", ge=0, le=65535)
-    can_name: str = param("can0", desc="socketcand: CAN interface name announced to clients")
-
-
-@dataclass(frozen=True)
-class SimWorldConfig:
-    """The simulated world (YAML ``sim:`` section)."""
-
-    plant: PlantConfig = param(desc="stage plant (mass, friction, sensor, actuator)",
-                               parse=section_parser(PlantConfig))
-    drive: SimDriveConfig = param(default_factory=SimDriveConfig, desc="simulated CiA 402 drive")
-    encoder: SimEncoderConfig | None = param(None, desc="simulated CiA 406 encoder (optional)")
-    interferometer: SimInterferometerConfig | None = param(
-        None, desc="simulated serial interferometer (optional; SimInterferometerConfig)")
-    transport: SimTransportConfig = param(default_factory=SimTransportConfig, desc="how clients connect")
-    faults: tuple[FaultSpec, ...] = param((), desc="scripted faults (list of {kind, device, at_cycle|at_time_s, ...})",
-                                          parse=_parse_faults)
-
-    @classmethod
-    def from_mapping(cls, data: Mapping[str, Any] | None, path: str = "sim",
-                     plant_model: StageModel | None = None) -> SimWorldConfig:
-        """Validate the ``sim:`` mapping (all problems at once, as :class:`ConfigError`).
-
-        ``plant_model`` is ``sim.plant.model_file`` as loaded by the configuration layer (this method reads
-        no file; see :meth:`stagectl.sim.plant.PlantConfig.from_mapping`).
-        """
-        data = dict(data or {})
-        problems: list[str] = []
-        if "plant" in data and not isinstance(data["plant"], PlantConfig):
-            try:
-                data["plant"] = PlantConfig.from_mapping(data["plant"], f"{path}.plant", plant_model)
-            except ConfigError as exc:
-                problems.extend(exc.problems)
-                del data["plant"]
-        try:
-            cfg = load(cls, data, path)
-        except ConfigError as exc:
-            if problems:  # the plant's own problems, not a follow-up "required key missing"
-                problems.extend(p for p in exc.problems if not p.startswith(f"{path}.plant: required"))
-                raise ConfigError(problems) from None
-            raise
-        if problems:
-            raise ConfigError(problems)
-        return cfg
 
 
 class SimWorld:

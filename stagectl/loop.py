@@ -89,6 +89,10 @@ API (thread-safe unless noted; the types live in :mod:`stagectl.runtime`)
 * ``loop.status(timing=True) -> LoopStatus`` -- a typed snapshot, with ``healthy`` for the watchdog.
 * ``loop.add_sink(sink)`` / ``loop.remove_sink(sink)`` -- ``sink.append(row)`` once per cycle in the loop
   thread; it must not block; a sink that raises is removed and logged.
+* ``loop.on_wait`` -- optional callable, run in the loop thread once per wall slot while a paced wait holds the
+  cycles back (``loop.pace_cycles``, device time: no cycle, so no ``on_cycle``); the requests queued by then are
+  served in that slot at the next cycle's loop time (a ``stop`` is answered and planned at once, and acts on the
+  drive at the next cycle, when the drive answers again). Must not block.
 * ``loop.on_state_change`` -- optional callable, run in the loop thread when the loop enters FAULT or a reset
   makes it ACTIVE (must not block; the daemon wakes its supervisor with it).
 """
@@ -257,6 +261,10 @@ class ControlLoop:
         #: called in the loop thread right after the loop enters FAULT or a reset makes it ACTIVE again (must not
         #: block: the daemon wakes its supervisor with it, so the service state does not wait for its next tick)
         self.on_state_change: Callable[[], None] | None = None
+        #: called in the loop thread once per wall slot of a paced wait (``loop.pace_cycles``: no cycle runs, so
+        #: ``on_cycle`` is not called), right before the queued requests are served (must not block: the daemon's
+        #: loop process takes the requests its clients queued and publishes its status with it)
+        self.on_wait: Callable[[], None] | None = None
         self._devs = DeviceSet(sensor, actuator, sync)
         self.devices: tuple[Device, ...] = self._devs.all  # unique, ordered
         named = controller.term_names if isinstance(controller, NamesTerms) else DEFAULT_TERMS
@@ -658,17 +666,19 @@ class ControlLoop:
                 t = clock.now() - t0
             if t >= t_end - 1e-6 * period:
                 return "duration"
-            if pace and self.state is LoopState.ACTIVE and sync.behind(pace, 1 + skipped):  # type: ignore[union-attr]
-                # device time: the drive has not answered our last SYNCs (its process held off the CPU, its
-                # plant frozen); the loop's time waits with it: no SYNC, no force, no row in this slot
-                self.device_waits += 1 + skipped
-                slot, late, skipped = _sleep_to_slot(clock, t0, slot + 1, period)
-                self.overruns += skipped
-                continue
             s_ref = self.slow_down if slow_motion else 1.0
             if s_ref != 1.0 and t_last == t_last:
                 self.ref_lag_s += (t - t_last) * (1.0 - 1.0 / s_ref)
-            t_last = t
+            t_last = t  # (a paced wait repeats the same t: it adds nothing more)
+            if pace and self.state is LoopState.ACTIVE and sync.behind(pace, 1 + skipped):  # type: ignore[union-attr]
+                # device time: the drive has not answered our last SYNCs (its process held off the CPU, its
+                # plant frozen); the loop's time waits with it: no SYNC, no force, no row in this slot. Requests
+                # are still served, at the loop time t of the next cycle (a stop's reply does not wait for the drive)
+                self.device_waits += 1 + skipped
+                self._serve_waiting(t)
+                slot, late, skipped = _sleep_to_slot(clock, t0, slot + 1, period)
+                self.overruns += skipped
+                continue
             t_r = t - self.ref_lag_s if self.ref_lag_s else t
             c0 = perf()
             # ------------------------------------------------------ one cycle
@@ -807,6 +817,23 @@ class ControlLoop:
             self.overruns += skipped
             if warner is not None:
                 warner.note(t, late, skipped, period, self.overruns)
+
+    def _serve_waiting(self, t: float) -> None:
+        """One wall slot of a paced wait (the loop thread): the ``on_wait`` hook (the daemon's loop process takes
+        its queued requests and publishes its status there), then the queued requests, executed at loop time
+        ``t`` (the next cycle's: the plant stands still with the loop's time) with the last cycle's position. A
+        stop is thus answered and planned in the slot it arrives in, and acts on the drive at the next cycle.
+        An error in the hook is a loop error (as in a cycle's ``on_cycle``): fault, quick stop."""
+        x = self._snap[1]
+        try:
+            hook = self.on_wait
+            if hook is not None:
+                hook()
+            self._inbox.serve(self._execute, t, x)
+        except Exception as exc:
+            log.exception("unexpected error while waiting for the device at cycle %d", self.cycle)
+            self.safety.latch("loop_error", f"{type(exc).__name__}: {exc}", t, self.cycle)
+            self._enter_fault(t)
 
     def _teardown(self) -> None:
         if self.brake is not None:  # the run ends while braking: the drive's own quick stop takes over

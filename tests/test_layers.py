@@ -32,7 +32,7 @@ RANKS: dict[int, tuple[str, ...]] = {
         "stagectl.rt", "stagectl.jit"),
     1: ("stagectl.schema",),
     2: ("stagectl.friction", "stagectl.drivers", "stagectl.safety"),
-    3: ("stagectl.control", "stagectl.sim"),
+    3: ("stagectl.control", "stagectl.sim", "stagectl.world_schema"),
     4: ("stagectl.ident", "stagectl.plots"),
     5: ("stagectl.loop", "stagectl.runtime", "stagectl.recorder"),
     6: ("stagectl.config",),
@@ -44,6 +44,10 @@ RANKS: dict[int, tuple[str, ...]] = {
 #: ranks whose groups are independent of each other: friction, drivers and safety know nothing of each
 #: other, nor do control and sim (the plant and the control laws share only the friction math below them)
 INDEPENDENT_GROUPS = {2, 3}
+#: modules outside a group's package that belong to its group: the schema of the ``sim:`` section is the
+#: simulation's own, kept outside ``stagectl.sim`` so that a controller whose plant runs in another process
+#: validates the section without importing the simulation (control must not import it: sideways)
+GROUP_OF_MODULE = {"stagectl.world_schema": "stagectl.sim"}
 RANK_NAMES = {0: "foundations", 1: "schema", 2: "friction/drivers/safety", 3: "control/sim", 4: "ident",
               5: "runtime", 6: "config", 7: "assembly", 8: "daemon", 9: "bench", 10: "commands/cli"}
 
@@ -76,6 +80,8 @@ def group_of(mod: str) -> tuple[int, str] | None:
             below = mod.startswith(pat + ".") and pat != "stagectl"
             if (mod == pat or below) and (best is None or len(pat) > len(best[1])):
                 best = (rank, pat)
+    if best is not None and best[1] in GROUP_OF_MODULE:
+        best = (best[0], GROUP_OF_MODULE[best[1]])
     return best
 
 

@@ -102,7 +102,8 @@ def _suffix(unit: str) -> str:
 def test_the_walk_finds_the_configuration_classes():
     names = set(CLASSES)
     for must in ("stagectl.friction.gms.GmsParams", "stagectl.friction.hsieh.HsiehParams",
-                 "stagectl.friction.effects.Effects", "stagectl.sim.plant.PlantConfig", "stagectl.config.AppConfig"):
+                 "stagectl.friction.effects.Effects", "stagectl.world_schema.PlantConfig",
+                 "stagectl.world_schema.SimWorldConfig", "stagectl.config.AppConfig"):
         assert must in names
     assert len(names) >= 20
 

@@ -26,6 +26,9 @@ on a shared machine whose load drifts.
 ``sim:`` section runs once in a ``stagectl sim-plant`` process (socketcand on an ephemeral loopback port, this
 build's interpreter), and every measured start runs the config *without* its ``sim:`` section against it, as a
 stage PC runs it (real drivers, no simulated plant in the process: no numba, the feed-forward in plain Python).
+``--stage --hil``: the measured starts run the whole file, ``sim:`` included (its transport pointed at the same
+sim-plant), as ``stagectl run --config config/hil-canopen.yaml`` does on the HIL: the controller validates the
+``sim:`` section but runs no plant.
 
 Targets (issue 14): cold ≤ 2 s, warm ≤ 1 s. The machine's load average is reported alongside.
 """
@@ -122,6 +125,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", action="store_true",
                    help="a real stage's start: the config's sim: section in a sim-plant process, the measured starts "
                         "on the config without it (default config config/hil-canopen.yaml)")
+    p.add_argument("--hil", action="store_true",
+                   help="with --stage: the measured starts run the whole config, sim: section included (a HIL "
+                        "controller, whose plant runs in the sim-plant process)")
     p.add_argument("--switch", action="store_true",
                    help="also measure a tiered start (plain-Python kernels first, numba's loaded in a background "
                         "thread, then switched to): loop lateness around the switch vs plain and compiled runs "
@@ -206,7 +212,7 @@ class _SimPlant:
     """``stagectl sim-plant`` on the ``sim:`` section of ``config`` (socketcand, ephemeral port) and the same config
     without ``sim:`` pointed at it (``stage_config``), for ``--stage``. A context manager; stops the process."""
 
-    def __init__(self, config: str, tmp: Path) -> None:
+    def __init__(self, config: str, tmp: Path, keep_sim: bool = False) -> None:
         import yaml
 
         from stagectl.errors import ConfigError
@@ -225,6 +231,7 @@ class _SimPlant:
         self._plant_cfg = tmp / "plant.yaml"
         self._plant_cfg.write_text(yaml.safe_dump(plant))
         self._data = data
+        self._keep_sim = keep_sim
         self.stage_config = tmp / "stage.yaml"
         self._proc: subprocess.Popen[str] | None = None
 
@@ -245,6 +252,9 @@ class _SimPlant:
             raise StageError("bench startup --stage: the sim-plant process printed no ready line")
         port = json.loads(line)["can"]["port"]
         stage = {k: v for k, v in self._data.items() if k != "sim"}
+        if self._keep_sim:  # the HIL file itself: its sim: describes the sim-plant it talks to
+            stage["sim"] = dict(self._data["sim"], transport=dict(self._data["sim"].get("transport") or {},
+                                                                  kind="socketcand", port=port))
         stage["io"]["drive"]["can"]["port"] = port
         self.stage_config.write_text(yaml.safe_dump(stage))
         return self
@@ -260,18 +270,26 @@ class _SimPlant:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "hil", False) and not getattr(args, "stage", False):
+        from stagectl.errors import ConfigError
+
+        raise ConfigError("--hil: only with --stage (the HIL controller's start against a sim-plant process)")
     if getattr(args, "stage", False):
         if args.config == str(REPO_CONFIG):
             args.config = str(STAGE_CONFIG)
-        with tempfile.TemporaryDirectory(prefix="stagectl-stage-") as tmp, _SimPlant(args.config, Path(tmp)) as sp:
+        hil = bool(getattr(args, "hil", False))
+        with tempfile.TemporaryDirectory(prefix="stagectl-stage-") as tmp, \
+                _SimPlant(args.config, Path(tmp), keep_sim=hil) as sp:
             source = args.config
             args.config = str(sp.stage_config)
             try:
                 res = _run(args)
             finally:
                 args.config = source
-            res["stage"] = {"source_config": source, "note": "measured starts run the config without its sim: "
-                            "section against a stagectl sim-plant process (socketcand on loopback)"}
+            what = "the whole config (sim: included, its plant in the sim-plant)" if hil else \
+                "the config without its sim: section"
+            res["stage"] = {"source_config": source, "hil": hil, "note": f"measured starts run {what} against a "
+                            "stagectl sim-plant process (socketcand on loopback)"}
             return res
     return _run(args)
 

@@ -41,7 +41,7 @@ from stagectl.runtime.config import LoopConfig
 from stagectl.safety import SafetyConfig
 
 if TYPE_CHECKING:
-    from stagectl.sim.world import SimWorldConfig
+    from stagectl.world_schema import SimWorldConfig
 
 __all__ = ["INT16_MAX", "Sections", "can_problems", "controller_problems", "cross_checks", "demo_problems",
            "device_match_problems", "force_chain_problems", "sim_device_problems", "time_base_problems"]

@@ -11,7 +11,7 @@ Steps:
    relative to the YAML file's directory, are loaded once each into :class:`~stagectl.friction.StageModel`
    objects (:class:`ModelFiles`);
 3. the schema builds the typed sections; the plant is merged over its model
-   (:meth:`stagectl.sim.plant.PlantConfig.from_mapping`) and the controller receives its resolved model in
+   (:meth:`stagectl.world_schema.PlantConfig.from_mapping`) and the controller receives its resolved model in
    ``controller.feedforward.model`` (:func:`stagectl.control.controller.resolve_model`);
 4. the cross-checks of :mod:`stagectl.config.checks` (force-limit chain, ``can:`` keys, scenario, controller,
    drivers vs the simulated devices), each run whenever the sections it reads parsed, also when another
@@ -34,7 +34,7 @@ from stagectl.safety import SafetyConfig
 from stagectl.schema import load, load_yaml_file, yaml_kind
 
 if TYPE_CHECKING:
-    from stagectl.sim.world import SimWorldConfig
+    from stagectl.world_schema import SimWorldConfig
 
 __all__ = ["ModelFiles", "load_app_config", "parse_app_config", "parse_sim_section"]
 
@@ -81,14 +81,14 @@ def _get(data: Any, *keys: str) -> Any:
 
 def parse_sim_section(data: Any, models: ModelFiles, problems: list[str],
                       path: str = "sim") -> SimWorldConfig | None:
-    """The ``sim:`` mapping → :class:`~stagectl.sim.world.SimWorldConfig`, its plant merged over the model of
+    """The ``sim:`` mapping → :class:`~stagectl.world_schema.SimWorldConfig`, its plant merged over the model of
     ``sim.plant.model_file`` (loaded through ``models``). Problems are appended; None on any."""
     if data is None:
         return None
     if not isinstance(data, Mapping):
         problems.append(f"{path}: expected a mapping, got {short(data)}")
         return None
-    from stagectl.sim.world import SimWorldConfig  # here: a config without sim: never imports stagectl.sim
+    from stagectl.world_schema import SimWorldConfig  # here: a config without sim: never imports it
 
     n0 = len(problems)
     model_file = _get(data, "plant", "model_file")

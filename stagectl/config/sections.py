@@ -36,11 +36,13 @@ from stagectl.safety import SafetyConfig
 from stagectl.schema import param
 
 if TYPE_CHECKING:
-    from stagectl.sim.world import SimWorldConfig
+    from stagectl.world_schema import SimWorldConfig
 
-#: ``AppConfig.sim``'s type, imported (with the rest of ``stagectl.sim``) only when a ``sim:`` section is parsed
-#: or the schema is described (``stagectl.schema.field_type``): a real stage's process never imports stagectl.sim
-LAZY_TYPES = {"SimWorldConfig": "stagectl.sim.world"}
+#: ``AppConfig.sim``'s type, imported only when a ``sim:`` section is parsed or the schema is described
+#: (``stagectl.schema.field_type``). It lives in :mod:`stagectl.world_schema`, not in the simulation package: a
+#: process whose plant runs elsewhere (a real stage; a HIL controller, plant in ``stagectl sim-plant``) validates
+#: the section without importing ``stagectl.sim``
+LAZY_TYPES = {"SimWorldConfig": "stagectl.world_schema"}
 
 __all__ = ["AppConfig", "DemoConfig", "IoConfig", "IoKind", "SensorSource"]
 

@@ -177,6 +177,11 @@ class Bridge:
     def on_cycle(self) -> None:
         if self.chained is not None:
             self.chained()
+        self.on_wait()
+
+    def on_wait(self) -> None:
+        """The loop's ``on_wait`` hook (a paced wait for the drive: no cycle runs): the same as a cycle's, without
+        the chained per-cycle hook, so a client's stop, reset or status is answered during the wait, not after it."""
         self.publish()
         ctl = self.shm.ctl
         if ctl[STOP_REQ] and not self.stop.is_set():
@@ -365,6 +370,7 @@ def _child(build: Builder, app_cfg: Any, conn: Connection, wake_fd: int, telemet
                 loop.add_sink(SharedTelemetryRing(loop.columns, shm.tel, shm.ctl))
             bridge = Bridge(loop, asm, shm, wake_fd, stop)
             loop.on_cycle = bridge.on_cycle
+            loop.on_wait = bridge.on_wait
             bridge.publish(running=False)
             conn.send({"shm": shm.name, "layout": (len(loop.columns), rows, int(loop.cfg.stats_window)),
                        "columns": loop.columns, "period_s": loop.period_s, "cfg": loop.cfg, "limits": loop.limits,

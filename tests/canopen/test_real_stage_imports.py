@@ -1,10 +1,14 @@
-"""A real stage's controller process imports neither numba nor the simulation (issue 14, docs/performance.md §1).
+"""A real stage's controller process imports neither numba nor the simulation (issue 14, docs/performance.md §1),
+nor does a HIL config's controller, whose plant runs in the other process.
 
 A config without ``sim:`` (CANopen drive over socketcand, as a stage PC with a socketcand adapter would have) runs
 ``stagectl run`` in a real subprocess against ``stagectl sim-plant`` in another: the controller's feed-forward steps
 its GMS model as plain Python, and after the run (and after importing the daemon's modules) ``numba`` and
 ``stagectl.sim`` are absent from the controller's ``sys.modules``, while the run moved the stage with a non-zero
-feed-forward. Real time across processes: timeouts are failure guards, not waits.
+feed-forward. The same with the whole HIL file, ``sim:`` section included (config/hil-canopen.yaml as shipped,
+ports aside): the controller validates that section (:mod:`stagectl.world_schema`) without importing
+``stagectl.sim``, whose plant runs in ``stagectl sim-plant``. Real time across processes: timeouts are failure
+guards, not waits.
 """
 
 from __future__ import annotations
@@ -48,20 +52,25 @@ def test_a_real_stage_run_imports_no_numba_and_no_simulation(tmp_path) -> None:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         info = json.loads(read_line(proc, 120.0))
-        stage = {k: v for k, v in hil.items() if k != "sim"}  # what a stage PC has: no simulated stage
-        stage["io"]["drive"]["can"]["port"] = info["can"]["port"]
-        stage_cfg = tmp_path / "stage.yaml"
-        stage_cfg.write_text(yaml.safe_dump(absolutize_paths(stage, config_dir())))
-        out = tmp_path / "run"
-        r = subprocess.run([sys.executable, "-c", PROBE, str(stage_cfg), str(out)], capture_output=True, text=True,
-                           timeout=300)
+        hil["io"]["drive"]["can"]["port"] = hil["sim"]["transport"]["port"] = info["can"]["port"]
+        runs = []
+        # what a stage PC has (no simulated stage), then the HIL file itself: its sim: section is validated, its
+        # plant runs in the sim-plant process
+        for name, cfg in (("stage", {k: v for k, v in hil.items() if k != "sim"}), ("hil", hil)):
+            path = tmp_path / f"{name}.yaml"
+            path.write_text(yaml.safe_dump(absolutize_paths(cfg, config_dir())))
+            out = tmp_path / name
+            r = subprocess.run([sys.executable, "-c", PROBE, str(path), str(out)], capture_output=True, text=True,
+                               timeout=300)
+            runs.append((name, r, out))
     finally:
         stop_process(proc, 10.0)
-    assert r.returncode == 0, r.stderr[-2000:]
-    got = json.loads(r.stdout.strip().splitlines()[-1])
-    assert got == {"rc": 0, "heavy": []}
-    tele = (out / "telemetry.csv").read_text().splitlines()
-    head = tele[0].split(",")
-    rows = [dict(zip(head, line.split(","))) for line in tele[1:] if line and not line.startswith("#")]
-    assert len(rows) > 50  # it ran cycles against the drive
-    assert any(abs(float(r["u_ff"])) > 0.0 for r in rows)  # the plain feed-forward pushed
+    for name, r, out in runs:
+        assert r.returncode == 0, (name, r.stderr[-2000:])
+        got = json.loads(r.stdout.strip().splitlines()[-1])
+        assert got == {"rc": 0, "heavy": []}, name
+        tele = (out / "telemetry.csv").read_text().splitlines()
+        head = tele[0].split(",")
+        rows = [dict(zip(head, line.split(","))) for line in tele[1:] if line and not line.startswith("#")]
+        assert len(rows) > 50, name  # it ran cycles against the drive
+        assert any(abs(float(r["u_ff"])) > 0.0 for r in rows), name  # the plain feed-forward pushed

@@ -117,6 +117,55 @@ def test_a_frozen_sim_plant_is_waited_for_not_run_blind(hil):
     assert abs(blind.fault.cycle - 100 - hil.safety.stale_cycles) <= 3
 
 
+def test_a_stop_during_a_paced_wait_is_answered_in_the_slot_it_arrives(hil):
+    """A client's stop must not wait on a slow plant (issue 12): while the loop waits for a frozen drive (here 100
+    ms mid-move), the stop is answered in the wall slot it arrives in, not when the drive answers again (before:
+    after the whole stall, up to io.drive.max_missed slots, 1 s in the HIL configs); the loop's ``on_wait`` hook
+    (the daemon takes its clients' requests there) runs in every slot of the wait. The stop is planned at the
+    next cycle's loop time, so it acts at that cycle, and the stage comes to rest where the reply said."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.recorder import Recorder
+    from stagectl.runtime.requests import StopRequest
+
+    cfg = dataclasses.replace(hil, loop=dataclasses.replace(hil.loop, pace_cycles=1))
+    clock = SimClock()
+    seen: dict = {}
+    with build_stage(cfg, clock=clock) as stage:
+        loop = stage.loop
+        stage.load_scenario("hold")
+        rec = Recorder(loop.columns, 2000)
+        loop.add_sink(rec)
+        frozen = FrozenDrive(stage.world, clock, 0.1, 0.2)
+        hooks = []
+        loop.on_wait = lambda: hooks.append(loop.device_waits)
+
+        def pump() -> int:  # the request arrives from "another thread" 5 slots into the wait
+            if loop.device_waits == 5 and "fut" not in seen:
+                seen["at"] = (loop.device_waits, loop.cycle)
+                seen["fut"] = fut = loop.submit(StopRequest())
+                fut.add_done_callback(lambda f: seen.setdefault("done", (loop.device_waits, loop.cycle)))
+            return frozen.pump()
+
+        stage.sensor.set_pump(pump)  # type: ignore[attr-defined]
+        x0 = stage.world.plant.x_m
+        loop.submit(MoveRequest(relative_m=300e-6, max_velocity_m_s=2e-3))
+        res = loop.run(duration_s=0.4)
+    assert res.fault is None, res.fault
+    assert 95 <= res.device_waits <= 105
+    # answered in the wait slot it arrived in (counted by then), no cycle in between; before: the first cycle after
+    # the stall, ~95 slots later
+    assert seen["done"] == (seen["at"][0] + 1, seen["at"][1]), seen
+    assert len(hooks) == res.device_waits and hooks[0] == 1
+    x_stop = seen["fut"].result()["x_m"]
+    assert x0 + 100e-6 < x_stop < x0 + 300e-6 - 50e-6  # stopped short of the move's end
+    t, v_ref, x_ref = rec.col("t"), rec.col("v_ref"), rec.col("x_ref")
+    k = int(np.argmax(t > 0.1 + 1e-6))  # the first cycle after the stall (its loop time: the stall's start)
+    assert abs(v_ref[k - 1]) > 1.9e-3  # at full speed when the drive froze
+    assert np.all(np.diff(v_ref[k:]) <= 1e-12)  # decelerating from that cycle on: the stop acts there
+    assert v_ref[-1] == 0.0 and x_ref[-1] == pytest.approx(x_stop, abs=1e-12)
+
+
 def test_a_real_drives_silence_still_faults_after_stale_cycles(hil):
     """No device time (a real drive: its plant moves on the clock): pacing is off whatever pace_cycles says, and
     lost answers fault stale_position at the same cycle as without pacing."""
