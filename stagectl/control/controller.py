@@ -205,6 +205,15 @@ from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.control.settle import SettleConfig, SettleDetector
 from stagectl.control.settle_move import SettleMove
+import os as _os
+def _xf(name: str) -> float | None:
+    v = _os.environ.get(name)
+    return float(v) if v else None
+_X_MIN = _xf("X_MIN")
+_X_FPK = _xf("X_FPK")
+_X_TMIN = _xf("X_TMIN") or 0.003
+_X_TMAX = _xf("X_TMAX") or 0.03
+_X_EARLY = tuple(float(a) for a in _os.environ["X_EARLY"].split(",")) if _os.environ.get("X_EARLY") else None
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
@@ -935,9 +944,17 @@ class StageController:
                 and isinstance(self.ff, FrictionFeedforward)):
             e0 = ref.x_m - x_m
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
+            if _X_MIN is not None:
+                e_min = _X_MIN
             if sm.direction * e0 > e_min:
-                sm.start(e0, -v_hat, scfg.move_s)
+                T = scfg.move_s
+                if _X_FPK is not None:  # EXPERIMENT: T from the error and a peak force
+                    T = max(_X_TMIN, min(_X_TMAX, math.sqrt(5.7735 * abs(e0) * self.mass_kg / _X_FPK)))
+                sm.start(e0, -v_hat, T)
         if not sm.active:
+            return ref, math.nan
+        if _X_EARLY is not None and abs(ref.x_m - x_m) < _X_EARLY[0] and abs(v_hat) < _X_EARLY[1]:
+            sm.active = False  # EXPERIMENT: end the continuation once in the band and slow
             return ref, math.nan
         tau = sm.tau_s
         c, cd, cdd = sm.sample(tau)
