@@ -205,15 +205,6 @@ from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.control.settle import SettleConfig, SettleDetector
 from stagectl.control.settle_move import SettleMove
-import os as _os
-def _xf(name: str) -> float | None:
-    v = _os.environ.get(name)
-    return float(v) if v else None
-_X_MIN = _xf("X_MIN")
-_X_FPK = _xf("X_FPK")
-_X_TMIN = _xf("X_TMIN") or 0.003
-_X_TMAX = _xf("X_TMAX") or 0.03
-_X_EARLY = tuple(float(a) for a in _os.environ["X_EARLY"].split(",")) if _os.environ.get("X_EARLY") else None
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
@@ -479,6 +470,9 @@ STUCK_EVIDENCE_TIME_S = 1.0
 #: ... from samples after the stage has followed for at least this many observer time constants in a row (slips
 #: of a stick-slip pass through "following" while the estimate is still wound up: not evidence)
 STUCK_EVIDENCE_TIME_CONSTANTS = 5.0
+#: peak |c̈|·T²/|e₀| of the rest-to-rest quintic (10/√3, at τ = T/2 ± T/(2√3)): the settle move's duration
+#: for an inertial force budget (:meth:`StageController.settle_move_duration`)
+QUINTIC_PEAK_ACCEL = 10.0 / math.sqrt(3.0)
 
 
 @dataclass
@@ -944,17 +938,9 @@ class StageController:
                 and isinstance(self.ff, FrictionFeedforward)):
             e0 = ref.x_m - x_m
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
-            if _X_MIN is not None:
-                e_min = _X_MIN
             if sm.direction * e0 > e_min:
-                T = scfg.move_s
-                if _X_FPK is not None:  # EXPERIMENT: T from the error and a peak force
-                    T = max(_X_TMIN, min(_X_TMAX, math.sqrt(5.7735 * abs(e0) * self.mass_kg / _X_FPK)))
-                sm.start(e0, -v_hat, T)
+                sm.start(e0, -v_hat, self.settle_move_duration(e0))
         if not sm.active:
-            return ref, math.nan
-        if _X_EARLY is not None and abs(ref.x_m - x_m) < _X_EARLY[0] and abs(v_hat) < _X_EARLY[1]:
-            sm.active = False  # EXPERIMENT: end the continuation once in the band and slow
             return ref, math.nan
         tau = sm.tau_s
         c, cd, cdd = sm.sample(tau)
@@ -962,6 +948,19 @@ class StageController:
         if sm.tau_s > sm.duration_s + 1e-9 * dt:
             sm.active = False
         return Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd), tau
+
+    def settle_move_duration(self, e0_m: float) -> float:
+        """The settle move's duration T [s] for an error ``e0_m`` [m] at the end of a move: the shortest T >=
+        ``settle.move_s`` whose rest-to-rest quintic needs at most ``settle.move_force_n`` of inertial force,
+        m·|c̈|max = m·(10/√3)·|e₀|/T² <= F, i.e. T = max(move_s, √(10/√3·m·|e₀|/F)) (m: the inertia
+        feed-forward's mass); ``move_s`` alone without ``move_force_n``."""
+        scfg = self.cfg.settle
+        f = scfg.move_force_n
+        if f is None:
+            return scfg.move_s
+        ffc = self.cfg.feedforward
+        m = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
+        return max(scfg.move_s, math.sqrt(QUINTIC_PEAK_ACCEL * m * abs(e0_m) / f))
 
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:
