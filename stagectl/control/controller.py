@@ -161,13 +161,16 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
-Settle move (``settle.move_s`` = T, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+Settle move (``settle.move_s``, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
 the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
-first sample at rest, by a quintic c from the stage's error and speed to rest at the target in T: the PID's
+first sample at rest, by a quintic c from the stage's error e₀ and speed to rest at the target in
+T = max(move_s, √(10/√3·m·|e₀|/F)) (F = ``settle.move_force_n``, the quintic's peak inertial force; without it
+T = move_s; :meth:`StageController.settle_move_duration`): the PID's
 reference is x_r − c, the inertia term m·(a_r − c̈); the friction model is held, the reference is unchanged (so
 the settle detector, the learning from moves and the adaptation see the move as it was commanded), and the rest
 logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. Not while ILC takes part. Measured
-in docs/control.md §2.5 (first 20 %-wrong step 63 → 32 ms at T = 14 ms; some later moves 1–6 ms slower).
+in docs/control.md §2.5–2.6 (20 %-wrong steps 63, 25, 28, 31 → 14, 25, 22, 22 ms with move_s 5 ms, F 0.145 N,
+move_min_m 0.1 µm; a fixed T = 14 ms gave 32, 24, 30, 31 ms and slowed some later moves).
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
