@@ -161,13 +161,16 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
-Settle move (``settle.move_s`` = T, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+Settle move (``settle.move_s``, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
 the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
-first sample at rest, by a quintic c from the stage's error and speed to rest at the target in T: the PID's
+first sample at rest, by a quintic c from the stage's error e₀ and speed to rest at the target in
+T = max(move_s, √(10/√3·m·|e₀|/F)) (F = ``settle.move_force_n``, the quintic's peak inertial force; without it
+T = move_s; :meth:`StageController.settle_move_duration`): the PID's
 reference is x_r − c, the inertia term m·(a_r − c̈); the friction model is held, the reference is unchanged (so
 the settle detector, the learning from moves and the adaptation see the move as it was commanded), and the rest
 logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. Not while ILC takes part. Measured
-in docs/control.md §2.5 (first 20 %-wrong step 63 → 32 ms at T = 14 ms; some later moves 1–6 ms slower).
+in docs/control.md §2.5–2.6 (20 %-wrong steps 63, 25, 28, 31 → 14, 25, 22, 22 ms with move_s 5 ms, F 0.145 N,
+move_min_m 0.1 µm; a fixed T = 14 ms gave 32, 24, 30, 31 ms and slowed some later moves).
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
@@ -470,6 +473,9 @@ STUCK_EVIDENCE_TIME_S = 1.0
 #: ... from samples after the stage has followed for at least this many observer time constants in a row (slips
 #: of a stick-slip pass through "following" while the estimate is still wound up: not evidence)
 STUCK_EVIDENCE_TIME_CONSTANTS = 5.0
+#: peak |c̈|·T²/|e₀| of the rest-to-rest quintic (10/√3, at τ = T/2 ± T/(2√3)): the settle move's duration
+#: for an inertial force budget (:meth:`StageController.settle_move_duration`)
+QUINTIC_PEAK_ACCEL = 10.0 / math.sqrt(3.0)
 
 
 @dataclass
@@ -936,7 +942,7 @@ class StageController:
             e0 = ref.x_m - x_m
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
-                sm.start(e0, -v_hat, scfg.move_s)
+                sm.start(e0, -v_hat, self.settle_move_duration(e0))
         if not sm.active:
             return ref, math.nan
         tau = sm.tau_s
@@ -945,6 +951,19 @@ class StageController:
         if sm.tau_s > sm.duration_s + 1e-9 * dt:
             sm.active = False
         return Reference(ref.x_m - c, ref.v_m_s - cd, ref.a_m_s2 - cdd), tau
+
+    def settle_move_duration(self, e0_m: float) -> float:
+        """The settle move's duration T [s] for an error ``e0_m`` [m] at the end of a move: the shortest T >=
+        ``settle.move_s`` whose rest-to-rest quintic needs at most ``settle.move_force_n`` of inertial force,
+        m·|c̈|max = m·(10/√3)·|e₀|/T² <= F, i.e. T = max(move_s, √(10/√3·m·|e₀|/F)) (m: the inertia
+        feed-forward's mass); ``move_s`` alone without ``move_force_n``."""
+        scfg = self.cfg.settle
+        f = scfg.move_force_n
+        if f is None:
+            return scfg.move_s
+        ffc = self.cfg.feedforward
+        m = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
+        return max(scfg.move_s, math.sqrt(QUINTIC_PEAK_ACCEL * m * abs(e0_m) / f))
 
     def _stuck_dob(self, dt: float, ref: Reference, x_m: float, u_ff: float, d_hat: float,
                    dob: QFilterDob | KalmanDob) -> float:

@@ -8,7 +8,7 @@ stayed inside the window for the dwell time::
 A sample outside the window, or any reference motion, clears it at once (and restarts the dwell). The
 detector also times each move: ``settle_time_s`` is the time from the end of the commanded move (first
 sample at rest) to the sample that declared in-position (``nan`` until the current move has settled).
-YAML ``controller.settle``: ``tolerance_m`` [m], ``dwell_s`` [s]; ``move_s`` [s] and ``move_min_m`` [m] configure
+YAML ``controller.settle``: ``tolerance_m`` [m], ``dwell_s`` [s]; ``move_s`` [s], ``move_force_n`` [N] and ``move_min_m`` [m] configure
 the settle move of :mod:`stagectl.control.settle_move` (a controller element, not the detector's).
 """
 
@@ -31,7 +31,13 @@ class SettleConfig:
         0.0, unit="s", desc="settle move (with an observer and feedforward kind: model): a move that ends with "
         "the stage behind the reference in its direction by more than move_min_m is continued from the stage's "
         "measured position and speed to the target by a quintic of this duration (the feedback's reference and "
-        "the inertia feed-forward follow it; the reference is unchanged; 0: off)", ge=0.0, le=0.1)
+        "the inertia feed-forward follow it; the reference is unchanged; 0: off; with move_force_n: the shortest "
+        "duration)", ge=0.0, le=0.1)
+    move_force_n: float | None = param(
+        None, unit="N", desc="settle move: the inertial force m·|c̈| its quintic may need at most; the duration "
+        "is then the longer of move_s and sqrt(10/sqrt(3)·m·|e0|/move_force_n) for the error e0 at the end of "
+        "the move, so a small error gets a short continuation, a large one a gentler one (None: always move_s)",
+        gt=0.0)
     move_min_m: float | None = param(
         None, unit="m", desc="settle move: the least error behind the reference at the end of a move that starts "
         "one (None: controller.rest_spring_range_m, the range the rest spring covers)", gt=0.0)

@@ -5,10 +5,12 @@ friction: the friction feed-forward was too low during the move, so the stage la
 more than ``settle.move_min_m`` gets one short continuation. At the first sample at rest, with the error
 e₀ = x_r − x [m] and ė₀ = −v̂ [m/s] (v̂: the velocity estimate), a quintic
 
-    c(τ) = e₀ + ė₀·τ + c₃τ³ + c₄τ⁴ + c₅τ⁵,   0 <= τ <= T = ``settle.move_s``
+    c(τ) = e₀ + ė₀·τ + c₃τ³ + c₄τ⁴ + c₅τ⁵,   0 <= τ <= T
     c₃ = −(10e₀ + 6ė₀T)/T³,   c₄ = (15e₀ + 8ė₀T)/T⁴,   c₅ = −(6e₀ + 3ė₀T)/T⁵
 
-takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. For T the controller tracks
+takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. T = ``settle.move_s``, or with
+``settle.move_force_n`` = F the longer of that and √(10/√3·m·|e₀|/F), so that the quintic's peak inertial force
+m·|c̈| is at most F (the controller chooses T). For T the controller tracks
 
 * feedback (PID) reference  x_r − c,  v_r − ċ   (starts at the stage's own position and speed: no P or D step,
   so the PID no longer pushes the stage through the break-away and the overshoot that followed),

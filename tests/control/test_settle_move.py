@@ -142,3 +142,45 @@ def test_not_for_a_stage_ahead_or_a_small_error(seed_ctl: Any) -> None:
         off = _run(cfg, 0.0, scale, hold_s=0.03)
         assert not on["active"].any()
         np.testing.assert_array_equal(on["u"], off["u"])
+
+
+def test_duration_from_the_error_and_the_force_budget(seed_ctl: Any) -> None:
+    # settle.move_force_n: T is the shortest duration >= move_s whose quintic needs at most that inertial force
+    # (checked on the boundary-value oracle's second derivative, not on SettleMove's own coefficients)
+    from stagectl.control.controller import StageController
+
+    s = dataclasses.replace(seed_ctl.controller.settle, move_s=0.005, move_force_n=0.13)
+    ctl = StageController(dataclasses.replace(seed_ctl.controller, settle=s), PERIOD,
+                          model=_model(seed_ctl, 1.0))
+    m = seed_ctl.controller.feedforward.mass_kg or seed_ctl.controller.mass_kg
+    durations = []
+    for e0 in (0.05e-6, 0.15e-6, 0.94e-6, -3e-6):
+        T = ctl.settle_move_duration(e0)
+        durations.append(T)
+        tau = np.linspace(0.0, T, 4001)
+        c = _quintic_oracle(e0, 0.0, T, tau)
+        f_peak = m * float(np.max(np.abs(np.gradient(np.gradient(c, tau), tau))))
+        assert f_peak <= 0.13 * 1.002
+        assert T == 0.005 or f_peak >= 0.13 * 0.99  # longer than move_s only as far as the budget needs
+    assert durations[0] == durations[1] == 0.005 < durations[2] < durations[3]
+    assert durations[2] == pytest.approx(0.0091, abs=2e-4)  # the bench's first-move error: ~9 ms
+    # without a budget: move_s for every error
+    ctl0 = StageController(dataclasses.replace(seed_ctl.controller, settle=dataclasses.replace(
+        s, move_force_n=None)), PERIOD, model=_model(seed_ctl, 1.0))
+    assert ctl0.settle_move_duration(3e-6) == 0.005
+
+
+def test_the_continuation_lasts_the_duration_for_its_error(seed_ctl: Any) -> None:
+    # closed loop on the Karnopp oracle plant: the 0.94 µm error gets the budget's ~9 ms, not move_s
+    cfg = dataclasses.replace(seed_ctl, controller=dataclasses.replace(seed_ctl.controller, settle=dataclasses.replace(
+        seed_ctl.controller.settle, move_force_n=0.13, move_min_m=1e-7)))
+    on = _run(cfg, 0.005, 0.7, hold_s=0.03)
+    k = _end(on)
+    e0 = on["xr"][k] - on["x"][k]
+    from stagectl.control.controller import QUINTIC_PEAK_ACCEL
+
+    T = math.sqrt(QUINTIC_PEAK_ACCEL * MASS * abs(e0) / 0.13)
+    assert 0.008 < T < 0.011
+    n = int(np.count_nonzero(on["active"]))
+    assert on["active"][k] and n == math.floor(T / PERIOD * (1 + 1e-9))
+    assert np.all(on["active"][k:k + n])
