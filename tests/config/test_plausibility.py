@@ -24,6 +24,9 @@ def _set(data: dict, path: str, value: object) -> dict:
                                              "frequency 500 Hz")),
     ("controller.pid.derivative_cutoff_hz", 600.0, "controller.pid.derivative_cutoff_hz: 600 Hz"),
     ("safety.velocity_filter_hz", 500.0, "safety.velocity_filter_hz: 500 Hz is at or above"),
+    ("safety.quick_stop_deceleration_m_s2", 0.001, ("safety.quick_stop_deceleration_m_s2: 0.001 m/s^2 stops the "
+                                                    "stage from max_velocity_m_s 0.02 m/s in 0.2 m, more than the "
+                                                    "stroke 0.01 m")),
     ("controller.settle.move_s", 0.0001, ("controller.settle.move_s: 0.0001 s is shorter than two loop periods "
                                           "(0.002 s)")),
 ])
