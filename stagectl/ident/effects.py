@@ -701,7 +701,11 @@ def backlash_split(p: BacklashParams) -> tuple[bool, float]:
 def _backlash_bounds(p: BacklashParams) -> list[str]:
     out = []
     on_load, other = backlash_split(p)
-    if p.mass_kg > 0 and not 0.0 < other < p.mass_kg:
+    if not p.mass_kg > 0:
+        # no mass to split between motor and load (a recording that shows none, e.g. a force in phase with the
+        # speed): the model writer could not represent the play, so it is not accepted
+        out.append(f"fitted mass m = {p.mass_kg:.3g} kg leaves no motor/load split")
+    elif not 0.0 < other < p.mass_kg:
         # the bound of the model file's motor + load plant: a fit it cannot represent is not accepted (before,
         # such a fit was accepted and then refused by the model writer, failing the whole run)
         out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg of m = {p.mass_kg:.3g} kg leaves no motor/load "
