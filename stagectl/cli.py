@@ -151,10 +151,13 @@ def _on_sigterm(signum: int, frame: object) -> None:
     output), instead of the default action, which killed the process at once: the recording lost and a
     drive left enabled until its own heartbeat consumer time-out. A second SIGTERM while the first is being
     handled is ignored, so it cannot cut that clean stop short. The daemon and sim-plant install their own."""
+    from stagectl.errors import set_interrupt_name
+
     global _interrupted, _terminated
     if _terminated:
         return
     _interrupted = _terminated = True
+    set_interrupt_name("SIGTERM")
     raise KeyboardInterrupt
 
 
@@ -165,8 +168,11 @@ def _catch_sigint(term: bool = True) -> Callable[[], None]:
     leaves the process as it found it)."""
     import signal
 
+    from stagectl.errors import set_interrupt_name
+
     global _interrupted, _terminated
     _interrupted = _terminated = False
+    set_interrupt_name("Ctrl-C")
     undo: list[Callable[[], None]] = []
     try:
         if term and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
