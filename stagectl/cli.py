@@ -177,7 +177,11 @@ def _catch_sigint(term: bool = True) -> Callable[[], None]:
     try:
         if term and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
             signal.signal(signal.SIGTERM, _on_sigterm)
-            undo.append(lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL))
+
+            def default_term() -> None:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+            undo.append(default_term)
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             signal.signal(signal.SIGINT, _on_sigint)
             old_hook = sys.unraisablehook
