@@ -52,3 +52,17 @@ def test_a_fit_without_mass_is_out_of_bounds(mass: float) -> None:
         assert any("no motor/load split" in b for b in BACKLASH.bounds(BACKLASH.params(h)))
         with pytest.raises(ConfigError):
             _backlash_spec(h)
+
+
+def test_discover_on_a_massless_damper_recording_completes(tmp_path) -> None:
+    """x = A sin ωt with u = B cos ωt (force in phase with the speed, no inertia): discovery ran into the
+    backlash writer's refusal (exit 2) and its evidence said "nan N at constant speed" (no such stretch)."""
+    from stagectl.cli import main
+
+    k = np.arange(3000)
+    rows = np.column_stack([k * 1e-3, 1e-6 * np.sin(k * 0.01), 0.5 * np.cos(k * 0.01)])
+    rec = tmp_path / "damper.csv"
+    np.savetxt(rec, rows, delimiter=",", header="t,x,u", comments="", fmt="%.17g")
+    assert main(["discover", str(rec), "--out", str(tmp_path / "d"), "-q"]) == 0
+    report = (tmp_path / "d" / "report.md").read_text()
+    assert "backlash: rejected" in report and "nan N" not in report
