@@ -124,7 +124,7 @@ class SimInterferometerConfig:
     trigger: str = param("rate", desc="rate = free-running at rate_hz; sync = one frame per CANopen SYNC, sampled "
                          "right after the drive stepped the plant (external trigger input; SimWorld only)",
                          choices=("rate", "sync"))
-    seed: int = param(0, desc="seed of the garbage generator")
+    seed: int = param(0, desc="seed of the garbage generator", ge=0)
     faults: tuple[SimInterferometerFault, ...] = param((), desc="scripted faults")
 
 

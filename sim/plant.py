@@ -104,7 +104,7 @@ class PlantConfig:
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
     actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
     x0_m: float = param(0.0, unit="m", desc="initial position")
-    seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
+    seed: int = param(0, unit="", desc="seed of the sensor-noise generator", ge=0)
     model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
                                    "inline keys override; relative to the YAML file's directory (loaded by "
                                    "the configuration layer and handed to from_mapping as model=)",
