@@ -273,8 +273,11 @@ def probe_socketcand(host: str, port: int, *, path: str = "can", wait_s: float |
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            with socket.create_connection((host, port), timeout=max(wait_s, 0.1)):
+            with socket.create_connection((host, port), timeout=max(wait_s, 0.1)) as sock:
+                _expect_greeting(sock, host, port, path)
                 return
+        except DriverInitError:
+            raise
         except OSError as exc:
             if time.monotonic() >= deadline or not isinstance(exc, ConnectionRefusedError):
                 raise DriverInitError(f"{path}: cannot open CAN bus (interface='socketcand', host={host!r}, "
@@ -282,6 +285,36 @@ def probe_socketcand(host: str, port: int, *, path: str = "can", wait_s: float |
                                       f"is the socketcand server (or `stagectl sim-plant`) running on that port?"
                                       ) from exc
             time.sleep(0.05)
+
+
+#: how long :func:`probe_socketcand` waits for the server's ``< hi >`` once connected [s]
+SOCKETCAND_GREETING_S = 5.0
+
+
+def _expect_greeting(sock: socket.socket, host: str, port: int, path: str) -> None:
+    """Read the ``< hi >`` a socketcand server sends on every new connection. python-can's client waits for it
+    without a time-out: a port held by something else that never speaks (or a hung server) blocked the start
+    for ever. One line instead, naming what was (not) said."""
+    sock.settimeout(SOCKETCAND_GREETING_S)
+    got = b""
+    deadline = time.monotonic() + SOCKETCAND_GREETING_S
+    where = f"{path}: socketcand at {host}:{port}"
+    while b">" not in got and len(got) < 256:
+        try:
+            chunk = sock.recv(256 - len(got))
+        except TimeoutError:
+            chunk = None
+        except OSError as exc:
+            raise DriverInitError(f"{where}: connection lost before its greeting ({exc.strerror or exc})") from exc
+        if chunk == b"":
+            raise DriverInitError(f"{where}: closed the connection without its greeting '< hi >'")
+        if chunk is None or time.monotonic() >= deadline:
+            raise DriverInitError(f"{where}: no greeting '< hi >' within {SOCKETCAND_GREETING_S:g} s; is that "
+                                  "port a socketcand server (or `stagectl sim-plant`), and is it running?")
+        got += chunk
+    if got.split(b">", 1)[0].split() != [b"<", b"hi"]:
+        raise DriverInitError(f"{where}: not a socketcand server (it said {short(got.decode('latin-1'))} instead of "
+                              "'< hi >')")
 
 
 def close_bus(bus: can.BusABC | None) -> None:

@@ -131,6 +131,8 @@ def _after_interrupt(args: argparse.Namespace, started: float) -> str:
 
 #: set by :func:`_on_sigint`: a Ctrl-C arrived in this process
 _interrupted = False
+#: set by :func:`_on_sigterm`: the interrupt was a SIGTERM (``kill``, ``timeout``, a supervisor), exit 143
+_terminated = False
 
 
 def _on_sigint(signum: int, frame: object) -> None:
@@ -143,15 +145,43 @@ def _on_sigint(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _catch_sigint() -> Callable[[], None]:
+def _on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM ends a foreground command the way Ctrl-C does (run stops its loop: zero force, drive disabled,
+    and writes what it recorded; simulate keeps what it simulated; identify, discover and bench leave no
+    output), instead of the default action, which killed the process at once: the recording lost and a
+    drive left enabled until its own heartbeat consumer time-out. A second SIGTERM while the first is being
+    handled is ignored, so it cannot cut that clean stop short. The daemon and sim-plant install their own."""
+    from stagectl.errors import set_interrupt_name
+
+    global _interrupted, _terminated
+    if _terminated:
+        return
+    _interrupted = _terminated = True
+    set_interrupt_name("SIGTERM")
+    raise KeyboardInterrupt
+
+
+def _catch_sigint(term: bool = True) -> Callable[[], None]:
     """Install :func:`_on_sigint` where Python's default handler is in place (not over SIG_IGN: a job
-    started in the background or under nohup keeps ignoring Ctrl-C); returns what puts the old one back
-    (main() called in-process, e.g. by a test, leaves the process as it found it)."""
+    started in the background or under nohup keeps ignoring Ctrl-C), and with ``term`` :func:`_on_sigterm`
+    where SIGTERM has its default action; returns what puts the old ones back (main() called in-process, e.g. by a test,
+    leaves the process as it found it)."""
     import signal
 
-    global _interrupted
-    _interrupted = False
+    from stagectl.errors import set_interrupt_name
+
+    global _interrupted, _terminated
+    _interrupted = _terminated = False
+    set_interrupt_name("Ctrl-C")
+    undo: list[Callable[[], None]] = []
     try:
+        if term and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            signal.signal(signal.SIGTERM, _on_sigterm)
+
+            def default_term() -> None:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+            undo.append(default_term)
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             signal.signal(signal.SIGINT, _on_sigint)
             old_hook = sys.unraisablehook
@@ -161,10 +191,15 @@ def _catch_sigint() -> Callable[[], None]:
                 signal.signal(signal.SIGINT, signal.default_int_handler)
                 sys.unraisablehook = old_hook
 
-            return restore
-    except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handler
+            undo.append(restore)
+    except ValueError:  # not the main thread (main() called from a test's thread): keep Python's handlers
         pass
-    return lambda: None
+
+    def restore_all() -> None:
+        for f in undo:
+            f()
+
+    return restore_all
 
 
 def _unraisable(u: Any) -> None:
@@ -198,8 +233,14 @@ def _was_interrupted(exc: BaseException) -> bool:
     return _interrupted
 
 
+#: commands that install their own SIGTERM handler and exit 0 on it (the service, sim-plant): until they do,
+#: SIGTERM keeps its default action rather than turning into an interrupt (exit 143)
+OWN_SIGTERM = frozenset({"daemon", "sim-plant", "sim_plant"})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    restore = _catch_sigint()
+    first = (sys.argv[1:] if argv is None else list(argv))[:1]
+    restore = _catch_sigint(term=not (first and first[0] in OWN_SIGTERM))
     try:
         return _main(argv)
     finally:
@@ -215,8 +256,11 @@ def _main(argv: Sequence[str] | None) -> int:
     # first thing; a full parser build took ~0.4 s during which SIGTERM killed it with status 143)
     first = argv[0].replace("-", "_") if argv and not argv[0].startswith("-") else None
     first = COMMAND_ALIASES.get(argv[0], first) if first is not None else None
-    parser = build_parser(first if first in COMMAND_MODULES else None)
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser(first if first in COMMAND_MODULES else None)
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM while the parser is built: one line, not a traceback
+        return _interrupt_exit(argparse.Namespace(), time.time())
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -257,10 +301,11 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 def _interrupt_exit(args: argparse.Namespace, started: float) -> int:
-    """Ctrl-C: one line saying so (and what output it left), exit 130."""
+    """Ctrl-C: one line saying so (and what output it left), exit 130; SIGTERM: the same line, exit 143."""
     _end_progress_line()
-    print(f"stagectl: interrupted (Ctrl-C){_after_interrupt(args, started)}", file=sys.stderr)
-    return 130
+    what = "SIGTERM" if _terminated else "Ctrl-C"
+    print(f"stagectl: interrupted ({what}){_after_interrupt(args, started)}", file=sys.stderr)
+    return 143 if _terminated else 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -12,7 +12,26 @@ import reprlib
 from collections.abc import Iterable
 
 __all__ = ["ConfigError", "DataError", "DriveFault", "DriverError", "DriverIOError", "DriverInitError",
-           "DriverTimeoutError", "StageError", "cut", "short"]
+           "DriverTimeoutError", "StageError", "cut", "interrupt_exit_code", "interrupt_name", "set_interrupt_name", "short"]
+
+#: what interrupted this process last: "Ctrl-C" (SIGINT) or "SIGTERM"; set by the CLI's signal handlers, read
+#: where an interrupt is reported (a KeyboardInterrupt does not say which signal raised it)
+_interrupt = ["Ctrl-C"]
+
+
+def interrupt_name() -> str:
+    """"Ctrl-C" or "SIGTERM": the signal behind the latest KeyboardInterrupt (see :mod:`stagectl.cli`)."""
+    return _interrupt[0]
+
+
+def interrupt_exit_code() -> int:
+    """The exit code of an interrupted command: 130 after Ctrl-C, 143 after SIGTERM (128 + signal number)."""
+    return 143 if _interrupt[0] == "SIGTERM" else 130
+
+
+def set_interrupt_name(name: str) -> None:
+    _interrupt[0] = name
+
 
 #: the longest single problem line a ConfigError keeps, and how many lines it keeps (the rest are counted)
 MAX_PROBLEM_CHARS = 400

@@ -42,6 +42,13 @@ class Curves:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def _finite_peak(col: np.ndarray) -> float:
+    """Largest finite |value| of a column, 0 if it has none (an all-NaN column such as ``ilc_rms_m`` before a
+    repetition completed made ``np.nanmax`` print a RuntimeWarning under the command's output)."""
+    finite = np.abs(col[np.isfinite(col)])
+    return float(finite.max()) if finite.size else 0.0
+
+
 def _ramp(points: Sequence[float], step_m: float) -> FloatArray:
     """Piecewise-linear path through ``points`` sampled every ~``step_m``."""
     out = [np.array([points[0]])]
@@ -270,7 +277,7 @@ def plot_recording(columns: Sequence[str], data: FloatArray, path: str | Path, t
     fig, axes = plt.subplots(len(panels), 1, figsize=(11, 2.2 + 2.0 * len(panels)), sharex=True, squeeze=False)
     colours = [f"C{i}" for i in range(10)]  # matplotlib's default cycle: the qualitative tab10 palette
     for ax, (ttl, unit, group) in zip(axes[:, 0], panels, strict=True):
-        peak = max(float(np.nanmax(np.abs(data[:, cols.index(c)]))) if data.shape[0] else 0.0 for c in group)
+        peak = max(_finite_peak(data[:, cols.index(c)]) for c in group)
         k, label = prefix_for(peak, unit) if unit else (1.0, "")
         for i, c in enumerate(group):
             detail = c in _DETAIL

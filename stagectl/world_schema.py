@@ -115,7 +115,7 @@ class PlantConfig:
     sensor: SensorConfig = param(default_factory=SensorConfig, desc="position sensor model")
     actuator: ActuatorConfig = param(default_factory=ActuatorConfig, desc="force actuator model")
     x0_m: float = param(0.0, unit="m", desc="initial position")
-    seed: int = param(0, unit="", desc="seed of the sensor-noise generator")
+    seed: int = param(0, unit="", desc="seed of the sensor-noise generator", ge=0)
     model_file: str | None = param(None, desc="model file (StageModel) supplying mass/friction/effects; "
                                    "inline keys override; relative to the YAML file's directory (loaded by "
                                    "the configuration layer and handed to from_mapping as model=)",
@@ -254,7 +254,7 @@ class SimInterferometerConfig:
     trigger: str = param("rate", desc="rate = free-running at rate_hz; sync = one frame per CANopen SYNC, sampled "
                          "right after the drive stepped the plant (external trigger input; SimWorld only)",
                          choices=("rate", "sync"))
-    seed: int = param(0, desc="seed of the garbage generator")
+    seed: int = param(0, desc="seed of the garbage generator", ge=0)
     faults: tuple[SimInterferometerFault, ...] = param((), desc="scripted faults")
 
 

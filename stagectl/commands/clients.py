@@ -12,7 +12,8 @@
                                                 learning feed-forward of the repeated motion (ilc:)
 
 Every command takes ``--socket PATH`` (default ``$STAGECTL_SOCKET``, else ``$RUNTIME_DIRECTORY/control.sock``,
-else ``/run/stagectl/control.sock``). A refused request prints ``stagectl: error: <field>: <reason>`` and
+else ``/run/stagectl/control.sock``); while a daemon is still starting on that directory (no socket yet), a
+client waits for it, at most ``--timeout``. A refused request prints ``stagectl: error: <field>: <reason>`` and
 exits with code 2; an unreachable daemon also exits 2 with the socket path in the message.
 """
 
@@ -108,10 +109,74 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 # ---------------------------------------------------------------------------------------------- plumbing
+def _daemon_argv(pid: int) -> list[bytes] | None:
+    """The command line of process ``pid`` if it is a ``stagectl daemon``, else None."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            argv = f.read().split(b"\0")
+    except OSError:
+        return None
+    return argv if b"daemon" in argv and any(b"stagectl" in a for a in argv) else None
+
+
+def _runtime_dir_of(pid: int, argv: list[bytes]) -> str | None:
+    """The absolute ``--runtime-dir`` a daemon was started with (relative to its working directory)."""
+    for k, a in enumerate(argv):
+        value = argv[k + 1] if a == b"--runtime-dir" and k + 1 < len(argv) else (
+            a.split(b"=", 1)[1] if a.startswith(b"--runtime-dir=") else None)
+        if value:
+            try:
+                return os.path.normpath(os.path.join(os.readlink(f"/proc/{pid}/cwd"), os.fsdecode(value)))
+            except OSError:
+                return None
+    return None
+
+
+def _starting_daemon(path: str) -> int | None:
+    """The pid of a live ``stagectl daemon`` on the directory of ``path`` that has not opened its socket yet
+    (start-up takes seconds), else None: the pid its lock file names, or (before it has taken the lock) one
+    started with that ``--runtime-dir``. Reads only: taking the lock, even shared, could make that daemon's
+    own start-up fail."""
+    from stagectl.daemon.instance import LOCK_NAME
+
+    rdir = os.path.abspath(os.path.dirname(path) or ".")
+    try:
+        with open(os.path.join(rdir, LOCK_NAME)) as f:
+            pid = int(f.read().split()[0])
+        if _daemon_argv(pid) is not None:
+            return pid
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        pids = [int(d) for d in os.listdir("/proc") if d.isdigit()]
+    except OSError:
+        return None
+    for pid in pids:
+        argv = _daemon_argv(pid)
+        if argv is not None and _runtime_dir_of(pid, argv) == rdir:
+            return pid
+    return None
+
+
+def _wait_for_a_starting_daemon(path: str, timeout_s: float) -> None:
+    """No socket yet, but a daemon is starting on that directory (``stagectl daemon … &`` and a client right
+    after, as in the README): wait for its socket, at most ``timeout_s``, while that daemon lives."""
+    if os.path.exists(path):
+        return
+    pid = _starting_daemon(path)
+    if pid is None:
+        return
+    print(f"stagectl: waiting for the daemon (pid {pid}) to open {path}", file=sys.stderr, flush=True)
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not os.path.exists(path) and _starting_daemon(path) == pid:
+        time.sleep(0.05)
+
+
 @contextlib.contextmanager
 def open_client(socket_path: str | None, timeout_s: float) -> Iterator[ControlClient]:
     """A connected client; an unreachable daemon or a broken connection is one :class:`StageError` line."""
     path = socket_path or default_socket()
+    _wait_for_a_starting_daemon(path, timeout_s)
     try:
         with ControlClient(path, timeout_s=timeout_s) as c:
             yield c

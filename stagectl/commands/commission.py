@@ -5,7 +5,7 @@ sanity probe, closed-loop FRF, friction experiments, identify/discover, gains wi
 measured FRF, verification before/after. Writes ``DIR/model.yaml``, ``DIR/stage.yaml``,
 ``DIR/recordings/*.csv``, ``DIR/report.md`` (+ PNGs) and ``DIR/report.json``; progress lines on stderr, the
 summary as one JSON line on stdout. Exit 0 when complete, 1 when a fault aborted it (drive disabled,
-recordings kept), 130 on Ctrl-C, 2 on bad input or a stage that fails the sanity checks.
+recordings kept), 130 on Ctrl-C (143 on SIGTERM), 2 on bad input or a stage that fails the sanity checks.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from stagectl.commands.args import number
-from stagectl.errors import ConfigError, short
+from stagectl.errors import ConfigError, interrupt_exit_code, short
 from stagectl.outputs import prepare_out_dir
 
 
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         raise res.error  # one `stagectl: error:` line, exit 2 (report.json written)
     if res.aborted is not None:
         print(f"stagectl: error: {res.aborted}", file=sys.stderr)
-        return 130 if res.aborted.interrupted else 1
+        return interrupt_exit_code() if res.aborted.interrupted else 1
     print(f"stagectl commission: {rep['verdict']['text']}", file=sys.stderr)
     print(f"stagectl commission: model.yaml, stage.yaml, report.md in {out}", file=sys.stderr)
     return 0

@@ -105,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
                     t_next += 1.0
                     if not args.quiet:
                         print(progress_line(loop.status()), file=sys.stderr, flush=True)
-        except KeyboardInterrupt:
-            print("stagectl run: stopping (Ctrl-C)", file=sys.stderr)
+        except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (stagectl.cli turns it into the same clean stop)
+            print("stagectl run: stopping (interrupted)", file=sys.stderr)
         res = host.finish(timeout_s=10.0)
     summary: dict[str, Any] = {
         "command": "run",

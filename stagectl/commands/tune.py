@@ -62,6 +62,9 @@ MAX_HOLD_EXCURSION_M = 1e-6
 THETA_POINTS = 5
 
 
+#: heaviest moving mass [kg] the loop design resolves numerically (python-control transfer functions)
+MAX_DESIGN_MASS_KG = 1e5
+
 def _healthy(s: dict[str, Any]) -> bool:
     return bool(s["closed_loop_stable"] and s["phase_margin_deg"] >= HEALTHY_PHASE_MARGIN_DEG
                 and s["gain_margin_db"] >= HEALTHY_GAIN_MARGIN_DB)
@@ -123,6 +126,12 @@ def _load_inputs(args: argparse.Namespace) -> dict[str, Any]:
         problems.append("--mass-kg: required (no controller.mass_kg or plant mass in the config)")
     elif not (out["mass_kg"] > 0 and math.isfinite(out["mass_kg"])):
         problems.append(f"--mass-kg: must be > 0 kg (got {out['mass_kg']})")
+    elif out["mass_kg"] > MAX_DESIGN_MASS_KG:
+        # the loop's transfer functions lose the plant's 1/(m s²) in their coefficients: 1e7 kg bent Kp by 0.1 %,
+        # 1e8 kg failed the design's own check and 1e12 kg divided by zero (exit 70)
+        src = "--mass-kg" if args.mass_kg is not None else "controller.mass_kg (or the plant's mass)"
+        problems.append(f"{src}: {out['mass_kg']:g} kg is above the {MAX_DESIGN_MASS_KG:g} kg the design resolves "
+                        "(a value in g written as kg?)")
     if out["period_s"] is None:
         problems.append("--period-s: required (no loop.period_s in the config)")
     elif not t_lo <= out["period_s"] <= t_hi:

@@ -56,7 +56,7 @@ from stagectl.control.dob import DobConfig
 from stagectl.control.friction_ff import CoulombFeedforward
 from stagectl.control.pid import PidConfig
 from stagectl.control.trajectory import Dwell, Move, Scenario, SegmentSpec, benchmark_scenarios
-from stagectl.errors import StageError
+from stagectl.errors import StageError, interrupt_name
 from stagectl.recorder import Recorder, tracking_summary
 from stagectl.runtime.host import LoopHost
 from stagectl.runtime.status import LoopResult
@@ -300,7 +300,7 @@ class Commissioning:
                 fault, params))
             self.res.recordings[name] = rec
         if interrupted:
-            raise CommissionAborted(name, "interrupted (Ctrl-C)", interrupted=True)
+            raise CommissionAborted(name, f"interrupted ({interrupt_name()})", interrupted=True)
         if res is not None and res.fault is not None:
             raise CommissionAborted(name, f"fault {res.fault.name}: {res.fault.cause}")
         self.opts.progress(f"commission: [{idx + 1}/{len(self._planned)}] {name}: done ({rec.n} samples)")
@@ -341,7 +341,7 @@ class Commissioning:
                 self.res.aborted = exc
             except KeyboardInterrupt:  # Ctrl-C between two runs (an analysis): the loop is not running
                 name = self.res.experiments[-1].name if self.res.experiments else "start"
-                self.res.aborted = CommissionAborted(name, "interrupted (Ctrl-C)", interrupted=True)
+                self.res.aborted = CommissionAborted(name, f"interrupted ({interrupt_name()})", interrupted=True)
             except StageError as exc:  # a sanity verdict, a failed start, no healthy design: kept in the report
                 name = self.res.experiments[-1].name if self.res.experiments else "start"
                 self.res.aborted = CommissionAborted(name, str(exc))

@@ -291,6 +291,8 @@ def plausibility_problems(cfg: AppConfig | Sections) -> list[str]:
 
     * ``safety.following_error_m`` at least the whole stroke (``max_position_m − min_position_m``): the
       window could never trip;
+    * a ``safety.quick_stop_deceleration_m_s2`` a so weak that the brake's stop distance from
+      ``max_velocity_m_s`` v, v²/(2a) [m], exceeds the stroke (the brake holds the ramp's speed on meanwhile);
     * a sensor's ``resolution_m`` coarser than 1 % of the stroke (metres given where µm or nm were meant);
     * a filter or observer at or above the Nyquist frequency ``1/(2·loop.period_s)``: a discrete filter
       cannot act there (the observer, the PID's derivative low-pass, the velocity filters);
@@ -304,6 +306,15 @@ def plausibility_problems(cfg: AppConfig | Sections) -> list[str]:
         if stroke > 0 and s.safety.following_error_m >= stroke:
             problems.append(f"safety.following_error_m: {s.safety.following_error_m:g} m is not smaller than the "
                             f"stroke {stroke:g} m between the soft limits (the window could never trip)")
+        a = s.safety.quick_stop_deceleration_m_s2
+        if stroke > 0 and a is not None:
+            v = s.safety.max_velocity_m_s
+            stop_m = v * v / (2.0 * a)
+            if stop_m > stroke:
+                problems.append(f"safety.quick_stop_deceleration_m_s2: {a:g} m/s^2 stops the stage from "
+                                f"max_velocity_m_s {v:g} m/s in {stop_m:g} m, more than the stroke {stroke:g} m "
+                                "between the soft limits (the fault reaction's brake would push it on into the "
+                                "end stop)")
     if stroke is not None and stroke > 0:
         sensors: list[tuple[str, float]] = []
         if s.io is not None:

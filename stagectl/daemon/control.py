@@ -105,6 +105,17 @@ def encode(reply: Reply) -> bytes:
 MAX_ID_CHARS = 256
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object whose keys are all different: ``{"request": "status", "request": "stop"}`` was read as
+    its last value (a stop), not what the line seemed to ask first; a key given twice is refused."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise RequestError(key, "given twice in one request (which one is meant?)")
+        out[key] = value
+    return out
+
+
 def _check_id(rid: Any) -> Any:
     """A request ``id`` is echoed in the reply, so only a short scalar is accepted (never a deep structure)."""
     if rid is None or isinstance(rid, bool):
@@ -397,8 +408,15 @@ class ControlServer:
         rid: Any = None
         try:
             try:
-                req = json.loads(line)
-            except (ValueError, UnicodeDecodeError) as exc:
+                text = line.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise RequestError("json", f"not UTF-8 text (byte 0x{line[exc.start]:02x} at offset {exc.start})"
+                                   ) from None
+            try:
+                req = json.loads(text, object_pairs_hook=_unique_keys)
+            except RequestError:
+                raise
+            except ValueError as exc:
                 raise RequestError("json", f"not valid JSON ({exc})") from None
             except RecursionError:
                 raise RequestError("json", "nested too deeply") from None

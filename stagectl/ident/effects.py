@@ -130,8 +130,8 @@ def _stribeck_evidence(ev: ResidualView, p: StribeckParams) -> str:
     how = ("has the sign of the velocity: friction falls with speed (Stribeck dip)" if p.fs_n >= p.fc_n else
            "has the opposite sign of the velocity: friction rises with speed from a lower break-away level "
            "(no Stribeck dip, as on rolling contacts)")
-    return (f"the residual is largest at low speed (RMS {ev.regime_rms('low_speed'):.4g} N vs "
-            f"{ev.regime_rms('constant_speed'):.4g} N at constant speed) and {how}; fitted Fs = {p.fs_n:.4g} N, "
+    return (f"the residual is largest at low speed (RMS {ev.regime_text('low_speed')} vs "
+            f"{ev.regime_text('constant_speed')} at constant speed) and {how}; fitted Fs = {p.fs_n:.4g} N, "
             f"Fc = {p.fc_n:.4g} N, vs = {p.vs_m_s:.3g} m/s, δ = {p.delta:.2g}")
 
 
@@ -250,8 +250,8 @@ def _search_presliding(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
 
 
 def _presliding_evidence(ev: ResidualView, p: PreslidingParams) -> str:
-    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
-            f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed): the force builds up elastically over "
+    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_text('near_reversal')} "
+            f"vs {ev.regime_text('constant_speed')} at constant speed): the force builds up elastically over "
             f"displacement instead of jumping with sgn(v); fitted {p.elements} Maxwell-slip elements, "
             f"initial stiffness {p.initial_stiffness_n_m:.4g} N/m, largest break displacement "
             f"{1e6 * p.largest_break_displacement_m:.3g} µm")
@@ -680,8 +680,8 @@ def _search_backlash(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
 
 
 def _backlash_evidence(ev: ResidualView, p: BacklashParams) -> str:
-    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_rms('near_reversal'):.4g} N "
-            f"vs {ev.regime_rms('constant_speed'):.4g} N at constant speed) and behaves like lost motion: for the "
+    return (f"the residual is concentrated right after velocity reversals (RMS {ev.regime_text('near_reversal')} "
+            f"vs {ev.regime_text('constant_speed')} at constant speed) and behaves like lost motion: for the "
             f"first {1e6 * p.gap_m:.3g} µm after a reversal the motor moves without the load ({p.coulomb_lost_n:.3g} N "
             f"of friction and {p.mass_lost_kg:.3g} kg of mass not carried), then the load engages at once (an impact; a step "
             "in displacement, where pre-sliding builds up gradually). Written to model.yaml as its backlash: "
@@ -701,7 +701,11 @@ def backlash_split(p: BacklashParams) -> tuple[bool, float]:
 def _backlash_bounds(p: BacklashParams) -> list[str]:
     out = []
     on_load, other = backlash_split(p)
-    if p.mass_kg > 0 and not 0.0 < other < p.mass_kg:
+    if not p.mass_kg > 0:
+        # no mass to split between motor and load (a recording that shows none, e.g. a force in phase with the
+        # speed): the model writer could not represent the play, so it is not accepted
+        out.append(f"fitted mass m = {p.mass_kg:.3g} kg leaves no motor/load split")
+    elif not 0.0 < other < p.mass_kg:
         # the bound of the model file's motor + load plant: a fit it cannot represent is not accepted (before,
         # such a fit was accepted and then refused by the model writer, failing the whole run)
         out.append(f"mass lost in the play {p.mass_lost_kg:.3g} kg of m = {p.mass_kg:.3g} kg leaves no motor/load "

@@ -3,6 +3,8 @@ the residual view the effects' evidence texts read."""
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -112,6 +114,12 @@ class ResidualView:
     @cached_property
     def regimes(self) -> dict[str, BoolArray]:
         return regimes(self.sig, self.rows)
+
+    def regime_text(self, prefix: str) -> str:
+        """:meth:`regime_rms` for a report: ``"0.001792 N"``, or ``"no samples"`` where the regime is empty
+        (a recording with no constant-speed stretch printed "nan N at constant speed")."""
+        r = self.regime_rms(prefix)
+        return f"{r:.4g} N" if math.isfinite(r) else "no samples"
 
     def regime_rms(self, prefix: str) -> float:
         """RMS residual [N] in the first regime whose name starts with ``prefix`` (NaN if empty)."""

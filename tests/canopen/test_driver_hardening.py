@@ -4,6 +4,7 @@ producer, a socketcand link that dies; ``persisting_faults()`` says which causes
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
 
@@ -248,5 +249,46 @@ def test_a_closed_socketcand_port_is_one_line_at_once(monkeypatch):
         canbus.open_bus({"interface": "socketcand", "host": "127.0.0.1", "port": port, "channel": "can0"})
     msg = str(ei.value)
     assert "\n" not in msg and f"port={port}" in msg and "nothing accepts a connection" in msg, msg
-    with socket.create_server(("127.0.0.1", 0)) as srv:
-        canbus.probe_socketcand("127.0.0.1", srv.getsockname()[1], wait_s=0.0)
+    with _one_shot_server(b"< hi >") as port:
+        canbus.probe_socketcand("127.0.0.1", port, wait_s=0.0)
+
+
+@contextlib.contextmanager
+def _one_shot_server(greeting: bytes | None):
+    """A TCP server on loopback that accepts one connection, sends ``greeting`` (None: nothing) and holds it."""
+    import socket
+    import threading
+
+    srv = socket.create_server(("127.0.0.1", 0))
+    done = threading.Event()
+
+    def serve() -> None:
+        conn, _ = srv.accept()
+        with conn:
+            if greeting is not None:
+                conn.sendall(greeting)
+            done.wait(10)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        yield srv.getsockname()[1]
+    finally:
+        done.set()
+        t.join(10)
+        srv.close()
+
+
+@pytest.mark.parametrize(("greeting", "expect"), [
+    (None, "no greeting '< hi >' within 0.3 s; is that port a socketcand server"),
+    (b"SSH-2.0-OpenSSH_9.6\r\n>", "not a socketcand server (it said 'SSH-2.0-OpenSSH_9.6"),
+])
+def test_a_port_that_is_not_a_socketcand_server_is_one_line(monkeypatch, greeting, expect):
+    """Something listens but never says '< hi >' (another service, a hung server): python-can's client waited for
+    the greeting without a time-out and `stagectl run` hung for ever (audit16). One line instead."""
+    monkeypatch.setattr(canbus, "SOCKETCAND_GREETING_S", 0.3)
+    with _one_shot_server(greeting) as port:
+        with pytest.raises(DriverInitError) as ei:
+            canbus.open_bus({"interface": "socketcand", "host": "127.0.0.1", "port": port, "channel": "can0"})
+    msg = str(ei.value)
+    assert "\n" not in msg and f"127.0.0.1:{port}" in msg and expect in msg, msg

@@ -63,6 +63,7 @@ HOSTILE = [
     "tune --config config/sim.yaml --delay-samples 100000",  # was a MemoryError: a 10^5-state model
     "tune --config config/sim.yaml --dob-bandwidth-hz 1e6",  # above Nyquist: was designed and refused (exit 1)
     "tune --mass-kg 2 --period-s 1",
+    "tune --mass-kg 1e12 --bandwidth-hz 20 --period-s 0.001",  # was a ZeroDivisionError (exit 70; audit16)
     # benchmarks: every numeric option checked before any work; names checked against what exists
     "bench loop --duration -1",
     "bench loop --duration nan",

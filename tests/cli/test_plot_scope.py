@@ -154,3 +154,19 @@ def test_scope_keys_work_while_a_poll_hangs() -> None:
 
     assert asyncio.run(drive())
     assert timed_out == [False]
+
+
+def test_an_all_nan_column_is_drawn_without_a_warning(tmp_path: Path) -> None:
+    """`simulate --ilc` on a motion that never completes a repetition records ilc_rms_m as nan throughout; its
+    plot printed numpy's 'RuntimeWarning: All-NaN slice encountered' under the command's output (audit16)."""
+    import warnings
+
+    from stagectl.plots import plot_recording
+
+    n = 100
+    data = np.column_stack([np.arange(n) * 1e-3, np.zeros(n), np.zeros(n), np.full(n, np.nan)])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        png = plot_recording(("t", "x", "u", "ilc_rms_m"), data, tmp_path / "rec.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [w for w in seen if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in seen]

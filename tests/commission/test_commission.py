@@ -207,8 +207,11 @@ def test_refuses_while_the_daemon_holds_the_same_config(hidden_stage: Path, tmp_
     assert not (tmp_path / "o").exists()
 
 
-def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_stage: Path, tmp_path: Path) -> None:
-    """A real process and a real SIGINT, sent when the progress line says the FRF is under way."""
+@pytest.mark.parametrize(("signame", "code"), [("SIGINT", 130), ("SIGTERM", 143)])
+def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_stage: Path, tmp_path: Path,
+                                                                       signame: str, code: int) -> None:
+    """A real process and a real SIGINT, sent when the progress line says the FRF is under way; SIGTERM
+    (kill, timeout) the same, exit 143 (before audit16 it killed the process: no report, no recordings)."""
     import signal
     import subprocess
 
@@ -223,12 +226,13 @@ def test_ctrl_c_stops_with_the_drive_disabled_and_keeps_the_recordings(hidden_st
     assert proc.stderr is not None
     for line in proc.stderr:
         if "[2/" in line and "frf" in line:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(getattr(signal, signame))
             break
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    assert proc.returncode == code, err
     rep = json.loads((out / "report.json").read_text())
     assert rep["status"] == "aborted" and rep["aborted"]["interrupted"]
+    assert rep["aborted"]["reason"] == f"interrupted ({'SIGTERM' if signame == 'SIGTERM' else 'Ctrl-C'})"
     assert rep["aborted"]["drive_state_after"] != "enabled"
     assert load_recording(out / "recordings" / "sanity.csv", min_rows=100).t[-1] > 1.0
 

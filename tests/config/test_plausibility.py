@@ -24,6 +24,9 @@ def _set(data: dict, path: str, value: object) -> dict:
                                              "frequency 500 Hz")),
     ("controller.pid.derivative_cutoff_hz", 600.0, "controller.pid.derivative_cutoff_hz: 600 Hz"),
     ("safety.velocity_filter_hz", 500.0, "safety.velocity_filter_hz: 500 Hz is at or above"),
+    ("safety.quick_stop_deceleration_m_s2", 0.001, ("safety.quick_stop_deceleration_m_s2: 0.001 m/s^2 stops the "
+                                                    "stage from max_velocity_m_s 0.02 m/s in 0.2 m, more than the "
+                                                    "stroke 0.01 m")),
     ("controller.settle.move_s", 0.0001, ("controller.settle.move_s: 0.0001 s is shorter than two loop periods "
                                           "(0.002 s)")),
 ])
@@ -47,3 +50,12 @@ def test_wrong_kind_is_said_in_yaml_words(path: str, value: object, expect: str)
     """null, true, a mapping: what the user wrote, not Python's NoneType/bool/dict."""
     problems = config_problems(_set(shipped_config_mapping("sim.yaml"), path, value))
     assert problems == ["x.yaml: " + expect], problems
+
+
+@pytest.mark.parametrize("path", ["sim.plant.seed", "sim.interferometer.seed"])
+def test_a_negative_seed_is_refused_in_one_line(path: str) -> None:
+    """numpy refuses a negative seed: check-config said OK and simulate ended in 'internal error: ValueError:
+    expected non-negative integer' (exit 70); audit16."""
+    data = shipped_config_mapping("hil-serial.yaml")
+    problems = config_problems(_set(data, path, -1))
+    assert problems == [f"x.yaml: {path}: must be >= 0 (got -1)"], problems

@@ -75,6 +75,24 @@ def test_errors_name_the_field_and_connection_stays_usable(server):
         assert r["ok"] is True and r["state"] == "active" and r["nan"] is None  # NaN is not JSON
 
 
+def test_a_key_given_twice_is_refused_and_bytes_not_utf8_are_named(server):
+    """{"request": "status", "request": "stop"} was read as its last value: a stop the line did not seem to
+    ask for first. A key twice is refused, naming it, and the handler is not called (audit16)."""
+    dut, h = server
+    with ControlClient(dut.path) as c:
+        c.send_raw(b'{"request": "status", "request": "move", "target_m": 0.001}\n')
+        r = c.read_reply()
+        assert r == {"ok": False, "field": "request",
+                     "error": "request: given twice in one request (which one is meant?)"}, r
+        c.send_raw(b'{"request": "move", "target_m": 0.001, "target_m": 0.002}\n')
+        assert c.read_reply()["field"] == "target_m"
+        assert h.calls == 0
+        c.send_raw(b'\xff\xfe{"request": "status"}\n')
+        r = c.read_reply()
+        assert r["field"] == "json" and r["error"] == "json: not UTF-8 text (byte 0xff at offset 0)", r
+        assert c.request({"request": "status"})["ok"] is True
+
+
 def test_pipelined_requests_answered_in_order(server):
     dut, _ = server
     with ControlClient(dut.path) as c:

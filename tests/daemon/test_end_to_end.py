@@ -178,6 +178,11 @@ def _assert_bumpless(path: Path) -> None:
 
 def test_daemon_end_to_end(daemon, tmp_path, capsys):
     proc, cfg, run, ns = daemon
+    # a client started right after the daemon (the README's `stagectl daemon … &` then `stagectl status`)
+    # waits for the socket of the daemon starting on that directory instead of failing (audit16)
+    early = subprocess.run([*stagectl_cmd(), "status", "--json", "--timeout", "120", "--socket",
+                            str(run / "control.sock")], capture_output=True, text=True, timeout=180)
+    assert early.returncode == 0 and json.loads(early.stdout)["pid"] == proc.pid, early.stderr
     try:
         ready = ns.wait_for("READY", "1", timeout=120, alive=lambda: proc.poll() is None)
     except TimeoutError:
