@@ -73,6 +73,10 @@ class LoopHost:
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        # set when the loop thread's work is over. Not Thread.join/is_alive: on CPython 3.11 a KeyboardInterrupt
+        # (Ctrl-C, or the CLI's SIGTERM) raised inside Thread.join releases the thread's state lock and marks a
+        # live thread stopped, so a `run` interrupted while it waited closed the devices under a running loop.
+        self._ended = threading.Event()
         self._sinks_removed = False
 
     # ------------------------------------------------------------------ start / state
@@ -93,8 +97,11 @@ class LoopHost:
             self.error = exc
             log.exception("control loop ended with an error")
         finally:
-            if self.on_exit is not None:
-                self.on_exit()
+            try:
+                if self.on_exit is not None:
+                    self.on_exit()
+            finally:
+                self._ended.set()
 
     @property
     def started(self) -> bool:
@@ -103,7 +110,7 @@ class LoopHost:
     @property
     def alive(self) -> bool:
         """The loop thread is running."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._thread is not None and not self._ended.is_set()
 
     def end_reason(self) -> str:
         """Why the loop ended, for a log line (``"unknown"`` while it runs)."""
@@ -118,11 +125,9 @@ class LoopHost:
 
     def wait(self, timeout_s: float | None) -> bool:
         """Wait up to ``timeout_s`` for the loop thread to end; True if it has ended (or never started)."""
-        th = self._thread
-        if th is None:
+        if self._thread is None:
             return True
-        th.join(timeout_s)
-        return not th.is_alive()
+        return self._ended.wait(timeout_s)
 
     def halt_motion(self, until_mono: float) -> None:
         """Decelerate to a stop before disabling, bounded by ``time.monotonic()`` deadline ``until_mono``.

@@ -184,6 +184,32 @@ def test_host_stop_halts_motion_and_reraises_a_loop_error(make):
     assert "StageError" in dut2.end_reason()
 
 
+def test_an_interrupt_inside_wait_does_not_make_the_running_loop_look_ended(make):
+    """Ctrl-C (or the CLI's SIGTERM) raises KeyboardInterrupt in the main thread while it waits on the host. On
+    CPython 3.11 an interrupted Thread.join marks the live thread stopped; the host judged by is_alive, so `run`
+    went on to close the devices under a loop still running and printed "loop": null (audit16's SIGTERM test)."""
+    import signal
+
+    loop, *_ = make()
+    dut = LoopHost(loop)
+    dut.start()  # until stopped
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
+        with pytest.raises(KeyboardInterrupt):
+            dut.wait(60)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)
+    assert dut.alive and not dut.wait(0)
+    res = dut.finish(timeout_s=60)
+    assert res is not None and res.ended_by == "stop" and not dut.alive
+
+
 # ------------------------------------------------------------------------------------------------ CSV writer
 def test_one_recording_csv_writer_for_the_recorder_and_the_daemon(tmp_path):
     from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
