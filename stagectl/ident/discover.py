@@ -402,6 +402,12 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
     specs = [fx.REGISTRY.get(n) for n in names]
     params = [sp.params(fr.hyp) for sp in specs]
     bounds = tuple(b for sp, p in zip(specs, params) if sp.bounds is not None for b in sp.bounds(p))
+    # an effect already in the model that this candidate's joint fit pushes beyond its bounds (the linear
+    # coefficients are refitted together): the model file could not hold it, so the candidate is not accepted
+    was_out = set(_out_of_bounds(cur.hyp))
+    bounds += tuple(f"{sp.name} (already in the model): {b}" for sp in fx.REGISTRY.active(fr.hyp)
+                    if sp.name not in names and sp.name not in was_out and sp.bounds is not None
+                    for b in sp.bounds(sp.params(fr.hyp)))
     keys = "; ".join(sp.key(p) for sp, p in zip(specs, params) if sp.key is not None) or None
     regime = specs[0].regime if len(specs) == 1 else None
     rc: Comparison | None = None
