@@ -61,6 +61,13 @@ def test_a_single_local_force_is_not_named_cogging_but_a_true_cogging_is() -> No
     assert p.wavelength_m == pytest.approx(3e-3, rel=0.01)
     assert p.amplitude_n == pytest.approx(0.5, rel=0.05)
 
+    # a real cogging whose amplitude varies by ±30 % along the stroke still recurs
+    def uneven(x: np.ndarray) -> np.ndarray:
+        return (1.0 + 0.3 * x / 10e-3) * _cogging(x)
+
+    res = discover(_recording(17, 10.0, uneven), _recording(18, 6.0, uneven), catalogue=("cogging",), max_rounds=1)
+    assert [e.name for e in res.effects] == ["cogging"]
+
 
 def test_friction_varying_along_the_stroke_is_a_long_wavelength_ripple() -> None:
     def grad(x: np.ndarray) -> np.ndarray:  # friction 25 % higher at +10 mm than at 0, 25 % lower at −10 mm
