@@ -416,7 +416,7 @@ def _score(ds: Dataset, cur: FitResult, label: str, fr: FitResult, r_cur: FloatA
         if m is not None and int(m.sum()) >= MIN_REGIME_SAMPLES:
             rc = compare(r_cur[m], r_new[m], ds.est.dt_s, force_rms)
     unresolved = tuple(u for sp in specs if sp.resolved is not None
-                       for u in sp.resolved(ds.val, ds.val_rows, fr.hyp, force_rms))
+                       for u in sp.resolved(ds.val, ds.val_rows, fr.hyp, force_rms, r_new))
     in_regime = rc is not None and rc.significant and cmp.gap_after <= cmp.gap_before
     ok = (cmp.significant or in_regime) and est_gain > 0.0 and not bounds and not unresolved
     row = CandidateFit(

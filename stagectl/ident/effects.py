@@ -437,30 +437,28 @@ RECUR_MIN_SHARE = 0.5
 RECUR_SCALES = (0.5, 2.0)
 
 
-def _cogging_recurs(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float) -> list[str]:
+def _cogging_recurs(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, _floor_n: float, rr: FloatArray
+                    ) -> list[str]:
     """What a periodic (cogging) fit lacks to be periodic: the force must recur period after period.
 
-    The travelled span of the validation rows is cut into windows half a wavelength λ long (equal shares of a
-    sinusoid's power); in each window that holds at least 50 samples over half its length or more, the local scale of the fitted force
-    g = L[cs·sin(2πx/λ) + cc·cos(2πx/λ)] is s_k = Σ (r + g)·g / Σ g² (r the residual with the cogging in
-    the model, so s_k = 1 where the fit is right). A cogging has s_k ≈ 1 everywhere (0.5-2 accepted, ``RECUR_SCALES``); a single local force
-    (a hump or dip over 1-1.5 periods, a dent in a guide, a cable at one place) has s_k of several in one or
-    two windows and ≈ 0 elsewhere, and the sinusoid fitted to it spreads a force over the whole stroke that
-    is not there. With fewer than 4 windows the test cannot judge and passes."""
-    from stagectl.ident.regress import residual  # regress imports this module
-
+    The travelled span of the validation rows is cut into windows half a wavelength λ long (equal shares of
+    a sinusoid's power). In each window holding at least 50 samples over half its length or more, the local
+    scale of the fitted force g = L[cs·sin(2πx/λ) + cc·cos(2πx/λ)] [N] is s_k = Σ(r + g)·g / Σg² [–], with
+    r = ``rr`` the residual on ``rows`` with the cogging in the model (s_k = 1 where the fit is right). A
+    cogging has s_k ≈ 1 everywhere (``RECUR_SCALES`` 0.5-2 accepted); a single local force (a hump or dip
+    over 1-1.5 periods, a dent in a guide, a cable at one place) has s_k of several in one or two windows
+    and ≈ 0 elsewhere, and the sinusoid fitted to it spreads a force over the whole stroke that is not
+    there. With fewer than 4 windows (under 2 periods travelled) the test cannot judge and passes."""
     lam = float(COGGING.shape(h).wavelength_m)
-    cs, cc = h.theta.get("cs", 0.0), h.theta.get("cc", 0.0)
-    s, c = position_sin_cos(sig, lam)
-    g = sig.filt(cs * s + cc * c)
-    r = residual(sig, h)
     x = sig.xf[rows]
     if x.size == 0 or lam <= 0.0:
         return []
+    cs, cc = h.theta.get("cs", 0.0), h.theta.get("cc", 0.0)
+    s, c = position_sin_cos(sig, lam)
+    gr = sig.filt(cs * s + cc * c)[rows]
     lo = float(x.min())
     w = 0.5 * lam
     k = np.floor((x - lo) / w).astype(np.int64)
-    gr, rr = g[rows], r[rows]
     scales: list[tuple[float, float]] = []
     for j in np.unique(k):
         m = k == j
@@ -470,7 +468,7 @@ def _cogging_recurs(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: 
         scales.append((lo + j * w, float(np.dot(rr[m] + gr[m], gr[m])) / gg))
     if len(scales) < 4:
         return []
-    good = [w for w, sk in scales if RECUR_SCALES[0] <= sk <= RECUR_SCALES[1]]
+    good = [w0 for w0, sk in scales if RECUR_SCALES[0] <= sk <= RECUR_SCALES[1]]
     if len(good) >= RECUR_MIN_SHARE * len(scales):
         return []
     big = max(scales, key=lambda t: t[1])
@@ -792,7 +790,8 @@ def _backlash_bounds(p: BacklashParams) -> list[str]:
     return out
 
 
-def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float) -> list[str]:
+def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float,
+                       _r: FloatArray) -> list[str]:
     """What shows lost motion, by the motor/load split the model file would write (:func:`backlash_split`).
 
     * Friction on the load (at least half the Coulomb level lost inside the play): the lost friction itself,
