@@ -410,8 +410,8 @@ def _search_ripple(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
     if span <= 0.0:
         return best
     lo, hi = LONG_RIPPLE_SPANS[0] * span, LONG_RIPPLE_SPANS[1] * span
-    lam, f = best_scalar(lambda s: RIPPLE.fit_with(fitter, h, wavelength_m=s).rss, list(np.geomspace(lo, hi, 5)),
-                         lo, hi, maxiter=10)
+    lam, f = best_scalar(lambda s: RIPPLE.fit_with(fitter, h, wavelength_m=s).rss, list(np.geomspace(lo, hi, 4)),
+                         lo, hi, maxiter=6)
     if f < best.rss:
         fr = RIPPLE.fit_with(fitter, h, wavelength_m=lam)
         if not _ripple_bounds(_ripple_params(fr.hyp)):
