@@ -473,9 +473,10 @@ def _delay_moves_with_filter(ds: Dataset, fr: FitResult) -> list[str]:
     t0, t1 = taus
     if abs(t1 - t0) <= max(DELAY_FILTER_TOLERANCE * max(t0, t1), 0.25 * ds.val.dt_s):
         return []
-    return [f"the fitted delay moves with the analysis filter: τ = {1e3 * t0:.3g} ms at the {c0:.3g} Hz cut-off, "
-            f"{1e3 * t1:.3g} ms at {c1:.3g} Hz (validation data); an actuation delay does not depend on the "
-            "filter. A closed loop answering a force disturbance that is not in the recording gives such a lag"]
+    return [(f"the fitted delay moves with the analysis filter: τ = {1e3 * t0:.3g} ms at the {c0:.3g} Hz "
+             f"cut-off, {1e3 * t1:.3g} ms at {c1:.3g} Hz (validation data); an actuation delay does not depend on "
+             "the filter. A closed loop answering a force disturbance that is not in the recording gives such a "
+             "lag")]
 
 
 def _round(ds: Dataset, cur: FitResult, catalogue: tuple[str, ...], r_cur: FloatArray, force_rms: float,

@@ -472,10 +472,10 @@ def _cogging_recurs(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, _floor_n:
     if len(good) >= RECUR_MIN_SHARE * len(scales):
         return []
     big = max(scales, key=lambda t: t[1])
-    return [f"the force does not recur period after period: only {len(good)} of {len(scales)} half-period windows "
-            f"(λ = {1e3 * lam:.4g} mm) carry {RECUR_SCALES[0]:g}-{RECUR_SCALES[1]:g}× the fitted amplitude, the "
-            f"largest {big[1]:.2g}× it at x in [{big[0]:.6g}, {big[0] + w:.6g}] m: a local force over about one "
-            "period (a bump, a dent, a cable), not a periodic cogging"]
+    return [(f"the force does not recur period after period: only {len(good)} of {len(scales)} half-period "
+             f"windows (λ = {1e3 * lam:.4g} mm) carry {RECUR_SCALES[0]:g}-{RECUR_SCALES[1]:g}× the fitted "
+             f"amplitude, the largest {big[1]:.2g}× it at x in [{big[0]:.6g}, {big[0] + w:.6g}] m: a local force "
+             "over about one period (a bump, a dent, a cable), not a periodic cogging")]
 
 
 # ============================================================================================ offset, spring
