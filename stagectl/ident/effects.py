@@ -394,9 +394,29 @@ def _ripple_params(h: Hyp) -> PositionRipple:
                           phase_rad=math.atan2(rc, rs))
 
 
+#: longest ripple wavelength searched, in travelled spans [–]: a friction level that varies smoothly along the
+#: stroke (one hump, or a gradient) is a ripple of wavelength 0.5-3 spans (docs/discovery.md §13)
+LONG_RIPPLE_SPANS = (0.5, 3.0)
+
+
 def _search_ripple(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
+    """The periodogram's wavelengths (at least 2 periods in the span), and one search over long wavelengths
+    (``LONG_RIPPLE_SPANS``): a friction level that varies smoothly along the stroke has no periodogram peak
+    (the periodogram excludes fewer than 2 periods, where every smooth trend would peak) but is the same
+    multiplicative form 1 + a·sin(2πx/λ + φ) within the travelled span."""
     weight = fitter.sig.filt(fitter.friction_force(cur.hyp))  # the ripple multiplies the friction force
-    return _search_periodic(RIPPLE, fitter, cur, h, weight)
+    best = _search_periodic(RIPPLE, fitter, cur, h, weight)
+    span = float(np.ptp(fitter.sig.xf[fitter.rows]))
+    if span <= 0.0:
+        return best
+    lo, hi = LONG_RIPPLE_SPANS[0] * span, LONG_RIPPLE_SPANS[1] * span
+    lam, f = best_scalar(lambda s: RIPPLE.fit_with(fitter, h, wavelength_m=s).rss, list(np.geomspace(lo, hi, 4)),
+                         lo, hi, maxiter=6)
+    if f < best.rss:
+        fr = RIPPLE.fit_with(fitter, h, wavelength_m=lam)
+        if not _ripple_bounds(_ripple_params(fr.hyp)):
+            return fr
+    return best
 
 
 def _cogging_columns(sig: Signals, h: Hyp, f_est: FloatArray) -> list[Column]:
@@ -409,6 +429,53 @@ def _cogging_params(h: Hyp) -> Cogging:
     cs, cc = h.theta.get("cs", 0.0), h.theta.get("cc", 0.0)
     return Cogging(amplitude_n=math.hypot(cs, cc), wavelength_m=float(COGGING.shape(h).wavelength_m),
                    phase_rad=math.atan2(cc, cs))
+
+
+#: a cogging must recur: at least this share of the half-period position windows of the validation data
+#: carry between ``RECUR_SCALES`` times the fitted amplitude (docs/discovery.md §13)
+RECUR_MIN_SHARE = 0.5
+RECUR_SCALES = (0.5, 2.0)
+
+
+def _cogging_recurs(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, _floor_n: float, rr: FloatArray
+                    ) -> list[str]:
+    """What a periodic (cogging) fit lacks to be periodic: the force must recur period after period.
+
+    The travelled span of the validation rows is cut into windows half a wavelength λ long (equal shares of
+    a sinusoid's power). In each window holding at least 50 samples over half its length or more, the local
+    scale of the fitted force g = L[cs·sin(2πx/λ) + cc·cos(2πx/λ)] [N] is s_k = Σ(r + g)·g / Σg² [–], with
+    r = ``rr`` the residual on ``rows`` with the cogging in the model (s_k = 1 where the fit is right). A
+    cogging has s_k ≈ 1 everywhere (``RECUR_SCALES`` 0.5-2 accepted); a single local force (a hump or dip
+    over 1-1.5 periods, a dent in a guide, a cable at one place) has s_k of several in one or two windows
+    and ≈ 0 elsewhere, and the sinusoid fitted to it spreads a force over the whole stroke that is not
+    there. With fewer than 4 windows (under 2 periods travelled) the test cannot judge and passes."""
+    lam = float(COGGING.shape(h).wavelength_m)
+    x = sig.xf[rows]
+    if x.size == 0 or lam <= 0.0:
+        return []
+    cs, cc = h.theta.get("cs", 0.0), h.theta.get("cc", 0.0)
+    s, c = position_sin_cos(sig, lam)
+    gr = sig.filt(cs * s + cc * c)[rows]
+    lo = float(x.min())
+    w = 0.5 * lam
+    k = np.floor((x - lo) / w).astype(np.int64)
+    scales: list[tuple[float, float]] = []
+    for j in np.unique(k):
+        m = k == j
+        gg = float(np.dot(gr[m], gr[m]))
+        if m.sum() < 50 or float(np.ptp(x[m])) < 0.5 * w or gg <= 0.0:
+            continue
+        scales.append((lo + j * w, float(np.dot(rr[m] + gr[m], gr[m])) / gg))
+    if len(scales) < 4:
+        return []
+    good = [w0 for w0, sk in scales if RECUR_SCALES[0] <= sk <= RECUR_SCALES[1]]
+    if len(good) >= RECUR_MIN_SHARE * len(scales):
+        return []
+    big = max(scales, key=lambda t: t[1])
+    return [(f"the force does not recur period after period: only {len(good)} of {len(scales)} half-period "
+             f"windows (λ = {1e3 * lam:.4g} mm) carry {RECUR_SCALES[0]:g}-{RECUR_SCALES[1]:g}× the fitted "
+             f"amplitude, the largest {big[1]:.2g}× it at x in [{big[0]:.6g}, {big[0] + w:.6g}] m: a local force "
+             "over about one period (a bump, a dent, a cable), not a periodic cogging")]
 
 
 # ============================================================================================ offset, spring
@@ -727,7 +794,8 @@ def _backlash_bounds(p: BacklashParams) -> list[str]:
     return out
 
 
-def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float) -> list[str]:
+def _backlash_resolved(sig: Signals, rows: npt.NDArray[np.bool_], h: Hyp, floor_n: float,
+                       _r: FloatArray) -> list[str]:
     """What shows lost motion, by the motor/load split the model file would write (:func:`backlash_split`).
 
     * Friction on the load (at least half the Coulomb level lost inside the play): the lost friction itself,
@@ -863,7 +931,7 @@ COGGING: EffectSpec[WavelengthShape, Cogging] = EffectSpec(
     lambda ev, p: _periodic_evidence("is the same in both directions (conservative force)",
                                      f"A = {p.amplitude_n:.4g} N", p),
     lambda fitter, cur, h: _search_periodic(COGGING, fitter, cur, h, None), column_rank=60, columns=_cogging_columns,
-    twin="cogging", to_twin=lambda p: p,
+    twin="cogging", to_twin=lambda p: p, resolved=_cogging_recurs,
     from_twin=lambda h, e: COGGING.reshaped(h.adding("cogging"), wavelength_m=e.wavelength_m), hide=_hide_cogging,
     key=lambda p: f"λ = {1e3 * p.wavelength_m:.4g} mm, A = {p.amplitude_n:.3g} N",
     separate_by="move over the same positions in both directions (cogging is the same both ways)")

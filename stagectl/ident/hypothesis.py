@@ -172,7 +172,8 @@ class EffectSpec(Generic[S, P]):
     :func:`stagectl.ident.localise.regimes` key, e.g. ``near_reversal``): the effect may be accepted on its gain
     there while the global gap does not get worse (docs/discovery.md §7); ``bounds(params)`` lists the physical
     bounds the fitted parameters reach or cross (a fit outside is never accepted, and never clipped);
-    ``resolved(sig, rows, h, floor_n)`` lists what the effect's defining evidence lacks on the validation
+    ``resolved(sig, rows, h, floor_n, r)`` (``r`` the residual of ``h`` on ``rows``) lists what the effect's
+    defining evidence lacks on the validation
     samples ``rows`` of ``sig`` (a force below ``floor_n`` [N], the smallest force the acceptance rule credits):
     a fit whose signature the recording does not resolve is not accepted, whatever its gain; ``key``
     formats the key parameter (wavelength, ratio, ...) for the report; ``separate_by`` is the experiment that
@@ -205,7 +206,7 @@ class EffectSpec(Generic[S, P]):
     bounds: Callable[[P], list[str]] | None = None
     key: Callable[[P], str] | None = None
     separate_by: str = ""
-    resolved: Callable[[Signals, npt.NDArray[np.bool_], Hyp, float], list[str]] | None = None
+    resolved: Callable[[Signals, npt.NDArray[np.bool_], Hyp, float, npt.NDArray[np.float64]], list[str]] | None = None
 
     def shape(self, h: Hyp) -> S:
         """This effect's shape in ``h`` (its defaults when ``h`` has none)."""
