@@ -202,6 +202,8 @@ def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], npt.N
     """The constant-velocity segment means (velocities [m/s], forces [N]) the Stribeck curve was fitted to."""
     if cv is None or not cv.segments:
         return None
+    if cv.points is not None:  # the pairs' odd parts (analysis.cv_friction)
+        return cv.points
     return (np.array([s.v_m_s for s in cv.segments], np.float64), np.array([s.f_n for s in cv.segments], np.float64))
 
 
