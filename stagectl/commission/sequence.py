@@ -411,7 +411,12 @@ class Commissioning:
                                f"limited by the {fa.limit}: predicted sliding peak error "
                                f"{fa.predicted_peak_error_m * 1e6:.3g} um, peak force {fa.peak_force_n:.3g} N)")
         exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
-        v_rep = 0.5 * env.v_max_m_s
+        # the move to the centre starts from the stage the probe left stuck: at reposition_speed for this
+        # tuning (no Coulomb feed-forward), not v_max/2. At 8 mm/s a 0.93 kg stage with 1.34 N breakaway
+        # (tests/commission/plant_kinds.py k110: λ = 160 µm) lagged 65 µm within 25 ms of an 83 µm move and
+        # faulted; so did k106 (1.36 kg, 1.7 N)
+        lam0 = min(r.sanity.breakaway_n) / max(tun.pid.kp_n_m, 1e-12)
+        v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
         lead = [to_c, Dwell(0.3)]
         lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
@@ -420,7 +425,8 @@ class Commissioning:
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
                                "f_hi_hz": float(bins[-1] / (n_per * T)), **fa.as_dict(),
-                               "periods_averaged": FRF_PERIODS, "period_samples": n_per}, excitation=exc,
+                               "periods_averaged": FRF_PERIODS, "period_samples": n_per,
+                               "lead_speed_m_s": v_rep}, excitation=exc,
                            exc_start=n0)
         x, u = rec.col("x"), rec.col("u")
         k0 = _first_excited_row(rec)
