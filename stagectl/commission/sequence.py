@@ -413,8 +413,8 @@ class Commissioning:
         exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
         # the move to the centre starts from the stage the probe left stuck: at reposition_speed for this
         # tuning (no Coulomb feed-forward), not v_max/2. At 8 mm/s a 0.93 kg stage with 1.34 N breakaway
-        # (tests/commission/plant_kinds.py k110: λ = 160 µm) lagged 65 µm within 25 ms of an 83 µm move and
-        # faulted; so did k106 (1.36 kg, 1.7 N)
+        # (tests/commission/plant_kinds.py k110: λ = 508 µm, now 0.19 mm/s) lagged 65 µm within 25 ms of an
+        # 83 µm move and faulted
         lam0 = min(r.sanity.breakaway_n) / max(tun.pid.kp_n_m, 1e-12)
         v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
