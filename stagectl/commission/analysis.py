@@ -453,12 +453,10 @@ class CvFriction:
                              for s in self.segments]}
 
 
-def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
-               pairs: list[tuple[CvSegment, CvSegment]] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The passes paired by speed: for each + segment the − segment of the nearest speed (relative difference
     at most ``tol``), each used once. Returns the mean speeds ``(|v₊| + |v₋|)/2`` [m/s], the odd parts
-    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`); the pairs are appended to
-    ``pairs`` when given."""
+    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`)."""
     pos = sorted((s for s in segs if s.v_m_s > 0), key=lambda s: s.v_m_s)
     neg = [s for s in segs if s.v_m_s < 0]
     vk: list[float] = []
@@ -470,8 +468,6 @@ def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
         q = min(neg, key=lambda s: abs(-s.v_m_s / p.v_m_s - 1))
         if abs(-q.v_m_s / p.v_m_s - 1) <= tol:
             neg.remove(q)
-            if pairs is not None:
-                pairs.append((p, q))
             vk.append(0.5 * (p.v_m_s - q.v_m_s))
             fo.append(0.5 * (p.f_n - q.f_n))
             fe.append(0.5 * (p.f_n + q.f_n))
@@ -496,8 +492,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
 
     if len(segs) < 4:
         raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
-    pairs: list[tuple[CvSegment, CvSegment]] = []
-    vk, fo, fe = odd_points(segs, pairs=pairs)
+    vk, fo, fe = odd_points(segs)
     paired = vk.size >= 2
     if paired:
         v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
@@ -516,27 +511,26 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
                           * np.exp(-np.abs(vv / stri["vs_m_s"]) ** stri["delta"]), dtype=np.float64)
 
     if paired:
-        A = np.column_stack([np.ones_like(vk), vk])
-        y = fo - excess(vk)
-        dof = vk.size - 2 - (3 if stri else 0)
-    else:
-        A = np.column_stack([np.sign(v), v, np.ones_like(v)])
-        y = f - excess(v)
-        dof = v.size - 3 - (4 if stri else 0)
-    th, *_ = np.linalg.lstsq(A, y, rcond=None)
-    r = y - A @ th
-    s2 = float(r @ r) / max(dof, 1)
-    inv = np.linalg.pinv(A.T @ A)
-    sd = np.sqrt(np.clip(np.diag(inv * s2), 0, None))
-    if paired:
-        # a curve through 6 pairs leaves almost no residual: the means' own standard errors bound the std
-        sk = np.array([0.5 * math.hypot(p.f_std_n, q.f_std_n) for p, q in pairs])
-        sd = np.maximum(sd, np.sqrt(np.clip(np.diag(inv @ (A.T * sk ** 2) @ A @ inv), 0, None)))
-        off, off_sd = float(np.mean(fe)), float(np.std(fe, ddof=1) / math.sqrt(fe.size))
+        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk]), fo - excess(vk), rcond=None)
+        off = float(np.mean(fe))
+        # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
+        # curve plus the offset (a position force's even part scatters them and counts), over the segments
+        # less the curve's and the regression's parameters (a curve through 6 pairs leaves almost nothing)
+        va = np.array([sg.v_m_s for sg in segs])
+        fa = np.array([sg.f_n for sg in segs])
+        A = np.column_stack([np.sign(va), va, np.ones_like(va)])
+        r = fa - excess(va) - A @ np.array([th[0], th[1], off])
+        s2 = float(r @ r) / max(va.size - 3 - (4 if stri else 0), 1)
+        sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
         if stri is not None:
             stri["offset_n"] = off
-        return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, off_sd, segs,
+        return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
                           int(2 * vk.size), stri, (v, f))
+    A = np.column_stack([np.sign(v), v, np.ones_like(v)])
+    th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
+    r = f - excess(v) - A @ th
+    s2 = float(r @ r) / max(v.size - 3 - (4 if stri else 0), 1)
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
     return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), float(th[2]), float(sd[2]), segs,
                       int(v.size), stri, (v, f))
 
