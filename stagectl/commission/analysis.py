@@ -17,9 +17,10 @@ Parameter standard errors: ``s²·(JᵀJ)⁻¹``. Lines where ``|P_meas/G|`` exc
 reported as unmodelled resonances.
 
 **Friction from constant-velocity passes** (:func:`cv_friction`): the mean force of each steady segment vs its
-speed, per direction; regression ``F = Fc·sgn(v) + Fv·v + F0`` with the Stribeck excess of the
-curve fitted by :func:`stagectl.ident.identify.fit_stribeck_curve` removed first (standard errors from the
-regression).
+speed, per direction. The two directions of a speed are paired, and the fit reads their odd part
+``(F₊ − F₋)/2`` at ``(|v₊| + |v₋|)/2`` only; the even part ``(F₊ + F₋)/2`` is the offset. Regression
+``F_odd = Fc + Fv·|v|`` with the Stribeck excess of the curve fitted by
+:func:`stagectl.ident.identify.fit_stribeck_curve` removed first (standard errors from the regression).
 
 **Margins on the measured FRF** (:func:`measured_margins`): ``L(jω) = P_meas(jω)·K(e^{jωT})`` with ``K`` the
 equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``).
@@ -359,6 +360,9 @@ class CvSegment:
 STUCK_WINDOW = 5
 STUCK_SPEED_FRACTION = 0.25
 STUCK_PASS_FRACTION = 0.1
+#: the + and − passes of one designed speed are paired when their measured speeds differ by at most this
+#: fraction (:func:`odd_points`)
+CV_PAIR_TOLERANCE = 0.2
 
 
 def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
@@ -437,6 +441,8 @@ class CvFriction:
     segments: list[CvSegment]
     used: int
     stribeck: dict[str, float] | None = None
+    #: the (velocity [m/s], force [N]) points the curve was fitted to: the pairs' odd parts mirrored
+    points: tuple[FloatArray, FloatArray] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
@@ -447,31 +453,86 @@ class CvFriction:
                              for s in self.segments]}
 
 
+def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The passes paired by speed: for each + segment the − segment of the nearest speed (relative difference
+    at most ``tol``), each used once. Returns the mean speeds ``(|v₊| + |v₋|)/2`` [m/s], the odd parts
+    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`)."""
+    pos = sorted((s for s in segs if s.v_m_s > 0), key=lambda s: s.v_m_s)
+    neg = [s for s in segs if s.v_m_s < 0]
+    vk: list[float] = []
+    fo: list[float] = []
+    fe: list[float] = []
+    for p in pos:
+        if not neg:
+            break
+        q = min(neg, key=lambda s: abs(-s.v_m_s / p.v_m_s - 1))
+        if abs(-q.v_m_s / p.v_m_s - 1) <= tol:
+            neg.remove(q)
+            vk.append(0.5 * (p.v_m_s - q.v_m_s))
+            fo.append(0.5 * (p.f_n - q.f_n))
+            fe.append(0.5 * (p.f_n + q.f_n))
+    return np.array(vk), np.array(fo), np.array(fe)
+
+
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
-    """Friction from the segment means (module docstring): the Stribeck curve
-    (:func:`stagectl.ident.identify.fit_stribeck_curve`) where the data allow it, then, with its Stribeck excess
-    removed, the linear regression ``F = Fc·sgn(v) + Fv·v + F0`` whose standard errors are reported. Every
-    segment weighs the same (with the passes only, each speed gives one per direction)."""
+    """Friction from the segment means (module docstring). The + and − passes of a speed are paired
+    (:func:`odd_points`) and the fit reads their odd part only: a position force over a pass's range
+    (cogging, offset, spring) enters both means alike, so the odd part cancels it. Each pair has the
+    designed speed, but the two measured means differ by up to a few % (generated stage k102 of
+    ``tests/commission/plant_kinds.py``: 0.1591 vs 0.1599 mm/s, 15.94 vs 15.54 mm/s), and a curve fitted to
+    the segments themselves could read a cogging's even part as odd: a 0.19 N, 0.68 mm cogging over the
+    0.32 mm slowest passes put 0.16 N into their even part, and the curve took it with Fs = 6·10²⁷⁸ N at vs =
+    25 µm/s (steep enough to tell 0.1591 from 0.1599 mm/s); the viscous came out −1.9 N s/m for a true 5.6
+    and the commissioned stage faulted under its own feed-forward. The Stribeck curve
+    (:func:`stagectl.ident.identify.fit_stribeck_curve`) is fitted where the data allow it to the odd points
+    mirrored (``±v``, ``±F_odd``), then, with its excess removed, ``F_odd = Fc + Fv·|v|``; the offset is the
+    mean even part. Fewer than two pairs (segments not from designed passes): every segment, with
+    ``F = Fc·sgn(v) + Fv·v + F0``."""
     from stagectl.ident.identify import fit_stribeck_curve
 
     if len(segs) < 4:
         raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
-    v = np.array([s.v_m_s for s in segs])
-    f = np.array([s.f_n for s in segs])
-    excess = np.zeros_like(v)
+    vk, fo, fe = odd_points(segs)
+    paired = vk.size >= 2
+    if paired:
+        v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
+    else:
+        v, f = np.array([s.v_m_s for s in segs]), np.array([s.f_n for s in segs])
     stri: dict[str, float] | None = None
     try:
         stri = fit_stribeck_curve(v, f)
-        excess = np.sign(v) * (stri["fs_n"] - stri["fc_n"]) * np.exp(-np.abs(v / stri["vs_m_s"]) ** stri["delta"])
     except (StageError, ValueError):
         stri = None
+
+    def excess(vv: FloatArray) -> FloatArray:
+        if stri is None:
+            return np.zeros_like(vv)
+        return np.asarray(np.sign(vv) * (stri["fs_n"] - stri["fc_n"])
+                          * np.exp(-np.abs(vv / stri["vs_m_s"]) ** stri["delta"]), dtype=np.float64)
+
+    if paired:
+        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk]), fo - excess(vk), rcond=None)
+        off = float(np.mean(fe))
+        # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
+        # curve plus the offset (a position force's even part scatters them and counts), over the segments
+        # less the curve's and the regression's parameters (a curve through 6 pairs leaves almost nothing)
+        va = np.array([sg.v_m_s for sg in segs])
+        fa = np.array([sg.f_n for sg in segs])
+        A = np.column_stack([np.sign(va), va, np.ones_like(va)])
+        r = fa - excess(va) - A @ np.array([th[0], th[1], off])
+        s2 = float(r @ r) / max(va.size - 3 - (4 if stri else 0), 1)
+        sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
+        if stri is not None:
+            stri["offset_n"] = off
+        return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
+                          int(2 * vk.size), stri, (v, f))
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
-    th, *_ = np.linalg.lstsq(A, f - excess, rcond=None)
-    r = f - excess - A @ th
+    th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
+    r = f - excess(v) - A @ th
     s2 = float(r @ r) / max(v.size - 3 - (4 if stri else 0), 1)
     sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
     return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), float(th[2]), float(sd[2]), segs,
-                      int(v.size), stri)
+                      int(v.size), stri, (v, f))
 
 
 # ================================================================================================ margins

@@ -202,6 +202,8 @@ def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], npt.N
     """The constant-velocity segment means (velocities [m/s], forces [N]) the Stribeck curve was fitted to."""
     if cv is None or not cv.segments:
         return None
+    if cv.points is not None:  # the pairs' odd parts (analysis.cv_friction)
+        return cv.points
     return (np.array([s.v_m_s for s in cv.segments], np.float64), np.array([s.f_n for s in cv.segments], np.float64))
 
 
@@ -409,7 +411,15 @@ class Commissioning:
                                f"limited by the {fa.limit}: predicted sliding peak error "
                                f"{fa.predicted_peak_error_m * 1e6:.3g} um, peak force {fa.peak_force_n:.3g} N)")
         exc = np.tile(multisine(n_per, bins, amp), FRF_PERIODS + 1)
+        # the move to the centre starts from the stage the probe left stuck: at reposition_speed for this
+        # tuning (no Coulomb feed-forward), not v_max/2, when it is longer than e_max/2 (a shorter one cannot
+        # lag by more than its own length while the stage sticks). At 8 mm/s a 0.93 kg stage with 1.34 N
+        # breakaway (tests/commission/plant_kinds.py k110: λ = 508 µm, now 0.19 mm/s) lagged 65 µm within
+        # 25 ms of an 83 µm move and faulted
+        lam0 = min(r.sanity.breakaway_n) / max(tun.pid.kp_n_m, 1e-12)
         v_rep = 0.5 * env.v_max_m_s
+        if abs(env.x_c_m - stage_x(stage)) > 0.5 * env.following_error_m:
+            v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
         lead = [to_c, Dwell(0.3)]
         lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
@@ -418,7 +428,8 @@ class Commissioning:
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
                                "f_hi_hz": float(bins[-1] / (n_per * T)), **fa.as_dict(),
-                               "periods_averaged": FRF_PERIODS, "period_samples": n_per}, excitation=exc,
+                               "periods_averaged": FRF_PERIODS, "period_samples": n_per,
+                               "lead_speed_m_s": v_rep}, excitation=exc,
                            exc_start=n0)
         x, u = rec.col("x"), rec.col("u")
         k0 = _first_excited_row(rec)
