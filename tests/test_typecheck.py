@@ -9,6 +9,8 @@ checked.
 
 from __future__ import annotations
 
+import hashlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -30,10 +32,23 @@ def link_tree(dest: Path) -> Path:
     return dest
 
 
+def mypy_cache_dir() -> Path:
+    """mypy's incremental cache for this checkout, kept between runs (outside the tree).
+
+    An empty cache costs ~13 s of CPU (numpy's, scipy's and the package's stubs and modules); a kept one
+    ~0.5 s when nothing changed. mypy re-checks every module whose source (by hash, the tree of links moves
+    with ``tmp_path``) or whose dependencies' interfaces changed, and replays the errors it cached, so the
+    verdict is the one of a run on an empty cache. One directory per checkout: two trees never overwrite
+    each other's entries.
+    """
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stagectl" / "mypy"
+    return base / hashlib.sha256(str(ROOT).encode()).hexdigest()[:16]
+
+
 def test_mypy_strict_over_the_whole_package(tmp_path):
     tree = link_tree(tmp_path / "tree")
     cmd = [sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"),
-           "--cache-dir", str(tmp_path / "cache"), "--no-error-summary", "-p", "stagectl"]
+           "--cache-dir", str(mypy_cache_dir()), "--no-error-summary", "-p", "stagectl"]
     r = subprocess.run(cmd, cwd=tree, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, f"mypy --strict found problems:\n{r.stdout}{r.stderr}"
 

@@ -94,6 +94,9 @@ def test_canopen_basenode402_master_drives_the_sim(make_world):
     net.notifier = __import__("can").Notifier(bus, net.listeners, 0.05)
     try:
         node = canopen.BaseNode402(1, str(DEFAULT_EDS))
+        # canopen's state and mode switches give up after 0.8 / 0.5 s of wall clock: on a loaded machine the
+        # drive's thread answered later than that; generous guards, each loop still ends when the state is reached
+        node.TIMEOUT_SWITCH_STATE_FINAL = node.TIMEOUT_SWITCH_OP_MODE = 30.0
         net.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
         node.sdo[0x1017].raw = 20

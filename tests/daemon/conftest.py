@@ -104,7 +104,10 @@ def build_rig(app_cfg):
 
     clock = MonotonicClock()
     period = 1e-3
-    io = PlantIO(MassPlant(), period, delay_cycles=1, clock=clock)
+    # the plant advances exactly one period per SYNC (no clock): stepped by the wall clock, a loop held off the
+    # CPU on a loaded machine saw the plant jump by the time it lost, with its command held, and its PD went
+    # unstable (a velocity_limit fault at load 13); the loop itself still runs on the wall clock
+    io = PlantIO(MassPlant(), period, delay_cycles=1)
     io.open()
     io.configure()
     safety = Safety(SafetyConfig(min_position_m=-0.01, max_position_m=0.01, following_error_m=1e-3,

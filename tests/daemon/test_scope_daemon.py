@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from stagectl.commands.scope import ScopeData, make_app, socket_poller
 from stagectl.daemon.control import ControlClient
@@ -38,6 +39,11 @@ def test_loop_tap_hands_over_every_row_once_and_drops_what_was_overwritten():
 @pytest.fixture
 def daemon_socket(tmp_path, notify_socket):
     cfg = _config(tmp_path)
+    # the stream is fed from the telemetry writer's drains, every flush_interval_s: the default 0.2 s here, not
+    # the end-to-end tests' 10 s (the move waited up to 10 s of wall clock for the writer, the daemon cycling)
+    doc = yaml.safe_load(cfg.read_text())
+    doc["daemon"]["telemetry"]["flush_interval_s"] = 0.2
+    cfg.write_text(yaml.safe_dump(doc))
     run = tmp_path / "run"
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_socket.path), "PYTHONUNBUFFERED": "1"}
     env.pop("WATCHDOG_PID", None)
