@@ -177,8 +177,12 @@ def steps_scenario(hold_s: float = 2.0) -> Scenario:
 
 
 def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel | None = None, hold_s: float = 2.0,
-                tol_m: float = 10e-9, window_s: float = 0.03, delay_samples: int | None = None) -> dict[str, Any]:
+                tol_m: float = 10e-9, window_s: float = 0.03, delay_samples: int | None = None,
+                keep_io: bool = False) -> dict[str, Any]:
     """Move-and-settle check in simulated time on ``cfg``'s simulated plant (``plant_io``, the loop's timing).
+
+    ``keep_io``: run through ``cfg.io`` as given instead (e.g. ``embedded_canopen``: the real CiA 402 driver and the
+    virtual drive with its force units, as a HIL config's ``sim:`` section builds them, in lock-step).
 
     Runs :func:`steps_scenario` (``hold_s`` after each step) with ``ctl_cfg`` (and ``model`` for the friction
     feed-forward, None: the configured one) and ``delay_samples`` of I/O delay (None: ``io.delay_cycles``).
@@ -195,8 +199,9 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
 
     if cfg.sim is None:
         raise ConfigError("steps check: the config needs a sim: section (the plant to check on)")
-    io = dataclasses.replace(cfg.io, kind=IoKind.PLANT_IO, sensor=SensorSource.DRIVE,
-                             delay_cycles=cfg.io.delay_cycles if delay_samples is None else delay_samples)
+    io = cfg.io if keep_io else dataclasses.replace(
+        cfg.io, kind=IoKind.PLANT_IO, sensor=SensorSource.DRIVE,
+        delay_cycles=cfg.io.delay_cycles if delay_samples is None else delay_samples)
     cfg = dataclasses.replace(cfg, io=io, safety=dataclasses.replace(
         cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)))
     sc = steps_scenario(hold_s)

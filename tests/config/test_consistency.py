@@ -77,8 +77,8 @@ def test_a_missing_model_file_still_has_no_follow_up_noise():
 
 # ------------------------------------------------------------------------------ drivers vs simulated devices
 @pytest.mark.parametrize("name,path,value,expect", [
-    ("hil-canopen.yaml", ("sim", "drive", "force_per_unit_n"), 0.001,
-     "io.drive.force_per_unit_n: 0.01 N differs from sim.drive.force_per_unit_n 0.001 N"),
+    ("hil-canopen.yaml", ("sim", "drive", "force_per_unit_n"), 0.01,
+     "io.drive.force_per_unit_n: 0.001 N differs from sim.drive.force_per_unit_n 0.01 N"),
     ("hil-canopen.yaml", ("sim", "drive", "node_id"), 3, "io.drive.node_id: 1 differs from sim.drive.node_id 3"),
     ("hil-canopen.yaml", ("sim", "drive", "resolution_m"), 1e-8,
      "io.drive.resolution_m: 1e-09 m differs from sim.drive.resolution_m 1e-08 m"),
