@@ -210,6 +210,47 @@ def test_an_interrupt_inside_wait_does_not_make_the_running_loop_look_ended(make
     assert res is not None and res.ended_by == "stop" and not dut.alive
 
 
+def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
+    """`run` after Ctrl-C: host.finish() stops the loop and waits; a second interrupt there (Ctrl-C again, or a
+    supervisor's SIGTERM) raised out of finish while the loop thread still ran its last cycle, and the
+    command's `with build_stage(...)` then disabled and closed the devices under it. finish() keeps waiting
+    (bounded by its time-out) and raises the interrupt once the loop has ended."""
+    import signal
+
+    loop, *_ = make()
+    dut = LoopHost(loop)
+    got = threading.Event()
+    main = threading.main_thread().ident
+    assert main == threading.get_ident()
+
+    class InterruptOnStop:
+        sent = False
+
+        def append(self, row):  # loop thread: the cycle after finish() asked the loop to stop
+            if dut._stop.is_set() and not self.sent:
+                self.sent = True
+                signal.pthread_kill(main, signal.SIGINT)
+                got.wait(60)  # the main thread took the interrupt inside finish(); this cycle is not over
+
+    def interrupt(signum, frame):
+        got.set()
+        raise KeyboardInterrupt
+
+    loop.add_sink(InterruptOnStop())
+    before = signal.signal(signal.SIGINT, interrupt)
+    try:
+        dut.start()  # until stopped
+        with pytest.raises(KeyboardInterrupt):
+            try:
+                dut.finish(timeout_s=60)
+            finally:
+                alive_when_raised = dut.alive
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert got.is_set()
+    assert not alive_when_raised  # the devices may be closed now: the loop no longer uses them
+
+
 # ------------------------------------------------------------------------------------------------ CSV writer
 def test_one_recording_csv_writer_for_the_recorder_and_the_daemon(tmp_path):
     from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
