@@ -147,6 +147,26 @@ def test_a_ctrl_c_swallowed_by_a_c_callback_reaches_the_command_silently(capsys)
     assert "Traceback" not in err and "Exception ignored" not in err, err
 
 
+def test_a_sigterm_after_a_ctrl_c_does_not_cut_the_clean_stop_short() -> None:
+    """Ctrl-C, then SIGTERM (a supervisor, `timeout`) while the command is stopping: the SIGTERM raised a second
+    KeyboardInterrupt into that stop (run waiting for its loop, writing its recording); only a second SIGTERM
+    was ignored. Any interrupt being handled now makes a SIGTERM wait for the stop it started."""
+    from stagectl import cli
+
+    before_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh `stagectl` process
+    before_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    restore = cli._catch_sigint()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGTERM)  # the clean stop goes on
+        assert cli._interrupted and not cli._terminated  # still reported as the Ctrl-C it was (exit 130)
+    finally:
+        restore()
+        signal.signal(signal.SIGINT, before_int)
+        signal.signal(signal.SIGTERM, before_term)
+
+
 def test_sigterm_in_run_stops_the_loop_and_keeps_the_recording(tmp_path: Path) -> None:
     """SIGTERM (kill, timeout, a supervisor) to `stagectl run`: the same clean stop as Ctrl-C (loop ended, zero
     force, drive disabled) and every recorded row written. Before, SIGTERM's default action killed the process
