@@ -226,9 +226,10 @@ def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
     class InterruptOnStop:
         sent = False
 
-        def append(self, row):  # loop thread: the cycle after finish() asked the loop to stop
-            if dut._stop.is_set() and not self.sent:
+        def append(self, row):  # loop thread, first cycle: it lasts until finish() asked the loop to stop
+            if not self.sent:
                 self.sent = True
+                dut._stop.wait(60)
                 signal.pthread_kill(main, signal.SIGINT)
                 got.wait(60)  # the main thread took the interrupt inside finish(); this cycle is not over
 
@@ -249,6 +250,30 @@ def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
         signal.signal(signal.SIGINT, before)
     assert got.is_set()
     assert not alive_when_raised  # the devices may be closed now: the loop no longer uses them
+
+
+def test_an_interrupt_inside_the_stage_teardown_still_closes_everything(make):
+    """A command's `with build_stage(...)` ends by disabling the drive and closing every device and bus; a
+    SIGTERM (now a KeyboardInterrupt in the main thread) landing inside one of those steps skipped all the
+    others (only Exception was caught): the remaining devices and the bus left open. Each step is done, and
+    the interrupt raised once they all are."""
+    from stagectl.app import Teardown
+    from stagectl.drivers.base import DeviceState
+
+    _, drive, *_ = make()
+    _, encoder, *_ = make()
+    drive.enable()
+    closed = []
+
+    def interrupted_disable():  # the signal arrives inside the drive's disable
+        raise KeyboardInterrupt
+
+    drive.disable = interrupted_disable
+    td = Teardown(devices=[encoder, drive], closers=[lambda: closed.append("bus")], actuator=drive)
+    with pytest.raises(KeyboardInterrupt):
+        td.close()
+    assert drive.state is DeviceState.CLOSED and encoder.state is DeviceState.CLOSED
+    assert closed == ["bus"]
 
 
 # ------------------------------------------------------------------------------------------------ CSV writer
