@@ -80,25 +80,29 @@ class Teardown:
         return dev
 
     def close(self) -> None:
-        """Disable the drive and close every device and bus (idempotent; never raises)."""
+        """Disable the drive and close every device and bus (idempotent; never raises, but an interrupt).
+
+        A KeyboardInterrupt (Ctrl-C, or the CLI's SIGTERM, in the main thread) landing in one step does not skip
+        the others (a drive left enabled, a bus left open): it is raised once every step has been done."""
         if self.closed:
             return
         self.closed = True
+        interrupt: KeyboardInterrupt | None = None
+        steps: list[tuple[Callable[[], object], str]] = []
         if self.actuator is not None:
+            steps.append((self.actuator.disable, "disabling the drive failed"))
+        steps += [(d.close, f"closing {d.name} failed") for d in reversed(self.devices)]
+        steps += [(fn, "closing failed") for fn in reversed(self.closers)]
+        for step, failed in steps:
             try:
-                self.actuator.disable()
+                step()
+            except KeyboardInterrupt as exc:
+                interrupt = exc
+                log.warning("%s: interrupted", failed.replace(" failed", ""))
             except Exception:  # noqa: BLE001
-                log.exception("disabling the drive failed")
-        for d in reversed(self.devices):
-            try:
-                d.close()
-            except Exception:  # noqa: BLE001
-                log.exception("closing %s failed", d.name)
-        for fn in reversed(self.closers):
-            try:
-                fn()
-            except Exception:  # noqa: BLE001
-                log.exception("closing failed")
+                log.exception(failed)
+        if interrupt is not None:
+            raise interrupt
 
 
 @dataclass

@@ -149,12 +149,13 @@ def _on_sigterm(signum: int, frame: object) -> None:
     """SIGTERM ends a foreground command the way Ctrl-C does (run stops its loop: zero force, drive disabled,
     and writes what it recorded; simulate keeps what it simulated; identify, discover and bench leave no
     output), instead of the default action, which killed the process at once: the recording lost and a
-    drive left enabled until its own heartbeat consumer time-out. A second SIGTERM while the first is being
-    handled is ignored, so it cannot cut that clean stop short. The daemon and sim-plant install their own."""
+    drive left enabled until its own heartbeat consumer time-out. A SIGTERM while an interrupt (this one or a
+    Ctrl-C) is being handled is ignored, so it cannot cut that clean stop short (a Ctrl-C stays the way to cut
+    it). The daemon and sim-plant install their own."""
     from stagectl.errors import set_interrupt_name
 
     global _interrupted, _terminated
-    if _terminated:
+    if _terminated or _interrupted:
         return
     _interrupted = _terminated = True
     set_interrupt_name("SIGTERM")

@@ -97,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"stagectl run: {cfg.path.name if cfg.path else '-'} io={cfg.io.kind.value} "
                   f"period={cfg.loop.period_s * 1e3:g} ms scenario={scenario} "
                   f"duration={args.duration or 'until Ctrl-C'}", file=sys.stderr)
-        host.start(duration_s=args.duration)
-        t_next = time.monotonic() + 1.0
-        try:
+        try:  # from the loop's start on: an interrupt anywhere here ends in finish(), never under a running loop
+            host.start(duration_s=args.duration)
+            t_next = time.monotonic() + 1.0
             while not host.wait(max(0.0, t_next - time.monotonic())):
                 if time.monotonic() >= t_next:
                     t_next += 1.0

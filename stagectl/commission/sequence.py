@@ -270,8 +270,8 @@ class Commissioning:
             else:
                 for attempt in (1, 2):
                     host = LoopHost(loop)
-                    host.start(duration_s=duration_s)
-                    try:
+                    try:  # (host.start inside: an interrupt right after it still goes through finish)
+                        host.start(duration_s=duration_s)
                         while not host.wait(1.0):
                             prog.show(loop.status(timing=False).t_s)
                     except KeyboardInterrupt:

@@ -34,7 +34,8 @@ class SettleConfig:
         "the inertia feed-forward follow it; the reference is unchanged; 0: off; with move_force_n: the shortest "
         "duration)", ge=0.0, le=0.1)
     move_force_n: float | None = param(
-        None, unit="N", desc="settle move: the inertial force m·|c̈| its quintic may need at most; the duration "
+        None, unit="N", desc="settle move: the inertial force m·|c̈| its quintic from rest may need at most (the "
+        "stage's speed at the start is not counted); the duration "
         "is then the longer of move_s and sqrt(10/sqrt(3)·m·|e0|/move_force_n) for the error e0 at the end of "
         "the move, so a small error gets a short continuation, a large one a gentler one (None: always move_s)",
         gt=0.0)

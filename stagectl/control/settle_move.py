@@ -10,7 +10,8 @@ e₀ = x_r − x [m] and ė₀ = −v̂ [m/s] (v̂: the velocity estimate), a qu
 
 takes c(0) = e₀, ċ(0) = ė₀, c̈(0) = 0 to c(T) = ċ(T) = c̈(T) = 0. T = ``settle.move_s``, or with
 ``settle.move_force_n`` = F the longer of that and √(10/√3·m·|e₀|/F), so that the quintic's peak inertial force
-m·|c̈| is at most F (the controller chooses T). For T the controller tracks
+m·|c̈| is at most F for ė₀ = 0 (the controller chooses T; ė₀ is not counted and can raise the peak: 1.2·F at
+ė₀T = 0.3·e₀). For T the controller tracks
 
 * feedback (PID) reference  x_r − c,  v_r − ċ   (starts at the stage's own position and speed: no P or D step,
   so the PID no longer pushes the stage through the break-away and the overshoot that followed),

@@ -185,13 +185,42 @@ def _stage_config_given(path: str | Path, data: Mapping[str, Any]) -> str:
 
 
 def save_model_file(model: StageModel, path: str | Path, header: str = "") -> None:
-    """Write a model file that :func:`load_model_file` reads back to an equal model."""
+    """Write a model file that :func:`load_model_file` reads back to an equal model.
+
+    Whole or not at all: the text goes to a temporary file beside it, which then replaces ``path`` (an
+    interrupt, Ctrl-C or SIGTERM, while writing over the model a config uses left that file empty)."""
+    import os
+    import stat
+    import tempfile
+
     import yaml
 
     text = yaml.safe_dump(model.spec(), sort_keys=False, default_flow_style=None)
     if header:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
-    Path(path).write_text(text, encoding="utf-8")
+    p = Path(path).resolve() if Path(path).is_symlink() else Path(path)  # (through a link, as open() writes)
+    if p.exists() and not p.is_file():  # a device (/dev/full, /dev/stdout) or a pipe: written to, never replaced
+        p.write_text(text, encoding="utf-8")
+        return
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    except PermissionError:  # a writable file in a directory we may not create in: in place, as before
+        if not p.is_file():
+            raise
+        p.write_text(text, encoding="utf-8")
+        return
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.chmod(tmp, stat.S_IMODE(os.stat(p).st_mode) if p.exists() else 0o644)  # (mkstemp: 0600)
+        os.replace(tmp, p)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
 
 
 # the model modules: each registers its classes with base.register on import

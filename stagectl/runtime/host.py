@@ -158,10 +158,24 @@ class LoopHost:
         """Stop the loop, wait up to ``timeout_s``, unregister the sinks; re-raise the loop's error here.
 
         Returns the result, or None if the thread did not end in time (the drive may then still be enabled:
-        the caller must disable it itself).
+        the caller must disable it itself). An interrupt (a second Ctrl-C, or the CLI's SIGTERM) raised while it
+        waits does not cut the wait short: the caller's next step is closing the devices, which must not happen
+        under a loop still running its last cycle; it is raised again once the loop has ended (or the time-out).
         """
-        self.stop()
-        if not self.wait(timeout_s):
+        end = time.monotonic() + timeout_s
+        interrupt: KeyboardInterrupt | None = None
+        while True:
+            try:  # (stop inside: an interrupt right after it is taken here too)
+                self.stop()
+                ended = self.wait(max(0.0, end - time.monotonic()))
+                break
+            except KeyboardInterrupt as exc:  # the loop is ending (stop is set): wait for it, then re-raise
+                interrupt = exc
+        if interrupt is not None:
+            if ended:
+                self.remove_sinks()
+            raise interrupt
+        if not ended:
             log.error("control loop did not stop within %.1f s", timeout_s)
             return None
         self.remove_sinks()

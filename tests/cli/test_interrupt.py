@@ -147,6 +147,64 @@ def test_a_ctrl_c_swallowed_by_a_c_callback_reaches_the_command_silently(capsys)
     assert "Traceback" not in err and "Exception ignored" not in err, err
 
 
+def test_a_sigterm_after_a_ctrl_c_does_not_cut_the_clean_stop_short() -> None:
+    """Ctrl-C, then SIGTERM (a supervisor, `timeout`) while the command is stopping: the SIGTERM raised a second
+    KeyboardInterrupt into that stop (run waiting for its loop, writing its recording); only a second SIGTERM
+    was ignored. Any interrupt being handled now makes a SIGTERM wait for the stop it started."""
+    from stagectl import cli
+
+    before_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh `stagectl` process
+    before_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    restore = cli._catch_sigint()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGTERM)  # the clean stop goes on
+        assert cli._interrupted and not cli._terminated  # still reported as the Ctrl-C it was (exit 130)
+    finally:
+        restore()
+        signal.signal(signal.SIGINT, before_int)
+        signal.signal(signal.SIGTERM, before_term)
+
+
+def test_an_interrupt_right_after_run_started_its_loop_still_stops_it_cleanly(tmp_path: Path, capsys) -> None:
+    """`run` started its loop thread, then entered the `try` that turns Ctrl-C / SIGTERM into the clean stop; an
+    interrupt in between (here raised by a line trace at the first statement after `host.start`, not by timing)
+    left `with build_stage(...)` with the loop thread still running: the devices were disabled and closed under
+    it, nothing was recorded, exit 130. The stop covers everything from the loop's start on."""
+    from stagectl import cli
+    from stagectl.commands import run as run_mod
+
+    src = Path(run_mod.__file__).read_text().splitlines()
+    start = next(i for i, ln in enumerate(src, 1) if "host.start(duration_s=args.duration)" in ln)
+    code = run_mod.run.__code__
+
+    def tracer(frame, event, arg):
+        if frame.f_code is not code:
+            return None
+
+        def local(frame, event, arg):
+            if event == "line" and frame.f_lineno > start:
+                frame.f_trace = None
+                sys.settrace(None)
+                raise KeyboardInterrupt
+            return local
+        return local
+
+    out = tmp_path / "run"
+    sys.settrace(tracer)
+    try:
+        rc = cli.main(["run", "--config", str(REPO / "config" / "sim.yaml"), "--duration", "30", "--out", str(out),
+                       "--no-plots", "-q"])
+    finally:
+        sys.settrace(None)
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    summary = json.loads(captured.out)
+    assert summary["loop"]["ended_by"] == "stop" and summary["fault"] is None
+    assert (out / "telemetry.csv").is_file()
+
+
 def test_sigterm_in_run_stops_the_loop_and_keeps_the_recording(tmp_path: Path) -> None:
     """SIGTERM (kill, timeout, a supervisor) to `stagectl run`: the same clean stop as Ctrl-C (loop ended, zero
     force, drive disabled) and every recorded row written. Before, SIGTERM's default action killed the process

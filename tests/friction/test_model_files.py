@@ -55,3 +55,38 @@ def test_model_file_runs_in_the_plant_and_slides_both_ways(path):
     assert np.all(np.isfinite(r["x"])) and np.ptp(r["x"]) > 1e-3
     sliding = np.abs(r["v"]) > 2e-3
     assert np.all(np.sign(r["friction"][sliding]) == np.sign(r["v"][sliding]))  # friction opposes motion
+
+
+def test_an_interrupt_while_a_model_file_is_written_keeps_the_old_file(tmp_path):
+    """`stagectl identify --out models/stage.yaml` over the model a config uses: a Ctrl-C or SIGTERM (now a
+    KeyboardInterrupt anywhere in the main thread) landing after the file was opened for writing and before
+    its text was written left it empty, and the config no longer loaded. The new file replaces the old one
+    whole, or not at all. The interrupt is raised at the write itself (a profile hook on the C call), not by
+    timing."""
+    import io
+    import os
+    import sys
+
+    from stagectl.friction import save_model_file
+
+    src = MODELS / "kamenar2016_gms.yaml"
+    model = load_model_file(src)
+    out = tmp_path / "stage.yaml"
+    save_model_file(model, out, header="the good one")
+    before = out.read_text()
+
+    def interrupt_at_write(frame, event, arg):
+        if event == "c_call" and getattr(arg, "__name__", "") == "write" and isinstance(
+                getattr(arg, "__self__", None), io.TextIOWrapper):  # a write into a file (not yaml's StringIO)
+            sys.setprofile(None)
+            raise KeyboardInterrupt
+
+    sys.setprofile(interrupt_at_write)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            save_model_file(model, out, header="the new one")
+    finally:
+        sys.setprofile(None)
+    assert out.read_text() == before
+    assert load_model_file(out).friction.params == model.friction.params
+    assert os.listdir(tmp_path) == ["stage.yaml"]  # no temporary file left behind

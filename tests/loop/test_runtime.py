@@ -210,6 +210,72 @@ def test_an_interrupt_inside_wait_does_not_make_the_running_loop_look_ended(make
     assert res is not None and res.ended_by == "stop" and not dut.alive
 
 
+def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
+    """`run` after Ctrl-C: host.finish() stops the loop and waits; a second interrupt there (Ctrl-C again, or a
+    supervisor's SIGTERM) raised out of finish while the loop thread still ran its last cycle, and the
+    command's `with build_stage(...)` then disabled and closed the devices under it. finish() keeps waiting
+    (bounded by its time-out) and raises the interrupt once the loop has ended."""
+    import signal
+
+    loop, *_ = make()
+    dut = LoopHost(loop)
+    got = threading.Event()
+    main = threading.main_thread().ident
+    assert main == threading.get_ident()
+
+    class InterruptOnStop:
+        sent = False
+
+        def append(self, row):  # loop thread, first cycle: it lasts until finish() asked the loop to stop
+            if not self.sent:
+                self.sent = True
+                dut._stop.wait(60)
+                signal.pthread_kill(main, signal.SIGINT)
+                got.wait(60)  # the main thread took the interrupt inside finish(); this cycle is not over
+
+    def interrupt(signum, frame):
+        got.set()
+        raise KeyboardInterrupt
+
+    loop.add_sink(InterruptOnStop())
+    before = signal.signal(signal.SIGINT, interrupt)
+    try:
+        dut.start()  # until stopped
+        with pytest.raises(KeyboardInterrupt):
+            try:
+                dut.finish(timeout_s=60)
+            finally:
+                alive_when_raised = dut.alive
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert got.is_set()
+    assert not alive_when_raised  # the devices may be closed now: the loop no longer uses them
+
+
+def test_an_interrupt_inside_the_stage_teardown_still_closes_everything(make):
+    """A command's `with build_stage(...)` ends by disabling the drive and closing every device and bus; a
+    SIGTERM (now a KeyboardInterrupt in the main thread) landing inside one of those steps skipped all the
+    others (only Exception was caught): the remaining devices and the bus left open. Each step is done, and
+    the interrupt raised once they all are."""
+    from stagectl.app import Teardown
+    from stagectl.drivers.base import DeviceState
+
+    _, drive, *_ = make()
+    _, encoder, *_ = make()
+    drive.enable()
+    closed = []
+
+    def interrupted_disable():  # the signal arrives inside the drive's disable
+        raise KeyboardInterrupt
+
+    drive.disable = interrupted_disable
+    td = Teardown(devices=[encoder, drive], closers=[lambda: closed.append("bus")], actuator=drive)
+    with pytest.raises(KeyboardInterrupt):
+        td.close()
+    assert drive.state is DeviceState.CLOSED and encoder.state is DeviceState.CLOSED
+    assert closed == ["bus"]
+
+
 # ------------------------------------------------------------------------------------------------ CSV writer
 def test_one_recording_csv_writer_for_the_recorder_and_the_daemon(tmp_path):
     from stagectl.daemon.telemetry import TelemetryRing, TelemetryWriter, WriterSettings
