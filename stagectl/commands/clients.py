@@ -348,8 +348,10 @@ def cmd_status(args: argparse.Namespace) -> int:
             return 0
         try:
             time.sleep(max(0.05, args.watch))
-        except KeyboardInterrupt:
-            return 0
+        except KeyboardInterrupt:  # Ctrl-C ends a watch as asked (exit 0); SIGTERM exits 143 as every command
+            from stagectl.errors import interrupt_name
+
+            return 143 if interrupt_name() == "SIGTERM" else 0
 
 
 def render_status(st: dict[str, Any]) -> str:
