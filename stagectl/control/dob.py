@@ -137,7 +137,8 @@ class QFilterDob:
         st.w_n += delta_n
         st.u_obs_n += delta_n
         self._u_last += delta_n
-        self._delay = deque(u + delta_n for u in self._delay)
+        if self._delay:  # (an empty history stays as it is)
+            self._delay = deque(u + delta_n for u in self._delay)
 
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Advance with the previous step's observer input ``u_obs_prev_n`` [N]; return d̂_k [N].
@@ -145,7 +146,8 @@ class QFilterDob:
         ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
         """
-        check_dt(dt)
+        if not (dt > 0.0 and dt < math.inf):
+            check_dt(dt)
         st = self.state
         if dt != self._dt:
             kv_old = self._kv
@@ -234,7 +236,8 @@ class KalmanDob:
         st.tau_hat_n += delta_n
         st.d_hat_n += delta_n
         st.u_obs_n += delta_n
-        self._delay = deque(u + delta_n for u in self._delay)
+        if self._delay:  # (an empty history stays as it is)
+            self._delay = deque(u + delta_n for u in self._delay)
 
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Predict with the previous observer input, correct with ``x_meas_m``; return d̂ = τ⁺ [N].
