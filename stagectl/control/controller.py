@@ -938,9 +938,8 @@ class StageController:
         continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c, v_r − ċ, a_r − c̈)
         and the continuation's time τ at this step [s] (nan: none; the inertia term adds −m·c̈(τ + τ_a))."""
         sm = self._sm
-        scfg = self.cfg.settle
-        if (sm.observe(ref.v_m_s, ref.a_m_s2) and scfg.move_s > 0.0 and not ilc and self.dob is not None
-                and isinstance(self.ff, FrictionFeedforward)):
+        if sm.observe(ref[1], ref[2]) and self._d_settle and not ilc:  # (_derive: move_s > 0, DOB, model FF)
+            scfg = self.cfg.settle
             e0 = ref.x_m - x_m
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
@@ -986,8 +985,7 @@ class StageController:
         if d != self._ev_dir:  # a new branch: the motion starts or reverses here
             self._ev_dir, self._ev_x0 = d, ref.x_m
         dx, dxr = d * self._dx_fresh, abs(self._dxr_fresh)
-        s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
-        g = 2.0 * math.pi * self.cfg.dob.bandwidth_hz / s  # the observer's rate [1/s]
+        g = self._d_g  # the observer's rate 2π·f_DOB/s [1/s] (s: timing scale; 1 for a Kalman DOB: not slowed)
         if self._gap == 0:
             if (d * self._dxr_fresh > 0.0 and d * u_ff >= ffc.adapt_min_force_n
                     and d * (ref.x_m - self._ev_x0) >= ffc.adapt_presliding_m
@@ -1004,7 +1002,7 @@ class StageController:
                 self._ev_den = lam * self._ev_den + abs(u_ff)
         if d * (ref.x_m - x_m) <= 0.0 or abs(dx) > STUCK_SPEED_FRACTION * dxr:
             return d_hat
-        a = self._dob_decay(dt) if s == self.timing_scale else math.exp(-g * dt)  # the same value
+        a = self._dob_decay(dt) if self._d_g_scaled else math.exp(-g * dt)  # (the same value)
         bound = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff)
         ps = self.pid.state
         if d * ps.i_n < 0.0 and d * (d_hat + ps.i_n) < bound:
@@ -1182,6 +1180,11 @@ class StageController:
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
+        s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
+        self._d_g = 2.0 * math.pi * cfg.dob.bandwidth_hz / s  # the observer's rate [1/s] (_stuck_dob)
+        self._d_g_scaled = s == self.timing_scale  # exp(−g·dt) is _dob_decay(dt)
+        scfg = cfg.settle
+        self._d_settle = scfg.move_s > 0.0 and dob is not None and model_ff  # a settle move may start
         self._a_dt = math.nan
 
     def _dob_decay(self, dt: float) -> float:
