@@ -523,12 +523,13 @@ class _MoveFit:
         self.n = 0
 
     def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float) -> None:
-        self.f_th = a * self.f_th + (1.0 - a) * self.g_th
-        self.f_b = a * self.f_b + (1.0 - a) * self.g_b
-        self.f_c = a * self.f_c + (1.0 - a) * self.g_c
+        b = 1.0 - a
+        f1 = a * self.f_th + b * self.g_th
+        f2 = a * self.f_b + b * self.g_b
+        fc = a * self.f_c + b * self.g_c
+        self.f_th, self.f_b, self.f_c = f1, f2, fc
         self.g_th, self.g_b, self.g_c = g_th, g_b, c
-        y += self.f_c
-        f1, f2 = self.f_th, self.f_b
+        y += fc
         self.a11 += f1 * f1
         self.a12 += f1 * f2
         self.a22 += f2 * f2
@@ -1053,6 +1054,9 @@ class StageController:
         re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
         ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
         standstill; a move re-arms it."""
+        if (not at_rest and self._s_rest == 0.0 and self._rs_armed and self._rs_side == 0 and self._rs_swings == 0
+                and self._rs_releases == 0):
+            return d_hat  # moving with the spring armed and empty, nothing counted: what the code below leaves
         cfg = self.cfg
         e_x = x_m - ref.x_m
         r = cfg.rest_spring_range_m
