@@ -168,7 +168,10 @@ class QFilterDob:
         self._u_last = u_in
         d = st.w_n - kv * v_hat_m_s
         lim = self.cfg.max_estimate_n
-        d = max(-lim, min(lim, d))
+        if not d < lim:  # d = max(−lim, min(lim, d)), nan included (→ lim), without the two calls
+            d = lim
+        if not d > -lim:
+            d = -lim
         st.v_hat_m_s = v_hat_m_s
         st.u_obs_n = u_obs_prev_n
         st.x_hat_m = x_meas_m

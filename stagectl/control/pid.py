@@ -226,7 +226,10 @@ class Pid:
                 i_n = max(0.0, i_n - back) if i_n > 0.0 else min(0.0, i_n - back)
         # I alone never needs more than the force clamp gives plus what the other terms take away (a term that
         # opposes the needed force: the clamp alone left a steady error, tests/control/test_integrator_windup.py)
-        ib = min(c.integrator_limit_n, lim + abs(u_other_n))
+        ib = lim + abs(u_other_n)
+        il = c.integrator_limit_n
+        if not ib < il:  # ib = min(il, ib) (the value min() returns, nan included)
+            ib = il
         if i_n > ib:
             i_n = ib
         elif i_n < -ib:
