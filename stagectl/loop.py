@@ -793,10 +793,10 @@ class ControlLoop:
                         tvals = term_row(terms)
                     except KeyError:
                         tvals = tuple([terms.get(n, 0.0) for n in term_names])
-                row = (t, x, u, ref.x_m, ref.v_m_s, ref.a_m_s2, ref.x_m - x, safety.v_est_m_s) + tvals + lrow + (
-                    1.0 - fresh_row, float(skipped))
+                xr, vr, ar = ref
+                row = (t, x, u, xr, vr, ar, xr - x, safety.v_est_m_s, *tvals, *lrow, 1.0 - fresh_row, float(skipped))
                 sinks.emit(row)
-                self._snap = (t, x, ref.x_m, u, k)
+                self._snap = (t, x, xr, u, k)
                 if on_cycle is not None:
                     on_cycle()
             except Exception as exc:  # unexpected: safe stop, record, keep supervising

@@ -523,12 +523,13 @@ class _MoveFit:
         self.n = 0
 
     def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float) -> None:
-        self.f_th = a * self.f_th + (1.0 - a) * self.g_th
-        self.f_b = a * self.f_b + (1.0 - a) * self.g_b
-        self.f_c = a * self.f_c + (1.0 - a) * self.g_c
+        b = 1.0 - a
+        f1 = a * self.f_th + b * self.g_th
+        f2 = a * self.f_b + b * self.g_b
+        fc = a * self.f_c + b * self.g_c
+        self.f_th, self.f_b, self.f_c = f1, f2, fc
         self.g_th, self.g_b, self.g_c = g_th, g_b, c
-        y += self.f_c
-        f1, f2 = self.f_th, self.f_b
+        y += fc
         self.a11 += f1 * f1
         self.a12 += f1 * f2
         self.a22 += f2 * f2
@@ -799,6 +800,7 @@ class StageController:
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
+        self._d_cfg = None  # _derive() again at the next step
 
     def set_timing_scale(self, scale: float) -> None:
         """Slow the feedback down for a loop that runs slower than its period (real-time safe enough for a
@@ -814,6 +816,7 @@ class StageController:
         if s == self.timing_scale:
             return
         self.timing_scale = s
+        self._d_cfg = None  # _derive() again at the next step (the observer's decay)
         cfg = self.cfg
         self.pid.retune(_scaled_pid(cfg.pid, s))
         if isinstance(self.dob, QFilterDob):
@@ -906,7 +909,7 @@ class StageController:
             k_t = ml.k_t
             g_b = th * (fst.x_fed_m - x_b) * k_t
             y = d_hat + (th - ml.th0) * f_raw - ml.d0  # the estimate against the model at the start of the move
-            a = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
+            a = self._dob_decay(dt)
             # the stage's own friction spring over the tracking error e is in the estimate (F(x) = F(x_r) − k·e):
             # added back, through the observer's filter, so that y is the model's error at the reference
             ml.accumulate(a, g_th, g_b, y, th * k_t * e_m)
@@ -936,9 +939,8 @@ class StageController:
         continuation c from e₀ = x_r − x, ė₀ = −v̂. Returns the feedback's reference (x_r − c, v_r − ċ, a_r − c̈)
         and the continuation's time τ at this step [s] (nan: none; the inertia term adds −m·c̈(τ + τ_a))."""
         sm = self._sm
-        scfg = self.cfg.settle
-        if (sm.observe(ref.v_m_s, ref.a_m_s2) and scfg.move_s > 0.0 and not ilc and self.dob is not None
-                and isinstance(self.ff, FrictionFeedforward)):
+        if sm.observe(ref[1], ref[2]) and self._d_settle and not ilc:  # (_derive: move_s > 0, DOB, model FF)
+            scfg = self.cfg.settle
             e0 = ref.x_m - x_m
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
@@ -984,8 +986,7 @@ class StageController:
         if d != self._ev_dir:  # a new branch: the motion starts or reverses here
             self._ev_dir, self._ev_x0 = d, ref.x_m
         dx, dxr = d * self._dx_fresh, abs(self._dxr_fresh)
-        s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
-        g = 2.0 * math.pi * self.cfg.dob.bandwidth_hz / s  # the observer's rate [1/s]
+        g = self._d_g  # the observer's rate 2π·f_DOB/s [1/s] (s: timing scale; 1 for a Kalman DOB: not slowed)
         if self._gap == 0:
             if (d * self._dxr_fresh > 0.0 and d * u_ff >= ffc.adapt_min_force_n
                     and d * (ref.x_m - self._ev_x0) >= ffc.adapt_presliding_m
@@ -1002,7 +1003,7 @@ class StageController:
                 self._ev_den = lam * self._ev_den + abs(u_ff)
         if d * (ref.x_m - x_m) <= 0.0 or abs(dx) > STUCK_SPEED_FRACTION * dxr:
             return d_hat
-        a = math.exp(-g * dt)
+        a = self._dob_decay(dt) if self._d_g_scaled else math.exp(-g * dt)  # (the same value)
         bound = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff)
         ps = self.pid.state
         if d * ps.i_n < 0.0 and d * (d_hat + ps.i_n) < bound:
@@ -1053,6 +1054,9 @@ class StageController:
         re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
         ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
         standstill; a move re-arms it."""
+        if (not at_rest and self._s_rest == 0.0 and self._rs_armed and self._rs_side == 0 and self._rs_swings == 0
+                and self._rs_releases == 0):
+            return d_hat  # moving with the spring armed and empty, nothing counted: what the code below leaves
         cfg = self.cfg
         e_x = x_m - ref.x_m
         r = cfg.rest_spring_range_m
@@ -1093,7 +1097,7 @@ class StageController:
             dob.shift(s)
             return d_hat
         target = kv * max(-r, min(r, e_x))
-        a = math.exp(-2.0 * math.pi * cfg.dob.bandwidth_hz / self.timing_scale * dt)
+        a = self._dob_decay(dt)
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 
@@ -1112,17 +1116,19 @@ class StageController:
         the learner (ILC) takes part in this motion — armed and recording (its first repetition applies
         nothing) or applying; with it, or with u_learn_n ≠ 0, neither the adaptation nor the learning from
         moves changes θ, β (one learner at a time)."""
-        check_dt(dt)
-        if not math.isfinite(x_meas_m):
+        if not (dt > 0.0 and dt < math.inf):
+            check_dt(dt)
+        if x_meas_m - x_meas_m != 0.0:  # nan unless finite
             raise ValueError(f"x_meas_m must be finite (got {x_meas_m})")
         # the stage's and the reference's travel between fresh samples (predicted steps move with x_r): their
         # ratio is the stuck test's, free of dt (after a gap longer than the loop's dt cap, Δx/dt overstates
         # the speed)
         x_f, xr_f = self._x_fresh, self._xr_fresh
-        self._dx_fresh = 0.0 if math.isnan(x_f) else x_meas_m - x_f
-        self._dxr_fresh = ref.v_m_s * dt if math.isnan(xr_f) else ref.x_m - xr_f
+        x_r = ref[0]
+        self._dx_fresh = 0.0 if x_f != x_f else x_meas_m - x_f
+        self._dxr_fresh = ref[1] * dt if xr_f != xr_f else x_r - xr_f
         self._x_fresh = x_meas_m
-        self._xr_fresh = ref.x_m
+        self._xr_fresh = x_r
         if self._pred_s:
             rest = dt - self._pred_s
             self._pred_s = 0.0
@@ -1131,7 +1137,7 @@ class StageController:
         self._gap = 0
         self._learn_active = learn_active  # the predicted steps of hold() keep the last fresh step's
         cmd = self._step(dt, x_meas_m, ref, u_learn_n, learn_active or u_learn_n != 0.0)
-        self._e_last = ref.x_m - x_meas_m
+        self._e_last = x_r - x_meas_m
         return cmd
 
     def stale_force_limit(self) -> float:
@@ -1156,97 +1162,142 @@ class StageController:
         st.u_obs_prev_n = u - st.u_ff_n
         return Command(u, terms, ("stale", "stale_force"))
 
+    _d_cfg: ControllerConfig | None = None  # the settings, observer and feed-forward _derive() was run for
+    _d_dob: object = None
+    _d_ff: object = None
+    _a_dt = math.nan  # dt of the cached observer decay _a_val (_dob_decay)
+    _a_val = 0.0
+
+    def _derive(self) -> None:
+        """What the step needs from the settings, looked up once per change of them (of ``cfg``, the observer,
+        the feed-forward or the timing scale) instead of every cycle: which features act, the inertia mass."""
+        cfg = self.cfg
+        ffc = cfg.feedforward
+        dob, ff = self.dob, self.ff
+        self._d_cfg, self._d_dob, self._d_ff = cfg, dob, ff
+        model_ff = isinstance(ff, FrictionFeedforward)
+        self._d_vcut = cfg.velocity_cutoff_hz
+        self._d_m_ff = (ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg) if ffc.inertia else 0.0
+        self._d_stuck = dob is not None and ff is not None and cfg.stuck_dob_fraction != math.inf
+        self._d_learn = ffc.learn_moves_fraction > 0.0 and dob is not None and model_ff
+        self._d_adapt = ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None
+        self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
+        self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
+        self._d_hold = dob is not None and cfg.hold_integrator_at_rest
+        s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
+        self._d_g = 2.0 * math.pi * cfg.dob.bandwidth_hz / s  # the observer's rate [1/s] (_stuck_dob)
+        self._d_g_scaled = s == self.timing_scale  # exp(−g·dt) is _dob_decay(dt)
+        scfg = cfg.settle
+        self._d_settle = scfg.move_s > 0.0 and dob is not None and model_ff  # a settle move may start
+        self._a_dt = math.nan
+
+    def _dob_decay(self, dt: float) -> float:
+        """a = exp(−2π·f_DOB/s·dt): the observer's decay per step at its current bandwidth (s: the timing scale),
+        computed once per dt (cached until the settings change: :meth:`_derive`)."""
+        if dt != self._a_dt:
+            self._a_dt = dt
+            self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
+        return self._a_val
+
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
-        if not (math.isfinite(ref.x_m) and math.isfinite(ref.v_m_s) and math.isfinite(ref.a_m_s2)):
+        x_r, v_r, a_r = ref
+        if (x_r - x_r) + (v_r - v_r) + (a_r - a_r) != 0.0:  # nan unless all three are finite
             raise ValueError(f"reference must be finite (got {ref})")
         pend = self._pending
         if pend is not None:
             self._pending = None
             self._apply(pend)
         cfg = self.cfg
+        ff = self.ff
+        dob = self.dob
+        if cfg is not self._d_cfg or dob is not self._d_dob or ff is not self._d_ff:
+            self._derive()
         st = self.state
         # velocity estimate
-        v_raw = 0.0 if math.isnan(st.x_prev_m) else (x_meas_m - st.x_prev_m) / dt
-        if cfg.velocity_cutoff_hz is None:
+        x_prev = st.x_prev_m
+        v_raw = 0.0 if x_prev != x_prev else (x_meas_m - x_prev) / dt
+        vcut = self._d_vcut
+        if vcut is None:
             v_hat = v_raw
         else:
             if dt != self._vdt:
                 self._vdt = dt
-                self._vbeta = math.exp(-2.0 * math.pi * cfg.velocity_cutoff_hz * dt)
-            v_hat = self._vbeta * st.v_hat_m_s + (1.0 - self._vbeta) * v_raw
+                self._vbeta = math.exp(-2.0 * math.pi * vcut * dt)
+            vb = self._vbeta
+            v_hat = vb * st.v_hat_m_s + (1.0 - vb) * v_raw
         # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
         ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
-        settling = not math.isnan(tau_c)
+        settling = tau_c == tau_c
         # feed-forward (advanced only by the part of dt that hold() has not covered)
-        ff = self.ff
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
         u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
-            if self.dob is not None:
-                self.dob.shift(delta)
+            if dob is not None:
+                dob.shift(delta)
                 st.u_obs_prev_n += delta
             else:
                 self.pid.preload(self.pid.state.u_pid_n + delta)
         ffc = cfg.feedforward
         if ffc.inertia:
-            m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
-            a_r = ref.a_m_s2
+            a_in = a_r
             last = self._last_ref
             if ffc.inertia_lookahead and last is not None:
                 la = ff.lookahead_s if ff is not None else (
                     0.5 * dt if ffc.lookahead_s is None else ffc.lookahead_s)
-                a_r += (a_r - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
+                a_in += (a_in - last.a_m_s2) / dt * la  # a(t + τ_a) under constant jerk
             if settling:  # along the settle move: m·(a_r − c̈), with the same look-ahead
-                a_r -= self._sm.sample(tau_c + (la if ffc.inertia_lookahead and last is not None else 0.0))[2]
-            u_in = m_ff * a_r
+                a_in -= self._sm.sample(tau_c + (la if ffc.inertia_lookahead and last is not None else 0.0))[2]
+            u_in = self._d_m_ff * a_in
         else:
             u_in = 0.0
         # observer (residual form: its input is the previous command minus the previous friction FF)
-        dob = self.dob
         d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
-        at_rest = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
-        if dob is not None and not at_rest and ff is not None and cfg.stuck_dob_fraction != math.inf:
-            d_hat = self._stuck_dob(dt, ref, x_meas_m, u_ff, d_hat, dob)
-        elif at_rest:
+        at_rest = v_r == 0.0 and a_r == 0.0
+        if at_rest:
             self._ev_dir = 0.0  # the next motion starts a new branch (_stuck_dob)
-        if self._s_rest != 0.0 and not at_rest:
-            # a move starts with the rest spring loaded: _rest_spring folds its force into the observer, which
-            # carries it for a while; _adapt leaves it alone for the first adapt_presliding_m of travel
-            self._x_rest_m = ref.x_m
-        elif at_rest:
             self._x_rest_m = math.nan  # set again only by a move that starts with the spring loaded
-        elif abs(ref.x_m - self._x_rest_m) >= ffc.adapt_presliding_m:
-            self._x_rest_m = math.nan
-        if ffc.learn_moves_fraction > 0.0 and dob is not None and isinstance(ff, FrictionFeedforward):
-            u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc, ref.x_m - x_meas_m)
-        if ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None and not ilc:
-            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob, at_rest)
+        else:
+            if self._d_stuck:
+                d_hat = self._stuck_dob(dt, ref, x_meas_m, u_ff, d_hat, dob)  # type: ignore[arg-type]
+            if self._s_rest != 0.0:
+                # a move starts with the rest spring loaded: _rest_spring folds its force into the observer, which
+                # carries it for a while; _adapt leaves it alone for the first adapt_presliding_m of travel
+                self._x_rest_m = x_r
+            elif abs(x_r - self._x_rest_m) >= ffc.adapt_presliding_m:
+                self._x_rest_m = math.nan
+        if self._d_learn:
+            u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
+                                            x_r - x_meas_m)
+        if self._d_adapt and not ilc and not at_rest:  # (_adapt changes nothing at rest)
+            u_ff, d_hat = self._adapt(dt, ref, u_ff, d_hat, dob, at_rest)  # type: ignore[arg-type]
         # feedback + clamp
         pid = self.pid
-        if dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0:
+        if self._d_spring:
             # while ILC takes part the spring stays released (folded into the observer, as at a move's start):
             # its load at each stop depends on where the previous repetition ended, so it would make the
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
-            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling, dob)
-        if (at_rest and not settling and ffc.rest_sync_hz > 0.0 and dob is not None
-                and isinstance(ff, FrictionFeedforward)):
-            u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)
-        hold = at_rest and not settling and dob is not None and cfg.hold_integrator_at_rest
+            d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
+                                      dob)  # type: ignore[arg-type]
+        if at_rest and not settling and self._d_sync:
+            u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
+        hold = at_rest and not settling and self._d_hold
         pid.hold_integrator = hold
-        if hold and dob is not None and pid.state.i_n != 0.0:
-            # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the observer
-            # then carries the whole steady force); a held non-zero I would stand against P and leave a steady
-            # error e = −I/K_p
-            i_n = pid.state.i_n
-            dob.shift(i_n)
-            d_hat += i_n
-            pid.state.i_n = 0.0
-        u = pid.step(dt, ref_fb.x_m, x_meas_m, ref_fb.v_m_s, u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
+        if hold:
+            ps = pid.state
+            i_n = ps.i_n
+            if i_n != 0.0:
+                # hand the integral term to the observer (d̂ += I, I = 0: no step in u at the hand-over; the
+                # observer then carries the whole steady force); a held non-zero I would stand against P and
+                # leave a steady error e = −I/K_p
+                dob.shift(i_n)  # type: ignore[union-attr]
+                d_hat += i_n
+                ps.i_n = 0.0
+        u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
-        in_pos = self.settle.step(dt, ref.x_m - x_meas_m, at_rest)
+        in_pos = self.settle.step(dt, x_r - x_meas_m, at_rest)
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -1262,7 +1313,7 @@ class StageController:
         st.terms = terms
         if ps.saturated:
             limited: tuple[str, ...] = ("force", "anti_windup") if not ps.integrating else ("force",)
-        elif not ps.integrating and not pid.hold_integrator:
+        elif not ps.integrating and not hold:
             limited = ("anti_windup",)
         else:
             limited = ()

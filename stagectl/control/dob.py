@@ -137,7 +137,8 @@ class QFilterDob:
         st.w_n += delta_n
         st.u_obs_n += delta_n
         self._u_last += delta_n
-        self._delay = deque(u + delta_n for u in self._delay)
+        if self._delay:  # (an empty history stays as it is)
+            self._delay = deque(u + delta_n for u in self._delay)
 
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Advance with the previous step's observer input ``u_obs_prev_n`` [N]; return d̂_k [N].
@@ -145,7 +146,8 @@ class QFilterDob:
         ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
         """
-        check_dt(dt)
+        if not (dt > 0.0 and dt < math.inf):
+            check_dt(dt)
         st = self.state
         if dt != self._dt:
             kv_old = self._kv
@@ -166,7 +168,10 @@ class QFilterDob:
         self._u_last = u_in
         d = st.w_n - kv * v_hat_m_s
         lim = self.cfg.max_estimate_n
-        d = max(-lim, min(lim, d))
+        if not d < lim:  # d = max(−lim, min(lim, d)), nan included (→ lim), without the two calls
+            d = lim
+        if not d > -lim:
+            d = -lim
         st.v_hat_m_s = v_hat_m_s
         st.u_obs_n = u_obs_prev_n
         st.x_hat_m = x_meas_m
@@ -234,7 +239,8 @@ class KalmanDob:
         st.tau_hat_n += delta_n
         st.d_hat_n += delta_n
         st.u_obs_n += delta_n
-        self._delay = deque(u + delta_n for u in self._delay)
+        if self._delay:  # (an empty history stays as it is)
+            self._delay = deque(u + delta_n for u in self._delay)
 
     def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
         """Predict with the previous observer input, correct with ``x_meas_m``; return d̂ = τ⁺ [N].

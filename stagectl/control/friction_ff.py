@@ -110,6 +110,10 @@ class FrictionFeedforward:
         self.plain = stepper is not None
         self._step: Callable[[Any, float, float, float], float] = stepper if stepper is not None else model.step
         self.effects = effects
+        #: no effect changes the force (delay aside, which is in lookahead_s): step() skips the effects' calls
+        self._no_effects = (effects.asymmetry is None and effects.viscous_asymmetry is None
+                            and effects.position_ripple is None and effects.cogging is None
+                            and effects.offset is None and effects.spring is None)
         self.lookahead_s = lookahead_s + (effects.delay.delay_s if effects.delay is not None else 0.0)
         self.latch = DirectionLatch(reversal_threshold_m, reversal_velocity_m_s)
         self.state = FrictionFfState()
@@ -150,10 +154,16 @@ class FrictionFeedforward:
 
     def step(self, dt: float, ref: Reference) -> float:
         """Advance the model copy along the reference; return u_ff [N]."""
-        check_dt(dt)
+        if not (dt > 0.0 and dt < math.inf):
+            check_dt(dt)
         st = self.state
-        xr, vr = self._ahead(ref)
-        if math.isnan(st.x_fed_m):
+        ta = self.lookahead_s
+        if ta == 0.0:
+            xr, vr = ref[0], ref[1]
+        else:  # as _ahead
+            x_r, v_r, a_r = ref
+            xr, vr = x_r + v_r * ta + 0.5 * a_r * ta * ta, v_r + a_r * ta
+        if st.x_fed_m != st.x_fed_m:
             self.reset(xr)
         changed = self.latch.update(xr, vr)
         if changed and st.direction != 0:
@@ -174,9 +184,13 @@ class FrictionFeedforward:
         else:
             st.holding = dx != 0.0  # unconfirmed move-back (jitter) or no motion: hold the model
             f = self._f_model
-        eff = self.effects
-        f = eff.modify_friction(f, xr) + eff.velocity_force(vr)
-        fo = eff.other_force(xr)
+        if self._no_effects:  # what the three calls below return without effects (+ 0.0 as they add it)
+            f = f + 0.0
+            fo = 0.0
+        else:
+            eff = self.effects
+            f = eff.modify_friction(f, xr) + eff.velocity_force(vr)
+            fo = eff.other_force(xr)
         st.f_friction_n, st.f_other_n = f, fo
         st.x_extreme_m = self.latch.extreme
         st.u_ff_n = f + fo

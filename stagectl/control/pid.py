@@ -88,6 +88,9 @@ class PidState:
     enabled: bool = True
 
 
+_INF = math.inf
+
+
 def check_dt(dt: float) -> None:
     """Raise ``ValueError`` unless ``dt`` > 0 and finite."""
     if not (dt > 0.0 and math.isfinite(dt)):
@@ -154,8 +157,10 @@ class Pid:
     def step(self, dt: float, x_ref_m: float, x_meas_m: float, v_ref_m_s: float = 0.0,
              u_other_n: float = 0.0, limit_n: float = math.inf) -> float:
         """One step; returns the total force clamp(u_pid + u_other, ±limit_n) [N]."""
-        check_dt(dt)
-        self._coeffs(dt)
+        if not (dt > 0.0 and dt < _INF):
+            check_dt(dt)
+        if dt != self._dt:
+            self._coeffs(dt)
         c = self.cfg
         st = self.state
         e = x_ref_m - x_meas_m
@@ -169,55 +174,67 @@ class Pid:
             return u
         # derivative input
         if c.derivative_on == "measurement":
-            de = 0.0 if math.isnan(st.last_meas_m) else v_ref_m_s - (x_meas_m - st.last_meas_m) / dt
+            lm = st.last_meas_m
+            de = 0.0 if lm != lm else v_ref_m_s - (x_meas_m - lm) / dt
         else:
-            de = 0.0 if math.isnan(st.last_error_m) else (e - st.last_error_m) / dt
+            le = st.last_error_m
+            de = 0.0 if le != le else (e - le) / dt
         b = self._beta
-        st.deriv_m_s = b * st.deriv_m_s + (1.0 - b) * de
+        deriv = b * st.deriv_m_s + (1.0 - b) * de
+        st.deriv_m_s = deriv
         p = c.kp_n_m * e
-        d = c.kd_n_s_m * st.deriv_m_s
-        lim = min(limit_n, math.inf)
+        d = c.kd_n_s_m * deriv
+        lim = limit_n  # (= min(limit_n, inf))
+        mf = c.max_force_n
+        hold = self.hold_integrator
+        i_n = st.i_n
         # conditional integration (anti-windup)
-        u_star = p + st.i_n + d + u_other_n
-        pid_sat = abs(p + st.i_n + d) > c.max_force_n
+        u_star = p + i_n + d + u_other_n
+        pid_sat = abs(p + i_n + d) > mf
         sat_dir = (abs(u_star) > lim or pid_sat) and (u_star > 0.0) == (e > 0.0) and e != 0.0
-        if sat_dir or self.hold_integrator:
+        if sat_dir or hold:
             st.integrating = False
         else:
             st.integrating = True
-            st.i_n += c.ki_n_m_s * e * dt
+            i_n += c.ki_n_m_s * e * dt
             il = c.integrator_limit_n
-            if st.i_n > il:
-                st.i_n = il
-            elif st.i_n < -il:
-                st.i_n = -il
-        u_pid = p + st.i_n + d
-        mf = c.max_force_n
+            if i_n > il:
+                i_n = il
+            elif i_n < -il:
+                i_n = -il
+        u_pid = p + i_n + d
         if u_pid > mf:
             u_pid = mf
         elif u_pid < -mf:
             u_pid = -mf
         u = u_pid + u_other_n
         if u > lim:
-            u, st.saturated = lim, 1
+            u = lim
+            sat = 1
         elif u < -lim:
-            u, st.saturated = -lim, -1
+            u = -lim
+            sat = -1
         else:
-            st.saturated = 0
-        if (st.saturated or u_pid != p + st.i_n + d) and c.ki_n_m_s > 0.0 and not self.hold_integrator:
+            sat = 0
+        st.saturated = sat
+        if (sat or u_pid != p + i_n + d) and c.ki_n_m_s > 0.0 and not hold:
             # back-calculation (next step's I): the part of the command the clamps cut off leaves I at 1/T_t,
             # as far as I pushes that way (I is unwound towards 0, never driven across it by the other terms)
-            excess = p + st.i_n + d + u_other_n - u
-            if excess * st.i_n > 0.0:
+            excess = p + i_n + d + u_other_n - u
+            if excess * i_n > 0.0:
                 back = excess * min(1.0, dt / self.tracking_time_s())
-                st.i_n = max(0.0, st.i_n - back) if st.i_n > 0.0 else min(0.0, st.i_n - back)
+                i_n = max(0.0, i_n - back) if i_n > 0.0 else min(0.0, i_n - back)
         # I alone never needs more than the force clamp gives plus what the other terms take away (a term that
         # opposes the needed force: the clamp alone left a steady error, tests/control/test_integrator_windup.py)
-        ib = min(c.integrator_limit_n, lim + abs(u_other_n))
-        if st.i_n > ib:
-            st.i_n = ib
-        elif st.i_n < -ib:
-            st.i_n = -ib
+        ib = lim + abs(u_other_n)
+        il = c.integrator_limit_n
+        if not ib < il:  # ib = min(il, ib) (the value min() returns, nan included)
+            ib = il
+        if i_n > ib:
+            i_n = ib
+        elif i_n < -ib:
+            i_n = -ib
+        st.i_n = i_n
         st.p_n, st.d_n, st.u_pid_n, st.u_n, st.error_m = p, d, u_pid, u, e
         st.last_meas_m = x_meas_m
         st.last_error_m = e
