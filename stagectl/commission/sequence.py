@@ -387,7 +387,8 @@ class Commissioning:
         r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
         m0 = r.sanity.mass_kg
         self._coulomb_guess = COULOMB_GUESS_FRACTION * min(r.sanity.breakaway_n)
-        self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} kg, breakaway "
+        self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} ± {r.sanity.mass_std_kg:.2g} kg "
+                           f"({r.sanity.mass_from}), breakaway "
                            + ", ".join(f"{b:.3g}" for b in r.sanity.breakaway_n) + " N")
 
         # 2. FRF --------------------------------------------------------------------------------------
@@ -441,8 +442,9 @@ class Commissioning:
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.3g} ± {pm.mass_std_kg:.2g} kg not credible "
                                f"against the probe's {m0:.4g} kg (stage held by its pre-sliding spring): using "
                                "the probe's mass")
-            md = r.sanity.mass_by_direction_kg
-            r.plant = dataclasses.replace(pm, mass_kg=m0, mass_std_kg=(max(md) - min(md)) / 2 + 0.05 * m0,
+            # the probe's standard error: half its directions' spread + 5 % (two-acceleration estimate), or
+            # the joint mass + viscous fit's (at least 5 %)
+            r.plant = dataclasses.replace(pm, mass_kg=m0, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m0),
                                           mass_from="probe")
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
