@@ -90,9 +90,16 @@ class SanityResult:
     #: the joint fit per direction: mass, its std, viscous [N s/m], friction [N] (None where it failed)
     joint: list[dict[str, float] | None] = field(default_factory=list)
 
+    @property
+    def tuning_mass_kg(self) -> float:
+        """The two-acceleration mass (median over directions), what the FRF's tuning is designed for: the
+        mass the probe's motion looks like, at least the true one when a viscous force biases it."""
+        return float(np.median(self.quadratic_mass_kg)) if self.quadratic_mass_kg else self.mass_kg
+
     def as_dict(self) -> dict[str, Any]:
         return {"mass_kg": self.mass_kg, "mass_std_kg": self.mass_std_kg, "mass_from": self.mass_from,
                 "mass_by_direction_kg": self.mass_by_direction_kg, "quadratic_mass_kg": self.quadratic_mass_kg,
+                "tuning_mass_kg": self.tuning_mass_kg,
                 "joint_fit": self.joint, "breakaway_n": self.breakaway_n, "notes": self.notes}
 
 
