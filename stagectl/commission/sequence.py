@@ -458,7 +458,15 @@ class Commissioning:
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
 
         # 3. friction experiments ---------------------------------------------------------------------
-        xp = self._experiment_crossover(m)
+        # their tunings' mass: the FRF's, or, when the probe's joint (viscous) mass replaced a not credible FRF
+        # mass, the two-acceleration mass the FRF ran with, capped at FRF_MASS_PLAUSIBLE's upper ratio × that
+        # estimate: on a damped stage the heavier tuning is the stiffer one and keeps its margins (gen 34, 0.51 kg,
+        # 31 N s/m, 1.43 N Coulomb, faulted in friction_cv tuned for 0.51 kg, not for 0.77); the cap keeps a
+        # 6x bias (k101: 4.14 kg for 0.67, a fault there) out. The identification and the gains use ``m``.
+        m_exp = m
+        if r.plant.mass_from == "probe" and r.sanity.mass_from == "joint":
+            m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
+        xp = self._experiment_crossover(m_exp)
         rho = float(self.experiment_tuning["stiction_ratio"])
         # moves that start or reverse from a stuck stage without measuring: slower on a sticky stage
         # (reposition_speed), with the Coulomb feed-forward's flip taken into account where it is on
@@ -467,9 +475,10 @@ class Commissioning:
                                  COMMISSION_DOB_X_PERIOD / T, COULOMB_GUESS_FRACTION)
         v_rep_off = reposition_speed(env.v_max_m_s, rho * env.following_error_m, env.following_error_m,
                                      COMMISSION_DOB_X_PERIOD / T, 0.0 if coulomb_off else COULOMB_GUESS_FRACTION)
-        self.experiment_tuning.update(reposition_speed_m_s=v_rep, reversals_reposition_speed_m_s=v_rep_off,
+        self.experiment_tuning.update(tuning_mass_kg=m_exp, reposition_speed_m_s=v_rep,
+                                      reversals_reposition_speed_m_s=v_rep_off,
                                       coulomb_ff_in_reversals=not coulomb_off)
-        inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
+        inner = StageController(self._commission_tuning(m_exp, crossover_x_period=xp), self.cfg.timing)
         speeds = np.geomspace(env.v_max_m_s / CV_SPAN, env.v_max_m_s, CV_SPEEDS)
         # the Coulomb feed-forward flips by 2·φ·F_b at a pass's start; with the ladder (stiffer tuning) it is off
         # at rest and steps by φ·F_b. On a sticky stage (ρ > STICKY_FF_OFF_RATIO, where the flip's own peak
@@ -502,7 +511,7 @@ class Commissioning:
         # ladder took the seed stage of tests/commission/commission_stage.py to a 3.4 nm cosine instead of
         # 2.1 nm). The fit takes the passes only, on every stage (docs/commissioning.md, *The constant-velocity
         # fit reads the passes only*)
-        cv_inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
+        cv_inner = StageController(self._commission_tuning(m_exp, crossover_x_period=xp), self.cfg.timing)
         assert isinstance(cv_inner.ff, CoulombFeedforward)
         # default-tuned stages: only the viscous term is learned, and fed forward only where the viscous force at
         # the top speed would take the loop (g_step) past a quarter of the following-error limit: on
@@ -547,7 +556,7 @@ class Commissioning:
         # chosen: a stage whose margins allow none (generated plant 29, 0.60 kg, 0.86 N breakaway: ρ = 8.3) was
         # thrown 54 µm by the flip, and gen 1 (3.3 kg, 1.72 N, ρ = 4.2) 51 µm.
         if coulomb_off:
-            inner = StageController(self._commission_tuning(m, coulomb=False, crossover_x_period=xp),
+            inner = StageController(self._commission_tuning(m_exp, coulomb=False, crossover_x_period=xp),
                                     self.cfg.timing)
         # nested reversals after a long move, both ways
         a0 = min(0.0125 * S, 2e-4)
