@@ -442,7 +442,7 @@ class Commissioning:
         x, u = rec.col("x"), rec.col("u")
         k0 = _first_excited_row(rec)
         r.frf = an.estimate_frf(x[k0:], u[k0:], n_per, bins, T)
-        r.plant = an.fit_plant(r.frf, T, m_p)
+        r.plant = an.fit_plant(r.frf, T, m0)
         lo, hi = an.FRF_MASS_PLAUSIBLE
         pm = r.plant
         if not (lo * m_p <= pm.mass_kg <= hi * m_p and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
