@@ -1,7 +1,20 @@
 """The analyses of the commissioning experiments (pure numpy/scipy; SI units).
 
 **Sanity** (:func:`evaluate_probe`): per direction, quadratic fits ``x(τ) = x0 + v0·τ + a·τ²/2`` over the two
-constant-force phases give ``a1, a2``; ``m = (F2 − F1)/(a2 − a1)`` (friction cancels).
+constant-force phases give ``a1, a2``; ``m = (F2 − F1)/(a2 − a1)`` (a force-independent friction cancels).
+A viscous force ``c·v`` does not cancel: it grows with the speed the higher level reaches, shrinks
+``a2 − a1`` and inflates ``m`` (×6 on a 0.67 kg stage with 89 N·s/m). So :func:`probe_joint_fit` also fits
+``m·ẍ + c·ẋ + F_f = F(t)`` over both phases at once (the position series is continuous across the level
+switch), integrated twice so that no velocity or acceleration is differentiated from the samples::
+
+    m·x(t) + c·∫x dt + F_f·t²/2 − p − q·t = ∬F dt²      (p, q: the unknown initial position and speed terms)
+
+linear least squares in ``(m, c, F_f, p, q)``, with the level switch's timing (0–3 samples of I/O delay)
+chosen by the smallest residual; standard errors ``s²·(AᵀA)⁻¹``. It replaces the quadratic mass only where
+it is credible (``m > 0``, ``c > 0``, relative standard error under :data:`PROBE_JOINT_MAX_REL_STD`) and the
+viscous force it finds matters (``c·(v̄2 − v̄1) ≥ PROBE_VISCOUS_SHARE·(F2 − F1)``, the quadratic estimate's bias);
+elsewhere (a Stribeck drop looks like ``c < 0``, short phases cannot separate ``m`` from ``c``) the
+quadratic mass stands, as before.
 
 **FRF** (:func:`estimate_frf`): the force excitation ``d`` is periodic with ``N`` samples; after one period of
 transient the recorded ``x`` and ``u`` (the total commanded force, excitation included) are cut into ``P``
@@ -51,6 +64,12 @@ FIT_ABOVE_F0 = 1.5
 MASS_BAND_X_PERIOD = 0.15
 
 
+#: the probe's joint mass + viscous fit is used when its mass's relative standard error is under this
+PROBE_JOINT_MAX_REL_STD = 0.25
+#: ... and its viscous force difference between the two levels is at least this share of ``F2 − F1``
+PROBE_VISCOUS_SHARE = 0.1
+
+
 class SanityError(StageError):
     """The stage failed the sanity probe (wrong sign, no motion, implausible scale)."""
 
@@ -62,10 +81,70 @@ class SanityResult:
     mass_by_direction_kg: list[float]
     breakaway_n: list[float]
     notes: list[str] = field(default_factory=list)
+    #: the mass's standard error [kg] (the joint fit's, or half the directions' spread + 5 %)
+    mass_std_kg: float = math.nan
+    #: "quadratic" (two accelerations, friction cancels) or "joint" (mass + viscous + friction fit)
+    mass_from: str = "quadratic"
+    #: the quadratic estimate per direction (kept when the joint fit replaced it) [kg]
+    quadratic_mass_kg: list[float] = field(default_factory=list)
+    #: the joint fit per direction: mass, its std, viscous [N s/m], friction [N] (None where it failed)
+    joint: list[dict[str, float] | None] = field(default_factory=list)
+
+    @property
+    def tuning_mass_kg(self) -> float:
+        """The two-acceleration mass (median over directions), what the FRF's tuning is designed for: the
+        mass the probe's motion looks like, at least the true one when a viscous force biases it."""
+        return float(np.median(self.quadratic_mass_kg)) if self.quadratic_mass_kg else self.mass_kg
 
     def as_dict(self) -> dict[str, Any]:
-        return {"mass_kg": self.mass_kg, "mass_by_direction_kg": self.mass_by_direction_kg,
-                "breakaway_n": self.breakaway_n, "notes": self.notes}
+        return {"mass_kg": self.mass_kg, "mass_std_kg": self.mass_std_kg, "mass_from": self.mass_from,
+                "mass_by_direction_kg": self.mass_by_direction_kg, "quadratic_mass_kg": self.quadratic_mass_kg,
+                "tuning_mass_kg": self.tuning_mass_kg,
+                "joint_fit": self.joint, "breakaway_n": self.breakaway_n, "notes": self.notes}
+
+
+def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, dt_s: float,
+                    sign: int = 1) -> dict[str, float] | None:
+    """Mass, viscous coefficient and friction from one probe direction's two constant-force phases.
+
+    ``x1``, ``x2``: the positions [m] sampled every ``dt_s`` under ``sign·f1_n`` then ``sign·f2_n`` (contiguous:
+    ``x2[0]`` one period after ``x1[-1]``). Model ``m·ẍ + c·ẋ + F_f = F`` in the direction of motion, integrated
+    twice (module docstring); the switch to ``F2`` is taken 0–3 samples after the last ``x1`` sample (the I/O
+    delay), whichever fits best. Returns ``{"mass_kg", "mass_std_kg", "viscous_n_s_m", "viscous_std_n_s_m",
+    "friction_n", "delay_samples", "dv_m_s"}`` (``dv_m_s``: the mean speed's rise from the first phase to the
+    second) or ``None`` when there are too few samples."""
+    n1, n2 = len(x1), len(x2)
+    if n1 < 4 or n2 < 4:
+        return None
+    xs = sign * np.asarray([*x1, *x2], dtype=np.float64)
+    xs = xs - xs[0]
+    t = dt_s * np.arange(1, n1 + n2 + 1, dtype=np.float64)
+    X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
+    best: tuple[float, FloatArray, FloatArray, int] | None = None
+    for dly in range(4):
+        ts = (n1 + dly) * dt_s
+        G = f1_n * t ** 2 / 2 + (f2_n - f1_n) * np.maximum(t - ts, 0.0) ** 2 / 2
+        A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
+        sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
+        th, *_ = np.linalg.lstsq(A / sc, G, rcond=None)
+        res = G - (A / sc) @ th
+        ss = float(res @ res)
+        if best is None or ss < best[0]:
+            best = (ss, th / sc, A / sc, dly)
+    assert best is not None
+    ss, th, An, dly = best
+    dof = max(An.shape[0] - An.shape[1], 1)
+    try:
+        cov = (ss / dof) * np.linalg.inv(An.T @ An)
+    except np.linalg.LinAlgError:
+        return None
+    sc = np.maximum(np.abs(np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])).max(axis=0), 1e-300)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) / sc
+    v1 = (xs[n1 - 1] - xs[0]) / ((n1 - 1) * dt_s)
+    v2 = (xs[-1] - xs[n1]) / ((n2 - 1) * dt_s)
+    return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
+            "viscous_std_n_s_m": float(sd[1]), "friction_n": float(th[2]), "delay_samples": float(dly),
+            "dv_m_s": float(v2 - v1)}
 
 
 def _accel(t: list[float], x: list[float]) -> float:
@@ -89,6 +168,8 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
     masses: list[float] = []
     brk: list[float] = []
     notes: list[str] = []
+    joint: list[dict[str, float] | None] = []
+    joint_m: list[tuple[float, float]] = []
     for d in dirs:
         name = "+" if d.sign > 0 else "-"
         if d.outcome == "wrong_sign":
@@ -107,6 +188,13 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
                               "wrong sign; check io.drive polarity and the sensor direction")
         if math.isfinite(a1) and math.isfinite(a2) and a2 > a1 > -math.inf and d.f2_n > d.f1_n:
             masses.append((d.f2_n - d.f1_n) / (a2 - a1))
+            dt = (d.t1[-1] - d.t1[0]) / (len(d.t1) - 1) if len(d.t1) > 1 else math.nan
+            jf = probe_joint_fit(d.x1, d.x2, d.f1_n, d.f2_n, dt, d.sign) if dt > 0 else None
+            joint.append(jf)
+            if (jf is not None and jf["mass_kg"] > 0 and jf["viscous_n_s_m"] > 0
+                    and jf["mass_std_kg"] <= PROBE_JOINT_MAX_REL_STD * jf["mass_kg"]
+                    and jf["viscous_n_s_m"] * jf["dv_m_s"] >= PROBE_VISCOUS_SHARE * (d.f2_n - d.f1_n)):
+                joint_m.append((jf["mass_kg"], jf["mass_std_kg"]))
     short = [d for d in dirs if d.f2_n < PROBE_MIN_LEVEL_RATIO * d.f1_n]
     if not masses and short:
         raise SanityError(f"sanity: breakaway {short[0].breakaway_n:.3g} N leaves too little force under the cap "
@@ -119,7 +207,18 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
         raise SanityError("sanity: the accelerations under two force levels could not be measured (too little "
                           f"travel, force or speed: the levels end at {v_stop_m_s / 3:.3g} and {v_stop_m_s:.3g} m/s, "
                           "0.24 and 0.72 of the velocity cap); raise --max-stroke, --max-force or --max-velocity")
+    quad = list(masses)
     m = float(np.median(masses))
+    m_std = (max(masses) - min(masses)) / 2 + 0.05 * abs(m)
+    mass_from = "quadratic"
+    if joint_m and len(joint_m) == len(masses):
+        # every direction's joint fit is credible and finds a viscous force that biases the quadratic mass
+        mj = [v for v, _ in joint_m]
+        mass_from, masses = "joint", mj
+        m = float(np.median(mj))
+        m_std = max(math.sqrt(sum(s ** 2 for _, s in joint_m)) / len(joint_m), (max(mj) - min(mj)) / 2)
+        notes.append(f"viscous force in the probe: mass {m:.4g} ± {m_std:.2g} kg from a mass + viscous fit "
+                     f"(the two-acceleration estimate, {float(np.median(quad)):.4g} kg, ignores it)")
     if not (m > 0 and math.isfinite(m)):
         raise SanityError(f"sanity: moving mass estimate {m:.3g} kg is not positive: check io.drive.force_per_unit_n "
                           "and io.drive.resolution_m")
@@ -130,7 +229,8 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
                               f"the configuration expects {expected_mass_kg:.4g} kg; check io.drive.force_per_unit_n "
                               "and the sensor's resolution_m")
         notes.append(f"scale plausible: probe mass {m:.4g} kg vs {expected_mass_kg:.4g} kg configured ({r:.2f}x)")
-    return SanityResult(m, masses, brk, notes)
+    return SanityResult(m, masses, brk, notes, mass_std_kg=m_std, mass_from=mass_from, quadratic_mass_kg=quad,
+                        joint=joint)
 
 
 # ================================================================================================ FRF

@@ -385,9 +385,17 @@ class Commissioning:
         ctl_cfg = self.cfg.controller
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
         r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
-        m0 = r.sanity.mass_kg
+        # m0: the mass the probe's motion looks like (the two-acceleration estimate), which the FRF's tuning and
+        # amplitude are designed for, as before; m_p: the probe's best estimate (the joint mass + viscous fit's
+        # where a viscous force biases m0, analysis.evaluate_probe), against which the FRF's mass is judged and
+        # which replaces it when it is not credible. A viscous force only inflates m0, and the damping it adds
+        # phase below c/m, so the FRF tuning for m0 is stiffer, not less stable (gens 34 and 44 of
+        # tests/commission/plant_gen.py hunted or lost the FRF's amplitude when it was tuned for the lighter mass)
+        m0 = r.sanity.tuning_mass_kg
+        m_p = r.sanity.mass_kg
         self._coulomb_guess = COULOMB_GUESS_FRACTION * min(r.sanity.breakaway_n)
-        self.opts.progress(f"commission: sanity OK: probe mass {m0:.4g} kg, breakaway "
+        self.opts.progress(f"commission: sanity OK: probe mass {m_p:.4g} ± {r.sanity.mass_std_kg:.2g} kg "
+                           f"({r.sanity.mass_from}), breakaway "
                            + ", ".join(f"{b:.3g}" for b in r.sanity.breakaway_n) + " N")
 
         # 2. FRF --------------------------------------------------------------------------------------
@@ -435,21 +443,36 @@ class Commissioning:
         k0 = _first_excited_row(rec)
         r.frf = an.estimate_frf(x[k0:], u[k0:], n_per, bins, T)
         r.plant = an.fit_plant(r.frf, T, m0)
+        if m_p != m0:
+            # a heavily damped stage's FRF pins the mass weakly: the fit also starts from the probe's best
+            # estimate and the smaller log error wins (k101: 0.67 kg from 0.66, not credible from 4.14)
+            alt = an.fit_plant(r.frf, T, m_p)
+            if alt.rms_log_error < r.plant.rms_log_error:
+                r.plant = alt
         lo, hi = an.FRF_MASS_PLAUSIBLE
         pm = r.plant
-        if not (lo * m0 <= pm.mass_kg <= hi * m0 and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
+        if not (lo * m_p <= pm.mass_kg <= hi * m_p and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.3g} ± {pm.mass_std_kg:.2g} kg not credible "
-                               f"against the probe's {m0:.4g} kg (stage held by its pre-sliding spring): using "
+                               f"against the probe's {m_p:.4g} kg (stage held by its pre-sliding spring): using "
                                "the probe's mass")
-            md = r.sanity.mass_by_direction_kg
-            r.plant = dataclasses.replace(pm, mass_kg=m0, mass_std_kg=(max(md) - min(md)) / 2 + 0.05 * m0,
+            # the probe's standard error: half its directions' spread + 5 % (two-acceleration estimate), or
+            # the joint mass + viscous fit's (at least 5 %)
+            r.plant = dataclasses.replace(pm, mass_kg=m_p, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m_p),
                                           mass_from="probe")
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
 
         # 3. friction experiments ---------------------------------------------------------------------
-        xp = self._experiment_crossover(m)
+        # their tunings' mass: the FRF's, or, when the probe's joint (viscous) mass replaced a not credible FRF
+        # mass, the two-acceleration mass the FRF ran with, capped at FRF_MASS_PLAUSIBLE's upper ratio × that
+        # estimate: on a damped stage the heavier tuning is the stiffer one and keeps its margins (gen 34, 0.51 kg,
+        # 31 N s/m, 1.43 N Coulomb, faulted in friction_cv tuned for 0.51 kg, not for 0.77); the cap keeps a
+        # 6x bias (k101: 4.14 kg for 0.67, a fault there) out. The identification and the gains use ``m``.
+        m_exp = m
+        if r.plant.mass_from == "probe" and r.sanity.mass_from == "joint":
+            m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
+        xp = self._experiment_crossover(m_exp)
         rho = float(self.experiment_tuning["stiction_ratio"])
         # moves that start or reverse from a stuck stage without measuring: slower on a sticky stage
         # (reposition_speed), with the Coulomb feed-forward's flip taken into account where it is on
@@ -458,9 +481,10 @@ class Commissioning:
                                  COMMISSION_DOB_X_PERIOD / T, COULOMB_GUESS_FRACTION)
         v_rep_off = reposition_speed(env.v_max_m_s, rho * env.following_error_m, env.following_error_m,
                                      COMMISSION_DOB_X_PERIOD / T, 0.0 if coulomb_off else COULOMB_GUESS_FRACTION)
-        self.experiment_tuning.update(reposition_speed_m_s=v_rep, reversals_reposition_speed_m_s=v_rep_off,
+        self.experiment_tuning.update(tuning_mass_kg=m_exp, reposition_speed_m_s=v_rep,
+                                      reversals_reposition_speed_m_s=v_rep_off,
                                       coulomb_ff_in_reversals=not coulomb_off)
-        inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
+        inner = StageController(self._commission_tuning(m_exp, crossover_x_period=xp), self.cfg.timing)
         speeds = np.geomspace(env.v_max_m_s / CV_SPAN, env.v_max_m_s, CV_SPEEDS)
         # the Coulomb feed-forward flips by 2·φ·F_b at a pass's start; with the ladder (stiffer tuning) it is off
         # at rest and steps by φ·F_b. On a sticky stage (ρ > STICKY_FF_OFF_RATIO, where the flip's own peak
@@ -493,7 +517,7 @@ class Commissioning:
         # ladder took the seed stage of tests/commission/commission_stage.py to a 3.4 nm cosine instead of
         # 2.1 nm). The fit takes the passes only, on every stage (docs/commissioning.md, *The constant-velocity
         # fit reads the passes only*)
-        cv_inner = StageController(self._commission_tuning(m, crossover_x_period=xp), self.cfg.timing)
+        cv_inner = StageController(self._commission_tuning(m_exp, crossover_x_period=xp), self.cfg.timing)
         assert isinstance(cv_inner.ff, CoulombFeedforward)
         # default-tuned stages: only the viscous term is learned, and fed forward only where the viscous force at
         # the top speed would take the loop (g_step) past a quarter of the following-error limit: on
@@ -538,7 +562,7 @@ class Commissioning:
         # chosen: a stage whose margins allow none (generated plant 29, 0.60 kg, 0.86 N breakaway: ρ = 8.3) was
         # thrown 54 µm by the flip, and gen 1 (3.3 kg, 1.72 N, ρ = 4.2) 51 µm.
         if coulomb_off:
-            inner = StageController(self._commission_tuning(m, coulomb=False, crossover_x_period=xp),
+            inner = StageController(self._commission_tuning(m_exp, coulomb=False, crossover_x_period=xp),
                                     self.cfg.timing)
         # nested reversals after a long move, both ways
         a0 = min(0.0125 * S, 2e-4)

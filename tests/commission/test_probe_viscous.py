@@ -1,0 +1,65 @@
+"""The sanity probe's mass on a stage with a large viscous force (analysis.probe_joint_fit).
+
+Oracle: a plain rigid mass with viscous and Coulomb friction, ``m·ẍ = F − c·ẋ − F_c·sgn(ẋ)`` (sticking while
+``|F| ≤ F_c`` at rest), integrated with 20 sub-steps per loop period, driven by the real
+:class:`SanityProbe` through one period of I/O delay and read through a 1 nm sensor quantum. The two-acceleration
+estimate ``(F2 − F1)/(a2 − a1)`` reads 3.6 kg for the 0.67 kg / 89 N·s/m stage (tests/commission/plant_kinds.py
+k101, which then faulted in the friction passes); the joint fit must read the true mass."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stagectl.commission import analysis as an
+from stagectl.commission.controllers import SanityProbe
+
+T = 1e-3
+
+
+def _probe(m: float, c: float, f_c: float, f_lim: float, delay: int = 1, q: float = 1e-9) -> SanityProbe:
+    probe = SanityProbe(f_lim_n=f_lim, d_detect_m=2e-6, d_acc_m=2e-5, v_stop_m_s=0.05)
+    x = v = 0.0
+    pending = [0.0] * delay
+    probe.reset(0.0)
+    h = T / 20
+    for _ in range(20000):
+        pending.append(probe.step(T, round(x / q) * q))
+        f = pending.pop(0)
+        if probe.done:
+            break
+        for _ in range(20):
+            if v == 0.0 and abs(f) <= f_c:
+                continue
+            v_new = v + h * (f - f_c * math.copysign(1.0, v if v != 0.0 else f) - c * v) / m
+            if v != 0.0 and v_new * v < 0.0:
+                v_new = 0.0
+            x += 0.5 * h * (v + v_new)
+            v = v_new
+    return probe
+
+
+@pytest.mark.parametrize(("m", "c", "f_c"), [(0.6713, 88.9, 0.237), (2.276, 89.0, 0.35), (30.0, 300.0, 20.0)])
+def test_probe_mass_is_not_inflated_by_a_viscous_force(m: float, c: float, f_c: float) -> None:
+    p = _probe(m, c, f_c, f_lim=max(2.0, 2.0 * f_c))
+    res = an.evaluate_probe(p.dirs, p.f_lim, p.d_detect, None)
+    assert res.mass_kg == pytest.approx(m, rel=0.05)
+    assert res.mass_from == "joint"
+    assert 0.0 < res.mass_std_kg < 0.1 * m
+    assert min(res.quadratic_mass_kg) > 1.1 * m          # the estimate it replaces is biased by the viscous force
+    for jf in res.joint:
+        assert jf is not None
+        assert jf["viscous_n_s_m"] == pytest.approx(c, rel=0.1)
+        assert jf["friction_n"] == pytest.approx(f_c, rel=0.2)
+
+
+def test_a_small_viscous_force_keeps_the_two_acceleration_mass() -> None:
+    """Coulomb only: the joint fit finds no viscous force worth its extra parameter; the mass stays the
+    two-acceleration estimate, exactly (the quick start's figures depend on it)."""
+    p = _probe(2.0, 0.0, 0.5, f_lim=4.0)
+    res = an.evaluate_probe(p.dirs, p.f_lim, p.d_detect, 2.0)
+    assert res.mass_from == "quadratic"
+    assert res.mass_kg == float(np.median(res.quadratic_mass_kg))
+    assert res.mass_kg == pytest.approx(2.0, rel=0.05)
