@@ -115,7 +115,9 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     twice (module docstring); the switch to ``F2`` is taken 0–3 samples after the last ``x1`` sample (the I/O
     delay), whichever fits best. Returns ``{"mass_kg", "mass_std_kg", "viscous_n_s_m", "viscous_std_n_s_m",
     "friction_n", "delay_samples", "dv_m_s"}`` (``dv_m_s``: the mean speed's rise from the first phase to the
-    second) or ``None`` when there are too few samples."""
+    second) or ``None`` when there are too few samples, a non-finite input, one force level (``f1_n = f2_n``) or
+    a design whose columns are not separable (singular values under :data:`PROBE_JOINT_RCOND` of the largest:
+    no motion) at every delay."""
     n1, n2 = len(x1), len(x2)
     if n1 < 4 or n2 < 4:
         return None
