@@ -68,6 +68,9 @@ MASS_BAND_X_PERIOD = 0.15
 PROBE_JOINT_MAX_REL_STD = 0.25
 #: ... and its viscous force difference between the two levels is at least this share of ``F2 − F1``
 PROBE_VISCOUS_SHARE = 0.1
+#: singular values of the joint fit's column-scaled design below this fraction of the largest count as zero
+#: (one force level makes the model's own equation a column dependency: ~1e-16 there, ~1e-3 on a real probe)
+PROBE_JOINT_RCOND = 1e-9
 
 
 class SanityError(StageError):
@@ -112,10 +115,15 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     twice (module docstring); the switch to ``F2`` is taken 0–3 samples after the last ``x1`` sample (the I/O
     delay), whichever fits best. Returns ``{"mass_kg", "mass_std_kg", "viscous_n_s_m", "viscous_std_n_s_m",
     "friction_n", "delay_samples", "dv_m_s"}`` (``dv_m_s``: the mean speed's rise from the first phase to the
-    second) or ``None`` when there are too few samples."""
+    second) or ``None`` when there are too few samples, a non-finite input, one force level (``f1_n = f2_n``) or
+    a design whose columns are not separable (singular values under :data:`PROBE_JOINT_RCOND` of the largest:
+    no motion) at every delay."""
     n1, n2 = len(x1), len(x2)
     if n1 < 4 or n2 < 4:
         return None
+    if not (math.isfinite(f1_n) and math.isfinite(f2_n) and f2_n != f1_n and dt_s > 0.0 and math.isfinite(dt_s)
+            and all(math.isfinite(v) for v in x1) and all(math.isfinite(v) for v in x2)):
+        return None  # one force level (the model's equation is then a column dependency), or non-finite data
     xs = sign * np.asarray([*x1, *x2], dtype=np.float64)
     xs = xs - xs[0]
     t = dt_s * np.arange(1, n1 + n2 + 1, dtype=np.float64)
@@ -126,12 +134,15 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
         G = f1_n * t ** 2 / 2 + (f2_n - f1_n) * np.maximum(t - ts, 0.0) ** 2 / 2
         A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
         sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
-        th, *_ = np.linalg.lstsq(A / sc, G, rcond=None)
+        th, _, rank, _ = np.linalg.lstsq(A / sc, G, rcond=PROBE_JOINT_RCOND)
+        if rank < A.shape[1]:  # (m, c, F_f, p, q) not separable (no motion, one level): no estimate
+            continue
         res = G - (A / sc) @ th
         ss = float(res @ res)
         if best is None or ss < best[0]:
             best = (ss, th / sc, A / sc, dly)
-    assert best is not None
+    if best is None:
+        return None
     ss, th, An, dly = best
     dof = max(An.shape[0] - An.shape[1], 1)
     try:
@@ -139,7 +150,9 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     except np.linalg.LinAlgError:
         return None
     sc = np.maximum(np.abs(np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])).max(axis=0), 1e-300)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) / sc
+    var = np.diag(cov)
+    # a negative variance is rounding in a near-singular design: unknown (nan fails the credibility gate), not 0
+    sd = np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc
     v1 = (xs[n1 - 1] - xs[0]) / ((n1 - 1) * dt_s)
     v2 = (xs[-1] - xs[n1]) / ((n2 - 1) * dt_s)
     return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
