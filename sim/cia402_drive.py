@@ -111,6 +111,10 @@ ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_INCOMPATIBLE = 0x06040043
 ABORT_INVALID_VALUE = 0x06090030
+#: the option codes CiA 402 defines (IEC 61800-7-201): 0x6007 abort connection 0–3, 0x605A quick stop 0–8,
+#: 0x605E fault reaction 0–4; larger values are reserved and negative ones manufacturer-specific, so a write of
+#: either is refused with "value range of parameter exceeded", as a drive that implements none of them does
+_OPTION_RANGE = {0x6007: (0, 3), 0x605A: (0, 8), 0x605E: (0, 4)}
 ABORT_COMMAND = 0x05040001  # client/server command specifier not valid or unknown
 ABORT_LENGTH = 0x06070010  # data type does not match, length of service parameter does not match
 _EPS = 1e-12
@@ -895,6 +899,12 @@ class SimCia402Drive(SimCanopenDevice):
             self.target_torque = struct.unpack_from("<h", bytes(data))[0]
         elif index == 0x6072:
             self._max_torque = _u(bytes(data), "<H")
+        elif index in _OPTION_RANGE and subindex == 0 and len(data) == 2:
+            code = struct.unpack_from("<h", bytes(data))[0]
+            lo, hi = _OPTION_RANGE[index]
+            if not lo <= code <= hi:  # reserved (above hi) or manufacturer-specific (< 0): none is implemented
+                raise _abort(ABORT_INVALID_VALUE)
+            super()._on_sdo_write(index, subindex, od, data)
         else:
             super()._on_sdo_write(index, subindex, od, data)
 

@@ -297,6 +297,11 @@ SDO_ABORTS = [
     ("mode not implemented", (0x6060, 0, "<b", 1), 0x06090030),
     ("SYNC producer bit on a consumer", (0x1005, 0, "<I", 0x40000080), 0x06090030),
     ("EMCY COB-ID change while valid", (0x1014, 0, "<I", 0x0A0), 0x06090030),
+    # CiA 402 option codes: reserved values and manufacturer-specific ones this drive does not implement
+    ("quick stop option reserved 9", (0x605A, 0, "<h", 9), 0x06090030),
+    ("quick stop option manufacturer -1", (0x605A, 0, "<h", -1), 0x06090030),
+    ("fault reaction option reserved 5", (0x605E, 0, "<h", 5), 0x06090030),
+    ("abort connection option reserved 4", (0x6007, 0, "<h", 4), 0x06090030),
 ]
 
 
@@ -305,3 +310,11 @@ def test_sdo_abort_codes(master, what, write, code):
     world, m = master()
     assert m.abort_code(*write) == code, what
     assert m.upload(0x1000, 0, "<I") & 0xFFFF == 402  # the server goes on answering
+
+
+@pytest.mark.parametrize(("index", "top"), [(0x605A, 8), (0x605E, 4), (0x6007, 3)])
+def test_every_defined_option_code_is_accepted_and_read_back(master, index, top):
+    world, m = master()
+    for code in range(top + 1):
+        assert m.abort_code(index, 0, "<h", code) is None, (hex(index), code)
+        assert m.upload(index, 0, "<h") == code
