@@ -288,8 +288,12 @@ class SimCanopenDevice:
         a stale buffer, which could write a stray segment into the last object addressed), a client's abort
         ends the transfer, a segmented download must deliver the size it indicated (0x06070010), and block
         transfer is not offered (0x05040001; the switch to a normal upload needs the client's protocol switch
-        threshold, which this server does not evaluate)."""
-        ccs = data[0] >> 5 if data else 7
+        threshold, which this server does not evaluate). A frame that is not 8 bytes long is no SDO request
+        (CiA 301 §7.2.4.3: every SDO frame has DLC 8) and is ignored, as CANopenNode's server does: the client's
+        own SDO time-out reports it."""
+        if len(data) != 8:
+            return
+        ccs = data[0] >> 5
         if ccs == 4:  # abort transfer (client): no answer
             self._sdo_seg = None
             return

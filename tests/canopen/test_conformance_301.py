@@ -318,3 +318,17 @@ def test_every_defined_option_code_is_accepted_and_read_back(master, index, top)
     for code in range(top + 1):
         assert m.abort_code(index, 0, "<h", code) is None, (hex(index), code)
         assert m.upload(index, 0, "<h") == code
+
+
+def test_an_sdo_frame_shorter_than_8_bytes_is_ignored(master):
+    """CiA 301: every SDO frame has DLC 8. A shorter "request" is no SDO request: no answer (the client's own
+    time-out reports it, as with CANopenNode's server), and the next well-formed request is served."""
+    world, m = master()
+    m.frames()
+    upload_0x1000 = bytes([0x40, 0x00, 0x10, 0x00])
+    for dlc in (0, 1, 4, 7):
+        m.send(0x601, upload_0x1000[:dlc] if dlc <= 4 else upload_0x1000 + bytes(dlc - 4))
+        assert m.frames(0x581) == [], dlc
+    m.send(0x601, upload_0x1000 + bytes(4))
+    (reply,) = m.frames(0x581)
+    assert reply.data[0] == 0x43 and struct.unpack_from("<I", reply.data, 4)[0] & 0xFFFF == 402
