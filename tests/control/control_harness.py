@@ -46,6 +46,35 @@ def make_plant(model: StageModel, io_delay_s: float = 0.0, resolution_m: float =
     return StagePlant(load(PlantConfig, data, "plant"))
 
 
+class KarnoppStage:
+    """A plain oracle plant for lock-step control tests, written from the physics, not from stagectl.sim: a mass
+    on Karnopp stick/slip friction at the seed stage's levels (static F_S, kinetic F_C + viscous SIGMA2·v, stuck
+    while |v| < V_STICK and |u| ≤ F_S), semi-implicit Euler in ``sub`` sub-steps per period, the force applied one
+    period late (one cycle of I/O delay). ``step(u)`` advances one period under the previous command, latches
+    ``u`` and returns the position [m]."""
+
+    F_C, F_S, SIGMA2, MASS = 0.8, 0.9, 10.0, 2.0  # [N], [N], [N·s/m], [kg]
+    V_STICK = 1e-7  # Karnopp band [m/s]
+
+    def __init__(self, period_s: float, sub: int) -> None:
+        self.x = self.v = self.u_applied = 0.0
+        self.sub = sub
+        self.h = period_s / sub
+
+    def step(self, u_n: float) -> float:
+        x, v, u, h = self.x, self.v, self.u_applied, self.h
+        for _ in range(self.sub):
+            if abs(v) < self.V_STICK and abs(u) <= self.F_S:
+                v = 0.0
+                continue
+            f = ((self.F_C * math.copysign(1.0, v) + self.SIGMA2 * v) if abs(v) >= self.V_STICK
+                 else math.copysign(self.F_S, u))
+            v += (u - f) / self.MASS * h
+            x += v * h
+        self.x, self.v, self.u_applied = x, v, u_n
+        return x
+
+
 def controller_cfg(**sections: Any) -> ControllerConfig:
     data: dict[str, Any] = {"mass_kg": 2.0}
     data.update(sections)

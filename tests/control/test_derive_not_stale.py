@@ -13,14 +13,16 @@ move, so a stale derivation fails the test."""
 from __future__ import annotations
 
 import dataclasses
-import math
+import sys
+from pathlib import Path
 from typing import Any, Callable
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).parent))
+from control_harness import KarnoppStage
+
 PERIOD = 1e-3
-F_C, F_S, SIGMA2, MASS = 0.8, 0.9, 10.0, 2.0
-V_STICK = 1e-7
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +50,8 @@ def _run(ctl: Any, switch: Callable[[Any], None] | None, rest_steps: int = 20, h
         by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0), Dwell(hold_s), Move(
         by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0), Dwell(hold_s)),
         start_m=0.0))
-    x = v = u_applied = 0.0
-    sub = 20
-    h = PERIOD / sub
+    plant = KarnoppStage(PERIOD, sub=20)
+    x = 0.0
     out: list[float] = []
     for k in range(rest_steps + 5 + 2 * round((0.035 + hold_s) / PERIOD)):
         if k == rest_steps and switch is not None:
@@ -58,14 +59,7 @@ def _run(ctl: Any, switch: Callable[[Any], None] | None, rest_steps: int = 20, h
         cmd = ctl.step(PERIOD, x, gen.step(PERIOD))
         if k >= rest_steps:
             out.append(cmd.force_n)
-        for _ in range(sub):
-            if abs(v) < V_STICK and abs(u_applied) <= F_S:
-                v = 0.0
-                continue
-            f = (F_C * math.copysign(1.0, v) + SIGMA2 * v) if abs(v) >= V_STICK else math.copysign(F_S, u_applied)
-            v += (u_applied - f) / MASS * h
-            x += v * h
-        u_applied = cmd.force_n
+        x = plant.step(cmd.force_n)
     return out
 
 

@@ -10,14 +10,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+sys.path.insert(0, str(Path(__file__).parent))
+from control_harness import KarnoppStage
+
 PERIOD = 1e-3
-F_C, F_S, SIGMA2, MASS = 0.8, 0.9, 10.0, 2.0  # the seed stage's Coulomb / static levels [N], viscous [N·s/m], kg
-V_STICK = 1e-7  # Karnopp band [m/s]
+MASS = KarnoppStage.MASS
 
 
 def _quintic_oracle(e0: float, v0: float, T: float, tau: np.ndarray) -> np.ndarray:
@@ -72,10 +76,8 @@ def _run(cfg: Any, move_s: float, scale: float, by_m: float = 10e-6, hold_s: flo
     gen = TrajectoryGenerator(0.0)
     gen.load(Scenario(name="one", segments=(Move(by_m=by_m, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05,
                                                   max_jerk_m_s3=20.0), Dwell(hold_s)), start_m=0.0))
-    x = v = 0.0
-    u_applied = 0.0
-    sub = 100
-    h = PERIOD / sub
+    plant = KarnoppStage(PERIOD, sub=100)  # plain Karnopp plant (oracle), one period of I/O delay
+    x = 0.0
     rows = []
     n = round((0.035 + hold_s) / PERIOD)
     for _ in range(n):
@@ -84,14 +86,7 @@ def _run(cfg: Any, move_s: float, scale: float, by_m: float = 10e-6, hold_s: flo
         sm = ctl._sm
         rows.append((ref.x_m, ref.v_m_s, ref.a_m_s2, x, cmd.force_n, cmd.terms["u_p"], sm.active,
                      ctl.ff.state.reversals, ctl.ff.state.x_fed_m))
-        for _ in range(sub):  # plain Karnopp plant (oracle), the previous command (one period of I/O delay)
-            if abs(v) < V_STICK and abs(u_applied) <= F_S:
-                v = 0.0
-                continue
-            f = (F_C * math.copysign(1.0, v) + SIGMA2 * v) if abs(v) >= V_STICK else math.copysign(F_S, u_applied)
-            v += (u_applied - f) / MASS * h
-            x += v * h
-        u_applied = cmd.force_n
+        x = plant.step(cmd.force_n)
     a = np.array(rows, dtype=float)
     return {"xr": a[:, 0], "vr": a[:, 1], "ar": a[:, 2], "x": a[:, 3], "u": a[:, 4], "up": a[:, 5],
             "active": a[:, 6].astype(bool), "rev": a[:, 7], "xfed": a[:, 8]}
