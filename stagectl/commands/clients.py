@@ -137,16 +137,12 @@ def _starting_daemon(path: str) -> int | None:
     (start-up takes seconds), else None: the pid its lock file names, or (before it has taken the lock) one
     started with that ``--runtime-dir``. Reads only: taking the lock, even shared, could make that daemon's
     own start-up fail."""
-    from stagectl.daemon.instance import LOCK_NAME
+    from stagectl.daemon.instance import LOCK_NAME, lock_pid
 
     rdir = os.path.abspath(os.path.dirname(path) or ".")
-    try:
-        with open(os.path.join(rdir, LOCK_NAME)) as f:
-            pid = int(f.read().split()[0])
-        if _daemon_argv(pid) is not None:
-            return pid
-    except (OSError, ValueError, IndexError):
-        pass
+    pid = lock_pid(os.path.join(rdir, LOCK_NAME))
+    if pid is not None and _daemon_argv(pid) is not None:
+        return pid
     try:
         pids = [int(d) for d in os.listdir("/proc") if d.isdigit()]
     except OSError:

@@ -118,6 +118,19 @@ def _lock(fd: int, path: Path, orphan_wait_s: float) -> None:
         time.sleep(0.05)
 
 
+def lock_pid(path: str | Path) -> int | None:
+    """The pid the lock file ``path`` names (None: no file, unreadable, or no pid in it). Reads only: it takes no
+    lock, so a client may look while a daemon starts."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        return _read_pid(fd)
+    finally:
+        os.close(fd)
+
+
 def _read_pid(fd: int) -> int | None:
     try:
         text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
