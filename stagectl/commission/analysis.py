@@ -128,28 +128,29 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     xs = xs - xs[0]
     t = dt_s * np.arange(1, n1 + n2 + 1, dtype=np.float64)
     X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
-    best: tuple[float, FloatArray, FloatArray, int] | None = None
+    # the design does not depend on the delay (only the force's double integral G does): built and scaled once
+    A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
+    sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    An = A / sc
+    best: tuple[float, FloatArray, int] | None = None
     for dly in range(4):
         ts = (n1 + dly) * dt_s
         G = f1_n * t ** 2 / 2 + (f2_n - f1_n) * np.maximum(t - ts, 0.0) ** 2 / 2
-        A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
-        sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
-        th, _, rank, _ = np.linalg.lstsq(A / sc, G, rcond=PROBE_JOINT_RCOND)
+        th, _, rank, _ = np.linalg.lstsq(An, G, rcond=PROBE_JOINT_RCOND)
         if rank < A.shape[1]:  # (m, c, F_f, p, q) not separable (no motion, one level): no estimate
             continue
-        res = G - (A / sc) @ th
+        res = G - An @ th
         ss = float(res @ res)
         if best is None or ss < best[0]:
-            best = (ss, th / sc, A / sc, dly)
+            best = (ss, th / sc, dly)
     if best is None:
         return None
-    ss, th, An, dly = best
+    ss, th, dly = best
     dof = max(An.shape[0] - An.shape[1], 1)
     try:
         cov = (ss / dof) * np.linalg.inv(An.T @ An)
     except np.linalg.LinAlgError:
         return None
-    sc = np.maximum(np.abs(np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])).max(axis=0), 1e-300)
     var = np.diag(cov)
     # a negative variance is rounding in a near-singular design: unknown (nan fails the credibility gate), not 0
     sd = np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc
