@@ -220,6 +220,7 @@ def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
     loop, *_ = make()
     dut = LoopHost(loop)
     got = threading.Event()
+    in_cycle = threading.Event()
     main = threading.main_thread().ident
     assert main == threading.get_ident()
 
@@ -229,6 +230,7 @@ def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
         def append(self, row):  # loop thread, first cycle: it lasts until finish() asked the loop to stop
             if not self.sent:
                 self.sent = True
+                in_cycle.set()
                 dut._stop.wait(60)
                 signal.pthread_kill(main, signal.SIGINT)
                 got.wait(60)  # the main thread took the interrupt inside finish(); this cycle is not over
@@ -241,6 +243,9 @@ def test_a_second_interrupt_inside_finish_waits_for_the_loop_to_end(make):
     before = signal.signal(signal.SIGINT, interrupt)
     try:
         dut.start()  # until stopped
+        # finish() only once the loop is inside its first cycle: asked to stop before it, the loop ends without
+        # a cycle and nothing is interrupted (the race a loaded machine showed)
+        assert in_cycle.wait(60)
         with pytest.raises(KeyboardInterrupt):
             try:
                 dut.finish(timeout_s=60)
