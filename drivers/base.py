@@ -232,9 +232,20 @@ class PositionSensor(Device):
 class ForceActuator(Device):
     """A force-producing device (CiA 402 drive in cyclic synchronous torque mode)."""
 
+    #: the device keeps a command schedule (:meth:`write_schedule`): in a slot that got no new write (a missed
+    #: SYNC) it applies the last write's predicted force instead of holding the old one
+    schedules_commands: bool = False
+
     @abstractmethod
     def write(self, force_n: float) -> None:
         """Command ``force_n`` [N] for the next period. Real-time safe."""
+
+    def write_schedule(self, force_n: float, next_force_n: float) -> None:
+        """Command ``force_n`` [N] for the next period and ``next_force_n`` [N], the controller's prediction, for
+        the period after it: a device that keeps a schedule (``schedules_commands``) applies ``next_force_n`` in
+        its next slot if no new write arrived before it (a skipped cycle of the loop), as a drive extrapolating
+        a missing cyclic set-point does. Default (no schedule): ``write(force_n)``. Real-time safe."""
+        self.write(force_n)
 
     @abstractmethod
     def quick_stop(self) -> None:

@@ -12,6 +12,22 @@ Timing (mirrors a CANopen drive in cyclic synchronous torque mode)::
     write(u_k)  :   latched; with delay_cycles = 1 it acts from the next SYNC, i.e. over [t_{k+1}, t_{k+2})
                     (one cycle of I/O delay, like a sync RPDO); with 0 it acts from t_k on (zero-order hold)
 
+Command schedule (``command_schedule``, with a clock; off by default): the drive keeps its own slot clock and
+a schedule of commands. :meth:`write_schedule` latches the force for the next period and the controller's
+predicted force for the period after it. A SYNC missing for ``MISSED_SYNC_PERIODS`` (1.5) periods after the
+last one (the loop skipped a slot: it woke a period late) is replaced by the drive's own slot there, and a
+slot (SYNC or own) that got no new write since the last slot applies the last write's predicted force
+instead of holding the old one (then holds it)::
+
+    loop writes (u_k, û_{k+1}) at t_k, then skips the slot t_k + T and wakes at t_k + 2T:
+      held (no schedule):  [t_k, t_k+2T) u_{k−1},            [t_k+2T, t_k+3T) u_k,       then u_{k+2}
+      schedule:            [t_k, t_k+1.5T) u_{k−1}, then u_k, [t_k+2T, t_k+3T) û_{k+1},  then u_{k+2}
+
+i.e. the sequence of an on-time loop with u_{k+1} replaced by its prediction (and the slot of u_k half a
+period late: the drive cannot tell a missing SYNC from a late one before then; the wake-up jitter of
+``stagectl bench timing`` is ≤ 0.2 T). This is how drives that extrapolate a missing cyclic set-point
+behave; CiA 402 has no standard object for a next-period torque, so the virtual CiA 402 drive does not do it.
+
 Time comes from ``clock.now()`` when a clock is given (real time: the plant follows the wall clock, in
 sub-steps of at most ``period_s``), otherwise each SYNC after the first advances the plant by exactly
 ``period_s``.
@@ -66,12 +82,16 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         Actuation delay in SYNC periods (0 or more; 1 mimics a sync RPDO).
     clock : optional
         Time source; None = exactly one period per SYNC.
+    command_schedule : bool
+        Keep a command schedule (module docstring; needs a clock to matter: without one no SYNC is missed).
     """
 
     name = "plant_io"
+    #: a SYNC missing this many periods after the last slot is replaced by the drive's own slot (schedule)
+    MISSED_SYNC_PERIODS = 1.5
 
     def __init__(self, plant: Plant, timing: Timing | float, *, delay_cycles: int = 1,
-                 clock: _Clock | None = None) -> None:
+                 clock: _Clock | None = None, command_schedule: bool = False) -> None:
         PositionSensor.__init__(self)
         t = Timing.of(timing)  # ConfigError (a ValueError) for a period that is not > 0
         if delay_cycles < 0:
@@ -81,6 +101,11 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self.period_s = t.period_s
         self.delay_cycles = int(delay_cycles)
         self.clock = clock
+        self.schedules_commands = bool(command_schedule)
+        self._u_next = 0.0  # the last write's predicted force for the slot after the one it is for
+        self._new_write = False  # a write arrived since the last slot
+        self._t_slot: float | None = None  # clock time of the last slot (SYNC or the drive's own)
+        self.own_slots = 0  # slots the drive took itself for a missed SYNC (schedule)
         res = getattr(plant, "resolution_m", None)
         if res is None:  # StagePlant: cfg.sensor.resolution_m
             res = getattr(getattr(getattr(plant, "cfg", None), "sensor", None), "resolution_m", 1e-9)
@@ -128,6 +153,8 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
     def _zero(self) -> None:
         self._u_applied = 0.0
         self._u_latched = 0.0
+        self._u_next = 0.0
+        self._new_write = False
         for i in range(len(self._pipe)):
             self._pipe[i] = 0.0
 
@@ -211,19 +238,19 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             now = self.clock.now()
             if self._t_plant is None:
                 self._t_plant = now
-            rest = now - self._t_plant
-            while rest > 1e-12:
-                h = period if rest > period else rest
-                self._advance(h)
-                rest -= h
-            self._t_plant = now
+            if self.schedules_commands and self._t_slot is not None:
+                # SYNCs missed: the drive's own slots, MISSED_SYNC_PERIODS after the last slot, then every period
+                t_own = self._t_slot + self.MISSED_SYNC_PERIODS * period
+                while t_own < now - 1e-9 * period:
+                    self._advance_to(t_own)
+                    self.own_slots += 1
+                    self._slot()
+                    self._t_slot = t_own - (self.MISSED_SYNC_PERIODS - 1.0) * period
+                    t_own += period
+            self._advance_to(now)
+            self._t_slot = now
         self.n_sync += 1
-        # the command latched delay_cycles SYNCs ago takes effect now
-        if self.delay_cycles:
-            self._pipe.append(self._u_latched)
-            self._u_applied = self._pipe.popleft()
-        if self._stopped or self._state is not DeviceState.ENABLED:
-            self._u_applied = 0.0
+        self._slot()
         plant = self.plant
         mc = getattr(plant, "measure_counts", None)
         if mc is not None:
@@ -265,6 +292,32 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
                     self._glitch = None
         self._meas = Measurement(x, fresh, counts, 0, fault)
 
+    def _advance_to(self, t: float) -> None:
+        """Advance the plant from its time to clock time ``t`` [s] in sub-steps of at most a period."""
+        assert self._t_plant is not None
+        period = self.period_s
+        rest = t - self._t_plant
+        while rest > 1e-12:
+            h = period if rest > period else rest
+            self._advance(h)
+            rest -= h
+        self._t_plant = t
+
+    def _slot(self) -> None:
+        """A slot (SYNC, or the drive's own for a missed one): the command latched ``delay_cycles`` slots ago takes
+        effect now; with a schedule, a slot with no new write since the last one takes the last write's
+        predicted force (and holds it)."""
+        if self.schedules_commands and not self._new_write:
+            self._u_latched = self._u_next
+            if not self.delay_cycles:
+                self._u_applied = self._u_next
+        self._new_write = False
+        if self.delay_cycles:
+            self._pipe.append(self._u_latched)
+            self._u_applied = self._pipe.popleft()
+        if self._stopped or self._state is not DeviceState.ENABLED:
+            self._u_applied = 0.0
+
     def _advance(self, dt: float) -> None:
         self.plant.step(self._u_applied, dt)
 
@@ -282,8 +335,17 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         if self._state is not DeviceState.ENABLED or self._stopped:
             return
         self._u_latched = force_n
+        self._u_next = force_n
+        self._new_write = True
         if not self.delay_cycles:
             self._u_applied = force_n
+
+    def write_schedule(self, force_n: float, next_force_n: float) -> None:
+        """Latch ``force_n`` [N] for the next slot and ``next_force_n`` [N] for the slot after it, applied there only
+        if no new write arrives before it (module docstring, ``command_schedule``); without a schedule ``write``."""
+        self.write(force_n)
+        if self.schedules_commands and self._new_write:  # (accepted: enabled, not quick-stopped)
+            self._u_next = next_force_n
 
     def quick_stop(self) -> None:
         """Output to zero at once and ignore writes until re-enabled."""

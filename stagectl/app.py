@@ -221,7 +221,8 @@ def _build_plant_io(ctx: BuildContext) -> StageIO:
     if cfg.sim is None:  # excluded by the configuration's cross-checks
         raise ConfigError("sim: required for io.kind plant_io (the simulated stage)")
     plant = StagePlant(cfg.sim.plant)
-    io = ctx.teardown.open(PlantIO(plant, ctx.timing, delay_cycles=cfg.io.delay_cycles, clock=ctx.clock))
+    io = ctx.teardown.open(PlantIO(plant, ctx.timing, delay_cycles=cfg.io.delay_cycles, clock=ctx.clock,
+                                         command_schedule=cfg.io.command_schedule))
     ctx.teardown.actuator = io
     return StageIO(sensor=io, actuator=io, sync=io, plant=plant, plant_io=io)
 

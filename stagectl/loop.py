@@ -127,6 +127,7 @@ from stagectl.runtime.protocols import (
     Learner,
     NamesTerms,
     PacesDevice,
+    PredictsNextForce,
     PreparesRetune,
     ReferenceSource,
     RunsScenarios,
@@ -643,6 +644,9 @@ class ControlLoop:
         lrow: tuple[float, ...] = ()
         stale_row = False
         holds = isinstance(controller, HoldsOnStale)
+        # a command schedule (io.command_schedule): each write also carries the controller's predicted force
+        # for the period after it, which the actuator applies in a slot the loop skips
+        sched = bool(getattr(actuator, "schedules_commands", False)) and isinstance(controller, PredictsNextForce)
         tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
         lvl_at, up = math.nan, math.inf  # slow-down level whose step-up threshold ``up`` is current
@@ -741,6 +745,11 @@ class ControlLoop:
                         u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                         if safety.fault is not None:
                             self._enter_fault(t, x)
+                        elif sched:
+                            u_nx = u + controller.next_force_increment_n()  # type: ignore[attr-defined]
+                            f_lim = safety.cfg.max_force_n
+                            actuator.write_schedule(u, max(-f_lim, min(f_lim, u_nx)))
+                            self._u = u
                         else:
                             actuator.write(u)
                             self._u = u
@@ -770,7 +779,12 @@ class ControlLoop:
                                 self._u = u
                                 terms = cmd.terms
                         if self.state is LoopState.ACTIVE:
-                            actuator.write(self._u)
+                            if sched and holds and t_ctl == t:  # (held by the controller in this cycle)
+                                u_nx = self._u + controller.next_force_increment_n()  # type: ignore[attr-defined]
+                                f_lim = safety.cfg.max_force_n
+                                actuator.write_schedule(self._u, max(-f_lim, min(f_lim, u_nx)))
+                            else:
+                                actuator.write(self._u)
                 else:
                     if self.brake is not None and self.brake.t_last_s < t:  # (not the cycle it began in)
                         if dev_fault is not None:  # the drive no longer obeys: release at once

@@ -79,6 +79,10 @@ class IoConfig:
     sensor: SensorSource = param(SensorSource.DRIVE, desc="position source: drive | encoder | interferometer")
     delay_cycles: int = param(1, desc="plant_io: actuation delay in SYNC periods (1 = like a sync RPDO)",
                               ge=0, le=100)
+    command_schedule: bool = param(
+        False, desc="plant_io: each write also carries the controller's predicted force for the period after it, "
+        "which the actuator applies in a slot the loop skipped (no new write) instead of holding the old force "
+        "(sim.direct.PlantIO); no effect on on-time cycles")
     drive: Cia402Config | None = param(
         None, desc="CiA 402 drive; required for canopen; optional for "
         "embedded_canopen (default: matching sim.drive; its can: is the world's bus)")

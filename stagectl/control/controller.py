@@ -372,8 +372,29 @@ class ControllerState:
     u_ff_n: float = 0.0
     u_inertia_n: float = 0.0
     d_hat_n: float = 0.0
+    u_next_n: float = 0.0  # the predicted force of the period after the next one (predict_next_force)
     steps: int = 0
     terms: dict[str, float] = field(default_factory=dict)
+
+
+def predict_next_force(u_n: float, ff_n: float, ff_prev_n: float, dt_s: float, period_s: float,
+                       max_force_n: float) -> float:
+    """The force the controller would command one period after ``u_n`` [N], for an actuator's command schedule
+    (a slot the loop skips gets it instead of the held ``u_n``). Pure::
+
+        û_{k+1} = clamp( u_k + (ff_k − ff_{k−1})·T/dt , ±max_force_n )
+
+    ff = u_ff + m_ff·a_r(+look-ahead) + u_learn [N], the feed-forward (friction, inertia, learned), whose increment
+    over the last sample interval ``dt_s`` [s] is extrapolated over one period ``period_s`` [s]; the feedback
+    (PID + observer) is held: it needs the sample the skipped slot never takes, and extrapolating its
+    increment extrapolates the sensor noise its derivative and observer carry. Non-finite or dt ≤ 0: ``u_n``.
+    """
+    if not dt_s > 0.0:
+        return u_n
+    u = u_n + (ff_n - ff_prev_n) * (period_s / dt_s)
+    if u - u != 0.0:
+        return u_n
+    return max(-max_force_n, min(max_force_n, u))
 
 
 def resolve_model(cfg: ControllerConfig, file_model: StageModel | None = None) -> StageModel | None:
@@ -1140,6 +1161,13 @@ class StageController:
         self._e_last = x_r - x_meas_m
         return cmd
 
+    def next_force_increment_n(self) -> float:
+        """û_{k+1} − u_k [N]: the predicted change of the force one period after the last step's or hold's
+        command (:func:`predict_next_force`; feedback held, feed-forward extrapolated). The loop adds it to the
+        force it writes, so a learned force added outside or a safety clamp keep their share."""
+        st = self.state
+        return st.u_next_n - st.u_n
+
     def stale_force_limit(self) -> float:
         """Half-width L [N] of the stale-data force band about m·a_ref + u_learn (see :meth:`hold`):
         max(``stale_force_limit_n`` or else θ·F_c, |u_ff|) (F_c: the feed-forward's Coulomb level, θ its adapted
@@ -1158,7 +1186,7 @@ class StageController:
         if c - lim <= u <= c + lim:
             return Command(u, terms, ("stale",))
         u = c + lim if u > c else c - lim
-        st.u_n = u
+        st.u_n = st.u_next_n = u  # (the limited force is held, so is its schedule)
         st.u_obs_prev_n = u - st.u_ff_n
         return Command(u, terms, ("stale", "stale_force"))
 
@@ -1298,6 +1326,9 @@ class StageController:
         u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, x_r - x_meas_m, at_rest)
+        st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
+                                         st.u_ff_n + st.u_inertia_n + self._u_learn, dt, self.period_s,
+                                         cfg.max_force_n)
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -1365,6 +1396,8 @@ class StageController:
         u_fb = st.u_n - st.u_ff_n - st.u_inertia_n - self._u_learn
         lim = self.cfg.max_force_n
         u = max(-lim, min(lim, u_fb + u_ff + u_in + u_learn_n))
+        st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n, st.u_ff_n + st.u_inertia_n + self._u_learn,
+                                         dt, self.period_s, lim)
         self._u_learn = u_learn_n
         st.u_n = u
         st.u_ff_n = u_ff

@@ -91,6 +91,14 @@ class HoldsOnStale(Protocol):
 
 
 @runtime_checkable
+class PredictsNextForce(Protocol):
+    """A controller that predicts the force of the period after its last command (for an actuator's command
+    schedule, :meth:`ForceActuator.write_schedule`): the increment û_{k+1} − u_k [N] of its last step or hold."""
+
+    def next_force_increment_n(self) -> float: ...
+
+
+@runtime_checkable
 class ScalesWithTiming(Protocol):
     """A controller whose feedback can be slowed down by a factor (the effective sample interval over T)."""
 
