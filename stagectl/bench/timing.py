@@ -19,11 +19,21 @@ disturbed, in the same run, through two stages:
   the force error on the stiff pre-sliding spring (89.9 Hz, the cosine's regime; 2 T is 0.18 of its period).
   The law already evaluates the reference at the actual time and steps its observer and integrator with the
   measured dt. The rest of the disturbed cosine's cost above this floor is the sample the skipped slot never
-  took (the 100 Hz observer steps over 2T). Tried and not kept: adding the missed impulse in the next period
+  took (the 100 Hz observer steps over 2T). The command schedule (``io.command_schedule``, on in
+  ``config/sim.yaml``; :mod:`stagectl.sim.direct`) takes most of the actuation's part back: each write also
+  carries the controller's predicted force for the period after it (feedback held, feed-forward extrapolated:
+  :func:`~stagectl.control.controller.predict_next_force`), and the actuator takes a missed SYNC's slot itself
+  1.5 T after the last one and fills the slot after it with the prediction, so a skipped slot leaves the
+  on-time force sequence with one predicted force in it. The row ``without_command_schedule`` is the same
+  disturbed run with the schedule off (the actuator holds the old force, as before). Tried and not kept: adding the missed impulse in the next period
   (cosine 5.8× → 5.5× at half the impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the
   correction acts two periods after the error began, a fifth of the pre-sliding resonance's period), and
   stepping the skipped slot on a predicted position before the real step, as a late TPDO is (cosine 5.8× →
-  5.0×, triangle 1.03× → 2.7×: the observer is told of a force that nobody applied).
+  5.0×, triangle 1.03× → 2.7×: the observer is told of a force that nobody applied). With the schedule
+  (3.64×, 1.01×), telling the observer the scheduled forces was not better either: stepped twice over the
+  skipped interval on the interpolated position with the forces of each slot 6.2×, 1.78× (the sub-stepping
+  alone, with the old forces: 5.7×, 1.79×); one step with the predicted force in its command history for the
+  next period 3.9×, 0.99×; and with the two slots' mean force over the interval 3.8×, 0.98×.
 
 Figures: RMS and max of e = x_ref − x over the fresh samples after ``--skip`` s (a stale row holds the old
 sample: its error is not a measurement), the ratio disturbed/clean (target ≤ 2), faults,
@@ -234,7 +244,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     tracking: dict[str, Any] = {}
     ok = True
     # clean + disturbed per stage and scenario, the held-force floor per plant_io scenario, 2 fault reactions
-    n_cases = 2 * len(stages) * len(TRACKING) + (2 * len(TRACKING) if "plant_io" in stages else 0) + 2
+    sched = bool(cfg.io.command_schedule)
+    n_cases = 2 * len(stages) * len(TRACKING) + ((2 + sched) * len(TRACKING) if "plant_io" in stages else 0) + 2
     done = 0
     for st in stages:
         for sc in TRACKING:
@@ -249,13 +260,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio,
                                       "met_2x_no_fault": met}
             if st == "plant_io":  # the floor a skipped slot sets through the held force alone
+                # (the actuator holding the old force, as these rows define it: without the command schedule)
+                cfg_h = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, command_schedule=False))
                 tell(args, done, n_cases, f"case {done + 1} of {n_cases}, {st}/{sc} held force only")
-                held = run_tracking(cfg, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
+                held = run_tracking(cfg_h, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
                                     lose_writes=True)
                 tell(args, done + 1, n_cases, f"case {done + 2} of {n_cases}, {st}/{sc} skipped-slot actuation only")
-                slip = run_tracking(cfg, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
+                slip = run_tracking(cfg_h, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
                                     slip_writes=True)
                 done += 2
+                if sched:  # the same disturbed run with the actuator holding the old force in a skipped slot
+                    tell(args, done, n_cases, f"case {done + 1} of {n_cases}, {st}/{sc} without command schedule")
+                    nos = run_tracking(cfg_h, sc, stage_kind=st, disturbed=True, seed=args.seed, skip_s=args.skip)
+                    done += 1
+                    tracking[f"{st}/{sc}"]["without_command_schedule"] = {
+                        "rms_error_nm": nos["rms_error_nm"], "max_error_nm": nos["max_error_nm"],
+                        "rms_ratio": nos["rms_error_nm"] / clean["rms_error_nm"], "fault": nos["fault"]}
                 tracking[f"{st}/{sc}"]["held_force_only"] = {
                     "rms_error_nm": held["rms_error_nm"], "rms_ratio": held["rms_error_nm"] / clean["rms_error_nm"]}
                 tracking[f"{st}/{sc}"]["skipped_slot_actuation_only"] = {
@@ -283,6 +303,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "disturbance": {"canopen": f"late_tpdo on {LATE_FRACTION:.0%} of SYNCs, drop_tpdo on {DROP_FRACTION:.0%}",
                         "plant_io": f"{LATE_FRACTION:.0%} of wake-ups one period late (slot skipped), "
                                     f"U(0, {JITTER_PERIODS:g} T) jitter, {DROP_FRACTION:.0%} of samples dropped"},
+        "command_schedule": sched,
         "skip_s": args.skip,
         "tracking": tracking,
         "all_tracking_met": ok,
