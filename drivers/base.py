@@ -235,6 +235,8 @@ class ForceActuator(Device):
     #: the device keeps a command schedule (:meth:`write_schedule`): in a slot that got no new write (a missed
     #: SYNC) it applies the last write's predicted force instead of holding the old one
     schedules_commands: bool = False
+    #: with a schedule: a SYNC missing this many periods after the last slot is replaced by the device's own slot
+    missed_sync_periods: float = 1.5
 
     @abstractmethod
     def write(self, force_n: float) -> None:

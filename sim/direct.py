@@ -14,7 +14,7 @@ Timing (mirrors a CANopen drive in cyclic synchronous torque mode)::
 
 Command schedule (``command_schedule``, with a clock; off by default): the drive keeps its own slot clock and
 a schedule of commands. :meth:`write_schedule` latches the force for the next period and the controller's
-predicted force for the period after it. A SYNC missing for ``MISSED_SYNC_PERIODS`` (1.5) periods after the
+predicted force for the period after it. A SYNC missing for ``missed_sync_periods`` (1.5) periods after the
 last one (the loop skipped a slot: it woke a period late) is replaced by the drive's own slot there, and a
 slot (SYNC or own) that got no new write since the last slot applies the last write's predicted force
 instead of holding the old one (then holds it)::
@@ -87,8 +87,6 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
     """
 
     name = "plant_io"
-    #: a SYNC missing this many periods after the last slot is replaced by the drive's own slot (schedule)
-    MISSED_SYNC_PERIODS = 1.5
 
     def __init__(self, plant: Plant, timing: Timing | float, *, delay_cycles: int = 1,
                  clock: _Clock | None = None, command_schedule: bool = False) -> None:
@@ -240,12 +238,12 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
                 self._t_plant = now
             if self.schedules_commands and self._t_slot is not None:
                 # SYNCs missed: the drive's own slots, MISSED_SYNC_PERIODS after the last slot, then every period
-                t_own = self._t_slot + self.MISSED_SYNC_PERIODS * period
+                t_own = self._t_slot + self.missed_sync_periods * period
                 while t_own < now - 1e-9 * period:
                     self._advance_to(t_own)
                     self.own_slots += 1
                     self._slot()
-                    self._t_slot = t_own - (self.MISSED_SYNC_PERIODS - 1.0) * period
+                    self._t_slot = t_own - (self.missed_sync_periods - 1.0) * period
                     t_own += period
             self._advance_to(now)
             self._t_slot = now

@@ -647,6 +647,7 @@ class ControlLoop:
         # a command schedule (io.command_schedule): each write also carries the controller's predicted force
         # for the period after it, which the actuator applies in a slot the loop skips
         sched = bool(getattr(actuator, "schedules_commands", False)) and isinstance(controller, PredictsNextForce)
+        t_cyc = math.nan
         tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
         lvl_at, up = math.nan, math.inf  # slow-down level whose step-up threshold ``up`` is current
@@ -733,6 +734,10 @@ class ControlLoop:
                                 lvl = _prev_level(lvl)
                             if lvl != self.slow_down:
                                 self._set_slow_down(lvl, t)
+                        if sched and skipped and t_prev is not None and t_prev == t_cyc:
+                            # the actuator filled the skipped slots from its schedule, its own first slot
+                            # missed_sync_periods after the last cycle's SYNC: the observer is told so
+                            controller.scheduled_slots(actuator.missed_sync_periods * period)  # type: ignore[attr-defined]
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
@@ -822,6 +827,7 @@ class ControlLoop:
                     self._u = 0.0
                     self._devs.quick_stop(safety.fault)
                 self._enter_fault(t)
+            t_cyc = t  # (the last cycle's loop time: its SYNC)
             # ------------------------------------------------------ statistics
             record(k, late, perf() - c0, skipped)
             k += 1

@@ -387,7 +387,11 @@ def predict_next_force(u_n: float, ff_n: float, ff_prev_n: float, dt_s: float, p
     ff = u_ff + m_ff·a_r(+look-ahead) + u_learn [N], the feed-forward (friction, inertia, learned), whose increment
     over the last sample interval ``dt_s`` [s] is extrapolated over one period ``period_s`` [s]; the feedback
     (PID + observer) is held: it needs the sample the skipped slot never takes, and extrapolating its
-    increment extrapolates the sensor noise its derivative and observer carry. Non-finite or dt ≤ 0: ``u_n``.
+    increment extrapolates the sensor noise its derivative and observer carry. Over the seed stage's clean 1 kHz
+    runs (10 µm cosine, 1 mm triangle) the RMS error of this prediction against the next command is 1.9 and 4.8 mN,
+    against 5.0 and 11.3 mN for the held force and 3.3 and 5.5 mN for the linear extrapolation of the whole
+    command; predicting the feedback by the mean of its last two values (1.4, 1.7 mN) made the skipped-slot
+    runs of ``stagectl bench timing`` worse (cosine 3.0× → 4.0×). Non-finite or dt ≤ 0: ``u_n``.
     """
     if not dt_s > 0.0:
         return u_n
@@ -643,6 +647,8 @@ class StageController:
         self._vdt = math.nan
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
         self._pred_s = 0.0  # time covered by predicted steps (hold) since the last fresh sample
+        self._sched_own_s = math.nan  # the actuator's own slot after the last step (scheduled_slots) [s]
+        self._u_obs_next = 0.0  # the observer input of the predicted force u_next_n (residual form) [N]
         self._gap = 0  # stale cycles since the last fresh sample
         self._f_kin = _kinetic_level(self.ff)  # the friction model's Coulomb level [N] (nan: no model)
         self._e_last = math.nan  # the last measured tracking error x_r − x [m]
@@ -723,6 +729,8 @@ class StageController:
         self._last_ref = None
         self._ff_ahead_s = 0.0
         self._pred_s = 0.0
+        self._sched_own_s = math.nan
+        self._u_obs_next = u_n
         self._gap = 0
         self._e_last = math.nan
         self._x_fresh = x_m
@@ -1161,6 +1169,12 @@ class StageController:
         self._e_last = x_r - x_meas_m
         return cmd
 
+    def scheduled_slots(self, own_slot_s: float) -> None:
+        """The next :meth:`step` follows slots the loop skipped, which the actuator filled from its command schedule
+        (``io.command_schedule``), taking its first own slot ``own_slot_s`` [s] after this controller's last step:
+        the observer is told the forces that acted (:meth:`_observe_schedule`). Real-time safe."""
+        self._sched_own_s = float(own_slot_s)
+
     def next_force_increment_n(self) -> float:
         """û_{k+1} − u_k [N]: the predicted change of the force one period after the last step's or hold's
         command (:func:`predict_next_force`; feedback held, feed-forward extrapolated). The loop adds it to the
@@ -1187,6 +1201,7 @@ class StageController:
             return Command(u, terms, ("stale",))
         u = c + lim if u > c else c - lim
         st.u_n = st.u_next_n = u  # (the limited force is held, so is its schedule)
+        self._u_obs_next = u - st.u_ff_n
         st.u_obs_prev_n = u - st.u_ff_n
         return Command(u, terms, ("stale", "stale_force"))
 
@@ -1226,6 +1241,30 @@ class StageController:
             self._a_dt = dt
             self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
         return self._a_val
+
+    def _observe_schedule(self, dob: QFilterDob, dt: float, t_own: float, x_m: float, v_hat: float) -> float:
+        """The observer step after slots the loop skipped while the actuator kept its schedule (:meth:`scheduled_slots`):
+        over the interval ``dt`` [s] the force was the previous command u_{k−1} until the actuator's own slot
+        ``t_own`` [s] after the last step, then this step's predecessor's command u_k for a period, then the
+        predicted û_{k+1}; û_{k+1} also acts in the next period. The observer (one period of command delay) is
+        told exactly that: its input for this interval is the time-weighted mean of those forces (residual
+        form), and the predicted force replaces u_k as the input of the next period::
+
+            ū_obs = ( t_own·u_obs,k−1 + min(T, dt − t_own)·u_obs,k + max(0, dt − t_own − T)·û_obs,k+1 ) / dt
+
+        (û_obs,k+1 = û_{k+1} − u_ff,k − Δu_ff: :func:`predict_next_force` minus the friction feed-forward
+        extrapolated the same way). Stepped as before (u_{k−1} over the whole interval, then u_k), the observer
+        misattributes a period of force in each of the two intervals. Returns d̂ [N]."""
+        st = self.state
+        q = dob._delay
+        T = self.period_s
+        t2 = min(T, dt - t_own)
+        t3 = dt - t_own - t2
+        u_next = self._u_obs_next
+        q[0] = (t_own * q[0] + t2 * st.u_obs_prev_n + (t3 * u_next if t3 > 0.0 else 0.0)) / dt
+        d_hat = dob.step(dt, x_m, v_hat, st.u_obs_prev_n)
+        q[-1] = u_next
+        return d_hat
 
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
         x_r, v_r, a_r = ref
@@ -1282,7 +1321,15 @@ class StageController:
         else:
             u_in = 0.0
         # observer (residual form: its input is the previous command minus the previous friction FF)
-        d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n) if dob is not None else 0.0
+        t_own = self._sched_own_s
+        if t_own == t_own:
+            self._sched_own_s = math.nan
+        if dob is None:
+            d_hat = 0.0
+        elif t_own == t_own and t_own < dt and isinstance(dob, QFilterDob) and dob.cfg.command_delay_samples == 1:
+            d_hat = self._observe_schedule(dob, dt, t_own, x_meas_m, v_hat)
+        else:
+            d_hat = dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n)
         at_rest = v_r == 0.0 and a_r == 0.0
         if at_rest:
             self._ev_dir = 0.0  # the next motion starts a new branch (_stuck_dob)
@@ -1329,6 +1376,7 @@ class StageController:
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
                                          st.u_ff_n + st.u_inertia_n + self._u_learn, dt, self.period_s,
                                          cfg.max_force_n)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -1398,6 +1446,7 @@ class StageController:
         u = max(-lim, min(lim, u_fb + u_ff + u_in + u_learn_n))
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n, st.u_ff_n + st.u_inertia_n + self._u_learn,
                                          dt, self.period_s, lim)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
         self._u_learn = u_learn_n
         st.u_n = u
         st.u_ff_n = u_ff
