@@ -101,7 +101,9 @@ def run_tracking(cfg: AppConfig, scenario: str, *, stage_kind: str, disturbed: b
 
     T = cfg.loop.period_s
     kind = {"canopen": IoKind.EMBEDDED_CANOPEN, "plant_io": IoKind.PLANT_IO}[stage_kind]
-    cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=kind))
+    # (the lost and slipped writes are defined with the actuator holding the old force: no command schedule)
+    sched = cfg.io.command_schedule and not (lose_writes or slip_writes)
+    cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, kind=kind, command_schedule=sched))
     clock: SimClock = SimClock()
     if disturbed and stage_kind == "plant_io":
         clock = JitterClock(T, late_fraction=LATE_FRACTION, late_periods=1.0, jitter_s=JITTER_PERIODS * T,
@@ -260,7 +262,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             tracking[f"{st}/{sc}"] = {"clean": clean, "disturbed": dist, "rms_ratio": ratio,
                                       "met_2x_no_fault": met}
             if st == "plant_io":  # the floor a skipped slot sets through the held force alone
-                # (the actuator holding the old force, as these rows define it: without the command schedule)
                 cfg_h = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, command_schedule=False))
                 tell(args, done, n_cases, f"case {done + 1} of {n_cases}, {st}/{sc} held force only")
                 held = run_tracking(cfg_h, sc, stage_kind=st, disturbed=False, seed=args.seed, skip_s=args.skip,
