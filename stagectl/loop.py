@@ -15,6 +15,7 @@ Each cycle, in this order::
     safety checks                # device faults, NaN/inf, stale, soft limits, velocity, following error
     ref = reference.sample(t);  cmd = controller.step(dt, x, ref)      (fresh sample only)
     u = safety.limit_force(cmd.force_n);  actuator.write(u)
+                                 # (io.command_schedule: write_schedule(u, u + predicted increment))
     row -> sinks                 # telemetry, never blocking
 
 Timing of the control law (a PC without a real-time kernel wakes late, skips slots and gets stale samples):
@@ -737,7 +738,8 @@ class ControlLoop:
                         if sched and skipped and t_prev is not None and t_prev == t_cyc:
                             # the actuator filled the skipped slots from its schedule, its own first slot
                             # missed_sync_periods after the last cycle's SYNC: the observer is told so
-                            controller.scheduled_slots(actuator.missed_sync_periods * period)  # type: ignore[attr-defined]
+                            own_s = actuator.missed_sync_periods * period
+                            controller.scheduled_slots(own_s)  # type: ignore[attr-defined]
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)

@@ -391,7 +391,7 @@ def predict_next_force(u_n: float, ff_n: float, ff_prev_n: float, dt_s: float, p
     runs (10 µm cosine, 1 mm triangle) the RMS error of this prediction against the next command is 1.9 and 4.8 mN,
     against 5.0 and 11.3 mN for the held force and 3.3 and 5.5 mN for the linear extrapolation of the whole
     command; predicting the feedback by the mean of its last two values (1.4, 1.7 mN) made the skipped-slot
-    runs of ``stagectl bench timing`` worse (cosine 3.0× → 4.0×). Non-finite or dt ≤ 0: ``u_n``.
+    runs of ``stagectl bench timing`` worse (cosine 3.0× → 4.0×, seed 1). Non-finite or dt ≤ 0: ``u_n``.
     """
     if not dt_s > 0.0:
         return u_n
@@ -1256,15 +1256,11 @@ class StageController:
         extrapolated the same way). Stepped as before (u_{k−1} over the whole interval, then u_k), the observer
         misattributes a period of force in each of the two intervals. Returns d̂ [N]."""
         st = self.state
-        q = dob._delay
-        T = self.period_s
-        t2 = min(T, dt - t_own)
+        t2 = min(self.period_s, dt - t_own)
         t3 = dt - t_own - t2
         u_next = self._u_obs_next
-        q[0] = (t_own * q[0] + t2 * st.u_obs_prev_n + (t3 * u_next if t3 > 0.0 else 0.0)) / dt
-        d_hat = dob.step(dt, x_m, v_hat, st.u_obs_prev_n)
-        q[-1] = u_next
-        return d_hat
+        u_mean = (t_own * dob.next_input_n() + t2 * st.u_obs_prev_n + (t3 * u_next if t3 > 0.0 else 0.0)) / dt
+        return dob.step(dt, x_m, v_hat, st.u_obs_prev_n, u_mean, u_next)
 
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
         x_r, v_r, a_r = ref

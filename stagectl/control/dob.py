@@ -140,11 +140,19 @@ class QFilterDob:
         if self._delay:  # (an empty history stays as it is)
             self._delay = deque(u + delta_n for u in self._delay)
 
-    def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float) -> float:
+    def next_input_n(self) -> float:
+        """The command input [N] the next :meth:`step` takes for its interval (the oldest in the delay line, or
+        the last input without a delay)."""
+        return self._delay[0] if self._delay else self.state.u_obs_n
+
+    def step(self, dt: float, x_meas_m: float, v_hat_m_s: float, u_obs_prev_n: float,
+             u_interval_n: float | None = None, u_queued_n: float | None = None) -> float:
         """Advance with the previous step's observer input ``u_obs_prev_n`` [N]; return d̂_k [N].
 
         ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
-        feed-forward. ``v_hat_m_s`` is the velocity estimate at this step.
+        feed-forward. ``v_hat_m_s`` is the velocity estimate at this step. Told otherwise (an actuator's command
+        schedule filled skipped slots, ``StageController._observe_schedule``): ``u_interval_n`` replaces the
+        input for this interval, ``u_queued_n`` the one queued for the next (with a command delay of 1).
         """
         if not (dt > 0.0 and dt < math.inf):
             check_dt(dt)
@@ -156,8 +164,10 @@ class QFilterDob:
                 st.w_n += (self._kv - kv_old) * st.v_hat_m_s  # estimate d̂ = w − K_v·v̂ does not jump with K_v
         u_in = u_obs_prev_n
         if self._delay:
-            self._delay.append(u_obs_prev_n)
+            self._delay.append(u_obs_prev_n if u_queued_n is None else u_queued_n)
             u_in = self._delay.popleft()
+        if u_interval_n is not None:
+            u_in = u_interval_n
         kv = self._kv
         if self._have_prev:
             a = self._alpha

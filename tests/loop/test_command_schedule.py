@@ -15,8 +15,8 @@ import math
 from pathlib import Path
 
 import pytest
-
 from stagectl.sim.direct import PlantIO
+
 from stagectl.bench.timing import run_tracking
 from stagectl.config import load_app_config
 from stagectl.control.controller import StageController, predict_next_force
@@ -144,7 +144,7 @@ def test_skipped_slots_cost_the_cosine_less_with_the_schedule(sim_cfg):
     get the predicted force (and the observer is told so) than when the actuator holds the old force."""
     assert sim_cfg.io.command_schedule  # shipped on
     off = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, command_schedule=False))
-    kw = dict(stage_kind="plant_io", disturbed=True, duration_s=2.2, skip_s=0.5)
+    kw = {"stage_kind": "plant_io", "disturbed": True, "duration_s": 2.2, "skip_s": 0.5}
     held = run_tracking(off, "cosine", **kw)
     sched = run_tracking(sim_cfg, "cosine", **kw)
     assert held["fault"] is None and sched["fault"] is None
