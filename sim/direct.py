@@ -237,7 +237,7 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
             if self._t_plant is None:
                 self._t_plant = now
             if self.schedules_commands and self._t_slot is not None:
-                # SYNCs missed: the drive's own slots, MISSED_SYNC_PERIODS after the last slot, then every period
+                # SYNCs missed: the drive's own slots, missed_sync_periods after the last slot, then every period
                 t_own = self._t_slot + self.missed_sync_periods * period
                 while t_own < now - 1e-9 * period:
                     self._advance_to(t_own)
