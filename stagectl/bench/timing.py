@@ -25,23 +25,14 @@ disturbed, in the same run, through two stages:
   :func:`~stagectl.control.controller.predict_next_force`), and the actuator takes a missed SYNC's slot itself
   1.5 T after the last one and fills the slot after it with the prediction, so a skipped slot leaves the
   on-time force sequence with one predicted force in it. The row ``without_command_schedule`` is the same
-  disturbed run with the schedule off (the actuator holds the old force, as before). Tried and not kept: adding the missed impulse in the next period
-  (cosine 5.8× → 5.5× at half the impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the
+  disturbed run with the schedule off (the actuator holds the old force, as before). Tried and not kept
+  (without the schedule): adding the missed impulse in the next period (cosine 5.8× → 5.5× at half the impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the
   correction acts two periods after the error began, a fifth of the pre-sliding resonance's period), and
   stepping the skipped slot on a predicted position before the real step, as a late TPDO is (cosine 5.8× →
-  5.0×, triangle 1.03× → 2.7×: the observer is told of a force that nobody applied). With the schedule
-  (3.64×, 1.01×), telling the observer the scheduled forces was not better either: stepped twice over the
-  skipped interval on the interpolated position with the forces of each slot 6.2×, 1.78× (the sub-stepping
-  alone, with the old forces: 5.7×, 1.79×); one step with the predicted force in its command history for the
-  next period 3.9×, 0.99×; and with the two slots' mean force over the interval 3.8×, 0.98×.
-
-Figures: RMS and max of e = x_ref − x over the fresh samples after ``--skip`` s (a stale row holds the old
-sample: its error is not a measurement), the ratio disturbed/clean (target ≤ 2), faults,
-stale and skipped cycles. Fault reaction: a velocity_limit fault at 15 mm/s (the limit lowered mid-move),
-with the active quick stop (brake on a velocity ramp within max_force_n, then release) and with the
-release-at-once reaction it replaces: stop distance, the bound v₀²/(2·a_max) (a_max = max_force_n / m),
-peak force. Margins: ``stagectl tune``'s linear margins of the shipped design for the configured I/O delay
-and for one more period (the late TPDO / skipped slot).
+  5.0×, triangle 1.03× → 2.7×: the observer is told of a force that nobody applied). With the schedule the
+  observer is told the forces that acted in the skipped interval (time-weighted) and the prediction for the
+  next period (``StageController.scheduled_slots``): cosine 3.64× → 3.00×; see docs/control.md §4.1 for the
+  predictors and observer variants tried and why the cosine stays above 2×.
 """
 
 from __future__ import annotations
