@@ -26,12 +26,13 @@ disturbed, in the same run, through two stages:
   1.5 T after the last one and fills the slot after it with the prediction, so a skipped slot leaves the
   on-time force sequence with one predicted force in it. The row ``without_command_schedule`` is the same
   disturbed run with the schedule off (the actuator holds the old force, as before). Tried and not kept
-  (without the schedule): adding the missed impulse in the next period (cosine 5.8× → 5.5× at half the impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the
-  correction acts two periods after the error began, a fifth of the pre-sliding resonance's period), and
-  stepping the skipped slot on a predicted position before the real step, as a late TPDO is (cosine 5.8× →
-  5.0×, triangle 1.03× → 2.7×: the observer is told of a force that nobody applied). With the schedule the
-  observer is told the forces that acted in the skipped interval (time-weighted) and the prediction for the
-  next period (``StageController.scheduled_slots``): cosine 3.64× → 3.00×; see docs/control.md §4.1 for the
+  (without the schedule): adding the missed impulse in the next period (cosine 5.8× → 5.5× at half the
+  impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the correction acts two periods after
+  the error began, a fifth of the pre-sliding resonance's period), and stepping the skipped slot on a
+  predicted position before the real step, as a late TPDO is (cosine 5.8× → 5.0×, triangle 1.03× → 2.7×:
+  the observer is told of a force that nobody applied). With the schedule the observer is told the forces
+  that acted in the skipped interval (time-weighted) and the prediction for the next period
+  (``StageController.scheduled_slots``): cosine 3.64× → 3.00×; see docs/control.md §4.1 for the
   predictors and observer variants tried and why the cosine stays above 2×.
 """
 
