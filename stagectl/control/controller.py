@@ -713,6 +713,7 @@ class StageController:
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
+        self._u_k = 0.0
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -945,6 +946,10 @@ class StageController:
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
                 sm.start(e0, -v_hat, self.settle_move_duration(e0))
+            elif sm.direction * e0 < -e_min and scfg.ahead_stiffness_fraction > 0.0 and self._k_ps > 0.0:
+                # ahead (the stiff side): the same continuation, with the reversal's spring force (_step)
+                sm.start(e0, -v_hat, self.settle_move_duration(e0))
+                sm.stiff = True
         if not sm.active:
             return ref, math.nan
         tau = sm.tau_s
@@ -1281,6 +1286,19 @@ class StageController:
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
                                       dob)  # type: ignore[arg-type]
+        if settling and self._sm.stiff:
+            # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
+            # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)
+            sm = self._sm
+            beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
+            tau_a = ff.lookahead_s if ff is not None else 0.0
+            self._u_k = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps * (
+                sm.e0 - sm.sample(tau_c + tau_a)[0])
+        elif self._u_k != 0.0:
+            # the continuation is over: its held force goes to the observer (d̂ += u_k: no step in u)
+            dob.shift(self._u_k)  # type: ignore[union-attr]
+            d_hat += self._u_k
+            self._u_k = 0.0
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
@@ -1295,7 +1313,8 @@ class StageController:
                 dob.shift(i_n)  # type: ignore[union-attr]
                 d_hat += i_n
                 ps.i_n = 0.0
-        u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
+        u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n + self._u_k,
+                     cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, x_r - x_meas_m, at_rest)
         st.x_prev_m = x_meas_m
@@ -1304,7 +1323,7 @@ class StageController:
         st.u_ff_n = u_ff
         st.u_inertia_n = u_in
         st.d_hat_n = d_hat
-        st.u_obs_prev_n = u - u_ff
+        st.u_obs_prev_n = u - u_ff - self._u_k
         st.steps += 1
         self._last_ref = ref
         self._u_learn = u_learn_n

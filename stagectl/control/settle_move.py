@@ -40,6 +40,8 @@ class SettleMove:
         self.moving = False  # the reference moved at the last sample
         self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one)
         self.active = False  # a continuation is running
+        self.stiff = False
+        self.e0 = 0.0
         self.tau_s = 0.0
         self.duration_s = 0.0
         self._k = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -60,6 +62,8 @@ class SettleMove:
         """Plan c from (e0_m, v0_m_s, 0) to rest at 0 over ``duration_s`` [s] (> 0)."""
         T = duration_s
         self.duration_s = T
+        self.e0 = e0_m
+        self.stiff = False
         self.tau_s = 0.0
         self.active = True
         self._k = (e0_m, v0_m_s, -(10.0 * e0_m + 6.0 * v0_m_s * T) / T**3,
