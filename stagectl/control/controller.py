@@ -946,7 +946,8 @@ class StageController:
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
                 sm.start(e0, -v_hat, self.settle_move_duration(e0))
-            elif sm.direction * e0 < -e_min and scfg.ahead_stiffness_fraction > 0.0 and self._k_ps > 0.0:
+            elif (sm.direction * e0 < -e_min and sm.last_direction == sm.direction
+                  and scfg.ahead_stiffness_fraction > 0.0 and self._k_ps > 0.0):
                 # ahead (the stiff side): the same continuation, with the reversal's spring force (_step)
                 sm.start(e0, -v_hat, self.settle_move_duration(e0))
                 sm.stiff = True

@@ -38,7 +38,8 @@ class SettleMove:
     def reset(self) -> None:
         """No move under way, no continuation."""
         self.moving = False  # the reference moved at the last sample
-        self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one)
+        self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one) at its start
+        self.last_direction = 0.0  # +1 / −1: the reference's direction at its last sample in motion
         self.active = False  # a continuation is running
         self.stiff = False
         self.e0 = 0.0
@@ -56,6 +57,9 @@ class SettleMove:
             self.moving = True
             s = v_r if v_r != 0.0 else a_r
             self.direction = 1.0 if s > 0.0 else -1.0
+            self.last_direction = self.direction
+        if v_r != 0.0:
+            self.last_direction = 1.0 if v_r > 0.0 else -1.0
         return False
 
     def start(self, e0_m: float, v0_m_s: float, duration_s: float) -> None:

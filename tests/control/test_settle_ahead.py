@@ -72,19 +72,20 @@ def _with(cfg: Any, fraction: float) -> Any:
     return dataclasses.replace(c, settle=dataclasses.replace(c.settle, ahead_stiffness_fraction=fraction))
 
 
-def _run_plain(seed: Any, fraction: float, hold_s: float = 0.15) -> dict[str, Any]:
+def _run_plain(seed: Any, fraction: float, hold_s: float = 0.15, segments: tuple[Any, ...] = ()) -> dict[str, Any]:
     from stagectl.control.controller import StageController
     from stagectl.control.trajectory import Dwell, Move, Scenario, TrajectoryGenerator
 
     ctl = StageController(_with(seed, fraction), PERIOD, model=_high(seed))
     ctl.reset(0.0)
     gen = TrajectoryGenerator(0.0)
-    gen.load(Scenario(name="one", segments=(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05,
-                                                  max_jerk_m_s3=20.0), Dwell(hold_s)), start_m=0.0))
+    segs = segments or (Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0),)
+    sc = Scenario(name="one", segments=(*segs, Dwell(hold_s)), start_m=0.0)
+    gen.load(sc)
     plant = ElastoPlasticStage()
     x = 0.0
     rows = []
-    for _ in range(round((0.035 + hold_s) / PERIOD)):
+    for _ in range(round(sc.duration_s(0.0) / PERIOD)):
         ref = gen.step(PERIOD)
         cmd = ctl.step(PERIOD, x, ref)
         rows.append((ref.x_m, ref.v_m_s, ref.a_m_s2, x, cmd.force_n, cmd.terms["u_dob"], ctl._sm.active,
@@ -118,6 +119,20 @@ def test_ahead_on_a_plain_plant_force_along_the_travel_and_bumpless(seed: Any) -
     # and the stage comes to rest at the target (±10 nm in the last 20 ms of the hold)
     e_on = np.abs(on["xr"] - on["x"])
     assert e_on[-20:].max() < 10e-9
+
+
+def test_not_after_a_motion_that_reversed(seed: Any) -> None:
+    # a motion that starts one way and comes to rest going the other (out and back without a stop): the stage ends
+    # behind in its last direction, not ahead; no continuation from ahead, commands bit for bit as with it off
+    from stagectl.control.trajectory import Move
+
+    kw = {"max_velocity_m_s": 1e-3, "max_acceleration_m_s2": 0.05, "max_jerk_m_s3": 20.0}
+    back = (Move(by_m=10e-6, **kw), Move(by_m=-10e-6, **kw))
+    on, off = _run_plain(seed, 1.0, 0.05, back), _run_plain(seed, 0.0, 0.05, back)
+    rest = (on["vr"] == 0.0) & (on["ar"] == 0.0)
+    assert rest[1:].sum() > 40 and not rest[5:-60].all()
+    np.testing.assert_array_equal(on["u"], off["u"])
+    assert not np.any(on["u_k"])
 
 
 @pytest.mark.parametrize("k, f", [(1.2, 1.2), (1.0, 1.15)])
