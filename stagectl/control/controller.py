@@ -172,6 +172,16 @@ logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. N
 in docs/control.md §2.5–2.6 (20 %-wrong steps 63, 25, 28, 31 → 14, 25, 22, 22 ms with move_s 5 ms, F 0.145 N,
 move_min_m 0.1 µm; a fixed T = 14 ms gave 32, 24, 30, 31 ms and slowed some later moves).
 
+Settle move from ahead (``settle.ahead_stiffness_fraction`` = γ > 0, with ``move_s`` > 0): a move that ends with
+the stage *ahead* in the direction it moved (and started in) by more than ``move_min_m``, stuck on the stiff
+pre-sliding branch, gets the same continuation and the friction spring's force along its planned travel,
+
+    u_k(τ) = γ·θ·β·Σk·(e₀ − c(τ + τ_a))   [N]   (θ, β after the stop's learning; τ_a the feed-forward look-ahead)
+
+added to the command and kept out of the observer's input (u_obs = u − u_ff − u_k); at τ = T it is handed to the
+observer (d̂ += u_k, ``dob.shift``: no step in u). A feed-forward planned once at the stop: the loop and its margins
+are unchanged. docs/control.md §2.8: a too-high model's first step 24–64 → 18–32 ms.
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 

@@ -23,6 +23,12 @@ measured from the end of the commanded move, the in-position detector, the learn
 is unchanged: the continuation is not part of the move. While it runs the controller's rest logic (rest spring,
 rest synchronisation, integrator hold) waits; it takes over at τ = T.
 
+From ahead (the controller's ``settle.ahead_stiffness_fraction``; :attr:`SettleMove.stiff`): the same quintic
+from a stage that ended *ahead* (stiff side), with the friction spring's force along c added by the controller
+(:mod:`stagectl.control.controller`, "Settle move from ahead"). :attr:`SettleMove.last_direction` is the
+reference's direction at its last moving sample: a motion that reversed without a stop is not called ahead from
+its first direction.
+
 Pure, scalar, real-time safe.
 """
 
@@ -41,8 +47,8 @@ class SettleMove:
         self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one) at its start
         self.last_direction = 0.0  # +1 / −1: the reference's direction at its last sample in motion
         self.active = False  # a continuation is running
-        self.stiff = False
-        self.e0 = 0.0
+        self.stiff = False  # the continuation started from ahead (the controller adds the spring force)
+        self.e0 = 0.0  # e₀ [m] of the continuation under way (or the last one)
         self.tau_s = 0.0
         self.duration_s = 0.0
         self._k = (0.0, 0.0, 0.0, 0.0, 0.0)
