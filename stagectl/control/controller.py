@@ -723,7 +723,9 @@ class StageController:
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
-        self._u_k = 0.0
+        self._u_k = 0.0  # settle move from ahead: its spring force [N] (outside the observer's input)
+        self._k_ahead = 0.0  # its gain γ·θ·β·Σk [N/m], set at its first sample
+        self._tau_a = 0.0  # its look-ahead [s]
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -1301,10 +1303,11 @@ class StageController:
             # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
             # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)
             sm = self._sm
-            beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
-            tau_a = ff.lookahead_s if ff is not None else 0.0
-            self._u_k = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps * (
-                sm.e0 - sm.sample(tau_c + tau_a)[0])
+            if tau_c == 0.0:  # its first sample: the gain γ·θ·β·Σk (θ, β as the stop's learning left them), held
+                beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
+                self._k_ahead = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps
+                self._tau_a = ff.lookahead_s if ff is not None else 0.0
+            self._u_k = self._k_ahead * (sm.e0 - sm.sample(tau_c + self._tau_a)[0])
         elif self._u_k != 0.0:
             # the continuation is over: its held force goes to the observer (d̂ += u_k: no step in u)
             dob.shift(self._u_k)  # type: ignore[union-attr]
