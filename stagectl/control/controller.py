@@ -483,6 +483,10 @@ STUCK_EVIDENCE_TIME_S = 1.0
 #: ... from samples after the stage has followed for at least this many observer time constants in a row (slips
 #: of a stick-slip pass through "following" while the estimate is still wound up: not evidence)
 STUCK_EVIDENCE_TIME_CONSTANTS = 5.0
+#: the settle move from ahead's second continuation: its gain is the first's times the first's planned / measured
+#: travel, bounded to [1/AHEAD_RATIO_MAX, AHEAD_RATIO_MAX] (docs/control.md §2.8: 1.2 / 1.3 / 1.4 give the worst step
+#: of the seven models it changes most 29 / 28 / 33 ms; a travel still under way at τ = T misreads the stiffness)
+AHEAD_RATIO_MAX = 1.3
 #: peak |c̈|·T²/|e₀| of the rest-to-rest quintic (10/√3, at τ = T/2 ± T/(2√3)): the settle move's duration
 #: for an inertial force budget (:meth:`StageController.settle_move_duration`)
 QUINTIC_PEAK_ACCEL = 10.0 / math.sqrt(3.0)
@@ -726,6 +730,9 @@ class StageController:
         self._u_k = 0.0  # settle move from ahead: its spring force [N] (outside the observer's input)
         self._k_ahead = 0.0  # its gain γ·θ·β·Σk [N/m], set at its first sample
         self._tau_a = 0.0  # its look-ahead [s]
+        self._ahead_pass = 0  # 0: none under way, 1: the first continuation from ahead, 2: the second
+        self._ahead_ratio = 1.0  # the second's gain factor (planned / measured travel of the first, bounded)
+        self._u_k_base = 0.0  # the first's force, held under the second [N]
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -963,6 +970,21 @@ class StageController:
                 # ahead (the stiff side): the same continuation, with the reversal's spring force (_step)
                 sm.start(e0, -v_hat, self.settle_move_duration(e0))
                 sm.stiff = True
+        if not sm.active and sm.stiff and self._ahead_pass == 1 and ref[1] == 0.0 and ref[2] == 0.0:
+            # the continuation from ahead has ended: one more from where the stage is, if it is off by more than
+            # half of move_min_m, its gain scaled by the travel measured on the first (see _step)
+            e = ref.x_m - x_m
+            scfg = self.cfg.settle
+            e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
+            if abs(e) > 0.5 * e_min:
+                e_first = sm.e0
+                travel = e_first - e  # the first continuation's measured travel (planned: e_first)
+                ratio = e_first / travel if travel * e_first > 0.0 else AHEAD_RATIO_MAX
+                self._ahead_ratio = min(AHEAD_RATIO_MAX, max(1.0 / AHEAD_RATIO_MAX, ratio))
+                self._u_k_base = self._u_k
+                sm.start(e, -v_hat, self.settle_move_duration(e))
+                sm.stiff = True
+                self._ahead_pass = 2
         if not sm.active:
             return ref, math.nan
         tau = sm.tau_s
@@ -1303,16 +1325,23 @@ class StageController:
             # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
             # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)
             sm = self._sm
-            if tau_c == 0.0:  # its first sample: the gain γ·θ·β·Σk (θ, β as the stop's learning left them), held
-                beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
-                self._k_ahead = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps
-                self._tau_a = ff.lookahead_s if ff is not None else 0.0
-            self._u_k = self._k_ahead * (sm.e0 - sm.sample(tau_c + self._tau_a)[0])
+            if tau_c == 0.0:
+                if self._ahead_pass == 2:  # the second: the first's gain × its planned / measured travel
+                    self._k_ahead *= self._ahead_ratio
+                    self._ahead_ratio = 1.0
+                else:  # the first sample: the gain γ·θ·β·Σk (θ, β as the stop's learning left them), held
+                    beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
+                    self._k_ahead = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps
+                    self._tau_a = ff.lookahead_s if ff is not None else 0.0
+                    self._ahead_pass = 1
+                    self._u_k_base = 0.0
+            self._u_k = self._u_k_base + self._k_ahead * (sm.e0 - sm.sample(tau_c + self._tau_a)[0])
         elif self._u_k != 0.0:
             # the continuation is over: its held force goes to the observer (d̂ += u_k: no step in u)
             dob.shift(self._u_k)  # type: ignore[union-attr]
             d_hat += self._u_k
             self._u_k = 0.0
+            self._ahead_pass = 0
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
