@@ -172,6 +172,18 @@ logic (rest spring, rest synchronisation, integrator hold) waits until τ = T. N
 in docs/control.md §2.5–2.6 (20 %-wrong steps 63, 25, 28, 31 → 14, 25, 22, 22 ms with move_s 5 ms, F 0.145 N,
 move_min_m 0.1 µm; a fixed T = 14 ms gave 32, 24, 30, 31 ms and slowed some later moves).
 
+Settle move from ahead (``settle.ahead_stiffness_fraction`` = γ > 0, with ``move_s`` > 0): a move that ends with
+the stage *ahead* in the direction it moved (and started in) by more than ``move_min_m``, stuck on the stiff
+pre-sliding branch, gets the same continuation and the friction spring's force along its planned travel,
+
+    u_k(τ) = γ·θ·β·Σk·(e₀ − c(τ + τ_a))   [N]   (θ, β after the stop's learning; τ_a the feed-forward look-ahead)
+
+added to the command and kept out of the observer's input (u_obs = u − u_ff − u_k); at τ = T it is handed to the
+observer (d̂ += u_k, ``dob.shift``: no step in u). If at its end the stage is still off by more than move_min_m/2, one
+second continuation follows from there, keeping the first's force and adding its own with the gain × the first's
+planned / measured travel e₀/(e₀ − e₁), bounded by ``AHEAD_RATIO_MAX``. Feed-forward planned at each start: the loop
+and its margins are unchanged. docs/control.md §2.8: a too-high model's first step 24–64 → 15–24 ms.
+
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
 at rest, |e| <= ``settle.tolerance_m`` for ``settle.dwell_s``) as the ``in_position`` term (1.0 / 0.0).
 
@@ -498,6 +510,10 @@ STUCK_EVIDENCE_TIME_S = 1.0
 #: ... from samples after the stage has followed for at least this many observer time constants in a row (slips
 #: of a stick-slip pass through "following" while the estimate is still wound up: not evidence)
 STUCK_EVIDENCE_TIME_CONSTANTS = 5.0
+#: the settle move from ahead's second continuation: its gain is the first's times the first's planned / measured
+#: travel, bounded to [1/AHEAD_RATIO_MAX, AHEAD_RATIO_MAX] (docs/control.md §2.8: 1.2 / 1.3 / 1.4 give the worst step
+#: of the seven models it changes most 29 / 28 / 33 ms; a travel still under way at τ = T misreads the stiffness)
+AHEAD_RATIO_MAX = 1.3
 #: peak |c̈|·T²/|e₀| of the rest-to-rest quintic (10/√3, at τ = T/2 ± T/(2√3)): the settle move's duration
 #: for an inertial force budget (:meth:`StageController.settle_move_duration`)
 QUINTIC_PEAK_ACCEL = 10.0 / math.sqrt(3.0)
@@ -742,6 +758,12 @@ class StageController:
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
+        self._u_k = 0.0  # settle move from ahead: its spring force [N] (outside the observer's input)
+        self._k_ahead = 0.0  # its gain γ·θ·β·Σk [N/m], set at its first sample
+        self._tau_a = 0.0  # its look-ahead [s]
+        self._ahead_pass = 0  # 0: none under way, 1: the first continuation from ahead, 2: the second
+        self._ahead_ratio = 1.0  # the second's gain factor (planned / measured travel of the first, bounded)
+        self._u_k_base = 0.0  # the first's force, held under the second [N]
         self._reset_rest_spring()
 
     def _reset_rest_spring(self) -> None:
@@ -974,6 +996,26 @@ class StageController:
             e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
             if sm.direction * e0 > e_min:
                 sm.start(e0, -v_hat, self.settle_move_duration(e0))
+            elif (sm.direction * e0 < -e_min and sm.last_direction == sm.direction
+                  and scfg.ahead_stiffness_fraction > 0.0 and self._k_ps > 0.0):
+                # ahead (the stiff side): the same continuation, with the reversal's spring force (_step)
+                sm.start(e0, -v_hat, self.settle_move_duration(e0))
+                sm.stiff = True
+        if not sm.active and sm.stiff and self._ahead_pass == 1 and ref[1] == 0.0 and ref[2] == 0.0:
+            # the continuation from ahead has ended: one more from where the stage is, if it is off by more than
+            # half of move_min_m, its gain scaled by the travel measured on the first (see _step)
+            e = ref.x_m - x_m
+            scfg = self.cfg.settle
+            e_min = scfg.move_min_m if scfg.move_min_m is not None else self.cfg.rest_spring_range_m
+            if abs(e) > 0.5 * e_min:
+                e_first = sm.e0
+                travel = e_first - e  # the first continuation's measured travel (planned: e_first)
+                ratio = e_first / travel if travel * e_first > 0.0 else AHEAD_RATIO_MAX
+                self._ahead_ratio = min(AHEAD_RATIO_MAX, max(1.0 / AHEAD_RATIO_MAX, ratio))
+                self._u_k_base = self._u_k
+                sm.start(e, -v_hat, self.settle_move_duration(e))
+                sm.stiff = True
+                self._ahead_pass = 2
         if not sm.active:
             return ref, math.nan
         tau = sm.tau_s
@@ -1352,6 +1394,27 @@ class StageController:
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
                                       dob)  # type: ignore[arg-type]
+        if settling and self._sm.stiff:
+            # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
+            # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)
+            sm = self._sm
+            if tau_c == 0.0:
+                if self._ahead_pass == 2:  # the second: the first's gain × its planned / measured travel
+                    self._k_ahead *= self._ahead_ratio
+                    self._ahead_ratio = 1.0
+                else:  # the first sample: the gain γ·θ·β·Σk (θ, β as the stop's learning left them), held
+                    beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
+                    self._k_ahead = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps
+                    self._tau_a = ff.lookahead_s if ff is not None else 0.0
+                    self._ahead_pass = 1
+                    self._u_k_base = 0.0
+            self._u_k = self._u_k_base + self._k_ahead * (sm.e0 - sm.sample(tau_c + self._tau_a)[0])
+        elif self._u_k != 0.0:
+            # the continuation is over: its held force goes to the observer (d̂ += u_k: no step in u)
+            dob.shift(self._u_k)  # type: ignore[union-attr]
+            d_hat += self._u_k
+            self._u_k = 0.0
+            self._ahead_pass = 0
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
@@ -1366,7 +1429,8 @@ class StageController:
                 dob.shift(i_n)  # type: ignore[union-attr]
                 d_hat += i_n
                 ps.i_n = 0.0
-        u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n, cfg.max_force_n)
+        u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n + self._u_k,
+                     cfg.max_force_n)
         ps = pid.state
         in_pos = self.settle.step(dt, x_r - x_meas_m, at_rest)
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
@@ -1379,7 +1443,7 @@ class StageController:
         st.u_ff_n = u_ff
         st.u_inertia_n = u_in
         st.d_hat_n = d_hat
-        st.u_obs_prev_n = u - u_ff
+        st.u_obs_prev_n = u - u_ff - self._u_k
         st.steps += 1
         self._last_ref = ref
         self._u_learn = u_learn_n

@@ -8,7 +8,7 @@ stayed inside the window for the dwell time::
 A sample outside the window, or any reference motion, clears it at once (and restarts the dwell). The
 detector also times each move: ``settle_time_s`` is the time from the end of the commanded move (first
 sample at rest) to the sample that declared in-position (``nan`` until the current move has settled).
-YAML ``controller.settle``: ``tolerance_m`` [m], ``dwell_s`` [s]; ``move_s`` [s], ``move_force_n`` [N] and ``move_min_m`` [m] configure
+YAML ``controller.settle``: ``tolerance_m`` [m], ``dwell_s`` [s]; ``move_s`` [s], ``move_force_n`` [N], ``move_min_m`` [m] and ``ahead_stiffness_fraction`` configure
 the settle move of :mod:`stagectl.control.settle_move` (a controller element, not the detector's).
 """
 
@@ -42,6 +42,13 @@ class SettleConfig:
     move_min_m: float | None = param(
         None, unit="m", desc="settle move: the least error behind the reference at the end of a move that starts "
         "one (None: controller.rest_spring_range_m, the range the rest spring covers)", gt=0.0)
+    ahead_stiffness_fraction: float = param(
+        0.0, desc="settle move from ahead (with move_s > 0): a move that ends with the stage ahead of the reference "
+        "in its direction by more than move_min_m (on the stiff, pre-sliding side of its friction) gets the same "
+        "continuation back to the target, and the friction spring's force along it, this fraction of the model's "
+        "reversal stiffness theta·beta·sum(k) times the planned travel, as feed-forward outside the observer; "
+        "a stage still off by more than move_min_m/2 at its end gets a second one, its gain scaled by the "
+        "travel the first made (0: off, the rest spring alone pulls the stage back)", ge=0.0, le=2.0)
 
 
 @dataclass

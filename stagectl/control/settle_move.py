@@ -23,6 +23,12 @@ measured from the end of the commanded move, the in-position detector, the learn
 is unchanged: the continuation is not part of the move. While it runs the controller's rest logic (rest spring,
 rest synchronisation, integrator hold) waits; it takes over at τ = T.
 
+From ahead (the controller's ``settle.ahead_stiffness_fraction``; :attr:`SettleMove.stiff`): the same quintic
+from a stage that ended *ahead* (stiff side), with the friction spring's force along c added by the controller
+(:mod:`stagectl.control.controller`, "Settle move from ahead"). :attr:`SettleMove.last_direction` is the
+reference's direction at its last moving sample: a motion that reversed without a stop is not called ahead from
+its first direction.
+
 Pure, scalar, real-time safe.
 """
 
@@ -38,8 +44,11 @@ class SettleMove:
     def reset(self) -> None:
         """No move under way, no continuation."""
         self.moving = False  # the reference moved at the last sample
-        self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one)
+        self.direction = 0.0  # +1 / −1: the direction of the move under way (or the last one) at its start
+        self.last_direction = 0.0  # +1 / −1: the reference's direction at its last sample in motion
         self.active = False  # a continuation is running
+        self.stiff = False  # the continuation started from ahead (the controller adds the spring force)
+        self.e0 = 0.0  # e₀ [m] of the continuation under way (or the last one)
         self.tau_s = 0.0
         self.duration_s = 0.0
         self._k = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -54,12 +63,17 @@ class SettleMove:
             self.moving = True
             s = v_r if v_r != 0.0 else a_r
             self.direction = 1.0 if s > 0.0 else -1.0
+            self.last_direction = self.direction
+        if v_r != 0.0:
+            self.last_direction = 1.0 if v_r > 0.0 else -1.0
         return False
 
     def start(self, e0_m: float, v0_m_s: float, duration_s: float) -> None:
         """Plan c from (e0_m, v0_m_s, 0) to rest at 0 over ``duration_s`` [s] (> 0)."""
         T = duration_s
         self.duration_s = T
+        self.e0 = e0_m
+        self.stiff = False
         self.tau_s = 0.0
         self.active = True
         self._k = (e0_m, v0_m_s, -(10.0 * e0_m + 6.0 * v0_m_s * T) / T**3,

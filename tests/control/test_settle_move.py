@@ -125,14 +125,15 @@ def test_continues_a_move_that_ends_behind(seed_ctl: Any) -> None:
 
 
 def test_not_for_a_stage_ahead_or_a_small_error(seed_ctl: Any) -> None:
-    # a model 20 % too high: the stage ends ahead (stiff side); 20 % low: 63 nm behind, less than the default
-    # move_min_m (rest_spring_range_m, 0.2 µm); 30 % low with move_min_m 2 µm: 0.94 µm behind, less than that.
-    # No continuation: the commands are bit for bit those without the settle move
+    # a model 20 % too high: the stage ends ahead (stiff side; with settle.ahead_stiffness_fraction 0, the
+    # continuation from ahead off: tests/control/test_settle_ahead.py has it on); 20 % low: 63 nm behind, less than
+    # the default move_min_m (rest_spring_range_m, 0.2 µm); 30 % low with move_min_m 2 µm: 0.94 µm behind, less
+    # than that. No continuation: the commands are bit for bit those without the settle move
     for scale, move_min in ((1.2, None), (0.8, None), (0.7, 2e-6)):
-        cfg = seed_ctl
+        s = dataclasses.replace(seed_ctl.controller.settle, ahead_stiffness_fraction=0.0)
         if move_min is not None:
-            cfg = dataclasses.replace(cfg, controller=dataclasses.replace(
-                cfg.controller, settle=dataclasses.replace(cfg.controller.settle, move_min_m=move_min)))
+            s = dataclasses.replace(s, move_min_m=move_min)
+        cfg = dataclasses.replace(seed_ctl, controller=dataclasses.replace(seed_ctl.controller, settle=s))
         on = _run(cfg, 0.014, scale, hold_s=0.03)
         off = _run(cfg, 0.0, scale, hold_s=0.03)
         assert not on["active"].any()
