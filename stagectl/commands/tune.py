@@ -231,6 +231,12 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     return result, exit_code
 
 
+def _rest_gains(ctl: Any) -> dict[str, Any]:
+    """The controller's rest-loop gains as :func:`stagectl.control.design.analyse_rest` takes them."""
+    return {"kd_fraction": ctl.rest_kd_fraction, "dob_bandwidth_fraction": ctl.rest_dob_bandwidth_fraction,
+            "spring_cutoff_hz": ctl.rest_spring_cutoff_hz}
+
+
 def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
     integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
@@ -271,7 +277,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     for th in thetas:
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
                                             k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
-                                            integrator_held=held)))
+                                            integrator_held=held, **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
         rows = [(th, loops[j].summary()) for th, loops in per]

@@ -333,6 +333,16 @@ class ControllerConfig:
         "after |x - x_ref| stayed within this for rest_spring_rearm_s", gt=0.0)
     rest_spring_rearm_s: float = param(
         0.05, unit="s", desc="dwell within rest_spring_rearm_m before the released rest spring is re-armed", ge=0.0)
+    rest_kd_fraction: float = param(
+        1.0, desc="with a Q-filter observer: the PID's derivative gain while the reference is at rest, as a fraction "
+        "of pid.kd_n_s_m (the rest loop's gain at the stuck stage's pre-sliding resonance; 1: unchanged)",
+        gt=0.0, le=1.0)
+    rest_dob_bandwidth_fraction: float = param(
+        1.0, desc="with a Q-filter observer: the observer's bandwidth while the reference is at rest, as a fraction "
+        "of dob.bandwidth_hz (switched bumplessly; 1: unchanged)", gt=0.0, le=1.0)
+    rest_spring_cutoff_hz: float | None = param(
+        None, unit="Hz", desc="low-pass of the rest spring's force: two first-order sections at this cut-off "
+        "(None: one section at dob.bandwidth_hz)", gt=0.0)
     rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
@@ -630,6 +640,7 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
+        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_cutoff_hz) [N]
         self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
         self._x_rest_m = math.nan  # reference where a move folded the rest spring, until adapt_presliding_m away [m]
         self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
@@ -687,6 +698,8 @@ class StageController:
         """
         if not math.isfinite(x_m):
             raise ValueError(f"x_m must be finite (got {x_m})")
+        if self._rest_gains:
+            self._set_rest_gains(False)
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -719,6 +732,7 @@ class StageController:
         """The rest spring and its guard as at start (armed, no force, no swings or releases counted; no
         post-rest adaptation block): reset() and a retune, whose new settings rebuild the spring at rest."""
         self._s_rest = 0.0
+        self._s_mid = 0.0
         self._x_rest_m = math.nan
         self._rs_armed = True
         self._rs_releases = 0
@@ -786,6 +800,7 @@ class StageController:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
             st.u_ff_n = 0.0
+        self._rest_gains = False  # the new settings start with their moving gains (a standstill switches again)
         self.pid.retune(_scaled_pid(parts.pid_cfg, self.timing_scale))
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
@@ -817,12 +832,13 @@ class StageController:
             return
         self.timing_scale = s
         self._d_cfg = None  # _derive() again at the next step (the observer's decay)
-        cfg = self.cfg
-        self.pid.retune(_scaled_pid(cfg.pid, s))
+        pc, dc = self._gains(self._rest_gains)
+        self.pid.retune(_scaled_pid(pc, s))
         if isinstance(self.dob, QFilterDob):
-            self.dob.retune(_scaled_dob(cfg.dob, s), self.mass_kg)
+            self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
     _last_ref: Reference | None = None
+    _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _x_fresh = math.nan  # the last fresh (measured, not predicted) position [m]
     _xr_fresh = math.nan  # the reference at the last fresh sample [m]
     _dx_fresh = 0.0  # the stage's travel between the last two fresh samples [m]
@@ -1077,6 +1093,7 @@ class StageController:
                 self._rs_armed = True
                 self._rs_releases = 0
             s = self._s_rest
+            self._s_mid = 0.0
             if s != 0.0:
                 self._s_rest = 0.0
                 dob.shift(-s)
@@ -1093,11 +1110,17 @@ class StageController:
             # re-arm bumplessly: the spring starts at its steady force, which the observer takes over first
             self._rs_armed = True
             s = kv * max(-r, min(r, e_x))
-            self._s_rest = s
+            self._s_rest = self._s_mid = s
             dob.shift(s)
             return d_hat
         target = kv * max(-r, min(r, e_x))
-        a = self._dob_decay(dt)
+        fc = cfg.rest_spring_cutoff_hz
+        if fc is None:
+            a = self._dob_decay(dt)
+        else:  # two sections at fc (slowed down with the loop, as the observer)
+            a = math.exp(-2.0 * math.pi * fc / self.timing_scale * dt)
+            self._s_mid = a * self._s_mid + (1.0 - a) * target
+            target = self._s_mid
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 
@@ -1184,6 +1207,8 @@ class StageController:
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
+        self._d_rest_gains = isinstance(dob, QFilterDob) and (cfg.rest_kd_fraction != 1.0
+                                                              or cfg.rest_dob_bandwidth_fraction != 1.0)
         s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
         self._d_g = 2.0 * math.pi * cfg.dob.bandwidth_hz / s  # the observer's rate [1/s] (_stuck_dob)
         self._d_g_scaled = s == self.timing_scale  # exp(−g·dt) is _dob_decay(dt)
@@ -1198,6 +1223,25 @@ class StageController:
             self._a_dt = dt
             self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
         return self._a_val
+
+    def _gains(self, rest: bool) -> tuple[PidConfig, DobConfig]:
+        """The PID and observer settings in force (before the timing scale): the configured ones, or at rest those
+        with ``rest_kd_fraction`` and ``rest_dob_bandwidth_fraction`` applied (module docstring, "Rest loop")."""
+        cfg = self.cfg
+        if not rest:
+            return cfg.pid, cfg.dob
+        return (dataclasses.replace(cfg.pid, kd_n_s_m=cfg.pid.kd_n_s_m * cfg.rest_kd_fraction),
+                dataclasses.replace(cfg.dob, bandwidth_hz=cfg.dob.bandwidth_hz * cfg.rest_dob_bandwidth_fraction))
+
+    def _set_rest_gains(self, rest: bool) -> None:
+        """Switch to the rest loop's gains or back (at a standstill's start and end; bumpless: the PID term and d̂
+        keep their values, as in a retune; two small configs allocated per switch)."""
+        self._rest_gains = rest
+        pc, dc = self._gains(rest)
+        s = self.timing_scale
+        self.pid.retune(_scaled_pid(pc, s))
+        if isinstance(self.dob, QFilterDob):
+            self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
         x_r, v_r, a_r = ref
@@ -1284,6 +1328,8 @@ class StageController:
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
+        if self._d_rest_gains and (at_rest and not settling) != self._rest_gains:
+            self._set_rest_gains(not self._rest_gains)
         pid.hold_integrator = hold
         if hold:
             ps = pid.state
