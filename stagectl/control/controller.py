@@ -455,6 +455,13 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
     return problems
 
 
+#: the rest loop's gains (``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``) act while the stage is held: at rest
+#: with |v̂| <= REST_GAINS_ENTER_M_S for REST_GAINS_DWELL_S; the moving gains return at once when |v̂| exceeds
+#: REST_GAINS_EXIT_M_S (the stage slips: the rest gains have less damping on a free mass) or the reference moves
+REST_GAINS_ENTER_M_S = 1e-5
+REST_GAINS_EXIT_M_S = 3e-5
+REST_GAINS_DWELL_S = 0.005
+
 #: learning from earlier moves: weight of a move's normal equations per later move (memory ~1/(1 − 0.9) = 10
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
 #: information) towards the model as given
@@ -839,6 +846,7 @@ class StageController:
 
     _last_ref: Reference | None = None
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
+    _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
     _x_fresh = math.nan  # the last fresh (measured, not predicted) position [m]
     _xr_fresh = math.nan  # the reference at the last fresh sample [m]
     _dx_fresh = 0.0  # the stage's travel between the last two fresh samples [m]
@@ -1328,8 +1336,17 @@ class StageController:
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
-        if self._d_rest_gains and (at_rest and not settling) != self._rest_gains:
-            self._set_rest_gains(not self._rest_gains)
+        if self._d_rest_gains:
+            # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with
+            # |v̂| <= REST_GAINS_ENTER_M_S, left at once when |v̂| > REST_GAINS_EXIT_M_S (it slips) or the reference moves
+            if not (at_rest and not settling) or abs(v_hat) > REST_GAINS_EXIT_M_S:
+                self._rg_still_s = 0.0
+                want = False
+            else:
+                self._rg_still_s = self._rg_still_s + dt if abs(v_hat) <= REST_GAINS_ENTER_M_S else 0.0
+                want = self._rest_gains or self._rg_still_s >= REST_GAINS_DWELL_S
+            if want != self._rest_gains:
+                self._set_rest_gains(want)
         pid.hold_integrator = hold
         if hold:
             ps = pid.state
