@@ -108,6 +108,19 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
+Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_cutoff_hz`` = f_s,
+with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
+and above that resonance it has *more* gain than the free mass (1/(m·ω² − k)); the observer's high-frequency
+velocity feedback (≈ m·g) and K_d act on it with the loop delay, so the moving loop's gains alone give the stuck
+stage PM 40.0°, GM 6.6 dB, and the spring (one section at the observer's bandwidth) 30.8°, 6.1 dB. While the stage is
+held — the reference at rest, no settle move, and |v̂| <= ``REST_GAINS_ENTER_M_S`` for ``REST_GAINS_DWELL_S`` — the
+loop runs K_d·κ_d and the observer at κ_g·bandwidth (bumpless retunes, as :meth:`set_timing_scale`, with which they
+compose), and the spring's force goes through two sections at f_s, s_k = LPF_fs(LPF_fs(k_v·clamp(x − x_r))). The
+moving gains return as soon as |v̂| > ``REST_GAINS_EXIT_M_S`` (the stage slips: on a free mass the rest gains have
+less damping; without this gate a 0.9 µm soft-side stop without the settle move took 0.9 s instead of 63 ms) or the
+reference moves. ``config/sim.yaml``: κ_d 0.3, κ_g 0.75, f_s 100 Hz: stuck stage PM 53.7°, GM 8.4 dB over θ 0.5..1
+(``stagectl tune``; docs/control.md §2.8).
+
 Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
 reference moves and no learned force is applied)::
 
