@@ -234,7 +234,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
 def _rest_gains(ctl: Any) -> dict[str, Any]:
     """The controller's rest-loop gains as :func:`stagectl.control.design.analyse_rest` takes them."""
     return {"kd_fraction": ctl.rest_kd_fraction, "dob_bandwidth_fraction": ctl.rest_dob_bandwidth_fraction,
-            "spring_cutoff_hz": ctl.rest_spring_cutoff_hz}
+            "spring_sections": ctl.rest_spring_sections}
 
 
 def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:

@@ -108,17 +108,18 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
-Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_cutoff_hz`` = f_s,
+Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_sections`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
 and above that resonance it has *more* gain than the free mass (1/(m·ω² − k)); the observer's high-frequency
 velocity feedback (≈ m·g) and K_d act on it with the loop delay, so the moving loop's gains alone give the stuck
 stage PM 40.0°, GM 6.6 dB, and the spring (one section at the observer's bandwidth) 30.8°, 6.1 dB. While the stage is
 held — the reference at rest, no settle move, and |v̂| <= ``REST_GAINS_ENTER_M_S`` for ``REST_GAINS_DWELL_S`` — the
 loop runs K_d·κ_d and the observer at κ_g·bandwidth (bumpless retunes, as :meth:`set_timing_scale`, with which they
-compose), and the spring's force goes through two sections at f_s, s_k = LPF_fs(LPF_fs(k_v·clamp(x − x_r))). The
+compose), and the spring's force goes through n sections of the observer's own low-pass (at its configured
+bandwidth, not κ_g·bandwidth: the spring's timing stays that of the moving design), s = LPF_g^n(k_v·clamp(x − x_r)). The
 moving gains return as soon as |v̂| > ``REST_GAINS_EXIT_M_S`` (the stage slips: on a free mass the rest gains have
 less damping; without this gate a 0.9 µm soft-side stop without the settle move took 0.9 s instead of 63 ms) or the
-reference moves. ``config/sim.yaml``: κ_d 0.3, κ_g 0.75, f_s 100 Hz: stuck stage PM 53.7°, GM 8.4 dB over θ 0.5..1
+reference moves. ``config/sim.yaml``: κ_d 0.3, κ_g 0.75, n 2: stuck stage PM 53.7°, GM 8.4 dB over θ 0.5..1
 (``stagectl tune``; docs/control.md §2.8).
 
 Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
@@ -353,9 +354,9 @@ class ControllerConfig:
     rest_dob_bandwidth_fraction: float = param(
         1.0, desc="with a Q-filter observer: the observer's bandwidth while the reference is at rest, as a fraction "
         "of dob.bandwidth_hz (switched bumplessly; 1: unchanged)", gt=0.0, le=1.0)
-    rest_spring_cutoff_hz: float | None = param(
-        None, unit="Hz", desc="low-pass of the rest spring's force: two first-order sections at this cut-off "
-        "(None: one section at dob.bandwidth_hz)", gt=0.0)
+    rest_spring_sections: int = param(
+        1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
+        "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
     rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
@@ -660,7 +661,7 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
-        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_cutoff_hz) [N]
+        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_sections 2) [N]
         self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
         self._x_rest_m = math.nan  # reference where a move folded the rest spring, until adapt_presliding_m away [m]
         self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
@@ -1135,11 +1136,8 @@ class StageController:
             dob.shift(s)
             return d_hat
         target = kv * max(-r, min(r, e_x))
-        fc = cfg.rest_spring_cutoff_hz
-        if fc is None:
-            a = self._dob_decay(dt)
-        else:  # two sections at fc (slowed down with the loop, as the observer)
-            a = math.exp(-2.0 * math.pi * fc / self.timing_scale * dt)
+        a = self._dob_decay(dt)
+        if cfg.rest_spring_sections == 2:
             self._s_mid = a * self._s_mid + (1.0 - a) * target
             target = self._s_mid
         self._s_rest = a * self._s_rest + (1.0 - a) * target
