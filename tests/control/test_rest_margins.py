@@ -37,7 +37,7 @@ def test_shipped_rest_loop_meets_the_floor_on_the_stuck_stage(name):
 
 
 @pytest.mark.xfail(strict=True, reason="hil-serial (two periods of delay): the floor needs the rest observer at "
-                   "~22 Hz and costs 2x the HIL settle time (docs/control.md §2.8); not shipped")
+                   "22 Hz and costs ~1.5x the HIL settle time (docs/control.md §2.8); not shipped")
 def test_hil_serial_rest_loop_meets_the_floor():
     assert _rest("hil-serial.yaml")["loops"]["rest/stuck"]["healthy"]
 
