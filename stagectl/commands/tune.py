@@ -10,7 +10,8 @@ Inputs: the application config (``stagectl.config.load_app_config``: ``loop.peri
 ``io.delay_cycles``); flags override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
 With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (the PID's integrator
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
-``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
+``rest_stiffness_fraction``, and the rest gains ``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``,
+``rest_spring_sections``) is analysed too, on the stage stuck in pre-sliding and on the free
 mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor. The spring
 follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
 the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
