@@ -108,7 +108,7 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
-Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_sections`` = n,
+Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
 and above that resonance it has *more* gain than the free mass (1/(m·ω² − k)); the observer's high-frequency
 velocity feedback (≈ m·g) and K_d act on it with the loop delay, so the moving loop's gains alone give the stuck
@@ -354,7 +354,7 @@ class ControllerConfig:
     rest_dob_bandwidth_fraction: float = param(
         1.0, desc="with a Q-filter observer: the observer's bandwidth while the reference is at rest, as a fraction "
         "of dob.bandwidth_hz (switched bumplessly; 1: unchanged)", gt=0.0, le=1.0)
-    rest_spring_sections: int = param(
+    rest_spring_section_count: int = param(
         1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
         "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
     rest_spring_max_release_count: int = param(
@@ -661,7 +661,7 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
-        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_sections 2) [N]
+        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_section_count 2) [N]
         self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
         self._x_rest_m = math.nan  # reference where a move folded the rest spring, until adapt_presliding_m away [m]
         self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
@@ -1137,7 +1137,7 @@ class StageController:
             return d_hat
         target = kv * max(-r, min(r, e_x))
         a = self._dob_decay(dt)
-        if cfg.rest_spring_sections == 2:
+        if cfg.rest_spring_section_count == 2:
             self._s_mid = a * self._s_mid + (1.0 - a) * target
             target = self._s_mid
         self._s_rest = a * self._s_rest + (1.0 - a) * target

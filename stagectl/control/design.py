@@ -329,7 +329,7 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     φ·min(θ, 1)·Σk of the controller's model, 0: off) on two plants of mass ``mass_kg`` [kg], both with the I/O delay.
     The controller's rest gains: K_d × ``kd_fraction`` (``rest_kd_fraction``), the observer at
     ``dob_bandwidth_hz`` × ``dob_bandwidth_fraction`` (``rest_dob_bandwidth_fraction``), and the spring's low-pass
-    ``spring_sections`` (``rest_spring_sections``) times, C_s = k_v·((1−α)z/(z−α))ⁿ (α at ``dob_bandwidth_hz``).
+    ``spring_sections`` (``rest_spring_section_count``) times, C_s = k_v·((1−α)z/(z−α))ⁿ (α at ``dob_bandwidth_hz``).
     The plants:
 
     * ``rest/stuck``: the stage stuck in pre-sliding, 1/(m·s² + c·s + k) (c = ``damping_n_s_m``, the friction's

@@ -145,7 +145,7 @@ def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, caps
                                c.dob.command_delay_samples, fr.stiffness_n_m, fr.damping_n_s_m,
                                th * rest["rest_spring_n_m"], c.velocity_cutoff_hz, kd_fraction=c.rest_kd_fraction,
                                dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
-                               spring_sections=c.rest_spring_sections)
+                               spring_sections=c.rest_spring_section_count)
     assert rest["rest_spring_n_m"] == pytest.approx(c.rest_stiffness_fraction * fr.stiffness_n_m)
     assert rest["loops"]["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
     assert rest["loops"]["rest/free"]["closed_loop_stable"] is free.stable is False
@@ -191,7 +191,7 @@ def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
     args = (2.0, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz, c.dob.command_delay_samples,
             fr.stiffness_n_m, fr.damping_n_s_m, rest["rest_spring_n_m"], c.velocity_cutoff_hz)
     gains = {"kd_fraction": c.rest_kd_fraction, "dob_bandwidth_fraction": c.rest_dob_bandwidth_fraction,
-             "spring_sections": c.rest_spring_sections}
+             "spring_sections": c.rest_spring_section_count}
     stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False, **gains)
     old_stuck, old_free = analyse_rest(*args, **gains)
     got = rest["loops"]

@@ -68,7 +68,7 @@ def test_tune_reports_the_rest_loop_worst_case_over_theta(repo_root, capsys, see
                                 c.dob.command_delay_samples, fr.stiffness_n_m, fr.damping_n_s_m,
                                 r["theta"] * rest["rest_spring_n_m"], c.velocity_cutoff_hz,
                                 kd_fraction=c.rest_kd_fraction, dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
-                                spring_sections=c.rest_spring_sections)
+                                spring_sections=c.rest_spring_section_count)
         assert r["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
         assert r["gain_margin_db"] == pytest.approx(stuck.gain_margin_db)
     worst = rest["loops"]["rest/stuck"]
