@@ -1349,7 +1349,8 @@ class StageController:
         hold = at_rest and not settling and self._d_hold
         if self._d_rest_gains:
             # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with
-            # |v̂| <= REST_GAINS_ENTER_M_S, left at once when |v̂| > REST_GAINS_EXIT_M_S (it slips) or the reference moves
+            # |v̂| <= REST_GAINS_ENTER_M_S, left at once when |v̂| > REST_GAINS_EXIT_M_S (it slips) or the
+            # reference moves
             if not (at_rest and not settling) or abs(v_hat) > REST_GAINS_EXIT_M_S:
                 self._rg_still_s = 0.0
                 want = False
