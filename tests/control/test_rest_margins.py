@@ -80,3 +80,37 @@ def test_free_stage_rest_loop_matches_the_analysis():
     assert not free["closed_loop_stable"]
     assert _free_mass_growth(0.5) > 1e3
     assert _free_mass_growth(0.0) < 1.0
+
+
+def test_rest_gains_act_only_while_the_stage_is_held_and_switch_bumplessly():
+    """config/sim.yaml's rest gains: at rest with the stage still, K_d × rest_kd_fraction and the observer at
+    rest_dob_bandwidth_fraction × its bandwidth after REST_GAINS_DWELL_S, with the command at the switch the same as a
+    controller without rest gains gives (bumpless: PID term and d̂ keep their values); a stage that slips
+    (|v̂| > REST_GAINS_EXIT_M_S) gets the moving gains back at once."""
+    from stagectl.config import load_app_config
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import REST_GAINS_DWELL_S, StageController
+
+    app = load_app_config(str(CONFIG / "sim.yaml"))
+    c = app.controller
+    assert c.rest_kd_fraction < 1.0 and c.rest_dob_bandwidth_fraction < 1.0
+    ctl = StageController(c, app.timing)
+    plain = StageController(dataclasses.replace(c, rest_kd_fraction=1.0, rest_dob_bandwidth_fraction=1.0), app.timing)
+    T = app.loop.period_s
+    ref = Reference(0.0, 0.0, 0.0)
+    x = 20e-9
+    switched = None
+    for ct in (ctl, plain):
+        ct.reset(0.0)
+    for k in range(int(REST_GAINS_DWELL_S / T) + 5):
+        u, u0 = ctl.step(T, x, ref).force_n, plain.step(T, x, ref).force_n
+        if switched is None and ctl.pid.cfg.kd_n_s_m != c.pid.kd_n_s_m:
+            switched = k
+            assert u == pytest.approx(u0, abs=1e-12)  # no step in the command at the switch
+        elif switched is None:
+            assert u == u0
+    assert switched is not None and switched * T >= REST_GAINS_DWELL_S - 1.5 * T
+    assert ctl.pid.cfg.kd_n_s_m == pytest.approx(c.rest_kd_fraction * c.pid.kd_n_s_m)
+    assert ctl.dob.cfg.bandwidth_hz == pytest.approx(c.rest_dob_bandwidth_fraction * c.dob.bandwidth_hz)
+    ctl.step(T, x + 60e-9, ref)  # 60 µm/s: the stage slips
+    assert ctl.pid.cfg.kd_n_s_m == c.pid.kd_n_s_m and ctl.dob.cfg.bandwidth_hz == c.dob.bandwidth_hz
