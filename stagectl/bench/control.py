@@ -354,7 +354,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                  "plant_damping_n_s_m": c_plant}
         for a in analyse_rest(mass, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz,
                               c.dob.command_delay_samples, k_plant, c_plant, kv, c.velocity_cutoff_hz,
-                              dob_mass_kg=c.dob.nominal_mass_kg, integrator_held=c.hold_integrator_at_rest):
+                              dob_mass_kg=c.dob.nominal_mass_kg, integrator_held=c.hold_integrator_at_rest,
+                              kd_fraction=c.rest_kd_fraction, dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
+                              spring_sections=c.rest_spring_section_count):
             out_r[a.name.split("/")[1]] = {"phase_margin_deg": round(a.phase_margin_deg, 1),
                                            "gain_margin_db": round(a.gain_margin_db, 1),
                                            "closed_loop_stable": a.stable}

@@ -10,7 +10,8 @@ Inputs: the application config (``stagectl.config.load_app_config``: ``loop.peri
 ``io.delay_cycles``); flags override. Without ``--config`` the flags ``--mass-kg`` and ``--period-s`` are required.
 With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (the PID's integrator
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
-``rest_stiffness_fraction``) is analysed too, on the stage stuck in pre-sliding and on the free
+``rest_stiffness_fraction``, and the rest gains ``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``,
+``rest_spring_section_count``) is analysed too, on the stage stuck in pre-sliding and on the free
 mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor. The spring
 follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
 the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
@@ -231,6 +232,12 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     return result, exit_code
 
 
+def _rest_gains(ctl: Any) -> dict[str, Any]:
+    """The controller's rest-loop gains as :func:`stagectl.control.design.analyse_rest` takes them."""
+    return {"kd_fraction": ctl.rest_kd_fraction, "dob_bandwidth_fraction": ctl.rest_dob_bandwidth_fraction,
+            "spring_sections": ctl.rest_spring_section_count}
+
+
 def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
     integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
@@ -271,7 +278,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     for th in thetas:
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
                                             k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
-                                            integrator_held=held)))
+                                            integrator_held=held, **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
         rows = [(th, loops[j].summary()) for th, loops in per]

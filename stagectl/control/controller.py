@@ -108,6 +108,20 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
+Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
+with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
+and above that resonance it has *more* gain than the free mass (1/(m·ω² − k)); the observer's high-frequency
+velocity feedback (≈ m·g) and K_d act on it with the loop delay, so the moving loop's gains alone give the stuck
+stage PM 40.0°, GM 6.6 dB, and the spring (one section at the observer's bandwidth) 30.8°, 6.1 dB. While the stage is
+held — the reference at rest, no settle move, and |v̂| <= ``REST_GAINS_ENTER_M_S`` for ``REST_GAINS_DWELL_S`` — the
+loop runs K_d·κ_d and the observer at κ_g·bandwidth (bumpless retunes, as :meth:`set_timing_scale`, with which they
+compose), and the spring's force goes through n sections of the observer's own low-pass (at its configured
+bandwidth, not κ_g·bandwidth: the spring's timing stays that of the moving design), s = LPF_g^n(k_v·clamp(x − x_r)). The
+moving gains return as soon as |v̂| > ``REST_GAINS_EXIT_M_S`` (the stage slips: on a free mass the rest gains have
+less damping; without this gate a 0.9 µm soft-side stop without the settle move took 0.9 s instead of 63 ms) or the
+reference moves. ``config/sim.yaml``: κ_d 0.3, κ_g 0.75, n 2: stuck stage PM 53.7°, GM 8.4 dB over θ 0.5..1
+(``stagectl tune``; docs/control.md §2.9).
+
 Feed-forward adaptation (``feedforward.adapt_bandwidth_hz`` = f_a, γ = 2π·f_a, with an observer, while the
 reference moves and no learned force is applied)::
 
@@ -345,6 +359,16 @@ class ControllerConfig:
         "after |x - x_ref| stayed within this for rest_spring_rearm_s", gt=0.0)
     rest_spring_rearm_s: float = param(
         0.05, unit="s", desc="dwell within rest_spring_rearm_m before the released rest spring is re-armed", ge=0.0)
+    rest_kd_fraction: float = param(
+        1.0, desc="with a Q-filter observer: the PID's derivative gain while the reference is at rest, as a fraction "
+        "of pid.kd_n_s_m (the rest loop's gain at the stuck stage's pre-sliding resonance; 1: unchanged)",
+        gt=0.0, le=1.0)
+    rest_dob_bandwidth_fraction: float = param(
+        1.0, desc="with a Q-filter observer: the observer's bandwidth while the reference is at rest, as a fraction "
+        "of dob.bandwidth_hz (switched bumplessly; 1: unchanged)", gt=0.0, le=1.0)
+    rest_spring_section_count: int = param(
+        1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
+        "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
     rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
@@ -481,6 +505,13 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
                         f"rest_spring_release_m ({cfg.rest_spring_release_m:g} m)")
     return problems
 
+
+#: the rest loop's gains (``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``) act while the stage is held: at rest
+#: with |v̂| <= REST_GAINS_ENTER_M_S for REST_GAINS_DWELL_S; the moving gains return at once when |v̂| exceeds
+#: REST_GAINS_EXIT_M_S (the stage slips: the rest gains have less damping on a free mass) or the reference moves
+REST_GAINS_ENTER_M_S = 1e-5
+REST_GAINS_EXIT_M_S = 3e-5
+REST_GAINS_DWELL_S = 0.005
 
 #: learning from earlier moves: weight of a move's normal equations per later move (memory ~1/(1 − 0.9) = 10
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
@@ -673,6 +704,7 @@ class StageController:
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
+        self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_section_count 2) [N]
         self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
         self._x_rest_m = math.nan  # reference where a move folded the rest spring, until adapt_presliding_m away [m]
         self._rs_armed = True  # the rest spring acts (False: released, the stage was seen not stuck)
@@ -730,6 +762,8 @@ class StageController:
         """
         if not math.isfinite(x_m):
             raise ValueError(f"x_m must be finite (got {x_m})")
+        if self._rest_gains:
+            self._set_rest_gains(False)
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -770,6 +804,7 @@ class StageController:
         """The rest spring and its guard as at start (armed, no force, no swings or releases counted; no
         post-rest adaptation block): reset() and a retune, whose new settings rebuild the spring at rest."""
         self._s_rest = 0.0
+        self._s_mid = 0.0
         self._x_rest_m = math.nan
         self._rs_armed = True
         self._rs_releases = 0
@@ -837,6 +872,7 @@ class StageController:
                 ref_x = self._last_ref.x_m if self._last_ref is not None else st.x_prev_m
                 parts.ff.reset(ref_x)
             st.u_ff_n = 0.0
+        self._rest_gains = False  # the new settings start with their moving gains (a standstill switches again)
         self.pid.retune(_scaled_pid(parts.pid_cfg, self.timing_scale))
         if transfer:
             self.pid.preload(self.pid.state.u_pid_n + transfer)
@@ -868,12 +904,14 @@ class StageController:
             return
         self.timing_scale = s
         self._d_cfg = None  # _derive() again at the next step (the observer's decay)
-        cfg = self.cfg
-        self.pid.retune(_scaled_pid(cfg.pid, s))
+        pc, dc = self._gains(self._rest_gains)
+        self.pid.retune(_scaled_pid(pc, s))
         if isinstance(self.dob, QFilterDob):
-            self.dob.retune(_scaled_dob(cfg.dob, s), self.mass_kg)
+            self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
     _last_ref: Reference | None = None
+    _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
+    _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
     _x_fresh = math.nan  # the last fresh (measured, not predicted) position [m]
     _xr_fresh = math.nan  # the reference at the last fresh sample [m]
     _dx_fresh = 0.0  # the stage's travel between the last two fresh samples [m]
@@ -1148,6 +1186,7 @@ class StageController:
                 self._rs_armed = True
                 self._rs_releases = 0
             s = self._s_rest
+            self._s_mid = 0.0
             if s != 0.0:
                 self._s_rest = 0.0
                 dob.shift(-s)
@@ -1164,11 +1203,14 @@ class StageController:
             # re-arm bumplessly: the spring starts at its steady force, which the observer takes over first
             self._rs_armed = True
             s = kv * max(-r, min(r, e_x))
-            self._s_rest = s
+            self._s_rest = self._s_mid = s
             dob.shift(s)
             return d_hat
         target = kv * max(-r, min(r, e_x))
         a = self._dob_decay(dt)
+        if cfg.rest_spring_section_count == 2:
+            self._s_mid = a * self._s_mid + (1.0 - a) * target
+            target = self._s_mid
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 
@@ -1269,6 +1311,8 @@ class StageController:
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
+        self._d_rest_gains = isinstance(dob, QFilterDob) and (cfg.rest_kd_fraction != 1.0
+                                                              or cfg.rest_dob_bandwidth_fraction != 1.0)
         s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
         self._d_g = 2.0 * math.pi * cfg.dob.bandwidth_hz / s  # the observer's rate [1/s] (_stuck_dob)
         self._d_g_scaled = s == self.timing_scale  # exp(−g·dt) is _dob_decay(dt)
@@ -1303,6 +1347,25 @@ class StageController:
         u_next = self._u_obs_next
         u_mean = (t_own * dob.next_input_n() + t2 * st.u_obs_prev_n + (t3 * u_next if t3 > 0.0 else 0.0)) / dt
         return dob.step(dt, x_m, v_hat, st.u_obs_prev_n, u_mean, u_next)
+
+    def _gains(self, rest: bool) -> tuple[PidConfig, DobConfig]:
+        """The PID and observer settings in force (before the timing scale): the configured ones, or at rest those
+        with ``rest_kd_fraction`` and ``rest_dob_bandwidth_fraction`` applied (module docstring, "Rest loop")."""
+        cfg = self.cfg
+        if not rest:
+            return cfg.pid, cfg.dob
+        return (dataclasses.replace(cfg.pid, kd_n_s_m=cfg.pid.kd_n_s_m * cfg.rest_kd_fraction),
+                dataclasses.replace(cfg.dob, bandwidth_hz=cfg.dob.bandwidth_hz * cfg.rest_dob_bandwidth_fraction))
+
+    def _set_rest_gains(self, rest: bool) -> None:
+        """Switch to the rest loop's gains or back (at a standstill's start and end; bumpless: the PID term and d̂
+        keep their values, as in a retune; two small configs allocated per switch)."""
+        self._rest_gains = rest
+        pc, dc = self._gains(rest)
+        s = self.timing_scale
+        self.pid.retune(_scaled_pid(pc, s))
+        if isinstance(self.dob, QFilterDob):
+            self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
     def _step(self, dt: float, x_meas_m: float, ref: Reference, u_learn_n: float, ilc: bool) -> Command:
         x_r, v_r, a_r = ref
@@ -1418,6 +1481,18 @@ class StageController:
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
+        if self._d_rest_gains:
+            # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with
+            # |v̂| <= REST_GAINS_ENTER_M_S, left at once when |v̂| > REST_GAINS_EXIT_M_S (it slips) or the
+            # reference moves
+            if not (at_rest and not settling) or abs(v_hat) > REST_GAINS_EXIT_M_S:
+                self._rg_still_s = 0.0
+                want = False
+            else:
+                self._rg_still_s = self._rg_still_s + dt if abs(v_hat) <= REST_GAINS_ENTER_M_S else 0.0
+                want = self._rest_gains or self._rg_still_s >= REST_GAINS_DWELL_S
+            if want != self._rest_gains:
+                self._set_rest_gains(want)
         pid.hold_integrator = hold
         if hold:
             ps = pid.state

@@ -319,13 +319,18 @@ def analyse_design(mass_kg: float, period_s: float, pid: PidConfig, delay_sample
 def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int, dob_bandwidth_hz: float,
                  dob_command_delay_samples: int, stiffness_n_m: float, damping_n_s_m: float,
                  rest_spring_n_m: float, velocity_cutoff_hz: float | None = None, *,
-                 dob_mass_kg: float | None = None, integrator_held: bool = True) -> list[LoopAnalysis]:
+                 dob_mass_kg: float | None = None, integrator_held: bool = True, kd_fraction: float = 1.0,
+                 dob_bandwidth_fraction: float = 1.0, spring_sections: int = 1) -> list[LoopAnalysis]:
     """Margins of the *rest* loop (:mod:`stagectl.control.controller`, "Rest spring"): PD (PID with its
     integrator held at rest, ``integrator_held``; False: the full PID, as a controller with
     ``hold_integrator_at_rest: false`` runs) + Q-filter DOB with nominal mass ``dob_mass_kg`` (None: the plant's
     ``mass_kg``; the controller's ``dob.nominal_mass_kg`` when it differs) + the rest spring
     C_s = k_v·(1−α)z/(z−α) (α = exp(−2π·bandwidth·T), the observer's low-pass; k_v = ``rest_spring_n_m`` =
-    φ·min(θ, 1)·Σk of the controller's model, 0: off) on two plants of mass ``mass_kg`` [kg], both with the I/O delay:
+    φ·min(θ, 1)·Σk of the controller's model, 0: off) on two plants of mass ``mass_kg`` [kg], both with the I/O delay.
+    The controller's rest gains: K_d × ``kd_fraction`` (``rest_kd_fraction``), the observer at
+    ``dob_bandwidth_hz`` × ``dob_bandwidth_fraction`` (``rest_dob_bandwidth_fraction``), and the spring's low-pass
+    ``spring_sections`` (``rest_spring_section_count``) times, C_s = k_v·((1−α)z/(z−α))ⁿ (α at ``dob_bandwidth_hz``).
+    The plants:
 
     * ``rest/stuck``: the stage stuck in pre-sliding, 1/(m·s² + c·s + k) (c = ``damping_n_s_m``, the friction's
       σ2 + Σσ1; k its initial stiffness Σk);
@@ -336,13 +341,16 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     """
     import control
 
-    C = pid_tf(dataclasses.replace(pid, ki_n_m_s=0.0) if integrator_held else pid, period_s)
+    pid_r = dataclasses.replace(pid, kd_n_s_m=pid.kd_n_s_m * kd_fraction)
+    C = pid_tf(dataclasses.replace(pid_r, ki_n_m_s=0.0) if integrator_held else pid_r, period_s)
     if rest_spring_n_m > 0.0:
         a = math.exp(-2 * math.pi * dob_bandwidth_hz * period_s)
         z = control.tf([1.0, 0.0], [1.0], period_s)
-        C = C + rest_spring_n_m * (1 - a) * z / (z - a)
+        F = (1 - a) * z / (z - a)
+        C = C + rest_spring_n_m * (F * F if spring_sections == 2 else F)
     md = dob_mass_kg if dob_mass_kg is not None else mass_kg
-    Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz, period_s, dob_command_delay_samples, velocity_cutoff_hz)
+    Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz * dob_bandwidth_fraction, period_s, dob_command_delay_samples,
+                         velocity_cutoff_hz)
     stuck = control.c2d(control.tf([1.0], [mass_kg, damping_n_s_m, stiffness_n_m]), period_s, "zoh")
     if delay_samples:
         stuck = stuck * _zinv(period_s, delay_samples)

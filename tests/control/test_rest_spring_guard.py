@@ -140,9 +140,12 @@ def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, caps
     cfg = load_app_config(path)
     c = cfg.controller
     fr = cfg.sim.plant.friction
+    th = rest["loops"]["rest/stuck"]["theta"]  # the worst θ of the sweep
     stuck, free = analyse_rest(2.0, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz,
                                c.dob.command_delay_samples, fr.stiffness_n_m, fr.damping_n_s_m,
-                               rest["rest_spring_n_m"], c.velocity_cutoff_hz)
+                               th * rest["rest_spring_n_m"], c.velocity_cutoff_hz, kd_fraction=c.rest_kd_fraction,
+                               dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
+                               spring_sections=c.rest_spring_section_count)
     assert rest["rest_spring_n_m"] == pytest.approx(c.rest_stiffness_fraction * fr.stiffness_n_m)
     assert rest["loops"]["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
     assert rest["loops"]["rest/free"]["closed_loop_stable"] is free.stable is False
@@ -176,6 +179,7 @@ def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
     data = shipped_config_mapping("sim.yaml")
     data["controller"]["dob"]["nominal_mass_kg"] = 2.6
     data["controller"]["hold_integrator_at_rest"] = False
+    data["controller"]["feedforward"].update(adapt_bandwidth_hz=0.0, learn_moves_fraction=0.0)  # θ stays 1
     path = tmp_path / "rest.yaml"
     path.write_text(yaml.safe_dump(data))
     main(["tune", "--config", str(path), "--bandwidth-hz", "200", "--json"])  # refused design: no steps check
@@ -186,8 +190,10 @@ def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
     fr = cfg.sim.plant.friction
     args = (2.0, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz, c.dob.command_delay_samples,
             fr.stiffness_n_m, fr.damping_n_s_m, rest["rest_spring_n_m"], c.velocity_cutoff_hz)
-    stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False)
-    old_stuck, old_free = analyse_rest(*args)
+    gains = {"kd_fraction": c.rest_kd_fraction, "dob_bandwidth_fraction": c.rest_dob_bandwidth_fraction,
+             "spring_sections": c.rest_spring_section_count}
+    stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False, **gains)
+    old_stuck, old_free = analyse_rest(*args, **gains)
     got = rest["loops"]
     assert got["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
     assert got["rest/free"]["phase_margin_deg"] == pytest.approx(free.phase_margin_deg)
