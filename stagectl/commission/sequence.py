@@ -459,6 +459,18 @@ class Commissioning:
             # the joint mass + viscous fit's (at least 5 %)
             r.plant = dataclasses.replace(pm, mass_kg=m_p, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m_p),
                                           mass_from="probe")
+        joint_used = r.plant.mass_from == "probe" and r.sanity.mass_from == "joint"
+        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+        if r.plant.mass_from == "frf" and not an.frf_mass_consistent(pm.mass_kg, pm.mass_std_kg, m_ref, s_ref):
+            # plausible, but further from the probe than both uncertainties explain (analysis.frf_mass_consistent)
+            self.opts.progress(f"commission: FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the "
+                               f"probe's {m_ref:.4g} ± {s_ref:.2g} kg by more than {an.FRF_MASS_SIGMAS:g} standard "
+                               "errors: using the probe's mass")
+            r.notes.append(f"the FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the probe's "
+                           f"{m_ref:.4g} ± {s_ref:.2g} kg ({'mass + viscous fit' if ref_joint else r.sanity.mass_from}) "
+                           f"by more than {an.FRF_MASS_SIGMAS:g} combined standard errors: the probe's mass is used")
+            r.plant = dataclasses.replace(pm, mass_kg=m_ref, mass_std_kg=s_ref, mass_from="probe")
+            joint_used = ref_joint
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
@@ -470,7 +482,7 @@ class Commissioning:
         # 31 N s/m, 1.43 N Coulomb, faulted in friction_cv tuned for 0.51 kg, not for 0.77); the cap keeps a
         # 6x bias (k101: 4.14 kg for 0.67, a fault there) out. The identification and the gains use ``m``.
         m_exp = m
-        if r.plant.mass_from == "probe" and r.sanity.mass_from == "joint":
+        if joint_used:
             m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
         xp = self._experiment_crossover(m_exp)
         rho = float(self.experiment_tuning["stiction_ratio"])
@@ -541,8 +553,14 @@ class Commissioning:
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         stuck: list[an.CvSegment] = []
+        # the force read where it acts: the FRF's delay where it is measured (std within a quarter period), the
+        # configured one otherwise, plus the zero-order hold's half period (analysis.cv_segments)
+        tau = self.cfg.io.delay_cycles * T
+        if r.plant is not None and r.plant.delay_std_s <= 0.25 * T and r.plant.delay_s > 0.0:
+            tau = r.plant.delay_s
         r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m, speeds=speeds, dropped=stuck))
+                                             cv_rec.col("a_ref"), m, speeds=speeds, dropped=stuck,
+                                             delay_s=tau + 0.5 * T))
         if stuck:
             r.notes.append("friction_cv: passes at " + ", ".join(f"{1e3 * s.v_m_s:+.3g}" for s in stuck)
                            + " mm/s stick-slip (the stage stood in " + ", ".join(f"{100 * s.stuck_fraction:.0f}"
