@@ -470,7 +470,6 @@ class Commissioning:
                            f"{m_ref:.4g} ± {s_ref:.2g} kg ({'mass + viscous fit' if ref_joint else r.sanity.mass_from}) "
                            f"by more than {an.FRF_MASS_SIGMAS:g} combined standard errors: the probe's mass is used")
             r.plant = dataclasses.replace(pm, mass_kg=m_ref, mass_std_kg=s_ref, mass_from="probe")
-            joint_used = ref_joint
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
