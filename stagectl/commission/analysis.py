@@ -521,7 +521,8 @@ CV_PAIR_TOLERANCE = 0.2
 
 def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
                 mass_kg: float, min_samples: int = 50, speeds: FloatArray | None = None,
-                dropped: list[CvSegment] | None = None, delay_s: float = 0.0) -> list[CvSegment]:
+                dropped: list[CvSegment] | None = None, delay_s: float = 0.0,
+                position_force_n: FloatArray | None = None) -> list[CvSegment]:
     """Steady constant-velocity segments (``a_ref = 0``, ``v_ref ≠ 0``), each trimmed by 20 % at both ends;
     mean force ``ū − m·ā`` with its standard error (from the sample spread, decorrelated over 20 samples).
     With ``speeds`` [m/s] only segments whose ``|v_ref|`` is one of them (relative 1e-6): the passes, not
@@ -556,13 +557,20 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
     a position force ``P(x)`` enters a pass as ``P(x + v·τ)``: its odd part ``τ·v·P'`` is a viscous force in
     disguise. A 445 N/m spring with 1.5 ms put 10 mN into the 16 mm/s pair's odd part (``k·v·τ``), and a 0.29 N,
     0.51 mm cogging over 1.6 periods of the 16 mm/s pass 21 mN (tests/commission/plant_kinds.py k111,
-    plant_gen.py 34: viscous +48 %, Stribeck vs −10 %); aligned, both within 2 mN."""
+    plant_gen.py 34: viscous +48 %, Stribeck vs −10 %); aligned, both within 2 mN.
+
+    ``position_force_n``: the position force at ``x`` [N] (the slow passes' cogging and spring), taken off
+    before the means: the + and − windows of a short fast pass do not cover the same range (52 samples at
+    16 mm/s: −402…+421 µm and +404…−406 µm), and a 0.29 N cogging's means there differed by 9 mN of odd part
+    (generated plant 34: viscous +3.7 %)."""
     out: list[CvSegment] = []
     if delay_s > 0.0 and len(u) > 1:
         uu = np.asarray(u, np.float64)
         ii = np.arange(uu.shape[0], dtype=np.float64)
         # u(t − τ); the first τ hold the first value
         u = np.interp(ii - delay_s / float(np.median(np.diff(np.asarray(t, np.float64)))), ii, uu)
+    if position_force_n is not None:
+        u = np.asarray(u, np.float64) - position_force_n
     steady = (np.abs(a_ref) < 1e-12) & (np.abs(v_ref) > 0)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], steady.astype(np.int8), [0]])))
     dt = float(np.median(np.diff(t)))
@@ -609,12 +617,14 @@ class CvFriction:
     stribeck: dict[str, float] | None = None
     #: the (velocity [m/s], force [N]) points the curve was fitted to: the pairs' odd parts mirrored
     points: tuple[FloatArray, FloatArray] | None = None
+    #: the position force taken off the passes (the slow passes' slope [N/m] and cogging), None before
+    position_force: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
                 "viscous_n_s_m": self.viscous_n_s_m, "viscous_std_n_s_m": self.viscous_std_n_s_m,
                 "offset_n": self.offset_n, "offset_std_n": self.offset_std_n, "segments_used": self.used,
-                "stribeck_curve": self.stribeck,
+                "stribeck_curve": self.stribeck, "position_force": self.position_force,
                 "segments": [{"v_m_s": s.v_m_s, "f_n": s.f_n, "f_std_n": s.f_std_n, "samples": s.n}
                              for s in self.segments]}
 
