@@ -679,6 +679,19 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         stri = fit_stribeck_curve(v, f)
     except (StageError, ValueError):
         stri = None
+    vmax = float(np.max(np.abs(v)))
+    if stri is not None and stri["vs_m_s"] > vmax and v.size >= 3:
+        # a drop beyond the fastest pass is no Stribeck curve the passes measured, only a way to bend a nearly
+        # straight line: with the slowest pairs left out as stick-slip, fresh plant k111's four pairs (1-16 mm/s,
+        # within 0.2 mN of Fc + Fv·v once the spring was off) gave Fc 0.075 N, Fs 1.63 N, vs 92 mm/s, δ 4 for a
+        # true Fc 1.63 N. The curve is then flat (Fs = Fc), the line's; fit._refit_stribeck still refits it
+        # with Fs held at the pre-sliding level where the slow passes stick-slipped
+        th_l, *_ = np.linalg.lstsq(np.column_stack([np.sign(v), v, np.ones_like(v)]), f, rcond=None)
+        r_l = f - np.column_stack([np.sign(v), v, np.ones_like(v)]) @ th_l
+        stri = {"fc_n": float(th_l[0]), "fs_n": float(th_l[0]), "vs_m_s": float(np.min(np.abs(v))),
+                "delta": 2.0, "viscous_n_s_m": float(th_l[1]), "offset_n": float(th_l[2]),
+                "rms_n": float(np.sqrt(np.mean(r_l ** 2))), "segments": float(v.size), "stribeck_identified": False,
+                "v_min_m_s": float(np.min(np.abs(v))), "fs_fixed": False, "beyond_fastest_vs_m_s": stri["vs_m_s"]}
 
     def excess(vv: FloatArray) -> FloatArray:
         if stri is None:
