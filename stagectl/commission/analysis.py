@@ -514,6 +514,8 @@ class CvSegment:
 STUCK_WINDOW = 5
 STUCK_SPEED_FRACTION = 0.25
 STUCK_PASS_FRACTION = 0.1
+#: the odd Stribeck curve's parameters (Fc, Fs, vs, δ, Fv): :func:`cv_friction` fits it to at least as many pairs
+STRIBECK_PARAMETERS = 5
 #: the + and − passes of one designed speed are paired when their measured speeds differ by at most this
 #: fraction (:func:`odd_points`)
 CV_PAIR_TOLERANCE = 0.2
@@ -680,12 +682,14 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
-    if stri is not None and stri["vs_m_s"] > vmax and v.size >= 3:
+    if stri is not None and v.size >= 3 and (stri["vs_m_s"] > vmax or (paired and vk.size < STRIBECK_PARAMETERS)):
         # a drop beyond the fastest pass is no Stribeck curve the passes measured, only a way to bend a nearly
-        # straight line: with the slowest pairs left out as stick-slip, fresh plant k111's four pairs (1-16 mm/s,
-        # within 0.2 mN of Fc + Fv·v once the spring was off) gave Fc 0.075 N, Fs 1.63 N, vs 92 mm/s, δ 4 for a
-        # true Fc 1.63 N. The curve is then flat (Fs = Fc), the line's; fit._refit_stribeck still refits it
-        # with Fs held at the pre-sliding level where the slow passes stick-slipped
+        # straight line, and fewer pairs than the curve's parameters fit it exactly whatever the scatter: with
+        # the slowest pairs left out as stick-slip, fresh plant k111's four pairs (1-16 mm/s, within 0.2 mN of
+        # Fc + Fv·v once the spring was off) gave Fc 0.075 N, Fs 1.63 N, vs 92 mm/s, δ 4 for a true Fc 1.63 N;
+        # four pairs on a line with 0.3 mN of scatter a vs of 12 mm/s and the viscous +4 %. The curve is then
+        # flat (Fs = Fc), the line's; fit._refit_stribeck still refits it with Fs held at the pre-sliding level
+        # where the slow passes stick-slipped
         th_l, *_ = np.linalg.lstsq(np.column_stack([np.sign(v), v, np.ones_like(v)]), f, rcond=None)
         r_l = f - np.column_stack([np.sign(v), v, np.ones_like(v)]) @ th_l
         stri = {"fc_n": float(th_l[0]), "fs_n": float(th_l[0]), "vs_m_s": float(np.min(np.abs(v))),
