@@ -454,6 +454,26 @@ def _settled_cruise_rows(rec: Recorder, mass_kg: float, period_s: float
     return x, u - mass_kg * a, vr, cruise & (run >= settle)
 
 
+def slow_pass_slope(rec: Recorder, mass_kg: float, period_s: float,
+                    cogging: Mapping[str, Any] | None = None) -> float:
+    """The position force's slope along the stroke [N/m] (a spring's stiffness, 0 for an offset) from the slow
+    passes: ``y = u − m·ẍ`` at the settled cruise rows (:func:`_settled_cruise_rows`), less the cogging when
+    given, regressed on a constant per direction (the sliding friction) and one slope in ``x`` common to both
+    directions (a position force does not depend on the direction). 0 when the passes do not cover both
+    directions."""
+    x, y, vr, ok = _settled_cruise_rows(rec, mass_kg, period_s)
+    if cogging is not None:
+        y = y - _cogging_force(cogging, x)
+    pos, neg = ok & (vr > 0), ok & (vr < 0)
+    if pos.sum() < 10 or neg.sum() < 10:
+        return 0.0
+    sel = pos | neg
+    xc = x[sel] - float(np.mean(x[sel]))
+    A = np.column_stack([pos[sel].astype(np.float64), neg[sel].astype(np.float64), xc])
+    th = np.linalg.lstsq(A, y[sel], rcond=None)[0]
+    return float(th[2])
+
+
 def _cogging_scan(x: FloatArray, y: FloatArray, nuis: FloatArray, lams: FloatArray) -> FloatArray:
     """Amplitudes of ``a·sin(2πx/λ) + b·cos(2πx/λ)`` fitted to ``y`` jointly with the nuisance columns, for
     each ``λ`` in ``lams``; returns (len(lams), 4): amplitude [N], ``a``, ``b``, residual sum of squares [N²]."""
@@ -714,10 +734,17 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     # the acceleration (generated plant 44: a 0.113 N, 1.41 mm cogging made the inverse-dynamics mass
     # 1.002 kg, true 0.786, FRF 0.731; with it taken off 0.744 kg, and the FRF mass stays)
     cv_rec = to_recording(res_recordings["friction_cv"], "friction_cv")
+    spring_n_m = 0.0
     if "slow_passes" in res_recordings:
         ce0 = cogging_evidence(res_recordings["slow_passes"], mass_kg, period_s)
         if ce0["present"]:
             cv_rec.u = cv_rec.u - _cogging_force(ce0, cv_rec.x)
+        # and so does a spring: the passes accelerate at one end of their range and brake at the other, so
+        # k·x reads as −m·a (fresh plant k111 of tests/commission/plant_kinds.py, 445 N/m over ±1 mm: 2.56 kg
+        # for 3.37, which replaced the probe's 3.367); its slope along the slow passes is taken off first
+        spring_n_m = slow_pass_slope(res_recordings["slow_passes"], mass_kg, period_s,
+                                     ce0 if ce0["present"] else None)
+        cv_rec.u = cv_rec.u - spring_n_m * (cv_rec.x - float(np.mean(cv_rec.x)))
     try:
         m_id = measure(cv_rec).mass_kg
     except DataError:
@@ -839,6 +866,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         "viscous_n_s_m": float(d.final.hyp.theta.get("fv", math.nan)),
         "elapsed_s": d.elapsed_s,
         "mass_kg_inverse_dynamics": m_id,
+        "inverse_dynamics_spring_n_m": spring_n_m,
         "mass_kg_used": m,
         "presliding_regression": presliding,
     }

@@ -48,7 +48,7 @@ from stagectl.commission.controllers import (
     multisine,
 )
 from stagectl.commission.envelope import Envelope, make_envelope
-from stagectl.commission.fit import fit_models
+from stagectl.commission.fit import _cogging_force, cogging_evidence, fit_models, slow_pass_slope
 from stagectl.config import AppConfig, IoKind
 from stagectl.control.api import Reference
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController, controller_mass
@@ -459,6 +459,17 @@ class Commissioning:
             # the joint mass + viscous fit's (at least 5 %)
             r.plant = dataclasses.replace(pm, mass_kg=m_p, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m_p),
                                           mass_from="probe")
+        joint_used = r.plant.mass_from == "probe" and r.sanity.mass_from == "joint"
+        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+        if r.plant.mass_from == "frf" and not an.frf_mass_consistent(pm.mass_kg, pm.mass_std_kg, m_ref, s_ref):
+            # plausible, but further from the probe than both uncertainties explain (analysis.frf_mass_consistent)
+            self.opts.progress(f"commission: FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the "
+                               f"probe's {m_ref:.4g} ± {s_ref:.2g} kg by more than {an.FRF_MASS_SIGMAS:g} standard "
+                               "errors: using the probe's mass")
+            r.notes.append(f"the FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the probe's "
+                           f"{m_ref:.4g} ± {s_ref:.2g} kg ({'mass + viscous fit' if ref_joint else r.sanity.mass_from}) "
+                           f"by more than {an.FRF_MASS_SIGMAS:g} combined standard errors: the probe's mass is used")
+            r.plant = dataclasses.replace(pm, mass_kg=m_ref, mass_std_kg=s_ref, mass_from="probe")
         m = r.plant.mass_kg
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
@@ -470,7 +481,7 @@ class Commissioning:
         # 31 N s/m, 1.43 N Coulomb, faulted in friction_cv tuned for 0.51 kg, not for 0.77); the cap keeps a
         # 6x bias (k101: 4.14 kg for 0.67, a fault there) out. The identification and the gains use ``m``.
         m_exp = m
-        if r.plant.mass_from == "probe" and r.sanity.mass_from == "joint":
+        if joint_used:
             m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
         xp = self._experiment_crossover(m_exp)
         rho = float(self.experiment_tuning["stiction_ratio"])
@@ -541,16 +552,28 @@ class Commissioning:
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
         # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         stuck: list[an.CvSegment] = []
-        r.cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"), cv_rec.col("v_ref"),
-                                             cv_rec.col("a_ref"), m, speeds=speeds, dropped=stuck))
+        # the force read where it acts: the FRF's delay where it is measured (std within a quarter period), the
+        # configured one otherwise, plus the zero-order hold's half period (analysis.cv_segments)
+        tau = self.cfg.io.delay_cycles * T
+        if r.plant is not None and r.plant.delay_std_s <= 0.25 * T and r.plant.delay_s > 0.0:
+            tau = r.plant.delay_s
+
+        def read_cv(pos_force: npt.NDArray[np.float64] | None = None) -> an.CvFriction:
+            stuck.clear()
+            cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"),
+                                               cv_rec.col("v_ref"), cv_rec.col("a_ref"), m, speeds=speeds,
+                                               dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force))
+            if stuck and cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
+                cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
+            return cv
+
+        r.cv = read_cv()
         if stuck:
             r.notes.append("friction_cv: passes at " + ", ".join(f"{1e3 * s.v_m_s:+.3g}" for s in stuck)
                            + " mm/s stick-slip (the stage stood in " + ", ".join(f"{100 * s.stuck_fraction:.0f}"
                                                                             for s in stuck)
                            + " % of their samples): not points of the sliding curve, left out of the fit; the "
                            "Stribeck dip lies below the slowest sliding pass, so its Fs is the pre-sliding level")
-            if r.cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
-                r.cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
         self.opts.progress(f"commission: friction: Coulomb {r.cv.coulomb_n:.4g} ± {r.cv.coulomb_std_n:.2g} N, viscous "
                            f"{r.cv.viscous_n_s_m:.4g} ± {r.cv.viscous_std_n_s_m:.2g} N s/m")
         # on a stage with much friction for its mass (the stiffer tuning was chosen), the Coulomb feed-forward
@@ -595,8 +618,21 @@ class Commissioning:
         v_slow = max(S / SLOW_PASS_S, float(speeds[0]))
         segs = [self._move_to(env.x_lo_m, v_rep_off, m), Dwell(0.2), self._move_to(env.x_hi_m, v_slow, m),
                 Dwell(0.2), self._move_to(env.x_lo_m, v_slow, m), Dwell(0.2), self._move_to(xc, v_rep_off, m)]
-        self._closed(stage, "slow_passes", "slow passes over the stroke both ways (cogging, ripple, spring, offset)",
-                     inner, segs, {"velocity_m_s": v_slow})
+        slow = self._closed(stage, "slow_passes", "slow passes over the stroke both ways (cogging, ripple, spring, "
+                            "offset)", inner, segs, {"velocity_m_s": v_slow})
+        # the passes read again with the slow passes' position force (cogging, spring) taken off: the short fast
+        # passes' + and − windows do not cover the same range, and the odd part kept a part of it
+        # (analysis.cv_segments); the offset stays in the even part
+        ce = cogging_evidence(slow, m, T)
+        cog = ce if ce["present"] else None
+        k_x = slow_pass_slope(slow, m, T, cog)
+        xs_cv = np.asarray(cv_rec.col("x"), np.float64)
+        pf = k_x * (xs_cv - float(np.mean(xs_cv)))
+        if cog is not None:
+            pf = pf + _cogging_force(cog, xs_cv)
+        r.cv = read_cv(pf)
+        r.cv.position_force = {"slope_n_m": k_x, "cogging": None if cog is None else
+                               {k: cog[k] for k in ("amplitude_n", "wavelength_m", "phase_rad")}}
 
         # 4.-5. models, gains, new configuration -----------------------------------------------------
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
