@@ -321,7 +321,8 @@ class Commissioning:
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
-        dur = sc.duration_s(0.0) + extra_s
+        x0 = stage_x(stage)
+        dur = sc.duration_s(x0 if math.isfinite(x0) else 0.0) + extra_s
         return self._run(stage, name, purpose, dur, params)
 
     # ------------------------------------------------------------------ the sequence
@@ -370,7 +371,8 @@ class Commissioning:
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
         # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max
         probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
-                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n)
+                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n, v_brake_m_s=env.v_max_m_s,
+                            delay_cycles=self.cfg.io.delay_cycles)
         follow = FollowMeasured()
         ctl.set_probe(probe, follow)
         stage.loop.reference = follow
@@ -430,7 +432,9 @@ class Commissioning:
             v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
         lead = [to_c, Dwell(0.3)]
-        lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
+        # from where the stage stands (the probe left it off the centre): the multisine starts after the move
+        # to the centre and the dwell, not during the move (a duration from 0.0 left out the move's own time)
+        lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(stage_x(stage)) if lead else 0.0
         n0 = round(lead_s / T) + 2
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
