@@ -166,9 +166,9 @@ class SanityProbe:
         return sign * v_m_s + max(sign * a, 0.0) * (3.5 + self.delay_cycles) * dt
 
     def _stopping(self, dt: float, v_m_s: float, sign: int) -> bool:
-        """BRAKE with a finite ``v_brake``: the speed predicted the same way as :meth:`predicted_speed` (the
-        deceleration counted now) has reached zero. Waiting for ``v̂`` itself to reverse threw the 0.91 kg stage
-        back at 6 mm/s, 157 µm the other way."""
+        """A BRAKE the speed prediction started (a stage accelerating hard) ends once the speed predicted the
+        same way as :meth:`predicted_speed` (the deceleration counted now) has reached zero. Waiting for ``v̂``
+        itself to reverse threw the 0.91 kg stage back at 6 mm/s, 157 µm the other way."""
         if not math.isfinite(self.v_brake) or len(self._hist) < 5:
             return False
         h = self._hist
@@ -224,7 +224,8 @@ class SanityProbe:
                 return -s * d.f2_n
             return s * (d.f1_n if ph == "ACC1" else d.f2_n)
         if ph == "BRAKE":
-            if s * v <= 0.0 or self._tau >= self.t_acc or self._stopping(dt, v, s):
+            early = bool(self.braked_early) and self.braked_early[-1][0] == s
+            if s * v <= 0.0 or self._tau >= self.t_acc or (early and self._stopping(dt, v, s)):
                 self._next("REST", x)
                 return 0.0
             return -s * d.f2_n
