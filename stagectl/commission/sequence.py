@@ -410,7 +410,8 @@ class Commissioning:
         # 2. FRF --------------------------------------------------------------------------------------
         # no friction feed-forward while standing: its last direction's Coulomb force would preload the
         # pre-sliding spring the FRF measures
-        inner = StageController(self._commission_tuning(m0, coulomb=False), self.cfg.timing)
+        inner = StageController(self._commission_tuning(m0, coulomb=False, crossover_x_period=self._frf_crossover(m0)),
+                                self.cfg.timing)
         n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
         amp0 = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
@@ -683,6 +684,42 @@ class Commissioning:
                                 feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
                                                               coulomb_n=self._coulomb_guess, inertia=True,
                                                               inertia_lookahead=False))
+
+    def _frf_crossover(self, mass_kg: float) -> float:
+        """Crossover × period of the FRF's tuning: ``COMMISSION_CROSSOVER_X_PERIOD``, or on a stage whose
+        stiction length with it (``λ0 = F_b/K_p``, the probe's smaller breakaway) exceeds ``STICTION_LENGTH_X_FE``
+        following-error limits, the highest crossover up to ``STIFF_CROSSOVER_X_PERIOD`` whose loop on the
+        probe's rigid mass (``io.delay_cycles`` of delay, at least one) keeps the friction
+        experiments' margins ``STIFF_MIN_PHASE_MARGIN_DEG`` / ``STIFF_MIN_GAIN_MARGIN_DB``.
+
+        At standstill such a loop *hunts*: the integrating observer winds the force up to the breakaway, the
+        stage breaks loose, the friction falls to its sliding level, and the excess ``F_b − F_c`` throws it past
+        the reference until the loop's stiffness catches it; then the same the other way. The throw shrinks as
+        ``K_p`` grows. k106 (1.36 kg, 2.04 N static, 1.70 N Coulomb, λ0 = 475 µm, 9.5 limits) hunted ±20–55 µm
+        under the multisine at 15 Hz, before and without it, and faulted; gen 61 (1.99 kg, λ0 = 7 limits)
+        hunted ±5–10 µm, and its FRF read 1.33 kg. The FRF (not yet measured) cannot check the stiffer loop's
+        margins; the model's do (``tune``'s design rule), and the friction experiments then check theirs on the
+        measured FRF (:meth:`_experiment_crossover`)."""
+        from stagectl.control import design
+
+        r, T = self.res, self.T
+        base = COMMISSION_CROSSOVER_X_PERIOD
+        fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
+        kp = design.design_pid(mass_kg, base / T, T, 1).kp_n_m
+        if not (kp > 0 and fb / kp > STICTION_LENGTH_X_FE * self.env.following_error_m):
+            return base
+        nd = max(self.cfg.io.delay_cycles, 1)
+        for x in sorted((c for c in CROSSOVER_X_PERIOD if base < c <= STIFF_CROSSOVER_X_PERIOD), reverse=True):
+            pid = design.design_pid(mass_kg, x / T, T, 1)
+            mod = design.analyse_design(mass_kg, T, pid, nd, COMMISSION_DOB_X_PERIOD / T, 1, dob_mass_kg=mass_kg)
+            sm = mod[-1].summary()
+            if (sm["closed_loop_stable"] and sm["phase_margin_deg"] >= STIFF_MIN_PHASE_MARGIN_DEG
+                    and sm["gain_margin_db"] >= STIFF_MIN_GAIN_MARGIN_DB):
+                r.notes.append(f"frf tuning: {x / T:.3g} Hz (stiction length {fb / kp * 1e6:.3g} um > "
+                               f"{STICTION_LENGTH_X_FE:g} following-error limits at {base / T:.3g} Hz)")
+                self.opts.progress(f"commission: FRF at {x / T:.3g} Hz (stiction length {fb / kp * 1e6:.3g} um)")
+                return x
+        return base
 
     def _experiment_crossover(self, mass_kg: float) -> float:
         """Crossover × period of the friction experiments' tuning.
