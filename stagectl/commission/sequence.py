@@ -484,15 +484,9 @@ class Commissioning:
         m_exp = m
         if r.plant.mass_from == "probe" and r.sanity.mass_from == "joint":
             m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
-        elif r.plant.mass_from == "frf" and fa.limit == "breakaway" and m_p - m > 2.0 * math.hypot(
-                r.plant.mass_std_kg, r.sanity.mass_std_kg):
-            # a multisine held under the breakaway: the FRF's mass is a pre-sliding fit, and a stage that
-            # stick-slipped under it (the loop adds its own force) reads light. Where the probe's mass is
-            # clearly heavier, the experiments are tuned for it (capped as above): tuned for a mass 33 % light,
-            # generated plant 61 (1.99 kg, 1.2 N Coulomb; FRF 1.33 ± 0.07 kg, probe 2.02 ± 0.11 kg) lagged
-            # 57 µm at the start of its 16 mm/s pass and overshot the velocity limit. The identification and
-            # the gains keep ``m``.
-            m_exp = min(m_p, an.FRF_MASS_PLAUSIBLE[1] * m)
+        elif (m_light := light_frf_mass(m, r.plant.mass_std_kg, r.plant.mass_from, fa.limit, m_p,
+                                        r.sanity.mass_std_kg)) is not None:
+            m_exp = m_light
             self.opts.progress(f"commission: friction experiments tuned for the probe's {m_exp:.4g} kg (the FRF's "
                                f"{m:.4g} kg comes from a multisine held under the breakaway)")
         xp = self._experiment_crossover(m_exp)
@@ -1109,6 +1103,24 @@ def _first_excited_row(rec: Recorder) -> int:
     if nz.size == 0:
         raise StageError("frf: the excitation never reached the loop (no nonzero u_exc)")
     return int(nz[0])
+
+
+def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_limit: str, m_probe_kg: float,
+                   m_probe_std_kg: float) -> float | None:
+    """The friction experiments' tuning mass [kg] where the FRF's mass reads clearly light, else None.
+
+    With the multisine held under the breakaway (``frf_limit == "breakaway"``) the FRF's mass is a pre-sliding
+    fit, and a stage that stick-slips under it (the loop adds its own force) reads light. Where the probe's
+    mass exceeds it by more than twice their combined standard error, ``m_p − m > 2·sqrt(σ_m² + σ_p²)``, the
+    experiments are tuned for ``min(m_p, 2·m)`` (the plausibility range's upper ratio); the identification
+    and the gains keep ``m``. Tuned for a mass 33 % light, generated plant 61 (1.99 kg, 1.2 N Coulomb; FRF
+    1.33 ± 0.07 kg, probe 2.02 ± 0.11 kg) lagged 57 µm at the start of its 16 mm/s pass and overshot the
+    velocity limit."""
+    if mass_from != "frf" or frf_limit != "breakaway":
+        return None
+    if not m_probe_kg - m_frf_kg > 2.0 * math.hypot(m_frf_std_kg, m_probe_std_kg):
+        return None
+    return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
 
 
 def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error_m: float,

@@ -6,8 +6,10 @@ lock-step plant in simulated time, stopped right after the experiment under test
   late, and the stage reached 28 mm/s against the 20 mm/s velocity limit (fault). The probe now brakes on the
   speed it predicts for the moment the brake acts.
 * k106 (1.36 kg, 1.70 N Coulomb, 2.04 N static, cogging): the FRF multisine was timed from the lead's duration
-  computed from 0.0, which left out the slow move to the centre the probe's stiction asks for (0.54 s): it
-  started during the move, the stage stick-slipped ±30–50 µm under it and the following error faulted.
+  computed from 0.0, which left out the slow move to the centre the probe's stiction asks for (0.54 s), and
+  started during the move; and the FRF's 15 Hz tuning hunts on this stage at standstill (stiction length
+  475 µm, 9.5 following-error limits): ±20–55 µm, following-error fault. The FRF now starts after the move
+  and runs the stiffer tuning (26 Hz) the friction experiments use on such stages.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from plant_kinds import fresh_plant, fresh_stage_yaml
 
 from stagectl.cli import main
+from stagectl.commission.sequence import light_frf_mass
 
 
 def _columns(path: Path) -> dict[str, np.ndarray]:
@@ -52,13 +55,24 @@ def test_the_probe_brakes_a_stick_slip_stage_inside_the_velocity_limit(tmp_path:
     assert rc == 2 and rep["aborted"]["experiment"] == "sanity"
 
 
-def test_the_frf_multisine_starts_after_the_move_to_the_centre(tmp_path: Path) -> None:
+def test_the_frf_on_a_sticky_stage_starts_after_the_move_and_does_not_hunt_into_a_fault(tmp_path: Path) -> None:
     rc, rep, out = _commission(tmp_path, 106, "friction_cv")
     frf = next(e for e in rep["experiments"] if e["name"] == "frf")
     assert frf["fault"] is None, frf["fault"]
+    assert any(n.startswith("frf tuning: 26 Hz") for n in rep["notes"]), rep["notes"]
     assert rep["aborted"]["experiment"] == "friction_cv"  # the injected stop, after the FRF
     rec = _columns(out / "recordings" / "frf.csv")
     t = rec["t"]
     moving = np.flatnonzero(rec["v_ref"] != 0.0)
     first_exc = int(np.flatnonzero(rec["u_exc"] != 0.0)[0])
     assert moving.size and t[first_exc] >= t[moving[-1]] + 0.3 - 1e-9, (t[first_exc], t[moving[-1]])
+
+
+def test_a_light_breakaway_limited_frf_mass_does_not_tune_the_friction_experiments() -> None:
+    # gen 61 on main: FRF 1.33 ± 0.07 kg under a breakaway-limited multisine, probe 2.02 ± 0.11 kg (true 1.99)
+    assert light_frf_mass(1.33, 0.07, "frf", "breakaway", 2.02, 0.11) == 2.02
+    assert light_frf_mass(1.33, 0.07, "frf", "breakaway", 3.5, 0.11) == 2.66  # capped at 2x the FRF's
+    # agreeing within the errors, a sliding or nominal FRF, or the probe's mass already in use: unchanged
+    assert light_frf_mass(1.90, 0.07, "frf", "breakaway", 2.02, 0.11) is None
+    assert light_frf_mass(1.33, 0.07, "frf", "nominal", 2.02, 0.11) is None
+    assert light_frf_mass(2.02, 0.11, "probe", "breakaway", 2.02, 0.11) is None
