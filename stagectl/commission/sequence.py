@@ -72,9 +72,9 @@ CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
 COMMISSION_CROSSOVER_X_PERIOD = 0.015
 COMMISSION_DOB_X_PERIOD = 0.05
-#: the sanity probe brakes at once where the speed it predicts for the moment the brake acts reaches this fraction
+#: the sanity probe brakes at once where the speed it predicts (conservatively) for the moment the brake acts reaches this fraction
 #: of the velocity limit (safety.max_velocity_m_s, or --max-velocity; SanityProbe.predicted_speed)
-PROBE_BRAKE_X_LIMIT = 0.9
+PROBE_BRAKE_X_LIMIT = 0.95
 #: FRF: RMS force of the multisine as a fraction of F_max, number of lines, averaged periods
 FRF_FORCE_FRACTION = 0.08
 FRF_LINES = 60

@@ -4,7 +4,7 @@ lock-step plant in simulated time, stopped right after the experiment under test
 * k112 (0.91 kg, 1.45 N Coulomb, 1.88 N static: stick-slip at the breakaway): the sanity probe's second level
   accelerated it at 4 m/s², the brake came when the probe's 5-sample speed estimate read v_stop, 4–5 samples
   late, and the stage reached 28 mm/s against the 20 mm/s velocity limit (fault). The probe now brakes on the
-  speed it predicts for the moment the brake acts.
+  speed it predicts for the moment the brake acts (and still measures the mass, +4 %).
 * k106 (1.36 kg, 1.70 N Coulomb, 2.04 N static, cogging): the FRF multisine was timed from the lead's duration
   computed from 0.0, which left out the slow move to the centre the probe's stiction asks for (0.54 s), and
   started during the move; and the FRF's 15 Hz tuning hunts on this stage at standstill (stiction length
@@ -46,13 +46,14 @@ def test_the_probe_brakes_a_stick_slip_stage_inside_the_velocity_limit(tmp_path:
     rc, rep, out = _commission(tmp_path, 112, "frf")
     sanity = rep["experiments"][0]
     assert sanity["name"] == "sanity" and sanity["fault"] is None, sanity["fault"]
-    assert not str(rep["aborted"]["reason"]).startswith("fault")
     rec = _columns(out / "recordings" / "sanity.csv")
     v_lim = 0.02  # the fresh light stages' safety.max_velocity_m_s (commission_stage.controller_and_safety_yaml)
     v_true = np.abs(np.diff(rec["x"])) / np.diff(rec["t"])
     assert v_true.max() < v_lim, v_true.max()
-    # with this much stiction for its mass no two levels fit the speed budget: a clear refusal, not a fault
-    assert rc == 2 and rep["aborted"]["experiment"] == "sanity"
+    assert sanity["params"]["braked_early"], sanity["params"]
+    # the shortened levels (4 samples of the second) still give a mass; the run stops where it was told to
+    assert rep["aborted"]["experiment"] == "frf", rep["aborted"]
+    assert abs(rep["sanity"]["mass_kg"] / 0.9086 - 1) < 0.1, rep["sanity"]
 
 
 def test_the_frf_on_a_sticky_stage_starts_after_the_move_and_does_not_hunt_into_a_fault(tmp_path: Path) -> None:
