@@ -154,16 +154,16 @@ class SanityProbe:
     def predicted_speed(self, dt: float, v_m_s: float, sign: int) -> float:
         """The speed [m/s] (in the direction ``sign``) the stage reaches before a brake decided now acts::
 
-            v_peak = s·v̂ + max(s·â, 0)·(2.5 + n_d + 1)·T
+            v_peak = s·v̂ + max(s·â, 0)·(2.5 + n_d)·T
 
         ``v̂`` is the 5-interval difference, 2.5 samples old; ``â = (x[-1] − 2·x[-3] + x[-5])/(2T)²``, and the
-        brake acts after the I/O delay ``n_d`` (``delay_cycles``) and the zero-order hold. Where the levels
-        accelerate a light stage hard (0.91 kg, 1.45 N Coulomb, stick-slip from a 2.1 N breakaway: 4 m/s² at
-        5.3 N) the brake at ``v̂ = v_stop`` came 4–5 samples late, and the stage reached 28 mm/s against a
-        20 mm/s velocity limit."""
+        brake acts after the I/O delay ``n_d`` (``delay_cycles``). Calibrated where it faulted: a light stage
+        (0.91 kg, 1.45 N Coulomb, stick-slip from a 2.1 N breakaway) accelerated at 3.9 m/s² by its second
+        level (5.3 N) read ``v̂ = v_stop`` = 14.4 mm/s when the probe braked, and peaked at 28 mm/s against a
+        20 mm/s velocity limit: 3.5 samples of that acceleration with ``n_d = 1``."""
         h = self._hist
         a = (h[-1] - 2.0 * h[-3] + h[-5]) / (2.0 * dt) ** 2 if len(h) >= 5 else 0.0
-        return sign * v_m_s + max(sign * a, 0.0) * (3.5 + self.delay_cycles) * dt
+        return sign * v_m_s + max(sign * a, 0.0) * (2.5 + self.delay_cycles) * dt
 
     def _stopping(self, dt: float, v_m_s: float, sign: int) -> bool:
         """A BRAKE the speed prediction started (a stage accelerating hard) ends once the speed predicted the
@@ -173,7 +173,7 @@ class SanityProbe:
             return False
         h = self._hist
         a = (h[-1] - 2.0 * h[-3] + h[-5]) / (2.0 * dt) ** 2
-        return sign * v_m_s + min(sign * a, 0.0) * (3.5 + self.delay_cycles) * dt <= 0.0
+        return sign * v_m_s + min(sign * a, 0.0) * (2.5 + self.delay_cycles) * dt <= 0.0
 
     def step(self, dt: float, x: float) -> float:
         """Force [N] for this cycle."""

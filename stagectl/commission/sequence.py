@@ -72,9 +72,12 @@ CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
 COMMISSION_CROSSOVER_X_PERIOD = 0.015
 COMMISSION_DOB_X_PERIOD = 0.05
-#: the sanity probe brakes at once where the speed it predicts (conservatively) for the moment the brake acts reaches this fraction
+#: the sanity probe brakes at once where the speed it predicts for the moment the brake acts reaches this fraction
 #: of the velocity limit (safety.max_velocity_m_s, or --max-velocity; SanityProbe.predicted_speed)
 PROBE_BRAKE_X_LIMIT = 0.95
+#: FRF: the multisine starts FRF_LEAD_S into the run, at least FRF_SETTLE_S after the move to the centre [s]
+FRF_LEAD_S = 0.3
+FRF_SETTLE_S = 0.1
 #: FRF: RMS force of the multisine as a fraction of F_max, number of lines, averaged periods
 FRF_FORCE_FRACTION = 0.08
 FRF_LINES = 60
@@ -439,10 +442,12 @@ class Commissioning:
         if abs(env.x_c_m - stage_x(stage)) > 0.5 * env.following_error_m:
             v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
-        lead = [to_c, Dwell(0.3)]
-        # from where the stage stands (the probe left it off the centre): the multisine starts after the move
-        # to the centre and the dwell, not during the move (a duration from 0.0 left out the move's own time)
-        lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(stage_x(stage)) if lead else 0.0
+        lead = [to_c, Dwell(FRF_LEAD_S)]
+        # the multisine starts FRF_LEAD_S into the run, and never before FRF_SETTLE_S after the move to the centre
+        # has ended (the move's duration from where the probe left the stage). The start was FRF_LEAD_S whatever
+        # the move: on a sticky stage the slow move (k106: 0.54 s at 0.2 mm/s) was still running under it
+        move_s = Scenario(name="move", segments=(to_c,)).duration_s(stage_x(stage))
+        lead_s = max(FRF_LEAD_S, move_s + FRF_SETTLE_S)
         n0 = round(lead_s / T) + 2
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
                            inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {

@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from plant_kinds import fresh_plant, fresh_stage_yaml
 
 from stagectl.cli import main
+from stagectl.commission import sequence as seq
 from stagectl.commission.sequence import light_frf_mass
 
 
@@ -66,7 +67,7 @@ def test_the_frf_on_a_sticky_stage_starts_after_the_move_and_does_not_hunt_into_
     t = rec["t"]
     moving = np.flatnonzero(rec["v_ref"] != 0.0)
     first_exc = int(np.flatnonzero(rec["u_exc"] != 0.0)[0])
-    assert moving.size and t[first_exc] >= t[moving[-1]] + 0.3 - 1e-9, (t[first_exc], t[moving[-1]])
+    assert moving.size and t[first_exc] >= t[moving[-1]] + seq.FRF_SETTLE_S - 1e-9, (t[first_exc], t[moving[-1]])
 
 
 def test_a_light_breakaway_limited_frf_mass_does_not_tune_the_friction_experiments() -> None:
