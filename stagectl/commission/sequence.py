@@ -413,8 +413,8 @@ class Commissioning:
         # 2. FRF --------------------------------------------------------------------------------------
         # no friction feed-forward while standing: its last direction's Coulomb force would preload the
         # pre-sliding spring the FRF measures
-        inner = StageController(self._commission_tuning(m0, coulomb=False, crossover_x_period=self._frf_crossover(m0)),
-                                self.cfg.timing)
+        xp_frf = self._frf_crossover(m0)
+        inner = StageController(self._commission_tuning(m0, coulomb=False, crossover_x_period=xp_frf), self.cfg.timing)
         n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
         amp0 = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])

@@ -52,8 +52,8 @@ def test_the_probe_brakes_a_stick_slip_stage_inside_the_velocity_limit(tmp_path:
     v_true = np.abs(np.diff(rec["x"])) / np.diff(rec["t"])
     assert v_true.max() < v_lim, v_true.max()
     assert sanity["params"]["braked_early"], sanity["params"]
-    # the shortened levels (4 samples of the second) still give a mass; the run stops where it was told to
-    assert rep["aborted"]["experiment"] == "frf", rep["aborted"]
+    # the shortened levels still give a mass; the run stops where it was told to (the injected fault: exit 1)
+    assert rc == 1 and rep["aborted"]["experiment"] == "frf", rep["aborted"]
     assert abs(rep["sanity"]["mass_kg"] / 0.9086 - 1) < 0.1, rep["sanity"]
 
 
@@ -62,7 +62,7 @@ def test_the_frf_on_a_sticky_stage_starts_after_the_move_and_does_not_hunt_into_
     frf = next(e for e in rep["experiments"] if e["name"] == "frf")
     assert frf["fault"] is None, frf["fault"]
     assert any(n.startswith("frf tuning: 26 Hz") for n in rep["notes"]), rep["notes"]
-    assert rep["aborted"]["experiment"] == "friction_cv"  # the injected stop, after the FRF
+    assert rc == 1 and rep["aborted"]["experiment"] == "friction_cv"  # the injected stop, after the FRF
     rec = _columns(out / "recordings" / "frf.csv")
     t = rec["t"]
     moving = np.flatnonzero(rec["v_ref"] != 0.0)
