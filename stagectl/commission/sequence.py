@@ -327,8 +327,7 @@ class Commissioning:
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
-        x0 = stage_x(stage)
-        dur = sc.duration_s(x0 if math.isfinite(x0) else 0.0) + extra_s
+        dur = sc.duration_s(0.0) + extra_s
         return self._run(stage, name, purpose, dur, params)
 
     # ------------------------------------------------------------------ the sequence
