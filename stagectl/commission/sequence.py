@@ -447,9 +447,11 @@ class Commissioning:
         # the move: on a sticky stage the slow move (k106: 0.54 s at 0.2 mm/s) was still running under it
         move_s = Scenario(name="move", segments=(to_c,)).duration_s(stage_x(stage))
         lead_s = max(FRF_LEAD_S, move_s + FRF_SETTLE_S)
+        # (the run's duration is the scenario's from 0.0, where the move takes no time: the last dwell is
+        # longer by the delay of the multisine's start)
         n0 = round(lead_s / T) + 2
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
-                           inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
+                           inner, [*lead, Dwell(exc.shape[0] * T + 0.1 + (lead_s - FRF_LEAD_S))], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
                                "f_hi_hz": float(bins[-1] / (n_per * T)), **fa.as_dict(),
                                "periods_averaged": FRF_PERIODS, "period_samples": n_per,
