@@ -47,7 +47,7 @@ from stagectl.commission.controllers import (
     log_bins,
     multisine,
 )
-from stagectl.commission.envelope import Envelope, make_envelope
+from stagectl.commission.envelope import VELOCITY_FRACTION, Envelope, make_envelope
 from stagectl.commission.fit import _cogging_force, cogging_evidence, fit_models, slow_pass_slope
 from stagectl.config import AppConfig, IoKind
 from stagectl.control.api import Reference
@@ -72,6 +72,12 @@ CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
 COMMISSION_CROSSOVER_X_PERIOD = 0.015
 COMMISSION_DOB_X_PERIOD = 0.05
+#: the sanity probe brakes at once where the speed it predicts for the moment the brake acts reaches this fraction
+#: of the velocity limit (safety.max_velocity_m_s, or --max-velocity; SanityProbe.predicted_speed)
+PROBE_BRAKE_X_LIMIT = 0.95
+#: FRF: the multisine starts FRF_LEAD_S into the run, at least FRF_SETTLE_S after the move to the centre [s]
+FRF_LEAD_S = 0.3
+FRF_SETTLE_S = 0.1
 #: FRF: RMS force of the multisine as a fraction of F_max, number of lines, averaged periods
 FRF_FORCE_FRACTION = 0.08
 FRF_LINES = 60
@@ -370,18 +376,23 @@ class Commissioning:
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
         # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max
         probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
-                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n)
+                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n,
+                            v_brake_m_s=PROBE_BRAKE_X_LIMIT * env.v_max_m_s / VELOCITY_FRACTION,
+                            delay_cycles=self.cfg.io.delay_cycles)
         follow = FollowMeasured()
         ctl.set_probe(probe, follow)
         stage.loop.reference = follow
+        sanity_params: dict[str, Any] = {"f_lim_n": probe.f_lim, "f_acc_n": probe.f_acc, "d_detect_m": d_detect,
+                                         "d_acc_m": probe.d_acc, "v_brake_m_s": probe.v_brake}
         try:
             self._run(stage, "sanity", "open-loop force probe: sign, scale (mass), breakaway, both directions",
-                      probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5,
-                      {"f_lim_n": probe.f_lim, "f_acc_n": probe.f_acc, "d_detect_m": d_detect,
-                       "d_acc_m": probe.d_acc})
+                      probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5, sanity_params)
         finally:
             stage.loop.reference = stage.reference
             ctl.probe = None
+            # the phases the speed prediction ended (the record keeps this dict)
+            sanity_params["braked_early"] = [{"direction": d, "phase": ph, "predicted_speed_m_s": v, "samples": n}
+                                             for d, ph, v, n in probe.braked_early]
         ctl_cfg = self.cfg.controller
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
         r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
@@ -401,7 +412,8 @@ class Commissioning:
         # 2. FRF --------------------------------------------------------------------------------------
         # no friction feed-forward while standing: its last direction's Coulomb force would preload the
         # pre-sliding spring the FRF measures
-        inner = StageController(self._commission_tuning(m0, coulomb=False), self.cfg.timing)
+        xp_frf = self._frf_crossover(m0)
+        inner = StageController(self._commission_tuning(m0, coulomb=False, crossover_x_period=xp_frf), self.cfg.timing)
         n_per = max(round(1.0 / T), 64)
         bins = log_bins(n_per, 2, int(0.45 * n_per), FRF_LINES)
         amp0 = FRF_FORCE_FRACTION * env.f_max_n * math.sqrt(2.0 / bins.shape[0])
@@ -429,11 +441,17 @@ class Commissioning:
         if abs(env.x_c_m - stage_x(stage)) > 0.5 * env.following_error_m:
             v_rep = reposition_speed(env.v_max_m_s, lam0, env.following_error_m, COMMISSION_DOB_X_PERIOD / T, 0.0)
         to_c = self._move(stage_x(stage), env.x_c_m, v_rep, m0)
-        lead = [to_c, Dwell(0.3)]
-        lead_s = Scenario(name="lead", segments=tuple(lead)).duration_s(0.0) if lead else 0.0
+        lead = [to_c, Dwell(FRF_LEAD_S)]
+        # the multisine starts FRF_LEAD_S into the run, and never before FRF_SETTLE_S after the move to the centre
+        # has ended (the move's duration from where the probe left the stage). The start was FRF_LEAD_S whatever
+        # the move: on a sticky stage the slow move (k106: 0.54 s at 0.2 mm/s) was still running under it
+        move_s = Scenario(name="move", segments=(to_c,)).duration_s(stage_x(stage))
+        lead_s = max(FRF_LEAD_S, move_s + FRF_SETTLE_S)
+        # (the run's duration is the scenario's from 0.0, where the move takes no time: the last dwell is
+        # longer by the delay of the multisine's start)
         n0 = round(lead_s / T) + 2
         rec = self._closed(stage, "frf", "closed-loop FRF: force multisine at the centre (mass, delay, resonances)",
-                           inner, [*lead, Dwell(exc.shape[0] * T + 0.1)], {
+                           inner, [*lead, Dwell(exc.shape[0] * T + 0.1 + (lead_s - FRF_LEAD_S))], {
                                "lines": int(bins.shape[0]), "f_lo_hz": float(bins[0] / (n_per * T)),
                                "f_hi_hz": float(bins[-1] / (n_per * T)), **fa.as_dict(),
                                "periods_averaged": FRF_PERIODS, "period_samples": n_per,
@@ -483,6 +501,11 @@ class Commissioning:
         m_exp = m
         if joint_used:
             m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
+        elif (m_light := light_frf_mass(m, r.plant.mass_std_kg, r.plant.mass_from, fa.limit, m_p,
+                                        r.sanity.mass_std_kg)) is not None:
+            m_exp = m_light
+            self.opts.progress(f"commission: friction experiments tuned for the probe's {m_exp:.4g} kg (the FRF's "
+                               f"{m:.4g} kg comes from a multisine held under the breakaway)")
         xp = self._experiment_crossover(m_exp)
         rho = float(self.experiment_tuning["stiction_ratio"])
         # moves that start or reverse from a stuck stage without measuring: slower on a sticky stage
@@ -697,6 +720,42 @@ class Commissioning:
                                 feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
                                                               coulomb_n=self._coulomb_guess, inertia=True,
                                                               inertia_lookahead=False))
+
+    def _frf_crossover(self, mass_kg: float) -> float:
+        """Crossover × period of the FRF's tuning: ``COMMISSION_CROSSOVER_X_PERIOD``, or on a stage whose
+        stiction length with it (``λ0 = F_b/K_p``, the probe's smaller breakaway) exceeds ``STICTION_LENGTH_X_FE``
+        following-error limits, the highest crossover up to ``STIFF_CROSSOVER_X_PERIOD`` whose loop on the
+        probe's rigid mass (``io.delay_cycles`` of delay, at least one) keeps the friction
+        experiments' margins ``STIFF_MIN_PHASE_MARGIN_DEG`` / ``STIFF_MIN_GAIN_MARGIN_DB``.
+
+        At standstill such a loop *hunts*: the integrating observer winds the force up to the breakaway, the
+        stage breaks loose, the friction falls to its sliding level, and the excess ``F_b − F_c`` throws it past
+        the reference until the loop's stiffness catches it; then the same the other way. The throw shrinks as
+        ``K_p`` grows. k106 (1.36 kg, 2.04 N static, 1.70 N Coulomb, λ0 = 475 µm, 9.5 limits) hunted ±20–55 µm
+        under the multisine at 15 Hz, before and without it, and faulted; gen 61 (1.99 kg, λ0 = 7 limits)
+        hunted ±5–10 µm, and its FRF read 1.33 kg. The FRF (not yet measured) cannot check the stiffer loop's
+        margins; the model's do (``tune``'s design rule), and the friction experiments then check theirs on the
+        measured FRF (:meth:`_experiment_crossover`)."""
+        from stagectl.control import design
+
+        r, T = self.res, self.T
+        base = COMMISSION_CROSSOVER_X_PERIOD
+        fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
+        kp = design.design_pid(mass_kg, base / T, T, 1).kp_n_m
+        if not (kp > 0 and fb / kp > STICTION_LENGTH_X_FE * self.env.following_error_m):
+            return base
+        nd = max(self.cfg.io.delay_cycles, 1)
+        for x in sorted((c for c in CROSSOVER_X_PERIOD if base < c <= STIFF_CROSSOVER_X_PERIOD), reverse=True):
+            pid = design.design_pid(mass_kg, x / T, T, 1)
+            mod = design.analyse_design(mass_kg, T, pid, nd, COMMISSION_DOB_X_PERIOD / T, 1, dob_mass_kg=mass_kg)
+            sm = mod[-1].summary()
+            if (sm["closed_loop_stable"] and sm["phase_margin_deg"] >= STIFF_MIN_PHASE_MARGIN_DEG
+                    and sm["gain_margin_db"] >= STIFF_MIN_GAIN_MARGIN_DB):
+                r.notes.append(f"frf tuning: {x / T:.3g} Hz (stiction length {fb / kp * 1e6:.3g} um > "
+                               f"{STICTION_LENGTH_X_FE:g} following-error limits at {base / T:.3g} Hz)")
+                self.opts.progress(f"commission: FRF at {x / T:.3g} Hz (stiction length {fb / kp * 1e6:.3g} um)")
+                return x
+        return base
 
     def _experiment_crossover(self, mass_kg: float) -> float:
         """Crossover × period of the friction experiments' tuning.
@@ -1086,6 +1145,24 @@ def _first_excited_row(rec: Recorder) -> int:
     if nz.size == 0:
         raise StageError("frf: the excitation never reached the loop (no nonzero u_exc)")
     return int(nz[0])
+
+
+def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_limit: str, m_probe_kg: float,
+                   m_probe_std_kg: float) -> float | None:
+    """The friction experiments' tuning mass [kg] where the FRF's mass reads clearly light, else None.
+
+    With the multisine held under the breakaway (``frf_limit == "breakaway"``) the FRF's mass is a pre-sliding
+    fit, and a stage that stick-slips under it (the loop adds its own force) reads light. Where the probe's
+    mass exceeds it by more than twice their combined standard error, ``m_p − m > 2·sqrt(σ_m² + σ_p²)``, the
+    experiments are tuned for ``min(m_p, 2·m)`` (the plausibility range's upper ratio); the identification
+    and the gains keep ``m``. Tuned for a mass 33 % light, generated plant 61 (1.99 kg, 1.2 N Coulomb; FRF
+    1.33 ± 0.07 kg, probe 2.02 ± 0.11 kg) lagged 57 µm at the start of its 16 mm/s pass and overshot the
+    velocity limit."""
+    if mass_from != "frf" or frf_limit != "breakaway":
+        return None
+    if not m_probe_kg - m_frf_kg > 2.0 * math.hypot(m_frf_std_kg, m_probe_std_kg):
+        return None
+    return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
 
 
 def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error_m: float,
