@@ -237,7 +237,7 @@ def _damping_excess(h: Hyp) -> tuple[tuple[int, float, float, float], ...]:
     DAMPING_MAX_ZETA``. A damper on an element that carries no force (``W_i = 0``) has bound 0: the model file
     keeps no such element (:mod:`stagectl.ident.modelio`), so the fit would describe a force the file drops.
 
-    Measured (docs/discovery.md §14): on commissioning recordings of GMS stages (true ζ 0.1) the unbounded fit
+    Measured (docs/discovery.md §8): on commissioning recordings of GMS stages (true ζ 0.1) the unbounded fit
     put σ1 = 3.9·10⁸ N·s/m on a 0.2 µm element whose deflection rate the estimation recording barely excites
     (RMS 5·10⁻¹² m/s; 85× the bound, or 1.1·10⁵ N·s/m on an element with W = 0): pre-sliding then failed
     validation (289 N against 0.22 N) and a backlash took its place."""
