@@ -20,8 +20,9 @@ model file's content (``docs/commissioning.md`` §4).
   acceptance (a 20 % cut of the validation gap on the constant-velocity passes, which rejected both on the
   commissioning test stage with Coulomb 1.0 N: model Stribeck only, cosine 3.7 µm RMS against 1.6 nm):
   cogging by :func:`cogging_evidence` on the slow passes, confirmed on the constant-velocity passes
-  (:func:`cogging_confirmation`: a second experiment its period and phase were not fitted on), pre-sliding by the ratio of a rigid friction's
-  residual to the Maxwell-slip regression's (:func:`fit_presliding`, ``PRESLIDING_EVIDENCE_RATIO``);
+  (:func:`cogging_confirmation`: a second experiment its period and phase were not fitted on), pre-sliding
+  by the ratio of a rigid friction's residual to the Maxwell-slip regression's (:func:`fit_presliding`,
+  ``PRESLIDING_EVIDENCE_RATIO``);
   discover's verdict is reported beside (``discovery.evidence``);
 * pre-sliding (when named): the GMS elements are refitted on the reversals, the pre-sliding
   loops and the constant-velocity passes (their reversals) by a Maxwell-slip regression
