@@ -255,18 +255,23 @@ def _damping_excess(h: Hyp) -> tuple[tuple[int, float, float, float], ...]:
     return tuple(out)
 
 
-def _fit_presliding(fitter: Fitter, h: Hyp) -> FitResult:
-    """The pre-sliding fit with every micro-damping within its physical bound (:func:`_damping_excess`): the
-    damping column of the element farthest beyond its bound is left out and the fit repeated, until none is."""
-    h = PRESLIDING.reshaped(h, undamped=())
-    res = fitter.fit(h)
+def bound_damping(fitter: Fitter, fr: FitResult) -> FitResult:
+    """``fr`` with every pre-sliding micro-damping within its physical bound (:func:`_damping_excess`): the
+    damping column of the element farthest beyond its bound is left out and the fit repeated, until none is
+    (``fr`` itself when none is; the other shapes are kept). Discovery applies it after every candidate's fit,
+    so that an effect added later refits the damping within the bound instead of failing on it."""
+    res = fr
     while True:
         ex = _damping_excess(res.hyp)
         if not ex:
             return res
         worst = max(ex, key=lambda e: e[2] / max(e[3], 1e-300))[0]
-        h = PRESLIDING.reshaped(h, undamped=(*PRESLIDING.shape(h).undamped, worst))
-        res = fitter.fit(h)
+        res = fitter.fit(PRESLIDING.reshaped(res.hyp, undamped=(*PRESLIDING.shape(res.hyp).undamped, worst)))
+
+
+def _fit_presliding(fitter: Fitter, h: Hyp) -> FitResult:
+    """The pre-sliding fit, every damping column offered, then bounded (:func:`bound_damping`)."""
+    return bound_damping(fitter, fitter.fit(PRESLIDING.reshaped(h, undamped=())))
 
 
 def _presliding_params(h: Hyp) -> PreslidingParams:
