@@ -629,7 +629,7 @@ def cogging_confirmation(rec: Recorder, mass_kg: float, period_s: float, ce: Map
     return out
 
 
-def _cogging_decided(recs: Mapping[str, Recorder], mass_kg: float, period_s: float) -> dict[str, Any]:
+def cogging_decided(recs: Mapping[str, Recorder], mass_kg: float, period_s: float) -> dict[str, Any]:
     """The slow passes' cogging evidence (:func:`cogging_evidence`), named only when the constant-velocity
     passes confirm it (:func:`cogging_confirmation`; its figures under ``held_out``)."""
     ce = cogging_evidence(recs["slow_passes"], mass_kg, period_s)
@@ -789,7 +789,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     # 1.002 kg, true 0.786, FRF 0.731; with it taken off 0.744 kg, and the FRF mass stays)
     cv_rec = to_recording(res_recordings["friction_cv"], "friction_cv")
     if "slow_passes" in res_recordings:
-        ce0 = _cogging_decided(res_recordings, mass_kg, period_s)
+        ce0 = cogging_decided(res_recordings, mass_kg, period_s)
         if ce0["present"]:
             cv_rec.u = cv_rec.u - _cogging_force(ce0, cv_rec.x)
     try:
@@ -817,7 +817,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     decided: dict[str, dict[str, Any]] = {}
     effects = dict(spec.get("effects") or {})
     if "slow_passes" in res_recordings:
-        ce = _cogging_decided(res_recordings, m, period_s)
+        ce = cogging_decided(res_recordings, m, period_s)
         ce["discover"] = "cogging" in names
         decided["cogging"] = ce
         if ce["present"]:  # the slow passes' period scan covers every period; discover's search may not
