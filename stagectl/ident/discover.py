@@ -180,8 +180,11 @@ def _fitter(ds: Dataset) -> rg.LinearFitter:
 
 
 def fit_candidate(ds: Dataset, cur: FitResult, name: str) -> FitResult:
-    """Add effect ``name`` to the current model and fit it (its shape searched) on estimation data."""
-    return fx.REGISTRY.get(name).search(_fitter(ds), cur, fx.REGISTRY.with_effect(cur.hyp, name))
+    """Add effect ``name`` to the current model and fit it (its shape searched) on estimation data; a
+    pre-sliding micro-damping the joint refit pushes beyond its physical bound is left out
+    (:func:`stagectl.ident.effects.bound_damping`)."""
+    fr = fx.REGISTRY.get(name).search(_fitter(ds), cur, fx.REGISTRY.with_effect(cur.hyp, name))
+    return fx.bound_damping(_fitter(ds), fr)
 
 
 def gap(sig: Signals, rows: BoolArray, h: Hyp) -> tuple[float, FloatArray]:
@@ -219,7 +222,7 @@ def _refresh(ds: Dataset, fr: FitResult) -> FitResult:
     for spec in fx.REGISTRY:
         if spec.refresh is not None and fr.hyp.has(spec.name):
             best = spec.refresh(_fitter(ds), best)
-    return best
+    return fx.bound_damping(_fitter(ds), best)
 
 
 def _upgrade_nested(ds: Dataset, cur: FitResult, effects: list[AcceptedEffect], rejected: list[RejectedEffect],

@@ -75,6 +75,9 @@ class LagParams:
 class PreslidingShape:
     deltas_m: tuple[float, ...] = ()  # break displacements Δ_i of the Maxwell-slip elements [m]
     damped: bool = True  # micro-damping columns on elements that stay elastic long enough
+    #: elements (indices into deltas_m) without a micro-damping column: their damping fitted beyond its
+    #: physical bound (:func:`_damping_excess`) and was left out (:func:`_fit_presliding`)
+    undamped: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,8 @@ class PreslidingParams:
     coulomb_part_n: float
     initial_stiffness_n_m: float
     largest_break_displacement_m: float
+    #: elements whose micro-damping exceeds its physical bound: (Δ_i [m], σ1_i [N·s/m], bound [N·s/m])
+    damping_excess: tuple[tuple[float, float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -216,8 +221,57 @@ def _presliding_columns(sig: Signals, h: Hyp) -> list[Column]:
         # speeds; on the stiffest ones dz/dt is a one-sample spike that would fit transients, not physics
         d_min = min_damped_delta(sig)
         cols += [Column(f"s{i}", element_rate(sig, d), f"s:{d:.6e}", nonneg=True)
-                 for i, d in enumerate(sh.deltas_m) if d >= d_min]
+                 for i, d in enumerate(sh.deltas_m) if d >= d_min and i not in sh.undamped]
     return cols
+
+
+#: micro-damping bound: σ1_i <= DAMPING_MAX_ZETA · 2·sqrt(k_i·m), element i critically damped on the mass
+DAMPING_MAX_ZETA = 1.0
+
+
+def _damping_excess(h: Hyp) -> tuple[tuple[int, float, float, float], ...]:
+    """Elements whose fitted micro-damping exceeds its physical bound: ``(i, Δ_i, σ1_i, bound)``.
+
+    A Maxwell-slip element of stiffness ``k_i = W_i/Δ_i`` [N/m] with micro-damping ``σ1_i`` [N·s/m] on the
+    moving mass ``m`` is a spring-damper of damping ratio ``ζ_i = σ1_i / (2·sqrt(k_i·m))``; bound ``ζ_i <=
+    DAMPING_MAX_ZETA``. A damper on an element that carries no force (``W_i = 0``) has bound 0: the model file
+    keeps no such element (:mod:`stagectl.ident.modelio`), so the fit would describe a force the file drops.
+
+    Measured (docs/discovery.md §8): on commissioning recordings of GMS stages (true ζ 0.1) the unbounded fit
+    put σ1 = 3.9·10⁸ N·s/m on a 0.2 µm element whose deflection rate the estimation recording barely excites
+    (RMS 5·10⁻¹² m/s; 85× the bound, or 1.1·10⁵ N·s/m on an element with W = 0): pre-sliding then failed
+    validation (289 N against 0.22 N) and a backlash took its place."""
+    th = h.theta
+    m = float(th.get("m", h.fixed_mass_kg or 0.0))
+    out = []
+    for i, d in enumerate(PRESLIDING.shape(h).deltas_m):
+        s = th.get(f"s{i}", 0.0)
+        if s <= 0.0:
+            continue
+        k = max(th.get(f"w{i}", 0.0), 0.0) / d
+        bound = DAMPING_MAX_ZETA * 2.0 * math.sqrt(k * max(m, 0.0))
+        if s > bound * (1.0 + 1e-9):
+            out.append((i, float(d), float(s), float(bound)))
+    return tuple(out)
+
+
+def bound_damping(fitter: Fitter, fr: FitResult) -> FitResult:
+    """``fr`` with every pre-sliding micro-damping within its physical bound (:func:`_damping_excess`): the
+    damping column of the element farthest beyond its bound is left out and the fit repeated, until none is
+    (``fr`` itself when none is; the other shapes are kept). Discovery applies it after every candidate's fit,
+    so that an effect added later refits the damping within the bound instead of failing on it."""
+    res = fr
+    while True:
+        ex = _damping_excess(res.hyp)
+        if not ex:
+            return res
+        worst = max(ex, key=lambda e: e[2] / max(e[3], 1e-300))[0]
+        res = fitter.fit(PRESLIDING.reshaped(res.hyp, undamped=(*PRESLIDING.shape(res.hyp).undamped, worst)))
+
+
+def _fit_presliding(fitter: Fitter, h: Hyp) -> FitResult:
+    """The pre-sliding fit, every damping column offered, then bounded (:func:`bound_damping`)."""
+    return bound_damping(fitter, fitter.fit(PRESLIDING.reshaped(h, undamped=())))
 
 
 def _presliding_params(h: Hyp) -> PreslidingParams:
@@ -226,14 +280,15 @@ def _presliding_params(h: Hyp) -> PreslidingParams:
     w = np.array([th.get(f"w{i}", 0.0) for i in range(d.size)])
     keep = w > 1e-9 * max(w.sum(), 1e-300)
     return PreslidingParams(int(keep.sum()), float(w.sum()) + th.get("fc", 0.0), th.get("fc", 0.0),
-                            float(np.sum(w[keep] / d[keep])), float(d[keep].max()) if keep.any() else 0.0)
+                            float(np.sum(w[keep] / d[keep])), float(d[keep].max()) if keep.any() else 0.0,
+                            tuple((e[1], e[2], e[3]) for e in _damping_excess(h)))
 
 
 def _search_presliding(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
     """Elements on a log grid; keep those that carry force and refine their break displacements (coordinate
     descent on log Δ_i: the virgin curve is piecewise linear with breakpoints Δ_i, docs/friction-models.md §2.3)."""
     h = PRESLIDING.reshaped(h, deltas_m=tuple(presliding_grid(fitter.sig)))
-    first = fitter.fit(h)
+    first = _fit_presliding(fitter, h)
     grid = PRESLIDING.shape(h).deltas_m
     deltas = [grid[i] for i in range(len(grid)) if first.hyp.theta.get(f"w{i}", 0.0) > 0]
     if not deltas:
@@ -243,10 +298,10 @@ def _search_presliding(fitter: Fitter, cur: FitResult, h: Hyp) -> FitResult:
             def cost(d: float, j: int = j) -> float:
                 trial = list(deltas)
                 trial[j] = d
-                return PRESLIDING.fit_with(fitter, h, deltas_m=tuple(trial)).rss
+                return _fit_presliding(fitter, PRESLIDING.reshaped(h, deltas_m=tuple(trial))).rss
             dj = deltas[j]
             deltas[j], _ = best_scalar(cost, [dj / 1.8, dj, dj * 1.8], dj / 2.5, dj * 2.5, maxiter=8)
-    return PRESLIDING.fit_with(fitter, h, deltas_m=tuple(sorted(deltas)))
+    return _fit_presliding(fitter, PRESLIDING.reshaped(h, deltas_m=tuple(sorted(deltas))))
 
 
 def _presliding_evidence(ev: ResidualView, p: PreslidingParams) -> str:
@@ -852,7 +907,10 @@ def _stribeck_bounds(p: StribeckParams) -> list[str]:
 
 
 def _presliding_bounds(p: PreslidingParams) -> list[str]:
-    return [] if p.elements > 0 else ["every slip force W_i at its lower bound 0 (no elastic element carries force)"]
+    out = [] if p.elements > 0 else ["every slip force W_i at its lower bound 0 (no elastic element carries force)"]
+    out += [f"micro-damping σ1 = {s:.3g} N·s/m on the Δ = {1e6 * d:.3g} µm element above its bound {b:.3g} N·s/m "
+            f"(critically damped on the mass; 0 for an element without slip force)" for d, s, b in p.damping_excess]
+    return out
 
 
 def _lag_bounds(p: LagParams) -> list[str]:
