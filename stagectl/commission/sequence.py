@@ -48,7 +48,7 @@ from stagectl.commission.controllers import (
     multisine,
 )
 from stagectl.commission.envelope import VELOCITY_FRACTION, Envelope, make_envelope
-from stagectl.commission.fit import _cogging_force, cogging_evidence, fit_models, slow_pass_slope
+from stagectl.commission.fit import _cogging_force, cogging_decided, fit_models, slow_pass_slope
 from stagectl.config import AppConfig, IoKind
 from stagectl.control.api import Reference
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController, controller_mass
@@ -646,7 +646,7 @@ class Commissioning:
         # the passes read again with the slow passes' position force (cogging, spring) taken off: the short fast
         # passes' + and − windows do not cover the same range, and the odd part kept a part of it
         # (analysis.cv_segments); the offset stays in the even part
-        ce = cogging_evidence(slow, m, T)
+        ce = cogging_decided({"slow_passes": slow, "friction_cv": cv_rec}, m, T)  # confirmed by the passes, as discovery names it
         cog = ce if ce["present"] else None
         k_x = slow_pass_slope(slow, m, T, cog)
         xs_cv = np.asarray(cv_rec.col("x"), np.float64)
