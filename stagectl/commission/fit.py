@@ -723,6 +723,10 @@ STRIBECK_OBSERVED_FRACTION = 0.5
 #: STRIBECK_LEVEL_TOLERANCE (generated plant 12: 1.914 N from the extrapolated curve, then 1.756, true 1.729)
 STRIBECK_REFITS = 3
 STRIBECK_LEVEL_TOLERANCE = 0.005
+#: the Stribeck shape exponent held when the passes stick-slipped (the Gaussian curve, δ = 2, the most common
+#: shape and the shipped models'): the sliding passes then see only the curve's tail, which any δ fits with a
+#: matching vs (:func:`_refit_stribeck`)
+STRIBECK_DELTA_UNOBSERVED = 2.0
 
 
 def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
@@ -747,7 +751,8 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     level = float(presliding["level_n"])
     if not level > 0.0:
         return None
-    out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level))
+    out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level,
+                                                  delta=STRIBECK_DELTA_UNOBSERVED if stick_slip else None))
     out["fs_n"] = max(float(out["fs_n"]), float(out["fc_n"]))
     return out
 
