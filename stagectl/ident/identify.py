@@ -294,7 +294,7 @@ _STRIBECK_REFINE = 6
 
 
 def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
-                       delta: float | None = None) -> dict[str, float]:
+                       delta: float | None = None, vs_min_m_s: float | None = None) -> dict[str, float]:
     """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset].
 
     The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
@@ -314,6 +314,8 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
 
     ``delta``: the shape exponent δ held (the grid and the refinement keep it): where the means see only the
     curve's tail (its dip lies below the slowest sliding speed), the tail fits any δ with a matching vs.
+    ``vs_min_m_s``: a lower bound of vs [m/s] known from elsewhere (the grid starts there when it is above
+    ``v_min/20``).
     """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
@@ -331,6 +333,8 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
         return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
     lo_lvs, hi_lvs = math.log(vmin / 20 + 1e-12), math.log(vmax * 20 + 1e-12)
+    if vs_min_m_s is not None:
+        lo_lvs = min(max(lo_lvs, math.log(vs_min_m_s)), hi_lvs - 1e-9)
     lvs_grid = np.linspace(lo_lvs, hi_lvs, _STRIBECK_GRID[0])
     dl_grid = np.linspace(0.5, 4.0, _STRIBECK_GRID[1]) if delta is None else np.array([float(delta)])
     cost = np.full((lvs_grid.size, dl_grid.size), np.inf)
