@@ -723,6 +723,15 @@ STRIBECK_OBSERVED_FRACTION = 0.5
 #: STRIBECK_LEVEL_TOLERANCE (generated plant 12: 1.914 N from the extrapolated curve, then 1.756, true 1.729)
 STRIBECK_REFITS = 3
 STRIBECK_LEVEL_TOLERANCE = 0.005
+#: the Stribeck shape exponent held when the passes stick-slipped (the Gaussian curve, δ = 2, the most common
+#: shape and the shipped models'): the sliding passes then see only the curve's tail, which any δ fits with a
+#: matching vs (:func:`_refit_stribeck`)
+STRIBECK_DELTA_UNOBSERVED = 2.0
+#: ... and its vs at least the fastest stick-slipping pass's speed over this ratio: there the Gaussian curve's
+#: slope −dF/dv is still 0.45 of its steepest (at vs/√2); beyond 2·vs it is 0.07
+STICK_SLIP_VS_RATIO = math.sqrt(2.0)
+#: the bound on vs is kept while the fit's RMS stays within twice the free fit's or this [N]
+STICK_SLIP_BOUND_RMS_N = 1e-3
 
 
 def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
@@ -747,7 +756,21 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     level = float(presliding["level_n"])
     if not level > 0.0:
         return None
-    out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level))
+    if not stick_slip:
+        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level))
+    else:
+        # δ held, and vs at least the fastest stick-slipping pass's speed over STICK_SLIP_VS_RATIO: a pass
+        # stick-slips only where the curve still falls steeply. Fresh plant k111 (vs 0.31 mm/s, passes from
+        # 1 mm/s, whose means show none of the dip) took vs 50 µm/s, the grid's end, and its cosine was 41x
+        # the exact model's. The bound stays only while it costs the fit no more than the pairs' scatter
+        free = fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, delta=STRIBECK_DELTA_UNOBSERVED)
+        out = dict(free)
+        v_ss = float(fr["stick_slip_m_s"]) / STICK_SLIP_VS_RATIO
+        if free["vs_m_s"] < v_ss:
+            bound = fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, delta=STRIBECK_DELTA_UNOBSERVED,
+                                       vs_min_m_s=v_ss)
+            if bound["rms_n"] <= max(2.0 * free["rms_n"], STICK_SLIP_BOUND_RMS_N):
+                out = dict(bound, vs_bound_m_s=v_ss, free_vs_m_s=free["vs_m_s"])
     out["fs_n"] = max(float(out["fs_n"]), float(out["fc_n"]))
     return out
 

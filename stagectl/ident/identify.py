@@ -293,7 +293,8 @@ _STRIBECK_GRID = (121, 15)
 _STRIBECK_REFINE = 6
 
 
-def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) -> dict[str, float]:
+def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
+                       delta: float | None = None, vs_min_m_s: float | None = None) -> dict[str, float]:
     """Least-squares fit of F(v) = sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + σ2·v [+ a constant offset].
 
     The model is linear in (Fc, Fs − Fc, σ2, offset) once (vs, δ) are fixed, and the cost over (vs, δ) has
@@ -310,6 +311,11 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) 
     not fix Fs when the curve has dropped by the slowest speed: on a generated plant (vs 0.30 mm/s, slowest
     pass 0.16 mm/s) Fs came out 2.30 N (vs 32 µm/s, δ 0.5) for a true 1.73 N, with a lower residual than the
     true curve's. Returned: ``v_min_m_s`` (the slowest speed) and ``fs_fixed``.
+
+    ``delta``: the shape exponent δ held (the grid and the refinement keep it): where the means see only the
+    curve's tail (its dip lies below the slowest sliding speed), the tail fits any δ with a matching vs.
+    ``vs_min_m_s``: a lower bound of vs [m/s] known from elsewhere (the grid starts there when it is above
+    ``v_min/20``).
     """
     if v.size < 3:
         raise DataError(f"Stribeck fit: {v.size} constant-velocity segments found, need at least 3")
@@ -327,8 +333,10 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) 
         return np.asarray(s * (fc + ds * np.exp(-((av / math.exp(lvs)) ** dl))) + fv * v + off, dtype=np.float64)
 
     lo_lvs, hi_lvs = math.log(vmin / 20 + 1e-12), math.log(vmax * 20 + 1e-12)
+    if vs_min_m_s is not None:
+        lo_lvs = min(max(lo_lvs, math.log(vs_min_m_s)), hi_lvs - 1e-9)
     lvs_grid = np.linspace(lo_lvs, hi_lvs, _STRIBECK_GRID[0])
-    dl_grid = np.linspace(0.5, 4.0, _STRIBECK_GRID[1])
+    dl_grid = np.linspace(0.5, 4.0, _STRIBECK_GRID[1]) if delta is None else np.array([float(delta)])
     cost = np.full((lvs_grid.size, dl_grid.size), np.inf)
     lin_p = np.zeros((lvs_grid.size, dl_grid.size, 4))
     for i, lvs in enumerate(lvs_grid.tolist()):
@@ -357,7 +365,8 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None) 
                     for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj], axis=0)
     minima = np.argwhere(np.isfinite(cost) & (cost <= neigh))
     minima = minima[np.argsort(cost[minima[:, 0], minima[:, 1]])][:_STRIBECK_REFINE]
-    bounds = ([0, 0, lo_lvs, 0.5, 0, -np.inf], [np.inf, np.inf, hi_lvs, 4.0, np.inf, np.inf])
+    dl_lo, dl_hi = (0.5, 4.0) if delta is None else (float(delta) * (1 - 1e-9), float(delta) * (1 + 1e-9))
+    bounds = ([0, 0, lo_lvs, dl_lo, 0, -np.inf], [np.inf, np.inf, hi_lvs, dl_hi, np.inf, np.inf])
     x_best: FloatArray | None = None
     c_best = math.inf
     for i, j in minima.tolist():

@@ -241,3 +241,31 @@ def test_stribeck_curve_fit_with_the_static_level_held() -> None:
         th = np.linalg.solve(at @ a, (at @ y[..., None]))
         best = min(best, float(np.sqrt(np.mean(((a @ th)[..., 0] - y) ** 2, axis=1)).min()))
     assert held["rms_n"] <= best * 1.001, (held["rms_n"], best)
+
+
+def test_stribeck_curve_fit_with_delta_and_a_vs_bound_held() -> None:
+    """δ and a lower bound of vs held (commission: passes that stick-slip below 1 mm/s leave only the curve's
+    tail, fresh plant k111 of tests/commission/plant_kinds.py: Fc 1.629 N, Fs 2.057 N, vs 0.31 mm/s). The
+    held δ is returned as given, vs respects its bound, and the fit stays a least-squares one: its cost is
+    the lowest of a plain scan over vs ≥ the bound with δ = 2 (ordinary least squares for Fc, σ2, offset)."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    v = np.array([1.009e-3, 2.533e-3, 6.352e-3, 1.613e-2])
+    v = np.concatenate([v, -v])
+    s, av = np.sign(v), np.abs(v)
+    fc, fs, vs, fv = 1.6292, 2.057, 3.14e-4, 9.256
+    f = s * (fc + (fs - fc) * np.exp(-((av / vs) ** 2))) + fv * v
+    f = f + 2e-4 * np.random.default_rng(5).standard_normal(v.size)
+    held = fit_stribeck_curve(v, f, fs_n=fs, delta=2.0)
+    assert held["delta"] == pytest.approx(2.0) and held["vs_m_s"] < 0.5 * vs  # the tail alone: vs runs low
+    lb = 0.4e-3 / np.sqrt(2.0)
+    bound = fit_stribeck_curve(v, f, fs_n=fs, delta=2.0, vs_min_m_s=lb)
+    assert bound["delta"] == pytest.approx(2.0) and lb * (1 - 1e-9) <= bound["vs_m_s"] < 1.5 * vs, bound
+    best = np.inf
+    for vsg in np.geomspace(lb, 0.33, 600):
+        e = np.exp(-((av / vsg) ** 2))
+        a = np.column_stack([s * (1 - e), v, np.ones_like(v)])
+        y = f - s * fs * e
+        th, *_ = np.linalg.lstsq(a, y, rcond=None)
+        best = min(best, float(np.sqrt(np.mean((a @ th - y) ** 2))))
+    assert bound["rms_n"] <= best * 1.001 + 1e-9, (bound["rms_n"], best)
