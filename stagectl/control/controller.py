@@ -764,6 +764,7 @@ class StageController:
             raise ValueError(f"x_m must be finite (got {x_m})")
         if self._rest_gains:
             self._set_rest_gains(False)
+        self._rg_still_s = 0.0  # the rest gains' dwell starts again
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -841,6 +842,18 @@ class StageController:
             self.dob.shift(-self._s_rest)
             st.u_obs_prev_n -= self._s_rest
         self._reset_rest_spring()
+        if self._u_k != 0.0:
+            # a continuation from ahead under way: its force u_k (outside the observer's input) goes to the
+            # observer now, as at its end (d̂ += u_k: u continuous; an observer switched off below hands it on to
+            # the integrator), and the rest of the continuation runs without it
+            if self.dob is not None:
+                self.dob.shift(self._u_k)
+                st.u_obs_prev_n += self._u_k
+            else:  # (not reached: the continuation needs an observer)
+                transfer += self._u_k
+            self._u_k = self._u_k_base = 0.0
+            self._ahead_pass = 0
+            self._sm.stiff = False
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
@@ -1285,8 +1298,8 @@ class StageController:
             return Command(u, terms, ("stale",))
         u = c + lim if u > c else c - lim
         st.u_n = st.u_next_n = u  # (the limited force is held, so is its schedule)
-        self._u_obs_next = u - st.u_ff_n
-        st.u_obs_prev_n = u - st.u_ff_n
+        self._u_obs_next = u - st.u_ff_n - self._u_k
+        st.u_obs_prev_n = u - st.u_ff_n - self._u_k
         return Command(u, terms, ("stale", "stale_force"))
 
     _d_cfg: ControllerConfig | None = None  # the settings, observer and feed-forward _derive() was run for
@@ -1511,7 +1524,8 @@ class StageController:
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
                                          st.u_ff_n + st.u_inertia_n + self._u_learn, dt, self.period_s,
                                          cfg.max_force_n)
-        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
+        # (residual form as u_obs_prev_n below: the continuation from ahead's force held, outside the observer)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt) - self._u_k
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -1581,12 +1595,12 @@ class StageController:
         u = max(-lim, min(lim, u_fb + u_ff + u_in + u_learn_n))
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n, st.u_ff_n + st.u_inertia_n + self._u_learn,
                                          dt, self.period_s, lim)
-        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt) - self._u_k
         self._u_learn = u_learn_n
         st.u_n = u
         st.u_ff_n = u_ff
         st.u_inertia_n = u_in
-        st.u_obs_prev_n = u - u_ff
+        st.u_obs_prev_n = u - u_ff - self._u_k  # (the held command keeps the continuation's force: not observed)
         terms = dict(st.terms)
         terms["u_ff"] = u_ff
         terms["u_inertia"] = u_in
