@@ -193,7 +193,8 @@ pre-sliding branch, gets the same continuation and the friction spring's force a
     u_k(τ) = γ·θ·β·Σk·(e₀ − c(τ + τ_a))   [N]   (θ, β after the stop's learning; τ_a the feed-forward look-ahead)
 
 added to the command and kept out of the observer's input (u_obs = u − u_ff − u_k); at τ = T it is handed to the
-observer (d̂ += u_k, ``dob.shift``: no step in u). If at its end the stage is still off by more than move_min_m/2, one
+observer (d̂ += u_k, ``dob.shift``: no step in u; a retune during it does the same at once, and the rest of the
+continuation runs without the spring force). If at its end the stage is still off by more than move_min_m/2, one
 second continuation follows from there, keeping the first's force and adding its own with the gain × the first's
 planned / measured travel e₀/(e₀ − e₁), bounded by ``AHEAD_RATIO_MAX``. Feed-forward planned at each start: the loop
 and its margins are unchanged. docs/control.md §2.8: a too-high model's first step 24–64 → 15–24 ms.
