@@ -842,6 +842,7 @@ class StageController:
             # the same d̂ and rebuild the spring at rest if they have one
             self.dob.shift(-self._s_rest)
             st.u_obs_prev_n -= self._s_rest
+            self._u_obs_next -= self._s_rest  # (the predicted command's input moves with it: _observe_schedule)
         self._reset_rest_spring()
         if self._u_k != 0.0:
             # a continuation from ahead under way: its force u_k (outside the observer's input) goes to the
@@ -850,6 +851,7 @@ class StageController:
             if self.dob is not None:
                 self.dob.shift(self._u_k)
                 st.u_obs_prev_n += self._u_k
+                self._u_obs_next += self._u_k
             else:  # (not reached: the continuation needs an observer)
                 transfer += self._u_k
             self._u_k = self._u_k_base = 0.0
@@ -1420,6 +1422,7 @@ class StageController:
             if dob is not None:
                 dob.shift(delta)
                 st.u_obs_prev_n += delta
+                self._u_obs_next += delta  # (the predicted command's input too: _observe_schedule)
             else:
                 self.pid.preload(self.pid.state.u_pid_n + delta)
         ffc = cfg.feedforward
