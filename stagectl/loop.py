@@ -735,10 +735,12 @@ class ControlLoop:
                                 lvl = _prev_level(lvl)
                             if lvl != self.slow_down:
                                 self._set_slow_down(lvl, t)
-                        if sched and skipped and t_prev is not None and t_prev == t_cyc:
-                            # the actuator filled the skipped slots from its schedule, its own first slot
-                            # missed_sync_periods after the last cycle's SYNC: the observer is told so
-                            own_s = actuator.missed_sync_periods * period
+                        own_s = actuator.missed_sync_periods * period if sched else math.inf
+                        if t_prev is not None and t_prev == t_cyc and t - t_prev > own_s * (1.0 + 1e-9):
+                            # the actuator filled the slots since the last cycle's SYNC from its schedule, its own
+                            # first slot missed_sync_periods after it: the observer is told so. (The actuator's
+                            # test, not the loop's skipped count: a wake-up 0.5-1 T late skips no slot, but comes
+                            # after the own slot)
                             controller.scheduled_slots(own_s)  # type: ignore[attr-defined]
                         if learner is None:
                             cmd = controller.step(dt, x, ref)

@@ -193,7 +193,8 @@ pre-sliding branch, gets the same continuation and the friction spring's force a
     u_k(τ) = γ·θ·β·Σk·(e₀ − c(τ + τ_a))   [N]   (θ, β after the stop's learning; τ_a the feed-forward look-ahead)
 
 added to the command and kept out of the observer's input (u_obs = u − u_ff − u_k); at τ = T it is handed to the
-observer (d̂ += u_k, ``dob.shift``: no step in u). If at its end the stage is still off by more than move_min_m/2, one
+observer (d̂ += u_k, ``dob.shift``: no step in u; a retune during it does the same at once, and the rest of the
+continuation runs without the spring force). If at its end the stage is still off by more than move_min_m/2, one
 second continuation follows from there, keeping the first's force and adding its own with the gain × the first's
 planned / measured travel e₀/(e₀ − e₁), bounded by ``AHEAD_RATIO_MAX``. Feed-forward planned at each start: the loop
 and its margins are unchanged. docs/control.md §2.8: a too-high model's first step 24–64 → 15–24 ms.
@@ -764,6 +765,7 @@ class StageController:
             raise ValueError(f"x_m must be finite (got {x_m})")
         if self._rest_gains:
             self._set_rest_gains(False)
+        self._rg_still_s = 0.0  # the rest gains' dwell starts again
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -840,7 +842,21 @@ class StageController:
             # the same d̂ and rebuild the spring at rest if they have one
             self.dob.shift(-self._s_rest)
             st.u_obs_prev_n -= self._s_rest
+            self._u_obs_next -= self._s_rest  # (the predicted command's input moves with it: _observe_schedule)
         self._reset_rest_spring()
+        if self._u_k != 0.0:
+            # a continuation from ahead under way: its force u_k (outside the observer's input) goes to the
+            # observer now, as at its end (d̂ += u_k: u continuous; an observer switched off below hands it on to
+            # the integrator), and the rest of the continuation runs without it
+            if self.dob is not None:
+                self.dob.shift(self._u_k)
+                st.u_obs_prev_n += self._u_k
+                self._u_obs_next += self._u_k
+            else:  # (not reached: the continuation needs an observer)
+                transfer += self._u_k
+            self._u_k = self._u_k_base = 0.0
+            self._ahead_pass = 0
+            self._sm.stiff = False
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
@@ -1285,8 +1301,8 @@ class StageController:
             return Command(u, terms, ("stale",))
         u = c + lim if u > c else c - lim
         st.u_n = st.u_next_n = u  # (the limited force is held, so is its schedule)
-        self._u_obs_next = u - st.u_ff_n
-        st.u_obs_prev_n = u - st.u_ff_n
+        self._u_obs_next = u - st.u_ff_n - self._u_k
+        st.u_obs_prev_n = u - st.u_ff_n - self._u_k
         return Command(u, terms, ("stale", "stale_force"))
 
     _d_cfg: ControllerConfig | None = None  # the settings, observer and feed-forward _derive() was run for
@@ -1406,6 +1422,7 @@ class StageController:
             if dob is not None:
                 dob.shift(delta)
                 st.u_obs_prev_n += delta
+                self._u_obs_next += delta  # (the predicted command's input too: _observe_schedule)
             else:
                 self.pid.preload(self.pid.state.u_pid_n + delta)
         ffc = cfg.feedforward
@@ -1511,7 +1528,8 @@ class StageController:
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
                                          st.u_ff_n + st.u_inertia_n + self._u_learn, dt, self.period_s,
                                          cfg.max_force_n)
-        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
+        # (residual form as u_obs_prev_n below: the continuation from ahead's force held, outside the observer)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt) - self._u_k
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -1581,12 +1599,12 @@ class StageController:
         u = max(-lim, min(lim, u_fb + u_ff + u_in + u_learn_n))
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n, st.u_ff_n + st.u_inertia_n + self._u_learn,
                                          dt, self.period_s, lim)
-        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt)
+        self._u_obs_next = st.u_next_n - u_ff - (u_ff - st.u_ff_n) * (self.period_s / dt) - self._u_k
         self._u_learn = u_learn_n
         st.u_n = u
         st.u_ff_n = u_ff
         st.u_inertia_n = u_in
-        st.u_obs_prev_n = u - u_ff
+        st.u_obs_prev_n = u - u_ff - self._u_k  # (the held command keeps the continuation's force: not observed)
         terms = dict(st.terms)
         terms["u_ff"] = u_ff
         terms["u_inertia"] = u_in

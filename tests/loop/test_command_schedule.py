@@ -164,3 +164,50 @@ def test_the_observer_told_the_scheduled_forces_tracks_better(sim_cfg, monkeypat
     monkeypatch.setattr(StageController, "scheduled_slots", lambda self, own_slot_s: None)
     blind = sum_sq()
     assert told < 0.8 * blind, (told, blind)
+
+
+class _LateClock:
+    """Simulated time (a SimClock) whose every ``every``-th wake-up is ``late_periods`` periods late: less than
+    a period, so the loop skips no slot, but more than half a period, so the actuator has taken its own slot
+    (missed_sync_periods 1.5 after the last SYNC) before the late SYNC arrives."""
+
+    def __new__(cls, period_s: float, late_periods: float, every: int):
+        from stagectl.clock import SimClock
+
+        class Late(SimClock):
+            def __init__(self) -> None:
+                super().__init__(0.0)
+                self.wakeups = 0
+
+            def sleep_until(self, t_s: float) -> None:
+                super().sleep_until(t_s)
+                self.wakeups += 1
+                if self.wakeups % every == 0:
+                    self.t_s += late_periods * period_s
+
+        return Late()
+
+
+def test_a_late_wake_up_that_skips_no_slot_still_tells_the_observer(sim_cfg, monkeypatch):
+    """A wake-up 0.6 T late (no slot skipped) comes after the actuator's own slot at 1.5 T: the controller is told
+    of every own slot the actuator took after a step (before: only when the loop counted a skipped slot)."""
+    from stagectl.app import build_stage
+    from stagectl.config import IoKind
+
+    told: list[float] = []
+    orig = StageController.scheduled_slots
+
+    def spy(self, own_slot_s):
+        told.append(own_slot_s)
+        orig(self, own_slot_s)
+
+    monkeypatch.setattr(StageController, "scheduled_slots", spy)
+    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, kind=IoKind.PLANT_IO))
+    assert cfg.io.command_schedule
+    with build_stage(cfg, clock=_LateClock(T, 0.6, 25)) as stage:
+        stage.load_scenario("cosine")
+        res = stage.loop.run(duration_s=0.3)
+        own = stage.plant_io.own_slots
+    assert res.fault is None
+    assert own >= 10 and len(told) == own, (own, len(told))
+    assert all(math.isclose(s, 1.5 * T) for s in told)
