@@ -115,7 +115,8 @@ velocity feedback (≈ m·g) and K_d act on it with the loop delay, so the movin
 stage PM 40.0°, GM 6.6 dB, and the spring (one section at the observer's bandwidth) 30.8°, 6.1 dB. While the stage is
 held — the reference at rest, no settle move, and |v̂| <= ``REST_GAINS_ENTER_M_S`` for ``REST_GAINS_DWELL_S`` — the
 loop runs K_d·κ_d and the observer at κ_g·bandwidth (bumpless retunes, as :meth:`set_timing_scale`, with which they
-compose), and the spring's force goes through n sections of the observer's own low-pass (at its configured
+compose; K_d's change goes into the derivative filter's state, ė_f·K_d continuous, not into the integrator:
+:meth:`_set_rest_gains`), and the spring's force goes through n sections of the observer's own low-pass (at its configured
 bandwidth, not κ_g·bandwidth: the spring's timing stays that of the moving design), s = LPF_g^n(k_v·clamp(x − x_r)). The
 moving gains return as soon as |v̂| > ``REST_GAINS_EXIT_M_S`` (the stage slips: on a free mass the rest gains have
 less damping; without this gate a 0.9 µm soft-side stop without the settle move took 0.9 s instead of 63 ms) or the
