@@ -351,9 +351,7 @@ class SpeedLadderFeedforward:
         if abs(p) <= self.hold_limit_n:
             return
         q = 0.0
-        delta = d * (q - p)
-        dob.shift(delta)
-        inner.state.u_obs_prev_n += delta
+        inner.shift_observer(d * (q - p))
         self.releases.append(p - q)
 
     def observe(self, dt: float, ref: Reference, u_n: float, x_m: float | None = None) -> None:
