@@ -561,7 +561,8 @@ class Commissioning:
         ladder = SpeedLadderFeedforward(cv_inner.ff, LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * xp / T),
                                         viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD,
                                         min_viscous_n_s_m=VISCOUS_FF_X_FE * env.following_error_m
-                                        / (budget.g_step_m_n * env.v_max_m_s))
+                                        / (budget.g_step_m_n * env.v_max_m_s),
+                                        hold_limit_n=budget.error_m / budget.g_step_m_n)
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
@@ -573,6 +574,9 @@ class Commissioning:
             if ladder is not None and ladder.updates and last is not None and last.name == "friction_cv":
                 last.params["feedforward_learned"] = [
                     {"coulomb_n": fc, "viscous_n_s_m": cv} for fc, cv in ladder.updates]
+            if ladder is not None and ladder.releases and last is not None and last.name == "friction_cv":
+                # the pre-sliding force the observer held along each pass's start and let go of
+                last.params["observer_released_n"] = [round(f, 4) for f in ladder.releases]
         # the fit reads the designed passes only, both ways, long enough to have settled (analysis.cv_segments)
         stuck: list[an.CvSegment] = []
         # the force read where it acts: the FRF's delay where it is measured (std within a quarter period), the

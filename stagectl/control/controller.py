@@ -926,6 +926,18 @@ class StageController:
         if isinstance(self.dob, QFilterDob):
             self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
+    def shift_observer(self, delta_n: float) -> None:
+        """Move the observer's estimate d̂ by ``delta_n`` [N] between steps, with its input history and the
+        controller's record of the observer's last and predicted inputs (``dob.shift``): the command steps by
+        ``delta_n`` at the next step and the observer starts from the new estimate as its steady state. For
+        a caller that knows the estimate is stale (the commissioning passes' start from a stuck stage,
+        ``SpeedLadderFeedforward.release``). No observer: nothing."""
+        if self.dob is None:
+            return
+        self.dob.shift(delta_n)
+        self.state.u_obs_prev_n += delta_n
+        self._u_obs_next += delta_n
+
     _last_ref: Reference | None = None
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
