@@ -292,6 +292,20 @@ def _rest_lines(rest: dict[str, Any] | None) -> list[str]:
         out.append(f"Its rest loop on the stuck stage: phase margin {_num(stuck.get('phase_margin_deg'), '.1f')} deg, "
                    f"gain margin {_num(stuck.get('gain_margin_db'), '.1f')} dB"
                    + ("" if stuck.get("healthy") else f" (below the {MIN_PM:g} deg / {MIN_GM:g} dB floor)") + ".")
+    rg = rest.get("rest_gains") or {}
+    if rg:
+        g = (f"`rest_kd_fraction` {_num(rest.get('rest_kd_fraction'), '.3g')}, `rest_dob_bandwidth_fraction` "
+             f"{_num(rest.get('rest_dob_bandwidth_fraction'), '.3g')}, `rest_spring_section_count` "
+             f"{_num(rest.get('rest_spring_section_count'), '.0f')}")
+        best = rg.get("best_stuck") or {}
+        if rg.get("chosen") == "grid":
+            out.append(f"Its rest gains ({g}) are the one of {rg.get('grid_points', '-')} grid points "
+                       f"({rg.get('meeting_floor', '-')} meet the floor on the stuck stage) with the most margin.")
+        else:
+            out.append(f"None of the {rg.get('grid_points', '-')} rest-gain grid points meets the floor on the stuck "
+                       f"stage (best: phase margin {_num(best.get('phase_margin_deg'), '.1f')} deg, gain margin "
+                       f"{_num(best.get('gain_margin_db'), '.1f')} dB); stage.yaml keeps the controller's own rest "
+                       f"gains ({g}) and the spring is kept on the twin's evidence.")
     if rest.get("relies_on"):
         out.append(f"It relies on {rest['relies_on']}.")
     return out

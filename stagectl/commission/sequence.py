@@ -25,6 +25,7 @@ find out): it reads ``loop``, ``io`` (through the assembly), ``safety`` and ``co
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 import time
@@ -128,6 +129,14 @@ VERIFY = ("cosine", "triangle", "steps")
 REST_SPRING: dict[str, float] = {"rest_stiffness_fraction": 0.5, "rest_sync_hz": 30.0, "rest_sync_max_step_m": 5e-9}
 #: ... and keeps the twin's cosine and triangle RMS within this factor of the design without it
 REST_MAX_RMS_RATIO = 1.25
+#: the rest-loop gains tried with the rest spring (:func:`choose_rest_gains`): K_d's fraction at rest, the
+#: observer's bandwidth fraction at rest, the spring's low-pass sections (config/sim.yaml has 0.3, 0.75, 2)
+REST_GAIN_GRID: dict[str, tuple[float, ...]] = {"rest_kd_fraction": (0.1, 0.3, 0.5),
+                                                "rest_dob_bandwidth_fraction": (0.3, 0.45, 0.6, 0.75),
+                                                "rest_spring_section_count": (1, 2)}
+#: the controller's own rest gains (unchanged PD and observer, one section): kept when no grid point meets the floor
+REST_GAINS_DEFAULT: dict[str, float] = {"rest_kd_fraction": 1.0, "rest_dob_bandwidth_fraction": 1.0,
+                                        "rest_spring_section_count": 1}
 #: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
 EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
@@ -824,8 +833,11 @@ class Commissioning:
           (Checked on the mismatched twin only, the spring passed on generated plant 5, where on the plant it
           took the cosine from 1.5 to 10 nm RMS, with the exact model too.)
 
+        The rest-loop gains (K_d's and the observer's fraction at rest, the spring's sections) come from
+        :func:`choose_rest_gains`: the grid point with the most margin above the floor on the stuck stage, else
+        (none meets it) the controller's own (``REST_GAINS_DEFAULT``); the twin runs with them.
+
         Confidence ``high`` when every twin step settles and the stuck loop is healthy, else ``medium``."""
-        from stagectl.control import design
         from stagectl.friction import StageModel
         from stagectl.schema import load
 
@@ -839,13 +851,11 @@ class Commissioning:
             return {**out, "reason": "the model has no pre-sliding stiffness"}
         T = self.T
         phi = float(REST_SPRING["rest_stiffness_fraction"])
-        loops = design.analyse_rest(mass_kg, T, PidConfig(**entry["pid"]), nd, float(entry["dob_bandwidth_hz"]), nd,
-                                    k, c, phi * k)
-        summ = {a.name: a.summary() for a in loops}
-        for v in summ.values():
-            v["healthy"] = bool(v["closed_loop_stable"] and v["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
-                                and v["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
-        out.update(stiffness_n_m=k, damping_n_s_m=c, rest_spring_n_m=phi * k, loops=summ)
+        choice = choose_rest_gains(mass_kg, T, PidConfig(**entry["pid"]), nd, float(entry["dob_bandwidth_hz"]),
+                                   k, c, phi * k)
+        summ = choice["loops"]
+        out.update(stiffness_n_m=k, damping_n_s_m=c, rest_spring_n_m=phi * k, loops=summ, **choice["gains"],
+                   rest_gains=choice["summary"])
         if not summ["rest/stuck"]["closed_loop_stable"]:
             return {**out, "reason": "the rest loop on the stuck stage is unstable"}
         ccfg = ControllerConfig()  # the new configuration leaves the release thresholds at their defaults
@@ -1001,9 +1011,63 @@ def controller_mapping(entry: dict[str, Any], mass_kg: float, nd: int, period_s:
     rest = entry.get("rest") or {}
     if rest.get("enabled"):  # checked by Commissioning._rest_spring
         out["rest_stiffness_fraction"] = float(rest["rest_stiffness_fraction"])
+        for key, dflt in REST_GAINS_DEFAULT.items():  # the rest-loop gains choose_rest_gains chose
+            if key in rest and float(rest[key]) != dflt:
+                out[key] = int(rest[key]) if key == "rest_spring_section_count" else float(rest[key])
         out["feedforward"].update(rest_sync_hz=float(rest["rest_sync_hz"]),
                                   rest_sync_max_step_m=float(rest["rest_sync_max_step_m"]))
     return out
+
+
+def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, dob_bandwidth_hz: float,
+                      stiffness_n_m: float, damping_n_s_m: float, rest_spring_n_m: float,
+                      thetas: tuple[float, ...] = (1.0,)) -> dict[str, Any]:
+    """The rest loop's gains for a rest spring k_v = ``rest_spring_n_m`` [N/m] on a stage of mass ``mass_kg``
+    [kg] stuck on the identified pre-sliding stiffness Σk = ``stiffness_n_m`` [N/m] and damping
+    ``damping_n_s_m`` [N s/m]: every point of ``REST_GAIN_GRID`` (K_d × κ_d, observer bandwidth × κ_g, n
+    low-pass sections on the spring; :func:`stagectl.control.design.analyse_rest`, the integrator held, the
+    observer's command delay ``nd`` periods like the loop's) is analysed at each θ of ``thetas`` (the spring
+    scales with θ; the new stage.yaml does not adapt θ, so 1) and its worst case kept. The chosen point meets
+    PM ≥ ``MIN_PHASE_MARGIN_DEG`` and GM ≥ ``MIN_GAIN_MARGIN_DB`` on the stuck stage with the most margin,
+    min(PM/40°, GM/8 dB); none meets it: ``REST_GAINS_DEFAULT`` (the controller's own gains, as before).
+
+    Returns ``gains`` (the config keys), ``loops`` (its ``rest/stuck`` and ``rest/free`` figures, worst over θ,
+    with ``healthy``) and ``summary`` (how many points met the floor, the best stuck margins seen)."""
+    from stagectl.control import design
+
+    def analyse(g: dict[str, float]) -> dict[str, dict[str, Any]]:
+        per = [design.analyse_rest(mass_kg, period_s, pid, nd, dob_bandwidth_hz, nd, stiffness_n_m, damping_n_s_m,
+                                   th * rest_spring_n_m, kd_fraction=float(g["rest_kd_fraction"]),
+                                   dob_bandwidth_fraction=float(g["rest_dob_bandwidth_fraction"]),
+                                   spring_sections=int(g["rest_spring_section_count"])) for th in thetas]
+        summ: dict[str, dict[str, Any]] = {}
+        for j, a0 in enumerate(per[0]):
+            rows = [loops[j].summary() for loops in per]
+            w = {**min(rows, key=lambda r: (r["closed_loop_stable"], r["phase_margin_deg"])),
+                 "gain_margin_db": min(r["gain_margin_db"] for r in rows),
+                 "closed_loop_stable": all(r["closed_loop_stable"] for r in rows)}
+            w["healthy"] = bool(w["closed_loop_stable"] and w["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
+                                and w["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
+            summ[a0.name] = w
+        return summ
+
+    def score(s: dict[str, Any]) -> float:
+        if not s["closed_loop_stable"]:
+            return -math.inf
+        return min(float(s["phase_margin_deg"]) / MIN_PHASE_MARGIN_DEG, float(s["gain_margin_db"]) / MIN_GAIN_MARGIN_DB)
+
+    grid = [dict(zip(REST_GAIN_GRID, vals)) for vals in
+            itertools.product(*REST_GAIN_GRID.values())]
+    tried = [(g, analyse(g)) for g in grid]
+    ok = [(g, s) for g, s in tried if s["rest/stuck"]["healthy"]]
+    best_g, best_s = max(tried, key=lambda t: score(t[1]["rest/stuck"]))
+    summary = {"grid_points": len(tried), "meeting_floor": len(ok), "thetas": list(thetas),
+               "best_stuck": {**dict(best_g), "phase_margin_deg": best_s["rest/stuck"]["phase_margin_deg"],
+                              "gain_margin_db": best_s["rest/stuck"]["gain_margin_db"]}}
+    if ok:
+        return {"gains": dict(best_g), "loops": best_s, "summary": {**summary, "chosen": "grid"}}
+    return {"gains": dict(REST_GAINS_DEFAULT), "loops": analyse(REST_GAINS_DEFAULT),
+            "summary": {**summary, "chosen": "default: no grid point meets the floor"}}
 
 
 #: DOB bandwidths tried per crossover f_c: multiples of f_c and fractions of the sample rate (capped at 0.2/T)
