@@ -848,7 +848,8 @@ class Commissioning:
         (``rest_gains.twin_trials``). (On the quick start the K_d fraction 0.5 point, PM 47°, GM 8.6 dB, took the
         matched twin's cosine from 1.3 to 1.9 nm: the rest gains' cost on a start from rest, README *Known limits*.)
 
-        Confidence ``high`` when every twin step settles and the stuck loop is healthy, else ``medium``."""
+        Confidence ``high`` when every twin step settles and both rest loops (stuck, free) are healthy (nothing
+        relied on), else ``medium``."""
         from stagectl.friction import StageModel
         from stagectl.schema import load
 
@@ -905,7 +906,7 @@ class Commissioning:
                 all_settled = all(int(v["moves_settled"]) == int(v["moves"]) for v in with_rs.values())
                 self.opts.progress(f"commission: rest spring enabled (twin: {n_rs} moves settle, {n_base} without)")
                 return {**res, "enabled": True,
-                        "confidence": "high" if all_settled and summ["rest/stuck"]["healthy"] else "medium"}
+                        "confidence": "high" if all_settled and "relies_on" not in res else "medium"}
             trials.append({**gains, "phase_margin_deg": summ["rest/stuck"]["phase_margin_deg"],
                            "gain_margin_db": summ["rest/stuck"]["gain_margin_db"], "twin": res["reason"]})
         return res
