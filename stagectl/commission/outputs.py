@@ -300,8 +300,9 @@ def _rest_lines(rest: dict[str, Any] | None) -> list[str]:
         best = rg.get("best_stuck") or {}
         if rg.get("chosen") == "grid":
             out.append(f"Its rest gains ({g}): of {rg.get('grid_points', '-')} grid points, "
-                       f"{rg.get('meeting_floor', '-')} meet the floor on the stuck stage; the one with the largest "
-                       f"K_d fraction, then the most margin.")
+                       f"{rg.get('meeting_floor', '-')} meet the floor on the stuck stage; of those tried on the twins "
+                       f"(the largest K_d fraction, then the most margin, first) the one that passed with the lowest "
+                       f"matched-twin RMS.")
         elif not rg.get("meeting_floor"):
             out.append(f"None of the {rg.get('grid_points', '-')} rest-gain grid points meets the floor on the stuck "
                        f"stage (best: phase margin {_num(best.get('phase_margin_deg'), '.1f')} deg, gain margin "
@@ -321,11 +322,11 @@ def _trial_lines(rest: dict[str, Any]) -> list[str]:
     """report.md lines on the rest-gain grid points tried on the twin and why they failed."""
     out: list[str] = []
     for t in (rest.get("rest_gains") or {}).get("twin_trials") or []:
-        out.append(f"Tried: `rest_kd_fraction` {_num(t.get('rest_kd_fraction'), '.3g')}, "
+        out.append(f"Tried on the twins: `rest_kd_fraction` {_num(t.get('rest_kd_fraction'), '.3g')}, "
                    f"`rest_dob_bandwidth_fraction` {_num(t.get('rest_dob_bandwidth_fraction'), '.3g')}, "
                    f"`rest_spring_section_count` {_num(t.get('rest_spring_section_count'), '.0f')} (phase margin "
                    f"{_num(t.get('phase_margin_deg'), '.1f')} deg, gain margin {_num(t.get('gain_margin_db'), '.1f')}"
-                   f" dB): {t.get('twin', '-')}.")
+                   f" dB): {t.get('twin', '-')}" + ("; passed." if t.get("passed") else "."))
     return out
 
 

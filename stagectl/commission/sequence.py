@@ -841,8 +841,9 @@ class Commissioning:
 
         The rest-loop gains (K_d's and the observer's fraction at rest, the spring's sections) come from
         :func:`choose_rest_gains`: the grid points that meet the floor on the stuck stage, best first, are tried
-        on the twins (at most ``REST_TWIN_TRIALS``); the first that passes the checks above is written (its
-        RMS bound is ``REST_MAX_RMS_RATIO``× plus ``REST_FLOOR_SLACK_QUANTA`` sensor quanta ``quantum_m``). When none
+        on the twins (the first ``REST_TWIN_TRIALS``; the RMS bound is ``REST_MAX_RMS_RATIO``× plus
+        ``REST_FLOOR_SLACK_QUANTA`` sensor quanta ``quantum_m``), and of those that pass the one with the lowest
+        matched-twin cosine/triangle RMS (geometric mean) is written. When none
         meets the floor or none passes, the controller's own gains (``REST_GAINS_DEFAULT``, as before: below the
         floor, ``relies_on``) are tried last, and the report lists the grid points tried and why they failed
         (``rest_gains.twin_trials``). (On the quick start the K_d fraction 0.5 point, PM 47°, GM 8.6 dB, took the
@@ -871,18 +872,16 @@ class Commissioning:
         base_m = on_twin(entry, "matched.yaml")
         n_base = sum(int(v["moves_settled"]) for v in base.values())
         trials: list[dict[str, Any]] = []
-        # the grid points that meet the floor, best first (at most REST_TWIN_TRIALS), then the controller's own
-        cands = choice["ranked"][:REST_TWIN_TRIALS] + [(dict(REST_GAINS_DEFAULT), choice["default_loops"])]
-        res: dict[str, Any] = {}
-        for gains, summ in cands:
-            res = {**out, **gains, "loops": summ,
-                   "rest_gains": {**choice["summary"], "chosen": "grid" if summ["rest/stuck"]["healthy"] else
-                                  ("default: no grid point meets the floor" if not choice["ranked"] else
-                                   "default: the grid points that meet the floor failed on the twin"),
-                                  "twin_trials": trials}}
+        label = "default: no grid point meets the floor" if not choice["ranked"] else \
+            "default: the grid points that meet the floor failed on the twin"
+
+        def attempt(gains: dict[str, float], summ: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+            res: dict[str, Any] = {**out, **gains, "loops": summ,
+                                   "rest_gains": {**choice["summary"],
+                                                  "chosen": "grid" if summ["rest/stuck"]["healthy"] else label,
+                                                  "twin_trials": trials}}
             if not summ["rest/stuck"]["closed_loop_stable"]:
-                res["reason"] = "the rest loop on the stuck stage is unstable"
-                break
+                return {**res, "reason": "the rest loop on the stuck stage is unstable"}, False
             if not (summ["rest/stuck"]["healthy"] and summ["rest/free"]["healthy"]):
                 res["relies_on"] = (f"the stage being stuck in pre-sliding at standstill (stiffness {k:.3g} N/m); the "
                                     f"rest spring is released (bumplessly) when |x - x_ref| exceeds "
@@ -902,14 +901,34 @@ class Commissioning:
             res["reason"] = (f"on the twin: settled moves {n_rs} (without: {n_base})"
                              + (f"; {', '.join(worse)} RMS more than {REST_MAX_RMS_RATIO:g}x"
                                 + (f" + {slack * 1e9:.3g} nm" if slack else "") if worse else ""))
-            if n_rs > n_base and not worse:
+            res["matched_score_m"] = float(np.exp(np.mean([math.log(max(float(rs_m[nm]["rms_error_m"]), 1e-15))
+                                                           for nm in ("cosine", "triangle") if nm in rs_m] or [0.0])))
+            ok = n_rs > n_base and not worse
+            if ok:
                 all_settled = all(int(v["moves_settled"]) == int(v["moves"]) for v in with_rs.values())
-                self.opts.progress(f"commission: rest spring enabled (twin: {n_rs} moves settle, {n_base} without)")
-                return {**res, "enabled": True,
-                        "confidence": "high" if all_settled and "relies_on" not in res else "medium"}
+                res.update(enabled=True, confidence="high" if all_settled and "relies_on" not in res else "medium")
+            return res, ok
+
+        # the grid points that meet the floor, best first (at most REST_TWIN_TRIALS): the one that passes with the
+        # lowest matched-twin cosine/triangle RMS (geometric mean); none: the controller's own gains
+        passed: list[dict[str, Any]] = []
+        for gains, summ in choice["ranked"][:REST_TWIN_TRIALS]:
+            res, ok = attempt(gains, summ)
             trials.append({**gains, "phase_margin_deg": summ["rest/stuck"]["phase_margin_deg"],
-                           "gain_margin_db": summ["rest/stuck"]["gain_margin_db"], "twin": res["reason"]})
-        return res
+                           "gain_margin_db": summ["rest/stuck"]["gain_margin_db"], "twin": res["reason"],
+                           "matched_twin_cosine_m": res["matched_twin"]["with"].get("cosine", {}).get("rms_error_m"),
+                           "passed": ok})
+            if ok:
+                passed.append(res)
+        if not passed:
+            res, ok = attempt(dict(REST_GAINS_DEFAULT), choice["default_loops"])
+            if ok:
+                passed.append(res)
+            else:
+                return res
+        best = min(passed, key=lambda r: float(r["matched_score_m"]))
+        self.opts.progress(f"commission: rest spring enabled ({best['reason']})")
+        return best
 
     def _ramp_budget(self, tuning: ControllerConfig, mass_kg: float, ff_flip: float) -> RampBudget:
         """The passes' error budget (:func:`pass_budget`) for the friction experiments' ``tuning``."""

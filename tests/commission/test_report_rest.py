@@ -41,7 +41,7 @@ def test_the_report_names_the_chosen_rest_gains_or_that_none_meets_the_floor() -
     md = report_markdown(_rep({**base, "rest_gains": {"grid_points": 24, "meeting_floor": 10, "chosen": "grid"}}), [])
     assert "phase margin 89.5 deg, gain margin 10.1 dB." in md
     assert ("Its rest gains (`rest_kd_fraction` 0.1, `rest_dob_bandwidth_fraction` 0.45, `rest_spring_section_count`"
-            " 2): of 24 grid points, 10 meet the floor on the stuck stage") in md
+            " 2): of 24 grid points, 10 meet the floor on the stuck stage; of those tried on the twins") in md
     md = report_markdown(_rep({**base, "rest_gains": {
         "grid_points": 24, "meeting_floor": 0, "chosen": "default: no grid point meets the floor",
         "best_stuck": {"phase_margin_deg": 35.0, "gain_margin_db": 6.0}}}), [])
@@ -53,5 +53,5 @@ def test_the_report_names_the_chosen_rest_gains_or_that_none_meets_the_floor() -
                          "phase_margin_deg": 47.4, "gain_margin_db": 8.6,
                          "twin": "on the twin: settled moves 6 (without: 5); cosine (matched twin) RMS more than 1.25x"}]}}), [])
     assert "Of 24 rest-gain grid points 10 meet the floor on the stuck stage, but those tried failed on the twin" in md
-    assert ("Tried: `rest_kd_fraction` 0.5, `rest_dob_bandwidth_fraction` 0.45, `rest_spring_section_count` 2 (phase"
+    assert ("Tried on the twins: `rest_kd_fraction` 0.5, `rest_dob_bandwidth_fraction` 0.45, `rest_spring_section_count` 2 (phase"
             " margin 47.4 deg, gain margin 8.6 dB): on the twin: settled moves 6 (without: 5); cosine (matched twin)") in md
