@@ -281,7 +281,7 @@ def _rest_lines(rest: dict[str, Any] | None) -> list[str]:
         return []
     if not rest.get("enabled"):
         why = rest.get("reason")
-        return ["", "Rest spring: not used" + (f" ({why})." if why else ".")]
+        return ["", "Rest spring: not used" + (f" ({why})." if why else ".")] + _trial_lines(rest)
     out = ["", (f"Rest spring: on in stage.yaml (`rest_stiffness_fraction` {_num(rest.get('rest_stiffness_fraction'), '.3g')}, "
                 f"{_num(rest.get('rest_spring_n_m'), '.3g')} N/m on the identified pre-sliding stiffness "
                 f"{_num(rest.get('stiffness_n_m'), '.3g')} N/m), confidence {rest.get('confidence', '-')}"
@@ -292,9 +292,43 @@ def _rest_lines(rest: dict[str, Any] | None) -> list[str]:
         out.append(f"Its rest loop on the stuck stage: phase margin {_num(stuck.get('phase_margin_deg'), '.1f')} deg, "
                    f"gain margin {_num(stuck.get('gain_margin_db'), '.1f')} dB"
                    + ("" if stuck.get("healthy") else f" (below the {MIN_PM:g} deg / {MIN_GM:g} dB floor)") + ".")
+    rg = rest.get("rest_gains") or {}
+    if rg:
+        g = (f"`rest_kd_fraction` {_num(rest.get('rest_kd_fraction'), '.3g')}, `rest_dob_bandwidth_fraction` "
+             f"{_num(rest.get('rest_dob_bandwidth_fraction'), '.3g')}, `rest_spring_section_count` "
+             f"{_num(rest.get('rest_spring_section_count'), '.0f')}")
+        best = rg.get("best_stuck") or {}
+        if rg.get("chosen") == "grid":
+            out.append(f"Its rest gains ({g}): of {rg.get('grid_points', '-')} grid points, "
+                       f"{rg.get('meeting_floor', '-')} meet the floor on the stuck stage; of those tried on the twins "
+                       f"(the largest K_d fraction, then the most margin, first) the one that passed with the lowest "
+                       f"matched-twin RMS.")
+        elif not rg.get("meeting_floor"):
+            out.append(f"None of the {rg.get('grid_points', '-')} rest-gain grid points meets the floor on the stuck "
+                       f"stage (best: phase margin {_num(best.get('phase_margin_deg'), '.1f')} deg, gain margin "
+                       f"{_num(best.get('gain_margin_db'), '.1f')} dB); the spring is tried with the controller's own "
+                       f"rest gains ({g}).")
+        else:
+            out.append(f"Of {rg.get('grid_points', '-')} rest-gain grid points {rg.get('meeting_floor', '-')} meet the "
+                       f"floor on the stuck stage, but those tried failed on the twin; the spring is tried with the "
+                       f"controller's own rest gains ({g}).")
+    out += _trial_lines(rest)
     if rest.get("relies_on"):
         out.append(f"It relies on {rest['relies_on']}.")
     return out
+
+
+def _trial_lines(rest: dict[str, Any]) -> list[str]:
+    """report.md lines on the rest-gain grid points tried on the twin and why they failed."""
+    out: list[str] = []
+    for t in (rest.get("rest_gains") or {}).get("twin_trials") or []:
+        out.append(f"Tried on the twins: `rest_kd_fraction` {_num(t.get('rest_kd_fraction'), '.3g')}, "
+                   f"`rest_dob_bandwidth_fraction` {_num(t.get('rest_dob_bandwidth_fraction'), '.3g')}, "
+                   f"`rest_spring_section_count` {_num(t.get('rest_spring_section_count'), '.0f')} (phase margin "
+                   f"{_num(t.get('phase_margin_deg'), '.1f')} deg, gain margin {_num(t.get('gain_margin_db'), '.1f')}"
+                   f" dB): {t.get('twin', '-')}" + ("; passed." if t.get("passed") else "."))
+    return out
+
 
 def write_report(res: Results, out: Path, plots: bool) -> dict[str, Any]:
     rep = report_dict(res)

@@ -25,6 +25,7 @@ find out): it reads ``loop``, ``io`` (through the assembly), ``safety`` and ``co
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 import time
@@ -128,6 +129,20 @@ VERIFY = ("cosine", "triangle", "steps")
 REST_SPRING: dict[str, float] = {"rest_stiffness_fraction": 0.5, "rest_sync_hz": 30.0, "rest_sync_max_step_m": 5e-9}
 #: ... and keeps the twin's cosine and triangle RMS within this factor of the design without it
 REST_MAX_RMS_RATIO = 1.25
+#: the rest-loop gains tried with the rest spring (:func:`choose_rest_gains`): K_d's fraction at rest, the
+#: observer's bandwidth fraction at rest, the spring's low-pass sections (config/sim.yaml has 0.3, 0.75, 2)
+REST_GAIN_GRID: dict[str, tuple[float, ...]] = {"rest_kd_fraction": (0.1, 0.3, 0.5),
+                                                "rest_dob_bandwidth_fraction": (0.3, 0.45, 0.6, 0.75),
+                                                "rest_spring_section_count": (1, 2)}
+#: the grid points (best first) that meet the floor tried on the twin before the controller's own gains
+REST_TWIN_TRIALS = 2
+#: ... with rest gains that meet the floor, that factor plus this many sensor quanta (the matched twin's cosine sits
+#: at the sensor's noise, and a rest loop at the floor costs about a quantum there on a start from rest: quick start
+#: 1.3 -> 1.9 nm with K_d x 0.5, observer x 0.45, 2 sections; on config/sim.yaml's plant 1.70 -> 2.62 nm)
+REST_FLOOR_SLACK_QUANTA = 2.0
+#: the controller's own rest gains (unchanged PD and observer, one section): kept when no grid point meets the floor
+REST_GAINS_DEFAULT: dict[str, float] = {"rest_kd_fraction": 1.0, "rest_dob_bandwidth_fraction": 1.0,
+                                        "rest_spring_section_count": 1}
 #: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
 EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
@@ -808,7 +823,7 @@ class Commissioning:
         return chosen
 
     def _rest_spring(self, entry: dict[str, Any], mass_kg: float, nd: int, spec: dict[str, Any],
-                     on_twin: Callable[..., dict[str, Any]]) -> dict[str, Any]:
+                     on_twin: Callable[..., dict[str, Any]], quantum_m: float = 0.0) -> dict[str, Any]:
         """Whether the new configuration gets the rest spring (``REST_SPRING``: the observer leaves a fraction of
         the model's pre-sliding stiffness to the stuck stage at standstill, and the model's pre-sliding state
         follows the observer; see ``stagectl.control.controller``), checked before it is advised:
@@ -828,8 +843,18 @@ class Commissioning:
           (Checked on the mismatched twin only, the spring passed on generated plant 5, where on the plant it
           took the cosine from 1.5 to 10 nm RMS, with the exact model too.)
 
-        Confidence ``high`` when every twin step settles and the stuck loop is healthy, else ``medium``."""
-        from stagectl.control import design
+        The rest-loop gains (K_d's and the observer's fraction at rest, the spring's sections) come from
+        :func:`choose_rest_gains`: the grid points that meet the floor on the stuck stage, best first, are tried
+        on the twins (the first ``REST_TWIN_TRIALS``; the RMS bound is ``REST_MAX_RMS_RATIO``× plus
+        ``REST_FLOOR_SLACK_QUANTA`` sensor quanta ``quantum_m``), and of those that pass the one with the lowest
+        matched-twin cosine/triangle RMS (geometric mean) is written. When none
+        meets the floor or none passes, the controller's own gains (``REST_GAINS_DEFAULT``, as before: below the
+        floor, ``relies_on``) are tried last, and the report lists the grid points tried and why they failed
+        (``rest_gains.twin_trials``). (On the quick start the K_d fraction 0.5 point, PM 47°, GM 8.6 dB, took the
+        matched twin's cosine from 1.3 to 1.9 nm: the rest gains' cost on a start from rest, README *Known limits*.)
+
+        Confidence ``high`` when every twin step settles and both rest loops (stuck, free) are healthy (nothing
+        relied on), else ``medium``."""
         from stagectl.friction import StageModel
         from stagectl.schema import load
 
@@ -843,41 +868,71 @@ class Commissioning:
             return {**out, "reason": "the model has no pre-sliding stiffness"}
         T = self.T
         phi = float(REST_SPRING["rest_stiffness_fraction"])
-        loops = design.analyse_rest(mass_kg, T, PidConfig(**entry["pid"]), nd, float(entry["dob_bandwidth_hz"]), nd,
-                                    k, c, phi * k)
-        summ = {a.name: a.summary() for a in loops}
-        for v in summ.values():
-            v["healthy"] = bool(v["closed_loop_stable"] and v["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
-                                and v["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
-        out.update(stiffness_n_m=k, damping_n_s_m=c, rest_spring_n_m=phi * k, loops=summ)
-        if not summ["rest/stuck"]["closed_loop_stable"]:
-            return {**out, "reason": "the rest loop on the stuck stage is unstable"}
+        choice = choose_rest_gains(mass_kg, T, PidConfig(**entry["pid"]), nd, float(entry["dob_bandwidth_hz"]),
+                                   k, c, phi * k)
+        out.update(stiffness_n_m=k, damping_n_s_m=c, rest_spring_n_m=phi * k)
         ccfg = ControllerConfig()  # the new configuration leaves the release thresholds at their defaults
-        if not (summ["rest/stuck"]["healthy"] and summ["rest/free"]["healthy"]):
-            out["relies_on"] = (f"the stage being stuck in pre-sliding at standstill (stiffness {k:.3g} N/m); the rest "
-                                f"spring is released (bumplessly) when |x - x_ref| exceeds "
-                                f"{ccfg.rest_spring_release_m * 1e9:.0f} nm or it swings across "
-                                f"+-{ccfg.rest_spring_rearm_m * 1e9:.0f} nm twice, and its force is bounded by "
-                                f"{phi * k * ccfg.rest_spring_range_m * 1e3:.0f} mN")
         base = entry.get("twin") or on_twin(entry)
-        with_rs = on_twin({**entry, "rest": {**out, "enabled": True}})
-        out["twin"] = with_rs
-        n_base = sum(int(v["moves_settled"]) for v in base.values())
-        n_rs = sum(int(v["moves_settled"]) for v in with_rs.values())
         base_m = on_twin(entry, "matched.yaml")
-        rs_m = on_twin({**entry, "rest": {**out, "enabled": True}}, "matched.yaml")
-        out["matched_twin"] = {"without": base_m, "with": rs_m}
-        worse = [f"{nm} ({tw})" for tw, b, w in (("twin", base, with_rs), ("matched twin", base_m, rs_m))
-                 for nm in ("cosine", "triangle") if nm in b and not
-                 (float(w[nm]["rms_error_m"]) <= REST_MAX_RMS_RATIO * float(b[nm]["rms_error_m"]))]
-        if n_rs <= n_base or worse:
-            return {**out, "reason": f"on the twin: settled moves {n_rs} (without: {n_base})"
-                                     + (f"; {', '.join(worse)} RMS more than {REST_MAX_RMS_RATIO:g}x" if worse else "")}
-        all_settled = all(int(v["moves_settled"]) == int(v["moves"]) for v in with_rs.values())
-        self.opts.progress(f"commission: rest spring enabled (twin: {n_rs} moves settle, {n_base} without)")
-        return {**out, "enabled": True,
-                "confidence": "high" if all_settled and summ["rest/stuck"]["healthy"] else "medium",
-                "reason": f"on the twin: settled moves {n_rs} (without: {n_base})"}
+        n_base = sum(int(v["moves_settled"]) for v in base.values())
+        trials: list[dict[str, Any]] = []
+        label = "default: no grid point meets the floor" if not choice["ranked"] else \
+            "default: the grid points that meet the floor failed on the twin"
+
+        def attempt(gains: dict[str, float], summ: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+            res: dict[str, Any] = {**out, **gains, "loops": summ,
+                                   "rest_gains": {**choice["summary"],
+                                                  "chosen": "grid" if summ["rest/stuck"]["healthy"] else label,
+                                                  "twin_trials": trials}}
+            if not summ["rest/stuck"]["closed_loop_stable"]:
+                return {**res, "reason": "the rest loop on the stuck stage is unstable"}, False
+            if not (summ["rest/stuck"]["healthy"] and summ["rest/free"]["healthy"]):
+                res["relies_on"] = (f"the stage being stuck in pre-sliding at standstill (stiffness {k:.3g} N/m); the "
+                                    f"rest spring is released (bumplessly) when |x - x_ref| exceeds "
+                                    f"{ccfg.rest_spring_release_m * 1e9:.0f} nm or it swings across "
+                                    f"+-{ccfg.rest_spring_rearm_m * 1e9:.0f} nm twice, and its force is bounded by "
+                                    f"{phi * k * ccfg.rest_spring_range_m * 1e3:.0f} mN")
+            with_rs = on_twin({**entry, "rest": {**res, "enabled": True}})
+            res["twin"] = with_rs
+            n_rs = sum(int(v["moves_settled"]) for v in with_rs.values())
+            rs_m = on_twin({**entry, "rest": {**res, "enabled": True}}, "matched.yaml")
+            res["matched_twin"] = {"without": base_m, "with": rs_m}
+            # a rest loop at the floor may cost a few sensor quanta on a start from rest (README, *Known limits*)
+            slack = REST_FLOOR_SLACK_QUANTA * quantum_m if summ["rest/stuck"]["healthy"] else 0.0
+            worse = [f"{nm} ({tw})" for tw, b, w in (("twin", base, with_rs), ("matched twin", base_m, rs_m))
+                     for nm in ("cosine", "triangle") if nm in b and not
+                     (float(w[nm]["rms_error_m"]) <= REST_MAX_RMS_RATIO * float(b[nm]["rms_error_m"]) + slack)]
+            res["reason"] = (f"on the twin: settled moves {n_rs} (without: {n_base})"
+                             + (f"; {', '.join(worse)} RMS more than {REST_MAX_RMS_RATIO:g}x"
+                                + (f" + {slack * 1e9:.3g} nm" if slack else "") if worse else ""))
+            res["matched_score_m"] = float(np.exp(np.mean([math.log(max(float(rs_m[nm]["rms_error_m"]), 1e-15))
+                                                           for nm in ("cosine", "triangle") if nm in rs_m] or [0.0])))
+            ok = n_rs > n_base and not worse
+            if ok:
+                all_settled = all(int(v["moves_settled"]) == int(v["moves"]) for v in with_rs.values())
+                res.update(enabled=True, confidence="high" if all_settled and "relies_on" not in res else "medium")
+            return res, ok
+
+        # the grid points that meet the floor, best first (at most REST_TWIN_TRIALS): the one that passes with the
+        # lowest matched-twin cosine/triangle RMS (geometric mean); none: the controller's own gains
+        passed: list[dict[str, Any]] = []
+        for gains, summ in choice["ranked"][:REST_TWIN_TRIALS]:
+            res, ok = attempt(gains, summ)
+            trials.append({**gains, "phase_margin_deg": summ["rest/stuck"]["phase_margin_deg"],
+                           "gain_margin_db": summ["rest/stuck"]["gain_margin_db"], "twin": res["reason"],
+                           "matched_twin_cosine_m": res["matched_twin"]["with"].get("cosine", {}).get("rms_error_m"),
+                           "passed": ok})
+            if ok:
+                passed.append(res)
+        if not passed:
+            res, ok = attempt(dict(REST_GAINS_DEFAULT), choice["default_loops"])
+            if ok:
+                passed.append(res)
+            else:
+                return res
+        best = min(passed, key=lambda r: float(r["matched_score_m"]))
+        self.opts.progress(f"commission: rest spring enabled ({best['reason']})")
+        return best
 
     def _ramp_budget(self, tuning: ControllerConfig, mass_kg: float, ff_flip: float) -> RampBudget:
         """The passes' error budget (:func:`pass_budget`) for the friction experiments' ``tuning``."""
@@ -979,7 +1034,7 @@ class Commissioning:
                 if best is None or rank_key < best[0]:
                     best = (rank_key, entry)
             assert best is not None
-            best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin)
+            best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
                            f"chosen {best[1]['crossover_target_hz']:.3g} Hz, DOB {best[1]['dob_kind']} "
                            f"{best[1]['dob_bandwidth_hz']:.3g} Hz")
@@ -1005,9 +1060,72 @@ def controller_mapping(entry: dict[str, Any], mass_kg: float, nd: int, period_s:
     rest = entry.get("rest") or {}
     if rest.get("enabled"):  # checked by Commissioning._rest_spring
         out["rest_stiffness_fraction"] = float(rest["rest_stiffness_fraction"])
+        for key, dflt in REST_GAINS_DEFAULT.items():  # the rest-loop gains choose_rest_gains chose
+            if key in rest and float(rest[key]) != dflt:
+                out[key] = int(rest[key]) if key == "rest_spring_section_count" else float(rest[key])
         out["feedforward"].update(rest_sync_hz=float(rest["rest_sync_hz"]),
                                   rest_sync_max_step_m=float(rest["rest_sync_max_step_m"]))
     return out
+
+
+def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, dob_bandwidth_hz: float,
+                      stiffness_n_m: float, damping_n_s_m: float, rest_spring_n_m: float,
+                      thetas: tuple[float, ...] = (1.0,)) -> dict[str, Any]:
+    """The rest loop's gains for a rest spring k_v = ``rest_spring_n_m`` [N/m] on a stage of mass ``mass_kg``
+    [kg] stuck on the identified pre-sliding stiffness Σk = ``stiffness_n_m`` [N/m] and damping
+    ``damping_n_s_m`` [N s/m]: every point of ``REST_GAIN_GRID`` (K_d × κ_d, observer bandwidth × κ_g, n
+    low-pass sections on the spring; :func:`stagectl.control.design.analyse_rest`, the integrator held, the
+    observer's command delay ``nd`` periods like the loop's) is analysed at each θ of ``thetas`` (the spring
+    scales with θ; the new stage.yaml does not adapt θ, so 1) and its worst case kept. Among the points that meet
+    PM ≥ ``MIN_PHASE_MARGIN_DEG`` and GM ≥ ``MIN_GAIN_MARGIN_DB`` on the stuck stage the chosen one has the
+    largest K_d fraction (K_d's cut is what costs a start from rest: README, *Known limits*; and the most-margin
+    points, K_d × 0.1 with a slow observer, drop the stuck loop's crossover from ~100 to 13–16 Hz and doubled the
+    quick start's matched-twin cosine), then the most margin, min(PM/40°, GM/8 dB). None meets it:
+    ``REST_GAINS_DEFAULT`` (the controller's own gains, as before).
+
+    Returns ``gains`` (the config keys), ``loops`` (its ``rest/stuck`` and ``rest/free`` figures, worst over θ,
+    with ``healthy``), ``summary`` (how many points met the floor, the best stuck margins seen), ``ranked`` (every
+    point that meets the floor, ``(gains, loops)``, in that order) and ``default_loops`` (those of
+    ``REST_GAINS_DEFAULT``)."""
+    from stagectl.control import design
+
+    def analyse(g: dict[str, float]) -> dict[str, dict[str, Any]]:
+        per = [design.analyse_rest(mass_kg, period_s, pid, nd, dob_bandwidth_hz, nd, stiffness_n_m, damping_n_s_m,
+                                   th * rest_spring_n_m, kd_fraction=float(g["rest_kd_fraction"]),
+                                   dob_bandwidth_fraction=float(g["rest_dob_bandwidth_fraction"]),
+                                   spring_sections=int(g["rest_spring_section_count"])) for th in thetas]
+        summ: dict[str, dict[str, Any]] = {}
+        for j, a0 in enumerate(per[0]):
+            rows = [loops[j].summary() for loops in per]
+            w = {**min(rows, key=lambda r: (r["closed_loop_stable"], r["phase_margin_deg"])),
+                 "gain_margin_db": min(r["gain_margin_db"] for r in rows),
+                 "closed_loop_stable": all(r["closed_loop_stable"] for r in rows)}
+            w["healthy"] = bool(w["closed_loop_stable"] and w["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
+                                and w["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
+            summ[a0.name] = w
+        return summ
+
+    def score(s: dict[str, Any]) -> float:
+        if not s["closed_loop_stable"]:
+            return -math.inf
+        return min(float(s["phase_margin_deg"]) / MIN_PHASE_MARGIN_DEG, float(s["gain_margin_db"]) / MIN_GAIN_MARGIN_DB)
+
+    grid = [dict(zip(REST_GAIN_GRID, vals)) for vals in
+            itertools.product(*REST_GAIN_GRID.values())]
+    tried = [(g, analyse(g)) for g in grid]
+    ok = [(g, s) for g, s in tried if s["rest/stuck"]["healthy"]]
+    most_g, most_s = max(tried, key=lambda t: score(t[1]["rest/stuck"]))
+    summary = {"grid_points": len(tried), "meeting_floor": len(ok), "thetas": list(thetas),
+               "best_stuck": {**dict(most_g), "phase_margin_deg": most_s["rest/stuck"]["phase_margin_deg"],
+                              "gain_margin_db": most_s["rest/stuck"]["gain_margin_db"]}}
+    # the largest K_d fraction, then the most margin
+    ranked = sorted(ok, key=lambda t: (-t[0]["rest_kd_fraction"], -score(t[1]["rest/stuck"])))
+    dflt = analyse(REST_GAINS_DEFAULT)
+    if ranked:
+        return {"gains": dict(ranked[0][0]), "loops": ranked[0][1], "summary": {**summary, "chosen": "grid"},
+                "ranked": ranked, "default_loops": dflt}
+    return {"gains": dict(REST_GAINS_DEFAULT), "loops": dflt, "ranked": ranked, "default_loops": dflt,
+            "summary": {**summary, "chosen": "default: no grid point meets the floor"}}
 
 
 #: DOB bandwidths tried per crossover f_c: multiples of f_c and fractions of the sample rate (capped at 0.2/T)

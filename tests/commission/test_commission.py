@@ -139,6 +139,10 @@ def test_rest_spring_is_checked_before_it_is_advised(commissioned: tuple[int, Pa
     ctl = yaml.safe_load((out / "stage.yaml").read_text())["controller"]
     assert ctl["rest_stiffness_fraction"] == rest["rest_stiffness_fraction"] > 0
     assert ctl["feedforward"]["rest_sync_hz"] == rest["rest_sync_hz"] > 0
+    # rest gains that differ from the controller's own are written only when they meet the floor on the stuck stage
+    if rest["rest_gains"]["chosen"] == "grid":
+        assert rest["loops"]["rest/stuck"]["healthy"]
+        assert ctl.get("rest_kd_fraction", 1.0) == rest["rest_kd_fraction"] < 1.0
     steps = rep["verification"]["steps"]["after"]
     assert steps["moves_settled"] == steps["moves"], steps
 

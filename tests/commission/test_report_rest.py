@@ -31,3 +31,27 @@ def test_the_report_names_the_advised_rest_spring_and_its_thin_margins() -> None
 def test_the_report_says_when_no_rest_spring_is_used() -> None:
     md = report_markdown(_rep({"enabled": False, "reason": "its rest loop is unstable on the stuck stage"}), [])
     assert "Rest spring: not used (its rest loop is unstable on the stuck stage)." in md
+
+
+def test_the_report_names_the_chosen_rest_gains_or_that_none_meets_the_floor() -> None:
+    base = {"enabled": True, "rest_stiffness_fraction": 0.5, "rest_spring_n_m": 3.19e5, "stiffness_n_m": 6.38e5,
+            "confidence": "medium", "reason": "on the twin: settled moves 6 (without: 5)",
+            "rest_kd_fraction": 0.1, "rest_dob_bandwidth_fraction": 0.45, "rest_spring_section_count": 2,
+            "loops": {"rest/stuck": {"phase_margin_deg": 89.5, "gain_margin_db": 10.1, "healthy": True}}}
+    md = report_markdown(_rep({**base, "rest_gains": {"grid_points": 24, "meeting_floor": 10, "chosen": "grid"}}), [])
+    assert "phase margin 89.5 deg, gain margin 10.1 dB." in md
+    assert ("Its rest gains (`rest_kd_fraction` 0.1, `rest_dob_bandwidth_fraction` 0.45, `rest_spring_section_count`"
+            " 2): of 24 grid points, 10 meet the floor on the stuck stage; of those tried on the twins") in md
+    md = report_markdown(_rep({**base, "rest_gains": {
+        "grid_points": 24, "meeting_floor": 0, "chosen": "default: no grid point meets the floor",
+        "best_stuck": {"phase_margin_deg": 35.0, "gain_margin_db": 6.0}}}), [])
+    assert "None of the 24 rest-gain grid points meets the floor on the stuck stage (best: phase margin 35.0 deg" in md
+    md = report_markdown(_rep({**base, "rest_kd_fraction": 1.0, "rest_dob_bandwidth_fraction": 1.0,
+                               "rest_spring_section_count": 1, "rest_gains": {
+        "grid_points": 24, "meeting_floor": 10, "chosen": "default: the grid points that meet the floor failed on the twin",
+        "twin_trials": [{"rest_kd_fraction": 0.5, "rest_dob_bandwidth_fraction": 0.45, "rest_spring_section_count": 2,
+                         "phase_margin_deg": 47.4, "gain_margin_db": 8.6,
+                         "twin": "on the twin: settled moves 6 (without: 5); cosine (matched twin) RMS more than 1.25x"}]}}), [])
+    assert "Of 24 rest-gain grid points 10 meet the floor on the stuck stage, but those tried failed on the twin" in md
+    assert ("Tried on the twins: `rest_kd_fraction` 0.5, `rest_dob_bandwidth_fraction` 0.45, `rest_spring_section_count` 2 (phase"
+            " margin 47.4 deg, gain margin 8.6 dB): on the twin: settled moves 6 (without: 5); cosine (matched twin)") in md
