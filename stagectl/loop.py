@@ -757,7 +757,9 @@ class ControlLoop:
                         elif sched:
                             u_nx = u + controller.next_force_increment_n()  # type: ignore[attr-defined]
                             f_lim = safety.cfg.max_force_n
-                            actuator.write_schedule(u, max(-f_lim, min(f_lim, u_nx)))
+                            # (a non-finite prediction holds u: min/max would turn NaN into full force)
+                            u_nx = max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else u
+                            actuator.write_schedule(u, u_nx)
                             self._u = u
                         else:
                             actuator.write(u)
@@ -791,7 +793,8 @@ class ControlLoop:
                             if sched and holds and t_ctl == t:  # (held by the controller in this cycle)
                                 u_nx = self._u + controller.next_force_increment_n()  # type: ignore[attr-defined]
                                 f_lim = safety.cfg.max_force_n
-                                actuator.write_schedule(self._u, max(-f_lim, min(f_lim, u_nx)))
+                                u_nx = max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else self._u
+                                actuator.write_schedule(self._u, u_nx)
                             else:
                                 actuator.write(self._u)
                 else:
