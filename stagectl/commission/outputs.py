@@ -255,6 +255,12 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
                      f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
         L += _rest_lines(ch.get("rest"))
+        sr = rep["gains"].get("stiction_rule")
+        if sr:
+            lam = ch.get("stiction_length_m")
+            L += ["", (f"Stiction rule (confidence {sr['confidence']}): {sr['reason']}; the chosen design's stiction "
+                       f"length F_b/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} um against "
+                       f"{_num(sr['limit_m'] * 1e6, '.3g')} um.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

@@ -667,7 +667,12 @@ class Commissioning:
                                                              r.plant.delay_s if r.plant is not None else None,
                                                              _cv_points(r.cv))
         m = float(self.res.discovery.get("mass_kg_used", m))
-        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m))
+        fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
+        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
+                                      stiction=(fb, self.env.following_error_m))
+        rule = self.res.gains.get("stiction_rule")
+        if rule is not None and rule["excluded"]:
+            r.notes.append(f"gains: {rule['reason']} (confidence {rule['confidence']})")
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
         new_cfg = self.write_config(self.res)
 
@@ -1015,14 +1020,59 @@ DOB_X_CROSSOVER = (2.0, 5.0)
 DOB_X_PERIOD = (0.1, 0.13, 0.16)
 
 
+def stiction_screen(finalists: list[dict[str, Any]], breakaway_n: float,
+                    following_error_m: float) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The finalists a sticky stage can hold, and the rule's record for the report.
+
+    Each finalist's *stiction length* ``λ = F_b/K_p`` (the probe's smaller breakaway force over the design's
+    proportional gain: the position error at which P alone holds the breakaway force) is compared with
+    ``STICTION_LENGTH_X_FE`` following-error limits ``e_max``, the measure the sequence already uses for its own
+    FRF and friction-experiment tunings. Above it the loop leaves the breakaway to the integrator (and observer):
+    it winds up while the stage sticks, the stage breaks loose, the friction falls to its sliding level and the
+    excess throws the stage past the reference; the loop hunts with errors of a fraction of λ. k106 (1.36 kg,
+    2.04 N breakaway) on main: the twin ranked the 10 Hz PID + Q-filter design (λ ≈ 21 limits) 130 nm cosine RMS
+    against 133 nm for 35 Hz without an observer (λ ≈ 1.8 limits), and the 10 Hz design faulted the cosine on the
+    stage and with the exact model (71 µm following error). The twin's mismatch (1 % friction) is too small to
+    show the hunting, so the rule is applied before the twin ranks: finalists above the limit are dropped when
+    at least one finalist is below it; when none is, all are kept (the rule cannot choose) and the record says so.
+    Confidence ``high`` where the kept designs are below half the limit, else ``medium``."""
+    lim = STICTION_LENGTH_X_FE * following_error_m
+    rows = []
+    for e in finalists:
+        kp = float(e["pid"]["kp_n_m"])
+        lam = breakaway_n / kp if kp > 0 else math.inf
+        e["stiction_length_m"] = lam
+        rows.append(lam)
+    ok = [e for e, lam in zip(finalists, rows) if lam <= lim]
+    rec: dict[str, Any] = {"breakaway_n": breakaway_n, "following_error_m": following_error_m,
+                           "limit_x_following_error": STICTION_LENGTH_X_FE, "limit_m": lim}
+    if not ok or len(ok) == len(finalists):
+        rec.update(excluded=[], reason=("every finalist's stiction length is within the limit" if ok else
+                                        "every finalist's stiction length exceeds the limit: none excluded"),
+                   confidence="high" if ok and max(rows) <= 0.5 * lim else "medium")
+        return finalists, rec
+    dropped = [e for e in finalists if e not in ok]
+    rec.update(excluded=[{"crossover_target_hz": e["crossover_target_hz"], "dob_kind": e["dob_kind"],
+                          "dob_bandwidth_hz": e["dob_bandwidth_hz"], "stiction_length_m": e["stiction_length_m"]}
+                         for e in dropped],
+               reason=(f"{len(dropped)} finalist(s) with stiction length F_b/K_p above {STICTION_LENGTH_X_FE:g} "
+                       f"following-error limits ({lim * 1e6:.3g} um) excluded: such a loop hunts at the "
+                       "breakaway"),
+               confidence="high" if max(e["stiction_length_m"] for e in ok) <= 0.5 * lim else "medium")
+    return ok, rec
+
+
 def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | None,
-                 rank: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None) -> dict[str, Any]:
+                 rank: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None,
+                 stiction: tuple[float, float] | None = None) -> dict[str, Any]:
     """``tune``'s design (:func:`stagectl.control.design.design_pid`) for the measured mass and delay, for
     every candidate crossover, alone and with a Q-filter DOB at each bandwidth of ``DOB_X_CROSSOVER`` × f_c and
     ``DOB_X_PERIOD`` / T. A design is healthy when its loop keeps PM ≥ 40° and GM ≥ 8 dB on the model *and*
     on the measured FRF. Per observer option the highest healthy crossover is a finalist; ``rank`` picks
     among the finalists (the sequence simulates them, :meth:`Commissioning._rank_on_twin`), else the
-    highest crossover wins (at equal crossover the DOB form, which rejects friction faster)."""
+    highest crossover wins (at equal crossover the DOB form, which rejects friction faster). With ``stiction``
+    = (breakaway force [N], following-error limit [m]) the finalists first pass :func:`stiction_screen`; its
+    record is the result's ``stiction_rule``."""
     from stagectl.control import design
 
     nd = max(1, round(plant.delay_s / T)) if plant is not None else 1
@@ -1060,9 +1110,16 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
                          "measured FRF; see report.json gains.tried")
     fin = sorted(finalists.values(), key=lambda e: (-e["crossover_target_hz"], e["dob_kind"] == "none",
                                                     -e["dob_bandwidth_hz"]))
-    chosen = rank(fin) if rank is not None else fin[0]
-    return {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
-            "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+    rule: dict[str, Any] | None = None
+    pool = fin
+    if stiction is not None and stiction[0] > 0.0 and stiction[1] > 0.0:
+        pool, rule = stiction_screen(fin, stiction[0], stiction[1])
+    chosen = rank(pool) if rank is not None else pool[0]
+    out = {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
+           "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+    if rule is not None:
+        out["stiction_rule"] = rule
+    return out
 
 
 def given_margins(ctl: ControllerConfig, T: float, nd: int, frf: an.Frf | None) -> dict[str, Any] | None:
