@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from stagectl.commission.sequence import STICTION_LENGTH_X_FE, choose_gains
+import pytest
+
+from stagectl.commission.sequence import STICTION_LENGTH_X_FE, choose_gains, stiction_screen
 
 M, T, FB, FE = 1.36, 1e-3, 2.04, 50e-6
 
@@ -15,8 +17,13 @@ def softest(fin: list[dict[str, Any]]) -> dict[str, Any]:
     return min(fin, key=lambda e: e["crossover_target_hz"])
 
 
-def test_sticky_stage_refuses_soft_finalists() -> None:
-    g = choose_gains(M, T, None, None, rank=softest, stiction=(FB, FE))
+@pytest.fixture(scope="module")
+def gains() -> dict[str, Any]:
+    return choose_gains(M, T, None, None, rank=softest, stiction=(FB, FE))
+
+
+def test_sticky_stage_refuses_soft_finalists(gains: dict[str, Any]) -> None:
+    g = gains
     lim = STICTION_LENGTH_X_FE * FE
     ch = g["chosen"]
     assert FB / ch["pid"]["kp_n_m"] <= lim
@@ -24,12 +31,12 @@ def test_sticky_stage_refuses_soft_finalists() -> None:
     assert rule["excluded"], "the 10 Hz designs (stiction length ~20 limits) must be excluded"
     assert all(e["stiction_length_m"] > lim for e in rule["excluded"])
     assert min(e["crossover_target_hz"] for e in rule["excluded"]) < ch["crossover_target_hz"]
-    # without the stiction figures the ranking alone decides (the rule is what changes the choice)
-    assert FB / choose_gains(M, T, None, None, rank=softest)["chosen"]["pid"]["kp_n_m"] > lim
+    # without the rule the ranking alone would have chosen a design that cannot hold the breakaway
+    assert FB / softest(g["finalists"])["pid"]["kp_n_m"] > lim
 
 
-def test_rule_keeps_all_when_none_can_hold() -> None:
+def test_rule_keeps_all_when_none_can_hold(gains: dict[str, Any]) -> None:
     """A breakaway no finalist can hold: nothing is excluded and the record says so."""
-    g = choose_gains(M, T, None, None, rank=softest, stiction=(1e4, FE))
-    assert g["stiction_rule"]["excluded"] == [] and "none excluded" in g["stiction_rule"]["reason"]
-    assert len(g["finalists"]) > 1 and g["chosen"] is softest(g["finalists"])
+    kept, rule = stiction_screen(gains["finalists"], 1e4, FE)
+    assert rule["excluded"] == [] and "none excluded" in rule["reason"]
+    assert len(kept) == len(gains["finalists"]) > 1
