@@ -257,10 +257,10 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         L += _rest_lines(ch.get("rest"))
         sr = rep["gains"].get("stiction_rule")
         if sr:
-            lam = ch.get("stiction_length_m")
-            L += ["", (f"Stiction rule (confidence {sr['confidence']}): {sr['reason']}; the chosen design's stiction "
-                       f"length F_b/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} um against "
-                       f"{_num(sr['limit_m'] * 1e6, '.3g')} um.")]
+            lam = ch.get("excess_stiction_length_m")
+            L += ["", (f"Stiction rule (confidence {sr['confidence']}): {sr['reason']}; the chosen design's excess "
+                       f"stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} um "
+                       f"against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]
