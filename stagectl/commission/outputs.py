@@ -258,9 +258,10 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         sr = rep["gains"].get("stiction_rule")
         if sr:
             lam = ch.get("excess_stiction_length_m")
-            L += ["", (f"Stiction rule (confidence {sr['confidence']}): {sr['reason']}; the chosen design's excess "
-                       f"stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} um "
-                       f"against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit.")]
+            L += ["", (f"Stiction rule (confidence {sr.get('confidence')}): {sr.get('decision')}; the chosen design's "
+                       f"excess stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} "
+                       f"um against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit; sticky "
+                       f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]
