@@ -255,6 +255,13 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
                      f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
         L += _rest_lines(ch.get("rest"))
+        sr = rep["gains"].get("stiction_rule")
+        if sr:
+            lam = ch.get("excess_stiction_length_m")
+            L += ["", (f"Stiction rule (confidence {sr.get('confidence')}): {sr.get('decision')}; the chosen design's "
+                       f"excess stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} "
+                       f"um against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit; sticky "
+                       f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

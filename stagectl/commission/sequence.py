@@ -682,7 +682,10 @@ class Commissioning:
                                                              r.plant.delay_s if r.plant is not None else None,
                                                              _cv_points(r.cv))
         m = float(self.res.discovery.get("mass_kg_used", m))
-        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m))
+        fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
+        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
+                                      stiction=(fb, stiction_excess(self.res.model_spec, fb),
+                                                self.env.following_error_m))
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
         new_cfg = self.write_config(self.res)
 
@@ -1024,16 +1027,19 @@ class Commissioning:
                              "moves": summ["moves"]}
                         for nm, summ in simulate_verification(cfg, self.env.stroke_m, max(10e-9, 2 * quantum)).items()}
 
-            best: tuple[tuple[float, float], dict[str, Any]] | None = None
+            keys: list[tuple[float, float]] = []
             for entry in finalists:
                 scores = on_twin(entry)
                 settled = sum(int(sc["moves_settled"]) for sc in scores.values())
                 logs = [math.log(max(float(sc["rms_error_m"]), 1e-15)) for sc in scores.values()]
                 entry["twin"] = scores
-                rank_key = (float(np.mean(logs)), -float(settled))
-                if best is None or rank_key < best[0]:
-                    best = (rank_key, entry)
-            assert best is not None
+                keys.append((float(np.mean(logs)), -float(settled)))
+            i_best, decision = pick_finalist(finalists, keys)
+            best = (keys[i_best], finalists[i_best])
+            if "sticky" in best[1]:
+                best[1]["stiction_choice"] = decision
+                if decision["decision"] != "best on the twin":
+                    self.res.notes.append(f"gains: {decision['decision']}")
             best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
                            f"chosen {best[1]['crossover_target_hz']:.3g} Hz, DOB {best[1]['dob_kind']} "
@@ -1133,14 +1139,94 @@ DOB_X_CROSSOVER = (2.0, 5.0)
 DOB_X_PERIOD = (0.1, 0.13, 0.16)
 
 
+#: a finalist whose excess stiction length exceeds the following-error limit is chosen only if its geometric-mean
+#: twin RMS beats the best finalist within the limit by more than this fraction (Commissioning._rank_on_twin)
+STICKY_NEAR_TIE = 0.15
+
+
+def stiction_screen(finalists: list[dict[str, Any]], breakaway_n: float, excess_n: float,
+                    following_error_m: float) -> dict[str, Any]:
+    """Marks each finalist ``sticky`` where its loop may not hold the stage's stiction excess within the
+    following-error limit, and returns the rule's record for the report (``gains.stiction_rule``).
+
+    When a stuck stage breaks loose its friction falls from the static level ``F_s`` to the sliding one ``F_c``
+    while the loop still pushes about ``F_s`` (integrator and observer), and the stage runs on until the loop's
+    spring takes up the excess ``ΔF = F_s − F_c``, about ``λ_Δ = ΔF/K_p`` (the *excess stiction length*). A
+    finalist with ``λ_Δ`` above the limit ``e_max`` is ``sticky``; :func:`pick_finalist` chooses it only on a
+    clear win on the twin (more than ``STICKY_NEAR_TIE``), because the twin cannot show the hunting (its model is
+    the identified one, and its 1 % friction mismatch did not make the soft loops hunt).
+
+    Measured on main: k106 (1.36 kg, F_s 2.04 N, F_c 1.70 N, 50 µm limit): the twin's geometric mean was 243 nm
+    for 10 Hz PID + Q-filter (λ_Δ 4.1 limits) against 271 nm for 35 Hz without an observer (0.3 limits), a
+    near tie; the 10 Hz design faulted the cosine on the stage and with the exact model (71 µm). Generated
+    plant 36 ran 8 Hz + a 130 Hz Q-filter (λ_Δ 4.5 limits) without a fault, 30 % ahead of the best finalist
+    within the limit on its twin, and on the plant (cosine 4 nm; 19 Hz: 49 nm, steps 3.4 µm RMS). Neither
+    ``λ_Δ`` nor the plain stiction length ``F_b/K_p`` (the experiments' measure, against
+    ``STICTION_LENGTH_X_FE`` limits) alone separated the two stages; a hard limit on ``F_b/K_p`` also cost
+    plant 34 (cosine 11 → 16 nm, triangle 243 → 376 nm). Both lengths are recorded per finalist."""
+    for e in finalists:
+        kp = float(e["pid"]["kp_n_m"])
+        e["stiction_length_m"] = breakaway_n / kp if kp > 0 else math.inf
+        e["excess_stiction_length_m"] = excess_n / kp if kp > 0 else math.inf
+        e["sticky"] = bool(e["excess_stiction_length_m"] > following_error_m)
+    return {"breakaway_n": breakaway_n, "excess_n": excess_n, "following_error_m": following_error_m,
+            "limit_m": following_error_m, "near_tie": STICKY_NEAR_TIE,
+            "sticky": [_design_name(e) for e in finalists if e["sticky"]]}
+
+
+def _design_name(e: dict[str, Any]) -> str:
+    return (f"{e['crossover_target_hz']:.3g} Hz PID" + (f" + Q-filter {e['dob_bandwidth_hz']:.3g} Hz"
+                                                       if e["dob_kind"] == "qfilter" else ""))
+
+
+def pick_finalist(finalists: list[dict[str, Any]], scores: list[tuple[float, float]]) -> tuple[int, dict[str, Any]]:
+    """Index of the chosen finalist and the stiction rule's decision. ``scores`` are the twin's rank keys
+    (mean log RMS [ln m], −moves settled), lowest best. Without ``sticky`` marks (:func:`stiction_screen`) the
+    lowest key wins. A sticky finalist wins only when its geometric-mean RMS is below the best non-sticky
+    finalist's by more than ``STICKY_NEAR_TIE``; else the best non-sticky one is chosen. Confidence ``high``
+    when the chosen design is not sticky and no sticky one was passed over within the tie, else ``medium``."""
+    best = min(range(len(finalists)), key=lambda i: scores[i])
+    plain = [i for i in range(len(finalists)) if not finalists[i].get("sticky", False)]
+    if not finalists[best].get("sticky", False):
+        return best, {"decision": "best on the twin", "confidence": "high"}
+    if not plain:
+        return best, {"decision": "best on the twin; every finalist is sticky", "confidence": "low"}
+    alt = min(plain, key=lambda i: scores[i])
+    gain = 1.0 - math.exp(scores[best][0] - scores[alt][0])  # fraction by which the sticky one is better
+    if gain > STICKY_NEAR_TIE:
+        return best, {"decision": (f"{_design_name(finalists[best])} chosen although sticky: its twin geometric-mean "
+                                   f"RMS is {100 * gain:.0f} % below {_design_name(finalists[alt])}'s "
+                                   f"(> {100 * STICKY_NEAR_TIE:.0f} %)"), "confidence": "medium"}
+    return alt, {"decision": (f"{_design_name(finalists[alt])} chosen over the twin's best "
+                              f"{_design_name(finalists[best])}: that one is sticky (excess stiction length "
+                              f"{finalists[best]['excess_stiction_length_m'] * 1e6:.3g} um over the following-"
+                              f"error limit) and only {100 * gain:.0f} % better on the twin "
+                              f"(near tie: <= {100 * STICKY_NEAR_TIE:.0f} %)"), "confidence": "medium"}
+
+
+def stiction_excess(spec: dict[str, Any] | None, breakaway_n: float) -> float:
+    """``F_s − F_c`` [N] of the identified model's friction (``fs_n``, ``fc_n``), else the probe's smaller
+    breakaway ``breakaway_n`` over ``fc_n``; never negative; 0 without a Coulomb level."""
+    fr = dict((spec or {}).get("friction") or {})
+    fc = fr.get("fc_n")
+    if not isinstance(fc, (int, float)):
+        return 0.0
+    fs = fr.get("fs_n")
+    top = float(fs) if isinstance(fs, (int, float)) else breakaway_n
+    return max(top - float(fc), 0.0)
+
+
 def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | None,
-                 rank: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None) -> dict[str, Any]:
+                 rank: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None,
+                 stiction: tuple[float, float, float] | None = None) -> dict[str, Any]:
     """``tune``'s design (:func:`stagectl.control.design.design_pid`) for the measured mass and delay, for
     every candidate crossover, alone and with a Q-filter DOB at each bandwidth of ``DOB_X_CROSSOVER`` × f_c and
     ``DOB_X_PERIOD`` / T. A design is healthy when its loop keeps PM ≥ 40° and GM ≥ 8 dB on the model *and*
     on the measured FRF. Per observer option the highest healthy crossover is a finalist; ``rank`` picks
     among the finalists (the sequence simulates them, :meth:`Commissioning._rank_on_twin`), else the
-    highest crossover wins (at equal crossover the DOB form, which rejects friction faster)."""
+    highest crossover wins (at equal crossover the DOB form, which rejects friction faster). With ``stiction``
+    = (breakaway force [N], following-error limit [m]) the finalists first pass :func:`stiction_screen`; its
+    record is the result's ``stiction_rule``."""
     from stagectl.control import design
 
     nd = max(1, round(plant.delay_s / T)) if plant is not None else 1
@@ -1178,9 +1264,17 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
                          "measured FRF; see report.json gains.tried")
     fin = sorted(finalists.values(), key=lambda e: (-e["crossover_target_hz"], e["dob_kind"] == "none",
                                                     -e["dob_bandwidth_hz"]))
+    rule: dict[str, Any] | None = None
+    if stiction is not None and stiction[2] > 0.0:
+        rule = stiction_screen(fin, *stiction)
     chosen = rank(fin) if rank is not None else fin[0]
-    return {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
-            "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+    if rule is not None:
+        rule.update(chosen.pop("stiction_choice", None) or {"decision": "highest crossover", "confidence": "medium"})
+    out = {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
+           "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
+    if rule is not None:
+        out["stiction_rule"] = rule
+    return out
 
 
 def given_margins(ctl: ControllerConfig, T: float, nd: int, frf: an.Frf | None) -> dict[str, Any] | None:
