@@ -52,6 +52,10 @@ class HostedLoop(Protocol):
     def submit(self, req: LoopRequest) -> Reply: ...
 
 
+#: LoopHost.wait's longest uninterrupted wait [s]: how late a pending signal's handler may run
+WAIT_SLICE_S = 0.05
+
+
 class LoopHost:
     """Runs ``loop`` in a thread (see the module docstring).
 
@@ -124,10 +128,22 @@ class LoopHost:
         self._stop.set()
 
     def wait(self, timeout_s: float | None) -> bool:
-        """Wait up to ``timeout_s`` for the loop thread to end; True if it has ended (or never started)."""
+        """Wait up to ``timeout_s`` for the loop thread to end; True if it has ended (or never started).
+
+        Waits in slices of at most ``WAIT_SLICE_S``: a signal (Ctrl-C, SIGTERM) that arrives in the instant before
+        the thread blocks in the lock does not interrupt that wait (CPython checks pending signals between
+        bytecodes, not inside the lock's wait), so its handler ran only when the whole wait ended. Seen as a
+        60 s stall under load: the handler's KeyboardInterrupt then came out of finish() after its time-out,
+        with the loop still running."""
         if self._thread is None:
             return True
-        return self._ended.wait(timeout_s)
+        end = None if timeout_s is None else time.monotonic() + max(0.0, timeout_s)
+        while True:
+            slice_s = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, max(0.0, end - time.monotonic()))
+            if self._ended.wait(slice_s):
+                return True
+            if end is not None and time.monotonic() >= end:
+                return False
 
     def halt_motion(self, until_mono: float) -> None:
         """Decelerate to a stop before disabling, bounded by ``time.monotonic()`` deadline ``until_mono``.
