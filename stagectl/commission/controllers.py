@@ -337,8 +337,8 @@ class SpeedLadderFeedforward:
         now comes on carries the sliding friction. Kept, it either holds the stage against the pass (``p < 0``:
         the loop must build ``|p| + F_b − F_c`` before the stage moves; generated plant 34, 0.52 kg, −1.37 N
         held, 56 µm behind on its 6.4 mm/s pass, following-error fault) or adds to the feed-forward along
-        ``d`` (fresh plant 112, 0.89 kg, +1.5 N held with 1.22 N fed forward: thrown 58 µm ahead). The part
-        A held force beyond ``hold_limit_n`` (the force step the loop takes within the passes' error budget,
+        ``d`` (fresh plant 112, 0.89 kg, +1.5 N held with 1.22 N fed forward: thrown 58 µm ahead). A held
+        force beyond ``hold_limit_n`` (the force step the loop takes within the passes' error budget,
         ``e_budget/g_step``) goes (``dob.shift``, input history with it: ``p ← 0``); a smaller one stays, so
         that starts the loop absorbs anyway run as before. Clipped to ±``hold_limit_n`` instead of released,
         the oracle of tests/commission/test_pass_start_release.py still faulted (50.9 µm): held against the

@@ -1225,7 +1225,7 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     on the measured FRF. Per observer option the highest healthy crossover is a finalist; ``rank`` picks
     among the finalists (the sequence simulates them, :meth:`Commissioning._rank_on_twin`), else the
     highest crossover wins (at equal crossover the DOB form, which rejects friction faster). With ``stiction``
-    = (breakaway force [N], following-error limit [m]) the finalists first pass :func:`stiction_screen`; its
+    = (breakaway force [N], stiction excess F_s − F_c [N], following-error limit [m]) the finalists first pass :func:`stiction_screen`; its
     record is the result's ``stiction_rule``."""
     from stagectl.control import design
 
