@@ -24,6 +24,7 @@ from stagectl.control.controller import ControllerConfig, FeedforwardConfig, Sta
 from stagectl.control.dob import DobConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
+from plain_stage import MaxwellSlipStage
 from test_sticky_moves import _trapezoid
 
 T = 1e-3
@@ -48,26 +49,16 @@ def _peak_error_of_passes(a: float, v: float = 0.016, half_m: float = 1e-3) -> f
     """Peak |x_ref - x| over a pass out and back at ``v`` (±``half_m``), ramps at ``a``; 0.1 s dwells."""
     st = STAGE
     ctl = StageController(_tuning(st["m_est"], seq.COULOMB_GUESS_FRACTION * min(st["fb"])), T)
-    m, fs, fc, visc, vs, K = (st[k] for k in ("mass", "fs", "fc", "visc", "vs", "k"))
     x = -half_m
     ctl.reset(x)
     refs = ([Reference(-half_m)] * 100 + _trapezoid(-half_m, half_m, v, a) + [Reference(half_m)] * 100
             + _trapezoid(half_m, -half_m, v, a))
-    vel = u_applied = peak = 0.0
-    sub = 10
-    h = T / sub
-    z = 0.0  # the Maxwell-slip element's deflection (m): friction k·z, slipping at the sliding level
+    stage = MaxwellSlipStage(st, x0_m=x)
+    peak = 0.0
     for ref in refs:
-        u = ctl.step(T, x, ref).force_n
-        peak = max(peak, abs(ref.x_m - x))
-        for _ in range(sub):
-            z += vel * h
-            f_slide = fc + (fs - fc) * math.exp(-((vel / vs) ** 2))
-            if abs(K * z) > f_slide:
-                z = math.copysign(f_slide / K, z)
-            vel += (u_applied - K * z - visc * vel) / m * h
-            x += vel * h
-        u_applied = u
+        u = ctl.step(T, stage.x, ref).force_n
+        peak = max(peak, abs(ref.x_m - stage.x))
+        stage.period(u, T)
     return peak
 
 

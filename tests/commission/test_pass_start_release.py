@@ -13,8 +13,8 @@ a :class:`SpeedLadderFeedforward` that learns the Coulomb level and is off at re
 from __future__ import annotations
 
 import math
-
-import numpy as np
+import sys
+from pathlib import Path
 
 from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
@@ -22,7 +22,10 @@ from stagectl.control import design
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
 from stagectl.control.dob import DobConfig
 from stagectl.control.friction_ff import CoulombFeedforward
-from stagectl.control.trajectory import Dwell, Move, Scenario, TrajectoryGenerator
+from stagectl.control.trajectory import Scenario, TrajectoryGenerator
+
+sys.path.insert(0, str(Path(__file__).parent))
+from plain_stage import MaxwellSlipStage, pass_segments
 
 T = 1e-3
 E_MAX = 50e-6
@@ -51,35 +54,17 @@ def _run(release: bool) -> tuple[SpeedLadderFeedforward, float]:
     ctl = CommissionController(inner)
     ctl.set_closed(inner, ladder=ladder)
     v_rep = st["v_rep"]
-    a_rep = v_rep ** 2 / (0.1 * 0.2 * S)
-    segs: list[Move | Dwell] = []
-    for v in np.geomspace(V_MAX / seq.CV_SPAN, V_MAX, seq.CV_SPEEDS).tolist():
-        L = min(S, max(v * seq.CV_PASS_S, 0.05 * S))
-        a = seq.pass_acceleration(max(min(max(v * v / (0.1 * L), 0.02), 0.3 * 7.0 / st["m_exp"]), 1e-6), v, budget,
-                                  seq.readable_acceleration(v, L, T))
-        segs += [Move(to_m=-L / 2, max_velocity_m_s=v_rep, max_acceleration_m_s2=a_rep, max_jerk_m_s3=100 * a_rep),
-                 Dwell(0.1),
-                 Move(to_m=L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1),
-                 Move(to_m=-L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1)]
+    segs = pass_segments(budget, st["m_exp"], v_rep, v_rep ** 2 / (0.1 * 0.2 * S), T, V_MAX, S)
     gen = TrajectoryGenerator(0.0)
     gen.load(Scenario(name="cv", segments=tuple(segs)))
     ctl.reset(0.0)
-    m, fs, fc, visc, vs, K = (st[k] for k in ("mass", "fs", "fc", "visc", "vs", "k"))
-    x = vel = z = u_applied = peak = 0.0
-    sub = 10
-    h = T / sub
+    stage = MaxwellSlipStage(st)
+    peak = 0.0
     while not gen.done:
         ref = gen.step(T)
-        u = ctl.step(T, x, ref).force_n
-        peak = max(peak, abs(ref.x_m - x))
-        for _ in range(sub):
-            z += vel * h
-            f_slide = fc + (fs - fc) * math.exp(-((vel / vs) ** 2))
-            if abs(K * z) > f_slide:
-                z = math.copysign(f_slide / K, z)
-            vel += (u_applied - K * z - visc * vel) / m * h
-            x += vel * h
-        u_applied = u
+        u = ctl.step(T, stage.x, ref).force_n
+        peak = max(peak, abs(ref.x_m - stage.x))
+        stage.period(u, T)
     return ladder, peak
 
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -23,7 +25,10 @@ from stagectl.control import design
 from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
 from stagectl.control.dob import DobConfig
 from stagectl.control.friction_ff import CoulombFeedforward
-from stagectl.control.trajectory import Dwell, Move, Scenario, TrajectoryGenerator
+from stagectl.control.trajectory import Scenario, TrajectoryGenerator
+
+sys.path.insert(0, str(Path(__file__).parent))
+from plain_stage import MaxwellSlipStage, pass_segments
 
 T = 1e-3
 # generated plant 44 (its hidden model) and what the sequence knew when the passes ran
@@ -61,46 +66,27 @@ def _run(viscous: bool, cogging_n: float = 0.0, cogging_period_m: float = 1e-3,
     ctl.set_closed(inner, ladder=ladder if viscous else None)
     # the sequence's ramps: its error budget (plant 44: ρ = 4.3, so the Coulomb flip gets no credit)
     budget = seq.pass_budget(cfg, T, 1, st["m_probe"], st["m_std"], st["fb"], 0.0, 50e-6)
-    segs: list[Move | Dwell] = []
-    for v in np.geomspace(V_MAX / seq.CV_SPAN, V_MAX, seq.CV_SPEEDS).tolist():
-        L = min(S, max(v * seq.CV_PASS_S, 0.05 * S))
-        # with the readability floor, as the sequence runs them (16 mm/s over 2 mm: 0.505 m/s², above the budget)
-        a = seq.pass_acceleration(max(min(max(v * v / (0.1 * L), 0.02), 0.3 * 7.0 / st["m_est"]), 1e-6), v, budget,
-                                  seq.readable_acceleration(v, L, T))
-        segs += [Move(to_m=-L / 2, max_velocity_m_s=V_REP, max_acceleration_m_s2=A_REP, max_jerk_m_s3=100 * A_REP),
-                 Dwell(0.1),
-                 Move(to_m=L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1),
-                 Move(to_m=-L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1)]
+    segs = pass_segments(budget, st["m_est"], V_REP, A_REP, T, V_MAX, S)
     gen = TrajectoryGenerator(0.0)
     gen.load(Scenario(name="cv", segments=tuple(segs)))
     ctl.reset(0.0)
-    m, fs, fc, visc, vs, K = (st[k] for k in ("mass", "fs", "fc", "visc", "vs", "k"))
-    x = vel = z = u_applied = peak = 0.0
-    sub = 10
-    h = T / sub
+    stage = MaxwellSlipStage(st, position_force=lambda x: cogging_n * math.sin(2 * math.pi * x / cogging_period_m))
+    peak = 0.0
     fastest = False
     dob_end: list[float] = []
     cruising = 0.0
     while not gen.done:
         ref = gen.step(T)
-        cmd = ctl.step(T, x, ref)
-        u = cmd.force_n
+        cmd = ctl.step(T, stage.x, ref)
         fastest = fastest or abs(ref.v_m_s) > 0.5 * V_MAX
         if fastest:
-            peak = max(peak, abs(ref.x_m - x))
+            peak = max(peak, abs(ref.x_m - stage.x))
         if abs(ref.v_m_s) == V_MAX and ref.a_m_s2 == 0.0:
             cruising = abs(cmd.terms["u_dob"])
         elif cruising:
             dob_end.append(cruising)
             cruising = 0.0
-        for _ in range(sub):
-            z += vel * h
-            f_slide = fc + (fs - fc) * math.exp(-((vel / vs) ** 2))
-            if abs(K * z) > f_slide:
-                z = math.copysign(f_slide / K, z)
-            vel += (u_applied - K * z - visc * vel - cogging_n * math.sin(2 * math.pi * x / cogging_period_m)) / m * h
-            x += vel * h
-        u_applied = u
+        stage.period(cmd.force_n, T)
     return ladder, peak, float(np.mean(dob_end))
 
 
