@@ -449,6 +449,13 @@ class ControlLoop:
         )
 
     # ------------------------------------------------------------------ fault
+    def _write_scheduled(self, actuator: ForceActuator, pred: PredictsNextForce, u_n: float) -> None:
+        """``write_schedule(u, û)`` with û = u + the controller's predicted increment within ±``safety.max_force_n``
+        (io.command_schedule); a non-finite prediction holds u (min/max would turn NaN into full force)."""
+        u_nx = u_n + pred.next_force_increment_n()
+        f_lim = self.safety.cfg.max_force_n
+        actuator.write_schedule(u_n, max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else u_n)
+
     def _enter_fault(self, t: float, x: float = math.nan) -> None:
         if self.state is LoopState.FAULT:
             return
@@ -647,7 +654,8 @@ class ControlLoop:
         holds = isinstance(controller, HoldsOnStale)
         # a command schedule (io.command_schedule): each write also carries the controller's predicted force
         # for the period after it, which the actuator applies in a slot the loop skips
-        sched = bool(getattr(actuator, "schedules_commands", False)) and isinstance(controller, PredictsNextForce)
+        pred = controller if isinstance(controller, PredictsNextForce) else None
+        sched = pred is not None and bool(getattr(actuator, "schedules_commands", False))
         t_cyc = math.nan
         tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
@@ -736,12 +744,12 @@ class ControlLoop:
                             if lvl != self.slow_down:
                                 self._set_slow_down(lvl, t)
                         own_s = actuator.missed_sync_periods * period if sched else math.inf
-                        if t_prev is not None and t_prev == t_cyc and t - t_prev > own_s * (1.0 + 1e-9):
+                        if pred is not None and t_prev is not None and t_prev == t_cyc and t - t_prev > own_s * (1.0 + 1e-9):
                             # the actuator filled the slots since the last cycle's SYNC from its schedule, its own
                             # first slot missed_sync_periods after it: the observer is told so. (The actuator's
                             # test, not the loop's skipped count: a wake-up 0.5-1 T late skips no slot, but comes
                             # after the own slot)
-                            controller.scheduled_slots(own_s)  # type: ignore[attr-defined]
+                            pred.scheduled_slots(own_s)
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
@@ -754,12 +762,8 @@ class ControlLoop:
                         u = safety.limit_force(t, k, cmd.force_n, "force" in cmd.limited)
                         if safety.fault is not None:
                             self._enter_fault(t, x)
-                        elif sched:
-                            u_nx = u + controller.next_force_increment_n()  # type: ignore[attr-defined]
-                            f_lim = safety.cfg.max_force_n
-                            # (a non-finite prediction holds u: min/max would turn NaN into full force)
-                            u_nx = max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else u
-                            actuator.write_schedule(u, u_nx)
+                        elif sched and pred is not None:
+                            self._write_scheduled(actuator, pred, u)
                             self._u = u
                         else:
                             actuator.write(u)
@@ -790,11 +794,8 @@ class ControlLoop:
                                 self._u = u
                                 terms = cmd.terms
                         if self.state is LoopState.ACTIVE:
-                            if sched and holds and t_ctl == t:  # (held by the controller in this cycle)
-                                u_nx = self._u + controller.next_force_increment_n()  # type: ignore[attr-defined]
-                                f_lim = safety.cfg.max_force_n
-                                u_nx = max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else self._u
-                                actuator.write_schedule(self._u, u_nx)
+                            if sched and pred is not None and holds and t_ctl == t:  # (held by the controller now)
+                                self._write_scheduled(actuator, pred, self._u)
                             else:
                                 actuator.write(self._u)
                 else:
