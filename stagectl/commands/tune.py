@@ -281,10 +281,8 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
                                             integrator_held=held, **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
-        rows = [(th, loops[j].summary()) for th, loops in per]
-        th_w, worst = min(rows, key=lambda r: (r[1]["closed_loop_stable"], r[1]["phase_margin_deg"]))
-        w = {**worst, "gain_margin_db": min(r[1]["gain_margin_db"] for r in rows),
-             "closed_loop_stable": all(r[1]["closed_loop_stable"] for r in rows), "theta": th_w}
+        i, w = design.worst_over([loops[j].summary() for _, loops in per])
+        w["theta"] = per[i][0]
         summ[a0.name] = {**w, "healthy": _healthy(w)}
     sweep = [{"theta": th, "phase_margin_deg": loops[0].phase_margin_deg, "gain_margin_db": loops[0].gain_margin_db,
               "closed_loop_stable": loops[0].stable} for th, loops in per]

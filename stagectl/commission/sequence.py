@@ -1102,10 +1102,7 @@ def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, 
                                    spring_sections=int(g["rest_spring_section_count"])) for th in thetas]
         summ: dict[str, dict[str, Any]] = {}
         for j, a0 in enumerate(per[0]):
-            rows = [loops[j].summary() for loops in per]
-            w = {**min(rows, key=lambda r: (r["closed_loop_stable"], r["phase_margin_deg"])),
-                 "gain_margin_db": min(r["gain_margin_db"] for r in rows),
-                 "closed_loop_stable": all(r["closed_loop_stable"] for r in rows)}
+            _, w = design.worst_over([loops[j].summary() for loops in per])
             w["healthy"] = bool(w["closed_loop_stable"] and w["phase_margin_deg"] >= MIN_PHASE_MARGIN_DEG
                                 and w["gain_margin_db"] >= MIN_GAIN_MARGIN_DB)
             summ[a0.name] = w

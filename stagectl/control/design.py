@@ -359,6 +359,16 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
             analyse("rest/free", dob_loop(free, C, Hu, Hy, period_s), period_s, 2000)]
 
 
+def worst_over(summaries: list[dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    """One loop's margins over a sweep (:meth:`LoopAnalysis.summary` per point, e.g. per feed-forward scale θ), worst
+    case: the point with the lowest phase margin (an unstable one first), with the lowest gain margin of all points
+    and ``closed_loop_stable`` only if every point is. Returns (that point's index, the summary)."""
+    i = min(range(len(summaries)),
+            key=lambda j: (summaries[j]["closed_loop_stable"], summaries[j]["phase_margin_deg"]))
+    return i, {**summaries[i], "gain_margin_db": min(r["gain_margin_db"] for r in summaries),
+               "closed_loop_stable": all(r["closed_loop_stable"] for r in summaries)}
+
+
 def dob_loop(P: Any, C: Any, Hu: Any, Hy: Any, dt: float) -> Any:
     """``L = P·(C + H_y)/(1 − H_u)`` as a state-space interconnection.
 
