@@ -111,7 +111,7 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
                                  f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
                                  f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
-    if res.aborted is not None and res.aborted.experiment.startswith("verify_after"):
+    if res.aborted is not None and res.aborted.experiment.startswith(("verify_after", "wipe_after")):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
                         "better": [], "text": f"keep the given controller: the commissioned one faulted in "
                         f"{res.aborted.experiment} ({res.aborted.reason})"}

@@ -13,7 +13,7 @@ is a simulated stage, in real time otherwise, and runs one ``loop.run`` per expe
 5. gains: ``tune``'s design rule, highest crossover with PM ≥ 40° and GM ≥ 8 dB on the model *and* the
    measured FRF;
 6. ``verify_before_*`` / ``verify_after_*``: cosine, triangle, steps with the given and the new controller, each
-   preceded by ``wipe_before_*`` / ``wipe_after_*`` (the experiments' tuning wipes the stage's friction memory,
+   preceded by ``wipe_before_*`` / ``wipe_after_*`` (the same controller wipes the stage's friction memory,
    :func:`wipe_segments`) and started, as :func:`simulate_verification` starts it, by :func:`verification_lead`.
 
 Every recording is written to ``DIR/recordings/<experiment>.csv`` as soon as its run ends, also when a fault or
@@ -346,7 +346,8 @@ class Commissioning:
             excitation = np.concatenate([np.zeros(exc_start), excitation])
         # the experiments' own tunings stay inside the envelope's force; the given and the new controller
         # (verification) only inside the configuration's limits
-        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith("verify") else math.inf, ladder)
+        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith(("verify", "wipe")) else math.inf,
+                       ladder)
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
@@ -701,14 +702,15 @@ class Commissioning:
         # 6. verification -----------------------------------------------------------------------------
         if not self.opts.verify:
             return
-        self._verify(stage, new_cfg, inner, xc)
+        self._verify(stage, new_cfg, xc)
 
-    def _verify(self, stage: Stage, new_cfg: AppConfig, wiper: StageController, xc: float) -> None:
+    def _verify(self, stage: Stage, new_cfg: AppConfig, xc: float) -> None:
         """Step 6: each scenario with the given (``self.cfg``) and the new controller (``new_cfg``) under the same
         conditions, and the conditions :func:`simulate_verification` (the twins, the tests) gives it on a fresh
-        stage: first a run of ``wiper`` (the experiments' tuning) that wipes the stage's friction memory at the
-        centre ``xc`` (:func:`wipe_segments`), then a run of a freshly built controller: :func:`verification_lead`
-        (to ``xc − d`` and back, gently, 0.3 s of rest), the scenario.
+        stage: a run in which the controller wipes the stage's friction memory about the centre ``xc``
+        (:func:`wipe_segments`; the experiments' soft tuning cannot: its stiction length is ~0.2 mm on
+        config/sim.yaml), then a run of a freshly built one (at a loop's start a controller forgets what it
+        learned): :func:`verification_lead` (to ``xc − d`` and back, gently, 0.3 s of rest), the scenario.
 
         Why: at a loop's start a controller sets its friction model relaxed at the measured position, while the
         stage keeps the pre-sliding state its last move left (the previous experiment's, the previous
@@ -730,8 +732,8 @@ class Commissioning:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
                     continue
                 self._closed(stage, f"wipe_{which}_{nm}", f"friction-memory wipe before verify_{which}_{nm}: "
-                             f"{len(wipe) - 2} moves of alternating sign, decaying amplitude, experiments' tuning",
-                             wiper, list(wipe), {"amplitudes_m": [abs(float(w.to_m) - xc) for w in wipe
+                             f"{len(wipe) - 2} moves of alternating sign, decaying amplitude",
+                             make_controller(cfg_v), list(wipe), {"amplitudes_m": [abs(float(w.to_m) - xc) for w in wipe
                                                                   if isinstance(w, Move) and w.to_m is not None]})
                 # a controller built for this run: nothing it learned in another scenario carries over
                 rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller",
