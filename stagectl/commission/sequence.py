@@ -704,7 +704,7 @@ class Commissioning:
             return
         self._verify(stage, new_cfg, xc)
 
-    def _verify(self, stage: Stage, new_cfg: AppConfig, xc: float) -> None:
+    def _verify(self, stage: Stage, new_cfg: AppConfig, xc: float, scenarios: tuple[str, ...] = VERIFY) -> None:
         """Step 6: each scenario with the given (``self.cfg``) and the new controller (``new_cfg``) under the same
         conditions, and the conditions :func:`simulate_verification` (the twins, the tests) gives it on a fresh
         stage: a run in which the controller wipes the stage's friction memory about the centre ``xc``
@@ -726,7 +726,7 @@ class Commissioning:
         lead = verification_lead(xc, S)
         skip = Scenario(name="lead", segments=lead).duration_s(0.0)
         for which, cfg_v in (("before", self.cfg), ("after", new_cfg)):
-            for nm in VERIFY:
+            for nm in scenarios:
                 sc = _verify_scenario(nm, xc, S)
                 if sc is None:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
