@@ -128,7 +128,7 @@ PRESLIDING_MOVE_S = 0.75
 VERIFY = ("cosine", "triangle", "steps")
 #: the friction-memory wipe before each verification run (:func:`wipe_segments`): moves about the centre of
 #: alternating sign and amplitudes d·WIPE_RATIO^k, from the approach's d down to the larger of WIPE_MIN_M and
-#: WIPE_MIN_QUANTA sensor quanta (config/sim.yaml: 23 moves, 1.4 s)
+#: WIPE_MIN_QUANTA sensor quanta (config/sim.yaml: 21 moves and the one back to the centre, 1.7 s)
 WIPE_RATIO = 0.6
 WIPE_MIN_M = 5e-9
 WIPE_MIN_QUANTA = 5.0
