@@ -724,22 +724,24 @@ class Commissioning:
         q = _quantum_guess(stage)
         wipe = wipe_segments(xc, S, q)
         lead = verification_lead(xc, S)
-        skip = Scenario(name="lead", segments=lead).duration_s(0.0)
         for which, cfg_v in (("before", self.cfg), ("after", new_cfg)):
             for nm in scenarios:
                 sc = _verify_scenario(nm, xc, S)
                 if sc is None:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
                     continue
+                amps = [abs(float(w.to_m) - xc) for w in wipe[:-2] if isinstance(w, Move) and w.to_m is not None]
                 self._closed(stage, f"wipe_{which}_{nm}", f"friction-memory wipe before verify_{which}_{nm}: "
-                             f"{len(wipe) - 2} moves of alternating sign, decaying amplitude",
-                             make_controller(cfg_v), list(wipe), {"amplitudes_m": [abs(float(w.to_m) - xc) for w in wipe
-                                                                  if isinstance(w, Move) and w.to_m is not None]})
+                             f"{len(amps)} moves of alternating sign, decaying amplitude", make_controller(cfg_v),
+                             list(wipe), {"amplitudes_m": amps})
                 # a controller built for this run: nothing it learned in another scenario carries over
                 rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller",
                                    make_controller(cfg_v), [*lead, *sc.segments],
                                    {"scenario": nm, "approach_m": approach_m(S)}, extra_s=0.3)
                 tol = max(10e-9, 2 * _quantum(rec.col("x")))
+                # the lead's absolute moves last as long as they do from where the run started (the reference
+                # starts at the measured position)
+                skip = Scenario(name="lead", segments=lead).duration_s(float(rec.col("x_ref")[0]))
                 r.verification.setdefault(nm, {})[which] = _summary_after(rec, skip, tol)
 
     # ------------------------------------------------------------------ helpers

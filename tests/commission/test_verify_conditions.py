@@ -47,7 +47,7 @@ def figures() -> dict[str, float]:
         xc = env.x_c_m
         with build_stage(cfg, clock=SimClock(), controller=CommissionController(make_controller(cfg))) as st:
             # the stage's history: out by 1 mm and back, stopping 2 µm short of the centre
-            prof = dict(max_velocity_m_s=2.7e-3, max_acceleration_m_s2=0.1, max_jerk_m_s3=10.0)
+            prof = {"max_velocity_m_s": 2.7e-3, "max_acceleration_m_s2": 0.1, "max_jerk_m_s3": 10.0}
             com._closed(st, "history", "history", make_controller(cfg),
                         [Move(to_m=xc + 1e-3, **prof), Dwell(0.1), Move(to_m=xc - 2e-6, **prof)], {})
             com._verify(st, cfg, xc, scenarios=("cosine",))
