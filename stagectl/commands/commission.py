@@ -54,7 +54,8 @@ def _parse_fault(spec: str | None) -> tuple[str, float] | None:
         at = float(t or "0")
     except ValueError:
         raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {short(spec)}") from None
-    known = [*EXPERIMENTS, *(f"verify_{which}_{n}" for which in ("before", "after") for n in VERIFY)]
+    known = [*EXPERIMENTS, *(f"{kind}_{which}_{n}" for which in ("before", "after") for n in VERIFY
+                             for kind in ("wipe", "verify"))]
     if name not in known:  # a fault that is never injected would let the whole commissioning run
         raise ConfigError(f"--inject-fault: unknown experiment {short(name)} (one of {', '.join(known)})")
     if not (at >= 0 and at < float("inf")):

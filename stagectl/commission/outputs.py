@@ -111,7 +111,7 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
                                  f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
                                  f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
-    if res.aborted is not None and res.aborted.experiment.startswith("verify_after"):
+    if res.aborted is not None and res.aborted.experiment.startswith(("verify_after", "wipe_after")):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
                         "better": [], "text": f"keep the given controller: the commissioned one faulted in "
                         f"{res.aborted.experiment} ({res.aborted.reason})"}
@@ -268,13 +268,22 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
     if ver:
         L += ["", "## Verification: before (given config) and after (stage.yaml)", "",
               ("| scenario | RMS before [nm] | RMS after [nm] | max before [nm] | max after [nm] | settled before | "
-              "settled after |"), "|---|---|---|---|---|---|---|"]
+              "settled after | settling before [ms] | settling after [ms] |"), "|---|---|---|---|---|---|---|---|---|"]
+        band = None
         for name, d in ver.items():
             b, a = d.get("before", {}), d.get("after", {})
+            band = band or b.get("settling_tolerance_m") or a.get("settling_tolerance_m")
             L.append(f"| {name} | {_fmt(b.get('rms_error_m'), 1e9)} | {_fmt(a.get('rms_error_m'), 1e9)} | "
                      f"{_fmt(b.get('max_error_m'), 1e9)} | {_fmt(a.get('max_error_m'), 1e9)} | "
                      f"{b.get('moves_settled', '-')}/{b.get('moves', '-')} | {a.get('moves_settled', '-')}/"
-                     f"{a.get('moves', '-')} |")
+                     f"{a.get('moves', '-')} | {_fmt(b.get('settling_time_max_s'), 1e3)} | "
+                     f"{_fmt(a.get('settling_time_max_s'), 1e3)} |")
+        L += ["", ("Both controllers run each scenario under the same conditions: a run of the controller that wipes "
+                   "the stage's friction memory at the centre (moves of alternating sign and decaying amplitude, "
+                   "`wipe_*`), then a run of a freshly built controller (nothing learned carries over): gently to "
+                   "the centre less the approach and back, 0.3 s at rest, the scenario; the figures are from the "
+                   "scenario's start on. Settling: the longest time after a move's end until the error stays within "
+                   f"±{_fmt(band, 1e9)} nm.")]
     if pngs:
         L += ["", "## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in pngs]
     return "\n".join(L) + "\n"

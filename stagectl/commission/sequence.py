@@ -12,7 +12,9 @@ is a simulated stage, in real time otherwise, and runs one ``loop.run`` per expe
 4. fits: plant (FRF), friction (constant-velocity regression, ``discover`` on the friction recordings);
 5. gains: ``tune``'s design rule, highest crossover with PM ≥ 40° and GM ≥ 8 dB on the model *and* the
    measured FRF;
-6. ``verify_before_*`` / ``verify_after_*``: cosine, triangle, steps with the given and the new controller.
+6. ``verify_before_*`` / ``verify_after_*``: cosine, triangle, steps with the given and the new controller, each
+   preceded by ``wipe_before_*`` / ``wipe_after_*`` (the same controller wipes the stage's friction memory,
+   :func:`wipe_segments`) and started, as :func:`simulate_verification` starts it, by :func:`verification_lead`.
 
 Every recording is written to ``DIR/recordings/<experiment>.csv`` as soon as its run ends, also when a fault or
 Ctrl-C ends it; a fault or Ctrl-C aborts the sequence (:class:`CommissionAborted`), the loop has then already
@@ -124,6 +126,12 @@ PRESLIDING_LOOPS = 6
 PRESLIDING_MOVE_S = 0.75
 
 VERIFY = ("cosine", "triangle", "steps")
+#: the friction-memory wipe before each verification run (:func:`wipe_segments`): moves about the centre of
+#: alternating sign and amplitudes d·WIPE_RATIO^k, from the approach's d down to the larger of WIPE_MIN_M and
+#: WIPE_MIN_QUANTA sensor quanta (config/sim.yaml: 21 moves and the one back to the centre, 1.7 s)
+WIPE_RATIO = 0.6
+WIPE_MIN_M = 5e-9
+WIPE_MIN_QUANTA = 5.0
 #: the rest spring the new configuration gets when the checks pass (Commissioning._rest_spring): config/sim.yaml's
 #: (half the model's pre-sliding stiffness; the observer's estimate loads the model's pre-sliding state at 30 Hz)
 REST_SPRING: dict[str, float] = {"rest_stiffness_fraction": 0.5, "rest_sync_hz": 30.0, "rest_sync_max_step_m": 5e-9}
@@ -338,7 +346,8 @@ class Commissioning:
             excitation = np.concatenate([np.zeros(exc_start), excitation])
         # the experiments' own tunings stay inside the envelope's force; the given and the new controller
         # (verification) only inside the configuration's limits
-        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith("verify") else math.inf, ladder)
+        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith(("verify", "wipe")) else math.inf,
+                       ladder)
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
@@ -385,7 +394,8 @@ class Commissioning:
         self._planned = [(name, plan[name]) for name in EXPERIMENTS]
         if self.opts.verify:
             for which in ("before", "after"):
-                self._planned += [(f"verify_{which}_{n}", 4.0) for n in VERIFY]
+                for n in VERIFY:
+                    self._planned += [(f"wipe_{which}_{n}", 1.5), (f"verify_{which}_{n}", 4.0)]
 
         # 1. sanity ----------------------------------------------------------------------------------
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
@@ -692,25 +702,47 @@ class Commissioning:
         # 6. verification -----------------------------------------------------------------------------
         if not self.opts.verify:
             return
-        old = make_controller(self.cfg)
-        new = make_controller(new_cfg)
-        for which, inner_v in (("before", old), ("after", new)):
-            for nm in VERIFY:
+        self._verify(stage, new_cfg, xc)
+
+    def _verify(self, stage: Stage, new_cfg: AppConfig, xc: float, scenarios: tuple[str, ...] = VERIFY) -> None:
+        """Step 6: each scenario with the given (``self.cfg``) and the new controller (``new_cfg``) under the same
+        conditions, and the conditions :func:`simulate_verification` (the twins, the tests) gives it on a fresh
+        stage: a run in which the controller wipes the stage's friction memory about the centre ``xc``
+        (:func:`wipe_segments`; the experiments' soft tuning cannot: its stiction length is ~0.2 mm on
+        config/sim.yaml), then a run of a freshly built one (at a loop's start a controller forgets what it
+        learned): :func:`verification_lead` (to ``xc − d`` and back, gently, 0.3 s of rest), the scenario.
+
+        Why: at a loop's start a controller sets its friction model relaxed at the measured position, while the
+        stage keeps the pre-sliding state its last move left (the previous experiment's, the previous
+        scenario's). A controller that learns from moves (``feedforward.adapt_bandwidth_hz``,
+        ``learn_moves_fraction``, on in config/sim.yaml) took that disagreement on the first move, and the
+        transients of a 10 mm/s positioning move (the approach before this change), for model error: its θ, β
+        at the scenario's start depended on what ran before, the "before" cosine on config/sim.yaml read 6.02 nm
+        where the same controller gives 2.3 nm on a fresh stage. A controller without those learners (the
+        commissioned one) was not affected, so the comparison favoured it (docs/commissioning.md, step 6)."""
+        r, S = self.res, self.env.stroke_m
+        q = _quantum_guess(stage)
+        wipe = wipe_segments(xc, S, q)
+        lead = verification_lead(xc, S)
+        for which, cfg_v in (("before", self.cfg), ("after", new_cfg)):
+            for nm in scenarios:
                 sc = _verify_scenario(nm, xc, S)
                 if sc is None:
                     r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
                     continue
-                d = approach_m(S)
-                # the verification's controllers carry the whole model: its approach keeps v_max/2
-                approach: list[SegmentSpec] = [self._move_to(xc - d, 0.5 * env.v_max_m_s, m), Dwell(0.1),
-                                               approach_move(d), Dwell(0.3)]
-                segs = [*approach, *sc.segments]
-                rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller", inner_v, segs,
-                                   {"scenario": nm, "approach_m": d}, extra_s=0.3)
+                amps = [abs(float(w.to_m) - xc) for w in wipe[:-2] if isinstance(w, Move) and w.to_m is not None]
+                self._closed(stage, f"wipe_{which}_{nm}", f"friction-memory wipe before verify_{which}_{nm}: "
+                             f"{len(amps)} moves of alternating sign, decaying amplitude", make_controller(cfg_v),
+                             list(wipe), {"amplitudes_m": amps})
+                # a controller built for this run: nothing it learned in another scenario carries over
+                rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller",
+                                   make_controller(cfg_v), [*lead, *sc.segments],
+                                   {"scenario": nm, "approach_m": approach_m(S)}, extra_s=0.3)
                 tol = max(10e-9, 2 * _quantum(rec.col("x")))
-                skip = Scenario(name="lead", segments=tuple(approach)).duration_s(0.0)
-                summ = _summary_after(rec, skip, tol)
-                r.verification.setdefault(nm, {})[which] = summ
+                # the lead's absolute moves last as long as they do from where the run started (the reference
+                # starts at the measured position)
+                skip = Scenario(name="lead", segments=lead).duration_s(float(rec.col("x_ref")[0]))
+                r.verification.setdefault(nm, {})[which] = _summary_after(rec, skip, tol)
 
     # ------------------------------------------------------------------ helpers
     def _commission_tuning(self, mass_kg: float, coulomb: bool = True,
@@ -1509,24 +1541,56 @@ def approach_m(stroke_m: float) -> float:
     return float(min(0.1 * stroke_m, 200e-6))
 
 
+#: the approach's profile: the benchmark steps' 1 mm/s, 0.05 m/s², 20 m/s³
+APPROACH_PROFILE: dict[str, float] = {"max_velocity_m_s": 1e-3, "max_acceleration_m_s2": 0.05, "max_jerk_m_s3": 20.0}
+
+
 def approach_move(by_m: float) -> Move:
-    """The approach move: gentle (the benchmark steps' 1 mm/s, 0.05 m/s², 20 m/s³), so that the controller
-    follows it closely and the plant's friction state is the one the feed-forward computes."""
-    return Move(by_m=by_m, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0)
+    """The approach move: gentle (:data:`APPROACH_PROFILE`), so that the controller follows it closely and the
+    plant's friction state is the one the feed-forward computes."""
+    return Move(by_m=by_m, **APPROACH_PROFILE)
+
+
+def verification_lead(x_c_m: float, stroke_m: float) -> tuple[SegmentSpec, ...]:
+    """What runs before each verification scenario (starting at ``x_c_m``), on the stage and in
+    :func:`simulate_verification` alike: gently (:data:`APPROACH_PROFILE`) to ``x_c − d`` and back to ``x_c``
+    (``d`` = :func:`approach_m`), then 0.3 s of rest."""
+    d = approach_m(stroke_m)
+    return (Move(to_m=x_c_m - d, **APPROACH_PROFILE), Move(to_m=x_c_m, **APPROACH_PROFILE), Dwell(0.3))
+
+
+def wipe_segments(x_c_m: float, stroke_m: float, quantum_m: float) -> tuple[SegmentSpec, ...]:
+    """The friction-memory wipe before a verification run: gentle moves (:data:`APPROACH_PROFILE`) to
+    ``x_c ± A_k`` of alternating sign, ``A_k = d·WIPE_RATIO^k`` from ``d`` (:func:`approach_m`) down to
+    ``max(WIPE_MIN_M, WIPE_MIN_QUANTA·quantum)``, then to ``x_c`` and 0.1 s of rest.
+
+    Hysteretic (pre-sliding, Maxwell-slip/GMS) friction keeps the reversal points of the travel since the last
+    saturating move; a decaying alternation wipes them out one by one, as an AC field demagnetises iron, and
+    leaves the elements nearly relaxed at ``x_c`` with a small holding force: the state of a fresh stage and the
+    one a controller's friction model assumes at its start. The first move (``d``) saturates every element, so
+    the state at the end does not depend on what ran before."""
+    a_min = max(WIPE_MIN_M, WIPE_MIN_QUANTA * quantum_m)
+    a = approach_m(stroke_m)
+    segs: list[SegmentSpec] = []
+    k = 0
+    while a > a_min:
+        segs.append(Move(to_m=x_c_m + (a if k % 2 == 0 else -a), **APPROACH_PROFILE))
+        a *= WIPE_RATIO
+        k += 1
+    return (*segs, Move(to_m=x_c_m, **APPROACH_PROFILE), Dwell(0.1))
 
 
 def simulate_verification(cfg: AppConfig, stroke_m: float, tol_m: float) -> dict[str, dict[str, Any]]:
-    """The verification scenarios on a simulated stage (``cfg`` with a ``sim:`` plant, lock-step), each from
-    rest at 0 after the same approach move as on the stage (:func:`approach_m`, in the + direction, then a
-    0.3 s dwell); the tracking summary after the approach. A fault gives an infinite RMS error."""
+    """The verification scenarios on a simulated stage (``cfg`` with a ``sim:`` plant, lock-step), each on a
+    fresh stage (relaxed friction, as the wipe leaves the real one) at 0 after the same lead as on the stage
+    (:func:`verification_lead`); the tracking summary after the lead. A fault gives an infinite RMS error."""
     out: dict[str, dict[str, Any]] = {}
     T = cfg.loop.period_s
-    d = approach_m(stroke_m)
+    lead = verification_lead(0.0, stroke_m)
     for nm in VERIFY:
         sc = _verify_scenario(nm, 0.0, stroke_m)
         if sc is None:
             continue
-        lead: tuple[SegmentSpec, ...] = (approach_move(-d), approach_move(d), Dwell(0.3))
         full = Scenario(name=nm, segments=(*lead, *sc.segments), start_m=0.0)
         dur = full.duration_s(0.0) + 0.2
         with build_stage(cfg, clock=SimClock()) as st:
