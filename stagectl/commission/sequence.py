@@ -682,6 +682,9 @@ class Commissioning:
                                                              r.plant.delay_s if r.plant is not None else None,
                                                              _cv_points(r.cv))
         m = float(self.res.discovery.get("mass_kg_used", m))
+        for key in ("discover_skipped", "discover_note"):
+            if self.res.discovery.get(key):
+                r.notes.append(f"models: {self.res.discovery[key]}")
         fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
         self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
                                       stiction=(fb, stiction_excess(self.res.model_spec, fb),
