@@ -484,16 +484,22 @@ class Commissioning:
                 r.plant = alt
         lo, hi = an.FRF_MASS_PLAUSIBLE
         pm = r.plant
+        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+        agree = False
         if not (lo * m_p <= pm.mass_kg <= hi * m_p and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
+            # the probe's best estimate (analysis.probe_replacement_mass): its joint mass + viscous fit where
+            # the directions measured one viscous force, else the probe's own mass
+            m_rep, s_rep, agree = an.probe_replacement_mass(r.sanity)
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.3g} ± {pm.mass_std_kg:.2g} kg not credible "
                                f"against the probe's {m_p:.4g} kg (stage held by its pre-sliding spring): using "
-                               "the probe's mass")
-            # the probe's standard error: half its directions' spread + 5 % (two-acceleration estimate), or
-            # the joint mass + viscous fit's (at least 5 %)
-            r.plant = dataclasses.replace(pm, mass_kg=m_p, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m_p),
-                                          mass_from="probe")
-        joint_used = r.plant.mass_from == "probe" and r.sanity.mass_from == "joint"
-        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+                               f"the probe's mass{' (mass + viscous fit)' if agree else ''}")
+            if agree:
+                r.notes.append(f"the FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg is not credible: the probe's "
+                               f"mass + viscous fit {m_rep:.4g} ± {s_rep:.2g} kg is used (its directions agree on the "
+                               f"viscous force; the two-acceleration mass {m_p:.4g} kg carries its bias)")
+            r.plant = dataclasses.replace(pm, mass_kg=m_rep, mass_std_kg=s_rep, mass_from="probe")
+        # (the friction experiments' tuning below keeps the two-acceleration mass the FRF ran with)
+        joint_used = r.plant.mass_from == "probe" and (r.sanity.mass_from == "joint" or agree)
         if r.plant.mass_from == "frf" and not an.frf_mass_consistent(pm.mass_kg, pm.mass_std_kg, m_ref, s_ref):
             # plausible, but further from the probe than both uncertainties explain (analysis.frf_mass_consistent)
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the "
