@@ -606,11 +606,13 @@ class Commissioning:
         if r.plant is not None and r.plant.delay_std_s <= 0.25 * T and r.plant.delay_s > 0.0:
             tau = r.plant.delay_s
 
-        def read_cv(pos_force: npt.NDArray[np.float64] | None = None) -> an.CvFriction:
+        def read_cv(pos_force: npt.NDArray[np.float64] | None = None,
+                    cogging: tuple[float, float] | None = None) -> an.CvFriction:
             stuck.clear()
             cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"),
                                                cv_rec.col("v_ref"), cv_rec.col("a_ref"), m, speeds=speeds,
-                                               dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force))
+                                               dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force,
+                                               cogging=cogging))
             if stuck and cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
                 cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
             return cv
@@ -678,7 +680,8 @@ class Commissioning:
         pf = k_x * (xs_cv - float(np.mean(xs_cv)))
         if cog is not None:
             pf = pf + _cogging_force(cog, xs_cv)
-        r.cv = read_cv(pf)
+        # with a cogging, each pass's window ends at equal cogging levels (analysis.cv_segments)
+        r.cv = read_cv(pf, None if cog is None else (float(cog["wavelength_m"]), float(cog.get("phase_rad", 0.0))))
         r.cv.position_force = {"slope_n_m": k_x, "cogging": None if cog is None else
                                {k: cog[k] for k in ("amplitude_n", "wavelength_m", "phase_rad")}}
 
