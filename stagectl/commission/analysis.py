@@ -277,6 +277,45 @@ def probe_reference_mass(s: SanityResult) -> tuple[float, float, bool]:
     return s.mass_kg, max(s.mass_std_kg, PROBE_MASS_MIN_REL_STD * s.mass_kg), False
 
 
+#: the joint fits' viscous coefficients of the probe's directions agree when within this many combined standard
+#: errors (:func:`probe_viscous_agrees`)
+PROBE_VISCOUS_AGREE_SIGMAS = 2.0
+
+
+def probe_viscous_agrees(s: SanityResult) -> bool:
+    """Whether the probe's joint fits measured one viscous force: every direction's fit credible
+    (:attr:`SanityResult.joint_mass_kg` finite), at least two, ``c > 0`` in each, and their ``c`` within
+    :data:`PROBE_VISCOUS_AGREE_SIGMAS` combined standard errors of each other. Two measurements of one ``c``: a
+    friction that is not linear in the speed over the probe's range (a Stribeck drop, stick-slip at the
+    start), and differently so in the two directions, makes them disagree (fresh plant k110 of
+    tests/commission/plant_kinds.py, 0.93 kg, 3.6 N s/m, vs 1.9 mm/s and a 0.21 N offset: 6.7 ± 0.7 and
+    35 ± 6 N s/m; k106: −15 and +14). Where they agree, the two-acceleration mass's bias ``c·Δv/(F2 − F1)`` is measured, even
+    under the :data:`PROBE_VISCOUS_SHARE` that the probe itself keeps (k105, 0.700 kg, 9.92 N s/m: 9.83 ± 0.27 and
+    10.32 ± 0.29 N s/m, joint mass 0.703 kg, two-acceleration 0.772)."""
+    js = s.joint
+    if len(js) < 2 or not (math.isfinite(s.joint_mass_kg) and s.joint_mass_kg > 0):
+        return False
+    cs: list[tuple[float, float]] = []
+    for j in js:
+        if j is None or not (j["viscous_n_s_m"] > 0 and math.isfinite(j["viscous_std_n_s_m"])):
+            return False
+        cs.append((j["viscous_n_s_m"], j["viscous_std_n_s_m"]))
+    return all(abs(c1 - c2) <= PROBE_VISCOUS_AGREE_SIGMAS * math.hypot(s1, s2)
+               for i, (c1, s1) in enumerate(cs) for c2, s2 in cs[i + 1:])
+
+
+def probe_replacement_mass(s: SanityResult) -> tuple[float, float, bool]:
+    """The mass [kg] and standard error [kg] that replace an FRF mass that is not credible, and whether it is
+    the joint fit's where the probe itself kept its two-acceleration mass: the joint mass + viscous fit's when
+    its directions agree on the viscous force (:func:`probe_viscous_agrees`; its standard error, at least
+    ``PROBE_MASS_MIN_REL_STD``), else the probe's own mass with half its directions' spread + 5 % (or the joint
+    fit's error where the probe took it)."""
+    if s.mass_from != "joint" and probe_viscous_agrees(s):
+        m, sd, _ = probe_reference_mass(s)
+        return m, sd, True
+    return s.mass_kg, max(s.mass_std_kg, 0.05 * s.mass_kg), False
+
+
 def frf_mass_consistent(frf_mass_kg: float, frf_std_kg: float, probe_mass_kg: float, probe_std_kg: float) -> bool:
     """Whether the FRF's mass agrees with the probe's within ``FRF_MASS_SIGMAS`` combined standard errors:
     ``|m_FRF − m_probe| ≤ z·√(σ_FRF² + σ_probe²)``. Two independent measurements of one mass: a larger gap means
@@ -524,7 +563,8 @@ CV_PAIR_TOLERANCE = 0.2
 def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
                 mass_kg: float, min_samples: int = 50, speeds: FloatArray | None = None,
                 dropped: list[CvSegment] | None = None, delay_s: float = 0.0,
-                position_force_n: FloatArray | None = None) -> list[CvSegment]:
+                position_force_n: FloatArray | None = None,
+                cogging: tuple[float, float] | None = None) -> list[CvSegment]:
     """Steady constant-velocity segments (``a_ref = 0``, ``v_ref ≠ 0``), each trimmed by 20 % at both ends;
     mean force ``ū − m·ā`` with its standard error (from the sample spread, decorrelated over 20 samples).
     With ``speeds`` [m/s] only segments whose ``|v_ref|`` is one of them (relative 1e-6): the passes, not
@@ -564,7 +604,16 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
     ``position_force_n``: the position force at ``x`` [N] (the slow passes' cogging and spring), taken off
     before the means: the + and − windows of a short fast pass do not cover the same range (52 samples at
     16 mm/s: −402…+421 µm and +404…−406 µm), and a 0.29 N cogging's means there differed by 9 mN of odd part
-    (generated plant 34: viscous +3.7 %)."""
+    (generated plant 34: viscous +3.7 %).
+
+    ``cogging``: its ``(wavelength_m, phase_rad)`` (``A·sin(2πx/λ + φ)``) when one is taken off. Each pass's
+    window is then narrowed to the longest one centred on an extremum of the cogging
+    (:func:`_cogging_symmetric_window`): the force's delay enters a pass's mean as ``dτ·(u_end − u_start)/T_window``, and the controller's
+    force follows the cogging, so a window shorter than a period whose ends sit at different cogging levels
+    reads ``dτ·v·(P(x_end) − P(x_start))/L``, a viscous force. Fresh plant k106 (0.42 N, 1.35 mm cogging over
+    ~1 mm windows, FRF delay 1.35 ± 0.23 ms for 1 ms): viscous +16 %, and −4…+20 % for τ of 1–2 ms; with
+    windows ending at equal cogging levels +5.5 % (+5…+8 %). A phase error of the fitted cogging cancels there
+    too (its residual is odd about the extremum)."""
     out: list[CvSegment] = []
     if delay_s > 0.0 and len(u) > 1:
         uu = np.asarray(u, np.float64)
@@ -585,6 +634,8 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
         j0, j1 = i0 + n // 5, i1 - n // 5
         if speeds is not None and j1 - j0 < min_samples:  # too short to have settled
             continue
+        if cogging is not None:
+            j0, j1 = _cogging_symmetric_window(x, j0, j1, *cogging)
         vel = (x[j1 - 1] - x[j0]) / (t[j1 - 1] - t[j0])
         acc = np.gradient(np.gradient(x[j0:j1], dt), dt)
         f = u[j0:j1] - mass_kg * acc
@@ -604,6 +655,38 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
         ways = {(key(sg), sg.v_m_s > 0) for sg in out}
         out = [sg for sg in out if (key(sg), sg.v_m_s <= 0) in ways]
     return out
+
+
+#: a pass's window centred on a cogging extremum is used when it keeps at least this many samples; a fraction
+#: of the window instead (20 %) kept one direction of a pair and narrowed the other, and their odd part mixed
+#: the two (generated plant 36: viscous −3.9 % against −0.9 %)
+COGGING_WINDOW_MIN_SAMPLES = 8
+
+
+def _cogging_symmetric_window(x: FloatArray, j0: int, j1: int, wavelength_m: float, phase_rad: float
+                              ) -> tuple[int, int]:
+    """The longest sub-window of ``x[j0:j1]`` (one pass, monotonic) centred on an extremum of
+    ``sin(2πx/λ + φ)`` (``2πx/λ + φ = π/2 + kπ``), whose two ends sit at the same cogging level; ``(j0, j1)``
+    unchanged when none keeps :data:`COGGING_WINDOW_MIN_SAMPLES` (:func:`cv_segments`)."""
+    if not (wavelength_m > 0.0 and math.isfinite(wavelength_m) and math.isfinite(phase_rad)) or j1 - j0 < 8:
+        return j0, j1
+    xs = x[j0:j1]
+    lo, hi = float(np.min(xs)), float(np.max(xs))
+    w = 2.0 * math.pi / wavelength_m
+    k_lo = math.floor((w * lo + phase_rad - 0.5 * math.pi) / math.pi)
+    k_hi = math.ceil((w * hi + phase_rad - 0.5 * math.pi) / math.pi)
+    best: tuple[float, float] | None = None  # (centre, half-length) [m]
+    for k in range(k_lo, k_hi + 1):
+        e = (0.5 * math.pi + k * math.pi - phase_rad) / w
+        h = min(e - lo, hi - e)
+        if h > 0.0 and (best is None or h > best[1]):
+            best = (e, h)
+    if best is None:
+        return j0, j1
+    sel = np.flatnonzero((xs >= best[0] - best[1]) & (xs <= best[0] + best[1]))
+    if sel.size < COGGING_WINDOW_MIN_SAMPLES:
+        return j0, j1
+    return j0 + int(sel[0]), j0 + int(sel[-1]) + 1
 
 
 @dataclass

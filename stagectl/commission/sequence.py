@@ -494,16 +494,22 @@ class Commissioning:
                 r.plant = alt
         lo, hi = an.FRF_MASS_PLAUSIBLE
         pm = r.plant
+        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+        agree = False
         if not (lo * m_p <= pm.mass_kg <= hi * m_p and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
+            # the probe's best estimate (analysis.probe_replacement_mass): its joint mass + viscous fit where
+            # the directions measured one viscous force, else the probe's own mass
+            m_rep, s_rep, agree = an.probe_replacement_mass(r.sanity)
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.3g} ± {pm.mass_std_kg:.2g} kg not credible "
                                f"against the probe's {m_p:.4g} kg (stage held by its pre-sliding spring): using "
-                               "the probe's mass")
-            # the probe's standard error: half its directions' spread + 5 % (two-acceleration estimate), or
-            # the joint mass + viscous fit's (at least 5 %)
-            r.plant = dataclasses.replace(pm, mass_kg=m_p, mass_std_kg=max(r.sanity.mass_std_kg, 0.05 * m_p),
-                                          mass_from="probe")
-        joint_used = r.plant.mass_from == "probe" and r.sanity.mass_from == "joint"
-        m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
+                               f"the probe's mass{' (mass + viscous fit)' if agree else ''}")
+            if agree:
+                r.notes.append(f"the FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg is not credible: the probe's "
+                               f"mass + viscous fit {m_rep:.4g} ± {s_rep:.2g} kg is used (its directions agree on the "
+                               f"viscous force; the two-acceleration mass {m_p:.4g} kg carries its bias)")
+            r.plant = dataclasses.replace(pm, mass_kg=m_rep, mass_std_kg=s_rep, mass_from="probe")
+        # (the friction experiments' tuning below keeps the two-acceleration mass the FRF ran with)
+        joint_used = r.plant.mass_from == "probe" and (r.sanity.mass_from == "joint" or agree)
         if r.plant.mass_from == "frf" and not an.frf_mass_consistent(pm.mass_kg, pm.mass_std_kg, m_ref, s_ref):
             # plausible, but further from the probe than both uncertainties explain (analysis.frf_mass_consistent)
             self.opts.progress(f"commission: FRF mass {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg differs from the "
@@ -610,11 +616,13 @@ class Commissioning:
         if r.plant is not None and r.plant.delay_std_s <= 0.25 * T and r.plant.delay_s > 0.0:
             tau = r.plant.delay_s
 
-        def read_cv(pos_force: npt.NDArray[np.float64] | None = None) -> an.CvFriction:
+        def read_cv(pos_force: npt.NDArray[np.float64] | None = None,
+                    cogging: tuple[float, float] | None = None) -> an.CvFriction:
             stuck.clear()
             cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"),
                                                cv_rec.col("v_ref"), cv_rec.col("a_ref"), m, speeds=speeds,
-                                               dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force))
+                                               dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force,
+                                               cogging=cogging))
             if stuck and cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
                 cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
             return cv
@@ -682,7 +690,8 @@ class Commissioning:
         pf = k_x * (xs_cv - float(np.mean(xs_cv)))
         if cog is not None:
             pf = pf + _cogging_force(cog, xs_cv)
-        r.cv = read_cv(pf)
+        # with a cogging, each pass's window ends at equal cogging levels (analysis.cv_segments)
+        r.cv = read_cv(pf, None if cog is None else (float(cog["wavelength_m"]), float(cog.get("phase_rad", 0.0))))
         r.cv.position_force = {"slope_n_m": k_x, "cogging": None if cog is None else
                                {k: cog[k] for k in ("amplitude_n", "wavelength_m", "phase_rad")}}
 
@@ -692,6 +701,9 @@ class Commissioning:
                                                              r.plant.delay_s if r.plant is not None else None,
                                                              _cv_points(r.cv))
         m = float(self.res.discovery.get("mass_kg_used", m))
+        for key in ("discover_skipped", "discover_note"):
+            if self.res.discovery.get(key):
+                r.notes.append(f"models: {self.res.discovery[key]}")
         fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
         self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
                                       stiction=(fb, stiction_excess(self.res.model_spec, fb),

@@ -142,3 +142,25 @@ def test_no_stribeck_drop_beyond_the_fastest_pass(seed: int) -> None:
     assert cv.coulomb_n == pytest.approx(fc, rel=0.005)
     assert cv.viscous_n_s_m == pytest.approx(fv, rel=0.03)
     assert cv.stribeck is not None and cv.stribeck["vs_m_s"] <= 15.9e-3
+
+
+def test_a_pass_window_between_equal_cogging_levels_does_not_read_a_delay_error_as_viscous() -> None:
+    """Passes of 1 mm under a 0.4 N, 1.35 mm cogging (fresh plant k106's), its force taken off: read with a
+    delay 0.35–0.5 ms off the true 1.5 periods, the controller's force, which follows the cogging, enters each
+    window's mean as ``dτ·(u_end − u_start)/T_window`` and the viscous reads ±4–6 %; with each window centred on
+    a cogging extremum (analysis.cv_segments ``cogging``) its ends sit at one level and it stays within 0.5 %."""
+    A, lam, ph = 0.4, 1.35e-3, -2.5
+    speeds = [1e-3, 4e-3, 16e-3]
+    rec = _run(speeds, half=0.5e-3, spring=0.0, cog=(A, lam, ph))
+    x = np.asarray(rec.col("x"), np.float64)
+    pos = A * np.sin(2 * math.pi * x / lam + ph)
+
+    def viscous(delay_s: float, cogging: tuple[float, float] | None) -> float:
+        segs = an.cv_segments(rec.col("t"), x, rec.col("u"), rec.col("v_ref"), rec.col("a_ref"), M,
+                              speeds=np.array(speeds), delay_s=delay_s, position_force_n=pos, cogging=cogging)
+        return an.cv_friction(segs).viscous_n_s_m
+
+    for d in (1.0e-3, 1.85e-3, 2.0e-3):
+        assert abs(viscous(d, None) / C - 1) > 0.03
+        assert viscous(d, (lam, ph)) == pytest.approx(C, rel=0.005)
+    assert viscous(1.5 * T, None) == pytest.approx(C, rel=0.005)  # aligned, either window

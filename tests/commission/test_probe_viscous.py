@@ -81,3 +81,36 @@ def test_the_frf_mass_is_judged_against_the_joint_fit() -> None:
     assert sd == pytest.approx(an.PROBE_MASS_MIN_REL_STD * ref)  # the floor: its own error is statistical only
     assert not an.frf_mass_consistent(2.257, 0.238, ref, sd)
     assert an.frf_mass_consistent(3.2, 0.1, ref, sd)
+
+
+def test_a_not_credible_frf_mass_is_replaced_by_the_joint_fit_where_its_directions_agree() -> None:
+    """Fresh plant k105 of tests/commission/plant_kinds.py (0.700 kg, 9.92 N s/m, 0.85 N Coulomb): the viscous
+    share is just under 10 %, so the probe keeps its two-acceleration mass, 10 % high; its FRF mass was not
+    credible and that mass replaced it (identified +10.2 %). Both directions' joint fits measure the same
+    viscous force, so the replacement is the joint fit's (analysis.probe_replacement_mass)."""
+    m = 0.7004
+    p = _probe(m, 9.921, 0.8513, f_lim=3.5)
+    res = an.evaluate_probe(p.dirs, p.f_lim, p.d_detect, None)
+    assert res.mass_from == "quadratic" and res.mass_kg > 1.08 * m
+    assert an.probe_viscous_agrees(res)
+    rep, sd, joint = an.probe_replacement_mass(res)
+    assert joint
+    assert rep == pytest.approx(m, rel=0.01)
+    assert sd == pytest.approx(an.PROBE_MASS_MIN_REL_STD * rep)
+
+
+def test_directions_that_disagree_on_the_viscous_force_keep_the_probe_mass() -> None:
+    """The joint fits k110 measured (0.93 kg, 3.6 N s/m, vs 1.9 mm/s, 0.21 N offset): 6.7 ± 0.65 and 35 ± 5.6 N s/m
+    read a friction that is not linear in the speed, differently each way; the probe's mass stays."""
+    fits: list[dict[str, float] | None] = [
+        {"mass_kg": 0.92055, "mass_std_kg": 0.00353, "viscous_n_s_m": 6.68559, "viscous_std_n_s_m": 0.65285,
+         "friction_n": 1.4903, "delay_samples": 1.0, "dv_m_s": 0.00864},
+        {"mass_kg": 0.79384, "mass_std_kg": 0.03791, "viscous_n_s_m": 34.99872, "viscous_std_n_s_m": 5.58083,
+         "friction_n": 1.00456, "delay_samples": 1.0, "dv_m_s": 0.00725}]
+    res = an.SanityResult(0.9917, [0.9571, 1.0263], [1.38, 1.42], mass_std_kg=0.084, quadratic_mass_kg=[0.9571, 1.0263],
+                          joint=fits, joint_mass_kg=0.8572, joint_mass_std_kg=0.063)
+    assert not an.probe_viscous_agrees(res)
+    assert an.probe_replacement_mass(res) == (0.9917, 0.084, False)
+    fits[1] = dict(fits[0] or {}, viscous_n_s_m=7.9)  # 1.2 N s/m apart, within 2 combined standard errors (1.8): agree
+    assert an.probe_viscous_agrees(res)
+    assert an.probe_replacement_mass(res)[2]
