@@ -199,7 +199,7 @@ class QFilterDob:
             st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
             if t_nom is not None and a_ref_m_s2 != 0.0 and (dt != t_nom or dt_meas_prev != t_nom):
                 # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not T
-                h = 0.5 * (dt + (dt_meas_prev if dt_meas_prev == dt_meas_prev else t_nom))
+                h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
                 st.w_n += kv * a_ref_m_s2 * (h - t_nom)
         else:
             st.w_n = st.d_hat_n + kv * v_hat_m_s
