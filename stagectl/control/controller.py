@@ -907,8 +907,11 @@ class StageController:
         ``scale`` s >= 1 is the effective sample interval over T (the loop's measure of skipped and late
         cycles). The crossover of the configured design is divided by s, so the margins it was designed with
         for T hold for a loop sampling at s·T: Kp/s², Ki/s³, Kd/s, derivative cut-off /s, Q-filter DOB
-        bandwidth /s (a Kalman DOB is left as is). s = 1 restores the configured gains. The feed-forward is
-        unchanged. Bumpless: the PID term and d̂ keep their values.
+        bandwidth /s (a Kalman DOB is left as is), and the Q-filter's per-sample step designed for s·T (its
+        ``period_s``: QFilterDob, "Irregular sampling"; with 30 % or 50 % of the slots skipped the 10 µm cosine
+        tracked 6.5/5.5× and 4.2/6.7× the clean run, seeds 1/2, against 8.0/6.9× and 6.2/8.3× with T's).
+        s = 1 restores the configured gains. The feed-forward is unchanged. Bumpless: the PID term and d̂ keep
+        their values.
         """
         s = max(1.0, float(scale))
         if s == self.timing_scale:
@@ -918,6 +921,8 @@ class StageController:
         pc, dc = self._gains(self._rest_gains)
         self.pid.retune(_scaled_pid(pc, s))
         if isinstance(self.dob, QFilterDob):
+            if self.dob.period_s is not None:  # one step of its filter per sample at the interval seen
+                self.dob.period_s = s * self.period_s
             self.dob.retune(_scaled_dob(dc, s), self.mass_kg)
 
     def shift_observer(self, delta_n: float) -> None:

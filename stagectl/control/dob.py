@@ -37,7 +37,8 @@ off with the reference's acceleration a_r (the stage follows it)::
 
     w_{k+1} += K_v,T·a_r·(h − T)          (only when dt_k or dt_{k−1} ≠ T)
 
-On time (dt = T at every step) the filter is the one above, to the bit.
+On time (dt = T at every step) the filter is the one above, to the bit. A loop slowed down to s·T
+(``StageController.set_timing_scale``) gives the observer ``period_s`` = s·T.
 
 Kalman form (``kind: kalman``), augmented state s = [x, v, τ] (m, m/s, N)::
 
