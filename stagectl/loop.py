@@ -656,7 +656,6 @@ class ControlLoop:
         # for the period after it, which the actuator applies in a slot the loop skips
         pred = controller if isinstance(controller, PredictsNextForce) else None
         sched = pred is not None and bool(getattr(actuator, "schedules_commands", False))
-        t_cyc = math.nan
         tau_slow = float(self.cfg.slow_down_time_s) if isinstance(controller, ScalesWithTiming) else 0.0
         t_ctl = self._t_step  # loop time of the last controller step or hold
         lvl_at, up = math.nan, math.inf  # slow-down level whose step-up threshold ``up`` is current
@@ -743,13 +742,6 @@ class ControlLoop:
                                 lvl = _prev_level(lvl)
                             if lvl != self.slow_down:
                                 self._set_slow_down(lvl, t)
-                        own_s = actuator.missed_sync_periods * period if sched else math.inf
-                        if pred is not None and t_prev is not None and t_prev == t_cyc and t - t_prev > own_s * (1.0 + 1e-9):
-                            # the actuator filled the slots since the last cycle's SYNC from its schedule, its own
-                            # first slot missed_sync_periods after it: the observer is told so. (The actuator's
-                            # test, not the loop's skipped count: a wake-up 0.5-1 T late skips no slot, but comes
-                            # after the own slot)
-                            pred.scheduled_slots(own_s)
                         if learner is None:
                             cmd = controller.step(dt, x, ref)
                         else:  # the learned feed-forward of a repeated motion (ilc:)
@@ -835,7 +827,6 @@ class ControlLoop:
                     self._u = 0.0
                     self._devs.quick_stop(safety.fault)
                 self._enter_fault(t)
-            t_cyc = t  # (the last cycle's loop time: its SYNC)
             # ------------------------------------------------------ statistics
             record(k, late, perf() - c0, skipped)
             k += 1

@@ -17,23 +17,17 @@ disturbed, in the same run, through two stages:
   can take back: both force periods are committed before the loop wakes up (a command written after the
   skip acts from the next SYNC on, one period of I/O delay), and a correction that late does not cancel
   the force error on the stiff pre-sliding spring (89.9 Hz, the cosine's regime; 2 T is 0.18 of its period).
-  The law already evaluates the reference at the actual time and steps its observer and integrator with the
-  measured dt. The rest of the disturbed cosine's cost above this floor is the sample the skipped slot never
-  took (the 100 Hz observer steps over 2T). The command schedule (``io.command_schedule``, on in
-  ``config/sim.yaml``; :mod:`stagectl.sim.direct`) takes most of the actuation's part back: each write also
-  carries the controller's predicted force for the period after it (feedback held, feed-forward extrapolated:
-  :func:`~stagectl.control.controller.predict_next_force`), and the actuator takes a missed SYNC's slot itself
-  1.5 T after the last one and fills the slot after it with the prediction, so a skipped slot leaves the
-  on-time force sequence with one predicted force in it. The row ``without_command_schedule`` is the same
-  disturbed run with the schedule off (the actuator holds the old force, as before). Tried and not kept
-  (without the schedule): adding the missed impulse in the next period (cosine 5.8× → 5.5× at half the
-  impulse, triangle 1.03× → 1.19×; the whole impulse made both worse: the correction acts two periods after
-  the error began, a fifth of the pre-sliding resonance's period), and stepping the skipped slot on a
-  predicted position before the real step, as a late TPDO is (cosine 5.8× → 5.0×, triangle 1.03× → 2.7×:
-  the observer is told of a force that nobody applied). With the schedule the observer is told the forces
-  that acted in the skipped interval (time-weighted) and the prediction for the next period
-  (``StageController.scheduled_slots``): cosine 3.64× → 3.00×; see docs/control.md §4.1 for the
-  predictors and observer variants tried and why the cosine stays above 2×.
+  The law already evaluates the reference at the actual time and steps its integrator with the measured dt.
+  The command schedule (``io.command_schedule``, on in ``config/sim.yaml``; :mod:`stagectl.sim.direct`) takes
+  part of the actuation's cost back: each write also carries the controller's predicted force for the period
+  after it (feedback held, feed-forward extrapolated: :func:`~stagectl.control.controller.predict_next_force`),
+  and the actuator takes a missed SYNC's slot itself 1.5 T after the last one and fills the slot after it with
+  the prediction. The row ``without_command_schedule`` is the same disturbed run with the schedule off (the
+  actuator holds the old force). The observer steps every sample with the period's coefficients, whatever the
+  interval, and is not told the forces a skipped slot really got (it takes the error for a disturbance):
+  :class:`~stagectl.control.dob.QFilterDob`, "Irregular sampling". With its coefficients following each
+  interval the encoder noise left a net force impulse at every irregular step, and the disturbed cosine cost
+  3.0× (5.8× without the schedule); now 1.5× (4.2×). docs/control.md §4.1 has the decomposition.
 """
 
 from __future__ import annotations

@@ -93,14 +93,10 @@ class HoldsOnStale(Protocol):
 @runtime_checkable
 class PredictsNextForce(Protocol):
     """A controller that predicts the force of the period after its last command (for an actuator's command
-    schedule, :meth:`ForceActuator.write_schedule`): the increment û_{k+1} − u_k [N] of its last step or hold,
-    and is told when the actuator used it."""
+    schedule, :meth:`ForceActuator.write_schedule`): the increment û_{k+1} − u_k [N] of its last step or hold.
+    (Its observer is not told when the actuator used it: it takes the force error for a disturbance.)"""
 
     def next_force_increment_n(self) -> float: ...
-
-    def scheduled_slots(self, own_slot_s: float) -> None:
-        """The next step follows slots the actuator filled from its schedule, its first own slot ``own_slot_s``
-        [s] after the controller's last step."""
 
 
 @runtime_checkable

@@ -145,3 +145,60 @@ def test_bad_dt_raises(kind, dt):
 
 def test_none_kind_builds_nothing():
     assert make_dob(DobConfig(kind="none"), M, 1e-3) is None
+
+
+def _noise_impulse(period_s: float | None, n: int = 5000) -> float:
+    """Net force impulse [N·s] of a Q-filter observer fed only encoder noise (±1 count of 1 nm, no motion, no
+    force) at intervals jittered by ±0.2 T, each estimate held for a period."""
+    import random
+
+    rng = random.Random(3)
+    dob = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=100.0, command_delay_samples=0), M, period_s)
+    dob.reset(0.0)
+    x_prev = total = 0.0
+    for _ in range(n):
+        dt = 1e-3 * (1.0 + rng.uniform(-0.2, 0.2))
+        x = 1e-9 * rng.choice((-1, 0, 1))
+        total += dob.step(dt, x, (x - x_prev) / dt, 0.0) * 1e-3
+        x_prev = x
+    return total
+
+
+def test_qfilter_noise_leaves_no_net_impulse_under_jittered_sampling():
+    """Stepped with the period's coefficients whatever the interval (``period_s``), the observer's response to the
+    encoder noise, a second difference of the position, telescopes: its net impulse stays at the size of one
+    sample's response; with α and K_v following the jittered interval each sample leaves a net impulse and the
+    sum grows (a low-frequency force noise: the pre-sliding cosine's error under jitter, bench timing)."""
+    per_sample = abs(_noise_impulse(1e-3))
+    following = abs(_noise_impulse(None))
+    # one sample's response: K_v·|Δv̂| over the filter's time constant, |Δv̂| ≤ 2 counts / 0.8 T
+    one = 2.0 * (1.0 - math.exp(-2 * math.pi * 100.0 * 1e-3)) / 1e-3 * 2.5e-6 / (2 * math.pi * 100.0)
+    assert per_sample < one
+    assert following > 3.0 * per_sample, (following, per_sample)
+
+
+@pytest.mark.parametrize("a_ref", [True, False])
+def test_qfilter_skipped_interval_under_acceleration(a_ref):
+    """A rigid mass accelerating under a constant net force, sampled every T with one interval of 2T (a skipped
+    slot): stepped with T's coefficients the observer expects the velocity change of a period; told the
+    reference's acceleration it takes off the change of the extra time and the estimate stays exact, else it
+    is off by a fraction of the net force for two steps."""
+    T = 1e-3
+    dob = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=100.0, command_delay_samples=0), M, T)
+    dob.reset(0.0)
+    tau, u = 0.3, 0.5
+    acc = (u - tau) / M
+    t = x_prev = 0.0
+    err = []
+    for k in range(300):
+        dt = 2 * T if k == 200 else T
+        t += dt
+        x = 0.5 * acc * t * t
+        d = dob.step(dt, x, (x - x_prev) / dt, u, acc if a_ref else 0.0)
+        x_prev = x
+        if k >= 150:
+            err.append(abs(d - tau))
+    if a_ref:
+        assert max(err) < 1e-9
+    else:
+        assert max(err) > 0.1 * (u - tau)

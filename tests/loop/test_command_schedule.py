@@ -4,8 +4,9 @@ predicted force instead of the held one, in simulated time.
 * PlantIO against a plain reference: the force segments a recording plant sees around a skipped slot, with and
   without the schedule (the sequence of an on-time loop with one predicted force in it, or the old force held);
 * the prediction is a pure function (feedback held, feed-forward extrapolated over one period, clamped);
-* the seed stage's 10 µm cosine under skipped slots (a JitterClock) tracks better with the schedule, and the
-  observer told the scheduled forces is part of it.
+* the seed stage's 10 µm cosine under skipped slots (a JitterClock) tracks better with the schedule, and within
+  2x of the clean run under the whole disturbance of ``stagectl bench timing`` (the observer stepped once per
+  sample with the period's coefficients, not told the scheduled forces: QFilterDob, "Irregular sampling").
 """
 
 from __future__ import annotations
@@ -152,62 +153,15 @@ def test_skipped_slots_cost_the_cosine_less_with_the_schedule(sim_cfg):
     assert sched["rms_error_nm"] < 0.75 * held["rms_error_nm"], (sched, held)
 
 
-def test_the_observer_told_the_scheduled_forces_tracks_better(sim_cfg, monkeypatch):
-    """Without scheduled_slots the observer steps over the skipped interval as if the old force had acted
-    throughout and then takes u_k for the period that got the prediction. Two draws of the disturbance (its
-    benefit varies from draw to draw: better in 9 of 10 seeds of the full bench run, docs/control.md §4)."""
-    def sum_sq():
-        return sum(run_tracking(sim_cfg, "cosine", stage_kind="plant_io", disturbed=True, seed=s)["rms_error_nm"] ** 2
-                   for s in (1, 5))
-
-    told = sum_sq()
-    monkeypatch.setattr(StageController, "scheduled_slots", lambda self, own_slot_s: None)
-    blind = sum_sq()
-    assert told < 0.8 * blind, (told, blind)
-
-
-class _LateClock:
-    """Simulated time (a SimClock) whose every ``every``-th wake-up is ``late_periods`` periods late: less than
-    a period, so the loop skips no slot, but more than half a period, so the actuator has taken its own slot
-    (missed_sync_periods 1.5 after the last SYNC) before the late SYNC arrives."""
-
-    def __new__(cls, period_s: float, late_periods: float, every: int):
-        from stagectl.clock import SimClock
-
-        class Late(SimClock):
-            def __init__(self) -> None:
-                super().__init__(0.0)
-                self.wakeups = 0
-
-            def sleep_until(self, t_s: float) -> None:
-                super().sleep_until(t_s)
-                self.wakeups += 1
-                if self.wakeups % every == 0:
-                    self.t_s += late_periods * period_s
-
-        return Late()
-
-
-def test_a_late_wake_up_that_skips_no_slot_still_tells_the_observer(sim_cfg, monkeypatch):
-    """A wake-up 0.6 T late (no slot skipped) comes after the actuator's own slot at 1.5 T: the controller is told
-    of every own slot the actuator took after a step (before: only when the loop counted a skipped slot)."""
-    from stagectl.app import build_stage
-    from stagectl.config import IoKind
-
-    told: list[float] = []
-    orig = StageController.scheduled_slots
-
-    def spy(self, own_slot_s):
-        told.append(own_slot_s)
-        orig(self, own_slot_s)
-
-    monkeypatch.setattr(StageController, "scheduled_slots", spy)
-    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, kind=IoKind.PLANT_IO))
-    assert cfg.io.command_schedule
-    with build_stage(cfg, clock=_LateClock(T, 0.6, 25)) as stage:
-        stage.load_scenario("cosine")
-        res = stage.loop.run(duration_s=0.3)
-        own = stage.plant_io.own_slots
-    assert res.fault is None
-    assert own >= 10 and len(told) == own, (own, len(told))
-    assert all(math.isclose(s, 1.5 * T) for s in told)
+@pytest.mark.parametrize(("scenario", "seed"), [("cosine", 1), ("cosine", 5), ("triangle", 1)])
+def test_skipped_slots_jitter_and_drops_track_within_2x(sim_cfg, scenario, seed):
+    """Issue 12's timing target on plant_io, in simulated time: 10 % of the wake-ups one period late (the slot
+    skipped), U(0, 0.2 T) wake-up jitter, 1 % of the samples dropped: no fault and the error RMS within 2x of the
+    clean run, the 10 µm cosine on the pre-sliding spring included (before: 3.2x and 2.5x for seeds 1 and 5, the
+    observer's coefficients following each interval and the observer told the scheduled forces)."""
+    kw = {"stage_kind": "plant_io", "duration_s": 2.2, "skip_s": 0.5}
+    clean = run_tracking(sim_cfg, scenario, disturbed=False, **kw)
+    dist = run_tracking(sim_cfg, scenario, disturbed=True, seed=seed, **kw)
+    assert clean["fault"] is None and dist["fault"] is None
+    assert dist["skipped_slots"] > 150 and dist["stale_cycles"] > 10  # the disturbance really happened
+    assert dist["rms_error_nm"] <= 2.0 * clean["rms_error_nm"], (dist, clean)

@@ -139,11 +139,12 @@ def test_late_and_dropped_tpdos_track_within_2x_without_fault(sim_cfg, scenario)
 def test_holding_the_feedback_on_every_stale_sample_misses_the_cosine_target(sim_cfg):
     """What the predicted stale steps are for: with ``stale_predict_cycles: 0`` (every stale cycle holds the
     feedback and the observer, the next sample brings an interval of 2T) the same disturbance costs the
-    pre-sliding cosine more than 2x."""
+    pre-sliding cosine more than 1.5x (1.9x; 2.9x while the observer's coefficients followed the interval,
+    before it stepped every sample with the period's: QFilterDob, "Irregular sampling")."""
     hold = dataclasses.replace(sim_cfg, controller=dataclasses.replace(sim_cfg.controller, stale_predict_cycles=0))
     clean = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=False, duration_s=2.2, skip_s=0.5)
     dist = run_tracking(hold, "cosine", stage_kind="canopen", disturbed=True, duration_s=2.2, skip_s=0.5)
-    assert dist["fault"] is None and dist["rms_error_nm"] > 2.0 * clean["rms_error_nm"], (dist, clean)
+    assert dist["fault"] is None and dist["rms_error_nm"] > 1.5 * clean["rms_error_nm"], (dist, clean)
 
 
 def test_lost_force_writes_alone_cost_the_pre_sliding_cosine(sim_cfg):
