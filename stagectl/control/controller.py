@@ -372,12 +372,14 @@ class ControllerConfig:
         1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
         "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
     rest_integral_hz: float = param(
-        0.0, unit="Hz", desc="with kind: model: at standstill, while the stage is still, an integral action on the "
-        "tracking error of gain 2*pi*this*min(theta, 1)*sum(k) (the model's pre-sliding stiffness; the error clamped "
-        "to rest_spring_range_m, the force it adds bounded by the model's Coulomb level), added to the observer's "
-        "estimate (to the PID integrator without one): a stuck stage's residual error decays at about "
-        "2*pi*this per second instead of the moving loop's K_p/sum(k) share; stopped for the standstill when the "
-        "stage slides or hunts (rest_spring_release_m, rest_spring_rearm_m; 0: off)", ge=0.0, le=50.0)
+        0.0, unit="Hz", desc="with an observer and kind: model: at standstill, once the stage is still, an "
+        "integral action on the tracking error of gain 2*pi*this*min(theta, 1)*k_t (k_t: the model's stiffness for "
+        "moving on towards the reference, sum(k) on the stiff side, ~0 where its elements slip; the error clamped to "
+        "rest_spring_range_m, the force it adds bounded by the model's Coulomb level) added to the observer's "
+        "estimate: a stage stuck off the target converges at about 2*pi*this per second instead of the moving "
+        "loop's g*K_p/sum(k); stopped for the standstill when the stage slides or hunts (rest_spring_release_m, "
+        "rest_spring_rearm_m). Meant with feedforward.rest_sync_hz, which hands the force it finds to the model "
+        "before the next move (0: off)", ge=0.0, le=50.0)
     rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
@@ -522,9 +524,10 @@ REST_GAINS_ENTER_M_S = 1e-5
 REST_GAINS_EXIT_M_S = 3e-5
 REST_GAINS_DWELL_S = 0.005
 
-#: the rest integral (``rest_integral_hz``) acts on a still stage: its speed estimate, low-passed with this time
-#: constant [s], at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S (a stage still creeping in after its move
-#: is left to the moving loop: pushing it then slid it past the target, 190 nm behind to 550 nm ahead)
+#: the rest integral (``rest_integral_hz``) acts once the stage no longer approaches the target: its speed towards
+#: it, low-passed with this time constant [s], at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S (a stage still
+#: creeping in after its move is left to the moving loop: pushing it then slid it past the target, 190 nm behind to
+#: 550 nm ahead; one creeping away, pushed by a position-dependent force such as cogging, is held back)
 REST_INTEGRAL_VELOCITY_S = 0.01
 REST_INTEGRAL_STILL_M_S = 2e-6
 REST_INTEGRAL_DWELL_S = 0.02
@@ -1213,7 +1216,7 @@ class StageController:
         """Rest integral (``rest_integral_hz`` = f_r; module docstring): one step at standstill of a still stage,
         δ = 2π·f_r·k_r·clamp(e, ±rest_spring_range_m)·dt with k_r = min(θ, 1)·Σk, the total over the standstill
         bounded by θ·F_c; δ goes into the observer's estimate (``dob.shift``: the observer takes it as applied,
-        so it does not integrate it again) or, without an observer, into the PID integrator. Returns d̂ [N]."""
+        so it does not integrate it again). Returns d̂ [N]."""
         cfg = self.cfg
         if self._ri_off:
             return d_hat
@@ -1228,9 +1231,9 @@ class StageController:
             return d_hat
         b = math.exp(-dt / REST_INTEGRAL_VELOCITY_S)
         v_lp = self._ri_v = b * self._ri_v + (1.0 - b) * v_hat
-        if abs(v_lp) > REST_INTEGRAL_STILL_M_S:
-            self._ri_still_s = 0.0  # still creeping in: the move's own settling, not a stuck stage
-            return d_hat
+        if v_lp * e_m > REST_INTEGRAL_STILL_M_S * abs(e_m):
+            self._ri_still_s = 0.0  # still creeping in towards the target: the move's own settling, not a stuck
+            return d_hat            # stage (a stage creeping away from it is what the integral is for)
         self._ri_still_s += dt
         if self._ri_still_s < REST_INTEGRAL_DWELL_S:
             return d_hat
@@ -1246,13 +1249,10 @@ class StageController:
         bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else cfg.max_force_n
         total = max(-bound, min(bound, self._ri_n + delta))
         delta = total - self._ri_n
-        if delta == 0.0:
+        dob = self.dob
+        if delta == 0.0 or dob is None:  # (no observer: excluded by _derive)
             return d_hat
         self._ri_n = total
-        dob = self.dob
-        if dob is None:
-            self.pid.state.i_n += delta
-            return d_hat
         dob.shift(delta)
         self.state.u_obs_prev_n += delta
         self._u_obs_next += delta
@@ -1413,7 +1413,7 @@ class StageController:
         self._d_adapt = ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
-        self._d_rest_int = cfg.rest_integral_hz > 0.0 and model_ff and self._k_ps > 0.0
+        self._d_rest_int = cfg.rest_integral_hz > 0.0 and dob is not None and model_ff and self._k_ps > 0.0
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
         self._d_rest_gains = isinstance(dob, QFilterDob) and (cfg.rest_kd_fraction != 1.0
                                                               or cfg.rest_dob_bandwidth_fraction != 1.0)
