@@ -11,9 +11,9 @@ Inputs: the application config (``stagectl.config.load_app_config``: ``loop.peri
 With a Q-filter observer and a known pre-sliding stiffness the configured *rest* loop (the PID's integrator
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
 ``rest_stiffness_fraction``, and the rest gains ``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``,
-``rest_spring_section_count``) is analysed too, on the stage stuck in pre-sliding and on the free
-mass (``configured.rest`` in the JSON), and what it relies on is stated when it is below the floor. The spring
-follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
+``rest_spring_section_count``, the rest integral of ``rest_integral_hz``) is analysed too, on the stage stuck in
+pre-sliding and on the free mass (``configured.rest`` in the JSON), and what it relies on is stated when it is
+below the floor. The spring follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
 the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
 is on).
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
@@ -267,18 +267,22 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     k_model = getattr(model_fr, "stiffness_n_m", None)
     spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
     kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
+    # the rest integral (controller.rest_integral_hz): its gain on the stiff side, 2π·f_r·min(θ, 1)·Σk
+    kr = (2.0 * math.pi * ctl.rest_integral_hz * k_model
+          if ctl.feedforward.kind == "model" and isinstance(k_model, float) else 0.0)
     held = bool(ctl.hold_integrator_at_rest)
     ffc = ctl.feedforward
     learns = ffc.adapt_bandwidth_hz > 0.0 or ffc.learn_moves_fraction > 0.0
     lo = 1.0 - ffc.adapt_max_change_fraction if learns else 1.0
     hi = 1.0  # the spring's θ is capped at 1 (above it θ still scales the feed-forward, not the spring)
-    thetas = [1.0] if not spring or lo == hi else [lo + (hi - lo) * i / (THETA_POINTS - 1)
-                                                    for i in range(THETA_POINTS)]
+    thetas = [1.0] if not (spring or kr) or lo == hi else [lo + (hi - lo) * i / (THETA_POINTS - 1)
+                                                           for i in range(THETA_POINTS)]
     per: list[tuple[float, list[Any]]] = []
     for th in thetas:
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
                                             k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
-                                            integrator_held=held, **_rest_gains(ctl))))
+                                            integrator_held=held, rest_integral_n_m_s=th * kr,
+                                            **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
         i, w = design.worst_over([loops[j].summary() for _, loops in per])
@@ -295,8 +299,13 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
                      f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across +-{ctl.rest_spring_rearm_m * 1e9:.0f}"
                      f" nm twice, and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
                      if spring else ("with the integrator held the rest loop is PD + observer only" if held
-                                     else "the rest loop is the full PID + observer")))
+                                     else "the rest loop is the full PID + observer"))
+                  + (f"; the rest integral stops for the standstill when |x - x_ref| exceeds "
+                     f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across "
+                     f"+-{ctl.rest_spring_rearm_m * 1e9:.0f} nm twice, and adds at most the model's Coulomb level"
+                     if kr else ""))
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
+            "rest_integral_n_m_s": kr,
             "mass_kg": m, "observer_mass_kg": m_dob, "integrator_held": held,
             "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
             "theta_range": [thetas[0], thetas[-1]], "theta_sweep": sweep, "stuck_unstable_at_theta": unstable_at,

@@ -137,6 +137,13 @@ WIPE_MIN_QUANTA = 5.0
 REST_SPRING: dict[str, float] = {"rest_stiffness_fraction": 0.5, "rest_sync_hz": 30.0, "rest_sync_max_step_m": 5e-9}
 #: ... and keeps the twin's cosine and triangle RMS within this factor of the design without it
 REST_MAX_RMS_RATIO = 1.25
+#: the rest integral the new configuration gets when the rest spring is off and the twin checks pass
+#: (Commissioning._rest_integral; ``controller.rest_integral_hz``, with the observer's estimate handed to the model's
+#: state at standstill as with the spring)
+REST_INTEGRAL: dict[str, float] = {"rest_integral_hz": 3.0, "rest_sync_hz": 30.0, "rest_sync_max_step_m": 5e-9}
+#: ... and the most it may cost the stuck rest loop's margins (below the floor, or below what the loop has without
+#: it, whichever is lower)
+REST_INTEGRAL_MAX_COST = (5.0, 0.5)  # [deg], [dB]
 #: the rest-loop gains tried with the rest spring (:func:`choose_rest_gains`): K_d's fraction at rest, the
 #: observer's bandwidth fraction at rest, the spring's low-pass sections (config/sim.yaml has 0.3, 0.75, 2)
 REST_GAIN_GRID: dict[str, tuple[float, ...]] = {"rest_kd_fraction": (0.1, 0.3, 0.5),
@@ -981,6 +988,59 @@ class Commissioning:
         self.opts.progress(f"commission: rest spring enabled ({best['reason']})")
         return best
 
+    def _rest_integral(self, entry: dict[str, Any], mass_kg: float, nd: int,
+                       on_twin: Callable[..., dict[str, Any]], quantum_m: float) -> dict[str, Any]:
+        """The rest integral (``controller.rest_integral_hz`` = ``REST_INTEGRAL``, with the rest synchronisation) for
+        a design without the rest spring: at standstill the stage is stuck on its pre-sliding stiffness Σk (1e5–1e7
+        N/m against K_p of 1e3–1e5 N/m), where the observer alone takes an error away at g·K_p/Σk (≈ 0.5 s⁻¹ on
+        the stages the spring failed on: steps stopped 50–600 nm off stayed there through the hold). Enabled when
+
+        * its cost to the stuck rest loop's margins (:func:`stagectl.control.design.analyse_rest`, K_r = 2π·f_r·Σk)
+          stays within ``REST_INTEGRAL_MAX_COST`` of the lower of the floor and the loop's margins without it (it
+          acts at a few Hz, the stuck stage's resonance lies at 100–400 Hz: it costs 1–5°), and
+        * on the mismatched twin more 10 µm steps settle than without it, and on both twins the cosine and triangle
+          RMS stay within ``REST_MAX_RMS_RATIO``× + ``REST_FLOOR_SLACK_QUANTA`` sensor quanta of without (the
+          rest spring's test)."""
+        from stagectl.control import design
+
+        out: dict[str, Any] = {"enabled": False, **REST_INTEGRAL}
+        rest = entry.get("rest") or {}
+        if entry["dob_kind"] != "qfilter":
+            return {**out, "reason": "no Q-filter observer"}
+        if rest.get("enabled"):
+            return {**out, "reason": "the rest spring is on (the observer integrates its force)"}
+        k, c = rest.get("stiffness_n_m"), rest.get("damping_n_s_m")
+        if not isinstance(k, float) or not isinstance(c, float) or k <= 0.0:
+            return {**out, "reason": "the model has no pre-sliding stiffness"}
+        f_r = float(REST_INTEGRAL["rest_integral_hz"])
+        args = (mass_kg, self.T, PidConfig(**entry["pid"]), nd, float(entry["dob_bandwidth_hz"]), nd, k, c, 0.0)
+        without = design.analyse_rest(*args)[0].summary()
+        with_ri = design.analyse_rest(*args, rest_integral_n_m_s=2.0 * math.pi * f_r * k)[0].summary()
+        out["loops"] = {"rest/stuck": with_ri, "rest/stuck without": without}
+        pm_min = min(MIN_PHASE_MARGIN_DEG, float(without["phase_margin_deg"])) - REST_INTEGRAL_MAX_COST[0]
+        gm_min = min(MIN_GAIN_MARGIN_DB, float(without["gain_margin_db"])) - REST_INTEGRAL_MAX_COST[1]
+        if not (float(with_ri["phase_margin_deg"]) >= pm_min and float(with_ri["gain_margin_db"]) >= gm_min):
+            return {**out, "reason": f"it costs the stuck rest loop more than {REST_INTEGRAL_MAX_COST[0]:g} deg / "
+                                     f"{REST_INTEGRAL_MAX_COST[1]:g} dB"}
+        base = entry.get("twin") or on_twin(entry)
+        base_m = (rest.get("matched_twin") or {}).get("without") or on_twin(entry, "matched.yaml")
+        trial = {**entry, "rest_integral": {**out, "enabled": True}}
+        tw, tm = on_twin(trial), on_twin(trial, "matched.yaml")
+        out.update(twin=tw, matched_twin={"without": base_m, "with": tm})
+        n_base = sum(int(v["moves_settled"]) for v in base.values())
+        n_ri = sum(int(v["moves_settled"]) for v in tw.values())
+        slack = REST_FLOOR_SLACK_QUANTA * quantum_m
+        worse = [f"{nm} ({lab})" for lab, b, w in (("twin", base, tw), ("matched twin", base_m, tm))
+                 for nm in ("cosine", "triangle") if nm in b and not
+                 (float(w[nm]["rms_error_m"]) <= REST_MAX_RMS_RATIO * float(b[nm]["rms_error_m"]) + slack)]
+        out["reason"] = (f"on the twin: settled moves {n_ri} (without: {n_base})"
+                         + (f"; {', '.join(worse)} RMS more than {REST_MAX_RMS_RATIO:g}x + {slack * 1e9:.3g} nm"
+                            if worse else ""))
+        if n_ri > n_base and not worse:
+            out["enabled"] = True
+            self.opts.progress(f"commission: rest integral enabled ({out['reason']})")
+        return out
+
     def _ramp_budget(self, tuning: ControllerConfig, mass_kg: float, ff_flip: float) -> RampBudget:
         """The passes' error budget (:func:`pass_budget`) for the friction experiments' ``tuning``."""
         r = self.res
@@ -1085,6 +1145,7 @@ class Commissioning:
                 if decision["decision"] != "best on the twin":
                     self.res.notes.append(f"gains: {decision['decision']}")
             best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin, quantum)
+            best[1]["rest_integral"] = self._rest_integral(best[1], mass_kg, nd, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
                            f"chosen {best[1]['crossover_target_hz']:.3g} Hz, DOB {best[1]['dob_kind']} "
                            f"{best[1]['dob_bandwidth_hz']:.3g} Hz")
@@ -1115,6 +1176,11 @@ def controller_mapping(entry: dict[str, Any], mass_kg: float, nd: int, period_s:
                 out[key] = int(rest[key]) if key == "rest_spring_section_count" else float(rest[key])
         out["feedforward"].update(rest_sync_hz=float(rest["rest_sync_hz"]),
                                   rest_sync_max_step_m=float(rest["rest_sync_max_step_m"]))
+    ri = entry.get("rest_integral") or {}
+    if ri.get("enabled") and not rest.get("enabled"):  # checked by Commissioning._rest_integral
+        out["rest_integral_hz"] = float(ri["rest_integral_hz"])
+        out["feedforward"].update(rest_sync_hz=float(ri["rest_sync_hz"]),
+                                  rest_sync_max_step_m=float(ri["rest_sync_max_step_m"]))
     return out
 
 

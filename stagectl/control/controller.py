@@ -371,6 +371,15 @@ class ControllerConfig:
     rest_spring_section_count: int = param(
         1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
         "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
+    rest_integral_hz: float = param(
+        0.0, unit="Hz", desc="with an observer and kind: model: at standstill, once the stage is still, an "
+        "integral action on the tracking error of gain 2*pi*this*min(theta, 1)*k_t (k_t: the model's stiffness for "
+        "moving on towards the reference, sum(k) on the stiff side, ~0 where its elements slip; the error clamped to "
+        "rest_spring_range_m, the force it adds bounded by the model's Coulomb level) added to the observer's "
+        "estimate: a stage stuck off the target converges at about 2*pi*this per second instead of the moving "
+        "loop's g*K_p/sum(k); stopped for the standstill when the stage slides or hunts (rest_spring_release_m, "
+        "rest_spring_rearm_m). Meant with feedforward.rest_sync_hz, which hands the force it finds to the model "
+        "before the next move (0: off)", ge=0.0, le=50.0)
     rest_spring_max_release_count: int = param(
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
@@ -514,6 +523,16 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
 REST_GAINS_ENTER_M_S = 1e-5
 REST_GAINS_EXIT_M_S = 3e-5
 REST_GAINS_DWELL_S = 0.005
+
+#: the rest integral (``rest_integral_hz``) acts once the stage no longer approaches the target: its speed towards
+#: it, low-passed with this time constant [s], at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S (a stage still
+#: creeping in after its move is left to the moving loop: pushing it then slid it past the target, 190 nm behind to
+#: 550 nm ahead; one creeping away, pushed by a position-dependent force such as cogging, is held back)
+REST_INTEGRAL_VELOCITY_S = 0.01
+REST_INTEGRAL_STILL_M_S = 2e-6
+REST_INTEGRAL_DWELL_S = 0.02
+#: ... and only outside this fraction of the in-position window (``settle.tolerance_m``)
+REST_INTEGRAL_DEADBAND = 0.5
 
 #: learning from earlier moves: weight of a move's normal equations per later move (memory ~1/(1 − 0.9) = 10
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
@@ -798,6 +817,16 @@ class StageController:
         self._ahead_ratio = 1.0  # the second's gain factor (planned / measured travel of the first, bounded)
         self._u_k_base = 0.0  # the first's force, held under the second [N]
         self._reset_rest_spring()
+        self._reset_rest_integral()
+
+    def _reset_rest_integral(self) -> None:
+        """The rest integral as at the start of a standstill: nothing added, not stopped, stillness not timed."""
+        self._ri_n = 0.0  # force the rest integral has added in this standstill [N]
+        self._ri_still_s = 0.0  # time at rest with the low-passed speed <= REST_INTEGRAL_STILL_M_S [s]
+        self._ri_v = 0.0  # the speed estimate low-passed over REST_INTEGRAL_VELOCITY_S [m/s]
+        self._ri_off = False  # stopped for this standstill (the stage slid or hunted)
+        self._ri_side = 0  # side of x_r − x beyond rest_spring_rearm_m (+1/−1; 0: not left it yet)
+        self._ri_swings = 0  # sign changes of x_r − x across that band in this standstill
 
     def _reset_rest_spring(self) -> None:
         """The rest spring and its guard as at start (armed, no force, no swings or releases counted; no
@@ -852,6 +881,7 @@ class StageController:
             self._u_k = self._u_k_base = 0.0
             self._ahead_pass = 0
             self._sm.stiff = False
+        self._reset_rest_integral()  # (what it added stays in the observer / integrator, as any estimate)
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
@@ -1182,6 +1212,55 @@ class StageController:
         dob.shift(delta)
         return new, d_hat + delta
 
+    def _rest_integral(self, dt: float, e_m: float, v_hat: float, d_hat: float) -> float:
+        """Rest integral (``rest_integral_hz`` = f_r; module docstring): one step at standstill of a still stage,
+        δ = 2π·f_r·k_r·clamp(e, ±rest_spring_range_m)·dt with k_r = min(θ, 1)·Σk, the total over the standstill
+        bounded by θ·F_c; δ goes into the observer's estimate (``dob.shift``: the observer takes it as applied,
+        so it does not integrate it again). Returns d̂ [N]."""
+        cfg = self.cfg
+        if self._ri_off:
+            return d_hat
+        band = cfg.rest_spring_rearm_m
+        if abs(e_m) > band:
+            side = 1 if e_m > 0.0 else -1
+            if self._ri_side != 0 and side != self._ri_side:
+                self._ri_swings += 1
+            self._ri_side = side
+        if abs(e_m) > cfg.rest_spring_release_m or self._ri_swings >= 2:
+            self._ri_off = True  # the stage slides or hunts: it is not held stuck (as the rest spring's guard)
+            return d_hat
+        b = math.exp(-dt / REST_INTEGRAL_VELOCITY_S)
+        v_lp = self._ri_v = b * self._ri_v + (1.0 - b) * v_hat
+        if v_lp * e_m > REST_INTEGRAL_STILL_M_S * abs(e_m):
+            self._ri_still_s = 0.0  # still creeping in towards the target: the move's own settling, not a stuck
+            return d_hat            # stage (a stage creeping away from it is what the integral is for)
+        self._ri_still_s += dt
+        if self._ri_still_s < REST_INTEGRAL_DWELL_S or abs(e_m) <= REST_INTEGRAL_DEADBAND * cfg.settle.tolerance_m:
+            # inside half the in-position window there is nothing to finish: pulling a stage back by a few nm
+            # there leaves its friction at a small reversal the model does not know, which the next start pays
+            # (a cosine from rest after 6 nm taken back: 7.4 -> 11.8 nm RMS)
+            return d_hat
+        r = cfg.rest_spring_range_m
+        ff = self.ff
+        if not isinstance(ff, FrictionFeedforward):  # (excluded by _derive)
+            return d_hat
+        # the model's stiffness for moving the stage on towards the reference from the state it holds: Σk on the
+        # stiff side (the stage stopped ahead: its elements unload), ~0 on the soft side (behind: they already slip,
+        # and a push breaks the stage away and slides it past the target)
+        k_r = min(self.ff_scale, 1.0) * max(0.0, ff.tangent_n_m(1 if e_m > 0.0 else -1))
+        delta = 2.0 * math.pi * cfg.rest_integral_hz * k_r * max(-r, min(r, e_m)) * dt
+        bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else cfg.max_force_n
+        total = max(-bound, min(bound, self._ri_n + delta))
+        delta = total - self._ri_n
+        dob = self.dob
+        if delta == 0.0 or dob is None:  # (no observer: excluded by _derive)
+            return d_hat
+        self._ri_n = total
+        dob.shift(delta)
+        self.state.u_obs_prev_n += delta
+        self._u_obs_next += delta
+        return d_hat + delta
+
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
                      dob: QFilterDob | KalmanDob) -> float:
         """Rest spring (module docstring): at standstill d̂ := d̂ − s, s = LPF_g(k_v·clamp(x − x_r)); at the
@@ -1330,6 +1409,7 @@ class StageController:
         self._d_adapt = ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
+        self._d_rest_int = cfg.rest_integral_hz > 0.0 and dob is not None and model_ff and self._k_ps > 0.0
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
         self._d_rest_gains = isinstance(dob, QFilterDob) and (cfg.rest_kd_fraction != 1.0
                                                               or cfg.rest_dob_bandwidth_fraction != 1.0)
@@ -1482,6 +1562,11 @@ class StageController:
             d_hat += self._u_k
             self._u_k = 0.0
             self._ahead_pass = 0
+        if self._d_rest_int:
+            if at_rest and not settling and not ilc:
+                d_hat = self._rest_integral(dt, x_r - x_meas_m, v_hat, d_hat)
+            elif self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings:
+                self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold

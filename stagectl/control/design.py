@@ -320,7 +320,8 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
                  dob_command_delay_samples: int, stiffness_n_m: float, damping_n_s_m: float,
                  rest_spring_n_m: float, velocity_cutoff_hz: float | None = None, *,
                  dob_mass_kg: float | None = None, integrator_held: bool = True, kd_fraction: float = 1.0,
-                 dob_bandwidth_fraction: float = 1.0, spring_sections: int = 1) -> list[LoopAnalysis]:
+                 dob_bandwidth_fraction: float = 1.0, spring_sections: int = 1,
+                 rest_integral_n_m_s: float = 0.0) -> list[LoopAnalysis]:
     """Margins of the *rest* loop (:mod:`stagectl.control.controller`, "Rest spring"): PD (PID with its
     integrator held at rest, ``integrator_held``; False: the full PID, as a controller with
     ``hold_integrator_at_rest: false`` runs) + Q-filter DOB with nominal mass ``dob_mass_kg`` (None: the plant's
@@ -338,6 +339,11 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
 
     The spring term enters the command like the PID's, and the residual-form observer does not see it (its input
     includes it), so L = P·(C_PD + C_s + H_y)/(1 − H_u).
+
+    The rest integral (``controller.rest_integral_hz`` = f_r; K_r = ``rest_integral_n_m_s`` = 2π·f_r·Σk, its gain on
+    the stiff side, the largest) moves the observer's estimate by K_r·e·T each period (``dob.shift``: the observer
+    takes the force as applied and does not integrate it again), i.e. a term C_I = K_r·T·z/(z − 1) outside the
+    observer's loop: L = P·(C_PD + C_s + H_y)/(1 − H_u) + P·C_I.
     """
     import control
 
@@ -355,8 +361,14 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     if delay_samples:
         stuck = stuck * _zinv(period_s, delay_samples)
     free = plant_tf(mass_kg, period_s, delay_samples)
-    return [analyse("rest/stuck", dob_loop(stuck, C, Hu, Hy, period_s), period_s, 2000),
-            analyse("rest/free", dob_loop(free, C, Hu, Hy, period_s), period_s, 2000)]
+    def loop(P: Any) -> Any:
+        L = dob_loop(P, C, Hu, Hy, period_s)
+        if rest_integral_n_m_s > 0.0:
+            z = control.tf([1.0, 0.0], [1.0], period_s)
+            L = L + control.ss(P) * control.ss(rest_integral_n_m_s * period_s * z / (z - 1))
+        return L
+
+    return [analyse("rest/stuck", loop(stuck), period_s, 2000), analyse("rest/free", loop(free), period_s, 2000)]
 
 
 def worst_over(summaries: list[dict[str, Any]]) -> tuple[int, dict[str, Any]]:
