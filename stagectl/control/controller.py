@@ -1258,7 +1258,6 @@ class StageController:
         self._ri_n = total
         dob.shift(delta)
         self.state.u_obs_prev_n += delta
-        self._u_obs_next += delta
         return d_hat + delta
 
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
