@@ -680,7 +680,8 @@ class Commissioning:
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
                                                              r.cv.stribeck if r.cv is not None else None,
                                                              r.plant.delay_s if r.plant is not None else None,
-                                                             _cv_points(r.cv))
+                                                             _cv_points(r.cv),
+                                                             r.cv.segments if r.cv is not None else None)
         m = float(self.res.discovery.get("mass_kg_used", m))
         fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
         self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
