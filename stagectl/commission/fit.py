@@ -22,7 +22,9 @@ model file's content (``docs/commissioning.md`` §4).
   cogging by :func:`cogging_evidence` on the slow passes, confirmed on the constant-velocity passes
   (:func:`cogging_confirmation`: a second experiment its period and phase were not fitted on), pre-sliding
   by the ratio of a rigid friction's residual to the Maxwell-slip regression's (:func:`fit_presliding`,
-  ``PRESLIDING_EVIDENCE_RATIO``);
+  ``PRESLIDING_EVIDENCE_RATIO``), the offset by the constant-velocity passes' even part, confirmed by the slow
+  passes (:func:`stagectl.commission.analysis.offset_evidence`; left to discover where it named a spring or an
+  asymmetry, which contain one);
   discover's verdict is reported beside (``discovery.evidence``);
 * pre-sliding (when named): the GMS elements are refitted on the reversals, the pre-sliding
   loops and the constant-velocity passes (their reversals) by a Maxwell-slip regression
