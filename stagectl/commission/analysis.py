@@ -757,14 +757,14 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
       ``k·(x − x0)`` also has an even part at the passes' centre, but it changes along the stroke).
 
     ``F_0 = ē``. ``decided``: the passes settle the question, present (all three hold) or absent (not
-    significant: the passes measure the even part to a fraction of a mN); an even part that follows the friction
-    level, is not confirmed along the stroke or changes along it (or no slow passes, ``slow_even_n`` None) is
-    left to ``discover``'s asymmetry/spring/offset. Returns the decision (``present``), ``force_n``, its standard error, ``t`` and the quantile needed (``ratio`` = t over it,
-    confidence ``high`` at twice the quantile), the even and odd parts, both fits' residual sums of squares,
-    and the reason when absent."""
+    significant: the passes measure the even part to a fraction of a mN); an even part that follows the
+    friction level, is not confirmed along the stroke or changes along it (or no slow passes, ``slow_even_n``
+    None) is left to ``discover``'s asymmetry/spring/offset. Returns the decision (``present``), ``force_n``,
+    its standard error, ``t`` and the quantile needed (``ratio`` = t over it, confidence ``high`` at twice the
+    quantile), the even and odd parts, both fits' residual sums of squares, and the reason when absent."""
     from scipy import stats
 
-    vk, fo, fe = odd_points(segs)
+    _, fo, fe = odd_points(segs)
     n = int(fe.size)
     out: dict[str, Any] = {"present": False, "decided": False, "confidence": "none", "ratio": 0.0, "pairs": n,
                            "even_n": fe.tolist(), "odd_n": fo.tolist(), "slow_even_n": slow_even_n,
@@ -781,13 +781,15 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
     out.update(force_n=f0, std_n=se, t=t, t_needed=t_need, ratio=t / t_need, rss_constant_n2=rss_c,
                rss_proportional_n2=rss_p, asymmetry_ratio=r_prop)
     if t < t_need:
-        return {**out, "decided": True, "reason": f"even part {f0:+.3g} N not significant (t = {t:.3g} < {t_need:.3g})"}
+        return {**out, "decided": True,
+                "reason": f"even part {f0:+.3g} N not significant (t = {t:.3g} < {t_need:.3g})"}
     if rss_p <= rss_c:
         return {**out, "reason": f"the even part follows the friction level (an asymmetry r = {r_prop:+.3g}) at "
                                  "least as well as a constant"}
     if slow_even_n is None:
         return {**out, "reason": "no slow passes to confirm it along the stroke"}
-    agree = slow_even_n * f0 > 0 and max(abs(slow_even_n), abs(f0)) <= OFFSET_AGREEMENT * min(abs(slow_even_n), abs(f0))
+    lo, hi = sorted((abs(slow_even_n), abs(f0)))
+    agree = slow_even_n * f0 > 0 and hi <= OFFSET_AGREEMENT * lo
     if not agree:
         return {**out, "reason": f"the slow passes' even part {slow_even_n:+.3g} N does not confirm {f0:+.3g} N"}
     if abs(slope_n_m) * span_m > OFFSET_SLOPE_SHARE * abs(f0):

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -40,7 +42,7 @@ def _cog(x: np.ndarray) -> np.ndarray:
     return np.asarray(COG["amplitude_n"] * np.sin(2 * np.pi * x / COG["wavelength_m"] + COG["phase_rad"]))
 
 
-def _evidence(off: float) -> dict[str, object]:
+def _evidence(off: float) -> dict[str, Any]:
     """The passes and the slow passes of a gen-61-like stage with offset ``off`` [N], read as the
     commissioning reads them (the slow passes' cogging taken off both)."""
     t, x, u, v_ref, a_ref = _cv_plant_record(M, FC, FS, VS, FV, COG["amplitude_n"], COG["wavelength_m"], off,
@@ -64,14 +66,14 @@ def test_a_small_offset_beside_a_cogging_is_named() -> None:
 def test_no_offset_is_not_named() -> None:
     ev = _evidence(0.0)
     assert not ev["present"] and ev["decided"], ev  # decided: discover's offset, if any, is dropped
-    assert "not significant" in str(ev["reason"])
-    assert abs(float(ev["force_n"])) < 2e-3  # type: ignore[arg-type]
+    assert "not significant" in ev["reason"]
+    assert abs(ev["force_n"]) < 2e-3
 
 
-def _segments(odd: object, even: object) -> list[an.CvSegment]:
+def _segments(odd: Callable[[float], float], even: Callable[[float], float]) -> list[an.CvSegment]:
     """Pass means ``F± = ±odd(v) + even(v)`` at the designed speeds, with 0.2 mN of scatter."""
     rng = np.random.default_rng(1)
-    return [an.CvSegment(s * v, s * odd(v) + even(v) + 2e-4 * float(rng.standard_normal()), 1e-4, 500)  # type: ignore[operator]
+    return [an.CvSegment(s * v, s * odd(v) + even(v) + 2e-4 * float(rng.standard_normal()), 1e-4, 500)
             for v in SPEEDS.tolist() for s in (1, -1)]
 
 
@@ -82,7 +84,7 @@ def test_an_asymmetry_is_left_to_discover() -> None:
     ev = an.offset_evidence(_segments(lambda v: fc + fv * v, lambda v: r * (fc + fv * v)), r * fc, 0.0, 2e-3)
     assert not ev["present"] and not ev["decided"], ev
     assert ev["asymmetry_ratio"] == pytest.approx(r, rel=0.02)
-    assert "friction level" in str(ev["reason"])
+    assert "friction level" in ev["reason"]
 
 
 def test_a_spring_is_not_named_an_offset() -> None:
@@ -95,5 +97,5 @@ def test_a_spring_is_not_named_an_offset() -> None:
     assert lv is not None and lv[1] == pytest.approx(k, rel=0.05)
     ev = an.offset_evidence(segs, *lv)
     assert not ev["present"] and not ev["decided"], ev
-    assert "position-dependent" in str(ev["reason"])
-    assert math.isclose(float(ev["force_n"]), -k * x0, rel_tol=0.02)  # type: ignore[arg-type]
+    assert "position-dependent" in ev["reason"]
+    assert math.isclose(ev["force_n"], -k * x0, rel_tol=0.02)
