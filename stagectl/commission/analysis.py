@@ -750,7 +750,12 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
       own sample errors are far smaller and would count that residue as signal);
     * **speed-independent**: a constant fits the even parts better than a force proportional to the friction
       level, ``e_i = r·o_i`` with ``o_i = (F₊ − F₋)/2`` (a Coulomb/viscous asymmetry ``F·(1 + r·sgn F)``,
-      whose even part grows with the friction as an offset's does not; docs/discovery.md §1);
+      whose even part grows with the friction as an offset's does not; docs/discovery.md §1). The pairs'
+      friction levels differ by the viscous force and the Stribeck drop; where they hardly differ, both fit
+      alike and the simpler effect, the offset, is named (docs/discovery.md §2). The joint fit
+      ``e_i = F_0 + r·o_i`` gives the asymmetry ratio the passes allow, ``r̂ ± t_{(1+OFFSET_CONFIDENCE)/2, n−2}·σ_r``
+      (``asymmetry_ratio``, ``asymmetry_std``, ``joint_t_needed``), against which a discovered asymmetry is
+      checked (:func:`stagectl.commission.fit.fit_models`);
     * **position-independent**: the slow passes over the stroke (another experiment, other positions) measure
       the same even part, ``slow_even_n`` (same sign, within a factor ``OFFSET_AGREEMENT``), and their slope
       changes the force along their travel by at most ``OFFSET_SLOPE_SHARE``·|F_0| (a spring
@@ -761,7 +766,8 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
     friction level, is not confirmed along the stroke or changes along it (or no slow passes, ``slow_even_n``
     None) is left to ``discover``'s asymmetry/spring/offset. Returns the decision (``present``), ``force_n``,
     its standard error, ``t`` and the quantile needed (``ratio`` = t over it, confidence ``high`` at twice the
-    quantile), the even and odd parts, both fits' residual sums of squares, and the reason when absent."""
+    quantile), the even and odd parts, both one-parameter fits' residual sums of squares, the joint fit's
+    constant and ratio with their t, and the reason when absent."""
     from scipy import stats
 
     _, fo, fe = odd_points(segs)
@@ -775,11 +781,21 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
     se = float(np.std(fe, ddof=1)) / math.sqrt(n)
     t = abs(f0) / max(se, 1e-300)
     t_need = float(stats.t.ppf(0.5 * (1.0 + OFFSET_CONFIDENCE), n - 1))
+    # the constant and the asymmetry ratio jointly, with their standard errors from the residual
+    A = np.column_stack([np.ones(n), fo])
+    th, *_ = np.linalg.lstsq(A, fe, rcond=None)
+    res = fe - A @ th
+    s2 = float(res @ res) / (n - 2) if n > 2 else math.inf
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0, None))
+    t_j = [abs(float(th[i])) / max(float(sd[i]), 1e-300) for i in (0, 1)]
+    t_need_j = float(stats.t.ppf(0.5 * (1.0 + OFFSET_CONFIDENCE), max(n - 2, 1)))
     r_prop = float(fo @ fe / max(float(fo @ fo), 1e-300))
     rss_c = float(np.sum((fe - f0) ** 2))
     rss_p = float(np.sum((fe - r_prop * fo) ** 2))
     out.update(force_n=f0, std_n=se, t=t, t_needed=t_need, ratio=t / t_need, rss_constant_n2=rss_c,
-               rss_proportional_n2=rss_p, asymmetry_ratio=r_prop)
+               rss_proportional_n2=rss_p, proportional_ratio=r_prop, joint_force_n=float(th[0]), joint_t=t_j[0],
+               asymmetry_ratio=float(th[1]), asymmetry_std=float(sd[1]), asymmetry_t=t_j[1],
+               joint_t_needed=t_need_j)
     if t < t_need:
         return {**out, "decided": True,
                 "reason": f"even part {f0:+.3g} N not significant (t = {t:.3g} < {t_need:.3g})"}
@@ -796,6 +812,15 @@ def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m:
         return {**out, "reason": f"position-dependent: the slow passes' slope {slope_n_m:.3g} N/m changes the force "
                                  f"by {abs(slope_n_m) * span_m:.3g} N along {1e3 * span_m:.3g} mm (a spring)"}
     return {**out, "present": True, "decided": True, "confidence": "high" if t >= 2.0 * t_need else "moderate"}
+
+
+def asymmetry_miss(ev: dict[str, Any], ratio: float) -> float:
+    """How many standard errors of the passes' joint asymmetry ratio (:func:`offset_evidence`) a discovered
+    asymmetry ``ratio`` lies from it; 0 where the passes name no offset. Beyond ``joint_t_needed`` the passes
+    refute that asymmetry: its even part ``ratio·o_i`` would follow the friction level, and theirs does not."""
+    if not ev.get("present"):
+        return 0.0
+    return abs(ratio - float(ev["asymmetry_ratio"])) / max(float(ev["asymmetry_std"]), 1e-300)
 
 
 # ================================================================================================ margins

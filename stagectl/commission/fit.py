@@ -908,9 +908,22 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
             oe = an.offset_evidence(cv_segments, None if lv is None else lv[0], 0.0 if lv is None else lv[1],
                                     0.0 if lv is None else lv[2])
             oe["discover"] = "offset" in names
-            holders = sorted(k for k, inner in REGISTRY.nested().items() if "offset" in inner and k in names)
-            if holders:  # its constant part is the offset (docs/discovery.md §2): discover's verdict stands
-                oe.update(decided=False, reason=f"discover named {', '.join(holders)}, which contains an offset")
+            holders = {k for k, inner in REGISTRY.nested().items() if "offset" in inner and k in names}
+            r_d = float((effects.get("asymmetry") or {}).get("ratio", 0.0))
+            # how many of the passes' standard errors discover's asymmetry ratio lies from theirs
+            miss = an.asymmetry_miss(oe, r_d) if holders == {"asymmetry"} else 0.0
+            if miss > oe.get("joint_t_needed", math.inf):
+                # the passes refute it: its even part would grow with the friction level, theirs is a constant
+                # (generated plant 38: discover's r = 0.105 for a 52 mN offset; the passes allow r = 0.006 ±
+                # 0.001, their even parts 52.0-53.6 mN over friction levels 0.49-0.76 N)
+                decided["asymmetry"] = {
+                    "present": False, "discover": True, "confidence": "none", "ratio": miss / oe["joint_t_needed"],
+                    "reason": f"the passes' even part is a constant {oe['force_n']:+.4g} N (an offset): they allow "
+                              f"r = {oe['asymmetry_ratio']:+.3g} ± {oe['asymmetry_std']:.2g}, not {r_d:+.3g}"}
+                effects.pop("asymmetry", None)
+            elif holders:  # its constant part is the offset (docs/discovery.md §2): discover's verdict stands
+                oe.update(decided=False, reason=f"discover named {', '.join(sorted(holders))}, which contains "
+                                                "an offset")
             if oe["decided"]:
                 decided["offset"] = oe
                 if oe["present"]:
@@ -981,8 +994,9 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         rejected = [e for e in rejected if e.get("name") != name]
         entry = dict(mine[0]) if mine else {"name": name, "parameters": {}}
         entry["evidence"] = ev
-        entry["decided_by"] = {"presliding": "presliding regression",
-                               "offset": "friction_cv even part, slow_passes"}.get(name, "slow_passes") + (
+        by = {"presliding": "presliding regression", "offset": "friction_cv even part, slow_passes",
+              "asymmetry": "friction_cv even part"}
+        entry["decided_by"] = by.get(name, "slow_passes") + (
             f": ratio {ev['ratio']:.3g}, confidence {ev['confidence']}"
             f" (discover {'accepted' if ev['discover'] else 'rejected'} it)")
         if name in ("cogging", "offset") and ev["present"]:

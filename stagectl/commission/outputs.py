@@ -217,7 +217,8 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                      "cogging, offset and pre-sliding by their experiments (below) |")
         for name, ev in ((rep.get("discovery") or {}).get("evidence") or {}).items():
             src = {"cogging": "slow_passes (period scan)",
-                   "offset": "friction_cv (even part, t-test over the speeds), slow_passes"}.get(
+                   "offset": "friction_cv (even part, t-test over the speeds), slow_passes",
+                   "asymmetry": "friction_cv (even part against the friction level)"}.get(
                 name, "reversals, presliding (Maxwell-slip vs rigid)")
             L.append(f"| {name} | {'present' if ev['present'] else 'absent'}, evidence ratio {_fmt(ev['ratio'], digits=3)},"
                      f" confidence {ev['confidence']} (discover {'accepted' if ev['discover'] else 'rejected'} it)"
