@@ -558,6 +558,14 @@ STRIBECK_PARAMETERS = 5
 #: the + and − passes of one designed speed are paired when their measured speeds differ by at most this
 #: fraction (:func:`odd_points`)
 CV_PAIR_TOLERANCE = 0.2
+#: offset (:func:`offset_evidence`): two-sided confidence of the t-test on the pairs' even parts, fewest
+#: pairs, the largest ratio between the slow passes' even part and the constant-velocity passes' (either
+#: way; the factor 2 the cogging's two directions must agree within), and the largest force change along
+#: the slow passes' travel from their slope over the offset's size
+OFFSET_CONFIDENCE = 0.99
+OFFSET_MIN_PAIRS = 3
+OFFSET_AGREEMENT = 2.0
+OFFSET_SLOPE_SHARE = 1.0
 
 
 def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, a_ref: FloatArray,
@@ -809,6 +817,93 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
     return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), float(th[2]), float(sd[2]), segs,
                       int(v.size), stri, (v, f))
+
+
+def offset_evidence(segs: list[CvSegment], slow_even_n: float | None, slope_n_m: float,
+                    span_m: float) -> dict[str, Any]:
+    """Is there a constant force (an offset: gravity on an inclined axis, a cable's pull)? From the
+    constant-velocity passes, confirmed by the slow passes over the stroke.
+
+    The passes of each speed are paired (:func:`odd_points`); with a position force already taken off
+    (:func:`cv_segments`' ``position_force_n``), the even part ``e_i = (F₊ + F₋)/2`` of pair ``i`` is what
+    the stage needs whatever the direction. An offset ``F_0`` makes it
+
+    * **significant**: ``t = ē/(s_e/√n) ≥ t_{(1+OFFSET_CONFIDENCE)/2, n−1}`` (Student's t over the ``n`` pairs'
+      scatter ``s_e``: a position force left in the windows, which differ by speed, scatters them; the segments'
+      own sample errors are far smaller and would count that residue as signal);
+    * **speed-independent**: a constant fits the even parts better than a force proportional to the friction
+      level, ``e_i = r·o_i`` with ``o_i = (F₊ − F₋)/2`` (a Coulomb/viscous asymmetry ``F·(1 + r·sgn F)``,
+      whose even part grows with the friction as an offset's does not; docs/discovery.md §1). The pairs'
+      friction levels differ by the viscous force and the Stribeck drop; where they hardly differ, both fit
+      alike and the simpler effect, the offset, is named (docs/discovery.md §2). The joint fit
+      ``e_i = F_0 + r·o_i`` gives the asymmetry ratio the passes allow, ``r̂ ± t_{(1+OFFSET_CONFIDENCE)/2, n−2}·σ_r``
+      (``asymmetry_ratio``, ``asymmetry_std``, ``joint_t_needed``), against which a discovered asymmetry is
+      checked (:func:`stagectl.commission.fit.fit_models`);
+    * **position-independent**: the slow passes over the stroke (another experiment, other positions) measure
+      the same even part, ``slow_even_n`` (same sign, within a factor ``OFFSET_AGREEMENT``), and their slope
+      changes the force along their travel by at most ``OFFSET_SLOPE_SHARE``·|F_0| (a spring
+      ``k·(x − x0)`` also has an even part at the passes' centre, but it changes along the stroke).
+
+    ``F_0 = ē``. ``decided``: the passes settle the question, present (all three hold) or absent (not
+    significant: the passes measure the even part to a fraction of a mN); an even part that follows the
+    friction level, is not confirmed along the stroke or changes along it (or no slow passes, ``slow_even_n``
+    None) is left to ``discover``'s asymmetry/spring/offset. Returns the decision (``present``), ``force_n``,
+    its standard error, ``t`` and the quantile needed (``ratio`` = t over it, confidence ``high`` at twice the
+    quantile), the even and odd parts, both one-parameter fits' residual sums of squares, the joint fit's
+    constant and ratio with their t, and the reason when absent."""
+    from scipy import stats
+
+    _, fo, fe = odd_points(segs)
+    n = int(fe.size)
+    out: dict[str, Any] = {"present": False, "decided": False, "confidence": "none", "ratio": 0.0, "pairs": n,
+                           "even_n": fe.tolist(), "odd_n": fo.tolist(), "slow_even_n": slow_even_n,
+                           "slope_n_m": slope_n_m, "span_m": span_m}
+    if n < OFFSET_MIN_PAIRS:
+        return {**out, "reason": f"{n} speed pairs of passes, need {OFFSET_MIN_PAIRS}"}
+    f0 = float(np.mean(fe))
+    se = float(np.std(fe, ddof=1)) / math.sqrt(n)
+    t = abs(f0) / max(se, 1e-300)
+    t_need = float(stats.t.ppf(0.5 * (1.0 + OFFSET_CONFIDENCE), n - 1))
+    # the constant and the asymmetry ratio jointly, with their standard errors from the residual
+    A = np.column_stack([np.ones(n), fo])
+    th, *_ = np.linalg.lstsq(A, fe, rcond=None)
+    res = fe - A @ th
+    s2 = float(res @ res) / (n - 2) if n > 2 else math.inf
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0, None))
+    t_j = [abs(float(th[i])) / max(float(sd[i]), 1e-300) for i in (0, 1)]
+    t_need_j = float(stats.t.ppf(0.5 * (1.0 + OFFSET_CONFIDENCE), max(n - 2, 1)))
+    r_prop = float(fo @ fe / max(float(fo @ fo), 1e-300))
+    rss_c = float(np.sum((fe - f0) ** 2))
+    rss_p = float(np.sum((fe - r_prop * fo) ** 2))
+    out.update(force_n=f0, std_n=se, t=t, t_needed=t_need, ratio=t / t_need, rss_constant_n2=rss_c,
+               rss_proportional_n2=rss_p, proportional_ratio=r_prop, joint_force_n=float(th[0]), joint_t=t_j[0],
+               asymmetry_ratio=float(th[1]), asymmetry_std=float(sd[1]), asymmetry_t=t_j[1],
+               joint_t_needed=t_need_j)
+    if t < t_need:
+        return {**out, "decided": True,
+                "reason": f"even part {f0:+.3g} N not significant (t = {t:.3g} < {t_need:.3g})"}
+    if rss_p <= rss_c:
+        return {**out, "reason": f"the even part follows the friction level (an asymmetry r = {r_prop:+.3g}) at "
+                                 "least as well as a constant"}
+    if slow_even_n is None:
+        return {**out, "reason": "no slow passes to confirm it along the stroke"}
+    lo, hi = sorted((abs(slow_even_n), abs(f0)))
+    agree = slow_even_n * f0 > 0 and hi <= OFFSET_AGREEMENT * lo
+    if not agree:
+        return {**out, "reason": f"the slow passes' even part {slow_even_n:+.3g} N does not confirm {f0:+.3g} N"}
+    if abs(slope_n_m) * span_m > OFFSET_SLOPE_SHARE * abs(f0):
+        return {**out, "reason": f"position-dependent: the slow passes' slope {slope_n_m:.3g} N/m changes the force "
+                                 f"by {abs(slope_n_m) * span_m:.3g} N along {1e3 * span_m:.3g} mm (a spring)"}
+    return {**out, "present": True, "decided": True, "confidence": "high" if t >= 2.0 * t_need else "moderate"}
+
+
+def asymmetry_miss(ev: dict[str, Any], ratio: float) -> float:
+    """How many standard errors of the passes' joint asymmetry ratio (:func:`offset_evidence`) a discovered
+    asymmetry ``ratio`` lies from it; 0 where the passes name no offset. Beyond ``joint_t_needed`` the passes
+    refute that asymmetry: its even part ``ratio·o_i`` would follow the friction level, and theirs does not."""
+    if not ev.get("present"):
+        return 0.0
+    return abs(ratio - float(ev["asymmetry_ratio"])) / max(float(ev["asymmetry_std"]), 1e-300)
 
 
 # ================================================================================================ margins

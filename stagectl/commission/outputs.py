@@ -214,9 +214,12 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                 L.append(f"| {k} | {_fmt(v['value'], digits=5)}{sd} | {v['from']} |")
         if "effects" in f:
             L.append(f"| effects found | {', '.join(f['effects']) or 'none'} | discover on reversals / friction_cv; "
-                     "cogging and pre-sliding by their experiments (below) |")
+                     "cogging, offset and pre-sliding by their experiments (below) |")
         for name, ev in ((rep.get("discovery") or {}).get("evidence") or {}).items():
-            src = "slow_passes (period scan)" if name == "cogging" else "reversals, presliding (Maxwell-slip vs rigid)"
+            src = {"cogging": "slow_passes (period scan)",
+                   "offset": "friction_cv (even part, t-test over the speeds), slow_passes",
+                   "asymmetry": "friction_cv (even part against the friction level)"}.get(
+                name, "reversals, presliding (Maxwell-slip vs rigid)")
             L.append(f"| {name} | {'present' if ev['present'] else 'absent'}, evidence ratio {_fmt(ev['ratio'], digits=3)},"
                      f" confidence {ev['confidence']} (discover {'accepted' if ev['discover'] else 'rejected'} it)"
                      f"{': ' + ev['reason'] if ev.get('reason') else ''} | {src} |")

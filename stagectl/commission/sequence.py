@@ -706,7 +706,8 @@ class Commissioning:
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
                                                              r.cv.stribeck if r.cv is not None else None,
                                                              r.plant.delay_s if r.plant is not None else None,
-                                                             _cv_points(r.cv))
+                                                             _cv_points(r.cv),
+                                                             r.cv.segments if r.cv is not None else None)
         m = float(self.res.discovery.get("mass_kg_used", m))
         for key in ("discover_skipped", "discover_note"):
             if self.res.discovery.get(key):
