@@ -24,8 +24,9 @@ model file's content (``docs/commissioning.md`` §4).
   by the ratio of a rigid friction's residual to the Maxwell-slip regression's (:func:`fit_presliding`,
   ``PRESLIDING_EVIDENCE_RATIO``);
   discover's verdict is reported beside (``discovery.evidence``);
-* pre-sliding (when named): the GMS elements are refitted on the reversals, the pre-sliding
-  loops and the constant-velocity passes (their reversals) by a Maxwell-slip regression
+* pre-sliding (when named): the GMS elements are refitted on the reversals and the pre-sliding
+  loops (the constant-velocity passes only when these have no slow rows: :func:`presliding_recordings`)
+  by a Maxwell-slip regression
   (:func:`fit_presliding`): stiffnesses by non-negative least squares for break-away displacements on a
   log-spaced grid, then the break-aways free, jointly with the cogging period, a stiffness-proportional
   micro-damping and the force's delay (variable projection). On the commissioning test plant (hidden
