@@ -516,10 +516,6 @@ STUCK_SPEED_FRACTION = 0.25
 STUCK_PASS_FRACTION = 0.1
 #: the odd Stribeck curve's parameters (Fc, Fs, vs, δ, Fv): :func:`cv_friction` fits it to at least as many pairs
 STRIBECK_PARAMETERS = 5
-#: the Stribeck shape exponent held unless the passes demand another (:func:`stribeck_shape_held`): the
-#: Gaussian curve, the most common shape and the shipped models'; and the F-test's level for a free δ
-STRIBECK_DELTA_HELD = 2.0
-STRIBECK_DELTA_SIGNIFICANCE = 0.05
 #: the + and − passes of one designed speed are paired when their measured speeds differ by at most this
 #: fraction (:func:`odd_points`)
 CV_PAIR_TOLERANCE = 0.2
@@ -656,37 +652,6 @@ def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[F
     return np.array(vk), np.array(fo), np.array(fe)
 
 
-def stribeck_shape_held(v: FloatArray, f: FloatArray, free: dict[str, float], pairs: int) -> dict[str, float]:
-    """The Stribeck curve with δ held at ``STRIBECK_DELTA_HELD`` unless the free δ fits the ``pairs`` odd
-    points significantly better: an F-test of the one extra parameter, ``F = (RSS_held − RSS_free) /
-    (RSS_free / (n − p))`` with ``n`` the pairs and ``p = STRIBECK_PARAMETERS``, against the
-    ``1 − STRIBECK_DELTA_SIGNIFICANCE`` quantile of F(1, n − p); with ``n ≤ p`` nothing is left to test δ
-    and it is held. Six speeds over two decades put one or two points on the curve's drop, which any δ
-    fits with a matching vs: on generated plant 34 (tests/commission/plant_gen.py, δ 2) the scatter of the
-    two fastest passes (12-27 mN) took δ to 2.97, and the commissioned triangle tracked 243 nm RMS against
-    144 nm with δ alone put back to 2 (exact model 95 nm); F was 0.5. The free fit is kept beside
-    (``free_delta``, ``delta_f_statistic``, ``delta_f_critical``); ``free`` is returned as it is when it
-    identified no curve."""
-    from scipy.stats import f as f_dist
-
-    from stagectl.ident.identify import fit_stribeck_curve
-
-    if not free.get("stribeck_identified") or free.get("fs_fixed"):
-        return free
-    dof = pairs - STRIBECK_PARAMETERS
-    try:
-        held = fit_stribeck_curve(v, f, delta=STRIBECK_DELTA_HELD)
-    except (StageError, ValueError):
-        return free
-    rss_free, rss_held = float(free["rms_n"]) ** 2, float(held["rms_n"]) ** 2
-    crit = float(f_dist.ppf(1.0 - STRIBECK_DELTA_SIGNIFICANCE, 1, dof)) if dof >= 1 else math.inf
-    stat = (rss_held - rss_free) / max(rss_free / max(dof, 1), 1e-300) if dof >= 1 else 0.0
-    if not held.get("stribeck_identified") or stat > crit:
-        return dict(free, delta_f_statistic=stat, delta_f_critical=crit)
-    return dict(held, delta=STRIBECK_DELTA_HELD, free_delta=float(free["delta"]), delta_f_statistic=stat,
-                delta_f_critical=crit)
-
-
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
     """Friction from the segment means (module docstring). The + and − passes of a speed are paired
     (:func:`odd_points`) and the fit reads their odd part only: a position force over a pass's range
@@ -716,8 +681,6 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         stri = fit_stribeck_curve(v, f)
     except (StageError, ValueError):
         stri = None
-    if stri is not None and paired:
-        stri = stribeck_shape_held(v, f, stri, int(vk.size))
     vmax = float(np.max(np.abs(v)))
     if stri is not None and v.size >= 3 and (stri["vs_m_s"] > vmax or (paired and vk.size < STRIBECK_PARAMETERS)):
         # a drop beyond the fastest pass is no Stribeck curve the passes measured, only a way to bend a nearly

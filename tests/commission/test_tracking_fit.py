@@ -1,7 +1,6 @@
-"""The identification choices behind the commissioned tracking (docs/commissioning.md, *Which recordings the
-pre-sliding regression reads* and *The Stribeck shape*): the pre-sliding regression reads the experiments
-designed for it, not the constant-velocity passes' stops; the Stribeck exponent is held at 2 unless the
-passes demand another. Synthetic data and recorded segment means; no plant runs."""
+"""The recordings behind the commissioned pre-sliding model (docs/commissioning.md, *Which recordings the
+pre-sliding regression reads*): the regression reads the experiments designed for it, not the
+constant-velocity passes' stops. Synthetic data; no plant runs."""
 
 from __future__ import annotations
 
@@ -9,7 +8,6 @@ import itertools
 
 import numpy as np
 
-from stagectl.commission import analysis as an
 from stagectl.commission.fit import fit_presliding, presliding_recordings
 from stagectl.friction import build
 
@@ -94,42 +92,3 @@ def test_presliding_regression_reads_the_loops_not_the_passes_stops() -> None:
     # designed recordings without slow rows (too short here): the passes are read after all
     short = _Rec(x=loops.col("x")[:20], u=loops.col("u")[:20])
     assert presliding_recordings({"reversals": short, "friction_cv": passes}, _M, _T, sliding) == [short, passes]  # type: ignore[dict-item]
-
-
-#: generated plant 34's constant-velocity segment means (speed [m/s], force [N], standard error [N], samples)
-#: from its commissioning; the plant: Fc 1.4316 N, Fs 1.5358 N, vs 2.762 mm/s, δ 2, Fv 30.671 N s/m
-_GEN34 = [(1.60134103e-4, 1.540128440, 2.96e-05, 1127), (-1.56527531e-4, -1.516035520, 1.19e-02, 1127),
-          (4.02232682e-4, 1.545885434, 4.04e-05, 1127), (-4.02238899e-4, -1.545988705, 3.80e-05, 1127),
-          (1.01140448e-3, 1.553675821, 7.94e-05, 1116), (-1.01140448e-3, -1.553756298, 7.51e-05, 1116),
-          (2.53695477e-3, 1.554542384, 2.32e-04, 399), (-2.53642965e-3, -1.554590440, 1.83e-04, 399),
-          (6.66116667e-3, 1.637011429, 1.27e-02, 115), (-6.65741228e-3, -1.636903263, 1.26e-02, 115),
-          (1.61472800e-2, 1.925555058, 2.74e-02, 51), (-1.62194510e-2, -1.927077130, 2.77e-02, 52)]
-
-
-def _curve(p: dict[str, float], v: np.ndarray) -> np.ndarray:
-    out: np.ndarray = (p["fc_n"] + (p["fs_n"] - p["fc_n"]) * np.exp(-np.abs(v / p["vs_m_s"]) ** p["delta"])
-                       + p["viscous_n_s_m"] * v)
-    return out
-
-
-def test_stribeck_exponent_is_held_unless_the_passes_demand_another() -> None:
-    """Gen 34's six pairs: the free fit took δ 2.97 from the two fastest passes' scatter (F = 0.5 against a
-    critical 161): δ is held at 2 and the curve is closer to the plant's. A noise-free δ = 1 curve at the
-    same speeds keeps its δ."""
-    true = {"fc_n": 1.4316, "fs_n": 1.5358, "vs_m_s": 0.002762, "delta": 2.0, "viscous_n_s_m": 30.671}
-    cv = an.cv_friction([an.CvSegment(*s) for s in _GEN34])
-    st = cv.stribeck
-    assert st is not None and st["delta"] == 2.0 and st["free_delta"] > 2.5
-    v = np.geomspace(1e-4, 2e-2, 200)
-    free = dict(st, delta=st["free_delta"])
-    err = float(np.abs(_curve(st, v) - _curve(true, v)).max())
-    assert err < 6e-3
-    vk = np.array([s[0] for s in _GEN34[::2]])
-    other = {"fc_n": 1.0, "fs_n": 1.3, "vs_m_s": 1e-3, "delta": 1.0, "viscous_n_s_m": 10.0}
-    segs = [an.CvSegment(float(s * vv), float(s * _curve(other, np.array([vv]))[0]), 1e-5, 500)
-            for vv in vk for s in (1, -1)]
-    kept = an.cv_friction(segs).stribeck
-    assert kept is not None and abs(kept["delta"] - 1.0) < 0.05 and "free_delta" not in kept
-    # (the free curve itself fits the points, and the held one no worse than 6 mN anywhere: gen 34's free
-    # curve was 7.4 mN off)
-    assert err < float(np.abs(_curve(free, v) - _curve(true, v)).max())
