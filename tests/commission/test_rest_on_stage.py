@@ -66,8 +66,9 @@ def test_kept_where_on_the_stage_more_steps_settle(stage):
                                                                                               effects=eff)))
     out, written, chosen, names = _ab(cfg, base)
     f = out["figures"]
-    assert names == [f"{k}_rest_{w}_{n}" for w in ("with", "without") for n in ("steps", "cosine")
+    assert names == [f"{k}_rest_{w}_{n}" for n in ("steps", "cosine") for w in ("with", "without")
                      for k in ("wipe", "verify")]
+    assert f["cosine"]["with"]["rms_error_m"] <= (1 + 2 ** 0.5 * out["scatter"]) * f["cosine"]["without"]["rms_error_m"]
     assert f["steps"]["with"]["moves_settled"] > f["steps"]["without"]["moves_settled"], out
     assert out["keep"] and out["confidence"] in ("high", "medium") and out["decision"].startswith("kept")
     assert written == [False, True] and chosen["rest_integral"]["enabled"]
@@ -83,8 +84,9 @@ def test_dropped_where_on_the_stage_no_more_steps_settle(stage):
     soft = GmsFriction(dataclasses.replace(q, k_n_m=tuple(0.3 * k for k in q.k_n_m)))
     cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, plant=dataclasses.replace(cfg.sim.plant,
                                                                                               friction=soft)))
-    out, written, chosen, _ = _ab(cfg, base)
+    out, written, chosen, names = _ab(cfg, base)
     f = out["figures"]
+    assert "cosine" not in f and names[-1] == "verify_rest_without_steps"  # decided by the steps: no cosine runs
     assert f["steps"]["with"]["moves_settled"] <= f["steps"]["without"]["moves_settled"], out
     assert not out["keep"] and "no more steps settle" in out["decision"]
     assert out["confidence"] == ("high" if f["steps"]["with"]["moves_settled"] < f["steps"]["without"]["moves_settled"]
@@ -92,3 +94,21 @@ def test_dropped_where_on_the_stage_no_more_steps_settle(stage):
     # stage.yaml stays without it, and the report says why
     assert written == [False] and not chosen["rest_integral"]["enabled"]
     assert "on the stage" in chosen["rest_integral"]["reason"]
+
+
+def test_the_decision_and_its_confidence_follow_the_scatter():
+    """One run each: a cosine 10 % worse is within the scatter of two runs' ratio (√2·8 % = 11.3 %), 20 % is not
+    (medium: within 2·√2·8 %), 30 % is clearly worse (high); fewer steps settled is a clear drop."""
+    from stagectl.commission.sequence import rest_stage_decision
+
+    def figs(n_w: int, n_o: int, c_ratio: float) -> dict[str, dict[str, dict[str, float]]]:
+        return {"steps": {"with": {"moves": 4, "moves_settled": n_w, "rms_error_m": 1e-7, "max_error_m": 1e-6},
+                          "without": {"moves": 4, "moves_settled": n_o, "rms_error_m": 1e-7, "max_error_m": 1e-6}},
+                "cosine": {"with": {"rms_error_m": 4e-9 * c_ratio, "max_error_m": 1e-8, "moves": 1, "moves_settled": 1},
+                           "without": {"rms_error_m": 4e-9, "max_error_m": 1e-8, "moves": 1, "moves_settled": 1}}}
+
+    assert [(d["keep"], d["confidence"]) for d in map(lambda a: rest_stage_decision(figs(*a)),
+                                                       [(3, 2, 0.95), (3, 2, 1.10), (3, 2, 1.20), (3, 2, 1.30),
+                                                        (2, 2, 1.0), (1, 2, 1.0)])] == [
+        (True, "high"), (True, "medium"), (False, "medium"), (False, "high"), (False, "medium"), (False, "high")]
+    assert "cosine is worse" in rest_stage_decision(figs(3, 2, 1.2))["decision"]
