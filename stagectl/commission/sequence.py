@@ -747,7 +747,9 @@ class Commissioning:
         if not added:
             return new_cfg
         names = {"rest": "rest spring", "rest_integral": "rest integral"}
-        without = {**chosen, **{key: {**chosen[key], "enabled": False} for key in added}}
+        # (what the report holds should a fault abort the check: stage.yaml is then the one without them)
+        without = {**chosen, **{key: {**chosen[key], "enabled": False, "reason": "not checked on the stage (the "
+                                      f"twins: {chosen[key].get('reason')})"} for key in added}}
         figures: dict[str, dict[str, Any]] = {}
         at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's
         self._planned[at:at] = [(f"{kind}_rest_{which}_{nm}", 1.5 if kind == "wipe" else 4.0)
