@@ -1769,7 +1769,8 @@ def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
     c_o = float(co["without"]["rms_error_m"]) if "without" in co else math.nan
     limit = (1.0 + math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o
     cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g})"
-               if c_w == c_w and c_o == c_o else "no cosine (does not fit the stroke)")
+               if c_w == c_w and c_o == c_o else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
+               "stroke)")
     figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without; {cos_txt}"
     cos_ok = not (c_w == c_w and c_o == c_o) or c_w <= limit
     if n_w > n_o and cos_ok:
