@@ -1767,14 +1767,15 @@ def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
     n = int(st["with"]["moves"])
     c_w = float(co["with"]["rms_error_m"]) if "with" in co else math.nan
     c_o = float(co["without"]["rms_error_m"]) if "without" in co else math.nan
+    have_cos = not (math.isnan(c_w) or math.isnan(c_o))
     limit = (1.0 + math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o
     cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g})"
-               if c_w == c_w and c_o == c_o else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
+               if have_cos else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
                "stroke)")
     figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without; {cos_txt}"
-    cos_ok = not (c_w == c_w and c_o == c_o) or c_w <= limit
+    cos_ok = not have_cos or c_w <= limit
     if n_w > n_o and cos_ok:
-        conf = "high" if (c_w == c_w and c_o == c_o and c_w <= c_o) else "medium"
+        conf = "high" if (have_cos and c_w <= c_o) else "medium"
         return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}
     if n_w <= n_o:
         conf = "high" if n_w < n_o else "medium"

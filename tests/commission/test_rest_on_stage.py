@@ -107,8 +107,7 @@ def test_the_decision_and_its_confidence_follow_the_scatter():
                 "cosine": {"with": {"rms_error_m": 4e-9 * c_ratio, "max_error_m": 1e-8, "moves": 1, "moves_settled": 1},
                            "without": {"rms_error_m": 4e-9, "max_error_m": 1e-8, "moves": 1, "moves_settled": 1}}}
 
-    assert [(d["keep"], d["confidence"]) for d in map(lambda a: rest_stage_decision(figs(*a)),
-                                                       [(3, 2, 0.95), (3, 2, 1.10), (3, 2, 1.20), (3, 2, 1.30),
-                                                        (2, 2, 1.0), (1, 2, 1.0)])] == [
+    cases = [(3, 2, 0.95), (3, 2, 1.10), (3, 2, 1.20), (3, 2, 1.30), (2, 2, 1.0), (1, 2, 1.0)]
+    assert [(d["keep"], d["confidence"]) for d in (rest_stage_decision(figs(*a)) for a in cases)] == [
         (True, "high"), (True, "medium"), (False, "medium"), (False, "high"), (False, "medium"), (False, "high")]
     assert "cosine is worse" in rest_stage_decision(figs(3, 2, 1.2))["decision"]
