@@ -47,7 +47,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 def _parse_fault(spec: str | None) -> tuple[str, float] | None:
     if spec is None:
         return None
-    from stagectl.commission.sequence import EXPERIMENTS, VERIFY
+    from stagectl.commission.sequence import EXPERIMENTS, REST_STAGE_SCENARIOS, VERIFY
 
     name, _, t = spec.partition("@")
     try:
@@ -55,7 +55,9 @@ def _parse_fault(spec: str | None) -> tuple[str, float] | None:
     except ValueError:
         raise ConfigError(f"--inject-fault: expected EXPERIMENT@SECONDS, got {short(spec)}") from None
     known = [*EXPERIMENTS, *(f"{kind}_{which}_{n}" for which in ("before", "after") for n in VERIFY
-                             for kind in ("wipe", "verify"))]
+                             for kind in ("wipe", "verify")),
+             *(f"{kind}_rest_{which}_{n}" for which in ("with", "without") for n in REST_STAGE_SCENARIOS
+               for kind in ("wipe", "verify"))]
     if name not in known:  # a fault that is never injected would let the whole commissioning run
         raise ConfigError(f"--inject-fault: unknown experiment {short(name)} (one of {', '.join(known)})")
     if not (at >= 0 and at < float("inf")):

@@ -258,6 +258,10 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
                      f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
         L += _rest_lines(ch.get("rest"))
+        ros = rep["gains"].get("rest_on_stage")
+        if ros:
+            L += ["", (f"Rest additions ({', '.join(ros.get('additions') or [])}) checked on the stage, one run each "
+                       f"with and without (confidence {ros.get('confidence')}): {ros.get('decision')}.")]
         sr = rep["gains"].get("stiction_rule")
         if sr:
             lam = ch.get("excess_stiction_length_m")

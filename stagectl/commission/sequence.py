@@ -158,6 +158,11 @@ REST_FLOOR_SLACK_QUANTA = 2.0
 #: the controller's own rest gains (unchanged PD and observer, one section): kept when no grid point meets the floor
 REST_GAINS_DEFAULT: dict[str, float] = {"rest_kd_fraction": 1.0, "rest_dob_bandwidth_fraction": 1.0,
                                         "rest_spring_section_count": 1}
+#: the rest additions' check on the stage (Commissioning._rest_on_stage): the scenarios run with and without them,
+#: and one run's relative scatter of the cosine RMS (sd ~8 % at the sensor's noise floor: config/sim.yaml's 2 nm
+#: cosine with 0.5 nm sensor noise, tests/commission/test_verify_conditions.py); two runs' ratio scatters by √2 that
+REST_STAGE_SCENARIOS = ("steps", "cosine")
+REST_STAGE_SCATTER = 0.08
 #: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
 EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
@@ -718,11 +723,87 @@ class Commissioning:
                                                 self.env.following_error_m))
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
         new_cfg = self.write_config(self.res)
+        # the rest additions the twins advised, checked on the stage itself (the twins are built from the
+        # identified model and cannot see where it is wrong)
+        new_cfg = self._rest_on_stage(stage, new_cfg, xc)
 
         # 6. verification -----------------------------------------------------------------------------
         if not self.opts.verify:
             return
         self._verify(stage, new_cfg, xc)
+
+    def _rest_on_stage(self, stage: Stage, new_cfg: AppConfig, xc: float) -> AppConfig:
+        """Check on the stage the rest additions the twins advised (:meth:`_rest_spring`, :meth:`_rest_integral`):
+        the scenarios ``REST_STAGE_SCENARIOS`` with the commissioned controller with (``new_cfg``) and without
+        them, each run as in :meth:`_verify` (wipe, a fresh controller, the lead). They stay when on the stage
+        more steps settle and the cosine is not worse beyond the run-to-run scatter (:func:`rest_stage_decision`);
+        otherwise stage.yaml is written without them.
+        The cosine runs only when the steps do not decide it already. The decision, both figures and its
+        confidence go to ``gains.rest_on_stage``. Returns the configuration
+        written last."""
+        r = self.res
+        assert r.gains is not None
+        chosen = dict(r.gains["chosen"])
+        added = [key for key in ("rest", "rest_integral") if (chosen.get(key) or {}).get("enabled")]
+        if not added:
+            return new_cfg
+        names = {"rest": "rest spring", "rest_integral": "rest integral"}
+        # (what the report holds should a fault abort the check: stage.yaml is then the one without them)
+        without = {**chosen, **{key: {**chosen[key], "enabled": False, "reason": "not checked on the stage (the "
+                                      f"twins: {chosen[key].get('reason')})"} for key in added}}
+        figures: dict[str, dict[str, Any]] = {}
+        at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's
+        self._planned[at:at] = [(f"{kind}_rest_{which}_{nm}", 1.5 if kind == "wipe" else 4.0)
+                                for nm in REST_STAGE_SCENARIOS for which in ("with", "without")
+                                for kind in ("wipe", "verify")]
+        r.gains["chosen"] = without
+        cfg_without = self.write_config(r)  # stage.yaml without them until the stage has shown they help
+        for nm in REST_STAGE_SCENARIOS:
+            for which, cfg_v in (("with", new_cfg), ("without", cfg_without)):
+                summ = self._scenario_run(stage, cfg_v, nm, xc, f"rest_{which}", f"{nm} with the commissioned "
+                                          f"controller {which} the {' and '.join(names[k] for k in added)}")
+                if summ is not None:
+                    figures.setdefault(nm, {})[which] = summ
+            st = figures.get("steps", {})
+            if nm == "steps" and not (len(st) == 2 and st["with"]["moves_settled"] > st["without"]["moves_settled"]):
+                break  # decided by the steps: the cosine runs would not change it (saves ~11 s of stage time)
+        out = rest_stage_decision(figures)
+        out["additions"] = [names[k] for k in added]
+        r.gains["rest_on_stage"] = out
+        self.opts.progress(f"commission: on the stage, {' and '.join(out['additions'])}: {out['decision']}")
+        if not out["keep"]:
+            for key in added:
+                chosen[key] = {**chosen[key], "enabled": False,
+                               "reason": f"on the stage: {out['decision']} (the twins: {chosen[key].get('reason')})"}
+            r.notes.append(f"rest additions: {out['decision']}")
+            r.gains["chosen"] = chosen
+            return cfg_without
+        r.gains["chosen"] = chosen
+        return self.write_config(r)
+
+    def _scenario_run(self, stage: Stage, cfg_v: AppConfig, nm: str, xc: float, which: str,
+                      purpose: str) -> dict[str, Any] | None:
+        """One scenario as :meth:`_verify` runs it (a friction-memory wipe by the controller, then a freshly built
+        one: the lead, the scenario); its tracking summary after the lead (None: does not fit the stroke)."""
+        r, S = self.res, self.env.stroke_m
+        sc = _verify_scenario(nm, xc, S)
+        if sc is None:
+            r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
+            return None
+        wipe = wipe_segments(xc, S, _quantum_guess(stage))
+        lead = verification_lead(xc, S)
+        amps = [abs(float(w.to_m) - xc) for w in wipe[:-2] if isinstance(w, Move) and w.to_m is not None]
+        self._closed(stage, f"wipe_{which}_{nm}", f"friction-memory wipe before verify_{which}_{nm}: "
+                     f"{len(amps)} moves of alternating sign, decaying amplitude", make_controller(cfg_v),
+                     list(wipe), {"amplitudes_m": amps})
+        # a controller built for this run: nothing it learned in another scenario carries over
+        rec = self._closed(stage, f"verify_{which}_{nm}", purpose, make_controller(cfg_v), [*lead, *sc.segments],
+                           {"scenario": nm, "approach_m": approach_m(S)}, extra_s=0.3)
+        tol = max(10e-9, 2 * _quantum(rec.col("x")))
+        # the lead's absolute moves last as long as they do from where the run started (the reference
+        # starts at the measured position)
+        skip = Scenario(name="lead", segments=lead).duration_s(float(rec.col("x_ref")[0]))
+        return _summary_after(rec, skip, tol)
 
     def _verify(self, stage: Stage, new_cfg: AppConfig, xc: float, scenarios: tuple[str, ...] = VERIFY) -> None:
         """Step 6: each scenario with the given (``self.cfg``) and the new controller (``new_cfg``) under the same
@@ -740,29 +821,12 @@ class Commissioning:
         at the scenario's start depended on what ran before, the "before" cosine on config/sim.yaml read 6.02 nm
         where the same controller gives 2.3 nm on a fresh stage. A controller without those learners (the
         commissioned one) was not affected, so the comparison favoured it (docs/commissioning.md, step 6)."""
-        r, S = self.res, self.env.stroke_m
-        q = _quantum_guess(stage)
-        wipe = wipe_segments(xc, S, q)
-        lead = verification_lead(xc, S)
+        r = self.res
         for which, cfg_v in (("before", self.cfg), ("after", new_cfg)):
             for nm in scenarios:
-                sc = _verify_scenario(nm, xc, S)
-                if sc is None:
-                    r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
-                    continue
-                amps = [abs(float(w.to_m) - xc) for w in wipe[:-2] if isinstance(w, Move) and w.to_m is not None]
-                self._closed(stage, f"wipe_{which}_{nm}", f"friction-memory wipe before verify_{which}_{nm}: "
-                             f"{len(amps)} moves of alternating sign, decaying amplitude", make_controller(cfg_v),
-                             list(wipe), {"amplitudes_m": amps})
-                # a controller built for this run: nothing it learned in another scenario carries over
-                rec = self._closed(stage, f"verify_{which}_{nm}", f"{nm} with the {which} controller",
-                                   make_controller(cfg_v), [*lead, *sc.segments],
-                                   {"scenario": nm, "approach_m": approach_m(S)}, extra_s=0.3)
-                tol = max(10e-9, 2 * _quantum(rec.col("x")))
-                # the lead's absolute moves last as long as they do from where the run started (the reference
-                # starts at the measured position)
-                skip = Scenario(name="lead", segments=lead).duration_s(float(rec.col("x_ref")[0]))
-                r.verification.setdefault(nm, {})[which] = _summary_after(rec, skip, tol)
+                summ = self._scenario_run(stage, cfg_v, nm, xc, which, f"{nm} with the {which} controller")
+                if summ is not None:
+                    r.verification.setdefault(nm, {})[which] = summ
 
     # ------------------------------------------------------------------ helpers
     def _commission_tuning(self, mass_kg: float, coulomb: bool = True,
@@ -1682,6 +1746,44 @@ def simulate_verification(cfg: AppConfig, stroke_m: float, tol_m: float) -> dict
             summ["rms_error_m"] = math.inf
         out[nm] = summ
     return out
+
+
+def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Whether the rest additions stay, from one run each ``with`` and ``without`` them on the stage
+    (``figures[scenario][which]``: tracking summaries): they stay when more steps settle with them and the
+    cosine RMS with them is at most ``(1 + √2·s)·without``, s = ``REST_STAGE_SCATTER`` (one run's relative
+    scatter; √2·s that of the ratio of two single runs). Confidence: ``high`` when the deciding figure lies clear
+    of the scatter (keep: the cosine no worse at all; drop: fewer steps settle, or the cosine worse by more than
+    2·√2·s), ``medium`` otherwise (one run each: one settled step more or a cosine within the scatter decides),
+    ``low`` when a figure is missing."""
+    st, co = figures.get("steps", {}), figures.get("cosine", {})
+    out: dict[str, Any] = {"scatter": REST_STAGE_SCATTER,
+                           "figures": {nm: {w: {k: d.get(k) for k in ("rms_error_m", "max_error_m", "moves",
+                                                                      "moves_settled")}
+                                            for w, d in v.items()} for nm, v in figures.items()}}
+    if not all(w in st for w in ("with", "without")):
+        return {**out, "keep": False, "confidence": "low",
+                "decision": "dropped: the steps do not fit the stroke, nothing to check them on"}
+    n_w, n_o = int(st["with"]["moves_settled"]), int(st["without"]["moves_settled"])
+    n = int(st["with"]["moves"])
+    c_w = float(co["with"]["rms_error_m"]) if "with" in co else math.nan
+    c_o = float(co["without"]["rms_error_m"]) if "without" in co else math.nan
+    have_cos = not (math.isnan(c_w) or math.isnan(c_o))
+    limit = (1.0 + math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o
+    cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g})"
+               if have_cos else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
+               "stroke)")
+    figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without; {cos_txt}"
+    cos_ok = not have_cos or c_w <= limit
+    if n_w > n_o and cos_ok:
+        conf = "high" if (have_cos and c_w <= c_o) else "medium"
+        return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}
+    if n_w <= n_o:
+        conf = "high" if n_w < n_o else "medium"
+        return {**out, "keep": False, "confidence": conf, "decision": f"dropped: no more steps settle ({figs})"}
+    conf = "high" if c_w > (1.0 + 2.0 * math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o else "medium"
+    return {**out, "keep": False, "confidence": conf,
+            "decision": f"dropped: the cosine is worse beyond the scatter ({figs})"}
 
 
 def _verify_scenario(name: str, xc: float, stroke: float) -> Scenario | None:

@@ -145,6 +145,10 @@ def test_rest_spring_is_checked_before_it_is_advised(commissioned: tuple[int, Pa
         assert ctl.get("rest_kd_fraction", 1.0) == rest["rest_kd_fraction"] < 1.0
     steps = rep["verification"]["steps"]["after"]
     assert steps["moves_settled"] == steps["moves"], steps
+    # ... and checked on the stage itself before stage.yaml kept it (Commissioning._rest_on_stage)
+    ros = rep["gains"]["rest_on_stage"]
+    assert ros["keep"] and ros["additions"] == ["rest spring"] and ros["confidence"] in ("high", "medium")
+    assert ros["figures"]["steps"]["with"]["moves_settled"] > ros["figures"]["steps"]["without"]["moves_settled"]
 
 
 def test_experiments_stay_inside_the_envelope(commissioned: tuple[int, Path]) -> None:
@@ -318,7 +322,7 @@ def test_every_planned_experiment_can_take_an_injected_fault() -> None:
     from stagectl.errors import ConfigError
 
     assert "presliding" in EXPERIMENTS
-    for name in EXPERIMENTS:
+    for name in (*EXPERIMENTS, "wipe_rest_with_steps", "verify_rest_without_cosine"):  # (the rest check's runs)
         assert _parse_fault(f"{name}@0.5") == (name, 0.5)
     with pytest.raises(ConfigError, match="unknown experiment"):
         _parse_fault("warp_drive@1")
