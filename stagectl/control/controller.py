@@ -534,6 +534,19 @@ LEARN_MIN_TIME_CONSTANTS = 15.0
 #: walked β to 0.92 and 5-7 µm (15-18 ms) ones to 0.88 with a 150 Hz observer; 15 µm 0.96 at 100 and 150 Hz alike).
 #: Just below 15 time constants at 100 Hz (23.9 ms), so a 100 Hz observer's gate is unchanged by it.
 LEARN_MIN_MOVE_S = 0.0235
+#: ... and only where its evidence is clear (docs/control.md §2.10). The baseline of a move's fit is the observer's
+#: estimate at its start, d̂_0, and at rest that is ambiguous: a constant force keeps it through the move, a mismatch
+#: of the model's pre-sliding *state* (what the stop's synchronisation has not yet moved into the model) is erased by
+#: sliding. The fit with d̂_0 as baseline and the fit with 0 differ by Δp = d̂_0·A⁻¹·Σg (A, Σg: this move's normal
+#: matrix and regressor sums); a move is learned from only if |Δθ| and |Δln β| are at most this (else the baseline
+#: alone could move the model by more: the exact model after a 0.1 s rest was learned as θ 0.927) ...
+LEARN_BASELINE_TOL = 0.01
+#: ... and the update is applied only where the accumulated fit differs from the current (θ, ln β) by more than
+#: LEARN_SIGNIFICANCE standard errors (residuals of this move's fit, counted as one independent sample per two
+#: observer time constants, since the estimate is low-passed by the observer) ...
+LEARN_SIGNIFICANCE = 3.0
+#: ... and one move changes θ, β by at most this fraction (a single move's evidence is bounded however clear)
+LEARN_MAX_STEP = 0.1
 #: observer anti-wind-up (``stuck_dob_fraction``): the stage counts as stuck while its speed between the last two
 #: fresh samples is at most this fraction of the reference's speed
 STUCK_SPEED_FRACTION = 0.25
@@ -587,13 +600,20 @@ class _MoveFit:
     c22: float = 0.0
     r1: float = 0.0
     r2: float = 0.0
+    s1: float = 0.0  # Σ f_th, Σ f_b [N] (the baseline's leverage on the fit); Σ y² [N²] (residuals)
+    s2: float = 0.0
+    yy: float = 0.0
+    xr0: float = math.nan  # the model's last reversal at the start of the move [m] (a later one: a reversal in it)
+    se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
+    se_u: float = math.inf
 
-    def start(self, th: float, b: float, f0: float, d0: float, x0: float) -> None:
+    def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
         self.rest, self.valid = False, True
-        self.th0, self.b0, self.f0, self.d0, self.x0 = th, b, f0, d0, x0
+        self.th0, self.b0, self.f0, self.d0, self.x0, self.xr0 = th, b, f0, d0, x0, xr0
         self.dir = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
+        self.s1 = self.s2 = self.yy = 0.0
         self.n = 0
 
     def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float) -> None:
@@ -609,9 +629,12 @@ class _MoveFit:
         self.a22 += f2 * f2
         self.b1 += f1 * y
         self.b2 += f2 * y
+        self.s1 += f1
+        self.s2 += f2
+        self.yy += y * y
         self.n += 1
 
-    def solve(self, min_force_n: float) -> tuple[float, float] | None:
+    def solve(self, min_force_n: float, samples_per_dof: float = 1.0) -> tuple[float, float] | None:
         """(θ, ln β): the least-squares fit over this move and the earlier ones (each earlier move's normal
         equations weighted by LEARN_FORGET per move since), about the model as given (θ = 1, β = 1) with a small
         prior weight; None when this move's model forces stayed below ``min_force_n`` (RMS): nothing learned
@@ -621,6 +644,21 @@ class _MoveFit:
             return None
         if self.d0 * self.d0 * n > LEARN_START_FRACTION ** 2 * (self.a11 + self.a22):
             return None  # the move started from an estimate that is not a model error (LEARN_START_FRACTION)
+        # this move's own fit (with a small ridge: β's regressor can be ~0) and how far its baseline d̂_0 moves it
+        m11, m22, m12 = self.a11 * (1.0 + LEARN_RIDGE), self.a22 + LEARN_RIDGE * max(self.a22, LEARN_RIDGE * self.a11), \
+            self.a12
+        mdet = m11 * m22 - m12 * m12
+        if not mdet > 0.0:
+            return None
+        dth = self.d0 * (m22 * self.s1 - m12 * self.s2) / mdet  # Δp = d̂_0·A⁻¹·Σg (LEARN_BASELINE_TOL)
+        du = self.d0 * (m11 * self.s2 - m12 * self.s1) / mdet
+        if abs(dth) > LEARN_BASELINE_TOL or abs(du) > LEARN_BASELINE_TOL:
+            return None  # the start's estimate, model error or state mismatch, decides the fit: no evidence
+        # residual variance of this move's fit (about its start), inflated by the samples per independent one
+        q1, q2 = (m22 * self.b1 - m12 * self.b2) / mdet, (m11 * self.b2 - m12 * self.b1) / mdet
+        sse = max(0.0, self.yy - 2.0 * (q1 * self.b1 + q2 * self.b2)
+                  + q1 * q1 * self.a11 + 2.0 * q1 * q2 * self.a12 + q2 * q2 * self.a22)
+        var = sse / max(1.0, n - 2.0) * max(1.0, samples_per_dof)
         # this move's equations A·(p − p0) = b about its start p0 = (θ0, ln β0), in absolute parameters
         u0 = math.log(self.b0)
         r1 = self.b1 + self.a11 * self.th0 + self.a12 * u0
@@ -642,6 +680,8 @@ class _MoveFit:
             return None
         q1, q2 = self.r1 + w1 * 1.0, self.r2
         th, u = (a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det
+        # standard errors of the accumulated fit (its information scaled by this move's residual variance)
+        self.se_th, self.se_u = math.sqrt(var * a22 / det), math.sqrt(var * a11 / det)
         return (th, u) if math.isfinite(th) and math.isfinite(u) else None
 
 
@@ -1009,7 +1049,8 @@ class StageController:
                 # force of the last step: this step's has already moved, by all of its jump for a static model);
                 # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
                 # into the observer below
-                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m,
+                         ff.state.x_rev_m)
             if learning:  # the learner (ILC) is active for this motion: one learner at a time
                 ml.valid = False
             if not ml.valid:
@@ -1037,16 +1078,24 @@ class StageController:
         ml.rest = True
         long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
                        >= LEARN_MIN_TIME_CONSTANTS and ml.n * self.period_s >= LEARN_MIN_MOVE_S)
-        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid and long_enough else None
+        g_dob = 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
+        per_dof = 2.0 / (g_dob * self.period_s)  # samples per independent one: two observer time constants
+        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n, per_dof) if ml.valid and long_enough else None
         if fit is None:
             return u_ff, d_hat
         ffc = self.cfg.feedforward
         k = ffc.learn_moves_fraction
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
-        th_new = min(hi, max(lo, th + k * (fit[0] - th)))
+        step = LEARN_MAX_STEP
+        th_new = th
+        if abs(fit[0] - th) > LEARN_SIGNIFICANCE * ml.se_th:  # significant: the evidence says θ is wrong
+            th_new = min(hi, max(lo, th + max(-step, min(step, k * (fit[0] - th)))))
         b = ff.input_scale
-        beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
-        ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
+        if abs(fit[1] - math.log(b)) > LEARN_SIGNIFICANCE * ml.se_u:
+            beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
+            ff.input_scale = min(hi, max(lo, b + max(-step * b, min(step * b, k * (beta - b)))))
+        if th_new == th:
+            return u_ff, d_hat
         return self._set_theta(th_new, f_raw, d_hat, dob)
 
     def _settle_move(self, dt: float, ref: Reference, x_m: float, v_hat: float,
