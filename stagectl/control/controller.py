@@ -519,6 +519,12 @@ REST_GAINS_DWELL_S = 0.005
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
 #: information) towards the model as given
 LEARN_FORGET = 0.9
+#: the learners (adaptation, learning from moves) take an estimate as evidence only once the reference's inertia
+#: force m·a_r has changed by at most this fraction of the model force (or its Coulomb level) per observer time
+#: constant, m·|j_r|/(2π·f_DOB) <= ADAPT_LAG_FRACTION·max(|F̂|, F_c) ...
+ADAPT_LAG_FRACTION = 0.1
+#: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
+ADAPT_SETTLED_TIME_CONSTANTS = 5.0
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
@@ -616,13 +622,16 @@ class _MoveFit:
         self.s1 = self.s2 = self.yy = 0.0
         self.n = 0
 
-    def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float) -> None:
+    def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float, use: bool = True) -> None:
+        """One sample: the regressors' filters always step; the sums take it only if ``use`` (the stage follows)."""
         b = 1.0 - a
         f1 = a * self.f_th + b * self.g_th
         f2 = a * self.f_b + b * self.g_b
         fc = a * self.f_c + b * self.g_c
         self.f_th, self.f_b, self.f_c = f1, f2, fc
         self.g_th, self.g_b, self.g_c = g_th, g_b, c
+        if not use:
+            return
         y += fc
         self.a11 += f1 * f1
         self.a12 += f1 * f2
@@ -832,6 +841,7 @@ class StageController:
         self._ev_num = self._ev_den = 0.0
         self._ev_dir = 0.0
         self._ev_run_s = 0.0
+        self._ad_run_s = 0.0
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
@@ -990,6 +1000,7 @@ class StageController:
     _ev_dir = 0.0  # direction of the reference's current branch (0: at rest) ...
     _ev_run_s = 0.0  # time the stage has followed the reference, fresh samples in a row [s]
     _ev_x0 = 0.0  # ... and where it started [m]: evidence only beyond adapt_presliding_m of travel
+    _ad_run_s = 0.0  # time since the reference's inertia force last changed fast (the learners' gate, _step) [s]
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
 
@@ -1003,6 +1014,8 @@ class StageController:
         f_raw = u_ff / th
         if at_rest or abs(f_raw) < ffc.adapt_min_force_n:
             return u_ff, d_hat
+        if self._ad_run_s * self._d_g < ADAPT_SETTLED_TIME_CONSTANTS:
+            return u_ff, d_hat  # the reference's inertia force changed fast not long ago (_step): a transient
         if abs(ref.x_m - self._x_rest_m) < ffc.adapt_presliding_m:
             # the first adapt_presliding_m after a move started with the rest spring folded into the observer:
             # the observer still carries that force, not an error of the model's scale or stiffness
@@ -1071,7 +1084,9 @@ class StageController:
             a = self._dob_decay(dt)
             # the stage's own friction spring over the tracking error e is in the estimate (F(x) = F(x_r) − k·e):
             # added back, through the observer's filter, so that y is the model's error at the reference
-            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m)
+            # only samples a few observer time constants after the reference's inertia force last changed fast
+            # (the same gate as _adapt's, _step): a move's acceleration transient is not evidence
+            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS)
             return u_ff, d_hat
         if ml.rest:
             return u_ff, d_hat
@@ -1534,6 +1549,23 @@ class StageController:
                 self._x_rest_m = x_r
             elif abs(x_r - self._x_rest_m) >= ffc.adapt_presliding_m:
                 self._x_rest_m = math.nan
+        if at_rest:
+            self._ad_run_s = 0.0
+        elif self._d_learn or self._d_adapt:
+            # the learners' confidence gate: the observer's estimate is a model error only once the reference's
+            # inertia force m·a_r has changed by at most ADAPT_LAG_FRACTION of the model force (or its Coulomb level)
+            # per observer time constant, for ADAPT_SETTLED_TIME_CONSTANTS of them in a row; before, it carries
+            # the move's transient (acceleration, break-away, the stage's lag) and the observer's own lag
+            last = self._last_ref
+            jerk_n = self.mass_kg * abs(a_r - last.a_m_s2) / dt if last is not None else math.inf
+            th = self.ff_scale
+            scale = max(abs(u_ff) / th if th > 0.0 else 0.0, self._f_kin if self._f_kin == self._f_kin else 0.0)
+            # ... and the stage's lag behind it, through the friction's spring, as little: θ·Σk·|Δe|/dt per observer
+            # time constant (a wrong model's lag is steady; a transient's is not)
+            e_prev = self._e_last
+            lag_n = th * self._k_ps * abs(x_r - x_meas_m - e_prev) / dt if e_prev == e_prev else math.inf
+            quiet = max(jerk_n, lag_n) <= ADAPT_LAG_FRACTION * scale * self._d_g
+            self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
                                             x_r - x_meas_m)
