@@ -520,8 +520,9 @@ REST_GAINS_DWELL_S = 0.005
 #: information) towards the model as given
 LEARN_FORGET = 0.9
 #: the learners (adaptation, learning from moves) take an estimate as evidence only once the reference's inertia
-#: force m·a_r has changed by at most this fraction of the model force (or its Coulomb level) per observer time
-#: constant, m·|j_r|/(2π·f_DOB) <= ADAPT_LAG_FRACTION·max(|F̂|, F_c) ...
+#: force m·a_r and the stage's lag through the friction's spring θ·Σk·e have each moved by at most this fraction of
+#: the model force (or its Coulomb level) over the last observer time constant (the signal against its low-pass at
+#: the observer's bandwidth) ...
 ADAPT_LAG_FRACTION = 0.1
 #: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
 ADAPT_SETTLED_TIME_CONSTANTS = 5.0
@@ -552,7 +553,7 @@ LEARN_BASELINE_TOL = 0.01
 #: observer time constants, since the estimate is low-passed by the observer) ...
 LEARN_SIGNIFICANCE = 3.0
 #: ... and one move changes θ, β by at most this fraction (a single move's evidence is bounded however clear)
-LEARN_MAX_STEP = 0.1
+LEARN_MAX_STEP = 0.25
 #: observer anti-wind-up (``stuck_dob_fraction``): the stage counts as stuck while its speed between the last two
 #: fresh samples is at most this fraction of the reference's speed
 STUCK_SPEED_FRACTION = 0.25
@@ -612,6 +613,7 @@ class _MoveFit:
     xr0: float = math.nan  # the model's last reversal at the start of the move [m] (a later one: a reversal in it)
     se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
     se_u: float = math.inf
+    n_all: int = 0  # samples of the move, used or not (its length)
 
     def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
         self.rest, self.valid = False, True
@@ -620,7 +622,7 @@ class _MoveFit:
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
         self.s1 = self.s2 = self.yy = 0.0
-        self.n = 0
+        self.n = self.n_all = 0
 
     def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float, use: bool = True) -> None:
         """One sample: the regressors' filters always step; the sums take it only if ``use`` (the stage follows)."""
@@ -630,6 +632,7 @@ class _MoveFit:
         fc = a * self.f_c + b * self.g_c
         self.f_th, self.f_b, self.f_c = f1, f2, fc
         self.g_th, self.g_b, self.g_c = g_th, g_b, c
+        self.n_all += 1
         if not use:
             return
         y += fc
@@ -841,7 +844,7 @@ class StageController:
         self._ev_num = self._ev_den = 0.0
         self._ev_dir = 0.0
         self._ev_run_s = 0.0
-        self._ad_run_s = 0.0
+        self._ad_run_s = -1.0
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
@@ -1000,7 +1003,10 @@ class StageController:
     _ev_dir = 0.0  # direction of the reference's current branch (0: at rest) ...
     _ev_run_s = 0.0  # time the stage has followed the reference, fresh samples in a row [s]
     _ev_x0 = 0.0  # ... and where it started [m]: evidence only beyond adapt_presliding_m of travel
-    _ad_run_s = 0.0  # time since the reference's inertia force last changed fast (the learners' gate, _step) [s]
+    _ad_run_s = -1.0  # time since the reference's inertia force or the stage's lag last changed fast (the learners'
+    # gate, _step; negative at rest) [s]
+    _gate_a = 0.0  # the gate's low-passes of a_r [m/s²] and of the tracking error [m]
+    _gate_e = 0.0
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
 
@@ -1091,8 +1097,9 @@ class StageController:
         if ml.rest:
             return u_ff, d_hat
         ml.rest = True
+        # (the time constants counted over the samples the gate let through: evidence, not just duration)
         long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
-                       >= LEARN_MIN_TIME_CONSTANTS and ml.n * self.period_s >= LEARN_MIN_MOVE_S)
+                       >= LEARN_MIN_TIME_CONSTANTS and ml.n_all * self.period_s >= LEARN_MIN_MOVE_S)
         g_dob = 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
         per_dof = 2.0 / (g_dob * self.period_s)  # samples per independent one: two observer time constants
         fit = ml.solve(self.cfg.feedforward.adapt_min_force_n, per_dof) if ml.valid and long_enough else None
@@ -1550,21 +1557,27 @@ class StageController:
             elif abs(x_r - self._x_rest_m) >= ffc.adapt_presliding_m:
                 self._x_rest_m = math.nan
         if at_rest:
-            self._ad_run_s = 0.0
+            self._ad_run_s = -1.0  # (negative: the gate's filters restart with the next motion)
         elif self._d_learn or self._d_adapt:
-            # the learners' confidence gate: the observer's estimate is a model error only once the reference's
-            # inertia force m·a_r has changed by at most ADAPT_LAG_FRACTION of the model force (or its Coulomb level)
-            # per observer time constant, for ADAPT_SETTLED_TIME_CONSTANTS of them in a row; before, it carries
-            # the move's transient (acceleration, break-away, the stage's lag) and the observer's own lag
-            last = self._last_ref
-            jerk_n = self.mass_kg * abs(a_r - last.a_m_s2) / dt if last is not None else math.inf
+            # the learners' confidence gate: the observer's estimate is a model error only once neither the
+            # reference's inertia force m·a_r nor the stage's lag behind it through the friction's spring, θ·Σk·e, has
+            # moved by more than ADAPT_LAG_FRACTION of the model force (or its Coulomb level) over the last observer
+            # time constant (each against its own low-pass at the observer's bandwidth), for
+            # ADAPT_SETTLED_TIME_CONSTANTS of them in a row; before, the estimate carries the move's transient
+            # (acceleration, break-away, the stage's lag) and the observer's own lag. A wrong model's lag is
+            # steady: it does not hold the gate shut.
+            a = self._dob_decay(dt)
             th = self.ff_scale
+            e_now = x_r - x_meas_m
+            if self._ad_run_s < 0.0:  # first moving step: the filters start here, from a settled state (the
+                # observer has settled at rest; a gentle start keeps the gate open, a fast one shuts it at once)
+                self._gate_a, self._gate_e = 0.0, e_now
+                self._ad_run_s = ADAPT_SETTLED_TIME_CONSTANTS / self._d_g
+            self._gate_a = a * self._gate_a + (1.0 - a) * a_r
+            self._gate_e = a * self._gate_e + (1.0 - a) * e_now
+            dev = max(self.mass_kg * abs(a_r - self._gate_a), th * self._k_ps * abs(e_now - self._gate_e))
             scale = max(abs(u_ff) / th if th > 0.0 else 0.0, self._f_kin if self._f_kin == self._f_kin else 0.0)
-            # ... and the stage's lag behind it, through the friction's spring, as little: θ·Σk·|Δe|/dt per observer
-            # time constant (a wrong model's lag is steady; a transient's is not)
-            e_prev = self._e_last
-            lag_n = th * self._k_ps * abs(x_r - x_meas_m - e_prev) / dt if e_prev == e_prev else math.inf
-            quiet = max(jerk_n, lag_n) <= ADAPT_LAG_FRACTION * scale * self._d_g
+            quiet = dev <= ADAPT_LAG_FRACTION * scale
             self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
