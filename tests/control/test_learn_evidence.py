@@ -85,10 +85,10 @@ def test_a_wrong_model_is_still_corrected(seed):
 
 def test_learn_from_moves_waits_for_significant_evidence(seed):
     """The significance test itself (no simulation): a move whose model error is noise about the current θ does
-    not move θ; a clear 10 % error does, by at most LEARN_MAX_STEP per move."""
+    not move θ (within LEARN_SIGNIFICANCE standard errors); a clear 10 % error does."""
     import math
 
-    from stagectl.control.controller import LEARN_MAX_STEP, _MoveFit
+    from stagectl.control.controller import LEARN_MAX_STEP, LEARN_SIGNIFICANCE, _MoveFit
 
     del seed
 
@@ -106,7 +106,7 @@ def test_learn_from_moves_waits_for_significant_evidence(seed):
         return fit[0], ml.se_th
 
     th, se = move(0.0, 0.01)
-    assert abs(th - 1.0) < 3.0 * se
+    assert abs(th - 1.0) < LEARN_SIGNIFICANCE * se
     th, se = move(0.1, 0.01)
-    assert th - 1.0 > 3.0 * se and math.isfinite(se)
+    assert th - 1.0 > LEARN_SIGNIFICANCE * se and math.isfinite(se)
     assert 0.0 < LEARN_MAX_STEP < 0.5
