@@ -176,7 +176,22 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
-Settle move (``settle.move_s``, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+Evidence gates for both learners (docs/control.md §2.3; on a plant equal to the model they moved θ to 0.927
+from two pairs of 200 µm approach moves, and to 1.03 / β 0.97 from a 10 mm/s move):
+
+* transients: a sample is evidence only ADAPT_SETTLED_TIME_CONSTANTS observer time constants after the
+  reference's inertia force last moved by more than ADAPT_LAG_FRACTION of max(|F̂|, F_c) within one time constant,
+  m·|a_r − LPF_g(a_r)| <= ADAPT_LAG_FRACTION·max(|F̂|, F_c), and after such a transient also the stage's lag
+  θ·Σk·|e − LPF_g(e)| by as little (the lag alone does not shut it: a wrong model's lag is its evidence). The
+  adaptation waits for it; the learning from moves sums only such samples and counts its time constants over them.
+* the rest state: a move is not evidence when its fit with the start's estimate d̂_0 as baseline and with 0 differ
+  by more than LEARN_BASELINE_TOL in θ or ln β (Δp = d̂_0·A⁻¹·Σg): at rest d̂_0 may be a force that stays or a
+  mismatch of the model's pre-sliding state that sliding erases, and the move cannot tell which.
+* significance: θ and β are each moved only where the accumulated fit differs from them by more than
+  LEARN_SIGNIFICANCE standard errors (residuals of the move's fit, one independent sample per two observer time
+  constants), by at most LEARN_MAX_STEP per move.
+
+
 the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
 first sample at rest, by a quintic c from the stage's error e₀ and speed to rest at the target in
 T = max(move_s, √(10/√3·m·|e₀|/F)) (F = ``settle.move_force_n``, the quintic's peak inertial force; without it
