@@ -5,7 +5,6 @@ whose friction equals the controller's model they leave θ, β where they are th
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import pytest
