@@ -176,7 +176,22 @@ the first move from a relaxed start cannot profit (nothing learned yet; it settl
 later ones in 25–31 ms instead of 51–64 ms. Not while ILC takes part in the motion (above); a retune that
 replaces the model forgets what was learned.
 
-Settle move (``settle.move_s``, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
+Evidence gates for both learners (docs/control.md §2.3; on a plant equal to the model they moved θ to 0.927
+from two pairs of 200 µm approach moves, and to 1.03 / β 0.97 from a 10 mm/s move):
+
+* transients: a sample is evidence only ADAPT_SETTLED_TIME_CONSTANTS observer time constants after the
+  reference's inertia force last moved by more than ADAPT_LAG_FRACTION of max(|F̂|, F_c) within one time constant,
+  m·|a_r − LPF_g(a_r)| <= ADAPT_LAG_FRACTION·max(|F̂|, F_c), and after such a transient also the stage's lag
+  θ·Σk·|e − LPF_g(e)| by as little (the lag alone does not shut it: a wrong model's lag is its evidence). The
+  adaptation waits for it; the learning from moves sums only such samples and counts its time constants over them.
+* the rest state: a move is not evidence when its fit with the start's estimate d̂_0 as baseline and with 0 differ
+  by more than LEARN_BASELINE_TOL in θ or ln β (Δp = d̂_0·A⁻¹·Σg): at rest d̂_0 may be a force that stays or a
+  mismatch of the model's pre-sliding state that sliding erases, and the move cannot tell which.
+* significance: θ and β are each moved only where the accumulated fit differs from them by more than
+  LEARN_SIGNIFICANCE standard errors (residuals of the move's fit, one independent sample per two observer time
+  constants), by at most LEARN_MAX_STEP per move.
+
+
 the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
 first sample at rest, by a quintic c from the stage's error e₀ and speed to rest at the target in
 T = max(move_s, √(10/√3·m·|e₀|/F)) (F = ``settle.move_force_n``, the quintic's peak inertial force; without it
@@ -541,6 +556,13 @@ REST_INTEGRAL_DEADBAND = 0.8
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
 #: information) towards the model as given
 LEARN_FORGET = 0.9
+#: the learners (adaptation, learning from moves) take an estimate as evidence only once the reference's inertia
+#: force m·a_r and the stage's lag through the friction's spring θ·Σk·e have each moved by at most this fraction of
+#: the model force (or its Coulomb level) over the last observer time constant (the signal against its low-pass at
+#: the observer's bandwidth) ...
+ADAPT_LAG_FRACTION = 0.1
+#: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
+ADAPT_SETTLED_TIME_CONSTANTS = 5.0
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
@@ -556,6 +578,23 @@ LEARN_MIN_TIME_CONSTANTS = 15.0
 #: walked β to 0.92 and 5-7 µm (15-18 ms) ones to 0.88 with a 150 Hz observer; 15 µm 0.96 at 100 and 150 Hz alike).
 #: Just below 15 time constants at 100 Hz (23.9 ms), so a 100 Hz observer's gate is unchanged by it.
 LEARN_MIN_MOVE_S = 0.0235
+#: ... and only where its evidence is clear (docs/control.md §2.10). The baseline of a move's fit is the observer's
+#: estimate at its start, d̂_0, and at rest that is ambiguous: a constant force keeps it through the move, a mismatch
+#: of the model's pre-sliding *state* (what the stop's synchronisation has not yet moved into the model) is erased by
+#: sliding. The fit with d̂_0 as baseline and the fit with 0 differ by Δp = d̂_0·A⁻¹·Σg (A, Σg: this move's normal
+#: matrix and regressor sums); a move is learned from only if |Δθ| and |Δln β| are at most this (else the baseline
+#: alone could move the model by more: the exact model after a 0.1 s rest was learned as θ 0.927) ...
+LEARN_BASELINE_TOL = 0.01
+#: ... and each parameter is updated only where the accumulated fit differs from its current value by more than
+#: LEARN_SIGNIFICANCE standard errors (residuals of this move's fit, counted as one independent sample per two
+#: observer time constants, since the estimate is low-passed by the observer). One standard error, not 2-3: the
+#: 20 %-wrong model's first 10 µm step gives ln β 0.087 ± 0.042, and holding such first-move evidence back slowed
+#: bench control's steps (3 SE: the config's third step 16 -> 19 ms; 1.5 SE: one of the 24 other wrong models'
+#: steps 26 -> 31 ms). The standard error sees scatter, not a bias: the gates above are what keep transients and
+#: the rest state out; this test keeps an exact model from following the noise of moves that carry little ...
+LEARN_SIGNIFICANCE = 1.0
+#: ... and one move changes θ, β by at most this fraction (a single move's evidence is bounded however clear)
+LEARN_MAX_STEP = 0.25
 #: observer anti-wind-up (``stuck_dob_fraction``): the stage counts as stuck while its speed between the last two
 #: fresh samples is at most this fraction of the reference's speed
 STUCK_SPEED_FRACTION = 0.25
@@ -609,31 +648,46 @@ class _MoveFit:
     c22: float = 0.0
     r1: float = 0.0
     r2: float = 0.0
+    s1: float = 0.0  # Σ f_th, Σ f_b [N] (the baseline's leverage on the fit); Σ y² [N²] (residuals)
+    s2: float = 0.0
+    yy: float = 0.0
+    xr0: float = math.nan  # the model's last reversal at the start of the move [m] (a later one: a reversal in it)
+    se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
+    se_u: float = math.inf
+    n_all: int = 0  # samples of the move, used or not (its length)
 
-    def start(self, th: float, b: float, f0: float, d0: float, x0: float) -> None:
+    def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
         self.rest, self.valid = False, True
-        self.th0, self.b0, self.f0, self.d0, self.x0 = th, b, f0, d0, x0
+        self.th0, self.b0, self.f0, self.d0, self.x0, self.xr0 = th, b, f0, d0, x0, xr0
         self.dir = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
-        self.n = 0
+        self.s1 = self.s2 = self.yy = 0.0
+        self.n = self.n_all = 0
 
-    def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float) -> None:
+    def accumulate(self, a: float, g_th: float, g_b: float, y: float, c: float, use: bool = True) -> None:
+        """One sample: the regressors' filters always step; the sums take it only if ``use`` (the stage follows)."""
         b = 1.0 - a
         f1 = a * self.f_th + b * self.g_th
         f2 = a * self.f_b + b * self.g_b
         fc = a * self.f_c + b * self.g_c
         self.f_th, self.f_b, self.f_c = f1, f2, fc
         self.g_th, self.g_b, self.g_c = g_th, g_b, c
+        self.n_all += 1
+        if not use:
+            return
         y += fc
         self.a11 += f1 * f1
         self.a12 += f1 * f2
         self.a22 += f2 * f2
         self.b1 += f1 * y
         self.b2 += f2 * y
+        self.s1 += f1
+        self.s2 += f2
+        self.yy += y * y
         self.n += 1
 
-    def solve(self, min_force_n: float) -> tuple[float, float] | None:
+    def solve(self, min_force_n: float, samples_per_dof: float = 1.0) -> tuple[float, float] | None:
         """(θ, ln β): the least-squares fit over this move and the earlier ones (each earlier move's normal
         equations weighted by LEARN_FORGET per move since), about the model as given (θ = 1, β = 1) with a small
         prior weight; None when this move's model forces stayed below ``min_force_n`` (RMS): nothing learned
@@ -643,6 +697,21 @@ class _MoveFit:
             return None
         if self.d0 * self.d0 * n > LEARN_START_FRACTION ** 2 * (self.a11 + self.a22):
             return None  # the move started from an estimate that is not a model error (LEARN_START_FRACTION)
+        # this move's own fit (with a small ridge: β's regressor can be ~0) and how far its baseline d̂_0 moves it
+        m11, m22, m12 = self.a11 * (1.0 + LEARN_RIDGE), self.a22 + LEARN_RIDGE * max(self.a22, LEARN_RIDGE * self.a11), \
+            self.a12
+        mdet = m11 * m22 - m12 * m12
+        if not mdet > 0.0:
+            return None
+        dth = self.d0 * (m22 * self.s1 - m12 * self.s2) / mdet  # Δp = d̂_0·A⁻¹·Σg (LEARN_BASELINE_TOL)
+        du = self.d0 * (m11 * self.s2 - m12 * self.s1) / mdet
+        if abs(dth) > LEARN_BASELINE_TOL or abs(du) > LEARN_BASELINE_TOL:
+            return None  # the start's estimate, model error or state mismatch, decides the fit: no evidence
+        # residual variance of this move's fit (about its start), inflated by the samples per independent one
+        q1, q2 = (m22 * self.b1 - m12 * self.b2) / mdet, (m11 * self.b2 - m12 * self.b1) / mdet
+        sse = max(0.0, self.yy - 2.0 * (q1 * self.b1 + q2 * self.b2)
+                  + q1 * q1 * self.a11 + 2.0 * q1 * q2 * self.a12 + q2 * q2 * self.a22)
+        var = sse / max(1.0, n - 2.0) * max(1.0, samples_per_dof)
         # this move's equations A·(p − p0) = b about its start p0 = (θ0, ln β0), in absolute parameters
         u0 = math.log(self.b0)
         r1 = self.b1 + self.a11 * self.th0 + self.a12 * u0
@@ -664,6 +733,8 @@ class _MoveFit:
             return None
         q1, q2 = self.r1 + w1 * 1.0, self.r2
         th, u = (a22 * q1 - a12 * q2) / det, (a11 * q2 - a12 * q1) / det
+        # standard errors of the accumulated fit (its information scaled by this move's residual variance)
+        self.se_th, self.se_u = math.sqrt(var * a22 / det), math.sqrt(var * a11 / det)
         return (th, u) if math.isfinite(th) and math.isfinite(u) else None
 
 
@@ -810,6 +881,8 @@ class StageController:
         self._ev_num = self._ev_den = 0.0
         self._ev_dir = 0.0
         self._ev_run_s = 0.0
+        self._ad_run_s = -1.0
+        self._gate_shut = False
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
@@ -981,6 +1054,11 @@ class StageController:
     _ev_dir = 0.0  # direction of the reference's current branch (0: at rest) ...
     _ev_run_s = 0.0  # time the stage has followed the reference, fresh samples in a row [s]
     _ev_x0 = 0.0  # ... and where it started [m]: evidence only beyond adapt_presliding_m of travel
+    _ad_run_s = -1.0  # time since the reference's inertia force or the stage's lag last changed fast (the learners'
+    # gate, _step; negative at rest) [s]
+    _gate_shut = False  # an inertia transient shut the gate; it reopens once the lag has settled too
+    _gate_a = 0.0  # the gate's low-passes of a_r [m/s²] and of the tracking error [m]
+    _gate_e = 0.0
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
 
@@ -994,6 +1072,8 @@ class StageController:
         f_raw = u_ff / th
         if at_rest or abs(f_raw) < ffc.adapt_min_force_n:
             return u_ff, d_hat
+        if self._ad_run_s * self._d_g < ADAPT_SETTLED_TIME_CONSTANTS:
+            return u_ff, d_hat  # the reference's inertia force changed fast not long ago (_step): a transient
         if abs(ref.x_m - self._x_rest_m) < ffc.adapt_presliding_m:
             # the first adapt_presliding_m after a move started with the rest spring folded into the observer:
             # the observer still carries that force, not an error of the model's scale or stiffness
@@ -1040,7 +1120,8 @@ class StageController:
                 # force of the last step: this step's has already moved, by all of its jump for a static model);
                 # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
                 # into the observer below
-                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m,
+                         ff.state.x_rev_m)
             if learning:  # the learner (ILC) is active for this motion: one learner at a time
                 ml.valid = False
             if not ml.valid:
@@ -1061,23 +1142,34 @@ class StageController:
             a = self._dob_decay(dt)
             # the stage's own friction spring over the tracking error e is in the estimate (F(x) = F(x_r) − k·e):
             # added back, through the observer's filter, so that y is the model's error at the reference
-            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m)
+            # only samples a few observer time constants after the reference's inertia force last changed fast
+            # (the same gate as _adapt's, _step): a move's acceleration transient is not evidence
+            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS)
             return u_ff, d_hat
         if ml.rest:
             return u_ff, d_hat
         ml.rest = True
+        # (the time constants counted over the samples the gate let through: evidence, not just duration)
         long_enough = (ml.n * self.period_s * 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
-                       >= LEARN_MIN_TIME_CONSTANTS and ml.n * self.period_s >= LEARN_MIN_MOVE_S)
-        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n) if ml.valid and long_enough else None
+                       >= LEARN_MIN_TIME_CONSTANTS and ml.n_all * self.period_s >= LEARN_MIN_MOVE_S)
+        g_dob = 2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale
+        per_dof = 2.0 / (g_dob * self.period_s)  # samples per independent one: two observer time constants
+        fit = ml.solve(self.cfg.feedforward.adapt_min_force_n, per_dof) if ml.valid and long_enough else None
         if fit is None:
             return u_ff, d_hat
         ffc = self.cfg.feedforward
         k = ffc.learn_moves_fraction
         lo, hi = 1.0 - ffc.adapt_max_change_fraction, 1.0 + ffc.adapt_max_change_fraction
-        th_new = min(hi, max(lo, th + k * (fit[0] - th)))
+        step = LEARN_MAX_STEP
+        th_new = th
+        if abs(fit[0] - th) > LEARN_SIGNIFICANCE * ml.se_th:  # significant: the evidence says θ is wrong
+            th_new = min(hi, max(lo, th + max(-step, min(step, k * (fit[0] - th)))))
         b = ff.input_scale
-        beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
-        ff.input_scale = min(hi, max(lo, b + k * (beta - b)))
+        if abs(fit[1] - math.log(b)) > LEARN_SIGNIFICANCE * ml.se_u:
+            beta = math.exp(min(math.log(hi), max(math.log(lo), fit[1])))  # ln β bounded first: exp cannot overflow
+            ff.input_scale = min(hi, max(lo, b + max(-step * b, min(step * b, k * (beta - b)))))
+        if th_new == th:
+            return u_ff, d_hat
         return self._set_theta(th_new, f_raw, d_hat, dob)
 
     def _settle_move(self, dt: float, ref: Reference, x_m: float, v_hat: float,
@@ -1530,6 +1622,36 @@ class StageController:
                 self._x_rest_m = x_r
             elif abs(x_r - self._x_rest_m) >= ffc.adapt_presliding_m:
                 self._x_rest_m = math.nan
+        if at_rest:
+            self._ad_run_s = -1.0  # (negative: the gate's filters restart with the next motion)
+            self._gate_shut = False
+        elif self._d_learn or self._d_adapt:
+            # the learners' confidence gate: the observer's estimate is a model error only once the reference's
+            # inertia force m·a_r has not moved by more than ADAPT_LAG_FRACTION of the model force (or its Coulomb
+            # level) over the last observer time constant (against its low-pass at the observer's bandwidth) for
+            # ADAPT_SETTLED_TIME_CONSTANTS of them in a row, and, after such an inertia transient, neither has the
+            # stage's lag behind it through the friction's spring, θ·Σk·e; before, the estimate carries the move's
+            # transient (acceleration, break-away, the stage's lag) and the observer's own lag. The lag alone does
+            # not shut the gate: a wrong model's lag is its evidence.
+            a = self._dob_decay(dt)
+            th = self.ff_scale
+            e_now = x_r - x_meas_m
+            if self._ad_run_s < 0.0:  # first moving step: the filters start here, from a settled state (the
+                # observer has settled at rest; a gentle start keeps the gate open, a fast one shuts it at once)
+                self._gate_a, self._gate_e = 0.0, e_now
+                self._ad_run_s = ADAPT_SETTLED_TIME_CONSTANTS / self._d_g
+            self._gate_a = a * self._gate_a + (1.0 - a) * a_r
+            self._gate_e = a * self._gate_e + (1.0 - a) * e_now
+            lim = ADAPT_LAG_FRACTION * max(abs(u_ff) / th if th > 0.0 else 0.0,
+                                           self._f_kin if self._f_kin == self._f_kin else 0.0)
+            if self.mass_kg * abs(a_r - self._gate_a) > lim:
+                self._gate_shut = True  # an inertia transient: the lag must settle too before the gate reopens
+            quiet = not self._gate_shut or th * self._k_ps * abs(e_now - self._gate_e) <= lim
+            if self.mass_kg * abs(a_r - self._gate_a) > lim:
+                quiet = False
+            self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
+            if self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS:
+                self._gate_shut = False
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
                                             x_r - x_meas_m)
