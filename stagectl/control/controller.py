@@ -1003,6 +1003,8 @@ class StageController:
         self._f_kin = _kinetic_level(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
+            if new_dob.period_s is not None:  # (a rebuilt one has T: as set_timing_scale, s·T)
+                new_dob.period_s = self.timing_scale * self.period_s
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
         self._d_cfg = None  # _derive() again at the next step
 
