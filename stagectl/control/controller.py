@@ -1691,7 +1691,8 @@ class StageController:
         if self._d_rest_int:
             if at_rest and not settling and not ilc:
                 d_hat = self._rest_integral(dt, x_r - x_meas_m, v_hat, d_hat)
-            elif self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings:
+            elif (self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings or self._ri_side
+                  or self._ri_v != 0.0):
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
