@@ -143,9 +143,7 @@ class QFilterDob:
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
         self._g = 2.0 * math.pi * cfg.bandwidth_hz
         self._dt = math.nan
-        # (with a period set, its coefficients: a retune after ``period_s`` changed, set_timing_scale, must not
-        # keep the old period's until an interval differs from the last one)
-        self._coeffs(self._dt_last if self.period_s is None else self.period_s)
+        self._coeffs(self._dt_last)
         st.w_n = st.d_hat_n + self._kv * st.v_hat_m_s
         old = list(self._delay)
         n = cfg.command_delay_samples
