@@ -51,6 +51,11 @@ def write_config(res: Results, out: Path) -> AppConfig:
     return load_app_config(out / "stage.yaml")
 
 
+#: the runs of the commissioned controller (Commissioning._rest_on_stage, _verify): a fault or Ctrl-C in one of them
+#: leaves the given controller recommended
+COMMISSIONED_RUNS = ("verify_after", "wipe_after", "verify_rest_", "wipe_rest_")
+
+
 def report_dict(res: Results) -> dict[str, Any]:
     r: dict[str, Any] = {
         "command": "commission",
@@ -111,7 +116,8 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
                                  f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
                                  f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
-    if res.aborted is not None and res.aborted.experiment.startswith(("verify_after", "wipe_after")):
+    # (every run of the commissioned controller: the rest additions' check on the stage, the verification's)
+    if res.aborted is not None and res.aborted.experiment.startswith(COMMISSIONED_RUNS):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
                         "better": [], "text": f"keep the given controller: the commissioned one faulted in "
                         f"{res.aborted.experiment} ({res.aborted.reason})"}

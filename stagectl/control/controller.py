@@ -108,6 +108,19 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
+Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
+rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
+towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S)
+and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's estimate is moved each period by::
+
+    δ = 2π·f_r·min(θ, 1)·k_t·clamp(e, ±rest_spring_range_m)·dt,   |Σδ| <= θ·F_c over the standstill   [N]
+
+(e = x_r − x; k_t the model's tangent stiffness towards the target: Σk ahead of it, ~0 behind; ``dob.shift``, so
+the observer does not integrate it again): a stage stuck off the target converges at ≈ 2π·f_r instead of
+g·K_p/Σk. It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
+±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
+``feedforward.rest_sync_hz`` hands to the model before the next move.
+
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
 and above that resonance it has *more* gain than the free mass (1/(m·ω² − k)); the observer's high-frequency
@@ -191,7 +204,7 @@ from two pairs of 200 µm approach moves, and to 1.03 / β 0.97 from a 10 mm/s m
   LEARN_SIGNIFICANCE standard errors (residuals of the move's fit, one independent sample per two observer time
   constants), by at most LEARN_MAX_STEP per move.
 
-
+Settle move (``settle.move_s``, off by default; :mod:`stagectl.control.settle_move`): a move that ends with
 the stage behind the reference in its direction by more than ``settle.move_min_m`` is continued once, from the
 first sample at rest, by a quintic c from the stage's error e₀ and speed to rest at the target in
 T = max(move_s, √(10/√3·m·|e₀|/F)) (F = ``settle.move_force_n``, the quintic's peak inertial force; without it
@@ -1003,6 +1016,8 @@ class StageController:
         self._f_kin = _kinetic_level(parts.ff)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
+            if new_dob.period_s is not None:  # (a rebuilt one has T: as set_timing_scale, s·T)
+                new_dob.period_s = self.timing_scale * self.period_s
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
         self._d_cfg = None  # _derive() again at the next step
 
@@ -1689,7 +1704,8 @@ class StageController:
         if self._d_rest_int:
             if at_rest and not settling and not ilc:
                 d_hat = self._rest_integral(dt, x_r - x_meas_m, v_hat, d_hat)
-            elif self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings:
+            elif (self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings or self._ri_side
+                  or self._ri_v != 0.0):
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
         if at_rest and not settling and self._d_sync:
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]

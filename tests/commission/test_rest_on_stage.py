@@ -112,3 +112,20 @@ def test_the_decision_and_its_confidence_follow_the_scatter():
     assert [(d["keep"], d["confidence"]) for d in (rest_stage_decision(figs(*a)) for a in cases)] == [
         (True, "high"), (True, "medium"), (True, "medium"), (False, "high"), (False, "medium"), (False, "high")]
     assert "cosine is worse" in rest_stage_decision(figs(3, 2, 1.3))["decision"]
+
+
+@pytest.mark.parametrize("name", ["wipe_rest_with_steps", "verify_rest_with_steps", "verify_rest_without_cosine",
+                                  "verify_after_steps"])
+def test_a_fault_of_the_commissioned_controller_in_its_rest_check_keeps_the_given_one(repo_root, tmp_path, name):
+    """A fault in the rest additions' check on the stage is a fault of the commissioned controller (with or without
+    them; stage.yaml then holds it without them), as one in its verification is: report.json recommends the given
+    controller and says why, instead of 'not verified'."""
+    from stagectl.commission import sequence as sq
+    from stagectl.commission.outputs import report_dict
+    from stagectl.config import load_app_config
+
+    cfg = load_app_config(repo_root / "config" / "sim.yaml")
+    com = sq.Commissioning(cfg, tmp_path, sq.Options(plots=False), lambda res: cfg)
+    com.res.aborted = sq.CommissionAborted(name, "fault following_error: 5.1e-05 m")
+    v = report_dict(com.res)["verdict"]
+    assert v["recommend"] == "given" and name in v["text"] and "faulted" in v["text"]

@@ -202,3 +202,27 @@ def test_qfilter_skipped_interval_under_acceleration(a_ref):
         assert max(err) < 1e-9
     else:
         assert max(err) > 0.1 * (u - tau)
+
+
+@pytest.mark.parametrize("kind", ["none", "kalman"])
+def test_a_qfilter_switched_on_in_a_slowed_down_loop_gets_its_period(repo_root, kind):
+    """A retune that builds a new Q-filter observer while the loop is slowed down (``set_timing_scale`` s = 2) gives
+    it the period s·T and the scaled bandwidth, as the running observer has (before, it got T: it stepped with the
+    period's coefficients for a loop that samples at 2T until the next change of the scale)."""
+    import dataclasses
+
+    from stagectl.config import load_app_config
+    from stagectl.control.controller import StageController
+
+    cfg = load_app_config(repo_root / "config" / "sim.yaml")
+    T = cfg.loop.period_s
+    c = cfg.controller
+    assert c.dob.kind == "qfilter"
+    ref = StageController(c, T)
+    ref.set_timing_scale(2.0)
+    ctl = StageController(dataclasses.replace(c, dob=dataclasses.replace(c.dob, kind=kind)), T)
+    ctl.set_timing_scale(2.0)
+    ctl.retune(c)
+    assert isinstance(ctl.dob, QFilterDob) and isinstance(ref.dob, QFilterDob)
+    assert ctl.dob.period_s == ref.dob.period_s == 2 * T
+    assert ctl.dob.cfg.bandwidth_hz == ref.dob.cfg.bandwidth_hz == c.dob.bandwidth_hz / 2

@@ -91,3 +91,37 @@ def test_the_rest_integral_needs_an_observer_and_stays_off_in_motion(cogged):
     for i in range(20):
         ctl.step(1e-3, 1e-9 * i, Reference(1e-9 * i, 1e-6, 0.0))
     assert ctl._ri_n == 0.0
+
+
+def _standstill_after_a_move(base, hz: float, creeping_before: bool) -> tuple[list[float], list[float]]:
+    """The controller stepped on positions written here (no plant): optionally a standstill at 0 in which the stage
+    still creeps in from 300 nm ahead at 5 µm/s when the reference moves on (the integral waits), then a 1 µm move
+    followed exactly, then a standstill at 1 µm: 100 nm behind for 5 ms, then 100 nm ahead for 150 ms (one
+    crossing of the ±50 nm band). Returns the forces with the rest integral at ``hz`` and with it off."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    T = 1e-3
+    seq = [(Reference(0.0), 300e-9 - 5e-6 * T * k) for k in range(31)] if creeping_before else []
+    seq += [(Reference(1e-7 * k, 1e-4), 1e-7 * k) for k in range(1, 11)]
+    seq += [(Reference(1e-6), 1e-6 - 100e-9)] * 5 + [(Reference(1e-6), 1e-6 + 100e-9)] * 150
+    out = []
+    for f in (hz, 0.0):
+        ctl = StageController(dataclasses.replace(base, rest_integral_hz=f), T)
+        ctl.reset(seq[0][1])
+        out.append([ctl.step(T, x, ref).force_n for ref, x in seq])
+    return out[0], out[1]
+
+
+def test_each_standstill_starts_the_integral_afresh(cogged):
+    """The side of the band the stage was last seen on belongs to its standstill: a standstill that ended with the
+    stage beyond -50 nm, still creeping in, left it behind, and in the next standstill a single crossing counted as
+    the second swing of a hunt: the integral was off for the whole standstill (no force added, the stage left
+    100 nm ahead). Now the standstill acts as one without that history does."""
+    _, base = cogged
+    base = dataclasses.replace(base, feedforward=dataclasses.replace(base.feedforward, rest_sync_hz=0.0))
+    on, off = _standstill_after_a_move(base, 3.0, True)
+    on_fresh, off_fresh = _standstill_after_a_move(base, 3.0, False)
+    added, added_fresh = on[-1] - off[-1], on_fresh[-1] - off_fresh[-1]
+    assert added_fresh < -0.05  # the stage ahead: pushed back (by up to the model's Coulomb level)
+    assert added == pytest.approx(added_fresh, rel=0.02)  # (at its bound θ·F_c; θ depends a little on the history)
