@@ -655,11 +655,12 @@ class _MoveFit:
     se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
     se_u: float = math.inf
     n_all: int = 0  # samples of the move, used or not (its length)
+    dir0: int = 0  # the model's first direction in the move (0: not yet moving)
 
     def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
         self.rest, self.valid = False, True
         self.th0, self.b0, self.f0, self.d0, self.x0, self.xr0 = th, b, f0, d0, x0, xr0
-        self.dir = 0
+        self.dir = self.dir0 = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
         self.s1 = self.s2 = self.yy = 0.0
@@ -1061,6 +1062,9 @@ class StageController:
     _gate_e = 0.0
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
+    _rev_x = math.nan  # the model's last reversal seen [m] ...
+    _rev_e = 0.0  # ... the tracking error there [m] ...
+    _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
                at_rest: bool) -> tuple[float, float]:
@@ -1084,6 +1088,8 @@ class StageController:
         if ffc.adapt_presliding_m > 0.0 and isinstance(ff, FrictionFeedforward):
             fst = ff.state
             if abs(fst.x_fed_m - fst.x_rev_m) < ffc.adapt_presliding_m:
+                if not self._rev_ok:
+                    return u_ff, d_hat  # the stage was off the reference at the reversal: not evidence (_step)
                 # within adapt_presliding_m of the last reversal the model error is its stiffness: β, the scale
                 # of the model's input, takes it (dβ/dt = γ·β·d̂/(θ·ΔF̂), ΔF̂ = F̂ − F̂ at the reversal); the
                 # force level θ is left alone
@@ -1130,7 +1136,12 @@ class StageController:
             g_th = f_raw - ml.f0  # ∂u_ff/∂θ since the start of the move [N]
             # the branch: from the last reversal or, if later, the start of this move (the standstill's rest sync
             # has re-loaded the model's elements there)
-            x_b = fst.x_rev_m if (fst.x_rev_m - ml.x0) * fst.direction > 0.0 else ml.x0
+            # (a reversal in this move, against its first direction, starts the branch wherever it lies: taking
+            # the move's start there put a 84 N spike, Σk times the travel so far, into the regressor)
+            if ml.dir0 == 0:
+                ml.dir0 = fst.direction
+            x_b = (fst.x_rev_m if fst.direction * ml.dir0 < 0 or (fst.x_rev_m - ml.x0) * fst.direction > 0.0
+                   else ml.x0)
             if ml.n % LEARN_TANGENT_EVERY == 0 or fst.direction != ml.dir:
                 # the model's tangent stiffness changes smoothly along a move: probed every other cycle (two model
                 # steps; the moving step costs 7.3 instead of 5.3 µs hot, 8.4 µs probing every cycle)
@@ -1144,7 +1155,10 @@ class StageController:
             # added back, through the observer's filter, so that y is the model's error at the reference
             # only samples a few observer time constants after the reference's inertia force last changed fast
             # (the same gate as _adapt's, _step): a move's acceleration transient is not evidence
-            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS)
+            # (nor, when the stage was off the reference at the reversal, the branch after it: _step)
+            e_b = e_m - self._rev_e if x_b != ml.x0 else e_m  # (after a reversal: the spring from the stage's turn)
+            ml.accumulate(a, g_th, g_b, y, th * k_t * e_b, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS
+                          and (self._rev_ok or abs(fst.x_fed_m - x_b) >= self.cfg.feedforward.adapt_presliding_m))
             return u_ff, d_hat
         if ml.rest:
             return u_ff, d_hat
@@ -1652,6 +1666,18 @@ class StageController:
             self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
             if self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS:
                 self._gate_shut = False
+        if (self._d_learn or self._d_adapt) and not at_rest and isinstance(ff, FrictionFeedforward):
+            # the stiffness evidence of a reversal (both learners): the model's branch starts at the reference's
+            # turning point, the plant's at the stage's; if the stage was off the reference there by more than
+            # ADAPT_LAG_FRACTION of the reversal's force through the friction's spring (θ·Σk·|e|: a move's
+            # junction, the stage lagging on the soft side), the two branches differ by that spring force and the
+            # stage rings on it, which the observer's estimate reads as a stiffness error: no β evidence then
+            fst = ff.state
+            if fst.x_rev_m != self._rev_x:
+                self._rev_x = fst.x_rev_m
+                lim = ADAPT_LAG_FRACTION * max(abs(fst.f_rev_n), self._f_kin if self._f_kin == self._f_kin else 0.0)
+                self._rev_ok = self.ff_scale * self._k_ps * abs(x_r - x_meas_m) <= lim
+                self._rev_e = x_r - x_meas_m
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
                                             x_r - x_meas_m)
