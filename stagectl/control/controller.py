@@ -134,7 +134,7 @@ No adaptation in the first ``adapt_presliding_m`` of a move that starts with the
 observer then carries the folded spring force for a while, which is not an error of the model (learning from it
 made the cosine after a positioning move 20x worse: 41.6 against 7.0 nm RMS in the commissioning's check).
 
-No stiffness evidence (β stays, for this adaptation and the learning from moves below) from a reversal at which
+No stiffness evidence (β stays) from a reversal at which
 the stage was off the reference by more than ADAPT_LAG_FRACTION of the reversal's force through the friction's
 spring, θ·Σk·|e_rev| > ADAPT_LAG_FRACTION·max(|F̂_rev|, F_c): the plant's branch then starts at the stage's turning
 point, not the model's, and the stage rings on that spring (a junction of two 200 µm approach moves: 0.39 µm
@@ -163,9 +163,7 @@ fit of the model's error *at the reference* to its two parameters, applied when 
 Q is the observer's low-pass with its delay (its estimate lags the model error the same way), k_t the model's
 stiffness for going on in the direction of motion (:meth:`FrictionFeedforward.tangent_n_m`; GMS: Σk_i of the
 elements not yet slipping; ~0 when sliding, so β is learned in pre-sliding only), x_b the start of the branch
-(the last reversal, or the start of the move; a reversal inside the move wherever it lies), and after such a
-reversal e counts from the error there, e − e_rev (the stage's branch starts at its own turning point). The term
-θ·k_t·e matters: a stage lagging the reference by e sits
+(the last reversal, or the start of the move). The term θ·k_t·e matters: a stage lagging the reference by e sits
 lower on its friction curve, F(x) = F(x_r) − k·e, and the observer estimates that spring too; without it the
 fit took a stiffness error for a scale error (on a model with only its stiffness 20 % low it learned θ 1.05,
 β 1.02 in four steps; with it θ 1.01, β 1.21, true β 1.25). The ridge keeps θ and β apart where they are nearly collinear (pre-sliding)
@@ -568,8 +566,8 @@ LEARN_FORGET = 0.9
 #: the learners (adaptation, learning from moves) take an estimate as evidence only once the reference's inertia
 #: force m·a_r and the stage's lag through the friction's spring θ·Σk·e have each moved by at most this fraction of
 #: the model force (or its Coulomb level) over the last observer time constant (the signal against its low-pass at
-#: the observer's bandwidth) ... (and a reversal is stiffness evidence only if there θ·Σk·|e| was at most this
-#: fraction of the model force or its Coulomb level)
+#: the observer's bandwidth) ... (and a reversal is stiffness evidence for the adaptation only if there θ·Σk·|e|
+#: was at most this fraction of the model force or its Coulomb level)
 ADAPT_LAG_FRACTION = 0.1
 #: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
 ADAPT_SETTLED_TIME_CONSTANTS = 5.0
@@ -665,12 +663,11 @@ class _MoveFit:
     se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
     se_u: float = math.inf
     n_all: int = 0  # samples of the move, used or not (its length)
-    dir0: int = 0  # the model's first direction in the move (0: not yet moving)
 
     def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
         self.rest, self.valid = False, True
         self.th0, self.b0, self.f0, self.d0, self.x0, self.xr0 = th, b, f0, d0, x0, xr0
-        self.dir = self.dir0 = 0
+        self.dir = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
         self.s1 = self.s2 = self.yy = 0.0
@@ -894,7 +891,7 @@ class StageController:
         self._ev_run_s = 0.0
         self._ad_run_s = -1.0
         self._gate_shut = False
-        self._rev_x, self._rev_e, self._rev_ok = math.nan, 0.0, True  # (the next reversal is judged afresh)
+        self._rev_x, self._rev_ok = math.nan, True  # (the next reversal is judged afresh)
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
@@ -1074,7 +1071,6 @@ class StageController:
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
     _rev_x = math.nan  # the model's last reversal seen [m] ...
-    _rev_e = 0.0  # ... the tracking error there [m] ...
     _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
@@ -1147,12 +1143,7 @@ class StageController:
             g_th = f_raw - ml.f0  # ∂u_ff/∂θ since the start of the move [N]
             # the branch: from the last reversal or, if later, the start of this move (the standstill's rest sync
             # has re-loaded the model's elements there)
-            # (a reversal in this move, against its first direction, starts the branch wherever it lies: taking
-            # the move's start there put a 84 N spike, Σk times the travel so far, into the regressor)
-            if ml.dir0 == 0:
-                ml.dir0 = fst.direction
-            x_b = (fst.x_rev_m if fst.direction * ml.dir0 < 0 or (fst.x_rev_m - ml.x0) * fst.direction > 0.0
-                   else ml.x0)
+            x_b = fst.x_rev_m if (fst.x_rev_m - ml.x0) * fst.direction > 0.0 else ml.x0
             if ml.n % LEARN_TANGENT_EVERY == 0 or fst.direction != ml.dir:
                 # the model's tangent stiffness changes smoothly along a move: probed every other cycle (two model
                 # steps; the moving step costs 7.3 instead of 5.3 µs hot, 8.4 µs probing every cycle)
@@ -1166,10 +1157,7 @@ class StageController:
             # added back, through the observer's filter, so that y is the model's error at the reference
             # only samples a few observer time constants after the reference's inertia force last changed fast
             # (the same gate as _adapt's, _step): a move's acceleration transient is not evidence
-            # (nor, when the stage was off the reference at the reversal, the branch after it: _step)
-            e_b = e_m - self._rev_e if x_b != ml.x0 else e_m  # (after a reversal: the spring from the stage's turn)
-            ml.accumulate(a, g_th, g_b, y, th * k_t * e_b, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS
-                          and (self._rev_ok or abs(fst.x_fed_m - x_b) >= self.cfg.feedforward.adapt_presliding_m))
+            ml.accumulate(a, g_th, g_b, y, th * k_t * e_m, self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS)
             return u_ff, d_hat
         if ml.rest:
             return u_ff, d_hat
@@ -1677,8 +1665,8 @@ class StageController:
             self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
             if self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS:
                 self._gate_shut = False
-        if (self._d_learn or self._d_adapt) and not at_rest and isinstance(ff, FrictionFeedforward):
-            # the stiffness evidence of a reversal (both learners): the model's branch starts at the reference's
+        if self._d_adapt and not at_rest and isinstance(ff, FrictionFeedforward):
+            # the stiffness evidence of a reversal (the adaptation): the model's branch starts at the reference's
             # turning point, the plant's at the stage's; if the stage was off the reference there by more than
             # ADAPT_LAG_FRACTION of the reversal's force through the friction's spring (θ·Σk·|e|: a move's
             # junction, the stage lagging on the soft side), the two branches differ by that spring force and the
@@ -1688,7 +1676,6 @@ class StageController:
                 self._rev_x = fst.x_rev_m
                 lim = ADAPT_LAG_FRACTION * max(abs(fst.f_rev_n), self._f_kin if self._f_kin == self._f_kin else 0.0)
                 self._rev_ok = self.ff_scale * self._k_ps * abs(x_r - x_meas_m) <= lim
-                self._rev_e = x_r - x_meas_m
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
                                             x_r - x_meas_m)
