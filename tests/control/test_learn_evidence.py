@@ -20,10 +20,10 @@ def seed(repo_root):
 
 
 def _theta_beta_after_moves(cfg: Any, how: str, lead: str, learn_moves: bool = True) -> list[tuple[float, float]]:
-    """(θ, β) at each stop of ``lead`` (``double``: −d, +d, 0.1 s, −d, +d, 0.3 s, ``double+cosine``: then the
-    10 µm cosine; ``fast``: 10 mm/s to −d,
-    gently back, 0.3 s), the shipped controller with the ``exact``, ``off20`` (bench control's) or ``k0.7`` /
-    ``k1.3`` (only Σk scaled) model; ``learn_moves`` False: the continuous adaptation alone."""
+    """(θ, β) at each stop of ``lead`` (``double``: −d, +d, 0.1 s, −d, +d, 0.3 s; ``double+cosine``: then the
+    10 µm cosine; ``fast``: 10 mm/s to −d, gently back, 0.3 s), the shipped controller with the ``exact``,
+    ``off20`` (bench control's) or ``k0.7`` / ``k1.3`` (only Σk scaled) model; ``learn_moves`` False: the
+    continuous adaptation alone."""
     import dataclasses
     from stagectl.app import build_stage
     from stagectl.bench.control import mismatched
@@ -131,8 +131,8 @@ def test_the_adaptation_keeps_an_exact_stiffness_through_move_junctions(seed):
     """Main up to 7fe9636: the continuous adaptation's stiffness law moved β by ~0.4 % at each junction of two
     approach moves (−d then +d): the stage arrives there ~0.39 µm short of the reference (the soft side), so its
     pre-sliding branch starts at another point than the model's, it rings on the friction's spring, and the
-    observer's +26 mN at the model's first 0.06 N of branch force read as a stiffer plant (β 1.004 after the
-    double lead). Now a reversal the stage was off the reference at by more than ADAPT_LAG_FRACTION of its force
+    observer's +26 mN at the model's first 0.06 N of branch force read as a stiffer plant (β 1.003, 1.008 at the
+    double lead's two stops). Now a reversal the stage was off the reference at by more than ADAPT_LAG_FRACTION of its force
     through the spring is not stiffness evidence."""
     stops = _theta_beta_after_moves(seed, "exact", "double", learn_moves=False)
     assert all(abs(b - 1.0) < 0.002 for _, b in stops), stops
