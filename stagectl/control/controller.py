@@ -147,6 +147,13 @@ No adaptation in the first ``adapt_presliding_m`` of a move that starts with the
 observer then carries the folded spring force for a while, which is not an error of the model (learning from it
 made the cosine after a positioning move 20x worse: 41.6 against 7.0 nm RMS in the commissioning's check).
 
+No stiffness evidence (β stays) from a reversal at which
+the stage was off the reference by more than ADAPT_LAG_FRACTION of the reversal's force through the friction's
+spring, θ·Σk·|e_rev| > ADAPT_LAG_FRACTION·max(|F̂_rev|, F_c): the plant's branch then starts at the stage's turning
+point, not the model's, and the stage rings on that spring (a junction of two 200 µm approach moves: 0.39 µm
+short, 0.25 N; the observer's +26 mN against the model's first 0.06 N of branch force moved β +0.3 % in one
+step, +0.4 % per junction on an exact model).
+
 θ, β ∈ 1 ± ``adapt_max_change_fraction``; frozen at rest and while |F̂| (|F̂ − F̂_rev| for β) is below
 ``adapt_min_force_n`` (half of it for β). A change of θ moves (θ_old − θ_new)·F̂ into the observer (``dob.shift``): u
 is continuous. The observer's estimate in the residual form is exactly the model's error, so the model takes
@@ -572,7 +579,8 @@ LEARN_FORGET = 0.9
 #: the learners (adaptation, learning from moves) take an estimate as evidence only once the reference's inertia
 #: force m·a_r and the stage's lag through the friction's spring θ·Σk·e have each moved by at most this fraction of
 #: the model force (or its Coulomb level) over the last observer time constant (the signal against its low-pass at
-#: the observer's bandwidth) ...
+#: the observer's bandwidth) ... (and a reversal is stiffness evidence for the adaptation only if there θ·Σk·|e|
+#: was at most this fraction of the model force or its Coulomb level)
 ADAPT_LAG_FRACTION = 0.1
 #: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
 ADAPT_SETTLED_TIME_CONSTANTS = 5.0
@@ -896,6 +904,7 @@ class StageController:
         self._ev_run_s = 0.0
         self._ad_run_s = -1.0
         self._gate_shut = False
+        self._rev_x, self._rev_ok = math.nan, True  # (the next reversal is judged afresh)
         self._u_learn = 0.0
         self._ml = _MoveFit()
         self._sm = SettleMove()  # settle move (settle.move_s)
@@ -1076,6 +1085,8 @@ class StageController:
     _gate_e = 0.0
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
+    _rev_x = math.nan  # the model's last reversal seen [m] ...
+    _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
                at_rest: bool) -> tuple[float, float]:
@@ -1099,6 +1110,8 @@ class StageController:
         if ffc.adapt_presliding_m > 0.0 and isinstance(ff, FrictionFeedforward):
             fst = ff.state
             if abs(fst.x_fed_m - fst.x_rev_m) < ffc.adapt_presliding_m:
+                if not self._rev_ok:
+                    return u_ff, d_hat  # the stage was off the reference at the reversal: not evidence (_step)
                 # within adapt_presliding_m of the last reversal the model error is its stiffness: β, the scale
                 # of the model's input, takes it (dβ/dt = γ·β·d̂/(θ·ΔF̂), ΔF̂ = F̂ − F̂ at the reversal); the
                 # force level θ is left alone
@@ -1667,6 +1680,17 @@ class StageController:
             self._ad_run_s = self._ad_run_s + dt if quiet else 0.0
             if self._ad_run_s * self._d_g >= ADAPT_SETTLED_TIME_CONSTANTS:
                 self._gate_shut = False
+        if self._d_adapt and not at_rest and isinstance(ff, FrictionFeedforward):
+            # the stiffness evidence of a reversal (the adaptation): the model's branch starts at the reference's
+            # turning point, the plant's at the stage's; if the stage was off the reference there by more than
+            # ADAPT_LAG_FRACTION of the reversal's force through the friction's spring (θ·Σk·|e|: a move's
+            # junction, the stage lagging on the soft side), the two branches differ by that spring force and the
+            # stage rings on it, which the observer's estimate reads as a stiffness error: no β evidence then
+            fst = ff.state
+            if fst.x_rev_m != self._rev_x:
+                self._rev_x = fst.x_rev_m
+                lim = ADAPT_LAG_FRACTION * max(abs(fst.f_rev_n), self._f_kin if self._f_kin == self._f_kin else 0.0)
+                self._rev_ok = self.ff_scale * self._k_ps * abs(x_r - x_meas_m) <= lim
         if self._d_learn:
             u_ff, d_hat = self._learn_moves(dt, ff, u_ff, d_hat, dob, at_rest, ilc,  # type: ignore[arg-type]
                                             x_r - x_meas_m)
