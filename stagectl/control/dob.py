@@ -119,6 +119,9 @@ class QFilterDob:
         self._dt_meas = math.nan  # the previous step's measured interval [s]
         self._alpha = 0.0
         self._kv = 0.0
+        #: the part f of one step of P's filter the last sample took: its decay was 1 − (1 − α_P)·f (1 on time
+        #: and for a span h >= P; h/P for a shorter one: module docstring, "Irregular sampling")
+        self.step_fraction = 1.0
         self._g = 2.0 * math.pi * cfg.bandwidth_hz
         self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
         self._have_prev = False
@@ -135,6 +138,7 @@ class QFilterDob:
         self._have_prev = False
         self._u_last = 0.0
         self._dt_meas = math.nan
+        self.step_fraction = 1.0
 
     def retune(self, cfg: DobConfig, mass_kg: float) -> None:
         """New bandwidth/mass, bumpless: w is re-set so that d̂ keeps its value."""
@@ -143,7 +147,9 @@ class QFilterDob:
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
         self._g = 2.0 * math.pi * cfg.bandwidth_hz
         self._dt = math.nan
-        self._coeffs(self._dt_last)
+        # (with a period set, its coefficients, whatever the last interval was: a retune after ``period_s``
+        # changed, set_timing_scale, must not keep the old period's until an interval differs from the last one)
+        self._coeffs(self._dt_last if self.period_s is None else self.period_s)
         st.w_n = st.d_hat_n + self._kv * st.v_hat_m_s
         old = list(self._delay)
         n = cfg.command_delay_samples
@@ -180,11 +186,11 @@ class QFilterDob:
         t_nom = self.period_s
         dt_meas_prev = self._dt_meas
         self._dt_meas = dt
-        if dt != self._dt:
+        if dt != self._dt or (t_nom is not None and self._c_dt != t_nom):
             kv_old = self._kv
             if t_nom is None:
                 self._coeffs(dt)
-            else:  # every sample one step of the filter designed for T
+            else:  # every sample one step of the filter designed for P (or the part h/P of one: below)
                 if self._c_dt != t_nom:
                     self._coeffs(t_nom)
                 self._dt = dt
@@ -197,11 +203,20 @@ class QFilterDob:
         kv = self._kv
         if self._have_prev:
             a = self._alpha
-            st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
-            if t_nom is not None and a_ref_m_s2 != 0.0 and (dt != t_nom or dt_meas_prev != t_nom):
-                # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not T
+            f = 1.0  # the part of one step of P's filter this sample takes
+            excess = 0.0  # the span beyond P [s]
+            if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom):
+                # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not P
                 h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
-                st.w_n += kv * a_ref_m_s2 * (h - t_nom)
+                if h < t_nom:  # the part f = h/P of a step: 1 − a = (1 − α_P)·f keeps K_v·Δv̂ exact
+                    f = h / t_nom
+                    a = 1.0 - (1.0 - a) * f
+                else:
+                    excess = h - t_nom
+            self.step_fraction = f
+            st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
+            if excess > 0.0 and a_ref_m_s2 != 0.0:
+                st.w_n += kv * a_ref_m_s2 * excess
         else:
             st.w_n = st.d_hat_n + kv * v_hat_m_s
             self._have_prev = True
