@@ -103,6 +103,10 @@ class DobState:
     u_obs_n: float = 0.0  # last command input (residual form)
 
 
+#: gain of the mean span h̄ += c·(h − h̄) per sample (QFilterDob, "Irregular sampling")
+H_MEAN_GAIN = 0.1
+
+
 class QFilterDob:
     """Velocity-based Q-filter DOB (see module docstring). ``step`` is real-time safe."""
 
@@ -119,6 +123,7 @@ class QFilterDob:
         self._dt_meas = math.nan  # the previous step's measured interval [s]
         self._alpha = 0.0
         self._kv = 0.0
+        self._h_mean = math.nan if period_s is None else period_s  # the mean span h̄ [s]
         #: the part f of one step of P's filter the last sample took: its decay was 1 − (1 − α_P)·f (1 on time
         #: and for a span h >= P; h/P for a shorter one: module docstring, "Irregular sampling")
         self.step_fraction = 1.0
@@ -204,18 +209,21 @@ class QFilterDob:
         if self._have_prev:
             a = self._alpha
             f = 1.0  # the part of one step of P's filter this sample takes
-            excess = 0.0  # the span beyond P [s]
-            if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom):
+            excess = 0.0  # the span beyond f·P [s]
+            if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom or self._h_mean != t_nom):
                 # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not P
                 h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
-                if h < t_nom:  # the part f = h/P of a step: 1 − a = (1 − α_P)·f keeps K_v·Δv̂ exact
-                    f = h / t_nom
+                hm = self._h_mean + H_MEAN_GAIN * (h - self._h_mean)
+                if abs(hm - t_nom) <= 1e-9 * t_nom:
+                    hm = t_nom
+                self._h_mean = hm
+                if hm < t_nom:  # the part f = h̄/P of a step: 1 − a = (1 − α_P)·f
+                    f = hm / t_nom
                     a = 1.0 - (1.0 - a) * f
-                else:
-                    excess = h - t_nom
+                excess = h - f * t_nom
             self.step_fraction = f
             st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
-            if excess > 0.0 and a_ref_m_s2 != 0.0:
+            if excess != 0.0 and a_ref_m_s2 != 0.0:
                 st.w_n += kv * a_ref_m_s2 * excess
         else:
             st.w_n = st.d_hat_n + kv * v_hat_m_s
