@@ -1544,12 +1544,12 @@ class StageController:
         [s]; else exp(−2π·f_DOB/s·dt). a_P, exp(…·dt), are computed once per P, dt (cached until the settings
         change: :meth:`_derive`)."""
         dob = self.dob
-        if self._d_q_period and dob is not None:
+        if self._d_q_period and isinstance(dob, QFilterDob) and dob.period_s is not None:
             p = dob.period_s
             if p != self._a_dt:
-                self._a_dt = p  # type: ignore[assignment]
-                self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * p)  # type: ignore[operator]
-            f = dob.step_fraction  # type: ignore[union-attr]
+                self._a_dt = p
+                self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * p)
+            f = dob.step_fraction
             return self._a_val if f == 1.0 else 1.0 - (1.0 - self._a_val) * f
         if dt != self._a_dt:
             self._a_dt = dt
