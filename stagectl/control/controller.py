@@ -1029,7 +1029,8 @@ class StageController:
         cycles). The crossover of the configured design is divided by s, so the margins it was designed with
         for T hold for a loop sampling at s·T: Kp/s², Ki/s³, Kd/s, derivative cut-off /s, Q-filter DOB
         bandwidth /s (a Kalman DOB is left as is), and the Q-filter's per-sample step designed for s·T (its
-        ``period_s``: QFilterDob, "Irregular sampling"; with 30 % or 50 % of the slots skipped the 10 µm cosine
+        ``period_s``, designed at once; on samples closer than s·T on average, the part of a step their mean
+        span is: QFilterDob, "Irregular sampling"; with 30 % or 50 % of the slots skipped the 10 µm cosine
         tracked 6.5/5.5× and 4.2/6.7× the clean run, seeds 1/2, against 8.0/6.9× and 6.2/8.3× with T's).
         s = 1 restores the configured gains. The feed-forward is unchanged. Bumpless: the PID term and d̂ keep
         their values.
@@ -1251,8 +1252,9 @@ class StageController:
         feed-forward pushes along d, the estimate may cancel at most the model's own uncertainty of it plus the
         excess the stage was seen not to need while it followed: d·d̂ >= −(δ + ε)·|u_ff| (δ =
         ``stuck_dob_fraction``, ε = :meth:`stuck_excess_fraction`). An estimate beyond it is returned towards the
-        bound at the observer's rate (excess ×(1 − a) per step, a as in the Q filter at its current bandwidth):
-        no step in u. ``dob.shift`` moves the observer's state with it. Fresh steps while the stage follows
+        bound at the observer's rate (excess ×(1 − a) per step, a = min(exp(−2π·f_DOB/s·dt), the Q filter's decay
+        in this step, :meth:`_dob_decay`): at least as fast as the filter winds it on, also in a loop slowed down
+        on on-time samples or with skipped ones; no step in u. ``dob.shift`` moves the observer's state with it. Fresh steps while the stage follows
         the reference update ε first."""
         v_r = ref.v_m_s
         d = 1.0 if v_r > 0.0 else -1.0 if v_r < 0.0 else 0.0
