@@ -117,6 +117,9 @@ class DobState:
 
 #: gain of the mean span h̄ += c·(h − h̄) per sample (QFilterDob, "Irregular sampling")
 H_MEAN_GAIN = 0.1
+#: below this fraction of the period P the mean span h̄ is a loop level lagging its samples: a sample takes the part
+#: h̄/P of a step (above it, one step: the loop keeps its level while its mean interval is >= 0.9 of it)
+H_MEAN_LAG = 0.75
 
 
 class QFilterDob:
@@ -230,7 +233,7 @@ class QFilterDob:
                 if abs(hm - t_nom) <= 1e-9 * t_nom:
                     hm = t_nom
                 self._h_mean = hm
-                if hm < t_nom:  # the part f = h̄/P of a step: 1 − a = (1 − α_P)·f
+                if hm < H_MEAN_LAG * t_nom:  # the part f = h̄/P of a step: 1 − a = (1 − α_P)·f
                     f = hm / t_nom
                     a = 1.0 - (1.0 - a) * f
                 excess = h - f * t_nom
