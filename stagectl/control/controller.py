@@ -1038,7 +1038,8 @@ class StageController:
         cycles). The crossover of the configured design is divided by s, so the margins it was designed with
         for T hold for a loop sampling at s·T: Kp/s², Ki/s³, Kd/s, derivative cut-off /s, Q-filter DOB
         bandwidth /s (a Kalman DOB is left as is), and the Q-filter's per-sample step designed for s·T (its
-        ``period_s``: QFilterDob, "Irregular sampling"; with 30 % or 50 % of the slots skipped the 10 µm cosine
+        ``period_s``, designed at once; on samples closer than s·T on average, the part of a step their mean
+        span is: QFilterDob, "Irregular sampling"; with 30 % or 50 % of the slots skipped the 10 µm cosine
         tracked 6.5/5.5× and 4.2/6.7× the clean run, seeds 1/2, against 8.0/6.9× and 6.2/8.3× with T's).
         s = 1 restores the configured gains. The feed-forward is unchanged. Bumpless: the PID term and d̂ keep
         their values.
@@ -1264,8 +1265,9 @@ class StageController:
         feed-forward pushes along d, the estimate may cancel at most the model's own uncertainty of it plus the
         excess the stage was seen not to need while it followed: d·d̂ >= −(δ + ε)·|u_ff| (δ =
         ``stuck_dob_fraction``, ε = :meth:`stuck_excess_fraction`). An estimate beyond it is returned towards the
-        bound at the observer's rate (excess ×(1 − a) per step, a as in the Q filter at its current bandwidth):
-        no step in u. ``dob.shift`` moves the observer's state with it. Fresh steps while the stage follows
+        bound at the observer's rate (excess ×(1 − a) per step, a = min(exp(−2π·f_DOB/s·dt), the Q filter's decay
+        in this step, :meth:`_dob_decay`): at least as fast as the filter winds it on, also in a loop slowed down
+        on on-time samples or with skipped ones; no step in u. ``dob.shift`` moves the observer's state with it. Fresh steps while the stage follows
         the reference update ε first."""
         v_r = ref.v_m_s
         d = 1.0 if v_r > 0.0 else -1.0 if v_r < 0.0 else 0.0
@@ -1292,7 +1294,12 @@ class StageController:
                 self._ev_den = lam * self._ev_den + abs(u_ff)
         if d * (ref.x_m - x_m) <= 0.0 or abs(dx) > STUCK_SPEED_FRACTION * dxr:
             return d_hat
-        a = self._dob_decay(dt) if self._d_g_scaled else math.exp(-g * dt)  # (the same value)
+        # at least at the observer's designed rate and at least at the rate its filter moved this step (a Q filter
+        # with a period P, stepped on a span h < P: 1 − (1 − a_P)·h/P; a P-step on a span h > P): the estimate never
+        # winds on beyond the bound faster than it is brought back (on time the two are the same value)
+        a = math.exp(-g * dt)
+        if self._d_g_scaled:
+            a = min(a, self._dob_decay(dt))
         bound = -(self.cfg.stuck_dob_fraction + self.stuck_excess_fraction()) * abs(u_ff)
         ps = self.pid.state
         if d * ps.i_n < 0.0 and d * (d_hat + ps.i_n) < bound:
@@ -1513,7 +1520,8 @@ class StageController:
     _d_cfg: ControllerConfig | None = None  # the settings, observer and feed-forward _derive() was run for
     _d_dob: object = None
     _d_ff: object = None
-    _a_dt = math.nan  # dt of the cached observer decay _a_val (_dob_decay)
+    _a_dt = math.nan  # dt (or the observer's period) of the cached observer decay _a_val (_dob_decay)
+    _d_q_period = False
     _a_val = 0.0
 
     def _derive(self) -> None:
@@ -1538,13 +1546,26 @@ class StageController:
         s = self.timing_scale if isinstance(dob, QFilterDob) else 1.0  # a Kalman DOB is not slowed down
         self._d_g = 2.0 * math.pi * cfg.dob.bandwidth_hz / s  # the observer's rate [1/s] (_stuck_dob)
         self._d_g_scaled = s == self.timing_scale  # exp(−g·dt) is _dob_decay(dt)
+        self._d_q_period = isinstance(dob, QFilterDob) and dob.period_s is not None  # _dob_decay: P's steps
         scfg = cfg.settle
         self._d_settle = scfg.move_s > 0.0 and dob is not None and model_ff  # a settle move may start
         self._a_dt = math.nan
 
     def _dob_decay(self, dt: float) -> float:
-        """a = exp(−2π·f_DOB/s·dt): the observer's decay per step at its current bandwidth (s: the timing scale),
-        computed once per dt (cached until the settings change: :meth:`_derive`)."""
+        """a: the observer's decay in this step at its current bandwidth f_DOB/s (s: the timing scale), for the
+        filters matched to it (the stuck-stage limit, the rest spring, the learners' filters). A Q-filter observer
+        with a period P (s·T) steps its filter once per sample, P's or the part f = h/P of it for a shorter span
+        (QFilterDob, "Irregular sampling"): a = a_P = exp(−2π·f_DOB/s·P), or 1 − (1 − a_P)·f, whatever ``dt``
+        [s]; else exp(−2π·f_DOB/s·dt). a_P, exp(…·dt), are computed once per P, dt (cached until the settings
+        change: :meth:`_derive`)."""
+        dob = self.dob
+        if self._d_q_period and isinstance(dob, QFilterDob) and dob.period_s is not None:
+            p = dob.period_s
+            if p != self._a_dt:
+                self._a_dt = p
+                self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * p)
+            f = dob.step_fraction
+            return self._a_val if f == 1.0 else 1.0 - (1.0 - self._a_val) * f
         if dt != self._a_dt:
             self._a_dt = dt
             self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)

@@ -35,10 +35,27 @@ unequal intervals — the ramp-weighted impulses over the mid-to-mid span (dt_k 
 span h = (dt_k + dt_{k−1})/2 the net force m·a changes v̂ by a·h, the filter expects a·T; that part is taken
 off with the reference's acceleration a_r (the stage follows it)::
 
-    w_{k+1} += K_v,T·a_r·(h − T)          (only when dt_k or dt_{k−1} ≠ T)
+    w_{k+1} += K_v,T·a_r·(h − f·T)          (only when dt_k or dt_{k−1} ≠ T, or h̄ ≠ T; f below, 1 at T)
 
 On time (dt = T at every step) the filter is the one above, to the bit. A loop slowed down to s·T
-(``StageController.set_timing_scale``) gives the observer ``period_s`` = s·T.
+(``StageController.set_timing_scale``) gives the observer ``period_s`` = P = s·T, and its bandwidth g/s: a retune
+designs α_P, K_v,P at once, whatever the last interval was (before, it kept the old period's until an interval
+differed from the last one: a slowed-down observer on on-time samples ran with T's, with P's after any late one).
+But the loop's level lags its samples (it steps down only when its mean interval falls 10 % below it): a loop at
+s = 3 may sample at T for a while, and a P-step per sample then runs the filter 3× faster than designed with K_v
+a third of the one the samples need (an effective mass m_n/3; the stuck-stage limit of the controller could not
+hold the estimate, tests/control/test_stuck_dob.py). So, with h̄ the mean span (h̄ += 0.1·(h − h̄) per sample;
+h̄ = P on time), a sample takes the part f of a step::
+
+    f = h̄/P if h̄ < 0.75·P else 1,    1 − a = (1 − α_P)·f,    K_v = K_v,P
+
+exact for a rigid mass at h = h̄ (K_v·Δv̂ = (1 − a)·m·Δv̂/h); K_v stays P's (no noise impulse). Below 0.75·P the
+loop's level is lagging (it keeps a level while its mean interval is >= 0.9 of it); above, as for the loop at T,
+one step per sample. f = min(1, h̄/P) also in the loop's own range cost the plant_io cosine 2–10 % (seeds 2–6,
+``stagectl bench timing --stages plant_io --seed N``; in quiet stretches h̄ dips below T); f = h/P per sample
+(K_v kept, the decay following each span) tracked the 10 µm cosine with 50 % of the slots skipped (s = 1.5) at
+7.3× the clean run against 4.4× (seeds 1–6 mean).
+``step_fraction`` holds f for the filters matched to the observer (``StageController._dob_decay``).
 
 Kalman form (``kind: kalman``), augmented state s = [x, v, τ] (m, m/s, N)::
 
@@ -103,6 +120,13 @@ class DobState:
     u_obs_n: float = 0.0  # last command input (residual form)
 
 
+#: gain of the mean span h̄ += c·(h − h̄) per sample (QFilterDob, "Irregular sampling")
+H_MEAN_GAIN = 0.1
+#: below this fraction of the period P the mean span h̄ is a loop level lagging its samples: a sample takes the part
+#: h̄/P of a step (above it, one step: the loop keeps its level while its mean interval is >= 0.9 of it)
+H_MEAN_LAG = 0.75
+
+
 class QFilterDob:
     """Velocity-based Q-filter DOB (see module docstring). ``step`` is real-time safe."""
 
@@ -119,6 +143,10 @@ class QFilterDob:
         self._dt_meas = math.nan  # the previous step's measured interval [s]
         self._alpha = 0.0
         self._kv = 0.0
+        self._h_mean = math.nan if period_s is None else period_s  # the mean span h̄ [s]
+        #: the part f of one step of P's filter the last sample took: its decay was 1 − (1 − α_P)·f (1 on time
+        #: and for a span h >= P; h/P for a shorter one: module docstring, "Irregular sampling")
+        self.step_fraction = 1.0
         self._g = 2.0 * math.pi * cfg.bandwidth_hz
         self._delay: deque[float] = deque([0.0] * cfg.command_delay_samples)
         self._have_prev = False
@@ -135,6 +163,7 @@ class QFilterDob:
         self._have_prev = False
         self._u_last = 0.0
         self._dt_meas = math.nan
+        self.step_fraction = 1.0
 
     def retune(self, cfg: DobConfig, mass_kg: float) -> None:
         """New bandwidth/mass, bumpless: w is re-set so that d̂ keeps its value."""
@@ -143,7 +172,9 @@ class QFilterDob:
         self.mass_kg = mass_kg if cfg.nominal_mass_kg is None else cfg.nominal_mass_kg
         self._g = 2.0 * math.pi * cfg.bandwidth_hz
         self._dt = math.nan
-        self._coeffs(self._dt_last)
+        # (with a period set, its coefficients, whatever the last interval was: a retune after ``period_s``
+        # changed, set_timing_scale, must not keep the old period's until an interval differs from the last one)
+        self._coeffs(self._dt_last if self.period_s is None else self.period_s)
         st.w_n = st.d_hat_n + self._kv * st.v_hat_m_s
         old = list(self._delay)
         n = cfg.command_delay_samples
@@ -170,9 +201,10 @@ class QFilterDob:
 
         ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step (Δx/dt over the measured interval
-        ``dt`` [s]). With ``period_s`` set, a step whose interval is not T (a late wake-up, a skipped slot, a
-        step after stale samples) keeps T's coefficients, and the velocity change the reference's acceleration
-        ``a_ref_m_s2`` [m/s²] makes in the time beyond T is taken off (module docstring, "Irregular sampling").
+        ``dt`` [s]). With ``period_s`` P set, a step whose interval is not P (a late wake-up, a skipped slot, a
+        step after stale samples) keeps P's coefficients (the part f = min(1, h̄/P) of a step), and the velocity
+        change the reference's acceleration ``a_ref_m_s2`` [m/s²] makes in the span beyond f·P is taken off
+        (module docstring, "Irregular sampling").
         """
         if not (dt > 0.0 and dt < math.inf):
             check_dt(dt)
@@ -180,11 +212,11 @@ class QFilterDob:
         t_nom = self.period_s
         dt_meas_prev = self._dt_meas
         self._dt_meas = dt
-        if dt != self._dt:
+        if dt != self._dt or (t_nom is not None and self._c_dt != t_nom):
             kv_old = self._kv
             if t_nom is None:
                 self._coeffs(dt)
-            else:  # every sample one step of the filter designed for T
+            else:  # every sample one step of the filter designed for P (or the part h/P of one: below)
                 if self._c_dt != t_nom:
                     self._coeffs(t_nom)
                 self._dt = dt
@@ -197,11 +229,23 @@ class QFilterDob:
         kv = self._kv
         if self._have_prev:
             a = self._alpha
-            st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
-            if t_nom is not None and a_ref_m_s2 != 0.0 and (dt != t_nom or dt_meas_prev != t_nom):
-                # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not T
+            f = 1.0  # the part of one step of P's filter this sample takes
+            excess = 0.0  # the span beyond f·P [s]
+            if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom or self._h_mean != t_nom):
+                # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not P
                 h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
-                st.w_n += kv * a_ref_m_s2 * (h - t_nom)
+                hm = self._h_mean + H_MEAN_GAIN * (h - self._h_mean)
+                if abs(hm - t_nom) <= 1e-9 * t_nom:
+                    hm = t_nom
+                self._h_mean = hm
+                if hm < H_MEAN_LAG * t_nom:  # the part f = h̄/P of a step: 1 − a = (1 − α_P)·f
+                    f = hm / t_nom
+                    a = 1.0 - (1.0 - a) * f
+                excess = h - f * t_nom
+            self.step_fraction = f
+            st.w_n = a * st.w_n + (1.0 - a) * (0.5 * (u_in + self._u_last) + kv * st.v_hat_m_s)
+            if excess != 0.0 and a_ref_m_s2 != 0.0:
+                st.w_n += kv * a_ref_m_s2 * excess
         else:
             st.w_n = st.d_hat_n + kv * v_hat_m_s
             self._have_prev = True

@@ -226,3 +226,72 @@ def test_a_qfilter_switched_on_in_a_slowed_down_loop_gets_its_period(repo_root, 
     assert isinstance(ctl.dob, QFilterDob) and isinstance(ref.dob, QFilterDob)
     assert ctl.dob.period_s == ref.dob.period_s == 2 * T
     assert ctl.dob.cfg.bandwidth_hz == ref.dob.cfg.bandwidth_hz == c.dob.bandwidth_hz / 2
+
+
+def _slowed_pair(perturb_after_retune: bool) -> tuple[QFilterDob, float, float]:
+    """An observer at T, then slowed down ×3 (period 3T, bandwidth /3: as ``set_timing_scale``), sampled on time at
+    T on a rigid mass under a constant force u against a disturbance τ; optionally one interval of 1.001 T right
+    after the retune. Returns the observer, τ and the mass's acceleration."""
+    T = 1e-3
+    cfg = DobConfig(kind="qfilter", bandwidth_hz=100.0, command_delay_samples=0)
+    dob = QFilterDob(cfg, M, T)
+    dob.reset(0.0)
+    tau, u = 0.3, 0.5
+    acc = (u - tau) / M
+    t = x_prev = 0.0
+    for k in range(400):
+        if k == 100:
+            dob.period_s = 3 * T
+            dob.retune(DobConfig(kind="qfilter", bandwidth_hz=100.0 / 3, command_delay_samples=0), M)
+        dt = 1.001 * T if (perturb_after_retune and k == 101) else T
+        t += dt
+        x = 0.5 * acc * t * t
+        dob.step(dt, x, (x - x_prev) / dt, u if k >= 150 else 0.0, acc)
+        x_prev = x
+    return dob, tau, acc
+
+
+def test_qfilter_retune_follows_the_period_whatever_the_intervals():
+    """A retune after the period changed (``set_timing_scale``) designs the filter for the new period P at once,
+    whatever the last interval was: an interval of 1.001 T after it changes the estimate by < 1e-6 of the force,
+    not the filter (before: the retune kept the old period's α, K_v until the first interval that differed from the
+    last one, so the observer of a loop slowed down with on-time samples ran with T's coefficients, and with P's
+    after any late sample: at the end the perturbed one estimated the 0.3 N disturbance, the other −0.1 N, its
+    reference-acceleration term made for P's steps)."""
+    a, _, _ = _slowed_pair(False)
+    b, _, _ = _slowed_pair(True)
+    assert a._c_dt == b._c_dt == 3e-3
+    assert abs(a.state.d_hat_n - b.state.d_hat_n) < 1e-6
+
+
+def test_qfilter_slowed_down_on_time_runs_at_its_designed_rate():
+    """Period 3T, sampled at T (a loop whose slow-down level lags its samples): each sample takes the part f = h̄/P
+    = 1/3 of a step of P's filter, 1 − a = (1 − α_P)/3, with P's K_v: the estimate of a rigid mass's disturbance
+    stays exact under any force (no mass error: a full step of P's filter per sample would have run the observer 3×
+    faster with K_v a third of the one the samples need), and a step in the disturbance is followed with that
+    decay per sample."""
+    T = 1e-3
+    P = 3 * T
+    cfg = DobConfig(kind="qfilter", bandwidth_hz=100.0 / 3, command_delay_samples=0)
+    dob = QFilterDob(DobConfig(kind="qfilter", bandwidth_hz=100.0, command_delay_samples=0), M, T)
+    dob.reset(0.0)
+    dob.period_s = P
+    dob.retune(cfg, M)
+    a_exp = 1.0 - (1.0 - math.exp(-2 * math.pi * 100.0 / 3 * P)) / 3
+    x = v = x_prev = 0.0
+    errs = []
+    for k in range(400):
+        tau = 0.2 if k >= 200 else 0.0  # (applied from step 200's interval on)
+        u = 0.5 * math.sin(0.05 * k)
+        d = dob.step(T, x, (x - x_prev) / T if k else 0.0, u_prev if k else 0.0)
+        if 150 <= k < 200:
+            assert abs(d) < 1e-9  # exact under a varying force: no inertia in the estimate
+        if k >= 202:
+            errs.append(abs(d - 0.2))
+        assert dob.step_fraction == pytest.approx(1 / 3 if k else 1.0, rel=1e-12)
+        acc = (u - tau) / M
+        x_prev = x
+        x, v = x + v * T + 0.5 * acc * T * T, v + acc * T
+        u_prev = u
+    ratios = np.array(errs[1:20]) / np.array(errs[:19])
+    assert ratios == pytest.approx(a_exp, rel=1e-6)
