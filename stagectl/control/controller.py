@@ -1691,7 +1691,11 @@ class StageController:
                 d_hat = self._rest_integral(dt, x_r - x_meas_m, v_hat, d_hat)
             elif self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings:
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
-        if at_rest and not settling and self._d_sync:
+        if at_rest and not settling and self._d_sync and abs(x_r - x_meas_m) <= cfg.rest_spring_rearm_m:
+            # only with the stage at its reference: the model's state is fed at x_r, so with the stage stuck off it
+            # d̂ carries the force of that offset, not a state mismatch at x_r; loading it into the model there
+            # makes the next move's first |x_r − x| of reference travel (which the stage does not make) re-load
+            # the model's springs and push the stuck stage ahead (module docstring, "Feed-forward through the stop")
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
         if self._d_rest_gains:
