@@ -68,6 +68,10 @@ pre-sliding stiffness, so the step never overshoots; |Δx| <= ``rest_sync_max_st
 takes leaves the observer (``dob.shift``; u unchanged). The next move then starts from a model holding the force
 the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
 re-learning a state mismatch during the first milliseconds of the move.
+It acts only while |x_r − x| <= ``rest_spring_range_m``: the model is fed at x_r, so with the stage stuck further
+off d̂ holds that offset's force, and loading it into the model at x_r made the next move's first |x_r − x| of
+reference travel (which the stuck stage does not make) re-load the model's springs and push the stage ahead
+(fresh plant 111, stuck 1.2 µm ahead: cosine 4.40 -> 0.70 µm RMS; docs/control.md §2.10).
 
 Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
 part, since its load at each stop would differ between repetitions): at standstill the stage is
@@ -366,7 +370,7 @@ class ControllerConfig:
         "stage's own friction spring is not estimated away as a disturbance (0: off)", ge=0.0, le=1.0)
     rest_spring_range_m: float = param(
         2e-7, unit="m", desc="the rest spring's displacement |x - x_ref| is clamped to this (the pre-sliding "
-        "range it stands for)", gt=0.0)
+        "range it stands for); feedforward.rest_sync_hz acts only while |x - x_ref| is within it", gt=0.0)
     rest_spring_release_m: float = param(
         5e-6, unit="m", desc="the rest spring is released (folded into the observer, bumpless) when |x - x_ref| "
         "exceeds this at standstill: the stage has slid, not stuck (25x the default rest_spring_range_m)", gt=0.0)
@@ -1691,9 +1695,9 @@ class StageController:
                 d_hat = self._rest_integral(dt, x_r - x_meas_m, v_hat, d_hat)
             elif self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings:
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
-        if at_rest and not settling and self._d_sync and abs(x_r - x_meas_m) <= cfg.rest_spring_rearm_m:
-            # only with the stage at its reference: the model's state is fed at x_r, so with the stage stuck off it
-            # d̂ carries the force of that offset, not a state mismatch at x_r; loading it into the model there
+        if at_rest and not settling and self._d_sync and abs(x_r - x_meas_m) <= cfg.rest_spring_range_m:
+            # only with the stage within its pre-sliding range of the reference: the model's state is fed at x_r,
+            # so with the stage stuck further off d̂ carries the force of that offset, not a state mismatch at x_r; loading it into the model there
             # makes the next move's first |x_r − x| of reference travel (which the stage does not make) re-load
             # the model's springs and push the stuck stage ahead (module docstring, "Feed-forward through the stop")
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]

@@ -5,7 +5,7 @@ verification lead the stage stops ~1.2 µm ahead of its reference and stays ther
 estimate into the model at x_r then made the cosine's first micrometre of reference travel (which the stuck
 stage does not make) re-load the model's springs and push the stage ahead: a large stick-slip oscillation
 through all three periods (4.40 µm RMS, against 0.68 µm without the rest additions). The sync now waits until
-the stage is within ``rest_spring_rearm_m`` of its reference. Simulated time (lock-step), the cosine only."""
+the stage is within ``rest_spring_range_m`` of its reference. Simulated time (lock-step), the cosine only."""
 
 from __future__ import annotations
 
