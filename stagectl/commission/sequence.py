@@ -163,10 +163,6 @@ REST_GAINS_DEFAULT: dict[str, float] = {"rest_kd_fraction": 1.0, "rest_dob_bandw
 #: cosine with 0.5 nm sensor noise, tests/commission/test_verify_conditions.py); two runs' ratio scatters by √2 that
 REST_STAGE_SCENARIOS = ("steps", "cosine")
 REST_STAGE_SCATTER = 0.08
-#: ... and, with as many steps settled with them as without (none of the four, or some), the steps' RMS with them at
-#: most this fraction of without also counts as a measured gain (fresh plant 111: 1/4 settled either way on the
-#: stage, 283 nm against 4.91 µm RMS; the fresh-stage check with them settled 3/4 at 0.20 µm)
-REST_STAGE_STEPS_RMS_GAIN = 0.5
 #: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
 EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
@@ -768,7 +764,8 @@ class Commissioning:
                                           f"controller {which} the {' and '.join(names[k] for k in added)}")
                 if summ is not None:
                     figures.setdefault(nm, {})[which] = summ
-            if nm == "steps" and not _steps_gain(figures.get("steps", {})):
+            st = figures.get("steps", {})
+            if nm == "steps" and not (len(st) == 2 and st["with"]["moves_settled"] > st["without"]["moves_settled"]):
                 break  # decided by the steps: the cosine runs would not change it (saves ~11 s of stage time)
         out = rest_stage_decision(figures)
         out["additions"] = [names[k] for k in added]
@@ -1751,18 +1748,6 @@ def simulate_verification(cfg: AppConfig, stroke_m: float, tol_m: float) -> dict
     return out
 
 
-def _steps_gain(st: dict[str, dict[str, Any]]) -> bool:
-    """Whether the steps on the stage show a gain with the rest additions (``st[which]``: tracking summaries):
-    more moves settled, or as many but not all, with the RMS at most ``REST_STAGE_STEPS_RMS_GAIN`` of without."""
-    if not all(w in st for w in ("with", "without")):
-        return False
-    n_w, n_o = int(st["with"]["moves_settled"]), int(st["without"]["moves_settled"])
-    if n_w != n_o:
-        return n_w > n_o
-    return n_w < int(st["with"]["moves"]) and (float(st["with"]["rms_error_m"])
-                                               <= REST_STAGE_STEPS_RMS_GAIN * float(st["without"]["rms_error_m"]))
-
-
 def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Whether the rest additions stay, from one run each ``with`` and ``without`` them on the stage
     (``figures[scenario][which]``: tracking summaries): they stay when more steps settle with them and the
@@ -1772,8 +1757,7 @@ def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
     2/4 without, for a cosine 1.84 against 1.62 nm, 1.6 standard deviations). Confidence: ``high`` when the
     deciding figure lies clear of the scatter (keep: the cosine no worse at all; drop: fewer steps settle, or the
     cosine worse by more than 2·√2·s), ``medium`` otherwise (one run each: one settled step more, or a cosine
-    worse but within the scatter), ``low`` when a figure is missing. As many steps settled but not all, with the
-    steps' RMS at most ``REST_STAGE_STEPS_RMS_GAIN`` of without, counts as a gain too (confidence ``medium``)."""
+    worse but within the scatter), ``low`` when a figure is missing."""
     st, co = figures.get("steps", {}), figures.get("cosine", {})
     out: dict[str, Any] = {"scatter": REST_STAGE_SCATTER,
                            "figures": {nm: {w: {k: d.get(k) for k in ("rms_error_m", "max_error_m", "moves",
@@ -1788,20 +1772,15 @@ def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
     c_o = float(co["without"]["rms_error_m"]) if "without" in co else math.nan
     have_cos = not (math.isnan(c_w) or math.isnan(c_o))
     limit = (1.0 + 2.0 * math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o
-    gain = _steps_gain(st)
     cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g})"
-               if have_cos else "cosine not run" if not gain else "no cosine (does not fit the "
+               if have_cos else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
                "stroke)")
-    s_w, s_o = float(st["with"]["rms_error_m"]), float(st["without"]["rms_error_m"])
-    figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without"
-    if n_w == n_o:
-        figs += f" (RMS {s_w * 1e9:.3g} nm with, {s_o * 1e9:.3g} without)"
-    figs += f"; {cos_txt}"
+    figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without; {cos_txt}"
     cos_ok = not have_cos or c_w <= limit
-    if gain and cos_ok:
-        conf = "high" if (have_cos and c_w <= c_o and n_w > n_o) else "medium"
+    if n_w > n_o and cos_ok:
+        conf = "high" if (have_cos and c_w <= c_o) else "medium"
         return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}
-    if not gain:
+    if n_w <= n_o:
         conf = "high" if n_w < n_o else "medium"
         return {**out, "keep": False, "confidence": conf, "decision": f"dropped: no more steps settle ({figs})"}
     return {**out, "keep": False, "confidence": "high",
