@@ -197,6 +197,13 @@ class FrictionFeedforward:
         return st.u_ff_n
 
 
+    def feed_at(self, x_m: float) -> None:
+        """Take ``x_m`` [m] as the position the model copy was last fed, without stepping its state (real-time
+        safe): a reference that then travels in the model's direction up to ``x_m`` leaves the state as it is
+        (:meth:`step` holds it while the reference has not passed the fed position). At standstill the controller
+        feeds the model at the stage's position when the stage is stuck ahead of the reference."""
+        self.state.x_fed_m = x_m
+
     def tangent_n_m(self, direction: int, probe_m: float = 1e-8, probe_s: float = 1.0) -> float:
         """The model's stiffness for a further displacement of the reference in ``direction`` (+1/−1) from its
         present state [N/m] (real-time safe: two probe steps on a copy of the state in a buffer kept for it; the

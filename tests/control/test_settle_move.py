@@ -116,7 +116,9 @@ def test_continues_a_move_that_ends_behind(seed_ctl: Any) -> None:
     assert abs(on["u"][k] - on["u"][k - 1]) <= 1.5 * abs(off["u"][k - 1] - off["u"][k - 2]) + 0.05
     # the friction model is held where the move left it (no reversal, fed position at the reference)
     assert on["rev"][k + 16] == on["rev"][k - 1]
-    np.testing.assert_array_equal(on["xfed"][k:k + 16], off["xfed"][k:k + 16])
+    # (compared with the reference, not with the run without the continuation: that stage stops 1.06 µm ahead
+    # at k + 15, and the stop synchronisation then feeds the model at the stuck stage, controller docstring)
+    np.testing.assert_array_equal(on["xfed"][k:k + 16], on["xr"][k:k + 16])
     # the stage reaches the target at the end of the continuation instead of creeping on from 1 µm
     e_on = np.abs(on["xr"] - on["x"])
     e_off = np.abs(off["xr"] - off["x"])
