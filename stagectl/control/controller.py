@@ -1356,17 +1356,16 @@ class StageController:
         fed there
         (:meth:`FrictionFeedforward.feed_at`), so the next move's reference travel up to the stage, which the
         stuck stage does not make, leaves the model's state alone; with the stage further *behind*, or still
-        sliding, not at all. Returns whether to synchronise this period."""
+        sliding, not at all (and the model fed at x_r again, if an earlier period fed it at the stage ahead: the
+        stage has left that position). Returns whether to synchronise this period."""
         e = x_r - x_m
         d = ff.latch.direction
-        if abs(e) <= self.cfg.rest_spring_range_m:
-            if d * (ff.state.x_fed_m - x_r) > 0.0:  # fed at the stage before it came back into the range
-                ff.feed_at(x_r)
-            return True
-        if d * e < 0.0 and abs(v_hat) <= REST_GAINS_ENTER_M_S:
+        if d * e < 0.0 and abs(e) > self.cfg.rest_spring_range_m and abs(v_hat) <= REST_GAINS_ENTER_M_S:
             ff.feed_at(x_m)
             return True
-        return False
+        if d * (ff.state.x_fed_m - x_r) > 0.0:  # fed at the stage (ahead) before it came back or moved off
+            ff.feed_at(x_r)
+        return abs(e) <= self.cfg.rest_spring_range_m
 
     def _rest_integral(self, dt: float, e_m: float, v_hat: float, d_hat: float) -> float:
         """Rest integral (``rest_integral_hz`` = f_r; module docstring): one step at standstill of a still stage,
