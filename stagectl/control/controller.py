@@ -1581,8 +1581,9 @@ class StageController:
         filters matched to it (the stuck-stage limit, the rest spring, the learners' filters). A Q-filter observer
         with a period P (s·T) steps its filter once per sample, P's or the part f = h/P of it for a shorter span
         (QFilterDob, "Irregular sampling"): a = a_P = exp(−2π·f_DOB/s·P), or 1 − (1 − a_P)·f, whatever ``dt``
-        [s]; else exp(−2π·f_DOB/s·dt). a_P, exp(…·dt), are computed once per P, dt (cached until the settings
-        change: :meth:`_derive`)."""
+        [s]; else exp(−g·dt), g the observer's rate of :meth:`_derive` (2π·f_DOB/s; a Kalman observer is not
+        slowed down: 2π·f_DOB). a_P, exp(−g·dt), are computed once per P, dt (cached until the settings change:
+        :meth:`_derive`)."""
         dob = self.dob
         if self._d_q_period and isinstance(dob, QFilterDob) and dob.period_s is not None:
             p = dob.period_s
@@ -1593,7 +1594,7 @@ class StageController:
             return self._a_val if f == 1.0 else 1.0 - (1.0 - self._a_val) * f
         if dt != self._a_dt:
             self._a_dt = dt
-            self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
+            self._a_val = math.exp(-self._d_g * dt)
         return self._a_val
 
     def _gains(self, rest: bool) -> tuple[PidConfig, DobConfig]:

@@ -312,3 +312,25 @@ def test_qfilter_reset_forgets_the_mean_span():
     for _ in range(5):
         assert used.step(p, 0.0, 0.0, 1.0) == fresh.step(p, 0.0, 0.0, 1.0)
         assert used.step_fraction == fresh.step_fraction == 1.0
+
+
+def test_kalman_observer_decay_is_not_slowed_down_with_the_loop(repo_root):
+    """``set_timing_scale`` leaves a Kalman observer's bandwidth as it is; the filters the controller matches to
+    the observer (rest spring, the learners' gate: ``StageController._dob_decay``) then decay at its bandwidth, as
+    the stuck-stage limit does (``_d_g``), not at f_DOB/s (before: exp(−2π·f_DOB/3·T) at s = 3)."""
+    import dataclasses
+
+    from stagectl.config import load_app_config
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    cfg = load_app_config(repo_root / "config" / "sim.yaml")
+    T = cfg.loop.period_s
+    c = cfg.controller
+    ctl = StageController(dataclasses.replace(c, dob=dataclasses.replace(c.dob, kind="kalman")), T)
+    ctl.set_timing_scale(3.0)
+    ctl.step(T, 0.0, Reference(1e-6, 1e-3, 0.0))
+    assert isinstance(ctl.dob, KalmanDob) and ctl.dob.cfg.bandwidth_hz == c.dob.bandwidth_hz
+    a = math.exp(-2.0 * math.pi * c.dob.bandwidth_hz * T)
+    assert ctl._dob_decay(T) == pytest.approx(a, rel=1e-12)
+    assert ctl._dob_decay(3 * T) == pytest.approx(a**3, rel=1e-12)
