@@ -163,7 +163,6 @@ class QFilterDob:
         self._have_prev = False
         self._u_last = 0.0
         self._dt_meas = math.nan
-        self._h_mean = math.nan if self.period_s is None else self.period_s  # (as constructed: h̄ = P)
         self.step_fraction = 1.0
 
     def retune(self, cfg: DobConfig, mass_kg: float) -> None:

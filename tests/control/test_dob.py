@@ -297,23 +297,6 @@ def test_qfilter_slowed_down_on_time_runs_at_its_designed_rate():
     assert ratios == pytest.approx(a_exp, rel=1e-6)
 
 
-def test_qfilter_reset_forgets_the_mean_span():
-    """reset() returns a Q filter with a period to its constructed state, the mean span h̄ = P included: after
-    samples at P/3 (h̄ → P/3: partial steps), a reset observer stepped at P gives the fresh one's estimates (it kept
-    h̄ and took a third of a step per sample: 0.12 against 0.31 N after two steps)."""
-    cfg = DobConfig(kind="qfilter", bandwidth_hz=50.0, command_delay_samples=1)
-    p = 3e-3
-    used = QFilterDob(cfg, 2.0, p)
-    for _ in range(100):
-        used.step(p / 3.0, 0.0, 0.0, 1.0)
-    assert used.step_fraction < 0.5
-    used.reset(0.0, 0.0)
-    fresh = QFilterDob(cfg, 2.0, p)
-    for _ in range(5):
-        assert used.step(p, 0.0, 0.0, 1.0) == fresh.step(p, 0.0, 0.0, 1.0)
-        assert used.step_fraction == fresh.step_fraction == 1.0
-
-
 def test_kalman_observer_decay_is_not_slowed_down_with_the_loop(repo_root):
     """``set_timing_scale`` leaves a Kalman observer's bandwidth as it is; the filters the controller matches to
     the observer (rest spring, the learners' gate: ``StageController._dob_decay``) then decay at its bandwidth, as
