@@ -158,6 +158,9 @@ class QFilterDob:
         self._kv = self.mass_kg * (1.0 - self._alpha) / dt
 
     def reset(self, x_m: float = 0.0, d_hat_n: float = 0.0) -> None:
+        """Estimate ``d_hat_n`` [N] at ``x_m`` [m], no history. The mean span h̄ is kept: like the loop's timing
+        scale (which a reset keeps), it describes the sampling, not the estimate (a slowed-down loop that samples
+        faster after a reset still takes partial steps at once)."""
         self.state = DobState(d_hat_n=d_hat_n, w_n=d_hat_n, x_hat_m=x_m)
         self._delay = deque([0.0] * self.cfg.command_delay_samples)
         self._have_prev = False
