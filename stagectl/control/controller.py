@@ -72,8 +72,9 @@ The model copy is fed at x_r; with the stage stuck more than ``rest_spring_range
 offset's force. Loaded into the model at x_r, the next move's first |x_r − x| of reference travel (which the stuck
 stage does not make) re-loaded the model's springs and pushed the stage ahead. So with the stage stuck further
 *ahead* (in the model's direction of travel) the model is fed at the stage's position x instead: the reference's
-travel up to the stage leaves its state alone, as the plant's; with the stage further *behind* there is no
-synchronisation (fresh plant 111, stuck 1.2 µm ahead: cosine 4.40 -> 0.14 µm RMS; docs/control.md §2.10).
+travel up to the stage leaves its state alone, as the plant's; with the stage further *behind* (or sliding) there
+is no synchronisation, and a model fed at the stage earlier is fed at x_r again (fresh plant 111, stuck 1.2 µm
+ahead: cosine 4.40 -> 0.14 µm RMS; docs/control.md §2.10).
 
 Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
 part, since its load at each stop would differ between repetitions): at standstill the stage is
