@@ -237,7 +237,8 @@ class QFilterDob:
             if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom or self._h_mean != t_nom):
                 # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not P
                 h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
-                hm = self._h_mean + H_MEAN_GAIN * (h - self._h_mean)
+                hm = self._h_mean if self._h_mean == self._h_mean else t_nom  # (period_s set after construction)
+                hm = hm + H_MEAN_GAIN * (h - hm)
                 if abs(hm - t_nom) <= 1e-9 * t_nom:
                     hm = t_nom
                 self._h_mean = hm

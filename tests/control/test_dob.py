@@ -317,3 +317,18 @@ def test_kalman_observer_decay_is_not_slowed_down_with_the_loop(repo_root):
     a = math.exp(-2.0 * math.pi * c.dob.bandwidth_hz * T)
     assert ctl._dob_decay(T) == pytest.approx(a, rel=1e-12)
     assert ctl._dob_decay(3 * T) == pytest.approx(a**3, rel=1e-12)
+
+
+def test_qfilter_period_set_after_construction_takes_partial_steps():
+    """``period_s`` is a public attribute: an observer built without one and given P later keeps the mean span
+    from there (h̄ starts at P), as one built with P: partial steps on samples at P/3 (before, h̄ stayed NaN and
+    every sample took a whole step)."""
+    cfg = DobConfig(kind="qfilter", bandwidth_hz=50.0, command_delay_samples=0)
+    p = 3e-3
+    late = QFilterDob(cfg, M)
+    late.period_s = p
+    late.retune(cfg, M)
+    built = QFilterDob(cfg, M, p)
+    for _ in range(50):
+        assert late.step(p / 3.0, 0.0, 0.0, 1.0) == built.step(p / 3.0, 0.0, 0.0, 1.0)
+    assert late.step_fraction == built.step_fraction < 0.5
