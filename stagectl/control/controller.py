@@ -72,8 +72,9 @@ The model copy is fed at x_r; with the stage stuck more than ``rest_spring_range
 offset's force. Loaded into the model at x_r, the next move's first |x_r − x| of reference travel (which the stuck
 stage does not make) re-loaded the model's springs and pushed the stage ahead. So with the stage stuck further
 *ahead* (in the model's direction of travel) the model is fed at the stage's position x instead: the reference's
-travel up to the stage leaves its state alone, as the plant's; with the stage further *behind* there is no
-synchronisation (fresh plant 111, stuck 1.2 µm ahead: cosine 4.40 -> 0.14 µm RMS; docs/control.md §2.10).
+travel up to the stage leaves its state alone, as the plant's; with the stage further *behind* (or sliding) there
+is no synchronisation, and a model fed at the stage earlier is fed at x_r again (fresh plant 111, stuck 1.2 µm
+ahead: cosine 4.40 -> 0.14 µm RMS; docs/control.md §2.10).
 
 Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
 part, since its load at each stop would differ between repetitions): at standstill the stage is
@@ -1356,17 +1357,16 @@ class StageController:
         fed there
         (:meth:`FrictionFeedforward.feed_at`), so the next move's reference travel up to the stage, which the
         stuck stage does not make, leaves the model's state alone; with the stage further *behind*, or still
-        sliding, not at all. Returns whether to synchronise this period."""
+        sliding, not at all (and the model fed at x_r again, if an earlier period fed it at the stage ahead: the
+        stage has left that position). Returns whether to synchronise this period."""
         e = x_r - x_m
         d = ff.latch.direction
-        if abs(e) <= self.cfg.rest_spring_range_m:
-            if d * (ff.state.x_fed_m - x_r) > 0.0:  # fed at the stage before it came back into the range
-                ff.feed_at(x_r)
-            return True
-        if d * e < 0.0 and abs(v_hat) <= REST_GAINS_ENTER_M_S:
+        if d * e < 0.0 and abs(e) > self.cfg.rest_spring_range_m and abs(v_hat) <= REST_GAINS_ENTER_M_S:
             ff.feed_at(x_m)
             return True
-        return False
+        if d * (ff.state.x_fed_m - x_r) > 0.0:  # fed at the stage (ahead) before it came back or moved off
+            ff.feed_at(x_r)
+        return abs(e) <= self.cfg.rest_spring_range_m
 
     def _rest_integral(self, dt: float, e_m: float, v_hat: float, d_hat: float) -> float:
         """Rest integral (``rest_integral_hz`` = f_r; module docstring): one step at standstill of a still stage,
@@ -1582,8 +1582,9 @@ class StageController:
         filters matched to it (the stuck-stage limit, the rest spring, the learners' filters). A Q-filter observer
         with a period P (s·T) steps its filter once per sample, P's or the part f = h/P of it for a shorter span
         (QFilterDob, "Irregular sampling"): a = a_P = exp(−2π·f_DOB/s·P), or 1 − (1 − a_P)·f, whatever ``dt``
-        [s]; else exp(−2π·f_DOB/s·dt). a_P, exp(…·dt), are computed once per P, dt (cached until the settings
-        change: :meth:`_derive`)."""
+        [s]; else exp(−g·dt), g the observer's rate of :meth:`_derive` (2π·f_DOB/s; a Kalman observer is not
+        slowed down: 2π·f_DOB). a_P, exp(−g·dt), are computed once per P, dt (cached until the settings change:
+        :meth:`_derive`)."""
         dob = self.dob
         if self._d_q_period and isinstance(dob, QFilterDob) and dob.period_s is not None:
             p = dob.period_s
@@ -1594,7 +1595,7 @@ class StageController:
             return self._a_val if f == 1.0 else 1.0 - (1.0 - self._a_val) * f
         if dt != self._a_dt:
             self._a_dt = dt
-            self._a_val = math.exp(-2.0 * math.pi * self.cfg.dob.bandwidth_hz / self.timing_scale * dt)
+            self._a_val = math.exp(-self._d_g * dt)
         return self._a_val
 
     def _gains(self, rest: bool) -> tuple[PidConfig, DobConfig]:

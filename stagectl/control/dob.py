@@ -158,6 +158,9 @@ class QFilterDob:
         self._kv = self.mass_kg * (1.0 - self._alpha) / dt
 
     def reset(self, x_m: float = 0.0, d_hat_n: float = 0.0) -> None:
+        """Estimate ``d_hat_n`` [N] at ``x_m`` [m], no history. The mean span h̄ is kept: like the loop's timing
+        scale (which a reset keeps), it describes the sampling, not the estimate (a slowed-down loop that samples
+        faster after a reset still takes partial steps at once)."""
         self.state = DobState(d_hat_n=d_hat_n, w_n=d_hat_n, x_hat_m=x_m)
         self._delay = deque([0.0] * self.cfg.command_delay_samples)
         self._have_prev = False
@@ -234,7 +237,8 @@ class QFilterDob:
             if t_nom is not None and (dt != t_nom or dt_meas_prev != t_nom or self._h_mean != t_nom):
                 # the mid-to-mid span h = (dt_k + dt_{k−1})/2 the velocity change accrued over, not P
                 h = 0.5 * (dt + (t_nom if math.isnan(dt_meas_prev) else dt_meas_prev))
-                hm = self._h_mean + H_MEAN_GAIN * (h - self._h_mean)
+                hm = self._h_mean if self._h_mean == self._h_mean else t_nom  # (period_s set after construction)
+                hm = hm + H_MEAN_GAIN * (h - hm)
                 if abs(hm - t_nom) <= 1e-9 * t_nom:
                     hm = t_nom
                 self._h_mean = hm

@@ -295,3 +295,40 @@ def test_qfilter_slowed_down_on_time_runs_at_its_designed_rate():
         u_prev = u
     ratios = np.array(errs[1:20]) / np.array(errs[:19])
     assert ratios == pytest.approx(a_exp, rel=1e-6)
+
+
+def test_kalman_observer_decay_is_not_slowed_down_with_the_loop(repo_root):
+    """``set_timing_scale`` leaves a Kalman observer's bandwidth as it is; the filters the controller matches to
+    the observer (rest spring, the learners' gate: ``StageController._dob_decay``) then decay at its bandwidth, as
+    the stuck-stage limit does (``_d_g``), not at f_DOB/s (before: exp(−2π·f_DOB/3·T) at s = 3)."""
+    import dataclasses
+
+    from stagectl.config import load_app_config
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    cfg = load_app_config(repo_root / "config" / "sim.yaml")
+    T = cfg.loop.period_s
+    c = cfg.controller
+    ctl = StageController(dataclasses.replace(c, dob=dataclasses.replace(c.dob, kind="kalman")), T)
+    ctl.set_timing_scale(3.0)
+    ctl.step(T, 0.0, Reference(1e-6, 1e-3, 0.0))
+    assert isinstance(ctl.dob, KalmanDob) and ctl.dob.cfg.bandwidth_hz == c.dob.bandwidth_hz
+    a = math.exp(-2.0 * math.pi * c.dob.bandwidth_hz * T)
+    assert ctl._dob_decay(T) == pytest.approx(a, rel=1e-12)
+    assert ctl._dob_decay(3 * T) == pytest.approx(a**3, rel=1e-12)
+
+
+def test_qfilter_period_set_after_construction_takes_partial_steps():
+    """``period_s`` is a public attribute: an observer built without one and given P later keeps the mean span
+    from there (h̄ starts at P), as one built with P: partial steps on samples at P/3 (before, h̄ stayed NaN and
+    every sample took a whole step)."""
+    cfg = DobConfig(kind="qfilter", bandwidth_hz=50.0, command_delay_samples=0)
+    p = 3e-3
+    late = QFilterDob(cfg, M)
+    late.period_s = p
+    late.retune(cfg, M)
+    built = QFilterDob(cfg, M, p)
+    for _ in range(50):
+        assert late.step(p / 3.0, 0.0, 0.0, 1.0) == built.step(p / 3.0, 0.0, 0.0, 1.0)
+    assert late.step_fraction == built.step_fraction < 0.5
