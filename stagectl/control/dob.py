@@ -205,7 +205,7 @@ class QFilterDob:
         ``u_obs_prev_n`` is the command applied after the previous step minus that step's friction
         feed-forward. ``v_hat_m_s`` is the velocity estimate at this step (Δx/dt over the measured interval
         ``dt`` [s]). With ``period_s`` P set, a step whose interval is not P (a late wake-up, a skipped slot, a
-        step after stale samples) keeps P's coefficients (the part f = min(1, h̄/P) of a step), and the velocity
+        step after stale samples) keeps P's coefficients (all of a step, or the part f = h̄/P of one while h̄ < 0.75·P), and the velocity
         change the reference's acceleration ``a_ref_m_s2`` [m/s²] makes in the span beyond f·P is taken off
         (module docstring, "Irregular sampling").
         """
