@@ -22,6 +22,12 @@ extreme in the current direction by more than ``reversal_threshold_m`` **or** it
 (not stepped, its force kept); on confirmation the whole move-back is fed at once, so no displacement is
 lost. The model's own reversal logic therefore sees one clean reversal per real one.
 
+A reference that stops at once (a hold, v = a = 0, right after a sample moving in the latched direction: the end
+of a ``sine`` segment, a cosine of fractional cycles) takes the look-ahead point back by the overshoot v·τ_a it
+had extrapolated; that is no move back: the latch's extreme and the fed position go back to the stop position
+(:meth:`DirectionLatch.stop_at`; the model's state is not stepped), so the direction stays the last motion's
+(the controller's stop synchronisation judges "ahead"/"behind" of the reference by it).
+
 Two forms of the model's step, the same arithmetic: the compiled kernel (numba; what a process that simulates a
 plant uses anyway) or, with ``plain=True``, the kernel's own source run as plain Python
 (:meth:`~stagectl.friction.FrictionModel.plain_stepper`, ~2-3 µs for GMS N = 6): a real stage's controller then
@@ -75,6 +81,12 @@ class DirectionLatch:
         self.direction = 0
         self.extreme = x_m
 
+    def stop_at(self, x_m: float) -> None:
+        """The reference stopped at once at ``x_m`` [m] (module docstring): a look-ahead step-back from the
+        extreme to ``x_m`` is no move back; the extreme becomes ``x_m`` (the direction stays)."""
+        if (self.extreme - x_m) * self.direction > 0.0:
+            self.extreme = x_m
+
     def update(self, x_m: float, v_m_s: float) -> bool:
         """Feed a sample; return True when the direction changed (a confirmed reversal or first motion)."""
         d = self.direction
@@ -121,6 +133,7 @@ class FrictionFeedforward:
         self._mstate = self._relaxed()
         self._probe: Any = None
         self._f_model = 0.0
+        self._v_ref = 0.0  # the reference's own velocity at the last step [m/s] (an abrupt stop: module docstring)
         # the model's first step loads its compiled kernel (numba: 0.5-0.9 s on a loaded PC): here, at
         # construction, not in the control loop's first moving cycle (a drive's heartbeat consumer faults on that)
         self._step(self._relaxed(), 1e-9, 1e-6, 1e-3)
@@ -138,8 +151,16 @@ class FrictionFeedforward:
         """Relaxed model state (no pre-sliding memory) at ``x_m``; the plant should be relaxed too (§6.2)."""
         self._mstate = self._relaxed()
         self._f_model = 0.0
+        self._v_ref = 0.0
         self.latch.reset(x_m)
         self.state = FrictionFfState(x_fed_m=x_m, x_extreme_m=x_m)
+
+    def _stopped(self, x_m: float) -> None:
+        """The reference stopped at once at ``x_m`` (module docstring): the latch keeps its direction and a fed
+        position beyond ``x_m`` (the look-ahead's overshoot) goes back to it without stepping the model."""
+        self.latch.stop_at(x_m)
+        if (self.state.x_fed_m - x_m) * self.latch.direction > 0.0:
+            self.state.x_fed_m = x_m
 
     def _ahead(self, ref: Reference) -> tuple[float, float]:
         ta = self.lookahead_s
@@ -165,6 +186,9 @@ class FrictionFeedforward:
             xr, vr = x_r + v_r * ta + 0.5 * a_r * ta * ta, v_r + a_r * ta
         if st.x_fed_m != st.x_fed_m:
             self.reset(xr)
+        v_prev, self._v_ref = self._v_ref, ref[1]
+        if v_prev != 0.0 and ta != 0.0 and ref[1] == 0.0 and ref[2] == 0.0 and v_prev * self.latch.direction > 0.0:
+            self._stopped(xr)  # stopped at once: the look-ahead's overshoot is no move back (module docstring)
         changed = self.latch.update(xr, vr)
         if changed and st.direction != 0:
             st.reversals += 1
@@ -251,9 +275,11 @@ class CoulombFeedforward:
         self.lookahead_s = lookahead_s + (effects.delay.delay_s if effects.delay is not None else 0.0)
         self.latch = DirectionLatch(reversal_threshold_m, reversal_velocity_m_s)
         self.state = FrictionFfState()
+        self._v_ref = 0.0  # the reference's own velocity at the last step [m/s]
 
     def reset(self, x_m: float) -> None:
         self.latch.reset(x_m)
+        self._v_ref = 0.0
         self.state = FrictionFfState(x_fed_m=x_m, x_extreme_m=x_m)
 
     def step(self, dt: float, ref: Reference) -> float:
@@ -264,6 +290,10 @@ class CoulombFeedforward:
         st = self.state
         if math.isnan(st.x_fed_m):
             self.reset(xr)
+        v_prev, self._v_ref = self._v_ref, ref.v_m_s
+        if (v_prev != 0.0 and ta != 0.0 and ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
+                and v_prev * self.latch.direction > 0.0):
+            self.latch.stop_at(xr)  # stopped at once: the look-ahead's overshoot is no move back (module docstring)
         if self.latch.update(xr, vr) and st.direction != 0:
             st.reversals += 1
         d = self.latch.direction
