@@ -253,6 +253,37 @@ def _plain_pid(p: PidConfig) -> dict[str, float]:
             "derivative_cutoff_hz": p.derivative_cutoff_hz}
 
 
+
+def commission_tuning(mass_kg: float, period_s: float, max_force_n: float, coulomb_n: float, coulomb: bool = True,
+                      crossover_x_period: float | None = None) -> ControllerConfig:
+    """The experiments' conservative tuning (:meth:`Commissioning._commission_tuning`): a PID designed for
+    ``mass_kg`` [kg] at ``crossover_x_period``/T (default ``COMMISSION_CROSSOVER_X_PERIOD``), a Q-filter observer
+    at ``COMMISSION_DOB_X_PERIOD``/T, the output clamped at ``max_force_n`` [N], a Coulomb feed-forward of
+    ``coulomb_n`` [N] (``coulomb=False``: none) with the plain inertia term ``m·a_ref``."""
+    from stagectl.control import design
+
+    T = period_s
+    pid = design.design_pid(mass_kg, (crossover_x_period or COMMISSION_CROSSOVER_X_PERIOD) / T, T, 1)
+    # the output clamp at the envelope's force (the experiments promise to stay below it)
+    # hold_integrator_at_rest off: the FRF runs with the reference at rest and its estimate assumes the
+    # full linear PID + observer loop (an integrator held at rest is not in that model)
+    # inertia_lookahead off: the experiments keep the plain m·a_ref the identification was validated with.
+    # With the look-ahead (m·(a_ref + j_ref·T/2)) the same sequence on config/sim.yaml identified the
+    # pre-sliding stiffness 19 % high instead of 10 % (reversals regression residual 5.2 mN instead of
+    # 2.8 mN) and the commissioned cosine error went from 12.8 to 253 nm RMS. The commissioned
+    # controller itself (controller_mapping) keeps the look-ahead, the default.
+    # stuck_dob_fraction off: the observer anti-wind-up acts while the stage sticks behind a moving reference,
+    # i.e. at every reversal of the reversal experiments; it bent the force there and discover then named a
+    # false 24 um backlash on config/sim.yaml (it was on by default then). Off here whatever the default.
+    return ControllerConfig(mass_kg=mass_kg, max_force_n=max_force_n, pid=pid,
+                            hold_integrator_at_rest=False, stuck_dob_fraction=math.inf,
+                            dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
+                                          command_delay_samples=1),
+                            feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
+                                                          coulomb_n=coulomb_n, inertia=True,
+                                                          inertia_lookahead=False))
+
+
 class Commissioning:
     """The sequence (module docstring). ``run()`` returns the :class:`Results`; ``new_config`` is a callable
     that writes model.yaml and stage.yaml and returns the loaded new configuration (outputs module)."""
@@ -836,28 +867,7 @@ class Commissioning:
         total commanded force, so the feed-forward does not bias it); ``coulomb=False`` for the FRF. The
         crossover is ``COMMISSION_CROSSOVER_X_PERIOD``/T unless ``crossover_x_period`` is given
         (:meth:`_experiment_crossover`)."""
-        from stagectl.control import design
-
-        T = self.T
-        pid = design.design_pid(mass_kg, (crossover_x_period or COMMISSION_CROSSOVER_X_PERIOD) / T, T, 1)
-        # the output clamp at the envelope's force (the experiments promise to stay below it)
-        # hold_integrator_at_rest off: the FRF runs with the reference at rest and its estimate assumes the
-        # full linear PID + observer loop (an integrator held at rest is not in that model)
-        # inertia_lookahead off: the experiments keep the plain m·a_ref the identification was validated with.
-        # With the look-ahead (m·(a_ref + j_ref·T/2)) the same sequence on config/sim.yaml identified the
-        # pre-sliding stiffness 19 % high instead of 10 % (reversals regression residual 5.2 mN instead of
-        # 2.8 mN) and the commissioned cosine error went from 12.8 to 253 nm RMS. The commissioned
-        # controller itself (controller_mapping) keeps the look-ahead, the default.
-        # stuck_dob_fraction off: the observer anti-wind-up acts while the stage sticks behind a moving reference,
-        # i.e. at every reversal of the reversal experiments; it bent the force there and discover then named a
-        # false 24 um backlash on config/sim.yaml (it was on by default then). Off here whatever the default.
-        return ControllerConfig(mass_kg=mass_kg, max_force_n=self.env.f_max_n, pid=pid,
-                                hold_integrator_at_rest=False, stuck_dob_fraction=math.inf,
-                                dob=DobConfig(kind="qfilter", bandwidth_hz=COMMISSION_DOB_X_PERIOD / T,
-                                              command_delay_samples=1),
-                                feedforward=FeedforwardConfig(kind="coulomb" if coulomb else "none",
-                                                              coulomb_n=self._coulomb_guess, inertia=True,
-                                                              inertia_lookahead=False))
+        return commission_tuning(mass_kg, self.T, self.env.f_max_n, self._coulomb_guess, coulomb, crossover_x_period)
 
     def _frf_crossover(self, mass_kg: float) -> float:
         """Crossover × period of the FRF's tuning: ``COMMISSION_CROSSOVER_X_PERIOD``, or on a stage whose

@@ -18,9 +18,7 @@ from pathlib import Path
 
 from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
-from stagectl.control import design
-from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
-from stagectl.control.dob import DobConfig
+from stagectl.control.controller import StageController
 from stagectl.control.friction_ff import CoulombFeedforward
 from stagectl.control.trajectory import Scenario, TrajectoryGenerator
 
@@ -39,13 +37,7 @@ STAGE = {"mass": 0.9086, "fs": 1.8788, "fc": 1.448, "visc": 2.247, "vs": 0.00043
 def _run(release: bool) -> tuple[SpeedLadderFeedforward, float]:
     """The passes on the oracle; returns the ladder and the peak |x_ref − x| over the passes [m]."""
     st = STAGE
-    pid = design.design_pid(st["m_exp"], st["xp"] / T, T, 1)
-    cfg = ControllerConfig(mass_kg=st["m_exp"], max_force_n=7.0, pid=pid, hold_integrator_at_rest=False,
-                           stuck_dob_fraction=math.inf,
-                           dob=DobConfig(kind="qfilter", bandwidth_hz=seq.COMMISSION_DOB_X_PERIOD / T,
-                                         command_delay_samples=1),
-                           feedforward=FeedforwardConfig(kind="coulomb", coulomb_n=st["ff"], inertia=True,
-                                                         inertia_lookahead=False))
+    cfg = seq.commission_tuning(st["m_exp"], T, 7.0, st["ff"], crossover_x_period=st["xp"])
     inner = StageController(cfg, T)
     assert isinstance(inner.ff, CoulombFeedforward)
     budget = seq.pass_budget(cfg, T, 1, st["m_exp"], st["m_std"], st["fb"], 0.0, E_MAX)

@@ -21,9 +21,7 @@ import numpy as np
 
 from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
-from stagectl.control import design
-from stagectl.control.controller import ControllerConfig, FeedforwardConfig, StageController
-from stagectl.control.dob import DobConfig
+from stagectl.control.controller import StageController
 from stagectl.control.friction_ff import CoulombFeedforward
 from stagectl.control.trajectory import Scenario, TrajectoryGenerator
 
@@ -51,13 +49,7 @@ def _run(viscous: bool, cogging_n: float = 0.0, cogging_period_m: float = 1e-3,
     """The passes on the oracle (plus a cogging force ``A·sin(2π·x/p)`` if ``cogging_n``); returns the ladder, the peak |x_ref − x| from the start of the first 16 mm/s
     pass on, and the observer's force at the end of the fastest passes' cruises (mean of |u_dob|) [N]."""
     st = STAGE
-    pid = design.design_pid(st["m_est"], seq.COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
-    cfg = ControllerConfig(mass_kg=st["m_est"], max_force_n=7.0, pid=pid, hold_integrator_at_rest=False,
-                           stuck_dob_fraction=math.inf,
-                           dob=DobConfig(kind="qfilter", bandwidth_hz=seq.COMMISSION_DOB_X_PERIOD / T,
-                                         command_delay_samples=1),
-                           feedforward=FeedforwardConfig(kind="coulomb", coulomb_n=st["ff"], inertia=True,
-                                                         inertia_lookahead=False))
+    cfg = seq.commission_tuning(st["m_est"], T, 7.0, st["ff"])
     inner = StageController(cfg, T)
     assert isinstance(inner.ff, CoulombFeedforward)
     ladder = SpeedLadderFeedforward(inner.ff, seq.LADDER_SETTLE_X_CROSSOVER_PERIOD
@@ -146,12 +138,7 @@ def test_only_stages_whose_viscous_force_the_loop_cannot_carry_get_the_feedforwa
     e_max = 50e-6
 
     def threshold(m_est: float) -> float:
-        pid = design.design_pid(m_est, seq.COMMISSION_CROSSOVER_X_PERIOD / T, T, 1)
-        cfg = ControllerConfig(mass_kg=m_est, max_force_n=7.0, pid=pid, hold_integrator_at_rest=False,
-                               stuck_dob_fraction=math.inf,
-                               dob=DobConfig(kind="qfilter", bandwidth_hz=seq.COMMISSION_DOB_X_PERIOD / T,
-                                             command_delay_samples=1))
-        g_step, _ = seq.loop_error_gains(cfg, T, 1)
+        g_step, _ = seq.loop_error_gains(seq.commission_tuning(m_est, T, 7.0, 0.0, coulomb=False), T, 1)
         return seq.VISCOUS_FF_X_FE * e_max / (g_step * V_MAX)
 
     assert threshold(STAGE["m_est"]) < 0.9 * STAGE["visc"]
