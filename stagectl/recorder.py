@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from stagectl.errors import StageError
 from stagectl.ident.recording import RecordingCsv
@@ -52,6 +53,15 @@ class Recorder:
         self._full: list[np.ndarray] = []  # filled blocks before _data, in order
         self._base = 0  # rows held in _full
         self.n = 0
+
+    @classmethod
+    def of(cls, columns: Sequence[str], rows: npt.ArrayLike) -> Recorder:
+        """A recording holding ``rows`` (one row per sample, one column per name in ``columns``) at once."""
+        data = np.asarray(rows, dtype=float).reshape(-1, len(columns))
+        rec = cls(columns, capacity=data.shape[0])
+        rec._data[: data.shape[0]] = data
+        rec.n = data.shape[0]
+        return rec
 
     def append(self, row: tuple[float, ...]) -> None:
         i = self.n - self._base

@@ -1808,7 +1808,4 @@ def _verify_scenario(name: str, xc: float, stroke: float) -> Scenario | None:
 def _summary_after(rec: Recorder, skip_s: float, tol_m: float) -> dict[str, Any]:
     t = rec.col("t")
     sel = t >= t[0] + skip_s
-    sub = Recorder(rec.columns, capacity=int(sel.sum()) + 1)
-    for row in rec.data[sel]:
-        sub.append(tuple(row))
-    return tracking_summary(sub, tol_m=tol_m)
+    return tracking_summary(Recorder.of(rec.columns, rec.data[sel]), tol_m=tol_m)

@@ -172,15 +172,6 @@ _GMS = {"model": "gms", "k_n_m": [454610.0, 111088.0, 45601.0, 16402.0, 6899.0, 
         "delta": 2.0, "c_n_s": 1e8, "viscous_n_s_m": 0.0, "sigma1_n_s_m": 0.0}
 
 
-class _Rec:
-    def __init__(self, **cols: np.ndarray) -> None:
-        self.cols = cols
-        self.n = next(iter(cols.values())).shape[0]
-
-    def col(self, name: str) -> np.ndarray:
-        return self.cols[name]
-
-
 def _loops_path(T: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A long move, then loops of log-spaced travel back and forth (the commissioning's pre-sliding
     experiment): the true path, and as measured with 0.5 nm noise and 1 nm quantisation."""
@@ -265,7 +256,7 @@ def test_presliding_fit_recovers_the_elements_and_the_delay() -> None:
     i = np.arange(n, dtype=float)
     u = np.interp(i + 1.5, i, m * a + f)  # u_k acts over [t_{k+1}, t_{k+2}): 1 ms + half a sample
     sliding = {"fc_n": 1.15, "fs_n": 1.3, "vs_m_s": 1e-3, "delta": 2.0, "viscous_n_s_m": 0.0}
-    p = fit_presliding(_Rec(x=x, u=u), m, T, 0.9e-3, sliding, None)  # the FRF's delay, 0.1 ms short
+    p = fit_presliding(Recorder.of(("x", "u"), np.column_stack([x, u])), m, T, 0.9e-3, sliding, None)  # the FRF's delay, 0.1 ms short
     k_fit, d_fit = np.array(p["k_n_m"]), np.array(p["break_away_m"])
     k = np.array(_GMS["k_n_m"])
     d = np.array(_GMS["alpha"]) * 1.3 / k
@@ -280,8 +271,6 @@ def test_presliding_fit_recovers_the_elements_and_the_delay() -> None:
 def _slow_passes(force: Callable[[np.ndarray, np.ndarray], np.ndarray], seed: int = 0) -> Recorder:
     """A slow-passes recording built by hand: ±1 mm at 0.3 mm/s both ways (1 ms samples) with 0.5 nm sensor
     noise, ``u = force(x, direction) + 5 mN`` noise, the reference columns the loop records."""
-    from stagectl.recorder import Recorder
-
     T, v, L = 1e-3, 3e-4, 2e-3
     n1 = int(L / v / T)
     x = np.concatenate([np.full(300, -1e-3), -1e-3 + v * T * np.arange(n1), np.full(300, 1e-3),
@@ -290,10 +279,8 @@ def _slow_passes(force: Callable[[np.ndarray, np.ndarray], np.ndarray], seed: in
     rng = np.random.default_rng(seed)
     u = force(x, np.sign(vr)) + 0.005 * rng.standard_normal(x.size)
     xm = x + 0.5e-9 * rng.standard_normal(x.size)
-    rec = Recorder(("t", "x", "u", "v_ref", "a_ref"), capacity=x.size)
-    for row in zip(T * np.arange(x.size), xm, u, vr, np.zeros(x.size), strict=True):
-        rec.append(tuple(float(c) for c in row))
-    return rec
+    return Recorder.of(("t", "x", "u", "v_ref", "a_ref"), np.column_stack([T * np.arange(x.size), xm, u, vr,
+                                                                          np.zeros(x.size)]))
 
 
 def test_cogging_evidence_names_a_periodic_force_the_same_both_ways() -> None:
@@ -574,14 +561,12 @@ def test_a_ripple_finer_than_the_sensor_quantum_is_not_checked() -> None:
     step 0), so λ = 1.6 µm is sampled at most 1.6 times per period; a true 16 % ripple there cannot be checked,
     and the evidence must say so (before: 1.6e9 rows per period and "the slow passes show 36.7 mN" of 80 mN)."""
     from stagectl.commission.fit import ripple_evidence
-    from stagectl.recorder import Recorder
 
     lam, q = 1.6e-6, 1e-6
     fine = _slow_passes(lambda x, d: 0.5 * d * (1 + 0.16 * np.sin(2 * np.pi * x / lam)) + 0.05)
-    rec = Recorder(("t", "x", "u", "v_ref", "a_ref"), capacity=len(fine.col("t")))
     xq = np.round(np.asarray(fine.col("x")) / q) * q
-    for row in zip(fine.col("t"), xq, fine.col("u"), fine.col("v_ref"), fine.col("a_ref"), strict=True):
-        rec.append(tuple(float(c) for c in row))
+    rec = Recorder.of(("t", "x", "u", "v_ref", "a_ref"),
+                      np.column_stack([fine.col("t"), xq, fine.col("u"), fine.col("v_ref"), fine.col("a_ref")]))
     claim = {"amplitude": 0.16, "wavelength_m": lam, "phase_rad": 0.0}
     ev = ripple_evidence(rec, 1.0, 1e-3, claim, 0.5)
     assert not ev["present"] and ev["rows_per_period"] == pytest.approx(1.6, rel=0.01), ev

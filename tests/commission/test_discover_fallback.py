@@ -24,10 +24,7 @@ COLS = ("t", "x", "u", "x_ref", "v_ref", "a_ref", "v")
 
 
 def _rec(x: np.ndarray, u: np.ndarray, v_ref: np.ndarray) -> Recorder:
-    rec = Recorder(COLS, capacity=x.size)
-    for k in range(x.size):
-        rec.append((k * T, float(x[k]), float(u[k]), float(x[k]), float(v_ref[k]), 0.0, float(v_ref[k])))
-    return rec
+    return Recorder.of(COLS, np.column_stack([T * np.arange(x.size), x, u, x, v_ref, np.zeros(x.size), v_ref]))
 
 
 def test_a_reversal_recording_discover_cannot_read_leaves_the_sliding_curve_not_an_abort() -> None:

@@ -10,6 +10,7 @@ import numpy as np
 
 from stagectl.commission.fit import fit_presliding, presliding_recordings
 from stagectl.friction import build
+from stagectl.recorder import Recorder
 
 #: generated plant 29's friction (tests/commission/plant_gen.py): 0.60 kg on Σk = 2.1e6 N/m, a pre-sliding
 #: resonance at 296 Hz (3.4 samples a period at 1 kHz)
@@ -19,16 +20,7 @@ _GMS = {"model": "gms", "k_n_m": [1047871.3, 550368.4, 174557.6, 131294.6, 12218
 _T, _M, _UP = 1e-3, 0.6, 16
 
 
-class _Rec:
-    def __init__(self, **cols: np.ndarray) -> None:
-        self.cols = cols
-        self.n = next(iter(cols.values())).shape[0]
-
-    def col(self, name: str) -> np.ndarray:
-        return self.cols[name]
-
-
-def _record(xt_fine: np.ndarray, seed: int) -> _Rec:
+def _record(xt_fine: np.ndarray, seed: int) -> Recorder:
     """The force acts on the true path (``_UP`` points a sampling period); the recording has it at the
     samples, applied 1 ms + half a sample late, and the path measured (0.5 nm noise, 1 nm quantum)."""
     n = (xt_fine.shape[0] - 1) // _UP + 1
@@ -39,7 +31,8 @@ def _record(xt_fine: np.ndarray, seed: int) -> _Rec:
     i = np.arange(n, dtype=float)
     u = np.interp(i + 1.5, i, _M * a + f)
     rng = np.random.default_rng(seed)
-    return _Rec(x=np.round((xt + 0.5e-9 * rng.standard_normal(n)) / 1e-9) * 1e-9, u=u)
+    x = np.round((xt + 0.5e-9 * rng.standard_normal(n)) / 1e-9) * 1e-9
+    return Recorder.of(("x", "u"), np.column_stack([x, u]))
 
 
 def _move(a: float, b: float, dur: float) -> np.ndarray:
@@ -79,7 +72,7 @@ def test_presliding_regression_reads_the_loops_not_the_passes_stops() -> None:
     k = np.array(_GMS["k_n_m"])
     d = np.array(_GMS["alpha"]) * 0.859 / k
 
-    def curve_error(recs: list[_Rec]) -> float:
+    def curve_error(recs: list[Recorder]) -> float:
         p = fit_presliding(recs, _M, _T, 1e-3, sliding, None)  # type: ignore[arg-type]
         kf, df = np.array(p["k_n_m"]), np.array(p["break_away_m"])
         return max(abs(float((kf * np.minimum(s, 2 * df)).sum()) / float((k * np.minimum(s, 2 * d)).sum()) - 1)
@@ -90,5 +83,5 @@ def test_presliding_regression_reads_the_loops_not_the_passes_stops() -> None:
     assert curve_error(chosen) < 5e-3
     assert curve_error([loops, passes]) > 3e-2  # what reading the passes too costs
     # designed recordings without slow rows (too short here): the passes are read after all
-    short = _Rec(x=loops.col("x")[:20], u=loops.col("u")[:20])
+    short = Recorder.of(("x", "u"), np.column_stack([loops.col("x")[:20], loops.col("u")[:20]]))
     assert presliding_recordings({"reversals": short, "friction_cv": passes}, _M, _T, sliding) == [short, passes]  # type: ignore[dict-item]
