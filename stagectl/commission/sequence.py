@@ -819,7 +819,9 @@ class Commissioning:
         r, S = self.res, self.env.stroke_m
         sc = _verify_scenario(nm, xc, S)
         if sc is None:
-            r.notes.append(f"verification {nm}: skipped (does not fit the stroke)")
+            note = f"verification {nm}: skipped (does not fit the stroke)"
+            if note not in r.notes:  # (each side and the rest check ask for it: one line says it)
+                r.notes.append(note)
             return None
         wipe = wipe_segments(xc, S, _quantum_guess(stage))
         lead = verification_lead(xc, S)

@@ -680,14 +680,13 @@ class _MoveFit:
     s1: float = 0.0  # Σ f_th, Σ f_b [N] (the baseline's leverage on the fit); Σ y² [N²] (residuals)
     s2: float = 0.0
     yy: float = 0.0
-    xr0: float = math.nan  # the model's last reversal at the start of the move [m] (a later one: a reversal in it)
     se_th: float = math.inf  # standard errors of the last solve's (θ, ln β)
     se_u: float = math.inf
     n_all: int = 0  # samples of the move, used or not (its length)
 
-    def start(self, th: float, b: float, f0: float, d0: float, x0: float, xr0: float = math.nan) -> None:
+    def start(self, th: float, b: float, f0: float, d0: float, x0: float) -> None:
         self.rest, self.valid = False, True
-        self.th0, self.b0, self.f0, self.d0, self.x0, self.xr0 = th, b, f0, d0, x0, xr0
+        self.th0, self.b0, self.f0, self.d0, self.x0 = th, b, f0, d0, x0
         self.dir = 0
         self.g_th = self.g_b = self.f_th = self.f_b = self.g_c = self.f_c = 0.0
         self.a11 = self.a12 = self.a22 = self.b1 = self.b2 = 0.0
@@ -1157,8 +1156,7 @@ class StageController:
                 # force of the last step: this step's has already moved, by all of its jump for a static model);
                 # the estimate as the loop goes on from it, without the rest spring's force that _rest_spring folds
                 # into the observer below
-                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m,
-                         ff.state.x_rev_m)
+                ml.start(th, ff.input_scale, self.state.u_ff_n / th, d_hat - self._s_rest, ff.state.x_fed_m)
             if learning:  # the learner (ILC) is active for this motion: one learner at a time
                 ml.valid = False
             if not ml.valid:
