@@ -275,6 +275,14 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                        f"excess stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} "
                        f"um against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit; sticky "
                        f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
+        fb = rep["gains"].get("fallback")
+        if fb:
+            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}; {fb.get('why')}): candidates with K_p >= "
+                       f"{_num(fb['kp_min_n_m'] / 1e3, '.3g')} kN/m keeping PM >= "
+                       f"{_num(fb['reduced_floor']['phase_margin_deg'], 'g')} deg and GM >= "
+                       f"{_num(fb['reduced_floor']['gain_margin_db'], 'g')} dB on the model and the measured FRF: "
+                       f"{', '.join(c['design'] for c in fb.get('candidates') or []) or 'none'}"
+                       + ("." if sr else f". {fb.get('decision')}."))]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]
