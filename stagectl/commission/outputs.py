@@ -113,9 +113,15 @@ def report_dict(res: Results) -> dict[str, Any]:
     gv = (res.gains or {}).get("given")
     if gv and r["verdict"]["recommend"] == "given" and not gv["measured"]["healthy"]:
         mm = gv["measured"]
+        ch = (res.gains or {}).get("chosen") or {}
+        if ch.get("healthy", True):
+            keeps = f"below the {MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps"
+        else:  # the fallback tier's design misses the floor too (gains.fallback)
+            cm = ch.get("measured") or ch["model"]
+            keeps = (f"the commissioned one (fallback tier) {_margin_text(cm)}, also below the {MIN_PM:g} deg / "
+                     f"{MIN_GM:g} dB floor")
         r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
-                                 f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
-                                 f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
+                                 f"{mm['gain_margin_db']:.1f} dB on the measured FRF, {keeps})")
     # (every run of the commissioned controller: the rest additions' check on the stage, the verification's)
     if res.aborted is not None and res.aborted.experiment.startswith(COMMISSIONED_RUNS):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
@@ -187,6 +193,13 @@ def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     return f"{v * scale:.{digits}g}{unit}"
+
+
+def _margin_text(mm: dict[str, Any]) -> str:
+    """``"PM 26 deg / GM 3.4 dB"`` (no crossing in the measured band: "PM -")."""
+    pm, gm = float(mm["phase_margin_deg"]), float(mm["gain_margin_db"])
+    return (f"PM {pm:.0f} deg" if math.isfinite(pm) else "PM -") + " / " + \
+        (f"GM {gm:.1f} dB" if math.isfinite(gm) else "GM -")
 
 
 def _num(v: Any, fmt: str) -> str:

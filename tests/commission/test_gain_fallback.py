@@ -7,12 +7,22 @@ the commissioning on main)."""
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stagectl.commission.sequence import (FALLBACK_MIN_GAIN_MARGIN_DB, FALLBACK_MIN_PHASE_MARGIN_DEG,
-                                          MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, choose_gains,
-                                          fallback_candidates, fallback_needed, pick_finalist, pick_fallback,
-                                          stiction_screen)
+                                          MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, _design_name, choose_gains,
+                                          controller_mapping, fallback_candidates, fallback_needed, pick_fallback,
+                                          pick_finalist, stiction_screen)
+
+sys.path.insert(0, str(Path(__file__).parent))
+from plant_gen import exact_model  # noqa: E402
+from plant_kinds import fresh_plant, fresh_stage_yaml  # noqa: E402
+
+ch_name = _design_name
 
 T, FE, DF = 1e-3, 50e-6, 0.427
 KP_MIN = DF / FE  # 8.54 kN/m
@@ -125,3 +135,52 @@ def test_a_healthy_design_within_the_limit_keeps_the_normal_choice() -> None:
     assert not any(e["sticky"] for e in f2) and "fallback" not in g
     assert not fallback_needed(f2, [key(1e-6)] * len(f2))
     assert fallback_needed(f2, [(INF, 0.0)] * len(f2))
+
+
+def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path: Path) -> None:
+    """Through the sequence's own twin ranking (``Commissioning._rank_on_twin``, lock-step), on fresh plant k112
+    with its exact model as the identified one and margins on the model only (no FRF): every finalist is sticky
+    or faults on the twin; the fallback's design keeps K_p >= (F_s - F_c)/e_max, beats the given controller and
+    the floor's pick on the twin, and on the hidden plant itself tracks better than the floor's pick."""
+    import yaml
+
+    from stagectl.commission.analysis import PlantFit
+    from stagectl.commission.sequence import Commissioning, Options, simulate_verification, stiction_excess
+    from stagectl.config import load_app_config
+
+    plant, kind = fresh_plant(112)
+    cfg = load_app_config(fresh_stage_yaml(tmp_path / "k112.yaml", plant, kind))
+    comm = Commissioning(cfg, tmp_path / "out", Options(max_stroke_m=0.002, verify=False, plots=False),
+                         write_config=lambda res: cfg)
+    m, T = float(plant["mass_kg"]), cfg.loop.period_s
+    comm.res.model_spec = exact_model(plant)
+    comm.res.plant = PlantFit(m, 0.0, 0.0, 0.0, 0.0, T, 0.0, 0.0, [], 0.0)
+    fb = float(plant["friction"]["fs_n"])
+    stiction = (fb, stiction_excess(comm.res.model_spec, fb), cfg.safety.following_error_m)
+    g = choose_gains(m, T, comm.res.plant, None, stiction=stiction,
+                     rank=lambda fin, spare, kp: comm._rank_on_twin(fin, m, spare, kp))
+    rec, ch = g["fallback"], g["chosen"]
+    kp_min = stiction[1] / stiction[2]
+    assert rec["chosen"] == ch_name(ch) and rec["confidence"] == "low" and g["stiction_rule"]["confidence"] == "low"
+    assert ch["pid"]["kp_n_m"] >= kp_min and not ch["healthy"] and "PM" in rec["gives_up"]
+    assert isinstance(rec["given_twin"], dict)  # the given controller ran on the twin as the reference
+    fin = g["finalists"]
+    keys = [(float(np.mean([math.log(max(float(sc["rms_error_m"]), 1e-15)) for sc in e["twin"].values()])),
+             -float(sum(int(sc["moves_settled"]) for sc in e["twin"].values()))) for e in fin]
+    assert fallback_needed(fin, keys)
+    soft = fin[pick_finalist(fin, keys)[0]]  # the floor's pick (sticky)
+    assert soft["sticky"] and soft["pid"]["kp_n_m"] < kp_min
+
+    def on_plant(entry: dict[str, Any]) -> dict[str, Any]:
+        """``entry`` on the hidden plant with its exact model as the feed-forward (plant_gen.against_exact)."""
+        (tmp_path / "exact.yaml").write_text(yaml.safe_dump(exact_model(plant)))
+        ctl = controller_mapping(entry, m, 1, T, T, None, cfg.controller.max_force_n, str(tmp_path / "exact.yaml"))
+        d = {"loop": {"period_s": T}, "io": {"kind": "plant_io", "sensor": "drive", "delay_cycles": 1},
+             "sim": {"plant": plant}, "controller": ctl,
+             "safety": yaml.safe_load((tmp_path / "k112.yaml").read_text())["safety"]}
+        (tmp_path / "check.yaml").write_text(yaml.safe_dump(d))
+        return simulate_verification(load_app_config(tmp_path / "check.yaml"), 0.002, 10e-9)
+
+    new, old = on_plant(ch), on_plant(soft)
+    assert new["cosine"]["rms_error_m"] < 0.5 * old["cosine"]["rms_error_m"]
+    assert math.isfinite(new["steps"]["rms_error_m"])
