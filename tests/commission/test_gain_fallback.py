@@ -184,3 +184,30 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
     new, old = on_plant(ch), on_plant(soft)
     assert new["cosine"]["rms_error_m"] < 0.5 * old["cosine"]["rms_error_m"]
     assert math.isfinite(new["steps"]["rms_error_m"])
+
+
+def test_the_verdict_note_does_not_claim_the_floor_for_a_fallback_design() -> None:
+    """k112 with verification: the given controller (PM 11 deg / GM 4.0 dB measured) was kept on settled steps;
+    on main the note said the commissioned one keeps 40 deg / 8 dB, which a fallback design does not."""
+    from stagectl.commission.envelope import make_envelope
+    from stagectl.commission.outputs import report_dict
+    from stagectl.commission.sequence import Results
+    from stagectl.config import load_app_config
+
+    cfg = load_app_config(Path(__file__).resolve().parents[2] / "config" / "sim.yaml")
+    s = cfg.safety
+    env = make_envelope(min_position_m=s.min_position_m, max_position_m=s.max_position_m,
+                        safety_force_n=s.max_force_n, controller_force_n=cfg.controller.max_force_n,
+                        max_velocity_m_s=s.max_velocity_m_s, period_s=cfg.loop.period_s,
+                        following_error_m=s.following_error_m, max_stroke_m=None, max_force_n=None,
+                        max_speed_m_s=None)
+    chosen = design(40, "qfilter", 130, 17491, 26.3, 6.44, 107.7, 3.43)
+    given = {"measured": {"phase_margin_deg": 11.2, "gain_margin_db": 3.97, "healthy": False}}
+    run = lambda rms, n: {"rms_error_m": rms, "max_error_m": 3 * rms, "moves_settled": n, "moves": 4}  # noqa: E731
+    ver = {"steps": {"before": run(3.59e-6, 2), "after": run(1.92e-6, 0)}}
+    res = Results(cfg, env, gains={"chosen": chosen, "given": given, "mass_kg": 0.89, "delay_samples": 1},
+                  verification=ver)
+    text = report_dict(res)["verdict"]["text"]
+    assert "keeps" not in text and "the commissioned one (fallback tier) PM 26 deg / GM 3.4 dB" in text
+    chosen["healthy"] = True  # a design that meets the floor: the note as before
+    assert "below the 40 deg / 8 dB the commissioned one keeps" in report_dict(res)["verdict"]["text"]
