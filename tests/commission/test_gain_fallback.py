@@ -13,14 +13,24 @@ from typing import Any
 
 import numpy as np
 
-from stagectl.commission.sequence import (FALLBACK_MIN_GAIN_MARGIN_DB, FALLBACK_MIN_PHASE_MARGIN_DEG,
-                                          MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, _design_name, choose_gains,
-                                          controller_mapping, fallback_candidates, fallback_needed, pick_fallback,
-                                          pick_finalist, stiction_screen)
+from stagectl.commission.sequence import (
+    FALLBACK_MIN_GAIN_MARGIN_DB,
+    FALLBACK_MIN_PHASE_MARGIN_DEG,
+    MIN_GAIN_MARGIN_DB,
+    MIN_PHASE_MARGIN_DEG,
+    _design_name,
+    choose_gains,
+    controller_mapping,
+    fallback_candidates,
+    fallback_needed,
+    pick_fallback,
+    pick_finalist,
+    stiction_screen,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from plant_gen import exact_model  # noqa: E402
-from plant_kinds import fresh_plant, fresh_stage_yaml  # noqa: E402
+from plant_gen import exact_model
+from plant_kinds import fresh_plant, fresh_stage_yaml
 
 ch_name = _design_name
 
@@ -203,7 +213,7 @@ def test_the_verdict_note_does_not_claim_the_floor_for_a_fallback_design() -> No
                         max_speed_m_s=None)
     chosen = design(40, "qfilter", 130, 17491, 26.3, 6.44, 107.7, 3.43)
     given = {"measured": {"phase_margin_deg": 11.2, "gain_margin_db": 3.97, "healthy": False}}
-    run = lambda rms, n: {"rms_error_m": rms, "max_error_m": 3 * rms, "moves_settled": n, "moves": 4}  # noqa: E731
+    run = lambda rms, n: {"rms_error_m": rms, "max_error_m": 3 * rms, "moves_settled": n, "moves": 4}
     ver = {"steps": {"before": run(3.59e-6, 2), "after": run(1.92e-6, 0)}}
     res = Results(cfg, env, gains={"chosen": chosen, "given": given, "mass_kg": 0.89, "delay_samples": 1},
                   verification=ver)
