@@ -756,7 +756,8 @@ class Commissioning:
             if self.res.discovery.get(key):
                 r.notes.append(f"models: {self.res.discovery[key]}")
         fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
-        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin, spare, kp_min: self._rank_on_twin(fin, m, spare, kp_min),
+        self.res.gains = choose_gains(m, T, r.plant, r.frf,
+                                      rank=lambda fin, spare, kp_min: self._rank_on_twin(fin, m, spare, kp_min),
                                       stiction=(fb, stiction_excess(self.res.model_spec, fb),
                                                 self.env.following_error_m))
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
@@ -1250,17 +1251,16 @@ class Commissioning:
             best = (keys[i_best], finalists[i_best])
             if "sticky" in best[1]:
                 best[1]["stiction_choice"] = decision
-                if decision["decision"] != "best on the twin":
-                    self.res.notes.append(f"gains: {decision['decision']}")
+            note = decision["decision"] if "sticky" in best[1] and decision["decision"] != "best on the twin" else ""
             if spare and fallback_needed(finalists, keys):
                 spare_keys = []
                 for entry in spare:
                     entry["twin"] = on_twin(entry)
                     spare_keys.append(key_of(entry["twin"]))
                 given_key: tuple[float, float] | None = None
+                given_twin: dict[str, Any] | str
                 try:
-                    given_twin: dict[str, Any] | str = given_on_twin()
-                    assert isinstance(given_twin, dict)
+                    given_twin = given_on_twin()
                     given_key = key_of(given_twin)
                 except (StageError, ValueError) as exc:  # a config the twin cannot run: no reference
                     given_twin = f"not run on the twin: {exc}"
@@ -1269,15 +1269,17 @@ class Commissioning:
                                      "measured": e.get("measured"), "twin": e["twin"]} for e in spare]
                 fb["given_twin"] = given_twin
                 if j is not None:
-                    prev = best[1]
-                    prev.pop("stiction_choice", None)
+                    best[1].pop("stiction_choice", None)
                     best = (spare_keys[j], spare[j])
                     best[1]["stiction_choice"] = fb
+                    note = fb["decision"]
                 else:
                     best[1]["stiction_choice"] = {**decision, "confidence": "low",
                                                   "decision": f"{decision['decision']}; {fb['decision']}"}
+                    note = best[1]["stiction_choice"]["decision"]
                 best[1]["fallback_choice"] = fb
-                self.res.notes.append(f"gains: {fb['decision']}")
+            if note:
+                self.res.notes.append(f"gains: {note}")
             best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin, quantum)
             best[1]["rest_integral"] = self._rest_integral(best[1], mass_kg, nd, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
@@ -1450,7 +1452,7 @@ def pick_finalist(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
 
 
 def _faulted_text(entries: list[dict[str, Any]]) -> str:
-    """``"35 Hz PID faulted (cosine, triangle)"``: which designs faulted in which twin scenarios."""
+    """``"35 Hz PID (cosine, triangle) faulted"``: which designs faulted in which twin scenarios."""
     parts = []
     for e in entries:
         bad = [nm for nm, sc in (e.get("twin") or {}).items() if math.isinf(float(sc["rms_error_m"]))]
