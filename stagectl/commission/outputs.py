@@ -113,9 +113,16 @@ def report_dict(res: Results) -> dict[str, Any]:
     gv = (res.gains or {}).get("given")
     if gv and r["verdict"]["recommend"] == "given" and not gv["measured"]["healthy"]:
         mm = gv["measured"]
+        ch = (res.gains or {}).get("chosen") or {}
+        if ch.get("healthy", True):
+            keeps = f"below the {MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps"
+        else:  # the fallback tier's design misses the floor too (gains.fallback)
+            ds = [d for d in (ch.get("model"), ch.get("measured")) if d]
+            low = {k: min(float(d[k]) for d in ds) for k in ("phase_margin_deg", "gain_margin_db")}
+            keeps = (f"the commissioned one (fallback tier) {_margin_text(low)} (the lower of the model's and the "
+                     f"measured FRF's), also below the {MIN_PM:g} deg / {MIN_GM:g} dB floor")
         r["verdict"]["text"] += (f" (note: the given controller has PM {mm['phase_margin_deg']:.0f} deg / GM "
-                                 f"{mm['gain_margin_db']:.1f} dB on the measured FRF, below the "
-                                 f"{MIN_PM:g} deg / {MIN_GM:g} dB the commissioned one keeps)")
+                                 f"{mm['gain_margin_db']:.1f} dB on the measured FRF, {keeps})")
     # (every run of the commissioned controller: the rest additions' check on the stage, the verification's)
     if res.aborted is not None and res.aborted.experiment.startswith(COMMISSIONED_RUNS):
         r["verdict"] = {"recommend": "given", "worse": [f"{res.aborted.experiment}: {res.aborted.reason}"],
@@ -187,6 +194,13 @@ def _fmt(v: Any, scale: float = 1.0, unit: str = "", digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     return f"{v * scale:.{digits}g}{unit}"
+
+
+def _margin_text(mm: dict[str, Any]) -> str:
+    """``"PM 26 deg / GM 3.4 dB"`` (no crossing in the measured band: "PM -")."""
+    pm, gm = float(mm["phase_margin_deg"]), float(mm["gain_margin_db"])
+    return (f"PM {pm:.0f} deg" if math.isfinite(pm) else "PM -") + " / " + \
+        (f"GM {gm:.1f} dB" if math.isfinite(gm) else "GM -")
 
 
 def _num(v: Any, fmt: str) -> str:
@@ -275,6 +289,14 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                        f"excess stiction length (F_s - F_c)/K_p is {_num(None if lam is None else lam * 1e6, '.3g')} "
                        f"um against the {_num(sr['limit_m'] * 1e6, '.3g')} um following-error limit; sticky "
                        f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
+        fb = rep["gains"].get("fallback")
+        if fb:
+            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}; {fb.get('why')}): candidates with K_p >= "
+                       f"{_num(fb['kp_min_n_m'] / 1e3, '.3g')} kN/m keeping PM >= "
+                       f"{_num(fb['reduced_floor']['phase_margin_deg'], 'g')} deg and GM >= "
+                       f"{_num(fb['reduced_floor']['gain_margin_db'], 'g')} dB on the model and the measured FRF: "
+                       f"{', '.join(c['design'] for c in fb.get('candidates') or []) or 'none'}"
+                       + ("." if sr else f". {fb.get('decision')}."))]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

@@ -70,6 +70,13 @@ log = logging.getLogger("stagectl.commission")
 #: the margins the new tuning must keep, on the model and on the measured FRF
 MIN_PHASE_MARGIN_DEG = 40.0
 MIN_GAIN_MARGIN_DB = 8.0
+#: the gains' fallback tier (:func:`fallback_candidates`, :func:`pick_fallback`): a design stiff enough to hold the
+#: stiction (K_p ≥ (F_s − F_c)/e_max) that misses the floor above is considered, only when every design that meets
+#: the floor is sticky or faults on the twin, if it keeps these reduced margins on the model with the delay and on
+#: the measured FRF; at most FALLBACK_TWIN_TRIALS of them (highest crossover first) run on the twin
+FALLBACK_MIN_PHASE_MARGIN_DEG = 25.0
+FALLBACK_MIN_GAIN_MARGIN_DB = 3.0
+FALLBACK_TWIN_TRIALS = 4
 #: candidate crossovers × period (highest first): 40 Hz ... 8 Hz at 1 kHz
 CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01, 0.008)
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
@@ -749,7 +756,8 @@ class Commissioning:
             if self.res.discovery.get(key):
                 r.notes.append(f"models: {self.res.discovery[key]}")
         fb = min(r.sanity.breakaway_n) if r.sanity is not None else 0.0
-        self.res.gains = choose_gains(m, T, r.plant, r.frf, rank=lambda fin: self._rank_on_twin(fin, m),
+        self.res.gains = choose_gains(m, T, r.plant, r.frf,
+                                      rank=lambda fin, spare, kp_min: self._rank_on_twin(fin, m, spare, kp_min),
                                       stiction=(fb, stiction_excess(self.res.model_spec, fb),
                                                 self.env.following_error_m))
         self.res.gains["given"] = given_margins(self.cfg.controller, T, self.res.gains["delay_samples"], r.frf)
@@ -1147,7 +1155,8 @@ class Commissioning:
             return Dwell(0.01)
         return self._move_to(x_to, v, mass_kg)
 
-    def _rank_on_twin(self, finalists: list[dict[str, Any]], mass_kg: float) -> dict[str, Any]:
+    def _rank_on_twin(self, finalists: list[dict[str, Any]], mass_kg: float,
+                      spare: list[dict[str, Any]] | None = None, kp_min_n_m: float = 0.0) -> dict[str, Any]:
         """Choose among healthy designs by simulating them on a *mismatched twin* of the identified stage.
 
         The twin is the identified model with its friction levels 1 % higher and its pre-sliding stiffnesses
@@ -1157,7 +1166,13 @@ class Commissioning:
         scenarios (cosine, triangle, steps) after the approach move (:func:`simulate_verification`); the best
         has the lowest geometric-mean RMS error (ties:
         more moves settled). The scores are kept in each finalist's ``twin`` entry. (Ranking by settled moves
-        first was tried: the twin's settling counts did not carry over to the stage.)"""
+        first was tried: the twin's settling counts did not carry over to the stage.)
+
+        The fallback tier: where every finalist is sticky or faults on the twin (:func:`fallback_needed`), the
+        ``spare`` designs (:func:`fallback_candidates`: below the floor, stiff enough for the stiction) and the
+        given configuration's own controller (its gains and feed-forward, as a reference) run on the twin too, and
+        :func:`pick_fallback` may choose one of the spares (confidence low; its record goes to the chosen entry's
+        ``fallback_choice``, :func:`choose_gains` moves it to ``gains.fallback``)."""
         import tempfile
 
         import yaml
@@ -1208,19 +1223,63 @@ class Commissioning:
                              "moves": summ["moves"]}
                         for nm, summ in simulate_verification(cfg, self.env.stroke_m, max(10e-9, 2 * quantum)).items()}
 
-            keys: list[tuple[float, float]] = []
-            for entry in finalists:
-                scores = on_twin(entry)
+            def key_of(scores: dict[str, Any]) -> tuple[float, float]:
                 settled = sum(int(sc["moves_settled"]) for sc in scores.values())
                 logs = [math.log(max(float(sc["rms_error_m"]), 1e-15)) for sc in scores.values()]
-                entry["twin"] = scores
-                keys.append((float(np.mean(logs)), -float(settled)))
+                return float(np.mean(logs)), -float(settled)
+
+            def given_on_twin() -> dict[str, Any]:
+                """The given configuration's controller (its own feed-forward files) on the twin."""
+                ctl = dict(data.get("controller") or {}) if isinstance(data, dict) else {}
+                mapping = {"loop": {"period_s": T}, "io": {"kind": "plant_io", "sensor": "drive",
+                                                           "delay_cycles": nd},
+                           "sim": {"plant": {"model_file": str(tdir / "twin.yaml"),
+                                             "actuator": {"max_force_n": 1e6},
+                                             "sensor": {"resolution_m": quantum, "noise_std_m": 0.5 * quantum},
+                                             "seed": 1}},
+                           "controller": ctl, "safety": safety}
+                cfg = parse_app_config(mapping, self.cfg.path)
+                return {nm: {"rms_error_m": summ["rms_error_m"], "moves_settled": summ["moves_settled"],
+                             "moves": summ["moves"]}
+                        for nm, summ in simulate_verification(cfg, self.env.stroke_m, max(10e-9, 2 * quantum)).items()}
+
+            keys: list[tuple[float, float]] = []
+            for entry in finalists:
+                entry["twin"] = on_twin(entry)
+                keys.append(key_of(entry["twin"]))
             i_best, decision = pick_finalist(finalists, keys)
             best = (keys[i_best], finalists[i_best])
             if "sticky" in best[1]:
                 best[1]["stiction_choice"] = decision
-                if decision["decision"] != "best on the twin":
-                    self.res.notes.append(f"gains: {decision['decision']}")
+            note = decision["decision"] if "sticky" in best[1] and decision["decision"] != "best on the twin" else ""
+            if spare and fallback_needed(finalists, keys):
+                spare_keys = []
+                for entry in spare:
+                    entry["twin"] = on_twin(entry)
+                    spare_keys.append(key_of(entry["twin"]))
+                given_key: tuple[float, float] | None = None
+                given_twin: dict[str, Any] | str
+                try:
+                    given_twin = given_on_twin()
+                    given_key = key_of(given_twin)
+                except (StageError, ValueError) as exc:  # a config the twin cannot run: no reference
+                    given_twin = f"not run on the twin: {exc}"
+                j, fb = pick_fallback(finalists, keys, i_best, spare, spare_keys, given_key, kp_min_n_m)
+                fb["candidates"] = [{"design": _design_name(e), "pid": e["pid"], "model": e["model"],
+                                     "measured": e.get("measured"), "twin": e["twin"]} for e in spare]
+                fb["given_twin"] = given_twin
+                if j is not None:
+                    best[1].pop("stiction_choice", None)
+                    best = (spare_keys[j], spare[j])
+                    best[1]["stiction_choice"] = fb
+                    note = fb["decision"]
+                else:
+                    best[1]["stiction_choice"] = {**decision, "confidence": "low",
+                                                  "decision": f"{decision['decision']}; {fb['decision']}"}
+                    note = best[1]["stiction_choice"]["decision"]
+                best[1]["fallback_choice"] = fb
+            if note:
+                self.res.notes.append(f"gains: {note}")
             best[1]["rest"] = self._rest_spring(best[1], mass_kg, nd, spec, on_twin, quantum)
             best[1]["rest_integral"] = self._rest_integral(best[1], mass_kg, nd, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
@@ -1376,6 +1435,10 @@ def pick_finalist(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
     if not plain:
         return best, {"decision": "best on the twin; every finalist is sticky", "confidence": "low"}
     alt = min(plain, key=lambda i: scores[i])
+    if math.isinf(scores[alt][0]):  # every finalist within the limit faulted on the twin: no ratio to give
+        return best, {"decision": (f"{_design_name(finalists[best])} chosen although sticky: "
+                                   + _faulted_text([finalists[i] for i in plain]) + " on the twin"),
+                      "confidence": "medium"}
     gain = 1.0 - math.exp(scores[best][0] - scores[alt][0])  # fraction by which the sticky one is better
     if gain > STICKY_NEAR_TIE:
         return best, {"decision": (f"{_design_name(finalists[best])} chosen although sticky: its twin geometric-mean "
@@ -1386,6 +1449,144 @@ def pick_finalist(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
                               f"{finalists[best]['excess_stiction_length_m'] * 1e6:.3g} um over the following-"
                               f"error limit) and only {100 * gain:.0f} % better on the twin "
                               f"(near tie: <= {100 * STICKY_NEAR_TIE:.0f} %)"), "confidence": "medium"}
+
+
+def _faulted_text(entries: list[dict[str, Any]]) -> str:
+    """``"35 Hz PID (cosine, triangle) faulted"``: which designs faulted in which twin scenarios."""
+    parts = []
+    for e in entries:
+        bad = [nm for nm, sc in (e.get("twin") or {}).items() if math.isinf(float(sc["rms_error_m"]))]
+        parts.append(_design_name(e) + (f" ({', '.join(bad)})" if bad else ""))
+    return (", ".join(parts) + (" faulted" if len(parts) == 1 else " each faulted")) if parts else "nothing faulted"
+
+
+def _is_fault(score: tuple[float, float]) -> bool:
+    return math.isinf(score[0])
+
+
+def fallback_needed(finalists: list[dict[str, Any]], scores: list[tuple[float, float]]) -> bool:
+    """Whether the gains' fallback tier runs: every finalist (each meets the floor) is ``sticky``
+    (:func:`stiction_screen`) or faulted on the twin (an infinite rank key, :meth:`Commissioning._rank_on_twin`)."""
+    return bool(finalists) and all(e.get("sticky", False) or _is_fault(sc) for e, sc in zip(finalists, scores))
+
+
+def _observer_option(dob_kind: str, dob_bandwidth_hz: float, crossover_hz: float, period_s: float) -> str:
+    """The observer option a design belongs to (:func:`choose_gains` keeps the highest crossover per option)."""
+    if dob_kind != "qfilter":
+        return "none"
+    if dob_bandwidth_hz < 0.1 / period_s:
+        return f"qfilter@{dob_bandwidth_hz / crossover_hz:.3g}fc"
+    return f"qfilter@{dob_bandwidth_hz * period_s:.3g}/T"
+
+
+def _keeps(e: dict[str, Any], pm_deg: float, gm_db: float) -> bool:
+    """Whether design ``e`` is stable on the model and keeps PM ≥ ``pm_deg``, GM ≥ ``gm_db`` there and on the
+    measured FRF (where measured; a margin with no crossing in the measured band is ∞)."""
+    mod = e["model"]
+    ok = bool(mod["closed_loop_stable"]) and float(mod["phase_margin_deg"]) >= pm_deg \
+        and float(mod["gain_margin_db"]) >= gm_db
+    mm = e.get("measured")
+    if mm is not None:
+        ok = ok and float(mm["phase_margin_deg"]) >= pm_deg and float(mm["gain_margin_db"]) >= gm_db
+    return ok
+
+
+def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s: float) -> list[dict[str, Any]]:
+    """The fallback tier's candidates among the designs ``tried`` (:func:`choose_gains`) that miss the floor:
+    K_p ≥ ``kp_min_n_m`` (ΔF/e_max [N/m], so the loop's spring takes up the stiction excess within the following-
+    error limit), stable on the model with the delay and keeping PM ≥ ``FALLBACK_MIN_PHASE_MARGIN_DEG`` and
+    GM ≥ ``FALLBACK_MIN_GAIN_MARGIN_DB`` there and on the measured FRF; per observer option the highest crossover
+    (as the finalists), at most ``FALLBACK_TWIN_TRIALS``, highest crossover first (then the most measured GM).
+
+    Why these margins: the designs the floor rejects on a stiction-heavy stage (k112: 0.89 kg, F_s − F_c 0.43 N,
+    50 µm limit, K_p ≥ 8.5 kN/m) lose PM on the model to the 1 ms delay (26–34° at 30–40 Hz) and GM on the
+    measured FRF to its pre-sliding mode (the stuck stage on Σk ≈ 1e6 N/m, a peak at 200–220 Hz: 1.8–4.6 dB).
+    GM 3 dB lets the loop gain rise 41 % (the mass read 29 % light, six standard errors of the probe's mass) before
+    that mode goes unstable, and the mode is a small-amplitude one: its stiffness falls as soon as the elements
+    slip. PM 25° at a 50–65 Hz loop crossover tolerates 1.1–1.4 ms of delay beyond the measured one (measured
+    to ±0.07 ms). Below these (GM 1.8–2.9 dB with the 80–100 Hz observers) the tier does not go: those loops sit
+    on the edge of the mode the FRF measured. The twin then decides among the candidates (its nonlinear friction
+    and delay are what the linear margins cannot show)."""
+    by_option: dict[str, dict[str, Any]] = {}
+    for e in tried:
+        if e.get("healthy") or float(e["pid"]["kp_n_m"]) < kp_min_n_m:
+            continue
+        if not _keeps(e, FALLBACK_MIN_PHASE_MARGIN_DEG, FALLBACK_MIN_GAIN_MARGIN_DB):
+            continue
+        key = _observer_option(e["dob_kind"], float(e["dob_bandwidth_hz"]), float(e["crossover_target_hz"]), period_s)
+        old = by_option.get(key)
+        if old is None or float(e["crossover_target_hz"]) > float(old["crossover_target_hz"]):
+            by_option[key] = e
+    def order(e: dict[str, Any]) -> tuple[float, float]:
+        return -float(e["crossover_target_hz"]), -float((e.get("measured") or e["model"])["gain_margin_db"])
+
+    out = sorted(by_option.values(), key=order)
+    return out[:FALLBACK_TWIN_TRIALS]
+
+
+def given_up_text(e: dict[str, Any]) -> str:
+    """Which of the floor's margins (PM ``MIN_PHASE_MARGIN_DEG``, GM ``MIN_GAIN_MARGIN_DB``) design ``e`` gives up,
+    where, with numbers: what a PM below the floor still tolerates in extra delay at its crossover, what a GM below
+    it tolerates in loop gain, at which frequency."""
+    parts = []
+    for where, d in (("on the model with the delay", e["model"]), ("on the measured FRF", e.get("measured"))):
+        if d is None:
+            continue
+        pm, gm = float(d["phase_margin_deg"]), float(d["gain_margin_db"])
+        if pm < MIN_PHASE_MARGIN_DEG:
+            fc = float(d["crossover_hz"])
+            tol = f"{1e3 * pm / (360.0 * fc):.2g} ms more delay at its {fc:.3g} Hz crossover" if fc > 0 else "less delay"
+            parts.append(f"PM {pm:.1f} deg < {MIN_PHASE_MARGIN_DEG:g} {where} (tolerates {tol})")
+        if gm < MIN_GAIN_MARGIN_DB:
+            fp = float(d["phase_crossover_hz"])
+            parts.append(f"GM {gm:.1f} dB < {MIN_GAIN_MARGIN_DB:g} {where} (the loop gain may rise "
+                         f"{100 * (10 ** (gm / 20) - 1):.0f} % before the loop goes unstable at {fp:.3g} Hz)")
+    return "; ".join(parts) or "nothing"
+
+
+def pick_fallback(finalists: list[dict[str, Any]], scores: list[tuple[float, float]], i_pick: int,
+                  candidates: list[dict[str, Any]], cand_scores: list[tuple[float, float]],
+                  given_score: tuple[float, float] | None, kp_min_n_m: float) -> tuple[int | None, dict[str, Any]]:
+    """The gains' fallback tier's choice, when :func:`fallback_needed`: among the ``candidates``
+    (:func:`fallback_candidates`, their twin rank keys ``cand_scores``) the best one that ran the twin without a
+    fault, if it beats on the twin both the floor's pick (finalist ``i_pick``, key ``scores[i_pick]``) and the
+    given controller (``given_score``, None when it could not run: then only the pick). Returns its index (None:
+    the floor's pick stays) and the record for the report: ``decision``, ``confidence`` (``low`` when chosen: it
+    misses the floor), ``gives_up`` (:func:`given_up_text`), ``why`` (which finalists were sticky, which faulted)."""
+    sticky = [finalists[i] for i in range(len(finalists)) if finalists[i].get("sticky") and not _is_fault(scores[i])]
+    faulted = [finalists[i] for i in range(len(finalists)) if _is_fault(scores[i])]
+    why = "; ".join(p for p in (
+        (f"{', '.join(_design_name(e) for e in sticky)} sticky (K_p < (F_s - F_c)/e_max = {kp_min_n_m / 1e3:.3g} "
+         "kN/m)") if sticky else "",
+        _faulted_text(faulted) + " on the twin" if faulted else "") if p)
+    rec: dict[str, Any] = {"tier": "fallback", "why": f"every design that meets the floor is sticky or faults: {why}",
+                           "kp_min_n_m": kp_min_n_m,
+                           "reduced_floor": {"phase_margin_deg": FALLBACK_MIN_PHASE_MARGIN_DEG,
+                                             "gain_margin_db": FALLBACK_MIN_GAIN_MARGIN_DB}}
+    ok = [j for j in range(len(candidates)) if not _is_fault(cand_scores[j])]
+    if not ok:
+        return None, {**rec, "chosen": None, "decision": (
+            f"fallback tier: no candidate ({len(candidates)} kept K_p >= {kp_min_n_m / 1e3:.3g} kN/m and the "
+            f"reduced floor) ran the twin without a fault; the floor's pick stays"), "confidence": "low"}
+    j = min(ok, key=lambda k: cand_scores[k])
+    def um(sc: tuple[float, float]) -> str:  # the geometric-mean RMS
+        return "a fault" if _is_fault(sc) else f"{math.exp(sc[0]) * 1e6:.3g} um"
+
+    name = _design_name(candidates[j])
+    figs = (f"twin geometric-mean RMS: {name} {um(cand_scores[j])}, the floor's pick "
+            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}")
+    if given_score is not None:
+        figs += f", the given controller {um(given_score)}"
+    if not cand_scores[j] < scores[i_pick]:
+        return None, {**rec, "chosen": None, "decision": f"fallback tier: {name} not better on the twin ({figs}); "
+                      "the floor's pick stays", "confidence": "low"}
+    if given_score is not None and not cand_scores[j][0] < given_score[0]:
+        return None, {**rec, "chosen": None, "confidence": "low", "decision": (
+            f"fallback tier: {name} not better on the twin than the given controller ({figs}); the floor's pick "
+            "stays, and the twin rates the given controller better: keep it")}
+    gives = given_up_text(candidates[j])
+    return j, {**rec, "chosen": name, "gives_up": gives, "confidence": "low", "decision": (
+        f"fallback tier: {name} chosen below the floor ({figs}); it gives up {gives}")}
 
 
 def stiction_excess(spec: dict[str, Any] | None, breakaway_n: float) -> float:
@@ -1401,7 +1602,7 @@ def stiction_excess(spec: dict[str, Any] | None, breakaway_n: float) -> float:
 
 
 def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | None,
-                 rank: Callable[[list[dict[str, Any]]], dict[str, Any]] | None = None,
+                 rank: Callable[[list[dict[str, Any]], list[dict[str, Any]], float], dict[str, Any]] | None = None,
                  stiction: tuple[float, float, float] | None = None) -> dict[str, Any]:
     """``tune``'s design (:func:`stagectl.control.design.design_pid`) for the measured mass and delay, for
     every candidate crossover, alone and with a Q-filter DOB at each bandwidth of ``DOB_X_CROSSOVER`` × f_c and
@@ -1410,7 +1611,10 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     among the finalists (the sequence simulates them, :meth:`Commissioning._rank_on_twin`), else the
     highest crossover wins (at equal crossover the DOB form, which rejects friction faster). With ``stiction``
     = (breakaway force [N], stiction excess F_s − F_c [N], following-error limit [m]) the finalists first pass :func:`stiction_screen`; its
-    record is the result's ``stiction_rule``."""
+    record is the result's ``stiction_rule``. ``rank`` also gets the fallback tier's candidates
+    (:func:`fallback_candidates`, designs below the floor stiff enough for the stiction) and their K_p floor
+    ΔF/e_max [N/m] (0 without ``stiction``); the record of that tier,
+    where it ran (:func:`pick_fallback`), is the result's ``fallback``."""
     from stagectl.control import design
 
     nd = max(1, round(plant.delay_s / T)) if plant is not None else 1
@@ -1451,13 +1655,21 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     rule: dict[str, Any] | None = None
     if stiction is not None and stiction[2] > 0.0:
         rule = stiction_screen(fin, *stiction)
-    chosen = rank(fin) if rank is not None else fin[0]
+    kp_min = stiction[1] / stiction[2] if stiction is not None and stiction[2] > 0.0 else 0.0
+    spare = fallback_candidates(tried, kp_min, T)
+    chosen = rank(fin, spare, kp_min) if rank is not None else fin[0]
+    fallback = chosen.pop("fallback_choice", None)
+    choice = chosen.pop("stiction_choice", None)
+    if fallback is not None and fallback.get("chosen") and stiction is not None and stiction[2] > 0.0:
+        stiction_screen([chosen], *stiction)  # the fallback's stiction lengths for the report (it is not sticky)
     if rule is not None:
-        rule.update(chosen.pop("stiction_choice", None) or {"decision": "highest crossover", "confidence": "medium"})
+        rule.update(choice or {"decision": "highest crossover", "confidence": "medium"})
     out = {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
            "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
     if rule is not None:
         out["stiction_rule"] = rule
+    if fallback is not None:
+        out["fallback"] = fallback
     return out
 
 
