@@ -849,6 +849,7 @@ class StageController:
         #: why the rest spring was last released at standstill: "slid", "hunting", "not held" ("" : not yet)
         self.rest_spring_release_reason = ""
         self.rest_spring_held_n_m = math.nan  # the last secant stiffness the stiffness test judged [N/m]
+        self.rest_spring_release_count = 0  # releases at standstill since construction (telemetry, checks)
         self._hw = QFilterDob(cfg.dob, self.mass_kg, self.period_s)  # the stiffness test's force witness
         self.reset(0.0)
 
@@ -1470,7 +1471,7 @@ class StageController:
                 self._rs_swings += 1
             self._rs_side = side
         kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
-        not_held = at_rest and self._rs_armed and self._d_held and self._not_held(kv)
+        not_held = at_rest and self._rs_armed and self._d_held and self._not_held(kv, ref.x_m)
         if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2
                                                or not_held)):
             self._rs_side = 0
@@ -1479,6 +1480,7 @@ class StageController:
             if at_rest:
                 self.rest_spring_release_reason = ("slid" if abs(e_x) > cfg.rest_spring_release_m else
                                                    "not held" if not_held else "hunting")
+                self.rest_spring_release_count += 1
                 self._rs_armed = False
                 self._rs_releases += 1
                 self._rs_band_s = 0.0
@@ -1514,14 +1516,16 @@ class StageController:
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 
-    def _not_held(self, kv: float) -> bool:
+    def _not_held(self, kv: float, x_r: float) -> bool:
         """The rest spring's stiffness test (``rest_spring_held_fraction`` = ρ; module docstring, "Rest spring"):
         the force the stage takes, F = LPF(u − m·a) (the witness observer), against its position x_f = LPF(x) along
         the branch since the stage's last reversal (x_f turned back by REST_HELD_MIN_TRAVEL_M from its extreme; a
         pre-sliding contact is at its stiffest there, Σk on the plant the model describes). True once the branch has
         run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
         reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
-        spring needs. A stage that approaches the target without turning back is not judged."""
+        spring needs. A stage that approaches the target without turning back is not judged, nor a branch that
+        starts or is judged beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
+        there: a bounded force, not a stiffness of the loop)."""
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
         if self._h_n == 0:  # armed: look for the first extreme from here
@@ -1555,6 +1559,11 @@ class StageController:
         if abs(dx) < h * REST_HELD_JUDGE_TRAVEL:
             return False
         cfg = self.cfg
+        r = cfg.rest_spring_range_m
+        if abs(xf - x_r) > r:
+            # beyond the spring's range its force is clamped (a bounded force, no stiffness of the loop): not judged
+            self._h_sxx = -1.0
+            return False
         k_min = cfg.rest_spring_held_fraction / cfg.rest_stiffness_fraction * kv
         self.rest_spring_held_n_m = k_hat = self._h_sxf / self._h_sxx
         self._h_sxx = -1.0  # judged once, at its start: further on a pre-sliding contact softens as its elements slip
