@@ -60,6 +60,7 @@ from stagectl.bench import tell
 from stagectl.errors import ConfigError
 
 if TYPE_CHECKING:
+    from stagectl.clock import Timing
     from stagectl.config import AppConfig
     from stagectl.control.controller import ControllerConfig
     from stagectl.control.pid import PidConfig
@@ -246,6 +247,45 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
         "hold_s": hold_s,
         "delay_samples": io.delay_cycles,
     }
+
+
+def free_mass_rest_check(ctl_cfg: ControllerConfig, timing: Timing | float, mass_kg: float, kick_m: float, *,
+                         delay_samples: int = 1, duration_s: float = 0.5) -> dict[str, Any]:
+    """The controller at standstill on a plain *free* mass (no friction at all: the plant of ``stagectl tune``'s
+    ``rest/free`` loop), in simulated time: reset at 0 with the reference at rest there, the mass started ``kick_m``
+    [m] off it, exact zero-order-hold integration m·ẍ = u, ``delay_samples`` periods of I/O delay, the position
+    quantised to 1 nm. Returns ``release_cycle`` (first cycle the rest spring was released at standstill, None:
+    never), ``release_reason``, ``max_excursion_m`` (largest |x| over ``duration_s``), ``late_excursion_m``
+    (largest |x| over the last fifth) and ``final_m``."""
+    from collections import deque
+
+    from stagectl.clock import Timing as _Timing
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    tm = _Timing.of(timing)
+    T = tm.period_s
+    ctl = StageController(ctl_cfg, tm)
+    ctl.reset(0.0)
+    ref = Reference(0.0, 0.0, 0.0)
+    x, v = kick_m, 0.0
+    pending: deque[float] = deque([0.0] * max(1, delay_samples))
+    n = int(round(duration_s / T))
+    n_late = n - max(1, n // 5)
+    mx = late = 0.0
+    rel: int | None = None
+    why = ""
+    for k in range(n):
+        pending.append(ctl.step(T, round(x * 1e9) * 1e-9, ref).force_n)
+        u = pending.popleft()  # the force that acts over this period
+        x, v = x + v * T + 0.5 * u / mass_kg * T * T, v + u / mass_kg * T
+        mx = max(mx, abs(x))
+        if k >= n_late:
+            late = max(late, abs(x))
+        if rel is None and ctl.rest_spring_release_count:
+            rel, why = k, ctl.rest_spring_release_reason
+    return {"kick_m": kick_m, "release_cycle": rel, "release_reason": why or None, "max_excursion_m": mx,
+            "late_excursion_m": late, "final_m": x}
 
 
 class _ReleaseWatch:

@@ -62,8 +62,11 @@ MAX_HOLD_EXCURSION_M = 1e-6
 #: values of the feed-forward scale θ at which the rest loop is analysed over its configured range
 THETA_POINTS = 5
 #: the rest spring on a stage that is not held: lock-step 10 µm steps (CHECK_HOLD_S holds) on the config's plant with
-#: its pre-sliding stiffness (and micro-damping) at these fractions of its own, the spring on and off
-NOT_HELD_STIFFNESS_FRACTIONS = (0.2, 0.05)
+#: its pre-sliding stiffness (and micro-damping) at these fractions of its own (below the shipped designs' stiffness
+#: margins, 0.47 and 0.85), the spring on and off
+NOT_HELD_STIFFNESS_FRACTIONS = (0.2,)
+#: ... and on a free mass (no friction), started this far off the reference at standstill [m]
+FREE_MASS_KICKS_M = (1e-9, 2e-8, 1e-7)
 
 
 #: heaviest moving mass [kg] the loop design resolves numerically (python-control transfer functions)
@@ -313,9 +316,10 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     margin = (_stiffness_margin(m, T, ctl, nd, m_dob, held, k_plant, c_plant, hi * kv, hi * kr)
               if spring else None)
     check = _not_held_check(app, ctl) if spring else None
+    free_check = _free_mass_check(ctl, m, T, nd) if spring else None
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
             "stiffness_margin": margin, "held_fraction": ctl.rest_spring_held_fraction if spring else None,
-            "not_held_check": check,
+            "not_held_check": check, "free_mass_check": free_check,
             "rest_integral_n_m_s": kr,
             "mass_kg": m, "observer_mass_kg": m_dob, "integrator_held": held,
             "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
@@ -337,6 +341,17 @@ def _rest_spring_lines(rest: dict[str, Any]) -> list[str]:
                      + ("" if rho >= mg else f" -- BELOW the margin {mg:g}: raise controller.rest_spring_held_fraction"))
             out.append(f"stiffness margin: the rest loop meets the floor down to {mg:g} x the stuck stage's "
                        f"pre-sliding stiffness (theta 1); {guard}")
+    fm = rest.get("free_mass_check")
+    if fm:
+        kicks = "/".join(f"{r['kick_m'] * 1e9:g}" for r in fm)
+        cyc = "/".join("never" if r["release_cycle"] is None else f"{r['release_cycle']}" for r in fm)
+        why = "/".join(r["release_reason"] or "-" for r in fm)
+        exc = "/".join(f"{r['max_excursion_m'] * 1e9:.0f}" for r in fm)
+        exc0 = "/".join(f"{r['no_spring']['max_excursion_m'] * 1e9:.0f}" for r in fm)
+        late = max(r["late_excursion_m"] for r in fm)
+        out.append(f"rest/free check (simulated: a free mass, no friction, started {kicks} nm off the reference at "
+                   f"standstill, 0.5 s): the spring was released after {cyc} cycles ({why}); largest excursion "
+                   f"{exc} nm (without the spring {exc0} nm); within {late * 1e9:.0f} nm over the last 0.1 s")
     chk = rest.get("not_held_check")
     if chk is None:
         return out
@@ -386,6 +401,23 @@ def _stiffness_margin(m: float, T: float, ctl: Any, nd: int, m_dob: float, held:
         else:
             lo = mid
     return round(hi, 2)
+
+
+def _free_mass_check(ctl: Any, m: float, T: float, nd: int) -> list[dict[str, Any]]:
+    """The configured controller at standstill on a free mass ``m`` [kg] (the ``rest/free`` plant), period ``T`` [s],
+    ``nd`` periods of I/O delay, started each of :data:`FREE_MASS_KICKS_M` off the reference, with and without its rest
+    spring (:func:`stagectl.bench.control.free_mass_rest_check`, 0.5 s of simulated time each)."""
+    import dataclasses
+
+    from stagectl.bench.control import free_mass_rest_check
+
+    out = []
+    for kick in FREE_MASS_KICKS_M:
+        on = free_mass_rest_check(ctl, T, m, kick, delay_samples=nd)
+        off = free_mass_rest_check(dataclasses.replace(ctl, rest_stiffness_fraction=0.0), T, m, kick,
+                                   delay_samples=nd)
+        out.append({**on, "no_spring": {k: off[k] for k in ("max_excursion_m", "late_excursion_m", "final_m")}})
+    return out
 
 
 def _not_held_check(app: Any, ctl: Any) -> dict[str, Any] | None:
