@@ -244,7 +244,8 @@ def _rest_gains(ctl: Any) -> dict[str, Any]:
             "spring_sections": ctl.rest_spring_section_count}
 
 
-def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
+def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *,
+                simulate: bool = True) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
     integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
     ``m_dob`` + the rest spring k_v = φ·min(θ, 1)·Σk of the controller's model) on a stage of mass ``m`` [kg] stuck
@@ -258,7 +259,11 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     is analysed at ``THETA_POINTS`` values of θ over that range and each loop's figures are the worst case (the
     lowest phase margin, with its θ; the lowest gain margin; unstable if unstable anywhere); ``theta_sweep``
     lists the stuck plant's margins per θ. ``stuck_unstable_at_theta`` names the θ values where the stuck plant's
-    rest loop is unstable (the configured controller would oscillate at standstill there)."""
+    rest loop is unstable (the configured controller would oscillate at standstill there).
+
+    With a spring: ``stiffness_margin`` (:func:`_stiffness_margin`) and, with ``simulate``, what the spring does on
+    stages that are not held, in simulated time (``free_mass_check``: :func:`_free_mass_check`; ``not_held_check``:
+    :func:`_not_held_check`; about 1 s of CPU)."""
     from stagectl.control import design
 
     if ctl.dob.kind != "qfilter":
@@ -315,8 +320,8 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
                      if kr else ""))
     margin = (_stiffness_margin(m, T, ctl, nd, m_dob, held, k_plant, c_plant, hi * kv, hi * kr)
               if spring else None)
-    check = _not_held_check(app, ctl) if spring else None
-    free_check = _free_mass_check(ctl, m, T, nd) if spring else None
+    check = _not_held_check(app, ctl) if spring and simulate else None
+    free_check = _free_mass_check(ctl, m, T, nd) if spring and simulate else None
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
             "stiffness_margin": margin, "held_fraction": ctl.rest_spring_held_fraction if spring else None,
             "not_held_check": check, "free_mass_check": free_check,
