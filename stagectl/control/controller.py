@@ -115,6 +115,18 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
+Stiffness test (``rest_spring_held_fraction`` = ρ, 0.5): the guard above acts only once the stage has hunted or slid,
+but the linear rest loop is unstable as soon as the stage is held by less stiffness than the spring assumes (tune's
+*stiffness margin*: the rest loop meets PM 40° / GM 8 dB down to 0.47 of the model's stiffness for config/sim.yaml).
+A witness observer (a Q filter on the whole command, never shifted) gives the force the stage takes,
+F = LPF(u − m·a), and the position at the sample F is centred on goes through the same low-pass (x_f). After each
+reversal of x_f (REST_HELD_MIN_TRAVEL_M hysteresis; a pre-sliding contact is at its stiffest there) the secant
+k̂ = Σ(Δx·ΔF)/Σ(Δx²) over the first REST_HELD_JUDGE_TRAVEL·REST_HELD_MIN_TRAVEL_M (10 nm) is judged once, within
+``rest_spring_range_m`` of x_r only (beyond it the spring's force is clamped: no stiffness); k̂ < ρ·min(θ, 1)·Σk
+releases the spring as the guard does (``rest_spring_release_reason`` "not held"). Free 2 kg mass started 1 / 20 nm
+off at standstill: released after 25 / 12 cycles, 88 / 369 nm at most (guard alone 58 / 23 cycles, 1.8 / 1.1 µm);
+the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
+
 Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
 rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
 towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S)
