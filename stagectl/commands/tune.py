@@ -343,7 +343,8 @@ def _rest_spring_lines(rest: dict[str, Any]) -> list[str]:
             guard = ("no stiffness test (controller.rest_spring_held_fraction 0)" if not rho else
                      f"the spring is released when the stiffness measured after a reversal at standstill is below "
                      f"{rho:g} of the model's"
-                     + ("" if rho >= mg else f" -- BELOW the margin {mg:g}: raise controller.rest_spring_held_fraction"))
+                     + ("" if rho >= mg else f" -- below the margin: on a stage held by {rho:g} to {mg:g} of the "
+                        f"model's stiffness the spring stays on while its linear rest loop misses the floor"))
             out.append(f"stiffness margin: the rest loop meets the floor down to {mg:g} x the stuck stage's "
                        f"pre-sliding stiffness (theta 1); {guard}")
     fm = rest.get("free_mass_check")
@@ -354,9 +355,11 @@ def _rest_spring_lines(rest: dict[str, Any]) -> list[str]:
         exc = "/".join(f"{r['max_excursion_m'] * 1e9:.0f}" for r in fm)
         exc0 = "/".join(f"{r['no_spring']['max_excursion_m'] * 1e9:.0f}" for r in fm)
         late = max(r["late_excursion_m"] for r in fm)
+        late0 = max(r["no_spring"]["late_excursion_m"] for r in fm)
         out.append(f"rest/free check (simulated: a free mass, no friction, started {kicks} nm off the reference at "
                    f"standstill, 0.5 s): the spring was released after {cyc} cycles ({why}); largest excursion "
-                   f"{exc} nm (without the spring {exc0} nm); within {late * 1e9:.0f} nm over the last 0.1 s")
+                   f"{exc} nm (without the spring {exc0} nm); within {late * 1e9:.0f} nm over the last 0.1 s "
+                   f"(without {late0 * 1e9:.0f} nm)")
     chk = rest.get("not_held_check")
     if chk is None:
         return out
