@@ -60,6 +60,7 @@ from stagectl.bench import tell
 from stagectl.errors import ConfigError
 
 if TYPE_CHECKING:
+    from stagectl.clock import Timing
     from stagectl.config import AppConfig
     from stagectl.control.controller import ControllerConfig
     from stagectl.control.pid import PidConfig
@@ -187,6 +188,8 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
     Runs :func:`steps_scenario` (``hold_s`` after each step) with ``ctl_cfg`` (and ``model`` for the friction
     feed-forward, None: the configured one) and ``delay_samples`` of I/O delay (None: ``io.delay_cycles``).
     Returns per step ``settle_s`` (end of the commanded move -> inside ±``tol_m`` for good),
+    ``rest_spring_releases`` (each release of the rest spring at standstill: ``after_move_s`` from the end of the
+    commanded move, ``reason`` — "slid", "hunting" or "not held", the controller's stiffness test — and ``e_m``),
     ``in_position_after_s`` (when the controller's settle detector first reported in-position), ``hold_excursion_m``
     (max |e| after ``window_s``) and ``limit_cycle`` (:func:`stagectl.recorder.hold_report`), and the verdicts
     ``settled_within_window`` (every step settled within ``window_s``), ``limit_cycle`` (any step) and ``fault``.
@@ -206,15 +209,26 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
         cfg.safety, following_error_m=max(cfg.safety.following_error_m, 1e-3)))
     sc = steps_scenario(hold_s)
     ctl = StageController(ctl_cfg, cfg.timing, model=model)
+    watch = _ReleaseWatch(ctl)
     with build_stage(cfg, clock=SimClock(), controller=ctl) as stage:
         stage.load_scenario(sc)
         duration = sc.duration_s(0.0) + cfg.loop.period_s
         rec = Recorder(stage.loop.columns, int(duration / cfg.loop.period_s) + 16)
         stage.loop.add_sink(rec)
+        stage.loop.add_sink(watch)
         res = stage.loop.run(duration_s=duration)
     steps = hold_report(rec, tol_m=tol_m, window_s=window_s)
     in_pos = tracking_summary(rec, tol_m=tol_m).get("in_position_after_s", [None] * len(steps))
     at_end = move_end_state(rec, window_s=window_s)
+    releases: list[dict[str, Any]] = []
+    if rec.n:
+        t, e = rec.col("t"), rec.col("e")
+        ends = [m["t_s"] for m in at_end]
+        for i, why in watch.events:
+            i = min(i, rec.n - 1)
+            t_end = max((te for te in ends if te <= t[i] + 1e-12), default=None)
+            releases.append({"after_move_s": None if t_end is None else float(t[i] - t_end), "reason": why,
+                             "e_m": float(e[i])})
     ok = [st["settle_s"] is not None and st["settle_s"] <= window_s + 1e-9 for st in steps]
     return {
         "steps": steps,
@@ -227,11 +241,69 @@ def steps_check(cfg: AppConfig, ctl_cfg: ControllerConfig, *, model: StageModel 
         "settled": sum(st["settle_s"] is not None for st in steps),
         "limit_cycle": any(st["limit_cycle"] for st in steps),
         "fault": res.fault.name if res.fault else None,
+        "rest_spring_releases": releases,
         "tolerance_m": tol_m,
         "window_s": window_s,
         "hold_s": hold_s,
         "delay_samples": io.delay_cycles,
     }
+
+
+def free_mass_rest_check(ctl_cfg: ControllerConfig, timing: Timing | float, mass_kg: float, kick_m: float, *,
+                         delay_samples: int = 1, duration_s: float = 0.5) -> dict[str, Any]:
+    """The controller at standstill on a plain *free* mass (no friction at all: the plant of ``stagectl tune``'s
+    ``rest/free`` loop), in simulated time: reset at 0 with the reference at rest there, the mass started ``kick_m``
+    [m] off it, exact zero-order-hold integration m·ẍ = u, ``delay_samples`` periods of I/O delay, the position
+    quantised to 1 nm. Returns ``release_cycle`` (first cycle the rest spring was released at standstill, None:
+    never), ``release_reason``, ``max_excursion_m`` (largest |x| over ``duration_s``), ``late_excursion_m``
+    (largest |x| over the last fifth) and ``final_m``."""
+    from collections import deque
+
+    from stagectl.clock import Timing as _Timing
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    tm = _Timing.of(timing)
+    T = tm.period_s
+    ctl = StageController(ctl_cfg, tm)
+    ctl.reset(0.0)
+    ref = Reference(0.0, 0.0, 0.0)
+    x, v = kick_m, 0.0
+    pending: deque[float] = deque([0.0] * max(1, delay_samples))
+    n = int(round(duration_s / T))
+    n_late = n - max(1, n // 5)
+    mx = late = 0.0
+    rel: int | None = None
+    why = ""
+    for k in range(n):
+        pending.append(ctl.step(T, round(x * 1e9) * 1e-9, ref).force_n)
+        u = pending.popleft()  # the force that acts over this period
+        x, v = x + v * T + 0.5 * u / mass_kg * T * T, v + u / mass_kg * T
+        mx = max(mx, abs(x))
+        if k >= n_late:
+            late = max(late, abs(x))
+        if rel is None and ctl.rest_spring_release_count:
+            rel, why = k, ctl.rest_spring_release_reason
+    return {"kick_m": kick_m, "release_cycle": rel, "release_reason": why or None, "max_excursion_m": mx,
+            "late_excursion_m": late, "final_m": x}
+
+
+class _ReleaseWatch:
+    """Telemetry sink of :func:`steps_check`: the cycles at which the controller released its rest spring at
+    standstill (``rest_spring_release_count`` grew) and why (``rest_spring_release_reason``)."""
+
+    def __init__(self, ctl: Any) -> None:
+        self.ctl = ctl
+        self.n = 0
+        self.count = 0
+        self.events: list[tuple[int, str]] = []
+
+    def append(self, row: Any) -> None:
+        c = self.ctl.rest_spring_release_count
+        if c != self.count:
+            self.count = c
+            self.events.append((self.n, self.ctl.rest_spring_release_reason))
+        self.n += 1
 
 
 def move_end_state(rec: Any, *, window_s: float = 0.03) -> list[dict[str, float]]:

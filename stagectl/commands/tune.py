@@ -61,6 +61,12 @@ CHECK_HOLD_S = 0.5
 MAX_HOLD_EXCURSION_M = 1e-6
 #: values of the feed-forward scale θ at which the rest loop is analysed over its configured range
 THETA_POINTS = 5
+#: the rest spring on a stage that is not held: lock-step 10 µm steps (CHECK_HOLD_S holds) on the config's plant with
+#: its pre-sliding stiffness (and micro-damping) at these fractions of its own (below the shipped designs' stiffness
+#: margins, 0.47 and 0.85), the spring on and off
+NOT_HELD_STIFFNESS_FRACTIONS = (0.2,)
+#: ... and on a free mass (no friction), started this far off the reference at standstill [m]
+FREE_MASS_KICKS_M = (1e-9, 2e-8, 1e-7)
 
 
 #: heaviest moving mass [kg] the loop design resolves numerically (python-control transfer functions)
@@ -238,7 +244,8 @@ def _rest_gains(ctl: Any) -> dict[str, Any]:
             "spring_sections": ctl.rest_spring_section_count}
 
 
-def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
+def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *,
+                simulate: bool = True) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
     integrator held when ``hold_integrator_at_rest`` (else the full PID) + Q-filter observer of nominal mass
     ``m_dob`` + the rest spring k_v = φ·min(θ, 1)·Σk of the controller's model) on a stage of mass ``m`` [kg] stuck
@@ -252,7 +259,11 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
     is analysed at ``THETA_POINTS`` values of θ over that range and each loop's figures are the worst case (the
     lowest phase margin, with its θ; the lowest gain margin; unstable if unstable anywhere); ``theta_sweep``
     lists the stuck plant's margins per θ. ``stuck_unstable_at_theta`` names the θ values where the stuck plant's
-    rest loop is unstable (the configured controller would oscillate at standstill there)."""
+    rest loop is unstable (the configured controller would oscillate at standstill there).
+
+    With a spring: ``stiffness_margin`` (:func:`_stiffness_margin`) and, with ``simulate``, what the spring does on
+    stages that are not held, in simulated time (``free_mass_check``: :func:`_free_mass_check`; ``not_held_check``:
+    :func:`_not_held_check`; about 1 s of CPU)."""
     from stagectl.control import design
 
     if ctl.dob.kind != "qfilter":
@@ -297,19 +308,171 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -
         relies = (f"the stage being stuck in pre-sliding at standstill (stiffness {k_plant:.3g} N/m); "
                   + (f"the rest spring is released (bumplessly) when |x - x_ref| exceeds "
                      f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across +-{ctl.rest_spring_rearm_m * 1e9:.0f}"
-                     f" nm twice, and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
+                     f" nm twice"
+                     + (f" or the stiffness it measures after a reversal is below {ctl.rest_spring_held_fraction:g} "
+                        f"of the model's" if ctl.rest_spring_held_fraction > 0.0 else "")
+                     + f", and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
                      if spring else ("with the integrator held the rest loop is PD + observer only" if held
                                      else "the rest loop is the full PID + observer"))
                   + (f"; the rest integral stops for the standstill when |x - x_ref| exceeds "
                      f"{ctl.rest_spring_release_m * 1e9:.0f} nm or it swings across "
                      f"+-{ctl.rest_spring_rearm_m * 1e9:.0f} nm twice, and adds at most the model's Coulomb level"
                      if kr else ""))
+    margin = (_stiffness_margin(m, T, ctl, nd, m_dob, held, k_plant, c_plant, hi * kv, hi * kr)
+              if spring else None)
+    check = _not_held_check(app, ctl) if spring and simulate else None
+    free_check = _free_mass_check(ctl, m, T, nd) if spring and simulate else None
     return {"rest_spring_n_m": kv, "rest_stiffness_fraction": ctl.rest_stiffness_fraction if spring else 0.0,
+            "stiffness_margin": margin, "held_fraction": ctl.rest_spring_held_fraction if spring else None,
+            "not_held_check": check, "free_mass_check": free_check,
             "rest_integral_n_m_s": kr,
             "mass_kg": m, "observer_mass_kg": m_dob, "integrator_held": held,
             "plant_stiffness_n_m": k_plant, "plant_damping_n_s_m": c_plant, "loops": summ, "healthy": healthy,
             "theta_range": [thetas[0], thetas[-1]], "theta_sweep": sweep, "stuck_unstable_at_theta": unstable_at,
             "relies_on": relies}
+
+
+def _rest_spring_lines(rest: dict[str, Any]) -> list[str]:
+    """The stiffness margin and the not-held check of :func:`_rest_loops`, as printed lines."""
+    out: list[str] = []
+    mg, rho = rest.get("stiffness_margin"), rest.get("held_fraction")
+    if rest.get("rest_stiffness_fraction"):
+        if mg is None:
+            out.append("stiffness margin: none (the rest loop is below the floor on the stuck stage itself)")
+        else:
+            guard = ("no stiffness test (controller.rest_spring_held_fraction 0)" if not rho else
+                     f"the spring is released when the stiffness measured after a reversal at standstill is below "
+                     f"{rho:g} of the model's"
+                     + ("" if rho >= mg else f" -- below the margin: on a stage held by {rho:g} to {mg:g} of the "
+                        f"model's stiffness the spring stays on while its linear rest loop misses the floor"))
+            out.append(f"stiffness margin: the rest loop meets the floor down to {mg:g} x the stuck stage's "
+                       f"pre-sliding stiffness (theta 1); {guard}")
+    fm = rest.get("free_mass_check")
+    if fm:
+        kicks = "/".join(f"{r['kick_m'] * 1e9:g}" for r in fm)
+        cyc = "/".join("never" if r["release_cycle"] is None else f"{r['release_cycle']}" for r in fm)
+        why = "/".join(r["release_reason"] or "-" for r in fm)
+        exc = "/".join(f"{r['max_excursion_m'] * 1e9:.0f}" for r in fm)
+        exc0 = "/".join(f"{r['no_spring']['max_excursion_m'] * 1e9:.0f}" for r in fm)
+        late = max(r["late_excursion_m"] for r in fm)
+        late0 = max(r["no_spring"]["late_excursion_m"] for r in fm)
+        out.append(f"rest/free check (simulated: a free mass, no friction, started {kicks} nm off the reference at "
+                   f"standstill, 0.5 s): the spring was released after {cyc} cycles ({why}); largest excursion "
+                   f"{exc} nm (without the spring {exc0} nm); within {late * 1e9:.0f} nm over the last 0.1 s "
+                   f"(without {late0 * 1e9:.0f} nm)")
+    chk = rest.get("not_held_check")
+    if chk is None:
+        return out
+    if "error" in chk:
+        out.append(f"not-held check: {chk['error']}")
+        return out
+    def per_step(r: dict[str, Any]) -> str:
+        exc = "/".join(f"{x * 1e9:.0f}" for x in r["hold_excursion_m"])
+        st = "/".join("-" if x is None else f"{x * 1e3:.0f}" for x in r["settle_s"])
+        return f"hold excursion {exc} nm, settled after {st} ms"
+
+    for row in chk["fractions"]:
+        sp, ns = row["spring"], row["no_spring"]
+        when = (f"the spring was released {row['releases']}x ({', '.join(row['reasons'])}), at the latest "
+                f"{row['latest_release_cycles']} cycles after a move's end" if row["releases"]
+                else "the spring was never released")
+        lc = "LIMIT CYCLE" if sp["limit_cycle"] or ns["limit_cycle"] else "no limit cycle"
+        out.append(f"rest/free check (simulated: the plant's pre-sliding stiffness x{row['stiffness_fraction']:g}, "
+                   f"not held; 10 um steps, {chk['hold_s']:g} s holds): {when}; {per_step(sp)} (without the spring "
+                   f"{per_step(ns)}); {lc}" + (f", fault {sp['fault']}" if sp["fault"] else ""))
+    return out
+
+
+def _stiffness_margin(m: float, T: float, ctl: Any, nd: int, m_dob: float, held: bool, k_plant: float,
+                      c_plant: float, kv: float, kr: float) -> float | None:
+    """The lowest fraction r of the plant's pre-sliding stiffness (stiffness and damping × r) for which the rest
+    loop with the spring ``kv`` [N/m] (θ = 1, the largest spring: the worst case for a soft stage) is still healthy
+    (PM >= 40°, GM >= 8 dB), to 0.01 by bisection (margins are monotonic in r below 1 on the shipped designs); None
+    if it is not healthy at r = 1, 0.0 if it is healthy on the free mass too."""
+    from stagectl.control import design
+
+    def ok(r: float) -> bool:
+        a = design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
+                                max(r * k_plant, 1e-9), r * c_plant, kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
+                                integrator_held=held, rest_integral_n_m_s=kr, **_rest_gains(ctl))[0]
+        return _healthy(a.summary())
+
+    if not ok(1.0):
+        return None
+    if ok(0.0):
+        return 0.0
+    lo, hi = 0.0, 1.0  # not healthy at lo, healthy at hi
+    while hi - lo > 0.01:
+        mid = 0.5 * (lo + hi)
+        if ok(mid):
+            hi = mid
+        else:
+            lo = mid
+    return round(hi, 2)
+
+
+def _free_mass_check(ctl: Any, m: float, T: float, nd: int) -> list[dict[str, Any]]:
+    """The configured controller at standstill on a free mass ``m`` [kg] (the ``rest/free`` plant), period ``T`` [s],
+    ``nd`` periods of I/O delay, started each of :data:`FREE_MASS_KICKS_M` off the reference, with and without its rest
+    spring (:func:`stagectl.bench.control.free_mass_rest_check`, 0.5 s of simulated time each)."""
+    import dataclasses
+
+    from stagectl.bench.control import free_mass_rest_check
+
+    out = []
+    for kick in FREE_MASS_KICKS_M:
+        on = free_mass_rest_check(ctl, T, m, kick, delay_samples=nd)
+        off = free_mass_rest_check(dataclasses.replace(ctl, rest_stiffness_fraction=0.0), T, m, kick,
+                                   delay_samples=nd)
+        out.append({**on, "no_spring": {k: off[k] for k in ("max_excursion_m", "late_excursion_m", "final_m")}})
+    return out
+
+
+def _not_held_check(app: Any, ctl: Any) -> dict[str, Any] | None:
+    """What the rest spring does on a stage that is not held, checked in simulated time rather than assumed: the
+    configured controller, with and without its spring, through 10 µm steps (:data:`CHECK_HOLD_S` holds,
+    :func:`stagectl.bench.control.steps_check`) on the config's simulated plant with its pre-sliding stiffness and
+    micro-damping at each of :data:`NOT_HELD_STIFFNESS_FRACTIONS` of its own (the friction levels kept). Per
+    fraction: the spring's releases (the latest after a move's end, in loop cycles, and why), the holds' largest
+    excursion and late excursion with and without the spring, limit cycle, settled moves. None without a ``sim:``
+    plant with a GMS/Maxwell friction (``k_n_m``)."""
+    import dataclasses
+
+    from stagectl.bench.control import steps_check
+    from stagectl.friction import build
+
+    if app is None or app.sim is None:
+        return None
+    plant = app.sim.plant
+    spec = dict(plant.friction.spec())
+    if not isinstance(spec.get("k_n_m"), list):
+        return None
+    out: dict[str, Any] = {"hold_s": CHECK_HOLD_S, "fractions": []}
+    for r in NOT_HELD_STIFFNESS_FRACTIONS:
+        sp = dict(spec)
+        sp["k_n_m"] = [r * k for k in spec["k_n_m"]]
+        if isinstance(spec.get("sigma1_n_s_m"), list):
+            sp["sigma1_n_s_m"] = [r * c for c in spec["sigma1_n_s_m"]]
+        soft = dataclasses.replace(app, sim=dataclasses.replace(
+            app.sim, plant=dataclasses.replace(plant, friction=build(sp))))
+        row: dict[str, Any] = {"stiffness_fraction": r}
+        for name, c in (("spring", ctl), ("no_spring", dataclasses.replace(ctl, rest_stiffness_fraction=0.0))):
+            try:
+                res = steps_check(soft, c, hold_s=CHECK_HOLD_S)
+            except (ConfigError, ValueError) as exc:
+                return {"error": str(exc)}
+            row[name] = {k: res[k] for k in ("max_hold_excursion_m", "max_late_excursion_m", "settled",
+                                             "limit_cycle", "fault", "settle_s")}
+            row[name]["hold_excursion_m"] = [st["hold_excursion_m"] for st in res["steps"]]
+            row[name]["moves"] = len(res["steps"])
+            if name == "spring":
+                rel = res["rest_spring_releases"]
+                after = [x["after_move_s"] for x in rel if x["after_move_s"] is not None]
+                row["releases"] = len(rel)
+                row["reasons"] = sorted({x["reason"] for x in rel})
+                row["latest_release_cycles"] = (round(max(after) / app.loop.period_s) if after else None)
+        out["fractions"].append(row)
+    return out
 
 
 def _design(args: argparse.Namespace, m: float, T: float, nd: int) -> tuple[float, float, PidConfig, list[Any],
@@ -489,6 +652,8 @@ def run(args: argparse.Namespace) -> int:
                           f"it) it does not: it relies on {rest['relies_on']}")
                 else:
                     print(f"  the rest loop is below the {floor}: it relies on {rest['relies_on']}")
+            for line in _rest_spring_lines(rest):
+                print("  " + line)
     d = result["designed"]
     p = d["pid"]
     print(f"designed for a {d['target_crossover_hz']:g} Hz crossover: Kp {p['kp_n_m']:.4g} N/m, "

@@ -115,6 +115,18 @@ model's stiffness and 0.01–1 of its friction the guarded steps hold with no li
 ±2–3 nm, as without the spring; they settle at most ~0.1 s later than without it (one burst of hunting before
 the release), often faster. The seed-stage steps are unchanged (the guard does not trigger there).
 
+Stiffness test (``rest_spring_held_fraction`` = ρ, 0.5): the guard above acts only once the stage has hunted or slid,
+but the linear rest loop is unstable as soon as the stage is held by less stiffness than the spring assumes (tune's
+*stiffness margin*: the rest loop meets PM 40° / GM 8 dB down to 0.47 of the model's stiffness for config/sim.yaml).
+A witness observer (a Q filter on the whole command, never shifted) gives the force the stage takes,
+F = LPF(u − m·a), and the position at the sample F is centred on goes through the same low-pass (x_f). After each
+reversal of x_f (REST_HELD_MIN_TRAVEL_M hysteresis; a pre-sliding contact is at its stiffest there) the secant
+k̂ = Σ(Δx·ΔF)/Σ(Δx²) over the first REST_HELD_JUDGE_TRAVEL·REST_HELD_MIN_TRAVEL_M (10 nm) is judged once, within
+``rest_spring_range_m`` of x_r only (beyond it the spring's force is clamped: no stiffness); k̂ < ρ·min(θ, 1)·Σk
+releases the spring as the guard does (``rest_spring_release_reason`` "not held"). Free 2 kg mass started 1 / 20 nm
+off at standstill: released after 25 / 12 cycles, 88 / 369 nm at most (guard alone 58 / 23 cycles, 1.8 / 1.1 µm);
+the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
+
 Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
 rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
 towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S)
@@ -427,6 +439,13 @@ class ControllerConfig:
         1, unit="count", desc="releases of the rest spring in one standstill after which it stays off until the "
         "reference moves again (1: no re-arm before the next move; a re-arm on a stage that is not stuck costs "
         "one more release)", ge=1, le=100)
+    rest_spring_held_fraction: float = param(
+        0.5, desc="the rest spring is released (bumplessly) as soon as the stage's stiffness measured at standstill "
+        "(the slope of the force it takes, u - m*a, over its position, both through the observer's low-pass, over the "
+        "last 20 ms once the position varied by 5 nm rms there) is below this fraction of the model's pre-sliding "
+        "stiffness times min(theta, 1): the stage is not held and the spring would be a negative stiffness of the loop; "
+        "stagectl tune prints the lowest fraction at which the rest loop meets its margins (0: no stiffness test)",
+        ge=0.0, le=1.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
@@ -566,6 +585,12 @@ def check_controller(cfg: ControllerConfig, model: StageModel | FrictionModel | 
 REST_GAINS_ENTER_M_S = 1e-5
 REST_GAINS_EXIT_M_S = 3e-5
 REST_GAINS_DWELL_S = 0.005
+
+#: the rest spring's stiffness test (``rest_spring_held_fraction``): the regression of the force the stage takes on its
+#: position forgets with this time constant [s] and judges only once the position's variance about its mean over that
+#: window reaches REST_HELD_MIN_TRAVEL_M² (the encoder's 1 nm steps and 0.5 nm noise stay well below)
+REST_HELD_MIN_TRAVEL_M = 5e-9
+REST_HELD_JUDGE_TRAVEL = 2.0
 
 #: the rest integral (``rest_integral_hz``) acts once the stage no longer approaches the target: its speed towards
 #: it, low-passed with this time constant [s], at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S (a stage still
@@ -833,6 +858,11 @@ class StageController:
         self._rs_band_s = 0.0  # time within rest_spring_rearm_m since the release [s]
         self._rs_side = 0  # side of x − x_r beyond the hunting band (+1/−1; 0: not left it yet)
         self._rs_swings = 0  # sign changes of x − x_r across the hunting band since the spring was armed
+        #: why the rest spring was last released at standstill: "slid", "hunting", "not held" ("" : not yet)
+        self.rest_spring_release_reason = ""
+        self.rest_spring_held_n_m = math.nan  # the last secant stiffness the stiffness test judged [N/m]
+        self.rest_spring_release_count = 0  # releases at standstill since construction (telemetry, checks)
+        self._hw = QFilterDob(cfg.dob, self.mass_kg, self.period_s)  # the stiffness test's force witness
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -890,6 +920,8 @@ class StageController:
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
             self.dob.reset(x_m)
+        self._hw.reset(x_m, u_n)
+        self._h_xf = math.nan
         if self.ff is not None:
             self.ff.reset(x_m)
             if isinstance(self.ff, FrictionFeedforward):
@@ -944,6 +976,16 @@ class StageController:
         self._rs_band_s = 0.0
         self._rs_side = 0
         self._rs_swings = 0
+        self._reset_held()
+
+    def _reset_held(self) -> None:
+        """The stiffness test's regression afresh (the spring armed: a standstill's start, a re-arm)."""
+        self._h_n = 0  # 0: not started since armed
+        self._h_dir = 0  # direction of the stage's filtered travel (0: not yet REST_HELD_MIN_TRAVEL_M from the start)
+        self._h_ext = self._h_fext = 0.0  # its extreme position [m] and the force there [N]
+        self._h_rev = False  # a reversal seen: the branch from (x0, f0) is being measured
+        self._h_x0 = self._h_f0 = 0.0
+        self._h_sxx = self._h_sxf = 0.0  # Σ Δx² [m²], Σ Δx·ΔF [N·m] along the branch
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -1026,6 +1068,9 @@ class StageController:
             self.settle.cfg = parts.cfg.settle
         self.cfg = parts.cfg
         self.mass_kg = parts.mass_kg
+        if parts.cfg.dob != self._hw.cfg or parts.mass_kg != self._hw.mass_kg:
+            self._hw = QFilterDob(parts.cfg.dob, parts.mass_kg, self.period_s)
+            self._hw.reset(st.x_prev_m if st.x_prev_m == st.x_prev_m else 0.0, st.u_n)
         self.dob = new_dob
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
@@ -1075,6 +1120,9 @@ class StageController:
         self.state.u_obs_prev_n += delta_n
 
     _last_ref: Reference | None = None
+    _h_f = 0.0  # the stiffness test's witness force LPF(u − m·a) [N] ...
+    _h_xf = math.nan  # ... and filtered position [m]
+    _d_held = False
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
     _x_fresh = math.nan  # the last fresh (measured, not predicted) position [m]
@@ -1434,10 +1482,17 @@ class StageController:
             if self._rs_side != 0 and side != self._rs_side:
                 self._rs_swings += 1
             self._rs_side = side
-        if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2)):
+        kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
+        not_held = at_rest and self._rs_armed and self._d_held and self._not_held(kv, ref.x_m)
+        if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2
+                                               or not_held)):
             self._rs_side = 0
             self._rs_swings = 0
+            self._reset_held()
             if at_rest:
+                self.rest_spring_release_reason = ("slid" if abs(e_x) > cfg.rest_spring_release_m else
+                                                   "not held" if not_held else "hunting")
+                self.rest_spring_release_count += 1
                 self._rs_armed = False
                 self._rs_releases += 1
                 self._rs_band_s = 0.0
@@ -1451,7 +1506,6 @@ class StageController:
                 dob.shift(-s)
                 return d_hat - s
             return d_hat
-        kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
         if not self._rs_armed:
             if self._rs_releases >= cfg.rest_spring_max_release_count or abs(e_x) > band:
                 self._rs_band_s = 0.0
@@ -1461,6 +1515,7 @@ class StageController:
                 return d_hat
             # re-arm bumplessly: the spring starts at its steady force, which the observer takes over first
             self._rs_armed = True
+            self._reset_held()
             s = kv * max(-r, min(r, e_x))
             self._s_rest = self._s_mid = s
             dob.shift(s)
@@ -1472,6 +1527,59 @@ class StageController:
             target = self._s_mid
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
+
+    def _not_held(self, kv: float, x_r: float) -> bool:
+        """The rest spring's stiffness test (``rest_spring_held_fraction`` = ρ; module docstring, "Rest spring"):
+        the force the stage takes, F = LPF(u − m·a) (the witness observer), against its position x_f = LPF(x) along
+        the branch since the stage's last reversal (x_f turned back by REST_HELD_MIN_TRAVEL_M from its extreme; a
+        pre-sliding contact is at its stiffest there, Σk on the plant the model describes). True once the branch has
+        run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
+        reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
+        spring needs. A stage that approaches the target without turning back is not judged, nor a branch that
+        starts or is judged beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
+        there: a bounded force, not a stiffness of the loop)."""
+        xf, f = self._h_xf, self._h_f
+        h = REST_HELD_MIN_TRAVEL_M
+        if self._h_n == 0:  # armed: look for the first extreme from here
+            self._h_n, self._h_dir, self._h_ext, self._h_fext = 1, 0, xf, f
+            self._h_sxx = self._h_sxf = 0.0
+            return False
+        d = self._h_dir
+        if d == 0:
+            if abs(xf - self._h_ext) >= h:
+                self._h_dir = 1 if xf > self._h_ext else -1
+                self._h_ext, self._h_fext = xf, f
+            return False
+        if (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
+            self._h_ext, self._h_fext = xf, f
+            if not self._h_rev or self._h_sxx < 0.0:
+                return False
+        elif not self._h_rev or (self._h_ext - xf) * d >= h:
+            if (self._h_ext - xf) * d >= h:  # turned back: a reversal, a new branch starts at the extreme
+                self._h_rev = True
+                self._h_x0, self._h_f0 = self._h_ext, self._h_fext
+                self._h_sxx = self._h_sxf = 0.0
+                self._h_dir = -d
+                self._h_ext, self._h_fext = xf, f
+            else:
+                return False
+        if self._h_sxx < 0.0:  # this branch was judged
+            return False
+        dx, df = xf - self._h_x0, f - self._h_f0
+        self._h_sxx += dx * dx
+        self._h_sxf += dx * df
+        if abs(dx) < h * REST_HELD_JUDGE_TRAVEL:
+            return False
+        cfg = self.cfg
+        r = cfg.rest_spring_range_m
+        if abs(xf - x_r) > r:
+            # beyond the spring's range its force is clamped (a bounded force, no stiffness of the loop): not judged
+            self._h_sxx = -1.0
+            return False
+        k_min = cfg.rest_spring_held_fraction / cfg.rest_stiffness_fraction * kv
+        self.rest_spring_held_n_m = k_hat = self._h_sxf / self._h_sxx
+        self._h_sxx = -1.0  # judged once, at its start: further on a pre-sliding contact softens as its elements slip
+        return k_hat < k_min
 
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
@@ -1562,6 +1670,7 @@ class StageController:
         self._d_learn = ffc.learn_moves_fraction > 0.0 and dob is not None and model_ff
         self._d_adapt = ffc.adapt_bandwidth_hz > 0.0 and dob is not None and ff is not None
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
+        self._d_held = self._d_spring and cfg.rest_spring_held_fraction > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
         self._d_rest_int = cfg.rest_integral_hz > 0.0 and dob is not None and model_ff and self._k_ps > 0.0
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
@@ -1683,6 +1792,15 @@ class StageController:
         # observer (residual form: its input is the previous command minus the previous friction FF): one step of its
         # filter per sample, whatever the interval (QFilterDob, "Irregular sampling")
         d_hat = 0.0 if dob is None else dob.step(dt, x_meas_m, v_hat, st.u_obs_prev_n, a_r)
+        if self._d_held:
+            # the stiffness test's witness: the force the stage takes, u − m·a, through the observer's low-pass (an
+            # observer on the whole command that nothing shifts: its ū and m·Δv̂ are centred on the last sample), and
+            # the position at the last sample through the same low-pass
+            hw = self._hw
+            self._h_f = hw.step(dt, x_meas_m, v_hat, st.u_n, a_r)
+            xm = st.x_prev_m if st.x_prev_m == st.x_prev_m else x_meas_m
+            ah = hw._alpha
+            self._h_xf = xm if self._h_xf != self._h_xf else ah * self._h_xf + (1.0 - ah) * xm
         at_rest = v_r == 0.0 and a_r == 0.0
         if at_rest:
             self._ev_dir = 0.0  # the next motion starts a new branch (_stuck_dob)

@@ -21,7 +21,7 @@ def _rest(name: str) -> dict:
     ctl = app.controller
     nd = ctl.design_delay_samples if ctl.design_delay_samples is not None else app.io.delay_cycles
     m = ctl.mass_kg or 2.0
-    rest = _rest_loops(app, ctl, m, ctl.dob.nominal_mass_kg or m, app.loop.period_s, nd)
+    rest = _rest_loops(app, ctl, m, ctl.dob.nominal_mass_kg or m, app.loop.period_s, nd, simulate=False)
     assert rest is not None
     return rest
 
@@ -38,15 +38,15 @@ def test_shipped_rest_loop_meets_the_floor_on_the_stuck_stage(name):
 
 def _free_mass_growth(phi: float) -> float:
     """The sim.yaml controller held at rest on a plain free 2 kg mass (exact ZOH, one period of I/O delay), kicked
-    by 1 nm; the guard and the spring's clamp widened so that the loop stays linear. Returns max|x| over the last
-    0.1 s of 0.4 s divided by the kick."""
+    by 1 nm; the guard (its release distance, hunting band and stiffness test) and the spring's clamp widened or off
+    so that the loop stays linear. Returns max|x| over the last 0.1 s of 0.4 s divided by the kick."""
     from stagectl.config import load_app_config
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
 
     app = load_app_config(str(CONFIG / "sim.yaml"))
     c = dataclasses.replace(app.controller, rest_stiffness_fraction=phi, rest_spring_range_m=1e-3,
-                            rest_spring_release_m=1e-2, rest_spring_rearm_m=5e-3)
+                            rest_spring_release_m=1e-2, rest_spring_rearm_m=5e-3, rest_spring_held_fraction=0.0)
     ctl = StageController(c, app.timing)
     T, m = app.loop.period_s, 2.0
     x, v, u_applied, x0 = 1e-9, 0.0, 0.0, 1e-9

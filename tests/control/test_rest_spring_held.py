@@ -1,0 +1,160 @@
+"""The rest spring's stiffness test (controller docstring, "Rest spring"; ``rest_spring_held_fraction``): on a stage
+that is not held at standstill (a free mass, a stage much softer than the model) the spring, a negative stiffness of
+the loop there, is released within a few tens of cycles, before it hunts; on the stage the model describes it stays
+on. Simulated time only."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from stagectl.cli import main
+
+
+@pytest.fixture(scope="module")
+def seed(repo_root):
+    from stagectl.config import load_app_config
+
+    return load_app_config(repo_root / "config" / "sim.yaml")
+
+
+def _plain_free_mass(c, timing, kick: float, n: int = 500):
+    """Independent of bench.control: the controller at rest on a plain free 2 kg mass (exact ZOH, one period of
+    I/O delay, 1 nm encoder), started ``kick`` off the reference. Returns the release cycle (None: never), the
+    reason, max|x| and max|x| over the last 100 cycles."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    ctl = StageController(c, timing)
+    ctl.reset(0.0)
+    T, m = timing.period_s, 2.0
+    x, v, u_applied = kick, 0.0, 0.0
+    rel, why, mx, late = None, None, 0.0, 0.0
+    for k in range(n):
+        u_next = ctl.step(T, round(x * 1e9) * 1e-9, Reference(0.0, 0.0, 0.0)).force_n
+        x, v = x + v * T + u_applied * T * T / (2 * m), v + u_applied * T / m
+        u_applied = u_next
+        mx = max(mx, abs(x))
+        if k >= n - 100:
+            late = max(late, abs(x))
+        if rel is None and not ctl._rs_armed:
+            rel, why = k, ctl.rest_spring_release_reason
+    return rel, why, mx, late
+
+
+def test_a_free_mass_releases_the_spring_by_its_stiffness(seed):
+    """A free mass (no friction: tune's rest/free plant) started 1 nm and 20 nm off the reference at standstill: the
+    stiffness test releases the spring within 30 cycles, the largest excursion stays within 100 / 400 nm (without the
+    test, the ±50 nm hunting guard released it after 58 / 23 cycles at 1.8 / 1.1 µm), and the stage then holds
+    within 2 nm as the spring-less controller does; bench.control.free_mass_rest_check (tune's figures) agrees."""
+    from stagectl.bench.control import free_mass_rest_check
+
+    c = seed.controller
+    assert c.rest_spring_held_fraction > 0.0
+    for kick, bound in ((1e-9, 100e-9), (2e-8, 400e-9)):
+        rel, why, mx, late = _plain_free_mass(c, seed.timing, kick)
+        assert rel is not None and rel <= 30 and why == "not held", (kick, rel, why)
+        assert mx <= bound and late <= 2e-9, (kick, mx, late)
+        old_rel, _, old_mx, _ = _plain_free_mass(dataclasses.replace(c, rest_spring_held_fraction=0.0), seed.timing,
+                                                 kick)
+        assert old_rel is not None and old_rel > rel and old_mx > 2.5 * mx  # the hunting guard alone: later, larger
+        b = free_mass_rest_check(c, seed.timing, 2.0, kick, delay_samples=1)
+        assert b["release_cycle"] == rel and b["release_reason"] == why
+        assert b["max_excursion_m"] == pytest.approx(mx, rel=1e-9)
+
+
+def test_the_stuck_stage_keeps_the_spring(seed):
+    """The stage the model describes (the seed plant): no release in any hold, every 10 µm step settles within 30 ms
+    (20, 17, 17, 17 ms as before the stiffness test); a plain stuck spring-mass (2 kg on Σk with the model's damping)
+    started 100 nm off keeps it too and holds within 1 nm."""
+    from stagectl.bench.control import steps_check
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+
+    r = steps_check(seed, seed.controller, hold_s=0.3)
+    assert r["rest_spring_releases"] == [] and r["settled"] == 4 and not r["limit_cycle"]
+    assert max(r["settle_s"]) <= 0.03
+    fr = seed.controller.feedforward.model.friction
+    k, c = fr.stiffness_n_m, fr.damping_n_s_m
+    ctl = StageController(seed.controller, seed.timing)
+    ctl.reset(0.0)
+    T, m, x, v, u_applied, sub = seed.loop.period_s, 2.0, 100e-9, 0.0, 0.0, 50
+    for _ in range(400):
+        u_next = ctl.step(T, round(x * 1e9) * 1e-9, Reference(0.0, 0.0, 0.0)).force_n
+        for _ in range(sub):  # stiff: semi-implicit Euler, 50 substeps
+            v += (u_applied - k * x - c * v) / m * (T / sub)
+            x += v * (T / sub)
+        u_applied = u_next
+    assert ctl._rs_armed and ctl.rest_spring_release_count == 0 and abs(x) <= 1e-9
+
+
+def _soft(cfg, k_scale: float):
+    """``cfg`` with a plant whose pre-sliding stiffness and micro-damping are ×k_scale (friction levels kept): a
+    stage much softer than the controller's model, not held by the stiffness the rest spring counts on."""
+    from stagectl.friction import build
+
+    plant = cfg.sim.plant
+    spec = dict(plant.friction.spec())
+    spec["k_n_m"] = [k_scale * k for k in spec["k_n_m"]]
+    spec["sigma1_n_s_m"] = [k_scale * c for c in spec["sigma1_n_s_m"]]
+    return dataclasses.replace(cfg, sim=dataclasses.replace(
+        cfg.sim, plant=dataclasses.replace(plant, friction=build(spec))))
+
+
+def test_a_soft_stage_releases_the_spring_before_it_hunts(seed):
+    """Plant stiffness ×0.2 of the model's (below the rest loop's stiffness margin 0.47): after steps 2–4 the
+    stiffness test releases the spring within 15 ms of the move's end (the hunting guard alone: 28–29 ms), their
+    holds stay within 200 nm (hunting guard alone: 364–377 nm) and settle, with no limit cycle."""
+    from stagectl.bench.control import steps_check
+
+    r = steps_check(_soft(seed, 0.2), seed.controller, hold_s=0.5)
+    assert r["fault"] is None and not r["limit_cycle"] and r["settled"] == 4
+    rel = r["rest_spring_releases"]
+    later = [x for x in rel if x["after_move_s"] is not None and x["after_move_s"] > 0.0]
+    by_test = [x for x in later if x["reason"] == "not held" and x["after_move_s"] <= 0.015]
+    assert len(by_test) >= 3, rel
+    assert max(st["hold_excursion_m"] for st in r["steps"][1:]) <= 200e-9, r["steps"]
+
+
+def test_tune_reports_the_stiffness_margin_and_the_checks(repo_root, capsys):
+    """``stagectl tune`` keeps the linear rest/free verdict (unstable) and adds the stiffness margin (the lowest
+    plant-to-model stiffness ratio at which the rest loop still meets PM 40° / GM 8 dB, checked here against
+    design.analyse_rest on both sides) and the simulated checks on a free mass and on a stage at ×0.2."""
+    from stagectl.commands.tune import _healthy
+    from stagectl.config import load_app_config
+    from stagectl.control.design import analyse_rest
+
+    path = repo_root / "config" / "sim.yaml"
+    args = ["tune", "--config", str(path), "--bandwidth-hz", "200"]  # refused design: no steps check (fast)
+    main(args + ["--json"])
+    rest = json.loads(capsys.readouterr().out)["configured"]["rest"]
+    assert rest["loops"]["rest/free"]["closed_loop_stable"] is False
+    mg = rest["stiffness_margin"]
+    assert 0.3 < mg < rest["held_fraction"] + 0.05
+    cfg = load_app_config(path)
+    c = cfg.controller
+    fr = cfg.sim.plant.friction
+
+    def healthy(r: float) -> bool:
+        a = analyse_rest(2.0, cfg.loop.period_s, c.pid, cfg.io.delay_cycles, c.dob.bandwidth_hz,
+                         c.dob.command_delay_samples, r * fr.stiffness_n_m, r * fr.damping_n_s_m,
+                         rest["rest_spring_n_m"], c.velocity_cutoff_hz, kd_fraction=c.rest_kd_fraction,
+                         dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
+                         spring_sections=c.rest_spring_section_count)[0]
+        return _healthy(a.summary())
+
+    assert healthy(mg) and healthy(1.0) and not healthy(mg - 0.02)
+    fm = {r["kick_m"]: r for r in rest["free_mass_check"]}
+    assert fm[1e-9]["release_reason"] == "not held" and fm[1e-9]["release_cycle"] <= 30
+    assert all(r["late_excursion_m"] <= 2e-9 for r in fm.values())
+    row = rest["not_held_check"]["fractions"][0]
+    assert row["stiffness_fraction"] == 0.2 and "not held" in row["reasons"] and not row["spring"]["limit_cycle"]
+    main(args)
+    out = capsys.readouterr().out
+    assert "** UNSTABLE **" in out  # the linear verdict on the free mass stays printed
+    assert f"stiffness margin: the rest loop meets the floor down to {mg:g} x" in out
+    assert "rest/free check (simulated: a free mass" in out and "rest/free check (simulated: the plant's" in out
+    assert not math.isnan(mg)
