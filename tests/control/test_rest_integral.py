@@ -42,10 +42,12 @@ def test_steps_stuck_off_target_settle_with_the_rest_integral(cogged):
     assert off["fault"] is None and off["settled"] <= 2
     assert on["fault"] is None and on["limit_cycle"] is False
     assert on["settled"] == 4 and on["max_late_excursion_m"] <= 0.12e-6
-    # the moves themselves are the same (the integral waits until the stage no longer approaches the target)
+    # the moves themselves are nearly the same (the integral waits until the stage no longer approaches the target;
+    # a stage that pauses behind for REST_INTEGRAL_DWELL_S is pushed on the soft side, which costs the one step here
+    # that would have crept in by itself 7 ms: 85 -> 92 ms)
     done = [a for a in off["settle_s"] if a is not None]
     assert done and [b for a, b in zip(off["settle_s"], on["settle_s"]) if a is not None] == pytest.approx(done,
-                                                                                                         abs=3e-3)
+                                                                                                         abs=10e-3)
 
 
 def test_the_rest_integral_costs_the_stuck_rest_loop_a_few_degrees(repo_root):
@@ -125,3 +127,49 @@ def test_each_standstill_starts_the_integral_afresh(cogged):
     added, added_fresh = on[-1] - off[-1], on_fresh[-1] - off_fresh[-1]
     assert added_fresh < -0.05  # the stage ahead: pushed back (by up to the model's Coulomb level)
     assert added == pytest.approx(added_fresh, rel=0.02)  # (at its bound θ·F_c; θ depends a little on the history)
+
+
+def _stuck_behind(base, soft: float) -> tuple[float, float]:
+    """The controller stepped on positions written here (no plant): a 10 µm move followed exactly (the model copy's
+    elements slip forward, as the plant's do), then 0.3 s at rest with the stage stuck 60 nm short of the target.
+    Returns (what the rest integral added, the model's tangent stiffness towards the target) at the end."""
+    import stagectl.control.controller as cc
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Move, TrajectoryGenerator
+
+    T = 1e-3
+    old = cc.REST_INTEGRAL_SOFT_FRACTION
+    cc.REST_INTEGRAL_SOFT_FRACTION = soft
+    try:
+        ctl = StageController(dataclasses.replace(base, rest_integral_hz=3.0), T)
+        ctl.reset(0.0)
+        gen = TrajectoryGenerator(0.0)
+        gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
+        ref = gen.step(T)
+        k = 0
+        while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
+            ctl.step(T, ref.x_m, ref)
+            k += 1
+            ref = gen.step(T)
+        for _ in range(300):
+            ctl.step(T, ref.x_m - 60e-9, Reference(ref.x_m))
+        return ctl._ri_n, ctl.ff.tangent_n_m(1)
+    finally:
+        cc.REST_INTEGRAL_SOFT_FRACTION = old
+
+
+def test_a_stage_stuck_behind_is_pushed_through_its_break_away(cogged):
+    """Behind the target the model's elements slip (tangent stiffness ~0 towards it): a gain of k_t there added
+    nothing (the observer takes the P force as a disturbance, so the stage stayed 50-250 nm short through the hold:
+    generated plants 29 and 36 commissioned). The soft side ramps at the break-away gain k_b = min(Σk, ΔF_b/r) instead,
+    bounded by θ·F_c."""
+    _, base = cogged
+    base = dataclasses.replace(base, feedforward=dataclasses.replace(base.feedforward, rest_sync_hz=0.0))
+    fr = base.feedforward.model.friction
+    added_old, k_t = _stuck_behind(base, 0.0)
+    added, _ = _stuck_behind(base, 0.25)
+    assert k_t < 0.05 * fr.stiffness_n_m  # the soft side (the stiff side: Σk)
+    gap = fr.params.fs_n - fr.params.fc_n
+    assert abs(added_old) < 0.1 * gap  # the stiffness-scaled gain: next to nothing
+    assert 0.5 * gap < added <= fr.params.fc_n * 1.01  # past the break-away gap within 0.3 s, within the bound
