@@ -124,7 +124,11 @@ and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's e
 
 (e = x_r − x; k_t the model's tangent stiffness towards the target: Σk ahead of it, ~0 behind; ``dob.shift``, so
 the observer does not integrate it again): a stage stuck off the target converges at ≈ 2π·f_r instead of
-g·K_p/Σk. It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
+g·K_p/Σk. Behind the target (k_t < REST_INTEGRAL_SOFT_FRACTION·Σk: the elements slip, the stage is held at its
+break-away level and the observer takes the P force as a disturbance) it pushes at the break-away gain instead,
+k_b = min(Σk, max(F_s − F_c, REST_INTEGRAL_GAP_MIN·F_c)/rest_spring_range_m), and takes that push back (``dob.shift``)
+as soon as the stage moves towards the target: the stage slides only as far as the force went past its break-away
+level, sticks again and is pushed anew (stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
 ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
 ``feedforward.rest_sync_hz`` hands to the model before the next move.
 
