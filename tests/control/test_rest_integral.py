@@ -33,7 +33,7 @@ def cogged(repo_root):
 
 def test_steps_stuck_off_target_settle_with_the_rest_integral(cogged):
     """Without it 2 of the 4 10 µm steps are still 100-200 nm off at the end of the 0.5 s hold; with 3 Hz all four
-    end inside ±10 nm, without a limit cycle or a fault."""
+    end inside ±10 nm (the last half of each hold within 25 nm), without a limit cycle or a fault."""
     from stagectl.bench.control import steps_check
 
     cfg, base = cogged
@@ -41,7 +41,9 @@ def test_steps_stuck_off_target_settle_with_the_rest_integral(cogged):
     on = steps_check(cfg, dataclasses.replace(base, rest_integral_hz=3.0), hold_s=0.5)
     assert off["fault"] is None and off["settled"] <= 2
     assert on["fault"] is None and on["limit_cycle"] is False
-    assert on["settled"] == 4 and on["max_late_excursion_m"] <= 0.12e-6
+    # (late excursion: 98 nm when the integral waited REST_INTEGRAL_DWELL_S after each of its own increments of the
+    # stage's approach; 10 nm now that, once it has acted on the stiff side, it goes on while the stage approaches)
+    assert on["settled"] == 4 and on["max_late_excursion_m"] <= 25e-9
     # the moves themselves are the same (the integral waits until the stage no longer approaches the target)
     done = [a for a in off["settle_s"] if a is not None]
     assert done and [b for a, b in zip(off["settle_s"], on["settle_s"]) if a is not None] == pytest.approx(done,
