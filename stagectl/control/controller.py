@@ -117,7 +117,8 @@ the release), often faster. The seed-stage steps are unchanged (the guard does n
 
 Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
 rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
-towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S)
+towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S;
+once the integral has acted on the stiff side, the approach it causes does not pause it)
 and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's estimate is moved each period by::
 
     δ = 2π·f_r·min(θ, 1)·k_t·clamp(e, ±rest_spring_range_m)·dt,   |Σδ| <= θ·F_c over the standstill   [N]
