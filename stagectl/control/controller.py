@@ -129,14 +129,20 @@ the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md 
 
 Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
 rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
-towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S)
+towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S;
+once the integral has acted on the stiff side, the approach it causes does not pause it)
 and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's estimate is moved each period by::
 
     δ = 2π·f_r·min(θ, 1)·k_t·clamp(e, ±rest_spring_range_m)·dt,   |Σδ| <= θ·F_c over the standstill   [N]
 
 (e = x_r − x; k_t the model's tangent stiffness towards the target: Σk ahead of it, ~0 behind; ``dob.shift``, so
 the observer does not integrate it again): a stage stuck off the target converges at ≈ 2π·f_r instead of
-g·K_p/Σk. It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
+g·K_p/Σk. Behind the target (k_t < REST_INTEGRAL_SOFT_FRACTION·Σk: the elements slip, the stage is held at its
+break-away level and the observer takes the P force as a disturbance) it pushes at the break-away gain instead,
+k_b = min(Σk, max(F_s − F_c, REST_INTEGRAL_GAP_MIN·F_c)/rest_spring_range_m), while the stage creeps in at no more
+than REST_INTEGRAL_SOFT_STILL_M_S, and takes that push back (``dob.shift``) as soon as the stage moves towards the
+target: the stage slides only as far as the force went past its break-away level, sticks again and is pushed anew
+(stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
 ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
 ``feedforward.rest_sync_hz`` hands to the model before the next move.
 
@@ -604,6 +610,15 @@ REST_INTEGRAL_DWELL_S = 0.02
 #: reversal cost that start (generated plant 3 commissioned, lock-step: cosine 9.71 -> 11.19 nm RMS, its first
 #: 0.1 s 17 -> 36 nm); at 0.8 the cosine is 9.71 nm with the steps unchanged (3/4 settled; plant 61 3/4, seed 100 4/4)
 REST_INTEGRAL_DEADBAND = 0.8
+#: ... on the soft side (the model's tangent stiffness towards the target below this fraction of Σk: the stage
+#: stopped behind, its elements slipping) it ramps at the break-away gain instead (``_break_gain``), with the
+#: model's break-away gap F_s − F_c taken as at least this fraction of F_c
+REST_INTEGRAL_SOFT_FRACTION = 0.25
+REST_INTEGRAL_GAP_MIN = 0.05
+#: ... and only while the stage approaches the target at no more than this speed [m/s] (low-passed as above): a stage
+#: still creeping in at 0.5 µm/s, pushed by 0.6 mN, broke away and slid 29 nm past the target (generated plant 34's
+#: verification lead), which the next start paid (cosine 4.24 -> 5.59 nm RMS)
+REST_INTEGRAL_SOFT_STILL_M_S = 2e-7
 
 #: learning from earlier moves: weight of a move's normal equations per later move (memory ~1/(1 − 0.9) = 10
 #: moves, so that a plant that changes is followed), and the prior weight (a fraction of the accumulated
@@ -849,6 +864,7 @@ class StageController:
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
+        self._k_break = _break_gain(self.ff, self._k_ps, self._f_kin, cfg.rest_spring_range_m)  # [N/m]
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
         self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_section_count 2) [N]
         self._ml = _MoveFit()  # learning from earlier moves (feedforward.learn_moves_fraction)
@@ -959,6 +975,7 @@ class StageController:
     def _reset_rest_integral(self) -> None:
         """The rest integral as at the start of a standstill: nothing added, not stopped, stillness not timed."""
         self._ri_n = 0.0  # force the rest integral has added in this standstill [N]
+        self._ri_push = 0.0  # ... of it, the current push on the soft side (taken back at the break-away) [N]
         self._ri_still_s = 0.0  # time at rest with the low-passed speed <= REST_INTEGRAL_STILL_M_S [s]
         self._ri_v = 0.0  # the speed estimate low-passed over REST_INTEGRAL_VELOCITY_S [m/s]
         self._ri_off = False  # stopped for this standstill (the stage slid or hunted)
@@ -1075,6 +1092,7 @@ class StageController:
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
         self._f_kin = _kinetic_level(parts.ff)
+        self._k_break = _break_gain(parts.ff, self._k_ps, self._f_kin, parts.cfg.rest_spring_range_m)
         self._vdt = math.nan
         if self.timing_scale != 1.0 and isinstance(new_dob, QFilterDob):
             if new_dob.period_s is not None:  # (a rebuilt one has T: as set_timing_scale, s·T)
@@ -1433,9 +1451,26 @@ class StageController:
             return d_hat
         b = math.exp(-dt / REST_INTEGRAL_VELOCITY_S)
         v_lp = self._ri_v = b * self._ri_v + (1.0 - b) * v_hat
-        if v_lp * e_m > REST_INTEGRAL_STILL_M_S * abs(e_m):
-            self._ri_still_s = 0.0  # still creeping in towards the target: the move's own settling, not a stuck
-            return d_hat            # stage (a stage creeping away from it is what the integral is for)
+        if (v_lp * e_m > REST_INTEGRAL_STILL_M_S * abs(e_m)
+                and (self._ri_n == 0.0 or self._ri_push != 0.0)):
+            # still creeping in towards the target: the move's own settling, not a stuck stage (a stage creeping away
+            # from it is what the integral is for). Once the integral has acted on the stiff side in this
+            # standstill, the stage's approach is its own doing and it goes on: waiting REST_INTEGRAL_DWELL_S after
+            # each of its increments made it act a quarter of the time (a stage stuck 300 nm ahead still 100 nm
+            # off after 0.25 s, generated plant 36)
+            self._ri_still_s = 0.0
+            push = self._ri_push
+            if push != 0.0 and self.dob is not None:
+                # a push on the soft side broke the stage away: it is taken back at once (bumpless for the
+                # observer, a step of the push in u), so that the stage slides only as far as the force took it
+                # past its break-away level, sticks again short of or near the target and is pushed anew
+                # (stick-slip positioning in small increments; kept, the push slid it past the target)
+                self._ri_push = 0.0
+                self._ri_n -= push
+                self.dob.shift(-push)
+                self.state.u_obs_prev_n -= push
+                return d_hat - push
+            return d_hat
         self._ri_still_s += dt
         if self._ri_still_s < REST_INTEGRAL_DWELL_S or abs(e_m) <= REST_INTEGRAL_DEADBAND * cfg.settle.tolerance_m:
             # inside 0.8 of the in-position window there is nothing to finish: pulling a stage back by a few nm
@@ -1450,6 +1485,18 @@ class StageController:
         # stiff side (the stage stopped ahead: its elements unload), ~0 on the soft side (behind: they already slip,
         # and a push breaks the stage away and slides it past the target)
         k_r = min(self.ff_scale, 1.0) * max(0.0, ff.tangent_n_m(1 if e_m > 0.0 else -1))
+        if k_r < REST_INTEGRAL_SOFT_FRACTION * min(self.ff_scale, 1.0) * self._k_ps:
+            # the soft side (the stage stopped behind, its elements at their slip limit): no spring to act
+            # through, the stage moves on only once the force passes its break-away level. Ramp towards it at
+            # the break-away gain k_b = min(Σk, ΔF_b/r) (ΔF_b the model's break-away gap F_s − F_c, at least
+            # REST_INTEGRAL_GAP_MIN·F_c): at |e| = r the gap is covered in one time constant 1/(2π·f_r). Once
+            # the stage moves towards the target the still gate above stops the ramp and takes the push back
+            if self._ri_v * e_m > REST_INTEGRAL_SOFT_STILL_M_S * abs(e_m):
+                return d_hat  # still creeping in, however slowly: a push would break it away into a slide
+            k_r = max(k_r, min(self.ff_scale, 1.0) * self._k_break)
+            soft = True
+        else:
+            soft = False
         delta = 2.0 * math.pi * cfg.rest_integral_hz * k_r * max(-r, min(r, e_m)) * dt
         bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else cfg.max_force_n
         total = max(-bound, min(bound, self._ri_n + delta))
@@ -1458,6 +1505,7 @@ class StageController:
         if delta == 0.0 or dob is None:  # (no observer: excluded by _derive)
             return d_hat
         self._ri_n = total
+        self._ri_push = self._ri_push + delta if soft else 0.0
         dob.shift(delta)
         self.state.u_obs_prev_n += delta
         return d_hat + delta
@@ -2026,6 +2074,18 @@ def _kinetic_level(ff: FrictionFeedforward | CoulombFeedforward | None) -> float
     if isinstance(w, tuple) and w:
         return float(sum(w))
     return math.nan
+
+
+def _break_gain(ff: FrictionFeedforward | CoulombFeedforward | None, k_ps: float, f_kin: float,
+                range_m: float) -> float:
+    """The rest integral's gain on the soft side [N/m] (a stage stopped behind its target, stuck at its break-away
+    level): k_b = min(Σk, ΔF_b/r), ΔF_b = max(F_s − F_c, REST_INTEGRAL_GAP_MIN·F_c) from the model's ``fs_n`` and
+    F_c (:func:`_kinetic_level`), r = ``rest_spring_range_m``; 0 without a model's stiffness or Coulomb level."""
+    if not isinstance(ff, FrictionFeedforward) or k_ps <= 0.0 or not f_kin > 0.0 or range_m <= 0.0:
+        return 0.0
+    fs = getattr(getattr(ff.model, "params", None), "fs_n", None)
+    gap = float(fs) - f_kin if isinstance(fs, (int, float)) else 0.0
+    return min(k_ps, max(gap, REST_INTEGRAL_GAP_MIN * f_kin) / range_m)
 
 
 def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:

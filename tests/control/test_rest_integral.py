@@ -33,7 +33,7 @@ def cogged(repo_root):
 
 def test_steps_stuck_off_target_settle_with_the_rest_integral(cogged):
     """Without it 2 of the 4 10 µm steps are still 100-200 nm off at the end of the 0.5 s hold; with 3 Hz all four
-    end inside ±10 nm, without a limit cycle or a fault."""
+    end inside ±10 nm (the last half of each hold within 25 nm), without a limit cycle or a fault."""
     from stagectl.bench.control import steps_check
 
     cfg, base = cogged
@@ -41,7 +41,9 @@ def test_steps_stuck_off_target_settle_with_the_rest_integral(cogged):
     on = steps_check(cfg, dataclasses.replace(base, rest_integral_hz=3.0), hold_s=0.5)
     assert off["fault"] is None and off["settled"] <= 2
     assert on["fault"] is None and on["limit_cycle"] is False
-    assert on["settled"] == 4 and on["max_late_excursion_m"] <= 0.12e-6
+    # (late excursion: 98 nm when the integral waited REST_INTEGRAL_DWELL_S after each of its own increments of the
+    # stage's approach; 10 nm now that, once it has acted on the stiff side, it goes on while the stage approaches)
+    assert on["settled"] == 4 and on["max_late_excursion_m"] <= 25e-9
     # the moves themselves are the same (the integral waits until the stage no longer approaches the target)
     done = [a for a in off["settle_s"] if a is not None]
     assert done and [b for a, b in zip(off["settle_s"], on["settle_s"]) if a is not None] == pytest.approx(done,
@@ -125,3 +127,103 @@ def test_each_standstill_starts_the_integral_afresh(cogged):
     added, added_fresh = on[-1] - off[-1], on_fresh[-1] - off_fresh[-1]
     assert added_fresh < -0.05  # the stage ahead: pushed back (by up to the model's Coulomb level)
     assert added == pytest.approx(added_fresh, rel=0.02)  # (at its bound θ·F_c; θ depends a little on the history)
+
+
+def _stuck_behind(base, soft: float, monkeypatch) -> tuple[float, float]:
+    """The controller stepped on positions written here (no plant): a 10 µm move followed exactly (the model copy's
+    elements slip forward, as the plant's do), then 0.3 s at rest with the stage stuck 60 nm short of the target.
+    Returns (what the rest integral added, the model's tangent stiffness towards the target) at the end."""
+    import stagectl.control.controller as cc
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Move, TrajectoryGenerator
+
+    T = 1e-3
+    monkeypatch.setattr(cc, "REST_INTEGRAL_SOFT_FRACTION", soft, raising=False)  # 0: the stiffness-scaled gain only
+    ctl = StageController(dataclasses.replace(base, rest_integral_hz=3.0), T)
+    ctl.reset(0.0)
+    gen = TrajectoryGenerator(0.0)
+    gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
+    ref = gen.step(T)
+    k = 0
+    while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
+        ctl.step(T, ref.x_m, ref)
+        k += 1
+        ref = gen.step(T)
+    for _ in range(300):
+        ctl.step(T, ref.x_m - 60e-9, Reference(ref.x_m))
+    return ctl._ri_n, ctl.ff.tangent_n_m(1)
+
+
+def test_a_stage_stuck_behind_is_pushed_through_its_break_away(cogged, monkeypatch):
+    """Behind the target the model's elements slip (tangent stiffness ~0 towards it): a gain of k_t there added
+    nothing (the observer takes the P force as a disturbance, so the stage stayed 50-250 nm short through the hold:
+    generated plants 29 and 36 commissioned). The soft side ramps at the break-away gain k_b = min(Σk, ΔF_b/r) instead,
+    bounded by θ·F_c."""
+    _, base = cogged
+    base = dataclasses.replace(base, feedforward=dataclasses.replace(base.feedforward, rest_sync_hz=0.0))
+    fr = base.feedforward.model.friction
+    added_old, k_t = _stuck_behind(base, 0.0, monkeypatch)
+    added, _ = _stuck_behind(base, 0.25, monkeypatch)
+    assert k_t < 0.05 * fr.stiffness_n_m  # the soft side (the stiff side: Σk)
+    gap = fr.params.fs_n - fr.params.fc_n
+    assert abs(added_old) < 0.1 * gap  # the stiffness-scaled gain: next to nothing
+    assert 0.5 * gap < added <= fr.params.fc_n * 1.01  # past the break-away gap within 0.3 s, within the bound
+
+
+def _closed_loop_from_behind(base, plant_cfg, soft: float, monkeypatch, hold_s: float = 0.4) -> list[float]:
+    """Lock-step, the controller on a plant (one cycle of I/O delay): the plant is first slid forward open loop
+    (a force just past its static level for 1 µm, then below its Coulomb level until it stops), the controller
+    stepped on the same positions as the reference; then the target is set 60 nm ahead of the stuck stage and the
+    loop closed. Returns the error x_r − x [m] per period over ``hold_s``."""
+    import stagectl.control.controller as cc
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+    from stagectl.sim.plant import StagePlant
+
+    T = 1e-3
+    fp = plant_cfg.friction.params
+    monkeypatch.setattr(cc, "REST_INTEGRAL_SOFT_FRACTION", soft, raising=False)  # 0: the stiffness-scaled gain only
+    plant = StagePlant(plant_cfg)
+    plant.reset(0.0)
+    ctl = StageController(dataclasses.replace(base, rest_integral_hz=3.0), T)
+    ctl.reset(0.0)
+    x_prev, phase, u = 0.0, 0, 0.0
+    for _ in range(400):
+        if phase == 0 and plant.x_m > 1e-6:
+            phase = 1
+        if phase == 1 and plant.v_m_s <= 2e-6:
+            phase, u = 2, plant.friction_n  # stuck, its elements at their forward slip limit
+        if phase < 2:
+            u = 1.02 * fp.fs_n if phase == 0 else 0.9 * fp.fc_n
+        plant.step(u, T)
+        x = plant.measure()
+        ctl.step(T, x, Reference(x, (x - x_prev) / T if phase < 2 else 0.0, 0.0))
+        x_prev = x
+    assert phase == 2
+    target = plant.x_m + 60e-9
+    errors = []
+    for _ in range(int(hold_s / T)):
+        u_next = ctl.step(T, plant.measure(), Reference(target)).force_n
+        plant.step(u, T)
+        u = u_next
+        errors.append(target - plant.x_m)
+    return errors
+
+
+def test_a_stage_stuck_short_of_its_target_settles_in_closed_loop(cogged, repo_root, monkeypatch):
+    """The seed stage's plant slid forward and stuck 60 nm short of its target (its elements at their slip limit):
+    with the stiffness-scaled gain the error crept in at ~0.15 µm/s (23 nm left after 0.25 s, in the band after
+    0.37 s); the push at the break-away gain (while the stage creeps in at less than REST_INTEGRAL_SOFT_STILL_M_S)
+    brings it into ±10 nm within 0.22 s and it stays there, without hunting."""
+    from stagectl.config import load_app_config
+
+    _, base = cogged
+    plant_cfg = load_app_config(repo_root / "config" / "sim.yaml").sim.plant
+    old = _closed_loop_from_behind(base, plant_cfg, 0.0, monkeypatch)
+    new = _closed_loop_from_behind(base, plant_cfg, 0.25, monkeypatch)
+    assert old[0] > 50e-9 and new[0] > 50e-9  # it starts stuck behind
+    assert old[249] > 15e-9  # without the push: still short after 0.25 s
+    late = new[250:]
+    assert max(abs(e) for e in late) <= 10e-9  # settled within 0.25 s and stays in the band
+    assert min(new) > -15e-9  # the push was taken back at the break-away: no slide past the target
