@@ -21,6 +21,11 @@ Segments (``kind:`` in YAML)
               are computed from the exact overtravel of the reversal profile.
 ``dwell``     hold the position for ``duration_s``.
 
+Every segment but ``move`` starts at rest. A ``sine`` (and a ``cosine`` of fractional cycles) ends moving; the
+reference then stops at once where the segment ended (v and a step to 0) and the next segment (or the hold
+after the last one, or a scenario's ``settle_s``) starts from rest there. A ``move`` after it starts from the
+moving state instead (jerk-limited stop first, no jump in x, v or a).
+
 Symbols: x position [m], v velocity [m/s], a acceleration [m/s²], j jerk [m/s³], t time [s].
 When the queue is empty the generator holds the last position at rest.
 """
@@ -298,12 +303,14 @@ _V_REST = 1e-12
 
 
 def _bind(spec: SegmentSpec, start: Reference) -> _Bound:
+    """``spec`` bound to the reference state ``start`` where it begins.
+
+    A move starts from any state (a jerk-limited stop first). Every other segment starts at rest: after a
+    segment that ends moving (a ``sine``, a cosine of fractional cycles) the reference stops at once at the
+    reached position, as it does when that segment is the last one (module docstring)."""
     x0, v0, a0 = start
-    # a step in a_ref is allowed between segments (a cosine starts and ends with a ≠ 0); v must be 0
-    at_rest = abs(v0) <= _V_REST
+    # a step in a_ref is allowed between segments (a cosine starts and ends with a ≠ 0)
     if isinstance(spec, Dwell):
-        if not at_rest:
-            raise ValueError("dwell must start at rest (v_ref = 0)")
         return _Hold(x0, spec.duration_s)
     if isinstance(spec, Move):
         target = spec.to_m if spec.to_m is not None else x0 + (spec.by_m or 0.0)
@@ -315,8 +322,6 @@ def _bind(spec: SegmentSpec, start: Reference) -> _Bound:
         phases = stop + _move_phases(target - xs, spec.max_velocity_m_s, spec.max_acceleration_m_s2,
                                      spec.max_jerk_m_s3)
         return _Phases(x0, v0, a0, phases, x_end=target)
-    if not at_rest:
-        raise ValueError(f"{type(spec).__name__.lower()} must start at rest (queue a move first)")
     if isinstance(spec, Cosine):
         return _Analytic(x0, spec.amplitude_m, spec.frequency_hz, spec.cycles, cosine=True)
     if isinstance(spec, Sine):
