@@ -155,6 +155,18 @@ class Scenario:
         gen.load(self)
         return gen.remaining_s()
 
+    def problems(self, x0_m: float = 0.0, path: str = "segments") -> list[str]:
+        """What keeps the segments from being bound one after the other from rest at ``x0_m`` (or ``start_m``):
+        one line per segment that cannot run (e.g. a triangle too short for its speed), naming its index."""
+        out: list[str] = []
+        ref = Reference(self.start_m if self.start_m is not None else x0_m)
+        for i, spec in enumerate(self.segments):
+            try:
+                ref = _bind(spec, ref).end
+            except ValueError as exc:
+                out.append(f"{path}[{i}] ({type(spec).__name__.lower()}): {exc}")
+        return out
+
 
 # ------------------------------------------------------------------------------------------ bound segments
 

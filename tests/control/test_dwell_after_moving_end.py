@@ -18,7 +18,7 @@ DT = 1e-3
 def _run(segments: tuple, settle_s: float = 0.0) -> list[tuple[str, Reference]]:
     gen = TrajectoryGenerator(0.0)
     sc = Scenario(name="t", segments=segments, settle_s=settle_s)
-    n = int(round(sc.duration_s() / DT)) + 5
+    n = round(sc.duration_s() / DT) + 5
     gen.load(sc)
     rows = []
     for _ in range(n):
@@ -58,7 +58,7 @@ def test_rest_start_segments_after_a_moving_end_start_from_the_reached_position(
     x_end = gen.final_reference().x_m
     seen: dict[str, Reference] = {}
     prev = gen.sample()
-    for _ in range(int(round(gen.remaining_s() / DT)) + 3):
+    for _ in range(round(gen.remaining_s() / DT) + 3):
         seg0 = gen.state.segment
         ref = gen.step(DT)
         if gen.state.segment != seg0 and gen.state.segment in ("cosine", "triangle"):
