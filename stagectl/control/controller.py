@@ -816,6 +816,7 @@ class StageController:
         self._vbeta = 0.0
         self._vdt = math.nan
         self._ff_ahead_s = 0.0  # time the feed-forward was advanced by hold() since the last step
+        self._ref_stop = math.nan  # where the reference next rests without reversing [m] (set_reference_stop)
         self._pred_s = 0.0  # time covered by predicted steps (hold) since the last fresh sample
         self._gap = 0  # stale cycles since the last fresh sample
         self._f_kin = _kinetic_level(self.ff)  # the friction model's Coulomb level [N] (nan: no model)
@@ -900,6 +901,7 @@ class StageController:
         self._ff_bump = None
         self._last_ref = None
         self._ff_ahead_s = 0.0
+        self._ref_stop = math.nan
         self._pred_s = 0.0
         self._gap = 0
         self._e_last = math.nan
@@ -1036,6 +1038,12 @@ class StageController:
                 new_dob.period_s = self.timing_scale * self.period_s
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
         self._d_cfg = None  # _derive() again at the next step
+
+    def set_reference_stop(self, x_m: float) -> None:
+        """Where the reference next comes to rest without reversing first [m] (NaN: unknown), for the friction
+        feed-forward's look-ahead at its next step or hold (:func:`stagectl.control.friction_ff.bounded_ahead`).
+        The loop sets it each cycle from its reference source; without it the look-ahead is unbounded."""
+        self._ref_stop = x_m
 
     def set_timing_scale(self, scale: float) -> None:
         """Slow the feedback down for a loop that runs slower than its period (real-time safe enough for a
@@ -1658,7 +1666,8 @@ class StageController:
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
-        u_ff = ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref) * self.ff_scale if ff is not None else 0.0
+        u_ff = (ff.step(dt_ff if dt_ff > 1e-9 * dt else dt, ref, self._ref_stop) * self.ff_scale
+                if ff is not None else 0.0)
         if self._ff_bump is not None:  # feed-forward replaced by retune: Δ = old − new force is taken over by
             delta = self._ff_bump - u_ff  # the observer (its residual u − u_ff grows by Δ) or, without one, by
             self._ff_bump = None          # the integrator; either way u is continuous and nothing re-converges
@@ -1871,7 +1880,7 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        u_ff = ff.step(dt, ref) * self.ff_scale
+        u_ff = ff.step(dt, ref, self._ref_stop) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0

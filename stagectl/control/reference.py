@@ -173,6 +173,11 @@ class TrajectoryReference:
             return ref
         return self.gen.sample()
 
+    def stop_m(self) -> float:
+        """Where the reference next comes to rest without reversing first [m] (NaN: a reversal may come first;
+        :meth:`~stagectl.control.trajectory.TrajectoryGenerator.stop_m`), at the last :meth:`sample`."""
+        return self.gen.stop_m()
+
     def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
         self._repeat = False
         self._scenario = None

@@ -181,6 +181,21 @@ class _Bound(ABC):
     def sample(self, tau: float) -> Reference:
         """Reference at ``tau`` [s] after the segment start."""
 
+    def rest_ahead(self, tau: float) -> float:
+        """Where the reference next comes to rest inside the segment after ``tau`` [s] [m], if it gets there
+        without reversing; NaN when it reverses (or may reverse) first; +inf when it travels on to the
+        segment's end without either."""
+        return math.nan
+
+
+#: |a| below which a state with v at rest counts as a rest (not a turning point) [m/s²]
+_A_REST = 1e-9
+_TURN, _REST = 0, 1
+
+
+def _sgn(v: float) -> int:
+    return 1 if v > 0.0 else (-1 if v < 0.0 else 0)
+
 
 class _Phases(_Bound):
     """Piecewise-constant-jerk motion from (x0, v0, a0): phases ``(T, j)``; exact polynomial integration."""
@@ -205,6 +220,28 @@ class _Phases(_Bound):
                 a = 0.0
         self.end = Reference(x, v, a)
         self._k = 0
+        # the rests (v = a = 0) and turns (v changes sign) in time order, each at the end of the phase it
+        # happens in (a turn is thus reported until its phase ends: conservative, see rest_ahead)
+        self.events: list[tuple[float, int, float]] = []
+        ends = [(st[0], st[1], st[2], st[3]) for st in self.starts[1:]] + [(t, x, v, a)]
+        s_prev = _sgn(v0) if abs(v0) > _V_REST else 0
+        for te, xe, ve, ae in ends:
+            s_e = _sgn(ve) if abs(ve) > _V_REST else 0
+            if s_e == 0 and abs(ae) <= _A_REST:
+                self.events.append((te, _REST, xe))
+                s_prev = 0
+                continue
+            if s_e == 0:  # at rest for an instant, accelerating: it goes on in the direction of a
+                s_e = _sgn(ae)
+            if s_prev != 0 and s_e != s_prev:
+                self.events.append((te, _TURN, math.nan))
+            s_prev = s_e
+
+    def rest_ahead(self, tau: float) -> float:
+        for te, kind, xe in self.events:
+            if te >= tau:
+                return xe if kind == _REST else math.nan
+        return math.inf
 
     def sample(self, tau: float) -> Reference:
         if tau >= self.duration:
@@ -287,6 +324,14 @@ class _Analytic(_Bound):
     def sample(self, tau: float) -> Reference:
         return self.end if tau >= self.duration else self._at(tau)
 
+    def rest_ahead(self, tau: float) -> float:
+        # turns: sine at wt = π/2 + kπ, raised cosine at wt = kπ (k >= 1); +inf when none is left before the end
+        w = self.w
+        off = 0.0 if self.cos else 0.5 * math.pi
+        k = max(math.ceil((w * tau - off) / math.pi - 1e-9), 1 if self.cos else 0)
+        t_turn = (off + k * math.pi) / w
+        return math.inf if t_turn >= self.duration * (1.0 - 1e-12) else math.nan
+
 
 class _Hold(_Bound):
     def __init__(self, x: float, duration: float):
@@ -295,6 +340,9 @@ class _Hold(_Bound):
 
     def sample(self, tau: float) -> Reference:
         return self.end
+
+    def rest_ahead(self, tau: float) -> float:
+        return self.end.x_m
 
 
 def _stop_phases(v0: float, a0: float, a_max: float, j_max: float) -> list[tuple[float, float]]:
@@ -494,6 +542,24 @@ class TrajectoryGenerator:
         st.ref = self._cur.sample(tau)
         st.segment = self._name
         return st.ref
+
+    def stop_m(self) -> float:
+        """Where the reference next comes to rest (v = 0, holding or starting a new segment from rest) [m], when
+        it gets there without reversing first; NaN when a reversal (a scan's turn) may come first.
+
+        A segment ending at rest, or ending moving with a rest-start segment or the hold after it (it stops at
+        once there: module docstring), rests at its end; one ending moving with a ``move`` after it does not
+        (NaN: the move's stop phases are not bound yet). Real-time safe (no binding). The friction
+        feed-forward uses it to keep its look-ahead point from going past the stop, or back before it
+        (:mod:`stagectl.control.friction_ff`)."""
+        cur = self._cur
+        x = cur.rest_ahead(self.state.tau_s)
+        if x != math.inf:
+            return x
+        end = cur.end
+        if abs(end.v_m_s) <= _V_REST or not self._queue or not isinstance(self._queue[0], Move):
+            return end.x_m
+        return math.nan
 
     def remaining_s(self) -> float:
         """Time [s] until the queue is finished (0 when holding)."""
