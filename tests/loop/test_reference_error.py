@@ -77,3 +77,10 @@ def test_a_scenario_with_a_segment_that_cannot_run_is_refused_before_the_loop() 
         ref.set_scenario(sc)
     assert str(ei.value).startswith("scenario bad: segments[1] (triangle): triangle: span 1e-06 m too short")
     assert "\n" not in str(ei.value) and ref.scenario is None
+
+
+def test_a_repeated_motion_is_named_never_read_from_a_file_in_the_cycle() -> None:
+    ref = TrajectoryReference()
+    ref.hold(0.0, 0.0)
+    with pytest.raises(ConfigError, match="^motion: give a scenario name"):
+        ref.run_scenario(0.0, "scan.yaml")
