@@ -125,6 +125,7 @@ from stagectl.runtime.inbox import Reply, RequestInbox
 from stagectl.runtime.protocols import (
     Controller,
     HoldsOnStale,
+    KnowsStop,
     Learner,
     NamesTerms,
     PacesDevice,
@@ -135,6 +136,7 @@ from stagectl.runtime.protocols import (
     ScalesWithTiming,
     TakesLearnedForce,
     TelemetrySink,
+    UsesStop,
 )
 from stagectl.runtime.quickstop import BRAKE_FAULTS, QuickStopBrake
 from stagectl.runtime.requests import (
@@ -652,6 +654,9 @@ class ControlLoop:
         lrow: tuple[float, ...] = ()
         stale_row = False
         holds = isinstance(controller, HoldsOnStale)
+        # where the reference next rests without reversing, for the controller's feed-forward look-ahead
+        stop_of = reference.stop_m if isinstance(reference, KnowsStop) else None
+        set_stop = controller.set_reference_stop if stop_of is not None and isinstance(controller, UsesStop) else None
         # a command schedule (io.command_schedule): each write also carries the controller's predicted force
         # for the period after it, which the actuator applies in a slot the loop skips
         pred = controller if isinstance(controller, PredictsNextForce) else None
@@ -720,6 +725,8 @@ class ControlLoop:
                     if s_ref != 1.0:  # the motion slowed down with the feedback
                         ref = Reference(ref.x_m, ref.v_m_s / s_ref, ref.a_m_s2 / (s_ref * s_ref))
                     safety.reference_speed_m_s = abs(ref.v_m_s)
+                    if set_stop is not None:
+                        set_stop(stop_of())  # type: ignore[misc]
                     if safety.check_tracking(t, k, x, ref.x_m, m.fresh):
                         self._enter_fault(t, x)
                     elif m.fresh and (self._t_step is None or t - self._t_step >= dt_min):

@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--duration", type=number("s"), default=None, help="seconds to run (default: until Ctrl-C)")
     p.add_argument("--out", default=None, help="output directory (default ./runs/<timestamp>)")
     p.add_argument("--scenario", default=None,
-                   help="motion: demo | cosine | triangle | steps | hold (default: demo.scenario on a "
+                   help="motion: demo | cosine | triangle | steps | hold, or a scenario file FILE.yaml "
+                        "(default: demo.scenario on a "
                         "simulated stage, hold on a real one)")
     p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")
     p.add_argument("--ilc", action="store_true",

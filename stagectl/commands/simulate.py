@@ -32,7 +32,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p = sub.add_parser("simulate", help="closed loop in simulated time: telemetry CSV, summary.json, tracking.png")
     p.add_argument("--config", required=True, help="stagectl YAML (e.g. config/sim.yaml)")
     p.add_argument("--scenario", default="cosine",
-                   help="cosine | triangle | steps | demo | hold (default cosine)")
+                   help="cosine | triangle | steps | demo | hold, or a scenario file FILE.yaml "
+                        "(default cosine)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--duration", type=number("s"), default=None,
                    help="simulated seconds (default: the scenario's length + 0.2 s)")

@@ -28,6 +28,18 @@ had extrapolated; that is no move back: the latch's extreme and the fed position
 (:meth:`DirectionLatch.stop_at`; the model's state is not stepped), so the direction stays the last motion's
 (the controller's stop synchronisation judges "ahead"/"behind" of the reference by it).
 
+A reference that comes to rest through a jerk-limited stop (the end of a ``move``, a ``stop``): with τ_a longer
+than half the final jerk phase, the look-ahead point x_ref + v·τ_a + a·τ_a²/2 of the constant deceleration before
+it turns back before the stop (v < |a|·τ_a) and comes forward again in the final jerk phase (1 ms at the move
+defaults 0.1 m/s², 100 m/s³ with τ_a = 1.5 ms: ~50 nm back, then forward): the latch reversed and reversed back
+one cycle later (+2 reversals, the model stepped back and forth). When the reference source knows where the
+reference next comes to rest without reversing first (``stop_m``,
+:meth:`stagectl.control.trajectory.TrajectoryGenerator.stop_m`, passed to :meth:`FrictionFeedforward.step`), the
+look-ahead point is kept on the reference's own travel: not past that stop, and, while the reference travels to it
+in the latched direction, not back before the latch's extreme (the model is held there, as for an unconfirmed
+move-back). A reversal the reference makes (a scan's turn, a cosine's, a move back) has no rest before it:
+``stop_m`` is NaN and the look-ahead is as above. Without ``stop_m`` (NaN) nothing changes.
+
 Two forms of the model's step, the same arithmetic: the compiled kernel (numba; what a process that simulates a
 plant uses anyway) or, with ``plain=True``, the kernel's own source run as plain Python
 (:meth:`~stagectl.friction.FrictionModel.plain_stepper`, ~2-3 µs for GMS N = 6): a real stage's controller then
@@ -111,6 +123,25 @@ class DirectionLatch:
         return False
 
 
+def bounded_ahead(xr: float, vr: float, x_ref: float, stop_m: float, latch: DirectionLatch) -> tuple[float, float]:
+    """The look-ahead point (``xr`` [m], ``vr`` [m/s]) kept on the reference's own travel to its next rest
+    ``stop_m`` [m] (module docstring): not past it, and, while the reference (at ``x_ref``) travels to it in the
+    latched direction, not back before the latch's extreme. Returned unchanged when ``stop_m`` is NaN."""
+    if stop_m != stop_m:
+        return xr, vr
+    to = stop_m - x_ref
+    if to == 0.0:  # the reference is at its rest
+        return stop_m, 0.0
+    ds = 1 if to > 0.0 else -1
+    if (xr - stop_m) * ds > 0.0:  # past the stop
+        xr, vr = stop_m, 0.0
+    elif latch.direction == ds and (latch.extreme - xr) * ds > 0.0:  # back before the extreme: no move back
+        xr = latch.extreme
+    if vr * ds < 0.0:
+        vr = 0.0
+    return xr, vr
+
+
 class FrictionFeedforward:
     """Model-based friction feed-forward (``kind: model``). ``step`` is real-time safe if the model's is."""
 
@@ -173,8 +204,9 @@ class FrictionFeedforward:
         """The friction model's own force at the last step [N] (before effects, scales and velocity terms)."""
         return self._f_model
 
-    def step(self, dt: float, ref: Reference) -> float:
-        """Advance the model copy along the reference; return u_ff [N]."""
+    def step(self, dt: float, ref: Reference, stop_m: float = math.nan) -> float:
+        """Advance the model copy along the reference; return u_ff [N]. ``stop_m`` [m]: where the reference next
+        comes to rest without reversing first (NaN: unknown; module docstring)."""
         if not (dt > 0.0 and dt < math.inf):
             check_dt(dt)
         st = self.state
@@ -186,6 +218,8 @@ class FrictionFeedforward:
             xr, vr = x_r + v_r * ta + 0.5 * a_r * ta * ta, v_r + a_r * ta
         if st.x_fed_m != st.x_fed_m:
             self.reset(xr)
+        if stop_m == stop_m and ta != 0.0:
+            xr, vr = bounded_ahead(xr, vr, ref[0], stop_m, self.latch)
         v_prev, self._v_ref = self._v_ref, ref[1]
         if v_prev != 0.0 and ta != 0.0 and ref[1] == 0.0 and ref[2] == 0.0 and v_prev * self.latch.direction > 0.0:
             self._stopped(xr)  # stopped at once: the look-ahead's overshoot is no move back (module docstring)
@@ -282,7 +316,7 @@ class CoulombFeedforward:
         self._v_ref = 0.0
         self.state = FrictionFfState(x_fed_m=x_m, x_extreme_m=x_m)
 
-    def step(self, dt: float, ref: Reference) -> float:
+    def step(self, dt: float, ref: Reference, stop_m: float = math.nan) -> float:
         check_dt(dt)
         ta = self.lookahead_s
         xr = ref.x_m + ref.v_m_s * ta + 0.5 * ref.a_m_s2 * ta * ta
@@ -290,6 +324,8 @@ class CoulombFeedforward:
         st = self.state
         if math.isnan(st.x_fed_m):
             self.reset(xr)
+        if stop_m == stop_m and ta != 0.0:
+            xr, vr = bounded_ahead(xr, vr, ref.x_m, stop_m, self.latch)
         v_prev, self._v_ref = self._v_ref, ref.v_m_s
         if (v_prev != 0.0 and ta != 0.0 and ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
                 and v_prev * self.latch.direction > 0.0):

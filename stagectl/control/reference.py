@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from stagectl.control.api import Reference
 from stagectl.control.ilc import Repetition
@@ -21,8 +22,10 @@ from stagectl.control.trajectory import (
     demo_scenario,
 )
 from stagectl.errors import ConfigError, short
+from stagectl.schema import load, load_yaml_file
 
-__all__ = ["EXTRA_SCENARIOS", "TrajectoryReference", "get_scenario", "scenario_names"]
+__all__ = ["EXTRA_SCENARIOS", "SCENARIO_FILE_SUFFIXES", "TrajectoryReference", "get_scenario", "load_scenario_file",
+           "scenario_names"]
 
 #: names accepted besides the benchmark scenarios: ``demo`` (demo motion) and ``hold`` (no motion)
 EXTRA_SCENARIOS = ("demo", "hold")
@@ -33,14 +36,49 @@ def scenario_names() -> tuple[str, ...]:
     return (*benchmark_scenarios(), *EXTRA_SCENARIOS)
 
 
-def get_scenario(name: str, field: str = "--scenario") -> Scenario | None:
-    """The scenario called ``name`` (``hold`` is None: stand still).
+#: file name endings :func:`get_scenario` reads as a scenario file
+SCENARIO_FILE_SUFFIXES = (".yaml", ".yml")
+
+
+def load_scenario_file(path: str | Path, field: str = "--scenario") -> Scenario:
+    """A scenario from a YAML file: ``segments`` (a list of ``{kind: move|cosine|sine|triangle|dwell, ...}``,
+    :mod:`stagectl.control.trajectory`), optional ``name`` (default: the file's stem), ``start_m``, ``settle_s``.
 
     Raises
     ------
     ConfigError
-        An unknown name, naming ``field`` and the known names.
+        The file unreadable or not YAML, a bad key or value (``FILE: segments[i].key: ...``), or a segment that
+        cannot run (``FILE: segments[i] (triangle): ...``): one line each, prefixed by ``field``.
     """
+    p = Path(path)
+    try:
+        data = load_yaml_file(p)
+    except ConfigError as exc:
+        raise ConfigError([f"{field}: {line}" for line in exc.problems]) from None
+    if isinstance(data, dict) and "name" not in data:
+        data = {"name": p.stem, **data}
+    where = f"{field}: {p}"
+    try:
+        sc = load(Scenario, data, "")
+    except ConfigError as exc:
+        raise ConfigError([f"{where}: {line.lstrip('.')}" for line in exc.problems]) from None
+    bad = sc.problems()
+    if bad:
+        raise ConfigError([f"{where}: {line}" for line in bad])
+    return sc
+
+
+def get_scenario(name: str, field: str = "--scenario") -> Scenario | None:
+    """The scenario called ``name`` (``hold`` is None: stand still), or read from the file ``name`` when it ends
+    in ``.yaml``/``.yml`` (:func:`load_scenario_file`).
+
+    Raises
+    ------
+    ConfigError
+        An unknown name, naming ``field`` and the known names; a bad scenario file.
+    """
+    if name.endswith(SCENARIO_FILE_SUFFIXES):
+        return load_scenario_file(name, field)
     if name == "hold":
         return None
     if name == "demo":
@@ -73,7 +111,12 @@ class TrajectoryReference:
         self._length = 0.0
 
     def set_scenario(self, scenario: Scenario | None, repeat: bool = False) -> None:
-        """Run ``scenario`` (None: hold) from the loop's next ``hold``; ``repeat`` restarts it when it ends."""
+        """Run ``scenario`` (None: hold) from the loop's next ``hold``; ``repeat`` restarts it when it ends.
+        ConfigError (one line per segment, naming its index) for a segment that cannot run, here and not in the
+        loop's first cycle."""
+        bad = scenario.problems(path=f"scenario {scenario.name}: segments") if scenario is not None else []
+        if bad:
+            raise ConfigError(bad)
         self._scenario = scenario
         self._repeat = repeat
         self._started = False
@@ -97,6 +140,8 @@ class TrajectoryReference:
         """Start scenario ``name`` now, repeated until a move/stop request (a motion for ``ilc:`` to learn);
         returns the length of one repetition [s]. ConfigError (field ``motion``) for an unknown name or
         while a move is still running."""
+        if name.endswith(SCENARIO_FILE_SUFFIXES):  # (this runs in the loop's cycle: no file reading here)
+            raise ConfigError("motion: give a scenario name (scenario files are for simulate/run --scenario)")
         sc = get_scenario(name, "motion")
         if sc is None:
             raise ConfigError("motion: 'hold' is no motion to repeat")
@@ -127,6 +172,11 @@ class TrajectoryReference:
                 self._load(t_s, self._scenario)
             return ref
         return self.gen.sample()
+
+    def stop_m(self) -> float:
+        """Where the reference next comes to rest without reversing first [m] (NaN: a reversal may come first;
+        :meth:`~stagectl.control.trajectory.TrajectoryGenerator.stop_m`), at the last :meth:`sample`."""
+        return self.gen.stop_m()
 
     def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
         self._repeat = False

@@ -21,6 +21,11 @@ Segments (``kind:`` in YAML)
               are computed from the exact overtravel of the reversal profile.
 ``dwell``     hold the position for ``duration_s``.
 
+Every segment but ``move`` starts at rest. A ``sine`` (and a ``cosine`` of fractional cycles) ends moving; the
+reference then stops at once where the segment ended (v and a step to 0) and the next segment (or the hold
+after the last one, or a scenario's ``settle_s``) starts from rest there. A ``move`` after it starts from the
+moving state instead (jerk-limited stop first, no jump in x, v or a).
+
 Symbols: x position [m], v velocity [m/s], a acceleration [m/s²], j jerk [m/s³], t time [s].
 When the queue is empty the generator holds the last position at rest.
 """
@@ -150,6 +155,18 @@ class Scenario:
         gen.load(self)
         return gen.remaining_s()
 
+    def problems(self, x0_m: float = 0.0, path: str = "segments") -> list[str]:
+        """What keeps the segments from being bound one after the other from rest at ``x0_m`` (or ``start_m``):
+        one line per segment that cannot run (e.g. a triangle too short for its speed), naming its index."""
+        out: list[str] = []
+        ref = Reference(self.start_m if self.start_m is not None else x0_m)
+        for i, spec in enumerate(self.segments):
+            try:
+                ref = _bind(spec, ref).end
+            except ValueError as exc:
+                out.append(f"{path}[{i}] ({type(spec).__name__.lower()}): {exc}")
+        return out
+
 
 # ------------------------------------------------------------------------------------------ bound segments
 
@@ -163,6 +180,21 @@ class _Bound(ABC):
     @abstractmethod
     def sample(self, tau: float) -> Reference:
         """Reference at ``tau`` [s] after the segment start."""
+
+    def rest_ahead(self, tau: float) -> float:
+        """Where the reference next comes to rest inside the segment after ``tau`` [s] [m], if it gets there
+        without reversing; NaN when it reverses (or may reverse) first; +inf when it travels on to the
+        segment's end without either."""
+        return math.nan
+
+
+#: |a| below which a state with v at rest counts as a rest (not a turning point) [m/s²]
+_A_REST = 1e-9
+_TURN, _REST = 0, 1
+
+
+def _sgn(v: float) -> int:
+    return 1 if v > 0.0 else (-1 if v < 0.0 else 0)
 
 
 class _Phases(_Bound):
@@ -188,6 +220,28 @@ class _Phases(_Bound):
                 a = 0.0
         self.end = Reference(x, v, a)
         self._k = 0
+        # the rests (v = a = 0) and turns (v changes sign) in time order, each at the end of the phase it
+        # happens in (a turn is thus reported until its phase ends: conservative, see rest_ahead)
+        self.events: list[tuple[float, int, float]] = []
+        ends = [(st[0], st[1], st[2], st[3]) for st in self.starts[1:]] + [(t, x, v, a)]
+        s_prev = _sgn(v0) if abs(v0) > _V_REST else 0
+        for te, xe, ve, ae in ends:
+            s_e = _sgn(ve) if abs(ve) > _V_REST else 0
+            if s_e == 0 and abs(ae) <= _A_REST:
+                self.events.append((te, _REST, xe))
+                s_prev = 0
+                continue
+            if s_e == 0:  # at rest for an instant, accelerating: it goes on in the direction of a
+                s_e = _sgn(ae)
+            if s_prev != 0 and s_e != s_prev:
+                self.events.append((te, _TURN, math.nan))
+            s_prev = s_e
+
+    def rest_ahead(self, tau: float) -> float:
+        for te, kind, xe in self.events:
+            if te >= tau:
+                return xe if kind == _REST else math.nan
+        return math.inf
 
     def sample(self, tau: float) -> Reference:
         if tau >= self.duration:
@@ -270,6 +324,14 @@ class _Analytic(_Bound):
     def sample(self, tau: float) -> Reference:
         return self.end if tau >= self.duration else self._at(tau)
 
+    def rest_ahead(self, tau: float) -> float:
+        # turns: sine at wt = π/2 + kπ, raised cosine at wt = kπ (k >= 1); +inf when none is left before the end
+        w = self.w
+        off = 0.0 if self.cos else 0.5 * math.pi
+        k = max(math.ceil((w * tau - off) / math.pi - 1e-9), 1 if self.cos else 0)
+        t_turn = (off + k * math.pi) / w
+        return math.inf if t_turn >= self.duration * (1.0 - 1e-12) else math.nan
+
 
 class _Hold(_Bound):
     def __init__(self, x: float, duration: float):
@@ -278,6 +340,9 @@ class _Hold(_Bound):
 
     def sample(self, tau: float) -> Reference:
         return self.end
+
+    def rest_ahead(self, tau: float) -> float:
+        return self.end.x_m
 
 
 def _stop_phases(v0: float, a0: float, a_max: float, j_max: float) -> list[tuple[float, float]]:
@@ -298,12 +363,14 @@ _V_REST = 1e-12
 
 
 def _bind(spec: SegmentSpec, start: Reference) -> _Bound:
+    """``spec`` bound to the reference state ``start`` where it begins.
+
+    A move starts from any state (a jerk-limited stop first). Every other segment starts at rest: after a
+    segment that ends moving (a ``sine``, a cosine of fractional cycles) the reference stops at once at the
+    reached position, as it does when that segment is the last one (module docstring)."""
     x0, v0, a0 = start
-    # a step in a_ref is allowed between segments (a cosine starts and ends with a ≠ 0); v must be 0
-    at_rest = abs(v0) <= _V_REST
+    # a step in a_ref is allowed between segments (a cosine starts and ends with a ≠ 0)
     if isinstance(spec, Dwell):
-        if not at_rest:
-            raise ValueError("dwell must start at rest (v_ref = 0)")
         return _Hold(x0, spec.duration_s)
     if isinstance(spec, Move):
         target = spec.to_m if spec.to_m is not None else x0 + (spec.by_m or 0.0)
@@ -315,8 +382,6 @@ def _bind(spec: SegmentSpec, start: Reference) -> _Bound:
         phases = stop + _move_phases(target - xs, spec.max_velocity_m_s, spec.max_acceleration_m_s2,
                                      spec.max_jerk_m_s3)
         return _Phases(x0, v0, a0, phases, x_end=target)
-    if not at_rest:
-        raise ValueError(f"{type(spec).__name__.lower()} must start at rest (queue a move first)")
     if isinstance(spec, Cosine):
         return _Analytic(x0, spec.amplitude_m, spec.frequency_hz, spec.cycles, cosine=True)
     if isinstance(spec, Sine):
@@ -477,6 +542,24 @@ class TrajectoryGenerator:
         st.ref = self._cur.sample(tau)
         st.segment = self._name
         return st.ref
+
+    def stop_m(self) -> float:
+        """Where the reference next comes to rest (v = 0, holding or starting a new segment from rest) [m], when
+        it gets there without reversing first; NaN when a reversal (a scan's turn) may come first.
+
+        A segment ending at rest, or ending moving with a rest-start segment or the hold after it (it stops at
+        once there: module docstring), rests at its end; one ending moving with a ``move`` after it does not
+        (NaN: the move's stop phases are not bound yet). Real-time safe (no binding). The friction
+        feed-forward uses it to keep its look-ahead point from going past the stop, or back before it
+        (:mod:`stagectl.control.friction_ff`)."""
+        cur = self._cur
+        x = cur.rest_ahead(self.state.tau_s)
+        if x != math.inf:
+            return x
+        end = cur.end
+        if abs(end.v_m_s) <= _V_REST or not self._queue or not isinstance(self._queue[0], Move):
+            return end.x_m
+        return math.nan
 
     def remaining_s(self) -> float:
         """Time [s] until the queue is finished (0 when holding)."""

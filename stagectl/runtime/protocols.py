@@ -83,6 +83,22 @@ class RunsScenarios(Protocol):
 
 
 @runtime_checkable
+class KnowsStop(Protocol):
+    """A reference source that knows where the reference next comes to rest without reversing first
+    (:meth:`~stagectl.control.trajectory.TrajectoryGenerator.stop_m`; NaN: a reversal may come first)."""
+
+    def stop_m(self) -> float: ...
+
+
+@runtime_checkable
+class UsesStop(Protocol):
+    """A controller whose friction feed-forward keeps its look-ahead on the reference's travel to that rest
+    (:func:`stagectl.control.friction_ff.bounded_ahead`), told each cycle before its step or hold."""
+
+    def set_reference_stop(self, x_m: float) -> None: ...
+
+
+@runtime_checkable
 class HoldsOnStale(Protocol):
     """A controller with a stale-cycle step (:meth:`StageController.hold`): feedback held, feed-forward
     along the reference. Without it the loop holds the last force."""
