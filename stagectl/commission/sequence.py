@@ -1280,7 +1280,9 @@ class Commissioning:
             best[1]["rest_integral"] = self._rest_integral(best[1], mass_kg, nd, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
                            f"chosen {best[1]['crossover_target_hz']:.3g} Hz, DOB {best[1]['dob_kind']} "
-                           f"{best[1]['dob_bandwidth_hz']:.3g} Hz")
+                           f"{best[1]['dob_bandwidth_hz']:.3g} Hz"
+                           + ("" if best[1].get("healthy", True) else " (the fallback tier's: below the margin floor, "
+                              "confidence low; report.md, Gains)"))
         return best[1]
 
 

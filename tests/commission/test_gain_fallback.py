@@ -183,8 +183,9 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
 
     plant, kind = fresh_plant(112)
     cfg = load_app_config(fresh_stage_yaml(tmp_path / "k112.yaml", plant, kind))
-    comm = Commissioning(cfg, tmp_path / "out", Options(max_stroke_m=0.002, verify=False, plots=False),
-                         write_config=lambda res: cfg)
+    lines: list[str] = []
+    comm = Commissioning(cfg, tmp_path / "out", Options(max_stroke_m=0.002, verify=False, plots=False,
+                                                        progress=lines.append), write_config=lambda res: cfg)
     m, T = float(plant["mass_kg"]), cfg.loop.period_s
     comm.res.model_spec = exact_model(plant)
     comm.res.plant = PlantFit(m, 0.0, 0.0, 0.0, 0.0, T, 0.0, 0.0, [], 0.0)
@@ -196,6 +197,7 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
     kp_min = stiction[1] / stiction[2]
     assert rec["chosen"] == ch_name(ch) and rec["confidence"] == "low" and g["stiction_rule"]["confidence"] == "low"
     assert g["stiction_rule"]["decision"] == rec["decision"] and "candidates" not in g["stiction_rule"]  # once
+    assert "below the margin floor, confidence low" in lines[-1]  # the progress line says so too
     # report.md: the gains' headline says the design is below the floor; the tier's line, on what it checked
     from stagectl.commission.outputs import report_dict, report_markdown
 
