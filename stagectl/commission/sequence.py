@@ -1254,16 +1254,18 @@ class Commissioning:
                     entry["twin"] = on_twin(entry)
                     spare_keys.append(key_of(entry["twin"]))
                 given_key: tuple[float, float] | None = None
-                given_twin: dict[str, Any] | str
+                given_twin: dict[str, Any] | None = None  # (report.json: the figures, or None and the reason)
                 try:
                     given_twin = given_on_twin()
                     given_key = key_of(given_twin)
                 except (StageError, ValueError) as exc:  # a config the twin cannot run: no reference
-                    given_twin = f"not run on the twin: {exc}"
+                    fb_given_note = f"not run on the twin: {exc}"
+                else:
+                    fb_given_note = "ran on the twin (its own gains and feed-forward files)"
                 j, fb = pick_fallback(finalists, keys, i_best, spare, spare_keys, given_key, kp_min_n_m)
                 fb["candidates"] = [{"design": _design_name(e), "pid": e["pid"], "model": e["model"],
                                      "measured": e.get("measured"), "twin": e["twin"]} for e in spare]
-                fb["given_twin"] = given_twin
+                fb["given_twin"], fb["given_twin_note"] = given_twin, fb_given_note
                 if j is not None:
                     best[1].pop("stiction_choice", None)
                     best = (spare_keys[j], spare[j])
