@@ -293,13 +293,13 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                        f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
         fb = rep["gains"].get("fallback")
         if fb:
-            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}; {fb.get('why')}): candidates with K_p >= "
+            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}): {fb.get('why')}. Candidates with K_p >= "
                        f"{_num(fb['kp_min_n_m'] / 1e3, '.3g')} kN/m keeping PM >= "
                        f"{_num(fb['reduced_floor']['phase_margin_deg'], 'g')} deg and GM >= "
                        f"{_num(fb['reduced_floor']['gain_margin_db'], 'g')} dB on the model"
                        + (" and the measured FRF: " if "frf" in rep else " (no measured FRF): ")
                        + f"{', '.join(c['design'] for c in fb.get('candidates') or []) or 'none'}"
-                       + ("." if sr else f". {fb.get('decision')}."))]
+                       + f". Decision: {fb.get('decision')}.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

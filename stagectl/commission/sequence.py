@@ -1266,15 +1266,16 @@ class Commissioning:
                 fb["candidates"] = [{"design": _design_name(e), "pid": e["pid"], "model": e["model"],
                                      "measured": e.get("measured"), "twin": e["twin"]} for e in spare]
                 fb["given_twin"], fb["given_twin_note"] = given_twin, fb_given_note
+                # (the stiction rule's record keeps its own decision; the tier's is gains.fallback's, once)
                 if j is not None:
                     best[1].pop("stiction_choice", None)
                     best = (spare_keys[j], spare[j])
-                    best[1]["stiction_choice"] = fb
+                    best[1]["stiction_choice"] = {"decision": "every finalist is sticky or faulted on the twin: the "
+                                                  "fallback tier chose a design below the floor", "confidence": "low"}
                     note = fb["decision"]
                 else:
-                    best[1]["stiction_choice"] = {**decision, "confidence": "low",
-                                                  "decision": f"{decision['decision']}; {fb['decision']}"}
-                    note = best[1]["stiction_choice"]["decision"]
+                    best[1]["stiction_choice"] = {**decision, "confidence": "low"}
+                    note = f"{decision['decision']}; {fb['decision']}"
                 best[1]["fallback_choice"] = fb
             if note:
                 self.res.notes.append(f"gains: {note}")
