@@ -1509,10 +1509,11 @@ def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s
     measured FRF to its pre-sliding mode (the stuck stage on Σk ≈ 1e6 N/m, a peak at 200–220 Hz: 1.8–4.6 dB).
     GM 3 dB lets the loop gain rise 41 % (the stage 29 % lighter than the mass identified, on which the gains
     scale: six standard errors of the probe's mass) before that mode goes unstable, and the mode is a
-    small-amplitude one: its stiffness falls as soon as the elements slip. PM 25° at a 50–65 Hz loop crossover tolerates 1.1–1.4 ms of delay beyond the measured one (measured
-    to ±0.07 ms). Below these (GM 1.8–2.9 dB with the 80–100 Hz observers) the tier does not go: those loops sit
-    on the edge of the mode the FRF measured. The twin then decides among the candidates (its nonlinear friction
-    and delay are what the linear margins cannot show)."""
+    small-amplitude one: its stiffness falls as soon as the elements slip. PM 25° at a 50–65 Hz loop crossover
+    tolerates 1.1–1.4 ms of delay beyond the measured one (measured to ±0.07 ms). Below these (GM 1.8–2.9 dB
+    with the 80–100 Hz observers) the tier does not go: those loops sit on the edge of the mode the FRF measured.
+    The twin then decides among the candidates (its nonlinear friction and delay are what the linear margins
+    cannot show)."""
     by_option: dict[str, dict[str, Any]] = {}
     for e in tried:
         if e.get("healthy") or float(e["pid"]["kp_n_m"]) < kp_min_n_m:
