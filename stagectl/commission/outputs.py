@@ -263,7 +263,9 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         L += ["", "## Gains", "",
               (f"Crossover target {ch['crossover_target_hz']:.3g} Hz, Kp {pid['kp_n_m']:.4g} N/m, Ki {pid['ki_n_m_s']:.4g} "
               f"N/(m s), Kd {pid['kd_n_s_m']:.4g} N s/m, "
-               + (f"Q-filter DOB {ch['dob_bandwidth_hz']:.3g} Hz." if ch["dob_kind"] == "qfilter" else "no DOB.")),
+               + (f"Q-filter DOB {ch['dob_bandwidth_hz']:.3g} Hz." if ch["dob_kind"] == "qfilter" else "no DOB.")
+               + ("" if ch.get("healthy", True) else f" Below the PM {MIN_PM:g} deg / GM {MIN_GM:g} dB floor: the "
+                  "fallback tier's design (confidence low; see below).")),
               "",
               "| loop | phase margin [deg] | gain margin [dB] | crossover [Hz] |", "|---|---|---|---|",
               (f"| model | {_num(ch['model']['phase_margin_deg'], '.1f')} | {_num(ch['model']['gain_margin_db'], '.1f')} | "
@@ -291,12 +293,13 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
                        f"finalists: {', '.join(sr.get('sticky') or []) or 'none'}.")]
         fb = rep["gains"].get("fallback")
         if fb:
-            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}; {fb.get('why')}): candidates with K_p >= "
+            L += ["", (f"Fallback tier (confidence {fb.get('confidence')}): {fb.get('why')}. Candidates with K_p >= "
                        f"{_num(fb['kp_min_n_m'] / 1e3, '.3g')} kN/m keeping PM >= "
                        f"{_num(fb['reduced_floor']['phase_margin_deg'], 'g')} deg and GM >= "
-                       f"{_num(fb['reduced_floor']['gain_margin_db'], 'g')} dB on the model and the measured FRF: "
-                       f"{', '.join(c['design'] for c in fb.get('candidates') or []) or 'none'}"
-                       + ("." if sr else f". {fb.get('decision')}."))]
+                       f"{_num(fb['reduced_floor']['gain_margin_db'], 'g')} dB on the model"
+                       + (" and the measured FRF: " if "frf" in rep else " (no measured FRF): ")
+                       + f"{', '.join(c['design'] for c in fb.get('candidates') or []) or 'none'}"
+                       + f". Decision: {fb.get('decision')}.")]
     ver = rep.get("verification", {})
     if "verdict" in rep:
         L += ["", "## Verdict", "", f"**{rep['verdict']['text']}**"]

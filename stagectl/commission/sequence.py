@@ -1210,18 +1210,22 @@ class Commissioning:
             (tdir / "twin.yaml").write_text(yaml.safe_dump(plain_spec(twin)))
             (tdir / "matched.yaml").write_text(yaml.safe_dump(plain_spec(matched)))
 
-            def on_twin(entry: dict[str, Any], plant_file: str = "twin.yaml") -> dict[str, Any]:
-                ctl = controller_mapping(entry, mass_kg, nd, T, plant.delay_s, spec, self.cfg.controller.max_force_n,
-                                         "model.yaml")
+            def run(ctl: dict[str, Any], plant_file: str, cfg_path: Path) -> dict[str, Any]:
+                """The ``controller:`` mapping ``ctl`` (relative paths from ``cfg_path``'s folder) on a twin."""
                 mapping = {"loop": {"period_s": T}, "io": {"kind": "plant_io", "sensor": "drive", "delay_cycles": nd},
-                           "sim": {"plant": {"model_file": plant_file, "actuator": {"max_force_n": 1e6},
+                           "sim": {"plant": {"model_file": str(tdir / plant_file), "actuator": {"max_force_n": 1e6},
                                              "sensor": {"resolution_m": quantum, "noise_std_m": 0.5 * quantum},
                                              "seed": 1}},
                            "controller": ctl, "safety": safety}
-                cfg = parse_app_config(mapping, tdir / "twin-stage.yaml")
+                cfg = parse_app_config(mapping, cfg_path)
                 return {nm: {"rms_error_m": summ["rms_error_m"], "moves_settled": summ["moves_settled"],
                              "moves": summ["moves"]}
                         for nm, summ in simulate_verification(cfg, self.env.stroke_m, max(10e-9, 2 * quantum)).items()}
+
+            def on_twin(entry: dict[str, Any], plant_file: str = "twin.yaml") -> dict[str, Any]:
+                return run(controller_mapping(entry, mass_kg, nd, T, plant.delay_s, spec,
+                                              self.cfg.controller.max_force_n, "model.yaml"),
+                           plant_file, tdir / "twin-stage.yaml")
 
             def key_of(scores: dict[str, Any]) -> tuple[float, float]:
                 settled = sum(int(sc["moves_settled"]) for sc in scores.values())
@@ -1230,18 +1234,9 @@ class Commissioning:
 
             def given_on_twin() -> dict[str, Any]:
                 """The given configuration's controller (its own feed-forward files) on the twin."""
-                ctl = dict(data.get("controller") or {}) if isinstance(data, dict) else {}
-                mapping = {"loop": {"period_s": T}, "io": {"kind": "plant_io", "sensor": "drive",
-                                                           "delay_cycles": nd},
-                           "sim": {"plant": {"model_file": str(tdir / "twin.yaml"),
-                                             "actuator": {"max_force_n": 1e6},
-                                             "sensor": {"resolution_m": quantum, "noise_std_m": 0.5 * quantum},
-                                             "seed": 1}},
-                           "controller": ctl, "safety": safety}
-                cfg = parse_app_config(mapping, self.cfg.path)
-                return {nm: {"rms_error_m": summ["rms_error_m"], "moves_settled": summ["moves_settled"],
-                             "moves": summ["moves"]}
-                        for nm, summ in simulate_verification(cfg, self.env.stroke_m, max(10e-9, 2 * quantum)).items()}
+                if self.cfg.path is None or not isinstance(data, dict):  # (defaults are not the given controller)
+                    raise StageError("the given configuration has no file to read its controller from")
+                return run(dict(data.get("controller") or {}), "twin.yaml", Path(self.cfg.path))
 
             keys: list[tuple[float, float]] = []
             for entry in finalists:
@@ -1252,31 +1247,35 @@ class Commissioning:
             if "sticky" in best[1]:
                 best[1]["stiction_choice"] = decision
             note = decision["decision"] if "sticky" in best[1] and decision["decision"] != "best on the twin" else ""
-            if spare and fallback_needed(finalists, keys):
+            if fallback_needed(finalists, keys):  # (no spare: the record still says so, with the given's figures)
+                spare = spare or []
                 spare_keys = []
                 for entry in spare:
                     entry["twin"] = on_twin(entry)
                     spare_keys.append(key_of(entry["twin"]))
                 given_key: tuple[float, float] | None = None
-                given_twin: dict[str, Any] | str
+                given_twin: dict[str, Any] | None = None  # (report.json: the figures, or None and the reason)
                 try:
                     given_twin = given_on_twin()
                     given_key = key_of(given_twin)
                 except (StageError, ValueError) as exc:  # a config the twin cannot run: no reference
-                    given_twin = f"not run on the twin: {exc}"
+                    fb_given_note = f"not run on the twin: {exc}"
+                else:
+                    fb_given_note = "ran on the twin (its own gains and feed-forward files)"
                 j, fb = pick_fallback(finalists, keys, i_best, spare, spare_keys, given_key, kp_min_n_m)
                 fb["candidates"] = [{"design": _design_name(e), "pid": e["pid"], "model": e["model"],
                                      "measured": e.get("measured"), "twin": e["twin"]} for e in spare]
-                fb["given_twin"] = given_twin
+                fb["given_twin"], fb["given_twin_note"] = given_twin, fb_given_note
+                # (the stiction rule's record keeps its own decision; the tier's is gains.fallback's, once)
                 if j is not None:
                     best[1].pop("stiction_choice", None)
                     best = (spare_keys[j], spare[j])
-                    best[1]["stiction_choice"] = fb
+                    best[1]["stiction_choice"] = {"decision": "every finalist is sticky or faulted on the twin: the "
+                                                  "fallback tier chose a design below the floor", "confidence": "low"}
                     note = fb["decision"]
                 else:
-                    best[1]["stiction_choice"] = {**decision, "confidence": "low",
-                                                  "decision": f"{decision['decision']}; {fb['decision']}"}
-                    note = best[1]["stiction_choice"]["decision"]
+                    best[1]["stiction_choice"] = {**decision, "confidence": "low"}
+                    note = f"{decision['decision']}; {fb['decision']}"
                 best[1]["fallback_choice"] = fb
             if note:
                 self.res.notes.append(f"gains: {note}")
@@ -1284,7 +1283,9 @@ class Commissioning:
             best[1]["rest_integral"] = self._rest_integral(best[1], mass_kg, nd, on_twin, quantum)
         self.opts.progress(f"commission: gains: {len(finalists)} healthy designs simulated on the mismatched twin; "
                            f"chosen {best[1]['crossover_target_hz']:.3g} Hz, DOB {best[1]['dob_kind']} "
-                           f"{best[1]['dob_bandwidth_hz']:.3g} Hz")
+                           f"{best[1]['dob_bandwidth_hz']:.3g} Hz"
+                           + ("" if best[1].get("healthy", True) else " (the fallback tier's: below the margin floor, "
+                              "confidence low; report.md, Gains)"))
         return best[1]
 
 
@@ -1427,9 +1428,14 @@ def pick_finalist(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
     (mean log RMS [ln m], −moves settled), lowest best. Without ``sticky`` marks (:func:`stiction_screen`) the
     lowest key wins. A sticky finalist wins only when its geometric-mean RMS is below the best non-sticky
     finalist's by more than ``STICKY_NEAR_TIE``; else the best non-sticky one is chosen. Confidence ``high``
-    when the chosen design is not sticky and no sticky one was passed over within the tie, else ``medium``."""
+    when the chosen design is not sticky and no sticky one was passed over within the tie, else ``medium``;
+    ``low`` when every finalist faulted on the twin (the one with the most moves settled is kept) or every one is
+    sticky."""
     best = min(range(len(finalists)), key=lambda i: scores[i])
     plain = [i for i in range(len(finalists)) if not finalists[i].get("sticky", False)]
+    if _is_fault(scores[best]):  # every finalist faulted on the twin: nothing to rank them by but settled moves
+        return best, {"decision": (f"{_design_name(finalists[best])} kept (the most moves settled) although "
+                                   + _faulted_text(finalists) + " on the twin"), "confidence": "low"}
     if not finalists[best].get("sticky", False):
         return best, {"decision": "best on the twin", "confidence": "high"}
     if not plain:
@@ -1501,12 +1507,13 @@ def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s
     Why these margins: the designs the floor rejects on a stiction-heavy stage (k112: 0.89 kg, F_s − F_c 0.43 N,
     50 µm limit, K_p ≥ 8.5 kN/m) lose PM on the model to the 1 ms delay (26–34° at 30–40 Hz) and GM on the
     measured FRF to its pre-sliding mode (the stuck stage on Σk ≈ 1e6 N/m, a peak at 200–220 Hz: 1.8–4.6 dB).
-    GM 3 dB lets the loop gain rise 41 % (the mass read 29 % light, six standard errors of the probe's mass) before
-    that mode goes unstable, and the mode is a small-amplitude one: its stiffness falls as soon as the elements
-    slip. PM 25° at a 50–65 Hz loop crossover tolerates 1.1–1.4 ms of delay beyond the measured one (measured
-    to ±0.07 ms). Below these (GM 1.8–2.9 dB with the 80–100 Hz observers) the tier does not go: those loops sit
-    on the edge of the mode the FRF measured. The twin then decides among the candidates (its nonlinear friction
-    and delay are what the linear margins cannot show)."""
+    GM 3 dB lets the loop gain rise 41 % (the stage 29 % lighter than the mass identified, on which the gains
+    scale: six standard errors of the probe's mass) before that mode goes unstable, and the mode is a
+    small-amplitude one: its stiffness falls as soon as the elements slip. PM 25° at a 50–65 Hz loop crossover
+    tolerates 1.1–1.4 ms of delay beyond the measured one (measured to ±0.07 ms). Below these (GM 1.8–2.9 dB
+    with the 80–100 Hz observers) the tier does not go: those loops sit on the edge of the mode the FRF measured.
+    The twin then decides among the candidates (its nonlinear friction and delay are what the linear margins
+    cannot show)."""
     by_option: dict[str, dict[str, Any]] = {}
     for e in tried:
         if e.get("healthy") or float(e["pid"]["kp_n_m"]) < kp_min_n_m:
@@ -1535,12 +1542,14 @@ def given_up_text(e: dict[str, Any]) -> str:
         pm, gm = float(d["phase_margin_deg"]), float(d["gain_margin_db"])
         if pm < MIN_PHASE_MARGIN_DEG:
             fc = float(d["crossover_hz"])
-            tol = f"{1e3 * pm / (360.0 * fc):.2g} ms more delay at its {fc:.3g} Hz crossover" if fc > 0 else "less delay"
-            parts.append(f"PM {pm:.1f} deg < {MIN_PHASE_MARGIN_DEG:g} {where} (tolerates {tol})")
+            tol = (f" (tolerates {1e3 * pm / (360.0 * fc):.2g} ms more delay at its {fc:.3g} Hz crossover)"
+                   if math.isfinite(fc) and fc > 0 and pm > 0 else "")
+            parts.append(f"PM {pm:.1f} deg < {MIN_PHASE_MARGIN_DEG:g} deg {where}{tol}")
         if gm < MIN_GAIN_MARGIN_DB:
             fp = float(d["phase_crossover_hz"])
-            parts.append(f"GM {gm:.1f} dB < {MIN_GAIN_MARGIN_DB:g} {where} (the loop gain may rise "
-                         f"{100 * (10 ** (gm / 20) - 1):.0f} % before the loop goes unstable at {fp:.3g} Hz)")
+            at = f" at {fp:.3g} Hz" if math.isfinite(fp) else ""
+            parts.append(f"GM {gm:.1f} dB < {MIN_GAIN_MARGIN_DB:g} dB {where} (the loop gain may rise "
+                         f"{100 * (10 ** (gm / 20) - 1):.0f} % before the loop goes unstable{at})")
     return "; ".join(parts) or "nothing"
 
 
@@ -1552,7 +1561,9 @@ def pick_fallback(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
     fault, if it beats on the twin both the floor's pick (finalist ``i_pick``, key ``scores[i_pick]``) and the
     given controller (``given_score``, None when it could not run: then only the pick). Returns its index (None:
     the floor's pick stays) and the record for the report: ``decision``, ``confidence`` (``low`` when chosen: it
-    misses the floor), ``gives_up`` (:func:`given_up_text`), ``why`` (which finalists were sticky, which faulted)."""
+    misses the floor), ``gives_up`` (:func:`given_up_text`), ``why`` (which finalists were sticky, which faulted),
+    ``keep_given`` (the floor's pick stays and the given controller beat it on the twin: the advice is to keep the
+    given one)."""
     sticky = [finalists[i] for i in range(len(finalists)) if finalists[i].get("sticky") and not _is_fault(scores[i])]
     faulted = [finalists[i] for i in range(len(finalists)) if _is_fault(scores[i])]
     why = "; ".join(p for p in (
@@ -1563,29 +1574,32 @@ def pick_fallback(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
                            "kp_min_n_m": kp_min_n_m,
                            "reduced_floor": {"phase_margin_deg": FALLBACK_MIN_PHASE_MARGIN_DEG,
                                              "gain_margin_db": FALLBACK_MIN_GAIN_MARGIN_DB}}
-    ok = [j for j in range(len(candidates)) if not _is_fault(cand_scores[j])]
-    if not ok:
-        return None, {**rec, "chosen": None, "decision": (
-            f"fallback tier: no candidate ({len(candidates)} kept K_p >= {kp_min_n_m / 1e3:.3g} kN/m and the "
-            f"reduced floor) ran the twin without a fault; the floor's pick stays"), "confidence": "low"}
-    j = min(ok, key=lambda k: cand_scores[k])
     def um(sc: tuple[float, float]) -> str:  # the geometric-mean RMS
         return "a fault" if _is_fault(sc) else f"{math.exp(sc[0]) * 1e6:.3g} um"
 
+    # the floor's pick stays: where the given controller beat it on the twin, the advice is to keep that one
+    keep_given = given_score is not None and given_score[0] < scores[i_pick][0]
+    given_fig = "" if given_score is None else f", the given controller {um(given_score)}"
+    stays = "the floor's pick stays" + ("; the twin rates the given controller better than it: keep the given one"
+                                        if keep_given else "")
+    ok = [j for j in range(len(candidates)) if not _is_fault(cand_scores[j])]
+    if not ok:
+        return None, {**rec, "chosen": None, "keep_given": keep_given, "confidence": "low", "decision": (
+            f"fallback tier: no candidate ({len(candidates)} kept K_p >= {kp_min_n_m / 1e3:.3g} kN/m and the "
+            f"reduced floor) ran the twin without a fault (twin geometric-mean RMS: the floor's pick "
+            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}{given_fig}); {stays}")}
+    j = min(ok, key=lambda k: cand_scores[k])
     name = _design_name(candidates[j])
     figs = (f"twin geometric-mean RMS: {name} {um(cand_scores[j])}, the floor's pick "
-            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}")
-    if given_score is not None:
-        figs += f", the given controller {um(given_score)}"
+            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}{given_fig}")
     if not cand_scores[j] < scores[i_pick]:
-        return None, {**rec, "chosen": None, "decision": f"fallback tier: {name} not better on the twin ({figs}); "
-                      "the floor's pick stays", "confidence": "low"}
+        return None, {**rec, "chosen": None, "keep_given": keep_given, "confidence": "low",
+                      "decision": f"fallback tier: {name} not better on the twin ({figs}); {stays}"}
     if given_score is not None and not cand_scores[j][0] < given_score[0]:
-        return None, {**rec, "chosen": None, "confidence": "low", "decision": (
-            f"fallback tier: {name} not better on the twin than the given controller ({figs}); the floor's pick "
-            "stays, and the twin rates the given controller better: keep it")}
+        return None, {**rec, "chosen": None, "keep_given": keep_given, "confidence": "low", "decision": (
+            f"fallback tier: {name} not better on the twin than the given controller ({figs}); {stays}")}
     gives = given_up_text(candidates[j])
-    return j, {**rec, "chosen": name, "gives_up": gives, "confidence": "low", "decision": (
+    return j, {**rec, "chosen": name, "gives_up": gives, "keep_given": False, "confidence": "low", "decision": (
         f"fallback tier: {name} chosen below the floor ({figs}); it gives up {gives}")}
 
 
@@ -1626,9 +1640,7 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
         dobs = sorted({min(f * bw, 0.2 / T) for f in DOB_X_CROSSOVER} | {min(f / T, 0.2 / T) for f in DOB_X_PERIOD},
                       reverse=True)
         for dob, dbw in [*(("qfilter", d) for d in dobs), ("none", min(5.0 * bw, 0.1 / T))]:
-            key = f"{dob}@{dbw / bw:.3g}fc" if dob == "qfilter" and dbw < 0.1 / T else f"{dob}@{dbw * T:.3g}/T"
-            if dob == "none":
-                key = "none"
+            key = _observer_option(dob, dbw, bw, T)
             if key in finalists:
                 continue
             loops = design.analyse_design(m, T, pid, nd, dbw if dob == "qfilter" else None, nd, dob_mass_kg=m)
@@ -1662,8 +1674,9 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     choice = chosen.pop("stiction_choice", None)
     if fallback is not None and fallback.get("chosen") and stiction is not None and stiction[2] > 0.0:
         stiction_screen([chosen], *stiction)  # the fallback's stiction lengths for the report (it is not sticky)
-    if rule is not None:
-        rule.update(choice or {"decision": "highest crossover", "confidence": "medium"})
+    if rule is not None:  # (the fallback tier's own record is the result's ``fallback``, not repeated here)
+        rule.update({k: v for k, v in (choice or {"decision": "highest crossover", "confidence": "medium"}).items()
+                     if k in ("decision", "confidence")})
     out = {"delay_samples": nd, "mass_kg": m, "chosen": chosen, "finalists": fin, "tried": tried,
            "requirement": {"phase_margin_deg": MIN_PHASE_MARGIN_DEG, "gain_margin_db": MIN_GAIN_MARGIN_DB}}
     if rule is not None:

@@ -111,8 +111,9 @@ def test_sticky_and_faulting_finalists_go_to_the_fallback() -> None:
     j, rec = pick_fallback(fin, keys, i, cands, ck, key(2.34e-6), KP_MIN)
     assert j == 1 and rec["confidence"] == "low" and rec["chosen"] == "40 Hz PID + Q-filter 130 Hz"
     # the margins it gives up, with numbers: PM on the model, GM on the model and on the measured FRF
-    assert f"PM 26.3 deg < {MIN_PHASE_MARGIN_DEG:g} on the model" in rec["gives_up"]
-    assert f"GM 3.4 dB < {MIN_GAIN_MARGIN_DB:g} on the measured FRF" in rec["gives_up"]
+    assert f"PM 26.3 deg < {MIN_PHASE_MARGIN_DEG:g} deg on the model" in rec["gives_up"]
+    assert f"GM 3.4 dB < {MIN_GAIN_MARGIN_DB:g} dB on the measured FRF" in rec["gives_up"]
+    assert "1.1 ms more delay at its 64 Hz crossover" in rec["gives_up"]  # 26.3 / (360 * 64 Hz)
     assert "48 %" in rec["gives_up"] and "216 Hz" in rec["gives_up"]  # 10^(3.43/20) - 1
     assert "PM" not in rec["gives_up"].split("on the measured FRF")[0].split(";")[-1]  # measured PM kept
     assert "8.54 kN/m" in rec["why"] and "35 Hz PID" in rec["why"] and "19 Hz" in rec["why"]
@@ -124,13 +125,34 @@ def test_the_fallback_never_loses_to_the_given_controller_or_the_floor() -> None
     cands = fallback_candidates(k112_tried(), KP_MIN, T)
     # the given controller better on the twin than every candidate: the floor's pick stays, keep the given one
     j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(3e-6), key(4e-6)], key(2.34e-6), KP_MIN)
-    assert j is None and "keep it" in rec["decision"] and rec["confidence"] == "low"
+    assert j is None and "keep the given one" in rec["decision"] and rec["keep_given"] and rec["confidence"] == "low"
     # worse than the floor's pick (the given one could not run)
     j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(20e-6), key(30e-6)], None, KP_MIN)
-    assert j is None and "not better" in rec["decision"]
-    # every candidate faults
-    j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0)] * 3, key(2.34e-6), KP_MIN)
-    assert j is None and "without a fault" in rec["decision"]
+    assert j is None and "not better" in rec["decision"] and not rec["keep_given"]
+    # worse than the floor's pick, and the given controller better than both: the advice says so too
+    j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(20e-6), key(30e-6)], key(2.34e-6), KP_MIN)
+    assert j is None and "not better" in rec["decision"] and rec["keep_given"] and "keep the given" in rec["decision"]
+    # ... but not when the floor's pick beats the given controller
+    j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(20e-6), key(30e-6)], key(15e-6), KP_MIN)
+    assert j is None and not rec["keep_given"] and "keep" not in rec["decision"]
+    # every candidate faults, or there is none: the figures and the advice are still given
+    for ck, cs in (([(INF, 0.0)] * 3, cands), ([], [])):
+        j, rec = pick_fallback(fin, keys, i, cs, ck, key(2.34e-6), KP_MIN)
+        assert j is None and "without a fault" in rec["decision"] and f"({len(cs)} kept" in rec["decision"]
+        assert "the given controller 2.34 um" in rec["decision"] and rec["keep_given"]
+
+
+def test_every_finalist_faulting_is_not_a_confident_choice() -> None:
+    """All finalists faulted on the twin: on main the non-sticky one with the most settled moves came out as "best
+    on the twin" with confidence high, and a sticky one as "chosen although sticky: 35 Hz PID faulted" (as if it
+    had not faulted itself)."""
+    fin, _ = finalists_k112()
+    for settled_first in (2.0, 0.0):  # the 35 Hz PID (not sticky) or the 19 Hz design (sticky) settles most
+        keys = [(INF, -settled_first), (INF, -1.0), (INF, 0.0)]
+        i, dec = pick_finalist(fin, keys)
+        assert i == (0 if settled_first else 1) and dec["confidence"] == "low"
+        assert "kept (the most moves settled)" in dec["decision"] and "each faulted on the twin" in dec["decision"]
+        assert all(ch_name(e) in dec["decision"] for e in fin) and fallback_needed(fin, keys)
 
 
 def test_a_healthy_design_within_the_limit_keeps_the_normal_choice() -> None:
@@ -142,7 +164,8 @@ def test_a_healthy_design_within_the_limit_keeps_the_normal_choice() -> None:
     # nothing sticky (small stiction excess): only faults call the fallback
     g = choose_gains(0.89, T, None, None, stiction=(1.2, 0.04, FE))
     f2 = g["finalists"]
-    assert not any(e["sticky"] for e in f2) and "fallback" not in g
+    assert not any(e["sticky"] for e in f2)
+    assert fallback_candidates(g["tried"], 0.04 / FE, T)  # there would be candidates: the tier is what decides
     assert not fallback_needed(f2, [key(1e-6)] * len(f2))
     assert fallback_needed(f2, [(INF, 0.0)] * len(f2))
 
@@ -160,8 +183,9 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
 
     plant, kind = fresh_plant(112)
     cfg = load_app_config(fresh_stage_yaml(tmp_path / "k112.yaml", plant, kind))
-    comm = Commissioning(cfg, tmp_path / "out", Options(max_stroke_m=0.002, verify=False, plots=False),
-                         write_config=lambda res: cfg)
+    lines: list[str] = []
+    comm = Commissioning(cfg, tmp_path / "out", Options(max_stroke_m=0.002, verify=False, plots=False,
+                                                        progress=lines.append), write_config=lambda res: cfg)
     m, T = float(plant["mass_kg"]), cfg.loop.period_s
     comm.res.model_spec = exact_model(plant)
     comm.res.plant = PlantFit(m, 0.0, 0.0, 0.0, 0.0, T, 0.0, 0.0, [], 0.0)
@@ -172,8 +196,20 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
     rec, ch = g["fallback"], g["chosen"]
     kp_min = stiction[1] / stiction[2]
     assert rec["chosen"] == ch_name(ch) and rec["confidence"] == "low" and g["stiction_rule"]["confidence"] == "low"
+    assert "fallback tier chose" in g["stiction_rule"]["decision"] and "candidates" not in g["stiction_rule"]
+    assert "below the margin floor, confidence low" in lines[-1]  # the progress line says so too
+    # report.md: the gains' headline says the design is below the floor; the tier's line, on what it checked
+    from stagectl.commission.outputs import report_dict, report_markdown
+
+    comm.res.gains = g
+    md = report_markdown(report_dict(comm.res), [])
+    assert f"Below the PM {MIN_PHASE_MARGIN_DEG:g} deg / GM {MIN_GAIN_MARGIN_DB:g} dB floor" in md
+    assert (f"GM >= {FALLBACK_MIN_GAIN_MARGIN_DB:g} dB on the model (no measured FRF): " in md
+            and "Fallback tier (confidence low): every design that meets the floor is sticky" in md)
+    gains_md = md[md.index("## Gains"):md.index("## Verdict")]
+    assert gains_md.count(rec["gives_up"]) == 1 and f"Decision: {rec['decision']}." in gains_md  # once there
     assert ch["pid"]["kp_n_m"] >= kp_min and not ch["healthy"] and "PM" in rec["gives_up"]
-    assert isinstance(rec["given_twin"], dict)  # the given controller ran on the twin as the reference
+    assert isinstance(rec["given_twin"], dict) and rec["given_twin_note"].startswith("ran")  # the reference
     fin = g["finalists"]
     keys = [(float(np.mean([math.log(max(float(sc["rms_error_m"]), 1e-15)) for sc in e["twin"].values()])),
              -float(sum(int(sc["moves_settled"]) for sc in e["twin"].values()))) for e in fin]
