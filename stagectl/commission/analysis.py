@@ -712,6 +712,8 @@ class CvFriction:
     points: tuple[FloatArray, FloatArray] | None = None
     #: the position force taken off the passes (the slow passes' slope [N/m] and cogging), None before
     position_force: dict[str, Any] | None = None
+    #: the points' standard errors [N] the curve was weighted with (:func:`stribeck_point_errors`)
+    points_sigma: FloatArray | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
@@ -722,10 +724,12 @@ class CvFriction:
                              for s in self.segments]}
 
 
-def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[FloatArray, FloatArray, FloatArray]:
+def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
+               errors: list[float] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The passes paired by speed: for each + segment the − segment of the nearest speed (relative difference
     at most ``tol``), each used once. Returns the mean speeds ``(|v₊| + |v₋|)/2`` [m/s], the odd parts
-    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`)."""
+    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`). ``errors``, when given,
+    gets each pair's standard error of its odd part, ``√(σ₊² + σ₋²)/2`` [N] (the segments' ``f_std_n``)."""
     pos = sorted((s for s in segs if s.v_m_s > 0), key=lambda s: s.v_m_s)
     neg = [s for s in segs if s.v_m_s < 0]
     vk: list[float] = []
@@ -740,7 +744,29 @@ def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[F
             vk.append(0.5 * (p.v_m_s - q.v_m_s))
             fo.append(0.5 * (p.f_n - q.f_n))
             fe.append(0.5 * (p.f_n + q.f_n))
+            if errors is not None:
+                errors.append(0.5 * math.hypot(p.f_std_n, q.f_std_n))
     return np.array(vk), np.array(fo), np.array(fe)
+
+
+def stribeck_curve_at(curve: dict[str, float], v: FloatArray) -> FloatArray:
+    """A fitted curve's force [N] at speeds ``v`` [m/s]: ``sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + Fv·v + F0``
+    (``offset_n`` F0 when the curve has one)."""
+    e = np.exp(-np.abs(v / curve["vs_m_s"]) ** curve["delta"])
+    return np.asarray(np.sign(v) * (curve["fc_n"] + (curve["fs_n"] - curve["fc_n"]) * e)
+                      + curve["viscous_n_s_m"] * v + float(curve.get("offset_n", 0.0)), dtype=np.float64)
+
+
+def stribeck_point_errors(curve: dict[str, float], v: FloatArray, f: FloatArray, se: FloatArray) -> FloatArray:
+    """Each point's standard error for the weighted Stribeck fit [N]: ``√(se_i² + s²)``, ``se_i`` its
+    mean's sampling error (``f_std_n`` of the pair's segments) and ``s`` the scatter the sampling errors do
+    not explain, robustly from the unweighted ``curve``'s residuals (``1.4826·median|r|``, at least 10⁻⁶ of the
+    largest force): a position force's residue or the delay's differs from pass to pass alike. A pass whose
+    force wandered (a start that stuck, a disturbance) has a large ``se_i`` and counts little; where all
+    sampling errors are small the fit stays the unweighted one."""
+    r = f - stribeck_curve_at(curve, v)
+    s = max(1.4826 * float(np.median(np.abs(r))), 1e-6 * float(np.max(np.abs(f))), 1e-12)
+    return np.sqrt(np.asarray(se, np.float64) ** 2 + s * s)
 
 
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
@@ -761,8 +787,10 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
 
     if len(segs) < 4:
         raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
-    vk, fo, fe = odd_points(segs)
+    pair_se: list[float] = []
+    vk, fo, fe = odd_points(segs, errors=pair_se)
     paired = vk.size >= 2
+    sigma: FloatArray | None = None
     if paired:
         v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
     else:
@@ -770,6 +798,9 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     stri: dict[str, float] | None = None
     try:
         stri = fit_stribeck_curve(v, f)
+        if paired:
+            sigma = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
+            stri = fit_stribeck_curve(v, f, sigma_n=sigma)
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
@@ -809,7 +840,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         if stri is not None:
             stri["offset_n"] = off
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * vk.size), stri, (v, f))
+                          int(2 * vk.size), stri, (v, f), points_sigma=sigma)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th

@@ -775,7 +775,7 @@ STICK_SLIP_BOUND_RMS_N = 1e-3
 
 
 def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
-                    cv_points: tuple[FloatArray, FloatArray] | None, force: bool = False) -> dict[str, Any] | None:
+                    cv_points: tuple[FloatArray, ...] | None, force: bool = False) -> dict[str, Any] | None:
     """The sliding curve refitted with Fs held at the pre-sliding level when the passes' Fs is an
     extrapolation (:func:`fit_models`); None when the passes measured it or there is nothing to refit.
     Generated plant 12 (tests/commission/plant_gen.py: Fs 1.73 N, vs 0.30 mm/s, slowest pass 0.16 mm/s):
@@ -796,19 +796,22 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     level = float(presliding["level_n"])
     if not level > 0.0:
         return None
+    # the points' standard errors when the passes' curve was weighted (analysis.stribeck_point_errors)
+    sig = cv_points[2] if len(cv_points) > 2 else None
     if not stick_slip:
-        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level))
+        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, sigma_n=sig))
     else:
         # δ held, and vs at least the fastest stick-slipping pass's speed over STICK_SLIP_VS_RATIO: a pass
         # stick-slips only where the curve still falls steeply. Fresh plant k111 (vs 0.31 mm/s, passes from
         # 1 mm/s, whose means show none of the dip) took vs 50 µm/s, the grid's end, and its cosine was 41x
         # the exact model's. The bound stays only while it costs the fit no more than the pairs' scatter
-        free = fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, delta=STRIBECK_DELTA_UNOBSERVED)
+        free = fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, delta=STRIBECK_DELTA_UNOBSERVED,
+                                  sigma_n=sig)
         out = dict(free)
         v_ss = float(fr["stick_slip_m_s"]) / STICK_SLIP_VS_RATIO
         if free["vs_m_s"] < v_ss:
             bound = fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, delta=STRIBECK_DELTA_UNOBSERVED,
-                                       vs_min_m_s=v_ss)
+                                       vs_min_m_s=v_ss, sigma_n=sig)
             if bound["rms_n"] <= max(2.0 * free["rms_n"], STICK_SLIP_BOUND_RMS_N):
                 out = dict(bound, vs_bound_m_s=v_ss, free_vs_m_s=free["vs_m_s"])
     out["fs_n"] = max(float(out["fs_n"]), float(out["fc_n"]))
@@ -882,7 +885,7 @@ def _discover_reversals(rec: Recorder, val: Recording, mass_kg: float, step: int
 def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                sliding: dict[str, float] | None = None,
                delay_s: float | None = None,
-               cv_points: tuple[FloatArray, FloatArray] | None = None,
+               cv_points: tuple[FloatArray, ...] | None = None,
                cv_segments: list[an.CvSegment] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The discovery summary and the model file's mapping (module docstring). ``sliding``: the Stribeck
     curve of the constant-velocity segment means (``fc_n, fs_n, vs_m_s, delta, viscous_n_s_m``), which

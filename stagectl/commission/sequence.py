@@ -239,12 +239,13 @@ class Results:
     recordings: dict[str, Recorder] = field(default_factory=dict)
 
 
-def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
-    """The constant-velocity segment means (velocities [m/s], forces [N]) the Stribeck curve was fitted to."""
+def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], ...] | None:
+    """The constant-velocity segment means (velocities [m/s], forces [N], and their standard errors [N] when
+    the curve was weighted) the Stribeck curve was fitted to."""
     if cv is None or not cv.segments:
         return None
     if cv.points is not None:  # the pairs' odd parts (analysis.cv_friction)
-        return cv.points
+        return cv.points if cv.points_sigma is None else (*cv.points, cv.points_sigma)
     return (np.array([s.v_m_s for s in cv.segments], np.float64), np.array([s.f_n for s in cv.segments], np.float64))
 
 
