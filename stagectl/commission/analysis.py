@@ -769,6 +769,25 @@ def stribeck_point_errors(curve: dict[str, float], v: FloatArray, f: FloatArray,
     return np.sqrt(np.asarray(se, np.float64) ** 2 + s * s)
 
 
+#: family-wise false-alarm rate of the Stribeck outlier test (:func:`stribeck_outlier_limit`)
+STRIBECK_OUTLIER_ALPHA = 0.01
+
+
+def stribeck_outlier_z(curve: dict[str, float], v: FloatArray, f: FloatArray, sigma: FloatArray) -> float:
+    """The largest normalised residual ``max |f_i − F(v_i)|/σ_i`` of a fitted curve (:func:`stribeck_point_errors`)."""
+    return float(np.max(np.abs(f - stribeck_curve_at(curve, v)) / sigma))
+
+
+def stribeck_outlier_limit(pairs: int) -> float:
+    """The two-sided normal quantile ``z`` with ``P(max_i |Z_i| > z) = STRIBECK_OUTLIER_ALPHA`` over ``pairs``
+    independent points (Šidák): 3.0 for 6 pairs. Below it the unweighted curve is consistent with the points'
+    errors and stays; above it one pair lies where no error explains it (:func:`cv_friction`)."""
+    from scipy.stats import norm
+
+    p = 1.0 - (1.0 - STRIBECK_OUTLIER_ALPHA) ** (1.0 / max(int(pairs), 1))
+    return float(norm.ppf(1.0 - 0.5 * p))
+
+
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
     """Friction from the segment means (module docstring). The + and − passes of a speed are paired
     (:func:`odd_points`) and the fit reads their odd part only: a position force over a pass's range
@@ -799,8 +818,10 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     try:
         stri = fit_stribeck_curve(v, f)
         if paired:
-            sigma = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
-            stri = fit_stribeck_curve(v, f, sigma_n=sigma)
+            sg = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
+            if stribeck_outlier_z(stri, v, f, sg) > stribeck_outlier_limit(vk.size):
+                sigma = sg
+                stri = fit_stribeck_curve(v, f, sigma_n=sigma)
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
