@@ -771,6 +771,8 @@ def stribeck_point_errors(curve: dict[str, float], v: FloatArray, f: FloatArray,
 
 #: family-wise false-alarm rate of the Stribeck outlier test (:func:`stribeck_outlier_limit`)
 STRIBECK_OUTLIER_ALPHA = 0.01
+#: a pair set aside keeps this many times the largest kept error (:func:`_stribeck_without_outliers`)
+STRIBECK_SET_ASIDE = 1e4
 
 
 def stribeck_outlier_z(curve: dict[str, float], v: FloatArray, f: FloatArray, sigma: FloatArray) -> float:
@@ -786,6 +788,37 @@ def stribeck_outlier_limit(pairs: int) -> float:
 
     p = 1.0 - (1.0 - STRIBECK_OUTLIER_ALPHA) ** (1.0 / max(int(pairs), 1))
     return float(norm.ppf(1.0 - 0.5 * p))
+
+
+def _stribeck_without_outliers(v: FloatArray, f: FloatArray, se: FloatArray, sigma: FloatArray
+                               ) -> tuple[dict[str, float], FloatArray, npt.NDArray[np.bool_]]:
+    """The weighted Stribeck curve (``sigma``: :func:`stribeck_point_errors` of the plain curve), then, while
+    a pair lies beyond :func:`stribeck_outlier_limit` of the weighted curve and more than
+    ``STRIBECK_PARAMETERS`` pairs are left, the farthest pair set aside (its points' errors made
+    ``STRIBECK_SET_ASIDE`` times the largest) and the curve refitted, the errors from its residuals. ``v, f,
+    se``: the mirrored pairs (``+`` half first). A pass's mean moved by a disturbance over part of its window
+    lies several of its own standard errors off (a step of ``A`` over half of ``n`` samples: ``A/2`` against
+    ``A/(2√(n/20))``); weighting alone still bends the curve toward it. Returns the curve, the errors
+    used and which pairs were kept."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    n = v.size // 2
+    curve = fit_stribeck_curve(v, f, sigma_n=sigma)
+    kept = np.ones(n, bool)
+    for _ in range(n):
+        k2 = np.concatenate([kept, kept])
+        sg = np.full(v.size, np.inf)
+        sg[k2] = stribeck_point_errors(curve, v[k2], f[k2], se[k2])
+        z = (np.abs(f - stribeck_curve_at(curve, v)) / sg)[:n]
+        j = int(np.argmax(z))
+        if z[j] <= stribeck_outlier_limit(int(kept.sum())) or int(kept.sum()) <= STRIBECK_PARAMETERS:
+            break
+        kept[j] = False
+        k2 = np.concatenate([kept, kept])
+        sigma = np.where(k2, sg, STRIBECK_SET_ASIDE * float(np.max(sg[k2])))
+        curve = fit_stribeck_curve(v, f, sigma_n=sigma)
+    curve["set_aside_pairs"] = float(n - int(kept.sum()))
+    return curve, sigma, kept
 
 
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
@@ -810,6 +843,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     vk, fo, fe = odd_points(segs, errors=pair_se)
     paired = vk.size >= 2
     sigma: FloatArray | None = None
+    use = np.ones(vk.size, bool)  # the pairs the curve kept (_stribeck_without_outliers)
     if paired:
         v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
     else:
@@ -820,8 +854,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         if paired:
             sg = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
             if stribeck_outlier_z(stri, v, f, sg) > stribeck_outlier_limit(vk.size):
-                sigma = sg
-                stri = fit_stribeck_curve(v, f, sigma_n=sigma)
+                stri, sigma, use = _stribeck_without_outliers(v, f, np.concatenate([pair_se, pair_se]), sg)
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
@@ -847,7 +880,8 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
                           * np.exp(-np.abs(vv / stri["vs_m_s"]) ** stri["delta"]), dtype=np.float64)
 
     if paired:
-        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk]), fo - excess(vk), rcond=None)
+        # (the pairs the curve set aside, _stribeck_without_outliers, are left out here too)
+        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk])[use], (fo - excess(vk))[use], rcond=None)
         off = float(np.mean(fe))
         # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
         # curve plus the offset (a position force's even part scatters them and counts), over the segments
