@@ -712,8 +712,11 @@ class CvFriction:
     points: tuple[FloatArray, FloatArray] | None = None
     #: the position force taken off the passes (the slow passes' slope [N/m] and cogging), None before
     position_force: dict[str, Any] | None = None
-    #: the points' standard errors [N] the curve was weighted with (:func:`stribeck_point_errors`)
+    #: the points' standard errors [N] the curve was weighted with (:func:`stribeck_point_errors`), None when
+    #: the plain fit stood
     points_sigma: FloatArray | None = None
+    #: the points' standard errors [N] about the curve (the weights when weighted), for tests on it
+    points_error: FloatArray | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
@@ -843,6 +846,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     vk, fo, fe = odd_points(segs, errors=pair_se)
     paired = vk.size >= 2
     sigma: FloatArray | None = None
+    errors: FloatArray | None = None
     use = np.ones(vk.size, bool)  # the pairs the curve kept (_stribeck_without_outliers)
     if paired:
         v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
@@ -853,8 +857,10 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         stri = fit_stribeck_curve(v, f)
         if paired:
             sg = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
+            errors = sg
             if stribeck_outlier_z(stri, v, f, sg) > stribeck_outlier_limit(vk.size):
                 stri, sigma, use = _stribeck_without_outliers(v, f, np.concatenate([pair_se, pair_se]), sg)
+                errors = sigma
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
@@ -895,7 +901,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         if stri is not None:
             stri["offset_n"] = off
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * vk.size), stri, (v, f), points_sigma=sigma)
+                          int(2 * vk.size), stri, (v, f), points_sigma=sigma, points_error=errors)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th
