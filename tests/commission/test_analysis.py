@@ -645,3 +645,45 @@ def test_weighted_stribeck_fit_with_equal_errors_is_the_plain_fit() -> None:
     assert w["fs_n"] == pytest.approx(fs, abs=3e-3) and w["vs_m_s"] == pytest.approx(vs, rel=0.1)
     with pytest.raises(DataError):
         fit_stribeck_curve(v, f, sigma_n=np.zeros(v.size))
+
+
+def test_the_pre_sliding_level_replaces_an_extrapolated_fs_the_passes_allow() -> None:
+    """Generated plant 38 (Fc 0.4693 N, Fs 0.5707 N, vs 0.355 mm/s, δ 2, 18.1 N s/m, a 52 mN offset): its
+    passes' odd parts lay within 0.14 mN of the true curve (1.1 mN at 16 mm/s), standard errors 0.1-3.6 mN,
+    and the curve through them took Fs 0.585 N with δ 1.56 — 72 % of the excess is left at the slowest pass
+    (0.16 mm/s), so the old test called Fs measured, and the pre-sliding elements fitted on that curve made
+    the cosine 2.2× the exact model's. The same points (synthetic, the oracle being the true curve): the
+    plain curve is > 10 mN off somewhere below 16 mm/s; with the pre-sliding level (0.5718 N measured, or the
+    true 0.5707 N) the refit holds Fs there within a χ² rise of 3.84 and is within 1.5 mN of the true curve
+    from 10 µm/s to 16 mm/s; a level the passes contradict (0.60 N) or one within the points' errors of the
+    curve's Fs leaves the curve alone."""
+    from stagectl.commission import fit as cfit
+
+    fc, fs, vs, fv = 0.4693, 0.5707, 0.355e-3, 18.114
+    speeds = np.array([0.159, 0.402, 1.010, 2.541, 6.36, 15.8]) * 1e-3
+    odd_err = np.array([0.06, -0.135, 0.095, 0.06, 0.135, 1.115]) * 1e-3  # plant 38's, against its true curve
+    se = np.array([0.115, 0.76, 0.14, 0.243, 0.415, 3.568]) * 1e-3
+
+    def curve(v: np.ndarray) -> np.ndarray:
+        return np.asarray(np.sign(v) * (fc + (fs - fc) * np.exp(-((np.abs(v) / vs) ** 2))) + fv * v)
+
+    segs: list[an.CvSegment] = []
+    for v, e, s in zip(speeds, odd_err, se):
+        segs += [an.CvSegment(float(v), float(curve(np.array(v)) + e + 0.052), float(s * math.sqrt(2)), 500),
+                 an.CvSegment(float(-v), float(curve(np.array(-v)) - e + 0.052), float(s * math.sqrt(2)), 500)]
+    cv = an.cv_friction(segs)
+    assert cv.stribeck is not None and cv.points is not None and cv.points_error is not None
+    grid = np.geomspace(10e-6, 16e-3, 40)
+    plain = cv.stribeck
+    assert float(np.max(np.abs(an.stribeck_curve_at({**plain, "offset_n": 0.0}, grid) - curve(grid)))) > 10e-3
+    assert math.exp(-((speeds[0] / plain["vs_m_s"]) ** plain["delta"])) > cfit.STRIBECK_OBSERVED_FRACTION
+    fr = {k: plain[k] for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m", "v_min_m_s")}
+    pts = (*cv.points, np.zeros(0), cv.points_error)
+    for level in (0.5718, fs):
+        out = cfit._refit_stribeck({"level_n": level, "evidence_ratio": 1e9}, fr, pts)
+        assert out is not None and out["fs_n"] == pytest.approx(level) and out["level_chi2_rise"] <= 3.84
+        assert float(np.max(np.abs(an.stribeck_curve_at({**out, "offset_n": 0.0}, grid) - curve(grid)))) < 1.5e-3
+    assert cfit._refit_stribeck({"level_n": 0.60, "evidence_ratio": 1e9}, fr, pts) is None
+    assert cfit._refit_stribeck({"level_n": plain["fs_n"] + 5e-5, "evidence_ratio": 1e9}, fr, pts) is None
+    # without the points' errors (a caller that has none) nothing changes either
+    assert cfit._refit_stribeck({"level_n": 0.5718, "evidence_ratio": 1e9}, fr, cv.points) is None
