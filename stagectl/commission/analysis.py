@@ -712,6 +712,11 @@ class CvFriction:
     points: tuple[FloatArray, FloatArray] | None = None
     #: the position force taken off the passes (the slow passes' slope [N/m] and cogging), None before
     position_force: dict[str, Any] | None = None
+    #: the points' standard errors [N] the curve was weighted with (:func:`stribeck_point_errors`), None when
+    #: the plain fit stood
+    points_sigma: FloatArray | None = None
+    #: the points' standard errors [N] about the curve (the weights when weighted), for tests on it
+    points_error: FloatArray | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
@@ -722,10 +727,12 @@ class CvFriction:
                              for s in self.segments]}
 
 
-def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[FloatArray, FloatArray, FloatArray]:
+def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
+               errors: list[float] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The passes paired by speed: for each + segment the − segment of the nearest speed (relative difference
     at most ``tol``), each used once. Returns the mean speeds ``(|v₊| + |v₋|)/2`` [m/s], the odd parts
-    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`)."""
+    ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`). ``errors``, when given,
+    gets each pair's standard error of its odd part, ``√(σ₊² + σ₋²)/2`` [N] (the segments' ``f_std_n``)."""
     pos = sorted((s for s in segs if s.v_m_s > 0), key=lambda s: s.v_m_s)
     neg = [s for s in segs if s.v_m_s < 0]
     vk: list[float] = []
@@ -740,7 +747,81 @@ def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE) -> tuple[F
             vk.append(0.5 * (p.v_m_s - q.v_m_s))
             fo.append(0.5 * (p.f_n - q.f_n))
             fe.append(0.5 * (p.f_n + q.f_n))
+            if errors is not None:
+                errors.append(0.5 * math.hypot(p.f_std_n, q.f_std_n))
     return np.array(vk), np.array(fo), np.array(fe)
+
+
+def stribeck_curve_at(curve: dict[str, float], v: FloatArray) -> FloatArray:
+    """A fitted curve's force [N] at speeds ``v`` [m/s]: ``sgn(v)(Fc + (Fs − Fc)·exp(−|v/vs|^δ)) + Fv·v + F0``
+    (``offset_n`` F0 when the curve has one)."""
+    e = np.exp(-np.abs(v / curve["vs_m_s"]) ** curve["delta"])
+    return np.asarray(np.sign(v) * (curve["fc_n"] + (curve["fs_n"] - curve["fc_n"]) * e)
+                      + curve["viscous_n_s_m"] * v + float(curve.get("offset_n", 0.0)), dtype=np.float64)
+
+
+def stribeck_point_errors(curve: dict[str, float], v: FloatArray, f: FloatArray, se: FloatArray) -> FloatArray:
+    """Each point's standard error for the weighted Stribeck fit [N]: ``√(se_i² + s²)``, ``se_i`` its
+    mean's sampling error (``f_std_n`` of the pair's segments) and ``s`` the scatter the sampling errors do
+    not explain, robustly from the unweighted ``curve``'s residuals (``1.4826·median|r|``, at least 10⁻⁶ of the
+    largest force): a position force's residue or the delay's differs from pass to pass alike. A pass whose
+    force wandered (a start that stuck, a disturbance) has a large ``se_i`` and counts little; where all
+    sampling errors are small the fit stays the unweighted one."""
+    r = f - stribeck_curve_at(curve, v)
+    s = max(1.4826 * float(np.median(np.abs(r))), 1e-6 * float(np.max(np.abs(f))), 1e-12)
+    return np.sqrt(np.asarray(se, np.float64) ** 2 + s * s)
+
+
+#: family-wise false-alarm rate of the Stribeck outlier test (:func:`stribeck_outlier_limit`)
+STRIBECK_OUTLIER_ALPHA = 0.01
+#: a pair set aside keeps this many times the largest kept error (:func:`_stribeck_without_outliers`)
+STRIBECK_SET_ASIDE = 1e4
+
+
+def stribeck_outlier_z(curve: dict[str, float], v: FloatArray, f: FloatArray, sigma: FloatArray) -> float:
+    """The largest normalised residual ``max |f_i − F(v_i)|/σ_i`` of a fitted curve (:func:`stribeck_point_errors`)."""
+    return float(np.max(np.abs(f - stribeck_curve_at(curve, v)) / sigma))
+
+
+def stribeck_outlier_limit(pairs: int) -> float:
+    """The two-sided normal quantile ``z`` with ``P(max_i |Z_i| > z) = STRIBECK_OUTLIER_ALPHA`` over ``pairs``
+    independent points (Šidák): 3.0 for 6 pairs. Below it the unweighted curve is consistent with the points'
+    errors and stays; above it one pair lies where no error explains it (:func:`cv_friction`)."""
+    from scipy.stats import norm
+
+    p = 1.0 - (1.0 - STRIBECK_OUTLIER_ALPHA) ** (1.0 / max(int(pairs), 1))
+    return float(norm.ppf(1.0 - 0.5 * p))
+
+
+def _stribeck_without_outliers(v: FloatArray, f: FloatArray, se: FloatArray, sigma: FloatArray
+                               ) -> tuple[dict[str, float], FloatArray, npt.NDArray[np.bool_]]:
+    """The weighted Stribeck curve (``sigma``: :func:`stribeck_point_errors` of the plain curve), then, while
+    a pair lies beyond :func:`stribeck_outlier_limit` of the weighted curve and more than
+    ``STRIBECK_PARAMETERS`` pairs are left, the farthest pair set aside (its points' errors made
+    ``STRIBECK_SET_ASIDE`` times the largest) and the curve refitted, the errors from its residuals. ``v, f,
+    se``: the mirrored pairs (``+`` half first). A pass's mean moved by a disturbance over part of its window
+    lies several of its own standard errors off (a step of ``A`` over half of ``n`` samples: ``A/2`` against
+    ``A/(2√(n/20))``); weighting alone still bends the curve toward it. Returns the curve, the errors
+    used and which pairs were kept."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    n = v.size // 2
+    curve = fit_stribeck_curve(v, f, sigma_n=sigma)
+    kept = np.ones(n, bool)
+    for _ in range(n):
+        k2 = np.concatenate([kept, kept])
+        sg = np.full(v.size, np.inf)
+        sg[k2] = stribeck_point_errors(curve, v[k2], f[k2], se[k2])
+        z = (np.abs(f - stribeck_curve_at(curve, v)) / sg)[:n]
+        j = int(np.argmax(z))
+        if z[j] <= stribeck_outlier_limit(int(kept.sum())) or int(kept.sum()) <= STRIBECK_PARAMETERS:
+            break
+        kept[j] = False
+        k2 = np.concatenate([kept, kept])
+        sigma = np.where(k2, sg, STRIBECK_SET_ASIDE * float(np.max(sg[k2])))
+        curve = fit_stribeck_curve(v, f, sigma_n=sigma)
+    curve["set_aside_pairs"] = float(n - int(kept.sum()))
+    return curve, sigma, kept
 
 
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
@@ -761,8 +842,12 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
 
     if len(segs) < 4:
         raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
-    vk, fo, fe = odd_points(segs)
+    pair_se: list[float] = []
+    vk, fo, fe = odd_points(segs, errors=pair_se)
     paired = vk.size >= 2
+    sigma: FloatArray | None = None
+    errors: FloatArray | None = None
+    use = np.ones(vk.size, bool)  # the pairs the curve kept (_stribeck_without_outliers)
     if paired:
         v, f = np.concatenate([vk, -vk]), np.concatenate([fo, -fo])
     else:
@@ -770,6 +855,12 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     stri: dict[str, float] | None = None
     try:
         stri = fit_stribeck_curve(v, f)
+        if paired:
+            sg = stribeck_point_errors(stri, v, f, np.concatenate([pair_se, pair_se]))
+            errors = sg
+            if stribeck_outlier_z(stri, v, f, sg) > stribeck_outlier_limit(vk.size):
+                stri, sigma, use = _stribeck_without_outliers(v, f, np.concatenate([pair_se, pair_se]), sg)
+                errors = sigma
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
@@ -795,7 +886,8 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
                           * np.exp(-np.abs(vv / stri["vs_m_s"]) ** stri["delta"]), dtype=np.float64)
 
     if paired:
-        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk]), fo - excess(vk), rcond=None)
+        # (the pairs the curve set aside, _stribeck_without_outliers, are left out here too)
+        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk])[use], (fo - excess(vk))[use], rcond=None)
         off = float(np.mean(fe))
         # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
         # curve plus the offset (a position force's even part scatters them and counts), over the segments
@@ -809,7 +901,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         if stri is not None:
             stri["offset_n"] = off
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * vk.size), stri, (v, f))
+                          int(2 * vk.size), stri, (v, f), points_sigma=sigma, points_error=errors)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th

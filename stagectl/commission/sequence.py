@@ -246,12 +246,16 @@ class Results:
     recordings: dict[str, Recorder] = field(default_factory=dict)
 
 
-def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None:
-    """The constant-velocity segment means (velocities [m/s], forces [N]) the Stribeck curve was fitted to."""
+def _cv_points(cv: an.CvFriction | None) -> tuple[npt.NDArray[np.float64], ...] | None:
+    """The constant-velocity segment means the Stribeck curve was fitted to: velocities [m/s], forces [N],
+    then, for the pairs' odd parts, the standard errors [N] the curve was weighted with (empty when it was
+    not) and the points' standard errors about it (``analysis.CvFriction.points_sigma``, ``points_error``)."""
     if cv is None or not cv.segments:
         return None
     if cv.points is not None:  # the pairs' odd parts (analysis.cv_friction)
-        return cv.points
+        if cv.points_error is None:
+            return cv.points
+        return (*cv.points, np.zeros(0) if cv.points_sigma is None else cv.points_sigma, cv.points_error)
     return (np.array([s.v_m_s for s in cv.segments], np.float64), np.array([s.f_n for s in cv.segments], np.float64))
 
 
