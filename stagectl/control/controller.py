@@ -257,11 +257,20 @@ pre-sliding branch, gets the same continuation and the friction spring's force a
 
     u_k(τ) = γ·θ·β·Σk·(e₀ − c(τ + τ_a))   [N]   (θ, β after the stop's learning; τ_a the feed-forward look-ahead)
 
+while the planned travel δ = e₀ − c stays in the linear part of the model's reversal, |δ| <= min 2·W_i/(β·k_i);
+beyond it the elements slip and the force follows Masing's curve γ·θ·Σ min(β·k_i·|δ|, 2·W_i)·sgn(δ)
+(:func:`~stagectl.control.settle_move.reversal_force`; GMS W_i = α_i·max(F_s, F_c), Maxwell slip its W_i, other
+models one element Σk, max(F_s, F_c)), never more than the friction's whole swing; and the friction the
+feed-forward then implies, θ·f_ff + u_k (f_ff the model's friction held at the stop), stays within the model's
+range ±θ·ΣW_i. Without these bounds a stage 4.4 µm ahead (a ``stop`` mid-move after short dwells) was pulled with
+k·e₀ = 2.8 N against at most ~1.25 N of friction reversal: it overshot by 11 µm, the second continuation added
+its own unbounded pull on top of the first's, and the stage swung ±70 µm into a following-error fault. The force is
 added to the command and kept out of the observer's input (u_obs = u − u_ff − u_k); at τ = T it is handed to the
 observer (d̂ += u_k, ``dob.shift``: no step in u; a retune during it does the same at once, and the rest of the
 continuation runs without the spring force). If at its end the stage is still off by more than move_min_m/2, one
 second continuation follows from there, keeping the first's force and adding its own with the gain × the first's
-planned / measured travel e₀/(e₀ − e₁), bounded by ``AHEAD_RATIO_MAX``. Feed-forward planned at each start: the loop
+planned / measured travel e₀/(e₀ − e₁), bounded by ``AHEAD_RATIO_MAX`` (the elements' stiffnesses scaled alike;
+the sum of both forces within the friction range above). Feed-forward planned at each start: the loop
 and its margins are unchanged. docs/control.md §2.8: a too-high model's first step 24–64 → 15–24 ms.
 
 Settle detector (``settle``): :class:`~stagectl.control.settle.SettleDetector` reports in-position (reference
@@ -299,7 +308,7 @@ from stagectl.control.dob import DobConfig, KalmanDob, QFilterDob, make_dob
 from stagectl.control.friction_ff import CoulombFeedforward, FrictionFeedforward
 from stagectl.control.pid import Pid, PidConfig, check_dt
 from stagectl.control.settle import SettleConfig, SettleDetector
-from stagectl.control.settle_move import SettleMove
+from stagectl.control.settle_move import SettleMove, reversal_force
 from stagectl.errors import ConfigError
 from stagectl.friction import StageModel, parse_friction
 from stagectl.friction.base import FrictionModel
@@ -873,6 +882,8 @@ class StageController:
         self.timing_scale = 1.0  # feedback slowed down by this factor (set_timing_scale)
         self.ff_scale = 1.0  # force scale θ of the friction feed-forward (feedforward.adapt_bandwidth_hz)
         self._k_ps = _stiffness(self.ff)  # the model's initial pre-sliding stiffness [N/m] (0: not known)
+        # its elements (k_i, 2·W_i), largest friction force [N], linear reversal travel [m] (settle move from ahead)
+        self._rev_el, self._f_max, self._rev_lin_m = _reversal_elements(self.ff)
         self._k_break = _break_gain(self.ff, self._k_ps, self._f_kin, cfg.rest_spring_range_m)  # [N/m]
         self._s_rest = 0.0  # low-passed rest spring force taken out of the observer's estimate [N]
         self._s_mid = 0.0  # first section of the rest spring's low-pass (rest_spring_section_count 2) [N]
@@ -979,6 +990,9 @@ class StageController:
         self._ahead_pass = 0  # 0: none under way, 1: the first continuation from ahead, 2: the second
         self._ahead_ratio = 1.0  # the second's gain factor (planned / measured travel of the first, bounded)
         self._u_k_base = 0.0  # the first's force, held under the second [N]
+        self._ahead_ks = 1.0  # the stiffness scale of the model's elements along the continuation (β, × the ratio)
+        self._ahead_fs = 0.0  # the force scale γ·θ along it
+        self._u_k_lo, self._u_k_hi = -math.inf, math.inf  # u_k's bounds: the model's friction range [N]
         self._reset_rest_spring()
         self._reset_rest_integral()
 
@@ -1101,6 +1115,7 @@ class StageController:
         self.dob = new_dob
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
+        self._rev_el, self._f_max, self._rev_lin_m = _reversal_elements(parts.ff)
         self._f_kin = _kinetic_level(parts.ff)
         self._k_break = _break_gain(parts.ff, self._k_ps, self._f_kin, parts.cfg.rest_spring_range_m)
         self._vdt = math.nan
@@ -1940,14 +1955,27 @@ class StageController:
             if tau_c == 0.0:
                 if self._ahead_pass == 2:  # the second: the first's gain × its planned / measured travel
                     self._k_ahead *= self._ahead_ratio
+                    self._ahead_ks *= self._ahead_ratio
                     self._ahead_ratio = 1.0
                 else:  # the first sample: the gain γ·θ·β·Σk (θ, β as the stop's learning left them), held
                     beta = ff.input_scale if isinstance(ff, FrictionFeedforward) else 1.0
-                    self._k_ahead = cfg.settle.ahead_stiffness_fraction * self.ff_scale * beta * self._k_ps
+                    th = self.ff_scale
+                    self._k_ahead = cfg.settle.ahead_stiffness_fraction * th * beta * self._k_ps
+                    self._ahead_ks = beta
+                    self._ahead_fs = cfg.settle.ahead_stiffness_fraction * th
+                    # the friction the feed-forward implies, θ·f_ff + u_k, stays within the model's range ±θ·ΣW_i
+                    f_h = th * ff.state.f_friction_n if isinstance(ff, FrictionFeedforward) else 0.0
+                    f_lim = th * self._f_max
+                    self._u_k_lo, self._u_k_hi = -f_lim - f_h, f_lim - f_h
                     self._tau_a = ff.lookahead_s if ff is not None else 0.0
                     self._ahead_pass = 1
                     self._u_k_base = 0.0
-            self._u_k = self._u_k_base + self._k_ahead * (sm.e0 - sm.sample(tau_c + self._tau_a)[0])
+            travel = sm.e0 - sm.sample(tau_c + self._tau_a)[0]
+            if abs(travel) * self._ahead_ks <= self._rev_lin_m:  # the reversal's linear part: k·travel
+                f_k = self._k_ahead * travel
+            else:  # beyond it the elements slip: Masing's curve, at most the whole swing 2·ΣW_i
+                f_k = self._ahead_fs * reversal_force(travel, self._ahead_ks, self._rev_el)
+            self._u_k = min(self._u_k_hi, max(self._u_k_lo, self._u_k_base + f_k))
         elif self._u_k != 0.0:
             # the continuation is over: its held force goes to the observer (d̂ += u_k: no step in u)
             dob.shift(self._u_k)  # type: ignore[union-attr]
@@ -2103,6 +2131,39 @@ def _break_gain(ff: FrictionFeedforward | CoulombFeedforward | None, k_ps: float
     fs = getattr(getattr(ff.model, "params", None), "fs_n", None)
     gap = float(fs) - f_kin if isinstance(fs, (int, float)) else 0.0
     return min(k_ps, max(gap, REST_INTEGRAL_GAP_MIN * f_kin) / range_m)
+
+
+def _reversal_elements(ff: FrictionFeedforward | CoulombFeedforward | None
+                       ) -> tuple[tuple[tuple[float, float], ...], float, float]:
+    """The model's friction as elasto-slip elements for the settle move from ahead's force bound: ((k_i [N/m],
+    2·W_i [N]), ...), the largest friction force ΣW_i [N] and the travel min 2·W_i/k_i [m] up to which the
+    reversal is linear (:func:`stagectl.control.settle_move.reversal_force`). GMS: W_i = α_i·max(F_s, F_c);
+    Maxwell slip: its W_i; another model with a stiffness and a friction level (LuGre, Dahl, Hsieh): one element
+    (Σk, max(F_s, F_c)). ((), inf, inf) when not known: no bound."""
+    none: tuple[tuple[tuple[float, float], ...], float, float] = ((), math.inf, math.inf)
+    if not isinstance(ff, FrictionFeedforward):
+        return none
+    q = getattr(ff.model, "params", None)
+    ks = getattr(q, "k_n_m", None)
+    ws: Any = None
+    if isinstance(ks, tuple):
+        w = getattr(q, "slip_forces_n", None)
+        alpha = getattr(q, "alpha", None)
+        levels = [v for v in (getattr(q, "fs_n", None), getattr(q, "fc_n", None)) if isinstance(v, (int, float))]
+        if isinstance(w, tuple):
+            ws = w
+        elif isinstance(alpha, tuple) and levels:
+            ws = tuple(a * max(levels) for a in alpha)
+    else:
+        k = _stiffness(ff)
+        levels = [v for v in (getattr(q, "fs_n", None), getattr(q, "fc_n", None)) if isinstance(v, (int, float))]
+        if k > 0.0 and levels:
+            ks, ws = (k,), (max(levels),)
+    if not (isinstance(ks, tuple) and isinstance(ws, tuple) and len(ks) == len(ws) and ks
+            and all(k > 0.0 and w > 0.0 for k, w in zip(ks, ws))):
+        return none
+    el = tuple((float(k), 2.0 * float(w)) for k, w in zip(ks, ws))
+    return el, 0.5 * sum(w2 for _, w2 in el), min(w2 / k for k, w2 in el)
 
 
 def _stiffness(ff: FrictionFeedforward | CoulombFeedforward | None) -> float:

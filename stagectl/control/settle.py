@@ -46,7 +46,9 @@ class SettleConfig:
         0.0, desc="settle move from ahead (with move_s > 0): a move that ends with the stage ahead of the reference "
         "in its direction by more than move_min_m (on the stiff, pre-sliding side of its friction) gets the same "
         "continuation back to the target, and the friction spring's force along it, this fraction of the model's "
-        "reversal stiffness theta·beta·sum(k) times the planned travel, as feed-forward outside the observer; "
+        "reversal stiffness theta·beta·sum(k) times the planned travel (beyond the first element's slip the "
+        "model's Masing reversal curve, and never a friction outside the model's range), as feed-forward outside "
+        "the observer; "
         "a stage still off by more than move_min_m/2 at its end gets a second one, its gain scaled by the "
         "travel the first made (0: off, the rest spring alone pulls the stage back)", ge=0.0, le=2.0)
 

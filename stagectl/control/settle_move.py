@@ -27,12 +27,18 @@ From ahead (the controller's ``settle.ahead_stiffness_fraction``; :attr:`SettleM
 from a stage that ended *ahead* (stiff side), with the friction spring's force along c added by the controller
 (:mod:`stagectl.control.controller`, "Settle move from ahead"). :attr:`SettleMove.last_direction` is the
 reference's direction at its last moving sample: a motion that reversed without a stop is not called ahead from
-its first direction.
+its first direction (a speed of at most ``V_DIRECTION_MIN_M_S`` gives no direction).
 
 Pure, scalar, real-time safe.
 """
 
 from __future__ import annotations
+
+
+#: a reference speed at most this [m/s] gives no direction (:attr:`SettleMove.last_direction`): a ``stop`` from
+#: constant speed sampled a rounding step before its end gave v = −4·10⁻²⁰ m/s, a = −10⁻¹⁵ m/s², which called
+#: the motion reversed and left a stage 5 µm ahead without its continuation (300 ms creeping back)
+V_DIRECTION_MIN_M_S = 1e-12
 
 
 class SettleMove:
@@ -64,7 +70,7 @@ class SettleMove:
             s = v_r if v_r != 0.0 else a_r
             self.direction = 1.0 if s > 0.0 else -1.0
             self.last_direction = self.direction
-        if v_r != 0.0:
+        if abs(v_r) > V_DIRECTION_MIN_M_S:  # (not the rounding residue of a jerk-limited stop's last sample)
             self.last_direction = 1.0 if v_r > 0.0 else -1.0
         return False
 
@@ -91,4 +97,20 @@ class SettleMove:
         return c, cd, cdd
 
 
-__all__ = ["SettleMove"]
+def reversal_force(travel_m: float, stiffness_scale: float, elements: tuple[tuple[float, float], ...]) -> float:
+    """The friction's force change along a reversal of ``travel_m`` [m] (signed; the result has its sign) [N], by
+    Masing's rule for parallel elasto-slip elements (k_i [N/m], slip force W_i [N]) each starting at its slip limit
+    on the other side::
+
+        Δf(δ) = sgn(δ)·Σ min(s·k_i·|δ|, 2·W_i)        (s = ``stiffness_scale``; ``elements`` holds (k_i, 2·W_i))
+
+    Linear (s·Σk·δ) up to the first element's slip, |δ| <= min 2·W_i/(s·k_i); at most 2·ΣW_i, the whole swing of
+    the friction from one slip limit to the other, however far the travel. Pure, scalar, real-time safe."""
+    d = abs(travel_m)
+    f = 0.0
+    for k, w2 in elements:
+        f += min(stiffness_scale * k * d, w2)
+    return f if travel_m >= 0.0 else -f
+
+
+__all__ = ["SettleMove", "reversal_force"]
