@@ -228,13 +228,18 @@ def _build_plant_io(ctx: BuildContext) -> StageIO:
 
 
 def embedded_drive_config(io_drive: Cia402Config | None, sim_drive: SimDriveConfig,
-                          can: dict[str, Any]) -> Cia402Config:
+                          can: dict[str, Any], stale_cycles: int | None = None) -> Cia402Config:
     """The CiA 402 driver's configuration for the in-process virtual drive: ``io.drive`` on the world's bus,
-    or, without one, a driver matching ``sim.drive`` (node id, position resolution, force per unit)."""
+    or, without one, a driver matching ``sim.drive`` (node id, position resolution, force per unit) whose
+    ``max_missed`` is ``stale_cycles`` (``safety.stale_cycles``) when that is larger: reads without a TPDO are
+    judged by safety's stale limits (the unseen travel, the cycle cap), not by a tighter default count."""
     if io_drive is not None:
         return dataclasses.replace(io_drive, can=can)
-    return Cia402Config(node_id=sim_drive.node_id, can=can, resolution_m=sim_drive.resolution_m,
-                        force_per_unit_n=sim_drive.force_per_unit_n)
+    cfg = Cia402Config(node_id=sim_drive.node_id, can=can, resolution_m=sim_drive.resolution_m,
+                       force_per_unit_n=sim_drive.force_per_unit_n)
+    if stale_cycles is not None and stale_cycles > cfg.max_missed:
+        cfg = dataclasses.replace(cfg, max_missed=stale_cycles)
+    return cfg
 
 
 def embedded_encoder_config(io_encoder: Cia406Config | None, sim_encoder: SimEncoderConfig | None,
@@ -293,7 +298,7 @@ def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
     world.open()
     info = world.ready_info()
     can: dict[str, Any] = info["can"]
-    drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can)
+    drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can, cfg.safety.stale_cycles)
     io = _open_drivers(
         ctx, drive_cfg, pump=world.pump, serial_pump=world.serial_pump,
         encoder=lambda: embedded_encoder_config(cfg.io.encoder, wcfg.encoder, can),

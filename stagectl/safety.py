@@ -61,11 +61,15 @@ pushed by at most F̄ moves, τ after that sample, at most::
 low-pass lags an accelerating stage, the reference it follows does not; F̄ starts from the force written the
 cycle before that sample, which the one-cycle I/O delay still applies after it; m the moving mass). While
 moving (the rest allowance not in force) ``stale_position`` latches as soon as D(τ) > ``stale_travel_m``,
-and at ``stale_cycles`` at the latest. The seed stage scanning at 1.6 mm/s with 2 N reaches 50 µm after
-31 ms; at 18 mm/s after 2.8 ms, i.e. a fast stage that goes blind faults within 3 cycles while a slow one
-rides out a few late samples. Unset (or without a mass) only the cycle counts apply. A sensible value is the
+and at ``stale_cycles`` at the latest. The bound ignores friction (it may be lower than modelled), so the
+force term counts the whole force as accelerating: the seed stage (2 kg) scanning at 1.6 mm/s against its
+0.85 N of friction reaches 50 µm after 12 ms, at 18 mm/s after 2.8 ms, so a fast stage that goes blind
+faults within 3 cycles while a scan rides out the few late samples of a loaded PC (``stagectl bench timing``
+sees runs of up to 3). Unset (or without a mass) only the cycle counts apply. A sensible value is the
 following-error window: the loop stops trusting its blind guess before the stage can be further off than
-the tracking error the application already tolerates.
+the tracking error the application already tolerates. The CiA 402 driver's ``max_missed`` (reads without
+any TPDO) should not be tighter than ``stale_cycles``, else it decides first (the embedded virtual drive's
+default follows ``stale_cycles``).
 
 The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
 overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
