@@ -171,7 +171,8 @@ class Stage:
     def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
         """Debug: inject a device fault into the simulated stage. Only for simulated stages.
 
-        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
+        PlantIO: ``emcy``, ``stale`` (``cycles``; ``missed_frame`` after max(3, ``safety.stale_cycles``) in a row,
+        as the embedded virtual drive's ``max_missed``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
         :class:`~stagectl.drivers.base.FaultKind` value. Virtual CANopen devices: any
         :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of the loop-level aliases of
         :data:`stagectl.sim.faults.FAULT_ALIASES` (``nan`` is refused there: an integer position cannot be NaN).
@@ -182,9 +183,9 @@ class Stage:
             Not a simulated stage.
         """
         if self.plant_io is not None:
-            from stagectl.sim.faults import inject_plant_io_fault
+            from stagectl.sim.faults import PLANT_IO_MAX_MISSED, inject_plant_io_fault
 
-            inject_plant_io_fault(self.plant_io, kind, kw)
+            inject_plant_io_fault(self.plant_io, kind, kw, max(PLANT_IO_MAX_MISSED, self.safety.cfg.stale_cycles))
             return {"injected": kind}
         if self.world is not None:
             from stagectl.sim.faults import world_fault
