@@ -107,7 +107,8 @@ class SafetyConfig:
     )
     max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
-    stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+    stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting (the hard cap "
+                              "when stale_travel_m is set)", ge=1)
     stale_rest_cycles: int | None = param(
         None, desc="the same while the stage (nearly) stands: reference speed and |v| at the last fresh sample <= "
         "quick_stop_standstill_m_s (unseen it travels that speed times the gap, plus (F_held/m)*gap^2/2 if the "
