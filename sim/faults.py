@@ -123,9 +123,11 @@ FAULT_ALIASES: dict[str, SimFault] = {
 #: why ``nan`` exists on the directly wrapped plant only (it used to alias a 5 mm jump here: one name, two causes)
 NAN_ON_CANOPEN = ("kind: nan needs a floating-point position (io.kind plant_io); a CANopen position is an "
                   "integer count, so it cannot be NaN: use position_jump (jump_m, cycles) for a sensor glitch")
-#: how many cycles a ``stale`` fault lasts when the request does not say
-STALE_CYCLES = 10
-#: the plant_io stage's ``stale``: MISSED_FRAME after this many dropped samples (the CiA 402 driver's default)
+#: how many cycles a ``stale`` fault lasts when the request does not say (longer than the shipped stale caps,
+#: ``safety.stale_cycles`` 20: the drive's silence is a fault, not a gap the stage rides out)
+STALE_CYCLES = 50
+#: the plant_io stage's ``stale``: MISSED_FRAME after this many dropped samples (the CiA 402 driver's default;
+#: the stage passes ``safety.stale_cycles`` when larger, as the embedded virtual drive's ``max_missed``)
 PLANT_IO_MAX_MISSED = 3
 
 
@@ -143,10 +145,11 @@ def world_fault(kind: str, fields: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> None:
+def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any],
+                          max_missed: int = PLANT_IO_MAX_MISSED) -> None:
     """Apply a fault request to the directly wrapped plant, latching the names the virtual CANopen stage
     latches for the same request: ``stale`` (the next ``cycles`` reads are not fresh; ``missed_frame`` after
-    3), ``emcy`` (``drive_fault`` with the EMCY ``code``), ``nan`` (the next read is NaN), ``position_jump`` (``jump_m`` added to the next ``cycles`` reads,
+    ``max_missed``), ``emcy`` (``drive_fault`` with the EMCY ``code``), ``nan`` (the next read is NaN), ``position_jump`` (``jump_m`` added to the next ``cycles`` reads,
     default 1; as on the virtual devices) or a device fault by :class:`~stagectl.drivers.base.FaultKind` value
     (``detail``, ``code``).
 
@@ -155,10 +158,10 @@ def inject_plant_io_fault(io: PlantIO, kind: str, fields: Mapping[str, Any]) -> 
     ValueError
         An unknown fault name.
     """
-    # the same fault names as the virtual CANopen drive: a drive misses its TPDOs (missed_frame after 3, the
-    # driver's max_missed default) and an EMCY comes with the drive entering FAULT (drive_fault)
+    # the same fault names as the virtual CANopen drive: a drive misses its TPDOs (missed_frame after its
+    # max_missed) and an EMCY comes with the drive entering FAULT (drive_fault)
     if kind == "stale":
-        io.drop_samples(int(fields.get("cycles", STALE_CYCLES)), missed_after=PLANT_IO_MAX_MISSED)
+        io.drop_samples(int(fields.get("cycles", STALE_CYCLES)), missed_after=max_missed)
     elif kind == "emcy":
         code = int(fields.get("code", FaultSpec.code))
         io.inject_fault(FaultKind.DRIVE_FAULT, str(fields.get("detail", f"drive in FAULT (EMCY 0x{code:04X})")),

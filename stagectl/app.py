@@ -171,7 +171,8 @@ class Stage:
     def inject_fault(self, kind: str = "emcy", **kw: Any) -> dict[str, Any]:
         """Debug: inject a device fault into the simulated stage. Only for simulated stages.
 
-        PlantIO: ``emcy``, ``stale`` (``cycles``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
+        PlantIO: ``emcy``, ``stale`` (``cycles``; ``missed_frame`` after max(3, ``safety.stale_cycles``) in a row,
+        as the embedded virtual drive's ``max_missed``), ``nan``, ``position_jump`` (``jump_m``, ``cycles``) or any
         :class:`~stagectl.drivers.base.FaultKind` value. Virtual CANopen devices: any
         :class:`stagectl.sim.faults.SimFault` with its FaultSpec fields, or one of the loop-level aliases of
         :data:`stagectl.sim.faults.FAULT_ALIASES` (``nan`` is refused there: an integer position cannot be NaN).
@@ -182,9 +183,9 @@ class Stage:
             Not a simulated stage.
         """
         if self.plant_io is not None:
-            from stagectl.sim.faults import inject_plant_io_fault
+            from stagectl.sim.faults import PLANT_IO_MAX_MISSED, inject_plant_io_fault
 
-            inject_plant_io_fault(self.plant_io, kind, kw)
+            inject_plant_io_fault(self.plant_io, kind, kw, max(PLANT_IO_MAX_MISSED, self.safety.cfg.stale_cycles))
             return {"injected": kind}
         if self.world is not None:
             from stagectl.sim.faults import world_fault
@@ -228,13 +229,18 @@ def _build_plant_io(ctx: BuildContext) -> StageIO:
 
 
 def embedded_drive_config(io_drive: Cia402Config | None, sim_drive: SimDriveConfig,
-                          can: dict[str, Any]) -> Cia402Config:
+                          can: dict[str, Any], stale_cycles: int | None = None) -> Cia402Config:
     """The CiA 402 driver's configuration for the in-process virtual drive: ``io.drive`` on the world's bus,
-    or, without one, a driver matching ``sim.drive`` (node id, position resolution, force per unit)."""
+    or, without one, a driver matching ``sim.drive`` (node id, position resolution, force per unit) whose
+    ``max_missed`` is ``stale_cycles`` (``safety.stale_cycles``) when that is larger: reads without a TPDO are
+    judged by safety's stale limits (the unseen travel, the cycle cap), not by a tighter default count."""
     if io_drive is not None:
         return dataclasses.replace(io_drive, can=can)
-    return Cia402Config(node_id=sim_drive.node_id, can=can, resolution_m=sim_drive.resolution_m,
-                        force_per_unit_n=sim_drive.force_per_unit_n)
+    cfg = Cia402Config(node_id=sim_drive.node_id, can=can, resolution_m=sim_drive.resolution_m,
+                       force_per_unit_n=sim_drive.force_per_unit_n)
+    if stale_cycles is not None and stale_cycles > cfg.max_missed:
+        cfg = dataclasses.replace(cfg, max_missed=stale_cycles)
+    return cfg
 
 
 def embedded_encoder_config(io_encoder: Cia406Config | None, sim_encoder: SimEncoderConfig | None,
@@ -293,7 +299,7 @@ def _build_embedded_canopen(ctx: BuildContext) -> StageIO:
     world.open()
     info = world.ready_info()
     can: dict[str, Any] = info["can"]
-    drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can)
+    drive_cfg = embedded_drive_config(cfg.io.drive, wcfg.drive, can, cfg.safety.stale_cycles)
     io = _open_drivers(
         ctx, drive_cfg, pump=world.pump, serial_pump=world.serial_pump,
         encoder=lambda: embedded_encoder_config(cfg.io.encoder, wcfg.encoder, can),

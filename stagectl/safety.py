@@ -10,7 +10,9 @@ fault name             condition
 ``<device kind>``      a device reports a fault (``Measurement.fault`` / ``device.fault``): the name is
                        the :class:`~stagectl.drivers.base.FaultKind` value (``drive_fault``, ``emcy``,
                        ``heartbeat_lost``, ``bus_off``, ``sensor_error``, ...)
-``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample; ``stale_rest_cycles`` while
+``stale_position``     ``stale_cycles`` consecutive reads without a fresh sample (a hard cap); while moving,
+                       earlier when the stage may have travelled more than ``stale_travel_m`` unseen since
+                       the last fresh sample (see *Unseen travel* below); ``stale_rest_cycles`` while
                        the stage (nearly) stands: reference speed and \\|v̂\\| at the last fresh sample both
                        <= ``quick_stop_standstill_m_s``. Unseen it travels that speed times the gap (0.1 mm/s ·
                        0.5 s = 50 µm) plus what the held force does: nothing while friction holds it (stuck),
@@ -48,6 +50,27 @@ sampling jitter. For the seed stage (2 kg, 10 N, 0.02 m/s, 1 ms, margin 1 µm) t
 where a sensor's own glitch check (``max_speed_m_s``) allows 2 mm. A larger step is a sensor glitch or a
 collision; either way the position can no longer be trusted to close the loop on.
 
+Unseen travel (``stale_travel_m``): a stale sample leaves the loop blind; what matters is not how many cycles
+it stays blind but how far the stage can have gone meanwhile. A stage with only passive friction (friction
+opposes the motion: it can stop the stage, never push it on) that moved at v₀ at the last fresh sample and is
+pushed by at most F̄ moves, τ after that sample, at most::
+
+    D(τ) = v_b·τ + (F̄/m)·τ²/2,   v_b = max(|v̂|, |v_ref|),   F̄ = max |u| written since the last fresh sample
+
+(v̂ the velocity estimate at the last fresh sample, |v_ref| the reference speed then and now: the estimate's
+low-pass lags an accelerating stage, the reference it follows does not; F̄ starts from the force written the
+cycle before that sample, which the one-cycle I/O delay still applies after it; m the moving mass). While
+moving (the rest allowance not in force) ``stale_position`` latches as soon as D(τ) > ``stale_travel_m``,
+and at ``stale_cycles`` at the latest. The bound ignores friction (it may be lower than modelled), so the
+force term counts the whole force as accelerating: the seed stage (2 kg) scanning at 1.6 mm/s against its
+0.85 N of friction reaches 50 µm after 12 ms, at 18 mm/s after 2.8 ms, so a fast stage that goes blind
+faults within 3 cycles while a scan rides out the few late samples of a loaded PC (``stagectl bench timing``
+sees runs of up to 3). Unset (or without a mass) only the cycle counts apply. A sensible value is the
+following-error window: the loop stops trusting its blind guess before the stage can be further off than
+the tracking error the application already tolerates. The CiA 402 driver's ``max_missed`` (reads without
+any TPDO) should not be tighter than ``stale_cycles``, else it decides first (the embedded virtual drive's
+default follows ``stale_cycles``).
+
 The first fault latches (:attr:`Safety.fault`) with its cause, time and cycle; later ones do not
 overwrite it. Only :meth:`Safety.clear` (an explicit operator reset) clears it. The loop reacts to a
 latched fault in the same cycle: for ``following_error``, ``velocity_limit`` and ``position_limit`` (the
@@ -84,11 +107,16 @@ class SafetyConfig:
     )
     max_velocity_m_s: float = param(0.05, unit="m/s", desc="velocity limit on the measured motion", gt=0)
     velocity_filter_hz: float = param(100.0, unit="Hz", desc="low-pass of the velocity estimate", gt=0)
-    stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting", ge=1)
+    stale_cycles: int = param(3, desc="consecutive cycles without a fresh position before faulting (the hard cap "
+                              "when stale_travel_m is set)", ge=1)
     stale_rest_cycles: int | None = param(
         None, desc="the same while the stage (nearly) stands: reference speed and |v| at the last fresh sample <= "
         "quick_stop_standstill_m_s (unseen it travels that speed times the gap, plus (F_held/m)*gap^2/2 if the "
         "held force makes it slide; never below stale_cycles; None: stale_cycles)", ge=1)
+    stale_travel_m: float | None = param(
+        None, unit="m", desc="while moving, stale_position as soon as the stage may have travelled more than this "
+        "unseen since the last fresh sample: max(|v|, |v_ref|)*gap + (F/m)*gap^2/2, F the largest force written "
+        "since (stale_cycles stays the hard cap; e.g. following_error_m; None: the cycle counts only)", gt=0)
     jump_margin_m: float = param(
         1e-6, unit="m", desc="sensor noise and sampling-jitter margin added to the physical per-cycle position bound "
         "(position_jump)", ge=0)
@@ -164,6 +192,10 @@ class Safety:
         self._x_prev: float | None = None
         self._t_prev: float | None = None
         self._stale = 0
+        self._t_fresh: float | None = None  # time [s] of the last fresh sample (unseen travel)
+        self._v_ref_fresh = 0.0  # |v_ref| [m/s] when it came
+        self._u_last = 0.0  # |u| [N] of the last force written
+        self._u_gap = 0.0  # largest |u| [N] written since the last fresh sample (and the one before it)
         self._fe_since: float | None = None
         self._sat_since: float | None = None
         #: |v_ref| of the last cycle [m/s] (set by the loop; selects ``stale_rest_cycles``)
@@ -190,6 +222,16 @@ class Safety:
             return math.inf
         return self.cfg.max_velocity_m_s * dt_s + 0.5 * a * dt_s * dt_s + self.cfg.jump_margin_m
 
+    def unseen_travel_m(self, tau_s: float) -> float:
+        """The bound D(τ) [m] on the stage's travel ``tau_s`` [s] after the last fresh sample (module docstring,
+        *Unseen travel*): max(|v̂|, |v_ref|)·τ + (F̄/m)·τ²/2; inf without a mass."""
+        m = self.mass_kg
+        if m is None:
+            return math.inf
+        vr = self.reference_speed_m_s
+        v = max(abs(self.v_est_m_s), self._v_ref_fresh, vr if vr < math.inf else 0.0)
+        return v * tau_s + 0.5 * (self._u_gap / m) * tau_s * tau_s
+
     def persisting(self, x_m: float, fresh: bool) -> tuple[str, ...]:
         """Causes of supervisor faults still present at position ``x_m`` (``fresh``: this cycle's sample is
         new): a reset is refused while this is not empty (it would latch again at once). A non-finite position
@@ -213,6 +255,9 @@ class Safety:
         self._x_prev = x_m
         self._t_prev = t_s
         self._stale = 0
+        self._t_fresh = t_s
+        self._v_ref_fresh = 0.0
+        self._u_gap = self._u_last
         self._fe_since = None
         self._sat_since = None
 
@@ -235,15 +280,30 @@ class Safety:
             self._stale += 1
             limit = cfg.stale_cycles
             slow = cfg.quick_stop_standstill_m_s
-            if (cfg.stale_rest_cycles is not None and self.reference_speed_m_s <= slow
-                    and abs(self.v_est_m_s) <= slow):
-                limit = max(limit, cfg.stale_rest_cycles)
+            rest = (cfg.stale_rest_cycles is not None and self.reference_speed_m_s <= slow
+                    and abs(self.v_est_m_s) <= slow)
+            if rest:
+                limit = max(limit, cfg.stale_rest_cycles or limit)
             if self._stale >= limit:
                 self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles", t_s, cycle)
                 return True
+            allow = cfg.stale_travel_m
+            if allow is not None and not rest and self.mass_kg is not None:  # at rest friction holds it (above)
+                tf = self._t_fresh
+                tau = self._stale * self.period_s if tf is None else t_s - tf
+                d = self.unseen_travel_m(tau)
+                if d > allow:
+                    self.latch("stale_position", f"no fresh position for {self._stale} consecutive cycles "
+                               f"({tau * 1e3:.3g} ms): the stage may have moved {d:.3g} m unseen (force up to "
+                               f"{self._u_gap:.3g} N) > stale_travel_m {allow:g} m", t_s, cycle)
+                    return True
             return self.fault is not None
         gap = self._stale
         self._stale = 0
+        self._t_fresh = t_s
+        vr = self.reference_speed_m_s
+        self._v_ref_fresh = vr if vr < math.inf else 0.0
+        self._u_gap = self._u_last
         if x_m < cfg.min_position_m or x_m > cfg.max_position_m:
             self.latch(
                 "position_limit",
@@ -323,6 +383,9 @@ class Safety:
             return 0.0
         lim = self.cfg.max_force_n
         inside = -lim <= u_n <= lim
+        a = abs(u_n) if inside else lim  # the force written (unseen travel: F̄)
+        self._u_last = a
+        self._u_gap = max(self._u_gap, a)
         if inside and not clamped:
             self._sat_since = None
             return u_n
