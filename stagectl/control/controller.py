@@ -451,10 +451,12 @@ class ControllerConfig:
         "one more release)", ge=1, le=100)
     rest_spring_held_fraction: float = param(
         0.5, desc="the rest spring is released (bumplessly) as soon as the stage's stiffness measured at standstill "
-        "(the slope of the force it takes, u - m*a, over its position, both through the observer's low-pass, over the "
-        "last 20 ms once the position varied by 5 nm rms there) is below this fraction of the model's pre-sliding "
-        "stiffness times min(theta, 1): the stage is not held and the spring would be a negative stiffness of the loop; "
-        "stagectl tune prints the lowest fraction at which the rest loop meets its margins (0: no stiffness test)",
+        "is below this fraction of the model's pre-sliding stiffness times min(theta, 1): after each reversal of the "
+        "stage's position (both it and the force it takes, u - m*a, through the observer's low-pass; a reversal is a "
+        "5 nm turn back) within rest_spring_range_m of the reference, the secant slope of force over position along "
+        "the first 10 nm of the new branch, judged once per branch; the stage is then not held and the spring would "
+        "be a negative stiffness of the loop; stagectl tune prints the lowest fraction at which the rest loop meets "
+        "its margins (0: no stiffness test)",
         ge=0.0, le=1.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
@@ -596,9 +598,10 @@ REST_GAINS_ENTER_M_S = 1e-5
 REST_GAINS_EXIT_M_S = 3e-5
 REST_GAINS_DWELL_S = 0.005
 
-#: the rest spring's stiffness test (``rest_spring_held_fraction``): the regression of the force the stage takes on its
-#: position forgets with this time constant [s] and judges only once the position's variance about its mean over that
-#: window reaches REST_HELD_MIN_TRAVEL_M² (the encoder's 1 nm steps and 0.5 nm noise stay well below)
+#: the rest spring's stiffness test (``rest_spring_held_fraction``, :meth:`StageController._not_held`): the low-passed
+#: position counts as reversed once it has turned back this far from its extreme [m] (the encoder's 1 nm steps and
+#: 0.5 nm noise stay well below), and a branch is judged once, when it has run this many times that from the
+#: reversal (the secant Σ(Δx·ΔF)/Σ(Δx²) over its first 10 nm)
 REST_HELD_MIN_TRAVEL_M = 5e-9
 REST_HELD_JUDGE_TRAVEL = 2.0
 
@@ -1600,7 +1603,7 @@ class StageController:
         run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
         reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
         spring needs. A stage that approaches the target without turning back is not judged, nor a branch that
-        starts or is judged beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
+        is judged (10 nm from its reversal) beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
         there: a bounded force, not a stiffness of the loop)."""
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
