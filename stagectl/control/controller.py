@@ -1602,9 +1602,9 @@ class StageController:
         pre-sliding contact is at its stiffest there, Σk on the plant the model describes). True once the branch has
         run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
         reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
-        spring needs. A stage that approaches the target without turning back is not judged, nor a branch that
-        is judged (10 nm from its reversal) beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
-        there: a bounded force, not a stiffness of the loop)."""
+        spring needs. A stage that approaches the target without turning back is not judged, nor a branch whose
+        judging point (10 nm from its reversal) lies beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the
+        spring's force is clamped there: a bounded force, not a stiffness of the loop)."""
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
         if self._h_n == 0:  # armed: look for the first extreme from here
