@@ -140,10 +140,11 @@ the observer does not integrate it again): a stage stuck off the target converge
 g·K_p/Σk. Behind the target (k_t < REST_INTEGRAL_SOFT_FRACTION·Σk: the elements slip, the stage is held at its
 break-away level and the observer takes the P force as a disturbance) it pushes at the break-away gain instead,
 k_b = min(Σk, max(F_s − F_c, REST_INTEGRAL_GAP_MIN·F_c)/rest_spring_range_m), while the stage creeps in at no more
-than REST_INTEGRAL_SOFT_STILL_M_S, and takes that push back (``dob.shift``) as soon as the stage moves towards the
-target: the stage slides only as far as the force went past its break-away level, sticks again and is pushed anew
-(stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
-±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
+than REST_INTEGRAL_SOFT_STILL_M_S (both speeds low-passed over REST_INTEGRAL_VELOCITY_S), holds it while the stage
+approaches at up to REST_INTEGRAL_STILL_M_S, and takes it back (``dob.shift``) once the approach is faster (the
+break-away): the stage slides only as far as the force went past its break-away level, sticks again and is pushed
+anew (stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m``
+or e swings across ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
 ``feedforward.rest_sync_hz`` hands to the model before the next move.
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
