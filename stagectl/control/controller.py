@@ -644,6 +644,8 @@ ADAPT_SETTLED_TIME_CONSTANTS = 5.0
 #: the observer was not told the force the actuator applied in the slots it did not see, and its estimate carries
 #: that force error for a few time constants, which is no error of the model
 IRREGULAR_DT_PERIODS = 1.5
+#: learning from earlier moves: the prior weight towards the model as given (a fraction of the accumulated
+#: information; see LEARN_FORGET)
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
