@@ -140,10 +140,11 @@ the observer does not integrate it again): a stage stuck off the target converge
 g·K_p/Σk. Behind the target (k_t < REST_INTEGRAL_SOFT_FRACTION·Σk: the elements slip, the stage is held at its
 break-away level and the observer takes the P force as a disturbance) it pushes at the break-away gain instead,
 k_b = min(Σk, max(F_s − F_c, REST_INTEGRAL_GAP_MIN·F_c)/rest_spring_range_m), while the stage creeps in at no more
-than REST_INTEGRAL_SOFT_STILL_M_S, and takes that push back (``dob.shift``) as soon as the stage moves towards the
-target: the stage slides only as far as the force went past its break-away level, sticks again and is pushed anew
-(stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
-±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
+than REST_INTEGRAL_SOFT_STILL_M_S (both speeds low-passed over REST_INTEGRAL_VELOCITY_S), holds it while the stage
+approaches at up to REST_INTEGRAL_STILL_M_S, and takes it back (``dob.shift``) once the approach is faster (the
+break-away): the stage slides only as far as the force went past its break-away level, sticks again and is pushed
+anew (stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m``
+or e swings across ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
 ``feedforward.rest_sync_hz`` hands to the model before the next move.
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
@@ -460,10 +461,12 @@ class ControllerConfig:
         "one more release)", ge=1, le=100)
     rest_spring_held_fraction: float = param(
         0.5, desc="the rest spring is released (bumplessly) as soon as the stage's stiffness measured at standstill "
-        "(the slope of the force it takes, u - m*a, over its position, both through the observer's low-pass, over the "
-        "last 20 ms once the position varied by 5 nm rms there) is below this fraction of the model's pre-sliding "
-        "stiffness times min(theta, 1): the stage is not held and the spring would be a negative stiffness of the loop; "
-        "stagectl tune prints the lowest fraction at which the rest loop meets its margins (0: no stiffness test)",
+        "is below this fraction of the model's pre-sliding stiffness times min(theta, 1): after each reversal of the "
+        "stage's position (both it and the force it takes, u - m*a, through the observer's low-pass; a reversal is a "
+        "5 nm turn back) within rest_spring_range_m of the reference, the secant slope of force over position along "
+        "the first 10 nm of the new branch, judged once per branch; the stage is then not held and the spring would "
+        "be a negative stiffness of the loop; stagectl tune prints the lowest fraction at which the rest loop meets "
+        "its margins (0: no stiffness test)",
         ge=0.0, le=1.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
@@ -605,9 +608,10 @@ REST_GAINS_ENTER_M_S = 1e-5
 REST_GAINS_EXIT_M_S = 3e-5
 REST_GAINS_DWELL_S = 0.005
 
-#: the rest spring's stiffness test (``rest_spring_held_fraction``): the regression of the force the stage takes on its
-#: position forgets with this time constant [s] and judges only once the position's variance about its mean over that
-#: window reaches REST_HELD_MIN_TRAVEL_M² (the encoder's 1 nm steps and 0.5 nm noise stay well below)
+#: the rest spring's stiffness test (``rest_spring_held_fraction``, :meth:`StageController._not_held`): the low-passed
+#: position counts as reversed once it has turned back this far from its extreme [m] (the encoder's 1 nm steps and
+#: 0.5 nm noise stay well below), and a branch is judged once, when it has run this many times that from the
+#: reversal (the secant Σ(Δx·ΔF)/Σ(Δx²) over its first 10 nm)
 REST_HELD_MIN_TRAVEL_M = 5e-9
 REST_HELD_JUDGE_TRAVEL = 2.0
 
@@ -649,6 +653,8 @@ ADAPT_SETTLED_TIME_CONSTANTS = 5.0
 #: the observer was not told the force the actuator applied in the slots it did not see, and its estimate carries
 #: that force error for a few time constants, which is no error of the model
 IRREGULAR_DT_PERIODS = 1.5
+#: learning from earlier moves: the prior weight towards the model as given (a fraction of the accumulated
+#: information; see LEARN_FORGET)
 LEARN_RIDGE = 0.05
 #: ... and the model's tangent stiffness is probed every this many cycles of a move
 LEARN_TANGENT_EVERY = 2
@@ -1614,9 +1620,9 @@ class StageController:
         pre-sliding contact is at its stiffest there, Σk on the plant the model describes). True once the branch has
         run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
         reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
-        spring needs. A stage that approaches the target without turning back is not judged, nor a branch that
-        starts or is judged beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the spring's force is clamped
-        there: a bounded force, not a stiffness of the loop)."""
+        spring needs. A stage that approaches the target without turning back is not judged, nor a branch whose
+        judging point (10 nm from its reversal) lies beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the
+        spring's force is clamped there: a bounded force, not a stiffness of the loop)."""
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
         if self._h_n == 0:  # armed: look for the first extreme from here
