@@ -127,8 +127,8 @@ releases the spring as the guard does (``rest_spring_release_reason`` "not held"
 off at standstill: released after 25 / 12 cycles, 88 / 369 nm at most (guard alone 58 / 23 cycles, 1.8 / 1.1 µm);
 the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
 
-Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
-rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
+Rest integral (``rest_integral_hz`` = f_r, off by default; with ``kind: model``, without the rest spring;
+docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
 towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S;
 once the integral has acted on the stiff side, the approach it causes does not pause it)
 and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's estimate is moved each period by::
@@ -144,7 +144,10 @@ than REST_INTEGRAL_SOFT_STILL_M_S, and takes that push back (``dob.shift``) as s
 target: the stage slides only as far as the force went past its break-away level, sticks again and is pushed anew
 (stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m`` or e swings across
 ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
-``feedforward.rest_sync_hz`` hands to the model before the next move.
+``feedforward.rest_sync_hz`` hands to the model before the next move. Without an observer δ goes into the PID's
+integrator instead (nothing else moves the stuck stage: the integrator alone gives K_i/Σk, ≈ 0.02 s⁻¹ on generated
+plant 29), the bound is REST_INTEGRAL_BOUND_X_NO_OBSERVER·θ·F_c, and ``feedforward.rest_sync_hz`` hands the force
+it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`).
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
