@@ -440,7 +440,8 @@ class ControllerConfig:
         "integral action on the tracking error of gain 2*pi*this*min(theta, 1)*k_t (k_t: the model's stiffness for "
         "moving on towards the reference, sum(k) on the stiff side, ~0 where its elements slip; the error clamped to "
         "rest_spring_range_m, the force it adds bounded by the model's Coulomb level, twice that without an "
-        "observer) added to the observer's estimate (without an observer: to the PID's integrator): a stage stuck off the target converges at about 2*pi*this per second instead of the moving "
+        "observer) added to the observer's estimate (without an observer: to the PID's integrator): a stage stuck "
+        "off the target converges at about 2*pi*this per second instead of the moving "
         "loop's g*K_p/sum(k); stopped for the standstill when the stage slides or hunts (rest_spring_release_m, "
         "rest_spring_rearm_m). Meant with feedforward.rest_sync_hz, which hands the force it finds to the model "
         "before the next move (0: off)", ge=0.0, le=50.0)

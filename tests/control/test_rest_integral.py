@@ -261,9 +261,9 @@ def test_without_an_observer_the_rest_loop_is_the_pid_with_k_r_in_its_integrator
     """design.analyse_rest without an observer (dob_bandwidth_hz 0): the rest integral has the PID integrator's form,
     so the stuck loop is the full PID with K_i + K_r (one integrator, not two poles at z = 1, which read as an
     unstable loop); it crosses over near f_r on the stuck stage (|P| ≈ 1/Σk there) with PM near 90°."""
-    from stagectl.config import load_app_config
     import control
 
+    from stagectl.config import load_app_config
     from stagectl.control.design import analyse, analyse_rest, pid_tf
 
     cfg = load_app_config(repo_root / "config" / "sim.yaml")
