@@ -127,8 +127,8 @@ releases the spring as the guard does (``rest_spring_release_reason`` "not held"
 off at standstill: released after 25 / 12 cycles, 88 / 369 nm at most (guard alone 58 / 23 cycles, 1.8 / 1.1 µm);
 the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
 
-Rest integral (``rest_integral_hz`` = f_r, off by default; with an observer and ``kind: model``, without the
-rest spring; docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
+Rest integral (``rest_integral_hz`` = f_r, off by default; with ``kind: model``, without the rest spring;
+docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
 towards it, low-passed over REST_INTEGRAL_VELOCITY_S, at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S;
 once the integral has acted on the stiff side, the approach it causes does not pause it)
 and while |e| > REST_INTEGRAL_DEADBAND·``settle.tolerance_m``, the observer's estimate is moved each period by::
@@ -145,7 +145,10 @@ approaches at up to REST_INTEGRAL_STILL_M_S, and takes it back (``dob.shift``) o
 break-away): the stage slides only as far as the force went past its break-away level, sticks again and is pushed
 anew (stick-slip positioning in small increments). It stops for the standstill when |e| > ``rest_spring_release_m``
 or e swings across ±``rest_spring_rearm_m`` twice, and each standstill starts afresh; what it added stays in the observer, which
-``feedforward.rest_sync_hz`` hands to the model before the next move.
+``feedforward.rest_sync_hz`` hands to the model before the next move. Without an observer δ goes into the PID's
+integrator instead (nothing else moves the stuck stage: the integrator alone gives K_i/Σk, ≈ 0.02 s⁻¹ on generated
+plant 29), the bound is REST_INTEGRAL_BOUND_X_NO_OBSERVER·θ·F_c, and ``feedforward.rest_sync_hz`` hands the force
+it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`).
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
@@ -447,11 +450,12 @@ class ControllerConfig:
         1, unit="count", desc="first-order low-pass sections at dob.bandwidth_hz that the rest spring's force goes "
         "through (1: as the observer's own filter; 2: less of the spring at the stuck stage's resonance)", ge=1, le=2)
     rest_integral_hz: float = param(
-        0.0, unit="Hz", desc="with an observer and kind: model: at standstill, once the stage is still, an "
+        0.0, unit="Hz", desc="with kind: model: at standstill, once the stage is still, an "
         "integral action on the tracking error of gain 2*pi*this*min(theta, 1)*k_t (k_t: the model's stiffness for "
         "moving on towards the reference, sum(k) on the stiff side, ~0 where its elements slip; the error clamped to "
-        "rest_spring_range_m, the force it adds bounded by the model's Coulomb level) added to the observer's "
-        "estimate: a stage stuck off the target converges at about 2*pi*this per second instead of the moving "
+        "rest_spring_range_m, the force it adds bounded by the model's Coulomb level, twice that without an "
+        "observer) added to the observer's estimate (without an observer: to the PID's integrator): a stage stuck "
+        "off the target converges at about 2*pi*this per second instead of the moving "
         "loop's g*K_p/sum(k); stopped for the standstill when the stage slides or hunts (rest_spring_release_m, "
         "rest_spring_rearm_m). Meant with feedforward.rest_sync_hz, which hands the force it finds to the model "
         "before the next move (0: off)", ge=0.0, le=50.0)
@@ -615,6 +619,10 @@ REST_GAINS_DWELL_S = 0.005
 REST_HELD_MIN_TRAVEL_M = 5e-9
 REST_HELD_JUDGE_TRAVEL = 2.0
 
+#: without an observer the rest integral's total over a standstill is bounded by this many × θ·F_c (with one: 1):
+#: a stage that slid on past the target at its sliding level comes back only through its whole pre-sliding
+#: reversal, which takes up to twice that level (generated plant 29: 606 nm past, stuck at 158 nm with 1×)
+REST_INTEGRAL_BOUND_X_NO_OBSERVER = 2.0
 #: the rest integral (``rest_integral_hz``) acts once the stage no longer approaches the target: its speed towards
 #: it, low-passed with this time constant [s], at most REST_INTEGRAL_STILL_M_S for REST_INTEGRAL_DWELL_S (a stage still
 #: creeping in after its move is left to the moving loop: pushing it then slid it past the target, 190 nm behind to
@@ -1006,6 +1014,7 @@ class StageController:
         """The rest integral as at the start of a standstill: nothing added, not stopped, stillness not timed."""
         self._ri_n = 0.0  # force the rest integral has added in this standstill [N]
         self._ri_push = 0.0  # ... of it, the current push on the soft side (taken back at the break-away) [N]
+        self._ri_i = 0.0  # ... without an observer: what of it the PID integrator still carries (not synchronised) [N]
         self._ri_still_s = 0.0  # time at rest with the low-passed speed <= REST_INTEGRAL_STILL_M_S [s]
         self._ri_v = 0.0  # the speed estimate low-passed over REST_INTEGRAL_VELOCITY_S [m/s]
         self._ri_off = False  # stopped for this standstill (the stage slid or hunted)
@@ -1497,16 +1506,13 @@ class StageController:
             # off after 0.25 s, generated plant 36)
             self._ri_still_s = 0.0
             push = self._ri_push
-            if push != 0.0 and self.dob is not None:
+            if push != 0.0:
                 # a push on the soft side broke the stage away: it is taken back at once (bumpless for the
                 # observer, a step of the push in u), so that the stage slides only as far as the force took it
                 # past its break-away level, sticks again short of or near the target and is pushed anew
                 # (stick-slip positioning in small increments; kept, the push slid it past the target)
                 self._ri_push = 0.0
-                self._ri_n -= push
-                self.dob.shift(-push)
-                self.state.u_obs_prev_n -= push
-                return d_hat - push
+                return self._ri_add(-push, d_hat)
             return d_hat
         self._ri_still_s += dt
         if self._ri_still_s < REST_INTEGRAL_DWELL_S or abs(e_m) <= REST_INTEGRAL_DEADBAND * cfg.settle.tolerance_m:
@@ -1536,16 +1542,51 @@ class StageController:
             soft = False
         delta = 2.0 * math.pi * cfg.rest_integral_hz * k_r * max(-r, min(r, e_m)) * dt
         bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else cfg.max_force_n
+        if self.dob is None:
+            # without an observer nothing else moves the stuck stage: one that slid on past the target at its
+            # sliding level is taken back only through its whole reversal, up to twice the level (Masing's rule)
+            bound *= REST_INTEGRAL_BOUND_X_NO_OBSERVER
         total = max(-bound, min(bound, self._ri_n + delta))
         delta = total - self._ri_n
-        dob = self.dob
-        if delta == 0.0 or dob is None:  # (no observer: excluded by _derive)
+        if delta == 0.0:
             return d_hat
-        self._ri_n = total
         self._ri_push = self._ri_push + delta if soft else 0.0
+        return self._ri_add(delta, d_hat)
+
+    def _ri_add(self, delta: float, d_hat: float) -> float:
+        """Add ``delta`` [N] to the rest integral's force: into the observer's estimate (``dob.shift``, taken as
+        applied), or without an observer into the PID integrator. Returns d̂ [N]."""
+        self._ri_n += delta
+        dob = self.dob
+        if dob is None:
+            self.pid.state.i_n += delta
+            self._ri_i += delta
+            return d_hat
         dob.shift(delta)
         self.state.u_obs_prev_n += delta
         return d_hat + delta
+
+    def _rest_sync_integral(self, dt: float, ff: FrictionFeedforward, u_ff: float) -> float:
+        """The stop synchronisation without an observer (``feedforward.rest_sync_hz`` with ``rest_integral_hz``):
+        as :meth:`_rest_sync`, but of the rest integral's own force R (in the PID integrator, which also carries
+        what it integrated in the move): Δx = λ·R/(θ·k_ps), |Δx| <= rest_sync_max_step_m, and the force the model
+        takes leaves both R and the integrator (u unchanged). The next move then starts with the force that
+        holds the stage in the model's pre-sliding state, which sliding unloads as it does the plant's, instead
+        of in the integrator, where it stayed into the move. Returns u_ff [N]."""
+        r = self._ri_i
+        k = self._k_ps
+        if k <= 0.0 or r == 0.0:
+            return u_ff
+        ffc = self.cfg.feedforward
+        th = self.ff_scale
+        lam = 1.0 - math.exp(-2.0 * math.pi * ffc.rest_sync_hz * dt)
+        lim = ffc.rest_sync_max_step_m
+        dx = max(-lim, min(lim, lam * r / (th * k)))
+        new = th * ff.nudge(dx, dt)
+        delta = u_ff - new
+        self._ri_i += delta
+        self.pid.state.i_n += delta
+        return new
 
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
                      dob: QFilterDob | KalmanDob) -> float:
@@ -1757,7 +1798,10 @@ class StageController:
         self._d_spring = dob is not None and cfg.rest_stiffness_fraction > 0.0 and self._k_ps > 0.0
         self._d_held = self._d_spring and cfg.rest_spring_held_fraction > 0.0
         self._d_sync = ffc.rest_sync_hz > 0.0 and dob is not None and model_ff
-        self._d_rest_int = cfg.rest_integral_hz > 0.0 and dob is not None and model_ff and self._k_ps > 0.0
+        self._d_rest_int = cfg.rest_integral_hz > 0.0 and model_ff and self._k_ps > 0.0
+        # without an observer the rest integral acts through the PID integrator, and the stop synchronisation hands
+        # the force it found (only that) to the model's state (_rest_sync_integral)
+        self._d_ri_sync = self._d_rest_int and dob is None and ffc.rest_sync_hz > 0.0
         self._d_hold = dob is not None and cfg.hold_integrator_at_rest
         self._d_rest_gains = isinstance(dob, QFilterDob) and (cfg.rest_kd_fraction != 1.0
                                                               or cfg.rest_dob_bandwidth_fraction != 1.0)
@@ -1997,6 +2041,9 @@ class StageController:
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
+        if (at_rest and not settling and self._d_ri_sync
+                and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
+            u_ff = self._rest_sync_integral(dt, ff, u_ff)  # type: ignore[arg-type]
         hold = at_rest and not settling and self._d_hold
         if self._d_rest_gains:
             # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with

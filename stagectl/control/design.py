@@ -343,11 +343,16 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     The rest integral (``controller.rest_integral_hz`` = f_r; K_r = ``rest_integral_n_m_s`` = 2π·f_r·Σk, its gain on
     the stiff side, the largest) moves the observer's estimate by K_r·e·T each period (``dob.shift``: the observer
     takes the force as applied and does not integrate it again), i.e. a term C_I = K_r·T·z/(z − 1) outside the
-    observer's loop: L = P·(C_PD + C_s + H_y)/(1 − H_u) + P·C_I.
+    observer's loop: L = P·(C_PD + C_s + H_y)/(1 − H_u) + P·C_I. Without an observer (``dob_bandwidth_hz`` <= 0:
+    the controller then adds the rest integral's force to the PID's integrator, the same C_I) L = P·(C + C_I).
     """
     import control
 
     pid_r = dataclasses.replace(pid, kd_n_s_m=pid.kd_n_s_m * kd_fraction)
+    observer = dob_bandwidth_hz > 0.0
+    if not observer:  # C_I has the PID integrator's form: one integrator K_i + K_r (no double pole at z = 1)
+        pid_r = dataclasses.replace(pid_r, ki_n_m_s=(0.0 if integrator_held else pid_r.ki_n_m_s) + rest_integral_n_m_s)
+        integrator_held, rest_integral_n_m_s = False, 0.0
     C = pid_tf(dataclasses.replace(pid_r, ki_n_m_s=0.0) if integrator_held else pid_r, period_s)
     if rest_spring_n_m > 0.0:
         a = math.exp(-2 * math.pi * dob_bandwidth_hz * period_s)
@@ -355,14 +360,15 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
         F = (1 - a) * z / (z - a)
         C = C + rest_spring_n_m * (F * F if spring_sections == 2 else F)
     md = dob_mass_kg if dob_mass_kg is not None else mass_kg
-    Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz * dob_bandwidth_fraction, period_s, dob_command_delay_samples,
-                         velocity_cutoff_hz)
+    if observer:
+        Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz * dob_bandwidth_fraction, period_s, dob_command_delay_samples,
+                             velocity_cutoff_hz)
     stuck = control.c2d(control.tf([1.0], [mass_kg, damping_n_s_m, stiffness_n_m]), period_s, "zoh")
     if delay_samples:
         stuck = stuck * _zinv(period_s, delay_samples)
     free = plant_tf(mass_kg, period_s, delay_samples)
     def loop(P: Any) -> Any:
-        L = dob_loop(P, C, Hu, Hy, period_s)
+        L = dob_loop(P, C, Hu, Hy, period_s) if observer else control.ss(P) * control.ss(C)
         if rest_integral_n_m_s > 0.0:
             z = control.tf([1.0, 0.0], [1.0], period_s)
             L = L + control.ss(P) * control.ss(rest_integral_n_m_s * period_s * z / (z - 1))
