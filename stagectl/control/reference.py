@@ -52,7 +52,7 @@ def load_scenario_file(path: str | Path, field: str = "--scenario") -> Scenario:
     """
     p = Path(path)
     try:
-        data = load_yaml_file(p)
+        data = load_yaml_file(p, "scenario file")
     except ConfigError as exc:
         raise ConfigError([f"{field}: {line}" for line in exc.problems]) from None
     if isinstance(data, dict) and "name" not in data:
