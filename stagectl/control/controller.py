@@ -1124,9 +1124,11 @@ class StageController:
             self.settle.cfg = parts.cfg.settle
         self.cfg = parts.cfg
         self.mass_kg = parts.mass_kg
-        if parts.cfg.dob != self._hw.cfg or parts.mass_kg != self._hw.mass_kg:
-            self._hw = QFilterDob(parts.cfg.dob, parts.mass_kg, self.period_s)
-            self._hw.reset(st.x_prev_m if st.x_prev_m == st.x_prev_m else 0.0, st.u_n)
+        m_hw = parts.mass_kg if parts.cfg.dob.nominal_mass_kg is None else parts.cfg.dob.nominal_mass_kg
+        if parts.cfg.dob != self._hw.cfg or m_hw != self._hw.mass_kg:
+            # the stiffness test's witness retuned in place, bumplessly, as the observer is (no allocation in
+            # the cycle a requested retune lands in; its mass is the observer's nominal one when set)
+            self._hw.retune(parts.cfg.dob, parts.mass_kg)
         self.dob = new_dob
         self.ff = parts.ff
         self._k_ps = _stiffness(parts.ff)
