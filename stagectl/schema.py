@@ -561,17 +561,18 @@ def parse_yaml_text(text: str, name: str = "<yaml>") -> Any:
             loader.dispose()
 
 
-def load_yaml_file(path: str | Path) -> Any:
+def load_yaml_file(path: str | Path, what: str = "configuration file") -> Any:
     """Read a YAML file with the bounded safe loader (:func:`parse_yaml_text`); file and syntax errors,
-    oversize files, alias bombs, deep nesting and duplicate keys become one-line :class:`ConfigError`."""
+    oversize files, alias bombs, deep nesting and duplicate keys become one-line :class:`ConfigError`.
+    ``what`` names the file's kind in those lines (``cannot read scenario file``)."""
     p = Path(path)
     try:
         with p.open("rb") as f:
             raw = f.read(MAX_YAML_BYTES + 1)
     except OSError as exc:
-        raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
+        raise ConfigError(f"{p}: cannot read {what} ({exc.strerror or exc})") from exc
     if len(raw) > MAX_YAML_BYTES:
-        raise ConfigError(f"{p}: larger than {MAX_YAML_BYTES // 1024} KiB; not a configuration file")
+        raise ConfigError(f"{p}: larger than {MAX_YAML_BYTES // 1024} KiB; not a {what}")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

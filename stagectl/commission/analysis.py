@@ -728,11 +728,13 @@ class CvFriction:
 
 
 def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
-               errors: list[float] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+               errors: list[float] | None = None,
+               pairs: list[tuple[CvSegment, CvSegment]] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The passes paired by speed: for each + segment the − segment of the nearest speed (relative difference
     at most ``tol``), each used once. Returns the mean speeds ``(|v₊| + |v₋|)/2`` [m/s], the odd parts
     ``(F₊ − F₋)/2`` and the even parts ``(F₊ + F₋)/2`` [N] (:func:`cv_friction`). ``errors``, when given,
-    gets each pair's standard error of its odd part, ``√(σ₊² + σ₋²)/2`` [N] (the segments' ``f_std_n``)."""
+    gets each pair's standard error of its odd part, ``√(σ₊² + σ₋²)/2`` [N] (the segments' ``f_std_n``);
+    ``pairs``, when given, each pair's two segments ``(+, −)`` in the same order."""
     pos = sorted((s for s in segs if s.v_m_s > 0), key=lambda s: s.v_m_s)
     neg = [s for s in segs if s.v_m_s < 0]
     vk: list[float] = []
@@ -749,6 +751,8 @@ def odd_points(segs: list[CvSegment], tol: float = CV_PAIR_TOLERANCE,
             fe.append(0.5 * (p.f_n + q.f_n))
             if errors is not None:
                 errors.append(0.5 * math.hypot(p.f_std_n, q.f_std_n))
+            if pairs is not None:
+                pairs.append((p, q))
     return np.array(vk), np.array(fo), np.array(fe)
 
 
@@ -843,7 +847,8 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     if len(segs) < 4:
         raise StageError(f"friction: {len(segs)} constant-velocity segments; need at least 4 (both directions)")
     pair_se: list[float] = []
-    vk, fo, fe = odd_points(segs, errors=pair_se)
+    pair_segs: list[tuple[CvSegment, CvSegment]] = []
+    vk, fo, fe = odd_points(segs, errors=pair_se, pairs=pair_segs)
     paired = vk.size >= 2
     sigma: FloatArray | None = None
     errors: FloatArray | None = None
@@ -886,14 +891,19 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
                           * np.exp(-np.abs(vv / stri["vs_m_s"]) ** stri["delta"]), dtype=np.float64)
 
     if paired:
-        # (the pairs the curve set aside, _stribeck_without_outliers, are left out here too)
+        # the pairs the curve set aside (_stribeck_without_outliers) are left out here too, from the line, the
+        # offset and the standard errors alike: a disturbance over part of one pass moves that pass's mean, so
+        # the pair's even part by half as much as its odd part (a 60 mN push on one slowest pass of six pairs
+        # moved the offset by 5 mN), and its residual would count in every standard error
         th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk])[use], (fo - excess(vk))[use], rcond=None)
-        off = float(np.mean(fe))
+        off = float(np.mean(fe[use]))
         # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
         # curve plus the offset (a position force's even part scatters them and counts), over the segments
         # less the curve's and the regression's parameters (a curve through 6 pairs leaves almost nothing)
-        va = np.array([sg.v_m_s for sg in segs])
-        fa = np.array([sg.f_n for sg in segs])
+        dropped = {id(sg) for k, pq in enumerate(pair_segs) if not use[k] for sg in pq}
+        kept_segs = [sg for sg in segs if id(sg) not in dropped]
+        va = np.array([sg.v_m_s for sg in kept_segs])
+        fa = np.array([sg.f_n for sg in kept_segs])
         A = np.column_stack([np.sign(va), va, np.ones_like(va)])
         r = fa - excess(va) - A @ np.array([th[0], th[1], off])
         s2 = float(r @ r) / max(va.size - 3 - (4 if stri else 0), 1)
@@ -901,7 +911,7 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
         if stri is not None:
             stri["offset_n"] = off
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * vk.size), stri, (v, f), points_sigma=sigma, points_error=errors)
+                          int(2 * use.sum()), stri, (v, f), points_sigma=sigma, points_error=errors)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th

@@ -77,6 +77,9 @@ MIN_GAIN_MARGIN_DB = 8.0
 FALLBACK_MIN_PHASE_MARGIN_DEG = 25.0
 FALLBACK_MIN_GAIN_MARGIN_DB = 3.0
 FALLBACK_TWIN_TRIALS = 4
+#: two fallback candidates with the same observer kind whose crossovers and observer bandwidths both lie within
+#: this ratio of each other are near twins: only the first (higher crossover, then more measured GM) takes a slot
+FALLBACK_DISTINCT_RATIO = 1.15
 #: candidate crossovers × period (highest first): 40 Hz ... 8 Hz at 1 kHz
 CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01, 0.008)
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
@@ -1535,7 +1538,9 @@ def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s
     K_p ≥ ``kp_min_n_m`` (ΔF/e_max [N/m], so the loop's spring takes up the stiction excess within the following-
     error limit), stable on the model with the delay and keeping PM ≥ ``FALLBACK_MIN_PHASE_MARGIN_DEG`` and
     GM ≥ ``FALLBACK_MIN_GAIN_MARGIN_DB`` there and on the measured FRF; per observer option the highest crossover
-    (as the finalists), at most ``FALLBACK_TWIN_TRIALS``, highest crossover first (then the most measured GM).
+    (as the finalists), at most ``FALLBACK_TWIN_TRIALS``, highest crossover first (then the most measured GM),
+    each distinct from those before it (:func:`_near_twins`: on k112 35 Hz + Q 160 Hz and 35 Hz + Q 175 Hz, two
+    observer options by the name, took two of the four twin slots for one design).
 
     Why these margins: the designs the floor rejects on a stiction-heavy stage (k112: 0.89 kg, F_s − F_c 0.43 N,
     50 µm limit, K_p ≥ 8.5 kN/m) lose PM on the model to the 1 ms delay (26–34° at 30–40 Hz) and GM on the
@@ -1560,8 +1565,25 @@ def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s
     def order(e: dict[str, Any]) -> tuple[float, float]:
         return -float(e["crossover_target_hz"]), -float((e.get("measured") or e["model"])["gain_margin_db"])
 
-    out = sorted(by_option.values(), key=order)
-    return out[:FALLBACK_TWIN_TRIALS]
+    out: list[dict[str, Any]] = []
+    for e in sorted(by_option.values(), key=order):
+        if len(out) < FALLBACK_TWIN_TRIALS and not any(_near_twins(e, o) for o in out):
+            out.append(e)
+    return out
+
+
+def _near_twins(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether designs ``a`` and ``b`` are near twins for the fallback tier's twin slots: the same observer kind,
+    crossovers within ``FALLBACK_DISTINCT_RATIO`` of each other and (with a Q-filter observer) observer
+    bandwidths too."""
+    def close(x: float, y: float) -> bool:
+        return max(x, y) <= FALLBACK_DISTINCT_RATIO * min(x, y)
+
+    if a["dob_kind"] != b["dob_kind"]:
+        return False
+    if not close(float(a["crossover_target_hz"]), float(b["crossover_target_hz"])):
+        return False
+    return a["dob_kind"] == "none" or close(float(a["dob_bandwidth_hz"]), float(b["dob_bandwidth_hz"]))
 
 
 def given_up_text(e: dict[str, Any]) -> str:

@@ -52,7 +52,7 @@ def load_scenario_file(path: str | Path, field: str = "--scenario") -> Scenario:
     """
     p = Path(path)
     try:
-        data = load_yaml_file(p)
+        data = load_yaml_file(p, "scenario file")
     except ConfigError as exc:
         raise ConfigError([f"{field}: {line}" for line in exc.problems]) from None
     if isinstance(data, dict) and "name" not in data:
@@ -175,8 +175,9 @@ class TrajectoryReference:
 
     def stop_m(self) -> float:
         """Where the reference next comes to rest without reversing first [m] (NaN: a reversal may come first;
-        :meth:`~stagectl.control.trajectory.TrajectoryGenerator.stop_m`), at the last :meth:`sample`."""
-        return self.gen.stop_m()
+        :meth:`~stagectl.control.trajectory.TrajectoryGenerator.stop_m`, with the repeated scenario's restart),
+        at the last :meth:`sample`."""
+        return self.gen.stop_m(self._scenario if self._repeat and self._started else None)
 
     def move(self, t_s: float, target_m: float, max_velocity_m_s: float | None) -> float:
         self._repeat = False

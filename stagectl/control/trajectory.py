@@ -543,23 +543,38 @@ class TrajectoryGenerator:
         st.segment = self._name
         return st.ref
 
-    def stop_m(self) -> float:
+    def stop_m(self, repeat: Scenario | None = None) -> float:
         """Where the reference next comes to rest (v = 0, holding or starting a new segment from rest) [m], when
         it gets there without reversing first; NaN when a reversal (a scan's turn) may come first.
 
-        A segment ending at rest, or ending moving with a rest-start segment or the hold after it (it stops at
-        once there: module docstring), rests at its end; one ending moving with a ``move`` after it does not
-        (NaN: the move's stop phases are not bound yet). Real-time safe (no binding). The friction
-        feed-forward uses it to keep its look-ahead point from going past the stop, or back before it
-        (:mod:`stagectl.control.friction_ff`)."""
+        A segment ending with the hold after it, or with a ``dwell`` or ``triangle`` after it (it stops at once
+        there: module docstring), rests at its end; so does one ending at rest (v = 0 and a = 0) with a ``move``
+        after it. One ending moving, or at a turning point (v = 0, a ≠ 0: a cosine's end), with a ``move`` after
+        it does not (NaN: the move's stop phases are not bound yet, and from a ≠ 0 they reverse first), nor does
+        one followed by a ``cosine`` or ``sine`` (of non-zero amplitude), which starts moving at once (a ≠ 0 or
+        v ≠ 0): a cosine straight into a cosine turns at the junction, as within one. ``repeat``: the scenario
+        loaded again when the queue runs out (a repeated motion, ``ReferenceSource``), whose first segment then
+        follows the last one (after a hold sample; a move to its ``start_m`` first when the last one ends
+        elsewhere). Real-time safe (no binding). The friction feed-forward uses it to keep its look-ahead point from going past the stop, or
+        back before it (:mod:`stagectl.control.friction_ff`)."""
         cur = self._cur
         x = cur.rest_ahead(self.state.tau_s)
         if x != math.inf:
             return x
         end = cur.end
-        if abs(end.v_m_s) <= _V_REST or not self._queue or not isinstance(self._queue[0], Move):
+        if self._queue:
+            nxt = self._queue[0]
+        elif repeat is None or not repeat.segments or (repeat.start_m is not None and repeat.start_m != end.x_m):
             return end.x_m
-        return math.nan
+        else:
+            nxt = repeat.segments[0]
+            if isinstance(nxt, Move):
+                return end.x_m  # (it starts from the hold sample: at rest)
+        if isinstance(nxt, Move):
+            return end.x_m if abs(end.v_m_s) <= _V_REST and abs(end.a_m_s2) <= _A_REST else math.nan
+        if isinstance(nxt, (Cosine, Sine)) and nxt.amplitude_m != 0.0:
+            return math.nan
+        return end.x_m
 
     def remaining_s(self) -> float:
         """Time [s] until the queue is finished (0 when holding)."""

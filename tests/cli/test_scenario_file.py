@@ -56,3 +56,24 @@ def test_a_bad_scenario_file_is_one_line_naming_the_segment(tmp_path: Path, text
         err = r.stderr.strip().splitlines()
         assert len(err) == 1 and err[0] == f"stagectl: error: --scenario: {f}: {line}" + err[0].split(line, 1)[1]
         assert not (tmp_path / cmd / "telemetry.csv").exists()
+
+
+def test_a_missing_scenario_file_is_one_line_naming_the_scenario_file(tmp_path: Path) -> None:
+    """``--scenario`` naming a file that is not there (or a directory) says it cannot read the *scenario* file
+    (on main: "cannot read configuration file", as if ``--config`` were wrong), one line, exit 2, through
+    the real command (a subprocess)."""
+    import subprocess
+
+    from support import stagectl_cmd
+
+    (tmp_path / "dir.yaml").mkdir()
+    for cmd, name, why in (("simulate", "missing.yaml", "No such file or directory"),
+                           ("run", "dir.yaml", "Is a directory")):
+        f = tmp_path / name
+        r = subprocess.run([*stagectl_cmd(), cmd, "--config", str(SIM), "--scenario", str(f),
+                            "--out", str(tmp_path / cmd), "-q", "--no-plots"],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip().splitlines() == [
+            f"stagectl: error: --scenario: {f}: cannot read scenario file ({why})"]
+        assert not (tmp_path / cmd / "telemetry.csv").exists()

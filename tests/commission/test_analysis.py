@@ -687,3 +687,32 @@ def test_the_pre_sliding_level_replaces_an_extrapolated_fs_the_passes_allow() ->
     assert cfit._refit_stribeck({"level_n": plain["fs_n"] + 5e-5, "evidence_ratio": 1e9}, fr, pts) is None
     # without the points' errors (a caller that has none) nothing changes either
     assert cfit._refit_stribeck({"level_n": 0.5718, "evidence_ratio": 1e9}, fr, cv.points) is None
+
+
+def test_stribeck_pair_set_aside_leaves_the_offset_and_the_standard_errors() -> None:
+    """A pair the weighted Stribeck fit sets aside (one slowest − pass pushed by 60 mN, its own error
+    showing it) is left out of the offset and the standard errors as it is out of the line: the offset
+    stays within 0.5 mN of the true 20 mN (with the pair: +5 mN, its even part is moved by half the push
+    over six pairs) and its standard error within 3× the undisturbed passes' (with the pair: the 60 mN
+    residual counts in every standard error)."""
+    fc, fs, vs, fv, f0 = 1.4316, 1.5358, 2.762e-3, 30.671, 0.02
+
+    def force(v: float) -> float:
+        return float(np.sign(v) * (fc + (fs - fc) * np.exp(-((abs(v) / vs) ** 2))) + fv * v + f0)
+
+    segs = []
+    for k, s in enumerate(np.geomspace(16e-3 / 100, 16e-3, 6)):
+        for sg in (1, -1):
+            v = sg * s * (1 + 0.002 * np.cos(3 * k + sg))  # measured speeds differ a little
+            segs.append(an.CvSegment(v, force(v) + 2e-4 * np.sin(5 * k + 2 * sg), 2e-4, 400))
+    clean = an.cv_friction(segs)
+    assert clean.points_sigma is None and abs(clean.offset_n - f0) < 0.1e-3
+    i = next(j for j, s in enumerate(segs) if s.v_m_s < 0)  # the slowest − pass
+    segs[i] = an.CvSegment(segs[i].v_m_s, segs[i].f_n + 0.06, 3e-3, 400)
+    c = an.cv_friction(segs)
+    assert c.stribeck is not None and c.stribeck["set_aside_pairs"] == 1
+    assert c.points_sigma is not None and c.points_sigma[0] > 1e3 * float(np.median(c.points_sigma))
+    assert abs(c.offset_n - f0) < 0.5e-3
+    assert c.offset_std_n < 3 * clean.offset_std_n
+    assert c.coulomb_std_n < 3 * clean.coulomb_std_n and abs(c.coulomb_n - fc) < 1e-3
+    assert c.used == 10  # the segments of the pairs kept

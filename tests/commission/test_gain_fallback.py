@@ -257,3 +257,24 @@ def test_the_verdict_note_does_not_claim_the_floor_for_a_fallback_design() -> No
     assert "keeps" not in text and "the commissioned one (fallback tier) PM 26 deg / GM 3.4 dB" in text
     chosen["healthy"] = True  # a design that meets the floor: the note as before
     assert "below the 40 deg / 8 dB the commissioned one keeps" in report_dict(res)["verdict"]["text"]
+
+
+def test_the_twin_slots_go_to_distinct_designs() -> None:
+    """Two observer options by name can be one design: 35 Hz + Q 160 Hz next to 35 Hz + Q 175 Hz (crossover equal,
+    observers 9 % apart) took two of the four twin slots on k112 (on main: 40 PID, 40 + Q 130, 35 + Q 160,
+    35 + Q 175). Only the first of near twins (same observer kind, crossover and observer bandwidth each within
+    15 %) takes a slot; the next distinct design (30 Hz + Q 100 Hz) gets the freed one. Designs that differ in the
+    observer kind (40 Hz PID, 40 Hz + Q 130) or by more than 15 % in the observer (40 + Q 130, 35 + Q 160: same
+    crossover band) stay apart."""
+    tried = k112_tried() + [design(35, "qfilter", 160, 13408, 30.1, 6.9, 110.0, 3.2),
+                            design(30, "qfilter", 100, 9851, 32.0, 7.8, 90.0, 4.1)]
+    cands = fallback_candidates(tried, KP_MIN, T)
+    names = [(e["crossover_target_hz"], e["dob_kind"], e["dob_bandwidth_hz"]) for e in cands]
+    assert names == [(40, "none", 100), (40, "qfilter", 130), (35, "qfilter", 160), (30, "qfilter", 100)]
+    # a near twin at a neighbouring crossover is one too (32 Hz + Q 170 after 35 Hz + Q 160) ...
+    near = fallback_candidates(tried[:-1] + [design(32, "qfilter", 170, 11200, 31.0, 7.1, 100.0, 3.6)], KP_MIN, T)
+    assert [(e["crossover_target_hz"], e["dob_bandwidth_hz"]) for e in near] == [(40, 100), (40, 130), (35, 160)]
+    # ... and a fifth distinct design still finds no slot beyond the four
+    many = fallback_candidates(tried + [design(26, "qfilter", 80, 8600, 33.0, 8.0, 95.0, 4.5)], KP_MIN, T)
+    assert len(many) == 4 and (26, "qfilter", 80) not in [
+        (e["crossover_target_hz"], e["dob_kind"], e["dob_bandwidth_hz"]) for e in many]
