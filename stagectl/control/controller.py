@@ -1598,7 +1598,12 @@ class StageController:
         standstill; a move re-arms it."""
         if (not at_rest and self._s_rest == 0.0 and self._rs_armed and self._rs_side == 0 and self._rs_swings == 0
                 and self._rs_releases == 0):
-            return d_hat  # moving with the spring armed and empty, nothing counted: what the code below leaves
+            # moving with the spring armed and empty, nothing counted: what the code below leaves, the stiffness
+            # test's branch included (a standstill's test starts afresh: an extreme kept from the last standstill
+            # turned the stage's own run-in at a stop into a "reversal" and released a held stage, "not held")
+            if self._h_n != 0:
+                self._reset_held()
+            return d_hat
         cfg = self.cfg
         e_x = x_m - ref.x_m
         r = cfg.rest_spring_range_m
