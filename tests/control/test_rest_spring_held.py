@@ -47,14 +47,16 @@ def _plain_free_mass(c, timing, kick: float, n: int = 500):
 
 def test_a_free_mass_releases_the_spring_by_its_stiffness(seed):
     """A free mass (no friction: tune's rest/free plant) started 1 nm and 20 nm off the reference at standstill: the
-    stiffness test releases the spring within 30 cycles, the largest excursion stays within 100 / 400 nm (without the
-    test, the ±50 nm hunting guard released it after 58 / 23 cycles at 1.8 / 1.1 µm), and the stage then holds
-    within 2 nm as the spring-less controller does; bench.control.free_mass_rest_check (tune's figures) agrees."""
+    stiffness test releases the spring within 30 cycles, the largest excursion stays within 60 / 400 nm (without the
+    test, the ±50 nm hunting guard released it after 58 / 23 cycles at 1.8 / 1.1 µm; with the first branch judged
+    only after a reversal, 88 nm at 1 nm: with no move since the start the branch from the arming point is judged
+    too), and the stage then holds within 2 nm as the spring-less controller does; bench.control.free_mass_rest_check
+    (tune's figures) agrees."""
     from stagectl.bench.control import free_mass_rest_check
 
     c = seed.controller
     assert c.rest_spring_held_fraction > 0.0
-    for kick, bound in ((1e-9, 100e-9), (2e-8, 400e-9)):
+    for kick, bound in ((1e-9, 60e-9), (2e-8, 400e-9)):
         rel, why, mx, late = _plain_free_mass(c, seed.timing, kick)
         assert rel is not None and rel <= 30 and why == "not held", (kick, rel, why)
         assert mx <= bound and late <= 2e-9, (kick, mx, late)
