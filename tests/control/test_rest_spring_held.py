@@ -186,3 +186,23 @@ def test_a_scan_that_ends_where_it_started_keeps_the_spring(seed, stage_kind):
     assert res.fault is None
     assert ctl.rest_spring_release_count == 0 and ctl._rs_armed, ctl.rest_spring_release_reason
     assert abs(rec.col("e")[-1]) <= 20e-9
+
+
+def test_the_spring_worse_than_none_is_named():
+    """tune._spring_worse: an excursion with the spring above 1.2x the one without is named with both figures (per
+    start offset of the free mass, per step of the soft stage); none when the spring does as well."""
+    from stagectl.commands.tune import _spring_worse
+
+    def fm(kick, on, off):
+        return {"kick_m": kick, "max_excursion_m": on, "no_spring": {"max_excursion_m": off}}
+
+    rest = {"free_mass_check": [fm(1e-9, 54e-9, 11e-9), fm(2e-8, 150e-9, 151e-9)],
+            "not_held_check": {"fractions": [{"stiffness_fraction": 0.2,
+                                              "spring": {"hold_excursion_m": [337e-9, 48e-9, 443e-9]},
+                                              "no_spring": {"hold_excursion_m": [1055e-9, 164e-9, 123e-9]}}]}}
+    assert _spring_worse(rest) == [
+        "a free mass started 1 nm off: largest excursion 54 nm against 11 nm without",
+        "pre-sliding stiffness x0.2: hold excursion after step 3 443 nm against 123 nm without"]
+    rest["free_mass_check"] = rest["free_mass_check"][1:]
+    rest["not_held_check"]["fractions"][0]["spring"]["hold_excursion_m"][2] = 140e-9
+    assert _spring_worse(rest) == [] and _spring_worse(None) == []
