@@ -26,7 +26,10 @@ config's simulated plant (``sim:``) through 10 µm steps with 0.5 s holds
 It is **refused** (no suggested YAML, exit 1, the reasons printed) when it is unstable, its margins are thin,
 or it hunts in a limit cycle, is still more than 1 µm off in the second half of a hold, or faults on the steps. Otherwise it is offered with a confidence: ``high`` (every
 step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every step settles within the hold),
-``low`` (margins only: no ``sim:`` plant to check on). Exit code 1 also when the configured loop is unstable
+``low`` (margins only: no ``sim:`` plant to check on). ``high`` becomes ``medium`` when the configured rest spring,
+which the suggestion keeps, does worse than none in the simulated checks on stages that are not held (a free mass,
+the plant at ×0.2 of its pre-sliding stiffness: an excursion above :data:`SPRING_WORSE_RATIO` × the spring-less one),
+and the reason names those figures (``rest_spring_worse``). Exit code 1 also when the configured loop is unstable
 (moving, or at standstill on the stuck stage anywhere in the θ range), 2 on bad input.
 """
 
@@ -67,6 +70,8 @@ THETA_POINTS = 5
 NOT_HELD_STIFFNESS_FRACTIONS = (0.2,)
 #: ... and on a free mass (no friction), started this far off the reference at standstill [m]
 FREE_MASS_KICKS_M = (1e-9, 2e-8, 1e-7)
+#: in those checks the spring does worse than none when an excursion with it exceeds the one without by this factor
+SPRING_WORSE_RATIO = 1.2
 
 
 #: heaviest moving mass [kg] the loop design resolves numerically (python-control transfer functions)
@@ -217,7 +222,7 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     healthy = all(v["healthy"] for v in summaries.values())
     check = _check(inp["app"], pid, dbw, nd) if inp["app"] is not None and healthy else None
     verdict = _verdict(summaries, check)
-    result["designed"] = {
+    result["designed"] = d_out = {
         "target_crossover_hz": bw,
         "searched_crossover_hz": searched,
         "pid": _pid_dict(pid),
@@ -227,6 +232,15 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         **verdict,
         "yaml": None if verdict["refused"] else _yaml_snippet(m, pid, dbw, nd),
     }
+    worse = _spring_worse(result.get("configured", {}).get("rest"))
+    if worse and not verdict["refused"]:
+        # the suggestion keeps the configured rest spring: what it does on stages that are not held counts too
+        verdict["rest_spring_worse"] = worse
+        if verdict["confidence"] == "high":
+            verdict["confidence"] = "medium"
+        verdict["confidence_reason"] += (f"; the rest spring these gains keep does worse than none on stages that are "
+                                         f"not held (simulated with the configured gains: {'; '.join(worse)})")
+        d_out.update(verdict)
     if verdict["refused"]:
         exit_code = 1
     if args.out:
@@ -236,6 +250,32 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         result["bode_png"] = str(png)
     result["exit_code"] = exit_code
     return result, exit_code
+
+
+def _spring_worse(rest: dict[str, Any] | None) -> list[str]:
+    """Where the rest checks of :func:`_rest_loops` (free mass, plant stiffness × :data:`NOT_HELD_STIFFNESS_FRACTIONS`)
+    found the spring worse than none: a largest excursion (per start offset, per step's hold) above
+    :data:`SPRING_WORSE_RATIO` × the one without it. One phrase per check, with the figures; [] when none (or no
+    check ran)."""
+    if not rest:
+        return []
+    out: list[str] = []
+    fm = rest.get("free_mass_check") or []
+    bad = [r for r in fm if r["max_excursion_m"] > SPRING_WORSE_RATIO * r["no_spring"]["max_excursion_m"]]
+    if bad:
+        out.append("a free mass started " + "/".join(f"{r['kick_m'] * 1e9:g}" for r in bad) + " nm off: largest "
+                   "excursion " + "/".join(f"{r['max_excursion_m'] * 1e9:.0f}" for r in bad) + " nm against "
+                   + "/".join(f"{r['no_spring']['max_excursion_m'] * 1e9:.0f}" for r in bad) + " nm without")
+    chk = rest.get("not_held_check") or {}
+    for row in chk.get("fractions", []):
+        on, off = row["spring"]["hold_excursion_m"], row["no_spring"]["hold_excursion_m"]
+        steps = [i for i, (a, b) in enumerate(zip(on, off, strict=False)) if a > SPRING_WORSE_RATIO * b]
+        if steps:
+            out.append(f"pre-sliding stiffness x{row['stiffness_fraction']:g}: hold excursion after step "
+                       + "/".join(str(i + 1) for i in steps) + " "
+                       + "/".join(f"{on[i] * 1e9:.0f}" for i in steps) + " nm against "
+                       + "/".join(f"{off[i] * 1e9:.0f}" for i in steps) + " nm without")
+    return out
 
 
 def _rest_gains(ctl: Any) -> dict[str, Any]:

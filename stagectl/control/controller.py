@@ -123,9 +123,11 @@ F = LPF(u − m·a), and the position at the sample F is centred on goes through
 reversal of x_f (REST_HELD_MIN_TRAVEL_M hysteresis; a pre-sliding contact is at its stiffest there) the secant
 k̂ = Σ(Δx·ΔF)/Σ(Δx²) over the first REST_HELD_JUDGE_TRAVEL·REST_HELD_MIN_TRAVEL_M (10 nm) is judged once, within
 ``rest_spring_range_m`` of x_r only (beyond it the spring's force is clamped: no stiffness); k̂ < ρ·min(θ, 1)·Σk
-releases the spring as the guard does (``rest_spring_release_reason`` "not held"). Free 2 kg mass started 1 / 20 nm
-off at standstill: released after 25 / 12 cycles, 88 / 369 nm at most (guard alone 58 / 23 cycles, 1.8 / 1.1 µm);
-the seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
+releases the spring as the guard does (``rest_spring_release_reason`` "not held"). Each standstill's test starts
+afresh (a move resets it); with no move since the start the contact's history is unknown and the branch from the
+arming point is judged too. Free 2 kg mass started 1 / 20 nm off at standstill: released after 26 / 12 cycles, 54 / 369 nm at most
+(judged only after a reversal 25 / 12 cycles, 88 / 369 nm; guard alone 58 / 23 cycles, 1.8 / 1.1 µm); the
+seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
 
 Rest integral (``rest_integral_hz`` = f_r, off by default; with ``kind: model``, without the rest spring;
 docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
@@ -972,6 +974,7 @@ class StageController:
             self.dob.reset(x_m)
         self._hw.reset(x_m, u_n)
         self._h_xf = math.nan
+        self._h_moved = False  # no move since the start: the stiffness test's first branch starts at the arming point
         if self.ff is not None:
             self.ff.reset(x_m)
             if isinstance(self.ff, FrictionFeedforward):
@@ -1188,6 +1191,7 @@ class StageController:
     _last_ref: Reference | None = None
     _h_f = 0.0  # the stiffness test's witness force LPF(u − m·a) [N] ...
     _h_xf = math.nan  # ... and filtered position [m]
+    _h_moved = False  # the reference has moved since reset
     _d_held = False
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
@@ -1605,9 +1609,16 @@ class StageController:
         re-armed (s = k_v·(x − x_r), the observer moved by +s: u continuous) once |x − x_r| stayed within
         ``rest_spring_rearm_m`` for ``rest_spring_rearm_s``, at most ``rest_spring_max_release_count`` − 1 times per
         standstill; a move re-arms it."""
+        if not at_rest:
+            self._h_moved = True
         if (not at_rest and self._s_rest == 0.0 and self._rs_armed and self._rs_side == 0 and self._rs_swings == 0
                 and self._rs_releases == 0):
-            return d_hat  # moving with the spring armed and empty, nothing counted: what the code below leaves
+            # moving with the spring armed and empty, nothing counted: what the code below leaves, the stiffness
+            # test's branch included (a standstill's test starts afresh: an extreme kept from the last standstill
+            # turned the stage's own run-in at a stop into a "reversal" and released a held stage, "not held")
+            if self._h_n != 0:
+                self._reset_held()
+            return d_hat
         cfg = self.cfg
         e_x = x_m - ref.x_m
         r = cfg.rest_spring_range_m
@@ -1670,7 +1681,9 @@ class StageController:
         pre-sliding contact is at its stiffest there, Σk on the plant the model describes). True once the branch has
         run REST_HELD_MIN_TRAVEL_M·REST_HELD_JUDGE_TRAVEL and its secant stiffness k̂ = Σ(Δx·ΔF)/Σ(Δx²) (Δ from the
         reversal) is below ρ/φ·k_v = ρ·min(θ, 1)·Σk [N/m]: the stage is not held by a spring stiffer than the rest
-        spring needs. A stage that approaches the target without turning back is not judged, nor a branch whose
+        spring needs. With no move since :meth:`reset` the branch from the arming point is judged as well (the
+        contact's history is unknown). After a move a stage that approaches the target without turning back is not
+        judged (its elements may slip: it arrives on its soft side), nor a branch whose
         judging point (10 nm from its reversal) lies beyond ``rest_spring_range_m`` of the reference ``x_r`` [m] (the
         spring's force is clamped there: a bounded force, not a stiffness of the loop)."""
         xf, f = self._h_xf, self._h_f
@@ -1678,13 +1691,17 @@ class StageController:
         if self._h_n == 0:  # armed: look for the first extreme from here
             self._h_n, self._h_dir, self._h_ext, self._h_fext = 1, 0, xf, f
             self._h_sxx = self._h_sxf = 0.0
+            if not self._h_moved:  # no move since the start: the contact's history is unknown, a branch starts here
+                self._h_rev = True
+                self._h_x0, self._h_f0 = xf, f
             return False
         d = self._h_dir
         if d == 0:
             if abs(xf - self._h_ext) >= h:
                 self._h_dir = 1 if xf > self._h_ext else -1
                 self._h_ext, self._h_fext = xf, f
-            return False
+            if not self._h_rev:
+                return False
         if (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
             self._h_ext, self._h_fext = xf, f
             if not self._h_rev or self._h_sxx < 0.0:
