@@ -1471,7 +1471,8 @@ class StageController:
         stop"): the standstill before it synchronised (:meth:`_rest_sync` ran at its last sample), and whatever of
         the observer's estimate d̂ [N] it has not yet loaded into the model (at most ``rest_sync_max_step_m`` of
         virtual travel per period: after a short dwell most of it) is loaded now, before the model takes the
-        move's first step along the reference. Without it a move that starts with a reversal begins from the
+        move's first step along the reference, if it is more than one period of the rest sync can load
+        (θ·Σk·rest_sync_max_step_m: after a long enough standstill nothing changes). Without it a move that starts with a reversal begins from the
         model's state of the previous direction while the observer still holds the force the stage really has:
         the model's reversal swings the feed-forward by up to 2·F_c, the observer's old level stays on top, and
         the stage is pushed ahead of the reference (a 30 ms dwell: 5.3 µm ahead; README "Move and settle").
@@ -1486,9 +1487,9 @@ class StageController:
         th = self.ff_scale
         st = self.state
         d_hat = st.d_hat_n
-        if k <= 0.0 or th <= 0.0 or d_hat == 0.0 or d_hat != d_hat:
-            return
         ffc = self.cfg.feedforward
+        if k <= 0.0 or th <= 0.0 or not abs(d_hat) > th * k * ffc.rest_sync_max_step_m:
+            return  # (nothing left that one period of the rest sync could not load: the standstill's sync converged)
         v_v = ffc.rest_sync_max_step_m / self.period_s  # the rest sync's largest virtual speed [m/s]
         u_old = u_ff = th * ff.state.u_ff_n
         rem = d_hat
