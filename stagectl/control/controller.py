@@ -1940,12 +1940,24 @@ class StageController:
         # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
         ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
         settling = tau_c == tau_c
-        if self._sync_armed and not (v_r == 0.0 and a_r == 0.0):
-            # a move starts after a standstill whose stop synchronisation was under way: it completes here, before
-            # the model takes the move's first step (_sync_on_start)
-            self._sync_armed = False
-            if not settling:
+        if not (v_r == 0.0 and a_r == 0.0) and (self._sync_armed or (settling and self._sm.stiff)):
+            # a move starts after a standstill whose stop synchronisation was under way, or during a settle move
+            # from ahead: the synchronisation completes here, before the model takes the move's first step
+            # (_sync_on_start). The continuation's reversal spring force u_k, the plant's reversal there that the
+            # model has not seen, goes to the observer first (as at the continuation's end, d̂ += u_k: no step in
+            # u) and with it into the model; the continuation goes on for the feedback without it (kept, the model's
+            # own reversal at the move's start came on top of it: a 10 ms dwell, 15 µm ahead)
+            if settling and self._sm.stiff and dob is not None:
+                if self._u_k != 0.0:
+                    self.shift_observer(self._u_k)
+                    st.d_hat_n += self._u_k
+                    self._u_k = 0.0
+                self._ahead_pass = 0
+                self._sm.stiff = False
                 self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+            elif self._sync_armed and not settling:
+                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+            self._sync_armed = False
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
