@@ -352,6 +352,11 @@ class FeedforwardConfig:
         "displacement until its force is the one the plant holds; 0: off)", ge=0.0, le=200.0)
     rest_sync_max_step_m: float = param(
         2e-9, unit="m", desc="largest virtual displacement fed to the model per period by rest_sync_hz", gt=0.0)
+    rest_sync_on_start: bool = param(
+        True, desc="with an observer and kind: model: a move that starts before the standstill's rest_sync_hz "
+        "synchronisation has finished (a short dwell), or during a settle move from ahead, first loads the rest of "
+        "the observer's estimate (and the settle move's reversal force) into the model's pre-sliding state, "
+        "before the model's first step of the move (false: the observer carries it into the move)")
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
         "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
@@ -382,6 +387,7 @@ class FeedforwardConfig:
 #: FeedforwardConfig keys read live at each step: a retune that changes only these keeps the feed-forward object
 #: (its friction state, θ and β); any other key defines the friction feed-forward and rebuilds it
 FF_LIVE_KEYS = frozenset({"inertia", "inertia_lookahead", "mass_kg", "rest_sync_hz", "rest_sync_max_step_m",
+                          "rest_sync_on_start",
                           "adapt_bandwidth_hz", "adapt_min_force_n", "adapt_presliding_m",
                           "adapt_max_change_fraction", "learn_moves_fraction"})
 
@@ -1940,7 +1946,8 @@ class StageController:
         # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
         ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
         settling = tau_c == tau_c
-        if not (v_r == 0.0 and a_r == 0.0) and (self._sync_armed or (settling and self._sm.stiff)):
+        if not (v_r == 0.0 and a_r == 0.0) and (self._sync_armed or (
+                settling and self._sm.stiff and cfg.feedforward.rest_sync_on_start)):
             # a move starts after a standstill whose stop synchronisation was under way, or during a settle move
             # from ahead: the synchronisation completes here, before the model takes the move's first step
             # (_sync_on_start). The continuation's reversal spring force u_k, the plant's reversal there that the
@@ -2107,7 +2114,7 @@ class StageController:
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
-            self._sync_armed = True
+            self._sync_armed = ffc.rest_sync_on_start
         if (at_rest and not settling and self._d_ri_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff = self._rest_sync_integral(dt, ff, u_ff)  # type: ignore[arg-type]
