@@ -67,7 +67,12 @@ reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer
 pre-sliding stiffness, so the step never overshoots; |Δx| <= ``rest_sync_max_step_m``) and whatever force it
 takes leaves the observer (``dob.shift``; u unchanged). The next move then starts from a model holding the force
 the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
-re-learning a state mismatch during the first milliseconds of the move.
+re-learning a state mismatch during the first milliseconds of the move. The synchronisation is rate-limited
+(``rest_sync_max_step_m`` per period); a move that starts before it has finished, or during a settle move from
+ahead (whose reversal force u_k the model has not seen), completes it on its first sample, before the model's
+first step along the reference (``rest_sync_on_start``; :meth:`StageController._sync_on_start`): otherwise the
+model reverses from its old direction's level with the observer still holding the plant's force on top (+10,
+−10, +60 µm moves, 30 ms dwells: 5.3 µm ahead on the third).
 The model copy is fed at x_r; with the stage stuck more than ``rest_spring_range_m`` off it, d̂ also holds that
 offset's force. Loaded into the model at x_r, the next move's first |x_r − x| of reference travel (which the stuck
 stage does not make) re-loaded the model's springs and pushed the stage ahead. So with the stage stuck further
