@@ -2214,6 +2214,11 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
+        if self._sync_armed and not (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0):
+            # a move starts on a blind cycle: the start-edge sync before the model's first step, as in _step
+            self._sync_armed = False
+            if isinstance(ff, FrictionFeedforward) and self.dob is not None:
+                self._sync_on_start(dt, ff, self.dob)
         u_ff = ff.step(dt, ref, self._ref_stop) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
