@@ -67,7 +67,12 @@ reference is at rest, a fraction λ = 1 − exp(−2π·f_s·dt) of the observer
 pre-sliding stiffness, so the step never overshoots; |Δx| <= ``rest_sync_max_step_m``) and whatever force it
 takes leaves the observer (``dob.shift``; u unchanged). The next move then starts from a model holding the force
 the plant holds (d̂ ≈ 0), with its pre-sliding springs loaded as the plant's are, instead of the observer
-re-learning a state mismatch during the first milliseconds of the move.
+re-learning a state mismatch during the first milliseconds of the move. The synchronisation is rate-limited
+(``rest_sync_max_step_m`` per period); a move that starts before it has finished, or during a settle move from
+ahead (whose reversal force u_k the model has not seen), completes it on its first sample, before the model's
+first step along the reference (``rest_sync_on_start``; :meth:`StageController._sync_on_start`): otherwise the
+model reverses from its old direction's level with the observer still holding the plant's force on top (+10,
+−10, +60 µm moves, 30 ms dwells: 5.3 µm ahead on the third).
 The model copy is fed at x_r; with the stage stuck more than ``rest_spring_range_m`` off it, d̂ also holds that
 offset's force. Loaded into the model at x_r, the next move's first |x_r − x| of reference travel (which the stuck
 stage does not make) re-loaded the model's springs and pushed the stage ahead. So with the stage stuck further
@@ -354,6 +359,11 @@ class FeedforwardConfig:
         "displacement until its force is the one the plant holds; 0: off)", ge=0.0, le=200.0)
     rest_sync_max_step_m: float = param(
         2e-9, unit="m", desc="largest virtual displacement fed to the model per period by rest_sync_hz", gt=0.0)
+    rest_sync_on_start: bool = param(
+        True, desc="with an observer and kind: model: a move that starts before the standstill's rest_sync_hz "
+        "synchronisation has finished (a short dwell), or during a settle move from ahead, first loads the rest of "
+        "the observer's estimate (and the settle move's reversal force) into the model's pre-sliding state, "
+        "before the model's first step of the move (false: the observer carries it into the move)")
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
         "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
@@ -384,6 +394,7 @@ class FeedforwardConfig:
 #: FeedforwardConfig keys read live at each step: a retune that changes only these keeps the feed-forward object
 #: (its friction state, θ and β); any other key defines the friction feed-forward and rebuilds it
 FF_LIVE_KEYS = frozenset({"inertia", "inertia_lookahead", "mass_kg", "rest_sync_hz", "rest_sync_max_step_m",
+                          "rest_sync_on_start",
                           "adapt_bandwidth_hz", "adapt_min_force_n", "adapt_presliding_m",
                           "adapt_max_change_fraction", "learn_moves_fraction"})
 
@@ -657,6 +668,10 @@ LEARN_FORGET = 0.9
 #: the observer's bandwidth) ... (and a reversal is stiffness evidence for the adaptation only if there θ·Σk·|e|
 #: was at most this fraction of the model force or its Coulomb level)
 ADAPT_LAG_FRACTION = 0.1
+# the stop synchronisation completed on a move's start edge (_sync_on_start): at most this many virtual steps of the
+# model, until less than this fraction of the observer's estimate is left or a step moves less than that
+SYNC_START_ITERATIONS = 12
+SYNC_START_TOLERANCE = 0.02
 #: ... for at least this many observer time constants in a row (the estimate has settled on the model's error)
 ADAPT_SETTLED_TIME_CONSTANTS = 5.0
 #: a sample interval longer than this many periods (a skipped slot, a stale sample before it) restarts that count:
@@ -968,6 +983,7 @@ class StageController:
         if self._rest_gains:
             self._set_rest_gains(False)
         self._rg_still_s = 0.0  # the rest gains' dwell starts again
+        self._sync_armed = False
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -1212,6 +1228,7 @@ class StageController:
     _ff_bump: float | None = None
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
     _rev_x = math.nan  # the model's last reversal seen [m] ...
+    _sync_armed = False  # the last step at rest ran the stop synchronisation: a move starting next completes it
     _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
@@ -1465,6 +1482,47 @@ class StageController:
         delta = u_ff - new  # old − new feed-forward force: the observer carries it
         dob.shift(delta)
         return new, d_hat + delta
+
+    def _sync_on_start(self, dt: float, ff: FrictionFeedforward, dob: QFilterDob | KalmanDob) -> None:
+        """The stop synchronisation completes on a move's start edge (module docstring, "Feed-forward through the
+        stop"): the standstill before it synchronised (:meth:`_rest_sync` ran at its last sample), and whatever of
+        the observer's estimate d̂ [N] it has not yet loaded into the model (at most ``rest_sync_max_step_m`` of
+        virtual travel per period: after a short dwell most of it) is loaded now, before the model takes the
+        move's first step along the reference, if it is more than one period of the rest sync can load
+        (θ·Σk·rest_sync_max_step_m: after a long enough standstill nothing changes). Without it a move that starts with a reversal begins from the
+        model's state of the previous direction while the observer still holds the force the stage really has:
+        the model's reversal swings the feed-forward by up to 2·F_c, the observer's old level stays on top, and
+        the stage is pushed ahead of the reference (a 30 ms dwell: 5.3 µm ahead; README "Move and settle").
+
+        The same virtual displacements as the rest sync's, Δx = d̂/(θ·Σk) each (Σk the largest, initial stiffness:
+        no step overshoots), at the rest sync's largest virtual speed rest_sync_max_step_m/T (the model's σ1 and
+        viscous terms stay as small as in the standstill's own steps), at most SYNC_START_ITERATIONS of them and
+        until less than SYNC_START_TOLERANCE of d̂ is left or a step moves less than that; the force the model
+        takes leaves the observer (``dob.shift``, and the observer's last input with it: u unchanged). Real-time
+        safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move)."""
+        k = self._k_ps
+        th = self.ff_scale
+        st = self.state
+        d_hat = st.d_hat_n
+        ffc = self.cfg.feedforward
+        if k <= 0.0 or th <= 0.0 or not abs(d_hat) > th * k * ffc.rest_sync_max_step_m:
+            return  # (nothing left that one period of the rest sync could not load: the standstill's sync converged)
+        v_v = ffc.rest_sync_max_step_m / self.period_s  # the rest sync's largest virtual speed [m/s]
+        u_old = u_ff = th * ff.state.u_ff_n
+        rem = d_hat
+        for _ in range(SYNC_START_ITERATIONS):
+            dx = rem / (th * k)
+            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
+            moved = u_ff - new  # old − new feed-forward force: the observer carries it
+            u_ff = new
+            rem += moved
+            if abs(rem) <= SYNC_START_TOLERANCE * abs(d_hat) or abs(moved) <= SYNC_START_TOLERANCE * abs(d_hat):
+                break
+        delta = u_old - u_ff
+        if delta != 0.0:
+            self.shift_observer(delta)
+            st.d_hat_n += delta
+            st.u_ff_n -= delta
 
     def _rest_sync_where(self, ff: FrictionFeedforward, x_r: float, x_m: float, v_hat: float) -> bool:
         """Where the stop synchronisation loads the model (module docstring, "Feed-forward through the stop"):
@@ -1919,6 +1977,25 @@ class StageController:
         # settle move (settle.move_s): the feedback's reference; tau_c: the continuation's time (nan: none)
         ref_fb, tau_c = self._settle_move(dt, ref, x_meas_m, v_hat, ilc)
         settling = tau_c == tau_c
+        if not (v_r == 0.0 and a_r == 0.0) and (self._sync_armed or (
+                settling and self._sm.stiff and cfg.feedforward.rest_sync_on_start)):
+            # a move starts after a standstill whose stop synchronisation was under way, or during a settle move
+            # from ahead: the synchronisation completes here, before the model takes the move's first step
+            # (_sync_on_start). The continuation's reversal spring force u_k, the plant's reversal there that the
+            # model has not seen, goes to the observer first (as at the continuation's end, d̂ += u_k: no step in
+            # u) and with it into the model; the continuation goes on for the feedback without it (kept, the model's
+            # own reversal at the move's start came on top of it: a 10 ms dwell, 15 µm ahead)
+            if settling and self._sm.stiff and dob is not None:
+                if self._u_k != 0.0:
+                    self.shift_observer(self._u_k)
+                    st.d_hat_n += self._u_k
+                    self._u_k = 0.0
+                self._ahead_pass = 0
+                self._sm.stiff = False
+                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+            elif self._sync_armed and not settling:
+                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+            self._sync_armed = False
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
@@ -2064,9 +2141,11 @@ class StageController:
             elif (self._ri_n != 0.0 or self._ri_still_s != 0.0 or self._ri_off or self._ri_swings or self._ri_side
                   or self._ri_v != 0.0):
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
+        self._sync_armed = False
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
+            self._sync_armed = ffc.rest_sync_on_start
         if (at_rest and not settling and self._d_ri_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff = self._rest_sync_integral(dt, ff, u_ff)  # type: ignore[arg-type]
@@ -2161,6 +2240,11 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
+        if self._sync_armed and not (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0):
+            # a move starts on a blind cycle: the start-edge sync before the model's first step, as in _step
+            self._sync_armed = False
+            if isinstance(ff, FrictionFeedforward) and self.dob is not None:
+                self._sync_on_start(dt, ff, self.dob)
         u_ff = ff.step(dt, ref, self._ref_stop) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg

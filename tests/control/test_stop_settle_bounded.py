@@ -8,6 +8,10 @@ behind the stage, the settle move from ahead starts and pulled with the model's 
 offset (6.4·10⁵ N/m × 4.4 µm = 2.8 N, against a friction whose whole reversal is ~1.25 N there): the stage overshot
 by 11 µm, the second continuation added its own pull, and the stage swung ±70 µm into a following-error fault.
 
+Since the start-edge synchronisation (``feedforward.rest_sync_on_start``, tests/control/test_dwell_sync_on_start.py)
+that move no longer runs ahead; the stop cases here switch it off to put the stage ahead as it was (the observer
+carrying +0.6 N into the move), which is what they are about: a stop while the stage is ahead, whatever put it there.
+
 Checked in lock-step, simulated time, through the real loop (``StopRequest``), at several moments of the move
 (accelerating, at speed, behind), with a wrong model, and on config/hil-canopen.yaml (the real CiA 402 driver on
 the embedded virtual drive) as shipped and with the settle move from ahead switched on:
@@ -53,11 +57,12 @@ def _sim(ahead: float | None = None) -> Any:
 
 
 def _ahead(cfg: Any, fraction: float | None) -> Any:
-    if fraction is None:
-        return cfg
     c = cfg.controller
-    return dataclasses.replace(cfg, controller=dataclasses.replace(
-        c, settle=dataclasses.replace(c.settle, ahead_stiffness_fraction=fraction)))
+    # the stage ahead at the stop: the observer carries its force into the third move (no start-edge sync)
+    c = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, rest_sync_on_start=False))
+    if fraction is not None:
+        c = dataclasses.replace(c, settle=dataclasses.replace(c.settle, ahead_stiffness_fraction=fraction))
+    return dataclasses.replace(cfg, controller=c)
 
 
 def _hil_canopen(ahead: float | None = None) -> Any:
