@@ -282,8 +282,16 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
         L += _rest_lines(ch.get("rest"))
         ros = rep["gains"].get("rest_on_stage")
         if ros:
-            L += ["", (f"Rest additions ({', '.join(ros.get('additions') or [])}) checked on the stage, one run each "
-                       f"with and without (confidence {ros.get('confidence')}): {ros.get('decision')}.")]
+            k = int(ros.get("pairs") or 1)
+            sm = ros.get("scatter_measured")
+            L += ["", (f"Rest additions ({', '.join(ros.get('additions') or [])}) checked on the stage, "
+                       + ("one pair of runs" if k == 1 else f"{k} pairs of runs (arms' order swapped each pair)")
+                       + f" with and without, {_num(ros.get('stage_s'), '.3g')} s of stage time (confidence "
+                       f"{ros.get('confidence')}; one run's cosine scatter "
+                       + (f"measured {sm * 100:.2g} %, " if sm is not None else "")
+                       + f"used {_num(100 * float(ros.get('scatter_used') or ros.get('scatter') or 0.0), '.2g')} %"
+                       + (f"; still undecided: {ros['undecided']}" if ros.get("undecided") else "")
+                       + f"): {ros.get('decision')}.")]
         sr = rep["gains"].get("stiction_rule")
         if sr:
             lam = ch.get("excess_stiction_length_m")

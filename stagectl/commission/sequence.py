@@ -177,6 +177,9 @@ REST_GAINS_DEFAULT: dict[str, float] = {"rest_kd_fraction": 1.0, "rest_dob_bandw
 #: cosine with 0.5 nm sensor noise, tests/commission/test_verify_conditions.py); two runs' ratio scatters by √2 that
 REST_STAGE_SCENARIOS = ("steps", "cosine")
 REST_STAGE_SCATTER = 0.08
+#: ... and how many pairs of runs (with, without) it runs at most when a pair leaves it within the keep rule's noise
+#: band (rest_stage_decision: ``undecided``); each further pair runs the arms in the other order
+REST_STAGE_MAX_PAIRS = 3
 #: the experiments, in the order they run (before the verification runs ``verify_{before,after}_<scenario>``)
 EXPERIMENTS = ("sanity", "frf", "friction_cv", "reversals", "presliding", "slow_passes")
 #: the mismatched twin the gain candidates are ranked on: friction levels +1 %, pre-sliding stiffness -5 %
@@ -788,9 +791,11 @@ class Commissioning:
         them, each run as in :meth:`_verify` (wipe, a fresh controller, the lead). They stay when on the stage
         more steps settle and the cosine is not worse beyond the run-to-run scatter (:func:`rest_stage_decision`);
         otherwise stage.yaml is written without them.
-        The cosine runs only when the steps do not decide it already. The decision, both figures and its
-        confidence go to ``gains.rest_on_stage``. Returns the configuration
-        written last."""
+        The cosine runs only when the steps (pooled over the pairs so far) favour the additions. A pair whose
+        pooled result lies within the keep rule's noise band is followed by another, with the arms' order
+        swapped, up to ``REST_STAGE_MAX_PAIRS`` (a sequential A/B). The decision, every pair's figures, the
+        measured scatter and the confidence go to ``gains.rest_on_stage``. Returns the configuration written
+        last."""
         r = self.res
         assert r.gains is not None
         chosen = dict(r.gains["chosen"])
@@ -801,24 +806,40 @@ class Commissioning:
         # (what the report holds should a fault abort the check: stage.yaml is then the one without them)
         without = {**chosen, **{key: {**chosen[key], "enabled": False, "reason": "not checked on the stage (the "
                                       f"twins: {chosen[key].get('reason')})"} for key in added}}
-        figures: dict[str, dict[str, Any]] = {}
-        at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's
+        at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's (the first pair)
         self._planned[at:at] = [(f"{kind}_rest_{which}_{nm}", 1.5 if kind == "wipe" else 4.0)
                                 for nm in REST_STAGE_SCENARIOS for which in ("with", "without")
                                 for kind in ("wipe", "verify")]
         r.gains["chosen"] = without
         cfg_without = self.write_config(r)  # stage.yaml without them until the stage has shown they help
-        for nm in REST_STAGE_SCENARIOS:
-            for which, cfg_v in (("with", new_cfg), ("without", cfg_without)):
-                summ = self._scenario_run(stage, cfg_v, nm, xc, f"rest_{which}", f"{nm} with the commissioned "
-                                          f"controller {which} the {' and '.join(names[k] for k in added)}")
-                if summ is not None:
-                    figures.setdefault(nm, {})[which] = summ
-            st = figures.get("steps", {})
-            if nm == "steps" and not (len(st) == 2 and st["with"]["moves_settled"] > st["without"]["moves_settled"]):
-                break  # decided by the steps: the cosine runs would not change it (saves ~11 s of stage time)
-        out = rest_stage_decision(figures)
+        what = " and ".join(names[k] for k in added)
+        pairs: list[dict[str, dict[str, Any]]] = []
+        n0 = len(r.experiments)
+        out: dict[str, Any] = {}
+        for i in range(REST_STAGE_MAX_PAIRS):
+            # the arms' order alternates from pair to pair: a drift of the stage over the check (its friction
+            # memory, its temperature on a real stage) does not favour one arm
+            arms = (("with", new_cfg), ("without", cfg_without))
+            arms = arms if i % 2 == 0 else arms[::-1]
+            tag = "rest" if i == 0 else f"rest_p{i + 1}"
+            figures: dict[str, dict[str, Any]] = {}
+            pairs.append(figures)
+            for nm in REST_STAGE_SCENARIOS:
+                for which, cfg_v in arms:
+                    summ = self._scenario_run(stage, cfg_v, nm, xc, f"{tag}_{which}",
+                                              f"{nm} with the commissioned controller {which} the {what}"
+                                              + ("" if i == 0 else f" (pair {i + 1})"))
+                    if summ is not None:
+                        figures.setdefault(nm, {})[which] = summ
+                if nm == "steps" and not _steps_favour(pairs):
+                    break  # decided by the steps: the cosine runs would not change it (saves ~11 s of stage time)
+            out = rest_stage_decision(pairs)
+            if out["decided"]:
+                break
+            self.opts.progress(f"commission: on the stage, {what}: undecided after pair {i + 1} "
+                               f"({out['undecided']}), another pair")
         out["additions"] = [names[k] for k in added]
+        out["stage_s"] = round(sum(e.duration_s for e in r.experiments[n0:]), 2)
         r.gains["rest_on_stage"] = out
         self.opts.progress(f"commission: on the stage, {' and '.join(out['additions'])}: {out['decision']}")
         if not out["keep"]:
@@ -2040,42 +2061,93 @@ def simulate_verification(cfg: AppConfig, stroke_m: float, tol_m: float) -> dict
     return out
 
 
-def rest_stage_decision(figures: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Whether the rest additions stay, from one run each ``with`` and ``without`` them on the stage
-    (``figures[scenario][which]``: tracking summaries): they stay when more steps settle with them and the
-    cosine RMS with them is at most ``(1 + 2·√2·s)·without``, s = ``REST_STAGE_SCATTER`` (one run's relative
-    scatter; √2·s that of the ratio of two single runs): a measured gain in settled moves is given up only for a
-    cosine cost clear of two standard deviations of the ratio (the seed stage: 4/4 settled with the rest spring,
-    2/4 without, for a cosine 1.84 against 1.62 nm, 1.6 standard deviations). Confidence: ``high`` when the
-    deciding figure lies clear of the scatter (keep: the cosine no worse at all; drop: fewer steps settle, or the
-    cosine worse by more than 2·√2·s), ``medium`` otherwise (one run each: one settled step more, or a cosine
-    worse but within the scatter), ``low`` when a figure is missing."""
-    st, co = figures.get("steps", {}), figures.get("cosine", {})
-    out: dict[str, Any] = {"scatter": REST_STAGE_SCATTER,
-                           "figures": {nm: {w: {k: d.get(k) for k in ("rms_error_m", "max_error_m", "moves",
-                                                                      "moves_settled")}
-                                            for w, d in v.items()} for nm, v in figures.items()}}
-    if not all(w in st for w in ("with", "without")):
-        return {**out, "keep": False, "confidence": "low",
+def _steps_favour(pairs: list[dict[str, dict[str, Any]]]) -> bool:
+    """More steps settled with the rest additions than without, pooled over the pairs (both arms ran)."""
+    n_w = n_o = 0
+    for f in pairs:
+        st = f.get("steps", {})
+        if "with" in st and "without" in st:
+            n_w += int(st["with"]["moves_settled"])
+            n_o += int(st["without"]["moves_settled"])
+    return n_w > n_o
+
+
+def rest_stage_scatter(pairs: list[dict[str, dict[str, Any]]]) -> float | None:
+    """One run's relative scatter of the cosine RMS measured from the repeats of each arm over the pairs: the
+    pooled standard deviation of ln(RMS) within each arm (``with``, ``without``), Σ(ln c − mean)²/Σ(n − 1);
+    None with fewer than two runs in every arm."""
+    ss, dof = 0.0, 0
+    for which in ("with", "without"):
+        c = [math.log(float(f["cosine"][which]["rms_error_m"])) for f in pairs
+             if which in f.get("cosine", {}) and 0.0 < float(f["cosine"][which]["rms_error_m"]) < math.inf]
+        if len(c) >= 2:
+            mu = sum(c) / len(c)
+            ss += sum((v - mu) ** 2 for v in c)
+            dof += len(c) - 1
+    return math.sqrt(ss / dof) if dof else None
+
+
+def rest_stage_decision(pairs: list[dict[str, dict[str, Any]]] | dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Whether the rest additions stay, from the pairs of runs ``with`` and ``without`` them on the stage
+    (``pairs[i][scenario][which]``: tracking summaries; a single pair's dict is taken as one pair), pooled:
+    they stay when more steps settle with them (Σ settled over the pairs) and the cosine RMS ratio
+    ρ = Σc_with/Σc_without over the k pairs with both cosine runs is at most ``1 + 2·σ``, σ = √2·s/√k the
+    scatter of that ratio, s one run's relative scatter: the one measured from the repeats
+    (:func:`rest_stage_scatter`) but at least ``REST_STAGE_SCATTER`` (8 %, assumed). A measured gain in
+    settled moves is given up only for a cosine cost clear of two standard deviations.
+
+    The result is ``decided`` (no further pair helps) when the steps differ by two moves or more (or both arms
+    settle every move: nothing to gain) and, when the cosine counts, z = (ρ − 1)/σ lies outside (0, 4] (no
+    cost at all, or a cost two standard deviations beyond the limit); otherwise ``undecided`` says why (one
+    move apart or tied with moves left to settle; the cosine within two deviations of the limit), and the
+    caller runs another pair, up to ``REST_STAGE_MAX_PAIRS``. Confidence: ``high`` when decided on the first
+    pair, ``medium`` when decided after more pairs, ``low`` when still undecided after the last one (or a
+    figure is missing)."""
+    pl = [pairs] if isinstance(pairs, dict) else list(pairs)
+    k = len(pl)
+    s_meas = rest_stage_scatter(pl)
+    s = max(REST_STAGE_SCATTER, s_meas or 0.0)
+    out: dict[str, Any] = {"scatter": REST_STAGE_SCATTER, "scatter_measured": s_meas, "scatter_used": s,
+                           "pairs": k,
+                           "figures": {nm: {w: {kk: d.get(kk) for kk in ("rms_error_m", "max_error_m", "moves",
+                                                                         "moves_settled")}
+                                            for w, d in v.items()} for nm, v in pl[0].items()},
+                           "pair_figures": [{nm: {w: {kk: d.get(kk) for kk in ("rms_error_m", "moves_settled")}
+                                                  for w, d in v.items()} for nm, v in f.items()} for f in pl]}
+    sp = [f["steps"] for f in pl if all(w in f.get("steps", {}) for w in ("with", "without"))]
+    if not sp:
+        return {**out, "keep": False, "confidence": "low", "decided": True, "undecided": None,
                 "decision": "dropped: the steps do not fit the stroke, nothing to check them on"}
-    n_w, n_o = int(st["with"]["moves_settled"]), int(st["without"]["moves_settled"])
-    n = int(st["with"]["moves"])
-    c_w = float(co["with"]["rms_error_m"]) if "with" in co else math.nan
-    c_o = float(co["without"]["rms_error_m"]) if "without" in co else math.nan
-    have_cos = not (math.isnan(c_w) or math.isnan(c_o))
-    limit = (1.0 + 2.0 * math.sqrt(2.0) * REST_STAGE_SCATTER) * c_o
-    cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g})"
-               if have_cos else "cosine not run" if n_w <= n_o else "no cosine (does not fit the "
-               "stroke)")
-    figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without; {cos_txt}"
-    cos_ok = not have_cos or c_w <= limit
-    if n_w > n_o and cos_ok:
-        conf = "high" if (have_cos and c_w <= c_o) else "medium"
+    n_w = sum(int(st["with"]["moves_settled"]) for st in sp)
+    n_o = sum(int(st["without"]["moves_settled"]) for st in sp)
+    n = sum(int(st["with"]["moves"]) for st in sp)
+    cp = [f["cosine"] for f in pl if all(w in f.get("cosine", {}) for w in ("with", "without"))]
+    kc = len(cp)
+    c_w = sum(float(c["with"]["rms_error_m"]) for c in cp) / kc if kc else math.nan
+    c_o = sum(float(c["without"]["rms_error_m"]) for c in cp) / kc if kc else math.nan
+    sig = math.sqrt(2.0) * s / math.sqrt(kc) if kc else math.nan
+    limit = (1.0 + 2.0 * sig) * c_o
+    z = (c_w / c_o - 1.0) / sig if kc else math.nan
+    cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g}"
+               + (f", mean of {kc} runs each" if kc > 1 else "") + ")" if kc
+               else "cosine not run" if n_w <= n_o else "no cosine (does not fit the stroke)")
+    figs = f"steps settled {n_w}/{n} with, {n_o}/{n} without" + (f" over {k} pairs" if k > 1 else "") + \
+        f"; {cos_txt}"
+    why: list[str] = []
+    if abs(n_w - n_o) == 1:
+        why.append("the steps one move apart")
+    elif n_w == n_o < n:
+        why.append("the steps tied with moves left to settle")
+    if n_w > n_o and kc and 0.0 < z <= 4.0:
+        why.append(f"the cosine {z:.2g} deviations of its ratio worse, within two of the limit")
+    decided = not why
+    out.update(decided=decided, undecided="; ".join(why) or None, cosine_z=None if not kc else z)
+    conf = ("high" if k == 1 else "medium") if decided else "low"
+    if n_w > n_o and (not kc or c_w <= limit):
         return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}
     if n_w <= n_o:
-        conf = "high" if n_w < n_o else "medium"
         return {**out, "keep": False, "confidence": conf, "decision": f"dropped: no more steps settle ({figs})"}
-    return {**out, "keep": False, "confidence": "high",
+    return {**out, "keep": False, "confidence": conf,
             "decision": f"dropped: the cosine is worse beyond the scatter ({figs})"}
 
 

@@ -147,7 +147,11 @@ def test_rest_spring_is_checked_before_it_is_advised(commissioned: tuple[int, Pa
     assert steps["moves_settled"] == steps["moves"], steps
     # ... and checked on the stage itself before stage.yaml kept it (Commissioning._rest_on_stage)
     ros = rep["gains"]["rest_on_stage"]
-    assert ros["keep"] and ros["additions"] == ["rest spring"] and ros["confidence"] in ("high", "medium")
+    assert ros["keep"] and ros["additions"] == ["rest spring"]
+    # (this stage: 4/4 settled against 2/4 on each pair, the cosine ~9 % worse with the spring, within the limit at
+    # the 8 % floor but inside its noise band: three pairs run, and the confidence says it is undecided)
+    assert ros["confidence"] == ("high" if ros["pairs"] == 1 else "medium" if ros["decided"] else "low"), ros
+    assert 1 <= ros["pairs"] == len(ros["pair_figures"]) <= 3
     assert ros["figures"]["steps"]["with"]["moves_settled"] > ros["figures"]["steps"]["without"]["moves_settled"]
 
 
