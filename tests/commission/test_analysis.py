@@ -687,3 +687,35 @@ def test_the_pre_sliding_level_replaces_an_extrapolated_fs_the_passes_allow() ->
     assert cfit._refit_stribeck({"level_n": plain["fs_n"] + 5e-5, "evidence_ratio": 1e9}, fr, pts) is None
     # without the points' errors (a caller that has none) nothing changes either
     assert cfit._refit_stribeck({"level_n": 0.5718, "evidence_ratio": 1e9}, fr, cv.points) is None
+
+
+def test_the_pre_sliding_level_does_not_inherit_an_extrapolated_vs_error() -> None:
+    """Passes from 1 mm/s (``v_min_m_s``) on a GMS with vs 0.3 mm/s: the curve's vs is below the slowest pass,
+    an extrapolation or a stick-slip bound, and may be 10 % off either way. The loops (25 µm down to 0.8 µm,
+    up to 1 mm/s) are fitted with vs 0.27 and 0.33 mm/s: the level Σ k_i·Δ_i stays within 0.1 % of the true
+    Fs either way (measured 0.04 %; the rows up to the slowest pass's speed gave +0.29 / −0.22 %: fresh plant
+    k111's level took a bounded vs's −9 % as +0.39 % of Fs, and its cosine tracked 34x the exact model's)."""
+    from stagectl.commission.fit import fit_presliding
+    from stagectl.friction import build
+
+    gms = dict(_GMS, fc_n=1.0, vs_m_s=3e-4)
+    T, m = 1e-3, 2.6
+    pts = [0.0, 300e-6]
+    for A in (25e-6 / 2 ** i for i in range(6)):
+        pts += [300e-6 - A, 300e-6]
+    segs = [np.zeros(1)]
+    for a, b in itertools.pairwise(pts):  # 40 ms loops: the largest reaches 1 mm/s
+        s = np.linspace(0.0, 1.0, int(0.04 / T) if abs(b - a) < 100e-6 else int(1.0 / T))
+        segs += [a + (b - a) * (1 - np.cos(np.pi * s[1:])) / 2, np.full(200, b)]
+    xt = np.concatenate(segs)
+    x = np.round((xt + 0.5e-9 * np.random.default_rng(1).standard_normal(xt.shape)) / 1e-9) * 1e-9
+    n = x.shape[0]
+    a = np.zeros(n)
+    a[1:-1] = (xt[2:] - 2 * xt[1:-1] + xt[:-2]) / T ** 2
+    i = np.arange(n, dtype=float)
+    u = np.interp(i + 1.5, i, m * a + build(gms).force_along(xt, i * T))
+    rec = Recorder.of(("x", "u"), np.column_stack([x, u]))
+    for vs in (2.7e-4, 3.3e-4):
+        sliding = {"fc_n": 1.0, "fs_n": 1.3, "vs_m_s": vs, "delta": 2.0, "viscous_n_s_m": 0.0, "v_min_m_s": 1e-3}
+        level = fit_presliding(rec, m, T, 1e-3, sliding, None)["level_n"]
+        assert abs(level / 1.3 - 1) < 1e-3, (vs, level)
