@@ -82,9 +82,8 @@ PRESLIDING_MAX_EVALS = 150
 #: PRESLIDING_V_FRACTION of the Stribeck velocity
 PRESLIDING_V_FRACTION = 0.5
 PRESLIDING_SETTLE_S = 0.15
-#: ... the curve's own Stribeck velocity counts even when it lies below the slowest constant-velocity pass,
-#: unless it leaves fewer than this fraction of the rows the slowest pass's speed would (then that speed
-#: counts: :func:`_presliding_rows`)
+#: ... the curve's own Stribeck velocity counts where the passes only bound it (stick-slip), unless it leaves
+#: fewer than this fraction of the rows the slowest pass's speed would (:func:`_presliding_rows`)
 PRESLIDING_VS_ROWS_FRACTION = 0.2
 #: the recordings of the pre-sliding regression, and the one read only when they leave no slow rows
 #: (:func:`presliding_recordings`)
@@ -279,22 +278,24 @@ def _presliding_rows(rec: Recorder, mass_kg: float, period_s: float, delay_s: fl
         recent = cf[1:] - cf[np.maximum(np.arange(1, n + 1) - settle, 0)]  # fast samples in the last settle time
         return (r.smooth((recent > 0).astype(np.float64)) == 0.0) & left
 
-    # Below the curve's vs the play's scale g(v)/Fs is near 1 and barely depends on the curve; the rows up to
-    # the slowest pass's speed, when vs lies below it (an extrapolated or stick-slip-bounded vs), include
-    # speeds around vs, where the scale is the curve's steepest function of vs, and the level Σ k_i·Δ_i
-    # inherits vs's error. Fresh plant k111 (tests/commission/plant_kinds.py: Fs 2.057 N, vs 0.314 mm/s,
-    # passes from 1 mm/s, vs at the stick-slip bound 0.285 mm/s): rows to 0.5 mm/s, the level 2.065 N after
-    # three refits and creeping to 2.082 N; rows below vs/2 2.0573 N in two (cosine 85.6 -> 50.0 nm RMS, exact
-    # model 2.5 nm). The slowest pass's speed counts only when vs leaves too few rows (a wrong vs of 32 µm/s,
-    # true 0.30 mm/s, left no slow rows on a generated plant)
-    keep = slow_rows(vs)
+    # (a Stribeck velocity below the slowest constant-velocity pass is an extrapolation: that pass's speed
+    # counts instead, or a wrong vs of 32 µm/s, true 0.30 mm/s, left no slow rows on a generated plant) ...
     v_min = float(sliding.get("v_min_m_s", 0.0))
     if "rows_v_m_s" in sliding:  # the caller's speed (the loops' vs search, :func:`_vs_from_loops`)
         keep = slow_rows(float(sliding["rows_v_m_s"]))
-    elif v_min > vs:
-        wide = slow_rows(v_min)
-        if int(keep.sum()) < max(10.0, PRESLIDING_VS_ROWS_FRACTION * float(wide.sum())):
-            keep = wide
+    else:
+        keep = slow_rows(max(vs, v_min))
+    if "rows_v_m_s" not in sliding and v_min > vs and "vs_bound_m_s" in sliding:
+        # ... but where the passes only bound vs (stick-slip, ``vs_bound_m_s`` of :func:`_refit_stribeck`), the
+        # rows up to that speed include speeds around vs, where the play's scale g(v)/Fs is the curve's
+        # steepest function of vs, and the level Σ k_i·Δ_i takes vs's error; below vs/2 the scale is near 1
+        # whatever vs is. Fresh plant k111 (tests/commission/plant_kinds.py: Fs 2.057 N, vs 0.314 mm/s, passes
+        # from 1 mm/s, vs at the bound 0.285 mm/s): rows to 0.5 mm/s, the level 2.065 N after three refits
+        # and creeping to 2.082 N; below vs/2 2.0573 N in two (cosine 85.6 -> 50.0 nm RMS, exact model
+        # 2.5 nm). Unless that leaves fewer than PRESLIDING_VS_ROWS_FRACTION of the rows
+        narrow = slow_rows(vs)
+        if int(narrow.sum()) >= max(10.0, PRESLIDING_VS_ROWS_FRACTION * float(keep.sum())):
+            keep = narrow
     if int(keep.sum()) < 10:
         raise DataError("pre-sliding fit: too few slow samples after the first long move")
     r.keep = keep
@@ -898,15 +899,16 @@ VS_LOOPS_MIN_GAIN = 0.05
 
 def _vs_from_loops(recs: list[Recorder], mass_kg: float, period_s: float, delay_s: float, fr: dict[str, Any],
                    effects: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The Stribeck velocity from the pre-sliding loops when the passes did not see the curve's dip (vs below
-    the slowest pass's speed ``v_min``: an extrapolation, or the stick-slip bound): the loops' rows up to
+    """The Stribeck velocity from the pre-sliding loops where the passes only bound it (vs below the slowest
+    pass's speed ``v_min``, at the stick-slip bound; :func:`fit_models` calls it then): the loops' rows up to
     ``v_min``/2 pass through speeds around vs, where the play's scale ``g(v)/Fs`` falls with the curve. With
     the level held at ``fr["fs_n"]`` (measured on the rows below vs, where the scale is ~1:
     :func:`_presliding_rows`) the elements are fitted on those rows for each vs in
     ``[max(bound, v_min/20), v_min]`` (bound: the fastest stick-slipping pass's speed over
     ``STICK_SLIP_VS_RATIO``), and the vs of the lowest residual is returned (bounded scalar search on log vs)
     when it lowers the residual at ``fr["vs_m_s"]`` by at least ``VS_LOOPS_MIN_GAIN``; None when vs is
-    observed or nothing is gained. With the level free, vs and the level trade (fresh plant k111: 2.070 N at
+    observed or nothing is gained. Not where the passes' tail fixed vs (fresh plant k112: the passes' vs
+    right, the loops' minimum 10 % above it). With the level free, vs and the level trade (fresh plant k111: 2.070 N at
     vs 0.285 mm/s, 2.057 N at 0.314); held, the residual has one minimum: 6.8 mN at the stick-slip bound
     0.285 mm/s, 2.5-2.7 mN at 0.31-0.314 mm/s (true 0.314), 13 mN at 0.36."""
     from scipy.optimize import minimize_scalar
@@ -1138,11 +1140,14 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                 refit["levels_n"] = levels
                 fr.update({k: refit[k] for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m")})
                 # vs below the slowest pass: the loops' rows around it decide it, the level held
-                vl = _vs_from_loops(pre_recs, m, period_s, tau, dict(fr, fs_n=presliding["level_n"]),
-                                    spec.get("effects"))
+                vl = None
+                if "vs_bound_m_s" in refit:  # the passes only bound vs (stick-slip)
+                    vl = _vs_from_loops(pre_recs, m, period_s, tau, dict(fr, fs_n=presliding["level_n"]),
+                                        spec.get("effects"))
                 if vl is not None:
                     fr["vs_m_s"] = refit["vs_m_s"] = vl["vs_m_s"]
-                    presliding = fit_presliding(pre_recs, m, period_s, tau, fr, spec.get("effects"))
+                    presliding = fit_presliding(pre_recs, m, period_s, tau,
+                                                dict(fr, vs_bound_m_s=refit["vs_bound_m_s"]), spec.get("effects"))
                     refit["vs_loops"] = vl
                 presliding = dict(presliding, stribeck_refit=refit)
         except DataError as exc:

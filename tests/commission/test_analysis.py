@@ -716,7 +716,7 @@ def _fast_loops(vs_m_s: float) -> tuple[Recorder, float]:
 
 def test_the_pre_sliding_level_does_not_inherit_an_extrapolated_vs_error() -> None:
     """Passes from 1 mm/s (``v_min_m_s``) on a GMS with vs 0.3 mm/s: the curve's vs is below the slowest pass,
-    an extrapolation or a stick-slip bound, and may be 10 % off either way. The loops are fitted with vs 0.27
+    at the stick-slip bound (``vs_bound_m_s``), and may be 10 % off either way. The loops are fitted with vs 0.27
     and 0.33 mm/s: the level Σ k_i·Δ_i stays within 0.1 % of the true Fs either way (measured 0.04 %; the
     rows up to the slowest pass's speed gave +0.29 / −0.22 %: fresh plant k111's level took a bounded vs's
     −9 % as +0.39 % of Fs, and its cosine tracked 34x the exact model's)."""
@@ -724,7 +724,8 @@ def test_the_pre_sliding_level_does_not_inherit_an_extrapolated_vs_error() -> No
 
     rec, m = _fast_loops(3e-4)
     for vs in (2.7e-4, 3.3e-4):
-        sliding = {"fc_n": 1.0, "fs_n": 1.3, "vs_m_s": vs, "delta": 2.0, "viscous_n_s_m": 0.0, "v_min_m_s": 1e-3}
+        sliding = {"fc_n": 1.0, "fs_n": 1.3, "vs_m_s": vs, "delta": 2.0, "viscous_n_s_m": 0.0, "v_min_m_s": 1e-3,
+                   "vs_bound_m_s": vs}
         level = fit_presliding(rec, m, 1e-3, 1e-3, sliding, None)["level_n"]
         assert abs(level / 1.3 - 1) < 1e-3, (vs, level)
 
