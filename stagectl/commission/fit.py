@@ -276,7 +276,8 @@ def _presliding_rows(rec: Recorder, mass_kg: float, period_s: float, delay_s: fl
         fast = (np.abs(vb) >= PRESLIDING_V_FRACTION * v_slow).astype(np.float64)
         cf = np.cumsum(np.concatenate([[0.0], fast]))
         recent = cf[1:] - cf[np.maximum(np.arange(1, n + 1) - settle, 0)]  # fast samples in the last settle time
-        return (r.smooth((recent > 0).astype(np.float64)) == 0.0) & left
+        out: np.ndarray = (r.smooth((recent > 0).astype(np.float64)) == 0.0) & left
+        return out
 
     # (a Stribeck velocity below the slowest constant-velocity pass is an extrapolation: that pass's speed
     # counts instead, or a wrong vs of 32 µm/s, true 0.30 mm/s, left no slow rows on a generated plant) ...
