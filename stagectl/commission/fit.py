@@ -1137,7 +1137,11 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                     levels.append(presliding["level_n"])
                     if abs(levels[-1] / levels[-2] - 1.0) < STRIBECK_LEVEL_TOLERANCE or i == STRIBECK_REFITS - 1:
                         break
-                    refit.update(_refit_stribeck(presliding, fr, cv_points, force=True) or {})
+                    nxt = _refit_stribeck(presliding, fr, cv_points, force=True) or {}
+                    if nxt:  # (a bound an earlier refit needed and this one does not is not kept)
+                        refit.pop("vs_bound_m_s", None)
+                        refit.pop("free_vs_m_s", None)
+                    refit.update(nxt)
                 refit["levels_n"] = levels
                 fr.update({k: refit[k] for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m")})
                 # vs below the slowest pass: the loops' rows around it decide it, the level held
