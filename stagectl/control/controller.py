@@ -1104,6 +1104,10 @@ class StageController:
             self._ahead_pass = 0
             self._sm.stiff = False
         self._reset_rest_integral()  # (what it added stays in the observer / integrator, as any estimate)
+        # the start-edge sync armed by the last standstill: only for the same model and observer, with the switch
+        # still on (a retune that turns rest_sync_on_start off, or rebuilds the model, does not run it)
+        self._sync_armed = (self._sync_armed and parts.cfg.feedforward.rest_sync_on_start and not parts.ff_rebuilt
+                            and parts.dob is not None)
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
@@ -1760,7 +1764,9 @@ class StageController:
                 self._h_ext, self._h_fext = xf, f
             if not self._h_rev:
                 return False
-        if (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
+            # (no move since the start: the first branch runs from the arming point, its extreme stays there
+            # until x_f has left it by h, so that the direction is found and a later reversal starts a new branch)
+        elif (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
             self._h_ext, self._h_fext = xf, f
             if not self._h_rev or self._h_sxx < 0.0:
                 return False
