@@ -1764,8 +1764,11 @@ class StageController:
                 self._h_ext, self._h_fext = xf, f
             if not self._h_rev:
                 return False
-            # (no move since the start: the first branch runs from the arming point, its extreme stays there
-            # until x_f has left it by h, so that the direction is found and a later reversal starts a new branch)
+            # no move since the start: the first branch runs from the arming point, whatever x_f does, until it is
+            # judged (its extreme follows x_f); from then on the extreme stays put, so that the direction is found
+            # once x_f has left it by h and a later reversal starts a new branch (before, none was ever seen)
+            if self._h_sxx >= 0.0:
+                self._h_ext, self._h_fext = xf, f
         elif (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
             self._h_ext, self._h_fext = xf, f
             if not self._h_rev or self._h_sxx < 0.0:
