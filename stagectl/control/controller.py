@@ -2110,6 +2110,8 @@ class StageController:
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
                                       dob)  # type: ignore[arg-type]
+        elif not at_rest:
+            self._h_moved = True  # (a spring a retune switches on later judges its branches as after a move)
         if settling and self._sm.stiff:
             # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
             # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)

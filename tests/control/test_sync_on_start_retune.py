@@ -72,3 +72,30 @@ def test_the_stiffness_test_judges_a_later_branch_in_the_first_standstill() -> N
     assert not any(out) and abs(ctl.rest_spring_held_n_m - ks) < 1e-6 * ks
     back = [feed(i * 1e-9, ks * 30e-9) for i in range(29, -1, -1)]  # back 30 nm, no force change: not held
     assert any(back) and ctl.rest_spring_held_n_m < 0.01 * ks
+
+
+def test_a_spring_switched_on_after_moves_does_not_judge_the_run_in_as_a_branch() -> None:
+    """A controller run without the rest spring moves, stops, and a retune switches the spring on: the stage has
+    moved since reset, so a creep in without turning back (here 30 nm with no force change, what the stiffness
+    test would call "not held") is not judged (before: the moves went unseen with the spring off, and the creep
+    was judged as the first branch after a reset at rest)."""
+    from stagectl.control.controller import StageController
+    from stagectl.control.reference import Reference
+
+    app = _cfg()
+    c = app.controller
+    assert c.rest_stiffness_fraction > 0.0 and c.rest_spring_held_fraction > 0.0
+    ctl = StageController(dataclasses.replace(c, rest_stiffness_fraction=0.0), app.timing)
+    t = app.loop.period_s
+    ctl.reset(0.0)
+    for i in range(20):  # a short move, then rest
+        ctl.step(t, i * 1e-9, Reference(i * 1e-9, 1e-6, 0.0))
+    for _ in range(5):
+        ctl.step(t, 20e-9, Reference(20e-9, 0.0, 0.0))
+    ctl.retune(c)
+    kv = c.rest_stiffness_fraction * ctl._k_ps
+    out = []
+    for i in range(31):
+        ctl._h_xf, ctl._h_f = 20e-9 - i * 1e-9, 0.0
+        out.append(ctl._not_held(kv, 0.0))
+    assert not any(out)
