@@ -806,10 +806,13 @@ class Commissioning:
         # (what the report holds should a fault abort the check: stage.yaml is then the one without them)
         without = {**chosen, **{key: {**chosen[key], "enabled": False, "reason": "not checked on the stage (the "
                                       f"twins: {chosen[key].get('reason')})"} for key in added}}
-        at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's (the first pair)
-        self._planned[at:at] = [(f"{kind}_rest_{which}_{nm}", 1.5 if kind == "wipe" else 4.0)
-                                for nm in REST_STAGE_SCENARIOS for which in ("with", "without")
-                                for kind in ("wipe", "verify")]
+        def plan(tag: str) -> list[tuple[str, float]]:  # one pair's runs in the progress plan
+            return [(f"{kind}_{tag}_{which}_{nm}", 1.5 if kind == "wipe" else 4.0)
+                    for nm in REST_STAGE_SCENARIOS for which in ("with", "without") for kind in ("wipe", "verify")]
+
+        at = len(EXPERIMENTS)  # the progress plan: these runs come before the verification's (the first pair) ...
+        self._planned[at:at] = plan("rest")
+        at += len(REST_STAGE_SCENARIOS) * 4
         r.gains["chosen"] = without
         cfg_without = self.write_config(r)  # stage.yaml without them until the stage has shown they help
         what = " and ".join(names[k] for k in added)
@@ -822,6 +825,9 @@ class Commissioning:
             arms = (("with", new_cfg), ("without", cfg_without))
             arms = arms if i % 2 == 0 else arms[::-1]
             tag = "rest" if i == 0 else f"rest_p{i + 1}"
+            if i > 0:  # ... and each further pair's after the one before it (the progress counts them)
+                self._planned[at:at] = plan(tag)
+                at += len(REST_STAGE_SCENARIOS) * 4
             figures: dict[str, dict[str, Any]] = {}
             pairs.append(figures)
             for nm in REST_STAGE_SCENARIOS:

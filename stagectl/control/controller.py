@@ -1104,6 +1104,10 @@ class StageController:
             self._ahead_pass = 0
             self._sm.stiff = False
         self._reset_rest_integral()  # (what it added stays in the observer / integrator, as any estimate)
+        # the start-edge sync armed by the last standstill: only for the same model and observer, with the switch
+        # still on (a retune that turns rest_sync_on_start off, or rebuilds the model, does not run it)
+        self._sync_armed = (self._sync_armed and parts.cfg.feedforward.rest_sync_on_start and not parts.ff_rebuilt
+                            and parts.dob is not None)
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
@@ -1760,7 +1764,12 @@ class StageController:
                 self._h_ext, self._h_fext = xf, f
             if not self._h_rev:
                 return False
-        if (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
+            # no move since the start: the first branch runs from the arming point, whatever x_f does, until it is
+            # judged (its extreme follows x_f); from then on the extreme stays put, so that the direction is found
+            # once x_f has left it by h and a later reversal starts a new branch (before, none was ever seen)
+            if self._h_sxx >= 0.0:
+                self._h_ext, self._h_fext = xf, f
+        elif (xf - self._h_ext) * d >= 0.0:  # still going on: a new extreme
             self._h_ext, self._h_fext = xf, f
             if not self._h_rev or self._h_sxx < 0.0:
                 return False
@@ -2101,6 +2110,8 @@ class StageController:
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
                                       dob)  # type: ignore[arg-type]
+        elif not at_rest:
+            self._h_moved = True  # (a spring a retune switches on later judges its branches as after a move)
         if settling and self._sm.stiff:
             # settle move from ahead: the reversal's spring force along the continuation (the planned stage travel
             # e₀ − c, looked ahead by τ_a as the inertia term), outside the observer's input (module docstring)

@@ -41,7 +41,10 @@ def _ab(cfg: Any, base: Any) -> tuple[dict[str, Any], list[bool], dict[str, Any]
         with build_stage(cfg, clock=SimClock(), controller=CommissionController(make_controller(cfg))) as st:
             final = com._rest_on_stage(st, with_cfg, com.env.x_c_m)
         names = [e.name for e in com.res.experiments]
+        planned = [n for n, _ in com._planned]
     assert final is (with_cfg if written[-1] else without_cfg)
+    # every run is in the progress plan ("[i/n] name", time left): none counted past its end
+    assert set(names) <= set(planned), (names, planned)
     return com.res.gains["rest_on_stage"], written, com.res.gains["chosen"], names
 
 
