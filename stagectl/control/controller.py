@@ -1637,6 +1637,38 @@ class StageController:
         self.state.u_obs_prev_n += delta
         return d_hat + delta
 
+    def _sync_on_start_integral(self, dt: float, ff: FrictionFeedforward) -> None:
+        """:meth:`_sync_on_start` without an observer: on a move's start edge after a standstill whose rest
+        integral's synchronisation (:meth:`_rest_sync_integral`) was under way, what of the rest integral's force R
+        (``_ri_i``, in the PID integrator) it has not yet loaded into the model is loaded now, in the same virtual
+        displacements Δx = R/(θ·Σk), and leaves R and the integrator (u unchanged). Without it the integrator
+        carried R into the move, where the PID's integrator unwinds it only at K_i·e (fresh k105: R = −0.53 N
+        against a move forward at F_c = 0.85 N left the stage stuck 9 µm behind for 0.3 s, and the next move
+        back slid it 47 µm past: a following-error fault). Real-time safe (at most SYNC_START_ITERATIONS model
+        steps, once per move)."""
+        k = self._k_ps
+        th = self.ff_scale
+        r0 = self._ri_i
+        ffc = self.cfg.feedforward
+        if k <= 0.0 or th <= 0.0 or not abs(r0) > th * k * ffc.rest_sync_max_step_m:
+            return
+        v_v = ffc.rest_sync_max_step_m / self.period_s
+        u_old = u_ff = th * ff.state.u_ff_n
+        rem = r0
+        for _ in range(SYNC_START_ITERATIONS):
+            dx = rem / (th * k)
+            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
+            moved = u_ff - new
+            u_ff = new
+            rem += moved
+            if abs(rem) <= SYNC_START_TOLERANCE * abs(r0) or abs(moved) <= SYNC_START_TOLERANCE * abs(r0):
+                break
+        delta = u_old - u_ff
+        if delta != 0.0:
+            self._ri_i += delta
+            self.pid.state.i_n += delta
+            self.state.u_ff_n -= delta
+
     def _rest_sync_integral(self, dt: float, ff: FrictionFeedforward, u_ff: float) -> float:
         """The stop synchronisation without an observer (``feedforward.rest_sync_hz`` with ``rest_integral_hz``):
         as :meth:`_rest_sync`, but of the rest integral's own force R (in the PID integrator, which also carries
@@ -1994,7 +2026,10 @@ class StageController:
                 self._sm.stiff = False
                 self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
             elif self._sync_armed and not settling:
-                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+                if dob is None:  # (armed by the rest integral's own synchronisation, _rest_sync_integral)
+                    self._sync_on_start_integral(dt, ff)  # type: ignore[arg-type]
+                else:
+                    self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
             self._sync_armed = False
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
@@ -2149,6 +2184,7 @@ class StageController:
         if (at_rest and not settling and self._d_ri_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff = self._rest_sync_integral(dt, ff, u_ff)  # type: ignore[arg-type]
+            self._sync_armed = ffc.rest_sync_on_start
         hold = at_rest and not settling and self._d_hold
         if self._d_rest_gains:
             # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with
