@@ -155,7 +155,10 @@ or e swings across ±``rest_spring_rearm_m`` twice, and each standstill starts a
 ``feedforward.rest_sync_hz`` hands to the model before the next move. Without an observer δ goes into the PID's
 integrator instead (nothing else moves the stuck stage: the integrator alone gives K_i/Σk, ≈ 0.02 s⁻¹ on generated
 plant 29), the bound is REST_INTEGRAL_BOUND_X_NO_OBSERVER·θ·F_c, and ``feedforward.rest_sync_hz`` hands the force
-it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`).
+it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`);
+a move that starts before that finished loads the rest of it on its first sample (``rest_sync_on_start``;
+:meth:`_sync_on_start_integral`: otherwise the integrator carried it into the move, fresh plant k105's matched twin
+a following-error fault).
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
@@ -363,7 +366,8 @@ class FeedforwardConfig:
         True, desc="with an observer and kind: model: a move that starts before the standstill's rest_sync_hz "
         "synchronisation has finished (a short dwell), or during a settle move from ahead, first loads the rest of "
         "the observer's estimate (and the settle move's reversal force) into the model's pre-sliding state, "
-        "before the model's first step of the move (false: the observer carries it into the move)")
+        "before the model's first step of the move (false: the observer carries it into the move); without an "
+        "observer, with rest_integral_hz, the rest of the rest integral's force, from the PID integrator")
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
         "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
