@@ -155,7 +155,10 @@ or e swings across ±``rest_spring_rearm_m`` twice, and each standstill starts a
 ``feedforward.rest_sync_hz`` hands to the model before the next move. Without an observer δ goes into the PID's
 integrator instead (nothing else moves the stuck stage: the integrator alone gives K_i/Σk, ≈ 0.02 s⁻¹ on generated
 plant 29), the bound is REST_INTEGRAL_BOUND_X_NO_OBSERVER·θ·F_c, and ``feedforward.rest_sync_hz`` hands the force
-it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`).
+it added (only that, not what the integrator carried from the move) to the model (:meth:`_rest_sync_integral`);
+a move that starts before that finished loads the rest of it on its first sample (``rest_sync_on_start``;
+:meth:`_sync_on_start_integral`: otherwise the integrator carried it into the move, fresh plant k105's matched twin
+a following-error fault).
 
 Rest loop gains (``rest_kd_fraction`` = κ_d, ``rest_dob_bandwidth_fraction`` = κ_g, ``rest_spring_section_count`` = n,
 with a Q-filter observer). Stuck, the stage is a lightly damped spring-mass (2 kg on Σk ≈ 6.4e5 N/m: 90 Hz, ζ ≈ 0.1)
@@ -363,7 +366,8 @@ class FeedforwardConfig:
         True, desc="with an observer and kind: model: a move that starts before the standstill's rest_sync_hz "
         "synchronisation has finished (a short dwell), or during a settle move from ahead, first loads the rest of "
         "the observer's estimate (and the settle move's reversal force) into the model's pre-sliding state, "
-        "before the model's first step of the move (false: the observer carries it into the move)")
+        "before the model's first step of the move (false: the observer carries it into the move); without an "
+        "observer, with rest_integral_hz, the rest of the rest integral's force, from the PID integrator")
     adapt_bandwidth_hz: float = param(
         0.0, unit="Hz", desc="with an observer: rate γ/2π at which the friction feed-forward's force scale θ "
         "and input scale β take over the observer's estimate while the reference moves (u_ff = θ·F̂(β·x_r), "
@@ -1641,6 +1645,38 @@ class StageController:
         self.state.u_obs_prev_n += delta
         return d_hat + delta
 
+    def _sync_on_start_integral(self, dt: float, ff: FrictionFeedforward) -> None:
+        """:meth:`_sync_on_start` without an observer: on a move's start edge after a standstill whose rest
+        integral's synchronisation (:meth:`_rest_sync_integral`) was under way, what of the rest integral's force R
+        (``_ri_i``, in the PID integrator) it has not yet loaded into the model is loaded now, in the same virtual
+        displacements Δx = R/(θ·Σk), and leaves R and the integrator (u unchanged). Without it the integrator
+        carried R into the move, where the PID's integrator unwinds it only at K_i·e (fresh k105: R = −0.53 N
+        against a move forward at F_c = 0.85 N left the stage stuck 9 µm behind for 0.3 s, and the next move
+        back slid it 47 µm past: a following-error fault). Real-time safe (at most SYNC_START_ITERATIONS model
+        steps, once per move)."""
+        k = self._k_ps
+        th = self.ff_scale
+        r0 = self._ri_i
+        ffc = self.cfg.feedforward
+        if k <= 0.0 or th <= 0.0 or not abs(r0) > th * k * ffc.rest_sync_max_step_m:
+            return
+        v_v = ffc.rest_sync_max_step_m / self.period_s
+        u_old = u_ff = th * ff.state.u_ff_n
+        rem = r0
+        for _ in range(SYNC_START_ITERATIONS):
+            dx = rem / (th * k)
+            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
+            moved = u_ff - new
+            u_ff = new
+            rem += moved
+            if abs(rem) <= SYNC_START_TOLERANCE * abs(r0) or abs(moved) <= SYNC_START_TOLERANCE * abs(r0):
+                break
+        delta = u_old - u_ff
+        if delta != 0.0:
+            self._ri_i += delta
+            self.pid.state.i_n += delta
+            self.state.u_ff_n -= delta
+
     def _rest_sync_integral(self, dt: float, ff: FrictionFeedforward, u_ff: float) -> float:
         """The stop synchronisation without an observer (``feedforward.rest_sync_hz`` with ``rest_integral_hz``):
         as :meth:`_rest_sync`, but of the rest integral's own force R (in the PID integrator, which also carries
@@ -2003,7 +2039,10 @@ class StageController:
                 self._sm.stiff = False
                 self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
             elif self._sync_armed and not settling:
-                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+                if dob is None:  # (armed by the rest integral's own synchronisation, _rest_sync_integral)
+                    self._sync_on_start_integral(dt, ff)  # type: ignore[arg-type]
+                else:
+                    self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
             self._sync_armed = False
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
@@ -2160,6 +2199,7 @@ class StageController:
         if (at_rest and not settling and self._d_ri_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff = self._rest_sync_integral(dt, ff, u_ff)  # type: ignore[arg-type]
+            self._sync_armed = ffc.rest_sync_on_start
         hold = at_rest and not settling and self._d_hold
         if self._d_rest_gains:
             # the rest gains act while the stage is held (stuck): entered after REST_GAINS_DWELL_S with

@@ -283,3 +283,57 @@ def test_without_an_observer_the_rest_loop_is_the_pid_with_k_r_in_its_integrator
     assert with_ri.phase_margin_deg > 70.0
     for key in ("phase_margin_deg", "gain_margin_db", "crossover_hz"):
         assert with_ri.summary()[key] == pytest.approx(same.summary()[key], rel=1e-6)
+
+
+def _move_after_a_short_dwell_ahead(base, sync_on_start: bool) -> tuple[float, float, float, float]:
+    """The controller without an observer stepped on positions written here (no plant): a 10 µm move followed
+    exactly, 150 ms at rest with the stage stuck 150 nm ahead (the rest integral pulls it back through the PID
+    integrator, its synchronisation hands part of that to the model), then a move on starts. Returns (the PID
+    integrator at the end of the dwell, and after the move's first step; the force at that step; the model's
+    force there) [N]."""
+    from stagectl.control.api import Reference
+    from stagectl.control.controller import StageController
+    from stagectl.control.trajectory import Move, TrajectoryGenerator
+
+    T = 1e-3
+    cc = dataclasses.replace(base, feedforward=dataclasses.replace(base.feedforward, rest_sync_on_start=sync_on_start))
+    ctl = StageController(cc, T)
+    ctl.reset(0.0)
+    gen = TrajectoryGenerator(0.0)
+    gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
+    ref = gen.step(T)
+    k = 0
+    while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
+        ctl.step(T, ref.x_m, ref)
+        k += 1
+        ref = gen.step(T)
+    x_r = ref.x_m
+    for _ in range(150):
+        ctl.step(T, x_r + 150e-9, Reference(x_r))
+    i_dwell = ctl.pid.state.i_n
+    out = ctl.step(T, x_r + 150e-9, Reference(x_r, 1e-5, 0.0))
+    return i_dwell, ctl.pid.state.i_n, out.force_n, ctl.state.u_ff_n
+
+
+def test_without_an_observer_a_move_takes_the_rest_integrals_force_into_the_model(repo_root):
+    """Without an observer the rest integral's force R sits in the PID integrator until the stop synchronisation has
+    handed it to the model; a move that starts before that finished carried the rest of R in the integrator into the
+    move, where only K_i·e unwinds it (fresh plant k105's matched twin: R = -0.53 N against a move forward at
+    F_c = 0.85 N, the stage stuck 9 µm behind, then a following-error fault). On the move's start edge
+    (``feedforward.rest_sync_on_start``) the rest is loaded into the model: the integrator keeps only the PID's own
+    part, and the force moves from the integrator into the feed-forward."""
+    from stagectl.config import load_app_config
+    from stagectl.control.dob import DobConfig
+
+    c = load_app_config(repo_root / "config" / "sim.yaml").controller
+    base = dataclasses.replace(c, dob=DobConfig(kind="none"), rest_stiffness_fraction=0.0, rest_kd_fraction=1.0,
+                               rest_dob_bandwidth_fraction=1.0, rest_spring_section_count=1, rest_integral_hz=6.0,
+                               settle=dataclasses.replace(c.settle, move_s=0.0, ahead_stiffness_fraction=0.0))
+    assert base.feedforward.rest_sync_hz > 0.0
+    i_dwell, i_on, u_on, ff_on = _move_after_a_short_dwell_ahead(base, True)
+    _, i_off, u_off, ff_off = _move_after_a_short_dwell_ahead(base, False)
+    assert i_dwell < -0.05  # the stage ahead: pulled back, and the synchronisation has not loaded all of it yet
+    assert i_off == pytest.approx(i_dwell, abs=1e-3)  # (false: carried into the move)
+    assert abs(i_on) < 0.1 * abs(i_dwell)  # loaded into the model: the PID's own K_i·Σe·T is left
+    assert ff_on - ff_off == pytest.approx(i_dwell, rel=0.1)  # the model holds it now
+    assert u_on == pytest.approx(u_off, abs=0.1 * abs(i_dwell))  # the force on the stage barely moves
