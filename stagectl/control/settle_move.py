@@ -34,7 +34,6 @@ Pure, scalar, real-time safe.
 
 from __future__ import annotations
 
-
 #: a reference speed at most this [m/s] gives no direction (:attr:`SettleMove.last_direction`): a ``stop`` from
 #: constant speed sampled a rounding step before its end gave v = −4·10⁻²⁰ m/s, a = −10⁻¹⁵ m/s², which called
 #: the motion reversed and left a stage 5 µm ahead without its continuation (300 ms creeping back)

@@ -204,10 +204,11 @@ def _closed_loop_from_behind(base, plant_cfg, soft: float, monkeypatch, hold_s: 
     (a force just past its static level for 1 µm, then below its Coulomb level until it stops), the controller
     stepped on the same positions as the reference; then the target is set 60 nm ahead of the stuck stage and the
     loop closed. Returns the error x_r − x [m] per period over ``hold_s``."""
+    from stagectl.sim.plant import StagePlant
+
     import stagectl.control.controller as cc
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
-    from stagectl.sim.plant import StagePlant
 
     T = 1e-3
     fp = plant_cfg.friction.params

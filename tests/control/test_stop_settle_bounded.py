@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from support import shipped_config_mapping
 
 REPO = Path(__file__).resolve().parents[2]
