@@ -145,6 +145,24 @@ def shipped_config_mapping(name: str) -> dict:
     return data
 
 
+def embedded_hil_mapping(name: str) -> dict:
+    """A shipped HIL config (``hil-canopen.yaml``, ``hil-serial.yaml``) with its ``sim:`` section run in-process:
+    io.kind ``embedded_canopen`` (the real CiA 402 driver on a virtual bus), the interferometer without its TCP
+    transport, and the loop without sim-plant pacing (``device_time``, ``pace_cycles``)."""
+    data = shipped_config_mapping(name)
+    io = data["io"]
+    drive = {k: v for k, v in io["drive"].items()
+             if k in ("node_id", "resolution_m", "force_per_unit_n", "max_force_n")}
+    data["io"] = {"kind": "embedded_canopen", "sensor": io["sensor"], "drive": drive}
+    data["sim"]["transport"] = {"kind": "virtual"}
+    if "interferometer" in data["sim"]:
+        data["sim"]["interferometer"] = {k: v for k, v in data["sim"]["interferometer"].items()
+                                         if k not in ("transport", "host", "port")}
+    for k in ("device_time", "pace_cycles"):
+        data["loop"].pop(k, None)
+    return data
+
+
 def config_problems(data: dict) -> list[str]:
     """The problems :func:`stagectl.config.parse_app_config` reports for ``data`` (it must report some)."""
     from pathlib import Path

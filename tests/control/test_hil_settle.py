@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pytest
 
-from support import shipped_config_mapping
+from support import embedded_hil_mapping
 
 
 def _embedded(name: str, force_per_unit_n: float | None = None):
@@ -20,17 +20,7 @@ def _embedded(name: str, force_per_unit_n: float | None = None):
 
     from stagectl.config import parse_app_config
 
-    data = shipped_config_mapping(name)
-    io = data["io"]
-    drive = {k: v for k, v in io["drive"].items()
-             if k in ("node_id", "resolution_m", "force_per_unit_n", "max_force_n")}
-    data["io"] = {"kind": "embedded_canopen", "sensor": io["sensor"], "drive": drive}
-    data["sim"]["transport"] = {"kind": "virtual"}
-    if "interferometer" in data["sim"]:
-        data["sim"]["interferometer"] = {k: v for k, v in data["sim"]["interferometer"].items()
-                                         if k not in ("transport", "host", "port")}
-    for k in ("device_time", "pace_cycles"):          # sim-plant pacing only
-        data["loop"].pop(k, None)
+    data = embedded_hil_mapping(name)
     if force_per_unit_n is not None:
         data["io"]["drive"]["force_per_unit_n"] = data["sim"]["drive"]["force_per_unit_n"] = force_per_unit_n
     return parse_app_config(data, Path(__file__).resolve().parents[2] / "config" / name)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import pytest
 
@@ -164,20 +165,12 @@ def _stuck_behind(base, soft: float, monkeypatch) -> tuple[float, float]:
     import stagectl.control.controller as cc
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
-    from stagectl.control.trajectory import Move, TrajectoryGenerator
 
     T = 1e-3
     monkeypatch.setattr(cc, "REST_INTEGRAL_SOFT_FRACTION", soft, raising=False)  # 0: the stiffness-scaled gain only
     ctl = StageController(dataclasses.replace(base, rest_integral_hz=3.0), T)
     ctl.reset(0.0)
-    gen = TrajectoryGenerator(0.0)
-    gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
-    ref = gen.step(T)
-    k = 0
-    while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
-        ctl.step(T, ref.x_m, ref)
-        k += 1
-        ref = gen.step(T)
+    ref = _move_10um(ctl, T)
     for _ in range(300):
         ctl.step(T, ref.x_m - 60e-9, Reference(ref.x_m))
     return ctl._ri_n, ctl.ff.tangent_n_m(1)
@@ -294,20 +287,12 @@ def _move_after_a_short_dwell_ahead(base, sync_on_start: bool) -> tuple[float, f
     force there) [N]."""
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
-    from stagectl.control.trajectory import Move, TrajectoryGenerator
 
     T = 1e-3
     cc = dataclasses.replace(base, feedforward=dataclasses.replace(base.feedforward, rest_sync_on_start=sync_on_start))
     ctl = StageController(cc, T)
     ctl.reset(0.0)
-    gen = TrajectoryGenerator(0.0)
-    gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
-    ref = gen.step(T)
-    k = 0
-    while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
-        ctl.step(T, ref.x_m, ref)
-        k += 1
-        ref = gen.step(T)
+    ref = _move_10um(ctl, T)
     x_r = ref.x_m
     for _ in range(150):
         ctl.step(T, x_r + 150e-9, Reference(x_r))
@@ -338,3 +323,19 @@ def test_without_an_observer_a_move_takes_the_rest_integrals_force_into_the_mode
     assert abs(i_on) < 0.1 * abs(i_dwell)  # loaded into the model: the PID's own K_i·Σe·T is left
     assert ff_on - ff_off == pytest.approx(i_dwell, rel=0.1)  # the model holds it now
     assert u_on == pytest.approx(u_off, abs=0.1 * abs(i_dwell))  # the force on the stage barely moves
+
+
+def _move_10um(ctl: Any, T: float) -> Any:
+    """Runs ``ctl`` along a 10 µm jerk-limited move, the stage following the reference exactly, to the
+    reference's rest (at least 5 samples); returns the reference at rest."""
+    from stagectl.control.trajectory import Move, TrajectoryGenerator
+
+    gen = TrajectoryGenerator(0.0)
+    gen.queue(Move(by_m=10e-6, max_velocity_m_s=1e-3, max_acceleration_m_s2=0.05, max_jerk_m_s3=20.0))
+    ref = gen.step(T)
+    k = 0
+    while ref.v_m_s != 0.0 or ref.a_m_s2 != 0.0 or k < 5:
+        ctl.step(T, ref.x_m, ref)
+        k += 1
+        ref = gen.step(T)
+    return ref

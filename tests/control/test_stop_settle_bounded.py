@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from support import shipped_config_mapping
+from support import embedded_hil_mapping
 
 REPO = Path(__file__).resolve().parents[2]
 LIM = {"max_acceleration_m_s2": 0.1, "max_jerk_m_s3": 100.0}
@@ -69,17 +69,7 @@ def _hil_canopen(ahead: float | None = None) -> Any:
     as tests/control/test_hil_settle.py builds it."""
     from stagectl.config import parse_app_config
 
-    data = shipped_config_mapping("hil-canopen.yaml")
-    io = data["io"]
-    drive = {k: v for k, v in io["drive"].items()
-             if k in ("node_id", "resolution_m", "force_per_unit_n", "max_force_n")}
-    data["io"] = {"kind": "embedded_canopen", "sensor": io["sensor"], "drive": drive}
-    data["sim"]["transport"] = {"kind": "virtual"}
-    if "interferometer" in data["sim"]:
-        data["sim"]["interferometer"] = {k: v for k, v in data["sim"]["interferometer"].items()
-                                         if k not in ("transport", "host", "port")}
-    for k in ("device_time", "pace_cycles"):
-        data["loop"].pop(k, None)
+    data = embedded_hil_mapping("hil-canopen.yaml")
     return _ahead(parse_app_config(data, REPO / "config" / "hil-canopen.yaml"), ahead)
 
 
