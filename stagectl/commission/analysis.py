@@ -564,7 +564,10 @@ RIPPLE_MIN_QUANTA = 20.0
 RIPPLE_ITERATIONS = 3
 #: a pass's mean is corrected for its ripple (:func:`cv_friction`) only when the standard deviation of its
 #: short-window speed exceeds this fraction of its mean speed: the cogging ripples a settled pass by 5-7 %, a
-#: ringing one by 25-55 %; below it the correction is a fraction of a mN and the fit is left as it was
+#: ringing one by 25-55 %; below it the correction is a fraction of a mN and the fit is left as it was. A pass
+#: whose short-window speed falls to STUCK_SPEED_FRACTION of its mean is not corrected: it nearly stands at
+#: times (generated plant 34's −0.16 mm/s pass: 0…3.6× its mean speed), the curve there runs through the
+#: static break-away, and the correction would be of the order of Fs − Fc (its cosine 1.6 → 8.1× exact)
 RIPPLE_MIN_FRACTION = 0.15
 #: the odd Stribeck curve's parameters (Fc, Fs, vs, δ, Fv): :func:`cv_friction` fits it to at least as many pairs
 STRIBECK_PARAMETERS = 5
@@ -638,7 +641,7 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
 
     With ``speeds``, each pass keeps its speed over ``w`` samples, ``(x[k+w] − x[k])/(w·dt)``
     (``CvSegment.v_window``) when their standard deviation exceeds ``RIPPLE_MIN_FRACTION`` of its mean speed
-    (the pass rings), ``w`` at least ``RIPPLE_WINDOW`` and long enough to cover ``RIPPLE_MIN_QUANTA``
+    (the pass rings) and it never falls to ``STUCK_SPEED_FRACTION`` of it, ``w`` at least ``RIPPLE_WINDOW`` and long enough to cover ``RIPPLE_MIN_QUANTA``
     sensor quanta ``quantum_m`` [m] at the pass's speed, for :func:`cv_friction`'s ripple correction."""
     out: list[CvSegment] = []
     if delay_s > 0.0 and len(u) > 1:
@@ -674,7 +677,8 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
             ww = max(RIPPLE_WINDOW, int(math.ceil(RIPPLE_MIN_QUANTA * max(quantum_m, 0.0) / (abs(vel) * dt))))
             if j1 - j0 >= 4 * ww:
                 vw = (x[j0 + ww:j1] - x[j0:j1 - ww]) / (ww * dt)
-                if float(np.std(vw)) > RIPPLE_MIN_FRACTION * abs(float(vel)):
+                rel = vw / float(vel)
+                if float(np.std(rel)) > RIPPLE_MIN_FRACTION and float(np.min(rel)) > STUCK_SPEED_FRACTION:
                     seg.v_window = vw
         if stuck > STUCK_PASS_FRACTION:
             if dropped is not None:
