@@ -674,7 +674,7 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
         stuck = float(np.mean(ahead < STUCK_SPEED_FRACTION * abs(float(v_ref[j0])) * w * dt))
         seg = CvSegment(float(vel), float(np.mean(f)), se, int(j1 - j0), stuck)
         if speeds is not None and abs(vel) > 0.0:
-            ww = max(RIPPLE_WINDOW, int(math.ceil(RIPPLE_MIN_QUANTA * max(quantum_m, 0.0) / (abs(vel) * dt))))
+            ww = max(RIPPLE_WINDOW, math.ceil(RIPPLE_MIN_QUANTA * max(quantum_m, 0.0) / (abs(vel) * dt)))
             if j1 - j0 >= 4 * ww:
                 vw = (x[j0 + ww:j1] - x[j0:j1 - ww]) / (ww * dt)
                 rel = vw / float(vel)
