@@ -563,12 +563,12 @@ RIPPLE_MIN_QUANTA = 20.0
 #: the ripple correction's fixed-point iterations (:func:`cv_friction`)
 RIPPLE_ITERATIONS = 3
 #: a pass's mean is corrected for its ripple (:func:`cv_friction`) only when the standard deviation of its
-#: short-window speed exceeds this fraction of its mean speed: the cogging ripples a settled pass by 5-7 %, a
+#: short-window speed exceeds this fraction of its mean speed: the cogging ripples a settled pass by 5-15 %, a
 #: ringing one by 25-55 %; below it the correction is a fraction of a mN and the fit is left as it was. A pass
 #: whose short-window speed falls to STUCK_SPEED_FRACTION of its mean is not corrected: it nearly stands at
 #: times (generated plant 34's −0.16 mm/s pass: 0…3.6× its mean speed), the curve there runs through the
 #: static break-away, and the correction would be of the order of Fs − Fc (its cosine 1.6 → 8.1× exact)
-RIPPLE_MIN_FRACTION = 0.15
+RIPPLE_MIN_FRACTION = 0.2
 #: the odd Stribeck curve's parameters (Fc, Fs, vs, δ, Fv): :func:`cv_friction` fits it to at least as many pairs
 STRIBECK_PARAMETERS = 5
 #: the + and − passes of one designed speed are paired when their measured speeds differ by at most this
