@@ -686,7 +686,8 @@ class Commissioning:
             cv = an.cv_friction(an.cv_segments(cv_rec.col("t"), cv_rec.col("x"), cv_rec.col("u"),
                                                cv_rec.col("v_ref"), cv_rec.col("a_ref"), m, speeds=speeds,
                                                dropped=stuck, delay_s=tau + 0.5 * T, position_force_n=pos_force,
-                                               cogging=cogging))
+                                               cogging=cogging,
+                                               quantum_m=_quantum(cv_rec.col("x")) or _quantum_guess_cfg(self.cfg)))
             if stuck and cv.stribeck is not None:  # fit_models refits the curve with Fs held (fit._refit_stribeck)
                 cv.stribeck["stick_slip_m_s"] = max(abs(s.v_m_s) for s in stuck)
             return cv
