@@ -1508,29 +1508,37 @@ class StageController:
         until less than SYNC_START_TOLERANCE of d̂ is left or a step moves less than that; the force the model
         takes leaves the observer (``dob.shift``, and the observer's last input with it: u unchanged). Real-time
         safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move)."""
-        k = self._k_ps
-        th = self.ff_scale
         st = self.state
-        d_hat = st.d_hat_n
-        ffc = self.cfg.feedforward
-        if k <= 0.0 or th <= 0.0 or not abs(d_hat) > th * k * ffc.rest_sync_max_step_m:
-            return  # (nothing left that one period of the rest sync could not load: the standstill's sync converged)
-        v_v = ffc.rest_sync_max_step_m / self.period_s  # the rest sync's largest virtual speed [m/s]
-        u_old = u_ff = th * ff.state.u_ff_n
-        rem = d_hat
-        for _ in range(SYNC_START_ITERATIONS):
-            dx = rem / (th * k)
-            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
-            moved = u_ff - new  # old − new feed-forward force: the observer carries it
-            u_ff = new
-            rem += moved
-            if abs(rem) <= SYNC_START_TOLERANCE * abs(d_hat) or abs(moved) <= SYNC_START_TOLERANCE * abs(d_hat):
-                break
-        delta = u_old - u_ff
+        delta = self._load_into_model(dt, ff, st.d_hat_n)
         if delta != 0.0:
             self.shift_observer(delta)
             st.d_hat_n += delta
             st.u_ff_n -= delta
+
+    def _load_into_model(self, dt: float, ff: FrictionFeedforward, force_n: float) -> float:
+        """The start-edge load shared by :meth:`_sync_on_start` and :meth:`_sync_on_start_integral`: steps the model
+        by Δx = rem/(θ·Σk) at the rest sync's largest virtual speed rest_sync_max_step_m/T, at most
+        SYNC_START_ITERATIONS times, until less than SYNC_START_TOLERANCE of ``force_n`` [N] (what the observer or
+        the rest integral still holds) is left or a step moves less than that. Returns δ [N], the old feed-forward
+        force minus the new one (the caller's holder takes it, u unchanged); 0 when ``force_n`` is no more than one
+        period of the rest sync can load (θ·Σk·rest_sync_max_step_m: the standstill's sync converged)."""
+        k = self._k_ps
+        th = self.ff_scale
+        ffc = self.cfg.feedforward
+        if k <= 0.0 or th <= 0.0 or not abs(force_n) > th * k * ffc.rest_sync_max_step_m:
+            return 0.0
+        v_v = ffc.rest_sync_max_step_m / self.period_s  # the rest sync's largest virtual speed [m/s]
+        u_old = u_ff = th * ff.state.u_ff_n
+        rem = force_n
+        for _ in range(SYNC_START_ITERATIONS):
+            dx = rem / (th * k)
+            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
+            moved = u_ff - new  # old − new feed-forward force: the holder carries it
+            u_ff = new
+            rem += moved
+            if abs(rem) <= SYNC_START_TOLERANCE * abs(force_n) or abs(moved) <= SYNC_START_TOLERANCE * abs(force_n):
+                break
+        return u_old - u_ff
 
     def _rest_sync_where(self, ff: FrictionFeedforward, x_r: float, x_m: float, v_hat: float) -> bool:
         """Where the stop synchronisation loads the model (module docstring, "Feed-forward through the stop"):
@@ -1654,24 +1662,7 @@ class StageController:
         against a move forward at F_c = 0.85 N left the stage stuck 9 µm behind for 0.3 s, and the next move
         back slid it 47 µm past: a following-error fault). Real-time safe (at most SYNC_START_ITERATIONS model
         steps, once per move)."""
-        k = self._k_ps
-        th = self.ff_scale
-        r0 = self._ri_i
-        ffc = self.cfg.feedforward
-        if k <= 0.0 or th <= 0.0 or not abs(r0) > th * k * ffc.rest_sync_max_step_m:
-            return
-        v_v = ffc.rest_sync_max_step_m / self.period_s
-        u_old = u_ff = th * ff.state.u_ff_n
-        rem = r0
-        for _ in range(SYNC_START_ITERATIONS):
-            dx = rem / (th * k)
-            new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
-            moved = u_ff - new
-            u_ff = new
-            rem += moved
-            if abs(rem) <= SYNC_START_TOLERANCE * abs(r0) or abs(moved) <= SYNC_START_TOLERANCE * abs(r0):
-                break
-        delta = u_old - u_ff
+        delta = self._load_into_model(dt, ff, self._ri_i)
         if delta != 0.0:
             self._ri_i += delta
             self.pid.state.i_n += delta
