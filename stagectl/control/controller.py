@@ -1516,12 +1516,12 @@ class StageController:
             st.u_ff_n -= delta
 
     def _load_into_model(self, dt: float, ff: FrictionFeedforward, force_n: float) -> float:
-        """The start-edge load shared by :meth:`_sync_on_start` and :meth:`_sync_on_start_integral`: steps the model
-        by Δx = rem/(θ·Σk) at the rest sync's largest virtual speed rest_sync_max_step_m/T, at most
-        SYNC_START_ITERATIONS times, until less than SYNC_START_TOLERANCE of ``force_n`` [N] (what the observer or
-        the rest integral still holds) is left or a step moves less than that. Returns δ [N], the old feed-forward
-        force minus the new one (the caller's holder takes it, u unchanged); 0 when ``force_n`` is no more than one
-        period of the rest sync can load (θ·Σk·rest_sync_max_step_m: the standstill's sync converged)."""
+        """The start-edge load shared by :meth:`_sync_on_start` and :meth:`_sync_on_start_integral`: steps the
+        model by Δx = rem/(θ·Σk) at the rest sync's largest virtual speed rest_sync_max_step_m/T, at most
+        SYNC_START_ITERATIONS times, until less than SYNC_START_TOLERANCE of ``force_n`` [N] (what the observer
+        or the rest integral still holds) is left or a step moves less than that. Returns δ [N], the old
+        feed-forward force minus the new one (the caller's holder takes it, u unchanged); 0 when ``force_n`` is
+        no more than one period of the rest sync can load (θ·Σk·rest_sync_max_step_m: the sync converged)."""
         k = self._k_ps
         th = self.ff_scale
         ffc = self.cfg.feedforward
@@ -1536,7 +1536,8 @@ class StageController:
             moved = u_ff - new  # old − new feed-forward force: the holder carries it
             u_ff = new
             rem += moved
-            if abs(rem) <= SYNC_START_TOLERANCE * abs(force_n) or abs(moved) <= SYNC_START_TOLERANCE * abs(force_n):
+            tol = SYNC_START_TOLERANCE * abs(force_n)
+            if abs(rem) <= tol or abs(moved) <= tol:
                 break
         return u_old - u_ff
 
