@@ -571,9 +571,10 @@ RIPPLE_ITERATIONS = 3
 #: a pass's mean is corrected for its ripple (:func:`cv_friction`) only when the standard deviation of its
 #: short-window speed exceeds this fraction of its mean speed: the cogging ripples a settled pass by 5-15 %, a
 #: ringing one by 25-55 %; below it the correction is a fraction of a mN and the fit is left as it was. A pass
-#: whose short-window speed falls to STUCK_SPEED_FRACTION of its mean is not corrected: it nearly stands at
-#: times (generated plant 34's −0.16 mm/s pass: 0…3.6× its mean speed), the curve there runs through the
-#: static break-away, and the correction would be of the order of Fs − Fc (its cosine 1.6 → 8.1× exact)
+#: whose short-window speed falls to STUCK_SPEED_FRACTION of its mean nearly stands at times (generated plant
+#: 34's −0.16 mm/s pass: 0…3.6× its mean speed): corrected over the whole pass, the curve there runs through the
+#: static break-away and the correction is of the order of Fs − Fc (its cosine 1.6 → 8.1× exact); such a pass
+#: is read from its sliding phases instead (:func:`_sliding_phases`), where the correction holds
 RIPPLE_MIN_FRACTION = 0.2
 #: the odd Stribeck curve's parameters (Fc, Fs, vs, δ, Fv): :func:`cv_friction` fits it to at least as many pairs
 STRIBECK_PARAMETERS = 5
@@ -908,8 +909,10 @@ def cv_friction(segs: list[CvSegment]) -> CvFriction:
     curve fitted through them had vs +9 % and the viscous +5.5 % (the cosine tracked 2.8× the exact model's).
     With each pass's speeds over short windows (``CvSegment.v_window``), each mean is corrected by
     ``mean F̂(v_w) − F̂(v̄)`` of the fitted curve ``F̂`` and the curve refitted, ``RIPPLE_ITERATIONS`` times (k106:
-    vs +1 %, viscous −2 %). Only ringing passes carry ``v_window`` (:data:`RIPPLE_MIN_FRACTION`); without any
-    the fit is the plain one. The returned segments are the corrected ones."""
+    vs +1 %, viscous −2 %). Only ringing passes carry ``v_window`` (:data:`RIPPLE_MIN_FRACTION`), and passes
+    that stick-slip, read from their sliding phases (:func:`_sliding_phases`: their mean force and speed, their
+    window speeds, standing ones left out); without any the fit is the plain one. The returned segments are the
+    corrected ones."""
     cv = _cv_friction_once(segs)
     if not any(s.v_window is not None for s in segs):
         return cv
