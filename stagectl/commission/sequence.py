@@ -759,6 +759,13 @@ class Commissioning:
         r.cv = read_cv(pf, None if cog is None else (float(cog["wavelength_m"]), float(cog.get("phase_rad", 0.0))))
         r.cv.position_force = {"slope_n_m": k_x, "cogging": None if cog is None else
                                {k: cog[k] for k in ("amplitude_n", "wavelength_m", "phase_rad")}}
+        slid = r.cv.stick_slip_read()
+        if slid:  # read from their sliding phases (analysis._sliding_phases)
+            r.notes.append("friction_cv: passes at " + ", ".join(f"{1e3 * s.v_pass_m_s:+.3g}" for s in slid)
+                           + " mm/s stick-slipped (their speed fell below a quarter of the mean; they slid in "
+                           + ", ".join(f"{100 * s.sliding_fraction:.0f}" for s in slid) + " % of their samples): "
+                           "read from their sliding phases only, at their sliding speeds "
+                           + ", ".join(f"{1e3 * s.v_m_s:+.3g}" for s in slid) + " mm/s")
 
         # 4.-5. models, gains, new configuration -----------------------------------------------------
         self.res.discovery, self.res.model_spec = fit_models(self.res.recordings, m, self.T,
