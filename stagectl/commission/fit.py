@@ -933,7 +933,7 @@ def _vs_from_loops(recs: list[Recorder], mass_kg: float, period_s: float, delay_
                           options={"xatol": VS_LOOPS_XTOL})
     vs, r1 = math.exp(float(sol.x)), float(sol.fun)
     out = {"vs_m_s": vs, "residual_rms_n": r1, "from_vs_m_s": vs0, "from_residual_rms_n": r0,
-           "range_m_s": [lo, v_min], "evaluations": int(sol.nfev) + 1}
+           "range_m_s": [lo, v_min], "evaluations": int(sol.nfev) + 1, "level_n": float(fr["fs_n"])}
     return out if r1 <= (1.0 - VS_LOOPS_MIN_GAIN) * r0 else None
 
 
@@ -1147,8 +1147,11 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                 # vs below the slowest pass: the loops' rows around it decide it, the level held
                 vl = None
                 if "vs_bound_m_s" in refit:  # the passes only bound vs (stick-slip)
-                    vl = _vs_from_loops(pre_recs, m, period_s, tau, dict(fr, fs_n=presliding["level_n"]),
-                                        spec.get("effects"))
+                    # held at the level the curve was refitted with and the model carries, fr["fs_n"] (the last
+                    # pre-sliding fit's level_n is within STRIBECK_LEVEL_TOLERANCE of it once the refits have
+                    # converged, further after STRIBECK_REFITS that have not): vs is searched, and the loops
+                    # refitted below, at one level
+                    vl = _vs_from_loops(pre_recs, m, period_s, tau, fr, spec.get("effects"))
                 if vl is not None:
                     fr["vs_m_s"] = refit["vs_m_s"] = vl["vs_m_s"]
                     presliding = fit_presliding(pre_recs, m, period_s, tau,

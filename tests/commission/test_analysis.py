@@ -803,6 +803,7 @@ def test_the_loops_find_a_stribeck_velocity_the_passes_only_bound() -> None:
           "stick_slip_m_s": 2.7e-4 * STICK_SLIP_VS_RATIO}
     found = _vs_from_loops([rec], m, 1e-3, 1e-3, fr, None)
     assert found is not None and abs(found["vs_m_s"] / 3e-4 - 1) < 0.03, found
+    assert found["level_n"] == fr["fs_n"]  # the level held is the curve's (fit_models passes the model's fs_n)
     assert _vs_from_loops([rec], m, 1e-3, 1e-3, dict(fr, vs_m_s=3e-4), None) is None
 
 
