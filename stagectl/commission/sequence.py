@@ -2134,7 +2134,10 @@ def rest_stage_decision(pairs: list[dict[str, dict[str, Any]]] | dict[str, dict[
     c_o = sum(float(c["without"]["rms_error_m"]) for c in cp) / kc if kc else math.nan
     sig = math.sqrt(2.0) * s / math.sqrt(kc) if kc else math.nan
     limit = (1.0 + 2.0 * sig) * c_o
-    z = (c_w / c_o - 1.0) / sig if kc else math.nan
+    # ρ = c_with/c_without; a cosine without them at zero RMS (no error above the sensor's quantum) leaves no
+    # room: ρ = 1 if it is zero with them too, else an infinite cost (dropped, decided)
+    rho = (c_w / c_o if c_o > 0.0 else 1.0 if c_w <= 0.0 else math.inf) if kc else math.nan
+    z = (rho - 1.0) / sig if kc else math.nan
     cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g}"
                + (f", mean of {kc} runs each" if kc > 1 else "") + ")" if kc
                else "cosine not run" if n_w <= n_o else "no cosine (does not fit the stroke)")
@@ -2148,7 +2151,7 @@ def rest_stage_decision(pairs: list[dict[str, dict[str, Any]]] | dict[str, dict[
     if n_w > n_o and kc and 0.0 < z <= 4.0:
         why.append(f"the cosine {z:.2g} deviations of its ratio worse, within two of the limit")
     decided = not why
-    out.update(decided=decided, undecided="; ".join(why) or None, cosine_z=None if not kc else z)
+    out.update(decided=decided, undecided="; ".join(why) or None, cosine_z=z if kc and math.isfinite(z) else None)
     conf = ("high" if k == 1 else "medium") if decided else "low"
     if n_w > n_o and (not kc or c_w <= limit):
         return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}
