@@ -984,13 +984,18 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
         # Fc + Fv·v once the spring was off) gave Fc 0.075 N, Fs 1.63 N, vs 92 mm/s, δ 4 for a true Fc 1.63 N;
         # four pairs on a line with 0.3 mN of scatter a vs of 12 mm/s and the viscous +4 %. The curve is then
         # flat (Fs = Fc), the line's; fit._refit_stribeck still refits it with Fs held at the pre-sliding level
-        # where the slow passes stick-slipped
-        th_l, *_ = np.linalg.lstsq(np.column_stack([np.sign(v), v, np.ones_like(v)]), f, rcond=None)
-        r_l = f - np.column_stack([np.sign(v), v, np.ones_like(v)]) @ th_l
-        stri = {"fc_n": float(th_l[0]), "fs_n": float(th_l[0]), "vs_m_s": float(np.min(np.abs(v))),
+        # where the slow passes stick-slipped. The pairs the curve set aside (_stribeck_without_outliers) stay out
+        # of the line, as they do of the line below: the flat curve's Fc and Fv are the returned ones
+        k2 = np.concatenate([use, use]) if paired else np.ones(v.size, bool)
+        vl, fl = v[k2], f[k2]
+        A_l = np.column_stack([np.sign(vl), vl, np.ones_like(vl)])
+        th_l, *_ = np.linalg.lstsq(A_l, fl, rcond=None)
+        r_l = fl - A_l @ th_l
+        stri = {"fc_n": float(th_l[0]), "fs_n": float(th_l[0]), "vs_m_s": float(np.min(np.abs(vl))),
                 "delta": 2.0, "viscous_n_s_m": float(th_l[1]), "offset_n": float(th_l[2]),
-                "rms_n": float(np.sqrt(np.mean(r_l ** 2))), "segments": float(v.size), "stribeck_identified": False,
-                "v_min_m_s": float(np.min(np.abs(v))), "fs_fixed": False, "beyond_fastest_vs_m_s": stri["vs_m_s"]}
+                "rms_n": float(np.sqrt(np.mean(r_l ** 2))), "segments": float(vl.size), "stribeck_identified": False,
+                "v_min_m_s": float(np.min(np.abs(vl))), "fs_fixed": False, "beyond_fastest_vs_m_s": stri["vs_m_s"],
+                **({"set_aside_pairs": stri["set_aside_pairs"]} if "set_aside_pairs" in stri else {})}
 
     def excess(vv: FloatArray) -> FloatArray:
         if stri is None:

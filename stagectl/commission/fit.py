@@ -933,7 +933,7 @@ def _vs_from_loops(recs: list[Recorder], mass_kg: float, period_s: float, delay_
                           options={"xatol": VS_LOOPS_XTOL})
     vs, r1 = math.exp(float(sol.x)), float(sol.fun)
     out = {"vs_m_s": vs, "residual_rms_n": r1, "from_vs_m_s": vs0, "from_residual_rms_n": r0,
-           "range_m_s": [lo, v_min], "evaluations": int(sol.nfev) + 1}
+           "range_m_s": [lo, v_min], "evaluations": int(sol.nfev) + 1, "level_n": float(fr["fs_n"])}
     return out if r1 <= (1.0 - VS_LOOPS_MIN_GAIN) * r0 else None
 
 
@@ -1027,6 +1027,8 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     # 1.002 kg, true 0.786, FRF 0.731; with it taken off 0.744 kg, and the FRF mass stays)
     cv_rec = to_recording(res_recordings["friction_cv"], "friction_cv")
     spring_n_m = 0.0
+    ce0: dict[str, Any] = {}
+    lv0: tuple[float, float, float] | None = None
     if "slow_passes" in res_recordings:
         ce0 = cogging_decided(res_recordings, mass_kg, period_s)
         if ce0["present"]:
@@ -1034,8 +1036,9 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         # and so does a spring: the passes accelerate at one end of their range and brake at the other, so
         # k·x reads as −m·a (fresh plant k111 of tests/commission/plant_kinds.py, 445 N/m over ±1 mm: 2.56 kg
         # for 3.37, which replaced the probe's 3.367); its slope along the slow passes is taken off first
-        spring_n_m = slow_pass_slope(res_recordings["slow_passes"], mass_kg, period_s,
-                                     ce0 if ce0["present"] else None)
+        # (slow_pass_slope's: the levels' slope)
+        lv0 = slow_pass_levels(res_recordings["slow_passes"], mass_kg, period_s, ce0 if ce0["present"] else None)
+        spring_n_m = 0.0 if lv0 is None else lv0[1]
         cv_rec.u = cv_rec.u - spring_n_m * (cv_rec.x - float(np.mean(cv_rec.x)))
     try:
         m_id = measure(cv_rec).mass_kg
@@ -1067,7 +1070,10 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     offset_passes: dict[str, Any] | None = None
     effects = dict(spec.get("effects") or {})
     if "slow_passes" in res_recordings:
-        ce = cogging_decided(res_recordings, m, period_s)
+        # with the mass unchanged by reconcile_mass (the common case) the cogging and the levels found above for
+        # the mass regression are the same computation: reused; a reconciled mass changes u − m·ẍ, recomputed
+        same_mass = m == mass_kg
+        ce = dict(ce0) if same_mass else cogging_decided(res_recordings, m, period_s)
         ce["discover"] = "cogging" in names
         decided["cogging"] = ce
         if ce["present"]:  # the slow passes' period scan covers every period; discover's search may not
@@ -1088,7 +1094,8 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
             # validation on the passes rejected true offsets of 5 % of Coulomb (generated plants 3 and 61: the
             # gap fell 4 and 13 %, short of its 20 %, the rest of the gap being the sliding levels it fits
             # jointly with pre-sliding), which the passes measure to 0.1-0.5 mN (docs/commissioning.md §4)
-            lv = slow_pass_levels(res_recordings["slow_passes"], m, period_s, ce if ce["present"] else None)
+            lv = (lv0 if same_mass else
+                  slow_pass_levels(res_recordings["slow_passes"], m, period_s, ce if ce["present"] else None))
             oe = an.offset_evidence(cv_segments, None if lv is None else lv[0], 0.0 if lv is None else lv[1],
                                     0.0 if lv is None else lv[2])
             oe["discover"] = "offset" in names
@@ -1147,8 +1154,11 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                 # vs below the slowest pass: the loops' rows around it decide it, the level held
                 vl = None
                 if "vs_bound_m_s" in refit:  # the passes only bound vs (stick-slip)
-                    vl = _vs_from_loops(pre_recs, m, period_s, tau, dict(fr, fs_n=presliding["level_n"]),
-                                        spec.get("effects"))
+                    # held at the level the curve was refitted with and the model carries, fr["fs_n"] (the last
+                    # pre-sliding fit's level_n is within STRIBECK_LEVEL_TOLERANCE of it once the refits have
+                    # converged, further after STRIBECK_REFITS that have not): vs is searched, and the loops
+                    # refitted below, at one level
+                    vl = _vs_from_loops(pre_recs, m, period_s, tau, fr, spec.get("effects"))
                 if vl is not None:
                     fr["vs_m_s"] = refit["vs_m_s"] = vl["vs_m_s"]
                     presliding = fit_presliding(pre_recs, m, period_s, tau,

@@ -80,6 +80,10 @@ FALLBACK_TWIN_TRIALS = 4
 #: two fallback candidates with the same observer kind whose crossovers and observer bandwidths both lie within
 #: this ratio of each other are near twins: only the first (higher crossover, then more measured GM) takes a slot
 FALLBACK_DISTINCT_RATIO = 1.15
+#: two fallback candidates whose twin geometric-mean RMS lie within this fraction of each other are a near tie: the
+#: twin does not rank them (√2·REST_STAGE_SCATTER, the scatter of two runs' RMS ratio at the sensor's noise floor);
+#: :func:`pick_fallback` names the tie instead of calling the lower one better
+FALLBACK_NEAR_TIE = 0.113
 #: candidate crossovers × period (highest first): 40 Hz ... 8 Hz at 1 kHz
 CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01, 0.008)
 #: the conservative commissioning tuning (before the plant is known): crossover and observer × period
@@ -1580,8 +1584,11 @@ def fallback_candidates(tried: list[dict[str, Any]], kp_min_n_m: float, period_s
     Why these margins: the designs the floor rejects on a stiction-heavy stage (k112: 0.89 kg, F_s − F_c 0.43 N,
     50 µm limit, K_p ≥ 8.5 kN/m) lose PM on the model to the 1 ms delay (26–34° at 30–40 Hz) and GM on the
     measured FRF to its pre-sliding mode (the stuck stage on Σk ≈ 1e6 N/m, a peak at 200–220 Hz: 1.8–4.6 dB).
-    GM 3 dB lets the loop gain rise 41 % (the stage 29 % lighter than the mass identified, on which the gains
-    scale: six standard errors of the probe's mass) before that mode goes unstable, and the mode is a
+    GM 3 dB is a loop-gain rise of 41 % before the loop goes unstable, which covers two different things. On the
+    model it covers the model's error: a stage 29 % lighter than the mass identified, on which the gains scale
+    (six standard errors of the probe's mass). On the measured FRF the stage's actual mass is already in the
+    measurement, so model error does not use up that margin; there it covers the plant drifting after the
+    measurement, i.e. the pre-sliding mode's peak rising by 41 % (a stiffer or less damped contact). That mode is a
     small-amplitude one: its stiffness falls as soon as the elements slip. PM 25° at a 50–65 Hz loop crossover
     tolerates 1.1–1.4 ms of delay beyond the measured one (measured to ±0.07 ms). Below these (GM 1.8–2.9 dB
     with the 80–100 Hz observers) the tier does not go: those loops sit on the edge of the mode the FRF measured.
@@ -1653,7 +1660,8 @@ def pick_fallback(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
     the floor's pick stays) and the record for the report: ``decision``, ``confidence`` (``low`` when chosen: it
     misses the floor), ``gives_up`` (:func:`given_up_text`), ``why`` (which finalists were sticky, which faulted),
     ``keep_given`` (the floor's pick stays and the given controller beat it on the twin: the advice is to keep the
-    given one)."""
+    given one), ``near_tie`` (the other candidates within ``FALLBACK_NEAR_TIE`` of the best on the twin: the
+    twin's scatter does not rank them, and the decision says so instead of calling the best one better)."""
     sticky = [finalists[i] for i in range(len(finalists)) if finalists[i].get("sticky") and not _is_fault(scores[i])]
     faulted = [finalists[i] for i in range(len(finalists)) if _is_fault(scores[i])]
     why = "; ".join(p for p in (
@@ -1680,8 +1688,13 @@ def pick_fallback(finalists: list[dict[str, Any]], scores: list[tuple[float, flo
             f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}{given_fig}); {stays}")}
     j = min(ok, key=lambda k: cand_scores[k])
     name = _design_name(candidates[j])
+    # candidates within FALLBACK_NEAR_TIE of the best: the twin does not rank them, and the record says so
+    tie = [k for k in ok if k != j and cand_scores[k][0] - cand_scores[j][0] <= math.log1p(FALLBACK_NEAR_TIE)]
+    rec["near_tie"] = [_design_name(candidates[k]) for k in tie]
+    tie_txt = ("; a near tie with " + ", ".join(f"{_design_name(candidates[k])} {um(cand_scores[k])}" for k in tie)
+               + f" (within the twin's scatter of {100 * FALLBACK_NEAR_TIE:.0f} %: not ranked by it)" if tie else "")
     figs = (f"twin geometric-mean RMS: {name} {um(cand_scores[j])}, the floor's pick "
-            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}{given_fig}")
+            f"{_design_name(finalists[i_pick])} {um(scores[i_pick])}{given_fig}{tie_txt}")
     if not cand_scores[j] < scores[i_pick]:
         return None, {**rec, "chosen": None, "keep_given": keep_given, "confidence": "low",
                       "decision": f"fallback tier: {name} not better on the twin ({figs}); {stays}"}
@@ -2141,7 +2154,10 @@ def rest_stage_decision(pairs: list[dict[str, dict[str, Any]]] | dict[str, dict[
     c_o = sum(float(c["without"]["rms_error_m"]) for c in cp) / kc if kc else math.nan
     sig = math.sqrt(2.0) * s / math.sqrt(kc) if kc else math.nan
     limit = (1.0 + 2.0 * sig) * c_o
-    z = (c_w / c_o - 1.0) / sig if kc else math.nan
+    # ρ = c_with/c_without; a cosine without them at zero RMS (no error above the sensor's quantum) leaves no
+    # room: ρ = 1 if it is zero with them too, else an infinite cost (dropped, decided)
+    rho = (c_w / c_o if c_o > 0.0 else 1.0 if c_w <= 0.0 else math.inf) if kc else math.nan
+    z = (rho - 1.0) / sig if kc else math.nan
     cos_txt = (f"cosine {c_w * 1e9:.3g} nm RMS with, {c_o * 1e9:.3g} without (limit {limit * 1e9:.3g}"
                + (f", mean of {kc} runs each" if kc > 1 else "") + ")" if kc
                else "cosine not run" if n_w <= n_o else "no cosine (does not fit the stroke)")
@@ -2155,7 +2171,7 @@ def rest_stage_decision(pairs: list[dict[str, dict[str, Any]]] | dict[str, dict[
     if n_w > n_o and kc and 0.0 < z <= 4.0:
         why.append(f"the cosine {z:.2g} deviations of its ratio worse, within two of the limit")
     decided = not why
-    out.update(decided=decided, undecided="; ".join(why) or None, cosine_z=None if not kc else z)
+    out.update(decided=decided, undecided="; ".join(why) or None, cosine_z=z if kc and math.isfinite(z) else None)
     conf = ("high" if k == 1 else "medium") if decided else "low"
     if n_w > n_o and (not kc or c_w <= limit):
         return {**out, "keep": True, "confidence": conf, "decision": f"kept ({figs})"}

@@ -1515,6 +1515,29 @@ class StageController:
             st.d_hat_n += delta
             st.u_ff_n -= delta
 
+    def _start_edge(self, dt: float, ff: FrictionFeedforward, dob: QFilterDob | KalmanDob | None,
+                    settling: bool) -> None:
+        """A move's start edge (the first step, fresh or held, with the reference moving) after a standstill whose
+        stop synchronisation was under way (``_sync_armed``), or during a settle move from ahead (``settling`` with
+        the continuation's ``stiff``): the continuation's reversal spring force u_k goes to the observer first
+        (d̂ += u_k: no step in u) and the ahead pass ends; then the synchronisation completes
+        (:meth:`_sync_on_start`, without an observer :meth:`_sync_on_start_integral`). Disarms the sync."""
+        st = self.state
+        if settling and self._sm.stiff and dob is not None:
+            if self._u_k != 0.0:
+                self.shift_observer(self._u_k)
+                st.d_hat_n += self._u_k
+                self._u_k = 0.0
+            self._ahead_pass = 0
+            self._sm.stiff = False
+            self._sync_on_start(dt, ff, dob)
+        elif self._sync_armed and not settling:
+            if dob is None:  # (armed by the rest integral's own synchronisation, _rest_sync_integral)
+                self._sync_on_start_integral(dt, ff)
+            else:
+                self._sync_on_start(dt, ff, dob)
+        self._sync_armed = False
+
     def _load_into_model(self, dt: float, ff: FrictionFeedforward, force_n: float) -> float:
         """The start-edge load shared by :meth:`_sync_on_start` and :meth:`_sync_on_start_integral`: steps the
         model by Δx = rem/(θ·Σk) at the rest sync's largest virtual speed rest_sync_max_step_m/T, at most
@@ -2022,20 +2045,7 @@ class StageController:
             # model has not seen, goes to the observer first (as at the continuation's end, d̂ += u_k: no step in
             # u) and with it into the model; the continuation goes on for the feedback without it (kept, the model's
             # own reversal at the move's start came on top of it: a 10 ms dwell, 15 µm ahead)
-            if settling and self._sm.stiff and dob is not None:
-                if self._u_k != 0.0:
-                    self.shift_observer(self._u_k)
-                    st.d_hat_n += self._u_k
-                    self._u_k = 0.0
-                self._ahead_pass = 0
-                self._sm.stiff = False
-                self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
-            elif self._sync_armed and not settling:
-                if dob is None:  # (armed by the rest integral's own synchronisation, _rest_sync_integral)
-                    self._sync_on_start_integral(dt, ff)  # type: ignore[arg-type]
-                else:
-                    self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
-            self._sync_armed = False
+            self._start_edge(dt, ff, dob, settling)  # type: ignore[arg-type]
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
         self._ff_ahead_s = 0.0
@@ -2283,11 +2293,12 @@ class StageController:
         ffc = self.cfg.feedforward
         if ff is None or self._ff_bump is not None or self._pending is not None:
             return Command(st.u_n, st.terms, ("stale",))
-        if self._sync_armed and not (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0):
-            # a move starts on a blind cycle: the start-edge sync before the model's first step, as in _step
-            self._sync_armed = False
-            if isinstance(ff, FrictionFeedforward) and self.dob is not None:
-                self._sync_on_start(dt, ff, self.dob)
+        settling = self._sm.active  # (a held cycle does not advance the continuation: the feedback is held)
+        if (not (ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0) and isinstance(ff, FrictionFeedforward)
+                and (self._sync_armed or (settling and self._sm.stiff and ffc.rest_sync_on_start))):
+            # a move starts on a blind cycle: the start-edge sync (and the hand-over of a settle move from ahead's
+            # reversal force) before the model's first step, as in _step
+            self._start_edge(dt, ff, self.dob, settling)
         u_ff = ff.step(dt, ref, self._ref_stop) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg

@@ -803,4 +803,34 @@ def test_the_loops_find_a_stribeck_velocity_the_passes_only_bound() -> None:
           "stick_slip_m_s": 2.7e-4 * STICK_SLIP_VS_RATIO}
     found = _vs_from_loops([rec], m, 1e-3, 1e-3, fr, None)
     assert found is not None and abs(found["vs_m_s"] / 3e-4 - 1) < 0.03, found
+    assert found["level_n"] == fr["fs_n"]  # the level held is the curve's (fit_models passes the model's fs_n)
     assert _vs_from_loops([rec], m, 1e-3, 1e-3, dict(fr, vs_m_s=3e-4), None) is None
+
+
+def test_the_flat_line_that_replaces_a_curve_beyond_the_fastest_pass_keeps_the_set_aside_pair_out() -> None:
+    """Passes on a nearly flat friction curve (Fs 1.45 N, Fc 1.4316 N, vs 20 mm/s: its drop lies beyond the
+    fastest pass at 16 mm/s) with one middle − pass pushed by 15-25 mN: the weighted fit sets that pair aside, and its
+    curve, beyond the fastest pass, is replaced by the flat line Fc + Fv·v. The line leaves the pair out as the
+    returned Coulomb and viscous do: its Fc and Fv are theirs (with the pair in: 2 mN apart), and it does not
+    move with the push (a 15 or 25 mN push, the same line)."""
+    fc, fs, vs, fv, f0 = 1.4316, 1.45, 20e-3, 30.671, 0.02
+
+    def force(v: float) -> float:
+        return float(np.sign(v) * (fc + (fs - fc) * np.exp(-((abs(v) / vs) ** 2))) + fv * v + f0)
+
+    out = []
+    for push in (0.015, 0.025):
+        segs = []
+        for k, s in enumerate(np.geomspace(16e-3 / 100, 16e-3, 6)):
+            for sg in (1, -1):
+                v = sg * s * (1 + 0.002 * np.cos(3 * k + sg))
+                segs.append(an.CvSegment(v, force(v) + 2e-4 * np.sin(5 * k + 2 * sg), 2e-4, 400))
+        segs[7] = an.CvSegment(segs[7].v_m_s, segs[7].f_n + push, 3e-3, 400)  # the 4th pair's − pass
+        c = an.cv_friction(segs)
+        st = c.stribeck
+        assert st is not None and st.get("beyond_fastest_vs_m_s", 0.0) > 16e-3 and st["fs_n"] == st["fc_n"]
+        assert st.get("set_aside_pairs") == 1 and c.used == 10
+        assert st["fc_n"] == pytest.approx(c.coulomb_n, abs=1e-9)
+        assert st["viscous_n_s_m"] == pytest.approx(c.viscous_n_s_m, abs=1e-6)
+        out.append(st["fc_n"])
+    assert out[0] == pytest.approx(out[1], abs=1e-9)

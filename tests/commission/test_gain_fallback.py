@@ -278,3 +278,19 @@ def test_the_twin_slots_go_to_distinct_designs() -> None:
     many = fallback_candidates(tried + [design(26, "qfilter", 80, 8600, 33.0, 8.0, 95.0, 4.5)], KP_MIN, T)
     assert len(many) == 4 and (26, "qfilter", 80) not in [
         (e["crossover_target_hz"], e["dob_kind"], e["dob_bandwidth_hz"]) for e in many]
+
+
+def test_a_near_tie_between_fallback_candidates_is_named_not_ranked() -> None:
+    """Two candidates within the twin's scatter (FALLBACK_NEAR_TIE, 11 %: 1.35 and 1.50 um): the record names the
+    tie and the decision says the twin does not rank them; 1.35 against 2.0 um is no tie."""
+    from stagectl.commission.sequence import FALLBACK_NEAR_TIE
+
+    fin, keys = finalists_k112()
+    i, _ = pick_finalist(fin, keys)
+    cands = fallback_candidates(k112_tried(), KP_MIN, T)
+    assert 1.50 / 1.35 - 1 < FALLBACK_NEAR_TIE < 2.0 / 1.35 - 1
+    j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(1.35e-6), key(1.50e-6)], key(2.34e-6), KP_MIN)
+    assert j == 1 and rec["near_tie"] == [ch_name(cands[2])]
+    assert f"a near tie with {ch_name(cands[2])} 1.5 um" in rec["decision"] and "not ranked by it" in rec["decision"]
+    j, rec = pick_fallback(fin, keys, i, cands, [(INF, 0.0), key(1.35e-6), key(2.0e-6)], key(2.34e-6), KP_MIN)
+    assert j == 1 and rec["near_tie"] == [] and "near tie" not in rec["decision"]

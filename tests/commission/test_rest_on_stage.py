@@ -177,3 +177,23 @@ def test_a_fault_of_the_commissioned_controller_in_its_rest_check_keeps_the_give
     com.res.aborted = sq.CommissionAborted(name, "fault following_error: 5.1e-05 m")
     v = report_dict(com.res)["verdict"]
     assert v["recommend"] == "given" and name in v["text"] and "faulted" in v["text"]
+
+
+def test_a_zero_cosine_figure_is_decided_without_a_division_by_zero():
+    """A cosine run at zero RMS (no error above the sensor's quantum): without the rest additions and with them,
+    ρ = 1 (no cost: kept on the steps' gain); without them only, an infinite cost (dropped, decided, no z); with
+    them only, ρ = 0 (kept). No ZeroDivisionError, no nan in the result."""
+    import json
+
+    from stagectl.commission.sequence import rest_stage_decision
+
+    both = rest_stage_decision([_figs(4, 2, 0.0, c_o=0.0)])
+    assert both["keep"] and both["decided"] and both["cosine_z"] == 0.0
+    worse = _figs(4, 2, 1.0, c_o=0.0)
+    worse["cosine"]["with"]["rms_error_m"] = 3e-9
+    d = rest_stage_decision([worse])
+    assert not d["keep"] and d["decided"] and d["cosine_z"] is None and "cosine is worse" in d["decision"]
+    better = rest_stage_decision([_figs(4, 2, 0.0)])
+    assert better["keep"] and better["decided"] and better["cosine_z"] < 0.0
+    for r in (both, d, better):
+        json.dumps(r, allow_nan=False)
