@@ -27,7 +27,7 @@ discretisation at the loop period, ``τ`` the I/O delay), least squares on ``ln(
 phase equally), weighted by the per-line uncertainty. ``k`` is the pre-sliding (friction) stiffness the stage
 stands on while excited around a position, so ``f0 = √(k/m)/2π`` is reported as the pre-sliding resonance.
 Parameter standard errors: ``s²·(JᵀJ)⁻¹``. Lines where ``|P_meas/G|`` exceeds ``RESONANCE_RATIO`` are
-reported as unmodelled resonances.
+reported as unmodelled resonances, unless nonlinear distortion dominates them (:func:`frf_distortion`).
 
 **Friction from constant-velocity passes** (:func:`cv_friction`): the mean force of each steady segment vs its
 speed, per direction. The two directions of a speed are paired, and the fit reads their odd part
@@ -36,7 +36,12 @@ speed, per direction. The two directions of a speed are paired, and the fit read
 :func:`stagectl.ident.identify.fit_stribeck_curve` removed first (standard errors from the regression).
 
 **Margins on the measured FRF** (:func:`measured_margins`): ``L(jω) = P_meas(jω)·K(e^{jωT})`` with ``K`` the
-equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``).
+equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``),
+on the lines where the friction's nonlinear distortion is under ``FRF_DISTORTION_MAX`` of the line
+(:func:`frf_distortion`). A stage excited under its breakaway stands on its pre-sliding spring: the lines
+above ``√(Σk/m)/2π`` see it as a real, linear and measurable resonance (it stays in the check); the
+low-frequency lines, where the elements slip and re-stick, hold intermodulation products of the other lines
+and can show any phase (plant gen 29: +45° at 11 Hz, which alone had ruled out 22–35 Hz PIDs).
 """
 
 from __future__ import annotations
@@ -412,14 +417,32 @@ def frf_amplitude(wave: FloatArray, bins: npt.NDArray[np.int64], nominal_n: floa
     return FrfAmplitude(a, nominal_n, a * u_unit, e_pred, limit)
 
 
+#: nonlinear distortion (:func:`estimate_frf`): the level at the FRF_DISTORTION_NEIGHBOURS non-excited bins
+#: nearest a line, relative to the line's; lines above FRF_DISTORTION_MAX carry no linear information and are
+#: left out of :func:`measured_margins` (all lines are kept when fewer than FRF_MARGIN_MIN_LINES would remain)
+FRF_DISTORTION_NEIGHBOURS = 4
+FRF_DISTORTION_MAX = 0.5
+FRF_MARGIN_MIN_LINES = 6
+
+
 @dataclass
 class Frf:
-    """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``)."""
+    """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``),
+    ``distortion`` (per-line relative level of what the non-excited bins around it hold; None: not measured)."""
 
     f_hz: FloatArray
     p: ComplexArray
     p_std: FloatArray
     periods: int
+    distortion: FloatArray | None = None
+
+    def linear_lines(self) -> npt.NDArray[np.bool_]:
+        """The lines whose distortion is at most FRF_DISTORTION_MAX (all when that leaves under
+        FRF_MARGIN_MIN_LINES or the distortion was not measured)."""
+        if self.distortion is None:
+            return np.ones(self.f_hz.shape[0], bool)
+        keep = np.asarray(self.distortion <= FRF_DISTORTION_MAX, bool)
+        return keep if int(keep.sum()) >= FRF_MARGIN_MIN_LINES else np.ones(self.f_hz.shape[0], bool)
 
 
 def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[np.int64], period_s: float) -> Frf:
@@ -431,13 +454,40 @@ def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[
     us = u[n_period: n_period * (p_count + 1)].reshape(p_count, n_period)
     xs = xs - xs.mean(axis=1, keepdims=True)
     us = us - us.mean(axis=1, keepdims=True)
-    X = np.fft.rfft(xs, axis=1)[:, bins]
-    U = np.fft.rfft(us, axis=1)[:, bins]
+    Xa = np.fft.rfft(xs, axis=1)
+    Ua = np.fft.rfft(us, axis=1)
+    X, U = Xa[:, bins], Ua[:, bins]
     p = X.mean(axis=0) / U.mean(axis=0)
     per = X / U
     p_std = np.abs(per - p).std(axis=0, ddof=1) / math.sqrt(p_count) if p_count > 1 else np.abs(p)
     f = bins.astype(float) / (n_period * period_s)
-    return Frf(f, p.astype(np.complex128), np.asarray(p_std, float), p_count)
+    return Frf(f, p.astype(np.complex128), np.asarray(p_std, float), p_count,
+               frf_distortion(Xa.mean(axis=0), Ua.mean(axis=0), bins))
+
+
+def frf_distortion(X: ComplexArray, U: ComplexArray, bins: npt.NDArray[np.int64]) -> FloatArray:
+    """Per excited line ``k``: ``δ_k = √((x̃_k/|X_k|)² + (ũ_k/|U_k|)²)``, with ``x̃_k``, ``ũ_k`` the RMS of the
+    period-averaged spectra ``X``, ``U`` (all bins, 0 … N/2) over the ``FRF_DISTORTION_NEIGHBOURS``
+    non-excited bins nearest ``k`` ("detection lines"). A linear loop puts only noise there; friction's
+    distortion of a periodic excitation is periodic too, so averaging does not remove it nor does the
+    per-period spread (``p_std``) show it, but it lands on the non-excited bins around the lines as much as on
+    the lines. ``δ`` is then the relative error of ``P = X/U`` it causes (a 0.60 kg stage standing on a
+    2.1e6 N/m pre-sliding spring under half its breakaway: δ 0.3–3.6 at 2–17 Hz, one line at 11 Hz with
+    phase +45°, which no passive stage has; 0.07–0.2 at 50–340 Hz)."""
+    n = X.shape[0]
+    mask = np.ones(n, bool)
+    mask[0] = False
+    mask[bins] = False
+    free = np.nonzero(mask)[0]
+    if free.size == 0:
+        return np.zeros(bins.shape[0])
+    out = np.empty(bins.shape[0])
+    for i, b in enumerate(bins.tolist()):
+        near = free[np.argsort(np.abs(free - b), kind="stable")[:FRF_DISTORTION_NEIGHBOURS]]
+        fx = math.sqrt(float(np.mean(np.abs(X[near]) ** 2)))
+        fu = math.sqrt(float(np.mean(np.abs(U[near]) ** 2)))
+        out[i] = math.hypot(fx / max(abs(X[b]), 1e-300), fu / max(abs(U[b]), 1e-300))
+    return out
 
 
 def plant_response(f_hz: FloatArray, m: float, c: float, k: float, tau: float, period_s: float) -> ComplexArray:
@@ -532,7 +582,8 @@ def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
     m = math.exp(th[0])
     full = plant_response(f, m, th[1], th[2], th[3], period_s)
     ratio = np.abs(p / full)
-    res = [float(fi) for fi, r, good in zip(f, ratio, band) if good and r > RESONANCE_RATIO]
+    lin = frf.linear_lines()
+    res = [float(fi) for fi, r, good, li in zip(f, ratio, band, lin) if good and li and r > RESONANCE_RATIO]
     return PlantFit(m, m * float(sd[0]), float(th[1]), float(th[2]), float(sd[2]), float(th[3]), float(sd[3]), rms,
                     res, f_lo)
 
@@ -1130,5 +1181,7 @@ def controller_response(f_hz: FloatArray, period_s: float, pid: Any, dob_kind: s
 
 
 def measured_margins(frf: Frf, K: ComplexArray) -> Margins:
-    """Margins of ``L = P_meas·K`` on the measured lines."""
-    return margins_from_response(frf.f_hz, frf.p * K)
+    """Margins of ``L = P_meas·K`` on the measured lines that are not dominated by nonlinear distortion
+    (:meth:`Frf.linear_lines`; ``K`` at every line of ``frf``)."""
+    keep = frf.linear_lines()
+    return margins_from_response(frf.f_hz[keep], (frf.p * K)[keep])

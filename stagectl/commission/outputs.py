@@ -74,7 +74,8 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["plant"] = res.plant.as_dict()
     if res.frf is not None:
         r["frf"] = {"f_hz": res.frf.f_hz.tolist(), "re": res.frf.p.real.tolist(), "im": res.frf.p.imag.tolist(),
-                    "std": res.frf.p_std.tolist(), "periods": res.frf.periods}
+                    "std": res.frf.p_std.tolist(), "periods": res.frf.periods,
+                    "distortion": None if res.frf.distortion is None else res.frf.distortion.tolist()}
     if res.cv is not None:
         r["friction_cv"] = res.cv.as_dict()
     if res.discovery is not None:
