@@ -37,11 +37,12 @@ speed, per direction. The two directions of a speed are paired, and the fit read
 
 **Margins on the measured FRF** (:func:`measured_margins`): ``L(jω) = P_meas(jω)·K(e^{jωT})`` with ``K`` the
 equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``),
-on the lines where the friction's nonlinear distortion is under ``FRF_DISTORTION_MAX`` of the line
-(:func:`frf_distortion`). A stage excited under its breakaway stands on its pre-sliding spring: the lines
-above ``√(Σk/m)/2π`` see it as a real, linear and measurable resonance (it stays in the check); the
-low-frequency lines, where the elements slip and re-stick, hold intermodulation products of the other lines
-and can show any phase (plant gen 29: +45° at 11 Hz, which alone had ruled out 22–35 Hz PIDs).
+on the lines but those both dominated by the friction's nonlinear distortion (:func:`frf_distortion`) and
+impossible for a passive stage (:meth:`Frf.margin_lines`). A stage excited under its breakaway stands on its
+pre-sliding spring: the lines near ``√(Σk/m)/2π`` see it as a real, linear and cleanly measured resonance
+of the stage at rest (it stays in the check); the low-frequency lines, where the elements slip and re-stick,
+hold intermodulation products of the other lines and can show any phase (plant gen 29: +45° at 11 Hz, which
+alone had ruled out 22–35 Hz PIDs).
 """
 
 from __future__ import annotations
@@ -417,9 +418,10 @@ def frf_amplitude(wave: FloatArray, bins: npt.NDArray[np.int64], nominal_n: floa
     return FrfAmplitude(a, nominal_n, a * u_unit, e_pred, limit)
 
 
-#: nonlinear distortion (:func:`estimate_frf`): the level at the FRF_DISTORTION_NEIGHBOURS non-excited bins
-#: nearest a line, relative to the line's; lines above FRF_DISTORTION_MAX carry no linear information and are
-#: left out of :func:`measured_margins` (all lines are kept when fewer than FRF_MARGIN_MIN_LINES would remain)
+#: nonlinear distortion (:func:`frf_distortion`): the level at the FRF_DISTORTION_NEIGHBOURS non-excited bins
+#: nearest a line, relative to the line's; above FRF_DISTORTION_MAX the line carries no linear information
+#: (:meth:`Frf.linear_lines`, :meth:`Frf.margin_lines`; all lines count when fewer than FRF_MARGIN_MIN_LINES
+#: would remain)
 FRF_DISTORTION_NEIGHBOURS = 4
 FRF_DISTORTION_MAX = 0.5
 FRF_MARGIN_MIN_LINES = 6
@@ -428,21 +430,38 @@ FRF_MARGIN_MIN_LINES = 6
 @dataclass
 class Frf:
     """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``),
-    ``distortion`` (per-line relative level of what the non-excited bins around it hold; None: not measured)."""
+    ``distortion`` (per-line relative level of what the non-excited bins around it hold; None: not measured),
+    ``delay_s`` (the I/O delay with the zero-order hold's half period the passivity test of
+    :meth:`margin_lines` takes out; set once the plant fit has measured it)."""
 
     f_hz: FloatArray
     p: ComplexArray
     p_std: FloatArray
     periods: int
     distortion: FloatArray | None = None
+    delay_s: float = 0.0
+
+    def _at_least(self, keep: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+        return keep if int(keep.sum()) >= FRF_MARGIN_MIN_LINES else np.ones(self.f_hz.shape[0], bool)
 
     def linear_lines(self) -> npt.NDArray[np.bool_]:
-        """The lines whose distortion is at most FRF_DISTORTION_MAX (all when that leaves under
-        FRF_MARGIN_MIN_LINES or the distortion was not measured)."""
+        """The lines whose distortion is at most FRF_DISTORTION_MAX."""
         if self.distortion is None:
             return np.ones(self.f_hz.shape[0], bool)
-        keep = np.asarray(self.distortion <= FRF_DISTORTION_MAX, bool)
-        return keep if int(keep.sum()) >= FRF_MARGIN_MIN_LINES else np.ones(self.f_hz.shape[0], bool)
+        return self._at_least(np.asarray(self.distortion <= FRF_DISTORTION_MAX, bool))
+
+    def margin_lines(self) -> npt.NDArray[np.bool_]:
+        """The lines the margins are read on: all but those dominated by distortion (``δ > FRF_DISTORTION_MAX``)
+        *and* impossible for a passive stage. Force in, position out at the same carriage: the mobility
+        ``jω·P`` of a passive system has a non-negative real part (it takes power in), so
+        ``Im(P·e^{jωτ}) ≤ 0`` once the delay ``τ`` is taken out; friction is passive too. A line above that
+        is wrong in the direction that fakes −180° crossings (its phase unwraps a full turn). Either test
+        alone is not enough: a real mode of a non-collocated sensor has clean lines, and dropping every
+        distorted line leaves a stage measured under its breakaway without the lines its crossover is on."""
+        if self.distortion is None:
+            return np.ones(self.f_hz.shape[0], bool)
+        lead = (self.p * np.exp(1j * 2 * np.pi * self.f_hz * self.delay_s)).imag > 0.0
+        return self._at_least(~(np.asarray(self.distortion > FRF_DISTORTION_MAX, bool) & lead))
 
 
 def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[np.int64], period_s: float) -> Frf:
@@ -1181,7 +1200,7 @@ def controller_response(f_hz: FloatArray, period_s: float, pid: Any, dob_kind: s
 
 
 def measured_margins(frf: Frf, K: ComplexArray) -> Margins:
-    """Margins of ``L = P_meas·K`` on the measured lines that are not dominated by nonlinear distortion
-    (:meth:`Frf.linear_lines`; ``K`` at every line of ``frf``)."""
-    keep = frf.linear_lines()
+    """Margins of ``L = P_meas·K`` on the measured lines but those :meth:`Frf.margin_lines` leaves out
+    (``K`` at every line of ``frf``)."""
+    keep = frf.margin_lines()
     return margins_from_response(frf.f_hz[keep], (frf.p * K)[keep])
