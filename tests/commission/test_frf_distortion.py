@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from plant_gen import hidden_plant, stage_yaml  # noqa: E402
+from plant_gen import hidden_plant, stage_yaml
 
-from stagectl.cli import main  # noqa: E402
-from stagectl.commission import analysis as an  # noqa: E402
-from stagectl.commission import sequence as seq  # noqa: E402
-from stagectl.commission.controllers import log_bins  # noqa: E402
-from stagectl.control import design  # noqa: E402
+from stagectl.cli import main
+from stagectl.commission import analysis as an
+from stagectl.commission import sequence as seq
+from stagectl.commission.controllers import log_bins
+from stagectl.control import design
 
 
 def test_distorted_lines_do_not_decide_the_margins_and_the_presliding_resonance_does(tmp_path: Path) -> None:
