@@ -11,6 +11,7 @@ out every PID from 22 to 35 Hz (3.3 dB for the 30 Hz one). About 3 s of CPU.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -56,6 +57,8 @@ def test_distorted_lines_do_not_decide_the_margins_and_the_presliding_resonance_
     assert (frf.p[i11] * np.exp(1j * 2 * np.pi * 11.0 * frf.delay_s)).imag > 0.0, frf.p[i11]
     keep = frf.margin_lines()
     assert not keep[i11] and keep.sum() >= frf.f_hz.shape[0] - 5, frf.f_hz[~keep]
+    rep = json.loads((out / "report.json").read_text())  # the sequence's own FRF says the same
+    assert rep["frf"]["margin_lines_left_out_hz"] == frf.f_hz[~keep].tolist(), rep["frf"]
 
     # the pre-sliding resonance is clean and still limits: a 22 Hz PID + Q-filter 100 Hz, healthy on the mass
     # model, has under 8 dB at the spring's resonance (delay: the crossing a little below it)
