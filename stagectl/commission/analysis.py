@@ -27,7 +27,7 @@ discretisation at the loop period, ``τ`` the I/O delay), least squares on ``ln(
 phase equally), weighted by the per-line uncertainty. ``k`` is the pre-sliding (friction) stiffness the stage
 stands on while excited around a position, so ``f0 = √(k/m)/2π`` is reported as the pre-sliding resonance.
 Parameter standard errors: ``s²·(JᵀJ)⁻¹``. Lines where ``|P_meas/G|`` exceeds ``RESONANCE_RATIO`` are
-reported as unmodelled resonances.
+reported as unmodelled resonances, unless nonlinear distortion dominates them (:func:`frf_distortion`).
 
 **Friction from constant-velocity passes** (:func:`cv_friction`): the mean force of each steady segment vs its
 speed, per direction. The two directions of a speed are paired, and the fit reads their odd part
@@ -36,7 +36,13 @@ speed, per direction. The two directions of a speed are paired, and the fit read
 :func:`stagectl.ident.identify.fit_stribeck_curve` removed first (standard errors from the regression).
 
 **Margins on the measured FRF** (:func:`measured_margins`): ``L(jω) = P_meas(jω)·K(e^{jωT})`` with ``K`` the
-equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``).
+equivalent controller ``(C + H_y)/(1 − H_u)`` of PID + disturbance observer (``stagectl.control.design``),
+on the lines but those both dominated by the friction's nonlinear distortion (:func:`frf_distortion`) and
+impossible for a passive stage (:meth:`Frf.margin_lines`). A stage excited under its breakaway stands on its
+pre-sliding spring: the lines near ``√(Σk/m)/2π`` see it as a real, linear and cleanly measured resonance
+of the stage at rest (it stays in the check); the low-frequency lines, where the elements slip and re-stick,
+hold intermodulation products of the other lines and can show any phase (plant gen 29: +45° at 11 Hz, which
+alone had ruled out 22–35 Hz PIDs).
 """
 
 from __future__ import annotations
@@ -412,14 +418,50 @@ def frf_amplitude(wave: FloatArray, bins: npt.NDArray[np.int64], nominal_n: floa
     return FrfAmplitude(a, nominal_n, a * u_unit, e_pred, limit)
 
 
+#: nonlinear distortion (:func:`frf_distortion`): the level at the FRF_DISTORTION_NEIGHBOURS non-excited bins
+#: nearest a line, relative to the line's; above FRF_DISTORTION_MAX the line carries no linear information
+#: (:meth:`Frf.linear_lines`, :meth:`Frf.margin_lines`; all lines count when fewer than FRF_MARGIN_MIN_LINES
+#: would remain)
+FRF_DISTORTION_NEIGHBOURS = 4
+FRF_DISTORTION_MAX = 0.5
+FRF_MARGIN_MIN_LINES = 6
+
+
 @dataclass
 class Frf:
-    """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``)."""
+    """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``),
+    ``distortion`` (per-line relative level of what the non-excited bins around it hold; None: not measured),
+    ``delay_s`` (the I/O delay with the zero-order hold's half period the passivity test of
+    :meth:`margin_lines` takes out; set once the plant fit has measured it)."""
 
     f_hz: FloatArray
     p: ComplexArray
     p_std: FloatArray
     periods: int
+    distortion: FloatArray | None = None
+    delay_s: float = 0.0
+
+    def _at_least(self, keep: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+        return keep if int(keep.sum()) >= FRF_MARGIN_MIN_LINES else np.ones(self.f_hz.shape[0], bool)
+
+    def linear_lines(self) -> npt.NDArray[np.bool_]:
+        """The lines whose distortion is at most FRF_DISTORTION_MAX."""
+        if self.distortion is None:
+            return np.ones(self.f_hz.shape[0], bool)
+        return self._at_least(np.asarray(self.distortion <= FRF_DISTORTION_MAX, bool))
+
+    def margin_lines(self) -> npt.NDArray[np.bool_]:
+        """The lines the margins are read on: all but those dominated by distortion (``δ > FRF_DISTORTION_MAX``)
+        *and* impossible for a passive stage. Force in, position out at the same carriage: the mobility
+        ``jω·P`` of a passive system has a non-negative real part (it takes power in), so
+        ``Im(P·e^{jωτ}) ≤ 0`` once the delay ``τ`` is taken out; friction is passive too. A line above that
+        is wrong in the direction that fakes −180° crossings (its phase unwraps a full turn). Either test
+        alone is not enough: a real mode of a non-collocated sensor has clean lines, and dropping every
+        distorted line leaves a stage measured under its breakaway without the lines its crossover is on."""
+        if self.distortion is None:
+            return np.ones(self.f_hz.shape[0], bool)
+        lead = (self.p * np.exp(1j * 2 * np.pi * self.f_hz * self.delay_s)).imag > 0.0
+        return self._at_least(~(np.asarray(self.distortion > FRF_DISTORTION_MAX, bool) & lead))
 
 
 def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[np.int64], period_s: float) -> Frf:
@@ -431,13 +473,40 @@ def estimate_frf(x: FloatArray, u: FloatArray, n_period: int, bins: npt.NDArray[
     us = u[n_period: n_period * (p_count + 1)].reshape(p_count, n_period)
     xs = xs - xs.mean(axis=1, keepdims=True)
     us = us - us.mean(axis=1, keepdims=True)
-    X = np.fft.rfft(xs, axis=1)[:, bins]
-    U = np.fft.rfft(us, axis=1)[:, bins]
+    Xa = np.fft.rfft(xs, axis=1)
+    Ua = np.fft.rfft(us, axis=1)
+    X, U = Xa[:, bins], Ua[:, bins]
     p = X.mean(axis=0) / U.mean(axis=0)
     per = X / U
     p_std = np.abs(per - p).std(axis=0, ddof=1) / math.sqrt(p_count) if p_count > 1 else np.abs(p)
     f = bins.astype(float) / (n_period * period_s)
-    return Frf(f, p.astype(np.complex128), np.asarray(p_std, float), p_count)
+    return Frf(f, p.astype(np.complex128), np.asarray(p_std, float), p_count,
+               frf_distortion(Xa.mean(axis=0), Ua.mean(axis=0), bins))
+
+
+def frf_distortion(X: ComplexArray, U: ComplexArray, bins: npt.NDArray[np.int64]) -> FloatArray:
+    """Per excited line ``k``: ``δ_k = √((x̃_k/|X_k|)² + (ũ_k/|U_k|)²)``, with ``x̃_k``, ``ũ_k`` the RMS of the
+    period-averaged spectra ``X``, ``U`` (all bins, 0 … N/2) over the ``FRF_DISTORTION_NEIGHBOURS``
+    non-excited bins nearest ``k`` ("detection lines"). A linear loop puts only noise there; friction's
+    distortion of a periodic excitation is periodic too, so averaging does not remove it nor does the
+    per-period spread (``p_std``) show it, but it lands on the non-excited bins around the lines as much as on
+    the lines. ``δ`` is then the relative error of ``P = X/U`` it causes (a 0.60 kg stage standing on a
+    2.1e6 N/m pre-sliding spring under half its breakaway: δ 0.3–3.6 at 2–17 Hz, one line at 11 Hz with
+    phase +45°, which no passive stage has; 0.07–0.2 at 50–340 Hz)."""
+    n = X.shape[0]
+    mask = np.ones(n, bool)
+    mask[0] = False
+    mask[bins] = False
+    free = np.nonzero(mask)[0]
+    if free.size == 0:
+        return np.zeros(bins.shape[0])
+    out = np.empty(bins.shape[0])
+    for i, b in enumerate(bins.tolist()):
+        near = free[np.argsort(np.abs(free - b), kind="stable")[:FRF_DISTORTION_NEIGHBOURS]]
+        fx = math.sqrt(float(np.mean(np.abs(X[near]) ** 2)))
+        fu = math.sqrt(float(np.mean(np.abs(U[near]) ** 2)))
+        out[i] = math.hypot(fx / max(abs(X[b]), 1e-300), fu / max(abs(U[b]), 1e-300))
+    return out
 
 
 def plant_response(f_hz: FloatArray, m: float, c: float, k: float, tau: float, period_s: float) -> ComplexArray:
@@ -532,7 +601,8 @@ def fit_plant(frf: Frf, period_s: float, mass_guess_kg: float) -> PlantFit:
     m = math.exp(th[0])
     full = plant_response(f, m, th[1], th[2], th[3], period_s)
     ratio = np.abs(p / full)
-    res = [float(fi) for fi, r, good in zip(f, ratio, band) if good and r > RESONANCE_RATIO]
+    lin = frf.linear_lines()
+    res = [float(fi) for fi, r, good, li in zip(f, ratio, band, lin) if good and li and r > RESONANCE_RATIO]
     return PlantFit(m, m * float(sd[0]), float(th[1]), float(th[2]), float(sd[2]), float(th[3]), float(sd[3]), rms,
                     res, f_lo)
 
@@ -1181,5 +1251,7 @@ def controller_response(f_hz: FloatArray, period_s: float, pid: Any, dob_kind: s
 
 
 def measured_margins(frf: Frf, K: ComplexArray) -> Margins:
-    """Margins of ``L = P_meas·K`` on the measured lines."""
-    return margins_from_response(frf.f_hz, frf.p * K)
+    """Margins of ``L = P_meas·K`` on the measured lines but those :meth:`Frf.margin_lines` leaves out
+    (``K`` at every line of ``frf``)."""
+    keep = frf.margin_lines()
+    return margins_from_response(frf.f_hz[keep], (frf.p * K)[keep])

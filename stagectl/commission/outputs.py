@@ -74,7 +74,9 @@ def report_dict(res: Results) -> dict[str, Any]:
         r["plant"] = res.plant.as_dict()
     if res.frf is not None:
         r["frf"] = {"f_hz": res.frf.f_hz.tolist(), "re": res.frf.p.real.tolist(), "im": res.frf.p.imag.tolist(),
-                    "std": res.frf.p_std.tolist(), "periods": res.frf.periods}
+                    "std": res.frf.p_std.tolist(), "periods": res.frf.periods,
+                    "distortion": None if res.frf.distortion is None else res.frf.distortion.tolist(),
+                    "margin_lines_left_out_hz": res.frf.f_hz[~res.frf.margin_lines()].tolist()}
     if res.cv is not None:
         r["friction_cv"] = res.cv.as_dict()
     if res.discovery is not None:
@@ -279,6 +281,11 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             mm = gv["measured"]
             L.append(f"| given controller, measured FRF | {_num(mm['phase_margin_deg'], '.1f')} | "
                      f"{_num(mm['gain_margin_db'], '.1f')} | {_num(mm['crossover_hz'], '.3g')} |")
+        out_hz = (rep.get("frf") or {}).get("margin_lines_left_out_hz") or []
+        if out_hz:
+            L += ["", (f"The margins on the measured FRF leave out its lines at {', '.join(f'{x:.3g}' for x in out_hz)}"
+                       " Hz: the friction's distortion dominates them (report.json frf.distortion) and their phase "
+                       "leads, which a passive stage's cannot.")]
         L += _rest_lines(ch.get("rest"))
         ros = rep["gains"].get("rest_on_stage")
         if ros:

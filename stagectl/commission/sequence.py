@@ -588,6 +588,7 @@ class Commissioning:
                            f"by more than {an.FRF_MASS_SIGMAS:g} combined standard errors: the probe's mass is used")
             r.plant = dataclasses.replace(pm, mass_kg=m_ref, mass_std_kg=s_ref, mass_from="probe")
         m = r.plant.mass_kg
+        r.frf.delay_s = r.plant.delay_s + T / 2  # (Frf.margin_lines' passivity test: ZOH half period + I/O delay)
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
                            f"{r.plant.delay_s * 1e3:.3g} ms, pre-sliding resonance {r.plant.presliding_resonance_hz:.3g} Hz")
 
