@@ -469,7 +469,7 @@ class Commissioning:
         probe = SanityProbe(f_lim_n=f_lim_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
                             v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_cmd_n, t_ramp_s=2.0 * ramp_scale,
                             v_brake_m_s=PROBE_BRAKE_X_LIMIT * env.v_max_m_s / VELOCITY_FRACTION,
-                            delay_cycles=self.cfg.io.delay_cycles)
+                            delay_cycles=self.cfg.io.delay_cycles, f_cap_n=env.drive_limit_n)
         follow = FollowMeasured()
         ctl.set_probe(probe, follow)
         stage.loop.reference = follow
@@ -505,16 +505,18 @@ class Commissioning:
         # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max. A stage that
         # does not move under F_max/2 (a breakaway above 0.35 of the force limit) is probed once more with the
         # ramp going on at the same rate up to F_max (``sanity_full_force``); the first probe stays unchanged
-        probe = self._sanity_probe(stage, ctl, "sanity", min(0.5 * env.f_max_n, env.f_cmd_n), 1.0, d_detect)
-        if any(d.outcome == "no_motion" for d in probe.dirs) and env.f_cmd_n > probe.f_lim:
-            self.opts.progress(f"commission: sanity: no motion under {probe.f_lim:.3g} N; probing again up to "
+        # (both at the rate F_max/2 per 2 s, and never above the drive's own limit)
+        f_half = 0.5 * env.f_max_n
+        probe = self._sanity_probe(stage, ctl, "sanity", f_half, 1.0, d_detect)
+        if any(d.outcome == "no_motion" for d in probe.dirs) and env.f_cmd_n > f_half:
+            self.opts.progress(f"commission: sanity: no motion under {f_half:.3g} N; probing again up to "
                                f"{env.f_cmd_n:.3g} N")
             self._planned.insert(1, ("sanity_full_force", 2.0 * plan["sanity"]))
-            probe = self._sanity_probe(stage, ctl, "sanity_full_force", env.f_cmd_n, env.f_cmd_n / probe.f_lim,
-                                       d_detect)
+            probe = self._sanity_probe(stage, ctl, "sanity_full_force", env.f_cmd_n, env.f_cmd_n / f_half, d_detect)
         ctl_cfg = self.cfg.controller
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
-        r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
+        r.sanity = an.evaluate_probe(probe.dirs, min(probe.f_lim, probe.f_cap), d_detect, expected,
+                                     v_stop_m_s=probe.v_stop)
         # m0: the mass the probe's motion looks like (the two-acceleration estimate), which the FRF's tuning and
         # amplitude are designed for, as before; m_p: the probe's best estimate (the joint mass + viscous fit's
         # where a viscous force biases m0, analysis.evaluate_probe), against which the FRF's mass is judged and
