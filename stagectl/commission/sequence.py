@@ -410,8 +410,8 @@ class Commissioning:
             excitation = np.concatenate([np.zeros(exc_start), excitation])
         # the experiments' own tunings stay inside the envelope's force; the given and the new controller
         # (verification) only inside the configuration's limits
-        ctl.set_closed(inner, excitation, self.env.f_cmd_n if not name.startswith(("verify", "wipe")) else math.inf,
-                       ladder)
+        limit = self.env.f_cmd_n if not name.startswith(("verify", "wipe")) else math.inf
+        ctl.set_closed(inner, excitation, limit, ladder)
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
@@ -454,9 +454,9 @@ class Commissioning:
         lim = getattr(stage.actuator, "force_limit_n", None)
         env = within_drive_limit(self.env, float(lim) if isinstance(lim, (int, float)) else None)
         if env is not self.env:
-            self.opts.progress(f"commission: the drive commands at most {env.drive_limit_n:.4g} N (io.drive.max_force_n "
-                               f"and its max torque 0x6072), below F_max {env.f_max_n:.3g} N: experiments are "
-                               "clamped there")
+            self.opts.progress(f"commission: the drive commands at most {env.drive_limit_n:.4g} N "
+                               f"(io.drive.max_force_n and its max torque 0x6072), below F_max {env.f_max_n:.3g} N: "
+                               "experiments are clamped there")
             self.env = env
             self.res.envelope = env
 
@@ -948,7 +948,8 @@ class Commissioning:
         total commanded force, so the feed-forward does not bias it); ``coulomb=False`` for the FRF. The
         crossover is ``COMMISSION_CROSSOVER_X_PERIOD``/T unless ``crossover_x_period`` is given
         (:meth:`_experiment_crossover`)."""
-        return commission_tuning(mass_kg, self.T, self.env.f_cmd_n, self._coulomb_guess, coulomb, crossover_x_period)
+        return commission_tuning(mass_kg, self.T, self.env.f_cmd_n, self._coulomb_guess, coulomb,
+                                 crossover_x_period)
 
     def _frf_crossover(self, mass_kg: float) -> float:
         """Crossover × period of the FRF's tuning: ``COMMISSION_CROSSOVER_X_PERIOD``, or on a stage whose
