@@ -278,6 +278,10 @@ def probe_socketcand(host: str, port: int, *, path: str = "can", wait_s: float |
                 return
         except DriverInitError:
             raise
+        except socket.gaierror as exc:  # the name does not resolve: nothing to connect to, not a refusal
+            raise DriverInitError(f"{path}: cannot open CAN bus (interface='socketcand', host={host!r}, "
+                                  f"port={port}): host name not found ({exc.strerror or exc}); check the host "
+                                  "(an address such as 127.0.0.1, or a name this machine resolves)") from exc
         except OSError as exc:
             if time.monotonic() >= deadline or not isinstance(exc, ConnectionRefusedError):
                 raise DriverInitError(f"{path}: cannot open CAN bus (interface='socketcand', host={host!r}, "

@@ -113,19 +113,23 @@ class SanityProbe:
     ACC1/ACC2 positions are kept: with a rigid mass and a friction force that does not depend on the force,
     ``a_i = (F_i − F_friction)/m``, so ``m = (F2 − F1)/(a2 − a1)`` does not depend on the friction.
     The levels ``F1``, ``F2`` come from the measured ``F_b`` and the force cap ``f_acc`` (:func:`probe_levels`);
-    the ramp only goes to ``f_lim`` (≤ ``f_acc``), a gentle search for the breakaway.
+    the ramp only goes to ``f_lim`` (≤ ``f_acc``), a gentle search for the breakaway, and never above ``f_cap``
+    (the drive's own limit, where that is lower).
     """
 
     def __init__(self, *, f_lim_n: float, d_detect_m: float, d_acc_m: float, v_stop_m_s: float,
                  f_acc_n: float | None = None, t_ramp_s: float = 2.0, t_acc_s: float = 0.5,
-                 t_rest_s: float = 0.3, v_brake_m_s: float = math.inf, delay_cycles: int = 1) -> None:
+                 t_rest_s: float = 0.3, v_brake_m_s: float = math.inf, delay_cycles: int = 1,
+                 f_cap_n: float = math.inf) -> None:
         self.f_lim = f_lim_n
+        #: no force above this [N] (the drive's own limit, below ``f_lim``: the ramp holds there until t_ramp)
+        self.f_cap = f_cap_n
         #: brake at once when the predicted speed (:meth:`predicted_speed`) reaches this [m/s]
         self.v_brake = v_brake_m_s
         self.delay_cycles = max(int(delay_cycles), 1)
         #: phases the speed prediction ended: (direction sign, phase, predicted speed [m/s], samples in the phase)
         self.braked_early: list[tuple[int, str, float, int]] = []
-        self.f_acc = max(f_acc_n if f_acc_n is not None else f_lim_n, f_lim_n)
+        self.f_acc = min(max(f_acc_n if f_acc_n is not None else f_lim_n, f_lim_n), f_cap_n)
         self.d_detect = d_detect_m
         self.d_acc = d_acc_m
         self.v_stop = v_stop_m_s
@@ -196,7 +200,7 @@ class SanityProbe:
                 d.outcome = "wrong_sign"
                 return self._finish()
             if disp >= self.d_detect:
-                u_now = self.f_lim * min(self._tau / self.t_ramp, 1.0)
+                u_now = min(self.f_lim * min(self._tau / self.t_ramp, 1.0), self.f_cap)
                 d.breakaway_n = u_now
                 d.f1_n, d.f2_n = probe_levels(u_now, self.f_acc)
                 self._next("ACC1", x)
@@ -204,7 +208,7 @@ class SanityProbe:
             if self._tau >= self.t_ramp:
                 d.outcome = "no_motion"
                 return self._finish()
-            return s * self.f_lim * self._tau / self.t_ramp
+            return s * min(self.f_lim * self._tau / self.t_ramp, self.f_cap)
         if ph in ("ACC1", "ACC2"):
             tl, xl = (d.t1, d.x1) if ph == "ACC1" else (d.t2, d.x2)
             tl.append(self._tau)

@@ -6,7 +6,8 @@ which may only *lower* them:
 * travel window ``[x_lo, x_hi]``: the soft limits shrunk by ``MARGIN_FRACTION`` of their span on each side,
   then narrowed to ``--max-stroke`` around its centre ``x_c``; stroke ``S = x_hi − x_lo``;
 * force ``F_max = FORCE_FRACTION · min(safety.max_force_n, controller.max_force_n, --max-force)``: below the
-  safety clamp, so an experiment never runs into the force-saturation fault;
+  safety clamp, so an experiment never runs into the force-saturation fault; what an experiment commands is
+  also clamped at the drive's own limit once the stage is open (:func:`within_drive_limit`);
 * velocity ``v_max = VELOCITY_FRACTION · min(safety.max_velocity_m_s, --max-velocity)``.
 
 Everything else scales with ``S``, ``F_max`` and ``v_max`` (and later the measured mass), so a 2 kg nanometre
@@ -15,6 +16,7 @@ stage and a 50 kg ball-screw axis get experiments of their own size.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -35,6 +37,13 @@ class Envelope:
     v_max_m_s: float
     period_s: float
     following_error_m: float
+    #: the force the opened drive can command [N] (:func:`within_drive_limit`; inf: not known or not lower)
+    drive_limit_n: float = math.inf
+
+    @property
+    def f_cmd_n(self) -> float:
+        """The largest force an experiment commands [N]: ``F_max``, or the drive's limit where that is lower."""
+        return min(self.f_max_n, self.drive_limit_n)
 
     @property
     def stroke_m(self) -> float:
@@ -45,8 +54,11 @@ class Envelope:
         return 0.5 * (self.x_lo_m + self.x_hi_m)
 
     def as_dict(self) -> dict[str, float]:
-        return {"x_lo_m": self.x_lo_m, "x_hi_m": self.x_hi_m, "stroke_m": self.stroke_m, "x_c_m": self.x_c_m,
-                "f_max_n": self.f_max_n, "v_max_m_s": self.v_max_m_s, "period_s": self.period_s}
+        d = {"x_lo_m": self.x_lo_m, "x_hi_m": self.x_hi_m, "stroke_m": self.stroke_m, "x_c_m": self.x_c_m,
+             "f_max_n": self.f_max_n, "v_max_m_s": self.v_max_m_s, "period_s": self.period_s}
+        if math.isfinite(self.drive_limit_n):
+            d["drive_limit_n"] = self.drive_limit_n
+        return d
 
 
 def _lower(name: str, given: float | None, configured: float, unit: str, key: str) -> float:
@@ -60,6 +72,20 @@ def _lower(name: str, given: float | None, configured: float, unit: str, key: st
         raise ConfigError(f"{name}: {given:g} {unit} exceeds {key} {configured:g} {unit} (the command line can only "
                           "lower the configured limits)")
     return given
+
+
+def within_drive_limit(env: Envelope, drive_limit_n: float | None) -> Envelope:
+    """``env`` with ``drive_limit_n`` set where the opened drive commands less than ``F_max`` (CiA 402:
+    ``io.drive.max_force_n`` and the drive's max torque 0x6072, which the driver reads at start-up and clamps
+    every command to; the virtual drive's 0x6072 default, 3000 units, is 3 N with ``force_per_unit_n: 0.001``,
+    while the shipped configurations allow 10 N). The experiments' amplitudes still scale with ``F_max``; what
+    they command is clamped at :attr:`Envelope.f_cmd_n`, so a recording's ``u`` is the force the drive applied.
+    ``None``, a non-finite limit or one at or above ``F_max``: ``env`` unchanged."""
+    if drive_limit_n is None or not (math.isfinite(drive_limit_n) and drive_limit_n > 0):
+        return env
+    if drive_limit_n >= env.f_max_n:
+        return env
+    return dataclasses.replace(env, drive_limit_n=drive_limit_n)
 
 
 def make_envelope(*, min_position_m: float, max_position_m: float, safety_force_n: float, controller_force_n: float,

@@ -50,7 +50,7 @@ from stagectl.commission.controllers import (
     log_bins,
     multisine,
 )
-from stagectl.commission.envelope import VELOCITY_FRACTION, Envelope, make_envelope
+from stagectl.commission.envelope import VELOCITY_FRACTION, Envelope, make_envelope, within_drive_limit
 from stagectl.commission.fit import _cogging_force, cogging_decided, fit_models, slow_pass_slope
 from stagectl.config import AppConfig, IoKind
 from stagectl.control.api import Reference
@@ -414,8 +414,8 @@ class Commissioning:
             excitation = np.concatenate([np.zeros(exc_start), excitation])
         # the experiments' own tunings stay inside the envelope's force; the given and the new controller
         # (verification) only inside the configuration's limits
-        ctl.set_closed(inner, excitation, self.env.f_max_n if not name.startswith(("verify", "wipe")) else math.inf,
-                       ladder)
+        limit = self.env.f_cmd_n if not name.startswith(("verify", "wipe")) else math.inf
+        ctl.set_closed(inner, excitation, limit, ladder)
         stage.loop.reference = stage.reference
         sc = Scenario(name=name, segments=tuple(segments), start_m=None)
         stage.load_scenario(sc)
@@ -435,6 +435,7 @@ class Commissioning:
                                                                        LOCKSTEP_RX_TIMEOUT_S))
             build_cfg = dataclasses.replace(cfg, io=dataclasses.replace(cfg.io, drive=drive))
         with build_stage(build_cfg, clock=clock, controller=ctl) as stage:
+            self._honour_drive_limit(stage)
             try:
                 self._sequence(stage, ctl)
             except CommissionAborted as exc:
@@ -450,6 +451,44 @@ class Commissioning:
                 # read back from the device: the loop has already written zero and disabled it
                 self.res.drive_state = stage.actuator.state.value
         return self.res
+
+    def _honour_drive_limit(self, stage: Stage) -> None:
+        """Clamp what the experiments command at the force the opened drive can command
+        (:func:`within_drive_limit`): above it the recordings would hold forces the stage never got."""
+        lim = getattr(stage.actuator, "force_limit_n", None)
+        env = within_drive_limit(self.env, float(lim) if isinstance(lim, (int, float)) else None)
+        if env is not self.env:
+            self.opts.progress(f"commission: the drive commands at most {env.drive_limit_n:.4g} N "
+                               f"(io.drive.max_force_n and its max torque 0x6072), below F_max {env.f_max_n:.3g} N: "
+                               "experiments are clamped there")
+            self.env = env
+            self.res.envelope = env
+
+    def _sanity_probe(self, stage: Stage, ctl: CommissionController, name: str, f_lim_n: float,
+                      ramp_scale: float, d_detect: float) -> SanityProbe:
+        """Run the open-loop probe (:class:`SanityProbe`) once: its ramp to ``f_lim_n`` takes ``ramp_scale`` × 2 s
+        (the same rate for a ramp to a higher force). Returns the probe with each direction's outcome."""
+        env = self.env
+        S = env.stroke_m
+        probe = SanityProbe(f_lim_n=f_lim_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
+                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_cmd_n, t_ramp_s=2.0 * ramp_scale,
+                            v_brake_m_s=PROBE_BRAKE_X_LIMIT * env.v_max_m_s / VELOCITY_FRACTION,
+                            delay_cycles=self.cfg.io.delay_cycles, f_cap_n=env.drive_limit_n)
+        follow = FollowMeasured()
+        ctl.set_probe(probe, follow)
+        stage.loop.reference = follow
+        sanity_params: dict[str, Any] = {"f_lim_n": probe.f_lim, "f_acc_n": probe.f_acc, "d_detect_m": d_detect,
+                                         "d_acc_m": probe.d_acc, "v_brake_m_s": probe.v_brake}
+        try:
+            self._run(stage, name, "open-loop force probe: sign, scale (mass), breakaway, both directions",
+                      probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5, sanity_params)
+        finally:
+            stage.loop.reference = stage.reference
+            ctl.probe = None
+            # the phases the speed prediction ended (the record keeps this dict)
+            sanity_params["braked_early"] = [{"direction": d, "phase": ph, "predicted_speed_m_s": v, "samples": n}
+                                             for d, ph, v, n in probe.braked_early]
+        return probe
 
     def _sequence(self, stage: Stage, ctl: CommissionController) -> None:
         env, T, r = self.env, self.T, self.res
@@ -467,28 +506,21 @@ class Commissioning:
 
         # 1. sanity ----------------------------------------------------------------------------------
         d_detect = max(0.004 * S, 20 * _quantum_guess(stage))
-        # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max
-        probe = SanityProbe(f_lim_n=0.5 * env.f_max_n, d_detect_m=d_detect, d_acc_m=0.01 * S,
-                            v_stop_m_s=0.9 * env.v_max_m_s, f_acc_n=env.f_max_n,
-                            v_brake_m_s=PROBE_BRAKE_X_LIMIT * env.v_max_m_s / VELOCITY_FRACTION,
-                            delay_cycles=self.cfg.io.delay_cycles)
-        follow = FollowMeasured()
-        ctl.set_probe(probe, follow)
-        stage.loop.reference = follow
-        sanity_params: dict[str, Any] = {"f_lim_n": probe.f_lim, "f_acc_n": probe.f_acc, "d_detect_m": d_detect,
-                                         "d_acc_m": probe.d_acc, "v_brake_m_s": probe.v_brake}
-        try:
-            self._run(stage, "sanity", "open-loop force probe: sign, scale (mass), breakaway, both directions",
-                      probe.t_ramp * 2 + 4 * probe.t_acc + 2 * probe.t_rest + 0.5, sanity_params)
-        finally:
-            stage.loop.reference = stage.reference
-            ctl.probe = None
-            # the phases the speed prediction ended (the record keeps this dict)
-            sanity_params["braked_early"] = [{"direction": d, "phase": ph, "predicted_speed_m_s": v, "samples": n}
-                                             for d, ph, v, n in probe.braked_early]
+        # the ramp searches the breakaway up to F_max/2; the acceleration levels may use all of F_max. A stage that
+        # does not move under F_max/2 (a breakaway above 0.35 of the force limit) is probed once more with the
+        # ramp going on at the same rate up to F_max (``sanity_full_force``); the first probe stays unchanged
+        # (both at the rate F_max/2 per 2 s, and never above the drive's own limit)
+        f_half = 0.5 * env.f_max_n
+        probe = self._sanity_probe(stage, ctl, "sanity", f_half, 1.0, d_detect)
+        if any(d.outcome == "no_motion" for d in probe.dirs) and env.f_cmd_n > f_half:
+            self.opts.progress(f"commission: sanity: no motion under {f_half:.3g} N; probing again up to "
+                               f"{env.f_cmd_n:.3g} N")
+            self._planned.insert(1, ("sanity_full_force", 2.0 * plan["sanity"]))
+            probe = self._sanity_probe(stage, ctl, "sanity_full_force", env.f_cmd_n, env.f_cmd_n / f_half, d_detect)
         ctl_cfg = self.cfg.controller
         expected = controller_mass(ctl_cfg, ctl_cfg.feedforward.model)
-        r.sanity = an.evaluate_probe(probe.dirs, probe.f_lim, d_detect, expected, v_stop_m_s=probe.v_stop)
+        r.sanity = an.evaluate_probe(probe.dirs, min(probe.f_lim, probe.f_cap), d_detect, expected,
+                                     v_stop_m_s=probe.v_stop)
         # m0: the mass the probe's motion looks like (the two-acceleration estimate), which the FRF's tuning and
         # amplitude are designed for, as before; m_p: the probe's best estimate (the joint mass + viscous fit's
         # where a viscous force biases m0, analysis.evaluate_probe), against which the FRF's mass is judged and
@@ -928,7 +960,8 @@ class Commissioning:
         total commanded force, so the feed-forward does not bias it); ``coulomb=False`` for the FRF. The
         crossover is ``COMMISSION_CROSSOVER_X_PERIOD``/T unless ``crossover_x_period`` is given
         (:meth:`_experiment_crossover`)."""
-        return commission_tuning(mass_kg, self.T, self.env.f_max_n, self._coulomb_guess, coulomb, crossover_x_period)
+        return commission_tuning(mass_kg, self.T, self.env.f_cmd_n, self._coulomb_guess, coulomb,
+                                 crossover_x_period)
 
     def _frf_crossover(self, mass_kg: float) -> float:
         """Crossover × period of the FRF's tuning: ``COMMISSION_CROSSOVER_X_PERIOD``, or on a stage whose

@@ -413,6 +413,13 @@ def fit_stribeck_curve(v: FloatArray, f: FloatArray, fs_n: float | None = None,
     # and the segments cover at least 3 distinct speeds (otherwise vs and Fs are not identifiable)
     a = np.column_stack([s, v, np.ones_like(v)])
     lin, *_ = np.linalg.lstsq(w[:, None] * a, w * f, rcond=None) if weighted else np.linalg.lstsq(a, f, rcond=None)
+    if lin[0] < 0.0 or lin[1] < 0.0:
+        # Fc, σ2 ≥ 0 as in the grid (non-negative least squares, the free offset projected out). Clamping the
+        # free solution's negative slope to 0 kept its intercept: passes at 38-42 mm/s only, whose means a
+        # cogging scattered into a falling slope, gave Fc 7.1 N, σ2 0 for a 2.8 N friction level there
+        a2 = a[:, :2]
+        th, _ = nnls(w[:, None] * (a2 - w2 @ a2), w * (f - w2 @ f))
+        lin = np.array([th[0], th[1], _wmean(w2, f - a2 @ th, weighted)])
     rms_lin = float(np.sqrt(np.mean((a @ lin - f) ** 2)))
     wrms_lin = float(np.sqrt(np.mean((w * (a @ lin - f)) ** 2)))
     levels = np.unique(np.round(np.log(av) / 0.1))

@@ -258,6 +258,12 @@ def load_recording(
                 or (len(header) == 1 and first.endswith(":"))):
             raise DataError(f"{p}: not a recording but YAML-like text (a config or model file?); a recording is a "
                             f"CSV whose header row names the columns {', '.join(required)} (docs/recordings.md)")
+        if len(header) == 1:
+            sep = next((c for c in (";", "\t", "|") if c in first), None)
+            if sep is not None:  # a spreadsheet export with another separator: one column named 't;x;u'
+                raise DataError(f"{p}: line 1: the header is one column, {cut(first, 60)!r}, split by "
+                                f"{sep!r}: a recording separates its columns by ',' (docs/recordings.md); "
+                                "export it as comma-separated, with '.' for decimals")
         index = {name: i for i, name in enumerate(header)}
         wanted: dict[str, str] = {}
         for key in (*required, *OPTIONAL):

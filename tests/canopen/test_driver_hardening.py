@@ -253,6 +253,16 @@ def test_a_closed_socketcand_port_is_one_line_at_once(monkeypatch):
         canbus.probe_socketcand("127.0.0.1", port, wait_s=0.0)
 
 
+def test_a_socketcand_host_that_does_not_resolve_is_named_as_such():
+    """A mistyped host name (``.invalid`` never resolves, RFC 6761) is one line saying the name was not found,
+    not "nothing accepts a connection there", which sent the user looking for a server that is not started."""
+    with pytest.raises(DriverInitError) as ei:
+        canbus.open_bus({"interface": "socketcand", "host": "stage-pc.invalid", "port": 29536, "channel": "can0"})
+    msg = str(ei.value)
+    assert "\n" not in msg and "host name not found" in msg and "stage-pc.invalid" in msg, msg
+    assert "nothing accepts" not in msg
+
+
 @contextlib.contextmanager
 def _one_shot_server(greeting: bytes | None):
     """A TCP server on loopback that accepts one connection, sends ``greeting`` (None: nothing) and holds it."""

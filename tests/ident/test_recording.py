@@ -60,6 +60,9 @@ def test_round_trip_save_csv(tmp_path: Path) -> None:
         # a decimal comma (or a stray field) shifts the columns: refused, not read from the wrong places
         ("t,x,u\n0,0,0\n0.001,0,0,5\n0.002,0,0\n", None, ["row 3", "4 values", "header has 3 columns"]),
         ("", None, ["empty file"]),
+        # a spreadsheet export separated by ';' (decimal-comma locales) or tabs: said so, not "map --columns"
+        ("t;x;u\n0;0;0\n0,001;0;0\n0,002;0;0\n", None, ["line 1", "one column", "';'", "by ','"]),
+        ("t\tx\tu\n0\t0\t0\n0.001\t0\t0\n0.002\t0\t0\n", None, ["one column", "'\\t'", "by ','"]),
     ],
 )
 def test_bad_files_name_row_and_column(tmp_path: Path, text: str, columns: str | None, fragments: list[str]) -> None:
