@@ -489,6 +489,12 @@ class ControllerConfig:
         "be a negative stiffness of the loop; stagectl tune prints the lowest fraction at which the rest loop meets "
         "its margins (0: no stiffness test)",
         ge=0.0, le=1.0)
+    rest_spring_unconfirmed_kp_fraction: float = param(
+        0.0, desc="the rest spring's stiffness before the stiffness test has confirmed, in this standstill, that the "
+        "stage is held (a branch judged at least rest_spring_held_fraction of the model's stiffness), as a fraction "
+        "of pid.kp_n_m, at most the full spring: the rest loop must stay stable with it on a free mass (stagectl "
+        "tune checks it); confirmed, the spring grows to its full stiffness through its low-pass (no step in the "
+        "command); with rest_spring_held_fraction 0 the full spring acts at once", ge=0.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
@@ -635,6 +641,16 @@ REST_GAINS_DWELL_S = 0.005
 #: reversal (the secant Σ(Δx·ΔF)/Σ(Δx²) over its first 10 nm)
 REST_HELD_MIN_TRAVEL_M = 5e-9
 REST_HELD_JUDGE_TRAVEL = 2.0
+#: the stiffness test's first branch with no move since :meth:`StageController.reset` starts only after the witness
+#: has run this many of its time constants 1/(2π·bandwidth) (its start-up transient, e.g. a stage found off its
+#: last position at the reset, is no stiffness: a free mass started 20 nm off was judged 1.69·Σk "held")
+REST_HELD_WARMUP_TIME_CONSTANTS = 5.0
+#: before the stiffness test has judged a branch held, the full rest spring needs the stage still (|v̂| <=
+#: REST_GAINS_ENTER_M_S for REST_HELD_STILL_S [s]) under a force it takes, |LPF(u − m·a)|, of at least
+#: REST_HELD_FORCE_FRACTION of the model's Coulomb level θ·F_c: a free mass takes no static force. (5 ms of stillness
+#: instead of 1 delayed the spring on hil-serial's overshooting steps: 58-65 -> 92-106 ms)
+REST_HELD_FORCE_FRACTION = 0.25
+REST_HELD_STILL_S = 0.001
 
 #: without an observer the rest integral's total over a standstill is bounded by this many × θ·F_c (with one: 1):
 #: a stage that slid on past the target at its sliding level comes back only through its whole pre-sliding
@@ -995,6 +1011,7 @@ class StageController:
         self._hw.reset(x_m, u_n)
         self._h_xf = math.nan
         self._h_moved = False  # no move since the start: the stiffness test's first branch starts at the arming point
+        self._h_age_s = 0.0  # time the witness has run since the reset [s]
         if self.ff is not None:
             self.ff.reset(x_m)
             if isinstance(self.ff, FrictionFeedforward):
@@ -1065,6 +1082,9 @@ class StageController:
         self._h_rev = False  # a reversal seen: the branch from (x0, f0) is being measured
         self._h_x0 = self._h_f0 = 0.0
         self._h_sxx = self._h_sxf = 0.0  # Σ Δx² [m²], Σ Δx·ΔF [N·m] along the branch
+        self._h_ok = False  # a branch of this standstill was judged held: the full spring acts
+        self._h_load = False  # ... or the stage stood still under a force: the full spring acts as well
+        self._h_still_s = 0.0  # time at standstill with |v̂| <= REST_GAINS_ENTER_M_S [s]
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -1216,6 +1236,10 @@ class StageController:
     _h_f = 0.0  # the stiffness test's witness force LPF(u − m·a) [N] ...
     _h_xf = math.nan  # ... and filtered position [m]
     _h_moved = False  # the reference has moved since reset
+    _h_ok = False  # the stiffness test judged a branch of this standstill held (the full rest spring acts)
+    _h_load = False  # the stage stood still under a force in this standstill (the full rest spring acts)
+    _h_still_s = 0.0  # time at standstill with |v̂| <= REST_GAINS_ENTER_M_S [s]
+    _h_age_s = 0.0  # time the witness has run since the reset [s]
     _d_held = False
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
@@ -1692,7 +1716,7 @@ class StageController:
         return new
 
     def _rest_spring(self, dt: float, ref: Reference, x_m: float, d_hat: float, at_rest: bool,
-                     dob: QFilterDob | KalmanDob) -> float:
+                     dob: QFilterDob | KalmanDob, v_hat: float = 0.0) -> float:
         """Rest spring (module docstring): at standstill d̂ := d̂ − s, s = LPF_g(k_v·clamp(x − x_r)); at the
         start of a move, and when |x − x_r| leaves ``rest_spring_release_m`` or the stage hunts (it is not stuck), s is folded
         into the observer (d̂ and its input history move by −s: u continuous) and the spring is released; it is
@@ -1706,7 +1730,7 @@ class StageController:
             # moving with the spring armed and empty, nothing counted: what the code below leaves, the stiffness
             # test's branch included (a standstill's test starts afresh: an extreme kept from the last standstill
             # turned the stage's own run-in at a stop into a "reversal" and released a held stage, "not held")
-            if self._h_n != 0:
+            if self._h_n != 0 or self._h_ok or self._h_load:
                 self._reset_held()
             return d_hat
         cfg = self.cfg
@@ -1720,6 +1744,14 @@ class StageController:
             self._rs_side = side
         kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
         not_held = at_rest and self._rs_armed and self._d_held and self._not_held(kv, ref.x_m)
+        if self._d_held and not self._h_ok:  # not (yet) judged held: the schedule's lower levels (docstring)
+            if at_rest and self._rs_armed and not self._h_load:
+                self._h_still_s = self._h_still_s + dt if abs(v_hat) <= REST_GAINS_ENTER_M_S else 0.0
+                f_c = self._f_kin if self._f_kin == self._f_kin else 0.0
+                self._h_load = (self._h_still_s >= REST_HELD_STILL_S - 1e-9 * dt and f_c > 0.0
+                                and abs(self._h_f) >= REST_HELD_FORCE_FRACTION * min(self.ff_scale, 1.0) * f_c)
+            if not self._h_load:
+                kv = min(kv, cfg.rest_spring_unconfirmed_kp_fraction * self.pid.cfg.kp_n_m)
         if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2
                                                or not_held)):
             self._rs_side = 0
@@ -1779,6 +1811,9 @@ class StageController:
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
         if self._h_n == 0:  # armed: look for the first extreme from here
+            warm = REST_HELD_WARMUP_TIME_CONSTANTS / (2.0 * math.pi * self._hw.cfg.bandwidth_hz)
+            if not self._h_moved and self._h_age_s < warm:
+                return False  # the witness's start-up transient is no stiffness
             self._h_n, self._h_dir, self._h_ext, self._h_fext = 1, 0, xf, f
             self._h_sxx = self._h_sxf = 0.0
             if not self._h_moved:  # no move since the start: the contact's history is unknown, a branch starts here
@@ -1826,7 +1861,11 @@ class StageController:
         k_min = cfg.rest_spring_held_fraction / cfg.rest_stiffness_fraction * kv
         self.rest_spring_held_n_m = k_hat = self._h_sxf / self._h_sxx
         self._h_sxx = -1.0  # judged once, at its start: further on a pre-sliding contact softens as its elements slip
-        return k_hat < k_min
+        if k_hat < k_min:
+            self._h_ok = False
+            return True
+        self._h_ok = True
+        return False
 
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
@@ -2071,6 +2110,7 @@ class StageController:
             # the position at the last sample through the same low-pass
             hw = self._hw
             self._h_f = hw.step(dt, x_meas_m, v_hat, st.u_n, a_r)
+            self._h_age_s += dt
             xm = st.x_prev_m if st.x_prev_m == st.x_prev_m else x_meas_m
             ah = hw._alpha
             self._h_xf = xm if self._h_xf != self._h_xf else ah * self._h_xf + (1.0 - ah) * xm
@@ -2140,7 +2180,7 @@ class StageController:
             # its load at each stop depends on where the previous repetition ended, so it would make the
             # repeated motion's error differ from one repetition to the next (ILC learns the stops too)
             d_hat = self._rest_spring(dt, ref, x_meas_m, d_hat, at_rest and not ilc and not settling,
-                                      dob)  # type: ignore[arg-type]
+                                      dob, v_hat)  # type: ignore[arg-type]
         elif not at_rest:
             self._h_moved = True  # (a spring a retune switches on later judges its branches as after a move)
         if settling and self._sm.stiff:
