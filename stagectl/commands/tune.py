@@ -278,6 +278,15 @@ def _spring_worse(rest: dict[str, Any] | None) -> list[str]:
     return out
 
 
+def _free_spring(ctl: Any, kv: float) -> float:
+    """The rest spring [N/m] the controller applies to a stage not (yet) seen held, which is all a free mass gets
+    (:mod:`stagectl.control.controller`, "Held before the full spring"): min(k_v, κ_u·K_p) with the stiffness test on
+    (``rest_spring_held_fraction`` > 0), else the full ``kv``."""
+    if ctl.rest_spring_held_fraction <= 0.0:
+        return kv
+    return min(kv, ctl.rest_spring_unconfirmed_kp_fraction * ctl.pid.kp_n_m)
+
+
 def _rest_gains(ctl: Any) -> dict[str, Any]:
     """The controller's rest-loop gains as :func:`stagectl.control.design.analyse_rest` takes them."""
     return {"kd_fraction": ctl.rest_kd_fraction, "dob_bandwidth_fraction": ctl.rest_dob_bandwidth_fraction,
@@ -333,7 +342,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
                                             k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
                                             integrator_held=held, rest_integral_n_m_s=th * kr,
-                                            **_rest_gains(ctl))))
+                                            free_spring_n_m=_free_spring(ctl, th * kv), **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
         i, w = design.worst_over([loops[j].summary() for _, loops in per])
