@@ -12,8 +12,9 @@ With a Q-filter observer and a known pre-sliding stiffness the configured *rest*
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
 ``rest_stiffness_fraction``, and the rest gains ``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``,
 ``rest_spring_section_count``, the rest integral of ``rest_integral_hz``) is analysed too, on the stage stuck in
-pre-sliding and on the free mass (``configured.rest`` in the JSON), and what it relies on is stated when it is
-below the floor. The spring follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
+pre-sliding and on the free mass (``configured.rest`` in the JSON; the free mass with the spring a stage not seen
+held gets, min(k_v, ``rest_spring_unconfirmed_kp_fraction``·K_p), :func:`_free_spring`), and what it relies on is
+stated when it is below the floor. The spring follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
 the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
 is on).
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
@@ -361,6 +362,9 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *
                      + (f" or the stiffness it measures after a reversal is below {ctl.rest_spring_held_fraction:g} "
                         f"of the model's" if ctl.rest_spring_held_fraction > 0.0 else "")
                      + f", and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
+                     + (f"; the full spring acts only once the stage is seen held (it takes a force, or a branch is "
+                        f"judged held), before that {_free_spring(ctl, kv):.3g} N/m"
+                        if ctl.rest_spring_held_fraction > 0.0 else "")
                      if spring else ("with the integrator held the rest loop is PD + observer only" if held
                                      else "the rest loop is the full PID + observer"))
                   + (f"; the rest integral stops for the standstill when |x - x_ref| exceeds "
