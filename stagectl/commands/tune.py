@@ -285,7 +285,7 @@ def _free_spring(ctl: Any, kv: float) -> float:
     (``rest_spring_held_fraction`` > 0), else the full ``kv``."""
     if ctl.rest_spring_held_fraction <= 0.0:
         return kv
-    return min(kv, ctl.rest_spring_unconfirmed_kp_fraction * ctl.pid.kp_n_m)
+    return min(kv, float(ctl.rest_spring_unconfirmed_kp_fraction) * float(ctl.pid.kp_n_m))
 
 
 def _rest_gains(ctl: Any) -> dict[str, Any]:
