@@ -138,11 +138,11 @@ after a reversal, and until then the full spring acted on whatever the stage was
 1 / 20 / 100 nm off, 54 / 369 / 2115 nm at most against 11 / 151 / 757 nm without the spring. So at each standstill
 the spring is k_v only once the stage is *seen held*: it takes a force |F| >= REST_HELD_FORCE_FRACTION·θ·F_c (the
 witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass takes no force:
-F ≈ 0), or a branch was
-judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
+F ≈ 0), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
 loop with that spring (``stagectl tune``'s rest/free line: with κ_u = 0 the spring-less rest loop, config/sim.yaml
-PM 56.6°, GM 10.5 dB). A move's stop leaves the stage holding the friction force it slid on, so after a move the
-seed stage is seen held at once and the bench's figures are bit for bit those of the spring without this gate;
+PM 57.1°, GM 10.5 dB). A move's stop leaves the stage holding the friction force it slid on, so after a move the
+seed stage is seen held at once and the bench's figures are bit for bit those of the spring without this gate (a
+settle move from ahead can leave the stage holding only ~0.1·F_c: hence the low fraction);
 the free mass above: 11 / 151 / 757 nm, as without the spring. Not by design for a *soft* stage (held by friction
 but on less stiffness than the model's): it takes the force, gets the full spring and relies on the test above as
 before (docs/control.md §2.2).
