@@ -42,7 +42,8 @@ is left there is structure, not model error; ``--draws N`` adds ``config_other_d
 other wrong models (:func:`mismatched_draw`, seeds 1..N), so that a change is not judged on one model alone.
 ``rest_margins`` gives each steps design's rest loop margins
 (:func:`stagectl.control.design.analyse_rest`: PD + observer + rest spring, on the stuck plant and on the free
-mass), which the rest spring (``controller.rest_stiffness_fraction``) lowers. The margin floor of every sweep is PM 40° / GM 8 dB
+mass, which gets only the spring of a stage not seen held, ``rest_spring_unconfirmed_kp_fraction``), which the rest
+spring (``controller.rest_stiffness_fraction``) lowers. The margin floor of every sweep is PM 40° / GM 8 dB
 (the healthy-margin rule of ``stagectl tune``; ``--min-phase-margin``, ``--min-gain-margin``).
 """
 
@@ -428,7 +429,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                               c.dob.command_delay_samples, k_plant, c_plant, kv, c.velocity_cutoff_hz,
                               dob_mass_kg=c.dob.nominal_mass_kg, integrator_held=c.hold_integrator_at_rest,
                               kd_fraction=c.rest_kd_fraction, dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
-                              spring_sections=c.rest_spring_section_count):
+                              spring_sections=c.rest_spring_section_count,
+                              free_spring_n_m=(kv if c.rest_spring_held_fraction <= 0.0 else
+                                               min(kv, c.rest_spring_unconfirmed_kp_fraction * c.pid.kp_n_m))):
             out_r[a.name.split("/")[1]] = {"phase_margin_deg": round(a.phase_margin_deg, 1),
                                            "gain_margin_db": round(a.gain_margin_db, 1),
                                            "closed_loop_stable": a.stable}

@@ -12,8 +12,9 @@ With a Q-filter observer and a known pre-sliding stiffness the configured *rest*
 held if ``hold_integrator_at_rest``, the observer's own nominal mass, the rest spring of
 ``rest_stiffness_fraction``, and the rest gains ``rest_kd_fraction``, ``rest_dob_bandwidth_fraction``,
 ``rest_spring_section_count``, the rest integral of ``rest_integral_hz``) is analysed too, on the stage stuck in
-pre-sliding and on the free mass (``configured.rest`` in the JSON), and what it relies on is stated when it is
-below the floor. The spring follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
+pre-sliding and on the free mass (``configured.rest`` in the JSON; the free mass with the spring a stage not seen
+held gets, min(k_v, ``rest_spring_unconfirmed_kp_fraction``·K_p), :func:`_free_spring`), and what it relies on is
+stated when it is below the floor. The spring follows the feed-forward's adapted scale θ (capped at 1), so the rest loop is reported worst case over the θ range
 the configuration allows (1 − ``adapt_max_change_fraction`` .. 1 when the adaptation or the learning from moves
 is on).
 Each loop is marked ``healthy`` when stable with phase margin >= 40 deg and gain margin >= 8 dB (delay
@@ -278,6 +279,15 @@ def _spring_worse(rest: dict[str, Any] | None) -> list[str]:
     return out
 
 
+def _free_spring(ctl: Any, kv: float) -> float:
+    """The rest spring [N/m] the controller applies to a stage not (yet) seen held, which is all a free mass gets
+    (:mod:`stagectl.control.controller`, "Held before the full spring"): min(k_v, κ_u·K_p) with the stiffness test on
+    (``rest_spring_held_fraction`` > 0), else the full ``kv``."""
+    if ctl.rest_spring_held_fraction <= 0.0:
+        return kv
+    return min(kv, float(ctl.rest_spring_unconfirmed_kp_fraction) * float(ctl.pid.kp_n_m))
+
+
 def _rest_gains(ctl: Any) -> dict[str, Any]:
     """The controller's rest-loop gains as :func:`stagectl.control.design.analyse_rest` takes them."""
     return {"kd_fraction": ctl.rest_kd_fraction, "dob_bandwidth_fraction": ctl.rest_dob_bandwidth_fraction,
@@ -333,7 +343,7 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
                                             k_plant, c_plant, th * kv, ctl.velocity_cutoff_hz, dob_mass_kg=m_dob,
                                             integrator_held=held, rest_integral_n_m_s=th * kr,
-                                            **_rest_gains(ctl))))
+                                            free_spring_n_m=_free_spring(ctl, th * kv), **_rest_gains(ctl))))
     summ: dict[str, dict[str, Any]] = {}
     for j, a0 in enumerate(per[0][1]):
         i, w = design.worst_over([loops[j].summary() for _, loops in per])
@@ -352,6 +362,9 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *
                      + (f" or the stiffness it measures after a reversal is below {ctl.rest_spring_held_fraction:g} "
                         f"of the model's" if ctl.rest_spring_held_fraction > 0.0 else "")
                      + f", and its force is bounded by {kv * ctl.rest_spring_range_m * 1e3:.0f} mN"
+                     + (f"; the full spring acts only once the stage is seen held (it takes a force, or a branch is "
+                        f"judged held), before that {_free_spring(ctl, kv):.3g} N/m"
+                        if ctl.rest_spring_held_fraction > 0.0 else "")
                      if spring else ("with the integrator held the rest loop is PD + observer only" if held
                                      else "the rest loop is the full PID + observer"))
                   + (f"; the rest integral stops for the standstill when |x - x_ref| exceeds "

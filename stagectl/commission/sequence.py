@@ -1054,9 +1054,9 @@ class Commissioning:
         * it applies to a Q-filter observer and a model with a pre-sliding stiffness Σk;
         * margins (``tune``'s machinery, :func:`stagectl.control.design.analyse_rest`): the rest loop (PD +
           observer + spring, integrator held) on the stage stuck on the identified Σk and damping must be
-          stable. Its margins and those on the free mass are reported. As with config/sim.yaml's rest spring
-          (``stagectl tune --config config/sim.yaml``: stuck PM 30.8°, GM 6.1 dB; free mass unstable) they are
-          usually below the 40° / 8 dB floor: the spring then relies on the stage being stuck (its force is
+          stable. Its margins and those on the free mass are reported (the free mass with no spring: the
+          controller gives the full spring only to a stage seen held, ``rest_spring_unconfirmed_kp_fraction`` 0).
+          When they are below the 40° / 8 dB floor the spring relies on the stage being stuck (its force is
           bounded by k_v·rest_spring_range_m, and it is released when the stage slides or hunts), which the
           report states (``relies_on``);
         * the mismatched twin (:meth:`_rank_on_twin`) runs the verification with it (nonlinear: the clamp and
@@ -1455,7 +1455,10 @@ def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, 
         per = [design.analyse_rest(mass_kg, period_s, pid, nd, dob_bandwidth_hz, nd, stiffness_n_m, damping_n_s_m,
                                    th * rest_spring_n_m, kd_fraction=float(g["rest_kd_fraction"]),
                                    dob_bandwidth_fraction=float(g["rest_dob_bandwidth_fraction"]),
-                                   spring_sections=int(g["rest_spring_section_count"])) for th in thetas]
+                                   spring_sections=int(g["rest_spring_section_count"]),
+                                   # a free mass gets no spring (the controller's gate with its defaults,
+                                   # rest_spring_held_fraction 0.5, rest_spring_unconfirmed_kp_fraction 0)
+                                   free_spring_n_m=0.0) for th in thetas]
         summ: dict[str, dict[str, Any]] = {}
         for j, a0 in enumerate(per[0]):
             _, w = design.worst_over([loops[j].summary() for loops in per])

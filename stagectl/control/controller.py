@@ -130,9 +130,22 @@ k̂ = Σ(Δx·ΔF)/Σ(Δx²) over the first REST_HELD_JUDGE_TRAVEL·REST_HELD_MI
 ``rest_spring_range_m`` of x_r only (beyond it the spring's force is clamped: no stiffness); k̂ < ρ·min(θ, 1)·Σk
 releases the spring as the guard does (``rest_spring_release_reason`` "not held"). Each standstill's test starts
 afresh (a move resets it); with no move since the start the contact's history is unknown and the branch from the
-arming point is judged too. Free 2 kg mass started 1 / 20 nm off at standstill: released after 26 / 12 cycles, 54 / 369 nm at most
-(judged only after a reversal 25 / 12 cycles, 88 / 369 nm; guard alone 58 / 23 cycles, 1.8 / 1.1 µm); the
-seed-stage steps are unchanged (``stagectl bench control``; docs/control.md §2.2).
+arming point is judged too (after REST_HELD_WARMUP_TIME_CONSTANTS of the witness: its start-up transient is no
+stiffness).
+
+Held before the full spring (``rest_spring_unconfirmed_kp_fraction`` = κ_u, default 0): the test above judges only
+after a reversal, and until then the full spring acted on whatever the stage was: on a free 2 kg mass started
+1 / 20 / 100 nm off, 54 / 369 / 2115 nm at most against 11 / 151 / 757 nm without the spring. So at each standstill
+the spring is k_v only once the stage is *seen held*: it takes a force |F| >= REST_HELD_FORCE_FRACTION·θ·F_c (the
+witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass takes no force:
+F ≈ 0), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
+loop with that spring (``stagectl tune``'s rest/free line: with κ_u = 0 the spring-less rest loop, config/sim.yaml
+PM 57.1°, GM 10.5 dB). A move's stop leaves the stage holding the friction force it slid on, so after a move the
+seed stage is seen held at once and the bench's figures are bit for bit those of the spring without this gate (a
+settle move from ahead can leave the stage holding only ~0.1·F_c: hence the low fraction);
+the free mass above: 11 / 151 / 757 nm, as without the spring. Not by design for a *soft* stage (held by friction
+but on less stiffness than the model's): it takes the force, gets the full spring and relies on the test above as
+before (docs/control.md §2.2).
 
 Rest integral (``rest_integral_hz`` = f_r, off by default; with ``kind: model``, without the rest spring;
 docs/control.md §2.10): at standstill, once the stage no longer approaches the target (its speed
@@ -489,6 +502,12 @@ class ControllerConfig:
         "be a negative stiffness of the loop; stagectl tune prints the lowest fraction at which the rest loop meets "
         "its margins (0: no stiffness test)",
         ge=0.0, le=1.0)
+    rest_spring_unconfirmed_kp_fraction: float = param(
+        0.0, desc="with rest_spring_held_fraction > 0: the rest spring's stiffness, as a fraction of the PID's K_p "
+        "(at most the full spring), at a standstill until the stage is seen held: it takes a force of at least 5 % "
+        "of the model's Coulomb level (a free mass takes none) or the stiffness test judges a branch held; "
+        "then the full spring builds in through its low-pass (no step in the command). The rest loop on a free mass "
+        "runs with this spring (stagectl tune's rest/free line; 0: as without a spring)", ge=0.0)
     design_delay_samples: int | None = param(
         None, unit="samples", desc="loop delay in whole periods for the margin analysis and the design check of "
         "stagectl tune / bench (None: io.delay_cycles for plant_io, else 1; 2 with a sensor not sampled on SYNC)",
@@ -635,6 +654,17 @@ REST_GAINS_DWELL_S = 0.005
 #: reversal (the secant Σ(Δx·ΔF)/Σ(Δx²) over its first 10 nm)
 REST_HELD_MIN_TRAVEL_M = 5e-9
 REST_HELD_JUDGE_TRAVEL = 2.0
+#: the stiffness test's first branch with no move since :meth:`StageController.reset` starts only after the witness
+#: has run this many of its time constants 1/(2π·bandwidth) (its start-up transient, e.g. a stage found off its
+#: last position at the reset, is no stiffness: a free mass started 20 nm off was judged 1.69·Σk "held")
+REST_HELD_WARMUP_TIME_CONSTANTS = 5.0
+#: before the stiffness test has judged a branch held, the full rest spring needs the stage to take a force,
+#: |LPF(u − m·a)| (the witness; not within the witness's start-up after a reset), of at least this fraction of the
+#: model's Coulomb level θ·F_c: a free mass takes none (a few mN of noise). 0.25 missed a stage held at 83 mN
+#: (0.09·θ·F_c) after a settle move from ahead (model ×1.2: first step 131 ms instead of 16). (Also asking for the
+#: stage to be still, |v̂| <= REST_GAINS_ENTER_M_S for 1 ms, delayed the spring at the first step of the bench's tuned
+#: design, 14 -> 35 ms: the spring brakes a stage that slides on after its move.)
+REST_HELD_FORCE_FRACTION = 0.05
 
 #: without an observer the rest integral's total over a standstill is bounded by this many × θ·F_c (with one: 1):
 #: a stage that slid on past the target at its sliding level comes back only through its whole pre-sliding
@@ -995,6 +1025,7 @@ class StageController:
         self._hw.reset(x_m, u_n)
         self._h_xf = math.nan
         self._h_moved = False  # no move since the start: the stiffness test's first branch starts at the arming point
+        self._h_age_s = 0.0  # time the witness has run since the reset [s]
         if self.ff is not None:
             self.ff.reset(x_m)
             if isinstance(self.ff, FrictionFeedforward):
@@ -1065,6 +1096,8 @@ class StageController:
         self._h_rev = False  # a reversal seen: the branch from (x0, f0) is being measured
         self._h_x0 = self._h_f0 = 0.0
         self._h_sxx = self._h_sxf = 0.0  # Σ Δx² [m²], Σ Δx·ΔF [N·m] along the branch
+        self._h_ok = False  # a branch of this standstill was judged held: the full spring acts
+        self._h_load = False  # ... or the stage took a force a free mass cannot: the full spring acts as well
 
     def prepare_retune(self, new_cfg: ControllerConfig) -> _Parts:
         """Build what ``new_cfg`` needs (observer gain design, feed-forward model) without touching the loop."""
@@ -1216,6 +1249,9 @@ class StageController:
     _h_f = 0.0  # the stiffness test's witness force LPF(u − m·a) [N] ...
     _h_xf = math.nan  # ... and filtered position [m]
     _h_moved = False  # the reference has moved since reset
+    _h_ok = False  # the stiffness test judged a branch of this standstill held (the full rest spring acts)
+    _h_load = False  # the stage took a force at standstill in this standstill (the full rest spring acts)
+    _h_age_s = 0.0  # time the witness has run since the reset [s]
     _d_held = False
     _rest_gains = False  # the rest loop's gains are in force (rest_kd_fraction, rest_dob_bandwidth_fraction)
     _rg_still_s = 0.0  # time at rest with |v̂| <= REST_GAINS_ENTER_M_S [s]
@@ -1729,7 +1765,7 @@ class StageController:
             # moving with the spring armed and empty, nothing counted: what the code below leaves, the stiffness
             # test's branch included (a standstill's test starts afresh: an extreme kept from the last standstill
             # turned the stage's own run-in at a stop into a "reversal" and released a held stage, "not held")
-            if self._h_n != 0:
+            if self._h_n != 0 or self._h_ok or self._h_load:
                 self._reset_held()
             return d_hat
         cfg = self.cfg
@@ -1743,6 +1779,12 @@ class StageController:
             self._rs_side = side
         kv = cfg.rest_stiffness_fraction * min(self.ff_scale, 1.0) * self._k_ps  # θ capped at 1: docstring
         not_held = at_rest and self._rs_armed and self._d_held and self._not_held(kv, ref.x_m)
+        if self._d_held and not self._h_ok:  # not (yet) seen held: the free-mass level (docstring, "Rest spring")
+            if at_rest and self._rs_armed and not self._h_load and (self._h_moved or self._h_age_s >= self._h_warm_s()):
+                f_c = self._f_kin if self._f_kin == self._f_kin else 0.0
+                self._h_load = abs(self._h_f) >= REST_HELD_FORCE_FRACTION * min(self.ff_scale, 1.0) * f_c > 0.0
+            if not self._h_load:
+                kv = min(kv, cfg.rest_spring_unconfirmed_kp_fraction * self.pid.cfg.kp_n_m)
         if not at_rest or (self._rs_armed and (abs(e_x) > cfg.rest_spring_release_m or self._rs_swings >= 2
                                                or not_held)):
             self._rs_side = 0
@@ -1787,6 +1829,10 @@ class StageController:
         self._s_rest = a * self._s_rest + (1.0 - a) * target
         return d_hat - self._s_rest
 
+    def _h_warm_s(self) -> float:
+        """The witness's start-up time after a reset [s]: REST_HELD_WARMUP_TIME_CONSTANTS of its low-pass."""
+        return REST_HELD_WARMUP_TIME_CONSTANTS / (2.0 * math.pi * self._hw.cfg.bandwidth_hz)
+
     def _not_held(self, kv: float, x_r: float) -> bool:
         """The rest spring's stiffness test (``rest_spring_held_fraction`` = ρ; module docstring, "Rest spring"):
         the force the stage takes, F = LPF(u − m·a) (the witness observer), against its position x_f = LPF(x) along
@@ -1802,6 +1848,8 @@ class StageController:
         xf, f = self._h_xf, self._h_f
         h = REST_HELD_MIN_TRAVEL_M
         if self._h_n == 0:  # armed: look for the first extreme from here
+            if not self._h_moved and self._h_age_s < self._h_warm_s():
+                return False  # the witness's start-up transient is no stiffness
             self._h_n, self._h_dir, self._h_ext, self._h_fext = 1, 0, xf, f
             self._h_sxx = self._h_sxf = 0.0
             if not self._h_moved:  # no move since the start: the contact's history is unknown, a branch starts here
@@ -1849,7 +1897,11 @@ class StageController:
         k_min = cfg.rest_spring_held_fraction / cfg.rest_stiffness_fraction * kv
         self.rest_spring_held_n_m = k_hat = self._h_sxf / self._h_sxx
         self._h_sxx = -1.0  # judged once, at its start: further on a pre-sliding contact softens as its elements slip
-        return k_hat < k_min
+        if k_hat < k_min:
+            self._h_ok = False
+            return True
+        self._h_ok = True
+        return False
 
     # ------------------------------------------------------------------ loop
     #: the loop may pass the learned feed-forward (``u_learn_n``) to :meth:`step`
@@ -2081,6 +2133,7 @@ class StageController:
             # the position at the last sample through the same low-pass
             hw = self._hw
             self._h_f = hw.step(dt, x_meas_m, v_hat, st.u_n, a_r)
+            self._h_age_s += dt
             xm = st.x_prev_m if st.x_prev_m == st.x_prev_m else x_meas_m
             ah = hw._alpha
             self._h_xf = xm if self._h_xf != self._h_xf else ah * self._h_xf + (1.0 - ah) * xm

@@ -321,7 +321,7 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
                  rest_spring_n_m: float, velocity_cutoff_hz: float | None = None, *,
                  dob_mass_kg: float | None = None, integrator_held: bool = True, kd_fraction: float = 1.0,
                  dob_bandwidth_fraction: float = 1.0, spring_sections: int = 1,
-                 rest_integral_n_m_s: float = 0.0) -> list[LoopAnalysis]:
+                 rest_integral_n_m_s: float = 0.0, free_spring_n_m: float | None = None) -> list[LoopAnalysis]:
     """Margins of the *rest* loop (:mod:`stagectl.control.controller`, "Rest spring"): PD (PID with its
     integrator held at rest, ``integrator_held``; False: the full PID, as a controller with
     ``hold_integrator_at_rest: false`` runs) + Q-filter DOB with nominal mass ``dob_mass_kg`` (None: the plant's
@@ -335,7 +335,9 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
 
     * ``rest/stuck``: the stage stuck in pre-sliding, 1/(m·s² + c·s + k) (c = ``damping_n_s_m``, the friction's
       σ2 + Σσ1; k its initial stiffness Σk);
-    * ``rest/free``: the free mass 1/(m·s²) (the stage slipping while the reference is at rest).
+    * ``rest/free``: the free mass 1/(m·s²) (the stage slipping while the reference is at rest), with the spring
+      ``free_spring_n_m`` (None: ``rest_spring_n_m``): the controller's spring until the stage is seen held,
+      min(k_v, ``rest_spring_unconfirmed_kp_fraction``·K_p), which is all a free mass gets.
 
     The spring term enters the command like the PID's, and the residual-form observer does not see it (its input
     includes it), so L = P·(C_PD + C_s + H_y)/(1 − H_u).
@@ -353,12 +355,18 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     if not observer:  # C_I has the PID integrator's form: one integrator K_i + K_r (no double pole at z = 1)
         pid_r = dataclasses.replace(pid_r, ki_n_m_s=(0.0 if integrator_held else pid_r.ki_n_m_s) + rest_integral_n_m_s)
         integrator_held, rest_integral_n_m_s = False, 0.0
-    C = pid_tf(dataclasses.replace(pid_r, ki_n_m_s=0.0) if integrator_held else pid_r, period_s)
-    if rest_spring_n_m > 0.0:
+    C0 = pid_tf(dataclasses.replace(pid_r, ki_n_m_s=0.0) if integrator_held else pid_r, period_s)
+
+    def with_spring(kv: float) -> Any:
+        if kv <= 0.0:
+            return C0
         a = math.exp(-2 * math.pi * dob_bandwidth_hz * period_s)
         z = control.tf([1.0, 0.0], [1.0], period_s)
         F = (1 - a) * z / (z - a)
-        C = C + rest_spring_n_m * (F * F if spring_sections == 2 else F)
+        return C0 + kv * (F * F if spring_sections == 2 else F)
+
+    C = with_spring(rest_spring_n_m)
+    C_free = C if free_spring_n_m is None else with_spring(min(free_spring_n_m, rest_spring_n_m))
     md = dob_mass_kg if dob_mass_kg is not None else mass_kg
     if observer:
         Hu, Hy = qfilter_tfs(md, dob_bandwidth_hz * dob_bandwidth_fraction, period_s, dob_command_delay_samples,
@@ -367,14 +375,15 @@ def analyse_rest(mass_kg: float, period_s: float, pid: PidConfig, delay_samples:
     if delay_samples:
         stuck = stuck * _zinv(period_s, delay_samples)
     free = plant_tf(mass_kg, period_s, delay_samples)
-    def loop(P: Any) -> Any:
+    def loop(P: Any, C: Any) -> Any:
         L = dob_loop(P, C, Hu, Hy, period_s) if observer else control.ss(P) * control.ss(C)
         if rest_integral_n_m_s > 0.0:
             z = control.tf([1.0, 0.0], [1.0], period_s)
             L = L + control.ss(P) * control.ss(rest_integral_n_m_s * period_s * z / (z - 1))
         return L
 
-    return [analyse("rest/stuck", loop(stuck), period_s, 2000), analyse("rest/free", loop(free), period_s, 2000)]
+    return [analyse("rest/stuck", loop(stuck, C), period_s, 2000),
+            analyse("rest/free", loop(free, C_free), period_s, 2000)]
 
 
 def worst_over(summaries: list[dict[str, Any]]) -> tuple[int, dict[str, Any]]:

@@ -109,7 +109,8 @@ def _move_after_loaded_rest(cfg: Any, block: bool) -> tuple[list[float], list[fl
     plant = cfg.sim.plant
     model = StageModel(friction=plant.friction, effects=plant.effects, mass_kg=plant.mass_kg)
     c = dataclasses.replace(cfg.controller, feedforward=dataclasses.replace(cfg.controller.feedforward,
-                                                                             adapt_bandwidth_hz=5.0))
+                                                                             adapt_bandwidth_hz=5.0),
+                            rest_spring_unconfirmed_kp_fraction=1e9)  # the full spring at once (synthetic x)
     assert c.rest_stiffness_fraction > 0.0 and c.feedforward.adapt_presliding_m > 0.0
     ctl = StageController(c, cfg.timing, model=model)
     dt = cfg.loop.period_s

@@ -97,7 +97,8 @@ def test_a_move_from_a_loaded_rest_spring_starts_from_the_estimate_the_loop_goes
 
     c = seed.controller
     ctl_cfg = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=1.0,
-                                                                     adapt_bandwidth_hz=0.0))
+                                                                     adapt_bandwidth_hz=0.0),
+                                  rest_spring_unconfirmed_kp_fraction=1e9)  # the full spring at once (synthetic x)
     ctl = StageController(ctl_cfg, seed.timing, model=seed.sim.plant)
     dt = seed.loop.period_s
     for _ in range(300):  # at rest, the stage stuck 150 nm off the reference

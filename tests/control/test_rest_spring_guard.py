@@ -93,7 +93,9 @@ def test_release_and_rearm_are_bumpless(seed):
     the spring's force then builds in over several samples (the observer's time constant), no step."""
     from stagectl.control.controller import StageController
 
-    c = dataclasses.replace(seed.controller, rest_spring_max_release_count=2)
+    # the full spring at once (the positions here are synthetic: no force to see the stage held by,
+    # tests/control/test_rest_spring_held.py has that gate)
+    c = dataclasses.replace(seed.controller, rest_spring_max_release_count=2, rest_spring_unconfirmed_kp_fraction=1e9)
     dt = seed.loop.period_s
     ctl = StageController(c, seed.timing)
     ctl.reset(0.0)
@@ -127,10 +129,11 @@ def test_release_and_rearm_are_bumpless(seed):
     assert max(abs(d1 - d0) for d0, d1 in itertools.pairwise(diff)) < 0.5 * abs(s_new)
 
 
-def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, capsys):
+def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, capsys, tmp_path):
     """``stagectl tune`` shows the configured rest loop (stuck and free plant) beside the moving loop, the same
-    margins as design.analyse_rest, and says which case is below the floor (the free stage) and that it relies on a stuck
-    stage."""
+    margins as design.analyse_rest: on the free mass with the spring a stage not seen held gets
+    (``rest_spring_unconfirmed_kp_fraction``, 0 in config/sim.yaml: healthy); with the full spring there (the
+    fraction raised) it says which case is below the floor (the free stage) and that it relies on a stuck stage."""
     from stagectl.config import load_app_config
     from stagectl.control.design import analyse_rest
 
@@ -146,10 +149,25 @@ def test_tune_prints_the_rest_loop_margins_and_what_it_relies_on(repo_root, caps
                                c.dob.command_delay_samples, fr.stiffness_n_m, fr.damping_n_s_m,
                                th * rest["rest_spring_n_m"], c.velocity_cutoff_hz, kd_fraction=c.rest_kd_fraction,
                                dob_bandwidth_fraction=c.rest_dob_bandwidth_fraction,
-                               spring_sections=c.rest_spring_section_count)
+                               spring_sections=c.rest_spring_section_count, free_spring_n_m=0.0)
+    assert c.rest_spring_unconfirmed_kp_fraction == 0.0
     assert rest["rest_spring_n_m"] == pytest.approx(c.rest_stiffness_fraction * fr.stiffness_n_m)
     assert rest["loops"]["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
-    assert rest["loops"]["rest/free"]["closed_loop_stable"] is free.stable is False
+    assert rest["loops"]["rest/free"]["closed_loop_stable"] is free.stable is True
+    assert rest["loops"]["rest/free"]["healthy"] is True and rest["healthy"] is True and rest["relies_on"] is None
+    # the full spring on the free mass too (the gate opened): the free stage is below the floor, tune says so
+    import yaml
+
+    from tests.support import shipped_config_mapping
+
+    data = shipped_config_mapping("sim.yaml")
+    data["controller"]["rest_spring_unconfirmed_kp_fraction"] = 1e9
+    path = tmp_path / "full.yaml"
+    path.write_text(yaml.safe_dump(data))
+    args = ["tune", "--config", str(path), "--bandwidth-hz", "200"]
+    main(args + ["--json"])
+    rest = json.loads(capsys.readouterr().out)["configured"]["rest"]
+    assert rest["loops"]["rest/free"]["closed_loop_stable"] is False
     assert rest["healthy"] is False and "stuck" in rest["relies_on"]
     main(args)
     out = capsys.readouterr().out
@@ -197,8 +215,8 @@ def test_tune_analyses_the_rest_loop_actually_configured(tmp_path, capsys):
             fr.stiffness_n_m, fr.damping_n_s_m, rest["rest_spring_n_m"], c.velocity_cutoff_hz)
     gains = {"kd_fraction": c.rest_kd_fraction, "dob_bandwidth_fraction": c.rest_dob_bandwidth_fraction,
              "spring_sections": c.rest_spring_section_count}
-    stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False, **gains)
-    old_stuck, old_free = analyse_rest(*args, **gains)
+    stuck, free = analyse_rest(*args, dob_mass_kg=2.6, integrator_held=False, free_spring_n_m=0.0, **gains)
+    old_stuck, old_free = analyse_rest(*args, free_spring_n_m=0.0, **gains)
     got = rest["loops"]
     assert got["rest/stuck"]["phase_margin_deg"] == pytest.approx(stuck.phase_margin_deg)
     assert got["rest/free"]["phase_margin_deg"] == pytest.approx(free.phase_margin_deg)

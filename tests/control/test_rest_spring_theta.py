@@ -4,6 +4,7 @@ loop worst case over the θ range the configuration allows, saying so when the d
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -23,7 +24,8 @@ def _spring_force(seed, theta: float) -> float:
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
 
-    ctl = StageController(seed.controller, seed.timing)
+    # the full spring at once (a synthetic position: no force to see the stage held by)
+    ctl = StageController(dataclasses.replace(seed.controller, rest_spring_unconfirmed_kp_fraction=1e9), seed.timing)
     ctl.reset(0.0)
     ctl.ff_scale = theta
     for _ in range(300):

@@ -151,7 +151,8 @@ def test_the_rest_spring_is_bumpless_and_leaves_the_observer_at_a_move_start(see
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
 
-    c = seed.controller
+    # the full spring at once (a synthetic position: no force to see the stage held by)
+    c = dataclasses.replace(seed.controller, rest_spring_unconfirmed_kp_fraction=1e9)
     ctl = StageController(c, seed.timing)
     ctl.reset(0.0)
     dt = seed.loop.period_s
@@ -179,7 +180,7 @@ def test_switching_the_rest_spring_off_at_rest_is_bumpless(seed):
     from stagectl.control.api import Reference
     from stagectl.control.controller import StageController
 
-    c = seed.controller
+    c = dataclasses.replace(seed.controller, rest_spring_unconfirmed_kp_fraction=1e9)  # the full spring at once
     ctl = StageController(c, seed.timing)
     ctl.reset(0.0)
     dt = seed.loop.period_s

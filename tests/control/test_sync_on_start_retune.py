@@ -38,7 +38,8 @@ def _move_after_retune(c0: Any, c1: Any) -> tuple[float, float, float]:
 
 
 def test_a_retune_that_turns_the_start_edge_sync_off_is_obeyed_on_the_next_move() -> None:
-    c = _cfg().controller
+    # the full rest spring at once (fixed samples: no force to see the stage held by)
+    c = dataclasses.replace(_cfg().controller, rest_spring_unconfirmed_kp_fraction=1e9)
     assert c.feedforward.rest_sync_on_start and c.feedforward.rest_sync_hz > 0.0 and c.dob.kind != "none"
     off = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, rest_sync_on_start=False))
     on_then_off = _move_after_retune(c, off)
@@ -63,6 +64,7 @@ def test_the_stiffness_test_judges_a_later_branch_in_the_first_standstill() -> N
     ks = ctl._k_ps
     kv = c.rest_stiffness_fraction * ks
     assert ks > 0.0 and c.rest_spring_held_fraction > 0.0
+    ctl._h_age_s = 1.0  # past the witness's start-up after the reset (REST_HELD_WARMUP_TIME_CONSTANTS)
 
     def feed(xf: float, f: float) -> bool:
         ctl._h_xf, ctl._h_f = xf, f
