@@ -672,6 +672,15 @@ LEARN_FORGET = 0.9
 #: the observer's bandwidth) ... (and a reversal is stiffness evidence for the adaptation only if there θ·Σk·|e|
 #: was at most this fraction of the model force or its Coulomb level)
 ADAPT_LAG_FRACTION = 0.1
+#: the stop synchronisation's creep gate (:meth:`StageController._sync_creep`): a stage that went on in the model's
+#: direction of travel by more than this since the reference stopped [m] crept on, sliding: its friction elements are
+#: saturated in that direction (the plant's pre-sliding springs are not unloaded), so the observer's estimate against
+#: that direction is a level (sliding friction lower than the model holds), not an unloaded state, and the rest sync
+#: unloads the model by at most the stage's own travel back from its furthest point since then. Unloaded anyway, the
+#: model reloaded over the next move's first nanometres and pushed the stage ahead (generated plant 36 commissioned:
+#: the lead's stop crept 720 nm in; the cosine after it 3.5 -> 11.0 nm RMS with the rest sync, 72 nm ahead at its
+#: start). Five sensor quanta of a 1 nm encoder, as REST_HELD_MIN_TRAVEL_M
+SYNC_CREEP_M = 5e-9
 # the stop synchronisation completed on a move's start edge (_sync_on_start): at most this many virtual steps of the
 # model, until less than this fraction of the observer's estimate is left or a step moves less than that
 SYNC_START_ITERATIONS = 12
@@ -988,6 +997,8 @@ class StageController:
             self._set_rest_gains(False)
         self._rg_still_s = 0.0  # the rest gains' dwell starts again
         self._sync_armed = False
+        self._cr_n = 0  # the creep gate starts afresh
+        self._cr_unloaded = 0.0
         self.pid.reset()
         self.pid.preload(u_n, 0.0)
         if self.dob is not None:
@@ -1237,6 +1248,12 @@ class StageController:
     _learn_active = False  # the last fresh step's learn_active (ILC takes part in the motion)
     _rev_x = math.nan  # the model's last reversal seen [m] ...
     _sync_armed = False  # the last step at rest ran the stop synchronisation: a move starting next completes it
+    _cr_n = 0  # the creep gate (_sync_creep): samples at rest since the reference stopped (0: moving) ...
+    _cr_d = 0.0  # ... the model's direction of travel at the stop ...
+    _cr_x0 = 0.0  # ... the stage's position at the stop and its furthest one in that direction since [m] ...
+    _cr_peak = 0.0
+    _cr_x = 0.0  # ... its position at the last sample at rest [m] ...
+    _cr_unloaded = 0.0  # ... and the virtual travel the rest sync has unloaded the model by since the stop [m]
     _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
@@ -1486,10 +1503,43 @@ class StageController:
         lam = 1.0 - math.exp(-2.0 * math.pi * ffc.rest_sync_hz * dt)
         lim = ffc.rest_sync_max_step_m
         dx = max(-lim, min(lim, lam * d_hat / (th * k)))
+        dx = self._creep_limited(dx)
+        if dx == 0.0:
+            return u_ff, d_hat
         new = th * ff.nudge(dx, dt)
         delta = u_ff - new  # old − new feed-forward force: the observer carries it
         dob.shift(delta)
         return new, d_hat + delta
+
+    def _sync_creep(self, at_rest: bool, x_m: float, d: float) -> None:
+        """The stop synchronisation's creep gate (SYNC_CREEP_M): at each sample at rest (no settle move) the stage's
+        position ``x_m`` [m] and its furthest one in the model's direction of travel ``d`` (at the stop) since the
+        reference stopped; a motion starts it afresh."""
+        if not at_rest:
+            self._cr_n = 0
+            self._cr_unloaded = 0.0
+            return
+        if self._cr_n == 0:
+            self._cr_d = d
+            self._cr_x0 = self._cr_peak = x_m
+        elif self._cr_d * (x_m - self._cr_peak) > 0.0:
+            self._cr_peak = x_m
+        self._cr_x = x_m
+        self._cr_n += 1
+
+    def _creep_limited(self, dx: float) -> float:
+        """The rest sync's virtual displacement ``dx`` [m] within the creep gate (SYNC_CREEP_M): once the stage has
+        crept on in the model's direction d by more than SYNC_CREEP_M since the stop, a displacement against d
+        (unloading the model) is limited so that the unloading since the stop stays within the stage's own travel
+        back from its furthest point beyond the sensor's noise, d·(x_peak − x) − SYNC_CREEP_M (the plant's springs
+        unload only by a reversal); else unchanged. The model's direction is the stop's; a displacement along it is never limited."""
+        d = self._cr_d
+        if self._cr_n == 0 or d * dx >= 0.0 or d * (self._cr_peak - self._cr_x0) <= SYNC_CREEP_M:
+            return dx
+        room = max(0.0, d * (self._cr_peak - self._cr_x) - SYNC_CREEP_M - self._cr_unloaded)
+        out = -d * min(abs(dx), room)
+        self._cr_unloaded += abs(out)
+        return out
 
     def _sync_on_start(self, dt: float, ff: FrictionFeedforward, dob: QFilterDob | KalmanDob) -> None:
         """The stop synchronisation completes on a move's start edge (module docstring, "Feed-forward through the
@@ -1509,13 +1559,14 @@ class StageController:
         takes leaves the observer (``dob.shift``, and the observer's last input with it: u unchanged). Real-time
         safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move)."""
         st = self.state
-        delta = self._load_into_model(dt, ff, st.d_hat_n)
+        delta = self._load_into_model(dt, ff, st.d_hat_n, creep_gate=True)
         if delta != 0.0:
             self.shift_observer(delta)
             st.d_hat_n += delta
             st.u_ff_n -= delta
 
-    def _load_into_model(self, dt: float, ff: FrictionFeedforward, force_n: float) -> float:
+    def _load_into_model(self, dt: float, ff: FrictionFeedforward, force_n: float,
+                         creep_gate: bool = False) -> float:
         """The start-edge load shared by :meth:`_sync_on_start` and :meth:`_sync_on_start_integral`: steps the
         model by Δx = rem/(θ·Σk) at the rest sync's largest virtual speed rest_sync_max_step_m/T, at most
         SYNC_START_ITERATIONS times, until less than SYNC_START_TOLERANCE of ``force_n`` [N] (what the observer
@@ -1532,6 +1583,10 @@ class StageController:
         rem = force_n
         for _ in range(SYNC_START_ITERATIONS):
             dx = rem / (th * k)
+            if creep_gate:
+                dx = self._creep_limited(dx)
+                if dx == 0.0:
+                    break
             new = th * ff.nudge(dx, max(dt, abs(dx) / v_v) if v_v > 0.0 else dt)
             moved = u_ff - new  # old − new feed-forward force: the holder carries it
             u_ff = new
@@ -2184,6 +2239,9 @@ class StageController:
                   or self._ri_v != 0.0):
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
         self._sync_armed = False
+        if self._d_sync:
+            self._sync_creep(at_rest and not settling, x_meas_m,
+                             ff.latch.direction)  # type: ignore[union-attr]
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
