@@ -1512,9 +1512,10 @@ class StageController:
         return new, d_hat + delta
 
     def _sync_creep(self, at_rest: bool, x_m: float, d: float) -> None:
-        """The stop synchronisation's creep gate (SYNC_CREEP_M): at each sample at rest (no settle move) the stage's
-        position ``x_m`` [m] and its furthest one in the model's direction of travel ``d`` (at the stop) since the
-        reference stopped; a motion starts it afresh."""
+        """The stop synchronisation's creep gate (SYNC_CREEP_M): at each sample with the reference at rest (a settle
+        move included: the stage's travel back along it is a reversal) the stage's position ``x_m`` [m] and its
+        furthest one in the model's direction of travel ``d`` (at the stop) since the reference stopped; a motion
+        of the reference starts it afresh."""
         if not at_rest:
             self._cr_n = 0
             self._cr_unloaded = 0.0
@@ -1541,7 +1542,8 @@ class StageController:
         self._cr_unloaded += abs(out)
         return out
 
-    def _sync_on_start(self, dt: float, ff: FrictionFeedforward, dob: QFilterDob | KalmanDob) -> None:
+    def _sync_on_start(self, dt: float, ff: FrictionFeedforward, dob: QFilterDob | KalmanDob,
+                       direction: float = 0.0) -> None:
         """The stop synchronisation completes on a move's start edge (module docstring, "Feed-forward through the
         stop"): the standstill before it synchronised (:meth:`_rest_sync` ran at its last sample), and whatever of
         the observer's estimate d̂ [N] it has not yet loaded into the model (at most ``rest_sync_max_step_m`` of
@@ -1557,9 +1559,14 @@ class StageController:
         viscous terms stay as small as in the standstill's own steps), at most SYNC_START_ITERATIONS of them and
         until less than SYNC_START_TOLERANCE of d̂ is left or a step moves less than that; the force the model
         takes leaves the observer (``dob.shift``, and the observer's last input with it: u unchanged). Real-time
-        safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move)."""
+        safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move).
+
+        ``direction`` (+1 / −1, 0: unknown) is the starting move's: one that goes on in the stop's direction after
+        the stage crept on loads within the creep gate (:meth:`_creep_limited`, SYNC_CREEP_M: the plant's springs
+        are not unloaded, and an unloaded model would reload over the first nanometres and push the stage ahead);
+        a reversal loads all of it (the plant's branch starts at the force the stage holds, the model's should)."""
         st = self.state
-        delta = self._load_into_model(dt, ff, st.d_hat_n, creep_gate=True)
+        delta = self._load_into_model(dt, ff, st.d_hat_n, creep_gate=direction * self._cr_d > 0.0)
         if delta != 0.0:
             self.shift_observer(delta)
             st.d_hat_n += delta
@@ -2089,7 +2096,8 @@ class StageController:
                 if dob is None:  # (armed by the rest integral's own synchronisation, _rest_sync_integral)
                     self._sync_on_start_integral(dt, ff)  # type: ignore[arg-type]
                 else:
-                    self._sync_on_start(dt, ff, dob)  # type: ignore[arg-type]
+                    s_dir = v_r if v_r != 0.0 else a_r
+                    self._sync_on_start(dt, ff, dob, 1.0 if s_dir > 0.0 else -1.0)  # type: ignore[arg-type]
             self._sync_armed = False
         # feed-forward (advanced only by the part of dt that hold() has not covered)
         dt_ff = dt - self._ff_ahead_s
@@ -2239,9 +2247,8 @@ class StageController:
                   or self._ri_v != 0.0):
                 self._reset_rest_integral()  # the reference moves: the next standstill starts afresh
         self._sync_armed = False
-        if self._d_sync:
-            self._sync_creep(at_rest and not settling, x_meas_m,
-                             ff.latch.direction)  # type: ignore[union-attr]
+        if self._d_sync:  # (from the end of the commanded move: a settle move's travel back is a reversal)
+            self._sync_creep(at_rest, x_meas_m, ff.latch.direction)  # type: ignore[union-attr]
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
@@ -2345,7 +2352,8 @@ class StageController:
             # a move starts on a blind cycle: the start-edge sync before the model's first step, as in _step
             self._sync_armed = False
             if isinstance(ff, FrictionFeedforward) and self.dob is not None:
-                self._sync_on_start(dt, ff, self.dob)
+                s_dir = ref.v_m_s if ref.v_m_s != 0.0 else ref.a_m_s2
+                self._sync_on_start(dt, ff, self.dob, 1.0 if s_dir > 0.0 else -1.0)
         u_ff = ff.step(dt, ref, self._ref_stop) * self.ff_scale
         self._ff_ahead_s += dt
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
