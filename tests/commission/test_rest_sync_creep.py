@@ -2,12 +2,12 @@
 generated plant 36 with the controller commissioning wrote for it (a sticky 8 Hz PID, K_p 732 N/m, a 130 Hz
 observer, the identified GMS model) and the rest additions commissioning tries on it (the rest integral at 3 Hz,
 rest sync at 30 Hz). The verification lead's stop leaves the stage ~0.7 µm behind its reference and it creeps
-on to it (0.89 µm over the lead's last 0.3 s): it slides, its friction elements stay saturated in the direction of travel, and the observer's
-estimate against that direction (−1.2 mN) is a sliding level the model does not have, not an unloaded state.
-Loaded into the model's pre-sliding state anyway, the cosine's first nanometres re-loaded the model's springs
-and pushed the stage 72 nm ahead, which the weak feedback took the whole first period to take back: cosine
-11.0 nm RMS with the additions, 3.54 nm without (commissioning then dropped them, and the steps they settle,
-4/4 against 1/4). Simulated time (lock-step), the lead and the cosine only."""
+on to it (0.89 µm over the lead's last 0.3 s): it slides, its friction elements stay saturated in the direction
+of travel, and the observer's estimate against that direction (−1.2 mN) is a sliding level the model does not
+have, not an unloaded state. Loaded into the model's pre-sliding state anyway, the cosine's first nanometres
+re-loaded the model's springs and pushed the stage 72 nm ahead, which the weak feedback took the whole first
+period to take back: cosine 11.0 nm RMS with the additions, 3.54 nm without (commissioning then dropped them,
+and the steps they settle, 4/4 against 1/4). Simulated time (lock-step), the lead and the cosine only."""
 
 from __future__ import annotations
 
