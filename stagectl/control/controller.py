@@ -80,6 +80,15 @@ stage does not make) re-loaded the model's springs and pushed the stage ahead. S
 travel up to the stage leaves its state alone, as the plant's; with the stage further *behind* (or sliding) there
 is no synchronisation, and a model fed at the stage earlier is fed at x_r again (fresh plant 111, stuck 1.2 µm
 ahead: cosine 4.40 -> 0.14 µm RMS; docs/control.md §2.10).
+Creep gate (SYNC_CREEP_M): the observer's estimate *against* the model's direction of travel d is an unloaded
+pre-sliding state only if the stage reversed; a stage that went on in d after the reference stopped (by more than
+SYNC_CREEP_M: it crept on, sliding, its elements saturated in d) holds a lower sliding level instead. So once it
+has crept on, the sync (and the start-edge load of a move that goes on in d) unloads the model by at most the
+stage's own travel back from its furthest point since the end of the commanded move (a settle move's included),
+d·(x_peak − x) − SYNC_CREEP_M; a move that reverses loads all of it. Unloaded anyway, the model re-loaded over
+the next move's first nanometres and pushed the stage ahead (generated plant 36 commissioned, a sticky 8 Hz design:
+72 nm ahead at the cosine's start, 11.0 against 3.5 nm RMS without the rest additions, which commissioning then
+dropped with the 4/4 steps they settle; tests/commission/test_rest_sync_creep.py).
 
 Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
 part, since its load at each stop would differ between repetitions): at standstill the stage is
