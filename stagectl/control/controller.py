@@ -1279,6 +1279,7 @@ class StageController:
     # last slide on [N] ...
     _cr_raw_slide = 0.0
     _cr_moved = 0.0  # ... and the force the sync has unloaded the model by since the stop (along −d) [N]
+    _cr_x = 0.0  # the stage's position at the last sample at rest [m]
     _rev_ok = True  # ... and whether the stage followed the reference there (its branch is stiffness evidence)
 
     def _adapt(self, dt: float, ref: Reference, u_ff: float, d_hat: float, dob: QFilterDob | KalmanDob,
@@ -1565,20 +1566,24 @@ class StageController:
                     self._cr_anchor = x_m
                     self._cr_slid = True
                     self._cr_raw_slide = raw
+        self._cr_x = x_m
         self._cr_n += 1
 
     def _creep_limited(self, dx: float) -> float:
         """The rest sync's virtual displacement ``dx`` [m] within the creep gate (SYNC_CREEP_M): once the
         stage has slid on in the model's direction d since the stop, a displacement against d (unloading the
         model) is limited so that the force unloaded since the stop stays within what the observer's estimate
-        has dropped since the stage last slid on, max(0, d̂_slide − d̂) along d (θ·Σk per metre of virtual
-        travel, the model's largest stiffness: the bound is on the safe side); else unchanged. A displacement
-        along d is never limited."""
+        has dropped since the stage last slid on, max(0, d̂_slide − d̂) along d, plus θ·Σk times its own travel
+        back from its furthest point beyond SYNC_CREEP_M (a reversal; θ·Σk per metre of virtual travel, the
+        model's largest stiffness); else unchanged. A displacement along d is never limited."""
         d = self._cr_d
         if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid:
             return dx
-        room = max(0.0, self._cr_raw_slide - self._cr_raw) - self._cr_moved
         k = self.ff_scale * self._k_ps
+        # the force dropped since the last slide on and the stage's own travel back from its furthest point (a
+        # reversal, through the model's largest stiffness): each is evidence of springs unloaded
+        back = max(0.0, d * (self._cr_peak - self._cr_x) - SYNC_CREEP_M)
+        room = max(0.0, self._cr_raw_slide - self._cr_raw) + k * back - self._cr_moved
         if room <= 0.0 or k <= 0.0:
             return 0.0
         return -d * min(abs(dx), room / k)
