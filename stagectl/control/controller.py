@@ -85,12 +85,12 @@ direction of travel d is an unloaded pre-sliding state only where force was take
 while the stage slides on in d after the reference stopped (new furthest points in d, SYNC_CREEP_M apart) its
 elements are saturated in d and the estimate is the lower sliding level it has. So once it has slid on, the
 sync (and the start-edge load of a move that goes on in d) unloads the model by at most what the estimate
-(low-passed, without the sync's own loads) has dropped since the stage last slid on; a move that reverses
-loads all of it. Unloaded anyway, the model re-loaded over the next move's first nanometres and pushed the
-stage ahead (generated plant 36 commissioned, a sticky 8 Hz design: 72 nm ahead at the cosine's start, 11.0
-against 3.5 nm RMS without the rest additions, which commissioning then dropped with the 4/4 steps they
-settle; tests/commission/test_rest_sync_creep.py). Not with the learning from moves, which takes that level
-into θ from a move started with the estimate loaded.
+(low-passed, without the sync's own loads) has dropped since the stage last slid on plus θ·Σk times its travel
+back from its furthest point; a move that reverses loads all of it. Unloaded anyway, the model re-loaded over
+the next move's first nanometres and pushed the stage ahead (generated plant 36 commissioned, a sticky 8 Hz
+design: 72 nm ahead at the cosine's start, 11.0 against 3.5 nm RMS without the rest additions, which
+commissioning then dropped with the 4/4 steps they settle; tests/commission/test_rest_sync_creep.py). Not with
+the learning from moves, which takes that level into θ from a move started with the estimate loaded.
 
 Rest spring (``rest_stiffness_fraction`` = φ, with an observer and ``kind: model``; held released while ILC takes
 part, since its load at each stop would differ between repetitions): at standstill the stage is
@@ -689,14 +689,15 @@ ADAPT_LAG_FRACTION = 0.1
 #: estimate then is the sliding level the plant has, not an unloaded pre-sliding state. The rest sync then
 #: unloads the model (against that direction) only by what the estimate has dropped since the stage last slid
 #: on (the force taken off a stage that then stuck unloads its springs without a visible travel: generated
-#: plant 3, stuck 7 nm past its target with the feedback pulling back). Unloaded anyway, the model reloaded
-#: over the next move's first nanometres and pushed the stage ahead (generated plant 36 commissioned: the
-#: lead's stop crept 720 nm in; the cosine after it 3.5 -> 11.0 nm RMS with the rest sync, 72 nm ahead at its
-#: start). Five sensor quanta of a 1 nm encoder, as REST_HELD_MIN_TRAVEL_M. Only without the learning from
-#: moves (``feedforward.learn_moves_fraction`` 0, as commissioning writes): that learner takes the sliding
-#: level into θ at each stop, from a move that starts with the estimate loaded into the model
-#: (LEARN_START_FRACTION); with the gate it lost that evidence (bench control's 24 wrong-model draws, the
-#: fourth step, a second −10 µm after a stop that slid on: 14-17 -> 19-34 ms)
+#: plant 3, stuck 7 nm past its target with the feedback pulling back) plus θ·Σk times the stage's travel
+#: back from its furthest point (a reversal: fresh k111, 150 nm back with 0.78 N). Unloaded anyway, the model
+#: reloaded over the next move's first nanometres and pushed the stage ahead (generated plant 36
+#: commissioned: the lead's stop crept 720 nm in; the cosine after it 3.5 -> 11.0 nm RMS with the rest sync,
+#: 72 nm ahead at its start). Five sensor quanta of a 1 nm encoder, as REST_HELD_MIN_TRAVEL_M. Only without
+#: the learning from moves (``feedforward.learn_moves_fraction`` 0, as commissioning writes): that learner
+#: takes the sliding level into θ at each stop, from a move that starts with the estimate loaded into the
+#: model (LEARN_START_FRACTION); with the gate it lost that evidence (bench control's 24 wrong-model draws,
+#: the fourth step, a second −10 µm after a stop that slid on: 14-17 -> 19-34 ms)
 SYNC_CREEP_M = 5e-9
 #: ... and the observer's estimate it compares is low-passed with this time constant [s] (its sample-to-
 #: sample noise, ±1 mN on plant 36 with a 130 Hz observer and a 1 nm encoder, is no drop of the force)
@@ -1570,12 +1571,13 @@ class StageController:
         self._cr_n += 1
 
     def _creep_limited(self, dx: float) -> float:
-        """The rest sync's virtual displacement ``dx`` [m] within the creep gate (SYNC_CREEP_M): once the
-        stage has slid on in the model's direction d since the stop, a displacement against d (unloading the
-        model) is limited so that the force unloaded since the stop stays within what the observer's estimate
-        has dropped since the stage last slid on, max(0, d̂_slide − d̂) along d, plus θ·Σk times its own travel
-        back from its furthest point beyond SYNC_CREEP_M (a reversal; θ·Σk per metre of virtual travel, the
-        model's largest stiffness); else unchanged. A displacement along d is never limited."""
+        """The rest sync's virtual displacement ``dx`` [m] within the creep gate (SYNC_CREEP_M): once
+        the stage has slid on in the model's direction d since the stop, a displacement against d
+        (unloading the model) is limited so that the force unloaded since the stop stays within what
+        the observer's estimate has dropped since the stage last slid on, max(0, d̂_slide − d̂) along
+        d, plus θ·Σk times its own travel back from its furthest point beyond SYNC_CREEP_M (a
+        reversal; θ·Σk per metre of virtual travel, the model's largest stiffness); else unchanged. A
+        displacement along d is never limited."""
         d = self._cr_d
         if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid:
             return dx
@@ -1607,10 +1609,11 @@ class StageController:
         takes leaves the observer (``dob.shift``, and the observer's last input with it: u unchanged). Real-time
         safe (scalars; at most SYNC_START_ITERATIONS model steps, once per move).
 
-        ``direction`` (+1 / −1, 0: unknown) is the starting move's: one that goes on in the stop's direction after
-        the stage crept on loads within the creep gate (:meth:`_creep_limited`, SYNC_CREEP_M: the plant's springs
-        are not unloaded, and an unloaded model would reload over the first nanometres and push the stage ahead);
-        a reversal loads all of it (the plant's branch starts at the force the stage holds, the model's should)."""
+        ``direction`` (+1 / −1, 0: unknown) is the starting move's: one that goes on in the stop's
+        direction after the stage crept on loads within the creep gate (:meth:`_creep_limited`,
+        SYNC_CREEP_M: the plant's springs are not unloaded, and an unloaded model would reload over
+        the first nanometres and push the stage ahead); a reversal loads all of it (the plant's branch
+        starts at the force the stage holds, the model's should)."""
         st = self.state
         delta = self._load_into_model(dt, ff, st.d_hat_n, creep_gate=direction * self._cr_d > 0.0)
         if delta != 0.0:
