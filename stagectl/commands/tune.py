@@ -30,7 +30,8 @@ step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every
 ``low`` (margins only: no ``sim:`` plant to check on). ``high`` becomes ``medium`` when the configured rest spring,
 which the suggestion keeps, does worse than none in the simulated checks on stages that are not held (a free mass,
 the plant at ×0.2 of its pre-sliding stiffness: an excursion above :data:`SPRING_WORSE_RATIO` × the spring-less one),
-and the reason names those figures (``rest_spring_worse``). Exit code 1 also when the configured loop is unstable
+and the reason names those figures (``rest_spring_worse``); so it does when the configured rest loop on a free
+mass (``rest/free``) misses the floor: the gains rely on friction holding the stage (``rest_free_thin``). Exit code 1 also when the configured loop is unstable
 (moving, or at standstill on the stuck stage anywhere in the θ range), 2 on bad input.
 """
 
@@ -242,6 +243,15 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         verdict["confidence_reason"] += (f"; the rest spring these gains keep does worse than none on stages that are "
                                          f"not held (simulated with the configured gains: {'; '.join(worse)})")
         d_out.update(verdict)
+    thin = _free_rest_thin(result.get("configured", {}).get("rest"))
+    if thin and not verdict["refused"]:
+        # the suggestion keeps the configured rest gains: on a stage that friction does not hold they are thin
+        verdict["rest_free_thin"] = thin
+        if verdict["confidence"] == "high":
+            verdict["confidence"] = "medium"
+        verdict["confidence_reason"] += (f"; the rest loop these gains keep misses the floor on a free stage ({thin}): "
+                                         f"it relies on friction holding the stage at standstill")
+        d_out.update(verdict)
     if verdict["refused"]:
         exit_code = 1
     if args.out:
@@ -251,6 +261,18 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         result["bode_png"] = str(png)
     result["exit_code"] = exit_code
     return result, exit_code
+
+
+def _free_rest_thin(rest: dict[str, Any] | None) -> str:
+    """The configured rest loop on a free mass (``rest/free`` of :func:`_rest_loops`, worst over θ) when it misses
+    the PM/GM floor, as "PM x deg, GM y dB" ("unstable" when it is); "" when it meets it or was not analysed."""
+    loops = (rest or {}).get("loops") or {}
+    s = next((v for k, v in loops.items() if k.endswith("free")), None)
+    if s is None or s.get("healthy", True):
+        return ""
+    if not s.get("closed_loop_stable", True):
+        return "unstable"
+    return f"PM {s['phase_margin_deg']:.1f} deg, GM {s['gain_margin_db']:.1f} dB"
 
 
 def _spring_worse(rest: dict[str, Any] | None) -> list[str]:

@@ -224,3 +224,22 @@ def test_tune_cli_bad_period_is_named_before_nyquist(period, capsys):
     assert rc == 2, err
     within = "--period-s: must be finite (s)" if period == "inf" else "--period-s: must be within"  # parse time
     assert within in err and "Nyquist" not in err and "internal error" not in err, err
+
+
+def test_tune_confidence_not_high_when_the_free_rest_loop_is_thin(repo_root, capsys):
+    """hil-serial's rest gains (K_d x 0.1, observer x 0.3) keep the stuck stage's rest loop healthy but give a free
+    mass PM ~11 deg: the suggestion keeps them, so its confidence is not high and the reason says it relies on
+    friction holding the stage; a rest/free loop that meets the floor names nothing."""
+    from stagectl.cli import main as cli_main
+    from stagectl.commands.tune import _free_rest_thin
+
+    rc = cli_main(["tune", "--config", str(repo_root / "config" / "hil-serial.yaml"), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    free = out["configured"]["rest"]["loops"]["rest/free"]
+    assert rc == 0 and not free["healthy"], free
+    d = out["designed"]
+    assert d["confidence"] == "medium" and d["rest_free_thin"].startswith("PM "), d
+    assert "relies on friction holding the stage" in d["confidence_reason"]
+    ok = {"loops": {"rest/free": {"healthy": True, "closed_loop_stable": True}}}
+    bad = {"loops": {"rest/free": {"healthy": False, "closed_loop_stable": False}}}
+    assert _free_rest_thin(ok) == "" and _free_rest_thin(None) == "" and _free_rest_thin(bad) == "unstable"
