@@ -720,8 +720,12 @@ def cv_segments(t: FloatArray, x: FloatArray, u: FloatArray, v_ref: FloatArray, 
 
     With ``speeds``, each pass keeps its speed over ``w`` samples, ``(x[k+w] − x[k])/(w·dt)``
     (``CvSegment.v_window``) when their standard deviation exceeds ``RIPPLE_MIN_FRACTION`` of its mean speed
-    (the pass rings) and it never falls to ``STUCK_SPEED_FRACTION`` of it, ``w`` at least ``RIPPLE_WINDOW`` and long enough to cover ``RIPPLE_MIN_QUANTA``
-    sensor quanta ``quantum_m`` [m] at the pass's speed, for :func:`cv_friction`'s ripple correction."""
+    (the pass rings) and it never falls to ``STUCK_SPEED_FRACTION`` of it, ``w`` at least ``RIPPLE_WINDOW`` and
+    long enough to cover ``RIPPLE_MIN_QUANTA`` sensor quanta ``quantum_m`` [m] at the pass's speed, for
+    :func:`cv_friction`'s ripple correction. A pass whose speed over ``w`` samples does fall to
+    ``STUCK_SPEED_FRACTION`` of its mean, but that stood in no more than ``STUCK_PASS_FRACTION`` of its
+    samples (above), is read from its sliding phases instead (:func:`_sliding_phases`: ``v_m_s``, ``f_n``
+    and ``v_window`` are theirs, ``sliding_fraction`` < 1)."""
     out: list[CvSegment] = []
     if delay_s > 0.0 and len(u) > 1:
         uu = np.asarray(u, np.float64)

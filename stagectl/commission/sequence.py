@@ -80,9 +80,11 @@ FALLBACK_TWIN_TRIALS = 4
 #: two fallback candidates with the same observer kind whose crossovers and observer bandwidths both lie within
 #: this ratio of each other are near twins: only the first (higher crossover, then more measured GM) takes a slot
 FALLBACK_DISTINCT_RATIO = 1.15
-#: two fallback candidates whose twin geometric-mean RMS lie within this fraction of each other are a near tie: the
-#: twin does not rank them (√2·REST_STAGE_SCATTER, the scatter of two runs' RMS ratio at the sensor's noise floor);
-#: :func:`pick_fallback` names the tie instead of calling the lower one better
+#: two fallback candidates whose twin geometric-mean RMS lie within this fraction of each other are a near
+#: tie: the twin does not rank them. The twin is deterministic (one seed); the figure is borrowed from the
+#: stage: √2·REST_STAGE_SCATTER, the scatter of two runs' cosine RMS ratio at the sensor's noise floor, the
+#: difference two designs' stage runs could show by chance. :func:`pick_fallback` names the tie instead of
+#: calling the lower one better
 FALLBACK_NEAR_TIE = 0.113
 #: candidate crossovers × period (highest first): 40 Hz ... 8 Hz at 1 kHz
 CROSSOVER_X_PERIOD = (0.04, 0.035, 0.03, 0.026, 0.022, 0.019, 0.016, 0.013, 0.01, 0.008)

@@ -58,6 +58,7 @@ def test_a_blind_start_without_an_observer_loads_the_rest_integral(seed: Any, x_
             assert dropped == pytest.approx(loaded, rel=1e-9)
     assert after[True] == pytest.approx(after[False], rel=0.02)  # the same load as on a fresh start edge
 
+
 def test_a_blind_start_during_a_settle_move_from_ahead_hands_over_its_force(seed: Any) -> None:
     from stagectl.control.controller import StageController
     from stagectl.control.trajectory import Dwell, Move, Scenario, TrajectoryGenerator
