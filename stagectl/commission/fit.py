@@ -1154,10 +1154,10 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                 # vs below the slowest pass: the loops' rows around it decide it, the level held
                 vl = None
                 if "vs_bound_m_s" in refit:  # the passes only bound vs (stick-slip)
-                    # held at the level the curve was refitted with and the model carries, fr["fs_n"] (the last
-                    # pre-sliding fit's level_n is within STRIBECK_LEVEL_TOLERANCE of it once the refits have
-                    # converged, further after STRIBECK_REFITS that have not): vs is searched, and the loops
-                    # refitted below, at one level
+                    # held at the level the curve was refitted with, fr["fs_n"] (the last pre-sliding fit's
+                    # level_n is within STRIBECK_LEVEL_TOLERANCE of it once the refits have converged, further
+                    # after STRIBECK_REFITS that have not): vs is searched at one level; the loops refitted below
+                    # with the vs found give the level_n the model then carries (fr["fs_n"] further down)
                     vl = _vs_from_loops(pre_recs, m, period_s, tau, fr, spec.get("effects"))
                 if vl is not None:
                     fr["vs_m_s"] = refit["vs_m_s"] = vl["vs_m_s"]
