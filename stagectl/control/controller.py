@@ -1179,6 +1179,7 @@ class StageController:
                             and parts.dob is not None)
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
+            self._cr_n = 0  # ... and so is the creep gate's count (its direction, what the sync unloaded)
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
         # observer
         old_dob = self.dob
@@ -1615,7 +1616,7 @@ class StageController:
         reversal; θ·Σk per metre of virtual travel, the model's largest stiffness); else unchanged. A
         displacement along d is never limited."""
         d = self._cr_d
-        if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid:
+        if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid or not self._d_creep:
             return dx
         k = self.ff_scale * self._k_ps
         # the force dropped since the last slide on and the stage's own travel back from its furthest point (a
@@ -2367,6 +2368,8 @@ class StageController:
         self._sync_armed = False
         if self._d_creep:  # (from the end of the commanded move: a settle move's travel back is a reversal)
             self._sync_creep(dt, at_rest, x_meas_m, ff.latch.direction, d_hat)  # type: ignore[union-attr]
+        elif self._cr_n:  # the gate off (a retune turned the learning from moves on): none left standing
+            self._cr_n = 0
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]
