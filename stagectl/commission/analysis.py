@@ -206,8 +206,8 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
             raise SanityError(f"sanity: no motion beyond {d_detect_m * 1e6:.3g} um with up to {f_lim_n:.3g} N "
                               f"in the {name} direction: stuck axis (brake, end stop) or the sensor does not move; "
                               "check io.sensor and io.drive.resolution_m, or allow more force (the probe goes up to "
-                              "0.7 x the lowest of safety.max_force_n, controller.max_force_n, --max-force and the "
-                              "drive's limit: io.drive.max_force_n, its max torque 0x6072)")
+                              "0.7 x the lowest of safety.max_force_n, controller.max_force_n and --max-force, and "
+                              "never above the drive's limit: io.drive.max_force_n, its max torque 0x6072)")
         if d.outcome != "ok":
             raise SanityError(f"sanity: the {name} probe did not finish ({d.outcome})")
         brk.append(d.breakaway_n)
