@@ -148,8 +148,8 @@ Held before the full spring (``rest_spring_unconfirmed_kp_fraction`` = κ_u, def
 after a reversal, and until then the full spring acted on whatever the stage was: on a free 2 kg mass started
 1 / 20 / 100 nm off, 54 / 369 / 2115 nm at most against 11 / 151 / 757 nm without the spring. So at each standstill
 the spring is k_v only once the stage is *seen held*: it takes a force |F| >= REST_HELD_FORCE_FRACTION·θ·F_c (the
-witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass takes no force:
-F ≈ 0), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
+witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass without a load takes
+no force, F ≈ 0; one under a constant load takes it, and is seen held), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
 loop with that spring (``stagectl tune``'s rest/free line: with κ_u = 0 the spring-less rest loop, config/sim.yaml
 PM 57.1°, GM 10.5 dB). A move's stop leaves the stage holding the friction force it slid on, so after a move the
 seed stage is seen held at once and the bench's figures are bit for bit those of the spring without this gate (a
