@@ -206,8 +206,8 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
             raise SanityError(f"sanity: no motion beyond {d_detect_m * 1e6:.3g} um with up to {f_lim_n:.3g} N "
                               f"in the {name} direction: stuck axis (brake, end stop) or the sensor does not move; "
                               "check io.sensor and io.drive.resolution_m, or allow more force (the probe goes up to "
-                              "0.7 x the lowest of safety.max_force_n, controller.max_force_n, --max-force and the "
-                              "drive's limit: io.drive.max_force_n, its max torque 0x6072)")
+                              "0.7 x the lowest of safety.max_force_n, controller.max_force_n and --max-force, and "
+                              "never above the drive's limit: io.drive.max_force_n, its max torque 0x6072)")
         if d.outcome != "ok":
             raise SanityError(f"sanity: the {name} probe did not finish ({d.outcome})")
         brk.append(d.breakaway_n)
@@ -434,14 +434,15 @@ class Frf:
     """Measured plant FRF at the excited lines: ``f_hz``, ``p`` [m/N], ``p_std`` (per-line std of ``p``),
     ``distortion`` (per-line relative level of what the non-excited bins around it hold; None: not measured),
     ``delay_s`` (the I/O delay with the zero-order hold's half period the passivity test of
-    :meth:`margin_lines` takes out; set once the plant fit has measured it)."""
+    :meth:`margin_lines` takes out; set once the plant fit has measured it, NaN until then: no line is left out,
+    since with no delay taken out every line of a delayed mass leads)."""
 
     f_hz: FloatArray
     p: ComplexArray
     p_std: FloatArray
     periods: int
     distortion: FloatArray | None = None
-    delay_s: float = 0.0
+    delay_s: float = math.nan
 
     def _at_least(self, keep: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
         return keep if int(keep.sum()) >= FRF_MARGIN_MIN_LINES else np.ones(self.f_hz.shape[0], bool)
@@ -460,7 +461,7 @@ class Frf:
         is wrong in the direction that fakes −180° crossings (its phase unwraps a full turn). Either test
         alone is not enough: a real mode of a non-collocated sensor has clean lines, and dropping every
         distorted line leaves a stage measured under its breakaway without the lines its crossover is on."""
-        if self.distortion is None:
+        if self.distortion is None or not math.isfinite(self.delay_s):
             return np.ones(self.f_hz.shape[0], bool)
         lead = (self.p * np.exp(1j * 2 * np.pi * self.f_hz * self.delay_s)).imag > 0.0
         return self._at_least(~(np.asarray(self.distortion > FRF_DISTORTION_MAX, bool) & lead))

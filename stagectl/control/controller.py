@@ -148,8 +148,8 @@ Held before the full spring (``rest_spring_unconfirmed_kp_fraction`` = κ_u, def
 after a reversal, and until then the full spring acted on whatever the stage was: on a free 2 kg mass started
 1 / 20 / 100 nm off, 54 / 369 / 2115 nm at most against 11 / 151 / 757 nm without the spring. So at each standstill
 the spring is k_v only once the stage is *seen held*: it takes a force |F| >= REST_HELD_FORCE_FRACTION·θ·F_c (the
-witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass takes no force:
-F ≈ 0), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
+witness F = LPF(u − m·a) above, after its start-up; F_c the model's Coulomb level; a free mass without a load takes
+no force, F ≈ 0; one under a constant load takes it, and is seen held), or a branch was judged k̂ >= ρ·min(θ, 1)·Σk. Before that it is min(k_v, κ_u·K_p), and the rest loop on a free mass is the linear
 loop with that spring (``stagectl tune``'s rest/free line: with κ_u = 0 the spring-less rest loop, config/sim.yaml
 PM 57.1°, GM 10.5 dB). A move's stop leaves the stage holding the friction force it slid on, so after a move the
 seed stage is seen held at once and the bench's figures are bit for bit those of the spring without this gate (a
@@ -1179,6 +1179,7 @@ class StageController:
                             and parts.dob is not None)
         if parts.ff_rebuilt:  # what was learned is about the old model
             self._ml = _MoveFit()
+            self._cr_n = 0  # ... and so is the creep gate's count (its direction, what the sync unloaded)
         self._ml.rest, self._ml.valid = False, False  # a move under way when the settings change is not learned
         # observer
         old_dob = self.dob
@@ -1615,7 +1616,7 @@ class StageController:
         reversal; θ·Σk per metre of virtual travel, the model's largest stiffness); else unchanged. A
         displacement along d is never limited."""
         d = self._cr_d
-        if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid:
+        if self._cr_n == 0 or d * dx >= 0.0 or not self._cr_slid or not self._d_creep:
             return dx
         k = self.ff_scale * self._k_ps
         # the force dropped since the last slide on and the stage's own travel back from its furthest point (a
@@ -2367,6 +2368,8 @@ class StageController:
         self._sync_armed = False
         if self._d_creep:  # (from the end of the commanded move: a settle move's travel back is a reversal)
             self._sync_creep(dt, at_rest, x_meas_m, ff.latch.direction, d_hat)  # type: ignore[union-attr]
+        elif self._cr_n:  # the gate off (a retune turned the learning from moves on): none left standing
+            self._cr_n = 0
         if (at_rest and not settling and self._d_sync
                 and self._rest_sync_where(ff, x_r, x_meas_m, v_hat)):  # type: ignore[arg-type]
             u_ff, d_hat = self._rest_sync(dt, ff, u_ff, d_hat, dob)  # type: ignore[arg-type]

@@ -87,3 +87,19 @@ def test_a_linear_loop_shows_no_distortion() -> None:
     frf = an.estimate_frf(x, u, n_per, bins, T)
     assert frf.distortion is not None and float(frf.distortion.max()) < 0.2, frf.distortion.max()
     assert frf.margin_lines().all() and frf.linear_lines().all()
+
+
+def test_no_line_is_left_out_before_the_delay_is_known() -> None:
+    """A delayed damped mass, its four lowest lines distorted, the fourth with a +45° lead once the delay is out:
+    with the delay measured only that line is left out; before it is (an FRF whose plant fit failed, reported as
+    measured), none is, since with no delay taken out every line of a delayed mass leads (all four were left out)."""
+    T, m, tau = 1e-3, 0.6, 1.5e-3
+    f = np.geomspace(5.0, 300.0, 12)
+    w = 2 * np.pi * f
+    p = np.exp(-1j * w * tau) / (-m * w**2 + 1j * w * 20.0)
+    p[3] = abs(p[3]) * np.exp(-1j * w[3] * tau + 1j * np.radians(45.0))  # leading by 45° once the delay is out
+    dist = np.where(np.arange(12) < 4, 2.0, 0.1)
+    frf = an.Frf(f, p.astype(np.complex128), np.abs(p) * 0.01, 3, dist)
+    assert frf.margin_lines().all()
+    frf.delay_s = tau
+    assert frf.margin_lines().tolist() == [i != 3 for i in range(12)]

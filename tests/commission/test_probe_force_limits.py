@@ -68,3 +68,17 @@ def test_drive_limit_only_lowers_what_is_commanded() -> None:
     assert low.f_max_n == env.f_max_n == pytest.approx(7.0)  # amplitudes keep scaling with F_max
     assert low.f_cmd_n == 3.0 and env.f_cmd_n == pytest.approx(7.0)
     assert "drive_limit_n" not in env.as_dict() and low.as_dict()["drive_limit_n"] == 3.0
+
+
+def test_no_motion_says_the_drive_limit_is_a_cap_not_scaled_by_the_fraction() -> None:
+    """The probe's force is min(0.7 x min(safety, controller, --max-force), drive limit): the drive's own limit is a
+    cap, not one of the forces the 0.7 applies to (the line read "0.7 x the lowest of ... and the drive's limit")."""
+    from stagectl.commission.analysis import SanityError, evaluate_probe
+    from stagectl.commission.controllers import ProbeDirection
+
+    with pytest.raises(SanityError) as ei:
+        evaluate_probe([ProbeDirection(1, "no_motion"), ProbeDirection(-1, "no_motion")], 3.0, 2e-5, 1.0)
+    msg = str(ei.value)
+    assert "\n" not in msg and "with up to 3 N" in msg, msg
+    assert "0.7 x the lowest of safety.max_force_n, controller.max_force_n and --max-force" in msg, msg
+    assert "never above the drive's limit" in msg, msg

@@ -154,3 +154,94 @@ def test_creep_gate_unloads_after_a_reversal_only(sgn: float) -> None:
     # 0.58 N, all the observer was made to hold over the 0.2 s, without the gate)
     assert abs(model_drop(back=False)) < 0.025
     assert model_drop(back=True) > 0.2  # came back 0.7 µm: the model is unloaded (0.50 N, as without the gate)
+
+
+def test_creep_gate_stands_down_when_a_retune_turns_the_learning_from_moves_on() -> None:
+    """The gate runs only without the learning from moves (a live key): a stage that crept on keeps the observer's
+    level out of the model, but once a retune turns ``learn_moves_fraction`` on the rest sync loads it as without the
+    gate (a gate left standing from before the retune held the model at its level for good: 0.0 N unloaded)."""
+    import stagectl.control.controller as C
+    from stagectl.config import load_app_config
+    from stagectl.control.api import Reference
+
+    cfg = load_app_config(REPO / "config" / "sim.yaml")
+    c = cfg.controller
+    c = dataclasses.replace(c, rest_stiffness_fraction=0.0, settle=dataclasses.replace(c.settle, move_s=0.0),
+                            feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=0.0,
+                                                            adapt_bandwidth_hz=0.0))
+    learn = dataclasses.replace(c, feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=0.5))
+    dt, n = cfg.loop.period_s, 100
+
+    def drop_after(retune: bool) -> float:
+        ctl = C.StageController(c, cfg.timing)
+        x = 0.0
+        for k in range(n + 1):  # 20 µm in +x, the stage 0.15 µm behind at the stop
+            s = k / n
+            x = 20e-6 * (10 * s**3 - 15 * s**4 + 6 * s**5)
+            v = 20e-6 / (n * dt) * (30 * s**2 - 60 * s**3 + 30 * s**4)
+            a = 20e-6 / (n * dt) ** 2 * (60 * s - 180 * s**2 + 120 * s**3)
+            ctl.step(dt, x - 0.15e-6 * s * s, Reference(x, v, a))
+        xm = x
+        for k in range(200):  # creeps on to the reference at 1 µm/s, the observer holding 50 mN against +x
+            xm = x - 0.15e-6 + 1e-6 * min((k + 1) * dt, 0.15)
+            ctl.shift_observer(-0.05 - ctl.state.d_hat_n)
+            ctl.step(dt, xm, Reference(x, 0.0, 0.0))
+        ff = ctl.ff
+        assert ff is not None
+        f0 = ff.model_force_n
+        if retune:
+            ctl.retune(learn)
+        for _ in range(200):  # still there, the same level in the observer
+            ctl.shift_observer(-0.05 - ctl.state.d_hat_n)
+            ctl.step(dt, xm, Reference(x, 0.0, 0.0))
+        return f0 - ff.model_force_n
+
+    assert abs(drop_after(False)) < 0.01  # the gate holds the model's level
+    assert drop_after(True) > 0.2  # gate off: the sync unloads the model by the observer's level (0.64 N)
+
+
+@pytest.mark.parametrize("move_dir", [1.0, -1.0])
+def test_a_blind_start_edge_is_creep_gated_as_a_fresh_one(move_dir: float) -> None:
+    """The merged start edge (``_start_edge``) passes the starting move's direction from ``step`` and from ``hold``
+    (a move starting on a blind cycle) alike: after a stop in +x where the stage crept on 0.15 µm with the observer
+    holding 0.3 N against +x, a move that goes on in +x keeps that level out of the model (the model's own first step
+    only, -10 mN), one that reverses loads it (0.35 N), and the blind start edge does exactly what the fresh one does."""
+    import stagectl.control.controller as C
+    from stagectl.config import load_app_config
+    from stagectl.control.api import Reference
+
+    cfg = load_app_config(REPO / "config" / "sim.yaml")
+    c = cfg.controller
+    c = dataclasses.replace(c, rest_stiffness_fraction=0.0, settle=dataclasses.replace(c.settle, move_s=0.0),
+                            stale_predict_cycles=0,
+                            feedforward=dataclasses.replace(c.feedforward, learn_moves_fraction=0.0,
+                                                            adapt_bandwidth_hz=0.0))
+    dt, n = cfg.loop.period_s, 100
+
+    def unloaded(blind: bool) -> float:
+        ctl = C.StageController(c, cfg.timing)
+        x = xm = 0.0
+        for k in range(n + 1):
+            s = k / n
+            x = 20e-6 * (10 * s**3 - 15 * s**4 + 6 * s**5)
+            v = 20e-6 / (n * dt) * (30 * s**2 - 60 * s**3 + 30 * s**4)
+            a = 20e-6 / (n * dt) ** 2 * (60 * s - 180 * s**2 + 120 * s**3)
+            ctl.step(dt, x - 0.15e-6 * s * s, Reference(x, v, a))
+        for k in range(30):  # creeps on at 5 µm/s for 30 ms, the observer holding 0.3 N against +x
+            xm = x - 0.15e-6 + 5e-6 * (k + 1) * dt
+            ctl.shift_observer(-0.3 - ctl.state.d_hat_n)
+            ctl.step(dt, xm, Reference(x, 0.0, 0.0))
+        ff = ctl.ff
+        assert ff is not None and ctl._sync_armed and ctl._cr_slid
+        f0 = ff.model_force_n
+        ref = Reference(x, 0.0, move_dir * 0.05)
+        cmd = ctl.hold(dt, ref) if blind else ctl.step(dt, xm, ref)
+        assert ("stale" in cmd.limited) == blind and not ctl._sync_armed
+        return f0 - ff.model_force_n
+
+    fresh, blind = unloaded(False), unloaded(True)
+    assert blind == pytest.approx(fresh, abs=1e-9)
+    if move_dir > 0.0:
+        assert abs(fresh) < 0.05, fresh  # gated: the model keeps its level
+    else:
+        assert fresh > 0.25, fresh  # a reversal loads the observer's level
