@@ -837,8 +837,9 @@ class SimCia402Drive(SimCanopenDevice):
             f_lim = float(act) if isinstance(act, (int, float)) else None
         if f_lim is None or not math.isfinite(f_lim) or 0x6072 not in self.node.object_dictionary:
             return
-        units = max(1, min(0xFFFF, int(f_lim / self.cfg.force_per_unit_n * (1.0 + 1e-12))))
-        self.node.object_dictionary[0x6072].value = units
+        obj = self.node.object_dictionary[0x6072]
+        if isinstance(obj, ODVariable):
+            obj.value = max(1, min(0xFFFF, int(f_lim / self.cfg.force_per_unit_n * (1.0 + 1e-12))))
 
     def on_reset(self) -> None:
         self.state = _S.SWITCH_ON_DISABLED
