@@ -186,8 +186,7 @@ class Safety:
         self.mass_kg = mass_kg
         #: largest plausible acceleration F_max/m [m/s²] (None: no position_jump check)
         self.max_accel_m_s2 = cfg.max_force_n / mass_kg if mass_kg is not None else None
-        #: the hard force clamp [N]: min(max_force_n, the actuator's own limit) (set_actuator_limit)
-        self.force_limit_n = cfg.max_force_n
+        self._act_lim = math.inf  # the actuator's own force limit [N] (set_actuator_limit)
         self.fault: SafetyFault | None = None
         self.n_faults = 0
         self.v_est_m_s = 0.0
@@ -382,8 +381,12 @@ class Safety:
         and the saturation time counts at the real limit (inf or not > 0: ``max_force_n``). The position-jump
         bound keeps F_max = ``max_force_n`` (external forces may add to the actuator's)."""
         lim = float(limit_n)
-        self.force_limit_n = min(self.cfg.max_force_n, lim) if lim > 0.0 and math.isfinite(lim) else (
-            self.cfg.max_force_n)
+        self._act_lim = lim if lim > 0.0 and math.isfinite(lim) else math.inf
+
+    @property
+    def force_limit_n(self) -> float:
+        """The hard force clamp L [N]: min(``max_force_n``, the actuator's own limit)."""
+        return min(self.cfg.max_force_n, self._act_lim)
 
     def limit_force(self, t_s: float, cycle: int, u_n: float, clamped: bool = False) -> float:
         """Clamp ``u_n`` to ±L, L = :attr:`force_limit_n` (``max_force_n``, or the actuator's limit when lower);
@@ -393,7 +396,9 @@ class Safety:
         if not _isfinite(u_n):
             self.latch("not_finite", f"controller output is {u_n}", t_s, cycle)
             return 0.0
-        lim = self.force_limit_n
+        lim = self.cfg.max_force_n
+        if self._act_lim < lim:
+            lim = self._act_lim
         inside = -lim <= u_n <= lim
         a = abs(u_n) if inside else lim  # the force written (unseen travel: F̄)
         self._u_last = a
