@@ -396,9 +396,7 @@ class Safety:
         if not _isfinite(u_n):
             self.latch("not_finite", f"controller output is {u_n}", t_s, cycle)
             return 0.0
-        lim = self.cfg.max_force_n
-        if self._act_lim < lim:
-            lim = self._act_lim
+        lim = min(self.cfg.max_force_n, self._act_lim)
         inside = -lim <= u_n <= lim
         a = abs(u_n) if inside else lim  # the force written (unseen travel: F̄)
         self._u_last = a

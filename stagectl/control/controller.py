@@ -2291,7 +2291,7 @@ class StageController:
         advanced by ``dt`` (the next :meth:`step` advances it only by the rest of its own dt) and the inertia
         term is m·a_ref. The force is limited to the stale-data band (hold or slow down, never run away)::
 
-            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±L )   (L: force_limit_n)
+            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±F_L )   (F_L: force_limit_n)
             u = clamp( u, m_ff·a_ref + u_l ± L ),   L = max(θ·F_c or stale_force_limit_n, |u_ff(ref)|)
 
         A feedback force built up before the gap (a break-away, a disturbance) is not held blind: a sliding
