@@ -70,6 +70,14 @@ def _fast_move(cfg, *, hide_limit: bool = False, runs: tuple[float, ...] = (0.35
             "u_vs_applied": (a[:-1, 2] - a[1:, 5])[same_run], "limits": np.array(limits)}
 
 
+def _moving(run: dict[str, np.ndarray]) -> np.ndarray:
+    """Rows up to the last change of the reference (the move, its first run)."""
+    back = np.nonzero(np.diff(run["t"]) <= 0.0)[0]  # a restart of the loop begins its time afresh
+    n = back[0] + 1 if back.size else run["t"].size
+    changed = np.nonzero(np.diff(run["x_ref"][:n]) != 0.0)[0]
+    return np.arange(run["x_ref"].size) <= changed[-1] + 1
+
+
 def test_shipped_twin_drive_gives_what_its_actuator_gives(caplog: pytest.LogCaptureFixture) -> None:
     cfg = parse_app_config({**yaml.safe_load(SIM_YAML.read_text()), "io": {"kind": "embedded_canopen"}}, SIM_YAML)
     with caplog.at_level(logging.WARNING), build_stage(cfg, clock=SimClock()) as st:
@@ -98,10 +106,12 @@ def test_low_drive_limit_warns_once_and_the_controller_works_within_it(caplog: p
     assert np.max(np.abs(hidden["u_vs_applied"])) > 1.0  # recorded up to 10 N, applied 1.5 N
     # an observer fed the commanded force takes the missing force for a disturbance and winds up; the stage then
     # overshoots the reference by far more when it has caught up (simulated: ~90 um hidden, ~30 um told)
-    assert np.max(np.abs(hidden["u_dob"])) > 5.0
-    assert np.max(np.abs(told["u_dob"])) < 2.5
-    ahead_told = np.max(told["x"] - told["x_ref"])
-    ahead_hidden = np.max(hidden["x"] - hidden["x_ref"])
+    # (judged while the reference moves: what the rest structure does afterwards is another matter)
+    mt, mh = _moving(told), _moving(hidden)
+    assert np.max(np.abs(hidden["u_dob"][mh])) > 5.0
+    assert np.max(np.abs(told["u_dob"][mt])) < 1.0
+    ahead_told = np.max((told["x"] - told["x_ref"])[mt])
+    ahead_hidden = np.max((hidden["x"] - hidden["x_ref"])[mh])
     assert ahead_told < 0.5 * ahead_hidden, (ahead_told, ahead_hidden)
     for run in (told, hidden):  # both end at the target
         assert abs(run["x"][-1] - run["x_ref"][-1]) < 1e-6
