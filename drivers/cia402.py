@@ -379,8 +379,7 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
         self._sync_msg = pdo_codec.frame(SYNC_COB_ID)
         self._hb_msg = pdo_codec.frame(0x700 + cfg.controller_node_id, b"\x05")
         self._use_layouts(pdo_codec.TPDO1_LAYOUT, pdo_codec.TPDO2_LAYOUT, pdo_codec.RPDO1_LAYOUT)
-        units = cfg.max_force_n / cfg.force_per_unit_n
-        self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
+        self._max_units = self._config_units()
         self._reset_cyclic()
         #: statusword and state of the last fresh TPDO
         self.statusword = 0
@@ -651,10 +650,19 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
             raise DriverInitError(f"{self.name}: configure: CAN error writing 0x1006:00: "
                                   f"{' '.join(str(exc).split())}; check the CAN interface") from exc
 
-    def _read_max_torque(self) -> None:
-        """Honour the drive's max torque 0x6072 (optional object): the command clamp is the smaller limit."""
+    def _config_units(self) -> int:
+        """``max_force_n`` in 0x6071 units (floor, within INT16; a float ratio such as 10 / 0.001 =
+        9999.999… counts as 10000)."""
         units = self.cfg.max_force_n / self.cfg.force_per_unit_n
-        self._max_units = int(min(32767.0, units)) if math.isfinite(units) else 32767
+        return int(min(32767.0, units * (1.0 + 1e-12))) if math.isfinite(units) else 32767
+
+    def _read_max_torque(self) -> None:
+        """Honour the drive's max torque 0x6072 (optional object): the command clamp is the smaller limit.
+
+        The master never writes 0x6072: it is the drive's current limit as its integrator set it (a master
+        raising it would drive the motor beyond what the drive was set up for). The loop hands the resulting
+        :attr:`force_limit_n` to the controller and to safety and warns when it is below their ``max_force_n``."""
+        self._max_units = self._config_units()
         limit = self._sdo_read_optional(0x6072, 0, "<H", "max torque")
         self.drive_max_units = limit
         if limit is not None and limit < self._max_units:
@@ -1047,6 +1055,17 @@ class Cia402Drive(CanopenNode, PositionSensor, ForceActuator, SyncProducer):
     def force_limit_n(self) -> float:
         """The largest force the drive is commanded [N]: ``max_force_n`` and the drive's max torque 0x6072."""
         return self._max_units * self.cfg.force_per_unit_n
+
+    @property
+    def force_limit_source(self) -> str:
+        """What sets :attr:`force_limit_n`, for the loop's start-up warning."""
+        lim = self.drive_max_units
+        if lim is not None and lim == self._max_units:
+            return (f"the drive's max torque 0x6072 = {lim} units x force_per_unit_n "
+                    f"{self.cfg.force_per_unit_n:g} N")
+        if self._max_units == 32767:
+            return f"the drive's torque range 32767 units x force_per_unit_n {self.cfg.force_per_unit_n:g} N"
+        return "io.drive.max_force_n"
 
     def torque_units(self, force_n: float) -> int:
         """Force [N] → 0x6071 units: ``round(force_n / force_per_unit_n)``, clamped (NaN → 0)."""

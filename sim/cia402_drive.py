@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -822,7 +823,23 @@ class SimCia402Drive(SimCanopenDevice):
         super().__init__(cfg.node_id, eds, send, "drive")
         self.plant = plant
         self.cfg = cfg
+        self._store_current_limit()
         self.on_reset()
+
+    def _store_current_limit(self) -> None:
+        """The drive's current limit as its integrator stored it (a DCF ParameterValue, kept across NMT resets):
+        0x6072 = floor(F_lim / force_per_unit_n), F_lim = ``sim.drive.max_force_n`` or else the simulated
+        actuator's ``max_force_n`` (the force the twin's actuator really gives), within UNSIGNED16. An infinite
+        F_lim or an EDS without 0x6072 keeps the EDS default (or no object)."""
+        f_lim = self.cfg.max_force_n
+        if f_lim is None:
+            act = getattr(getattr(getattr(self.plant, "cfg", None), "actuator", None), "max_force_n", None)
+            f_lim = float(act) if isinstance(act, (int, float)) else None
+        if f_lim is None or not math.isfinite(f_lim) or 0x6072 not in self.node.object_dictionary:
+            return
+        obj = self.node.object_dictionary[0x6072]
+        if isinstance(obj, ODVariable):
+            obj.value = max(1, min(0xFFFF, int(f_lim / self.cfg.force_per_unit_n * (1.0 + 1e-12))))
 
     def on_reset(self) -> None:
         self.state = _S.SWITCH_ON_DISABLED

@@ -39,6 +39,7 @@ e.g. NaN), :meth:`remove_cause` (a persisting cause goes away).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any, Protocol
 
@@ -126,6 +127,15 @@ class PlantIO(PositionSensor, ForceActuator, SyncProducer):
         self._inject: DeviceFault | None = None
         self._cause: DeviceFault | None = None
         self.n_sync = 0
+
+    @property
+    def force_limit_n(self) -> float:
+        """The largest force the simulated actuator gives [N]: ``sim.plant.actuator.max_force_n`` (inf: none)."""
+        act = getattr(getattr(self.plant, "cfg", None), "actuator", None)
+        lim = getattr(act, "max_force_n", math.inf)
+        return float(lim) if isinstance(lim, (int, float)) else math.inf
+
+    force_limit_source = "sim.plant.actuator.max_force_n"
 
     # ------------------------------------------------------------------ lifecycle
     def _do_open(self) -> None:

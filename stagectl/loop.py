@@ -293,6 +293,7 @@ class ControlLoop:
         self.faults = 0  # faults entered since construction (a fault cleared by a reset between two looks counts)
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
+        self._act_lim_warned = math.nan  # the actuator limit last warned about [N] (_adopt_actuator_limit)
         self._t0 = 0.0
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
         self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
@@ -409,6 +410,7 @@ class ControlLoop:
         self._devs.reset_faults()
         self.safety.clear()
         self.safety.restart(x, t)
+        self._adopt_actuator_limit()  # (a drive configured again may report another max torque)
         self.controller.reset(x)
         self.reference.hold(t - self.ref_lag_s, x)
         self._u = 0.0
@@ -452,10 +454,10 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ fault
     def _write_scheduled(self, actuator: ForceActuator, pred: PredictsNextForce, u_n: float) -> None:
-        """``write_schedule(u, û)`` with û = u + the controller's predicted increment within ±``safety.max_force_n``
+        """``write_schedule(u, û)`` with û = u + the controller's predicted increment within safety's ±L
         (io.command_schedule); a non-finite prediction holds u (min/max would turn NaN into full force)."""
         u_nx = u_n + pred.next_force_increment_n()
-        f_lim = self.safety.cfg.max_force_n
+        f_lim = self.safety.force_limit_n
         actuator.write_schedule(u_n, max(-f_lim, min(f_lim, u_nx)) if math.isfinite(u_nx) else u_n)
 
     def _enter_fault(self, t: float, x: float = math.nan) -> None:
@@ -498,6 +500,33 @@ class ControlLoop:
         log.log(lvl, "loop timing: average sample interval %.2f T: feedback %s to crossover / %g (t=%.3f s)",
                 self.t_eff_s / self.period_s, "slowed" if level > prev else "restored", level, t)
 
+    def _adopt_actuator_limit(self) -> None:
+        """Hand the actuator's own force limit (``force_limit_n``: a CiA 402 drive's max torque 0x6072 read at
+        configure, a simulated actuator's ``max_force_n``) to the controller (output clamp, anti-windup) and to
+        safety (hard clamp), so that the force commanded, written and recorded is the force applied. A limit
+        below ``controller.max_force_n`` or ``safety.max_force_n`` is told once per value as a warning naming
+        both and where each comes from; the master never raises the drive's limit itself."""
+        lim = getattr(self.actuator, "force_limit_n", None)
+        if not isinstance(lim, (int, float)) or not (lim > 0.0 and math.isfinite(lim)):
+            return
+        lim = float(lim)
+        setter = getattr(self.controller, "set_actuator_limit", None)
+        if callable(setter):
+            setter(lim)
+        self.safety.set_actuator_limit(lim)
+        ctl_cfg = getattr(self.controller, "cfg", None)
+        ctl_lim = getattr(ctl_cfg, "max_force_n", None)
+        above = [f"{key} {v:g} N" for key, v in (("controller.max_force_n", ctl_lim),
+                                                 ("safety.max_force_n", self.safety.cfg.max_force_n))
+                 if isinstance(v, (int, float)) and lim < v * (1.0 - 1e-9)]
+        if above and lim != self._act_lim_warned:
+            self._act_lim_warned = lim
+            src = getattr(self.actuator, "force_limit_source", "its own limit")
+            log.warning("%s: the force is limited to %.4g N by %s, below %s: the controller saturates (and stops "
+                        "integrating) and safety clamps at %.4g N, and the force recorded is the force applied; "
+                        "raise the drive's limit (the integrator's setting, 0x6072 on a CiA 402 drive) or lower "
+                        "max_force_n to agree", self.actuator.name, lim, src, " and ".join(above), lim)
+
     def _make_brake(self, t: float, x: float) -> QuickStopBrake | None:
         """The fault reaction's brake, or None when braking is not possible (no mass, actuator not enabled)."""
         mass = getattr(self.controller, "mass_kg", None)
@@ -508,7 +537,7 @@ class ControlLoop:
         if getattr(self.actuator, "brakes_itself", False) is True:
             return None  # the drive brakes on its own velocity (CiA 402 0x605A 3/4/7/8), starved master or not
         c = self.safety.cfg
-        lim = c.max_force_n  # and the actuator's own limit when it has one (CiA 402: 0x6072 max torque)
+        lim = self.safety.force_limit_n  # and the actuator's own limit when it has one (CiA 402: 0x6072 max torque)
         act_lim = getattr(self.actuator, "force_limit_n", None)
         if isinstance(act_lim, (int, float)) and 0.0 < act_lim < lim:
             lim = float(act_lim)
@@ -570,6 +599,7 @@ class ControlLoop:
             raise StageError(f"no valid initial position from {self.sensor.name} (fresh={m.fresh}, x={x0} m) "
                              f"within loop.startup_cycles {n_max} cycles")
         self.safety.restart(x0)
+        self._adopt_actuator_limit()
         self.controller.reset(x0)
         self.ref_lag_s = 0.0
         self.reference.hold(0.0, x0)

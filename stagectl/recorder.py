@@ -123,6 +123,21 @@ def tracking_summary(rec: Recorder, *, tol_m: float = 10e-9, skip_s: float = 0.0
     sample's position held (or an old one), so on a moving stage its ``e`` grows by v·(rows since the sample)
     though nothing was measured (a HIL drive held off the CPU for 5 ms at 2 mm/s: 10 µm that the next sample
     shows was never there).
+
+    Per move (each interval [i₀, i₁) where the reference rests after having moved), two settle figures that
+    answer different questions:
+
+    * ``settling_time_s``: t_k − t_i₀ for the first sample k from which |e| ≤ ``tol_m`` up to the end of the
+      rest (the next move or the end of the recording); 0.0 if never outside; ``None`` if the last sample at
+      rest is outside (it had not settled *for good*).
+    * ``in_position_after_s`` (with an ``in_position`` column, the controller's detector with its own window
+      ``controller.settle.tolerance_m`` and dwell ``dwell_s``): t − t_i₀ when the detector *first* declared
+      in position, i.e. what a sequencer waiting for in-position would have seen, even if it withdrew it later;
+      ``None`` if it never did. ``in_position_lost`` counts those withdrawals in the rest interval.
+
+    With the same band and a stage that stays inside, in_position_after_s = settling_time_s + dwell (to one
+    sample). A stage whose rest error hovers around the band gives an early in_position_after_s, in_position_lost
+    ≥ 1 and a late or ``None`` settling_time_s.
     """
     t = rec.col("t")
     e = rec.col("e")
@@ -154,12 +169,15 @@ def tracking_summary(rec: Recorder, *, tol_m: float = 10e-9, skip_s: float = 0.0
                 settle.append(float(t[k] - t[i0]))
     done = [s for s in settle if s is not None]
     if rec.n and "in_position" in rec.columns and "v_ref" in rec.columns and "a_ref" in rec.columns:
-        ip = rec.col("in_position")
+        ip = rec.col("in_position") > 0.5
         first: list[float | None] = []
+        lost: list[int] = []
         for i0, i1 in _rest_intervals(rec.col("v_ref"), rec.col("a_ref")):
-            on = np.nonzero(ip[i0:i1] > 0.5)[0]
+            on = np.nonzero(ip[i0:i1])[0]
             first.append(float(t[i0 + on[0]] - t[i0]) if on.size else None)
+            lost.append(int(np.count_nonzero(ip[i0:i1 - 1] & ~ip[i0 + 1:i1])))
         out["in_position_after_s"] = first
+        out["in_position_lost"] = lost
     out["settling_tolerance_m"] = tol_m
     out["moves"] = len(settle)
     out["moves_settled"] = len(done)

@@ -186,6 +186,7 @@ class Safety:
         self.mass_kg = mass_kg
         #: largest plausible acceleration F_max/m [m/s²] (None: no position_jump check)
         self.max_accel_m_s2 = cfg.max_force_n / mass_kg if mass_kg is not None else None
+        self._act_lim = math.inf  # the actuator's own force limit [N] (set_actuator_limit)
         self.fault: SafetyFault | None = None
         self.n_faults = 0
         self.v_est_m_s = 0.0
@@ -374,14 +375,28 @@ class Safety:
             self._fe_since = None
         return self.fault is not None
 
+    def set_actuator_limit(self, limit_n: float) -> None:
+        """The largest force the actuator really applies [N] (a CiA 402 drive's max torque 0x6072): the hard
+        clamp becomes min(``max_force_n``, limit_n), so the force written (and recorded) is the force applied
+        and the saturation time counts at the real limit (inf or not > 0: ``max_force_n``). The position-jump
+        bound keeps F_max = ``max_force_n`` (external forces may add to the actuator's)."""
+        lim = float(limit_n)
+        self._act_lim = lim if lim > 0.0 and math.isfinite(lim) else math.inf
+
+    @property
+    def force_limit_n(self) -> float:
+        """The hard force clamp L [N]: min(``max_force_n``, the actuator's own limit)."""
+        return min(self.cfg.max_force_n, self._act_lim)
+
     def limit_force(self, t_s: float, cycle: int, u_n: float, clamped: bool = False) -> float:
-        """Clamp ``u_n`` to ±max_force_n; latch ``not_finite`` / ``force_limit``. ``clamped``: the controller
-        already clamped its output (its own force limit), which counts as saturated as well. Returns the force
-        to write (0.0 when a fault is latched by this call)."""
+        """Clamp ``u_n`` to ±L, L = :attr:`force_limit_n` (``max_force_n``, or the actuator's limit when lower);
+        latch ``not_finite`` / ``force_limit``. ``clamped``: the controller already clamped its output (its own
+        force limit), which counts as saturated as well. Returns the force to write (0.0 when a fault is latched
+        by this call)."""
         if not _isfinite(u_n):
             self.latch("not_finite", f"controller output is {u_n}", t_s, cycle)
             return 0.0
-        lim = self.cfg.max_force_n
+        lim = min(self.cfg.max_force_n, self._act_lim)
         inside = -lim <= u_n <= lim
         a = abs(u_n) if inside else lim  # the force written (unseen travel: F̄)
         self._u_last = a

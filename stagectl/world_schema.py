@@ -189,6 +189,11 @@ class SimDriveConfig:
     resolution_m: float = param(1e-9, unit="m", desc="position per count of 0x6064", ge=1e-15)
     force_per_unit_n: float = param(0.01, unit="N", desc="newtons per unit of target torque 0x6071", gt=0)
     velocity_resolution_m_s: float = param(1e-6, unit="m/s", desc="velocity per unit of 0x606C", gt=0)
+    max_force_n: float | None = param(
+        None, unit="N", desc="the drive's current limit, stored in its max torque 0x6072 as an integrator sets it "
+        "on a real drive: 0x6072 = floor(max_force_n / force_per_unit_n), at most 65535 (None: "
+        "sim.plant.actuator.max_force_n, the force the simulated actuator gives; the EDS default when that is "
+        "infinite)", gt=0)
     sync_timeout_s: float = param(
         0.5, unit="s", desc="SYNC supervision in CST OPERATION ENABLED: no SYNC for this long -> EMCY 0x8700, "
         "fault (0 = off)", ge=0)

@@ -115,7 +115,9 @@ def run(args: argparse.Namespace) -> int:
         "scenario": scenario,
         "io": cfg.io.kind.value,
         "period_s": cfg.loop.period_s,
-        **(tracking_summary(rec) if rec.n else {}),
+        # the settle band is the controller's in-position window, so settling_time_s and in_position_after_s
+        # judge the same band (docs/control.md, in-position detector)
+        **(tracking_summary(rec, tol_m=cfg.controller.settle.tolerance_m) if rec.n else {}),
         "fault": res.as_dict()["fault"] if res else None,
         "loop": res.as_dict() if res else None,
     }

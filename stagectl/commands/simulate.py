@@ -37,7 +37,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--duration", type=number("s"), default=None,
                    help="simulated seconds (default: the scenario's length + 0.2 s)")
-    p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=10e-9, help="settling band [m] (default 1e-8)")
+    p.add_argument("--tolerance", type=number("m", lo=0, lo_open=True), default=None,
+                   help="settling band [m] (default: the in-position window controller.settle.tolerance_m, 1e-8)")
     p.add_argument("--no-plots", action="store_true", help="skip the plot (tracking.png)")
     p.add_argument("--repetitions", type=int, default=None,
                    help="run the scenario this many times back to back (a repeated motion; default once)")
@@ -48,7 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: str | Path, *,
-             tol_m: float = 10e-9, plots: bool = True, quiet: bool = True,
+             tol_m: float | None = None, plots: bool = True, quiet: bool = True,
              repetitions: int | None = None) -> dict[str, Any]:
     """Run one simulation and write its outputs; returns the summary dict.
 
@@ -60,7 +61,10 @@ def simulate(cfg: AppConfig, scenario: str, duration_s: float | None, out_dir: s
 
     ``repetitions``: the scenario restarts when it ends (a repeated motion, what ``ilc:`` learns), the default
     duration covering that many; the summary then has ``ilc`` (the learner's state, RMS per repetition).
+    ``tol_m`` [m]: the settling band (None: the controller's in-position window ``controller.settle.tolerance_m``).
     """
+    if tol_m is None:
+        tol_m = cfg.controller.settle.tolerance_m
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
     from stagectl.config import IoKind

@@ -77,8 +77,8 @@ def _lower(name: str, given: float | None, configured: float, unit: str, key: st
 def within_drive_limit(env: Envelope, drive_limit_n: float | None) -> Envelope:
     """``env`` with ``drive_limit_n`` set where the opened drive commands less than ``F_max`` (CiA 402:
     ``io.drive.max_force_n`` and the drive's max torque 0x6072, which the driver reads at start-up and clamps
-    every command to; the virtual drive's 0x6072 default, 3000 units, is 3 N with ``force_per_unit_n: 0.001``,
-    while the shipped configurations allow 10 N). The experiments' amplitudes still scale with ``F_max``; what
+    every command to; e.g. a virtual drive given ``sim.drive.max_force_n: 3`` while the configuration allows
+    10 N). The experiments' amplitudes still scale with ``F_max``; what
     they command is clamped at :attr:`Envelope.f_cmd_n`, so a recording's ``u`` is the force the drive applied.
     ``None``, a non-finite limit or one at or above ``F_max``: ``env`` unchanged."""
     if drive_limit_n is None or not (math.isfinite(drive_limit_n) and drive_limit_n > 0):

@@ -6,7 +6,7 @@ Per step (dt [s], measured position x [m], reference r = (x_r, v_r, a_r))::
     u_ff   = friction feed-forward along the reference     (kind none | coulomb | model)       [N]
     u_in   = m_ff·(a_r + j_r·τ_a)                          inertia feed-forward (if inertia)   [N]
     d̂      = DOB(x_k, v̂_k, u_obs,k−1)                      (kind none | qfilter | kalman)      [N]
-    u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ + u_l , ±max_force_n )
+    u      = clamp( PID(x_r − x, v_r) + u_ff + u_in + d̂ + u_l , ±L ),   L = min(max_force_n, actuator limit)
     u_l    = learned feed-forward (``u_learn_n``, iterative learning control: stagectl.control.ilc)  [N]
     u_obs,k = u − u_ff                                      residual form, docs/friction-models.md §6.2
                                                             (u_l stays in: it is applied, like m·a_r)
@@ -994,6 +994,9 @@ class StageController:
         self.rest_spring_held_n_m = math.nan  # the last secant stiffness the stiffness test judged [N/m]
         self.rest_spring_release_count = 0  # releases at standstill since construction (telemetry, checks)
         self._hw = QFilterDob(cfg.dob, self.mass_kg, self.period_s)  # the stiffness test's force witness
+        #: the force the actuator really gives [N] (set_actuator_limit; inf: max_force_n alone)
+        self.actuator_limit_n = math.inf
+        self._u_lim = cfg.max_force_n  # the output clamp L = min(max_force_n, actuator_limit_n) [N]
         self.reset(0.0)
 
     # ------------------------------------------------------------------ construction
@@ -1216,6 +1219,7 @@ class StageController:
         if parts.cfg.settle != self.cfg.settle:
             self.settle.cfg = parts.cfg.settle
         self.cfg = parts.cfg
+        self._u_lim = min(parts.cfg.max_force_n, self.actuator_limit_n)
         self.mass_kg = parts.mass_kg
         m_hw = parts.mass_kg if parts.cfg.dob.nominal_mass_kg is None else parts.cfg.dob.nominal_mass_kg
         if parts.cfg.dob != self._hw.cfg or m_hw != self._hw.mass_kg:
@@ -1234,6 +1238,22 @@ class StageController:
                 new_dob.period_s = self.timing_scale * self.period_s
             new_dob.retune(_scaled_dob(parts.cfg.dob, self.timing_scale), parts.mass_kg)
         self._d_cfg = None  # _derive() again at the next step
+
+    @property
+    def force_limit_n(self) -> float:
+        """The output clamp in force [N]: L = min(``max_force_n``, :attr:`actuator_limit_n`)."""
+        return self._u_lim
+
+    def set_actuator_limit(self, limit_n: float) -> None:
+        """The largest force the actuator really applies [N] (a CiA 402 drive's max torque 0x6072 below
+        ``max_force_n``: its driver clamps every command there; inf or not > 0: no limit of its own).
+
+        The output clamp, the PID's saturation and anti-windup (conditional integration, |I| bound) and the
+        observer's force input (the clamped command) then all use L = min(``max_force_n``, limit_n): the force
+        actually available, so nothing winds up against a clamp the law cannot see. Kept across retunes."""
+        lim = float(limit_n)
+        self.actuator_limit_n = lim if lim > 0.0 and math.isfinite(lim) else math.inf
+        self._u_lim = min(self.cfg.max_force_n, self.actuator_limit_n)
 
     def set_reference_stop(self, x_m: float) -> None:
         """Where the reference next comes to rest without reversing first [m] (NaN: unknown), for the friction
@@ -1796,7 +1816,7 @@ class StageController:
         else:
             soft = False
         delta = 2.0 * math.pi * cfg.rest_integral_hz * k_r * max(-r, min(r, e_m)) * dt
-        bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else cfg.max_force_n
+        bound = self.ff_scale * self._f_kin if self._f_kin == self._f_kin else self._u_lim
         if self.dob is None:
             # without an observer nothing else moves the stuck stage: one that slid on past the target at its
             # sliding level is taken back only through its whole reversal, up to twice the level (Masing's rule)
@@ -2403,12 +2423,12 @@ class StageController:
                 d_hat += i_n
                 ps.i_n = 0.0
         u = pid.step(dt, ref_fb[0], x_meas_m, ref_fb[1], u_ff + u_in + d_hat + u_learn_n + self._u_k,
-                     cfg.max_force_n)
+                     self._u_lim)
         ps = pid.state
         in_pos = self.settle.step(dt, x_r - x_meas_m, at_rest)
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n,
                                          st.u_ff_n + st.u_inertia_n + self._u_learn, dt, self.period_s,
-                                         cfg.max_force_n)
+                                         self._u_lim)
         st.x_prev_m = x_meas_m
         st.v_hat_m_s = v_hat
         st.u_n = u
@@ -2447,7 +2467,7 @@ class StageController:
         advanced by ``dt`` (the next :meth:`step` advances it only by the rest of its own dt) and the inertia
         term is m·a_ref. The force is limited to the stale-data band (hold or slow down, never run away)::
 
-            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±max_force_n )
+            u = clamp( u_pid,held + d̂_held + u_ff(ref) + m_ff·a_ref + u_l , ±F_L )   (F_L: force_limit_n)
             u = clamp( u, m_ff·a_ref + u_l ± L ),   L = max(θ·F_c or stale_force_limit_n, |u_ff(ref)|)
 
         A feedback force built up before the gap (a break-away, a disturbance) is not held blind: a sliding
@@ -2481,7 +2501,7 @@ class StageController:
         m_ff = ffc.mass_kg if ffc.mass_kg is not None else self.mass_kg
         u_in = m_ff * ref.a_m_s2 if ffc.inertia else 0.0
         u_fb = st.u_n - st.u_ff_n - st.u_inertia_n - self._u_learn
-        lim = self.cfg.max_force_n
+        lim = self._u_lim
         u = max(-lim, min(lim, u_fb + u_ff + u_in + u_learn_n))
         st.u_next_n = predict_next_force(u, u_ff + u_in + u_learn_n, st.u_ff_n + st.u_inertia_n + self._u_learn,
                                          dt, self.period_s, lim)

@@ -215,6 +215,8 @@ def test_configure_waits_for_mode_and_skips_missing_0x1006(slave_and_driver):
     assert 0x1006 not in slave.node.object_dictionary
     assert slave._u(0x1800, 2, "<B") == 1 and slave._u(0x1A00, 2, "<I") == 0x60640020  # mapped, read back
     assert dut.drive_max_units is None  # no 0x6072: only max_force_n limits
+    assert dut.force_limit_n == pytest.approx(32767 * dut.cfg.force_per_unit_n)  # (max_force_n inf: INT16 range)
+    assert "torque range" in dut.force_limit_source
     slave.pump()
     assert slave.nmt == 5
 

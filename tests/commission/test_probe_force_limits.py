@@ -2,8 +2,8 @@
 
 * A stage whose breakaway lies between the probe's gentle search (F_max/2) and F_max is probed once more up to
   F_max at the same ramp rate, instead of being called a stuck axis.
-* The virtual CiA 402 drive's max torque 0x6072 defaults to 3000 units, 3 N with the shipped 1 mN units, under
-  the configured 10 N: the driver clamps every command there. The experiments now clamp at that limit too, so
+* A CiA 402 drive whose max torque 0x6072 is 3000 units, 3 N with the shipped 1 mN units (the virtual drive
+  with ``sim.drive.max_force_n: 3``), under the configured 10 N: the driver clamps every command there. The experiments now clamp at that limit too, so
   a recording's ``u`` is the force the stage got (before, the probe recorded 4 N while the drive applied 3 N).
 
 Each run stops with an injected fault early in the FRF, right after the probe (simulated time).
@@ -49,7 +49,8 @@ def test_breakaway_above_half_the_force_is_probed_again_up_to_f_max(tmp_path: Pa
 
 
 def test_experiments_stay_within_the_drives_max_torque(tmp_path: Path) -> None:
-    data = shipped_config_mapping("sim.yaml")  # 1 mN units: the virtual drive's 0x6072 default is 3 N
+    data = shipped_config_mapping("sim.yaml")
+    data["sim"]["drive"]["max_force_n"] = 3.0  # the drive's 0x6072: 3000 x 1 mN
     data["sim"]["plant"]["friction"] = {"fc_n": 1.5, "fs_n": 1.6}  # probe levels 1.5x and 2.5x breakaway: 4 N
     cfg = tmp_path / "sim3n.yaml"
     cfg.write_text(yaml.safe_dump(data))

@@ -37,6 +37,30 @@ def test_leaving_the_window_or_moving_clears_in_position():
     assert det.state.settle_time_s == pytest.approx(DT)
 
 
+def test_summary_settle_figures_on_a_rest_error_that_hovers_around_the_band():
+    """run/simulate summary: ``in_position_after_s`` is the detector's *first* declaration, ``settling_time_s``
+    the entry after which |e| stays in the band to the end of the rest (None: outside at its end), and
+    ``in_position_lost`` counts the detector's withdrawals in between (a stage hunting around ±10 nm)."""
+    import numpy as np
+
+    from stagectl.recorder import Recorder, tracking_summary
+
+    det = SettleDetector(SettleConfig(tolerance_m=10e-9, dwell_s=0.005))
+    move = [(0.0, 1e-5, 50e-9)] * 3  # (v_ref, a_ref, e) while the reference moves
+    hover = [20e-9] * 4 + [2e-9] * 8 + [15e-9] * 3 + [3e-9] * 7 + [12e-9] * 2  # in, out, in, out at the end
+    settle = [30e-9] * 5 + [1e-9] * 20  # enters at 5 ms and stays
+    rows = []
+    for k, (v, a, e) in enumerate(move + [(0.0, 0.0, e) for e in hover] + move + [(0.0, 0.0, e) for e in settle]):
+        ip = det.step(DT, e, v == 0.0 and a == 0.0)
+        rows.append((k * DT, -e, 0.0, 0.0, v, a, e, 1.0 if ip else 0.0))
+    rec = Recorder.of(("t", "x", "u", "x_ref", "v_ref", "a_ref", "e", "in_position"), np.array(rows))
+    s = tracking_summary(rec, tol_m=10e-9)
+    assert s["in_position_after_s"] == pytest.approx([8 * DT, 9 * DT])  # entered at 4 (hover) / 5: + dwell − 1
+    assert s["in_position_lost"] == [2, 0]
+    assert s["settling_time_s"][0] is None and s["settling_time_s"][1] == pytest.approx(5 * DT)
+    assert s["moves_settled"] == 1
+
+
 def test_zero_dwell_reports_at_the_first_sample_inside():
     det = SettleDetector(SettleConfig(tolerance_m=1e-9, dwell_s=0.0))
     assert _feed(det, [2e-9, 0.5e-9]) == [False, True]

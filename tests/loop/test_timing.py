@@ -339,15 +339,16 @@ def test_set_timing_scale_is_bumpless_and_scales_the_gains(sim_cfg):
 
 def test_braking_through_the_virtual_cia402_drive_respects_its_torque_limit(sim_cfg):
     """Lock-step CANopen: the brake works through the real driver and respects the drive's own force limit
-    (0x6072 max torque, below safety.max_force_n on the seed stage's virtual drive); then the drive's quick
-    stop (controlword) ends in SWITCH ON DISABLED with the stage at rest."""
+    (0x6072 max torque, 3 N here, below safety.max_force_n); then the drive's quick stop (controlword) ends in
+    SWITCH ON DISABLED with the stage at rest."""
     from stagectl.app import build_stage
     from stagectl.clock import SimClock
 
     from stagectl.app import embedded_drive_config
 
     drive = dataclasses.replace(embedded_drive_config(None, sim_cfg.sim.drive, {}), quick_stop_option_code=2)
-    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, drive=drive))
+    sim = dataclasses.replace(sim_cfg.sim, drive=dataclasses.replace(sim_cfg.sim.drive, max_force_n=3.0))
+    cfg = dataclasses.replace(sim_cfg, io=dataclasses.replace(sim_cfg.io, drive=drive), sim=sim)
     with build_stage(cfg, clock=SimClock()) as stage:
         loop, world = stage.loop, stage.world
         forces = []
