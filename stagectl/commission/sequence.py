@@ -694,7 +694,9 @@ class Commissioning:
                                         viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD,
                                         min_viscous_n_s_m=VISCOUS_FF_X_FE * env.following_error_m
                                         / (budget.g_step_m_n * env.v_max_m_s),
-                                        hold_limit_n=budget.error_m / budget.g_step_m_n)
+                                        hold_limit_n=budget.error_m / budget.g_step_m_n,
+                                        presliding_length_m=presliding_length(r.sanity.breakaway_n,
+                                                                              r.plant.stiffness_n_m))
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
@@ -1925,6 +1927,17 @@ def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_lim
     if not m_probe_kg - m_frf_kg > 2.0 * math.hypot(m_frf_std_kg, m_probe_std_kg):
         return None
     return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
+
+
+def presliding_length(breakaway_n: list[float], stiffness_n_m: float) -> float:
+    """The stage's pre-sliding length ``L = F̄_b/k`` [m]: the mean break-away force over the FRF's pre-sliding
+    stiffness (the Dahl model's ``F_c/σ_0``: a reversal from ``−F`` reaches ``+F`` over a few ``L``); 0 where
+    either is unknown. The passes' starts bring their force step in along the reference's travel over it
+    (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`)."""
+    fb = float(np.mean(np.abs(breakaway_n))) if breakaway_n else 0.0
+    if not (math.isfinite(stiffness_n_m) and stiffness_n_m > 0.0 and math.isfinite(fb) and fb > 0.0):
+        return 0.0
+    return fb / stiffness_n_m
 
 
 def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error_m: float,
