@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
@@ -35,34 +36,34 @@ E_MAX = 50e-6
 V_MAX = 0.016
 S = 9e-3   # the outside stage's passes: ±4.5 mm
 #: the outside stage (mass, GMS-like elements, Stribeck, viscous, spring + offset) ...
-PLANT = {"mass": 1.0, "k": (2e5, 5e4, 1.5e4, 5e3), "alpha": (0.4, 0.3, 0.2, 0.1), "sigma1": (74.0, 18.5, 5.6, 1.9),
+PLANT: dict[str, Any] = {"mass": 1.0, "k": (2e5, 5e4, 1.5e4, 5e3), "alpha": (0.4, 0.3, 0.2, 0.1), "sigma1": (74.0, 18.5, 5.6, 1.9),
          "fs": 3.2, "fc": 2.5, "vs": 2e-3, "visc": 40.0, "spring": 150.0, "x0": -2e-3, "offset": 0.35}
 #: ... and what the sequence knew when its passes ran
-KNOWN = {"m_exp": 1.081, "m_std": 6.4e-4, "ff": 1.9558, "breakaway": [3.6557, 2.4447], "k_ps": 2.67e5,
+KNOWN: dict[str, Any] = {"m_exp": 1.081, "m_std": 6.4e-4, "ff": 1.9558, "breakaway": [3.6557, 2.4447], "k_ps": 2.67e5,
          "xp": 0.026, "v_rep": 1.804e-3}
 
 
 class MultiSlipStage:
     """The plain stage of the module docstring; ``x`` [m] is its position."""
 
-    def __init__(self, p: dict[str, object], sub: int = 10) -> None:
+    def __init__(self, p: dict[str, Any], sub: int = 10) -> None:
         self.p = p
         self.sub = sub
         self.x = self.vel = self.u_applied = 0.0
-        self.z = [0.0] * len(p["k"])  # type: ignore[arg-type]
+        self.z = [0.0] * len(p["k"])
 
     def period(self, u_n: float, period_s: float) -> None:
         """One period under the force commanded a period ago; ``u_n`` [N] acts in the next."""
         p = self.p
         ks, al, s1 = p["k"], p["alpha"], p["sigma1"]
-        fs, fc, vs = float(p["fs"]), float(p["fc"]), float(p["vs"])  # type: ignore[arg-type]
-        m, visc = float(p["mass"]), float(p["visc"])  # type: ignore[arg-type]
-        load_k, x0, off = float(p["spring"]), float(p["x0"]), float(p["offset"])  # type: ignore[arg-type]
+        fs, fc, vs = float(p["fs"]), float(p["fc"]), float(p["vs"])
+        m, visc = float(p["mass"]), float(p["visc"])
+        load_k, x0, off = float(p["spring"]), float(p["x0"]), float(p["offset"])
         x, vel, z, h = self.x, self.vel, self.z, period_s / self.sub
         for _ in range(self.sub):
             f_slide = fc + (fs - fc) * math.exp(-((vel / vs) ** 2))
             f_fr = 0.0
-            for i, (k, a, c) in enumerate(zip(ks, al, s1)):  # type: ignore[call-overload]
+            for i, (k, a, c) in enumerate(zip(ks, al, s1)):
                 zi = z[i] + vel * h
                 w = a * f_slide
                 if abs(k * zi) > w:
@@ -79,17 +80,17 @@ class MultiSlipStage:
 def _run(presliding_length_m: float) -> tuple[SpeedLadderFeedforward, float]:
     """The passes on the oracle; returns the ladder and the peak |x_ref − x| over the passes [m]."""
     k = KNOWN
-    cfg = seq.commission_tuning(k["m_exp"], T, 10.0, k["ff"], crossover_x_period=k["xp"])  # type: ignore[arg-type]
+    cfg = seq.commission_tuning(k["m_exp"], T, 10.0, k["ff"], crossover_x_period=k["xp"])
     inner = StageController(cfg, T)
     assert isinstance(inner.ff, CoulombFeedforward)
-    budget = seq.pass_budget(cfg, T, 1, k["m_exp"], k["m_std"], max(k["breakaway"]), 0.0, E_MAX)  # type: ignore
+    budget = seq.pass_budget(cfg, T, 1, k["m_exp"], k["m_std"], max(k["breakaway"]), 0.0, E_MAX)
     ladder = SpeedLadderFeedforward(inner.ff, seq.LADDER_SETTLE_X_CROSSOVER_PERIOD / (2 * math.pi * k["xp"] / T),
                                     hold_limit_n=budget.error_m / budget.g_step_m_n,
                                     presliding_length_m=presliding_length_m)
     ctl = CommissionController(inner)
     ctl.set_closed(inner, ladder=ladder)
-    v_rep = float(k["v_rep"])  # type: ignore[arg-type]
-    segs = pass_segments(budget, k["m_exp"], v_rep, v_rep ** 2 / (0.1 * 0.2 * S), T, V_MAX, S)  # type: ignore
+    v_rep = float(k["v_rep"])
+    segs = pass_segments(budget, k["m_exp"], v_rep, v_rep ** 2 / (0.1 * 0.2 * S), T, V_MAX, S)
     gen = TrajectoryGenerator(0.0)
     gen.load(Scenario(name="cv", segments=tuple(segs)))
     ctl.reset(0.0)
@@ -104,7 +105,7 @@ def _run(presliding_length_m: float) -> tuple[SpeedLadderFeedforward, float]:
 
 
 def test_pass_starts_on_a_stage_with_long_presliding_stay_within_the_following_error_limit() -> None:
-    L = seq.presliding_length(KNOWN["breakaway"], KNOWN["k_ps"])  # type: ignore[arg-type]
+    L = seq.presliding_length(KNOWN["breakaway"], KNOWN["k_ps"])
     assert 10e-6 < L < 13e-6   # 3.05 N over 2.67e5 N/m
     ladder, peak = _run(L)
     _, peak_step = _run(0.0)   # main: the start's force step at once (52 µm; blended: 18 µm)
