@@ -696,7 +696,9 @@ class Commissioning:
                                         / (budget.g_step_m_n * env.v_max_m_s),
                                         hold_limit_n=budget.error_m / budget.g_step_m_n,
                                         presliding_length_m=presliding_length(r.sanity.breakaway_n,
-                                                                              r.plant.stiffness_n_m))
+                                                                              r.plant.stiffness_n_m,
+                                                                              budget.error_m))
+        self.experiment_tuning["presliding_length_m"] = ladder.presliding_length_m
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
@@ -1929,15 +1931,16 @@ def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_lim
     return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
 
 
-def presliding_length(breakaway_n: list[float], stiffness_n_m: float) -> float:
-    """The stage's pre-sliding length ``L = F̄_b/k`` [m]: the mean break-away force over the FRF's pre-sliding
-    stiffness (the Dahl model's ``F_c/σ_0``: a reversal from ``−F`` reaches ``+F`` over a few ``L``); 0 where
-    either is unknown. The passes' starts bring their force step in along the reference's travel over it
-    (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`)."""
+def presliding_length(breakaway_n: list[float], stiffness_n_m: float, max_m: float = math.inf) -> float:
+    """The stage's pre-sliding length ``L = min(F̄_b/k, max_m)`` [m]: the mean break-away force over the FRF's
+    pre-sliding stiffness (the Dahl model's ``F_c/σ_0``: a reversal from ``−F`` reaches ``+F`` over a few
+    ``L``); 0 where either is unknown. The passes' starts bring their force step in along the reference's
+    travel over it (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`); ``max_m`` (the passes'
+    error budget) keeps a doubtful stiffness from leaving the step to the loop over a longer travel."""
     fb = float(np.mean(np.abs(breakaway_n))) if breakaway_n else 0.0
     if not (math.isfinite(stiffness_n_m) and stiffness_n_m > 0.0 and math.isfinite(fb) and fb > 0.0):
         return 0.0
-    return fb / stiffness_n_m
+    return min(fb / stiffness_n_m, max_m)
 
 
 def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error_m: float,

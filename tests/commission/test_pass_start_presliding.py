@@ -118,3 +118,4 @@ def test_no_presliding_length_without_a_stiffness_or_breakaway() -> None:
     assert seq.presliding_length([3.0], math.nan) == 0.0
     assert seq.presliding_length([], 1e5) == 0.0
     assert seq.presliding_length([1.0, 3.0], 1e5) == 2e-5
+    assert seq.presliding_length([1.0, 3.0], 1e3, 25e-6) == 25e-6   # capped at the passes' error budget
