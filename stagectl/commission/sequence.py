@@ -697,7 +697,8 @@ class Commissioning:
                                         hold_limit_n=budget.error_m / budget.g_step_m_n,
                                         presliding_length_m=presliding_length(r.sanity.breakaway_n,
                                                                               r.plant.stiffness_n_m,
-                                                                              budget.error_m))
+                                                                              PRESLIDING_LENGTH_X_BUDGET
+                                                                              * budget.error_m))
         self.experiment_tuning["presliding_length_m"] = ladder.presliding_length_m
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
@@ -1931,12 +1932,22 @@ def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_lim
     return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
 
 
+#: the passes' pre-sliding length (presliding_length) is at most this fraction of their error budget: a stuck
+#: stage lags by the reference's travel while a start's force step comes in (w = 0.95 after 3 L), so an L
+#: overestimated from a doubtful FRF stiffness (fresh plant 106: 5.7e4 N/m for elements of 1.7e6…1.8e4, L
+#: 31 µm; its 16 mm/s passes peaked 37 µm instead of 29 µm with the cap at the whole budget) costs at most the
+#: budget. The blend is forgiving the other way: the outside stage's oracle (L = 11.4 µm) peaks at 26 µm with L
+#: = 2 µm, 52 µm with the step at once
+PRESLIDING_LENGTH_X_BUDGET = 1.0 / 3.0
+
+
 def presliding_length(breakaway_n: list[float], stiffness_n_m: float, max_m: float = math.inf) -> float:
     """The stage's pre-sliding length ``L = min(F̄_b/k, max_m)`` [m]: the mean break-away force over the FRF's
     pre-sliding stiffness (the Dahl model's ``F_c/σ_0``: a reversal from ``−F`` reaches ``+F`` over a few
     ``L``); 0 where either is unknown. The passes' starts bring their force step in along the reference's
-    travel over it (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`); ``max_m`` (the passes'
-    error budget) keeps a doubtful stiffness from leaving the step to the loop over a longer travel."""
+    travel over it (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`); ``max_m``
+    (``PRESLIDING_LENGTH_X_BUDGET`` × the passes' error budget) keeps a doubtful stiffness from leaving the step
+    to the loop over a longer travel."""
     fb = float(np.mean(np.abs(breakaway_n))) if breakaway_n else 0.0
     if not (math.isfinite(stiffness_n_m) and stiffness_n_m > 0.0 and math.isfinite(fb) and fb > 0.0):
         return 0.0
