@@ -249,6 +249,10 @@ class SanityProbe:
         return 0.0
 
 
+#: the start's blend (SpeedLadderFeedforward.before) is complete at this weight
+PRESLIDING_BLEND_DONE = 0.999
+
+
 class SpeedLadderFeedforward:
     """Learns Coulomb and viscous friction from the constant-velocity passes already run, for the next ones.
 
@@ -288,8 +292,16 @@ class SpeedLadderFeedforward:
     """
 
     def __init__(self, ff: CoulombFeedforward, settle_s: float, min_samples: int = 10,
-                 viscous_only: bool = False, min_viscous_n_s_m: float = 0.0, hold_limit_n: float = math.inf) -> None:
+                 viscous_only: bool = False, min_viscous_n_s_m: float = 0.0, hold_limit_n: float = math.inf,
+                 presliding_length_m: float = 0.0) -> None:
         self.ff = ff
+        #: presliding_length_m: a start's force step (the released held force and the Coulomb term) comes in
+        #: along the reference's travel ``Δ`` from the start as ``w = 1 − exp(−Δ/L)`` (:meth:`before`; 0: at once)
+        self.presliding_length_m = presliding_length_m
+        self._x0 = 0.0
+        self._d = 0.0
+        self._w = 1.0
+        self._pending_n = 0.0   # the release's observer shift still to come in [N] (times w)
         #: hold_limit_n: at a start from a standing reference the observer lets go of the force it held beyond
         #: this [N] (:meth:`release`; not with ``viscous_only``; inf: never)
         self.hold_limit_n = hold_limit_n
@@ -322,11 +334,20 @@ class SpeedLadderFeedforward:
         if self.viscous_only:
             return
         standing = ref.v_m_s == 0.0 and ref.a_m_s2 == 0.0
-        if not standing and self._standing and inner is not None and self.hold_limit_n < math.inf:
+        if not standing and self._standing:
             d = 1.0 if (ref.v_m_s if ref.v_m_s != 0.0 else ref.a_m_s2) > 0.0 else -1.0
-            self.release(inner, d)
+            self._x0, self._d, self._pending_n = ref.x_m, d, 0.0
+            self._w = 0.0 if self.presliding_length_m > 0.0 else 1.0
+            if inner is not None and self.hold_limit_n < math.inf:
+                self.release(inner, d)
+        if not standing and self._w < 1.0:
+            w = 1.0 - math.exp(-max(0.0, self._d * (ref.x_m - self._x0)) / self.presliding_length_m)
+            w = 1.0 if w >= PRESLIDING_BLEND_DONE else w
+            if inner is not None and self._pending_n != 0.0:
+                inner.shift_observer(self._pending_n * (w - self._w))
+            self._w = w
         self._standing = standing
-        self.ff.coulomb_n = 0.0 if standing else self.coulomb_n
+        self.ff.coulomb_n = 0.0 if standing else self.coulomb_n * self._w
 
     def offset_n(self) -> float:
         """The force [N] the stage needs whatever the direction (an offset, a spring's mean over the passes):
@@ -355,7 +376,10 @@ class SpeedLadderFeedforward:
         if abs(p) <= self.hold_limit_n:
             return
         q = 0.0
-        inner.shift_observer(d * (q - p))
+        if self.presliding_length_m > 0.0:
+            self._pending_n = d * (q - p)   # along the reference's travel (:meth:`before`)
+        else:
+            inner.shift_observer(d * (q - p))
         self.releases.append(p - q)
 
     def observe(self, dt: float, ref: Reference, u_n: float, x_m: float | None = None) -> None:

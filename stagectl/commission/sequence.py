@@ -696,7 +696,12 @@ class Commissioning:
                                         viscous_only=xp == COMMISSION_CROSSOVER_X_PERIOD,
                                         min_viscous_n_s_m=VISCOUS_FF_X_FE * env.following_error_m
                                         / (budget.g_step_m_n * env.v_max_m_s),
-                                        hold_limit_n=budget.error_m / budget.g_step_m_n)
+                                        hold_limit_n=budget.error_m / budget.g_step_m_n,
+                                        presliding_length_m=presliding_length(r.sanity.breakaway_n,
+                                                                              r.plant.stiffness_n_m,
+                                                                              PRESLIDING_LENGTH_X_BUDGET
+                                                                              * budget.error_m))
+        self.experiment_tuning["presliding_length_m"] = ladder.presliding_length_m
         try:
             cv_rec = self._closed(stage, "friction_cv", "constant-velocity passes both ways at log-spaced speeds "
                                   "(Coulomb, viscous, Stribeck, asymmetry)", cv_inner, segs,
@@ -1930,6 +1935,28 @@ def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_lim
     if not m_probe_kg - m_frf_kg > 2.0 * math.hypot(m_frf_std_kg, m_probe_std_kg):
         return None
     return float(min(m_probe_kg, an.FRF_MASS_PLAUSIBLE[1] * m_frf_kg))
+
+
+#: the passes' pre-sliding length (presliding_length) is at most this fraction of their error budget: a stuck
+#: stage lags by the reference's travel while a start's force step comes in (w = 0.95 after 3 L), so an L
+#: overestimated from a doubtful FRF stiffness (fresh plant 106: 5.7e4 N/m for elements of 1.7e6…1.8e4, L
+#: 31 µm; its 16 mm/s passes peaked 37 µm instead of 29 µm with the cap at the whole budget) costs at most the
+#: budget. The blend is forgiving the other way: the outside stage's oracle (L = 11.4 µm) peaks at 26 µm with L
+#: = 2 µm, 52 µm with the step at once
+PRESLIDING_LENGTH_X_BUDGET = 1.0 / 3.0
+
+
+def presliding_length(breakaway_n: list[float], stiffness_n_m: float, max_m: float = math.inf) -> float:
+    """The stage's pre-sliding length ``L = min(F̄_b/k, max_m)`` [m]: the mean break-away force over the FRF's
+    pre-sliding stiffness (the Dahl model's ``F_c/σ_0``: a reversal from ``−F`` reaches ``+F`` over a few
+    ``L``); 0 where either is unknown. The passes' starts bring their force step in along the reference's
+    travel over it (:class:`~stagectl.commission.controllers.SpeedLadderFeedforward`); ``max_m``
+    (``PRESLIDING_LENGTH_X_BUDGET`` × the passes' error budget) keeps a doubtful stiffness from leaving the step
+    to the loop over a longer travel."""
+    fb = float(np.mean(np.abs(breakaway_n))) if breakaway_n else 0.0
+    if not (math.isfinite(stiffness_n_m) and stiffness_n_m > 0.0 and math.isfinite(fb) and fb > 0.0):
+        return 0.0
+    return min(fb / stiffness_n_m, max_m)
 
 
 def reposition_speed(v_max_m_s: float, stiction_length_m: float, following_error_m: float,

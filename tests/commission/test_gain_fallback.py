@@ -234,7 +234,8 @@ def test_k112_twin_chooses_a_stiff_design_that_tracks_the_hidden_plant(tmp_path:
 
 def test_the_verdict_note_does_not_claim_the_floor_for_a_fallback_design() -> None:
     """k112 with verification: the given controller (PM 11 deg / GM 4.0 dB measured) was kept on settled steps;
-    on main the note said the commissioned one keeps 40 deg / 8 dB, which a fallback design does not."""
+    on main the note said the commissioned one keeps 40 deg / 8 dB, which a fallback design does not. Below the
+    fallback tier's floor the commissioned design meets, the given controller is no longer kept (fe27)."""
     from stagectl.commission.envelope import make_envelope
     from stagectl.commission.outputs import report_dict
     from stagectl.commission.sequence import Results
@@ -253,8 +254,17 @@ def test_the_verdict_note_does_not_claim_the_floor_for_a_fallback_design() -> No
     ver = {"steps": {"before": run(3.59e-6, 2), "after": run(1.92e-6, 0)}}
     res = Results(cfg, env, gains={"chosen": chosen, "given": given, "mass_kg": 0.89, "delay_samples": 1},
                   verification=ver)
+    # k112's given controller misses even the fallback tier's floor the commissioned one meets: the margins
+    # decide (outputs.margin_standing), the fallback floor named
+    v = report_dict(res)["verdict"]
+    assert v["recommend"] == "new" and ("below the PM 25 deg / GM 3 dB floor (the fallback tier's) the commissioned "
+                                        "one meets (PM 26 deg / GM 3.4 dB)") in v["text"], v["text"]
+    # a given controller above the fallback floor but below 40 deg / 8 dB is kept on settled steps; the note
+    # does not claim the floor for the fallback design
+    given["measured"] = {"phase_margin_deg": 30.0, "gain_margin_db": 3.97, "healthy": False}
     text = report_dict(res)["verdict"]["text"]
     assert "keeps" not in text and "the commissioned one (fallback tier) PM 26 deg / GM 3.4 dB" in text
+    given["measured"] = {"phase_margin_deg": 11.2, "gain_margin_db": 3.97, "healthy": False}
     chosen["healthy"] = True  # a design that meets the floor: the note as before
     assert "below the 40 deg / 8 dB the commissioned one keeps" in report_dict(res)["verdict"]["text"]
 
