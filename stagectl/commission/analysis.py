@@ -558,7 +558,8 @@ def _fit_band(frf: Frf, sel: npt.NDArray[np.bool_], period_s: float, mass_guess_
         return plant_response(fo, math.exp(th[0]), th[1], th[2], th[3], period_s)
 
     def logres(th: FloatArray) -> ComplexArray:
-        r = np.log(po / model(th))
+        with np.errstate(divide="ignore", invalid="ignore"):  # a trial θ whose model is 0 or inf: an inf residual
+            r = np.log(po / model(th))
         return np.asarray(r.real + 1j * np.angle(np.exp(1j * r.imag)), np.complex128)
 
     def resid(th: FloatArray) -> FloatArray:
