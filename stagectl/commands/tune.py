@@ -249,8 +249,9 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         verdict["rest_free_thin"] = thin
         if verdict["confidence"] == "high":
             verdict["confidence"] = "medium"
-        verdict["confidence_reason"] += (f"; the rest loop these gains keep misses the floor on a free stage ({thin}): "
-                                         f"it relies on friction holding the stage at standstill")
+        verdict["confidence_reason"] += (f"; the configured rest loop, whose rest fractions these gains keep, misses "
+                                         f"the floor on a free stage ({thin}): it relies on friction holding the "
+                                         f"stage at standstill")
         d_out.update(verdict)
     if verdict["refused"]:
         exit_code = 1
