@@ -196,7 +196,8 @@ def probe_driven_fit(x: list[float], u: list[float], pre_force_n: float, dt_s: f
     the force [N, signed] commanded at that cycle, applied over ``[t_{i+d}, t_{i+d+1})`` after ``d`` = 0–3
     cycles of I/O delay (the best fit's); before ``u[0]`` arrives the ramp's ``sign·pre_force_n`` acts. In the
     direction of motion ``m·ẍ + c·ẋ + F_f = F`` holds while the stage moves forward (the brake's ``−F2``
-    included: the friction keeps its sign), integrated twice as :func:`probe_joint_fit`::
+    included: the friction keeps its sign; the cycles from the first position not ahead of its predecessor on
+    are left out), integrated twice as :func:`probe_joint_fit`::
 
         m·x(t_i) + c·∫x dt + F_f·t_i²/2 − p − q·t_i = G_i,    G_{i+1} = G_i + V_i·T + F_i·T²/2,  V_{i+1} = V_i + F_i·T
 
@@ -209,11 +210,19 @@ def probe_driven_fit(x: list[float], u: list[float], pre_force_n: float, dt_s: f
         return None
     if not (math.isfinite(pre_force_n) and all(math.isfinite(v) for v in x) and all(math.isfinite(v) for v in u)):
         return None
-    us = sign * np.asarray(u, dtype=np.float64)
-    levels, counts = np.unique(np.round(us[:-1], 12), return_counts=True)
+    xs = sign * np.asarray(x, dtype=np.float64)
+    # the model holds while the stage moves forward: up to the last position before the first one that is not
+    # ahead of its predecessor (the brake reversed or stuck it; the friction changes sign or becomes static)
+    back = np.flatnonzero(np.diff(xs) <= 0.0)
+    if back.size:
+        n = int(back[0]) + 1
+        if n < PROBE_DRIVEN_MIN_SAMPLES:
+            return None
+        xs = xs[:n]
+    us = sign * np.asarray(u[:n], dtype=np.float64)
+    _, counts = np.unique(np.round(us[:-1], 12), return_counts=True)
     if int(np.sum(counts >= PROBE_DRIVEN_MIN_LEVEL_SAMPLES)) < 2:
         return None
-    xs = sign * np.asarray(x, dtype=np.float64)
     xs = xs - xs[0]
     t = dt_s * np.arange(n, dtype=np.float64)
     X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
