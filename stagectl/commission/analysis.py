@@ -16,6 +16,13 @@ viscous force it finds matters (``c·(v̄2 − v̄1) ≥ PROBE_VISCOUS_SHARE·(F
 elsewhere (a Stribeck drop looks like ``c < 0``, short phases cannot separate ``m`` from ``c``) the
 quadratic mass stands, as before.
 
+Where the levels are too short for two accelerations (fewer than 4 samples: a light stage with a high
+breakaway reaches the speed cap within a few cycles of each level, e.g. 1 kg with 3.2 N static and 40 N·s/m
+under 4.3 N and 7 N), :func:`probe_driven_fit` fits the same model over every cycle the probe drove after the
+breakaway, levels and brake alike (the brake's ``−F2`` is a third, large force level; the friction keeps its
+sign while the stage still moves forward), with the commanded force as recorded, cycle by cycle
+(``mass_from: driven``). The probe stops only when that fit is not credible either.
+
 **FRF** (:func:`estimate_frf`): the force excitation ``d`` is periodic with ``N`` samples; after one period of
 transient the recorded ``x`` and ``u`` (the total commanded force, excitation included) are cut into ``P``
 periods and averaged; at the excited bins ``P(ω_k) = X̄_k / Ū_k`` (closed loop, both driven by the same known
@@ -77,6 +84,10 @@ PROBE_VISCOUS_SHARE = 0.1
 #: singular values of the joint fit's column-scaled design below this fraction of the largest count as zero
 #: (one force level makes the model's own equation a column dependency: ~1e-16 there, ~1e-3 on a real probe)
 PROBE_JOINT_RCOND = 1e-9
+#: the driven fit (:func:`probe_driven_fit`) needs at least this many cycles ...
+PROBE_DRIVEN_MIN_SAMPLES = 10
+#: ... with at least two force levels held this many cycles each
+PROBE_DRIVEN_MIN_LEVEL_SAMPLES = 3
 
 
 class SanityError(StageError):
@@ -103,6 +114,9 @@ class SanityResult:
     #: the FRF's mass is judged against (:func:`frf_mass_consistent`)
     joint_mass_kg: float = math.nan
     joint_mass_std_kg: float = math.nan
+    #: the driven fit per direction (:func:`probe_driven_fit`), only where the levels were too short for the
+    #: two-acceleration mass (then ``mass_from`` is "driven")
+    driven: list[dict[str, float] | None] = field(default_factory=list)
 
     @property
     def tuning_mass_kg(self) -> float:
@@ -115,7 +129,8 @@ class SanityResult:
                 "mass_by_direction_kg": self.mass_by_direction_kg, "quadratic_mass_kg": self.quadratic_mass_kg,
                 "tuning_mass_kg": self.tuning_mass_kg,
                 "joint_fit": self.joint, "joint_mass_kg": self.joint_mass_kg,
-                "joint_mass_std_kg": self.joint_mass_std_kg, "breakaway_n": self.breakaway_n, "notes": self.notes}
+                "joint_mass_std_kg": self.joint_mass_std_kg, "breakaway_n": self.breakaway_n, "notes": self.notes,
+                **({"driven_fit": self.driven} if self.driven else {})}
 
 
 def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, dt_s: float,
@@ -171,6 +186,79 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
             "viscous_std_n_s_m": float(sd[1]), "friction_n": float(th[2]), "delay_samples": float(dly),
             "dv_m_s": float(v2 - v1)}
+
+
+def probe_driven_fit(x: list[float], u: list[float], pre_force_n: float, dt_s: float,
+                     sign: int = 1) -> dict[str, float] | None:
+    """Mass, viscous coefficient and friction from every cycle the probe drove in one direction.
+
+    ``x[i]``: the position [m] at cycle ``i`` (from the breakaway's detection to the end of the brake), ``u[i]``
+    the force [N, signed] commanded at that cycle, applied over ``[t_{i+d}, t_{i+d+1})`` after ``d`` = 0–3
+    cycles of I/O delay (the best fit's); before ``u[0]`` arrives the ramp's ``sign·pre_force_n`` acts. In the
+    direction of motion ``m·ẍ + c·ẋ + F_f = F`` holds while the stage moves forward (the brake's ``−F2``
+    included: the friction keeps its sign; the cycles from the first position not ahead of its predecessor on
+    are left out), integrated twice as :func:`probe_joint_fit`::
+
+        m·x(t_i) + c·∫x dt + F_f·t_i²/2 − p − q·t_i = G_i,    G_{i+1} = G_i + V_i·T + F_i·T²/2,  V_{i+1} = V_i + F_i·T
+
+    (``G``: the applied force's exact double integral over the zero-order-held cycles). Returns the keys of
+    :func:`probe_joint_fit` but ``dv_m_s``, plus ``"samples"``, or ``None`` with fewer than
+    :data:`PROBE_DRIVEN_MIN_SAMPLES` cycles, fewer than two force levels held
+    :data:`PROBE_DRIVEN_MIN_LEVEL_SAMPLES` cycles each, non-finite input or an inseparable design."""
+    n = len(x)
+    if n < PROBE_DRIVEN_MIN_SAMPLES or len(u) != n or not (dt_s > 0.0 and math.isfinite(dt_s)):
+        return None
+    if not (math.isfinite(pre_force_n) and all(math.isfinite(v) for v in x) and all(math.isfinite(v) for v in u)):
+        return None
+    xs = sign * np.asarray(x, dtype=np.float64)
+    # the model holds while the stage moves forward: up to the last position before the first one that is not
+    # ahead of its predecessor (the brake reversed or stuck it; the friction changes sign or becomes static)
+    back = np.flatnonzero(np.diff(xs) <= 0.0)
+    if back.size:
+        n = int(back[0]) + 1
+        if n < PROBE_DRIVEN_MIN_SAMPLES:
+            return None
+        xs = xs[:n]
+    us = sign * np.asarray(u[:n], dtype=np.float64)
+    _, counts = np.unique(np.round(us[:-1], 12), return_counts=True)
+    if int(np.sum(counts >= PROBE_DRIVEN_MIN_LEVEL_SAMPLES)) < 2:
+        return None
+    xs = xs - xs[0]
+    t = dt_s * np.arange(n, dtype=np.float64)
+    X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
+    A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
+    sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    An = A / sc
+    best: tuple[float, FloatArray, int] | None = None
+    for dly in range(4):
+        fa = np.concatenate([np.full(dly, pre_force_n), us])[:n - 1]   # the force over [t_i, t_{i+1})
+        vel = np.concatenate([[0.0], np.cumsum(fa) * dt_s])[:-1]
+        G = np.concatenate([[0.0], np.cumsum(vel * dt_s + fa * dt_s ** 2 / 2)])
+        th, _, rank, _ = np.linalg.lstsq(An, G, rcond=PROBE_JOINT_RCOND)
+        if rank < A.shape[1]:
+            continue
+        res = G - An @ th
+        ss = float(res @ res)
+        if best is None or ss < best[0]:
+            best = (ss, th / sc, dly)
+    if best is None:
+        return None
+    ss, th, dly = best
+    dof = max(n - A.shape[1], 1)
+    try:
+        cov = (ss / dof) * np.linalg.inv(An.T @ An)
+    except np.linalg.LinAlgError:
+        return None
+    var = np.diag(cov)
+    sd = np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc
+    return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
+            "viscous_std_n_s_m": float(sd[1]), "friction_n": float(th[2]), "delay_samples": float(dly),
+            "samples": float(n)}
+
+
+def _driven_credible(f: dict[str, float] | None) -> bool:
+    return (f is not None and f["mass_kg"] > 0.0 and math.isfinite(f["mass_std_kg"])
+            and f["mass_std_kg"] <= PROBE_JOINT_MAX_REL_STD * f["mass_kg"])
 
 
 def _accel(t: list[float], x: list[float]) -> float:
@@ -230,6 +318,12 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
         raise SanityError(f"sanity: breakaway {short[0].breakaway_n:.3g} N leaves too little force under the cap "
                           f"{short[0].f2_n:.3g} N for two acceleration levels (need {PROBE_MIN_LEVEL_RATIO:g}x apart); "
                           "raise --max-force, safety.max_force_n or controller.max_force_n")
+    driven: list[dict[str, float] | None] = []
+    if not masses and dirs:
+        # the levels were too short for two accelerations: the fit over every driven cycle (levels and brake)
+        driven = [probe_driven_fit(d.x_drive, d.u_drive, d.breakaway_n, d.dt_s, d.sign) for d in dirs]
+        if all(_driven_credible(f) for f in driven):
+            masses = [f["mass_kg"] for f in driven if f is not None]
     if not masses:
         if v_stop_m_s is None:
             raise SanityError("sanity: the accelerations under two force levels could not be measured (too little "
@@ -241,6 +335,16 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
     m = float(np.median(masses))
     m_std = (max(masses) - min(masses)) / 2 + 0.05 * abs(m)
     mass_from = "quadratic"
+    if driven:
+        quad = []
+        mass_from = "driven"
+        m_std = max(math.sqrt(sum(f["mass_std_kg"] ** 2 for f in driven if f is not None)) / len(masses),
+                    (max(masses) - min(masses)) / 2) + 0.05 * abs(m)
+        notes.append("the probe's levels were too short for two accelerations ("
+                     + ", ".join(f"{len(d.x1)} + {len(d.x2)}" for d in dirs)
+                     + f" cycles): mass {m:.4g} ± {m_std:.2g} kg from a mass + viscous fit over every driven cycle "
+                     "(levels and brake), viscous "
+                     + ", ".join(f"{f['viscous_n_s_m']:.3g}" for f in driven if f is not None) + " N s/m")
     if joint_m and len(joint_m) == len(masses):
         # every direction's joint fit is credible and finds a viscous force that biases the quadratic mass
         mj = [v for v, _ in joint_m]
@@ -265,7 +369,7 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
         jm = float(np.median(mc))
         js = max(math.sqrt(sum(s ** 2 for _, s in joint_c)) / len(joint_c), (max(mc) - min(mc)) / 2)
     return SanityResult(m, masses, brk, notes, mass_std_kg=m_std, mass_from=mass_from, quadratic_mass_kg=quad,
-                        joint=joint, joint_mass_kg=jm, joint_mass_std_kg=js)
+                        joint=joint, joint_mass_kg=jm, joint_mass_std_kg=js, driven=driven)
 
 
 #: the FRF's mass is refused when it differs from the probe's by more than this many combined standard errors

@@ -75,6 +75,13 @@ class ProbeDirection:
     t2: list[float] = field(default_factory=list)
     x2: list[float] = field(default_factory=list)
     max_reverse_m: float = 0.0
+    #: every cycle from the breakaway's detection to the end of the brake: the position [m] and the force the
+    #: probe commanded that cycle [N, signed] (``analysis.probe_driven_fit`` reads them where ACC1/ACC2 are too
+    #: short for two accelerations)
+    x_drive: list[float] = field(default_factory=list)
+    u_drive: list[float] = field(default_factory=list)
+    #: the loop period [s] the probe ran at
+    dt_s: float = math.nan
 
 
 #: the probe's acceleration levels: the upper one at PROBE_TOP_X_BREAKAWAY × F_b (or the force cap), the lower
@@ -202,9 +209,10 @@ class SanityProbe:
             if disp >= self.d_detect:
                 u_now = min(self.f_lim * min(self._tau / self.t_ramp, 1.0), self.f_cap)
                 d.breakaway_n = u_now
+                d.dt_s = dt
                 d.f1_n, d.f2_n = probe_levels(u_now, self.f_acc)
                 self._next("ACC1", x)
-                return s * d.f1_n
+                return self._drive(d, x, s * d.f1_n)
             if self._tau >= self.t_ramp:
                 d.outcome = "no_motion"
                 return self._finish()
@@ -219,20 +227,20 @@ class SanityProbe:
             if v_pk >= self.v_brake:
                 self.braked_early.append((s, ph, v_pk, len(tl)))
                 self._next("BRAKE", x)
-                return -s * d.f2_n
+                return self._drive(d, x, -s * d.f2_n)
             if s * (x - self._xp) >= span or s * v >= v_end or self._tau >= self.t_acc:
                 if ph == "ACC1" and d.f2_n >= PROBE_MIN_LEVEL_RATIO * d.f1_n:
                     self._next("ACC2", x)
-                    return s * d.f2_n
+                    return self._drive(d, x, s * d.f2_n)
                 self._next("BRAKE", x)
-                return -s * d.f2_n
-            return s * (d.f1_n if ph == "ACC1" else d.f2_n)
+                return self._drive(d, x, -s * d.f2_n)
+            return self._drive(d, x, s * (d.f1_n if ph == "ACC1" else d.f2_n))
         if ph == "BRAKE":
             early = bool(self.braked_early) and self.braked_early[-1][0] == s
             if s * v <= 0.0 or self._tau >= self.t_acc or (early and self._stopping(dt, v, s)):
                 self._next("REST", x)
-                return 0.0
-            return -s * d.f2_n
+                return self._drive(d, x, 0.0)
+            return self._drive(d, x, -s * d.f2_n)
         # REST
         if self._tau >= self.t_rest:
             d.outcome = "ok"
@@ -243,6 +251,13 @@ class SanityProbe:
                 return 0.0
             return self._finish()
         return 0.0
+
+    @staticmethod
+    def _drive(d: ProbeDirection, x: float, u: float) -> float:
+        """Keep this cycle's position and commanded force in ``d``'s driven record; returns ``u``."""
+        d.x_drive.append(x)
+        d.u_drive.append(u)
+        return u
 
     def _finish(self) -> float:
         self.done = True
