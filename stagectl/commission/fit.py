@@ -24,7 +24,8 @@ model file's content (``docs/commissioning.md`` §4).
   by the ratio of a rigid friction's residual to the Maxwell-slip regression's (:func:`fit_presliding`,
   ``PRESLIDING_EVIDENCE_RATIO``), the offset by the constant-velocity passes' even part, confirmed by the slow
   passes (:func:`stagectl.commission.analysis.offset_evidence`; left to discover where it named a spring or an
-  asymmetry, which contain one);
+  asymmetry, which contain one); a spring discover named gets its stiffness and rest position from the slow
+  passes (:func:`slow_pass_spring`: discover's constant part is confounded with the pre-sliding elements);
   discover's verdict is reported beside (``discovery.evidence``);
 * pre-sliding (when named): the GMS elements are refitted on the reversals and the pre-sliding
   loops (the constant-velocity passes only when these have no slow rows: :func:`presliding_recordings`)
