@@ -24,7 +24,8 @@ model file's content (``docs/commissioning.md`` §4).
   by the ratio of a rigid friction's residual to the Maxwell-slip regression's (:func:`fit_presliding`,
   ``PRESLIDING_EVIDENCE_RATIO``), the offset by the constant-velocity passes' even part, confirmed by the slow
   passes (:func:`stagectl.commission.analysis.offset_evidence`; left to discover where it named a spring or an
-  asymmetry, which contain one);
+  asymmetry, which contain one); a spring discover named gets its stiffness and rest position from the slow
+  passes (:func:`slow_pass_spring`: discover's constant part is confounded with the pre-sliding elements);
   discover's verdict is reported beside (``discovery.evidence``);
 * pre-sliding (when named): the GMS elements are refitted on the reversals and the pre-sliding
   loops (the constant-velocity passes only when these have no slow rows: :func:`presliding_recordings`)
@@ -529,6 +530,15 @@ def slow_pass_levels(rec: Recorder, mass_kg: float, period_s: float,
     common to both directions (a position force does not depend on the direction). The even part is
     ``(c₊ + c₋)/2`` at the rows' mean position (an offset, or a spring's force there). None when the passes do
     not cover both directions."""
+    f = _slow_pass_fit(rec, mass_kg, period_s, cogging)
+    return None if f is None else (f["even_n"], f["slope_n_m"], f["travel_m"])
+
+
+def _slow_pass_fit(rec: Recorder, mass_kg: float, period_s: float,
+                   cogging: Mapping[str, Any] | None = None) -> dict[str, float] | None:
+    """:func:`slow_pass_levels`' regression with what a spring's rest position needs besides: the rows' mean
+    position ``x_mean_m`` [m] (where the even part is), the odd part ``(c₊ − c₋)/2`` [N] and the mean
+    speed [m/s]."""
     x, y, vr, ok = _settled_cruise_rows(rec, mass_kg, period_s)
     if cogging is not None:
         y = y - _cogging_force(cogging, x)
@@ -536,10 +546,49 @@ def slow_pass_levels(rec: Recorder, mass_kg: float, period_s: float,
     if pos.sum() < 10 or neg.sum() < 10:
         return None
     sel = pos | neg
-    xc = x[sel] - float(np.mean(x[sel]))
-    A = np.column_stack([pos[sel].astype(np.float64), neg[sel].astype(np.float64), xc])
+    xm = float(np.mean(x[sel]))
+    A = np.column_stack([pos[sel].astype(np.float64), neg[sel].astype(np.float64), x[sel] - xm])
     th = np.linalg.lstsq(A, y[sel], rcond=None)[0]
-    return float(0.5 * (th[0] + th[1])), float(th[2]), float(np.ptp(x[sel]))
+    return {"even_n": float(0.5 * (th[0] + th[1])), "slope_n_m": float(th[2]), "travel_m": float(np.ptp(x[sel])),
+            "x_mean_m": xm, "odd_n": float(0.5 * (th[0] - th[1])), "speed_m_s": float(np.mean(np.abs(vr[sel])))}
+
+
+#: a spring discover named takes its stiffness and rest position from the slow passes when their slope has
+#: its sign and lies within this factor of its stiffness (the factor the offset's two experiments must agree
+#: within, analysis.OFFSET_AGREEMENT)
+SPRING_AGREEMENT = 2.0
+
+
+def slow_pass_spring(rec: Recorder, mass_kg: float, period_s: float, spring: Mapping[str, Any],
+                     effects: Mapping[str, Any], cogging: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The spring ``k·(x − x0)`` that discover named (``spring``: its ``stiffness_n_m``, ``x0_m``), measured
+    on the slow passes over the stroke (:func:`slow_pass_levels`' regression).
+
+    ``k`` is the passes' slope; their even part ``ē`` at their mean position ``x̄`` is what the stage needs
+    there whichever way it moves: ``ē = k·(x̄ − x0) + F_0 + r·ō + d_v·|v|`` with the other named effects'
+    even parts (an ``offset`` ``F_0``; an ``asymmetry`` ``r`` times the passes' friction level ``ō =
+    (c₊ − c₋)/2``; a ``viscous_asymmetry`` ``d_v`` at their speed), so ``x0 = x̄ − (ē − F_0 − r·ō −
+    d_v·|v|)/k``. A spring and a constant force are confounded over a stroke unless both directions are
+    read at the same positions, which the slow passes do and discover's estimation set (the nested
+    reversals, held near the stroke's centre, read jointly with the pre-sliding elements) does not: on fresh
+    plant k111 of tests/commission/plant_kinds.py (444.74 N/m, x0 −198.0 µm) discover fitted 453.0 N/m,
+    x0 −208.8 µm (4.8 mN off everywhere), the slow passes 443.8 N/m, −198.0 µm, and the constant-velocity
+    passes' even part (another experiment) −198.5 µm. ``used``: the passes cover both directions and their
+    slope has discover's sign within ``SPRING_AGREEMENT``×; otherwise discover's spring stands (``reason``)."""
+    k_d = float(spring.get("stiffness_n_m", 0.0))
+    out: dict[str, Any] = {"used": False, "discover": {k: float(v) for k, v in spring.items()}}
+    f = _slow_pass_fit(rec, mass_kg, period_s, cogging)
+    if f is None:
+        return {**out, "reason": "the slow passes do not cover both directions"}
+    k = f["slope_n_m"]
+    out.update(f)
+    if not (k * k_d > 0 and max(abs(k), abs(k_d)) <= SPRING_AGREEMENT * min(abs(k), abs(k_d))):
+        return {**out, "reason": f"the slow passes' slope {k:.4g} N/m does not confirm discover's {k_d:.4g} N/m"}
+    other = float((effects.get("offset") or {}).get("force_n", 0.0))
+    other += float((effects.get("asymmetry") or {}).get("ratio", 0.0)) * f["odd_n"]
+    other += float((effects.get("viscous_asymmetry") or {}).get("difference_n_s_m", 0.0)) * f["speed_m_s"]
+    x0 = f["x_mean_m"] - (f["even_n"] - other) / k
+    return {**out, "used": True, "stiffness_n_m": k, "x0_m": float(x0), "other_even_n": other}
 
 
 def _cogging_scan(x: FloatArray, y: FloatArray, nuis: FloatArray, lams: FloatArray) -> FloatArray:
@@ -1068,6 +1117,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     names = {e.name for e in d.effects} if d is not None else set()
     decided: dict[str, dict[str, Any]] = {}
     offset_passes: dict[str, Any] | None = None
+    spring_passes: dict[str, Any] | None = None
     effects = dict(spec.get("effects") or {})
     if "slow_passes" in res_recordings:
         # with the mass unchanged by reconcile_mass (the common case) the cogging and the levels found above for
@@ -1122,6 +1172,13 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
                 else:
                     effects.pop("offset", None)
             offset_passes = oe
+        if "spring" in effects:
+            # discover's spring, read with the pre-sliding elements on the reversals near the stroke's centre,
+            # has its constant part confounded with them; the slow passes measure it (slow_pass_spring)
+            spring_passes = slow_pass_spring(res_recordings["slow_passes"], m, period_s, effects["spring"],
+                                             effects, ce if ce["present"] else None)
+            if spring_passes["used"]:
+                effects["spring"] = {k: spring_passes[k] for k in ("stiffness_n_m", "x0_m")}
         if effects:
             spec["effects"] = effects
         else:
@@ -1213,6 +1270,11 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
             keys = ("amplitude_n", "wavelength_m", "phase_rad") if name == "cogging" else ("force_n",)
             entry["parameters"] = {k: ev[k] for k in keys}
         (accepted if ev["present"] else rejected).append(entry)
+    for entry in accepted:
+        if entry.get("name") == "spring" and spring_passes is not None and spring_passes["used"]:
+            entry["discover_parameters"] = entry.get("parameters", {})
+            entry["parameters"] = {k: spring_passes[k] for k in ("stiffness_n_m", "x0_m")}
+            entry["decided_by"] = "discover; stiffness and rest position from slow_passes (slope, even part)"
     discovery: dict[str, Any] = {
         "estimation": est, "validation": val.source,
         "gap_before_n": d.gap_before if d is not None else math.nan,
@@ -1228,6 +1290,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
         "mass_kg_used": m,
         "presliding_regression": presliding,
         "offset_passes": offset_passes,
+        "spring_passes": spring_passes,
     }
     if warning is not None:
         discovery["mass_warning"] = warning
