@@ -85,6 +85,7 @@ class PidState:
     last_error_m: float = math.nan
     saturated: int = 0  # +1 / -1 when the total output was clamped, else 0
     integrating: bool = True  # False while anti-windup held the integrator this step
+    recovering: int = 0  # sgn(e) at the last clamp while the error it left still closes (no integration), else 0
     enabled: bool = True
 
 
@@ -192,6 +193,16 @@ class Pid:
         u_star = p + i_n + d + u_other_n
         pid_sat = abs(p + i_n + d) > mf
         sat_dir = (abs(u_star) > lim or pid_sat) and (u_star > 0.0) == (e > 0.0) and e != 0.0
+        rec = st.recovering
+        if rec:
+            # recovery from a clamp: the lag the clamp left is closed by P and D alone while the error keeps its
+            # sign and closes faster than the integral time, −ė_f/e > 1/T_i (T_i = Kp/Ki); integrating it would
+            # leave I standing (e = −I/K_p) past the reference. An error left closing slower (a load P alone
+            # cannot hold) ends the recovery: I integrates it
+            if e * rec > 0.0 and e * deriv * c.kp_n_m < -e * e * c.ki_n_m_s:
+                sat_dir = True
+            else:
+                st.recovering = rec = 0
         if sat_dir or hold:
             st.integrating = False
         else:
@@ -217,6 +228,8 @@ class Pid:
         else:
             sat = 0
         st.saturated = sat
+        if (sat or u_pid != p + i_n + d) and e != 0.0 and c.ki_n_m_s > 0.0:
+            st.recovering = 1 if e > 0.0 else -1
         if (sat or u_pid != p + i_n + d) and c.ki_n_m_s > 0.0 and not hold:
             # back-calculation (next step's I): the part of the command the clamps cut off leaves I at 1/T_t,
             # as far as I pushes that way (I is unwound towards 0, never driven across it by the other terms)
