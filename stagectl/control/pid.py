@@ -85,7 +85,9 @@ class PidState:
     last_error_m: float = math.nan
     saturated: int = 0  # +1 / -1 when the total output was clamped, else 0
     integrating: bool = True  # False while anti-windup held the integrator this step
-    recovering: int = 0  # sgn(e) at the last clamp while the error it left still closes (no integration), else 0
+    recovering: int = 0  # sgn(e) at the last clamp while the error it left is a transient (no integration), else 0
+    recovery_s: float = 0.0  # time since the last clamp while recovering [s]
+    recovery_closed: bool = False  # the error has closed faster than T_i since the last clamp
     enabled: bool = True
 
 
@@ -195,12 +197,17 @@ class Pid:
         sat_dir = (abs(u_star) > lim or pid_sat) and (u_star > 0.0) == (e > 0.0) and e != 0.0
         rec = st.recovering
         if rec:
-            # recovery from a clamp: the lag the clamp left is closed by P and D alone while the error keeps its
-            # sign and closes faster than the integral time, −ė_f/e > 1/T_i (T_i = Kp/Ki); integrating it would
-            # leave I standing (e = −I/K_p) past the reference. An error left closing slower (a load P alone
-            # cannot hold) ends the recovery: I integrates it
-            if e * rec > 0.0 and e * deriv * c.kp_n_m < -e * e * c.ki_n_m_s:
+            # recovery from a clamp: the error the clamp left (a lag the stage catches up, an excess it brakes
+            # off) is a transient for P and D; integrating it left I standing past the reference (e = −I/K_p).
+            # I waits while the error keeps its sign, for at most T_i = Kp/Ki after the clamp, and once the
+            # error has closed faster than T_i (|ė_f|·T_i > |e|, e·ė_f < 0) until that closing slows: the rest
+            # (a load P alone cannot hold) is integrated
+            st.recovery_s += dt
+            fast = abs(deriv) * c.kp_n_m > abs(e) * c.ki_n_m_s and e * deriv < 0.0
+            if e * rec > 0.0 and st.recovery_s * c.ki_n_m_s < c.kp_n_m and (fast or not st.recovery_closed):
                 sat_dir = True
+                if fast:
+                    st.recovery_closed = True
             else:
                 st.recovering = rec = 0
         if sat_dir or hold:
@@ -230,6 +237,8 @@ class Pid:
         st.saturated = sat
         if (sat or u_pid != p + i_n + d) and e != 0.0 and c.ki_n_m_s > 0.0:
             st.recovering = 1 if e > 0.0 else -1
+            st.recovery_s = 0.0
+            st.recovery_closed = False
         if (sat or u_pid != p + i_n + d) and c.ki_n_m_s > 0.0 and not hold:
             # back-calculation (next step's I): the part of the command the clamps cut off leaves I at 1/T_t,
             # as far as I pushes that way (I is unwound towards 0, never driven across it by the other terms)
