@@ -1,4 +1,5 @@
-"""PID position controller with filtered derivative, conditional-integration anti-windup and clamp.
+"""PID position controller with filtered derivative, conditional-integration anti-windup (held through the
+recovery from a clamp), back-calculation and clamp.
 
 Continuous law (gains in physical units)::
 
@@ -22,8 +23,20 @@ Algorithm per step, in LinuxCNC ``pid`` order:
 1. e = x_ref − x_meas; P = Kp·e; D = Kd·ė_f.
 2. Anti-windup (conditional integration): the candidate total u* = P + I + D + u_other is computed with
    the old integral term I; the integral is advanced (I += Ki·e·dt) unless |u*| exceeds the output
-   limit *and* sgn(u*) = sgn(e) (saturated in the direction of the error). I is then clamped to
-   ±``integrator_limit_n``.
+   limit *and* sgn(u*) = sgn(e) (saturated in the direction of the error), or while it recovers from a clamp
+   (below). I is then clamped to ±``integrator_limit_n``.
+
+   Recovery: a clamp (step 3) leaves an error P and D work off (a lag the stage catches up once the force comes
+   back, an excess it brakes off). Integrated, that transient left I standing once the error closed, and the
+   stage ran ahead of the reference by e = −I/K_p until I unwound over T_i (a 1 mm move at 1 m/s² on a 1.5 N
+   drive: 118 µm of lag, I ≈ 0.2 N, 15.5 µm ahead while cruising and 30 µm past the target; now never ahead
+   and 11 µm past). After a clamp with error e₀, I is held while sgn(e) = sgn(e₀) and
+
+       t_since_clamp < T_i = Kp/Ki,   and   not (the error has closed fast, then slowly),
+
+   "fast" meaning |ė_f|·T_i > |e| with e·ė_f < 0. An error P alone cannot close (an unmodelled load: it settles
+   at e = F/K_p) thus ends the hold as its closing slows, at the latest T_i after the clamp. A loop never
+   clamped runs as without it.
 3. u_pid = clamp(P + I + D, ±``max_force_n``); total u = clamp(u_pid + u_other, ±limit_n).
 4. Back-calculation (for the next step): when a clamp cut the command, the excess
    x = P + I + D + u_other − u is taken out of I at the tracking rate, as far as I pushes the same way
