@@ -105,7 +105,7 @@ def test_low_drive_limit_warns_once_and_the_controller_works_within_it(caplog: p
     hidden = _fast_move(_cfg(max_force_n=LIMIT_N), hide_limit=True)
     assert np.max(np.abs(hidden["u_vs_applied"])) > 1.0  # recorded up to 10 N, applied 1.5 N
     # an observer fed the commanded force takes the missing force for a disturbance and winds up; the stage then
-    # overshoots the reference by far more when it has caught up (simulated: ~90 um hidden, ~30 um told)
+    # overshoots the reference by far more when it has caught up (simulated: ~90 um hidden, ~11 um told)
     # (judged while the reference moves: what the rest structure does afterwards is another matter)
     mt, mh = _moving(told), _moving(hidden)
     assert np.max(np.abs(hidden["u_dob"][mh])) > 5.0
@@ -126,3 +126,20 @@ def test_drive_without_0x6072_keeps_max_force_n(caplog: pytest.LogCaptureFixture
         assert st.loop.status().fault is None
         assert st.controller.force_limit_n == 10.0
     assert not [r for r in caplog.records if "limited to" in r.getMessage()]
+
+
+def test_the_saturated_move_does_not_run_past_its_target():
+    """The fast move on the 1.5 N drive lags ~118 µm while the force is clamped. The PID integrator held only
+    while clamped: it wound ~0.2 N while P and D caught the lag up, so the stage cruised up to 15.5 µm ahead of
+    the reference (e = −I/K_p) and ran 30 µm past the target. It now waits until the error crosses zero (or at
+    most T_i; ``stagectl.control.pid``): the stage stays behind the cruising reference and passes the target by
+    11 µm, what the clamped deceleration with its cycle of delay gives (1.4 µm on a 20 N drive)."""
+    run = _fast_move(_cfg(max_force_n=LIMIT_N))
+    e = run["x_ref"] - run["x"]
+    assert np.max(e) > 100e-6  # the clamped lag (118 µm)
+    cruise = (run["t"] > 0.03) & (run["t"] < 0.1)  # 10 mm/s from 10 ms until the deceleration at 100 ms
+    assert np.all(run["x_ref"][cruise] < 1e-3) and np.ptp(np.diff(run["x_ref"][cruise])) < 1e-12
+    assert -np.min(e[cruise]) < 1e-6  # measured: never ahead (15.5 µm ahead before)
+    past = np.max(run["x"]) - run["x_ref"][-1]
+    assert past < 15e-6, past  # measured 11.0 µm (30.0 µm before)
+    assert abs(e[-1]) < 1e-6

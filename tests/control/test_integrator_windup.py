@@ -71,6 +71,46 @@ def test_the_integrator_may_exceed_the_clamp_by_what_the_other_terms_oppose():
     assert abs(x) < 1e-7, x  # measured 0 µm; 198 µm with |I| <= 10 N
 
 
+def _ramp_after_rest(load_n: float, recovery: bool = True) -> np.ndarray:
+    """The PID law alone (HIL gains) on a 2 kg mass with 20 N·s/m of damping, one cycle of actuation delay, a
+    constant load; the reference starts at once at 10 mm/s with a feed-forward of the damping force (0.2 N) and a
+    1.5 N force clamp: the stage lags ~90 µm while clamped. ``recovery`` False: the recovery hold switched off
+    (as before it). Returns the error e = x_ref − x [m] per cycle over 0.6 s."""
+    dut = Pid(PidConfig(**HIL_PID))
+    x = v = u = u_prev = 0.0
+    h = T / 10
+    err = []
+    for k in range(600):
+        xr = 0.01 * k * T
+        err.append(xr - x)
+        if not recovery:
+            dut.state.recovering = 0
+        u_prev, u = u, dut.step(T, xr, x, 0.01, u_other_n=0.2, limit_n=1.5)
+        for _ in range(10):
+            v += (u_prev - load_n - 20.0 * v) / 2.0 * h
+            x += v * h
+    return np.array(err)
+
+
+def test_the_integrator_waits_out_the_lag_a_force_clamp_left():
+    """Conditional integration held I only while the output was clamped: the ~90 µm lag the clamp left was then
+    integrated while P and D caught it up, and the 0.2 N wound into I carried the stage 17 µm past the reference
+    (e = −I/K_p), unwinding over T_i. I now waits until the error crosses zero (0.2 µm past)."""
+    old, new = _ramp_after_rest(0.0, recovery=False), _ramp_after_rest(0.0)
+    assert np.max(old) == pytest.approx(np.max(new)) and np.max(new) > 80e-6  # the same clamped lag
+    assert -np.min(old) > 15e-6  # measured 17.0 µm past the reference
+    assert -np.min(new) < 1e-6  # measured 0.21 µm
+    assert np.max(np.abs(new[100:])) < 2e-6  # measured 1.1 µm after 0.1 s (16.8 µm before)
+
+
+@pytest.mark.parametrize("load_n", [0.5, -0.5])
+def test_a_load_after_the_clamp_is_still_integrated(load_n: float):
+    """A constant load P alone cannot hold (1/3 of the clamp; e = F/K_p = 51 µm) ends the wait once the error's
+    fast closing slows (or at T_i after the clamp): the stage ends on the reference."""
+    err = _ramp_after_rest(load_n)
+    assert np.max(np.abs(err[400:])) < 0.1e-6  # measured 8.6 nm / 5.7 nm after 0.4 s
+
+
 class StickSlip:
     """Mass on Karnopp friction (static fs, kinetic fc + viscous c), the force applied one cycle late."""
 
