@@ -126,3 +126,39 @@ def test_drive_without_0x6072_keeps_max_force_n(caplog: pytest.LogCaptureFixture
         assert st.loop.status().fault is None
         assert st.controller.force_limit_n == 10.0
     assert not [r for r in caplog.records if "limited to" in r.getMessage()]
+
+
+def test_commissioning_hands_the_drive_limit_to_the_controllers_it_verifies() -> None:
+    """Commissioning's loop drives one :class:`CommissionController`; its verification runs install the given and
+    the commissioned controller (``make_controller``: the configuration's 10 N) in it with no clamp of their own
+    (``set_closed``, limit inf). They must work at the drive's 1.5 N as under ``stagectl run``: with the limit
+    hidden from them (main at 7b6f7d9) the observer took the withheld force for a disturbance, d̂ up to 8.5 N
+    while the reference moved."""
+    from stagectl.app import make_controller
+    from stagectl.commission.controllers import CommissionController
+
+    cfg = _cfg(max_force_n=LIMIT_N)
+    dob: list[tuple[float, float]] = []   # (x_ref, u_dob)
+    with build_stage(cfg, clock=SimClock(), controller=CommissionController(make_controller(cfg))) as st:
+        ctl = st.controller
+        assert isinstance(ctl, CommissionController)
+        i_dob = list(st.loop.columns).index("u_dob")
+
+        class Sink:
+            def append(self, row: tuple[float, ...]) -> None:
+                dob.append((row[3], row[i_dob]))
+
+        st.loop.add_sink(Sink())
+        st.loop.run(duration_s=0.01)  # an earlier experiment: the loop's start hands the limit over
+        dob.clear()
+        verified = make_controller(cfg)   # as Commissioning._scenario_run builds it, after the loop's start
+        assert verified.force_limit_n == 10.0
+        ctl.set_closed(verified)
+        st.load_scenario(Scenario("fast", (Move(by_m=1e-3, max_velocity_m_s=0.01, max_acceleration_m_s2=1.0,
+                                                 max_jerk_m_s3=1e4),), settle_s=0.2))
+        res = st.loop.run(duration_s=0.2)
+        assert res.fault is None, res.fault
+        assert verified.force_limit_n == pytest.approx(LIMIT_N)
+    a = np.array(dob)
+    moving = np.arange(len(a)) <= np.nonzero(np.diff(a[:, 0]) != 0.0)[0][-1] + 1   # (as _moving above)
+    assert np.max(np.abs(a[moving, 1])) < 1.0
