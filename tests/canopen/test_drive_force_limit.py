@@ -162,3 +162,26 @@ def test_commissioning_hands_the_drive_limit_to_the_controllers_it_verifies() ->
     a = np.array(dob)
     moving = np.arange(len(a)) <= np.nonzero(np.diff(a[:, 0]) != 0.0)[0][-1] + 1   # (as _moving above)
     assert np.max(np.abs(a[moving, 1])) < 1.0
+
+
+
+def test_a_drive_whose_max_torque_is_zero_is_named_at_start(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A drive whose 0x6072 reads 0 clamps every command to nothing. The loop says so at start, naming the object
+    (main at 7b6f7d9 said nothing: a limit not > 0 was skipped as "no limit of its own")."""
+    eds = (ROOT / "config" / "eds" / "stagectl_cia402.eds").read_text()
+    head, _, tail = eds.partition("[6072]")
+    body, sep, rest = tail.partition("\n\n")
+    assert "DefaultValue=3000" in body
+    (tmp_path / "zero.eds").write_text(head + "[6072]" + body.replace("DefaultValue=3000", "DefaultValue=0")
+                                       + sep + rest)
+    data = yaml.safe_load(SIM_YAML.read_text())
+    data["io"]["kind"] = "embedded_canopen"
+    data["sim"]["drive"]["eds_file"] = str(tmp_path / "zero.eds")
+    data["sim"]["plant"]["actuator"]["max_force_n"] = math.inf  # (the virtual drive keeps the EDS's 0x6072)
+    cfg = parse_app_config(data, SIM_YAML)
+    with caplog.at_level(logging.WARNING), build_stage(cfg, clock=SimClock()) as st:
+        assert st.actuator.drive_max_units == 0 and st.actuator.force_limit_n == 0.0
+        st.loop.run(duration_s=0.005)
+        st.loop.run(duration_s=0.005)
+    warned = [r.getMessage() for r in caplog.records if "0x6072 = 0 units" in r.getMessage()]
+    assert len(warned) == 1 and "gets no force" in warned[0], [r.getMessage() for r in caplog.records]
