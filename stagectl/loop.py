@@ -507,6 +507,13 @@ class ControlLoop:
         below ``controller.max_force_n`` or ``safety.max_force_n`` is told once per value as a warning naming
         both and where each comes from; the master never raises the drive's limit itself."""
         lim = getattr(self.actuator, "force_limit_n", None)
+        if isinstance(lim, (int, float)) and lim <= 0.0 and lim != self._act_lim_warned:
+            # (a drive whose max torque 0x6072 reads 0 clamps every command to nothing: say so, or the first
+            # sign of it is a following-error fault with the controller wound up against an unseen clamp)
+            self._act_lim_warned = float(lim)
+            log.warning("%s: the force is limited to %.4g N by %s: the stage gets no force; raise the drive's "
+                        "limit (the integrator's setting, 0x6072 on a CiA 402 drive)", self.actuator.name, lim,
+                        getattr(self.actuator, "force_limit_source", "its own limit"))
         if not isinstance(lim, (int, float)) or not (lim > 0.0 and math.isfinite(lim)):
             return
         lim = float(lim)

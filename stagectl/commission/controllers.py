@@ -487,12 +487,26 @@ class CommissionController:
         self.limit_n = math.inf
         self.on_probe_done: Callable[[], None] | None = None
         self.ladder: SpeedLadderFeedforward | None = None
+        #: the actuator's own force limit [N] the loop handed over (:meth:`set_actuator_limit`; inf: none)
+        self.actuator_limit_n = math.inf
+
+    def set_actuator_limit(self, limit_n: float) -> None:
+        """The drive's own force limit [N] (a CiA 402 drive's max torque 0x6072, handed over by the loop at each
+        start, ``ControlLoop._adopt_actuator_limit``): given to the inner controller now and to every one
+        :meth:`set_closed` installs later. The verification's runs put the given and the commissioned controller
+        (their configuration's ``max_force_n``, maybe above the drive's limit) in here: told of the limit they
+        saturate and stop integrating where the drive does, as under ``stagectl run``; not told, their observer
+        would take the force the drive withholds for a disturbance and wind up."""
+        self.actuator_limit_n = float(limit_n)
+        self.inner.set_actuator_limit(self.actuator_limit_n)
 
     def set_closed(self, inner: StageController, excitation: FloatArray | None = None,
                    limit_n: float = math.inf, ladder: SpeedLadderFeedforward | None = None) -> None:
         """Closed loop with ``inner`` (+ the ``excitation`` samples), the sum clamped to ±``limit_n``; with
         ``ladder`` (its feed-forward must be ``inner``'s) the friction feed-forward learns from the cruises."""
         self.inner = inner
+        if math.isfinite(self.actuator_limit_n):
+            inner.set_actuator_limit(self.actuator_limit_n)
         self.limit_n = limit_n
         self.probe = None
         self.follow = None
