@@ -1,0 +1,71 @@
+"""Constant sliding speeds the chosen loop cannot hold (stagectl.commission.sliding): a steep Stribeck drop is a
+negative damping; below the loop's negative-damping limit sliding limit-cycles."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from stagectl.commission.analysis import stribeck_curve_at
+from stagectl.commission.sequence import sliding_check
+from stagectl.commission.sliding import _closed_loop_poles, net_slope, sliding_line, unstable_sliding
+from stagectl.control.pid import PidConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+T = 1e-3
+#: the gains commissioning chose for the steep stage (19 Hz PID, Q-filter 95 Hz, 1 kg, one cycle of delay)
+PID = PidConfig(kp_n_m=4442.154, ki_n_m_s=53030.67, kd_n_s_m=111.63, derivative_cutoff_hz=95.0)
+STEEP = {"fs_n": 3.2, "fc_n": 2.5, "vs_m_s": 2e-3, "delta": 2.0, "viscous_n_s_m": 40.0}
+
+
+def test_net_slope_is_the_curves_derivative() -> None:
+    # oracle: central differences of the curve the fit reports
+    v = np.logspace(-5, -1, 40)
+    h = 1e-4 * v
+    fd = (stribeck_curve_at(STEEP, v + h) - stribeck_curve_at(STEEP, v - h)) / (2 * h)
+    assert np.allclose(net_slope(STEEP, v), fd, rtol=1e-5, atol=1e-6)
+
+
+def test_steep_drop_flags_the_band_the_exact_model_limit_cycles_in() -> None:
+    s = unstable_sliding(STEEP, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert s is not None
+    assert math.isclose(s["worst_net_slope_n_s_m"], -260.0, abs_tol=3.0)
+    assert math.isclose(s["worst_speed_m_s"], 1.41e-3, rel_tol=0.05)
+    # the loop's own limit: stable just above it, unstable just below
+    lim = s["damping_limit_n_s_m"]
+    assert -230.0 < lim < -170.0
+    assert np.all(np.abs(_closed_loop_poles(1.0, T, PID, 1, "qfilter", 95.0, lim + 2.0)) < 1.0)
+    assert np.any(np.abs(_closed_loop_poles(1.0, T, PID, 1, "qfilter", 95.0, lim - 2.0)) >= 1.0)
+    # the open-loop plant at the worst slope has its pole at -c/m = +260 1/s (unstable without the loop)
+    assert len(s["bands_m_s"]) == 1
+    lo, hi = s["bands_m_s"][0]
+    # the exact model limit-cycles at 1.0-1.8 mm/s; the linearised band contains that and is not much wider
+    assert 0.75e-3 < lo <= 1.0e-3 and 1.8e-3 <= hi < 2.3e-3
+    # every flagged speed has a net slope below the limit, every speed outside the band one above it
+    v = np.array([lo, hi])
+    assert np.all(net_slope(STEEP, v) < lim + 10.0)
+    assert np.all(net_slope(STEEP, np.array([0.9 * lo, 1.1 * hi])) > lim - 10.0)
+    assert 25.0 < s["limit_cycle_hz"] < 50.0  # the exact model's cycle: ~40 Hz
+    line = sliding_line(s)
+    assert line is not None and "limit-cycle" in line and f"{1e3 * lo:.2g}" in line and f"{1e3 * hi:.2g}" in line
+
+
+def test_sequence_wrapper_reads_the_chosen_design() -> None:
+    pid = {"kp_n_m": PID.kp_n_m, "ki_n_m_s": PID.ki_n_m_s, "kd_n_s_m": PID.kd_n_s_m, "derivative_cutoff_hz": 95.0}
+    gains = {"mass_kg": 1.0, "delay_samples": 1, "chosen": {"pid": pid, "dob_kind": "qfilter", "dob_bandwidth_hz": 95.0}}
+    s = sliding_check(gains, STEEP, T)
+    assert s is not None and s["bands_m_s"]
+    assert sliding_check(gains, None, T) is None
+
+
+def test_gentle_or_no_drop_flags_nothing() -> None:
+    fr = yaml.safe_load((ROOT / "config/models/kamenar2016_gms.yaml").read_text())["friction"]
+    sim = {k: float(fr[k]) for k in ("fs_n", "fc_n", "vs_m_s", "delta", "viscous_n_s_m")}
+    s = unstable_sliding(sim, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert s is not None and s["bands_m_s"] == [] and sliding_line(s) is None
+    assert s["worst_net_slope_n_s_m"] < 0.0  # negative, but well inside what the loop holds
+    flat = {**STEEP, "fs_n": STEEP["fc_n"]}
+    s = unstable_sliding(flat, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert s is not None and s["bands_m_s"] == [] and s["worst_net_slope_n_s_m"] >= 40.0 - 1e-9
