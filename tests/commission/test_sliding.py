@@ -69,3 +69,56 @@ def test_gentle_or_no_drop_flags_nothing() -> None:
     flat = {**STEEP, "fs_n": STEEP["fc_n"]}
     s = unstable_sliding(flat, 1.0, T, PID, 1, "qfilter", 95.0)
     assert s is not None and s["bands_m_s"] == [] and s["worst_net_slope_n_s_m"] >= 40.0 - 1e-9
+
+
+def _const_speed_rms(cfg_path: Path, v: float) -> float:
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.commission.sequence import verification_lead
+    from stagectl.config import load_app_config
+    from stagectl.control.trajectory import Scenario, Triangle
+    from stagectl.recorder import Recorder
+
+    cfg = load_app_config(cfg_path)
+    seg = Triangle(span_m=1e-3, velocity_m_s=v, max_acceleration_m_s2=0.02, max_jerk_m_s3=1.0, cycles=1)
+    full = Scenario(name="t", segments=(*verification_lead(0.0, 0.002), seg), start_m=0.0)
+    dur = full.duration_s(0.0) + 0.2
+    with build_stage(cfg, clock=SimClock()) as st:
+        rec = Recorder(st.loop.columns, capacity=int(dur / T) + 16)
+        st.loop.add_sink(rec)
+        st.load_scenario(full)
+        st.loop.run(duration_s=dur)
+    c = list(rec.columns)
+    D = rec.data
+    t = D[:, 0] - D[0, 0]
+    m = (t > 0.7) & (np.abs(D[:, c.index("v_ref")]) >= 0.999 * v)
+    return float(np.sqrt(np.mean(D[m, c.index("e")] ** 2)))
+
+
+def test_the_exact_model_limit_cycles_inside_the_band_only(tmp_path: Path) -> None:
+    # oracle: the real loop (PID + Q-filter + the exact GMS model's feed-forward) on the simulated plant with
+    # the steep curve, at constant speeds inside and outside the flagged band
+    from support import shipped_config_mapping
+
+    fr = {"model": "gms", "k_n_m": [2.0e5, 5.0e4, 1.5e4, 5.0e3], "alpha": [0.4, 0.3, 0.2, 0.1],
+          "sigma1_n_s_m": [74.0, 18.5, 5.6, 1.9], "c_n_s": 3.0e4, **STEEP}
+    (tmp_path / "exact.yaml").write_text(yaml.safe_dump({"mass_kg": 1.0, "friction": fr}))
+    data = shipped_config_mapping("sim.yaml")
+    data["io"] = {"kind": "plant_io", "sensor": "drive", "delay_cycles": 1}
+    data["sim"]["plant"] = {k: v for k, v in data["sim"]["plant"].items() if k != "model_file"}
+    data["sim"]["plant"].update(mass_kg=1.0, friction=fr)
+    data["controller"] = {
+        "mass_kg": 1.0, "max_force_n": 10.0,
+        "pid": {"kp_n_m": PID.kp_n_m, "ki_n_m_s": PID.ki_n_m_s, "kd_n_s_m": PID.kd_n_s_m,
+                "derivative_cutoff_hz": 95.0},
+        "dob": {"kind": "qfilter", "bandwidth_hz": 95.0, "command_delay_samples": 1},
+        "feedforward": {"kind": "model", "model_file": str(tmp_path / "exact.yaml"), "inertia": True,
+                        "lookahead_s": 0.0015}}
+    data.pop("demo", None)
+    (tmp_path / "stage.yaml").write_text(yaml.safe_dump(data))
+    s = unstable_sliding(STEEP, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert s is not None
+    lo, hi = s["bands_m_s"][0]
+    inside = _const_speed_rms(tmp_path / "stage.yaml", math.sqrt(lo * hi))
+    outside = _const_speed_rms(tmp_path / "stage.yaml", 1.25 * hi)
+    assert inside > 1e-6 and outside < 0.3e-6, (inside, outside)
