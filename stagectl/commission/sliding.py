@@ -82,7 +82,8 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
 
     Over a log-spaced grid (``GRID_LO``..``GRID_HI`` × v_s) the net slope c(v) (:func:`net_slope`); at each
     negative one, the linear loop with damping c(v) (:func:`_closed_loop_poles`). Returns the bands of
-    unstable grid speeds ``bands_m_s`` ([[v_lo, v_hi], ...], speeds of the unstable grid points), the worst
+    unstable speeds ``bands_m_s`` ([[v_lo, v_hi], ...]; each edge bisected between its outer unstable grid
+    point and the stable neighbour), the worst
     (most negative) slope and its speed, the loop's negative-damping limit (:func:`damping_limit`), and the
     frequency [Hz] of the unstable closed-loop pair at the worst slope and at the band's onset (the onset's is
     near the limit cycle's). ``confidence``: high (a linearisation of the fitted curve with the chosen gains;
@@ -113,6 +114,22 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
             bands[-1][1] = float(v[i])
         else:
             bands.append([float(v[i]), float(v[i])])
+
+    def unstable_at(x: float) -> bool:
+        return not _stable(_closed_loop_poles(*args, float(net_slope(curve, np.array([x]))[0])))
+
+    def edge(a: float, b: float) -> float:  # unstable at a, stable at b: the crossing, to 0.1 % (log bisection)
+        for _ in range(8):
+            mid = math.sqrt(a * b)
+            a, b = (mid, b) if unstable_at(mid) else (a, mid)
+        return math.sqrt(a * b)
+
+    step = float(v[1] / v[0])
+    for band in bands:  # the band's edges between its outer grid points and their stable neighbours
+        if band[0] > v[0]:
+            band[0] = edge(band[0], band[0] / step)
+        if band[1] < v[-1]:
+            band[1] = edge(band[1], band[1] * step)
     out["bands_m_s"] = bands
     if not bands:
         out["why"] = "the net slope is negative but the loop stays stable at every grid speed"

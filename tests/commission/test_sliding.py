@@ -38,7 +38,6 @@ def test_steep_drop_flags_the_band_the_exact_model_limit_cycles_in() -> None:
     assert -230.0 < lim < -170.0
     assert np.all(np.abs(_closed_loop_poles(1.0, T, PID, 1, "qfilter", 95.0, lim + 2.0)) < 1.0)
     assert np.any(np.abs(_closed_loop_poles(1.0, T, PID, 1, "qfilter", 95.0, lim - 2.0)) >= 1.0)
-    # the open-loop plant at the worst slope has its pole at -c/m = +260 1/s (unstable without the loop)
     assert len(s["bands_m_s"]) == 1
     lo, hi = s["bands_m_s"][0]
     # the exact model limit-cycles at 1.0-1.8 mm/s; the linearised band contains that and is not much wider
@@ -122,3 +121,23 @@ def test_the_exact_model_limit_cycles_inside_the_band_only(tmp_path: Path) -> No
     inside = _const_speed_rms(tmp_path / "stage.yaml", math.sqrt(lo * hi))
     outside = _const_speed_rms(tmp_path / "stage.yaml", 1.25 * hi)
     assert inside > 1e-6 and outside < 0.3e-6, (inside, outside)
+
+
+def test_report_md_states_the_band_in_the_gains_section_and_json_keeps_it() -> None:
+    import json
+
+    from stagectl.commission.outputs import report_markdown
+
+    s = unstable_sliding(STEEP, 1.0, T, PID, 1, "qfilter", 95.0)
+    chosen = {"crossover_target_hz": 19.0, "dob_kind": "qfilter", "dob_bandwidth_hz": 95.0,
+              "pid": {"kp_n_m": PID.kp_n_m, "ki_n_m_s": PID.ki_n_m_s, "kd_n_s_m": PID.kd_n_s_m},
+              "model": {"phase_margin_deg": 43.2, "gain_margin_db": 9.1, "crossover_hz": 19.0}}
+    rep = {"status": "complete", "config": "x.yaml", "experiments": [],
+           "gains": {"chosen": chosen, "unstable_sliding": s},
+           "envelope": {"x_lo_m": -0.002, "x_hi_m": 0.002, "f_max_n": 10.0, "v_max_m_s": 0.02}}
+    md = report_markdown(rep, [])
+    gains = md.split("## Gains", 1)[1].split("\n## ", 1)[0]
+    assert "Constant speeds between 0.81 and 2.1 mm/s will limit-cycle near 35 Hz with these gains" in gains
+    assert json.loads(json.dumps(s)) == s  # plain values for report.json
+    rep["gains"]["unstable_sliding"] = unstable_sliding({**STEEP, "fs_n": 2.5}, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert "limit-cycle" not in report_markdown(rep, [])
