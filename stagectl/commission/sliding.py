@@ -155,7 +155,8 @@ def sliding_line(s: dict[str, Any] | None) -> str | None:
     lim = s.get("damping_limit_n_s_m")
     return (f"Constant speeds between {bands} will limit-cycle"
             + (f" near {hz:.2g} Hz" if hz is not None and math.isfinite(hz) else "")
-            + " with these gains (confidence " + str(s.get("confidence")) + "): the fitted friction falls with "
+            + " with these gains (confidence " + str(s.get("confidence")) + "; the edges move with the fitted "
+            "curve's v_s and δ, and near them the cycle grows slowly): the fitted friction falls with "
             f"speed faster than viscous damping rises (net slope down to {s['worst_net_slope_n_s_m']:.3g} N s/m at "
             f"{1e3 * s['worst_speed_m_s']:.2g} mm/s), beyond the "
             + (f"{lim:.3g} N s/m" if lim is not None else "given")
