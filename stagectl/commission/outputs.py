@@ -20,6 +20,7 @@ from stagectl.commission.sequence import FALLBACK_MIN_PHASE_MARGIN_DEG as FALLBA
 from stagectl.commission.sequence import MIN_GAIN_MARGIN_DB as MIN_GM
 from stagectl.commission.sequence import MIN_PHASE_MARGIN_DEG as MIN_PM
 from stagectl.commission.sequence import Results, controller_mapping
+from stagectl.commission.sliding import sliding_line
 from stagectl.config import AppConfig, load_app_config
 from stagectl.friction import StageModel, save_model_file
 from stagectl.outputs import plain
@@ -345,6 +346,9 @@ def report_markdown(rep: dict[str, Any], pngs: list[str]) -> str:
             L += ["", (f"The margins on the measured FRF leave out its lines at {', '.join(f'{x:.3g}' for x in out_hz)}"
                        " Hz: the friction's distortion dominates them (report.json frf.distortion) and their phase "
                        "leads, which a passive stage's cannot.")]
+        sl = sliding_line(rep["gains"].get("unstable_sliding"))
+        if sl:
+            L += ["", sl]
         L += _rest_lines(ch.get("rest"))
         ros = rep["gains"].get("rest_on_stage")
         if ros:

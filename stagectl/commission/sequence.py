@@ -831,6 +831,13 @@ class Commissioning:
         # the rest additions the twins advised, checked on the stage itself (the twins are built from the
         # identified model and cannot see where it is wrong)
         new_cfg = self._rest_on_stage(stage, new_cfg, xc)
+        self.res.gains["unstable_sliding"] = sliding_check(self.res.gains,
+                                                           r.cv.stribeck if r.cv is not None else None, T)
+        us = self.res.gains["unstable_sliding"]
+        if us is not None and us.get("bands_m_s"):
+            self.opts.progress("commission: gains: constant speeds " + ", ".join(
+                f"{1e3 * a:.2g}-{1e3 * b:.2g}" for a, b in us["bands_m_s"]) + " mm/s will limit-cycle with these "
+                "gains (the friction falls with speed faster than damping rises; report.md, Gains)")
 
         # 6. verification -----------------------------------------------------------------------------
         if not self.opts.verify:
@@ -1831,6 +1838,16 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     if fallback is not None:
         out["fallback"] = fallback
     return out
+
+
+def sliding_check(gains: dict[str, Any], curve: dict[str, float] | None, T: float) -> dict[str, Any] | None:
+    """:func:`stagectl.commission.sliding.unstable_sliding` for the chosen design of ``gains`` (the result of
+    :func:`choose_gains`: its mass, delay and ``chosen`` PID and observer) on the fitted Stribeck ``curve``."""
+    from stagectl.commission.sliding import unstable_sliding
+
+    ch = gains["chosen"]
+    return unstable_sliding(curve, float(gains["mass_kg"]), T, PidConfig(**ch["pid"]), int(gains["delay_samples"]),
+                            str(ch["dob_kind"]), float(ch["dob_bandwidth_hz"]))
 
 
 def given_margins(ctl: ControllerConfig, T: float, nd: int, frf: an.Frf | None) -> dict[str, Any] | None:
