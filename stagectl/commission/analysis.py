@@ -340,7 +340,8 @@ def evaluate_probe(dirs: list[ProbeDirection], f_lim_n: float, d_detect_m: float
         mass_from = "driven"
         m_std = max(math.sqrt(sum(f["mass_std_kg"] ** 2 for f in driven if f is not None)) / len(masses),
                     (max(masses) - min(masses)) / 2) + 0.05 * abs(m)
-        notes.append("the probe's levels were too short for two accelerations ("
+        notes.append("the probe's two levels gave no mass from their accelerations (too few cycles, or the "
+                     "second no faster than the first; cycles per level "
                      + ", ".join(f"{len(d.x1)} + {len(d.x2)}" for d in dirs)
                      + f" cycles): mass {m:.4g} ± {m_std:.2g} kg from a mass + viscous fit over every driven cycle "
                      "(levels and brake), viscous "
