@@ -55,6 +55,7 @@ alone had ruled out 22–35 Hz PIDs).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -133,6 +134,37 @@ class SanityResult:
                 **({"driven_fit": self.driven} if self.driven else {})}
 
 
+def _fit_over_delays(A: FloatArray, g_of: Callable[[int], FloatArray]
+                     ) -> tuple[FloatArray, FloatArray, int] | None:
+    """Least squares ``A·θ = G(d)`` for each I/O delay ``d`` = 0–3 cycles (the columns scaled to 1 once: the
+    design does not depend on the delay, only the force's double integral ``G`` does); the best-fitting delay's
+    ``(θ, sd(θ), d)``, or ``None`` when the columns are not separable (singular values under
+    :data:`PROBE_JOINT_RCOND` of the largest: no motion, one force level) at every delay. A negative variance
+    (rounding in a near-singular design) is unknown, NaN (it fails the credibility gates), not 0."""
+    sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
+    An = A / sc
+    best: tuple[float, FloatArray, int] | None = None
+    for dly in range(4):
+        G = g_of(dly)
+        th, _, rank, _ = np.linalg.lstsq(An, G, rcond=PROBE_JOINT_RCOND)
+        if rank < A.shape[1]:
+            continue
+        res = G - An @ th
+        ss = float(res @ res)
+        if best is None or ss < best[0]:
+            best = (ss, th / sc, dly)
+    if best is None:
+        return None
+    ss, th, dly = best
+    dof = max(An.shape[0] - An.shape[1], 1)
+    try:
+        cov = (ss / dof) * np.linalg.inv(An.T @ An)
+    except np.linalg.LinAlgError:
+        return None
+    var = np.diag(cov)
+    return th, np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc, dly
+
+
 def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, dt_s: float,
                     sign: int = 1) -> dict[str, float] | None:
     """Mass, viscous coefficient and friction from one probe direction's two constant-force phases.
@@ -157,30 +189,11 @@ def probe_joint_fit(x1: list[float], x2: list[float], f1_n: float, f2_n: float, 
     X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
     # the design does not depend on the delay (only the force's double integral G does): built and scaled once
     A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
-    sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
-    An = A / sc
-    best: tuple[float, FloatArray, int] | None = None
-    for dly in range(4):
-        ts = (n1 + dly) * dt_s
-        G = f1_n * t ** 2 / 2 + (f2_n - f1_n) * np.maximum(t - ts, 0.0) ** 2 / 2
-        th, _, rank, _ = np.linalg.lstsq(An, G, rcond=PROBE_JOINT_RCOND)
-        if rank < A.shape[1]:  # (m, c, F_f, p, q) not separable (no motion, one level): no estimate
-            continue
-        res = G - An @ th
-        ss = float(res @ res)
-        if best is None or ss < best[0]:
-            best = (ss, th / sc, dly)
-    if best is None:
+    fit = _fit_over_delays(A, lambda dly: f1_n * t ** 2 / 2
+                           + (f2_n - f1_n) * np.maximum(t - (n1 + dly) * dt_s, 0.0) ** 2 / 2)
+    if fit is None:
         return None
-    ss, th, dly = best
-    dof = max(An.shape[0] - An.shape[1], 1)
-    try:
-        cov = (ss / dof) * np.linalg.inv(An.T @ An)
-    except np.linalg.LinAlgError:
-        return None
-    var = np.diag(cov)
-    # a negative variance is rounding in a near-singular design: unknown (nan fails the credibility gate), not 0
-    sd = np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc
+    th, sd, dly = fit
     v1 = (xs[n1 - 1] - xs[0]) / ((n1 - 1) * dt_s)
     v2 = (xs[-1] - xs[n1]) / ((n2 - 1) * dt_s)
     return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
@@ -227,30 +240,16 @@ def probe_driven_fit(x: list[float], u: list[float], pre_force_n: float, dt_s: f
     t = dt_s * np.arange(n, dtype=np.float64)
     X1 = np.concatenate([[0.0], np.cumsum(0.5 * (xs[1:] + xs[:-1])) * dt_s])
     A = np.column_stack([xs, X1, t ** 2 / 2, -np.ones_like(t), -t])
-    sc = np.maximum(np.abs(A).max(axis=0), 1e-300)
-    An = A / sc
-    best: tuple[float, FloatArray, int] | None = None
-    for dly in range(4):
+
+    def g_of(dly: int) -> FloatArray:
         fa = np.concatenate([np.full(dly, pre_force_n), us])[:n - 1]   # the force over [t_i, t_{i+1})
         vel = np.concatenate([[0.0], np.cumsum(fa) * dt_s])[:-1]
-        G = np.concatenate([[0.0], np.cumsum(vel * dt_s + fa * dt_s ** 2 / 2)])
-        th, _, rank, _ = np.linalg.lstsq(An, G, rcond=PROBE_JOINT_RCOND)
-        if rank < A.shape[1]:
-            continue
-        res = G - An @ th
-        ss = float(res @ res)
-        if best is None or ss < best[0]:
-            best = (ss, th / sc, dly)
-    if best is None:
+        return np.concatenate([[0.0], np.cumsum(vel * dt_s + fa * dt_s ** 2 / 2)])
+
+    fit = _fit_over_delays(A, g_of)
+    if fit is None:
         return None
-    ss, th, dly = best
-    dof = max(n - A.shape[1], 1)
-    try:
-        cov = (ss / dof) * np.linalg.inv(An.T @ An)
-    except np.linalg.LinAlgError:
-        return None
-    var = np.diag(cov)
-    sd = np.sqrt(np.where(var >= 0.0, var, np.nan)) / sc
+    th, sd, dly = fit
     return {"mass_kg": float(th[0]), "mass_std_kg": float(sd[0]), "viscous_n_s_m": float(th[1]),
             "viscous_std_n_s_m": float(sd[1]), "friction_n": float(th[2]), "delay_samples": float(dly),
             "samples": float(n)}
