@@ -23,36 +23,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from plant_gen import exact_model, hidden_plant, stage_yaml
+from plant_gen import against_exact, hidden_plant, stage_yaml
 
 from stagectl.cli import main
-
-
-def against(out: Path, plant: dict[str, Any], stroke: float, tol: float) -> dict[str, Any]:
-    """The verification scenarios with ``out/stage.yaml`` and with the same gains given the exact model."""
-    from stagectl.commission.sequence import simulate_verification
-    from stagectl.config import load_app_config
-
-    data = yaml.safe_load((out / "stage.yaml").read_text())
-    ctl = data["controller"]
-    ctl["feedforward"]["model_file"] = str(out / ctl["feedforward"]["model_file"])
-    (out / "exact.yaml").write_text(yaml.safe_dump(exact_model(plant)))
-    effects = yaml.safe_load(Path(ctl["feedforward"]["model_file"]).read_text()).get("effects") or {}
-    comm_delay = float(effects.get("delay", {}).get("delay_s", 0.0))
-    exact = dict(ctl, mass_kg=plant["mass_kg"],
-                 feedforward=dict(ctl["feedforward"], model_file=str(out / "exact.yaml"),
-                                  lookahead_s=float(ctl["feedforward"]["lookahead_s"]) + comm_delay))
-    res = {}
-    for name, c in (("new", ctl), ("exact", exact)):
-        d = dict(data, controller=c, io={"kind": "plant_io", "sensor": "drive", "delay_cycles": 1},
-                 sim={"plant": plant})
-        p = out / f"check-{name}.yaml"
-        p.write_text(yaml.safe_dump(d))
-        res[name] = simulate_verification(load_app_config(p), stroke, tol)
-    return res
 
 
 def _peak_error(out: Path, row: dict[str, Any]) -> None:
@@ -99,7 +73,7 @@ def evaluate(root: Path, s: str) -> dict[str, Any]:
     row["m_err"] = round(fit["mass_kg"]["value"] / plant["mass_kg"] - 1, 4)
     row["fc_err"] = round(fit["coulomb_n"]["value"] / fr["fc_n"] - 1, 4)
     row["fv_err"] = round(fit["viscous_n_s_m"]["value"] / fr["viscous_n_s_m"] - 1, 4)
-    r = against(out, plant, stroke, max(10e-9, 2 * plant["sensor"]["resolution_m"]))
+    r = against_exact(out, plant, stroke, max(10e-9, 2 * plant["sensor"]["resolution_m"]))
     for sc in ("cosine", "triangle", "steps"):
         if sc in r["new"]:
             row[sc] = (r["new"][sc]["rms_error_m"], r["exact"][sc]["rms_error_m"])

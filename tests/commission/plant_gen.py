@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from commission_stage import controller_and_safety_yaml
 
 
@@ -88,9 +87,11 @@ def stage_yaml(path: Path, plant: dict[str, Any]) -> Path:
     return path
 
 
-def against_exact(out: Path, plant: dict[str, Any], stroke_m: float = 0.002) -> dict[str, dict[str, Any]]:
+def against_exact(out: Path, plant: dict[str, Any], stroke_m: float = 0.002,
+                  tol_m: float = 10e-9) -> dict[str, dict[str, Any]]:
     """DIR/stage.yaml's controller and the same gains given the exact model, both on the plant, through the
-    verification's protocol; returns {"new": ..., "exact": ...} of the scenario summaries."""
+    verification's protocol (settle band ``tol_m`` [m]); returns {"new": ..., "exact": ...} of the scenario
+    summaries."""
     import yaml
 
     from stagectl.commission.sequence import simulate_verification
@@ -111,5 +112,5 @@ def against_exact(out: Path, plant: dict[str, Any], stroke_m: float = 0.002) -> 
                  sim={"plant": plant})
         p = out / f"check-{name}.yaml"
         p.write_text(yaml.safe_dump(d))
-        res[name] = simulate_verification(load_app_config(p), stroke_m, 10e-9)
+        res[name] = simulate_verification(load_app_config(p), stroke_m, tol_m)
     return res
