@@ -146,14 +146,33 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
     return out
 
 
+def band_words(band: list[float], grid: list[float] | None, sep: str = " and ") -> str:
+    """A band [v_lo, v_hi] [m/s] in words (mm/s): an end that is the grid's end (``grid_m_s``: the band runs on
+    beyond the speeds checked, e.g. a δ <= 1 drop steepest at v → 0, or a negative viscous slope) is no edge and
+    is not given as one. A closed band reads "a{sep}b mm/s"."""
+    a, b = band
+    lo = grid is not None and a <= float(grid[0]) * (1 + 1e-9)
+    hi = grid is not None and b >= float(grid[1]) * (1 - 1e-9)
+    if lo and hi:
+        return f"over the whole range checked ({1e3 * a:.2g} to {1e3 * b:.2g} mm/s, and likely beyond)"
+    if lo:
+        return f"up to {1e3 * b:.2g} mm/s (and below the slowest checked, {1e3 * a:.2g} mm/s)"
+    if hi:
+        return f"from {1e3 * a:.2g} mm/s (and above the fastest checked, {1e3 * b:.2g} mm/s)"
+    return f"{1e3 * a:.2g}{sep}{1e3 * b:.2g} mm/s"
+
+
 def sliding_line(s: dict[str, Any] | None) -> str | None:
     """report.md's sentence for :func:`unstable_sliding`'s result (None: nothing to say)."""
     if not s or not s.get("bands_m_s"):
         return None
-    bands = " and ".join(f"{1e3 * a:.2g} and {1e3 * b:.2g} mm/s" for a, b in s["bands_m_s"])
+    grid = s.get("grid_m_s")
+    words = [band_words(bd, grid) for bd in s["bands_m_s"]]
+    closed = all(w[:1].isdigit() for w in words)
+    bands = " and ".join(words)
     hz = s.get("limit_cycle_hz")
     lim = s.get("damping_limit_n_s_m")
-    return (f"Constant speeds between {bands} will limit-cycle"
+    return ((f"Constant speeds between {bands}" if closed else f"Constant speeds {bands}") + " will limit-cycle"
             + (f" near {hz:.2g} Hz" if hz is not None and math.isfinite(hz) else "")
             + " with these gains (confidence " + str(s.get("confidence")) + "; the edges move with the fitted "
             "curve's v_s and δ, and near them the cycle grows slowly): the fitted friction falls with "
