@@ -835,8 +835,9 @@ class Commissioning:
                                                            r.cv.stribeck if r.cv is not None else None, T)
         us = self.res.gains["unstable_sliding"]
         if us is not None and us.get("bands_m_s"):
+            from stagectl.commission.sliding import band_words
             self.opts.progress("commission: gains: constant speeds " + ", ".join(
-                f"{1e3 * a:.2g}-{1e3 * b:.2g}" for a, b in us["bands_m_s"]) + " mm/s will limit-cycle with these "
+                band_words(bd, us.get("grid_m_s"), "-") for bd in us["bands_m_s"]) + " will limit-cycle with these "
                 "gains (the friction falls with speed faster than damping rises; report.md, Gains)")
 
         # 6. verification -----------------------------------------------------------------------------

@@ -87,7 +87,9 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
     (most negative) slope and its speed, the loop's negative-damping limit (:func:`damping_limit`), and the
     frequency [Hz] of the unstable closed-loop pair at the worst slope and at the band's onset (the onset's is
     near the limit cycle's). ``confidence``: high (a linearisation of the fitted curve with the chosen gains;
-    the curve's own uncertainty moves the band's edges)."""
+    the curve's own uncertainty moves the band's edges), medium where a band reaches below the curve's slowest
+    sliding pass ``v_min_m_s`` (extrapolated), low on a flat curve (``stribeck_identified`` False); then
+    ``confidence_why`` says so."""
     if not curve or not all(k in curve for k in ("fs_n", "fc_n", "vs_m_s", "delta", "viscous_n_s_m")):
         return None
     if not (float(curve["vs_m_s"]) > 0.0 and float(curve["delta"]) > 0.0):
@@ -131,6 +133,17 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
         if band[1] < v[-1]:
             band[1] = edge(band[1], band[1] * step)
     out["bands_m_s"] = bands
+    # the curve is measured only over the sliding passes: a flat curve (no drop identified: only its viscous
+    # slope) or a band below the slowest pass (the drop there is the curve's extrapolation, where passes that
+    # stick-slip are left out) is not the high-confidence linearisation of a measured curve
+    v_min = float(curve.get("v_min_m_s", 0.0) or 0.0)
+    if curve.get("stribeck_identified") is False:
+        out["confidence"] = "low"
+        out["confidence_why"] = "no Stribeck drop was identified: the band comes from the fitted viscous slope alone"
+    elif v_min > 0.0 and any(a < v_min for a, _ in bands):
+        out["confidence"] = "medium"
+        out["confidence_why"] = (f"below the slowest sliding pass ({1e3 * v_min:.2g} mm/s) the curve is "
+                                 "extrapolated")
     if not bands:
         out["why"] = "the net slope is negative but the loop stays stable at every grid speed"
         return out
@@ -146,16 +159,36 @@ def unstable_sliding(curve: dict[str, float] | None, mass_kg: float, period_s: f
     return out
 
 
+def band_words(band: list[float], grid: list[float] | None, sep: str = " and ") -> str:
+    """A band [v_lo, v_hi] [m/s] in words (mm/s): an end that is the grid's end (``grid_m_s``: the band runs on
+    beyond the speeds checked, e.g. a δ <= 1 drop steepest at v → 0, or a negative viscous slope) is no edge and
+    is not given as one. A closed band reads "a{sep}b mm/s"."""
+    a, b = band
+    lo = grid is not None and a <= float(grid[0]) * (1 + 1e-9)
+    hi = grid is not None and b >= float(grid[1]) * (1 - 1e-9)
+    if lo and hi:
+        return f"over the whole range checked ({1e3 * a:.2g} to {1e3 * b:.2g} mm/s, and likely beyond)"
+    if lo:
+        return f"up to {1e3 * b:.2g} mm/s (and below the slowest checked, {1e3 * a:.2g} mm/s)"
+    if hi:
+        return f"from {1e3 * a:.2g} mm/s (and above the fastest checked, {1e3 * b:.2g} mm/s)"
+    return f"{1e3 * a:.2g}{sep}{1e3 * b:.2g} mm/s"
+
+
 def sliding_line(s: dict[str, Any] | None) -> str | None:
     """report.md's sentence for :func:`unstable_sliding`'s result (None: nothing to say)."""
     if not s or not s.get("bands_m_s"):
         return None
-    bands = " and ".join(f"{1e3 * a:.2g} and {1e3 * b:.2g} mm/s" for a, b in s["bands_m_s"])
+    grid = s.get("grid_m_s")
+    words = [band_words(bd, grid) for bd in s["bands_m_s"]]
+    closed = all(w[:1].isdigit() for w in words)
+    bands = " and ".join(words)
     hz = s.get("limit_cycle_hz")
     lim = s.get("damping_limit_n_s_m")
-    return (f"Constant speeds between {bands} will limit-cycle"
+    return ((f"Constant speeds between {bands}" if closed else f"Constant speeds {bands}") + " will limit-cycle"
             + (f" near {hz:.2g} Hz" if hz is not None and math.isfinite(hz) else "")
-            + " with these gains (confidence " + str(s.get("confidence")) + "; the edges move with the fitted "
+            + " with these gains (confidence " + str(s.get("confidence"))
+            + (f": {s['confidence_why']}" if s.get("confidence_why") else "") + "; the edges move with the fitted "
             "curve's v_s and δ, and near them the cycle grows slowly): the fitted friction falls with "
             f"speed faster than viscous damping rises (net slope down to {s['worst_net_slope_n_s_m']:.3g} N s/m at "
             f"{1e3 * s['worst_speed_m_s']:.2g} mm/s), beyond the "

@@ -35,8 +35,10 @@ Algorithm per step, in LinuxCNC ``pid`` order:
        t_since_clamp < T_i = Kp/Ki,   and   not (the error has closed fast, then slowly),
 
    "fast" meaning |ė_f|·T_i > |e| with e·ė_f < 0. An error P alone cannot close (an unmodelled load: it settles
-   at e = F/K_p) thus ends the hold as its closing slows, at the latest T_i after the clamp. A loop never
-   clamped runs as without it.
+   at e = F/K_p) thus ends the hold as its closing slows, at the latest T_i of unclamped time after the first
+   clamp (a clamp of the same sign during the hold does not restart it). A hold that ran out so (not by a sign
+   change) is spent: clamps of its sign arm none until e changes sign or T_i passes without a clamp (a load at
+   the clamp otherwise touched it every few cycles and froze I for good). A loop never clamped runs as without it.
 3. u_pid = clamp(P + I + D, ±``max_force_n``); total u = clamp(u_pid + u_other, ±limit_n).
 4. Back-calculation (for the next step): when a clamp cut the command, the excess
    x = P + I + D + u_other − u is taken out of I at the tracking rate, as far as I pushes the same way
@@ -101,6 +103,7 @@ class PidState:
     recovering: int = 0  # sgn(e) at the last clamp while the error it left is a transient (no integration), else 0
     recovery_s: float = 0.0  # time since the last clamp while recovering [s]
     recovery_closed: bool = False  # the error has closed faster than T_i since the last clamp
+    recovery_spent: int = 0  # sgn(e) of a recovery that ran out (T_i, slow closing): its clamps hold no more, else 0
     enabled: bool = True
 
 
@@ -222,7 +225,17 @@ class Pid:
                 if fast:
                     st.recovery_closed = True
             else:
+                if e * rec > 0.0:  # ran out (T_i, or the closing slowed) with the error's sign kept: spent
+                    st.recovery_spent = rec
+                    st.recovery_s = 0.0
                 st.recovering = rec = 0
+        elif st.recovery_spent:
+            # a spent recovery: clamps of its sign arm no new hold until the error changes sign or T_i passes
+            # without a clamp (a load near the clamp re-clamped every few cycles, re-arming the hold for good: I
+            # stayed frozen and the stage sat e = F/K_p off target)
+            st.recovery_s += dt
+            if e * st.recovery_spent <= 0.0 or st.recovery_s * c.ki_n_m_s >= c.kp_n_m:
+                st.recovery_spent = 0
         if sat_dir or hold:
             st.integrating = False
         else:
@@ -249,9 +262,18 @@ class Pid:
             sat = 0
         st.saturated = sat
         if (sat or u_pid != p + i_n + d) and e != 0.0 and c.ki_n_m_s > 0.0:
-            st.recovering = 1 if e > 0.0 else -1
-            st.recovery_s = 0.0
-            st.recovery_closed = False
+            sg = 1 if e > 0.0 else -1
+            if sg == st.recovery_spent:
+                st.recovery_s = 0.0  # (time since the last clamp)
+            elif sg == rec:
+                # the same recovery clamped again: its T_i counts the unclamped time since its first clamp
+                st.recovery_s -= dt
+                st.recovery_closed = False
+            else:
+                st.recovering = sg
+                st.recovery_s = 0.0
+                st.recovery_closed = False
+                st.recovery_spent = 0
         if (sat or u_pid != p + i_n + d) and c.ki_n_m_s > 0.0 and not hold:
             # back-calculation (next step's I): the part of the command the clamps cut off leaves I at 1/T_t,
             # as far as I pushes that way (I is unwound towards 0, never driven across it by the other terms)

@@ -141,3 +141,44 @@ def test_report_md_states_the_band_in_the_gains_section_and_json_keeps_it() -> N
     assert json.loads(json.dumps(s)) == s  # plain values for report.json
     rep["gains"]["unstable_sliding"] = unstable_sliding({**STEEP, "fs_n": 2.5}, 1.0, T, PID, 1, "qfilter", 95.0)
     assert "limit-cycle" not in report_markdown(rep, [])
+
+
+def test_a_band_that_reaches_the_grid_end_is_not_given_an_edge_there():
+    """A net slope still below the loop's limit at the grid's end (here a fitted viscous of −400 N·s/m on a flat
+    curve; likewise a δ <= 1 drop, steepest at v → 0) runs on beyond the speeds checked: the report named the
+    grid's ends (v_s·10⁻³, v_s·10²) as the band's edges, "between 0.001 and 1e+02 mm/s" (review27d)."""
+    from stagectl.commission.sliding import band_words
+    from stagectl.control import design
+
+    pid = design.design_pid(2.0, 20.0, 1e-3, 1)
+    flat = {"fc_n": 1.0, "fs_n": 1.0, "vs_m_s": 1e-3, "delta": 2.0, "viscous_n_s_m": -400.0}
+    s = unstable_sliding(flat, 2.0, 1e-3, pid, 1, "qfilter", 20.0)
+    assert s is not None and s["bands_m_s"] == [[1e-6, 0.1]]  # the whole grid
+    line = sliding_line(s)
+    assert line is not None and "between" not in line and "whole range checked" in line
+    grid = [1e-4, 1.0, 3]
+    assert band_words([1e-4, 2e-3], grid).startswith("up to 2 mm/s")
+    assert band_words([2e-3, 1.0], grid).startswith("from 2 mm/s")
+    assert band_words([1e-3, 2e-3], grid, "-") == "1-2 mm/s"
+
+
+def test_confidence_is_not_high_where_the_curve_was_not_measured():
+    """The check said "confidence high" on any curve: a flat one (no drop identified, the band from a fitted
+    viscous slope alone) or one whose band lies below the slowest sliding pass (the drop there extrapolated,
+    the stick-slipping passes left out) is no measured linearisation (review27d)."""
+    from stagectl.control import design
+
+    pid = design.design_pid(2.0, 20.0, 1e-3, 1)
+    flat = {"fc_n": 1.0, "fs_n": 1.0, "vs_m_s": 1e-3, "delta": 2.0, "viscous_n_s_m": -400.0,
+            "stribeck_identified": False, "v_min_m_s": 1e-3}
+    s = unstable_sliding(flat, 2.0, 1e-3, pid, 1, "qfilter", 20.0)
+    assert s is not None and s["bands_m_s"] and s["confidence"] == "low"
+    assert "confidence low: no Stribeck drop" in str(sliding_line(s))
+    base = unstable_sliding(STEEP, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert base is not None and base["confidence"] == "high"
+    lo = base["bands_m_s"][0][0]
+    below = unstable_sliding({**STEEP, "stribeck_identified": True, "v_min_m_s": 2 * lo}, 1.0, T, PID, 1,
+                             "qfilter", 95.0)
+    assert below is not None and below["confidence"] == "medium" and "extrapolated" in str(sliding_line(below))
+    above = unstable_sliding({**STEEP, "v_min_m_s": 0.5 * lo}, 1.0, T, PID, 1, "qfilter", 95.0)
+    assert above is not None and above["confidence"] == "high"

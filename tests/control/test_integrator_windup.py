@@ -177,3 +177,23 @@ def test_lost_samples_at_full_gain_keep_the_loop_stable_with_the_per_sample_obse
     assert np.max(np.abs(err[1500:2500])) < 0.1e-3
     assert np.max(np.abs(i_n)) <= 1.0
 
+
+
+def test_a_load_at_the_clamp_does_not_freeze_the_integrator():
+    """A 1.49 N load on a 1.5 N clamp (PID alone, 1 mm at 10 mm/s, then at rest): the force touches the clamp
+    every few cycles, and each touch re-armed the recovery hold with a fresh T_i, so I stayed frozen (0.17 N)
+    and the stage sat e = (F − I)/K_p = 134 µm short for good (review27d). A recovery that runs out is spent:
+    its clamps hold I no more until the error changes sign, and the stage reaches the target."""
+    dut = Pid(PidConfig(**HIL_PID))
+    x = v = u = u_prev = 0.0
+    h = T / 10
+    err = []
+    for k in range(3000):
+        xr = min(0.01 * k * T, 1e-3)
+        err.append(xr - x)
+        u_prev, u = u, dut.step(T, xr, x, 0.01 if xr < 1e-3 else 0.0, limit_n=1.5)
+        for _ in range(10):
+            v += (u_prev - 1.49 - 20.0 * v) / 2.0 * h
+            x += v * h
+    assert abs(err[-1]) < 1e-7, err[-1]  # measured 0.3 nm; 134.5 µm short before
+    assert dut.state.i_n == pytest.approx(1.49, abs=1e-3)
