@@ -831,8 +831,8 @@ class Commissioning:
         # the rest additions the twins advised, checked on the stage itself (the twins are built from the
         # identified model and cannot see where it is wrong)
         new_cfg = self._rest_on_stage(stage, new_cfg, xc)
-        self.res.gains["unstable_sliding"] = sliding_check(self.res.gains,
-                                                           r.cv.stribeck if r.cv is not None else None, T)
+        self.res.gains["unstable_sliding"] = sliding_check(self.res.gains, sliding_curve(
+            self.res.model_spec, r.cv.stribeck if r.cv is not None else None), T)
         us = self.res.gains["unstable_sliding"]
         if us is not None and us.get("bands_m_s"):
             from stagectl.commission.sliding import band_words
@@ -1841,14 +1841,32 @@ def choose_gains(m: float, T: float, plant: an.PlantFit | None, frf: an.Frf | No
     return out
 
 
+def sliding_curve(model_spec: dict[str, Any] | None, passes: dict[str, float] | None) -> dict[str, float] | None:
+    """The sliding curve the check of :func:`sliding_check` reads: the model's (``fc_n``, ``fs_n``, ``vs_m_s``,
+    ``delta``, ``viscous_n_s_m`` of ``model_spec["friction"]``, after the Stribeck refit: F_s held at the
+    pre-sliding level, v_s from the pre-sliding loops where stick-slipping passes only bound it), else the
+    passes' fitted curve ``passes``; ``None`` without either."""
+    fr = (model_spec or {}).get("friction") or {}
+    keys = ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m")
+    if all(isinstance(fr.get(k), (int, float)) for k in keys):
+        # (the passes' own facts stay: the slowest sliding pass, whether a drop was identified at all)
+        extra: dict[str, float] = {k: passes[k] for k in ("v_min_m_s", "stribeck_identified")
+                                   if passes and k in passes}
+        return {**extra, **{k: float(fr[k]) for k in keys}}
+    return passes
+
+
 def sliding_check(gains: dict[str, Any], curve: dict[str, float] | None, T: float) -> dict[str, Any] | None:
     """:func:`stagectl.commission.sliding.unstable_sliding` for the chosen design of ``gains`` (the result of
     :func:`choose_gains`: its mass, delay and ``chosen`` PID and observer) on the fitted Stribeck ``curve``."""
     from stagectl.commission.sliding import unstable_sliding
 
     ch = gains["chosen"]
-    return unstable_sliding(curve, float(gains["mass_kg"]), T, PidConfig(**ch["pid"]), int(gains["delay_samples"]),
-                            str(ch["dob_kind"]), float(ch["dob_bandwidth_hz"]))
+    out = unstable_sliding(curve, float(gains["mass_kg"]), T, PidConfig(**ch["pid"]), int(gains["delay_samples"]),
+                           str(ch["dob_kind"]), float(ch["dob_bandwidth_hz"]))
+    if out is not None and curve is not None:
+        out["curve"] = {k: curve[k] for k in ("fc_n", "fs_n", "vs_m_s", "delta", "viscous_n_s_m") if k in curve}
+    return out
 
 
 def given_margins(ctl: ControllerConfig, T: float, nd: int, frf: an.Frf | None) -> dict[str, Any] | None:

@@ -182,3 +182,19 @@ def test_confidence_is_not_high_where_the_curve_was_not_measured():
     assert below is not None and below["confidence"] == "medium" and "extrapolated" in str(sliding_line(below))
     above = unstable_sliding({**STEEP, "v_min_m_s": 0.5 * lo}, 1.0, T, PID, 1, "qfilter", 95.0)
     assert above is not None and above["confidence"] == "high"
+
+
+def test_the_check_reads_the_models_refitted_curve_and_keeps_the_passes_facts() -> None:
+    """sequence.sliding_curve: the model's sliding curve (after the Stribeck refit) when it has one, with the
+    passes' slowest sliding speed and identification flag kept for the confidence; else the passes' curve."""
+    from stagectl.commission.sequence import sliding_curve
+
+    passes = {"fc_n": 2.5, "fs_n": 3.0, "vs_m_s": 1.5e-3, "delta": 2.0, "viscous_n_s_m": 40.0, "v_min_m_s": 1e-3,
+              "stribeck_identified": True}
+    model = {"friction": {"model": "gms", "fc_n": 2.5, "fs_n": 3.2, "vs_m_s": 2e-3, "delta": 2.0,
+                          "viscous_n_s_m": 40.0, "k_n_m": [1e5]}}
+    c = sliding_curve(model, passes)
+    assert c is not None and c["fs_n"] == 3.2 and c["vs_m_s"] == 2e-3
+    assert c["v_min_m_s"] == 1e-3 and c["stribeck_identified"] is True
+    assert sliding_curve({"friction": {"model": "coulomb", "fc_n": 2.5}}, passes) is passes
+    assert sliding_curve(None, None) is None
