@@ -1039,7 +1039,6 @@ class Commissioning:
                                 "crossover_hz": base / T, "reason": "default"}
         chosen = base
         if lam > STICTION_LENGTH_X_FE * self.env.following_error_m and r.frf is not None and r.plant is not None:
-            nd = max(1, round(r.plant.delay_s / T))
             info["reason"] = (f"stiction length {lam * 1e6:.3g} um > {STICTION_LENGTH_X_FE:g} following-error "
                               "limits: no stiffer tuning keeps the margins")
             for x in sorted((c for c in CROSSOVER_X_PERIOD if base < c <= STIFF_CROSSOVER_X_PERIOD), reverse=True):
