@@ -220,3 +220,22 @@ def friction_moves(seed: int, n: int):
     v *= rng.uniform(0.5, 1.5, v.size)
     dt = rng.uniform(5e-5, 1e-3, v.size)
     return v, dt
+
+
+def drive_limit_config(**drive):
+    """config/sim.yaml through the embedded CiA 402 drive, with ``sim.drive`` keys overridden (e.g. its
+    ``max_force_n``, the drive's max torque 0x6072) and the tracking window widened to 1 mm (a saturated move
+    lags by ~0.12 mm before it catches up: the window, not the force limits)."""
+    from pathlib import Path
+
+    import yaml
+
+    from stagectl.config import parse_app_config
+
+    sim_yaml = Path(__file__).resolve().parents[1] / "config" / "sim.yaml"
+    data = yaml.safe_load(sim_yaml.read_text())
+    data["io"]["kind"] = "embedded_canopen"
+    data["sim"]["drive"].update(drive)
+    data["safety"]["following_error_m"] = 1e-3
+    data["safety"]["stale_travel_m"] = 1e-3
+    return parse_app_config(data, sim_yaml)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from support import drive_limit_config
 
 from stagectl.app import build_stage
 from stagectl.clock import SimClock
@@ -31,13 +32,7 @@ LIMIT_N = 1.5  # below the 2 N inertia + 0.9 N friction the fast move's accelera
 
 
 def _cfg(**drive: object):
-    data = yaml.safe_load(SIM_YAML.read_text())
-    data["io"]["kind"] = "embedded_canopen"
-    data["sim"]["drive"].update(drive)
-    # the saturated move lags by ~0.12 mm before it catches up: widen the tracking window, not the force limits
-    data["safety"]["following_error_m"] = 1e-3
-    data["safety"]["stale_travel_m"] = 1e-3
-    return parse_app_config(data, SIM_YAML)
+    return drive_limit_config(**drive)
 
 
 def _fast_move(cfg, *, hide_limit: bool = False, runs: tuple[float, ...] = (0.35,)) -> dict[str, np.ndarray]:
