@@ -38,7 +38,10 @@ Algorithm per step, in LinuxCNC ``pid`` order:
    at e = F/K_p) thus ends the hold as its closing slows, at the latest T_i of unclamped time after the first
    clamp (a clamp of the same sign during the hold does not restart it). A hold that ran out so (not by a sign
    change) is spent: clamps of its sign arm none until e changes sign or T_i passes without a clamp (a load at
-   the clamp otherwise touched it every few cycles and froze I for good). A loop never clamped runs as without it.
+   the clamp otherwise touched it every few cycles and froze I for good). A clamp in either direction arms it (a
+   lag the force catches up, or an excess the brake takes off; not frozen for good either way: P grows until the
+   output leaves the clamp, and the hold ends at T_i); a retune keeps a running hold, its T_i then the new gains'.
+   A loop never clamped runs as without it.
 3. u_pid = clamp(P + I + D, ±``max_force_n``); total u = clamp(u_pid + u_other, ±limit_n).
 4. Back-calculation (for the next step): when a clamp cut the command, the excess
    x = P + I + D + u_other − u is taken out of I at the tracking rate, as far as I pushes the same way
