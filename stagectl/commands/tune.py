@@ -234,25 +234,23 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         **verdict,
         "yaml": None if verdict["refused"] else _yaml_snippet(m, pid, dbw, nd),
     }
-    worse = _spring_worse(result.get("configured", {}).get("rest"))
-    if worse and not verdict["refused"]:
-        # the suggestion keeps the configured rest spring: what it does on stages that are not held counts too
-        verdict["rest_spring_worse"] = worse
-        if verdict["confidence"] == "high":
-            verdict["confidence"] = "medium"
-        verdict["confidence_reason"] += (f"; the rest spring these gains keep does worse than none on stages that are "
-                                         f"not held (simulated with the configured gains: {'; '.join(worse)})")
-        d_out.update(verdict)
-    thin = _free_rest_thin(result.get("configured", {}).get("rest"))
-    if thin and not verdict["refused"]:
-        # the suggestion keeps the configured rest gains: on a stage that friction does not hold they are thin
-        verdict["rest_free_thin"] = thin
-        if verdict["confidence"] == "high":
-            verdict["confidence"] = "medium"
-        verdict["confidence_reason"] += (f"; the configured rest loop, whose rest fractions these gains keep, misses "
-                                         f"the floor on a free stage ({thin}): it relies on friction holding the "
-                                         f"stage at standstill")
-        d_out.update(verdict)
+    rest = result.get("configured", {}).get("rest")
+    worse = _spring_worse(rest)
+    thin = _free_rest_thin(rest)
+    # the suggestion keeps the configured rest spring and rest gains: what they do on stages that are not held
+    # (worse than no spring; thin margins on a free stage) caps its confidence at medium
+    for key, value, why in (
+            ("rest_spring_worse", worse, f"the rest spring these gains keep does worse than none on stages that are "
+                                         f"not held (simulated with the configured gains: {'; '.join(worse)})"),
+            ("rest_free_thin", thin, f"the configured rest loop, whose rest fractions these gains keep, misses the "
+                                     f"floor on a free stage ({thin}): it relies on friction holding the stage at "
+                                     f"standstill")):
+        if value and not verdict["refused"]:
+            verdict[key] = value
+            if verdict["confidence"] == "high":
+                verdict["confidence"] = "medium"
+            verdict["confidence_reason"] += "; " + why
+            d_out.update(verdict)
     if verdict["refused"]:
         exit_code = 1
     if args.out:
