@@ -240,11 +240,11 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     # the suggestion keeps the configured rest spring and rest gains: what they do on stages that are not held
     # (worse than no spring; thin margins on a free stage) caps its confidence at medium
     for key, value, why in (
-            ("rest_spring_worse", worse, f"the rest spring these gains keep does worse than none on stages that are "
-                                         f"not held (simulated with the configured gains: {'; '.join(worse)})"),
-            ("rest_free_thin", thin, f"the configured rest loop, whose rest fractions these gains keep, misses the "
-                                     f"floor on a free stage ({thin}): it relies on friction holding the stage at "
-                                     f"standstill")):
+            ("rest_spring_worse", worse, (f"the rest spring these gains keep does worse than none on stages that "
+                                          f"are not held (simulated with the configured gains: {'; '.join(worse)})")),
+            ("rest_free_thin", thin, (f"the configured rest loop, whose rest fractions these gains keep, misses the "
+                                      f"floor on a free stage ({thin}): it relies on friction holding the stage at "
+                                      f"standstill"))):
         if value and not verdict["refused"]:
             verdict[key] = value
             if verdict["confidence"] == "high":
