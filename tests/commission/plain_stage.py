@@ -66,3 +66,24 @@ def pass_segments(budget: seq.RampBudget, m_est_kg: float, v_rep_m_s: float, a_r
                  Move(to_m=L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1),
                  Move(to_m=-L / 2, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=a * 100), Dwell(0.1)]
     return segs
+
+
+def run_passes(ctl: Any, budget: seq.RampBudget, m_est_kg: float, v_rep_m_s: float, stage: Any, period_s: float,
+               v_max_m_s: float, stroke_m: float) -> float:
+    """The sequence's passes (:func:`pass_segments`, repositioning at ``v_rep_m_s`` with ``v_rep²/(0.02·stroke)``)
+    run by the controller ``ctl`` (a ``CommissionController`` with its speed ladder closed) on ``stage``
+    (``.x`` [m], ``.period(u, T)``), from rest at 0; returns the largest |x_ref − x| [m]."""
+    from stagectl.control.trajectory import Scenario, TrajectoryGenerator
+
+    segs = pass_segments(budget, m_est_kg, v_rep_m_s, v_rep_m_s ** 2 / (0.1 * 0.2 * stroke_m), period_s, v_max_m_s,
+                         stroke_m)
+    gen = TrajectoryGenerator(0.0)
+    gen.load(Scenario(name="cv", segments=tuple(segs)))
+    ctl.reset(0.0)
+    peak = 0.0
+    while not gen.done:
+        ref = gen.step(period_s)
+        u = ctl.step(period_s, stage.x, ref).force_n
+        peak = max(peak, abs(ref.x_m - stage.x))
+        stage.period(u, period_s)
+    return peak

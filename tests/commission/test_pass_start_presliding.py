@@ -26,10 +26,9 @@ from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
 from stagectl.control.controller import StageController
 from stagectl.control.friction_ff import CoulombFeedforward
-from stagectl.control.trajectory import Scenario, TrajectoryGenerator
 
 sys.path.insert(0, str(Path(__file__).parent))
-from plain_stage import pass_segments
+from plain_stage import run_passes
 
 T = 1e-3
 E_MAX = 50e-6
@@ -89,18 +88,7 @@ def _run(presliding_length_m: float) -> tuple[SpeedLadderFeedforward, float]:
                                     presliding_length_m=presliding_length_m)
     ctl = CommissionController(inner)
     ctl.set_closed(inner, ladder=ladder)
-    v_rep = float(k["v_rep"])
-    segs = pass_segments(budget, k["m_exp"], v_rep, v_rep ** 2 / (0.1 * 0.2 * S), T, V_MAX, S)
-    gen = TrajectoryGenerator(0.0)
-    gen.load(Scenario(name="cv", segments=tuple(segs)))
-    ctl.reset(0.0)
-    stage = MultiSlipStage(PLANT)
-    peak = 0.0
-    while not gen.done:
-        ref = gen.step(T)
-        u = ctl.step(T, stage.x, ref).force_n
-        peak = max(peak, abs(ref.x_m - stage.x))
-        stage.period(u, T)
+    peak = run_passes(ctl, budget, k["m_exp"], float(k["v_rep"]), MultiSlipStage(PLANT), T, V_MAX, S)
     return ladder, peak
 
 

@@ -20,10 +20,9 @@ from stagectl.commission import sequence as seq
 from stagectl.commission.controllers import CommissionController, SpeedLadderFeedforward
 from stagectl.control.controller import StageController
 from stagectl.control.friction_ff import CoulombFeedforward
-from stagectl.control.trajectory import Scenario, TrajectoryGenerator
 
 sys.path.insert(0, str(Path(__file__).parent))
-from plain_stage import MaxwellSlipStage, pass_segments
+from plain_stage import MaxwellSlipStage, run_passes
 
 T = 1e-3
 E_MAX = 50e-6
@@ -45,18 +44,7 @@ def _run(release: bool) -> tuple[SpeedLadderFeedforward, float]:
                                     hold_limit_n=budget.error_m / budget.g_step_m_n if release else math.inf)
     ctl = CommissionController(inner)
     ctl.set_closed(inner, ladder=ladder)
-    v_rep = st["v_rep"]
-    segs = pass_segments(budget, st["m_exp"], v_rep, v_rep ** 2 / (0.1 * 0.2 * S), T, V_MAX, S)
-    gen = TrajectoryGenerator(0.0)
-    gen.load(Scenario(name="cv", segments=tuple(segs)))
-    ctl.reset(0.0)
-    stage = MaxwellSlipStage(st)
-    peak = 0.0
-    while not gen.done:
-        ref = gen.step(T)
-        u = ctl.step(T, stage.x, ref).force_n
-        peak = max(peak, abs(ref.x_m - stage.x))
-        stage.period(u, T)
+    peak = run_passes(ctl, budget, st["m_exp"], st["v_rep"], MaxwellSlipStage(st), T, V_MAX, S)
     return ladder, peak
 
 
