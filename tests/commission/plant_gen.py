@@ -114,3 +114,27 @@ def against_exact(out: Path, plant: dict[str, Any], stroke_m: float = 0.002,
         p.write_text(yaml.safe_dump(d))
         res[name] = simulate_verification(load_app_config(p), stroke_m, tol_m)
     return res
+
+
+def verification_cosine(cfg: Any) -> tuple[Any, float]:
+    """As ``simulate_verification`` for the cosine alone: a fresh stage at 0, the verification lead, the
+    scenario (2 mm stroke), in simulated time, without a fault. Returns the recording and the lead's duration
+    [s] (the scenario starts that long after the recording's first sample)."""
+    from stagectl.app import build_stage
+    from stagectl.clock import SimClock
+    from stagectl.commission.sequence import _verify_scenario, verification_lead
+    from stagectl.control.trajectory import Scenario
+    from stagectl.recorder import Recorder
+
+    lead = verification_lead(0.0, 0.002)
+    sc = _verify_scenario("cosine", 0.0, 0.002)
+    assert sc is not None
+    full = Scenario(name="cosine", segments=(*lead, *sc.segments), start_m=0.0)
+    dur = full.duration_s(0.0) + 0.2
+    with build_stage(cfg, clock=SimClock()) as st:
+        rec = Recorder(st.loop.columns, capacity=int(dur / cfg.loop.period_s) + 16)
+        st.loop.add_sink(rec)
+        st.load_scenario(full)
+        res = st.loop.run(duration_s=dur)
+    assert res.fault is None
+    return rec, Scenario(name="lead", segments=lead).duration_s(0.0)

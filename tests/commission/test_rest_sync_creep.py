@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
-from plant_gen import hidden_plant
+from plant_gen import hidden_plant, verification_cosine
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -74,25 +74,10 @@ def _config(tmp_path: Path, additions: bool) -> Any:
 def _cosine(cfg: Any) -> dict[str, Any]:
     """As ``simulate_verification`` for the cosine alone: a fresh stage at 0, the lead, the scenario; also the
     stage's travel in the lead's direction over its final rest (the creep)."""
-    from stagectl.app import build_stage
-    from stagectl.clock import SimClock
-    from stagectl.commission.sequence import _summary_after, _verify_scenario, verification_lead
-    from stagectl.control.trajectory import Scenario
-    from stagectl.recorder import Recorder
+    from stagectl.commission.sequence import _summary_after
 
-    lead = verification_lead(0.0, 0.002)
-    sc = _verify_scenario("cosine", 0.0, 0.002)
-    assert sc is not None
-    full = Scenario(name="cosine", segments=(*lead, *sc.segments), start_m=0.0)
-    dur = full.duration_s(0.0) + 0.2
-    with build_stage(cfg, clock=SimClock()) as st:
-        rec = Recorder(st.loop.columns, capacity=int(dur / cfg.loop.period_s) + 16)
-        st.loop.add_sink(rec)
-        st.load_scenario(full)
-        res = st.loop.run(duration_s=dur)
-    assert res.fault is None
+    rec, t_lead = verification_cosine(cfg)
     t, x = rec.col("t"), rec.col("x")
-    t_lead = Scenario(name="lead", segments=lead).duration_s(0.0)
     rest = (t >= t[0] + t_lead - 0.3) & (t < t[0] + t_lead)
     out = _summary_after(rec, t_lead, 10e-9)
     out["creep_m"] = float(x[rest][-1] - x[rest][0])  # the lead's last move goes in +x

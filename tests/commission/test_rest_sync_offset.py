@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
+from plant_gen import verification_cosine
 from plant_kinds import fresh_plant
 
 #: what `stagectl commission` identified on fresh plant 111 (c16 run, rounded): the sliding model is right in
@@ -63,26 +64,11 @@ def _config(tmp_path: Path, rest_sync_hz: float) -> Any:
 
 def _cosine(cfg: Any) -> dict[str, Any]:
     """As ``simulate_verification`` for the cosine alone: a fresh stage at 0, the lead, the scenario."""
-    from stagectl.app import build_stage
-    from stagectl.clock import SimClock
-    from stagectl.commission.sequence import _summary_after, _verify_scenario, verification_lead
-    from stagectl.control.trajectory import Scenario
-    from stagectl.recorder import Recorder
+    from stagectl.commission.sequence import _summary_after
 
-    lead = verification_lead(0.0, 0.002)
-    sc = _verify_scenario("cosine", 0.0, 0.002)
-    assert sc is not None
-    full = Scenario(name="cosine", segments=(*lead, *sc.segments), start_m=0.0)
-    dur = full.duration_s(0.0) + 0.2
-    with build_stage(cfg, clock=SimClock()) as st:
-        rec = Recorder(st.loop.columns, capacity=int(dur / cfg.loop.period_s) + 16)
-        st.loop.add_sink(rec)
-        st.load_scenario(full)
-        res = st.loop.run(duration_s=dur)
-    assert res.fault is None
+    rec, t_lead = verification_cosine(cfg)
     # the stage did stop well off its reference in the lead's rest (the case the guard is for)
     t, x, xr = rec.col("t"), rec.col("x"), rec.col("x_ref")
-    t_lead = Scenario(name="lead", segments=lead).duration_s(0.0)
     rest = (t >= t[0] + t_lead - 0.05) & (t < t[0] + t_lead)
     assert (abs(xr[rest] - x[rest]) > 0.5e-6).all()
     return _summary_after(rec, t_lead, 10e-9)
