@@ -11,20 +11,20 @@ of the same size along the stroke (an exponential, same in both directions) stay
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from stagectl.commission.fit import cogging_evidence
 from stagectl.recorder import Recorder
 
-T = 1e-3
+sys.path.insert(0, str(Path(__file__).parent))
+from pid_mass_stage import T, track
 
 
 def _slow_passes(position_force: Callable[[float], float], stroke_m: float = 2e-3, v_m_s: float = 4.6e-4,
                  mass_kg: float = 0.79) -> Recorder:
     """Two passes each way over ``stroke_m`` at ``v_m_s`` (ramps of 0.05 s, dwells of 0.2 s)."""
-    fc, visc, vs = 0.48, 35.0, 2e-5
-    kp, kd, ki = mass_kg * (2 * math.pi * 40) ** 2, 2 * 0.8 * mass_kg * 2 * math.pi * 40, 0.0
-    ki = kp * 2 * math.pi * 5
     ramp = 0.05
     a = v_m_s / ramp
     # reference: piecewise constant-acceleration moves between the ends
@@ -33,28 +33,8 @@ def _slow_passes(position_force: Callable[[float], float], stroke_m: float = 2e-
     for sgn in (1, -1, 1, -1):
         segs += [(0.2, 0.0), (ramp, sgn * a), (cruise, 0.0), (ramp, -sgn * a)]
     segs.append((0.2, 0.0))
-    rec = Recorder(("t", "x", "u", "x_ref", "v_ref", "a_ref"), capacity=1 << 15)
-    x, v = -stroke_m / 2, 0.0
-    xr, vr = x, 0.0
-    integ = 0.0
-    t = 0.0
-    sub = 10
-    for dur, ar in segs:
-        for _ in range(round(dur / T)):
-            e = xr - x
-            integ += e * T
-            u = kp * e + kd * (vr - v) + ki * integ + mass_kg * ar
-            rec.append((t, x, u, xr, vr, ar))
-            for _k in range(sub):
-                f = fc * math.tanh(v / vs) + visc * v + position_force(x)
-                v += (u - f) / mass_kg * (T / sub)
-                x += v * (T / sub)
-            xr += vr * T + 0.5 * ar * T * T
-            vr += ar * T
-            if abs(vr) < 1e-12:
-                vr = 0.0
-            t += T
-    return rec
+    return track(segs, mass_kg=mass_kg, fc_n=0.48, viscous_n_s_m=35.0, vs_m_s=2e-5, position_force=position_force,
+                 x0_m=-stroke_m / 2)
 
 
 def test_cogging_near_the_stroke_is_named() -> None:

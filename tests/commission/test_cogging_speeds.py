@@ -15,48 +15,37 @@ direction check alone does not refuse it. A true cogging on the same moves stays
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from stagectl.commission.fit import cogging_evidence
 from stagectl.recorder import Recorder
 
-T = 1e-3
+sys.path.insert(0, str(Path(__file__).parent))
+from pid_mass_stage import T, track
+
 STROKE, V_SLOW, V_FAST, RAMP, MASS = 2e-3, 3e-4, 1.5e-3, 0.05, 1.0
 
 
 def _passes(position_force: Callable[[float], float], ripple_n: float, ripple_hz: float) -> Recorder:
-    fc, visc, vs = 0.5, 40.0, 2e-5
-    kp = MASS * (2 * math.pi * 40) ** 2
-    kd, ki = 2 * 0.8 * MASS * 2 * math.pi * 40, kp * 2 * math.pi * 5
     h = STROKE / 2
     moves = [(-h, V_SLOW), (h, V_FAST), (-h, V_FAST), (0.0, V_SLOW)]
-    segs: list[tuple[float, float, bool]] = [(0.2, 0.0, False)]  # (duration, acceleration, fast cruise)
+    segs: list[tuple[float, float]] = [(0.2, 0.0)]  # (duration, acceleration)
+    fast: list[bool] = [False]  # the segment is a fast cruise
     pos = 0.0
     for target, v in moves:
         d = target - pos
         s = math.copysign(1.0, d)
-        segs += [(RAMP, s * v / RAMP, False), ((abs(d) - v * RAMP) / v, 0.0, v == V_FAST),
-                 (RAMP, -s * v / RAMP, False), (0.2, 0.0, False)]
+        segs += [(RAMP, s * v / RAMP), ((abs(d) - v * RAMP) / v, 0.0), (RAMP, -s * v / RAMP), (0.2, 0.0)]
+        fast += [False, v == V_FAST, False, False]
         pos = target
-    rec = Recorder(("t", "x", "u", "x_ref", "v_ref", "a_ref"), capacity=1 << 15)
-    x = v_ = xr = vr = integ = t = 0.0
-    for dur, ar, fast in segs:
-        for k in range(round(dur / T)):
-            e = xr - x
-            integ += e * T
-            u = kp * e + kd * (vr - v_) + ki * integ + MASS * ar
-            rec.append((t, x, u, xr, vr, ar))
-            rip = ripple_n * math.sin(2 * math.pi * ripple_hz * k * T) if fast else 0.0
-            for _ in range(10):
-                f = fc * math.tanh(v_ / vs) + visc * v_ + position_force(x) + rip
-                v_ += (u - f) / MASS * (T / 10)
-                x += v_ * (T / 10)
-            xr += vr * T + 0.5 * ar * T * T
-            vr += ar * T
-            if abs(vr) < 1e-12:
-                vr = 0.0
-            t += T
-    return rec
+
+    def ripple(i: int, k: int) -> float:
+        return ripple_n * math.sin(2 * math.pi * ripple_hz * k * T) if fast[i] else 0.0
+
+    return track(segs, mass_kg=MASS, fc_n=0.5, viscous_n_s_m=40.0, vs_m_s=2e-5, position_force=position_force,
+                 extra_force=ripple)
 
 
 def test_a_ripple_at_one_speed_is_not_named_a_cogging() -> None:
