@@ -59,13 +59,17 @@ def _stable(poles: np.ndarray) -> bool:
 def damping_limit(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int, dob_kind: str,
                   dob_bandwidth_hz: float, c_floor_n_s_m: float, tol_n_s_m: float = 1.0) -> float | None:
     """The most negative plant damping [N·s/m] down to ``c_floor_n_s_m`` (< 0) the loop stays stable with
-    (bisection to ``tol_n_s_m``); None when it is stable at the floor too."""
+    (bisection to ``tol_n_s_m``); None when it is stable at the floor too; 0.0 when it is not stable even on
+    the damping-free plant (it tolerates no negative damping at all; a bisection that assumed stability at 0
+    would report a limit near 0 as if it were measured)."""
     def ok(c: float) -> bool:
         return _stable(_closed_loop_poles(mass_kg, period_s, pid, delay_samples, dob_kind, dob_bandwidth_hz, c))
 
     if ok(c_floor_n_s_m):
         return None
-    hi, lo = 0.0, c_floor_n_s_m  # ok(hi) assumed (the chosen design is stable on the damping-free plant)
+    if not ok(0.0):
+        return 0.0
+    hi, lo = 0.0, c_floor_n_s_m  # ok(hi), not ok(lo)
     while hi - lo > tol_n_s_m:
         mid = 0.5 * (hi + lo)
         if ok(mid):

@@ -198,3 +198,17 @@ def test_the_check_reads_the_models_refitted_curve_and_keeps_the_passes_facts() 
     assert c["v_min_m_s"] == 1e-3 and c["stribeck_identified"] is True
     assert sliding_curve({"friction": {"model": "coulomb", "fc_n": 2.5}}, passes) is passes
     assert sliding_curve(None, None) is None
+
+
+def test_damping_limit_of_a_loop_unstable_without_damping_is_zero() -> None:
+    """A loop that is unstable on the damping-free plant tolerates no negative damping: the limit is 0, not a
+    bisection's value that assumed stability at 0 (the 1 kg stage's gains ×20: far past the gain margin)."""
+    from stagectl.commission.sliding import damping_limit
+
+    hot = PidConfig(kp_n_m=20 * PID.kp_n_m, ki_n_m_s=20 * PID.ki_n_m_s, kd_n_s_m=20 * PID.kd_n_s_m,
+                    derivative_cutoff_hz=95.0)
+    assert np.any(np.abs(_closed_loop_poles(1.0, T, hot, 1, "qfilter", 95.0, 0.0)) >= 1.0)
+    assert damping_limit(1.0, T, hot, 1, "qfilter", 95.0, -300.0) == 0.0
+    # the healthy design keeps its measured limit
+    lim = damping_limit(1.0, T, PID, 1, "qfilter", 95.0, -300.0)
+    assert lim is not None and -230.0 < lim < -170.0
