@@ -110,6 +110,7 @@ from typing import Any
 
 from stagectl.clock import Clock, apply_realtime
 from stagectl.control.api import Reference
+from stagectl.control.trajectory import ForceBudget, Move
 from stagectl.drivers.base import (
     Device,
     DeviceState,
@@ -294,6 +295,7 @@ class ControlLoop:
         self._snap: tuple[float, float, float, float, float] = (0.0, math.nan, math.nan, math.nan, 0.0)
         self._u = 0.0
         self._act_lim_warned = math.nan  # the actuator limit last warned about [N] (_adopt_actuator_limit)
+        self._moves_slowed = 0  # moves planned slower than asked to stay within the force (_tell_move_slowed)
         self._t0 = 0.0
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
         self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
@@ -506,6 +508,42 @@ class ControlLoop:
         safety (hard clamp), so that the force commanded, written and recorded is the force applied. A limit
         below ``controller.max_force_n`` or ``safety.max_force_n`` is told once per value as a warning naming
         both and where each comes from; the master never raises the drive's limit itself."""
+        self._adopt_limit()
+        self._plan_moves_within_force()
+
+    def _plan_moves_within_force(self) -> None:
+        """Moves are planned within ``safety.move_force_fraction`` of the usable force (the least of the
+        controller's and safety's clamps, which hold the actuator's own limit by now) on the controller's mass
+        and friction model (:class:`~stagectl.control.trajectory.ForceBudget`); a move planned slower than asked
+        is logged (warning the first time, then info)."""
+        setter = getattr(self.reference, "set_force_budget", None)
+        terms = getattr(self.controller, "move_force_terms", None)
+        frac = float(getattr(self.safety.cfg, "move_force_fraction", 0.0))
+        if not callable(setter):
+            return
+        if not (callable(terms) and frac > 0.0):
+            setter(None)
+            return
+        m, static, visc = terms()
+        usable = min(float(getattr(self.controller, "force_limit_n", math.inf)), self.safety.force_limit_n)
+        if not (m > 0.0 and math.isfinite(usable) and usable > 0.0):
+            setter(None)
+            return
+        setter(ForceBudget(m, frac * usable, static, visc), self._tell_move_slowed)
+
+    def _tell_move_slowed(self, asked: Move, planned: Move) -> None:
+        self._moves_slowed += 1
+        lvl = logging.WARNING if self._moves_slowed == 1 else logging.INFO
+        m, static, visc = self.controller.move_force_terms()  # type: ignore[attr-defined]
+        need = m * asked.max_acceleration_m_s2 + static + visc * asked.max_velocity_m_s
+        usable = min(float(getattr(self.controller, "force_limit_n", math.inf)), self.safety.force_limit_n)
+        log.log(lvl, "move planned slower: it asks up to %.3g N (m*a %.3g kg x %.3g m/s^2 + friction %.3g N + "
+                "viscous %.3g N s/m x %.3g m/s) of %.3g N usable (safety.move_force_fraction %g): planned at "
+                "a_max %.3g m/s^2, v_max %.3g m/s, j_max %.3g m/s^3", need, m, asked.max_acceleration_m_s2,
+                static, visc, asked.max_velocity_m_s, usable, self.safety.cfg.move_force_fraction,
+                planned.max_acceleration_m_s2, planned.max_velocity_m_s, planned.max_jerk_m_s3)
+
+    def _adopt_limit(self) -> None:
         lim = getattr(self.actuator, "force_limit_n", None)
         if isinstance(lim, (int, float)) and lim <= 0.0 and lim != self._act_lim_warned:
             # (a drive whose max torque 0x6072 reads 0 clamps every command to nothing: say so, or the first

@@ -123,6 +123,11 @@ class SafetyConfig:
     move_velocity_fraction: float = param(
         0.9, desc="moves are planned at most at this fraction of max_velocity_m_s (tracking overshoot must not "
         "trip velocity_limit); faster requests are refused", gt=0, le=1)
+    move_force_fraction: float = param(
+        0.8, desc="moves are planned so that their peak force m*a_max + F_s + F_v*v_max (the controller's mass and "
+        "friction model) is at most this fraction of the usable force (the least of controller.max_force_n, "
+        "max_force_n and the drive's own limit); a faster move is planned slower, with a warning, instead of "
+        "saturating the actuator (0: moves run as given)", ge=0, le=1)
     quick_stop_deceleration_m_s2: float | None = param(
         None, unit="m/s^2", desc="fault reaction: deceleration of the braking ramp after following_error, "
         "velocity_limit or position_limit, before the drive is released (None: 0.9 max_force_n / moving mass)",

@@ -222,10 +222,12 @@ def friction_moves(seed: int, n: int):
     return v, dt
 
 
-def drive_limit_config(**drive):
+def drive_limit_config(move_force_fraction: float = 0.0, **drive):
     """config/sim.yaml through the embedded CiA 402 drive, with ``sim.drive`` keys overridden (e.g. its
     ``max_force_n``, the drive's max torque 0x6072) and the tracking window widened to 1 mm (a saturated move
-    lags by ~0.12 mm before it catches up: the window, not the force limits)."""
+    lags by ~0.12 mm before it catches up: the window, not the force limits). Moves run as given
+    (``safety.move_force_fraction`` 0: these tests saturate the drive on purpose) unless
+    ``move_force_fraction`` is given."""
     from pathlib import Path
 
     import yaml
@@ -238,4 +240,5 @@ def drive_limit_config(**drive):
     data["sim"]["drive"].update(drive)
     data["safety"]["following_error_m"] = 1e-3
     data["safety"]["stale_travel_m"] = 1e-3
+    data["safety"]["move_force_fraction"] = move_force_fraction
     return parse_app_config(data, sim_yaml)

@@ -1255,6 +1255,20 @@ class StageController:
         self.actuator_limit_n = lim if lim > 0.0 and math.isfinite(lim) else math.inf
         self._u_lim = min(self.cfg.max_force_n, self.actuator_limit_n)
 
+    def move_force_terms(self) -> tuple[float, float, float]:
+        """What a planned move costs on this controller's model: (mass m [kg], static friction F_s [N], viscous
+        F_v [N·s/m]), for planning moves within the usable force (:class:`~stagectl.control.trajectory.
+        ForceBudget`). F_s is the model's largest friction force (max(F_s, F_c)), its Coulomb level where that
+        is not known, 0 without a friction model; F_v its viscous coefficient (0 where not known)."""
+        static = self._f_max if math.isfinite(self._f_max) else self._f_kin if math.isfinite(self._f_kin) else 0.0
+        ff = self.ff
+        if isinstance(ff, CoulombFeedforward):
+            visc = float(ff.viscous_n_s_m)
+        else:
+            v = getattr(getattr(getattr(ff, "model", None), "params", None), "viscous_n_s_m", None)
+            visc = float(v) if isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0 else 0.0
+        return float(self.mass_kg), float(static), visc
+
     def set_reference_stop(self, x_m: float) -> None:
         """Where the reference next comes to rest without reversing first [m] (NaN: unknown), for the friction
         feed-forward's look-ahead at its next step or hold (:func:`stagectl.control.friction_ff.bounded_ahead`).

@@ -10,11 +10,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 from stagectl.control.api import Reference
 from stagectl.control.ilc import Repetition
 from stagectl.control.trajectory import (
+    ForceBudget,
     Move,
     Scenario,
     TrajectoryGenerator,
@@ -120,6 +122,14 @@ class TrajectoryReference:
         self._scenario = scenario
         self._repeat = repeat
         self._started = False
+
+    def set_force_budget(self, budget: ForceBudget | None,
+                         on_slowed: Callable[[Move, Move], None] | None = None) -> None:
+        """Plan every move (scenario segments, ``move`` and ``stop`` requests) within ``budget`` (None: as
+        given); ``on_slowed(asked, planned)`` is called when a move starts planned slower than asked
+        (:class:`~stagectl.control.trajectory.ForceBudget`)."""
+        self.gen.force_budget = budget
+        self.gen.on_move_slowed = on_slowed
 
     def hold(self, t_s: float, x_m: float) -> None:
         self.gen.reset(x_m)

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,6 +46,7 @@ from stagectl.schema import load, param
 __all__ = [
     "Cosine",
     "Dwell",
+    "ForceBudget",
     "Move",
     "Scenario",
     "SegmentSpec",
@@ -73,6 +74,49 @@ class Move:
     def __post_init__(self) -> None:
         if (self.to_m is None) == (self.by_m is None):
             raise ValueError("move: give exactly one of to_m or by_m")
+
+
+@dataclass(frozen=True)
+class ForceBudget:
+    """The force a planned move may ask of the actuator (the loop's move planning; ``safety.move_force_fraction``).
+
+    A move's peak force is bounded by ``F_move = m·a_max + F_s + F_v·v_max`` [N] (inertia at the largest
+    acceleration plus the model's largest friction, its static level F_s, and its viscous force at the largest
+    speed). A move within ``force_n`` (already the fraction of the usable force: the rest is the feedback's room)
+    runs as given; a faster one is planned slower (:meth:`fit`) instead of saturating the actuator, where the
+    stage would lag, the integrator wind and the stop overshoot.
+
+    Attributes: ``mass_kg`` [kg], ``force_n`` [N], ``static_n`` F_s [N] (0: no model), ``viscous_n_s_m`` F_v
+    [N·s/m].
+    """
+
+    mass_kg: float
+    force_n: float
+    static_n: float = 0.0
+    viscous_n_s_m: float = 0.0
+
+    def move_force_n(self, spec: Move) -> float:
+        """``F_move`` of ``spec`` [N] (class docstring)."""
+        return (self.mass_kg * spec.max_acceleration_m_s2 + self.static_n
+                + self.viscous_n_s_m * spec.max_velocity_m_s)
+
+    def fit(self, spec: Move) -> Move:
+        """``spec`` itself when ``F_move ≤ force_n``; else the same move planned within the budget:
+
+            v' = min(v_max, (F − F_s)/(2·F_v))       (the viscous force at most half the room above F_s)
+            a' = (F − F_s − F_v·v')/m,   j' = j_max·a'/a_max   (the same jerk time a/j)
+
+        Where friction alone takes the budget (``F_s ≥ F``) nothing fits: ``spec`` is returned unchanged (the
+        loop says so; the move runs saturated)."""
+        room = self.force_n - self.static_n
+        if self.move_force_n(spec) <= self.force_n * (1.0 + 1e-12) or not room > 0.0 or not self.mass_kg > 0.0:
+            return spec
+        v = spec.max_velocity_m_s
+        if self.viscous_n_s_m > 0.0:
+            v = min(v, 0.5 * room / self.viscous_n_s_m)
+        a = min(spec.max_acceleration_m_s2, (room - self.viscous_n_s_m * v) / self.mass_kg)
+        j = spec.max_jerk_m_s3 * a / spec.max_acceleration_m_s2
+        return Move(to_m=spec.to_m, by_m=spec.by_m, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=j)
 
 
 @dataclass(frozen=True)
@@ -439,6 +483,11 @@ class TrajectoryGenerator:
         self._queue: deque[SegmentSpec] = deque()
         self._cur: _Bound = _Hold(x0_m, math.inf)
         self._name = "hold"
+        #: moves (and stops) are planned within this force (:class:`ForceBudget`; None: as given)
+        self.force_budget: ForceBudget | None = None
+        #: called with (asked, planned) each time a move starts planned slower than asked (the loop logs it)
+        self.on_move_slowed: Callable[[Move, Move], None] | None = None
+        self.moves_slowed = 0  # moves started planned slower than asked, since construction
         self.reset(x0_m)
 
     # ---------------------------------------------------------------- control
@@ -510,6 +559,12 @@ class TrajectoryGenerator:
         if v0 == 0.0 and a0 == 0.0:
             self._advance_segment(Reference(x0))
             return x0
+        fb = self.force_budget
+        if fb is not None and fb.mass_kg > 0.0:  # the stop's deceleration within the budget too (at the given speed)
+            a_fit = (fb.force_n - fb.static_n - fb.viscous_n_s_m * abs(v0)) / fb.mass_kg
+            if 0.0 < a_fit < max_acceleration_m_s2:
+                max_jerk_m_s3 *= a_fit / max_acceleration_m_s2
+                max_acceleration_m_s2 = a_fit
         phases = _stop_phases(v0, a0, max_acceleration_m_s2, max_jerk_m_s3)
         b = _Phases(x0, v0, a0, phases, x_end=_Phases(x0, v0, a0, phases).end.x_m)  # snap v, a to exact rest
         self._cur = b
@@ -584,7 +639,7 @@ class TrajectoryGenerator:
             rest = self._cur.duration - self.state.tau_s
         ref = self._cur.end
         for spec in self._queue:
-            b = _bind(spec, ref)
+            b = _bind(self._planned(spec), ref)
             rest += b.duration
             ref = b.end
         return rest
@@ -593,17 +648,28 @@ class TrajectoryGenerator:
         """The reference state where the current motion and every queued segment end (binds the queue)."""
         ref = self._cur.end
         for spec in self._queue:
-            ref = _bind(spec, ref).end
+            ref = _bind(self._planned(spec), ref).end
         return ref
 
     @property
     def done(self) -> bool:
         return math.isinf(self._cur.duration) and not self._queue
 
+    def _planned(self, spec: SegmentSpec) -> SegmentSpec:
+        """``spec`` as it is planned: a move within :attr:`force_budget` (:meth:`ForceBudget.fit`)."""
+        if self.force_budget is None or not isinstance(spec, Move):
+            return spec
+        return self.force_budget.fit(spec)
+
     def _advance_segment(self, start: Reference, keep_time: bool = False) -> None:
         if self._queue:
             spec = self._queue.popleft()
-            self._cur = _bind(spec, start)
+            planned = self._planned(spec)
+            if planned is not spec and isinstance(spec, Move) and isinstance(planned, Move):
+                self.moves_slowed += 1
+                if self.on_move_slowed is not None:
+                    self.on_move_slowed(spec, planned)
+            self._cur = _bind(planned, start)
             self._name = type(spec).__name__.lower()
         else:
             self._cur = _Hold(start.x_m, math.inf)
