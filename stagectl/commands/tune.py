@@ -24,6 +24,10 @@ Advice is checked before it is given. Without ``--bandwidth-hz`` the crossover i
 0.02/period until the PID + observer loop is healthy. The design is then run, in simulated time, on the
 config's simulated plant (``sim:``) through 10 µm steps with 0.5 s holds
 (:func:`stagectl.bench.control.steps_check`), with the configured friction model and with a 20 %-wrong one.
+The suggestion's rest loop (:func:`_suggested_rest`): the configured rest gains when both rest loops, stuck and free,
+meet the floor with the designed PID and observer; otherwise the rest gains of
+:func:`stagectl.control.design.design_rest_gains` (the floor on both, for this delay, mass and stiffness), written into
+the suggested YAML and used in the steps check below.
 It is **refused** (no suggested YAML, exit 1, the reasons printed) when it is unstable, its margins are thin,
 or it hunts in a limit cycle, is still more than 1 µm off in the second half of a hold, or faults on the steps. Otherwise it is offered with a confidence: ``high`` (every
 step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every step settles within the hold),
@@ -31,7 +35,8 @@ step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every
 which the suggestion keeps, does worse than none in the simulated checks on stages that are not held (a free mass,
 the plant at ×0.2 of its pre-sliding stiffness: an excursion above :data:`SPRING_WORSE_RATIO` × the spring-less one),
 and the reason names those figures (``rest_spring_worse``); so it does when the configured rest loop on a free
-mass (``rest/free``) misses the floor: the gains rely on friction holding the stage (``rest_free_thin``). Exit code 1 also when the configured loop is unstable
+mass (``rest/free``) of the suggestion misses the floor (no rest gains meet it on both stages): the gains rely on
+friction holding the stage (``rest_free_thin``). Exit code 1 also when the configured loop is unstable
 (moving, or at standstill on the stuck stage anywhere in the θ range), 2 on bad input.
 """
 
