@@ -275,7 +275,8 @@ def _freq_response(L: Any, z: np.ndarray) -> np.ndarray:
         n = A.shape[0]
         M = z[:, None, None] * np.eye(n)[None, :, :] - A[None, :, :]
         X = np.linalg.solve(M, np.broadcast_to(B.astype(complex), (z.size, n, 1)))
-        return (C @ X)[:, 0, 0] + D[0, 0]
+        out: np.ndarray = (C @ X)[:, 0, 0] + D[0, 0]
+        return out
     return np.asarray(L(z), dtype=complex).reshape(-1)
 
 
@@ -453,8 +454,8 @@ def design_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, delay_sam
                     and w["gain_margin_db"] >= min_gain_margin_db)
 
     def score(loops: dict[str, dict[str, Any]]) -> float:
-        return min(min(w["phase_margin_deg"] / min_phase_margin_deg, w["gain_margin_db"] / min_gain_margin_db)
-                   for w in loops.values())
+        return min(min(float(w["phase_margin_deg"]) / min_phase_margin_deg,
+                       float(w["gain_margin_db"]) / min_gain_margin_db) for w in loops.values())
 
     points = 0
     screen = _rest_screen(mass_kg, period_s, pid, delay_samples, dob_bandwidth_hz, dob_command_delay_samples,
