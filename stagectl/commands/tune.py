@@ -24,6 +24,10 @@ Advice is checked before it is given. Without ``--bandwidth-hz`` the crossover i
 0.02/period until the PID + observer loop is healthy. The design is then run, in simulated time, on the
 config's simulated plant (``sim:``) through 10 µm steps with 0.5 s holds
 (:func:`stagectl.bench.control.steps_check`), with the configured friction model and with a 20 %-wrong one.
+The suggestion's rest loop (:func:`_suggested_rest`): the configured rest gains when both rest loops, stuck and free,
+meet the floor with the designed PID and observer; otherwise the rest gains of
+:func:`stagectl.control.design.design_rest_gains` (the floor on both, for this delay, mass and stiffness), written into
+the suggested YAML and used in the steps check below.
 It is **refused** (no suggested YAML, exit 1, the reasons printed) when it is unstable, its margins are thin,
 or it hunts in a limit cycle, is still more than 1 µm off in the second half of a hold, or faults on the steps. Otherwise it is offered with a confidence: ``high`` (every
 step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every step settles within the hold),
@@ -31,7 +35,8 @@ step settles to ±10 nm, both models), ``medium`` (no limit cycle, but not every
 which the suggestion keeps, does worse than none in the simulated checks on stages that are not held (a free mass,
 the plant at ×0.2 of its pre-sliding stiffness: an excursion above :data:`SPRING_WORSE_RATIO` × the spring-less one),
 and the reason names those figures (``rest_spring_worse``); so it does when the configured rest loop on a free
-mass (``rest/free``) misses the floor: the gains rely on friction holding the stage (``rest_free_thin``). Exit code 1 also when the configured loop is unstable
+mass (``rest/free``) of the suggestion misses the floor (no rest gains meet it on both stages): the gains rely on
+friction holding the stage (``rest_free_thin``). Exit code 1 also when the configured loop is unstable
 (moving, or at standstill on the stuck stage anywhere in the θ range), 2 on bad input.
 """
 
@@ -222,7 +227,10 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     analyses += loops
     summaries = {a.name.removeprefix("designed "): {**a.summary(), "healthy": _healthy(a.summary())} for a in loops}
     healthy = all(v["healthy"] for v in summaries.values())
-    check = _check(inp["app"], pid, dbw, nd) if inp["app"] is not None and healthy else None
+    rest = result.get("configured", {}).get("rest")
+    rest_d = _suggested_rest(inp["app"], ctl, rest, pid, dbw, nd, m, T) if rest is not None and healthy else None
+    rest_gains = rest_d["gains"] if rest_d is not None and rest_d["source"] == "designed" else None
+    check = _check(inp["app"], pid, dbw, nd, rest_gains) if inp["app"] is not None and healthy else None
     verdict = _verdict(summaries, check)
     result["designed"] = d_out = {
         "target_crossover_hz": bw,
@@ -230,21 +238,21 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
         "pid": _pid_dict(pid),
         "dob": {"kind": "qfilter", "bandwidth_hz": dbw, "command_delay_samples": nd},
         "loops": summaries,
+        "rest": rest_d,
         "check": check,
         **verdict,
-        "yaml": None if verdict["refused"] else _yaml_snippet(m, pid, dbw, nd),
+        "yaml": None if verdict["refused"] else _yaml_snippet(m, pid, dbw, nd, rest_gains),
     }
-    rest = result.get("configured", {}).get("rest")
     worse = _spring_worse(rest)
-    thin = _free_rest_thin(rest)
-    # the suggestion keeps the configured rest spring and rest gains: what they do on stages that are not held
-    # (worse than no spring; thin margins on a free stage) caps its confidence at medium
+    thin = _free_rest_thin(rest_d)
+    # the suggestion keeps the configured rest spring (and the configured rest gains unless it designs its own): what
+    # they do on stages that are not held (worse than no spring; thin margins on a free stage) caps its confidence
     for key, value, why in (
             ("rest_spring_worse", worse, (f"the rest spring these gains keep does worse than none on stages that "
                                           f"are not held (simulated with the configured gains: {'; '.join(worse)})")),
-            ("rest_free_thin", thin, (f"the configured rest loop, whose rest fractions these gains keep, misses the "
-                                      f"floor on a free stage ({thin}): it relies on friction holding the stage at "
-                                      f"standstill"))):
+            ("rest_free_thin", thin, (f"the suggestion's rest loop misses the floor on a free stage ({thin}) and no "
+                                      f"rest gains meet it on both stages: it relies on friction holding the stage "
+                                      f"at standstill"))):
         if value and not verdict["refused"]:
             verdict[key] = value
             if verdict["confidence"] == "high":
@@ -262,8 +270,28 @@ def tune(args: argparse.Namespace) -> tuple[dict[str, Any], int]:
     return result, exit_code
 
 
+def _suggested_rest_lines(rd: dict[str, Any] | None) -> list[str]:
+    """The suggestion's rest loop (:func:`_suggested_rest`) as printed lines."""
+    if rd is None:
+        return []
+    g = rd["gains"]
+    gains = (f"rest_kd_fraction {g['kd_fraction']:g}, rest_dob_bandwidth_fraction {g['dob_bandwidth_fraction']:g}, "
+             f"rest_spring_section_count {int(g['spring_sections'])}")
+    floor = f"PM {HEALTHY_PHASE_MARGIN_DEG:g} deg / GM {HEALTHY_GAIN_MARGIN_DB:g} dB"
+    if rd["source"] == "designed":
+        was = "; ".join(f"{k} PM {v['phase_margin_deg']:.1f} deg, GM {v['gain_margin_db']:.1f} dB"
+                        for k, v in rd["configured_loops"].items())
+        head = (f"at standstill: the configured rest gains miss the {floor} floor with these gains ({was}); "
+                f"designed for this delay, mass and stiffness on the stuck stage and the free mass: {gains}")
+    elif rd["healthy"]:
+        head = f"at standstill: the configured rest gains ({gains}) meet the {floor} floor on both stages"
+    else:
+        head = f"at standstill: no rest gains meet the {floor} floor on both stages; keeps the configured ({gains})"
+    return [head] + [_fmt_loop(name, s).strip() for name, s in rd["loops"].items()]
+
+
 def _free_rest_thin(rest: dict[str, Any] | None) -> str:
-    """The configured rest loop on a free mass (``rest/free`` of :func:`_rest_loops`, worst over θ) when it misses
+    """A rest loop's figure on a free mass (``rest/free`` of :func:`_rest_loops` / :func:`_suggested_rest`, worst over θ) when it misses
     the PM/GM floor, as "PM x deg, GM y dB" ("unstable" when it is); "" when it meets it or was not analysed."""
     loops = (rest or {}).get("loops") or {}
     s = next((v for k, v in loops.items() if k.endswith("free")), None)
@@ -315,6 +343,56 @@ def _rest_gains(ctl: Any) -> dict[str, Any]:
             "spring_sections": ctl.rest_spring_section_count}
 
 
+def _rest_setup(app: Any, ctl: Any) -> dict[str, Any] | None:
+    """What the rest loop of :func:`_rest_loops` is analysed on: the stuck plant's pre-sliding stiffness ``k_plant``
+    [N/m] and damping ``c_plant`` [N s/m] (the config's simulated plant's, else the controller model's), the rest
+    spring ``kv`` = φ·Σk of the model [N/m] (0: off; ``spring``), the rest integral's gain ``kr`` [N/(m s)], whether
+    the PID's integrator is ``held`` at rest, and the feed-forward scales ``thetas`` to sweep. None without a
+    Q-filter observer or a known pre-sliding stiffness."""
+    if ctl.dob.kind != "qfilter":
+        return None
+    model = ctl.feedforward.model
+    model_fr = model.friction if model is not None else None
+    plant_fr = app.sim.plant.friction if app is not None and app.sim is not None else model_fr
+    k_plant = getattr(plant_fr, "stiffness_n_m", None)
+    c_plant = getattr(plant_fr, "damping_n_s_m", None)
+    if not isinstance(k_plant, float) or not isinstance(c_plant, float) or k_plant <= 0.0:
+        return None
+    k_model = getattr(model_fr, "stiffness_n_m", None)
+    spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
+    kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
+    # the rest integral (controller.rest_integral_hz): its gain on the stiff side, 2π·f_r·min(θ, 1)·Σk
+    kr = (2.0 * math.pi * ctl.rest_integral_hz * k_model
+          if ctl.feedforward.kind == "model" and isinstance(k_model, float) else 0.0)
+    ffc = ctl.feedforward
+    learns = ffc.adapt_bandwidth_hz > 0.0 or ffc.learn_moves_fraction > 0.0
+    lo = 1.0 - ffc.adapt_max_change_fraction if learns else 1.0
+    hi = 1.0  # the spring's θ is capped at 1 (above it θ still scales the feed-forward, not the spring)
+    thetas = [1.0] if not (spring or kr) or lo == hi else [lo + (hi - lo) * i / (THETA_POINTS - 1)
+                                                           for i in range(THETA_POINTS)]
+    return {"k_plant": k_plant, "c_plant": c_plant, "kv": kv, "kr": kr, "spring": spring,
+            "held": bool(ctl.hold_integrator_at_rest), "thetas": thetas}
+
+
+def _design_rest(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int) -> dict[str, Any] | None:
+    """Rest-loop gains for ``ctl``'s PID and observer by :func:`stagectl.control.design.design_rest_gains`: both rest
+    loops of :func:`_rest_loops` (the stuck stage and the free mass, with the spring a stage not seen held gets) at
+    the floor over the θ range, for this delay, mass and stiffness; None when the rest loop is not analysed."""
+    from stagectl.control import design
+
+    setup = _rest_setup(app, ctl)
+    if setup is None:
+        return None
+    cap = (float(ctl.rest_spring_unconfirmed_kp_fraction) * float(ctl.pid.kp_n_m)
+           if ctl.rest_spring_held_fraction > 0.0 else None)
+    return design.design_rest_gains(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
+                                    setup["k_plant"], setup["c_plant"], setup["kv"], ctl.velocity_cutoff_hz,
+                                    dob_mass_kg=m_dob, integrator_held=setup["held"], thetas=setup["thetas"],
+                                    free_spring_cap_n_m=cap, rest_integral_n_m_s=setup["kr"],
+                                    min_phase_margin_deg=HEALTHY_PHASE_MARGIN_DEG,
+                                    min_gain_margin_db=HEALTHY_GAIN_MARGIN_DB)
+
+
 def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *,
                 simulate: bool = True) -> dict[str, Any] | None:
     """Margins of the configured *rest* loop (:func:`stagectl.control.design.analyse_rest`: the PID with its
@@ -337,28 +415,12 @@ def _rest_loops(app: Any, ctl: Any, m: float, m_dob: float, T: float, nd: int, *
     :func:`_not_held_check`; about 1 s of CPU)."""
     from stagectl.control import design
 
-    if ctl.dob.kind != "qfilter":
+    setup = _rest_setup(app, ctl)
+    if setup is None:
         return None
-    model = ctl.feedforward.model
-    model_fr = model.friction if model is not None else None
-    plant_fr = app.sim.plant.friction if app is not None and app.sim is not None else model_fr
-    k_plant = getattr(plant_fr, "stiffness_n_m", None)
-    c_plant = getattr(plant_fr, "damping_n_s_m", None)
-    if not isinstance(k_plant, float) or not isinstance(c_plant, float) or k_plant <= 0.0:
-        return None
-    k_model = getattr(model_fr, "stiffness_n_m", None)
-    spring = ctl.feedforward.kind == "model" and isinstance(k_model, float) and ctl.rest_stiffness_fraction > 0.0
-    kv = ctl.rest_stiffness_fraction * k_model if spring and isinstance(k_model, float) else 0.0
-    # the rest integral (controller.rest_integral_hz): its gain on the stiff side, 2π·f_r·min(θ, 1)·Σk
-    kr = (2.0 * math.pi * ctl.rest_integral_hz * k_model
-          if ctl.feedforward.kind == "model" and isinstance(k_model, float) else 0.0)
-    held = bool(ctl.hold_integrator_at_rest)
-    ffc = ctl.feedforward
-    learns = ffc.adapt_bandwidth_hz > 0.0 or ffc.learn_moves_fraction > 0.0
-    lo = 1.0 - ffc.adapt_max_change_fraction if learns else 1.0
-    hi = 1.0  # the spring's θ is capped at 1 (above it θ still scales the feed-forward, not the spring)
-    thetas = [1.0] if not (spring or kr) or lo == hi else [lo + (hi - lo) * i / (THETA_POINTS - 1)
-                                                           for i in range(THETA_POINTS)]
+    k_plant, c_plant, kv, kr = setup["k_plant"], setup["c_plant"], setup["kv"], setup["kr"]
+    spring, held, thetas = setup["spring"], setup["held"], setup["thetas"]
+    hi = thetas[-1]
     per: list[tuple[float, list[Any]]] = []
     for th in thetas:
         per.append((th, design.analyse_rest(m, T, ctl.pid, nd, ctl.dob.bandwidth_hz, ctl.dob.command_delay_samples,
@@ -568,19 +630,55 @@ def _design(args: argparse.Namespace, m: float, T: float, nd: int) -> tuple[floa
         bw *= 0.9
 
 
-def _check(app: Any, pid: PidConfig, dbw: float, nd: int) -> dict[str, Any] | None:
-    """Run the design on the config's simulated plant (10 µm steps, :data:`CHECK_HOLD_S` holds), with the
-    configured friction model and a 20 %-wrong one; None without a ``sim:`` plant."""
+def _designed_controller(base: Any, pid: PidConfig, dbw: float, nd: int,
+                         rest_gains: dict[str, Any] | None = None) -> Any:
+    """``base`` (the configured controller) with the designed PID and Q-filter observer (and ``rest_gains``, the
+    keyword arguments of :func:`stagectl.control.design.analyse_rest`, when given)."""
     import dataclasses
 
+    ctl = dataclasses.replace(base, pid=pid, dob=dataclasses.replace(
+        base.dob, kind="qfilter", bandwidth_hz=dbw, command_delay_samples=nd))
+    if rest_gains:
+        ctl = dataclasses.replace(ctl, rest_kd_fraction=float(rest_gains["kd_fraction"]),
+                                  rest_dob_bandwidth_fraction=float(rest_gains["dob_bandwidth_fraction"]),
+                                  rest_spring_section_count=int(rest_gains["spring_sections"]))
+    return ctl
+
+
+def _suggested_rest(app: Any, ctl: Any, rest: dict[str, Any], pid: PidConfig, dbw: float, nd: int, m: float,
+                    T: float) -> dict[str, Any] | None:
+    """The rest loop of the suggestion (the designed PID and observer with the configured rest spring): the
+    configured rest gains when both rest loops (stuck, free) meet the floor with them (``source: configured``),
+    else the gains :func:`_design_rest` chooses (``source: designed``; with ``configured_loops``, what the configured
+    gains would give), else the configured ones below the floor (``source: configured``, ``designed: None``).
+    ``loops`` are :func:`_rest_loops`' figures (worst over θ)."""
+    d_ctl = _designed_controller(ctl, pid, dbw, nd)
+    m_dob = d_ctl.dob.nominal_mass_kg if d_ctl.dob.nominal_mass_kg is not None else m
+    same = d_ctl.pid == ctl.pid and d_ctl.dob == ctl.dob
+    kept = rest if same else _rest_loops(app, d_ctl, m, m_dob, T, nd, simulate=False)
+    if kept is None:
+        return None
+    out = {"source": "configured", "gains": _rest_gains(ctl), "loops": kept["loops"], "healthy": kept["healthy"]}
+    if kept["healthy"]:
+        return out
+    des = _design_rest(app, d_ctl, m, m_dob, T, nd)
+    if des is None or des["gains"] is None:
+        return {**out, "designed": None}
+    return {"source": "designed", "gains": des["gains"], "loops": des["loops"], "healthy": True,
+            "configured_loops": kept["loops"], "points": des["points"]}
+
+
+def _check(app: Any, pid: PidConfig, dbw: float, nd: int, rest_gains: dict[str, Any] | None = None
+           ) -> dict[str, Any] | None:
+    """Run the design on the config's simulated plant (10 µm steps, :data:`CHECK_HOLD_S` holds), with the
+    configured friction model and a 20 %-wrong one; None without a ``sim:`` plant. ``rest_gains``: the rest-loop
+    gains the suggestion carries (None: the configured ones)."""
     from stagectl.bench.control import mismatched, steps_check
     from stagectl.friction import StageModel
 
     if app.sim is None:
         return None
-    base = app.controller
-    ctl = dataclasses.replace(base, pid=pid, dob=dataclasses.replace(
-        base.dob, kind="qfilter", bandwidth_hz=dbw, command_delay_samples=nd))
+    ctl = _designed_controller(app.controller, pid, dbw, nd, rest_gains)
     plant = app.sim.plant
     models: dict[str, Any] = {"configured model": None}
     out: dict[str, Any] = {}
@@ -658,14 +756,19 @@ def _pid_dict(p: PidConfig) -> dict[str, float]:
             "derivative_cutoff_hz": p.derivative_cutoff_hz}
 
 
-def _yaml_snippet(m: float, pid: PidConfig, dbw: float, nd: int) -> str:
-    return (
+def _yaml_snippet(m: float, pid: PidConfig, dbw: float, nd: int, rest_gains: dict[str, Any] | None = None) -> str:
+    out = (
         "controller:\n"
         f"  mass_kg: {m:.6g}\n"
         f"  pid: {{kp_n_m: {pid.kp_n_m:.4g}, ki_n_m_s: {pid.ki_n_m_s:.4g}, kd_n_s_m: {pid.kd_n_s_m:.4g}, "
         f"derivative_cutoff_hz: {pid.derivative_cutoff_hz:.4g}}}\n"
         f"  dob: {{kind: qfilter, bandwidth_hz: {dbw:.4g}, command_delay_samples: {nd}}}\n"
     )
+    if rest_gains:
+        out += (f"  rest_kd_fraction: {rest_gains['kd_fraction']:g}\n"
+                f"  rest_dob_bandwidth_fraction: {rest_gains['dob_bandwidth_fraction']:g}\n"
+                f"  rest_spring_section_count: {int(rest_gains['spring_sections'])}\n")
+    return out
 
 
 def _fmt_loop(name: str, s: dict[str, Any]) -> str:
@@ -735,6 +838,8 @@ def run(args: argparse.Namespace) -> int:
           f"DOB qfilter {d['dob']['bandwidth_hz']:g} Hz")
     for name, s in d["loops"].items():
         print(_fmt_loop(name, s))
+    for line in _suggested_rest_lines(d.get("rest")):
+        print("  " + line)
     if d["check"] is not None:
         for name, r in d["check"].items():
             if "skipped" in r:

@@ -1453,8 +1453,9 @@ def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, 
     low-pass sections on the spring; :func:`stagectl.control.design.analyse_rest`, the integrator held, the
     observer's command delay ``nd`` periods like the loop's) is analysed at each θ of ``thetas`` (the spring
     scales with θ; the new stage.yaml does not adapt θ, so 1) and its worst case kept. Among the points that meet
-    PM ≥ ``MIN_PHASE_MARGIN_DEG`` and GM ≥ ``MIN_GAIN_MARGIN_DB`` on the stuck stage the chosen one has the
-    largest K_d fraction (K_d's cut is what costs a start from rest: README, *Known limits*; and the most-margin
+    PM ≥ ``MIN_PHASE_MARGIN_DEG`` and GM ≥ ``MIN_GAIN_MARGIN_DB`` on the stuck stage those that meet it on the free
+    mass too come first (as :func:`stagectl.control.design.design_rest_gains` asks; config/hil-serial.yaml's K_d × 0.1
+    at two periods of delay gave the free mass PM 11°), and of those the chosen one has the largest K_d fraction (K_d's cut is what costs a start from rest: README, *Known limits*; and the most-margin
     points, K_d × 0.1 with a slow observer, drop the stuck loop's crossover from ~100 to 13–16 Hz and doubled the
     quick start's matched-twin cosine), then the most margin, min(PM/40°, GM/8 dB). None meets it:
     ``REST_GAINS_DEFAULT`` (the controller's own gains, as before).
@@ -1494,8 +1495,10 @@ def choose_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, nd: int, 
     summary = {"grid_points": len(tried), "meeting_floor": len(ok), "thetas": list(thetas),
                "best_stuck": {**dict(most_g), "phase_margin_deg": most_s["rest/stuck"]["phase_margin_deg"],
                               "gain_margin_db": most_s["rest/stuck"]["gain_margin_db"]}}
-    # the largest K_d fraction, then the most margin
-    ranked = sorted(ok, key=lambda t: (-t[0]["rest_kd_fraction"], -score(t[1]["rest/stuck"])))
+    # the points healthy on the free mass too first (design.design_rest_gains' floor: a rest loop healthy only on the
+    # stuck stage relies on friction holding it), then the largest K_d fraction, then the most margin
+    ranked = sorted(ok, key=lambda t: (not t[1]["rest/free"]["healthy"], -t[0]["rest_kd_fraction"],
+                                       -score(t[1]["rest/stuck"])))
     dflt = analyse(REST_GAINS_DEFAULT)
     if ranked:
         return {"gains": dict(ranked[0][0]), "loops": ranked[0][1], "summary": {**summary, "chosen": "grid"},

@@ -252,7 +252,7 @@ def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
     f = np.logspace(-1, math.log10(0.5 / dt * 0.999), n_points)
     w = 2 * math.pi * f
     # one vectorised evaluation (python-control's per-point call retries its slycot import every time)
-    resp = np.asarray(L(np.exp(1j * w * dt)), dtype=complex).reshape(-1)
+    resp = _freq_response(L, np.exp(1j * w * dt))
     mag = np.abs(resp)
     ph = np.unwrap(np.angle(resp))
     # margins from the dense response (robust against high-order numerics), checked against control.margin
@@ -263,6 +263,21 @@ def analyse(name: str, L: Any, dt: float, n_points: int = 600) -> LoopAnalysis:
     cl = control.feedback(L, 1)
     stable = bool(np.all(np.abs(control.poles(cl)) < 1.0))
     return LoopAnalysis(name, gm_db, pm_deg, wc_hz, wp_hz, stable, f, 20 * np.log10(mag), np.degrees(ph))
+
+
+def _freq_response(L: Any, z: np.ndarray) -> np.ndarray:
+    """L(z) at the points ``z`` (SISO). A state-space L is evaluated as C·(zI − A)⁻¹·B + D with one batched solve
+    (python-control's own evaluation solves point by point: most of the time of a rest-gain search)."""
+    import control
+
+    if isinstance(L, control.StateSpace) and L.ninputs == 1 and L.noutputs == 1 and L.nstates > 0:
+        A, B, C, D = (np.asarray(M, dtype=float) for M in (L.A, L.B, L.C, L.D))
+        n = A.shape[0]
+        M = z[:, None, None] * np.eye(n)[None, :, :] - A[None, :, :]
+        X = np.linalg.solve(M, np.broadcast_to(B.astype(complex), (z.size, n, 1)))
+        out: np.ndarray = (C @ X)[:, 0, 0] + D[0, 0]
+        return out
+    return np.asarray(L(z), dtype=complex).reshape(-1)
 
 
 def _margins_from_response(f: np.ndarray, mag: np.ndarray, ph: np.ndarray) -> tuple[float, float, float, float]:
@@ -394,6 +409,149 @@ def worst_over(summaries: list[dict[str, Any]]) -> tuple[int, dict[str, Any]]:
             key=lambda j: (summaries[j]["closed_loop_stable"], summaries[j]["phase_margin_deg"]))
     return i, {**summaries[i], "gain_margin_db": min(r["gain_margin_db"] for r in summaries),
                "closed_loop_stable": all(r["closed_loop_stable"] for r in summaries)}
+
+
+#: the rest-loop gains :func:`design_rest_gains` searches: K_d's fraction at rest (tried largest first), the
+#: observer's bandwidth fraction at rest, the rest spring's low-pass sections (``controller.rest_kd_fraction``,
+#: ``rest_dob_bandwidth_fraction``, ``rest_spring_section_count``)
+REST_KD_FRACTIONS = (1.0, 0.7, 0.5, 0.3, 0.2, 0.15, 0.1)
+REST_DOB_BANDWIDTH_FRACTIONS = (1.0, 0.75, 0.6, 0.45, 0.35, 0.3, 0.25)
+REST_SPRING_SECTIONS = (1, 2)
+
+
+def design_rest_gains(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int, dob_bandwidth_hz: float,
+                      dob_command_delay_samples: int, stiffness_n_m: float, damping_n_s_m: float,
+                      rest_spring_n_m: float, velocity_cutoff_hz: float | None = None, *,
+                      dob_mass_kg: float | None = None, integrator_held: bool = True,
+                      thetas: tuple[float, ...] | list[float] = (1.0,), free_spring_cap_n_m: float | None = None,
+                      rest_integral_n_m_s: float = 0.0, min_phase_margin_deg: float = 40.0,
+                      min_gain_margin_db: float = 8.0) -> dict[str, Any]:
+    """The rest loop's gains (K_d × κ_d, observer bandwidth × κ_g, n spring sections) for the moving loop ``pid`` +
+    Q-filter observer (``dob_bandwidth_hz``, command delay ``dob_command_delay_samples``) on a stage of mass
+    ``mass_kg`` [kg] with ``delay_samples`` periods of I/O delay, stuck on the pre-sliding stiffness
+    ``stiffness_n_m`` [N/m] and damping ``damping_n_s_m`` [N s/m] or free, with the rest spring k_v =
+    ``rest_spring_n_m`` [N/m] (× θ for each θ of ``thetas``: the spring follows the feed-forward's scale; the free
+    mass gets min(θ·k_v, ``free_spring_cap_n_m``), None: θ·k_v, the controller's spring before the stage is seen held)
+    and the rest integral θ·``rest_integral_n_m_s``.
+
+    Both rest loops of :func:`analyse_rest`, ``rest/stuck`` and ``rest/free``, must meet PM ≥ ``min_phase_margin_deg``
+    and GM ≥ ``min_gain_margin_db`` at every θ: a rest loop healthy only on the stuck stage relies on friction
+    holding the stage (on ``config/hil-serial.yaml``'s two periods of delay K_d × 0.1 with the observer × 0.3 kept
+    the stuck loop at PM 92° / GM 9.5 dB but left the free mass 11°). The K_d fractions of
+    :data:`REST_KD_FRACTIONS` are tried from the largest (K_d's cut is what costs a start from rest; the most-margin
+    points drop the stuck loop's crossover to a few Hz); at the first one with points that meet the floor the point
+    with the most margin, min(PM/floor, GM/floor) over both loops, is chosen. Each point is screened at θ = 1 and
+    analysed over the other θ only if it passes there.
+
+    Returns ``gains`` (``kd_fraction``, ``dob_bandwidth_fraction``, ``spring_sections``; None when no point meets
+    the floor), ``loops`` (the chosen point's ``rest/stuck`` and ``rest/free`` figures, worst over θ, with
+    ``healthy``; None without a choice) and ``points`` (how many points were analysed)."""
+    ths = sorted({float(t) for t in thetas}, key=lambda t: (t != 1.0, t))
+    cap = math.inf if free_spring_cap_n_m is None else float(free_spring_cap_n_m)
+
+    def healthy(w: dict[str, Any]) -> bool:
+        return bool(w["closed_loop_stable"] and w["phase_margin_deg"] >= min_phase_margin_deg
+                    and w["gain_margin_db"] >= min_gain_margin_db)
+
+    def score(loops: dict[str, dict[str, Any]]) -> float:
+        return min(min(float(w["phase_margin_deg"]) / min_phase_margin_deg,
+                       float(w["gain_margin_db"]) / min_gain_margin_db) for w in loops.values())
+
+    points = 0
+    screen = _rest_screen(mass_kg, period_s, pid, delay_samples, dob_bandwidth_hz, dob_command_delay_samples,
+                          stiffness_n_m, damping_n_s_m, velocity_cutoff_hz, dob_mass_kg, integrator_held)
+
+    def evaluate(kd: float, g: float, n: int) -> dict[str, dict[str, Any]] | None:
+        nonlocal points
+        for th in ths:  # the dense numpy response first (no stability test), with a little slack
+            for pm, gm in screen(kd, g, n, th * rest_spring_n_m, min(th * rest_spring_n_m, cap),
+                                 th * rest_integral_n_m_s):
+                if pm < min_phase_margin_deg - SCREEN_SLACK[0] or gm < min_gain_margin_db - SCREEN_SLACK[1]:
+                    return None
+        per: list[tuple[float, list[LoopAnalysis]]] = []
+        for th in ths:
+            points += 1
+            a = analyse_rest(mass_kg, period_s, pid, delay_samples, dob_bandwidth_hz, dob_command_delay_samples,
+                             stiffness_n_m, damping_n_s_m, th * rest_spring_n_m, velocity_cutoff_hz,
+                             dob_mass_kg=dob_mass_kg, integrator_held=integrator_held, kd_fraction=kd,
+                             dob_bandwidth_fraction=g, spring_sections=n,
+                             rest_integral_n_m_s=th * rest_integral_n_m_s,
+                             free_spring_n_m=min(th * rest_spring_n_m, cap))
+            if not all(healthy(x.summary()) for x in a):
+                return None
+            per.append((th, a))
+        out: dict[str, dict[str, Any]] = {}
+        for j, a0 in enumerate(per[0][1]):
+            i, w = worst_over([loops[j].summary() for _, loops in per])
+            out[a0.name] = {**w, "theta": per[i][0], "healthy": healthy(w)}
+        return out
+
+    for kd in REST_KD_FRACTIONS:
+        ok = [((kd, g, n), r) for g in REST_DOB_BANDWIDTH_FRACTIONS for n in REST_SPRING_SECTIONS
+              if (r := evaluate(kd, g, n)) is not None]
+        if ok:
+            (kd_, g_, n_), loops = max(ok, key=lambda t: score(t[1]))
+            return {"gains": {"kd_fraction": kd_, "dob_bandwidth_fraction": g_, "spring_sections": n_},
+                    "loops": loops, "points": points}
+    return {"gains": None, "loops": None, "points": points}
+
+
+#: :func:`design_rest_gains` analyses a point fully only when its screening response is within this slack of the
+#: floor ([deg], [dB])
+SCREEN_SLACK = (2.0, 0.5)
+
+
+def _rest_screen(mass_kg: float, period_s: float, pid: PidConfig, delay_samples: int, dob_bandwidth_hz: float,
+                 dob_command_delay_samples: int, stiffness_n_m: float, damping_n_s_m: float,
+                 velocity_cutoff_hz: float | None, dob_mass_kg: float | None, integrator_held: bool) -> Any:
+    """A fast screen for :func:`design_rest_gains`: the two rest loops of :func:`analyse_rest` evaluated directly in
+    numpy on its frequency grid, margins only (no closed-loop stability test). Returns f(κ_d, κ_g, n, k_v stuck,
+    k_v free, K_r) -> [(PM, GM) stuck, (PM, GM) free]."""
+    import control
+
+    T = period_s
+    f = np.logspace(-1, math.log10(0.5 / T * 0.999), 2000)
+    z = np.exp(2j * math.pi * f * T)
+    zd = z ** -delay_samples
+
+    def tf_at(P: Any) -> np.ndarray:
+        num, den = (np.asarray(v, dtype=float).ravel() for v in control.tfdata(P)[:2])
+        return np.polyval(num, z) / np.polyval(den, z)
+
+    stuck = tf_at(control.c2d(control.tf([1.0], [mass_kg, damping_n_s_m, stiffness_n_m]), T, "zoh")) * zd
+    free = tf_at(control.c2d(control.tf([1.0], [mass_kg, 0.0, 0.0]), T, "zoh")) * zd
+    b = math.exp(-2 * math.pi * pid.derivative_cutoff_hz * T)
+    integ = pid.ki_n_m_s * T * z / (z - 1)
+    a_s = math.exp(-2 * math.pi * dob_bandwidth_hz * T)
+    F = (1 - a_s) * z / (z - a_s)
+    md = dob_mass_kg if dob_mass_kg is not None else mass_kg
+    observer = dob_bandwidth_hz > 0.0
+    Fv = 1.0
+    if velocity_cutoff_hz is not None:
+        bv = math.exp(-2 * math.pi * velocity_cutoff_hz * T)
+        Fv = (1 - bv) * z / (z - bv)
+    c_int = T * z / (z - 1)
+
+    def f_screen(kd: float, g: float, n: int, kv: float, kv_free: float, kr: float) -> list[tuple[float, float]]:
+        C0 = pid.kp_n_m + pid.kd_n_s_m * kd * (1 - b) / T * (z - 1) / (z - b)
+        if observer:
+            a = math.exp(-2 * math.pi * dob_bandwidth_hz * g * T)
+            Hw = (1 - a) / (z - a)
+            Hu = Hw * (z + 1) / (2 * z) * z ** -dob_command_delay_samples
+            Hy = md * (1 - a) / T * (1 - Hw) * (z - 1) / (z * T) * Fv
+            if not integrator_held:
+                C0 = C0 + integ
+        else:
+            C0 = C0 + (0.0 if integrator_held else integ) + kr * c_int
+        out = []
+        for P, k in ((stuck, kv), (free, kv_free)):
+            C = C0 + (k * F ** n if k > 0.0 else 0.0)
+            L = P * (C + Hy) / (1 - Hu) + (P * kr * c_int if kr > 0.0 else 0.0) if observer else P * C
+            gm, pm, _, _ = _margins_from_response(f, np.abs(L), np.unwrap(np.angle(L)))
+            out.append((pm, gm))
+        return out
+
+    return f_screen
 
 
 def dob_loop(P: Any, C: Any, Hu: Any, Hy: Any, dt: float) -> Any:
