@@ -1041,15 +1041,27 @@ class Commissioning:
         if lam > STICTION_LENGTH_X_FE * self.env.following_error_m and r.frf is not None and r.plant is not None:
             info["reason"] = (f"stiction length {lam * 1e6:.3g} um > {STICTION_LENGTH_X_FE:g} following-error "
                               "limits: no stiffer tuning keeps the margins")
+            # the measured FRF judges the stiffer loops only where it measured the stage's mass: where its mass
+            # was not credible (the probe's replaced it) the multisine held or hunted the stage on its friction,
+            # its low lines are a friction describing function, not the loop the experiments run, and the
+            # rigid model with the measured delay judges them (as the FRF's own tuning, _frf_crossover)
+            on_frf = r.plant.mass_from == "frf"
+            if not on_frf:
+                info["margins_on"] = "model"
             for x in sorted((c for c in CROSSOVER_X_PERIOD if base < c <= STIFF_CROSSOVER_X_PERIOD), reverse=True):
                 pid = design.design_pid(mass_kg, x / T, T, 1)
-                K = an.controller_response(r.frf.f_hz, T, pid, "qfilter", COMMISSION_DOB_X_PERIOD / T, mass_kg, 1)
-                mm = an.measured_margins(r.frf, K)
+                if on_frf:
+                    K = an.controller_response(r.frf.f_hz, T, pid, "qfilter", COMMISSION_DOB_X_PERIOD / T,
+                                               mass_kg, 1)
+                    mm = an.measured_margins(r.frf, K)
+                else:
+                    mm = an.rigid_margins(T, mass_kg, r.plant.delay_s, pid, COMMISSION_DOB_X_PERIOD / T)
                 if mm.phase_margin_deg >= STIFF_MIN_PHASE_MARGIN_DEG and mm.gain_margin_db >= STIFF_MIN_GAIN_MARGIN_DB:
                     chosen = x
-                    info.update(crossover_hz=x / T, measured=mm.as_dict(),
+                    info.update(crossover_hz=x / T, **{"measured" if on_frf else "model": mm.as_dict()},
                                 reason=f"stiction length {lam * 1e6:.3g} um > {STICTION_LENGTH_X_FE:g} "
-                                       "following-error limits")
+                                       "following-error limits" + ("" if on_frf else
+                                                                   " (margins on the model: FRF mass not credible)"))
                     break
         kp_x = design.design_pid(mass_kg, chosen / T, T, 1).kp_n_m
         info["stiction_ratio"] = (fb / kp_x if kp_x > 0 else 0.0) / self.env.following_error_m
