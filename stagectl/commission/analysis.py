@@ -1362,6 +1362,19 @@ def controller_response(f_hz: FloatArray, period_s: float, pid: Any, dob_kind: s
     return np.asarray((c + hy) / (1 - hu), np.complex128)
 
 
+def rigid_margins(period_s: float, mass_kg: float, delay_s: float, pid: Any, dob_bandwidth_hz: float,
+                  n_lines: int = 400) -> Margins:
+    """Margins of ``L = P·K`` for a rigid ``mass_kg`` behind ``delay_s`` of I/O delay and the zero-order hold's
+    half period (``P = −e^{−jω(τ + T/2)}/(m ω²)``, the model :meth:`Frf.margin_lines` tests the measured lines
+    against), ``K`` the PID with a Q-filter observer for the same mass (:func:`controller_response`), on
+    ``n_lines`` log-spaced lines from 0.5 Hz to 0.49/T."""
+    f = np.geomspace(0.5, 0.49 / period_s, n_lines)
+    K = controller_response(f, period_s, pid, "qfilter", dob_bandwidth_hz, mass_kg, 1)
+    w = 2 * np.pi * f
+    P = -np.exp(-1j * w * (delay_s + 0.5 * period_s)) / (mass_kg * w * w)
+    return margins_from_response(f, np.asarray(P * K, np.complex128))
+
+
 def measured_margins(frf: Frf, K: ComplexArray) -> Margins:
     """Margins of ``L = P_meas·K`` on the measured lines but those :meth:`Frf.margin_lines` leaves out
     (``K`` at every line of ``frf``)."""

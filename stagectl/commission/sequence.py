@@ -1026,8 +1026,13 @@ class Commissioning:
         26 Hz it completed. Such a stage gets the highest crossover in ``CROSSOVER_X_PERIOD`` up to
         ``STIFF_CROSSOVER_X_PERIOD`` whose loop (the tuning's PID and observer) keeps PM ≥
         ``STIFF_MIN_PHASE_MARGIN_DEG`` and GM ≥ ``STIFF_MIN_GAIN_MARGIN_DB`` on the measured FRF (the
-        experiments' limits, below the commissioned gains' 40° / 8 dB). The choice goes to the report
-        (``experiment_tuning``)."""
+        experiments' limits, below the commissioned gains' 40° / 8 dB). Where the FRF's mass was not credible
+        (``plant.mass_from`` is not "frf": the multisine held or hunted the stage on its friction) the measured
+        lines below the friction band are a describing function of the friction, not of the loop (k124 of
+        tests/commission/plant_kinds.py: every candidate "crossed over" near 10 Hz at PM 7–20°, all were
+        rejected, and the 15 Hz reversals faulted), so the candidates are judged on the rigid model with the
+        measured delay instead (:func:`analysis.rigid_margins`; ``margins_on: model``). The choice goes to the
+        report (``experiment_tuning``)."""
         from stagectl.control import design
 
         r, T = self.res, self.T
@@ -1041,15 +1046,32 @@ class Commissioning:
         if lam > STICTION_LENGTH_X_FE * self.env.following_error_m and r.frf is not None and r.plant is not None:
             info["reason"] = (f"stiction length {lam * 1e6:.3g} um > {STICTION_LENGTH_X_FE:g} following-error "
                               "limits: no stiffer tuning keeps the margins")
+            # the measured FRF judges the stiffer loops only where it measured the stage's mass: where its mass
+            # was not credible (the probe's replaced it) the multisine held or hunted the stage on its friction,
+            # its low lines are a friction describing function, not the loop the experiments run, and the
+            # rigid model with the measured delay judges them (as the FRF's own tuning, _frf_crossover)
+            on_frf = r.plant.mass_from == "frf"
+            # (the measured delay where its standard error is within a quarter period, as the passes' reading
+            # takes it, else the configured one: a hunting FRF can read it far off, 3.7 ± 0.9 ms on k124 at 19 Hz)
+            delay_s = max(self.cfg.io.delay_cycles, 1) * T
+            if r.plant.delay_std_s <= 0.25 * T and r.plant.delay_s > 0.0:
+                delay_s = r.plant.delay_s
+            if not on_frf:
+                info.update(margins_on="model", model_delay_s=delay_s)
             for x in sorted((c for c in CROSSOVER_X_PERIOD if base < c <= STIFF_CROSSOVER_X_PERIOD), reverse=True):
                 pid = design.design_pid(mass_kg, x / T, T, 1)
-                K = an.controller_response(r.frf.f_hz, T, pid, "qfilter", COMMISSION_DOB_X_PERIOD / T, mass_kg, 1)
-                mm = an.measured_margins(r.frf, K)
+                if on_frf:
+                    K = an.controller_response(r.frf.f_hz, T, pid, "qfilter", COMMISSION_DOB_X_PERIOD / T,
+                                               mass_kg, 1)
+                    mm = an.measured_margins(r.frf, K)
+                else:
+                    mm = an.rigid_margins(T, mass_kg, delay_s, pid, COMMISSION_DOB_X_PERIOD / T)
                 if mm.phase_margin_deg >= STIFF_MIN_PHASE_MARGIN_DEG and mm.gain_margin_db >= STIFF_MIN_GAIN_MARGIN_DB:
                     chosen = x
-                    info.update(crossover_hz=x / T, measured=mm.as_dict(),
+                    info.update(crossover_hz=x / T, **{"measured" if on_frf else "model": mm.as_dict()},
                                 reason=f"stiction length {lam * 1e6:.3g} um > {STICTION_LENGTH_X_FE:g} "
-                                       "following-error limits")
+                                       "following-error limits" + ("" if on_frf else
+                                                                   " (margins on the model: FRF mass not credible)"))
                     break
         kp_x = design.design_pid(mass_kg, chosen / T, T, 1).kp_n_m
         info["stiction_ratio"] = (fb / kp_x if kp_x > 0 else 0.0) / self.env.following_error_m

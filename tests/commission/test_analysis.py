@@ -841,3 +841,18 @@ def test_the_flat_line_that_replaces_a_curve_beyond_the_fastest_pass_keeps_the_s
         assert st["viscous_n_s_m"] == pytest.approx(c.viscous_n_s_m, abs=1e-6)
         out.append(st["fc_n"])
     assert out[0] == pytest.approx(out[1], abs=1e-9)
+
+
+def test_rigid_margins_match_the_discrete_design_at_a_whole_period_of_delay() -> None:
+    # the model that judges the friction experiments' stiffer tunings where the FRF's mass is not credible
+    # (sequence.Commissioning._experiment_crossover): the discrete loop tune's design rule analyses, and
+    # a quarter period more delay costs phase at the crossover
+    T, m = 1e-3, 0.8632
+    for hz in (26.0, 15.0):
+        pid = design.design_pid(m, hz, T, 1)
+        d = design.analyse_design(m, T, pid, 1, 50.0, 1, dob_mass_kg=m)[-1].summary()
+        mm = an.rigid_margins(T, m, T, pid, 50.0)
+        assert mm.phase_margin_deg == pytest.approx(d["phase_margin_deg"], abs=0.5)
+        assert mm.gain_margin_db == pytest.approx(d["gain_margin_db"], abs=0.3)
+        later = an.rigid_margins(T, m, 1.25 * T, pid, 50.0)
+        assert later.phase_margin_deg == pytest.approx(mm.phase_margin_deg - 90.0 * mm.crossover_hz * T, abs=0.3)

@@ -10,6 +10,13 @@ lock-step plant in simulated time, stopped right after the experiment under test
   started during the move; and the FRF's 15 Hz tuning hunts on this stage at standstill (stiction length
   475 µm, 9.5 following-error limits): ±20–55 µm, following-error fault. The FRF now starts after the move
   and runs the stiffer tuning (26 Hz) the friction experiments use on such stages.
+* k124 (0.80 kg, 1.72 N Coulomb, a 0.37 N cogging: stiction length 603 µm, 12 following-error limits at
+  15 Hz): the FRF's multisine held and hunted the stage on its friction (FRF mass 1.4 g, not credible), and
+  the stiffer friction-experiment tunings were judged on that FRF, whose low lines are a friction describing
+  function (every candidate "crossed over" near 10 Hz, PM 7–20°): all rejected, the reversals ran at 15 Hz
+  (g_step 53 µm/N), each slip threw the stage ~30 µm past the reference and the next reversal's lag added
+  25 µm: following-error fault (51.4 µm). Where the FRF's mass is not credible the candidates are now judged
+  on the rigid model with the measured delay (26 Hz, PM 31°, GM 8 dB), as the FRF's own tuning is.
 * k112 again, to the end (slow): its reversals ring and stick-slip, which ``discover``'s data preparation read
   as 0.32 µm of position noise at 500 Hz (20 usable samples): the commissioning aborted after slow_passes. The
   models step now retries at the loop rate and otherwise keeps the passes' sliding curve (commission.fit).
@@ -72,6 +79,21 @@ def test_the_frf_on_a_sticky_stage_starts_after_the_move_and_does_not_hunt_into_
     moving = np.flatnonzero(rec["v_ref"] != 0.0)
     first_exc = int(np.flatnonzero(rec["u_exc"] != 0.0)[0])
     assert moving.size and t[first_exc] >= t[moving[-1]] + seq.FRF_SETTLE_S - 1e-9, (t[first_exc], t[moving[-1]])
+
+
+def test_a_light_cogged_coulomb_stage_whose_frf_hunts_gets_its_reversals_without_a_fault(tmp_path: Path) -> None:
+    rc, rep, out = _commission(tmp_path, 124, "presliding")
+    assert rc == 1 and rep["aborted"]["experiment"] == "presliding", rep["aborted"]  # the injected stop
+    by_name = {e["name"]: e for e in rep["experiments"]}
+    assert by_name["reversals"]["fault"] is None, by_name["reversals"]["fault"]
+    tuning = by_name["friction_cv"]["params"]["tuning"]
+    assert rep["fitted"]["mass_kg"]["from"] == "probe"  # the FRF's mass was not credible
+    assert tuning["margins_on"] == "model" and tuning["crossover_hz"] > 15.0, tuning
+    assert tuning["model"]["phase_margin_deg"] >= seq.STIFF_MIN_PHASE_MARGIN_DEG, tuning
+    e_max = tuning["following_error_m"]
+    for name in ("friction_cv", "reversals"):
+        peak = float(np.abs(_columns(out / "recordings" / f"{name}.csv")["e"]).max())
+        assert peak < 0.8 * e_max, (name, peak)
 
 
 def test_a_light_breakaway_limited_frf_mass_does_not_tune_the_friction_experiments() -> None:
