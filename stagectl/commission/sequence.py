@@ -596,6 +596,11 @@ class Commissioning:
                 r.plant = alt
         lo, hi = an.FRF_MASS_PLAUSIBLE
         pm = r.plant
+        # a probe whose data did not decide its delay (its mass trades with it, 10-15 % a cycle) is taken at
+        # the delay the FRF measured (analysis.probe_at_delay); its best estimate follows
+        r.sanity = an.probe_at_delay(r.sanity, pm.delay_s / T, pm.delay_std_s / T)
+        if r.sanity.mass_from == "joint":
+            m_p = r.sanity.mass_kg
         m_ref, s_ref, ref_joint = an.probe_reference_mass(r.sanity)
         agree = False
         if not (lo * m_p <= pm.mass_kg <= hi * m_p and pm.mass_std_kg <= an.FRF_MASS_MAX_REL_STD * pm.mass_kg):
@@ -621,6 +626,13 @@ class Commissioning:
                            f"{m_ref:.4g} ± {s_ref:.2g} kg ({'mass + viscous fit' if ref_joint else r.sanity.mass_from}) "
                            f"by more than {an.FRF_MASS_SIGMAS:g} combined standard errors: the probe's mass is used")
             r.plant = dataclasses.replace(pm, mass_kg=m_ref, mass_std_kg=s_ref, mass_from="probe")
+        elif r.plant.mass_from == "frf" and ref_joint:
+            # two consistent, independent measurements of one mass: their inverse-variance mean, the FRF's
+            # standard error at least FRF_MASS_MIN_REL_STD (analysis.combined_mass)
+            mc, sc = an.combined_mass(pm.mass_kg, pm.mass_std_kg, m_ref, s_ref)
+            r.notes.append(f"mass {mc:.4g} ± {sc:.2g} kg: the FRF's {pm.mass_kg:.4g} ± {pm.mass_std_kg:.2g} kg and the "
+                           f"probe's mass + viscous fit {m_ref:.4g} ± {s_ref:.2g} kg agree; their weighted mean")
+            r.plant = dataclasses.replace(pm, mass_kg=mc, mass_std_kg=sc, mass_from="frf+probe")
         m = r.plant.mass_kg
         r.frf.delay_s = r.plant.delay_s + T / 2  # (Frf.margin_lines' passivity test: ZOH half period + I/O delay)
         self.opts.progress(f"commission: FRF: mass {m:.4g} ± {r.plant.mass_std_kg:.2g} kg, delay "
@@ -635,7 +647,7 @@ class Commissioning:
         m_exp = m
         if joint_used:
             m_exp = max(m, min(m0, an.FRF_MASS_PLAUSIBLE[1] * m))
-        elif (m_light := light_frf_mass(m, r.plant.mass_std_kg, r.plant.mass_from, fa.limit, m_p,
+        elif (m_light := light_frf_mass(pm.mass_kg, pm.mass_std_kg, r.plant.mass_from, fa.limit, m_p,
                                         r.sanity.mass_std_kg)) is not None:
             m_exp = m_light
             self.opts.progress(f"commission: friction experiments tuned for the probe's {m_exp:.4g} kg (the FRF's "
@@ -1990,7 +2002,7 @@ def light_frf_mass(m_frf_kg: float, m_frf_std_kg: float, mass_from: str, frf_lim
     and the gains keep ``m``. Tuned for a mass 33 % light, generated plant 61 (1.99 kg, 1.2 N Coulomb; FRF
     1.33 ± 0.07 kg, probe 2.02 ± 0.11 kg) lagged 57 µm at the start of its 16 mm/s pass and overshot the
     velocity limit."""
-    if mass_from != "frf" or frf_limit != "breakaway":
+    if mass_from not in ("frf", "frf+probe") or frf_limit != "breakaway":
         return None
     if not m_probe_kg - m_frf_kg > 2.0 * math.hypot(m_frf_std_kg, m_probe_std_kg):
         return None
