@@ -916,6 +916,13 @@ STRIBECK_LEVEL_Z = 3.0
 STRIBECK_LEVEL_CHI2 = 3.84
 
 
+def _held_delta(fr: dict[str, Any]) -> float | None:
+    """The passes' shape exponent δ when :func:`stagectl.commission.analysis._stribeck_shape` held it (the
+    passes did not fix it: a refit keeps it), else None (free)."""
+    sh = fr.get("shape")
+    return float(fr["delta"]) if isinstance(sh, dict) and sh.get("delta_held") else None
+
+
 def _level_within_passes(level: float, fr: dict[str, Any], cv_points: tuple[FloatArray, ...],
                          sig: FloatArray | None, err: FloatArray) -> dict[str, Any] | None:
     """The sliding curve with Fs held at the pre-sliding ``level`` [N] when the passes measured the curve's
@@ -938,7 +945,7 @@ def _level_within_passes(level: float, fr: dict[str, Any], cv_points: tuple[Floa
     gap = abs(level - float(fr["fs_n"]))
     if n < 1 or gap <= STRIBECK_LEVEL_Z * float(np.median(err[:n])):
         return None
-    held = fit_stribeck_curve(v, f, fs_n=level, sigma_n=sig)
+    held = fit_stribeck_curve(v, f, fs_n=level, sigma_n=sig, delta=_held_delta(fr))
 
     def chi2(c: dict[str, Any]) -> float:  # (the points are odd parts mirrored: no offset)
         r = (f - stribeck_curve_at({**c, "offset_n": 0.0}, v)) / err
@@ -981,7 +988,8 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     if not level > 0.0:
         return None
     if not stick_slip:
-        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, sigma_n=sig))
+        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, sigma_n=sig,
+                                                      delta=_held_delta(fr)))
     else:
         # δ held, and vs at least the fastest stick-slipping pass's speed over STICK_SLIP_VS_RATIO: a pass
         # stick-slips only where the curve still falls steeply. Fresh plant k111 (vs 0.31 mm/s, passes from
