@@ -1087,6 +1087,13 @@ def _stribeck_without_outliers(v: FloatArray, f: FloatArray, se: FloatArray, sig
 STRIBECK_DELTA_PROFILE = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
 STRIBECK_DELTA_DEFAULT = 2.0
 STRIBECK_SHAPE_CHI2 = 3.84
+#: the curve holding δ is weighted by the points' errors (as the profile is) where the largest exceeds this
+#: many times their median, else fitted as the free curve was (:func:`_stribeck_shape`)
+STRIBECK_UNEVEN_ERRORS = 10.0
+#: ... and replaces the free curve only where that moves its Fc or Fv by more than this fraction: below it the
+#: shape costs the identification little (the ranges still enter the standard errors) and the fit stays the
+#: one it was (a 0.3 N cogging's passes, ±10 mN: Fv −14 % free, −15 % held)
+STRIBECK_HOLD_MIN_CHANGE = 0.05
 
 
 def _shape_std(value: float, rng: list[float]) -> float:
@@ -1109,8 +1116,9 @@ def _stribeck_shape(v: FloatArray, f: FloatArray, curve: dict[str, float], err: 
     plant 75 (1.1 kg, vs 2.0 mm/s, one pair beyond the dip read over 15 samples of a cogging-centred window,
     ±4 mN): Fv +17 %. So the curve is fitted with δ held at each of ``STRIBECK_DELTA_PROFILE`` (weighted by
     ``err``); the shapes whose χ² over the pairs lies within ``STRIBECK_SHAPE_CHI2`` of the best are the ones
-    the passes allow. Where ``STRIBECK_DELTA_DEFAULT`` is among them the curve holding it is returned
-    (plants 72 and 75: χ² +0.01 and +0.5; Fc +0.6 % and 0.0 %, Fv −0.9 % and +2.0 %), else ``curve``.
+    the passes allow. Where ``STRIBECK_DELTA_DEFAULT`` is among them and holding it moves Fc or Fv by more
+    than ``STRIBECK_HOLD_MIN_CHANGE``, the curve holding it is returned (plants 72 and 75: χ² +0.01 and +0.5;
+    Fc +0.6 % and 0.0 %, Fv −1.0 % and +2.0 %), else ``curve``.
     The Fc and Fv of the allowed shapes are returned as their ranges (``coulomb_range_n``,
     ``viscous_range_n_s_m``: the standard errors include them, and the report says when they exceed
     ``SHAPE_WARN_FRACTION``), with ``delta_range`` and ``delta_held``."""
@@ -1133,7 +1141,16 @@ def _stribeck_shape(v: FloatArray, f: FloatArray, curve: dict[str, float], err: 
     ok = [c for c, x in zip(fits, c2) if x <= best + STRIBECK_SHAPE_CHI2]
     held = [c for c, x in zip(fits[1:], c2[1:]) if c.get("stribeck_identified")
             and abs(float(c["delta"]) - STRIBECK_DELTA_DEFAULT) < 1e-6 and x <= best + STRIBECK_SHAPE_CHI2]
-    chosen = dict(held[0]) if held and abs(float(curve["delta"]) - STRIBECK_DELTA_DEFAULT) > 1e-6 else curve
+    chosen = curve
+    if held and abs(float(curve["delta"]) - STRIBECK_DELTA_DEFAULT) > 1e-6:
+        # fitted as the free curve was (weighted only where it was, or where one pair's error stands far
+        # above the others': a fast pair read over few samples, plant 75)
+        weigh = bool(curve.get("weighted")) or float(np.max(err[:n])) > STRIBECK_UNEVEN_ERRORS * float(np.median(err[:n]))
+        h = held[0] if weigh else fit_stribeck_curve(v, f, delta=STRIBECK_DELTA_DEFAULT)
+        moved = max(abs(float(h["fc_n"]) / max(float(curve["fc_n"]), 1e-12) - 1.0),
+                    abs(float(h["viscous_n_s_m"]) / max(float(curve["viscous_n_s_m"]), 1e-12) - 1.0))
+        if h.get("stribeck_identified") and moved > STRIBECK_HOLD_MIN_CHANGE:
+            chosen = dict(h, **{k: curve[k] for k in ("set_aside_pairs",) if k in curve})
     ok.append(chosen)
     ds = [float(c["delta"]) for c in ok if c.get("stribeck_identified")]
     shape: dict[str, Any] = {
@@ -1291,7 +1308,8 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
         # moved the offset by 5 mN), and its residual would count in every standard error
         # weighted by the points' errors where the curve's shape was chosen on them (_stribeck_shape): a short
         # fast pair read over few samples (plant 75: ±4 mN against ≤ 0.3 mN) then counts as little as in the curve
-        wl = 1.0 / errors[:vk.size] if shape is not None and errors is not None else np.ones_like(vk)
+        wl = (1.0 / errors[:vk.size] if shape is not None and errors is not None and stri is not None
+              and stri.get("weighted") else np.ones_like(vk))
         th, *_ = np.linalg.lstsq((wl[:, None] * np.column_stack([np.ones_like(vk), vk]))[use],
                                  (wl * (fo - excess(vk)))[use], rcond=None)
         off = float(np.mean(fe[use]))
