@@ -964,12 +964,14 @@ class CvFriction:
     points_sigma: FloatArray | None = None
     #: the points' standard errors [N] about the curve (the weights when weighted), for tests on it
     points_error: FloatArray | None = None
+    #: what the Stribeck shape leaves open of Fc and Fv (:func:`_stribeck_shape`), None where not profiled
+    shape: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
                 "viscous_n_s_m": self.viscous_n_s_m, "viscous_std_n_s_m": self.viscous_std_n_s_m,
                 "offset_n": self.offset_n, "offset_std_n": self.offset_std_n, "segments_used": self.used,
-                "stribeck_curve": self.stribeck, "position_force": self.position_force,
+                "stribeck_curve": self.stribeck, "stribeck_shape": self.shape, "position_force": self.position_force,
                 "segments": [{"v_m_s": s.v_m_s, "f_n": s.f_n, "f_std_n": s.f_std_n, "samples": s.n,
                               **({"stick_slip": True, "sliding_fraction": s.sliding_fraction,
                                   "pass_v_m_s": s.v_pass_m_s} if s.sliding_fraction < 1.0 else {})}
@@ -1173,8 +1175,8 @@ SHAPE_WARN_FRACTION = 0.1
 def shape_line(cv: CvFriction) -> str | None:
     """A line for the report when the passes do not separate the Coulomb level or the viscous coefficient
     from the Stribeck curve's shape (:func:`_stribeck_shape`), else None."""
-    sh = (cv.stribeck or {}).get("shape") if cv.stribeck else None
-    if not isinstance(sh, dict):
+    sh = cv.shape
+    if sh is None:
         return None
     parts = []
     for name, val, key, unit in (("Coulomb", cv.coulomb_n, "coulomb_range_n", "N"),
@@ -1329,10 +1331,10 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
             sd[1] = math.hypot(sd[1], _shape_std(float(th[1]), shape["viscous_range_n_s_m"]))
         if stri is not None:
             stri["offset_n"] = off
-            if shape is not None:
-                stri["shape"] = shape
+            if shape is not None and shape["delta_held"]:
+                stri["delta_held"] = 1.0  # (fit._refit_stribeck keeps it)
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * use.sum()), stri, (v, f), points_sigma=sigma, points_error=errors)
+                          int(2 * use.sum()), stri, (v, f), points_sigma=sigma, points_error=errors, shape=shape)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th

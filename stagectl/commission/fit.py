@@ -919,8 +919,7 @@ STRIBECK_LEVEL_CHI2 = 3.84
 def _held_delta(fr: dict[str, Any]) -> float | None:
     """The passes' shape exponent δ when :func:`stagectl.commission.analysis._stribeck_shape` held it (the
     passes did not fix it: a refit keeps it), else None (free)."""
-    sh = fr.get("shape")
-    return float(fr["delta"]) if isinstance(sh, dict) and sh.get("delta_held") else None
+    return float(fr["delta"]) if fr.get("delta_held") else None
 
 
 def _level_within_passes(level: float, fr: dict[str, Any], cv_points: tuple[FloatArray, ...],
@@ -1255,6 +1254,8 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     if sliding is not None and fr.get("model") in ("gms", "stribeck"):
         fr["v_min_m_s"] = float(sliding.get("v_min_m_s", 0.0))
         fr["stick_slip_m_s"] = float(sliding.get("stick_slip_m_s", 0.0))
+        if sliding.get("delta_held"):  # the passes did not fix δ (analysis._stribeck_shape): the refits keep it
+            fr["delta_held"] = 1.0
         pre_recs = presliding_recordings(res_recordings, m, period_s, fr)
         tau = period_s if delay_s is None else delay_s
         try:
@@ -1294,6 +1295,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
             presliding = {"error": str(exc)}
         fr.pop("v_min_m_s", None)
         fr.pop("stick_slip_m_s", None)
+        fr.pop("delta_held", None)
         if "error" not in presliding:
             ratio = presliding["evidence_ratio"]
             present = bool(ratio >= PRESLIDING_EVIDENCE_RATIO and len(presliding["k_n_m"]) > 0)

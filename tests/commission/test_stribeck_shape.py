@@ -45,8 +45,9 @@ def test_heavy_stage_without_its_fastest_pair() -> None:
     assert abs(cv.coulomb_n - fr["fc_n"]) <= 2 * cv.coulomb_std_n
     assert abs(cv.viscous_n_s_m - fr["viscous_n_s_m"]) <= 2 * cv.viscous_std_n_s_m
     assert cv.viscous_std_n_s_m > 0.03 * cv.viscous_n_s_m  # main: 0.04 %
-    sh = cv.stribeck["shape"] if cv.stribeck else {}
-    assert sh["delta_held"] and sh["viscous_range_n_s_m"][1] > 1.1 * fr["viscous_n_s_m"]
+    sh = cv.shape
+    assert sh is not None and sh["delta_held"] and cv.stribeck is not None and cv.stribeck["delta_held"] == 1.0
+    assert sh["viscous_range_n_s_m"][1] > 1.1 * fr["viscous_n_s_m"]
     line = an.shape_line(cv)
     assert line is not None and "do not separate" in line
 
@@ -72,6 +73,6 @@ def test_a_resolved_curve_keeps_its_shape() -> None:
     efc, efv = _errors(cv, fr)
     assert abs(efc) < 0.005 and abs(efv) < 0.01, (efc, efv)
     assert cv.stribeck is not None and abs(cv.stribeck["delta"] - 1.0) < 0.05
-    assert not cv.stribeck["shape"]["delta_held"]
+    assert cv.shape is not None and not cv.shape["delta_held"] and "delta_held" not in cv.stribeck
     assert cv.viscous_std_n_s_m < 0.02 * fr["viscous_n_s_m"]
     assert an.shape_line(cv) is None
