@@ -1154,6 +1154,8 @@ def _stribeck_shape(v: FloatArray, f: FloatArray, curve: dict[str, float], err: 
         if h.get("stribeck_identified") and moved > STRIBECK_HOLD_MIN_CHANGE:
             chosen = dict(h, **{k: curve[k] for k in ("set_aside_pairs",) if k in curve})
     ok.append(chosen)
+    if chi2(curve) <= best + STRIBECK_SHAPE_CHI2:  # the free curve as it was fitted, where the points allow it
+        ok.append(curve)
     ds = [float(c["delta"]) for c in ok if c.get("stribeck_identified")]
     shape: dict[str, Any] = {
         "coulomb_range_n": [min(float(c["fc_n"]) for c in ok), max(float(c["fc_n"]) for c in ok)],
