@@ -1082,12 +1082,14 @@ class CvFriction:
     points_sigma: FloatArray | None = None
     #: the points' standard errors [N] about the curve (the weights when weighted), for tests on it
     points_error: FloatArray | None = None
+    #: what the Stribeck shape leaves open of Fc and Fv (:func:`_stribeck_shape`), None where not profiled
+    shape: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"coulomb_n": self.coulomb_n, "coulomb_std_n": self.coulomb_std_n,
                 "viscous_n_s_m": self.viscous_n_s_m, "viscous_std_n_s_m": self.viscous_std_n_s_m,
                 "offset_n": self.offset_n, "offset_std_n": self.offset_std_n, "segments_used": self.used,
-                "stribeck_curve": self.stribeck, "position_force": self.position_force,
+                "stribeck_curve": self.stribeck, "stribeck_shape": self.shape, "position_force": self.position_force,
                 "segments": [{"v_m_s": s.v_m_s, "f_n": s.f_n, "f_std_n": s.f_std_n, "samples": s.n,
                               **({"stick_slip": True, "sliding_fraction": s.sliding_fraction,
                                   "pass_v_m_s": s.v_pass_m_s} if s.sliding_fraction < 1.0 else {})}
@@ -1199,6 +1201,120 @@ def _stribeck_without_outliers(v: FloatArray, f: FloatArray, se: FloatArray, sig
     return curve, sigma, kept
 
 
+#: the Stribeck shape exponents δ the passes' profile tries (:func:`_stribeck_shape`), the one held where the
+#: passes do not tell (the Gaussian curve, the most common shape and the shipped models'), and the rise of the
+#: points' χ² that still counts as allowed (χ²₁ at 95 %: the profile-likelihood interval of δ)
+STRIBECK_DELTA_PROFILE = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
+STRIBECK_DELTA_DEFAULT = 2.0
+STRIBECK_SHAPE_CHI2 = 3.84
+#: the curve holding δ is weighted by the points' errors (as the profile is) where the largest exceeds this
+#: many times their median, else fitted as the free curve was (:func:`_stribeck_shape`)
+STRIBECK_UNEVEN_ERRORS = 10.0
+#: ... and replaces the free curve only where that moves its Fc or Fv by more than this fraction: below it the
+#: shape costs the identification little (the ranges still enter the standard errors) and the fit stays the
+#: one it was (a 0.3 N cogging's passes, ±10 mN: Fv −14 % free, −15 % held)
+STRIBECK_HOLD_MIN_CHANGE = 0.05
+
+
+def _shape_std(value: float, rng: list[float]) -> float:
+    """A standard error [unit of ``value``] from the 95 % range ``rng`` the Stribeck shape allows
+    (:func:`_stribeck_shape`): the larger distance from ``value`` to its ends over 1.96."""
+    return max(abs(value - float(rng[0])), abs(float(rng[1]) - value)) / 1.96
+
+
+def _stribeck_shape(v: FloatArray, f: FloatArray, curve: dict[str, float], err: FloatArray
+                    ) -> tuple[dict[str, float], dict[str, Any]]:
+    """The Stribeck curve's shape exponent δ where the passes do not fix it, and what it leaves open of Fc
+    and Fv (:func:`_cv_friction_once`). ``v, f``: the pairs' odd parts mirrored; ``err``: their standard
+    errors (:func:`stribeck_point_errors`); ``curve``: the free curve fitted to them.
+
+    The curve has five parameters (Fc, Fs, vs, δ, Fv). Where only one or two pairs lie beyond the dip
+    (``|v| ≳ 2.5·vs``), its tail and the viscous term trade: a shallower, wider tail with a lower Fc and a
+    steeper Fv passes through the same points. Generated plant 72 (11 kg, Fc 0.304 N, Fs 0.325 N, vs 2.7 mm/s,
+    δ 2, Fv 30.3 N s/m; its 16 mm/s pair too short to read, five pairs left at 0.16-6.4 mm/s): the free curve
+    went through all five within 10⁻⁸ N with δ 1.47, vs 3.9 mm/s, Fc −14 %, Fv +18 % and reported ±0.01 %;
+    plant 75 (1.1 kg, vs 2.0 mm/s, one pair beyond the dip read over 15 samples of a cogging-centred window,
+    ±4 mN): Fv +17 %. So the curve is fitted with δ held at each of ``STRIBECK_DELTA_PROFILE`` (weighted by
+    ``err``); the shapes whose χ² over the pairs lies within ``STRIBECK_SHAPE_CHI2`` of the best are the ones
+    the passes allow. Where ``STRIBECK_DELTA_DEFAULT`` is among them and holding it moves Fc or Fv by more
+    than ``STRIBECK_HOLD_MIN_CHANGE``, the curve holding it is returned (plants 72 and 75: χ² +0.01 and +0.5;
+    Fc +0.6 % and 0.0 %, Fv −1.0 % and +2.0 %), else ``curve``.
+    The Fc and Fv of the allowed shapes are returned as their ranges (``coulomb_range_n``,
+    ``viscous_range_n_s_m``: the standard errors include them, and the report says when they exceed
+    ``SHAPE_WARN_FRACTION``), with ``delta_range`` and ``delta_held``."""
+    from stagectl.ident.identify import fit_stribeck_curve
+
+    n = v.size // 2
+
+    def chi2(c: dict[str, float]) -> float:  # (the points are odd parts mirrored: no offset)
+        r = (f - stribeck_curve_at(dict(c, offset_n=0.0), v)) / err
+        return float(np.sum(r[:n] ** 2))
+
+    fits: list[dict[str, float]] = [fit_stribeck_curve(v, f, sigma_n=err)]
+    for d in STRIBECK_DELTA_PROFILE:
+        try:
+            fits.append(fit_stribeck_curve(v, f, delta=d, sigma_n=err))
+        except (StageError, ValueError):
+            continue
+    c2 = [chi2(c) for c in fits]
+    best = min(c2 + [chi2(curve)])
+    ok = [c for c, x in zip(fits, c2) if x <= best + STRIBECK_SHAPE_CHI2]
+    held = [c for c, x in zip(fits[1:], c2[1:]) if c.get("stribeck_identified")
+            and abs(float(c["delta"]) - STRIBECK_DELTA_DEFAULT) < 1e-6 and x <= best + STRIBECK_SHAPE_CHI2]
+    chosen = curve
+    if held and abs(float(curve["delta"]) - STRIBECK_DELTA_DEFAULT) > 1e-6:
+        # fitted as the free curve was (weighted only where it was, or where one pair's error stands far
+        # above the others': a fast pair read over few samples, plant 75)
+        weigh = bool(curve.get("weighted")) or float(np.max(err[:n])) > STRIBECK_UNEVEN_ERRORS * float(np.median(err[:n]))
+        h = held[0] if weigh else fit_stribeck_curve(v, f, delta=STRIBECK_DELTA_DEFAULT)
+        moved = max(abs(float(h["fc_n"]) / max(float(curve["fc_n"]), 1e-12) - 1.0),
+                    abs(float(h["viscous_n_s_m"]) / max(float(curve["viscous_n_s_m"]), 1e-12) - 1.0))
+        if h.get("stribeck_identified") and moved > STRIBECK_HOLD_MIN_CHANGE:
+            chosen = dict(h, **{k: curve[k] for k in ("set_aside_pairs",) if k in curve})
+    ok.append(chosen)
+    if chi2(curve) <= best + STRIBECK_SHAPE_CHI2:  # the free curve as it was fitted, where the points allow it
+        ok.append(curve)
+    ds = [float(c["delta"]) for c in ok if c.get("stribeck_identified")]
+    shape: dict[str, Any] = {
+        "coulomb_range_n": [min(float(c["fc_n"]) for c in ok), max(float(c["fc_n"]) for c in ok)],
+        "viscous_range_n_s_m": [min(float(c["viscous_n_s_m"]) for c in ok),
+                                max(float(c["viscous_n_s_m"]) for c in ok)],
+        "delta_range": [min(ds), max(ds)] if ds else [],
+        "chi2_rise_held": (chi2(chosen) - best) if chosen is not curve else 0.0,
+        "delta_held": chosen is not curve,
+        "free_delta": float(curve["delta"]), "free_coulomb_n": float(curve["fc_n"]),
+        "free_viscous_n_s_m": float(curve["viscous_n_s_m"])}
+    return chosen, shape
+
+
+#: the report notes a Coulomb level or viscous coefficient whose range over the Stribeck shapes the passes
+#: allow (:func:`_stribeck_shape`) reaches this fraction of it either way
+SHAPE_WARN_FRACTION = 0.1
+
+
+def shape_line(cv: CvFriction) -> str | None:
+    """A line for the report when the passes do not separate the Coulomb level or the viscous coefficient
+    from the Stribeck curve's shape (:func:`_stribeck_shape`), else None."""
+    sh = cv.shape
+    if sh is None:
+        return None
+    parts = []
+    for name, val, key, unit in (("Coulomb", cv.coulomb_n, "coulomb_range_n", "N"),
+                                 ("viscous", cv.viscous_n_s_m, "viscous_range_n_s_m", "N s/m")):
+        lo, hi = sh[key]
+        if val > 0.0 and max(val - lo, hi - val) >= SHAPE_WARN_FRACTION * val:
+            parts.append(f"{name} {val:.4g} {unit} (shapes allowed: {lo:.4g}-{hi:.4g})")
+    if not parts:
+        return None
+    dr = sh.get("delta_range") or []
+    held = f"δ held at {STRIBECK_DELTA_DEFAULT:g}; " if sh.get("delta_held") else ""
+    span = "" if not dr else (f"δ {dr[0]:.2g}-{dr[1]:.2g}" if dr[1] > 1.05 * dr[0] else f"δ ≈ {dr[0]:.2g}")
+    return ("friction_cv: the passes do not separate the Stribeck tail from the viscous term ("
+            + held + (f"curves with {span} fit them within χ² + {STRIBECK_SHAPE_CHI2:g}" if span else "")
+            + "): " + "; ".join(parts) + "; the standard errors include this range. Faster or longer passes "
+            "beyond the dip would tell them apart")
+
+
 def cv_friction(segs: list[CvSegment]) -> CvFriction:
     """Friction from the segment means (:func:`_cv_friction_once`), corrected for the passes' speed ripple.
     A pass's mean force is the curve averaged over the speeds the stage ran at, ``mean F(v(t))``, not the curve
@@ -1277,6 +1393,10 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
     except (StageError, ValueError):
         stri = None
     vmax = float(np.max(np.abs(v)))
+    shape: dict[str, Any] | None = None
+    if (paired and stri is not None and errors is not None and stri.get("stribeck_identified")
+            and not stri.get("fs_fixed") and stri["vs_m_s"] <= vmax and vk.size >= STRIBECK_PARAMETERS):
+        stri, shape = _stribeck_shape(v, f, stri, errors)
     if stri is not None and v.size >= 3 and (stri["vs_m_s"] > vmax or (paired and vk.size < STRIBECK_PARAMETERS)):
         # a drop beyond the fastest pass is no Stribeck curve the passes measured, only a way to bend a nearly
         # straight line, and fewer pairs than the curve's parameters fit it exactly whatever the scatter: with
@@ -1308,7 +1428,12 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
         # offset and the standard errors alike: a disturbance over part of one pass moves that pass's mean, so
         # the pair's even part by half as much as its odd part (a 60 mN push on one slowest pass of six pairs
         # moved the offset by 5 mN), and its residual would count in every standard error
-        th, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(vk), vk])[use], (fo - excess(vk))[use], rcond=None)
+        # weighted by the points' errors where the curve's shape was chosen on them (_stribeck_shape): a short
+        # fast pair read over few samples (plant 75: ±4 mN against ≤ 0.3 mN) then counts as little as in the curve
+        wl = (1.0 / errors[:vk.size] if shape is not None and errors is not None and stri is not None
+              and stri.get("weighted") else np.ones_like(vk))
+        th, *_ = np.linalg.lstsq((wl[:, None] * np.column_stack([np.ones_like(vk), vk]))[use],
+                                 (wl * (fo - excess(vk)))[use], rcond=None)
         off = float(np.mean(fe[use]))
         # standard errors as for every segment's own fit: the residual of each segment's mean against the odd
         # curve plus the offset (a position force's even part scatters them and counts), over the segments
@@ -1321,10 +1446,15 @@ def _cv_friction_once(segs: list[CvSegment]) -> CvFriction:
         r = fa - excess(va) - A @ np.array([th[0], th[1], off])
         s2 = float(r @ r) / max(va.size - 3 - (4 if stri else 0), 1)
         sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(A.T @ A) * s2), 0, None))
+        if shape is not None:  # the shape's share: the curves the passes allow (_stribeck_shape)
+            sd[0] = math.hypot(sd[0], _shape_std(float(th[0]), shape["coulomb_range_n"]))
+            sd[1] = math.hypot(sd[1], _shape_std(float(th[1]), shape["viscous_range_n_s_m"]))
         if stri is not None:
             stri["offset_n"] = off
+            if shape is not None and shape["delta_held"]:
+                stri["delta_held"] = 1.0  # (fit._refit_stribeck keeps it)
         return CvFriction(float(th[0]), float(sd[0]), float(th[1]), float(sd[1]), off, float(sd[2]), segs,
-                          int(2 * use.sum()), stri, (v, f), points_sigma=sigma, points_error=errors)
+                          int(2 * use.sum()), stri, (v, f), points_sigma=sigma, points_error=errors, shape=shape)
     A = np.column_stack([np.sign(v), v, np.ones_like(v)])
     th, *_ = np.linalg.lstsq(A, f - excess(v), rcond=None)
     r = f - excess(v) - A @ th

@@ -916,6 +916,12 @@ STRIBECK_LEVEL_Z = 3.0
 STRIBECK_LEVEL_CHI2 = 3.84
 
 
+def _held_delta(fr: dict[str, Any]) -> float | None:
+    """The passes' shape exponent δ when :func:`stagectl.commission.analysis._stribeck_shape` held it (the
+    passes did not fix it: a refit keeps it), else None (free)."""
+    return float(fr["delta"]) if fr.get("delta_held") else None
+
+
 def _level_within_passes(level: float, fr: dict[str, Any], cv_points: tuple[FloatArray, ...],
                          sig: FloatArray | None, err: FloatArray) -> dict[str, Any] | None:
     """The sliding curve with Fs held at the pre-sliding ``level`` [N] when the passes measured the curve's
@@ -938,7 +944,7 @@ def _level_within_passes(level: float, fr: dict[str, Any], cv_points: tuple[Floa
     gap = abs(level - float(fr["fs_n"]))
     if n < 1 or gap <= STRIBECK_LEVEL_Z * float(np.median(err[:n])):
         return None
-    held = fit_stribeck_curve(v, f, fs_n=level, sigma_n=sig)
+    held = fit_stribeck_curve(v, f, fs_n=level, sigma_n=sig, delta=_held_delta(fr))
 
     def chi2(c: dict[str, Any]) -> float:  # (the points are odd parts mirrored: no offset)
         r = (f - stribeck_curve_at({**c, "offset_n": 0.0}, v)) / err
@@ -981,7 +987,8 @@ def _refit_stribeck(presliding: dict[str, Any], fr: dict[str, Any],
     if not level > 0.0:
         return None
     if not stick_slip:
-        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, sigma_n=sig))
+        out: dict[str, Any] = dict(fit_stribeck_curve(cv_points[0], cv_points[1], fs_n=level, sigma_n=sig,
+                                                      delta=_held_delta(fr)))
     else:
         # δ held, and vs at least the fastest stick-slipping pass's speed over STICK_SLIP_VS_RATIO: a pass
         # stick-slips only where the curve still falls steeply. Fresh plant k111 (vs 0.31 mm/s, passes from
@@ -1247,6 +1254,8 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
     if sliding is not None and fr.get("model") in ("gms", "stribeck"):
         fr["v_min_m_s"] = float(sliding.get("v_min_m_s", 0.0))
         fr["stick_slip_m_s"] = float(sliding.get("stick_slip_m_s", 0.0))
+        if sliding.get("delta_held"):  # the passes did not fix δ (analysis._stribeck_shape): the refits keep it
+            fr["delta_held"] = 1.0
         pre_recs = presliding_recordings(res_recordings, m, period_s, fr)
         tau = period_s if delay_s is None else delay_s
         try:
@@ -1286,6 +1295,7 @@ def fit_models(recordings: dict[str, Recorder], mass_kg: float, period_s: float,
             presliding = {"error": str(exc)}
         fr.pop("v_min_m_s", None)
         fr.pop("stick_slip_m_s", None)
+        fr.pop("delta_held", None)
         if "error" not in presliding:
             ratio = presliding["evidence_ratio"]
             present = bool(ratio >= PRESLIDING_EVIDENCE_RATIO and len(presliding["k_n_m"]) > 0)

@@ -815,6 +815,8 @@ class Commissioning:
         r.cv = read_cv(pf, None if cog is None else (float(cog["wavelength_m"]), float(cog.get("phase_rad", 0.0))))
         r.cv.position_force = {"slope_n_m": k_x, "cogging": None if cog is None else
                                {k: cog[k] for k in ("amplitude_n", "wavelength_m", "phase_rad")}}
+        if (line := an.shape_line(r.cv)) is not None:
+            r.notes.append(line)
         slid = r.cv.stick_slip_read()
         if slid:  # read from their sliding phases (analysis._sliding_phases)
             r.notes.append("friction_cv: passes at " + ", ".join(f"{1e3 * s.v_pass_m_s:+.3g}" for s in slid)
