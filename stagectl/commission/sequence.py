@@ -916,9 +916,8 @@ class Commissioning:
         r.gains["rest_on_stage"] = out
         self.opts.progress(f"commission: on the stage, {' and '.join(out['additions'])}: {out['decision']}")
         # the arm stage.yaml gets, on the stage against its twin: a stage far worse than its twin is said so
-        which = "with" if out["keep"] else "without"
-        twin = ((chosen.get(added[0]) or {}).get("twin") if out["keep"] else chosen.get("twin")) or {}
-        gap = steps_twin_gap(pairs, which, twin.get("steps"))
+        gap = steps_twin_gap(pairs, "with" if out["keep"] else "without",
+                             chosen_twin_steps(chosen if out["keep"] else without))
         if gap is not None:
             out["steps_twin_gap"] = gap
             r.notes.append(gap["note"])
@@ -980,6 +979,13 @@ class Commissioning:
                 summ = self._scenario_run(stage, cfg_v, nm, xc, which, f"{nm} with the {which} controller")
                 if summ is not None:
                     r.verification.setdefault(nm, {})[which] = summ
+        # stage.yaml's steps against its twin (unless the rest check said so already)
+        after = r.verification.get("steps", {}).get("after")
+        if after is not None and r.gains is not None and "steps_twin_gap" not in (r.gains.get("rest_on_stage") or {}):
+            gap = steps_twin_gap([{"steps": {"after": after}}], "after", chosen_twin_steps(r.gains.get("chosen") or {}))
+            if gap is not None:
+                r.gains["steps_twin_gap"] = gap
+                r.notes.append(gap["note"])
 
     # ------------------------------------------------------------------ helpers
     def _commission_tuning(self, mass_kg: float, coulomb: bool = True,
@@ -2229,6 +2235,16 @@ def _steps_compare(pairs: list[dict[str, dict[str, Any]]]) -> dict[str, Any]:
 def _steps_favour(pairs: list[dict[str, dict[str, Any]]]) -> bool:
     """The steps favour the rest additions, pooled over the pairs (both arms ran; :func:`_steps_compare`)."""
     return bool(_steps_compare(pairs)["favour"] > 0)
+
+
+def chosen_twin_steps(chosen: dict[str, Any]) -> dict[str, Any] | None:
+    """The steps summary the twin gave for the chosen design as stage.yaml holds it: with the rest spring's or the
+    rest integral's own twin run where one is enabled, else the design's (None: not run on a twin)."""
+    for key in ("rest", "rest_integral"):
+        add = chosen.get(key) or {}
+        if add.get("enabled"):
+            return (add.get("twin") or {}).get("steps")
+    return (chosen.get("twin") or {}).get("steps")
 
 
 def steps_twin_gap(pairs: list[dict[str, dict[str, Any]]], which: str,

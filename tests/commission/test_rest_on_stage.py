@@ -236,7 +236,7 @@ def test_a_hunting_arm_loses_the_steps_whatever_it_settles():
 def test_a_stage_far_worse_than_its_twin_is_said_so():
     """stage.yaml's arm of the rest check more than REST_STAGE_STEPS_RMS_CLEAR x its twin's steps RMS gets a note
     with both figures (plant 71 on main: 5.46 um on the stage, 98.6 nm predicted); within it, none."""
-    from stagectl.commission.sequence import steps_twin_gap
+    from stagectl.commission.sequence import chosen_twin_steps, steps_twin_gap
 
     p71 = [_hunt_figs(0, 1, 3.02e-7, 5.46e-6), _hunt_figs(0, 1, 3.03e-7, 5.46e-6)]
     gap = steps_twin_gap(p71, "without", {"rms_error_m": 9.86e-8, "moves": 4, "moves_settled": 2})
@@ -244,3 +244,9 @@ def test_a_stage_far_worse_than_its_twin_is_said_so():
     assert "5.46 um RMS" in gap["note"] and "98.6 nm its twin predicted" in gap["note"], gap["note"]
     assert steps_twin_gap(p71, "with", {"rms_error_m": 1.47e-7}) is None
     assert steps_twin_gap(p71, "without", None) is None
+    # the twin figure is the one of what stage.yaml holds: the enabled addition's own twin run, else the design's
+    design, ri = {"rms_error_m": 9.86e-8}, {"rms_error_m": 1.47e-7}
+    chosen = {"twin": {"steps": design}, "rest": {"enabled": False},
+              "rest_integral": {"enabled": True, "twin": {"steps": ri}}}
+    assert chosen_twin_steps(chosen) is ri
+    assert chosen_twin_steps({**chosen, "rest_integral": {"enabled": False, "twin": {"steps": ri}}}) is design
