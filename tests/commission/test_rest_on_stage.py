@@ -197,3 +197,56 @@ def test_a_zero_cosine_figure_is_decided_without_a_division_by_zero():
     assert better["keep"] and better["decided"] and better["cosine_z"] < 0.0
     for r in (both, d, better):
         json.dumps(r, allow_nan=False)
+
+
+def _hunt_figs(n_w: int, n_o: int, r_w: float, r_o: float, c_ratio: float | None = None) -> dict[str, Any]:
+    f = _figs(n_w, n_o, c_ratio)
+    f["steps"]["with"].update(rms_error_m=r_w, max_error_m=3 * r_w)
+    f["steps"]["without"].update(rms_error_m=r_o, max_error_m=3 * r_o)
+    return f
+
+
+def test_a_hunting_arm_loses_the_steps_whatever_it_settles():
+    """The settled count is judged at the end of a 0.25 s dwell (±10 nm): a stage that hunts can end a dwell inside
+    it. Generated plant 71 (tests/commission/eval_hidden_plants.py T 71): without the rest integral its 10 um steps
+    overshot by up to 16 um and crept back (5.46 um RMS, 2/8 settled over two pairs), with it they stopped 0.1-0.8
+    um off (0.30 um RMS, 0/8); main dropped the integral ("no more steps settle") and stage.yaml hunted, 22.6x the
+    exact model's steps RMS. Where the steps' RMS lie more than REST_STAGE_STEPS_RMS_CLEAR apart the error decides
+    (then the cosine runs and is judged as before); within it the settled count decides as before."""
+    from stagectl.commission.sequence import REST_STAGE_STEPS_RMS_CLEAR, _steps_favour, rest_stage_decision
+
+    p71 = [_hunt_figs(0, 1, 3.02e-7, 5.46e-6), _hunt_figs(0, 1, 3.03e-7, 5.46e-6)]
+    assert _steps_favour(p71)  # (so the cosine runs)
+    d = rest_stage_decision([_hunt_figs(0, 1, 3.02e-7, 5.46e-6, 0.9), _hunt_figs(0, 1, 3.03e-7, 5.46e-6, 0.9)])
+    assert d["keep"] and d["decided"] and "the error decides" in d["decision"], d
+    assert d["steps_rms_m"]["without"] == pytest.approx(5.46e-6)
+    # ... and a clear cosine cost still drops it
+    assert not rest_stage_decision([_hunt_figs(0, 1, 3e-7, 5.46e-6, 1.6)])["keep"]
+    # the other way round: the additions make the steps hunt though one more settles with them
+    d = rest_stage_decision([_hunt_figs(3, 2, 5.46e-6, 3e-7)])
+    assert not d["keep"] and d["decided"] and "error is larger with them" in d["decision"], d
+    # a fault (infinite RMS) without them is the larger error
+    assert rest_stage_decision([_hunt_figs(0, 2, 3e-7, float("inf"), 1.0)])["keep"]
+    # within the factor the settled moves decide, as before
+    r = 0.9 * REST_STAGE_STEPS_RMS_CLEAR
+    assert not rest_stage_decision([_hunt_figs(0, 2, 1e-7, r * 1e-7)])["keep"]
+    assert rest_stage_decision([_hunt_figs(4, 2, r * 1e-7, 1e-7, 1.0)])["keep"]
+
+
+def test_a_stage_far_worse_than_its_twin_is_said_so():
+    """stage.yaml's arm of the rest check more than REST_STAGE_STEPS_RMS_CLEAR x its twin's steps RMS gets a note
+    with both figures (plant 71 on main: 5.46 um on the stage, 98.6 nm predicted); within it, none."""
+    from stagectl.commission.sequence import chosen_twin_steps, steps_twin_gap
+
+    p71 = [_hunt_figs(0, 1, 3.02e-7, 5.46e-6), _hunt_figs(0, 1, 3.03e-7, 5.46e-6)]
+    gap = steps_twin_gap(p71, "without", {"rms_error_m": 9.86e-8, "moves": 4, "moves_settled": 2})
+    assert gap is not None and gap["settled"] == "2/8" and gap["stage_rms_m"] == pytest.approx(5.46e-6)
+    assert "5.46 um RMS" in gap["note"] and "98.6 nm its twin predicted" in gap["note"], gap["note"]
+    assert steps_twin_gap(p71, "with", {"rms_error_m": 1.47e-7}) is None
+    assert steps_twin_gap(p71, "without", None) is None
+    # the twin figure is the one of what stage.yaml holds: the enabled addition's own twin run, else the design's
+    design, ri = {"rms_error_m": 9.86e-8}, {"rms_error_m": 1.47e-7}
+    chosen = {"twin": {"steps": design}, "rest": {"enabled": False},
+              "rest_integral": {"enabled": True, "twin": {"steps": ri}}}
+    assert chosen_twin_steps(chosen) is ri
+    assert chosen_twin_steps({**chosen, "rest_integral": {"enabled": False, "twin": {"steps": ri}}}) is design
