@@ -103,7 +103,8 @@ class ForceBudget:
     def fit(self, spec: Move) -> Move:
         """``spec`` itself when ``F_move ≤ force_n``; else the same move planned within the budget:
 
-            v' = min(v_max, (F − F_s)/(2·F_v))       (the viscous force at most half the room above F_s)
+            v' = min(v_max, max((F − F_s)/(2·F_v), (F − F_s − m·a_max)/F_v))
+                 (the viscous force at most half the room above F_s, or what the asked acceleration leaves)
             a' = (F − F_s − F_v·v')/m,   j' = j_max·a'/a_max   (the same jerk time a/j)
 
         Where friction alone takes the budget (``F_s ≥ F``) nothing fits: ``spec`` is returned unchanged (the
@@ -113,7 +114,9 @@ class ForceBudget:
             return spec
         v = spec.max_velocity_m_s
         if self.viscous_n_s_m > 0.0:
-            v = min(v, 0.5 * room / self.viscous_n_s_m)
+            # (only half the room when the acceleration needs more than the other half: a move just over the
+            # budget by its speed keeps about its speed, not half the room's)
+            v = min(v, max(0.5 * room, room - self.mass_kg * spec.max_acceleration_m_s2) / self.viscous_n_s_m)
         a = min(spec.max_acceleration_m_s2, (room - self.viscous_n_s_m * v) / self.mass_kg)
         j = spec.max_jerk_m_s3 * a / spec.max_acceleration_m_s2
         return Move(to_m=spec.to_m, by_m=spec.by_m, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=j)

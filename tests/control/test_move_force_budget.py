@@ -91,6 +91,18 @@ def test_a_stop_from_a_fast_motion_is_not_stretched_by_the_friction(v0: float) -
     assert np.max(np.abs(_signed_force(ref, B))) <= B.force_n * (1 + 1e-9)
 
 
+@pytest.mark.parametrize("v_max", [0.0279, 0.0281, 0.029, 0.05])
+def test_a_move_over_the_budget_by_its_speed_keeps_what_the_acceleration_leaves(v_max: float) -> None:
+    """A slow acceleration (2 kg x 0.01 m/s^2 = 0.02 N) leaves 0.28 N of the 0.3 N room above F_s for the viscous
+    force: 28 mm/s. A move asking 28.1 mm/s is planned at 28 mm/s (not at half the room's 15 mm/s), continuous in
+    what it asks, and within the budget."""
+    asked = Move(by_m=1e-2, max_velocity_m_s=v_max, max_acceleration_m_s2=0.01, max_jerk_m_s3=1.0)
+    planned = B.fit(asked)
+    assert B.move_force_n(planned) <= B.force_n * (1 + 1e-12)
+    assert planned.max_velocity_m_s == pytest.approx(min(v_max, 0.028))
+    assert planned.max_acceleration_m_s2 == pytest.approx(0.01)
+
+
 def test_friction_alone_over_the_budget_leaves_the_move_as_asked() -> None:
     stuck = ForceBudget(mass_kg=2.0, force_n=0.8, static_n=0.9)
     m = Move(by_m=1e-3, max_acceleration_m_s2=1.0)
