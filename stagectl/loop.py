@@ -296,6 +296,8 @@ class ControlLoop:
         self._u = 0.0
         self._act_lim_warned = math.nan  # the actuator limit last warned about [N] (_adopt_actuator_limit)
         self._moves_slowed = 0  # moves planned slower than asked to stay within the force (_tell_move_slowed)
+        self._budget_short_warned: tuple[float, float] | None = None  # (F_s, budget) last told to take it all
+        self._budget_stale = False  # a prepared retune lands at the next step: plan moves on its model after it
         self._t0 = 0.0
         self._t_step: float | None = None  # loop time of the last sample the controller stepped on
         self.t_eff_s = self.period_s  # average measured sample interval of the controller's steps [s]
@@ -373,6 +375,9 @@ class ControlLoop:
         if isinstance(req, RetuneRequest):
             if not prepared:
                 self.controller.retune(req.controller_config)
+                self._plan_moves_within_force()  # (its mass, friction model and max_force_n may have changed)
+            else:
+                self._budget_stale = True  # swapped in at the controller's next step: the budget after it
             return {"retuned": True}
         if self.state is not LoopState.ACTIVE:
             fault = self.safety.fault
@@ -529,7 +534,14 @@ class ControlLoop:
         if not (m > 0.0 and math.isfinite(usable) and usable > 0.0):
             setter(None)
             return
-        setter(ForceBudget(m, frac * usable, static, visc), self._tell_move_slowed)
+        budget = ForceBudget(m, frac * usable, static, visc)
+        if static >= budget.force_n and (static, budget.force_n) != self._budget_short_warned:
+            # (ForceBudget.fit then leaves every move as asked: say so rather than plan nothing silently)
+            self._budget_short_warned = (static, budget.force_n)
+            log.warning("moves cannot be planned within the force: the friction model's %.3g N alone takes the "
+                        "%.3g N budget (safety.move_force_fraction %g x %.3g N usable); moves run as asked",
+                        static, budget.force_n, frac, usable)
+        setter(budget, self._tell_move_slowed)
 
     def _tell_move_slowed(self, asked: Move, planned: Move) -> None:
         self._moves_slowed += 1
@@ -843,6 +855,9 @@ class ControlLoop:
                             actuator.write(u)
                             self._u = u
                         terms = held = cmd.terms
+                        if self._budget_stale:  # a prepared retune was swapped in at this step (mass, model, limit)
+                            self._budget_stale = False
+                            self._plan_moves_within_force()
                     else:  # stale sample (below the stale limit), or one less than T/2 after the last
                         # stepped one (a late wake-up right before an on-time one): feedback held, no new
                         # estimate (the next step gets the whole gap); the feed-forward follows the reference

@@ -103,7 +103,8 @@ class ForceBudget:
     def fit(self, spec: Move) -> Move:
         """``spec`` itself when ``F_move ≤ force_n``; else the same move planned within the budget:
 
-            v' = min(v_max, (F − F_s)/(2·F_v))       (the viscous force at most half the room above F_s)
+            v' = min(v_max, max((F − F_s)/(2·F_v), (F − F_s − m·a_max)/F_v))
+                 (the viscous force at most half the room above F_s, or what the asked acceleration leaves)
             a' = (F − F_s − F_v·v')/m,   j' = j_max·a'/a_max   (the same jerk time a/j)
 
         Where friction alone takes the budget (``F_s ≥ F``) nothing fits: ``spec`` is returned unchanged (the
@@ -113,7 +114,9 @@ class ForceBudget:
             return spec
         v = spec.max_velocity_m_s
         if self.viscous_n_s_m > 0.0:
-            v = min(v, 0.5 * room / self.viscous_n_s_m)
+            # (only half the room when the acceleration needs more than the other half: a move just over the
+            # budget by its speed keeps about its speed, not half the room's)
+            v = min(v, max(0.5 * room, room - self.mass_kg * spec.max_acceleration_m_s2) / self.viscous_n_s_m)
         a = min(spec.max_acceleration_m_s2, (room - self.viscous_n_s_m * v) / self.mass_kg)
         j = spec.max_jerk_m_s3 * a / spec.max_acceleration_m_s2
         return Move(to_m=spec.to_m, by_m=spec.by_m, max_velocity_m_s=v, max_acceleration_m_s2=a, max_jerk_m_s3=j)
@@ -560,8 +563,13 @@ class TrajectoryGenerator:
             self._advance_segment(Reference(x0))
             return x0
         fb = self.force_budget
-        if fb is not None and fb.mass_kg > 0.0:  # the stop's deceleration within the budget too (at the given speed)
-            a_fit = (fb.force_n - fb.static_n - fb.viscous_n_s_m * abs(v0)) / fb.mass_kg
+        if fb is not None and fb.mass_kg > 0.0:
+            # the stop's deceleration within the budget too. Braking, the friction works with the actuator (its
+            # force is m·a − F_s − F_v·|v|, at most m·|a| in size), so the deceleration may take the whole budget:
+            # a = F/m. (Charging the friction against it, as an acceleration, slowed the stop without bound as
+            # F_s + F_v·|v0| neared F: a scan at 29.9 mm/s on a 1.2 N budget, F_s 0.9 N, F_v 10 N·s/m, stopped
+            # in 894 mm instead of 4.5 mm.)
+            a_fit = fb.force_n / fb.mass_kg
             if 0.0 < a_fit < max_acceleration_m_s2:
                 max_jerk_m_s3 *= a_fit / max_acceleration_m_s2
                 max_acceleration_m_s2 = a_fit

@@ -157,3 +157,16 @@ def test_a_move_asking_more_than_the_drive_gives_is_planned_within_it(caplog: py
     assert np.max(np.abs(e)) < 5e-6, np.max(np.abs(e))
     assert np.max(run["x"]) - 1e-3 < 0.5e-6  # passes the target by the ordinary overshoot (0.11 µm), not 11 µm
     assert run["x_ref"][-1] == pytest.approx(1e-3) and abs(e[-1]) < 1e-7
+
+
+def test_a_drive_whose_budget_the_friction_takes_says_moves_run_as_asked(caplog: pytest.LogCaptureFixture) -> None:
+    """A 1.0 N drive: the move budget 0.8 x 1.0 N is below the friction model's 0.9 N, so ForceBudget.fit leaves
+    every move as asked. The loop says so, once (not again at the next start with the same figures), instead of
+    planning nothing silently."""
+    with caplog.at_level(logging.WARNING), build_stage(_cfg(0.8, max_force_n=1.0), clock=SimClock()) as st:
+        for _ in range(2):
+            assert st.loop.run(duration_s=0.005).fault is None
+    told = [r.getMessage() for r in caplog.records if "cannot be planned within the force" in r.getMessage()]
+    assert len(told) == 1, told
+    for part in ("0.899 N alone", "0.8 N budget", "move_force_fraction 0.8 x 1 N usable", "run as asked"):
+        assert part in told[0], told[0]

@@ -72,3 +72,23 @@ def test_hil_serial_rest_loop_meets_the_floor_on_both_stages_and_tune_designs_re
     snippet = _yaml_snippet(m, old.pid, old.dob.bandwidth_hz, nd, rd["gains"])
     assert f"rest_kd_fraction: {rd['gains']['kd_fraction']:g}" in snippet
     assert f"rest_spring_section_count: {rd['gains']['spring_sections']}" in snippet
+
+
+def test_the_searchs_screen_is_the_loop_analyse_rest_analyses():
+    """design_rest_gains screens each point with its own numpy copy of analyse_rest's two rest loops
+    (design._rest_screen) and drops it unseen when the screen misses the floor by its slack: the copy must give
+    the same margins, else the search silently skips points that meet the floor."""
+    from stagectl.control.design import _rest_screen, analyse_rest, design_pid
+
+    m, k, nd, bw = 1.0, 2.5e5, 2, 14.58
+    pid = design_pid(m, bw, 1e-3, nd)
+    dbw, c, kv = 5 * bw, 3.7e-4 * k, 0.5 * k
+    screen = _rest_screen(m, 1e-3, pid, nd, dbw, nd, k, c, None, None, True)
+    for kd, g, n in ((1.0, 1.0, 1), (0.3, 0.45, 2), (0.1, 0.25, 2)):
+        got = screen(kd, g, n, kv, 0.0, 0.0)
+        loops = analyse_rest(m, 1e-3, pid, nd, dbw, nd, k, c, kv, free_spring_n_m=0.0, kd_fraction=kd,
+                             dob_bandwidth_fraction=g, spring_sections=n)
+        for (pm, gm), a in zip(got, loops):
+            s = a.summary()
+            assert abs(pm - s["phase_margin_deg"]) < 0.1 or pm == s["phase_margin_deg"], (kd, g, n, a.name, pm, s)
+            assert abs(gm - s["gain_margin_db"]) < 0.05 or gm == s["gain_margin_db"], (kd, g, n, a.name, gm, s)

@@ -215,3 +215,27 @@ def test_a_controller_hunting_at_its_own_clamp_latches_force_limit(tmp_path):
     assert s["fault"] is not None and s["fault"]["name"] == "force_limit", s["fault"]
     assert "controller's limit" in s["fault"]["cause"]
     assert s["fault"]["t_s"] == pytest.approx(data["safety"]["force_saturation_time_s"], abs=0.05)
+
+
+def test_a_retune_plans_moves_on_its_own_mass_and_force_limit(plant_io_cfg):
+    """Moves are planned within safety.move_force_fraction of the usable force on the controller's mass
+    (ForceBudget). A retune (the daemon's SIGHUP reload) that changes controller.mass_kg and max_force_n is
+    swapped in at the controller's next step; the budget follows it there, not only at the next reset."""
+    import dataclasses
+
+    with build_stage(plant_io_cfg, clock=SimClock()) as stage:
+        loop, ctl, gen = stage.loop, stage.controller, stage.reference.gen
+        loop.run(cycles=3)
+        frac = plant_io_cfg.safety.move_force_fraction
+        before = gen.force_budget
+        assert before is not None and before.mass_kg == pytest.approx(ctl.mass_kg)
+        old = ctl.cfg
+        new = dataclasses.replace(old, mass_kg=2.0 * ctl.mass_kg, max_force_n=0.5 * ctl.force_limit_n)
+        fut = loop.submit(RetuneRequest(controller_config=new))
+        loop.run(cycles=3)
+        assert fut.result(timeout=0) == {"retuned": True} and ctl.mass_kg == pytest.approx(2.0 * before.mass_kg)
+        after = gen.force_budget
+        assert after is not None
+        assert after.mass_kg == pytest.approx(ctl.mass_kg)
+        assert after.force_n == pytest.approx(frac * min(ctl.force_limit_n, stage.safety.force_limit_n))
+        assert after.force_n == pytest.approx(0.5 * before.force_n)
