@@ -296,6 +296,7 @@ class ControlLoop:
         self._u = 0.0
         self._act_lim_warned = math.nan  # the actuator limit last warned about [N] (_adopt_actuator_limit)
         self._moves_slowed = 0  # moves planned slower than asked to stay within the force (_tell_move_slowed)
+        self._budget: ForceBudget | None = None  # the move force budget handed to the reference last
         self._budget_short_warned: tuple[float, float] | None = None  # (F_s, budget) last told to take it all
         self._budget_stale = False  # a prepared retune lands at the next step: plan moves on its model after it
         self._t0 = 0.0
@@ -524,6 +525,7 @@ class ControlLoop:
         setter = getattr(self.reference, "set_force_budget", None)
         terms = getattr(self.controller, "move_force_terms", None)
         frac = float(getattr(self.safety.cfg, "move_force_fraction", 0.0))
+        self._budget = None
         if not callable(setter):
             return
         if not (callable(terms) and frac > 0.0):
@@ -541,18 +543,21 @@ class ControlLoop:
             log.warning("moves cannot be planned within the force: the friction model's %.3g N alone takes the "
                         "%.3g N budget (safety.move_force_fraction %g x %.3g N usable); moves run as asked",
                         static, budget.force_n, frac, usable)
+        self._budget = budget
         setter(budget, self._tell_move_slowed)
 
     def _tell_move_slowed(self, asked: Move, planned: Move) -> None:
         self._moves_slowed += 1
         lvl = logging.WARNING if self._moves_slowed == 1 else logging.INFO
-        m, static, visc = self.controller.move_force_terms()  # type: ignore[attr-defined]
-        need = m * asked.max_acceleration_m_s2 + static + visc * asked.max_velocity_m_s
-        usable = min(float(getattr(self.controller, "force_limit_n", math.inf)), self.safety.force_limit_n)
+        b = self._budget  # the budget the move was planned within
+        if b is None:
+            return
+        frac = self.safety.cfg.move_force_fraction
         log.log(lvl, "move planned slower: it asks up to %.3g N (m*a %.3g kg x %.3g m/s^2 + friction %.3g N + "
-                "viscous %.3g N s/m x %.3g m/s) of %.3g N usable (safety.move_force_fraction %g): planned at "
-                "a_max %.3g m/s^2, v_max %.3g m/s, j_max %.3g m/s^3", need, m, asked.max_acceleration_m_s2,
-                static, visc, asked.max_velocity_m_s, usable, self.safety.cfg.move_force_fraction,
+                "viscous %.3g N s/m x %.3g m/s), over the %.3g N budget (safety.move_force_fraction %g of %.3g N "
+                "usable): planned at a_max %.3g m/s^2, v_max %.3g m/s, j_max %.3g m/s^3", b.move_force_n(asked),
+                b.mass_kg, asked.max_acceleration_m_s2, b.static_n, b.viscous_n_s_m, asked.max_velocity_m_s,
+                b.force_n, frac, b.force_n / frac if frac > 0 else math.nan,
                 planned.max_acceleration_m_s2, planned.max_velocity_m_s, planned.max_jerk_m_s3)
 
     def _adopt_limit(self) -> None:
